@@ -1,0 +1,33 @@
+"""lungdeform: real-time, physics-based 3-D breathing lung models (Santhanam et al. 2008).
+
+The method is described equation by equation in the project's METHOD notes; every module names the
+equations it implements. Heavy optional libraries are imported lazily where they are used.
+"""
+
+from .errors import (
+    ConvergenceError,
+    InputError,
+    LungdeformError,
+    MaskError,
+    MeshError,
+    ModelFileError,
+    ReadError,
+    UnitsError,
+)
+from .mesh import Surface, check_surface
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "ConvergenceError",
+    "InputError",
+    "LungdeformError",
+    "MaskError",
+    "MeshError",
+    "ModelFileError",
+    "ReadError",
+    "Surface",
+    "UnitsError",
+    "check_surface",
+    "__version__",
+]

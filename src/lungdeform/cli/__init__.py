@@ -1,0 +1,1 @@
+"""Command-line interface: ``lungdeform COMMAND``. Only this package prints or picks exit codes."""

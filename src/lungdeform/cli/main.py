@@ -1,0 +1,95 @@
+"""Entry point of the ``lungdeform`` command.
+
+Each command lives in its own module under ``lungdeform.cli`` and exposes ``register(apps)``, where
+``apps`` is :class:`Apps` (the root app and the ``validate`` and ``bench`` groups). Add a module's
+name to :data:`COMMAND_MODULES` to make its commands appear.
+
+Exit codes: 0 success; 1 an unexpected internal error (traceback shown); 2 bad input or a
+failed check (one line on stderr naming the file and the problem); 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+from dataclasses import dataclass
+
+import typer
+
+COMMAND_MODULES = [
+    "lungdeform.cli.build",
+    "lungdeform.cli.demo",
+    "lungdeform.cli.bench",
+    "lungdeform.cli.validate_paper",
+]
+
+
+@dataclass(frozen=True)
+class Apps:
+    root: typer.Typer
+    validate: typer.Typer
+    bench: typer.Typer
+
+
+def make_app() -> typer.Typer:
+    root = typer.Typer(
+        name="lungdeform",
+        help="Real-time, physics-based 3-D breathing lung models from CT (Santhanam et al. 2008).",
+        no_args_is_help=True,
+        add_completion=False,
+        pretty_exceptions_enable=False,
+    )
+    validate = typer.Typer(help="Validate the model against the paper and real data.", no_args_is_help=True)
+    bench = typer.Typer(help="Benchmarks, reported as ratios against a yardstick run alongside.", no_args_is_help=True)
+    root.add_typer(validate, name="validate")
+    root.add_typer(bench, name="bench")
+
+    @root.callback()
+    def _root(version: bool = typer.Option(False, "--version", help="Print the version and exit.")):
+        if version:
+            from lungdeform import __version__
+
+            typer.echo(__version__)
+            raise typer.Exit(0)
+
+    apps = Apps(root, validate, bench)
+    for name in COMMAND_MODULES:
+        importlib.import_module(name).register(apps)
+    return root
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the CLI; return the exit code (also used by ``python -m lungdeform``)."""
+    from lungdeform.errors import LungdeformError
+
+    app = make_app()
+    try:
+        # standalone mode: typer itself reports usage errors (exit 2) and Ctrl-C
+        app(args=argv, prog_name="lungdeform")
+    except SystemExit as exc:
+        if exc.code is None:
+            return 0
+        return exc.code if isinstance(exc.code, int) else 1
+    except KeyboardInterrupt:
+        typer.echo("interrupted", err=True)
+        return 130
+    except LungdeformError as exc:
+        typer.echo(f"error: {_one_line(exc)}", err=True)
+        return 2
+    except OSError as exc:
+        where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
+        typer.echo(f"error: {where}{exc.strerror or exc}", err=True)
+        return 2
+    return 0
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split())
+
+
+def run() -> None:  # pragma: no cover - console-script shim
+    sys.exit(main())
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,56 @@
+"""Exceptions raised by lungdeform.
+
+Library code raises these; only the CLI turns them into exit codes (2 for bad input).
+Every message should name the parameter or file at fault and what was expected.
+"""
+
+from __future__ import annotations
+
+
+class LungdeformError(Exception):
+    """Base class of every error lungdeform raises on purpose."""
+
+
+class InputError(LungdeformError, ValueError):
+    """A value given at a public boundary is of the wrong shape, type or range."""
+
+
+class ReadError(LungdeformError):
+    """A file is missing, empty, truncated or not of the expected format."""
+
+
+class MeshError(LungdeformError):
+    """A surface fails a check: open, non-manifold, mis-oriented, NaN, several components."""
+
+
+class UnitsError(MeshError):
+    """A surface's size shows it is not in millimetres."""
+
+
+class MaskError(LungdeformError):
+    """A mask or label image cannot give a surface (no foreground, bad labels)."""
+
+
+class ConvergenceError(LungdeformError):
+    """An iterative solver did not reach its tolerance."""
+
+
+class ModelFileError(ReadError):
+    """A model file has the wrong schema version, missing keys or inconsistent shapes."""
+
+
+class MissingDependencyError(LungdeformError, ImportError):
+    """An optional dependency needed for this feature is not installed."""
+
+
+def require(module: str, feature: str, package: str | None = None):
+    """Import an optional module or raise :class:`MissingDependencyError` naming the feature."""
+    import importlib
+
+    try:
+        return importlib.import_module(module)
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        pkg = package or module.split(".")[0]
+        raise MissingDependencyError(
+            f"{feature} needs the optional package '{pkg}': pip install {pkg}"
+        ) from exc
