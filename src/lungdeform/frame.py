@@ -1,0 +1,79 @@
+"""The per-lung frame of the paper (Sec. IV-B.1; METHOD §1).
+
+Axes, as unit vectors in LPS (x → patient left, y → posterior, z → head):
+
+- X grows laterally from the heart: +x for the left lung, −x for the right lung;
+- Y grows anteriorly from the posterior side: −y;
+- Z grows toward the base from the apex: −z.
+
+Origins sit on the end-exhale bounding box: X at its medial face, Y at its posterior face, Z at its
+apex. Normalised coordinates ``x̂, ŷ, ẑ ∈ [0, 1]`` use that box (min, max).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import InputError
+from .mesh import as_vertices
+
+SIDES = ("left", "right")
+
+
+def frame_axes(side: str) -> np.ndarray:
+    """``(3, 3) float``: rows are the lung-frame X, Y, Z axes in LPS for ``side``."""
+    if side not in SIDES:
+        raise InputError(f"side must be 'left' or 'right', got {side!r}")
+    lateral = 1.0 if side == "left" else -1.0
+    return np.array([[lateral, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
+
+
+@dataclass(frozen=True)
+class LungFrame:
+    """A lung's frame.
+
+    Attributes
+    ----------
+    side : 'left' | 'right'
+    axes : (3, 3) float
+        Rows = lung X, Y, Z unit axes in LPS.
+    lower, upper : (3,) float
+        End-exhale bounding box in lung-frame mm (``lower`` is the origin).
+    """
+
+    side: str
+    axes: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+
+    def to_frame(self, points: np.ndarray) -> np.ndarray:
+        """``(n, 3)`` LPS mm → lung-frame mm (origin at the box's lower corner)."""
+        return as_vertices(points, "points") @ self.axes.T - self.lower
+
+    def normalized(self, points: np.ndarray) -> np.ndarray:
+        """``(n, 3)`` LPS mm → ``(x̂, ŷ, ẑ)`` in [0, 1] over the end-exhale box (values outside
+        the box fall outside [0, 1])."""
+        return self.to_frame(points) / (self.upper - self.lower)
+
+    def to_world(self, vectors: np.ndarray) -> np.ndarray:
+        """Lung-frame vectors ``(n, 3)`` → LPS vectors."""
+        return np.ascontiguousarray(np.asarray(vectors, float) @ self.axes)
+
+
+def lung_frame(vertices: np.ndarray, side: str) -> LungFrame:
+    """The frame of a lung whose end-exhale vertices are ``(n, 3) float`` mm LPS."""
+    axes = frame_axes(side)
+    q = as_vertices(vertices) @ axes.T
+    lower, upper = q.min(axis=0), q.max(axis=0)
+    if np.any(upper - lower <= 0):
+        raise InputError("lung surface is flat along a frame axis: cannot normalise coordinates")
+    return LungFrame(side, axes, lower, upper)
+
+
+def guess_sides(centroids_x: list[float]) -> list[str]:
+    """Sides for two lungs from their LPS x centroids: the larger x (patient left) is 'left'."""
+    if len(centroids_x) != 2:
+        raise InputError("sides can be guessed only for exactly two lungs; pass --side")
+    return ["left", "right"] if centroids_x[0] > centroids_x[1] else ["right", "left"]

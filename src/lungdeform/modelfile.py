@@ -1,0 +1,153 @@
+"""The model file: a versioned ``.npz`` (numpy zip) holding everything playback needs.
+
+Schema ``lungdeform.model``, version 1 (documented in docs/MODEL_FORMAT.md). Top-level keys:
+
+=================  ==================  =====================================================
+key                type                meaning
+=================  ==================  =====================================================
+schema             str                 ``"lungdeform.model"``
+schema_version     int                 1
+lungs              (k,) str            lung names (``"left"``, ``"right"``)
+provenance         str (JSON)          sources, settings, software version, creation time
+=================  ==================  =====================================================
+
+Per lung, under ``lung/<name>/``: ``side`` str; ``vertices (n, 3) float64`` mm LPS (end-exhale p);
+``faces (m, 3) int32`` (outward); ``constants (9,)`` c1…c9; ``stiffness (n,)``;
+``frame_axes (3, 3)`` (rows: lung X, Y, Z in LPS); ``frame_lower (3,)``, ``frame_upper (3,)``
+(end-exhale box, lung-frame mm); ``directions (n, 3)`` unit, LPS; ``force_basis (4, n)``
+(elastostatic force for fields 1, x̂, ŷ, ẑ); ``gravity (3,)`` unit LPS; ``force_weights (4,)``;
+``displacement (n, 3) float64`` mm per ``unit_ml``; ``unit_ml``; ``calibration_ml``; ``d_min`` mm;
+``volume_ee_ml``; ``volume_poly (4,)`` mm³ (volume of p + s·u as a cubic in s).
+
+Loading checks the schema name and version, that every key is present, and every shape.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from .errors import ModelFileError
+from .frame import LungFrame
+from .mesh import Surface
+from .model import LungModel, Model
+
+SCHEMA = "lungdeform.model"
+SCHEMA_VERSION = 1
+
+_PER_LUNG = ("side", "vertices", "faces", "constants", "stiffness", "frame_axes", "frame_lower",
+             "frame_upper", "directions", "force_basis", "gravity", "force_weights",
+             "displacement", "unit_ml", "calibration_ml", "d_min", "volume_ee_ml", "volume_poly")
+
+
+def lung_arrays(lung: LungModel) -> dict[str, np.ndarray]:
+    """The per-lung arrays of the schema (also used by exporters)."""
+    return {
+        "side": np.array(lung.side),
+        "vertices": lung.surface.vertices,
+        "faces": lung.surface.faces.astype(np.int32),
+        "constants": lung.constants,
+        "stiffness": lung.stiffness,
+        "frame_axes": lung.frame.axes,
+        "frame_lower": lung.frame.lower,
+        "frame_upper": lung.frame.upper,
+        "directions": lung.directions,
+        "force_basis": lung.force_basis,
+        "gravity": lung.gravity,
+        "force_weights": lung.force_weights,
+        "displacement": lung.displacement,
+        "unit_ml": np.array(lung.unit_ml),
+        "calibration_ml": np.array(lung.calibration_ml),
+        "d_min": np.array(lung.d_min),
+        "volume_ee_ml": np.array(lung.volume_ee_ml),
+        "volume_poly": lung.volume_poly,
+    }
+
+
+def save_model(path, model: Model) -> Path:
+    """Write ``model`` to ``path`` (``.npz`` appended if missing) atomically; return the path."""
+    path = Path(path)
+    if path.suffix != ".npz":
+        path = path.with_name(path.name + ".npz")
+    arrays: dict[str, np.ndarray] = {
+        "schema": np.array(SCHEMA),
+        "schema_version": np.array(SCHEMA_VERSION),
+        "lungs": np.array(model.names),
+        "provenance": np.array(json.dumps(model.provenance, default=str)),
+    }
+    for name, lung in model.lungs.items():
+        for key, value in lung_arrays(lung).items():
+            arrays[f"lung/{name}/{key}"] = value
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            np.savez_compressed(fh, **arrays)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def load_model(path) -> Model:
+    """Read a model file; raise :class:`ModelFileError` naming the file and the problem."""
+    path = Path(path)
+    if not path.is_file():
+        raise ModelFileError(f"{path}: no such model file")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+        raise ModelFileError(f"{path}: not a lungdeform model file ({exc})") from exc
+    if str(data.get("schema", "")) != SCHEMA:
+        raise ModelFileError(f"{path}: not a lungdeform model file (schema {data.get('schema')!r})")
+    version = int(data.get("schema_version", -1))
+    if version != SCHEMA_VERSION:
+        raise ModelFileError(
+            f"{path}: model schema version {version} is not supported (this lungdeform reads {SCHEMA_VERSION})"
+        )
+    try:
+        provenance = json.loads(str(data["provenance"]))
+        names = [str(x) for x in data["lungs"]]
+    except (KeyError, ValueError) as exc:
+        raise ModelFileError(f"{path}: damaged header ({exc})") from exc
+    lungs = {name: _lung(path, name, data) for name in names}
+    return Model(lungs, provenance)
+
+
+def _lung(path: Path, name: str, data: dict) -> LungModel:
+    prefix = f"lung/{name}/"
+    missing = [k for k in _PER_LUNG if prefix + k not in data]
+    if missing:
+        raise ModelFileError(f"{path}: lung '{name}' lacks {', '.join(missing)}")
+    a = {k: data[prefix + k] for k in _PER_LUNG}
+    v = a["vertices"]
+    if v.ndim != 2 or v.shape[1] != 3:
+        raise ModelFileError(f"{path}: lung '{name}' vertices have shape {v.shape}, expected (n, 3)")
+    n = len(v)
+    expected = {"faces": (None, 3), "constants": (9,), "stiffness": (n,), "frame_axes": (3, 3),
+                "frame_lower": (3,), "frame_upper": (3,), "directions": (n, 3),
+                "force_basis": (4, n), "gravity": (3,), "force_weights": (4,),
+                "displacement": (n, 3), "volume_poly": (4,)}
+    for key, shape in expected.items():
+        got = a[key].shape
+        if len(got) != len(shape) or any(s is not None and s != g for s, g in zip(shape, got)):
+            raise ModelFileError(
+                f"{path}: lung '{name}' {key} has shape {got}, expected {tuple(s or 'm' for s in shape)}"
+            )
+    if int(a["faces"].max(initial=-1)) >= n:
+        raise ModelFileError(f"{path}: lung '{name}' faces index beyond its {n} vertices")
+    surface = Surface(v, a["faces"].astype(np.int64), name)
+    frame = LungFrame(str(a["side"]), a["frame_axes"], a["frame_lower"], a["frame_upper"])
+    return LungModel(
+        side=str(a["side"]), surface=surface, constants=a["constants"], stiffness=a["stiffness"],
+        frame=frame, directions=a["directions"], force_basis=a["force_basis"],
+        gravity=a["gravity"], displacement=a["displacement"], unit_ml=float(a["unit_ml"]),
+        calibration_ml=float(a["calibration_ml"]), d_min=float(a["d_min"]),
+    )
