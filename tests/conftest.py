@@ -33,3 +33,24 @@ def require_path(base: Path, *parts: str) -> Path:
     if not path.exists():
         pytest.skip(f"real data missing: {path}")
     return path
+
+
+def ellipsoid_lung(side: str = "left", subdivisions: int = 3):
+    """A lung-sized ellipsoid (semi-axes 45 × 70 × 110 mm, ≈ 1.45 L) on the patient's ``side``
+    (LPS: left lung at x > 0), for tests that need a plausible closed lung surface."""
+    from lungdeform.mesh import Surface, icosphere
+
+    s = icosphere(subdivisions, 1.0)
+    x = 90.0 if side == "left" else -90.0
+    v = s.vertices * np.array([45.0, 70.0, 110.0]) + np.array([x, 20.0, -150.0])
+    return Surface(v, s.faces, side)
+
+
+@pytest.fixture
+def left_lung():
+    return ellipsoid_lung("left")
+
+
+@pytest.fixture
+def right_lung():
+    return ellipsoid_lung("right")

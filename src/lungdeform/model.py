@@ -218,3 +218,36 @@ class Model:
 
     def oriented(self, gravity) -> "Model":
         return Model({k: v.oriented(gravity) for k, v in self.lungs.items()}, dict(self.provenance))
+
+
+def build_model(
+    surfaces: dict[str, Surface],
+    *,
+    tidal_ml: float = TIDAL_VOLUME_ML,
+    constants: dict[str, np.ndarray] | None = None,
+    stiffness: dict[str, np.ndarray] | None = None,
+    provenance: dict | None = None,
+    progress: Callable[[str], None] | None = None,
+    **kwargs,
+) -> Model:
+    """Build one model per side from ``{side: surface}``.
+
+    The tidal volume (mL, both lungs together) is split between the lungs in proportion to their
+    end-exhale volumes; each lung is calibrated exactly at its share. Other keyword arguments go to
+    :func:`build_lung` (``gravity``, ``solver``, ``d_min``, ``unit_ml``).
+    """
+    if not tidal_ml > 0:
+        raise InputError(f"tidal_ml must be > 0 mL, got {tidal_ml!r}")
+    total = sum(s.volume_ml for s in surfaces.values())
+    lungs = {}
+    for side, surface in surfaces.items():
+        share = tidal_ml * surface.volume_ml / total
+        lungs[side] = build_lung(
+            surface, side,
+            constants=None if constants is None else constants.get(side),
+            stiffness=None if stiffness is None else stiffness.get(side),
+            calibration_ml=share, progress=progress, **kwargs,
+        )
+    prov = dict(provenance or {})
+    prov.setdefault("tidal_ml", tidal_ml)
+    return Model(lungs, prov)

@@ -1,0 +1,85 @@
+"""``lungdeform bench solve|playback --vertices N [--vertices N …] --json FILE``."""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import tempfile
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from .common import say
+
+
+def _write_json(path: Path, results: list[dict], kind: str) -> None:
+    doc = {"benchmark": kind, "machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
+                                          "platform": platform.platform()}, "results": results}
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    with os.fdopen(fd, "w") as fh:
+        json.dump(doc, fh, indent=2)
+    os.replace(tmp, path)
+
+
+def _surfaces(vertices: list[int]):
+    from lungdeform.bench import lung_with_vertices
+    from lungdeform.errors import InputError
+
+    for n in vertices:
+        if n < 100:
+            raise InputError(f"--vertices must be at least 100, got {n}")
+        say(f"preparing a subdivided real lung with about {n} vertices")
+        yield lung_with_vertices(n)
+
+
+def register(apps) -> None:
+    @apps.bench.command("solve")
+    def solve(
+        vertices: list[int] = typer.Option([10_000], "--vertices", "-n", help="Vertex counts (repeat the option)."),
+        json_path: Optional[Path] = typer.Option(None, "--json", help="Write results here."),
+        push_max: int = typer.Option(1_000_000, "--push-max-vertices", help="Skip the push loop above this size."),
+        push_tol: float = typer.Option(1e-8, "--push-tol", help="Push loop stops at max|P| ≤ tol·max|f|."),
+    ):
+        """Push loop (the paper's algorithm) against the sparse solve of its fixed point."""
+        from lungdeform.bench import bench_solve
+
+        results = []
+        for s in _surfaces(vertices):
+            rows = bench_solve(s, include_push=s.n_vertices <= push_max, push_tol=push_tol)
+            results += rows
+            sparse = rows[0]
+            line = (f"{s.n_vertices:>9} vertices ({sparse['graph_nodes']} nodes): sparse "
+                    f"{sparse['seconds']:.3f} s ({sparse['iterations']} it)")
+            if len(rows) > 1:
+                p = rows[1]
+                line += (f", push {p['seconds']:.3f} s ({p['pushes']} pushes), push/sparse "
+                         f"{p['seconds'] / sparse['seconds']:.1f}×, max diff {p['max_relative_difference_to_sparse']:.1e}")
+            typer.echo(line)
+        if json_path:
+            _write_json(json_path, results, "solve")
+            typer.echo(f"results written to {json_path}")
+
+    @apps.bench.command("playback")
+    def playback(
+        vertices: list[int] = typer.Option([10_000], "--vertices", "-n", help="Vertex counts (repeat the option)."),
+        json_path: Optional[Path] = typer.Option(None, "--json", help="Write results here."),
+        frames: int = typer.Option(200, "--frames", help="Frames timed per size (median reported)."),
+    ):
+        """Per-frame playback (x += Δs·u, float32) against a memcpy of the same bytes."""
+        from lungdeform.bench import bench_playback
+
+        results = []
+        for s in _surfaces(vertices):
+            rows = bench_playback(s, frames=frames)
+            results += rows
+            p, m = rows
+            typer.echo(f"{s.n_vertices:>9} vertices: playback {p['seconds'] * 1e3:.3f} ms/frame "
+                       f"({p['frames_per_second']:.0f} fps), memcpy {m['seconds'] * 1e3:.3f} ms, "
+                       f"ratio {p['ratio_to_memcpy']:.2f}")
+        if json_path:
+            _write_json(json_path, results, "playback")
+            typer.echo(f"results written to {json_path}")

@@ -1,0 +1,108 @@
+"""``lungdeform build SURFACE [SURFACE …] --out MODEL``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from .common import parse_orientation, provenance, say
+
+
+def register(apps) -> None:
+    @apps.root.command("build")
+    def build(
+        sources: list[Path] = typer.Argument(..., help="Mesh files (STL, OBJ, PLY, VTK, VTP, OFF, glTF/GLB) or masks (NIfTI, MHA/MHD, NRRD, DICOM folder)."),
+        out: Path = typer.Option(..., "--out", "-o", help="Model file to write (.npz)."),
+        side: Optional[list[str]] = typer.Option(None, "--side", help="Side of each surface in order: left|right. Default: from label names, or guessed from position for two surfaces."),
+        labels: Optional[str] = typer.Option(None, "--labels", help="Mask labels: 'lungs' (lobe map → left, right), 'left=1,2;right=3,4,5', or '1,2'."),
+        units: str = typer.Option("mm", "--units", help="Units of mesh files: mm, cm or m (converted to mm)."),
+        repair: bool = typer.Option(False, "--repair", help="Repair fixable surface defects and report them."),
+        target_vertices: Optional[int] = typer.Option(None, "--target-vertices", help="Decimate mask surfaces to about this many vertices."),
+        orientation: str = typer.Option("supine", "--orientation", help="supine, prone, upright, left-decubitus, right-decubitus, or a gravity vector 'x,y,z' (LPS)."),
+        tidal_ml: float = typer.Option(500.0, "--tidal-ml", help="Tidal volume for both lungs together (mL); calibration is exact there."),
+        stiffness: str = typer.Option("uniform", "--stiffness", help="uniform | gradient:DEPENDENT,NONDEPENDENT | sphere:X,Y,Z,RADIUS,E (mm, LPS)."),
+        solver: str = typer.Option("bicgstab", "--solver", help="Linear solver: bicgstab, gmres or direct."),
+        d_min: float = typer.Option(1.0, "--d-min", help="Minimum transfer distance (mm)."),
+    ):
+        """Build a breathing lung model from one or two lung surfaces."""
+        from lungdeform import io
+        from lungdeform.errors import InputError
+        from lungdeform.model import build_model
+        from lungdeform.modelfile import save_model
+
+        loaded = []
+        for src in sources:
+            for surface, report in io.load(src, labels=labels, units=units, repair=repair,
+                                           target_vertices=target_vertices, progress=say):
+                for line in report.repairs:
+                    say(f"{surface.name}: {line}")
+                loaded.append((src, surface))
+        sides = resolve_sides([s for _, s in loaded], side)
+        if len(set(sides)) != len(sides):
+            raise InputError(f"two surfaces for the same side: {', '.join(sides)}")
+        surfaces = {sd: s for sd, (_, s) in zip(sides, loaded)}
+        gravity = parse_orientation(orientation)
+        stiff = {sd: stiffness_field(stiffness, s, gravity) for sd, s in surfaces.items()}
+        prov = provenance(
+            "build", sources=[str(p) for p, _ in loaded], sides=sides, orientation=orientation,
+            stiffness=stiffness, solver=solver, units=units,
+        )
+        model = build_model(surfaces, tidal_ml=tidal_ml, stiffness=stiff, gravity=gravity,
+                            solver=solver, d_min=d_min, provenance=prov, progress=say)
+        path = save_model(out, model)
+        for sd, lung in model.lungs.items():
+            typer.echo(f"{sd}: {lung.n_vertices} vertices, V_EE {lung.volume_ee_ml:.0f} mL, "
+                       f"calibrated at +{lung.calibration_ml:.0f} mL")
+        typer.echo(f"model written to {path}")
+
+
+def resolve_sides(surfaces, given: list[str] | None) -> list[str]:
+    """Sides from --side, from names ending in -left/-right, or from position (two lungs)."""
+    from lungdeform.errors import InputError
+    from lungdeform.frame import SIDES, guess_sides
+
+    if given:
+        if len(given) != len(surfaces):
+            raise InputError(f"--side given {len(given)} times for {len(surfaces)} surfaces")
+        bad = [s for s in given if s not in SIDES]
+        if bad:
+            raise InputError(f"--side must be left or right, got {bad[0]!r}")
+        return list(given)
+    named = [next((sd for sd in SIDES if s.name.lower().endswith(sd)), None) for s in surfaces]
+    if all(named):
+        return named
+    if len(surfaces) == 2:
+        return guess_sides([float(s.vertices[:, 0].mean()) for s in surfaces])
+    raise InputError(f"cannot tell the side of {surfaces[0].name}: pass --side left or --side right")
+
+
+def stiffness_field(spec: str, surface, gravity):
+    """Per-vertex moduli from the --stiffness option (None = uniform)."""
+    from lungdeform import stiffness as st
+    from lungdeform.constants import gravity_vector
+    from lungdeform.errors import InputError
+
+    kind, _, args = spec.partition(":")
+    kind = kind.strip().lower()
+    if kind == "uniform" and not args:
+        return None
+    if kind == "gradient":
+        vals = _floats(args)
+        if vals is None or len(vals) != 2:
+            raise InputError("--stiffness gradient needs DEPENDENT,NONDEPENDENT moduli, e.g. gradient:0.5,1.5")
+        return st.gravity_gradient(surface.vertices, gravity_vector(gravity), *vals)
+    if kind == "sphere":
+        nums = _floats(args)
+        if nums is None or len(nums) != 5:
+            raise InputError("--stiffness sphere needs X,Y,Z,RADIUS,E (mm, LPS; relative modulus)")
+        return st.sphere_override(st.uniform(surface.n_vertices), surface.vertices, nums[:3], nums[3], nums[4])
+    raise InputError(f"--stiffness must be uniform, gradient:D,N or sphere:X,Y,Z,R,E, got {spec!r}")
+
+
+def _floats(text: str):
+    try:
+        return [float(x) for x in text.split(",")] if text else []
+    except ValueError:
+        return None

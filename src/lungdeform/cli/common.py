@@ -1,0 +1,67 @@
+"""Helpers shared by CLI commands: progress output, output folders, option parsing."""
+
+from __future__ import annotations
+
+import datetime as _dt
+import sys
+from pathlib import Path
+
+import numpy as np
+import typer
+
+from lungdeform.errors import InputError
+
+
+#: Progress lines go to stderr when it is a terminal, or always after ``lungdeform --verbose``;
+#: so that in pipes and CI an error is the only line on stderr.
+VERBOSE = {"on": None}
+
+
+def say(message: str) -> None:
+    """Progress line on stderr (stdout stays for results)."""
+    on = VERBOSE["on"]
+    if on is None:
+        on = sys.stderr.isatty()
+    if on:
+        typer.echo(message, err=True)
+
+
+def output_dir(path: Path, option: str = "--out") -> Path:
+    """Create the output folder, or refuse a path that is an existing file."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise InputError(f"{option} {path}: exists and is not a folder")
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def parse_vector(text: str, name: str) -> np.ndarray:
+    """'x,y,z' → (3,) float."""
+    try:
+        v = np.array([float(t) for t in text.split(",")])
+    except ValueError:
+        raise InputError(f"{name} must be three numbers 'x,y,z', got {text!r}") from None
+    if v.shape != (3,):
+        raise InputError(f"{name} must be three numbers 'x,y,z', got {text!r}")
+    return v
+
+
+def parse_orientation(text: str):
+    """A named orientation (supine, prone, upright, left-decubitus, right-decubitus) or 'x,y,z' (LPS)."""
+    from lungdeform.constants import GRAVITY
+
+    if text.strip().lower() in GRAVITY:
+        return text.strip().lower()
+    return parse_vector(text, "--orientation")
+
+
+def provenance(command: str, **extra) -> dict:
+    from lungdeform import __version__
+
+    return {
+        "software": f"lungdeform {__version__}",
+        "command": command,
+        "argv": sys.argv[1:],
+        "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        **extra,
+    }

@@ -1,0 +1,82 @@
+"""``lungdeform build``: files in, model out; bad input exits 2 with one line and no output."""
+
+import numpy as np
+import pytest
+
+from lungdeform.cli.main import main
+from lungdeform.io import write_mesh
+from lungdeform.modelfile import load_model
+from tests.conftest import ellipsoid_lung
+
+
+@pytest.fixture
+def lung_files(tmp_path):
+    paths = []
+    for side in ("left", "right"):
+        s = ellipsoid_lung(side)
+        paths.append(write_mesh(tmp_path / f"lung_{side}.stl", s.vertices, s.faces))
+    return paths
+
+
+def test_build_two_lungs_guesses_sides(tmp_path, lung_files, capsys):
+    out = tmp_path / "model.npz"
+    assert main(["build", *map(str, lung_files), "--out", str(out)]) == 0
+    m = load_model(out)
+    assert sorted(m.names) == ["left", "right"]
+    # the left lung is the one at +x (LPS): the side was guessed from position
+    assert m.lungs["left"].surface.vertices[:, 0].mean() > 0
+    # both lungs together are calibrated at the 500 mL tidal volume
+    assert sum(l.calibration_ml for l in m.lungs.values()) == pytest.approx(500.0)
+    assert "model written to" in capsys.readouterr().out
+
+
+def test_build_options(tmp_path, lung_files):
+    out = tmp_path / "m.npz"
+    code = main(["build", str(lung_files[0]), "--side", "left", "--out", str(out),
+                 "--orientation", "upright", "--stiffness", "gradient:0.5,1.5", "--tidal-ml", "300"])
+    assert code == 0
+    lung = load_model(out).lungs["left"]
+    assert np.allclose(lung.gravity, [0, 0, -1])
+    assert lung.stiffness.min() == pytest.approx(0.5) and lung.stiffness.max() == pytest.approx(1.5)
+    assert lung.calibration_ml == pytest.approx(300.0)
+
+
+def _fails(args, capsys, *needles):
+    code = main(args)
+    err = capsys.readouterr().err.strip()
+    assert code == 2
+    assert len(err.splitlines()) == 1 and "Traceback" not in err
+    for n in needles:
+        assert n in err
+    return err
+
+
+def test_bad_inputs_exit_2_with_one_line(tmp_path, capsys):
+    out = tmp_path / "m.npz"
+    missing = tmp_path / "nope.stl"
+    _fails(["build", str(missing), "--side", "left", "--out", str(out)], capsys, "nope.stl")
+    empty = tmp_path / "empty.stl"
+    empty.write_bytes(b"")
+    _fails(["build", str(empty), "--side", "left", "--out", str(out)], capsys, "empty.stl")
+    junk = tmp_path / "junk.ply"
+    junk.write_bytes(b"\x00\x01garbage" * 10)
+    _fails(["build", str(junk), "--side", "left", "--out", str(out)], capsys, "junk.ply")
+    s = ellipsoid_lung("left")
+    v = s.vertices.copy()
+    v[5] = np.nan
+    nan = write_mesh(tmp_path / "nan.obj", v, s.faces)
+    _fails(["build", str(nan), "--side", "left", "--out", str(out)], capsys, "nan.obj", "NaN")
+    opened = write_mesh(tmp_path / "open.ply", s.vertices, s.faces[1:])
+    _fails(["build", str(opened), "--side", "left", "--out", str(out)], capsys, "open.ply", "open")
+    metres = write_mesh(tmp_path / "metres.stl", s.vertices / 1000, s.faces)
+    _fails(["build", str(metres), "--side", "left", "--out", str(out)], capsys, "metres.stl", "--units")
+    _fails(["build", str(metres), "--out", str(out)], capsys)  # no side for a single surface
+    assert not out.exists() and not list(tmp_path.glob(".m.npz*"))  # no partial output
+
+
+def test_units_option_rescales(tmp_path):
+    s = ellipsoid_lung("left")
+    metres = write_mesh(tmp_path / "metres.stl", s.vertices / 1000, s.faces)
+    out = tmp_path / "m.npz"
+    assert main(["build", str(metres), "--side", "left", "--units", "m", "--out", str(out)]) == 0
+    assert load_model(out).lungs["left"].volume_ee_ml == pytest.approx(s.volume_ml, rel=1e-5)

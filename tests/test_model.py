@@ -1,0 +1,103 @@
+"""Building a lung model end to end, re-orienting it, and the model file round trip."""
+
+import numpy as np
+import pytest
+
+from lungdeform.errors import InputError, ModelFileError
+from lungdeform.model import Model, build_lung
+from lungdeform.modelfile import SCHEMA_VERSION, load_model, save_model
+from lungdeform.solve import ForceSolver, push
+from lungdeform.graph import spring_graph
+from lungdeform.transfer import local_transfer
+from lungdeform.force import field_basis
+
+
+@pytest.fixture
+def model(left_lung):
+    return build_lung(left_lung, "left")
+
+
+def test_volume_linear_over_tidal_range(model):
+    # Issue 2 item 4: across 500 mL, V(s) matches V_EE + s·ΔV within 1 % (end point exact).
+    v0 = model.volume_ee_ml
+    for s in np.linspace(0, 500, 11):
+        v = model.surface_at(scale=s).volume_ml
+        assert abs(v - (v0 + s * model.unit_ml)) <= 0.01 * (v0 + s * model.unit_ml)
+    assert model.surface_at(scale=500).volume_ml == pytest.approx(v0 + 500, rel=1e-12)
+    # the exact path hits any volume exactly
+    assert model.surface_at(v0 + 123.0, exact=True).volume_ml == pytest.approx(v0 + 123.0, rel=1e-12)
+
+
+def test_force_basis_is_the_solver_response(model, left_lung):
+    # The stored responses are what the push loop gives for each field (dense-free reference).
+    g = spring_graph(left_lung.vertices, left_lung.edges)
+    t = local_transfer(g, model.stiffness)
+    fields = field_basis(model.frame.normalized(left_lung.vertices))
+    ref = push(t, fields[2], tol=1e-12).kept[: model.n_vertices]
+    assert np.abs(model.force_basis[2] - ref).max() <= 1e-6 * np.abs(ref).max()
+    # and the force of the model's orientation is the weighted sum
+    assert np.allclose(model.force, model.force_weights @ model.force_basis)
+
+
+def test_stiff_region_moves_less(left_lung):
+    # Heterogeneous stiffness: a stiff sphere (tumour) keeps less force, so it moves less.
+    from lungdeform.stiffness import sphere_override, uniform
+
+    centre = left_lung.vertices[np.argmin(left_lung.vertices[:, 1])]  # anterior surface point
+    e = sphere_override(uniform(left_lung.n_vertices), left_lung.vertices, centre, 25.0, 20.0)
+    soft = build_lung(left_lung, "left")
+    stiff = build_lung(left_lung, "left", stiffness=e)
+    inside = np.linalg.norm(left_lung.vertices - centre, axis=1) <= 25.0
+    ratio = stiff.force[inside].mean() / soft.force[inside].mean()
+    assert ratio < 0.5
+
+
+def test_orientation_changes_motion_but_keeps_volume(model):
+    up = model.oriented("upright")
+    assert not np.allclose(up.displacement, model.displacement)
+    assert up.surface_at(scale=500).volume_ml == pytest.approx(model.volume_ee_ml + 500, rel=1e-12)
+    # supine → supine is the identity
+    assert np.allclose(model.oriented("supine").displacement, model.displacement, rtol=1e-12)
+
+
+def test_solver_choice_does_not_change_the_model(left_lung, model):
+    direct = build_lung(left_lung, "left", solver="direct")
+    assert np.allclose(direct.displacement, model.displacement, rtol=1e-8, atol=1e-12)
+
+
+def test_bad_constants_and_stiffness(left_lung):
+    with pytest.raises(InputError, match="constants"):
+        build_lung(left_lung, "left", constants=[1, 2, 3])
+    with pytest.raises(InputError, match="stiffness"):
+        build_lung(left_lung, "left", stiffness=np.zeros(left_lung.n_vertices))
+
+
+def test_model_file_round_trip(tmp_path, model, right_lung):
+    m = Model({"left": model, "right": build_lung(right_lung, "right")}, {"source": "test"})
+    path = save_model(tmp_path / "lungs", m)
+    assert path.name == "lungs.npz" and not list(tmp_path.glob(".*tmp"))
+    back = load_model(path)
+    assert back.names == ["left", "right"] and back.provenance == {"source": "test"}
+    for name in m.names:
+        a, b = m.lungs[name], back.lungs[name]
+        assert np.array_equal(a.displacement, b.displacement)
+        assert np.array_equal(a.surface.faces, b.surface.faces)
+        assert b.volume_ee_ml == pytest.approx(a.volume_ee_ml)
+
+
+def test_model_file_refuses_wrong_version_and_shapes(tmp_path, model):
+    path = save_model(tmp_path / "m.npz", Model({"left": model}))
+    with np.load(path) as z:
+        data = {k: z[k] for k in z.files}
+    bad = dict(data, schema_version=np.array(SCHEMA_VERSION + 1))
+    np.savez(tmp_path / "v.npz", **bad)
+    with pytest.raises(ModelFileError, match="version"):
+        load_model(tmp_path / "v.npz")
+    bad = dict(data)
+    bad["lung/left/displacement"] = bad["lung/left/displacement"][:-1]
+    np.savez(tmp_path / "s.npz", **bad)
+    with pytest.raises(ModelFileError, match="displacement has shape"):
+        load_model(tmp_path / "s.npz")
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")
+    with pytest.raises(ModelFileError, match="junk.npz"):
+        load_model(tmp_path / "junk.npz")
