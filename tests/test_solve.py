@@ -89,3 +89,16 @@ def test_bad_force_rejected(system):
         ForceSolver(t).solve(np.full(len(f), np.nan))
     with pytest.raises(InputError, match="method"):
         ForceSolver(t, "magic").solve(f)
+
+
+@pytest.mark.parametrize("method", ["bicgstab", "direct"])
+def test_spring_node_elimination_is_exact(system, method, rng):
+    # Eliminating spring nodes (Schur complement) must give the same kept force on every node,
+    # including when a force is applied on spring nodes too.
+    g, t, f = system
+    full = ForceSolver(t, method)
+    reduced = ForceSolver(t, method, n_mass=g.n_mass)
+    assert reduced.n_mass == g.n_mass and reduced.matrix.shape == (g.n_mass, g.n_mass)
+    f_all = rng.uniform(size=g.n_nodes)
+    for applied in (f, f_all):
+        assert np.allclose(reduced.solve(applied), full.solve(applied), rtol=1e-9, atol=1e-13)

@@ -191,7 +191,7 @@ def build_lung(
     say(f"{side}: spring graph and transfer ({n} vertices)")
     graph = spring_graph(p, surface.edges)
     t = local_transfer(graph, e, d_min)
-    fs = ForceSolver(t, solver)
+    fs = ForceSolver(t, solver, n_mass=n)
     say(f"{side}: force responses ({graph.n_nodes} graph nodes, 4 fields)")
     basis = np.stack([fs.solve(field)[:n] for field in field_basis(xyz)])
     d = direction_field(frame, p, c)

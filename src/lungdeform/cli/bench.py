@@ -41,7 +41,7 @@ def register(apps) -> None:
     def solve(
         vertices: list[int] = typer.Option([10_000], "--vertices", "-n", help="Vertex counts (repeat the option)."),
         json_path: Optional[Path] = typer.Option(None, "--json", help="Write results here."),
-        push_max: int = typer.Option(1_000_000, "--push-max-vertices", help="Skip the push loop above this size."),
+        push_max: int = typer.Option(200_000, "--push-max-vertices", help="Skip the push loop above this size."),
         push_tol: float = typer.Option(1e-8, "--push-tol", help="Push loop stops at max|P| ≤ tol·max|f|."),
     ):
         """Push loop (the paper's algorithm) against the sparse solve of its fixed point."""
