@@ -101,3 +101,46 @@ def test_model_file_refuses_wrong_version_and_shapes(tmp_path, model):
     (tmp_path / "junk.npz").write_bytes(b"not a zip")
     with pytest.raises(ModelFileError, match="junk.npz"):
         load_model(tmp_path / "junk.npz")
+
+
+def _check_tidal_linearity(lung_model):
+    # Across the tidal range the enclosed volume at s units is V_EE + s·ΔV within 1 %.
+    v0 = lung_model.volume_ee_ml
+    worst = 0.0
+    for s in np.linspace(0, lung_model.calibration_ml / lung_model.unit_ml, 21):
+        want = v0 + s * lung_model.unit_ml
+        got = lung_model.surface_at(scale=s).volume_ml
+        worst = max(worst, abs(got - want) / want)
+    assert worst <= 0.01
+    return worst
+
+
+def test_embedded_real_lungs_follow_500_ml(tmp_path):
+    # The embedded lungs are real (Coronacases 001): 500 mL over both lungs, and each lung alone.
+    from lungdeform.data import default_lungs
+    from lungdeform.model import build_model
+
+    lungs = default_lungs()
+    model = build_model(lungs, tidal_ml=500.0)
+    for lung in model.lungs.values():
+        _check_tidal_linearity(lung)
+    single = build_lung(lungs["right"], "right", calibration_ml=500.0)
+    _check_tidal_linearity(single)
+    # directions and force are physical: every vertex moves outward-ish on average
+    u = single.displacement
+    assert np.einsum("ij,ij->i", u, single.surface.vertex_normals).mean() > 0
+
+
+def test_real_itk_lung_follows_500_ml(data_dir):
+    # Real data: the ITK right lung (smaller volume) from its mask, 500 mL tidal range.
+    from lungdeform.io import load
+    from tests.conftest import require_path
+
+    folder = require_path(data_dir, "itk-right-lung-two-volumes")
+    mask = sorted(p for p in folder.iterdir() if p.name.endswith("_mask.mha"))
+    assert mask, f"no *_mask.mha in {folder}"
+    surfaces = [s for m in mask for s, _ in load(m, target_vertices=4000)]
+    smaller = min(surfaces, key=lambda s: s.volume_ml)
+    assert 3000 < smaller.volume_ml < 3700  # data README: 3.36 L
+    lung = build_lung(smaller, "right", calibration_ml=500.0)
+    _check_tidal_linearity(lung)

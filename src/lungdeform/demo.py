@@ -36,7 +36,8 @@ def breath_curve(duration_s: float = 5.0, tidal_ml: float = 500.0, rate_hz: floa
     Uses the breathing model's 'normal' preset when it is available (scaled to ``tidal_ml`` and
     ``duration_s``); otherwise a smooth cosine cycle ``V = T·(1 − cos 2πt/τ)/2``.
     """
-    t = np.arange(int(round(duration_s * rate_hz)) + 1) / rate_hz
+    n = max(2, int(round(duration_s * rate_hz)))
+    t = np.linspace(0.0, duration_s, n + 1)  # ends exactly at duration_s; rate ≈ rate_hz
     v = tidal_ml * 0.5 * (1.0 - np.cos(2.0 * np.pi * t / duration_s))
     return t, v
 
@@ -94,7 +95,7 @@ def run_demo(
             vols.append(signed_volume(x, lung.surface.faces) / 1000.0)
         frames[name] = vols
     summary = {
-        "frames_per_second": STEPS_PER_S,
+        "frames_per_second": (len(t) - 1) / duration_s,
         "duration_s": duration_s,
         "tidal_ml": tidal_ml,
         "orientation": str(orientation),

@@ -1,0 +1,27 @@
+"""``lungdeform bench``: the JSON schema the issue asks for (a smoke run, no timing assertions)."""
+
+import json
+
+from lungdeform.cli.main import main
+
+
+def test_bench_solve_and_playback_json(tmp_path):
+    for kind, methods in (("solve", {"sparse", "push"}), ("playback", {"playback", "memcpy"})):
+        out = tmp_path / f"{kind}.json"
+        args = ["bench", kind, "--vertices", "2000", "--json", str(out)]
+        if kind == "playback":
+            args += ["--frames", "5"]
+        assert main(args) == 0
+        doc = json.loads(out.read_text())
+        rows = doc["results"]
+        assert {r["method"] for r in rows} == methods
+        for r in rows:
+            assert r["vertices"] > 1000 and r["seconds"] > 0
+        if kind == "solve":
+            push = next(r for r in rows if r["method"] == "push")
+            assert push["max_relative_difference_to_sparse"] < 1e-6
+
+
+def test_bench_refuses_tiny_sizes(tmp_path, capsys):
+    assert main(["bench", "solve", "--vertices", "5"]) == 2
+    assert "--vertices" in capsys.readouterr().err
