@@ -8,15 +8,13 @@ a mesh time series, ``summary.json`` (volume per frame, per lung) and a PNG snap
 
 from __future__ import annotations
 
-import json
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
+from .atomic import write_json
 from .constants import STEPS_PER_S
 from .mesh import signed_volume
 
@@ -40,20 +38,6 @@ def breath_curve(duration_s: float = 5.0, tidal_ml: float = 500.0, rate_hz: floa
     t = np.linspace(0.0, duration_s, n + 1)  # ends exactly at duration_s; rate ≈ rate_hz
     v = tidal_ml * 0.5 * (1.0 - np.cos(2.0 * np.pi * t / duration_s))
     return t, v
-
-
-def write_json(path: Path, data: dict) -> Path:
-    """Atomic JSON write."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as fh:
-            json.dump(data, fh, indent=2)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
 
 
 def run_demo(

@@ -25,13 +25,12 @@ Loading checks the schema name and version, that every key is present, and every
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 import zipfile
 from pathlib import Path
 
 import numpy as np
 
+from .atomic import atomic_path
 from .errors import ModelFileError
 from .frame import LungFrame
 from .mesh import Surface
@@ -83,15 +82,9 @@ def save_model(path, model: Model) -> Path:
     for name, lung in model.lungs.items():
         for key, value in lung_arrays(lung).items():
             arrays[f"lung/{name}/{key}"] = value
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
             np.savez_compressed(fh, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
     return path
 
 

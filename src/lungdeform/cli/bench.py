@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-import json
 import os
 import platform
-import tempfile
 from pathlib import Path
 from typing import Optional
 
 import typer
+
+from lungdeform.atomic import write_json
 
 from .common import say
 
@@ -17,12 +17,7 @@ from .common import say
 def _write_json(path: Path, results: list[dict], kind: str) -> None:
     doc = {"benchmark": kind, "machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
                                           "platform": platform.platform()}, "results": results}
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    with os.fdopen(fd, "w") as fh:
-        json.dump(doc, fh, indent=2)
-    os.replace(tmp, path)
+    write_json(path, doc)
 
 
 def _surfaces(vertices: list[int]):
