@@ -1,0 +1,92 @@
+"""``lungdeform segment CT --out DIR``: left/right lung masks, volumes and an overlay from a raw CT."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+MASK_FORMATS = ("nii.gz", "mha")
+
+
+def register(apps) -> None:
+    @apps.root.command("segment")
+    def segment_command(
+        ct: Path = typer.Argument(..., help="CT in HU: NIfTI/MHA/NRRD, a DICOM folder, or a .tar.gz/.zip of one."),
+        out: Path = typer.Option(..., "--out", help="Output folder."),
+        fmt: str = typer.Option("nii.gz", "--format", help="Mask format: nii.gz or mha."),
+        surfaces: bool = typer.Option(False, "--surfaces/--no-surfaces", help="Also build left/right lung surfaces (STL) with lungdeform.mask."),
+        target_vertices: int = typer.Option(20000, "--target-vertices", help="Vertex budget per surface."),
+        downsample: int = typer.Option(1, "--downsample", help="In-plane block-mean factor before segmenting (speed)."),
+    ) -> None:
+        """Segment the lungs (no learned weights): masks, volumes.json, overlay.png, surfaces."""
+        import json
+        import time
+
+        from lungdeform import segment as S
+        from lungdeform.cli.common import output_dir, say
+        from lungdeform.errors import InputError
+        from lungdeform.io import atomic_write_bytes
+
+        fmt = fmt.lower().lstrip(".")
+        if fmt not in MASK_FORMATS:
+            raise InputError(f"--format must be one of {', '.join(MASK_FORMATS)}, got {fmt!r}")
+        if downsample < 1:
+            raise InputError(f"--downsample must be ≥ 1, got {downsample}")
+        t0 = time.perf_counter()
+        image = S.read_ct(ct)
+        if downsample > 1:
+            image = S.downsample(image, (1, downsample, downsample))
+        t_read = time.perf_counter() - t0
+        seg = S.segment_lungs(image, progress=say)
+        t_seg = time.perf_counter() - t0 - t_read
+        surf_info, meshes = {}, {}
+        if surfaces:  # built before anything is written: a failure leaves no partial output
+            from lungdeform.mask import extract_surface
+
+            for side in ("left", "right"):
+                say(f"surface of the {side} lung")
+                res = extract_surface(seg.mask_image(side), None, target_vertices=target_vertices, name=f"{side} lung")
+                meshes[side] = res.surface
+                surf_info[side] = {"vertices": int(len(res.surface.vertices)), "faces": int(len(res.surface.faces)),
+                                   "notes": list(res.notes)}
+        out = output_dir(out)
+        written = []
+        for side in ("left", "right"):
+            written.append(S.write_mask(seg.mask_image(side), out / f"{side}_lung.{fmt}"))
+        written.append(S.overlay_png(seg, out / "overlay.png"))
+        if meshes:
+            from lungdeform.io import write_mesh
+
+            for side, surf in meshes.items():
+                written.append(write_mesh(out / f"{side}_lung.stl", surf.vertices, surf.faces))
+        elapsed = time.perf_counter() - t0
+        report = {
+            "source": str(ct),
+            "grid": {"shape_zyx": list(image.array.shape), "spacing_xyz_mm": image.spacing.tolist(),
+                     "downsample": downsample},
+            "volumes_ml": seg.volumes_ml,
+            "airway_removal": seg.airway_removal,
+            "details": seg.details,
+            "surfaces": surf_info,
+            "timings_s": {"read": t_read, "segment": t_seg, "total": elapsed},
+        }
+        path = out / "volumes.json"
+        atomic_write_bytes(path, (json.dumps(report, indent=2, default=_jsonable) + "\n").encode())
+        written.append(path)
+        v = seg.volumes_ml
+        typer.echo(f"left lung {v['left']:.0f} mL, right lung {v['right']:.0f} mL, "
+                   f"airways removed {v['removed']:.0f} mL (tree {v['airway']:.0f} mL); {elapsed:.1f} s")
+        typer.echo(seg.airway_removal)
+        for p in written:
+            typer.echo(f"wrote {p}")
+
+
+def _jsonable(value):
+    import numpy as np
+
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")

@@ -1,0 +1,117 @@
+"""``lungdeform segment CT --out DIR``: masks, volumes.json, overlay.png; bad input exits 2."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from lungdeform.cli import main as cli_main
+from lungdeform.mask import read_image
+from tests.conftest import require_path
+from tests.test_segment import phantom
+
+
+@pytest.fixture
+def run(monkeypatch):
+    """``main(argv)`` with the command modules that exist (others are still being written)."""
+    present = [m for m in cli_main.COMMAND_MODULES if importlib.util.find_spec(m) is not None]
+    monkeypatch.setattr(cli_main, "COMMAND_MODULES", present)
+    assert "lungdeform.cli.segment" in present
+    return cli_main.main
+
+
+def _write_ct(img, path):
+    im = sitk.GetImageFromArray(np.asarray(img.array))
+    im.SetSpacing(img.spacing.tolist())
+    im.SetOrigin(img.origin.tolist())
+    im.SetDirection(img.direction.ravel().tolist())
+    sitk.WriteImage(im, str(path))
+    return path
+
+
+@pytest.mark.parametrize("fmt", ["nii.gz", "mha"])
+def test_segment_writes_masks_volumes_overlay(tmp_path, rng, run, capsys, fmt):
+    img, truth = phantom(rng, gap_mm=10.0)
+    ct = _write_ct(img, tmp_path / "ct.mha")
+    out = tmp_path / "out"
+    assert run(["segment", str(ct), "--out", str(out), "--format", fmt]) == 0
+    names = sorted(p.name for p in out.iterdir())
+    assert names == sorted([f"left_lung.{fmt}", f"right_lung.{fmt}", "overlay.png", "volumes.json"])
+    left = read_image(out / f"left_lung.{fmt}")
+    # truth: the phantom's analytic left lung, on the CT grid with the CT's geometry
+    inter = np.count_nonzero(left.array.astype(bool) & truth["left"])
+    assert 2 * inter / (left.array.astype(bool).sum() + truth["left"].sum()) > 0.97
+    assert np.allclose(left.origin, img.origin) and np.allclose(left.spacing, img.spacing)
+    report = json.loads((out / "volumes.json").read_text())
+    vml = np.prod(img.spacing) / 1000
+    assert report["volumes_ml"]["left"] == pytest.approx(left.array.astype(bool).sum() * vml)
+    assert "Trachea seed" in report["airway_removal"]
+    text = capsys.readouterr().out
+    assert "left lung" in text and f"left_lung.{fmt}" in text
+
+
+@pytest.mark.parametrize(
+    "make, args, message",
+    [
+        (lambda p: p / "missing.nii.gz", [], "missing.nii.gz: no such file"),
+        (lambda p: _write_ct(type("I", (), {"array": np.zeros((4, 8, 8), np.uint8), "spacing": np.ones(3),
+                                            "origin": np.zeros(3), "direction": np.eye(3)})(), p / "mask.mha"),
+         [], "mask.mha: minimum value 0"),
+        (lambda p: p / "x.mha", ["--format", "png"], "--format must be one of"),
+    ],
+)
+def test_bad_input_exits_2(tmp_path, run, capsys, make, args, message):
+    ct = make(tmp_path)
+    out = tmp_path / "out"
+    assert run(["segment", str(ct), "--out", str(out), *args]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("error: ") and message in err
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_no_lungs_exits_2(tmp_path, run, capsys):
+    arr = np.full((20, 40, 40), 40, np.int16)
+    arr[:, :3] = -1000
+    im = sitk.GetImageFromArray(arr)
+    sitk.WriteImage(im, str(tmp_path / "abdomen.nii.gz"))
+    assert run(["segment", str(tmp_path / "abdomen.nii.gz"), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "abdomen.nii.gz" in err and "empty mask" in err
+
+
+@pytest.mark.realdata
+def test_popi_archive(data_dir, tmp_path, run, monkeypatch):
+    ct = require_path(data_dir, "popi-ct-phase00", "popi_phase00_dicom_141slices.tar.gz")
+    monkeypatch.setenv("TMPDIR", str(tmp_path))  # the archive is extracted under tmp_path
+    import tempfile
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    out = tmp_path / "out"
+    assert run(["segment", str(ct), "--out", str(out), "--downsample", "2"]) == 0
+    report = json.loads((out / "volumes.json").read_text())
+    v = report["volumes_ml"]
+    assert v["right"] > v["left"] > 1800 and v["left"] + v["right"] == pytest.approx(5300, rel=0.05)
+    assert (out / "overlay.png").stat().st_size > 10_000
+    assert not any(p.name.startswith("lungdeform-ct-") for p in tmp_path.iterdir())
+
+
+def test_segment_with_surfaces(tmp_path, rng, run):
+    from lungdeform.io import read_mesh
+    from lungdeform.mesh import signed_volume
+
+    img, _ = phantom(rng, gap_mm=10.0)
+    ct = _write_ct(img, tmp_path / "ct.mha")
+    out = tmp_path / "out"
+    assert run(["segment", str(ct), "--out", str(out), "--surfaces", "--target-vertices", "2000"]) == 0
+    report = json.loads((out / "volumes.json").read_text())
+    for side in ("left", "right"):
+        v, f = read_mesh(out / f"{side}_lung.stl")
+        # truth: the enclosed volume of the surface matches the mask volume (marching cubes + Taubin)
+        assert signed_volume(v, f) / 1000 == pytest.approx(report["volumes_ml"][side], rel=0.05)
+        assert report["surfaces"][side]["vertices"] == len(np.unique(f))
+    # LPS: the left lung surface lies at +x
+    assert read_mesh(out / "left_lung.stl")[0][:, 0].mean() > 0 > read_mesh(out / "right_lung.stl")[0][:, 0].mean()
