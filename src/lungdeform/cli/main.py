@@ -21,6 +21,11 @@ COMMAND_MODULES = [
     "lungdeform.cli.demo",
     "lungdeform.cli.bench",
     "lungdeform.cli.validate_paper",
+    "lungdeform.cli.segment",
+    "lungdeform.cli.validate_dirlab",
+    "lungdeform.cli.export",
+    "lungdeform.cli.view",
+    "lungdeform.cli.bench_viewer",
 ]
 
 
@@ -45,7 +50,13 @@ def make_app() -> typer.Typer:
     root.add_typer(bench, name="bench")
 
     @root.callback()
-    def _root(version: bool = typer.Option(False, "--version", help="Print the version and exit.")):
+    def _root(
+        version: bool = typer.Option(False, "--version", help="Print the version and exit."),
+        verbose: bool = typer.Option(False, "--verbose", "-v", help="Show progress even when stderr is not a terminal."),
+    ):
+        from lungdeform.cli.common import VERBOSE
+
+        VERBOSE["on"] = True if verbose else None
         if version:
             from lungdeform import __version__
 

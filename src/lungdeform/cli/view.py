@@ -1,0 +1,41 @@
+"""``lungdeform view``: serve the browser viewer for a model or a .glb on a loopback address."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+
+def register(apps) -> None:
+    @apps.root.command("view")
+    def view_command(
+        model: Path = typer.Argument(..., help="Model file (.npz) or an exported .glb."),
+        host: str = typer.Option("127.0.0.1", "--host", help="Address to bind (loopback by default)."),
+        port: int = typer.Option(8765, "--port", help="Port (0 picks a free one)."),
+        curve: Path | None = typer.Option(None, "--curve", help="Breathing curve CSV for a model file."),
+        markers: Path | None = typer.Option(None, "--markers", help="Markers CSV (x_mm,y_mm,z_mm[,label]) for a model file."),
+        open_browser: bool = typer.Option(False, "--open", help="Open the default web browser."),
+    ) -> None:
+        """Show both lungs breathing in the browser (three.js, deformation on the GPU, WebXR)."""
+        import ipaddress
+
+        from lungdeform.server import ViewerServer, model_glb, presets_json
+
+        glb = model_glb(model, curve, markers)
+        server = ViewerServer(glb, host=host, port=port, presets_json=presets_json())
+        try:
+            exposed = not ipaddress.ip_address(host).is_loopback
+        except ValueError:
+            exposed = host != "localhost"
+        if exposed:
+            typer.echo(f"warning: serving on {host}, reachable from other machines", err=True)
+        typer.echo(f"viewer for {model} at {server.url}  (Ctrl-C to stop)")
+        if open_browser:
+            import webbrowser
+
+            webbrowser.open(server.url)
+        try:
+            server.serve_forever()
+        finally:
+            server.close()

@@ -1,0 +1,120 @@
+// Browser test of the lungdeform viewer: Playwright (playwright-core) drives Debian's Chromium,
+// headless, software GL. Run by tests/test_viewer_browser.py, which starts `lungdeform.server` on a
+// free loopback port. Usage:
+//   node tests/browser/viewer.test.mjs URL ARTIFACT_DIR
+// Env: VIEWER_DIR (folder whose node_modules holds playwright-core), CHROMIUM (executable).
+// Exit 0 when every check passes; prints one JSON line of results on stdout.
+import { createRequire } from 'node:module';
+import { mkdirSync } from 'node:fs';
+import path from 'node:path';
+import { fileURLToPath } from 'node:url';
+
+const here = path.dirname(fileURLToPath(import.meta.url));
+const viewerDir = process.env.VIEWER_DIR ?? path.resolve(here, '../../viewer');
+const require = createRequire(path.join(viewerDir, 'package.json'));
+const { chromium } = require('playwright-core');
+
+const [url, artifacts] = process.argv.slice(2);
+if (!url || !artifacts) {
+  console.error('usage: node viewer.test.mjs URL ARTIFACT_DIR');
+  process.exit(2);
+}
+mkdirSync(artifacts, { recursive: true });
+
+const failures = [];
+const results = {};
+function check(name, ok, detail) {
+  results[name] = { ok, ...detail };
+  if (!ok) failures.push(`${name}: ${JSON.stringify(detail)}`);
+}
+
+const browser = await chromium.launch({
+  executablePath: process.env.CHROMIUM ?? '/usr/bin/chromium',
+  headless: true,
+  args: ['--no-sandbox', '--disable-quic', '--no-first-run', '--disable-background-networking',
+    '--disable-component-update', '--disable-sync', '--use-angle=swiftshader', '--enable-unsafe-swiftshader',
+    '--ignore-gpu-blocklist'],
+});
+try {
+  const page = await browser.newPage({ viewport: { width: 960, height: 640 } });
+  const consoleErrors = [];
+  page.on('console', (m) => { if (m.type() === 'error') consoleErrors.push(m.text()); });
+  page.on('pageerror', (e) => consoleErrors.push(String(e)));
+  await page.goto(`${url}?clock=manual`, { waitUntil: 'load' });
+  const info = await page.evaluate(() => window.lungdeform.ready);
+  check('loads model', info.lungs.length === 2, { info });
+  const shot = async (name) => {
+    const file = path.join(artifacts, `${name}.png`);
+    await page.locator('#view').screenshot({ path: file });
+    return file;
+  };
+  const snap = (key) => page.evaluate((k) => window.lungdeform.snapshot(k), key);
+  const diff = (a, b) => page.evaluate(([x, y]) => window.lungdeform.diff(x, y), [a, b]);
+
+  // 1. non-blank frames at end-exhale (phase 0) and end-inhale (phase 0.5 of the cosine cycle)
+  await page.evaluate(() => { window.lungdeform.setPreset('cosine'); window.lungdeform.setPhase(0); });
+  const ee = await snap('ee');
+  await shot('end-exhale');
+  await page.evaluate(() => window.lungdeform.setPhase(0.5));
+  const ei = await snap('ei');
+  await shot('end-inhale');
+  const frac = ee.silhouettePixels / (ee.width * ee.height);
+  check('non-blank', frac > 0.02 && frac < 0.9, { silhouetteFraction: frac, ee, ei });
+  const state = await page.evaluate(() => window.lungdeform.state());
+  check('end-inhale volume', Math.abs(state.dvMl - 500) < 1e-6, { dvMl: state.dvMl });
+
+  // 2. the silhouette grows between end-exhale and end-inhale (true model displacement, gain 1)
+  const breath = await diff('ee', 'ei');
+  check('silhouette differs ee/ei', breath.silhouette > 50 && ei.silhouettePixels > ee.silhouettePixels,
+    { ...breath, ee: ee.silhouettePixels, ei: ei.silhouettePixels });
+
+  // 3. orientation changes the picture (same volume, other gravity: other displacement field)
+  await snap('supine');
+  await page.evaluate(() => window.lungdeform.setOrientation('upright'));
+  await snap('upright');
+  await shot('end-inhale-upright');
+  const orient = await diff('supine', 'upright');
+  check('orientation changes picture', orient.colour > 200, orient);
+  await page.evaluate(() => window.lungdeform.setOrientation([0.3, 0.2, -0.9]));
+  await snap('custom');
+  check('custom gravity changes picture', (await diff('upright', 'custom')).colour > 50, {});
+  await page.evaluate(() => window.lungdeform.setOrientation('model'));
+
+  // 4. the preset changes the picture at the same time point
+  await page.evaluate(() => { window.lungdeform.setPreset('cosine'); window.lungdeform.setTime(1.0); });
+  await snap('cosine');
+  await page.evaluate(() => { window.lungdeform.setPreset('quiet'); window.lungdeform.setTime(1.0); });
+  await snap('quiet');
+  await shot('preset-quiet-t1');
+  const preset = await diff('cosine', 'quiet');
+  check('preset changes picture', preset.silhouette > 20, preset);
+
+  // 5. overlays and markers render
+  await page.evaluate(() => window.lungdeform.setOverlay('force'));
+  await snap('force');
+  await shot('overlay-force');
+  check('force overlay changes colours', (await diff('quiet', 'force')).colour > 1000, {});
+  await page.evaluate(() => window.lungdeform.setOverlay('none'));
+  if (info.markers > 0) {
+    await page.evaluate(() => window.lungdeform.setMarkers(true));
+    await snap('markers');
+    await shot('markers');
+    check('markers shown', (await diff('quiet', 'markers')).colour > 100, {});
+    await page.evaluate(() => window.lungdeform.setMarkers(false));
+  }
+
+  // 6. real clock: play for a moment, the readout reports fps and frame time
+  await page.evaluate(() => window.lungdeform.play());
+  await page.waitForTimeout(1500);
+  const stats = await page.evaluate(() => window.lungdeform.stats());
+  const readout = await page.locator('#readout').textContent();
+  check('fps readout', stats.fps > 0 && /fps \d/.test(readout) && /frame \d/.test(readout), { stats, readout });
+  await shot('playing');
+  check('no console errors', consoleErrors.length === 0, { consoleErrors });
+} catch (e) {
+  failures.push(`exception: ${e instanceof Error ? e.message : String(e)}`);
+} finally {
+  await browser.close();
+}
+console.log(JSON.stringify({ ok: failures.length === 0, failures, results }));
+process.exit(failures.length === 0 ? 0 : 1);

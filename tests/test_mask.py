@@ -1,0 +1,315 @@
+"""Mask/label images -> surfaces: analytic shapes with known volume and position, and real masks."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lungdeform.errors import InputError, MaskError, ReadError
+from lungdeform.mask import (
+    LOBE_LABELS,
+    Image,
+    decimate,
+    extract_surface,
+    index_to_world,
+    label_groups,
+    laplacian_smooth,
+    mask_to_surface,
+    read_image,
+    taubin_smooth,
+)
+from lungdeform.mesh import check_surface, icosphere, signed_volume
+
+from .conftest import require_path
+
+
+def rotation(axis, angle_deg) -> np.ndarray:
+    a = np.asarray(axis, float) / np.linalg.norm(axis)
+    t = np.radians(angle_deg)
+    k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + np.sin(t) * k + (1 - np.cos(t)) * k @ k
+
+
+ROTATED = rotation([1, 2, 3], 35.0)
+MIRRORED = ROTATED @ np.diag([1.0, -1.0, 1.0])  # det < 0, like the coronacases NIfTI (y flipped)
+
+
+def sphere_image(direction, radius=12.0, spacing=(0.8, 1.1, 1.5), shape_zyx=(26, 34, 42)):
+    """A voxelised ball of ``radius`` mm; its centre is a known world point off the origin."""
+    spacing = np.asarray(spacing)
+    origin = np.array([-30.0, 20.0, 100.0])
+    centre_ijk = (np.array(shape_zyx[::-1]) - 1) / 2.0 + np.array([0.3, -0.2, 0.1])
+    centre = index_to_world(centre_ijk[None], spacing, origin, direction)[0]
+    k, j, i = np.indices(shape_zyx)
+    ijk = np.stack([i.ravel(), j.ravel(), k.ravel()], axis=1)
+    world = index_to_world(ijk, spacing, origin, direction)
+    inside = (np.linalg.norm(world - centre, axis=1) <= radius).reshape(shape_zyx)
+    return Image(inside.astype(np.uint8), spacing, origin, direction, "sphere.mha"), centre
+
+
+def volume_centroid(v, f) -> np.ndarray:
+    """Centroid of the enclosed solid (tetrahedra fanned from the origin)."""
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    vol = np.einsum("ij,ij->i", a, np.cross(b, c)) / 6.0
+    return (vol[:, None] * (a + b + c) / 4.0).sum(axis=0) / vol.sum()
+
+
+# --------------------------------------------------------------------------- geometry
+@pytest.mark.parametrize("direction", [np.eye(3), ROTATED, MIRRORED], ids=["identity", "rotated", "mirrored"])
+def test_sphere_volume_and_centre_honour_spacing_origin_direction(direction):
+    # a ball of r = 12 mm sampled on an anisotropic, rotated (or mirrored) grid: if spacing,
+    # origin or direction were mishandled, the volume or the centre would be off by far more
+    image, centre = sphere_image(direction)
+    surf = mask_to_surface(image)
+    exact = 4.0 / 3.0 * np.pi * 12.0**3
+    assert surf.volume > 0  # outward, also when det(direction) < 0
+    assert abs(surf.volume / exact - 1) < 0.02
+    assert np.linalg.norm(volume_centroid(surf.vertices, surf.faces) - centre) < 0.2
+    radii = np.linalg.norm(surf.vertices - centre, axis=1)
+    assert np.abs(radii - 12.0).max() < 1.0  # every vertex on the sphere to within a voxel
+
+
+def test_index_to_world_matches_simpleitk():
+    # SimpleITK's own TransformContinuousIndexToPhysicalPoint is the reference
+    import SimpleITK as sitk
+
+    img = sitk.Image(5, 6, 7, sitk.sitkUInt8)
+    img.SetSpacing((0.7, 1.3, 2.1))
+    img.SetOrigin((-12.0, 40.0, 3.5))
+    img.SetDirection(tuple(MIRRORED.ravel()))
+    pts = np.array([[0, 0, 0], [1.5, 2.25, 3.0], [4, 5, 6]], dtype=float)
+    expected = np.array([img.TransformContinuousIndexToPhysicalPoint(tuple(p)) for p in pts])
+    got = index_to_world(pts, img.GetSpacing(), img.GetOrigin(), np.array(img.GetDirection()).reshape(3, 3))
+    np.testing.assert_allclose(got, expected, atol=1e-9)
+
+
+def test_mask_touching_the_border_gives_a_closed_surface():
+    # a 12 x 10 x 8 block filling one corner of the volume touches three faces; without the
+    # one-voxel pad marching cubes would leave those sides open
+    a = np.zeros((8, 14, 20), np.uint8)
+    a[:, :10, :12] = 1
+    image = Image(a, (2.0, 2.0, 2.0), (0, 0, 0), np.eye(3), "block.mha")  # 2 mm: lung-sized check
+    result = extract_surface(image, smooth_iterations=0)
+    v, f, report = check_surface(result.surface.vertices, result.surface.faces)  # closed, manifold
+    # level 0.5 puts the faces half-way to the background: exactly the voxel block, minus the
+    # chamfers marching cubes cuts along the 12 edges (0.125 voxel² each per voxel of length)
+    chamfer = 0.125 * 4 * (12 + 10 + 8)
+    assert report.volume_mm3 / 8.0 == pytest.approx(12 * 10 * 8 - chamfer, rel=0.01)
+
+
+def test_largest_component_kept_and_cavities_filled():
+    a = np.zeros((20, 20, 20), np.uint8)
+    a[2:14, 2:14, 2:14] = 1
+    a[6:9, 6:9, 6:9] = 0  # a cavity: would become an inner surface
+    a[17, 17, 17] = 1  # an island: would become a second surface
+    image = Image(a, (2.0, 2.0, 2.0), (0, 0, 0), np.eye(3), "blocks.mha")
+    result = extract_surface(image, smooth_iterations=0)
+    assert result.components_dropped == 1
+    assert result.voxels_filled == 27
+    assert any("dropped 1" in n for n in result.notes)
+    assert result.surface.volume / 8.0 == pytest.approx(12**3 - 0.125 * 4 * 36, rel=0.01)
+
+
+def test_tiny_mask_is_refused_as_not_lung_sized():
+    a = np.zeros((6, 6, 6), np.uint8)
+    a[2:4, 2:4, 2:4] = 1
+    image = Image(a, (1.0, 1.0, 1.0), (0, 0, 0), np.eye(3), "tiny.mha")
+    with pytest.raises(MaskError, match=r"tiny\.mha: .*mm across"):
+        mask_to_surface(image)
+
+
+# --------------------------------------------------------------------------- smoothing, decimation
+def test_taubin_keeps_volume_where_laplacian_shrinks(rng):
+    sphere = icosphere(4, radius=50.0)
+    noisy = sphere.vertices * (1 + 0.01 * rng.standard_normal((len(sphere.vertices), 1)))
+    v0 = signed_volume(noisy, sphere.faces)
+    taubin = taubin_smooth(noisy, sphere.faces, 10)
+    plain = laplacian_smooth(noisy, sphere.faces, 10)
+    # Taubin's μ step undoes the shrinking of the λ step on low frequencies
+    assert abs(signed_volume(taubin, sphere.faces) / v0 - 1) < 0.01
+    assert signed_volume(plain, sphere.faces) / v0 < 0.97
+    # ... while it still removes the noise (radial scatter drops)
+    spread = lambda v: np.std(np.linalg.norm(v, axis=1))  # noqa: E731
+    assert spread(taubin) < 0.5 * spread(noisy)
+
+
+def test_taubin_rejects_bad_factors():
+    s = icosphere(1)
+    with pytest.raises(InputError, match="lam"):
+        taubin_smooth(s.vertices, s.faces, 1, lam=0.5, mu=-0.4)
+
+
+def test_decimation_hits_budget_and_stays_closed():
+    image, _ = sphere_image(ROTATED, radius=14.0, shape_zyx=(30, 38, 48))
+    full = mask_to_surface(image)
+    assert full.n_vertices > 3000
+    small = mask_to_surface(image, target_vertices=600)
+    assert abs(small.n_vertices - 600) <= 30
+    check_surface(small.vertices, small.faces)  # closed, manifold, outward, one piece
+    assert small.volume == pytest.approx(full.volume, rel=0.01)
+
+
+def test_decimate_function_reports_cleanup():
+    s = icosphere(4, radius=40.0)
+    v, f, notes = decimate(s.vertices, s.faces, 300)
+    assert abs(len(v) - 300) <= 15
+    check_surface(v, f)
+    assert isinstance(notes, list)
+
+
+# --------------------------------------------------------------------------- errors
+def test_no_foreground_names_file_and_labels():
+    a = np.zeros((5, 5, 5), np.int16)
+    a[1:4, 1:4, 1:4] = 1
+    image = Image(a, (1, 1, 1), (0, 0, 0), np.eye(3), "lobes.nii.gz")
+    with pytest.raises(MaskError, match=r"lobes\.nii\.gz: no foreground.*\[3, 4, 5\]"):
+        mask_to_surface(image, (3, 4, 5))
+
+
+def test_ct_is_not_a_mask():
+    a = np.full((6, 6, 6), -1000, np.int16)
+    a[2:4, 2:4, 2:4] = 40
+    image = Image(a, (1, 1, 1), (0, 0, 0), np.eye(3), "ct.nii.gz")
+    with pytest.raises(MaskError, match=r"ct\.nii\.gz: .*look like a CT"):
+        mask_to_surface(image)
+
+
+def test_read_image_errors(tmp_path):
+    with pytest.raises(ReadError, match="no such file"):
+        read_image(tmp_path / "missing.mha")
+    (tmp_path / "empty.nii.gz").write_bytes(b"")
+    with pytest.raises(ReadError, match=r"empty\.nii\.gz: file is empty"):
+        read_image(tmp_path / "empty.nii.gz")
+    (tmp_path / "junk.mha").write_bytes(b"\x00\x01junk" * 50)
+    with pytest.raises(ReadError, match=r"junk\.mha: cannot read image"):
+        read_image(tmp_path / "junk.mha")
+    with pytest.raises(ReadError, match="no DICOM series"):
+        read_image(tmp_path)  # a directory without DICOM files
+
+
+def test_read_image_rejects_2d(tmp_path):
+    import SimpleITK as sitk
+
+    sitk.WriteImage(sitk.Image(4, 5, sitk.sitkUInt8), str(tmp_path / "flat.mha"))
+    with pytest.raises(ReadError, match=r"flat\.mha: expected a 3-D scalar image"):
+        read_image(tmp_path / "flat.mha")
+
+
+# --------------------------------------------------------------------------- reading images
+@pytest.mark.parametrize("suffix", [".mha", ".nrrd", ".nii.gz"])
+def test_read_image_keeps_geometry(tmp_path, rng, suffix):
+    import SimpleITK as sitk
+
+    arr = rng.integers(0, 6, size=(4, 5, 6)).astype(np.int16)
+    img = sitk.GetImageFromArray(arr)
+    img.SetSpacing((0.7, 0.8, 1.5))
+    img.SetOrigin((-100.0, 50.0, -20.0))
+    img.SetDirection(tuple(MIRRORED.ravel()))
+    sitk.WriteImage(img, str(tmp_path / f"lab{suffix}"))
+    im = read_image(tmp_path / f"lab{suffix}")
+    np.testing.assert_array_equal(im.array, arr)
+    np.testing.assert_allclose(im.spacing, (0.7, 0.8, 1.5), atol=1e-6)
+    np.testing.assert_allclose(im.origin, (-100.0, 50.0, -20.0), atol=1e-4)
+    np.testing.assert_allclose(im.direction, MIRRORED, atol=1e-5)
+
+
+def test_nifti_ras_is_converted_to_lps(tmp_path):
+    # nibabel writes the RAS affine the file stores; ITK must report the same voxels at the LPS
+    # point diag(-1, -1, 1) @ RAS. This is the check behind read_image's docstring.
+    import nibabel as nib
+
+    affine = np.array([[-0.8, 0, 0, 213.1], [0, 0.8, 0, -206.9], [0, 0, 1.2, -220.0], [0, 0, 0, 1]])
+    affine[:3, :3] = affine[:3, :3] @ rotation([0, 0, 1], 10.0)
+    data = np.zeros((6, 7, 8), np.int16)  # nibabel order (i, j, k)
+    nib.save(nib.Nifti1Image(data, affine), str(tmp_path / "ras.nii.gz"))
+    im = read_image(tmp_path / "ras.nii.gz")
+    assert im.array.shape == (8, 7, 6)  # SimpleITK order (k, j, i)
+    ijk = np.array([[0, 0, 0], [5, 6, 7], [2.5, 1.0, 4.0]])
+    ras = ijk @ affine[:3, :3].T + affine[:3, 3]
+    np.testing.assert_allclose(im.index_to_world(ijk), ras * [-1, -1, 1], atol=1e-3)
+
+
+def test_read_dicom_series_directory(tmp_path):
+    # a label volume written as a DICOM series (one file per slice), read back from the folder
+    import SimpleITK as sitk
+
+    arr = np.zeros((6, 10, 12), np.int16)
+    arr[1:5, 2:8, 3:9] = 1
+    spacing, origin = (2.9, 2.9, 4.0), (-50.0, -40.0, 30.0)
+    writer = sitk.ImageFileWriter()
+    writer.KeepOriginalImageUIDOn()
+    for k in range(arr.shape[0]):
+        sl = sitk.GetImageFromArray(arr[k])
+        sl.SetSpacing(spacing[:2])
+        for tag, value in {
+            "0008|0060": "OT",
+            "0020|000d": "1.2.826.0.1.3680043.2.1125.1",
+            "0020|000e": "1.2.826.0.1.3680043.2.1125.1.1",
+            "0008|0018": f"1.2.826.0.1.3680043.2.1125.1.1.{k + 1}",
+            "0020|0013": str(k + 1),
+            "0020|0032": "\\".join(map(str, (origin[0], origin[1], origin[2] + k * spacing[2]))),
+            "0020|0037": "1\\0\\0\\0\\1\\0",
+            "0018|0050": str(spacing[2]),
+        }.items():
+            sl.SetMetaData(tag, value)
+        writer.SetFileName(str(tmp_path / f"slice{k:03d}.dcm"))
+        writer.Execute(sl)
+    im = read_image(tmp_path)
+    np.testing.assert_array_equal(im.array, arr)
+    np.testing.assert_allclose(im.spacing, spacing, atol=1e-6)
+    np.testing.assert_allclose(im.origin, origin, atol=1e-6)
+    surf = mask_to_surface(im, smooth_iterations=0)
+    assert surf.volume == pytest.approx(6 * 6 * 4 * 2.9 * 2.9 * 4.0, rel=0.15)
+
+
+# --------------------------------------------------------------------------- label groups
+def test_label_groups():
+    assert label_groups(None) == {"": None}
+    assert label_groups("left,right") == {"left": (1, 2), "right": (3, 4, 5)}
+    assert label_groups("lungs") == LOBE_LABELS
+    assert label_groups("1,2") == {"labels 1,2": (1, 2)}
+    assert label_groups("a=1;b=2,3") == {"a": (1,), "b": (2, 3)}
+    assert label_groups([3, 4]) == {"labels 3,4": (3, 4)}
+    assert label_groups({"x": 7}) == {"x": (7,)}
+    with pytest.raises(InputError, match="labels"):
+        label_groups("left,banana")
+    with pytest.raises(InputError, match="labels"):
+        label_groups([1.5])
+
+
+# --------------------------------------------------------------------------- real data
+@pytest.fixture(scope="module")
+def coronacases_001(data_dir):
+    return read_image(require_path(data_dir, "coronacases-lung-lobes", "Coronacases_001_lobes.nii.gz"))
+
+
+@pytest.mark.realdata
+@pytest.mark.parametrize("name, litres", [("CT_3D_lung_fixed_mask.mha", 3.36), ("CT_3D_lung_moving_mask.mha", 3.97)])
+def test_itk_masks_volumes(data_dir, name, litres):
+    # data README: 3.36 L and 3.97 L; the ITK masks touch the cropped medial face (the pad
+    # keeps them closed; check_surface inside extract_surface would raise otherwise)
+    image = read_image(require_path(data_dir, "itk-right-lung-two-volumes", name))
+    surf = mask_to_surface(image, target_vertices=5000)  # decimation keeps volume to 0.1 %; faster check
+    assert surf.volume_ml / 1000 == pytest.approx(litres, rel=0.03)
+
+
+@pytest.mark.realdata
+@pytest.mark.slow
+def test_coronacases_left_right_volumes_and_sides(coronacases_001):
+    # data README: case 001 left/right 1.52 / 1.81 L. In LPS the left lung lies at larger x.
+    left = extract_surface(coronacases_001, LOBE_LABELS["left"], target_vertices=3000).surface
+    right = extract_surface(coronacases_001, LOBE_LABELS["right"], target_vertices=3000).surface
+    assert left.volume_ml / 1000 == pytest.approx(1.52, rel=0.03)
+    assert right.volume_ml / 1000 == pytest.approx(1.81, rel=0.03)
+    assert left.vertices[:, 0].mean() > right.vertices[:, 0].mean() + 50
+
+
+@pytest.mark.realdata
+def test_coronacases_frame_matches_nibabel(coronacases_001):
+    # the real file: ITK's LPS geometry equals nibabel's RAS affine with x and y negated
+    import nibabel as nib
+
+    aff = nib.load(coronacases_001.source).affine
+    ijk = np.array([[0, 0, 0], [511, 511, 300], [100, 200, 50]], dtype=float)
+    ras = ijk @ aff[:3, :3].T + aff[:3, 3]
+    np.testing.assert_allclose(coronacases_001.index_to_world(ijk), ras * [-1, -1, 1], atol=1e-3)

@@ -1,0 +1,467 @@
+// lungdeform browser viewer: both lungs breathing in real time, deformation on the GPU.
+//
+// The model is /model.glb written by lungdeform.export: end-exhale mesh + 5 morph targets per lung
+// (target 0 = the model's own tidal displacement, 1-4 = the orientation basis). Every frame the CPU
+// computes 5 weights per lung (a constant cost, whatever the vertex count) and three.js blends the
+// targets in its vertex shader. URL options: ?clock=manual (time moves only through the test API),
+// ?deform=cpu (blend on the CPU and re-upload positions each frame: the path the GPU one replaces).
+import * as THREE from 'three';
+import { GLTFLoader } from 'three/examples/jsm/loaders/GLTFLoader.js';
+import { OrbitControls } from 'three/examples/jsm/controls/OrbitControls.js';
+import './style.css';
+import { GRAVITY, LungWeights, normalize, type LungMeta, type Marker, type Vec3 } from './physics';
+import { builtinCurves, loopDuration, sampledCurve, volumeAt, type Curve } from './curves';
+import { colourise, legendGradient } from './overlay';
+import { FrameStats } from './stats';
+import { setupXR } from './xr';
+
+const params = new URLSearchParams(location.search);
+const manualClock = params.get('clock') === 'manual';
+const deformMode: 'gpu' | 'cpu' = params.get('deform') === 'cpu' ? 'cpu' : 'gpu';
+const BACKGROUND = new THREE.Color(0x0f1318);
+
+const $ = <T extends HTMLElement>(id: string) => document.getElementById(id) as T;
+const canvas = $('view') as HTMLCanvasElement;
+const statusEl = $('status');
+
+interface Lung {
+  name: string;
+  mesh: THREE.Mesh;
+  meta: LungMeta;
+  weights: LungWeights;
+  influences: number[];
+  targets: Float32Array[]; // CPU copies of the 5 targets (markers; CPU path)
+  base: Float32Array; // end-exhale positions (CPU path)
+  markers: { marker: Marker; sphere: THREE.Mesh }[];
+}
+
+const state = {
+  t: 0,
+  playing: true,
+  curve: null as Curve | null,
+  tidalMl: 500,
+  rateBpm: 15,
+  gain: 1,
+  orientation: 'model' as string,
+  gravity: 'model' as Vec3 | 'model',
+  overlay: 'none',
+  markers: false,
+  dvMl: 0,
+};
+
+const renderer = new THREE.WebGLRenderer({ canvas, antialias: true, powerPreference: 'high-performance' });
+renderer.setPixelRatio(Math.min(window.devicePixelRatio, 2));
+const scene = new THREE.Scene();
+scene.background = BACKGROUND;
+const camera = new THREE.PerspectiveCamera(30, 1, 0.01, 20);
+const controls = new OrbitControls(camera, canvas);
+scene.add(new THREE.HemisphereLight(0xdfe9ff, 0x302820, 1.4));
+const sun = new THREE.DirectionalLight(0xffffff, 1.8);
+sun.position.set(0.6, 1.0, 1.2);
+scene.add(sun);
+
+const lungs: Lung[] = [];
+let curves: Curve[] = [];
+let root: THREE.Object3D | null = null;
+let arrow: THREE.ArrowHelper | null = null;
+const stats = new FrameStats();
+let lastFrame = performance.now();
+
+function resize(): void {
+  const w = canvas.clientWidth || 800, h = canvas.clientHeight || 600;
+  renderer.setSize(w, h, false);
+  camera.aspect = w / h;
+  camera.updateProjectionMatrix();
+}
+window.addEventListener('resize', resize);
+
+// ------------------------------------------------------------------ per-frame work (O(1) on the GPU path)
+function loop(): number { return state.curve ? loopDuration(state.curve, state.rateBpm) : 4; }
+
+function update(): void {
+  const curve = state.curve;
+  state.dvMl = curve ? volumeAt(curve, state.t, state.tidalMl, state.rateBpm) : 0;
+  for (const lung of lungs) {
+    lung.weights.weights(lung.meta.share * state.dvMl, state.gain, lung.influences);
+    if (deformMode === 'gpu') {
+      const infl = lung.mesh.morphTargetInfluences!;
+      for (let k = 0; k < 5; k++) infl[k] = lung.influences[k];
+    } else {
+      cpuDeform(lung);
+    }
+    if (state.markers) placeMarkers(lung);
+  }
+}
+
+/** CPU path: x = p + sum_k w_k T_k for every vertex, then a full upload (grows with n). */
+function cpuDeform(lung: Lung): void {
+  const attr = lung.mesh.geometry.getAttribute('position') as THREE.BufferAttribute;
+  const pos = attr.array as Float32Array;
+  pos.set(lung.base);
+  for (let k = 0; k < 5; k++) {
+    const w = lung.influences[k];
+    if (w === 0) continue;
+    const t = lung.targets[k];
+    for (let i = 0; i < pos.length; i++) pos[i] += w * t[i];
+  }
+  attr.needsUpdate = true;
+}
+
+/** Markers ride on their anchor vertices' displacement (a few vertices each: constant cost). */
+function placeMarkers(lung: Lung): void {
+  for (const { marker, sphere } of lung.markers) {
+    let dx = 0, dy = 0, dz = 0;
+    marker.vertices.forEach((v, j) => {
+      const wv = marker.weights[j];
+      for (let k = 0; k < 5; k++) {
+        const w = lung.influences[k];
+        if (w === 0) continue;
+        const t = lung.targets[k];
+        dx += wv * w * t[3 * v]; dy += wv * w * t[3 * v + 1]; dz += wv * w * t[3 * v + 2];
+      }
+    });
+    const p = marker.position_mm;
+    sphere.position.set(p[0] + dx, p[1] + dy, p[2] + dz);
+  }
+}
+
+function frame(now: number): void {
+  const dt = Math.min((now - lastFrame) / 1000, 0.25);
+  lastFrame = now;
+  const t0 = performance.now();
+  if (state.playing && !manualClock) state.t += dt;
+  update();
+  renderer.render(scene, camera);
+  stats.record(performance.now() - t0, now);
+  if (stats.due(now)) showReadout();
+}
+
+// ------------------------------------------------------------------ model loading
+async function loadModel(): Promise<void> {
+  const gltf = await new GLTFLoader().loadAsync('model.glb');
+  root = gltf.scene;
+  scene.add(root);
+  const extras = (gltf.userData?.lungdeform ?? {}) as { curve?: { t_s: number[]; volume_ml: number[]; source: string }; markers?: Marker[] };
+  root.traverse((obj) => {
+    const mesh = obj as THREE.Mesh;
+    const meta = mesh.isMesh ? (mesh.userData?.lungdeform as LungMeta | undefined) : undefined;
+    if (!meta) return;
+    const geom = mesh.geometry;
+    const morph = geom.morphAttributes.position ?? [];
+    if (morph.length !== 5) throw new Error(`lung ${meta.lung}: expected 5 morph targets, found ${morph.length}`);
+    const targets = morph.map((a) => Float32Array.from(a.array as ArrayLike<number>));
+    const base = Float32Array.from(geom.getAttribute('position').array as ArrayLike<number>);
+    if (deformMode === 'cpu') {
+      geom.morphAttributes = {};
+      mesh.morphTargetInfluences = undefined;
+      (geom.getAttribute('position') as THREE.BufferAttribute).setUsage(THREE.DynamicDrawUsage);
+    }
+    mesh.frustumCulled = false;
+    const material = (mesh.material as THREE.MeshStandardMaterial).clone();
+    mesh.material = material;
+    lungs.push({ name: meta.lung, mesh, meta, weights: new LungWeights(meta), influences: [0, 0, 0, 0, 0],
+                 targets, base, markers: [] });
+  });
+  if (lungs.length === 0) throw new Error('model.glb holds no lungdeform lungs (mesh extras missing)');
+  addMarkers(extras.markers ?? []);
+  const presets = await fetchPresets();
+  curves = [];
+  if (extras.curve && extras.curve.t_s.length > 1) {
+    curves.push(sampledCurve('model', 'Model curve (export)', extras.curve.t_s, extras.curve.volume_ml,
+                             extras.curve.source));
+  }
+  curves.push(...presets);
+  fitCamera();
+  addGravityArrow();
+}
+
+async function fetchPresets(): Promise<Curve[]> {
+  try {
+    const res = await fetch('presets.json');
+    if (!res.ok) return builtinCurves();
+    const data = (await res.json()) as { presets: { name: string; label?: string; t_s: number[]; volume_ml: number[]; source?: string }[] };
+    if (!Array.isArray(data.presets) || data.presets.length === 0) return builtinCurves();
+    return data.presets.map((p) => sampledCurve(p.name, p.label ?? p.name, p.t_s, p.volume_ml, p.source ?? 'lungdeform.presets'));
+  } catch {
+    return builtinCurves();
+  }
+}
+
+function addMarkers(markers: Marker[]): void {
+  const geo = new THREE.SphereGeometry(4, 16, 12); // mm, in the lung's LPS frame
+  for (const m of markers) {
+    const lung = lungs.find((l) => l.name === m.lung);
+    if (!lung) continue;
+    const sphere = new THREE.Mesh(geo, new THREE.MeshStandardMaterial({ color: 0xffd54f, emissive: 0x553300 }));
+    sphere.position.set(...m.position_mm);
+    sphere.visible = false;
+    sphere.renderOrder = 2;
+    lung.mesh.add(sphere);
+    lung.markers.push({ marker: m, sphere });
+  }
+  $('marker-count').textContent = markers.length ? `(${markers.length})` : '(none in model)';
+  ($('markers') as HTMLInputElement).disabled = markers.length === 0;
+}
+
+function fitCamera(): void {
+  const box = new THREE.Box3().setFromObject(root!);
+  const centre = box.getCenter(new THREE.Vector3());
+  const size = box.getSize(new THREE.Vector3());
+  const dist = (1.25 * Math.max(size.x, size.y)) / (2 * Math.tan((camera.fov * Math.PI) / 360));
+  camera.position.set(centre.x, centre.y, centre.z + dist); // anterior view (glTF +Z = anterior)
+  camera.near = dist / 50; camera.far = dist * 10;
+  camera.updateProjectionMatrix();
+  controls.target.copy(centre);
+  controls.update();
+}
+
+function addGravityArrow(): void {
+  const box = new THREE.Box3();
+  for (const l of lungs) { l.mesh.geometry.computeBoundingBox(); box.union(l.mesh.geometry.boundingBox!); }
+  const c = box.getCenter(new THREE.Vector3());
+  arrow = new THREE.ArrowHelper(new THREE.Vector3(0, 1, 0), new THREE.Vector3(c.x, c.y, box.max.z + 25), 60, 0x80cbc4, 15, 8);
+  root!.add(arrow); // in LPS mm like the meshes
+  refreshArrow();
+}
+
+function refreshArrow(): void {
+  if (!arrow) return;
+  const g = state.gravity === 'model' ? lungs[0].meta.gravity : state.gravity;
+  arrow.setDirection(new THREE.Vector3(...normalize(g)));
+}
+
+// ------------------------------------------------------------------ settings (shared by UI and API)
+function setPreset(name: string): void {
+  const c = curves.find((x) => x.name === name);
+  if (!c) throw new Error(`unknown preset '${name}' (have ${curves.map((x) => x.name).join(', ')})`);
+  state.curve = c;
+  state.tidalMl = c.tidalMl;
+  state.rateBpm = c.rateBpm;
+  syncUI();
+}
+
+function setOrientation(o: string | Vec3): void {
+  if (Array.isArray(o)) {
+    state.orientation = 'custom';
+    state.gravity = normalize(o as Vec3);
+  } else if (o === 'model') {
+    state.orientation = 'model'; state.gravity = 'model';
+  } else if (o in GRAVITY) {
+    state.orientation = o; state.gravity = GRAVITY[o];
+  } else {
+    throw new Error(`unknown orientation '${o}'`);
+  }
+  const stuck = lungs.filter((l) => !l.weights.setGravity(state.gravity)).map((l) => l.name);
+  statusEl.classList.toggle('error', stuck.length > 0);
+  statusEl.textContent = stuck.length
+    ? `${state.orientation}: the model's force basis does not grow the ${stuck.join(' and ')} lung (dV/ds ≤ 0); shown at end-exhale`
+    : loadedText();
+  refreshArrow();
+  if (state.overlay === 'force') setOverlay('force');
+  syncUI();
+}
+
+function setOverlay(kind: string): void {
+  state.overlay = kind;
+  let range: [number, number] | null = null;
+  for (const l of lungs) range = colourise(l.mesh, kind, l.weights.fieldWeights(), range);
+  // second pass so both lungs share one colour scale
+  if (kind !== 'none') for (const l of lungs) colourise(l.mesh, kind, l.weights.fieldWeights(), range, true);
+  $('legend').style.background = kind === 'none' ? 'none' : legendGradient();
+  $('legend').title = range ? `${range[0].toPrecision(3)} … ${range[1].toPrecision(3)}` : '';
+  syncUI();
+}
+
+function setMarkers(on: boolean): void {
+  state.markers = on;
+  for (const l of lungs) {
+    for (const m of l.markers) m.sphere.visible = on;
+    const mat = l.mesh.material as THREE.MeshStandardMaterial;
+    mat.transparent = on; mat.opacity = on ? 0.45 : 1; mat.depthWrite = !on;
+    mat.needsUpdate = true;
+  }
+  syncUI();
+}
+
+// ------------------------------------------------------------------ UI
+function syncUI(): void {
+  ($('preset') as HTMLSelectElement).value = state.curve?.name ?? '';
+  ($('tidal') as HTMLInputElement).value = String(state.tidalMl);
+  $('tidal-out').textContent = state.tidalMl.toFixed(0);
+  ($('rate') as HTMLInputElement).value = String(state.rateBpm);
+  $('rate-out').textContent = state.rateBpm.toFixed(1);
+  ($('gain') as HTMLInputElement).value = String(state.gain);
+  $('gain-out').textContent = String(state.gain);
+  ($('orientation') as HTMLSelectElement).value = state.orientation;
+  $('custom-g').hidden = state.orientation !== 'custom';
+  ($('overlay') as HTMLSelectElement).value = state.overlay;
+  ($('markers') as HTMLInputElement).checked = state.markers;
+  $('play').textContent = state.playing ? 'Pause' : 'Play';
+}
+
+function bindUI(): void {
+  const sel = $('preset') as HTMLSelectElement;
+  sel.replaceChildren(...curves.map((c) => new Option(c.label, c.name)));
+  sel.onchange = () => setPreset(sel.value);
+  const tidal = $('tidal') as HTMLInputElement;
+  tidal.oninput = () => { state.tidalMl = Number(tidal.value); syncUI(); };
+  const rate = $('rate') as HTMLInputElement;
+  rate.oninput = () => {
+    const phase = (state.t / loop()) % 1;
+    state.rateBpm = Number(rate.value);
+    state.t = phase * loop(); // keep the phase when the rate changes
+    syncUI();
+  };
+  const gain = $('gain') as HTMLInputElement;
+  gain.oninput = () => { state.gain = Number(gain.value); syncUI(); };
+  const orient = $('orientation') as HTMLSelectElement;
+  const custom = () => setOrientation([Number(($('gx') as HTMLInputElement).value),
+    Number(($('gy') as HTMLInputElement).value), Number(($('gz') as HTMLInputElement).value)]);
+  orient.onchange = () => (orient.value === 'custom' ? custom() : setOrientation(orient.value));
+  for (const id of ['gx', 'gy', 'gz']) $(id).onchange = () => { try { custom(); } catch (e) { showError(e); } };
+  const overlay = $('overlay') as HTMLSelectElement;
+  overlay.onchange = () => setOverlay(overlay.value);
+  const markers = $('markers') as HTMLInputElement;
+  markers.onchange = () => setMarkers(markers.checked);
+  $('play').onclick = () => { state.playing = !state.playing; syncUI(); };
+  const scrub = $('scrub') as HTMLInputElement;
+  scrub.oninput = () => { state.playing = false; state.t = (Number(scrub.value) / 1000) * loop(); syncUI(); };
+  const lbl = lungs[0].meta.gravity;
+  const native = Object.entries(GRAVITY).find(([, g]) => g.every((x, i) => Math.abs(x - lbl[i]) < 1e-6));
+  orient.options[0].text = `model (as built: ${native ? native[0] : lbl.map((x) => x.toFixed(2)).join(', ')})`;
+}
+
+function showReadout(): void {
+  const s = stats.summary();
+  const lines = [
+    `fps ${s.fps.toFixed(1)}   frame ${s.frameMs.toFixed(2)} ms (CPU, mean)`,
+    `interval ${s.intervalMs.toFixed(1)} ms   deform ${deformMode.toUpperCase()}`,
+    `t ${state.t.toFixed(2)} s   ΔV ${state.dvMl.toFixed(0)} mL (both lungs)`,
+    ...lungs.map((l) => `${l.name}: ${(l.meta.volume_ee_ml + l.meta.share * state.dvMl).toFixed(0)} mL, ${l.meta.n_vertices} vertices`),
+  ];
+  $('readout').textContent = lines.join('\n');
+  const scrub = $('scrub') as HTMLInputElement;
+  if (state.playing) scrub.value = String(Math.round(((state.t / loop()) % 1) * 1000));
+  $('clock').textContent = manualClock ? 'clock: manual (test)' : '';
+}
+
+function loadedText(): string {
+  return `${lungs.length} lungs, ${lungs.reduce((n, l) => n + l.meta.n_vertices, 0)} vertices`;
+}
+
+function showError(e: unknown): void {
+  statusEl.textContent = `error: ${e instanceof Error ? e.message : String(e)}`;
+  statusEl.classList.add('error');
+}
+
+// ------------------------------------------------------------------ test and benchmark API
+function renderOnce(): void { update(); renderer.render(scene, camera); }
+
+const snapshots = new Map<string, { rgb: Uint8Array; mask: Uint8Array }>();
+
+/** Render now and keep the picture and its silhouette (pixels unlike the background) under key. */
+function snapshot(key: string) {
+  renderOnce();
+  const gl = renderer.getContext();
+  const w = gl.drawingBufferWidth, h = gl.drawingBufferHeight;
+  const px = new Uint8Array(w * h * 4);
+  gl.readPixels(0, 0, w, h, gl.RGBA, gl.UNSIGNED_BYTE, px);
+  const hex = BACKGROUND.getHex(); // sRGB, as the canvas shows it
+  const bg = [(hex >> 16) & 255, (hex >> 8) & 255, hex & 255];
+  const mask = new Uint8Array(w * h);
+  const rgb = new Uint8Array(w * h * 3);
+  let on = 0;
+  for (let i = 0; i < w * h; i++) {
+    const r = px[4 * i], g = px[4 * i + 1], b = px[4 * i + 2];
+    rgb[3 * i] = r; rgb[3 * i + 1] = g; rgb[3 * i + 2] = b;
+    const d = Math.max(Math.abs(r - bg[0]), Math.abs(g - bg[1]), Math.abs(b - bg[2]));
+    if (d > 12) { mask[i] = 1; on++; }
+  }
+  snapshots.set(key, { rgb, mask });
+  return { width: w, height: h, silhouettePixels: on };
+}
+
+/** Pixels whose silhouette membership differs, and pixels whose colour differs by more than 8/255. */
+function diff(a: string, b: string) {
+  const A = snapshots.get(a), B = snapshots.get(b);
+  if (!A || !B) throw new Error(`no snapshot ${A ? b : a}`);
+  let silhouette = 0, colour = 0;
+  for (let i = 0; i < A.mask.length; i++) {
+    if (A.mask[i] !== B.mask[i]) silhouette++;
+    const d = Math.max(Math.abs(A.rgb[3 * i] - B.rgb[3 * i]), Math.abs(A.rgb[3 * i + 1] - B.rgb[3 * i + 1]),
+                       Math.abs(A.rgb[3 * i + 2] - B.rgb[3 * i + 2]));
+    if (d > 8) colour++;
+  }
+  return { silhouette, colour };
+}
+
+/** Frame times with a forced GPU sync (1-pixel readPixels) after each frame. */
+function bench(frames = 60, warmup = 5) {
+  const gl = renderer.getContext();
+  const px = new Uint8Array(4);
+  const wasPlaying = state.playing;
+  state.playing = false;
+  const step = () => { state.t += 1 / 60; };
+  for (let i = 0; i < warmup; i++) { step(); renderOnce(); gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, px); }
+  const total: number[] = [], cpu: number[] = [];
+  for (let i = 0; i < frames; i++) {
+    const a = performance.now();
+    step();
+    update();
+    const b = performance.now();
+    renderer.render(scene, camera);
+    gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, px);
+    total.push(performance.now() - a);
+    cpu.push(b - a);
+  }
+  state.playing = wasPlaying;
+  const stat = (x: number[]) => {
+    const s = [...x].sort((p, q) => p - q);
+    return { median: s[s.length >> 1], mean: x.reduce((p, q) => p + q, 0) / x.length, p95: s[Math.floor(0.95 * (s.length - 1))] };
+  };
+  return { frames, deform: deformMode, vertices: lungs.reduce((n, l) => n + l.meta.n_vertices, 0),
+           frameMs: stat(total), deformCpuMs: stat(cpu), renderer: rendererName(),
+           width: gl.drawingBufferWidth, height: gl.drawingBufferHeight };
+}
+
+function rendererName(): string {
+  const gl = renderer.getContext();
+  const ext = gl.getExtension('WEBGL_debug_renderer_info');
+  return String(ext ? gl.getParameter(ext.UNMASKED_RENDERER_WEBGL) : gl.getParameter(gl.RENDERER));
+}
+
+const api = {
+  ready: null as unknown as Promise<object>,
+  info: () => ({ lungs: lungs.map((l) => ({ name: l.name, vertices: l.meta.n_vertices, share: l.meta.share })),
+                 markers: lungs.reduce((n, l) => n + l.markers.length, 0),
+                 presets: curves.map((c) => c.name), deform: deformMode, manualClock, renderer: rendererName() }),
+  state: () => ({ t: state.t, dvMl: state.dvMl, playing: state.playing, preset: state.curve?.name, tidalMl: state.tidalMl,
+                  rateBpm: state.rateBpm, orientation: state.orientation, overlay: state.overlay, loopS: loop(),
+                  weights: Object.fromEntries(lungs.map((l) => [l.name, [...l.influences]])) }),
+  setTime: (t: number) => { state.t = t; state.playing = false; syncUI(); },
+  setPhase: (phase: number) => { state.t = phase * loop(); state.playing = false; syncUI(); },
+  play: () => { state.playing = true; syncUI(); },
+  pause: () => { state.playing = false; syncUI(); },
+  setPreset, setOrientation, setOverlay, setMarkers,
+  setTidal: (ml: number) => { state.tidalMl = ml; syncUI(); },
+  setRate: (bpm: number) => { state.rateBpm = bpm; syncUI(); },
+  setGain: (g: number) => { state.gain = g; syncUI(); },
+  renderOnce, snapshot, diff, bench, stats: () => stats.summary(),
+};
+(window as unknown as { lungdeform: typeof api }).lungdeform = api;
+
+api.ready = (async () => {
+  resize();
+  await loadModel();
+  bindUI();
+  setPreset(curves[0].name);
+  setOrientation('model');
+  setOverlay('none');
+  if (manualClock) state.playing = false;
+  syncUI();
+  statusEl.textContent = loadedText();
+  setupXR(renderer, $('xr'), root!, scene, BACKGROUND);
+  renderer.setAnimationLoop(frame);
+  return api.info();
+})();
+api.ready.catch(showError);
