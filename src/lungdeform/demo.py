@@ -22,7 +22,7 @@ from .mesh import signed_volume
 @dataclass(frozen=True)
 class DemoResult:
     model: Path
-    series: Path | None
+    series: Path
     summary: Path
     snapshot: Path
     summary_data: dict
@@ -100,7 +100,7 @@ def run_demo(
     }
     summary["total_volume_ml"] = [round(sum(frames[n][i] for n in frames), 6) for i in range(len(t))]
     summary_path = write_json(out / "summary.json", summary)
-    series_path = _write_series(out, model, t, scales, series_fps, say)
+    series_path = _write_series(out, model, t, v_total, series_fps, say)
     peak = int(np.argmax(v_total))
     layers = []
     for name, lung in model.lungs.items():
@@ -112,13 +112,10 @@ def run_demo(
     return DemoResult(model_path, series_path, summary_path, png, summary)
 
 
-def _write_series(out: Path, model, t, scales, fps, say) -> Path | None:
-    """Mesh time series for ParaView (.pvd + .vtp), sampled at ``fps`` frames/s."""
-    try:
-        from .export import write_pvd
-    except ImportError:
-        return None
-    step = max(1, int(round(STEPS_PER_S / fps)))
-    idx = np.arange(0, len(t), step)
-    say(f"writing the mesh time series ({len(idx)} frames per lung)")
-    return write_pvd(model, out / "series.pvd", times=t[idx], scales={k: v[idx] for k, v in scales.items()})
+def _write_series(out: Path, model, t, v_total, fps, say) -> Path:
+    """Mesh time series for ParaView (``series.pvd`` + one ``.vtp`` per lung and frame)."""
+    from .export import VolumeTrace, export_pvd
+
+    say(f"writing the mesh time series at {fps:g} frames/s")
+    return export_pvd(model, out / "series.pvd", VolumeTrace(t, v_total, "demo breath"), fps=fps,
+                      progress=say)

@@ -13,7 +13,7 @@ def test_demo_writes_model_series_summary_and_snapshot(tmp_path, capsys):
     out = tmp_path / "demo"
     assert main(["demo", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
-    for name in ("model.npz", "summary.json", "snapshot.png"):
+    for name in ("model.npz", "series.pvd", "summary.json", "snapshot.png"):
         assert (out / name).is_file() and str(out / name) in printed
     model = load_model(out / "model.npz")
     assert sorted(model.names) == ["left", "right"]
@@ -28,6 +28,11 @@ def test_demo_writes_model_series_summary_and_snapshot(tmp_path, capsys):
     for lung in summary["lungs"].values():
         assert len(lung["volume_ml"]) == len(t) and lung["max_volume_error_percent"] < 1.0
     assert (out / "snapshot.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # the time series names one .vtp per lung and frame, all present
+    import re
+
+    files = re.findall(r'file="([^"]+)"', (out / "series.pvd").read_text())
+    assert len(files) >= 2 * 50 and all((out / f).is_file() for f in files)
 
 
 def test_demo_refuses_a_file_as_output(tmp_path, capsys):

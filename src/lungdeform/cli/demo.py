@@ -29,7 +29,6 @@ def register(apps) -> None:
                        f"peak {max(vols):.0f} mL (+{max(vols) - lung['volume_ee_ml']:.0f}), "
                        f"max volume error {lung['max_volume_error_percent']:.3f} %")
         typer.echo(f"model:       {r.model}")
-        if r.series:
-            typer.echo(f"time series: {r.series}")
+        typer.echo(f"time series: {r.series}")
         typer.echo(f"summary:     {r.summary}")
         typer.echo(f"snapshot:    {r.snapshot}")
