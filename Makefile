@@ -24,8 +24,34 @@ $(STAMP): pyproject.toml requirements.lock
 demo: $(STAMP)
 	$(BIN)/lungdeform demo --out $(DEMO_OUT)
 
-test: $(STAMP)
+test: $(STAMP) viewer-deps $(VIEWER_BUNDLE)
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
+
+# --- browser viewer (issue 5), for `make test`: the viewer's node packages (npm ci, once: stamp),
+# Debian's Chromium for the Playwright test (installed as root when /usr/bin/chromium is missing),
+# and the viewer bundle shipped in the package (rebuilt when its sources are newer). Without npm
+# or root the viewer's node and browser tests skip, naming what is missing.
+VIEWER_STAMP := viewer/node_modules/.installed
+VIEWER_BUNDLE := src/lungdeform/data/viewer/index.html
+VIEWER_SRC := $(wildcard viewer/src/*.ts viewer/src/*.css) viewer/index.html viewer/vite.config.ts viewer/package-lock.json
+
+.PHONY: viewer-deps chromium
+viewer-deps: $(VIEWER_STAMP) chromium
+
+$(VIEWER_STAMP): viewer/package.json viewer/package-lock.json
+	@if command -v npm >/dev/null; then cd viewer && npm ci --no-audit --no-fund && touch node_modules/.installed; \
+	else echo "npm not found: the viewer's node tests and the browser test will skip"; fi
+
+chromium:
+	@if [ ! -x /usr/bin/chromium ]; then \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	    apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends chromium; \
+	  else echo "/usr/bin/chromium missing and not root: the browser test will skip"; fi; \
+	fi
+
+$(VIEWER_BUNDLE): $(VIEWER_SRC) | $(VIEWER_STAMP)
+	@if [ -d viewer/node_modules ]; then cd viewer && npm run build; \
+	else echo "viewer/node_modules missing: keeping the committed viewer bundle"; fi
 
 clean:
 	rm -rf $(VENV) $(DEMO_OUT) build src/*.egg-info .pytest_cache

@@ -266,3 +266,31 @@ def test_failed_export_leaves_nothing(model, tmp_path, monkeypatch):
     with pytest.raises(RuntimeError):
         E.export_glb(model, tmp_path / "m.glb")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_glb_in_blender(model, tmp_path):
+    # Blender's own glTF importer and animation evaluation (when Blender is installed): shape keys
+    # named after the targets, one action per lung, and the enclosed volume at t follows the curve
+    import shutil
+    import subprocess
+
+    from tests.browser.support import REPO
+
+    if shutil.which("blender") is None:
+        pytest.skip("blender is not installed (apt-get install blender python3-numpy to run this test)")
+    path = E.export_glb(model, tmp_path / "m.glb", E.plain_cycle(500, 4.0))
+    times = [0.0, 1.0, 2.0]
+    res = subprocess.run(["blender", "-b", "--factory-startup", "--python",
+                          str(REPO / "tests" / "browser" / "blender_import.py"), "--", str(path),
+                          *map(str, times)], capture_output=True, text=True, timeout=300)
+    lines = [ln for ln in res.stdout.splitlines() if ln.startswith("RESULT ")]
+    assert lines, res.stdout[-2000:] + res.stderr[-2000:]
+    out = json.loads(lines[-1][len("RESULT "):])
+    assert len(out["actions"]) == 2
+    shares = E.lung_shares(model)
+    for name, lung in model.lungs.items():
+        mesh = out["meshes"][name]
+        assert mesh["vertices"] == lung.n_vertices and mesh["faces"] == len(lung.surface.faces)
+        assert mesh["shape_keys"] == ["Basis", *E.TARGET_NAMES]
+        expected = lung.volume_ee_ml + shares[name] * E.plain_cycle(500, 4.0).sample(times)
+        np.testing.assert_allclose(np.array(mesh["volume_mm3"]) / 1000, expected, rtol=1e-5)

@@ -58,7 +58,7 @@ from pathlib import Path
 import numpy as np
 
 from .constants import GRAVITY, TIDAL_VOLUME_ML
-from .displacement import scale_for_volume, volume_polynomial
+from .displacement import scale_for_volume, smallest_positive_root
 from .errors import InputError, LungdeformError, ReadError
 from .force import force_weights
 from .mesh import vertex_normals
@@ -212,8 +212,6 @@ def cubic_root(a1: float, a2: float, a3: float, target: float) -> float:
         return 0.0
     poly = np.array([0.0, a1, a2, a3])
     if target > 0:
-        from .displacement import smallest_positive_root
-
         return smallest_positive_root(poly, target)
     return scale_for_volume(poly, target / 1000.0)
 

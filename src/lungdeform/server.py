@@ -59,14 +59,10 @@ def bundle_routes(bundle: Path | None = None) -> dict[str, Resource]:
                         "'npm run build' in viewer/")
     routes = {"/": Resource(index.read_bytes(), CONTENT_TYPES[".html"])}
     routes["/index.html"] = routes["/"]
-    for sub in ("assets",):
-        folder = root / sub
-        for f in sorted(folder.iterdir()) if folder.is_dir() else []:
-            if f.is_file() and not f.is_symlink() and f.suffix in CONTENT_TYPES:
-                routes[f"/{sub}/{f.name}"] = Resource(f.read_bytes(), CONTENT_TYPES[f.suffix])
-    for f in sorted(root.iterdir()):
-        if f.is_file() and not f.is_symlink() and f.suffix in (".svg", ".ico", ".png") :
-            routes[f"/{f.name}"] = Resource(f.read_bytes(), CONTENT_TYPES[f.suffix])
+    assets = root / "assets"
+    for f in sorted(assets.iterdir()) if assets.is_dir() else []:
+        if f.is_file() and not f.is_symlink() and f.suffix in CONTENT_TYPES:
+            routes[f"/assets/{f.name}"] = Resource(f.read_bytes(), CONTENT_TYPES[f.suffix])
     return routes
 
 

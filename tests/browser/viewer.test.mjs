@@ -63,6 +63,12 @@ try {
   const state = await page.evaluate(() => window.lungdeform.state());
   check('end-inhale volume', Math.abs(state.dvMl - 500) < 1e-6, { dvMl: state.dvMl });
 
+  // the GPU path does no per-vertex work on the CPU: position buffers are never re-uploaded
+  const uploads = await page.evaluate(() => window.lungdeform.positionUploads());
+  await page.evaluate(() => { for (let i = 0; i < 5; i++) { window.lungdeform.setPhase(i / 5); window.lungdeform.renderOnce(); } });
+  check('no per-frame vertex upload', (await page.evaluate(() => window.lungdeform.positionUploads())) === uploads, { uploads });
+  await page.evaluate(() => window.lungdeform.setPhase(0.5));
+
   // 2. the silhouette grows between end-exhale and end-inhale (true model displacement, gain 1)
   const breath = await diff('ee', 'ei');
   check('silhouette differs ee/ei', breath.silhouette > 50 && ei.silhouettePixels > ee.silhouettePixels,

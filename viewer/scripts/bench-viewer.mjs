@@ -18,7 +18,7 @@ const [width, height] = (sizeArg ?? '960x640').split('x').map(Number);
 const gl = process.env.CHROMIUM_GL ?? 'swiftshader';
 const args = ['--no-sandbox', '--disable-quic', '--no-first-run', '--disable-background-networking',
   '--disable-component-update', '--disable-sync', '--ignore-gpu-blocklist', `--use-angle=${gl}`,
-  '--disable-gpu-vsync', '--disable-frame-rate-limit'];
+];
 if (gl === 'swiftshader') args.push('--enable-unsafe-swiftshader');
 const browser = await chromium.launch({ executablePath: process.env.CHROMIUM ?? '/usr/bin/chromium', headless: true, args });
 const out = { url, frames, width, height, angle: gl, runs: [] };

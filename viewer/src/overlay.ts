@@ -58,9 +58,10 @@ export function colourise(mesh: THREE.Mesh, kind: string, fieldWeights: number[]
   }
   const colours = new Float32Array(3 * v.length);
   const c = new THREE.Color();
-  const span = hi - lo > 0 ? hi - lo : 1;
+  const flat = !(hi - lo > 1e-9 * Math.max(Math.abs(hi), Math.abs(lo), 1e-30)); // uniform field: mid colour
+  const span = flat ? 1 : hi - lo;
   for (let i = 0; i < v.length; i++) {
-    colourMap((v[i] - lo) / span, c);
+    colourMap(flat ? 0.5 : (v[i] - lo) / span, c);
     colours[3 * i] = c.r; colours[3 * i + 1] = c.g; colours[3 * i + 2] = c.b;
   }
   mesh.geometry.setAttribute('color', new THREE.BufferAttribute(colours, 3));
