@@ -144,3 +144,13 @@ def test_real_itk_lung_follows_500_ml(data_dir):
     assert 3000 < smaller.volume_ml < 3700  # data README: 3.36 L
     lung = build_lung(smaller, "right", calibration_ml=500.0)
     _check_tidal_linearity(lung)
+
+
+def test_orientation_that_cannot_expand_says_why(left_lung):
+    # Table I's directions run anterior; prone puts the largest force posterior, where those
+    # directions point into the lung, so the volume would shrink: refuse, naming the reason.
+    from lungdeform.errors import LungdeformError
+
+    model = build_lung(left_lung, "left")
+    with pytest.raises(LungdeformError, match="fitted supine"):
+        model.oriented("prone")

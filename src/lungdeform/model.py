@@ -23,7 +23,7 @@ import numpy as np
 from .constants import TIDAL_VOLUME_ML, gravity_vector, table_constants
 from .direction import directions as direction_field
 from .displacement import Playback, calibrate, scale_for_volume, volume_polynomial
-from .errors import InputError
+from .errors import InputError, LungdeformError
 from .force import field_basis, force_weights
 from .frame import LungFrame, lung_frame
 from .graph import spring_graph
@@ -140,8 +140,7 @@ class LungModel:
         g = gravity_vector(gravity)
         w = force_weights(self.frame, g, self.constants)
         raw = (w @ self.force_basis)[:, None] * self.directions
-        u = calibrate(self.surface.vertices, self.surface.faces, raw,
-                      calibration_ml=self.calibration_ml, unit_ml=self.unit_ml)
+        u = _calibrated(self.surface, raw, self.calibration_ml, self.unit_ml, gravity)
         return replace(self, gravity=g, displacement=u)
 
 
@@ -196,9 +195,25 @@ def build_lung(
     basis = np.stack([fs.solve(field)[:n] for field in field_basis(xyz)])
     d = direction_field(frame, p, c)
     raw = (force_weights(frame, g, c) @ basis)[:, None] * d
-    u = calibrate(p, surface.faces, raw, calibration_ml=calibration_ml, unit_ml=unit_ml)
+    u = _calibrated(surface, raw, calibration_ml, unit_ml, gravity)
     return LungModel(side, surface, c, e, frame, d, basis, g, u, float(unit_ml),
                      float(calibration_ml), float(d_min))
+
+
+def _calibrated(surface: Surface, raw: np.ndarray, calibration_ml: float, unit_ml: float, gravity):
+    """:func:`calibrate`, with a message that says why a field may not expand the lung."""
+    try:
+        return calibrate(surface.vertices, surface.faces, raw, calibration_ml=calibration_ml,
+                         unit_ml=unit_ml)
+    except LungdeformError as exc:
+        if isinstance(exc, InputError):
+            raise
+        raise LungdeformError(
+            f"{surface.name}: with gravity {gravity!r} the applied force and the directions "
+            "(c1…c6) do not expand the lung (the force is largest where the directions run inward). "
+            "Table I's directions were fitted supine; fit directions for this orientation "
+            "(lungdeform fit) or give constants that suit it"
+        ) from exc
 
 
 @dataclass(frozen=True, eq=False)
