@@ -146,11 +146,25 @@ def test_real_itk_lung_follows_500_ml(data_dir):
     _check_tidal_linearity(lung)
 
 
-def test_orientation_that_cannot_expand_says_why(left_lung):
-    # Table I's directions run anterior; prone puts the largest force posterior, where those
-    # directions point into the lung, so the volume would shrink: refuse, naming the reason.
-    from lungdeform.errors import LungdeformError
+def test_every_named_orientation_expands_real_lungs():
+    # Directions take their origins on the side the lung rests on (paper's supine reasoning
+    # applied to any position), so prone and both decubitus positions breathe too.
+    from lungdeform.constants import GRAVITY
+    from lungdeform.data import default_lungs
+    from lungdeform.model import build_model
 
-    model = build_lung(left_lung, "left")
-    with pytest.raises(LungdeformError, match="fitted supine"):
-        model.oriented("prone")
+    model = build_model(default_lungs())
+    for name in GRAVITY:
+        for lung in model.oriented(name).lungs.values():
+            grown = lung.surface_at(scale=lung.calibration_ml / lung.unit_ml).volume_ml
+            assert grown == pytest.approx(lung.volume_ee_ml + lung.calibration_ml, rel=1e-9)
+
+
+def test_prone_directions_mirror_supine(left_lung):
+    # Prone flips only the anterior–posterior axis of the directions.
+    supine = build_lung(left_lung, "left")
+    prone = supine.oriented("prone")
+    frame = supine.frame.supported("prone")
+    assert np.allclose(frame.axes[1], -supine.frame.axes[1]) and np.allclose(frame.axes[[0, 2]], supine.frame.axes[[0, 2]])
+    assert np.all(prone.directions[:, 1] >= 0)  # now posterior (+y LPS) or zero
+    assert np.allclose(prone.directions[:, [0, 2]] != 0, supine.directions[:, [0, 2]] != 0)

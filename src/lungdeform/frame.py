@@ -61,6 +61,29 @@ class LungFrame:
         """Lung-frame vectors ``(n, 3)`` → LPS vectors."""
         return np.ascontiguousarray(np.asarray(vectors, float) @ self.axes)
 
+    def supported(self, gravity) -> "LungFrame":
+        """The frame whose X and Y origins sit on the side the lung rests on under ``gravity``.
+
+        Paper Sec. IV-B.1 puts the Y origin at the posterior side because, supine, the posterior
+        part of the lung rests on the table and cannot move forward. By the same reasoning, an
+        axis (X or Y) that grows toward the dependent side (``axis · gravity > 0``) is flipped so
+        that it grows away from the support: prone flips Y (origin anterior), the lower lung in a
+        decubitus position flips X (origin lateral). Z (apex → base) never flips. Supine and
+        upright return the anatomical frame unchanged.
+        """
+        from .constants import gravity_vector
+
+        g = gravity_vector(gravity)
+        flip = np.array([1.0, 1.0, 1.0])
+        for k in (0, 1):
+            if self.axes[k] @ g > 1e-9:
+                flip[k] = -1.0
+        if np.all(flip > 0):
+            return self
+        lower = np.where(flip > 0, self.lower, -self.upper)
+        upper = np.where(flip > 0, self.upper, -self.lower)
+        return LungFrame(self.side, self.axes * flip[:, None], lower, upper)
+
 
 def lung_frame(vertices: np.ndarray, side: str) -> LungFrame:
     """The frame of a lung whose end-exhale vertices are ``(n, 3) float`` mm LPS."""

@@ -48,7 +48,7 @@ class LungModel:
         Young's modulus per vertex (relative units).
     frame : LungFrame
     directions : (n, 3) float
-        Unit displacement directions d, LPS.
+        Unit displacement directions d, LPS, for :attr:`gravity` (origins on the supported side).
     force_basis : (4, n) float
         Elastostatic force F (kept force on mass nodes) for the fields 1, x̂, ŷ, ẑ.
     gravity : (3,) float
@@ -136,12 +136,14 @@ class LungModel:
 
     def oriented(self, gravity) -> "LungModel":
         """A new model for another gravity direction (name or LPS vector): 4-term recombination of
-        the precomputed responses, then exact volume calibration. No new solve."""
+        the precomputed responses, directions with their origins on the supported side
+        (:meth:`LungFrame.supported`), then exact volume calibration. No new solve."""
         g = gravity_vector(gravity)
         w = force_weights(self.frame, g, self.constants)
-        raw = (w @ self.force_basis)[:, None] * self.directions
+        d = direction_field(self.frame.supported(g), self.surface.vertices, self.constants)
+        raw = (w @ self.force_basis)[:, None] * d
         u = _calibrated(self.surface, raw, self.calibration_ml, self.unit_ml, gravity)
-        return replace(self, gravity=g, displacement=u)
+        return replace(self, gravity=g, directions=d, displacement=u)
 
 
 def build_lung(
@@ -193,7 +195,7 @@ def build_lung(
     fs = ForceSolver(t, solver, n_mass=n)
     say(f"{side}: force responses ({graph.n_nodes} graph nodes, 4 fields)")
     basis = np.stack([fs.solve(field)[:n] for field in field_basis(xyz)])
-    d = direction_field(frame, p, c)
+    d = direction_field(frame.supported(g), p, c)  # origins on the supported side (frame.py)
     raw = (force_weights(frame, g, c) @ basis)[:, None] * d
     u = _calibrated(surface, raw, calibration_ml, unit_ml, gravity)
     return LungModel(side, surface, c, e, frame, d, basis, g, u, float(unit_ml),
