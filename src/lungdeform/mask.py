@@ -27,7 +27,7 @@ import dataclasses
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Mapping, Sequence
+from typing import Mapping
 
 import numpy as np
 from scipy import sparse
@@ -431,44 +431,82 @@ def decimate(
     """Quadric decimation (fast-simplification) to about ``target_vertices``, then :func:`clean_mesh`.
 
     A closed surface of genus g has ``F = 2V + 4g - 4`` faces, so the face target is
-    ``2 * target_vertices``. Returns ``(vertices, faces, cleanup notes)``.
+    ``2 * target_vertices``. fast-simplification now and then folds two sheets onto one edge
+    (edges with 4 faces) that cleanup cannot undo without opening the surface; the result is
+    then checked with :func:`check_surface` and, if it fails, decimation is rerun with the
+    target nudged by 1 %, 2 %, ... 6 % and then with aggressiveness 5 (deterministic; at most
+    22 tries; one is enough for most targets). Returns
+    ``(vertices, faces, notes)``; raises :class:`MeshError` if no try gives a valid surface.
     """
     import fast_simplification
 
     n_faces = len(faces)
-    target_faces = max(2 * int(target_vertices), 8)
-    reduction = 1.0 - target_faces / n_faces
-    if reduction <= 0:
+    if 2 * int(target_vertices) >= n_faces:
         return vertices, faces, []
-    v, f = fast_simplification.simplify(
-        np.asarray(vertices, dtype=np.float32), np.asarray(faces, dtype=np.int32),
-        target_reduction=reduction,
-    )
-    v, f, notes = clean_mesh(np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int64))
-    return v, f, notes
+    v64 = np.array(vertices, dtype=np.float64, order="C")  # writable copies: the binding refuses
+    f32 = np.array(faces, dtype=np.int32, order="C")  # read-only arrays (Surface's)
+    errors = []
+    tries = [(nudge, agg) for agg in (7, 5) for nudge in (0, 1, -1, 2, -2, 3, -3, 4, -4, 6, -6)]
+    for nudge, agg in tries:
+        target = int(round(target_vertices * (1 + nudge / 100)))
+        v, f = fast_simplification.simplify(
+            v64, f32, target_reduction=1.0 - 2 * target / n_faces, agg=agg
+        )
+        try:
+            v, f, notes = clean_mesh(np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int64))
+            check_surface(v, f, source="decimated surface")
+        except MeshError as exc:
+            errors.append(str(exc))
+            continue
+        if errors:
+            notes.insert(0, f"decimation retried with a {target}-vertex target, aggressiveness {agg} "
+                            f"({len(errors)} tries failed cleanup)")
+        return v, f, notes
+    raise MeshError(f"decimation to {target_vertices} vertices gave no valid surface ({errors[0]})")
 
 
 def clean_mesh(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """Repair what decimation leaves behind, keeping the surface closed.
 
-    Fixed, in a loop until nothing changes: faces with repeated corners (removed); zero-area
-    faces (a cap is fixed by flipping its longest edge, a needle by collapsing its shortest); vertices
-    at identical positions (merged); pairs of duplicate faces (a two-sided fin: both removed,
-    which keeps the rest closed); non-manifold edges shared by 3+ faces (the faces of the
-    smallest attached pieces are dropped); pinched vertices (split into one vertex per fan);
-    unreferenced vertices; then all but the largest piece. Returns ``(vertices, faces, notes)``.
+    Vertices at identical positions are merged first. Then, in a loop until nothing changes:
+    faces with a repeated corner (removed: their real edges cancel); zero-area faces (a cap is
+    fixed by flipping its longest edge, a needle by collapsing its shortest edge); duplicate
+    faces (a two-sided fin: every copy removed, which keeps the rest closed); edges with 4+ faces
+    (two sheets touching along an edge: each sheet gets its own copies of the edge's ends);
+    pinched vertices (split into one vertex per fan). Finally tiny holes are fanned shut and
+    all but the largest piece dropped; the split copies share positions but not topology.
+    Returns ``(vertices, faces, notes)``.
     """
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
     counts = {"degenerate": 0, "flat": 0, "merged": 0, "fin": 0, "nonmanifold": 0, "pinched": 0}
-    for _ in range(100):
+    # merge identical positions (once: splitting pinches below makes deliberate copies)
+    uniq, inverse = np.unique(v + 0.0, axis=0, return_inverse=True)
+    if len(uniq) < len(v):
+        counts["merged"] += len(v) - len(uniq)
+        v, f = uniq, inverse.reshape(-1)[f]
+    for _ in range(5):
+        v, f = _clean_pass(v, f, counts)
+        # keep the largest piece; removing fins may have opened small holes: fan them shut and
+        # run the pass again (a fan over a straight boundary can itself be flat)
+        v, f, _ = _largest_surface_piece(v, f)
+        if not (edge_face_counts(f)[1] == 1).any():
+            break
+        f = _fill_small_holes(v, f)
+    if not orientation_consistent(f):
+        raise MeshError("decimation produced an inconsistently oriented surface")
+    labels = {"degenerate": "faces with a repeated corner removed",
+              "flat": "zero-area faces fixed by an edge flip or collapse", "merged": "duplicate vertices merged",
+              "fin": "duplicate (fin) faces removed", "nonmanifold": "vertices split where two sheets touched along an edge",
+              "pinched": "pinched vertices split"}
+    notes = [f"cleanup: {n} {labels[k]}" for k, n in counts.items() if n]
+    return np.ascontiguousarray(v), np.ascontiguousarray(f), notes
+
+
+def _clean_pass(v: np.ndarray, f: np.ndarray, counts: dict) -> tuple[np.ndarray, np.ndarray]:
+    """One round of :func:`clean_mesh`'s local fixes, repeated until nothing changes."""
+    for _ in range(200):
         changed = False
-        # merge identical positions
-        uniq, inverse = np.unique(v + 0.0, axis=0, return_inverse=True)
-        if len(uniq) < len(v):
-            counts["merged"] += len(v) - len(uniq)
-            v, f = uniq, inverse.reshape(-1)[f]
-            changed = True
         # faces with a repeated corner: their two real edges cancel, so removing them keeps it closed
         bad = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
         if bad.any():
@@ -491,15 +529,22 @@ def clean_mesh(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.
             counts["fin"] += int(dup.sum())
             f = f[~dup]
             changed = True
-        # edges with 3+ faces: drop the faces on such edges that lie in the smaller pieces
+        # edges with 4+ faces (two sheets touching along an edge): give each sheet its own copy
+        # of the edge's end vertices (fans around a vertex are linked through 2-face edges only)
         edges, face_edges = unique_edges(f)
         ecount = np.bincount(face_edges.ravel(), minlength=len(edges))
         heavy = ecount > 2
         if heavy.any():
-            drop = heavy[face_edges].any(axis=1)
-            counts["nonmanifold"] += int(drop.sum())
-            f = f[~drop]
-            changed = True
+            heavy_set = {(int(a), int(b)) for a, b in edges[heavy]}
+            ends = np.unique(edges[heavy])
+            n_before = len(v)
+            v, f = _split_pinched(v, f, ends, heavy_set)
+            counts["nonmanifold"] += len(v) - n_before
+            changed = len(v) > n_before
+            if not changed:  # odd number of faces on an edge: not two sheets; drop them
+                drop = heavy[face_edges].any(axis=1)
+                f = f[~drop]
+                changed = True
         if not changed:
             pinched = non_manifold_vertices(f, len(v))
             if len(pinched):
@@ -508,20 +553,7 @@ def clean_mesh(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.
                 changed = True
         if not changed:
             break
-    # keep the largest closed piece; dropping fins/heavy edges may have opened holes elsewhere
-    v, f, _ = _largest_surface_piece(v, f)
-    _, ecount = edge_face_counts(f)
-    if (ecount == 1).any():
-        f = _fill_small_holes(v, f)
-        v, f, _ = _largest_surface_piece(v, f)
-    if not orientation_consistent(f):
-        raise MeshError("decimation produced an inconsistently oriented surface")
-    labels = {"degenerate": "faces with a repeated corner removed",
-              "flat": "zero-area faces fixed by an edge flip or collapse", "merged": "duplicate vertices merged",
-              "fin": "duplicate (fin) faces removed", "nonmanifold": "faces on non-manifold edges removed",
-              "pinched": "pinched vertices split"}
-    notes = [f"cleanup: {n} {labels[k]}" for k, n in counts.items() if n]
-    return np.ascontiguousarray(v), np.ascontiguousarray(f), notes
+    return v, f
 
 
 def _fix_flat_face(v: np.ndarray, f: np.ndarray, i: int) -> np.ndarray:
@@ -559,20 +591,25 @@ def _fix_flat_face(v: np.ndarray, f: np.ndarray, i: int) -> np.ndarray:
     return f
 
 
-def _split_pinched(v: np.ndarray, f: np.ndarray, pinched: np.ndarray):
-    """Give each extra fan around a pinched vertex its own copy of the vertex."""
+def _split_pinched(v: np.ndarray, f: np.ndarray, pinched: np.ndarray, heavy: set | frozenset = frozenset()):
+    """Give each extra fan of faces around a vertex its own copy of the vertex.
+
+    Faces around ``p`` are linked when they share an edge ``(p, q)`` that is not in ``heavy``
+    (sorted vertex pairs of edges with more than two faces).
+    """
     from scipy.sparse.csgraph import connected_components
 
     v = list(v)
     f = f.copy()
     for p in pinched:
+        p = int(p)
         rows = np.nonzero((f == p).any(axis=1))[0]
-        # faces around p are linked when they share an edge through p (another common vertex)
-        others = [set(f[r]) - {p} for r in rows]
+        others = [set(int(x) for x in f[r]) - {p} for r in rows]
         link = sparse.lil_matrix((len(rows), len(rows)))
         for a in range(len(rows)):
             for b in range(a + 1, len(rows)):
-                if others[a] & others[b]:
+                common = [q for q in others[a] & others[b] if (min(p, q), max(p, q)) not in heavy]
+                if common:
                     link[a, b] = 1
         n, lab = connected_components(link.tocsr(), directed=False)
         for c in range(1, n):
