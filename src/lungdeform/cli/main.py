@@ -26,6 +26,8 @@ COMMAND_MODULES = [
     "lungdeform.cli.export",
     "lungdeform.cli.view",
     "lungdeform.cli.bench_viewer",
+    "lungdeform.cli.breathe",
+    "lungdeform.cli.validate_breathing",
 ]
 
 

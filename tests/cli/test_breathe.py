@@ -1,0 +1,105 @@
+"""CLI: ``lungdeform breathe`` and ``lungdeform validate breathing``."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from lungdeform.cli.main import main
+from tests.conftest import require_path
+from tests.test_trace import breath, write_marker_csv
+
+
+def _synthetic_trace(path, rng, seconds=64.0, period=4.0):
+    t = np.arange(0.0, seconds, 0.1)
+    s = 12.0 * breath(t, period) + rng.normal(0, 0.05, t.size)
+    return write_marker_csv(path, t * 1000, s)
+
+
+def test_breathe_preset_writes_outputs(tmp_path, capsys):
+    out = tmp_path / "normal"
+    assert main(["breathe", "--preset", "normal", "--out", str(out), "--cycles", "2", "--fs", "25"]) == 0
+    for name in ("curve.csv", "metrics.json", "volume.png", "pv_loop.png", "residuals.png"):
+        assert (out / name).stat().st_size > 0, name
+    with open(out / "curve.csv") as fh:
+        rows = list(csv.reader(fh))
+    assert rows[0] == ["t_s", "volume_ml", "flow_ml_s", "pressure_cmH2O"]
+    vol = np.array([float(r[1]) for r in rows[1:]])
+    assert np.ptp(vol) == pytest.approx(500.0, rel=0.01)  # the preset's tidal volume
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["preset"]["name"] == "normal" and m["integrator_vs_periodic_max_abs_ml"] < 0.1
+    assert not list(out.glob(".*tmp"))  # atomic writes leave no temporaries
+    assert "wrote" in capsys.readouterr().out
+
+
+def test_breathe_fit_writes_outputs(tmp_path, rng, capsys):
+    trace = _synthetic_trace(tmp_path / "synthetic.csv", rng)
+    out = tmp_path / "fit"
+    assert main(["breathe", "--fit", str(trace), "--out", str(out)]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    # truth: a perfectly regular synthetic breath; every model must do well on held-out cycles
+    assert m["model_rms_percent"] < 5.0
+    assert m["cycles_held_out"] >= 3
+    assert m["stream"]["latency_per_sample_us_median"] > 0
+    for name in ("curve.csv", "volume.png", "pv_loop.png", "residuals.png"):
+        assert (out / name).stat().st_size > 0
+    assert "held-out RMS" in capsys.readouterr().out
+
+
+def test_breathe_bad_file_exit_2(tmp_path, capsys):
+    bad = tmp_path / "broken.csv"
+    bad.write_text("Frame;Timestamp;x;y;z\n0;0;1;2;3\n1;100;oops;2;3\n")
+    assert main(["breathe", "--fit", str(bad), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "broken.csv" in err[0] and "line 3" in err[0]
+    assert not (tmp_path / "o" / "metrics.json").exists()
+
+
+def test_breathe_needs_one_source(tmp_path, capsys):
+    assert main(["breathe", "--out", str(tmp_path)]) == 2
+    assert "exactly one of --preset" in capsys.readouterr().err
+    assert main(["breathe", "--preset", "zz", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "unknown breathing preset 'zz'" in err[0]
+
+
+def test_validate_breathing_schema(tmp_path, rng, capsys):
+    data = tmp_path / "data"
+    data.mkdir()
+    _synthetic_trace(data / "a.csv", rng)
+    _synthetic_trace(data / "b.csv", rng, period=3.5)
+    (data / "short.csv").write_text("Frame;Timestamp;x;y;z\n0;0;1;2;3\n6;100;1;2;3\n")
+    out = tmp_path / "out"
+    assert main(["validate", "breathing", "--data", str(data), "--out", str(out)]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert set(m["traces"]) == {"a.csv", "b.csv"} and "short.csv" in m["errors"]
+    for r in m["traces"].values():
+        assert {"model_rms_percent", "lujan_rms_percent", "fourier_rms_percent"} <= set(r)
+    assert m["median_model_rms_percent"] == pytest.approx(
+        np.median([r["model_rms_percent"] for r in m["traces"].values()]))
+
+
+def test_validate_breathing_empty_folder(tmp_path, capsys):
+    assert main(["validate", "breathing", "--data", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
+    assert "no .vxp or .csv trace found" in capsys.readouterr().err
+
+
+@pytest.mark.realdata
+@pytest.mark.slow
+def test_validate_breathing_real_traces(data_dir, tmp_path):
+    # real data: the 16 shared traces (RPM + external markers), held-out cycles
+    traces = require_path(data_dir, "breathing-traces")
+    out = tmp_path / "val"
+    assert main(["validate", "breathing", "--data", str(traces), "--out", str(out)]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert len(m["traces"]) == 16 and not m["errors"]
+    # The issue's target (median < 5 %) is NOT met by the shared-shape held-out protocol (measured
+    # ≈ 9.6 %, see the report). What must hold under the same protocol and the same per-cycle
+    # freedom: the PV driver does at least as well as the Lujan and mean-cycle Fourier shapes.
+    assert m["median_model_rms_percent"] <= m["median_lujan_rms_percent"]
+    assert m["median_shared_shape"]["model"] <= m["median_shared_shape"]["fourier"]
+    for name, r in m["traces"].items():
+        assert 0 < r["model_rms_percent"] < 50, name
