@@ -282,7 +282,7 @@ def test_glb_in_blender(model, tmp_path):
     times = [0.0, 1.0, 2.0]
     res = subprocess.run(["blender", "-b", "--factory-startup", "--python",
                           str(REPO / "tests" / "browser" / "blender_import.py"), "--", str(path),
-                          *map(str, times)], capture_output=True, text=True, timeout=300)
+                          *map(str, times)], capture_output=True, text=True, encoding="utf-8", errors="replace", timeout=300)
     lines = [ln for ln in res.stdout.splitlines() if ln.startswith("RESULT ")]
     assert lines, res.stdout[-2000:] + res.stderr[-2000:]
     out = json.loads(lines[-1][len("RESULT "):])

@@ -45,5 +45,5 @@ def node_modules_or_skip(*packages: str) -> Path:
 
 
 def run_node(args: list[str], cwd: Path = VIEWER_DIR, env: dict | None = None, timeout: float = 300):
-    return subprocess.run(["node", *args], cwd=cwd, capture_output=True, text=True, timeout=timeout,
+    return subprocess.run(["node", *args], cwd=cwd, capture_output=True, text=True, encoding="utf-8", errors="replace", timeout=timeout,
                           env={**os.environ, **(env or {})})

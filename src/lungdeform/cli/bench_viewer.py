@@ -108,7 +108,7 @@ def register(apps) -> None:
             say(f"{total} vertices: glb {len(glb) / 1e6:.1f} MB; running Chromium")
             with ViewerServer(glb) as server:
                 res = subprocess.run(["node", str(script), server.url, str(frames), size], cwd=viewer_dir,
-                                     capture_output=True, text=True, timeout=1800)
+                                     capture_output=True, text=True, encoding="utf-8", errors="replace", timeout=1800)
             lines = [ln for ln in res.stdout.splitlines() if ln.startswith("{")]
             if res.returncode != 0 or not lines:
                 raise InputError(f"viewer benchmark failed at {n} vertices: {res.stderr.strip()[-500:]}")

@@ -28,6 +28,8 @@ COMMAND_MODULES = [
     "lungdeform.cli.bench_viewer",
     "lungdeform.cli.breathe",
     "lungdeform.cli.validate_breathing",
+    "lungdeform.cli.fit",
+    "lungdeform.cli.validate_itk",
 ]
 
 
@@ -75,6 +77,9 @@ def main(argv: list[str] | None = None) -> int:
     """Run the CLI; return the exit code (also used by ``python -m lungdeform``)."""
     from lungdeform.errors import LungdeformError
 
+    for stream in (sys.stdout, sys.stderr):  # never crash on "→" or "Δ" under an ASCII locale
+        if hasattr(stream, "reconfigure") and (stream.encoding or "").lower().replace("-", "") != "utf8":
+            stream.reconfigure(errors="replace")
     app = make_app()
     try:
         # standalone mode: typer itself reports usage errors (exit 2) and Ctrl-C

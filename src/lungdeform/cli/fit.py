@@ -1,0 +1,296 @@
+"""``lungdeform fit``: fit a lung model to surfaces, masks or CTs at two or more volumes.
+
+The pipeline (:func:`run_fit`, also used by ``lungdeform validate itk-pair``):
+
+1. read every input (mesh file, mask image, or CT in HU, segmented with
+   :func:`lungdeform.segment.segment_lungs`) into a full-resolution surface; for images, note the
+   border faces the mask touches (crop faces) and check that all images share one voxel spacing;
+2. check the inputs: one side, volumes strictly increasing, landmarks inside their images;
+3. the first input is end-exhale; its surface is decimated to the model mesh (a few thousand
+   vertices); every other surface is rigidly aligned onto it (:func:`lungdeform.align.align_apex`)
+   and refused if the aligned surfaces do not overlap;
+4. fit (:func:`lungdeform.fit.fit_lung`), optimiser and optionally the grid mode, and the
+   baselines (:mod:`lungdeform.baselines`), all measured with the same metrics, crop faces left out;
+5. write ``model.npz`` (docs/MODEL_FORMAT.md), ``metrics.json`` and ``report.html``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import typer
+
+#: Model-mesh sizes tried in turn (mesh decimation can fail on a given budget; the next is tried).
+MODEL_MESH_BUDGETS = (3000, 3200, 2800, 3500, 4000, 2500, 5000)
+
+
+def read_input(path: Path, side: str, *, progress=None):
+    """``(dense Surface, crop planes, spacing or None, image or None)`` for one input path."""
+    from lungdeform import io as lio
+    from lungdeform import mask as M
+    from lungdeform.align import crop_planes
+
+    path = Path(path)
+    if not path.exists():
+        from lungdeform.errors import ReadError
+
+        raise ReadError(f"{path}: no such file or directory")
+    if not M.is_image_path(path):
+        surface, _ = lio.load_surface(path, name=path.name)
+        return surface, [], None, None
+    image = M.read_image(path)
+    a = np.asarray(image.array)
+    if a.size and a.min() < -100:  # a CT in HU: segment the lungs first
+        from lungdeform.segment import segment_lungs
+
+        seg = segment_lungs(image, progress=progress)
+        image = M.Image(getattr(seg, side).astype(np.uint8), image.spacing, image.origin, image.direction,
+                        f"{image.source} ({side} lung)")
+    surface = M.extract_surface(image, name=path.name).surface
+    return surface, crop_planes(image), np.asarray(image.spacing, float), image
+
+
+def model_mesh(surface, image=None):
+    """The end-exhale model mesh: the mask's surface decimated to about 3000 vertices."""
+    from lungdeform.errors import LungdeformError
+    from lungdeform.mask import decimate
+    from lungdeform.mesh import Surface, check_surface
+
+    if surface.n_vertices <= MODEL_MESH_BUDGETS[0] * 1.2:
+        return surface
+    last = None
+    for budget in MODEL_MESH_BUDGETS:
+        try:
+            v, f, _ = decimate(surface.vertices, surface.faces, budget)
+            v, f, _ = check_surface(v, f, source=surface.name)
+            return Surface(v, f, surface.name)
+        except LungdeformError as exc:
+            last = exc
+    raise last
+
+
+def check_landmarks(points, image, path, margin_mm: float = 0.0) -> None:
+    """Refuse landmarks outside the image's world bounding box (mm)."""
+    from lungdeform.errors import InputError
+
+    if image is None:
+        return
+    n = np.array(image.array.shape[::-1])
+    corners = np.array([[i, j, k] for i in (-0.5, n[0] - 0.5) for j in (-0.5, n[1] - 0.5) for k in (-0.5, n[2] - 0.5)])
+    w = image.index_to_world(corners)
+    lo, hi = w.min(axis=0) - margin_mm, w.max(axis=0) + margin_mm
+    bad = np.nonzero(np.any((points < lo) | (points > hi), axis=1))[0]
+    if len(bad):
+        raise InputError(f"{path}: {len(bad)} landmarks lie outside the image {image.source} "
+                         f"(first: row {bad[0] + 1}, {np.round(points[bad[0]], 2).tolist()} mm)")
+
+
+def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid: bool = False,
+            stiffness: bool = False, baselines: bool = True, max_evaluations: int = 300,
+            command: str = "fit", progress=None) -> dict:
+    """Run the whole pipeline; write model.npz, metrics.json and report.html in ``out``; return
+    the metrics dictionary."""
+    from lungdeform import baselines as B
+    from lungdeform.align import align_apex, align_landmarks, near_planes
+    from lungdeform.cli.common import provenance
+    from lungdeform.distance import SurfaceDistance
+    from lungdeform.errors import InputError
+    from lungdeform.fit import Target, fit_lung, to_lung_model
+    from lungdeform.frame import SIDES
+    from lungdeform.io import atomic_write_bytes
+    from lungdeform.landmarks import read_elastix_points
+    from lungdeform.model import Model
+    from lungdeform.modelfile import save_model
+    from lungdeform.report import write_report
+
+    say = progress or (lambda _m: None)
+    t_start = time.perf_counter()
+    if side not in SIDES:
+        raise InputError(f"--side must be 'left' or 'right', got {side!r}")
+    if len(inputs) < 2:
+        raise InputError(f"fit needs inputs at two or more volumes (end-exhale first), got {len(inputs)}")
+    read = []
+    for p in inputs:
+        say(f"reading {p}")
+        read.append(read_input(Path(p), side, progress=say))
+    spacings = [(p, r[2]) for p, r in zip(inputs, read) if r[2] is not None]
+    for p, sp in spacings[1:]:
+        if not np.allclose(sp, spacings[0][1], rtol=1e-3):
+            raise InputError(f"{p}: voxel spacing {sp.tolist()} mm differs from {spacings[0][0]} "
+                             f"({spacings[0][1].tolist()} mm); inconsistent spacing")
+    surfaces = [r[0] for r in read]
+    # sides: every input must be the same lung (centroids on the same side of each other's medial face)
+    widths = [np.ptp(s.vertices[:, 0]) for s in surfaces]
+    cx = [s.vertices[:, 0].mean() for s in surfaces]
+    for p, c in zip(inputs[1:], cx[1:]):
+        if abs(c - cx[0]) > 0.75 * max(widths):
+            raise InputError(f"{p}: this lung lies {c - cx[0]:+.0f} mm from the end-exhale lung along x; "
+                             "the sides do not match (left and right lungs mixed)")
+    if volumes is None:
+        vols = [s.volume_ml for s in surfaces]
+    else:
+        vols = [float(v) for v in volumes]
+        if len(vols) != len(surfaces):
+            raise InputError(f"--volumes has {len(vols)} values for {len(surfaces)} inputs")
+    for i in range(1, len(vols)):
+        if not vols[i] > vols[i - 1]:
+            raise InputError(f"{inputs[i]}: volume {vols[i]:.1f} mL is not larger than that of "
+                             f"{inputs[i - 1]} ({vols[i - 1]:.1f} mL); volumes must increase (end-exhale first)")
+    lms = None
+    if landmarks:
+        if len(landmarks) != len(inputs):
+            raise InputError(f"--landmarks needs one file per input ({len(inputs)}), got {len(landmarks)}")
+        lms = [read_elastix_points(p) for p in landmarks]
+        for p, pts in zip(landmarks[1:], lms[1:]):
+            if pts.shape != lms[0].shape:
+                raise InputError(f"{p}: {len(pts)} landmarks, the end-exhale file has {len(lms[0])}")
+        for p, pts, r in zip(landmarks, lms, read):
+            check_landmarks(pts, r[3], p)
+
+    fixed_dense, fixed_planes = surfaces[0], read[0][1]
+    say("model mesh (decimation)")
+    rest = model_mesh(fixed_dense)
+    targets, alignments, aligned_lms = [], [], []
+    crop_all = list(fixed_planes)  # every crop face, in the end-exhale frame
+    for i in range(1, len(surfaces)):
+        moving, planes_m = surfaces[i], read[i][1]
+        al = align_apex(fixed_dense, moving, exclude_moving=near_planes(moving.vertices, planes_m),
+                        exclude_fixed=near_planes(fixed_dense.vertices, fixed_planes))
+        aligned = al.transform.apply_surface(moving)
+        lo = np.maximum(fixed_dense.bounds[0], aligned.bounds[0])
+        hi = np.minimum(fixed_dense.bounds[1], aligned.bounds[1])
+        overlap = np.prod(np.clip(hi - lo, 0, None)) / np.prod(np.ptp(fixed_dense.vertices, axis=0))
+        if overlap < 0.5:
+            raise InputError(f"{inputs[i]}: after alignment its bounding box overlaps only {overlap:.0%} of the "
+                             f"end-exhale lung's; the volumes do not overlap (different subject or wrong side?)")
+        planes = fixed_planes + [p.transformed(al.transform) for p in planes_m]
+        crop_all += planes[len(fixed_planes):]
+        targets.append(Target(aligned, vols[i], ~near_planes(aligned.vertices, planes), Path(inputs[i]).name))
+        info = {"target": Path(inputs[i]).name, "apex": al.as_dict(), "crop_planes": len(planes)}
+        if lms is not None:
+            lal = align_landmarks(lms[0], lms[i])
+            info["landmarks_rigid_for_comparison"] = lal.as_dict()
+            aligned_lms.append(al.transform.apply(lms[i]))
+        alignments.append(info)
+        say(f"aligned {inputs[i]}: translation {np.round(al.transform.translation, 2).tolist()} mm")
+    keep = ~near_planes(rest.vertices, crop_all)  # model vertices near any crop face are not measured
+
+    results = {}
+    say(f"fitting ({len(targets)} target(s), model mesh {rest.n_vertices} vertices)")
+    fit_opt = fit_lung(rest, side, targets, mode="optimizer", keep=keep, fit_stiffness=stiffness,
+                       max_evaluations=max_evaluations, progress=say)
+    fits = {"optimizer": fit_opt}
+    if grid:
+        fits["grid"] = fit_lung(rest, side, targets, mode="grid", keep=keep, grid_span=0.1, progress=say)
+
+    metrics = {"inputs": [str(p) for p in inputs], "side": side, "volumes_ml": vols,
+               "model_mesh_vertices": rest.n_vertices, "alignment": alignments, "targets": {}}
+    predictions = {}
+    for ti, tg in enumerate(targets):
+        td = SurfaceDistance(tg.surface.vertices, tg.surface.faces)
+        lm0 = lms[0] if lms is not None else None
+        lmt = aligned_lms[ti] if lms is not None else None
+        methods = {}
+        if stiffness and fit_opt.uniform_displacement is not None:
+            s = (tg.volume_ml - fit_opt.volume_ee_ml) / fit_opt.unit_ml
+            methods["model"] = rest.vertices + s * fit_opt.uniform_displacement
+            methods["model_stiffness"] = fit_opt.positions_at(rest, tg.volume_ml)
+        else:
+            methods["model"] = fit_opt.positions_at(rest, tg.volume_ml)
+        if "grid" in fits:
+            methods["model_grid"] = fits["grid"].positions_at(rest, tg.volume_ml)
+        if baselines:
+            say("baselines")
+            methods["no_motion"] = B.no_motion(rest)
+            methods["affine"], _ = B.affine_fit(rest, tg.surface, keep=keep, keep_target=tg.keep)
+            methods["apex_scaling"] = B.apex_scaling(rest, tg.volume_ml)
+            try:
+                methods["cpd"] = B.cpd_deformable(rest, tg.surface)
+            except ImportError as exc:  # pycpd missing: reported, not fatal
+                metrics.setdefault("skipped", {})["cpd"] = str(exc)
+        per = {}
+        for name, x in methods.items():
+            m, per_vertex, lm_err = B.measure(rest, x, tg.surface, keep=keep, keep_target=tg.keep,
+                                              landmarks=lm0, landmarks_target=lmt, target_distance=td)
+            per[name] = m.as_dict()
+            predictions[(tg.name, name)] = (x, per_vertex, lm_err)
+        metrics["targets"][tg.name] = per
+    # the headline (last, largest-volume target) at the top level, as issue 3 item 7 asks
+    last = targets[-1].name
+    metrics.update(metrics["targets"][last])
+    metrics["fit"] = {k: r.as_dict() for k, r in fits.items()}
+    metrics["fit"]["optimizer"]["uniform_objective_rms_mm"] = fit_opt.uniform_objective_mm
+    metrics["bounding_box"] = _bounding_boxes(rest, fit_opt, surfaces, vols)
+    metrics["seconds"] = time.perf_counter() - t_start
+
+    out.mkdir(parents=True, exist_ok=True)
+    lung = to_lung_model(rest, side, fit_opt)
+    model = Model({side: lung}, provenance(command, inputs=[str(p) for p in inputs], volumes_ml=vols,
+                                          fit=fit_opt.as_dict(), alignment=alignments))
+    save_model(out / "model.npz", model)
+    atomic_write_bytes(out / "metrics.json", json.dumps(metrics, indent=2, default=_json).encode())
+    write_report(out / "report.html", rest=rest, targets=targets, fits=fits, predictions=predictions,
+                 metrics=metrics)
+    return metrics
+
+
+def _bounding_boxes(rest, fit, surfaces, vols):
+    """Bounding-box dimensions (mm) and volume / box-volume ratio against volume: observed surfaces
+    and the model's prediction over the same volume range (paper Fig. 4)."""
+    obs = [{"volume_ml": v, "dims_mm": np.ptp(s.vertices, axis=0).tolist(),
+            "ratio": v * 1000.0 / float(np.prod(np.ptp(s.vertices, axis=0)))} for s, v in zip(surfaces, vols)]
+    model = []
+    for v in np.linspace(vols[0], vols[-1], 6):
+        x = fit.positions_at(rest, v)
+        dims = np.ptp(x, axis=0)
+        model.append({"volume_ml": float(v), "dims_mm": dims.tolist(), "ratio": float(v * 1000.0 / np.prod(dims))})
+    return {"observed": obs, "model": model}
+
+
+def _json(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    return str(o)
+
+
+def register(apps) -> None:
+    @apps.root.command("fit")
+    def fit_command(
+        inputs: list[Path] = typer.Argument(..., help="Surfaces, masks or CTs of one lung, end-exhale first, volumes increasing."),
+        out: Path = typer.Option(..., "--out", help="Output folder: model.npz, metrics.json, report.html."),
+        side: str = typer.Option(..., "--side", help="'left' or 'right'."),
+        volumes: str = typer.Option(None, "--volumes", help="Lung volumes in mL, comma-separated (default: measured from the surfaces)."),
+        landmarks: list[Path] = typer.Option(None, "--landmarks", help="elastix point-set file per input (world mm), rows corresponding."),
+        grid: bool = typer.Option(False, "--grid", help="Also run the paper's grid search (step 0.01) for comparison."),
+        stiffness: bool = typer.Option(False, "--stiffness", help="Also fit a heterogeneous stiffness field (inverse expandability)."),
+        baselines: bool = typer.Option(True, "--baselines/--no-baselines", help="Measure the baselines too."),
+        evaluations: int = typer.Option(300, "--evaluations", help="Optimiser budget (objective evaluations)."),
+    ) -> None:
+        """Fit c1…c9 of one lung to two or more volumes; write the model, metrics and an HTML report."""
+        from lungdeform.cli.common import output_dir, say
+        from lungdeform.errors import InputError
+
+        vols = None
+        if volumes:
+            try:
+                vols = [float(v) for v in volumes.split(",")]
+            except ValueError:
+                raise InputError(f"--volumes must be numbers in mL separated by commas, got {volumes!r}") from None
+        folder = output_dir(out)
+        m = run_fit(list(inputs), side=side, out=folder, volumes=vols, landmarks=list(landmarks) if landmarks else None,
+                    grid=grid, stiffness=stiffness, baselines=baselines, max_evaluations=evaluations, progress=say)
+        _print_table(m)
+        typer.echo(f"wrote {folder / 'model.npz'}, {folder / 'metrics.json'}, {folder / 'report.html'}")
+
+
+def _print_table(m: dict) -> None:
+    for tname, per in m["targets"].items():
+        typer.echo(f"target {tname}: surface mean/rms/p95 mm, landmark mean/max mm")
+        for name, v in per.items():
+            typer.echo(f"  {name:<16} {v['surface_mean_mm']:6.2f} {v['surface_rms_mm']:6.2f} {v['surface_p95_mm']:6.2f}"
+                       f"   {v['landmark_mean_mm']:6.2f} {v['landmark_max_mm']:6.2f}")

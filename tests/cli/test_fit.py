@@ -1,0 +1,104 @@
+"""``lungdeform fit``: surfaces at two volumes in, model + metrics + HTML report out; bad input exits 2."""
+
+import json
+
+import numpy as np
+import pytest
+
+from lungdeform.cli.main import main
+from lungdeform.io import write_mesh
+from lungdeform.model import build_lung
+from lungdeform.modelfile import load_model
+from tests.conftest import ellipsoid_lung
+
+TRUE = np.array([0.2, 1.5, 0.4, 0.8, 0.9, 1.8, 0.3, 1.0, 0.5])
+
+
+@pytest.fixture
+def pair(tmp_path):
+    # synthetic truth: the end-exhale ellipsoid and the same lung deformed by a known model (+200 mL)
+    lung = ellipsoid_lung("right")
+    model = build_lung(lung, "right", constants=TRUE, calibration_ml=200.0, unit_ml=200.0)
+    a = write_mesh(tmp_path / "ee.ply", lung.vertices, lung.faces)
+    b = write_mesh(tmp_path / "ei.ply", lung.vertices + model.displacement, lung.faces)
+    return a, b, lung
+
+
+def _one_error_line(capsys):
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: ")
+    return err[0]
+
+
+def test_fit_writes_model_metrics_report(tmp_path, pair, capsys):
+    a, b, lung = pair
+    out = tmp_path / "out"
+    assert main(["fit", str(a), str(b), "--side", "right", "--out", str(out), "--evaluations", "400"]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    for name in ("model", "no_motion", "affine", "apex_scaling"):
+        assert set(m[name]) >= {"surface_mean_mm", "surface_rms_mm", "surface_p95_mm", "landmark_mean_mm"}
+    # the model reproduces a surface made by the model (truth) better than no motion
+    assert m["model"]["surface_mean_mm"] < 0.3 * m["no_motion"]["surface_mean_mm"]
+    model = load_model(out / "model.npz")
+    lm = model.lungs["right"]
+    assert lm.n_vertices == lung.n_vertices
+    # at the second volume the stored model gives the fitted surface: p + s·u
+    assert lm.volume_ee_ml + lm.unit_ml == pytest.approx(m["volumes_ml"][1])
+    html = (out / "report.html").read_text()
+    assert html.count("data:image/png;base64,") >= 5
+    assert "wrote" in capsys.readouterr().out
+
+
+def test_volumes_not_increasing(tmp_path, pair, capsys):
+    a, b, _ = pair
+    code = main(["fit", str(a), str(b), "--side", "right", "--out", str(tmp_path / "o"), "--volumes", "1500,1400"])
+    assert code == 2
+    line = _one_error_line(capsys)
+    assert "volumes must increase" in line and "ei.ply" in line
+    assert not (tmp_path / "o" / "model.npz").exists()
+
+
+def test_sides_do_not_match(tmp_path, pair, capsys):
+    a, _, _ = pair
+    left = ellipsoid_lung("left")
+    c = write_mesh(tmp_path / "left.ply", left.vertices * np.array([1, 1, 1]) * 1.05, left.faces)
+    assert main(["fit", str(a), str(c), "--side", "right", "--out", str(tmp_path / "o")]) == 2
+    assert "sides do not match" in _one_error_line(capsys)
+
+
+def test_missing_and_empty_inputs(tmp_path, pair, capsys):
+    import SimpleITK as sitk
+
+    a, _, _ = pair
+    assert main(["fit", str(a), str(tmp_path / "nope.ply"), "--side", "right", "--out", str(tmp_path / "o")]) == 2
+    assert "nope.ply" in _one_error_line(capsys)
+    empty = tmp_path / "empty.mha"
+    sitk.WriteImage(sitk.GetImageFromArray(np.zeros((5, 6, 7), np.uint8)), str(empty))
+    assert main(["fit", str(empty), str(a), "--side", "right", "--out", str(tmp_path / "o")]) == 2
+    assert "empty.mha" in _one_error_line(capsys)
+
+
+def test_inconsistent_spacing(tmp_path, capsys):
+    import SimpleITK as sitk
+
+    z, y, x = np.mgrid[:30, :30, :30]
+    ball = (((x - 15) ** 2 + (y - 15) ** 2 + (z - 15) ** 2) < 100).astype(np.uint8)
+    paths = []
+    for name, sp in (("a.mha", (2.0, 2.0, 2.0)), ("b.mha", (2.0, 2.0, 2.5))):
+        img = sitk.GetImageFromArray(ball)
+        img.SetSpacing(sp)
+        sitk.WriteImage(img, str(tmp_path / name))
+        paths.append(str(tmp_path / name))
+    assert main(["fit", *paths, "--side", "right", "--out", str(tmp_path / "o")]) == 2
+    assert "inconsistent spacing" in _one_error_line(capsys)
+
+
+def test_landmarks_outside_image():
+    from lungdeform.cli.fit import check_landmarks
+    from lungdeform.errors import InputError
+    from lungdeform.mask import Image
+
+    img = Image(np.zeros((10, 10, 10), np.uint8), np.ones(3), np.zeros(3), np.eye(3), "img.mha")
+    check_landmarks(np.array([[0.0, 0, 0], [9.4, 9.4, 9.4]]), img, "lm.txt")
+    with pytest.raises(InputError, match="lm.txt: 1 landmarks lie outside the image img.mha"):
+        check_landmarks(np.array([[0.0, 0, 0], [0, 0, 12.0]]), img, "lm.txt")
