@@ -80,3 +80,20 @@ def test_units_option_rescales(tmp_path):
     out = tmp_path / "m.npz"
     assert main(["build", str(metres), "--side", "left", "--units", "m", "--out", str(out)]) == 0
     assert load_model(out).lungs["left"].volume_ee_ml == pytest.approx(s.volume_ml, rel=1e-5)
+
+
+def test_truncated_mesh_and_empty_mask_exit_2(tmp_path, capsys):
+    import SimpleITK as sitk
+
+    out = tmp_path / "m.npz"
+    s = ellipsoid_lung("left")
+    good = write_mesh(tmp_path / "lung.stl", s.vertices, s.faces)
+    cut = tmp_path / "cut.stl"
+    cut.write_bytes(good.read_bytes()[: good.stat().st_size // 2])  # binary STL cut in half
+    _fails(["build", str(cut), "--side", "left", "--out", str(out)], capsys, "cut.stl")
+    img = sitk.Image(20, 20, 20, sitk.sitkUInt8)  # all zero: no foreground
+    img.SetSpacing((2.0, 2.0, 2.0))
+    empty = tmp_path / "empty_mask.mha"
+    sitk.WriteImage(img, str(empty))
+    _fails(["build", str(empty), "--side", "left", "--out", str(out)], capsys, "empty_mask.mha", "foreground")
+    assert not out.exists()
