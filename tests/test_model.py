@@ -6,7 +6,7 @@ import pytest
 from lungdeform.errors import InputError, ModelFileError
 from lungdeform.model import Model, build_lung
 from lungdeform.modelfile import SCHEMA_VERSION, load_model, save_model
-from lungdeform.solve import ForceSolver, push
+from lungdeform.solve import push
 from lungdeform.graph import spring_graph
 from lungdeform.transfer import local_transfer
 from lungdeform.force import field_basis

@@ -35,7 +35,6 @@ import json
 import os
 import re
 import struct
-import tempfile
 import zlib
 from pathlib import Path
 from typing import Callable
@@ -143,19 +142,9 @@ def write_mesh(path, vertices, faces) -> Path:
 
 def atomic_write_bytes(path, data: bytes) -> None:
     """Write ``data`` to a temp file beside ``path`` and rename it over ``path``."""
-    p = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=p.parent if str(p.parent) else ".", prefix=f".{p.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; give the usual permissions
-        os.replace(tmp, p)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    from .atomic import write_bytes
+
+    write_bytes(path, data)
 
 
 def _umask() -> int:

@@ -16,8 +16,6 @@ Every reader returns ``points : (n, 3) float64`` C-contiguous, and raises
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -175,13 +173,7 @@ def write_elastix_points(path, points) -> Path:
         raise InputError("points must be finite")
     path = Path(path)
     body = "point\n%d\n" % len(pts) + "".join("%.6f %.6f %.6f\n" % tuple(p) for p in pts)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(body)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    from .atomic import write_text
+
+    write_text(path, body)
     return path

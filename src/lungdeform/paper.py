@@ -50,8 +50,6 @@ Figure writers use matplotlib's Agg canvas directly (no pyplot state) and write 
 
 from __future__ import annotations
 
-import os
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -569,14 +567,8 @@ def _figure(size):
 
 
 def _save(fig, canvas, path) -> Path:
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".png", dir=path.parent)
-    os.close(fd)
-    try:
-        canvas.print_png(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
+    from .atomic import atomic_path
+
+    with atomic_path(path, ".png") as tmp:
+        canvas.print_png(str(tmp))
+    return Path(path)

@@ -626,7 +626,6 @@ def write_mask(image: Image, path) -> Path:
 
     SimpleITK writes the LPS geometry; for NIfTI it converts to the file's RAS convention itself.
     """
-    import os
 
     import SimpleITK as sitk
 
@@ -639,16 +638,8 @@ def write_mask(image: Image, path) -> Path:
     img.SetSpacing([float(v) for v in image.spacing])
     img.SetOrigin([float(v) for v in image.origin])
     img.SetDirection([float(v) for v in np.asarray(image.direction).ravel()])
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name[: -len(suffix)]}.", suffix=suffix, dir=path.parent)
-    os.close(fd)
-    try:
-        sitk.WriteImage(img, tmp, useCompression=True)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    from .atomic import atomic_path
+
+    with atomic_path(path, suffix) as tmp:
+        sitk.WriteImage(img, str(tmp), useCompression=True)
     return path

@@ -178,7 +178,6 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
         say(f"aligned {inputs[i]}: translation {np.round(al.transform.translation, 2).tolist()} mm")
     keep = ~near_planes(rest.vertices, crop_all)  # model vertices near any crop face are not measured
 
-    results = {}
     say(f"fitting ({len(targets)} target(s), model mesh {rest.n_vertices} vertices)")
     fit_opt = fit_lung(rest, side, targets, mode="optimizer", keep=keep, fit_stiffness=stiffness,
                        max_evaluations=max_evaluations, progress=say)

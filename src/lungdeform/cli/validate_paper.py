@@ -67,15 +67,6 @@ def register(apps) -> None:
 
 
 def _write_atomic(path: Path, text: str) -> None:
-    import os
-    import tempfile
+    from lungdeform.atomic import write_text
 
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    write_text(path, text)
