@@ -470,7 +470,7 @@ def convergence_experiment(nx: int = 41, ny: int = 41, spacing: float = 3.0, *, 
     t0 = time.perf_counter()
     ForceSolver(t, "bicgstab").solve(force)
     t_krylov = time.perf_counter() - t0
-    at = np.arange(len(curve.history), dtype=float) * every
+    at = np.arange(len(curve.history), dtype=float) * curve.record_every
     at[-1] = curve.pushes  # the kernel appends the final max|P| after the last push
     return ConvergenceResult(
         n, float(tol), float(curve_tol), int(p.pushes), int(m.steps), curve.history / scale, at / n,
