@@ -28,18 +28,6 @@ class DemoResult:
     summary_data: dict
 
 
-def breath_curve(duration_s: float = 5.0, tidal_ml: float = 500.0, rate_hz: float = STEPS_PER_S):
-    """One breath: ``t : (k,) s`` and volume above end-exhale ``(k,) mL``.
-
-    Uses the breathing model's 'normal' preset when it is available (scaled to ``tidal_ml`` and
-    ``duration_s``); otherwise a smooth cosine cycle ``V = T·(1 − cos 2πt/τ)/2``.
-    """
-    n = max(2, int(round(duration_s * rate_hz)))
-    t = np.linspace(0.0, duration_s, n + 1)  # ends exactly at duration_s; rate ≈ rate_hz
-    v = tidal_ml * 0.5 * (1.0 - np.cos(2.0 * np.pi * t / duration_s))
-    return t, v
-
-
 def run_demo(
     out: Path,
     *,
@@ -65,7 +53,10 @@ def run_demo(
                                     "orientation": str(orientation)})
     model_path = save_model(out / "model.npz", model)
     say(f"playing one {duration_s:g} s, {tidal_ml:g} mL breath at {STEPS_PER_S:.2f} frames/s")
-    t, v_total = breath_curve(duration_s, tidal_ml)
+    from .export import plain_cycle
+
+    breath = plain_cycle(tidal_ml, duration_s, STEPS_PER_S)  # one cosine breath at 66.66 frames/s
+    t, v_total = breath.t_s, breath.volume_ml
     frames: dict[str, list[float]] = {}
     scales: dict[str, np.ndarray] = {}
     for name, lung in model.lungs.items():
@@ -100,7 +91,7 @@ def run_demo(
     }
     summary["total_volume_ml"] = [round(sum(frames[n][i] for n in frames), 6) for i in range(len(t))]
     summary_path = write_json(out / "summary.json", summary)
-    series_path = _write_series(out, model, t, v_total, series_fps, say)
+    series_path = _write_series(out, model, breath, series_fps, say)
     peak = int(np.argmax(v_total))
     layers = []
     for name, lung in model.lungs.items():
@@ -112,10 +103,9 @@ def run_demo(
     return DemoResult(model_path, series_path, summary_path, png, summary)
 
 
-def _write_series(out: Path, model, t, v_total, fps, say) -> Path:
+def _write_series(out: Path, model, breath, fps, say) -> Path:
     """Mesh time series for ParaView (``series.pvd`` + one ``.vtp`` per lung and frame)."""
-    from .export import VolumeTrace, export_pvd
+    from .export import export_pvd
 
     say(f"writing the mesh time series at {fps:g} frames/s")
-    return export_pvd(model, out / "series.pvd", VolumeTrace(t, v_total, "demo breath"), fps=fps,
-                      progress=say)
+    return export_pvd(model, out / "series.pvd", breath, fps=fps, progress=say)

@@ -330,6 +330,23 @@ def grow_airways(ct, candidate, seed, voxel_ml, start_hu=-1000.0, max_hu=-900.0,
     return tree, {"threshold_hu": best_t, "history": history, "stopped": stopped}
 
 
+def _two_seeds_grown(separated, m, shape, box, min_fraction):
+    """Labels 1/2 grown back over ``m`` from the two largest pieces of ``separated``, or None when
+    there are not two pieces or the smaller is below ``min_fraction`` of both."""
+    lab, ids = largest_components(separated, 1)
+    if ids.size < 2:
+        return None
+    sizes = np.bincount(lab.ravel())[ids[:2]]
+    if sizes[1] < min_fraction * sizes.sum():
+        return None
+    seeds = np.zeros(lab.shape, np.int32)
+    seeds[lab == ids[0]] = 1
+    seeds[lab == ids[1]] = 2
+    out = np.zeros(shape, np.int32)
+    out[box] = _grow_back(m, seeds)
+    return out
+
+
 def _grow_back(mask: np.ndarray, seeds: np.ndarray) -> np.ndarray:
     """Geodesic growth of the labelled ``seeds`` (int, 0 = none) inside ``mask``, one in-plane/6-conn
     step at a time for every label in turn, until no voxel changes. Returns the labels on ``mask``."""
@@ -365,16 +382,9 @@ def split_touching(mask: np.ndarray, spacing, midline_x: float, max_erosions: in
     eroded = m
     for k in range(1, max_erosions + 1):
         eroded = ndi.binary_erosion(eroded, structure=_INPLANE)
-        lab, ids = largest_components(eroded, 1)
-        if ids.size >= 2:
-            sizes = np.bincount(lab.ravel())[ids[:2]]
-            if sizes[1] >= min_fraction * sizes.sum():
-                seeds = np.zeros(lab.shape, np.int32)
-                seeds[lab == ids[0]] = 1
-                seeds[lab == ids[1]] = 2
-                out = np.zeros(mask.shape, np.int32)
-                out[box] = _grow_back(m, seeds)
-                return out, {"method": "in-plane erosion", "erosions": k}
+        out = _two_seeds_grown(eroded, m, mask.shape, box, min_fraction)
+        if out is not None:
+            return out, {"method": "in-plane erosion", "erosions": k}
     # minimal-cost cut per slice near the midline
     x0 = box[2].start
     half = int(round(cut_window_mm / spacing[0]))
@@ -390,16 +400,9 @@ def split_touching(mask: np.ndarray, spacing, midline_x: float, max_erosions: in
         dist = np.abs(np.arange(lo, hi) + x0 - midline_x)
         j = lo + int(np.lexsort((dist, cols))[0])
         cut[z, :, j] = False
-    lab, ids = largest_components(cut, 1)
-    if ids.size >= 2:
-        sizes = np.bincount(lab.ravel())[ids[:2]]
-        if sizes[1] >= min_fraction * sizes.sum():
-            seeds = np.zeros(lab.shape, np.int32)
-            seeds[lab == ids[0]] = 1
-            seeds[lab == ids[1]] = 2
-            out = np.zeros(mask.shape, np.int32)
-            out[box] = _grow_back(m, seeds)
-            return out, {"method": "minimal-cost cut per slice near the midline", "erosions": max_erosions}
+    out = _two_seeds_grown(cut, m, mask.shape, box, min_fraction)
+    if out is not None:
+        return out, {"method": "minimal-cost cut per slice near the midline", "erosions": max_erosions}
     raise MaskError(
         f"the lungs form one component that neither {max_erosions} in-plane erosions nor a midline cut "
         "separate; check the CT (one lung only, or lungs fused by disease)"
