@@ -59,6 +59,7 @@ import numpy as np
 
 from .constants import GRAVITY, TIDAL_VOLUME_ML
 from .displacement import scale_for_volume, smallest_positive_root
+from .atomic import write_bytes
 from .errors import InputError, LungdeformError, ReadError
 from .force import force_weights
 from .mesh import vertex_normals
@@ -397,7 +398,7 @@ def glb_bytes(model: Model, trace: VolumeTrace | None = None, markers: list[dict
 def export_glb(model: Model, path, trace: VolumeTrace | None = None, markers: list[dict] | None = None) -> Path:
     """Write :func:`glb_bytes` to ``path`` atomically; return the path."""
     path = Path(path)
-    _atomic_write(path, glb_bytes(model, trace, markers))
+    write_bytes(path, glb_bytes(model, trace, markers))
     return path
 
 
@@ -486,11 +487,5 @@ def export_pvd(model: Model, path, trace: VolumeTrace | None = None, fps: float 
         raise
     pvd = ('<?xml version="1.0"?>\n<VTKFile type="Collection" version="1.0" byte_order="LittleEndian">\n'
            "<Collection>\n" + "\n".join(entries) + "\n</Collection>\n</VTKFile>\n")
-    _atomic_write(path, pvd.encode())
+    write_bytes(path, pvd.encode())
     return path
-
-
-def _atomic_write(path: Path, data: bytes) -> None:
-    from .atomic import write_bytes
-
-    write_bytes(path, data)

@@ -41,6 +41,7 @@ from typing import Callable
 
 import numpy as np
 
+from .atomic import write_bytes
 from .errors import InputError, LungdeformError, ReadError
 from .mesh import Surface, SurfaceReport, check_surface
 
@@ -136,15 +137,8 @@ def write_mesh(path, vertices, faces) -> Path:
     v = as_vertices(vertices)
     f = as_faces(faces, len(v))
     data = writer(v, f)
-    atomic_write_bytes(p, data)
+    write_bytes(p, data)
     return p
-
-
-def atomic_write_bytes(path, data: bytes) -> None:
-    """Write ``data`` to a temp file beside ``path`` and rename it over ``path``."""
-    from .atomic import write_bytes
-
-    write_bytes(path, data)
 
 
 def _umask() -> int:

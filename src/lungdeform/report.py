@@ -149,7 +149,7 @@ def _table(per: dict) -> str:
 
 def write_report(path, *, rest, targets, fits, predictions, metrics) -> Path:
     """Write the HTML report atomically; returns the path."""
-    from .io import atomic_write_bytes
+    from .atomic import write_bytes
 
     parts = ["<!doctype html><html><head><meta charset='utf-8'><title>lungdeform fit report</title>",
              "<style>body{font-family:sans-serif;max-width:1100px;margin:auto}table{border-collapse:collapse}"
@@ -177,5 +177,5 @@ def write_report(path, *, rest, targets, fits, predictions, metrics) -> Path:
     parts.append("<h2>Fit</h2><pre>" + html.escape(str({k: r.as_dict() for k, r in fits.items()})) + "</pre>")
     parts.append("</body></html>")
     path = Path(path)
-    atomic_write_bytes(path, "\n".join(parts).encode("utf-8"))
+    write_bytes(path, "\n".join(parts).encode("utf-8"))
     return path

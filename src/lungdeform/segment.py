@@ -578,7 +578,7 @@ def overlay_png(seg: LungSegmentation, path, n_axial: int = 3) -> Path:
     from matplotlib import pyplot as plt
     from matplotlib.colors import ListedColormap
 
-    from .io import atomic_write_bytes
+    from .atomic import write_bytes
 
     ct = np.asarray(seg.image.array)
     d = seg.image.direction
@@ -620,7 +620,7 @@ def overlay_png(seg: LungSegmentation, path, n_axial: int = 3) -> Path:
     fig.savefig(buf, format="png", dpi=90)
     plt.close(fig)
     path = Path(path)
-    atomic_write_bytes(path, buf.getvalue())
+    write_bytes(path, buf.getvalue())
     return path
 
 

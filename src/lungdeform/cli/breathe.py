@@ -13,15 +13,10 @@ from pathlib import Path
 
 import typer
 
+from lungdeform.atomic import write_text
+
 
 # --------------------------------------------------------------------------- atomic outputs
-def atomic_write_text(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` atomically (see :mod:`lungdeform.atomic`)."""
-    from lungdeform.atomic import write_text
-
-    write_text(path, text)
-
-
 def atomic_savefig(fig, path: Path) -> None:
     from lungdeform.atomic import atomic_path
 
@@ -136,12 +131,12 @@ def run_preset(name: str, out: Path, cycles: int, fs_hz: float) -> dict:
         "playback": "s(t) = (volume_ml(t) - v_ee_ml) / unit_ml",
     }
     out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / "curve.csv", curve_csv(curve))
+    write_text(out / "curve.csv", curve_csv(curve))
     plot_curve(curve, out / "volume.png", f"preset {preset.name}: {preset.description}")
     plot_pv_loop(curve, out / "pv_loop.png", f"PV loop, preset {preset.name}")
     plot_residuals(curve.t_s, resid, out / "residuals.png",
                    "Radau integrator minus exact periodic solution", "difference (mL)")
-    atomic_write_text(out / "metrics.json", to_json(metrics))
+    write_text(out / "metrics.json", to_json(metrics))
     return metrics
 
 
@@ -210,7 +205,7 @@ def run_fit(path: Path, out: Path, tidal_volume_ml: float, train_fraction: float
         "playback": "s(t) = (volume_ml(t) - v_ee_ml) / unit_ml",
     }
     out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / "curve.csv", curve_csv(curve))
+    write_text(out / "curve.csv", curve_csv(curve))
     plot_curve(curve, out / "volume.png", f"PV fit to {trace.source}", data=(tr.t_s, vol),
                held_out_from=None)
     plot_pv_loop(curve, out / "pv_loop.png", f"PV loop, fit to {trace.source}")
@@ -219,7 +214,7 @@ def run_fit(path: Path, out: Path, tidal_volume_ml: float, train_fraction: float
     r_v = curves["volume_ml"][test] - curves["pv_held_out_ml"]
     plot_residuals(r_t, r_v, out / "residuals.png",
                    f"held-out residuals (shared shape), RMS {res['model_rms_percent']:.1f} % of p2p")
-    atomic_write_text(out / "metrics.json", to_json(_clean(metrics)))
+    write_text(out / "metrics.json", to_json(_clean(metrics)))
     return metrics
 
 

@@ -100,7 +100,7 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
     from lungdeform.errors import InputError
     from lungdeform.fit import Target, fit_lung, to_lung_model
     from lungdeform.frame import SIDES
-    from lungdeform.io import atomic_write_bytes
+    from lungdeform.atomic import write_bytes
     from lungdeform.landmarks import read_elastix_points
     from lungdeform.model import Model
     from lungdeform.modelfile import save_model
@@ -230,7 +230,7 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
     model = Model({side: lung}, provenance(command, inputs=[str(p) for p in inputs], volumes_ml=vols,
                                           fit=fit_opt.as_dict(), alignment=alignments))
     save_model(out / "model.npz", model)
-    atomic_write_bytes(out / "metrics.json", json.dumps(metrics, indent=2, default=_json).encode())
+    write_bytes(out / "metrics.json", json.dumps(metrics, indent=2, default=_json).encode())
     write_report(out / "report.html", rest=rest, targets=targets, fits=fits, predictions=predictions,
                  metrics=metrics)
     return metrics

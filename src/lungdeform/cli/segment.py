@@ -26,7 +26,7 @@ def register(apps) -> None:
         from lungdeform import segment as S
         from lungdeform.cli.common import output_dir, say
         from lungdeform.errors import InputError
-        from lungdeform.io import atomic_write_bytes
+        from lungdeform.atomic import write_bytes
 
         fmt = fmt.lower().lstrip(".")
         if fmt not in MASK_FORMATS:
@@ -72,7 +72,7 @@ def register(apps) -> None:
             "timings_s": {"read": t_read, "segment": t_seg, "total": elapsed},
         }
         path = out / "volumes.json"
-        atomic_write_bytes(path, (json.dumps(report, indent=2, default=_jsonable) + "\n").encode())
+        write_bytes(path, (json.dumps(report, indent=2, default=_jsonable) + "\n").encode())
         written.append(path)
         v = seg.volumes_ml
         typer.echo(f"left lung {v['left']:.0f} mL, right lung {v['right']:.0f} mL, "

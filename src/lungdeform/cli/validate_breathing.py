@@ -30,7 +30,8 @@ def validate_breathing(data: Path, out: Path, tidal_volume_ml: float = 500.0, tr
                        progress=None) -> dict:
     import numpy as np
 
-    from lungdeform.cli.breathe import _clean, atomic_write_text, to_json
+    from lungdeform.atomic import write_text
+    from lungdeform.cli.breathe import _clean, to_json
     from lungdeform.errors import InputError, LungdeformError
     from lungdeform.holdout import evaluate
     from lungdeform.trace import read_trace
@@ -83,7 +84,7 @@ def validate_breathing(data: Path, out: Path, tidal_volume_ml: float = 500.0, tr
                      "(in-sample). RMS as % of the median per-cycle peak-to-peak of the held-out cycles."),
     }
     Path(out).mkdir(parents=True, exist_ok=True)
-    atomic_write_text(Path(out) / "metrics.json", to_json(_clean(metrics)))
+    write_text(Path(out) / "metrics.json", to_json(_clean(metrics)))
     return metrics
 
 

@@ -21,7 +21,7 @@ def register(apps) -> None:
         from lungdeform import dirlab as D
         from lungdeform.cli.common import output_dir
         from lungdeform.errors import InputError
-        from lungdeform.io import atomic_write_bytes
+        from lungdeform.atomic import write_bytes
 
         if folds < 2:
             raise InputError(f"--folds must be ≥ 2, got {folds}")
@@ -68,6 +68,6 @@ def register(apps) -> None:
             "elapsed_s": elapsed,
         }
         path = output_dir(out) / "metrics.json"
-        atomic_write_bytes(path, (json.dumps(metrics, indent=2) + "\n").encode())
+        write_bytes(path, (json.dumps(metrics, indent=2) + "\n").encode())
         typer.echo(f"wrote {path} ({len(results)} case(s), {elapsed:.2f} s)")
 

@@ -60,7 +60,7 @@ def register(apps) -> None:
         from lungdeform.cli.fit import _print_table, run_fit
         from lungdeform.correspond import rays_per_second
         from lungdeform.data import itk_right_lung
-        from lungdeform.io import atomic_write_bytes
+        from lungdeform.atomic import write_bytes
 
         fixed, moving, lm_f, lm_m = find_pair(data)
         folder = output_dir(out)
@@ -71,7 +71,7 @@ def register(apps) -> None:
         metrics["ray_throughput"] = {"rays_per_s": rate, "rays": 1_000_000, "faces": faces,
                                      "surface": "embedded itk_right_lung"}
         metrics["targets_met"] = targets_met(metrics)
-        atomic_write_bytes(folder / "metrics.json", json.dumps(metrics, indent=2, default=str).encode())
+        write_bytes(folder / "metrics.json", json.dumps(metrics, indent=2, default=str).encode())
         _print_table(metrics)
         typer.echo(f"ray casting: {rate / 1e6:.2f} M rays/s (1 M rays, {faces} faces)")
         for name, ok in metrics["targets_met"].items():

@@ -54,7 +54,9 @@ def register(apps) -> None:
             "elapsed_s": elapsed,
         }
         path = out / "metrics.json"
-        _write_atomic(path, json.dumps(metrics, indent=2) + "\n")
+        from lungdeform.atomic import write_text
+
+        write_text(path, json.dumps(metrics, indent=2) + "\n")
 
         typer.echo(f"Fig. 8  planar {grid}×{grid}, uniform E: MSD vs transfer RMS {planar.rms_percent:.3g} % "
                    f"of max (paper < 0.1 %); MSD settled in {planar.msd.steps} steps")
@@ -64,9 +66,3 @@ def register(apps) -> None:
         typer.echo(f"Fig. 7  to {tol:g}: push {conv.push_iterations} pushes ({conv.push_sweeps:.1f} sweeps), "
                    f"MSD {conv.msd_iterations} steps ({conv.msd_sweeps:.0f} sweeps) on {conv.n_nodes} nodes")
         typer.echo(f"wrote {path} and {len(figures)} figures in {out} ({elapsed:.2f} s)")
-
-
-def _write_atomic(path: Path, text: str) -> None:
-    from lungdeform.atomic import write_text
-
-    write_text(path, text)
