@@ -48,6 +48,18 @@ def write_text(path, text: str) -> Path:
     return Path(path)
 
 
+def jsonable(value):
+    """``json.dumps`` default for numpy scalars and arrays; anything else is an error."""
+    import numpy as np
+
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
 def write_json(path, data, **kwargs) -> Path:
     kwargs.setdefault("indent", 2)
+    kwargs.setdefault("default", jsonable)
     return write_text(path, json.dumps(data, **kwargs) + "\n")

@@ -25,16 +25,9 @@ def atomic_savefig(fig, path: Path) -> None:
 
 
 def to_json(obj) -> str:
-    import numpy as np
+    from lungdeform.atomic import jsonable
 
-    def default(o):
-        if isinstance(o, np.generic):
-            return o.item()
-        if isinstance(o, np.ndarray):
-            return o.tolist()
-        raise TypeError(f"not JSON serialisable: {type(o).__name__}")
-
-    return json.dumps(obj, indent=2, default=default, allow_nan=False) + "\n"
+    return json.dumps(obj, indent=2, default=jsonable, allow_nan=False) + "\n"
 
 
 def finite_or_none(x):

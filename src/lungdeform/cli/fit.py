@@ -250,11 +250,12 @@ def _bounding_boxes(rest, fit, surfaces, vols):
 
 
 def _json(o):
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    return str(o)
+    from lungdeform.atomic import jsonable
+
+    try:
+        return jsonable(o)
+    except TypeError:
+        return str(o)
 
 
 def register(apps) -> None:

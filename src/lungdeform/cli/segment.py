@@ -26,7 +26,7 @@ def register(apps) -> None:
         from lungdeform import segment as S
         from lungdeform.cli.common import output_dir, say
         from lungdeform.errors import InputError
-        from lungdeform.atomic import write_bytes
+        from lungdeform.atomic import jsonable, write_bytes
 
         fmt = fmt.lower().lstrip(".")
         if fmt not in MASK_FORMATS:
@@ -72,7 +72,7 @@ def register(apps) -> None:
             "timings_s": {"read": t_read, "segment": t_seg, "total": elapsed},
         }
         path = out / "volumes.json"
-        write_bytes(path, (json.dumps(report, indent=2, default=_jsonable) + "\n").encode())
+        write_bytes(path, (json.dumps(report, indent=2, default=jsonable) + "\n").encode())
         written.append(path)
         v = seg.volumes_ml
         typer.echo(f"left lung {v['left']:.0f} mL, right lung {v['right']:.0f} mL, "
@@ -80,13 +80,3 @@ def register(apps) -> None:
         typer.echo(seg.airway_removal)
         for p in written:
             typer.echo(f"wrote {p}")
-
-
-def _jsonable(value):
-    import numpy as np
-
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
