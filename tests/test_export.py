@@ -99,6 +99,39 @@ def test_curve_csv_relative_and_absolute(tmp_path):
     assert tr.t_s[0] == 0  # time starts at 0
 
 
+def test_volume_trace_from_breathing_curve(tmp_path):
+    # truth: an analytic absolute-volume curve (2.4 L + a 500 mL cosine, clock starting at 3 s)
+    from lungdeform.breathing import BreathingCurve
+
+    t = np.linspace(3.0, 7.0, 201)
+    v = 2400.0 + 250.0 * (1 - np.cos(np.pi * (t - 3.0) / 2))
+    curve = BreathingCurve(t, v, np.gradient(v, t), np.zeros_like(t), meta={"source": "test breath"})
+    tr = E.VolumeTrace.from_breathing(curve)
+    assert tr.t_s[0] == 0 and tr.t_s[-1] == pytest.approx(4.0)
+    assert tr.shifted_ml == pytest.approx(2400.0) and tr.source == "test breath"
+    np.testing.assert_allclose(tr.volume_ml, v - 2400.0, atol=1e-12)
+    assert tr.sample(2.0) == pytest.approx(500.0)
+    assert E.VolumeTrace.from_breathing(curve, source="x").source == "x"
+
+
+def test_from_breathing_agrees_with_the_curve_csv_reader(tmp_path):
+    # the two ways a simulated preset reaches the exporter give one trace: in memory through the
+    # adapter, and through curve.csv (t_s, volume_ml, … as 'lungdeform breathe' writes it)
+    from lungdeform.breathing import simulate
+    from lungdeform.presets import get_preset
+
+    curve = simulate(get_preset("copd").params, n_cycles=2, fs_hz=25.0)
+    path = tmp_path / "curve.csv"
+    path.write_text("t_s,volume_ml,flow_ml_s,pressure_cmH2O\n" + "".join(
+        f"{a!r},{b!r},{c!r},{d!r}\n" for a, b, c, d in
+        zip(*(x.tolist() for x in (curve.t_s, curve.volume_ml, curve.flow_ml_s, curve.pressure_cmH2O)))))
+    via_csv, direct = E.read_volume_csv(path), E.VolumeTrace.from_breathing(curve)
+    np.testing.assert_allclose(direct.t_s, via_csv.t_s, atol=1e-12)
+    np.testing.assert_allclose(direct.volume_ml, via_csv.volume_ml, atol=1e-9)
+    assert direct.shifted_ml == pytest.approx(via_csv.shifted_ml) == pytest.approx(curve.v_ee_ml)
+    assert direct.volume_ml.min() == 0 and direct.volume_ml.max() == pytest.approx(500.0, rel=2e-3)  # 25 Hz samples
+
+
 @pytest.mark.parametrize("text, message", [
     ("time,volume\n0,1\n1,2\n", "needs a 't_s' column"),
     ("t_s,volume_ml\n0,1\n", "at least 2 rows"),

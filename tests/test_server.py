@@ -5,11 +5,14 @@ from __future__ import annotations
 import http.client
 import json
 
+import numpy as np
 import pytest
 
 from lungdeform.errors import InputError, ReadError
 from lungdeform.export import glb_bytes
-from lungdeform.server import ViewerServer, check_glb, model_glb, viewer_dir
+from lungdeform.breathing import simulate
+from lungdeform.presets import PRESET_NAMES, PRESETS
+from lungdeform.server import PRESET_RATE_HZ, ViewerServer, check_glb, model_glb, presets_json, viewer_dir
 from tests.browser.support import two_lungs
 
 
@@ -51,11 +54,53 @@ def test_serves_viewer_model_and_presets(server, glb):
     res, body = request(server, "GET", "/model.glb?cache=1")
     assert res.status == 200 and body == glb and res.getheader("Content-Type") == "model/gltf-binary"
     res, body = request(server, "GET", "/presets.json")
-    assert res.status == 200 and isinstance(json.loads(body)["presets"], list)
+    assert res.status == 200 and res.getheader("Content-Type") == "application/json"
+    assert body == presets_json() and len(json.loads(body)["presets"]) == len(PRESET_NAMES)
     # every asset the bundle references is served
     for asset in (viewer_dir() / "assets").iterdir():
         res, body = request(server, "GET", f"/assets/{asset.name}")
         assert res.status == 200 and body == asset.read_bytes()
+
+
+def test_presets_json_is_the_pv_model_presets(server):
+    # truth: lungdeform.presets simulated here, independently, by the PV model (one periodic cycle)
+    res, body = request(server, "GET", "/presets.json")
+    doc = json.loads(body)
+    assert doc["schema"] == "lungdeform.presets" and doc["schema_version"] == 1
+    assert [p["name"] for p in doc["presets"]] == list(PRESET_NAMES)
+    for entry in doc["presets"]:
+        preset = PRESETS[entry["name"]]
+        period = preset.params.period_s
+        assert entry["description"] == preset.description and entry["sources"] == list(preset.sources)
+        assert entry["sources"] and all(isinstance(x, str) and x for x in entry["sources"])
+        assert entry["period_s"] == period and entry["rate_bpm"] == pytest.approx(60 / period)
+        assert entry["tidal_volume_ml"] == preset.tidal_volume_ml
+        assert entry["params"] == json.loads(json.dumps(preset.params.as_dict()))
+        # one whole cycle, [0, T], at >= 50 Hz: the grid ends exactly at the period
+        t, s = np.array(entry["t_s"]), np.array(entry["s"])
+        n = len(t) - 1
+        assert entry["fs_hz"] >= PRESET_RATE_HZ and entry["fs_hz"] == pytest.approx(n / period)
+        assert t[0] == 0 and t[-1] == pytest.approx(period, abs=1e-9)
+        np.testing.assert_allclose(np.diff(t), period / n, rtol=1e-9)
+        ref = simulate(preset.params, n_cycles=1, fs_hz=n / period)
+        np.testing.assert_allclose(t, ref.t_s, atol=1e-12)
+        v_ee, dv = ref.volume_ml.min(), np.ptp(ref.volume_ml)
+        np.testing.assert_allclose(s, (ref.volume_ml - v_ee) / dv, atol=1e-12)
+        assert entry["end_exhale_ml"] == pytest.approx(v_ee) and entry["curve_tidal_ml"] == pytest.approx(dv)
+        # s is normalised, the sampled peak-to-peak is the preset's tidal volume (50 Hz samples),
+        # and the periodic steady state closes: s(T) = s(0)
+        assert s.min() == 0 and s.max() == pytest.approx(1.0)
+        assert dv == pytest.approx(preset.tidal_volume_ml, rel=2e-3)
+        assert s[-1] == pytest.approx(s[0], abs=1e-4)
+
+
+def test_presets_bytes_can_be_replaced(glb):
+    # what the viewer's fallback test uses: the route serves the given bytes, still whitelisted
+    with ViewerServer(glb, presets=b"not json") as srv:
+        res, body = request(srv, "GET", "/presets.json")
+        assert res.status == 200 and body == b"not json"
+        res, _ = request(srv, "POST", "/presets.json", body=b"{}")
+        assert res.status == 405
 
 
 def test_head_sends_headers_only(server, glb):

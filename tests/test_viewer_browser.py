@@ -1,7 +1,9 @@
-"""The browser viewer end to end: lungdeform.server + headless Debian Chromium driven by Playwright.
+"""The browser viewer end to end: lungdeform.server + headless Debian Chromium driven by Playwright;
+and the viewer's own unit tests (vitest, node) with the real ``/presets.json``.
 
-Runs ``node tests/browser/viewer.test.mjs`` against a server on a free loopback port. Screenshots go
-to ``$LUNGDEFORM_ARTIFACTS/browser`` (default ``tests/artifacts/browser``), printed at the end.
+Runs ``node tests/browser/viewer.test.mjs`` against a server on a free loopback port (and a second
+one whose ``/presets.json`` is broken, for the fallback). Screenshots go to
+``$LUNGDEFORM_ARTIFACTS/browser`` (default ``tests/artifacts/browser``), printed at the end.
 Skips, naming what is missing, without node, viewer/node_modules or /usr/bin/chromium
 (``make test`` installs them).
 """
@@ -16,7 +18,7 @@ import numpy as np
 import pytest
 
 from lungdeform.export import glb_bytes, marker_anchors
-from lungdeform.server import ViewerServer
+from lungdeform.server import ViewerServer, presets_json
 from tests.browser.support import CHROMIUM, REPO, node_modules_or_skip, run_node, two_lungs
 
 
@@ -27,17 +29,46 @@ def test_viewer_in_headless_chromium():
     artifacts = Path(os.environ.get("LUNGDEFORM_ARTIFACTS", REPO / "tests" / "artifacts")) / "browser"
     model = two_lungs(3)
     anchors = marker_anchors(model, np.array([[90.0, 10.0, -20.0]]), ["tumour"])
-    with ViewerServer(glb_bytes(model, markers=anchors)) as server:
-        res = run_node([str(REPO / "tests" / "browser" / "viewer.test.mjs"), server.url, str(artifacts)],
-                       cwd=REPO, env={"VIEWER_DIR": str(viewer), "CHROMIUM": CHROMIUM}, timeout=240)
+    glb = glb_bytes(model, markers=anchors)
+    # what the page must show: the presets of lungdeform.presets as served, and the volume (both
+    # lungs, mL) each plays at t = 1 s, tidal · s(1 s), interpolated here from the served samples
+    served = json.loads(presets_json())["presets"]
+    expect = {"names": [p["name"] for p in served],
+              "volume_at_1s": {p["name"]: p["tidal_volume_ml"] * float(np.interp(1.0, p["t_s"], p["s"]))
+                               for p in served}}
+    with ViewerServer(glb) as server, ViewerServer(glb, presets=b"<html>not json</html>") as broken:
+        res = run_node([str(REPO / "tests" / "browser" / "viewer.test.mjs"), server.url, str(artifacts),
+                        broken.url], cwd=REPO,
+                       env={"VIEWER_DIR": str(viewer), "CHROMIUM": CHROMIUM, "EXPECT_PRESETS": json.dumps(expect)},
+                       timeout=300)
     print(f"browser screenshots in {artifacts}")
     lines = [ln for ln in res.stdout.splitlines() if ln.startswith("{")]
     assert lines, f"no result from the browser test:\n{res.stdout[-3000:]}\n{res.stderr[-3000:]}"
     report = json.loads(lines[-1])
     assert res.returncode == 0 and report["ok"], report["failures"]
     shots = {p.name for p in artifacts.glob("*.png")}
-    assert {"end-exhale.png", "end-inhale.png", "end-inhale-upright.png", "preset-quiet-t1.png"} <= shots
+    assert {"end-exhale.png", "end-inhale.png", "end-inhale-upright.png", "preset-normal-t1.png",
+            "preset-copd-t1.png", "presets-server.png", "presets-fallback.png"} <= shots
     r = report["results"]
+    # every check ran (a check missing from the report would otherwise pass silently)
+    assert {"preset list from the server", "presets play the served curves", "preset changes picture",
+            "fallback to built-in presets with a note", "fallback shapes play"} <= set(r)
     print(f"silhouette pixels end-exhale {r['silhouette differs ee/ei']['ee']}, end-inhale "
           f"{r['silhouette differs ee/ei']['ei']}; changed by orientation {r['orientation changes picture']['colour']}, "
-          f"by preset {r['preset changes picture']['silhouette']}; {r['fps readout']['stats']['fps']:.1f} fps")
+          f"by preset normal→copd {r['preset changes picture']['silhouette']} (colour {r['preset changes picture']['colour']}); "
+          f"presets {r['preset list from the server']['presets']}; fallback note: {r['fallback to built-in presets with a note']['note']!r}; "
+          f"{r['fps readout']['stats']['fps']:.1f} fps")
+
+
+def test_viewer_unit_tests_in_node(tmp_path):
+    # the viewer's pure logic (physics.test.ts, curves.test.ts) under vitest, with the real
+    # /presets.json bytes: each served preset must parse and play tidal · s(t) at its sample times
+    viewer = node_modules_or_skip("three", "vitest")
+    presets = tmp_path / "presets.json"
+    presets.write_bytes(presets_json())
+    res = run_node([str(viewer / "node_modules/vitest/vitest.mjs"), "run", "tests/physics.test.ts",
+                    "tests/curves.test.ts"], cwd=viewer,
+                   env={"LUNGDEFORM_PRESETS": str(presets), "NO_COLOR": "1", "FORCE_COLOR": "0"}, timeout=240)
+    out = res.stdout + res.stderr
+    assert res.returncode == 0, out[-4000:]
+    assert "skipped" not in out.split("Tests")[-1], out[-2000:]  # the presets.json part must run

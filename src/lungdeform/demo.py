@@ -1,13 +1,22 @@
 """The main job on the embedded default lungs: build both, play one breath, write the results.
 
 Steps (issue 2 item 7): build the left and right lungs of the embedded default (Coronacases 001,
-CC BY 4.0) with the Table I constants, supine; play one 5 s breath of 500 mL (both lungs together,
-split in proportion to their end-exhale volumes) at the paper's 66.66 frames/s; write the model,
-a mesh time series, ``summary.json`` (volume per frame, per lung) and a PNG snapshot.
+CC BY 4.0) with the Table I constants, supine; play one breath of the ``normal`` preset of the PV
+breathing model (:mod:`lungdeform.presets` → :func:`lungdeform.breathing.simulate` → the volume above
+end-exhale; 15/min, 500 mL) at the paper's 66.66 frames/s; write the model, a mesh time series,
+``summary.json`` (volume per frame, per lung, and its error) and a PNG snapshot.
+
+The breathing curve drives each lung's share of the volume (in proportion to its end-exhale volume)
+through the exact inverse of its volume cubic: frame k shows ``x = p + s_k·u`` with ``s_k`` the root
+of ``V(p + s·u) = V_EE + share·ΔV(t_k)`` (:func:`lungdeform.displacement.scale_for_volume`). The
+volume of every played frame is then measured on the mesh (divergence theorem) and compared with the
+curve; ``summary.json`` also gives how far the paper's linear reading ``s = share·ΔV/unit_ml`` would
+be from the curve.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -16,7 +25,10 @@ import numpy as np
 
 from .atomic import write_json
 from .constants import STEPS_PER_S
+from .errors import InputError, LungdeformError
 from .mesh import signed_volume
+
+DEFAULT_PRESET = "normal"
 
 
 @dataclass(frozen=True)
@@ -28,70 +40,129 @@ class DemoResult:
     summary_data: dict
 
 
+def preset_breath(preset, duration_s: float | None = None, tidal_ml: float | None = None,
+                  fps: float = STEPS_PER_S):
+    """The preset's PV simulation on the frame times of the demo.
+
+    preset : :class:`lungdeform.presets.Preset`; duration_s : s (default: one period of the preset);
+    tidal_ml : mL, both lungs (default: the preset's; otherwise its control parameters are rescaled
+    with :func:`lungdeform.breathing.scaled_to_tidal_volume`, the same shape); fps : frames/s.
+    Frames lie at ``t_k = k·D/n``, ``n = round(D·fps)``, so the last one is exactly at ``D``; the
+    simulation outputs them directly (no resampling).
+
+    Returns ``(params, curve, trace)``: the :class:`~lungdeform.breathing.BreathingParams` played,
+    the :class:`~lungdeform.breathing.BreathingCurve` (n + 1 frames, absolute volume, mL) and its
+    :class:`lungdeform.export.VolumeTrace` (volume above end-exhale, mL).
+    """
+    from .breathing import BreathingCurve, scaled_to_tidal_volume, simulate
+    from .export import VolumeTrace
+
+    period = float(preset.params.period_s)
+    duration = period if duration_s is None else float(duration_s)
+    if not (np.isfinite(duration) and duration > 0):
+        raise InputError(f"duration must be > 0 s, got {duration_s!r}")
+    params = preset.params
+    if tidal_ml is not None:
+        if not (np.isfinite(tidal_ml) and tidal_ml > 0):
+            raise InputError(f"tidal volume must be > 0 mL, got {tidal_ml!r}")
+        params = scaled_to_tidal_volume(params, float(tidal_ml))
+    n = max(int(round(duration * fps)), 2)
+    n_cycles = max(int(math.ceil(duration / period - 1e-9)), 1)
+    sim = simulate(params, n_cycles=n_cycles, fs_hz=n / duration)
+    keep = sim.t_s <= duration * (1 + 1e-9)
+    curve = BreathingCurve(sim.t_s[keep], sim.volume_ml[keep], sim.flow_ml_s[keep],
+                           sim.pressure_cmH2O[keep], meta={**sim.meta, "source": f"preset {preset.name}"})
+    if len(curve.t_s) != n + 1 or not math.isclose(curve.t_s[-1], duration, rel_tol=1e-9):
+        # simulate() samples at k/fs_hz up to the end of its last cycle; guard that reading
+        raise LungdeformError(f"breathing simulation gave {len(curve.t_s)} frames ending at "
+                              f"{curve.t_s[-1]} s, expected {n + 1} ending at {duration} s")
+    trace = VolumeTrace.from_breathing(
+        curve, f"lungdeform.presets:{preset.name} ({preset.description}), PV model simulated over "
+               f"{duration:g} s")
+    return params, curve, trace
+
+
 def run_demo(
     out: Path,
     *,
-    duration_s: float = 5.0,
-    tidal_ml: float = 500.0,
+    preset: str = DEFAULT_PRESET,
+    duration_s: float | None = None,
+    tidal_ml: float | None = None,
     orientation="supine",
     series_fps: float = 10.0,
     progress: Callable[[str], None] | None = None,
 ) -> DemoResult:
-    """Build the default lungs and play one breath into ``out`` (a folder)."""
+    """Build the default lungs and play ``preset`` (one period unless ``duration_s``) into ``out``."""
     from .data import default_lungs
+    from .displacement import scale_for_volume
+    from .export import lung_shares
     from .model import build_model
     from .modelfile import save_model
+    from .presets import get_preset
     from .render import snapshot
 
     say = progress or (lambda _m: None)
+    chosen = get_preset(preset)
+    params, curve, trace = preset_breath(chosen, duration_s, tidal_ml)
+    tidal = float(chosen.tidal_volume_ml if tidal_ml is None else tidal_ml)
+    duration = float(trace.t_s[-1])
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     say("loading the embedded default lungs (Coronacases 001, CC BY 4.0)")
     lungs = default_lungs()
-    model = build_model(lungs, tidal_ml=tidal_ml, gravity=orientation, progress=say,
+    model = build_model(lungs, tidal_ml=tidal, gravity=orientation, progress=say,
                         provenance={"command": "demo", "source": "embedded Coronacases 001 lungs",
-                                    "orientation": str(orientation)})
+                                    "orientation": str(orientation), "breathing": f"preset {chosen.name}"})
     model_path = save_model(out / "model.npz", model)
-    say(f"playing one {duration_s:g} s, {tidal_ml:g} mL breath at {STEPS_PER_S:.2f} frames/s")
-    from .export import plain_cycle
-
-    breath = plain_cycle(tidal_ml, duration_s, STEPS_PER_S)  # one cosine breath at 66.66 frames/s
-    t, v_total = breath.t_s, breath.volume_ml
-    frames: dict[str, list[float]] = {}
+    t, v_total = trace.t_s, trace.volume_ml
+    fps = (len(t) - 1) / duration
+    say(f"playing the '{chosen.name}' preset ({tidal:g} mL, {params.period_s:g} s per breath) for "
+        f"{duration:g} s at {fps:.2f} frames/s")
+    shares = lung_shares(model)
+    per_lung: dict[str, dict] = {}
     scales: dict[str, np.ndarray] = {}
     for name, lung in model.lungs.items():
-        share = lung.calibration_ml / tidal_ml
-        s = share * v_total / lung.unit_ml
+        target = lung.volume_ee_ml + shares[name] * v_total  # mL, what the curve asks of this lung
+        s = np.array([scale_for_volume(lung.volume_poly, float(dv)) for dv in shares[name] * v_total])
         scales[name] = s
         pb = lung.playback(np.float64)
-        vols = []
-        for sk in s:
-            x = pb.seek(sk)
-            vols.append(signed_volume(x, lung.surface.faces) / 1000.0)
-        frames[name] = vols
+        measured = np.array([signed_volume(pb.seek(sk), lung.surface.faces) / 1000.0 for sk in s])
+        # the paper's linear reading s = ΔV/unit_ml, its volume from the exact cubic (mm³ → mL)
+        s_lin = shares[name] * v_total / lung.unit_ml
+        c = lung.volume_poly
+        v_lin = lung.volume_ee_ml + (c[1] * s_lin + c[2] * s_lin ** 2 + c[3] * s_lin ** 3) / 1000.0
+        err = measured - target
+        per_lung[name] = {
+            "vertices": lung.n_vertices,
+            "volume_ee_ml": lung.volume_ee_ml,
+            "tidal_share_ml": lung.calibration_ml,
+            "volume_ml": [round(float(x), 6) for x in measured],
+            "target_volume_ml": [round(float(x), 6) for x in target],
+            "volume_error_ml": [float(x) for x in err],
+            "max_volume_error_percent": float(np.max(np.abs(err) / target) * 100),
+            "linear_reading_max_error_percent": float(np.max(np.abs(v_lin - target) / target) * 100),
+        }
     summary = {
-        "frames_per_second": (len(t) - 1) / duration_s,
-        "duration_s": duration_s,
-        "tidal_ml": tidal_ml,
+        "frames_per_second": fps,
+        "duration_s": duration,
+        "tidal_ml": tidal,
         "orientation": str(orientation),
+        "breathing": {
+            "preset": chosen.name, "description": chosen.description, "sources": list(chosen.sources),
+            "period_s": params.period_s, "preset_tidal_volume_ml": chosen.tidal_volume_ml,
+            "curve_tidal_ml": float(np.ptp(v_total)), "end_exhale_ml": trace.shifted_ml,
+            "params": params.as_dict(),
+            "meaning": "target_volume_above_ee_ml = V(t) - V_EE of the PV model; each lung takes its "
+                       "share (in proportion to its end-exhale volume), met through the exact volume cubic",
+        },
         "t_s": t.round(6).tolist(),
         "target_volume_above_ee_ml": v_total.round(6).tolist(),
-        "lungs": {
-            name: {
-                "vertices": lung.n_vertices,
-                "volume_ee_ml": lung.volume_ee_ml,
-                "tidal_share_ml": lung.calibration_ml,
-                "volume_ml": [round(x, 6) for x in frames[name]],
-                "max_volume_error_percent": float(np.max(np.abs(
-                    np.array(frames[name]) - (lung.volume_ee_ml + scales[name] * lung.unit_ml))
-                    / (lung.volume_ee_ml + scales[name] * lung.unit_ml)) * 100),
-            }
-            for name, lung in model.lungs.items()
-        },
+        "lungs": per_lung,
     }
-    summary["total_volume_ml"] = [round(sum(frames[n][i] for n in frames), 6) for i in range(len(t))]
+    summary["total_volume_ml"] = [round(sum(per_lung[n]["volume_ml"][i] for n in per_lung), 6)
+                                  for i in range(len(t))]
     summary_path = write_json(out / "summary.json", summary)
-    series_path = _write_series(out, model, breath, series_fps, say)
+    series_path = _write_series(out, model, trace, series_fps, say)
     peak = int(np.argmax(v_total))
     layers = []
     for name, lung in model.lungs.items():
@@ -99,7 +170,8 @@ def run_demo(
     for name, lung in model.lungs.items():
         layers.append((lung.surface_at(scale=scales[name][peak]), "#d9534f", 0.35))
     png = snapshot(out / "snapshot.png", layers, views=("anterior", "lateral-right"),
-                   title=f"end-exhale (blue) and end-inhale +{v_total[peak]:.0f} mL (red), {orientation}")
+                   title=f"end-exhale (blue) and end-inhale +{v_total[peak]:.0f} mL (red), "
+                         f"preset {chosen.name}, {orientation}")
     return DemoResult(model_path, series_path, summary_path, png, summary)
 
 

@@ -39,6 +39,8 @@ Breathing curve: a CSV with columns ``t_s, volume_ml[, flow_ml_s, pressure_cmH2O
 ``lungdeform breathe``); ``volume_ml`` is read as the volume of both lungs above end-exhale, unless
 its minimum lies above its own peak-to-peak range (an absolute volume), when the minimum is
 subtracted (reported in :attr:`VolumeTrace.shifted_ml`). Without a curve: :func:`plain_cycle`.
+A simulated :class:`lungdeform.breathing.BreathingCurve` (a preset, a fit) becomes a trace through
+:meth:`VolumeTrace.from_breathing`.
 
 VTK time series: ParaView's ``.pvd`` lists one ``.vtp`` per (lung, time step); VTK XML has no way
 to share topology across files, so each frame file repeats it (binary, appended raw). Every frame
@@ -90,6 +92,21 @@ class VolumeTrace:
     def sample(self, t_s) -> np.ndarray:
         """Linear interpolation of the volume (mL) at times ``t_s`` (clamped to the ends)."""
         return np.interp(np.asarray(t_s, float), self.t_s, self.volume_ml)
+
+    @classmethod
+    def from_breathing(cls, curve, source: str | None = None) -> "VolumeTrace":
+        """The trace of a :class:`lungdeform.breathing.BreathingCurve` (absolute lung volume, mL).
+
+        Times are shifted to start at 0 and the volume becomes ``V(t) − V_EE``, with ``V_EE`` the
+        curve's minimum (:attr:`BreathingCurve.v_ee_ml`, kept in :attr:`shifted_ml`). Flow and
+        pressure are dropped: playback needs the volume only. ``source`` defaults to the curve's
+        ``meta["source"]`` or a generic name.
+        """
+        t = np.asarray(curve.t_s, float)
+        v_ee = float(curve.v_ee_ml)
+        if source is None:
+            source = str(curve.meta.get("source", "breathing curve (lungdeform.breathing)"))
+        return cls(t - t[0], np.asarray(curve.volume_ml, float) - v_ee, source, v_ee)
 
 
 def plain_cycle(tidal_ml: float = TIDAL_VOLUME_ML, period_s: float = 4.0, rate_hz: float = 30.0) -> VolumeTrace:

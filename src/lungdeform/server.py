@@ -5,7 +5,10 @@ What it serves, and nothing else:
 - the built viewer bundle shipped in ``lungdeform/data/viewer`` (``/``, ``/index.html`` and the
   files directly under ``/assets/``), read once at start;
 - the model it was given, as ``/model.glb``;
-- ``/presets.json``: sampled breathing curves (an empty list: the viewer uses its own shapes).
+- ``/presets.json``: the breathing presets of :mod:`lungdeform.presets`, simulated once by the PV
+  model (:func:`lungdeform.breathing.simulate`) at start: per preset its name, description, period,
+  tidal volume, sources and one cycle of the normalised curve ``s(t) = (V(t) − V_EE)/ΔV``
+  (:func:`presets_payload`). The viewer's preset menu is built from it.
 
 Security: binds to 127.0.0.1 by default; every path is looked up in a fixed table built at start
 (no file-system path is ever formed from a request, so no traversal and no directory listing);
@@ -16,13 +19,17 @@ carry ``Content-Security-Policy``, ``X-Content-Type-Options: nosniff`` and ``Cac
 
 from __future__ import annotations
 
+import functools
 import ipaddress
+import json
 import threading
 from dataclasses import dataclass
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from typing import Callable
+
+import numpy as np
 
 from .errors import InputError, ReadError
 
@@ -143,18 +150,22 @@ class _Handler(BaseHTTPRequestHandler):
 
 class ViewerServer:
     """Serve the viewer and one model. ``port=0`` picks a free port; :attr:`url` says where.
+    ``presets``: the bytes of ``/presets.json`` (default :func:`presets_json`).
 
     Use as a context manager (serves from a background thread) or call :meth:`serve_forever`.
     """
 
     def __init__(self, glb: bytes, *, host: str = DEFAULT_HOST, port: int = 0,
-                 presets_json: bytes | None = None, bundle: Path | None = None,
+                 presets: bytes | None = None, bundle: Path | None = None,
                  log: Callable[[str], None] | None = None):
         if not 0 <= int(port) <= 65535:
             raise InputError(f"port must be 0..65535, got {port}")
         self.routes = bundle_routes(bundle)
         self.routes["/model.glb"] = Resource(check_glb(glb), CONTENT_TYPES[".glb"])
-        self.routes["/presets.json"] = Resource(presets_json or b'{"presets": []}', CONTENT_TYPES[".json"])
+        # presets=None: lungdeform.presets, simulated once per process (presets_json); other bytes are
+        # served as given (tests use them to exercise the viewer's fallback)
+        body = presets_json() if presets is None else bytes(presets)
+        self.routes["/presets.json"] = Resource(body, CONTENT_TYPES[".json"])
         self.log = log
         self._httpd = ThreadingHTTPServer((host, int(port)), _Handler)
         self._httpd.daemon_threads = True
@@ -226,7 +237,64 @@ def model_glb(path, curve=None, markers=None) -> bytes:
     return glb_bytes(model, trace, anchors)
 
 
-def presets_json() -> bytes | None:
-    """Sampled breathing presets for the viewer's preset menu, or ``None`` (the viewer then uses its
-    own named cycle shapes)."""
-    return None
+#: Sample rate (Hz, at least) of the preset curves served as /presets.json.
+PRESET_RATE_HZ = 50.0
+PRESETS_SCHEMA = "lungdeform.presets"
+PRESETS_SCHEMA_VERSION = 1
+
+
+def preset_cycle(preset, rate_hz: float = PRESET_RATE_HZ):
+    """One simulated cycle of ``preset`` (:class:`lungdeform.presets.Preset`) on a grid that ends
+    exactly at the period: ``n = ceil(T·rate_hz)`` intervals, so the sample rate is ``n/T ≥ rate_hz``.
+
+    Returns ``(curve, fs_hz)``: the :class:`~lungdeform.breathing.BreathingCurve` of the periodic
+    steady state, t_s : (n + 1,) float, s, from 0 (onset of inspiration) to T, and the rate used.
+    """
+    import math
+
+    from .breathing import simulate
+
+    period = float(preset.params.period_s)
+    n = max(int(math.ceil(period * rate_hz - 1e-9)), 8)
+    fs = n / period
+    return simulate(preset.params, n_cycles=1, fs_hz=fs, start="periodic"), fs
+
+
+def presets_payload(rate_hz: float = PRESET_RATE_HZ) -> dict:
+    """What ``/presets.json`` holds: every preset of :mod:`lungdeform.presets`, one cycle each.
+
+    Per preset: ``name``, ``description``, ``period_s``, ``rate_bpm``, ``tidal_volume_ml`` (the
+    preset's target), ``curve_tidal_ml`` and ``end_exhale_ml`` (peak-to-peak and minimum of the
+    samples, mL), ``fs_hz``, ``t_s`` : (n + 1,) s over [0, period] and ``s`` : (n + 1,) the normalised
+    curve ``s(t) = (V(t) − V_EE)/ΔV`` in [0, 1] (V_EE and ΔV: the samples' minimum and peak-to-peak;
+    the viewer multiplies ``s`` by its tidal-volume control), ``sources`` and the PV ``params``.
+    """
+    from .export import VolumeTrace
+    from .presets import PRESETS
+
+    out = []
+    for name, preset in PRESETS.items():
+        curve, fs = preset_cycle(preset, rate_hz)
+        trace = VolumeTrace.from_breathing(curve, source=f"lungdeform.presets:{name}")
+        span = float(np.ptp(trace.volume_ml))
+        out.append({
+            "name": name, "description": preset.description,
+            "period_s": float(preset.params.period_s), "rate_bpm": 60.0 / float(preset.params.period_s),
+            "tidal_volume_ml": float(preset.tidal_volume_ml), "curve_tidal_ml": span,
+            "end_exhale_ml": trace.shifted_ml, "fs_hz": fs,
+            "t_s": trace.t_s.tolist(), "s": (trace.volume_ml / span).tolist(),
+            "sources": list(preset.sources), "params": preset.params.as_dict(),
+        })
+    return {
+        "schema": PRESETS_SCHEMA, "schema_version": PRESETS_SCHEMA_VERSION,
+        "meaning": "one cycle of the periodic steady state of the PV breathing model per preset; "
+                   "t = 0 is the onset of inspiration; s(t) = (V(t) - V_EE)/dV, V_EE and dV the "
+                   "minimum and peak-to-peak of the samples",
+        "presets": out,
+    }
+
+
+@functools.lru_cache(maxsize=1)
+def presets_json() -> bytes:
+    """:func:`presets_payload` as UTF-8 JSON (computed once per process: about 0.3 s)."""
+    return json.dumps(presets_payload(), ensure_ascii=False).encode("utf-8")

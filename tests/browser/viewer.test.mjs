@@ -1,8 +1,11 @@
 // Browser test of the lungdeform viewer: Playwright (playwright-core) drives Debian's Chromium,
 // headless, software GL. Run by tests/test_viewer_browser.py, which starts `lungdeform.server` on a
 // free loopback port. Usage:
-//   node tests/browser/viewer.test.mjs URL ARTIFACT_DIR
-// Env: VIEWER_DIR (folder whose node_modules holds playwright-core), CHROMIUM (executable).
+//   node tests/browser/viewer.test.mjs URL ARTIFACT_DIR [FALLBACK_URL]
+// Env: VIEWER_DIR (folder whose node_modules holds playwright-core), CHROMIUM (executable),
+// EXPECT_PRESETS (JSON from lungdeform.presets: {"names": [...], "volume_at_1s": {name: mL}}).
+// FALLBACK_URL: a server whose /presets.json is broken; the viewer must fall back to its built-in
+// shapes and say so.
 // Exit 0 when every check passes; prints one JSON line of results on stdout.
 import { createRequire } from 'node:module';
 import { mkdirSync } from 'node:fs';
@@ -14,11 +17,12 @@ const viewerDir = process.env.VIEWER_DIR ?? path.resolve(here, '../../viewer');
 const require = createRequire(path.join(viewerDir, 'package.json'));
 const { chromium } = require('playwright-core');
 
-const [url, artifacts] = process.argv.slice(2);
+const [url, artifacts, fallbackUrl] = process.argv.slice(2);
 if (!url || !artifacts) {
-  console.error('usage: node viewer.test.mjs URL ARTIFACT_DIR');
+  console.error('usage: node viewer.test.mjs URL ARTIFACT_DIR [FALLBACK_URL]');
   process.exit(2);
 }
+const expected = JSON.parse(process.env.EXPECT_PRESETS ?? 'null');
 mkdirSync(artifacts, { recursive: true });
 
 const failures = [];
@@ -43,6 +47,24 @@ try {
   await page.goto(`${url}?clock=manual`, { waitUntil: 'load' });
   const info = await page.evaluate(() => window.lungdeform.ready);
   check('loads model', info.lungs.length === 2, { info });
+
+  // 0. the preset menu is the server's /presets.json (lungdeform.presets), after the model's own curve
+  const menu = await page.locator('#preset option').evaluateAll((os) => os.map((o) => o.value));
+  const note = await page.locator('#presets-note');
+  const noteText = (await note.textContent()) ?? '';
+  check('preset list from the server', info.presetOrigin === 'server' && expected !== null
+    && JSON.stringify(info.presets) === JSON.stringify(['model', ...expected.names])
+    && JSON.stringify(menu) === JSON.stringify(info.presets)
+    && /lungdeform\.presets/.test(noteText) && !(await note.evaluate((e) => e.classList.contains('warning'))),
+  { presets: info.presets, menu, note: noteText, expected: expected?.names });
+  await page.screenshot({ path: path.join(artifacts, 'presets-server.png') });
+  // each preset plays the PV model's curve: ΔV(1 s) = tidal · s(1 s) as computed in Python
+  const played = await page.evaluate((names) => names.map((n) => {
+    window.lungdeform.setPreset(n); window.lungdeform.setTime(1.0); window.lungdeform.renderOnce();
+    return window.lungdeform.state().dvMl;
+  }), expected?.names ?? []);
+  const worst = Math.max(...played.map((v, i) => Math.abs(v - expected.volume_at_1s[expected.names[i]])));
+  check('presets play the served curves', played.length > 0 && worst < 1e-6, { played, worst });
   const shot = async (name) => {
     const file = path.join(artifacts, `${name}.png`);
     await page.locator('#view').screenshot({ path: file });
@@ -51,8 +73,9 @@ try {
   const snap = (key) => page.evaluate((k) => window.lungdeform.snapshot(k), key);
   const diff = (a, b) => page.evaluate(([x, y]) => window.lungdeform.diff(x, y), [a, b]);
 
-  // 1. non-blank frames at end-exhale (phase 0) and end-inhale (phase 0.5 of the cosine cycle)
-  await page.evaluate(() => { window.lungdeform.setPreset('cosine'); window.lungdeform.setPhase(0); });
+  // 1. non-blank frames at end-exhale (phase 0) and end-inhale (phase 0.5 of the model's own curve,
+  //    the exporter's plain cosine cycle of 500 mL)
+  await page.evaluate(() => { window.lungdeform.setPreset('model'); window.lungdeform.setPhase(0); });
   const ee = await snap('ee');
   await shot('end-exhale');
   await page.evaluate(() => window.lungdeform.setPhase(0.5));
@@ -86,26 +109,28 @@ try {
   check('custom gravity changes picture', (await diff('upright', 'custom')).colour > 50, {});
   await page.evaluate(() => window.lungdeform.setOrientation('model'));
 
-  // 4. the preset changes the picture at the same time point
-  await page.evaluate(() => { window.lungdeform.setPreset('cosine'); window.lungdeform.setTime(1.0); });
-  await snap('cosine');
-  await page.evaluate(() => { window.lungdeform.setPreset('quiet'); window.lungdeform.setTime(1.0); });
-  await snap('quiet');
-  await shot('preset-quiet-t1');
-  const preset = await diff('cosine', 'quiet');
+  // 4. the preset changes the picture at the same time point: normal and copd, both 500 mL breaths
+  //    of another shape (at 1 s: 0.44 and 0.75 of the tidal volume)
+  await page.evaluate(() => { window.lungdeform.setPreset('normal'); window.lungdeform.setTime(1.0); });
+  await snap('normal');
+  await shot('preset-normal-t1');
+  await page.evaluate(() => { window.lungdeform.setPreset('copd'); window.lungdeform.setTime(1.0); });
+  await snap('copd');
+  await shot('preset-copd-t1');
+  const preset = await diff('normal', 'copd');
   check('preset changes picture', preset.silhouette > 20, preset);
 
   // 5. overlays and markers render
   await page.evaluate(() => window.lungdeform.setOverlay('force'));
   await snap('force');
   await shot('overlay-force');
-  check('force overlay changes colours', (await diff('quiet', 'force')).colour > 1000, {});
+  check('force overlay changes colours', (await diff('copd', 'force')).colour > 1000, {});
   await page.evaluate(() => window.lungdeform.setOverlay('none'));
   if (info.markers > 0) {
     await page.evaluate(() => window.lungdeform.setMarkers(true));
     await snap('markers');
     await shot('markers');
-    check('markers shown', (await diff('quiet', 'markers')).colour > 100, {});
+    check('markers shown', (await diff('copd', 'markers')).colour > 100, {});
     await page.evaluate(() => window.lungdeform.setMarkers(false));
   }
 
@@ -117,6 +142,30 @@ try {
   check('fps readout', stats.fps > 0 && /fps \d/.test(readout) && /frame \d/.test(readout), { stats, readout });
   await shot('playing');
   check('no console errors', consoleErrors.length === 0, { consoleErrors });
+  await page.close();
+
+  // 7. /presets.json broken: the built-in shapes, and a visible note that says so
+  if (fallbackUrl) {
+    const fb = await browser.newPage({ viewport: { width: 960, height: 640 } });
+    const fbErrors = [];
+    fb.on('pageerror', (e) => fbErrors.push(String(e)));
+    await fb.goto(`${fallbackUrl}?clock=manual`, { waitUntil: 'load' });
+    const fbInfo = await fb.evaluate(() => window.lungdeform.ready);
+    const fbNote = fb.locator('#presets-note');
+    const text = (await fbNote.textContent()) ?? '';
+    await fb.screenshot({ path: path.join(artifacts, 'presets-fallback.png') });
+    check('fallback to built-in presets with a note', fbInfo.presetOrigin === 'built-in'
+      && fbInfo.presets.includes('cosine') && !fbInfo.presets.includes('normal')
+      && (await fbNote.isVisible()) && /built-in/.test(text)
+      && (await fbNote.evaluate((e) => e.classList.contains('warning'))) && fbErrors.length === 0,
+    { presets: fbInfo.presets, note: text, fbErrors });
+    const dv = await fb.evaluate(() => {
+      window.lungdeform.setPreset('cosine'); window.lungdeform.setPhase(0.5); window.lungdeform.renderOnce();
+      return window.lungdeform.state().dvMl;
+    });
+    check('fallback shapes play', Math.abs(dv - 500) < 1e-6, { dvMl: dv });
+    await fb.close();
+  }
 } catch (e) {
   failures.push(`exception: ${e instanceof Error ? e.message : String(e)}`);
 } finally {

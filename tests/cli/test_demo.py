@@ -1,38 +1,101 @@
 """``lungdeform demo``: the main job on the embedded lungs writes everything it promises."""
 
 import json
+import re
 
 import numpy as np
 import pytest
 
+from lungdeform.breathing import simulate
 from lungdeform.cli.main import main
+from lungdeform.constants import STEPS_PER_S
+from lungdeform.mesh import signed_volume
 from lungdeform.modelfile import load_model
+from lungdeform.presets import get_preset
 
 
-def test_demo_writes_model_series_summary_and_snapshot(tmp_path, capsys):
+def test_demo_plays_the_normal_preset_and_writes_everything(tmp_path, capsys):
     out = tmp_path / "demo"
     assert main(["demo", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     for name in ("model.npz", "series.pvd", "summary.json", "snapshot.png"):
         assert (out / name).is_file() and str(out / name) in printed
+    assert "preset 'normal'" in printed
     model = load_model(out / "model.npz")
     assert sorted(model.names) == ["left", "right"]
     summary = json.loads((out / "summary.json").read_text())
-    t = np.array(summary["t_s"])
-    assert t[-1] == pytest.approx(5.0) and len(t) == 334  # 5 s at 66.66 frames/s
-    total = np.array(summary["total_volume_ml"])
-    ee = sum(l["volume_ee_ml"] for l in summary["lungs"].values())
-    # one 500 mL breath: starts and ends at end-exhale, peaks 500 mL above it (within 1 %)
-    assert total[0] == pytest.approx(ee, rel=1e-9) and total[-1] == pytest.approx(ee, rel=1e-9)
-    assert total.max() - ee == pytest.approx(500.0, rel=0.01)
-    for lung in summary["lungs"].values():
-        assert len(lung["volume_ml"]) == len(t) and lung["max_volume_error_percent"] < 1.0
-    assert (out / "snapshot.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    # the time series names one .vtp per lung and frame, all present
-    import re
+    preset = get_preset("normal")
+    assert summary["breathing"]["preset"] == "normal"
+    assert summary["breathing"]["sources"] == list(preset.sources)
 
+    # frame times: one breath of the preset (4 s at 15/min) at the paper's 66.66 frames/s, the last
+    # frame exactly at the end of the breath: n = round(4 s · 66.67) = 267 intervals
+    t = np.array(summary["t_s"])
+    n = round(preset.params.period_s * STEPS_PER_S)
+    assert len(t) == n + 1 and t[0] == 0 and t[-1] == pytest.approx(preset.params.period_s, abs=1e-9)
+    assert np.allclose(np.diff(t), preset.params.period_s / n, atol=1e-6)
+
+    # truth: the PV model simulated here, independently, on the same frame times. The demo must play
+    # exactly this curve (volume above its minimum, end-exhale), not a cosine of the same size.
+    ref = simulate(preset.params, n_cycles=1, fs_hz=n / preset.params.period_s)
+    assert np.allclose(ref.t_s, t, atol=1e-6)
+    dv = ref.volume_ml - ref.volume_ml.min()
+    target = np.array(summary["target_volume_above_ee_ml"])
+    assert np.allclose(target, dv, atol=1e-5)
+    assert target.max() == pytest.approx(preset.tidal_volume_ml, rel=1e-3)  # 500 mL breath
+    cosine = 0.5 * dv.max() * (1 - np.cos(2 * np.pi * t / t[-1]))
+    assert np.max(np.abs(target - cosine)) > 20.0  # the PV shape is not the old plain cycle
+
+    # each lung's volume per frame, measured on its own deformed mesh, is V_EE + share·ΔV(t): the
+    # shares follow the end-exhale volumes and the demo inverts the exact volume cubic per frame
+    ee = {k: l["volume_ee_ml"] for k, l in summary["lungs"].items()}
+    total_ee = sum(ee.values())
+    for name, lung in summary["lungs"].items():
+        share = ee[name] / total_ee
+        vols = np.array(lung["volume_ml"])
+        assert len(vols) == len(t)
+        assert np.allclose(vols, ee[name] + share * dv, rtol=1e-8, atol=1e-5)
+        err = np.array(lung["volume_error_ml"])
+        assert len(err) == len(t) and np.max(np.abs(err)) < 1e-6
+        assert lung["max_volume_error_percent"] < 1e-8
+        # the paper's linear reading s = ΔV/unit_ml would be off by well under 1 % (never exact)
+        assert 0 < lung["linear_reading_max_error_percent"] < 1.0
+    total = np.array(summary["total_volume_ml"])
+    assert total[0] == pytest.approx(total_ee, rel=1e-9)
+    assert np.allclose(total - total_ee, dv, atol=1e-4)
+
+    # the saved model reproduces a frame: the peak frame's mesh volume from model.npz alone
+    peak = int(np.argmax(dv))
+    for name, lung in model.lungs.items():
+        from lungdeform.displacement import scale_for_volume
+
+        share = ee[name] / total_ee
+        x = lung.positions_at(scale_for_volume(lung.volume_poly, share * dv[peak]))
+        assert signed_volume(x, lung.surface.faces) / 1000 == pytest.approx(ee[name] + share * dv[peak], rel=1e-9)
+
+    assert (out / "snapshot.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # the time series names one .vtp per lung and frame (10 frames/s over 4 s: 41 each), all present
     files = re.findall(r'file="([^"]+)"', (out / "series.pvd").read_text())
-    assert len(files) >= 2 * 50 and all((out / f).is_file() for f in files)
+    assert len(files) == 2 * 41 and all((out / f).is_file() for f in files)
+
+
+def test_demo_other_preset_duration_and_tidal(tmp_path, capsys):
+    # dyspnoea (1.875 s breaths) played for 3 s at 400 mL: 1.6 breaths, the preset's shape rescaled
+    out = tmp_path / "d"
+    assert main(["demo", "--out", str(out), "--preset", "dyspnoea", "--duration", "3", "--tidal-ml", "400"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    t = np.array(summary["t_s"])
+    assert t[-1] == pytest.approx(3.0) and len(t) == round(3 * STEPS_PER_S) + 1
+    target = np.array(summary["target_volume_above_ee_ml"])
+    # the simulation is linear in the control parameters: 400/280 times the preset's own curve
+    p = get_preset("dyspnoea")
+    ref = simulate(p.params, n_cycles=2, fs_hz=(len(t) - 1) / 3.0)
+    ref_v = ref.volume_ml[ref.t_s <= 3.0 + 1e-9]
+    assert np.allclose(target, (ref_v - ref_v.min()) * 400 / 280, atol=1e-4)
+    assert target.max() == pytest.approx(400, rel=2e-3)
+    assert summary["tidal_ml"] == 400
+    for lung in summary["lungs"].values():
+        assert lung["max_volume_error_percent"] < 1e-8
 
 
 def test_demo_refuses_a_file_as_output(tmp_path, capsys):
@@ -40,3 +103,10 @@ def test_demo_refuses_a_file_as_output(tmp_path, capsys):
     f.write_text("x")
     assert main(["demo", "--out", str(f)]) == 2
     assert "taken" in capsys.readouterr().err
+
+
+def test_demo_refuses_an_unknown_preset(tmp_path, capsys):
+    assert main(["demo", "--out", str(tmp_path / "x"), "--preset", "panting"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "panting" in err[0] and "normal" in err[0]
+    assert not (tmp_path / "x" / "summary.json").exists()

@@ -1,6 +1,8 @@
-// Breathing curves for the viewer: named cycle shapes (built in), sampled curves from the server's
-// /presets.json, and the curve stored in the model's glb. A curve gives the volume of both lungs
-// above end-exhale (mL) at time t; tidal volume and rate are controls applied on top of its shape.
+// Breathing curves for the viewer: the presets of the PV breathing model served as /presets.json
+// (lungdeform.presets simulated by lungdeform.breathing; the single source of the preset shapes), the
+// curve stored in the model's glb, and named cycle shapes built in here, used only when
+// /presets.json cannot be loaded. A curve gives the volume of both lungs above end-exhale (mL) at
+// time t; tidal volume and rate are controls applied on top of its shape.
 
 export interface Curve {
   name: string;
@@ -40,7 +42,7 @@ function periodic(name: string, label: string, tidalMl: number, rateBpm: number,
   return { name, label, tidalMl, rateBpm, loopS: 60 / rateBpm, shape, source };
 }
 
-/** Built-in named cycle shapes (used when the server offers no /presets.json). */
+/** Built-in named cycle shapes: the fallback when /presets.json cannot be loaded. */
 export function builtinCurves(): Curve[] {
   return [
     periodic('cosine', 'Plain cycle (cosine, 500 mL, 4 s)', 500, 15,
@@ -93,4 +95,99 @@ export function volumeAt(curve: Curve, t: number, tidalMl: number, rateBpm: numb
 /** Duration (s) of one loop at the given rate. */
 export function loopDuration(curve: Curve, rateBpm: number): number {
   return curve.loopS * (curve.rateBpm / rateBpm);
+}
+
+// ------------------------------------------------------------------ /presets.json (lungdeform.server)
+
+/** One preset of /presets.json (lungdeform.server.presets_payload). */
+export interface PresetEntry {
+  name: string;
+  description: string;
+  /** Period (s) and the preset's tidal volume (mL, both lungs). */
+  period_s: number;
+  tidal_volume_ml: number;
+  /** One cycle: t_s over [0, period_s] (0 = onset of inspiration), s = (V - V_EE)/dV in [0, 1]. */
+  t_s: number[];
+  s: number[];
+  sources: string[];
+}
+
+const finite = (x: unknown): x is number => typeof x === 'number' && Number.isFinite(x);
+
+/** A curve from one /presets.json entry; throws, naming the preset and the field, on bad data. */
+export function presetCurve(p: PresetEntry): Curve {
+  const name = typeof p?.name === 'string' && p.name ? p.name : '?';
+  const bad = (what: string) => new Error(`preset ${name}: ${what}`);
+  if (name === '?') throw bad('no name');
+  if (!finite(p.period_s) || p.period_s <= 0) throw bad('period_s must be > 0');
+  if (!finite(p.tidal_volume_ml) || p.tidal_volume_ml <= 0) throw bad('tidal_volume_ml must be > 0');
+  const t = p.t_s, s = p.s;
+  if (!Array.isArray(t) || !Array.isArray(s) || t.length < 2 || t.length !== s.length) {
+    throw bad('t_s and s must be arrays of one length (>= 2)');
+  }
+  for (let i = 0; i < t.length; i++) {
+    if (!finite(t[i]) || !finite(s[i])) throw bad(`sample ${i} is not a finite number`);
+    if (i > 0 && !(t[i] > t[i - 1])) throw bad('t_s must be strictly increasing');
+    if (s[i] < -1e-9 || s[i] > 1 + 1e-9) throw bad('s must lie in [0, 1]');
+  }
+  const period = p.period_s;
+  if (Math.abs(t[0]) > 1e-9 * period || Math.abs(t[t.length - 1] - period) > 1e-6 * period) {
+    throw bad('t_s must cover one period, 0 … period_s');
+  }
+  const shape = (phase: number) => {
+    const tt = phase * period;
+    let a = 0, b = t.length - 1;
+    while (b - a > 1) { const m = (a + b) >> 1; if (t[m] <= tt) a = m; else b = m; }
+    const f = Math.min(Math.max((tt - t[a]) / (t[b] - t[a]), 0), 1);
+    return (1 - f) * s[a] + f * s[b];
+  };
+  const description = typeof p.description === 'string' && p.description ? `: ${p.description}` : '';
+  const sources = Array.isArray(p.sources) ? p.sources.filter((x) => typeof x === 'string') : [];
+  const rate = 60 / period;
+  const short = (x: number) => String(Number(x.toPrecision(4)));
+  return {
+    name, label: `${name} (${short(rate)}/min, ${short(p.tidal_volume_ml)} mL)`, tidalMl: p.tidal_volume_ml,
+    rateBpm: rate, loopS: period, shape,
+    source: `lungdeform.presets (PV model)${description}${sources.length ? '. Sources: ' + sources.join('; ') : ''}`,
+  };
+}
+
+/** The curves of a parsed /presets.json document; throws when it holds none or a bad entry. */
+export function parsePresets(doc: unknown): Curve[] {
+  const list = (doc as { presets?: unknown })?.presets;
+  if (!Array.isArray(list)) throw new Error('no "presets" list');
+  if (list.length === 0) throw new Error('the "presets" list is empty');
+  const curves = list.map((p) => presetCurve(p as PresetEntry));
+  const names = new Set(curves.map((c) => c.name));
+  if (names.size !== curves.length) throw new Error('preset names repeat');
+  return curves;
+}
+
+export interface PresetSet {
+  curves: Curve[];
+  /** 'server': from /presets.json; 'built-in': the fallback shapes (see note). */
+  origin: 'server' | 'built-in';
+  note: string;
+}
+
+type Fetch = (url: string) => Promise<{ ok: boolean; status: number; json(): Promise<unknown> }>;
+
+/** Load /presets.json; on any failure fall back to the built-in shapes, saying why in `note`. */
+export async function loadPresets(fetchFn: Fetch, url = 'presets.json'): Promise<PresetSet> {
+  let reason: string;
+  try {
+    const res = await fetchFn(url);
+    if (!res.ok) {
+      reason = `HTTP ${res.status}`;
+    } else {
+      const curves = parsePresets(await res.json());
+      return { curves, origin: 'server', note: `${curves.length} presets of lungdeform.presets (PV breathing model)` };
+    }
+  } catch (e) {
+    reason = e instanceof Error ? e.message : String(e);
+  }
+  return {
+    curves: builtinCurves(), origin: 'built-in',
+    note: `Breathing presets unavailable (${url}: ${reason}); showing the viewer's built-in cycle shapes.`,
+  };
 }

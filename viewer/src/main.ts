@@ -10,7 +10,7 @@ import { GLTFLoader } from 'three/examples/jsm/loaders/GLTFLoader.js';
 import { OrbitControls } from 'three/examples/jsm/controls/OrbitControls.js';
 import './style.css';
 import { GRAVITY, LungWeights, normalize, type LungMeta, type Marker, type Vec3 } from './physics';
-import { builtinCurves, loopDuration, sampledCurve, volumeAt, type Curve } from './curves';
+import { loadPresets, loopDuration, sampledCurve, volumeAt, type Curve, type PresetSet } from './curves';
 import { colourise, legendGradient } from './overlay';
 import { FrameStats } from './stats';
 import { setupXR } from './xr';
@@ -62,6 +62,7 @@ scene.add(sun);
 
 const lungs: Lung[] = [];
 let curves: Curve[] = [];
+let presetSet: PresetSet | null = null;
 let root: THREE.Object3D | null = null;
 let arrow: THREE.ArrowHelper | null = null;
 const stats = new FrameStats();
@@ -164,27 +165,18 @@ async function loadModel(): Promise<void> {
   });
   if (lungs.length === 0) throw new Error('model.glb holds no lungdeform lungs (mesh extras missing)');
   addMarkers(extras.markers ?? []);
-  const presets = await fetchPresets();
+  presetSet = await loadPresets((url) => fetch(url));
   curves = [];
   if (extras.curve && extras.curve.t_s.length > 1) {
     curves.push(sampledCurve('model', 'Model curve (export)', extras.curve.t_s, extras.curve.volume_ml,
                              extras.curve.source));
   }
-  curves.push(...presets);
+  curves.push(...presetSet.curves);
+  const note = $('presets-note');
+  note.textContent = presetSet.note;
+  note.classList.toggle('warning', presetSet.origin !== 'server');
   fitCamera();
   addGravityArrow();
-}
-
-async function fetchPresets(): Promise<Curve[]> {
-  try {
-    const res = await fetch('presets.json');
-    if (!res.ok) return builtinCurves();
-    const data = (await res.json()) as { presets: { name: string; label?: string; t_s: number[]; volume_ml: number[]; source?: string }[] };
-    if (!Array.isArray(data.presets) || data.presets.length === 0) return builtinCurves();
-    return data.presets.map((p) => sampledCurve(p.name, p.label ?? p.name, p.t_s, p.volume_ml, p.source ?? 'lungdeform.presets'));
-  } catch {
-    return builtinCurves();
-  }
 }
 
 function addMarkers(markers: Marker[]): void {
@@ -237,6 +229,7 @@ function setPreset(name: string): void {
   state.curve = c;
   state.tidalMl = c.tidalMl;
   state.rateBpm = c.rateBpm;
+  $('preset-source').textContent = c.source;
   syncUI();
 }
 
@@ -441,7 +434,8 @@ const api = {
   ready: null as unknown as Promise<object>,
   info: () => ({ lungs: lungs.map((l) => ({ name: l.name, vertices: l.meta.n_vertices, share: l.meta.share })),
                  markers: lungs.reduce((n, l) => n + l.markers.length, 0),
-                 presets: curves.map((c) => c.name), deform: deformMode, manualClock, renderer: rendererName() }),
+                 presets: curves.map((c) => c.name), presetOrigin: presetSet?.origin, presetNote: presetSet?.note,
+                 deform: deformMode, manualClock, renderer: rendererName() }),
   state: () => ({ t: state.t, dvMl: state.dvMl, playing: state.playing, preset: state.curve?.name, tidalMl: state.tidalMl,
                   rateBpm: state.rateBpm, orientation: state.orientation, overlay: state.overlay, loopS: loop(),
                   weights: Object.fromEntries(lungs.map((l) => [l.name, [...l.influences]])) }),

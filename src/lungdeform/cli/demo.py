@@ -13,21 +13,26 @@ def register(apps) -> None:
     @apps.root.command("demo")
     def demo(
         out: Path = typer.Option(Path("demo-out"), "--out", "-o", help="Output folder."),
-        duration_s: float = typer.Option(5.0, "--duration", help="Length of the breath (s)."),
-        tidal_ml: float = typer.Option(500.0, "--tidal-ml", help="Tidal volume, both lungs (mL)."),
+        preset: str = typer.Option("normal", "--preset", help="Breathing preset of the PV model (lungdeform.presets, as in 'lungdeform breathe --preset'); an unknown name lists them."),
+        duration_s: float | None = typer.Option(None, "--duration", help="Length played (s); default one breath of the preset."),
+        tidal_ml: float | None = typer.Option(None, "--tidal-ml", help="Tidal volume, both lungs (mL); default the preset's."),
         orientation: str = typer.Option("supine", "--orientation", help="supine, prone, upright, left-decubitus, right-decubitus or 'x,y,z'."),
     ):
-        """Build both embedded lungs (Table I, supine) and play one breath."""
+        """Build both embedded lungs (Table I, supine) and play one breath of a PV-model preset."""
         from lungdeform.demo import run_demo
 
         folder = output_dir(out)
-        r = run_demo(folder, duration_s=duration_s, tidal_ml=tidal_ml,
+        r = run_demo(folder, preset=preset, duration_s=duration_s, tidal_ml=tidal_ml,
                      orientation=parse_orientation(orientation), progress=say)
+        b = r.summary_data["breathing"]
+        typer.echo(f"breathing: preset '{b['preset']}' ({b['description']}), {r.summary_data['duration_s']:g} s "
+                   f"at {r.summary_data['frames_per_second']:.2f} frames/s, {r.summary_data['tidal_ml']:g} mL")
         for name, lung in r.summary_data["lungs"].items():
             vols = lung["volume_ml"]
             typer.echo(f"{name:>5}: {lung['vertices']} vertices, V_EE {lung['volume_ee_ml']:.0f} mL → "
                        f"peak {max(vols):.0f} mL (+{max(vols) - lung['volume_ee_ml']:.0f}), "
-                       f"max volume error {lung['max_volume_error_percent']:.3f} %")
+                       f"max volume error {lung['max_volume_error_percent']:.2g} % "
+                       f"(linear reading {lung['linear_reading_max_error_percent']:.3f} %)")
         typer.echo(f"model:       {r.model}")
         typer.echo(f"time series: {r.series}")
         typer.echo(f"summary:     {r.summary}")
