@@ -132,6 +132,42 @@ def test_from_breathing_agrees_with_the_curve_csv_reader(tmp_path):
     assert direct.volume_ml.min() == 0 and direct.volume_ml.max() == pytest.approx(500.0, rel=2e-3)  # 25 Hz samples
 
 
+def test_preset_trace_is_the_pv_simulation_on_an_exact_grid():
+    # truth: lungdeform.breathing.simulate run here on the grid the docstring promises:
+    # n = ceil(D·rate) intervals ending exactly at D (dyspnoea, T = 1.875 s: 2 breaths at >= 50 Hz
+    # is 3.75 s · 50 = 187.5 → 188 intervals, 50.13 Hz)
+    from lungdeform.breathing import simulate
+    from lungdeform.presets import get_preset
+
+    p = get_preset("dyspnoea")
+    params, curve, tr = E.preset_trace("dyspnoea", 2, rate_hz=50.0)
+    assert params is p.params and len(tr.t_s) == 189 and tr.t_s[-1] == pytest.approx(3.75, abs=1e-12)
+    ref = simulate(p.params, n_cycles=2, fs_hz=188 / 3.75)
+    np.testing.assert_allclose(tr.t_s, ref.t_s, atol=1e-12)
+    np.testing.assert_allclose(tr.volume_ml, ref.volume_ml - ref.volume_ml.min(), atol=1e-12)
+    assert tr.shifted_ml == pytest.approx(ref.volume_ml.min()) and "lungdeform.presets:dyspnoea" in tr.source
+    np.testing.assert_allclose(curve.volume_ml, ref.volume_ml, atol=1e-12)
+    # any duration: 3 s is cut from two whole cycles, 150 intervals, volume above the cut's minimum
+    _, _, cut = E.preset_trace(p, duration_s=3.0, rate_hz=50.0)
+    ref = simulate(p.params, n_cycles=2, fs_hz=50.0)
+    keep = ref.t_s <= 3.0 + 1e-9
+    assert len(cut.t_s) == 151 == keep.sum()
+    np.testing.assert_allclose(cut.volume_ml, ref.volume_ml[keep] - ref.volume_ml[keep].min(), atol=1e-12)
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"preset": "panting"}, "unknown breathing preset 'panting'; choose one of: normal, deep"),
+    ({"preset": "normal", "cycles": 0}, "cycles must be a whole number >= 1"),
+    ({"preset": "normal", "cycles": 1.5}, "cycles must be a whole number >= 1"),
+    ({"preset": "normal", "duration_s": -1.0}, "duration must be > 0 s"),
+    ({"preset": "normal", "tidal_ml": float("nan")}, "tidal volume must be > 0 mL"),
+    ({"preset": "normal", "rate_hz": 0.0}, "rate_hz must be > 0"),
+])
+def test_preset_trace_bad_input(kwargs, message):
+    with pytest.raises(InputError, match=message):
+        E.preset_trace(**kwargs)
+
+
 @pytest.mark.parametrize("text, message", [
     ("time,volume\n0,1\n1,2\n", "needs a 't_s' column"),
     ("t_s,volume_ml\n0,1\n", "at least 2 rows"),

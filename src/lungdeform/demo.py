@@ -3,7 +3,7 @@
 Steps (issue 2 item 7): build the left and right lungs of the embedded default (Coronacases 001,
 CC BY 4.0) with the Table I constants, supine; play one breath of the ``normal`` preset of the PV
 breathing model (:mod:`lungdeform.presets` → :func:`lungdeform.breathing.simulate` → the volume above
-end-exhale; 15/min, 500 mL) at the paper's 66.66 frames/s; write the model, a mesh time series,
+end-exhale; 15/min, 500 mL; :func:`lungdeform.export.preset_trace`) at the paper's 66.66 frames/s; write the model, a mesh time series,
 ``summary.json`` (volume per frame, per lung, and its error) and a PNG snapshot.
 
 The breathing curve drives each lung's share of the volume (in proportion to its end-exhale volume)
@@ -16,7 +16,6 @@ be from the curve.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -25,7 +24,6 @@ import numpy as np
 
 from .atomic import write_json
 from .constants import STEPS_PER_S
-from .errors import InputError, LungdeformError
 from .mesh import signed_volume
 
 DEFAULT_PRESET = "normal"
@@ -38,48 +36,6 @@ class DemoResult:
     summary: Path
     snapshot: Path
     summary_data: dict
-
-
-def preset_breath(preset, duration_s: float | None = None, tidal_ml: float | None = None,
-                  fps: float = STEPS_PER_S):
-    """The preset's PV simulation on the frame times of the demo.
-
-    preset : :class:`lungdeform.presets.Preset`; duration_s : s (default: one period of the preset);
-    tidal_ml : mL, both lungs (default: the preset's; otherwise its control parameters are rescaled
-    with :func:`lungdeform.breathing.scaled_to_tidal_volume`, the same shape); fps : frames/s.
-    Frames lie at ``t_k = k·D/n``, ``n = round(D·fps)``, so the last one is exactly at ``D``; the
-    simulation outputs them directly (no resampling).
-
-    Returns ``(params, curve, trace)``: the :class:`~lungdeform.breathing.BreathingParams` played,
-    the :class:`~lungdeform.breathing.BreathingCurve` (n + 1 frames, absolute volume, mL) and its
-    :class:`lungdeform.export.VolumeTrace` (volume above end-exhale, mL).
-    """
-    from .breathing import BreathingCurve, scaled_to_tidal_volume, simulate
-    from .export import VolumeTrace
-
-    period = float(preset.params.period_s)
-    duration = period if duration_s is None else float(duration_s)
-    if not (np.isfinite(duration) and duration > 0):
-        raise InputError(f"duration must be > 0 s, got {duration_s!r}")
-    params = preset.params
-    if tidal_ml is not None:
-        if not (np.isfinite(tidal_ml) and tidal_ml > 0):
-            raise InputError(f"tidal volume must be > 0 mL, got {tidal_ml!r}")
-        params = scaled_to_tidal_volume(params, float(tidal_ml))
-    n = max(int(round(duration * fps)), 2)
-    n_cycles = max(int(math.ceil(duration / period - 1e-9)), 1)
-    sim = simulate(params, n_cycles=n_cycles, fs_hz=n / duration)
-    keep = sim.t_s <= duration * (1 + 1e-9)
-    curve = BreathingCurve(sim.t_s[keep], sim.volume_ml[keep], sim.flow_ml_s[keep],
-                           sim.pressure_cmH2O[keep], meta={**sim.meta, "source": f"preset {preset.name}"})
-    if len(curve.t_s) != n + 1 or not math.isclose(curve.t_s[-1], duration, rel_tol=1e-9):
-        # simulate() samples at k/fs_hz up to the end of its last cycle; guard that reading
-        raise LungdeformError(f"breathing simulation gave {len(curve.t_s)} frames ending at "
-                              f"{curve.t_s[-1]} s, expected {n + 1} ending at {duration} s")
-    trace = VolumeTrace.from_breathing(
-        curve, f"lungdeform.presets:{preset.name} ({preset.description}), PV model simulated over "
-               f"{duration:g} s")
-    return params, curve, trace
 
 
 def run_demo(
@@ -95,7 +51,7 @@ def run_demo(
     """Build the default lungs and play ``preset`` (one period unless ``duration_s``) into ``out``."""
     from .data import default_lungs
     from .displacement import scale_for_volume
-    from .export import lung_shares
+    from .export import lung_shares, preset_trace
     from .model import build_model
     from .modelfile import save_model
     from .presets import get_preset
@@ -103,7 +59,7 @@ def run_demo(
 
     say = progress or (lambda _m: None)
     chosen = get_preset(preset)
-    params, curve, trace = preset_breath(chosen, duration_s, tidal_ml)
+    params, _curve, trace = preset_trace(chosen, 1, tidal_ml, STEPS_PER_S, duration_s=duration_s)
     tidal = float(chosen.tidal_volume_ml if tidal_ml is None else tidal_ml)
     duration = float(trace.t_s[-1])
     out = Path(out)

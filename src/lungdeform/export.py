@@ -40,7 +40,9 @@ Breathing curve: a CSV with columns ``t_s, volume_ml[, flow_ml_s, pressure_cmH2O
 its minimum lies above its own peak-to-peak range (an absolute volume), when the minimum is
 subtracted (reported in :attr:`VolumeTrace.shifted_ml`). Without a curve: :func:`plain_cycle`.
 A simulated :class:`lungdeform.breathing.BreathingCurve` (a preset, a fit) becomes a trace through
-:meth:`VolumeTrace.from_breathing`.
+:meth:`VolumeTrace.from_breathing`; :func:`preset_trace` simulates a preset of
+:mod:`lungdeform.presets` on an exact frame grid and does both (``export --preset``, ``demo``, the
+viewer server's ``/presets.json``).
 
 VTK time series: ParaView's ``.pvd`` lists one ``.vtp`` per (lung, time step); VTK XML has no way
 to share topology across files, so each frame file repeats it (binary, appended raw). Every frame
@@ -51,6 +53,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import os
 import shutil
 import tempfile
@@ -59,7 +62,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .constants import GRAVITY, TIDAL_VOLUME_ML
+from .constants import GRAVITY, STEPS_PER_S, TIDAL_VOLUME_ML
 from .displacement import scale_for_volume, smallest_positive_root
 from .atomic import write_bytes
 from .errors import InputError, LungdeformError, ReadError
@@ -117,6 +120,66 @@ def plain_cycle(tidal_ml: float = TIDAL_VOLUME_ML, period_s: float = 4.0, rate_h
     t = np.linspace(0.0, period_s, n + 1)
     v = 0.5 * tidal_ml * (1.0 - np.cos(2.0 * np.pi * t / period_s))
     return VolumeTrace(t, v, f"plain cycle: {tidal_ml:g} mL, {period_s:g} s, cosine")
+
+
+def preset_trace(preset, cycles: int = 1, tidal_ml: float | None = None, rate_hz: float = STEPS_PER_S,
+                 *, duration_s: float | None = None):
+    """A breathing preset simulated by the PV model, on a frame grid that ends exactly at the end.
+
+    preset : :class:`lungdeform.presets.Preset` or its name; cycles : whole breaths played (>= 1),
+    duration ``D = cycles·T`` (T the preset's period, s); duration_s : s, any length > 0 instead of
+    whole cycles (the simulation runs whole cycles and is cut after the last frame); tidal_ml : mL,
+    both lungs (default: the preset's; otherwise its control parameters are rescaled with
+    :func:`lungdeform.breathing.scaled_to_tidal_volume`, the same shape); rate_hz : Hz, the least
+    sample rate: ``n = ceil(D·rate_hz)`` intervals (at least 8), frames at ``t_k = k·D/n``, which the
+    simulation (:func:`lungdeform.breathing.simulate`, periodic steady state from the onset of
+    inspiration at t = 0) outputs directly, no resampling.
+
+    Returns ``(params, curve, trace)``: the :class:`~lungdeform.breathing.BreathingParams` played,
+    the :class:`~lungdeform.breathing.BreathingCurve` (n + 1 frames, absolute volume, mL) and its
+    :class:`VolumeTrace` (volume above the curve's minimum, end-exhale, mL; that minimum in
+    ``shifted_ml``).
+    """
+    from .breathing import BreathingCurve, scaled_to_tidal_volume, simulate
+    from .presets import get_preset
+
+    if isinstance(preset, str):
+        preset = get_preset(preset)
+    period = float(preset.params.period_s)
+    if duration_s is None:
+        try:
+            whole = int(cycles) == cycles and int(cycles) >= 1
+        except (TypeError, ValueError, OverflowError):
+            whole = False
+        if not whole:
+            raise InputError(f"cycles must be a whole number >= 1, got {cycles!r}")
+        duration, n_cycles = period * int(cycles), int(cycles)
+    else:
+        duration = float(duration_s)
+        if not (np.isfinite(duration) and duration > 0):
+            raise InputError(f"duration must be > 0 s, got {duration_s!r}")
+        n_cycles = max(int(math.ceil(duration / period - 1e-9)), 1)
+    if not (np.isfinite(rate_hz) and rate_hz > 0):
+        raise InputError(f"rate_hz must be > 0, got {rate_hz!r}")
+    params = preset.params
+    if tidal_ml is not None:
+        if not (np.isfinite(tidal_ml) and tidal_ml > 0):
+            raise InputError(f"tidal volume must be > 0 mL, got {tidal_ml!r}")
+        params = scaled_to_tidal_volume(params, float(tidal_ml))
+    n = max(int(math.ceil(duration * rate_hz - 1e-9)), 8)
+    sim = simulate(params, n_cycles=n_cycles, fs_hz=n / duration)
+    keep = sim.t_s <= duration * (1 + 1e-9)
+    curve = BreathingCurve(sim.t_s[keep], sim.volume_ml[keep], sim.flow_ml_s[keep],
+                           sim.pressure_cmH2O[keep], meta={**sim.meta, "source": f"preset {preset.name}"})
+    if len(curve.t_s) != n + 1 or not math.isclose(curve.t_s[-1], duration, rel_tol=1e-9):
+        # simulate() samples at k/fs_hz up to the end of its last cycle; guard that reading
+        raise LungdeformError(f"breathing simulation gave {len(curve.t_s)} frames ending at "
+                              f"{curve.t_s[-1]} s, expected {n + 1} ending at {duration} s")
+    rescaled = "" if tidal_ml is None else f", rescaled to {float(tidal_ml):g} mL"
+    trace = VolumeTrace.from_breathing(
+        curve, f"lungdeform.presets:{preset.name} ({preset.description}{rescaled}), PV model simulated "
+               f"over {duration:g} s")
+    return params, curve, trace
 
 
 def read_volume_csv(path) -> VolumeTrace:

@@ -243,23 +243,6 @@ PRESETS_SCHEMA = "lungdeform.presets"
 PRESETS_SCHEMA_VERSION = 1
 
 
-def preset_cycle(preset, rate_hz: float = PRESET_RATE_HZ):
-    """One simulated cycle of ``preset`` (:class:`lungdeform.presets.Preset`) on a grid that ends
-    exactly at the period: ``n = ceil(T·rate_hz)`` intervals, so the sample rate is ``n/T ≥ rate_hz``.
-
-    Returns ``(curve, fs_hz)``: the :class:`~lungdeform.breathing.BreathingCurve` of the periodic
-    steady state, t_s : (n + 1,) float, s, from 0 (onset of inspiration) to T, and the rate used.
-    """
-    import math
-
-    from .breathing import simulate
-
-    period = float(preset.params.period_s)
-    n = max(int(math.ceil(period * rate_hz - 1e-9)), 8)
-    fs = n / period
-    return simulate(preset.params, n_cycles=1, fs_hz=fs, start="periodic"), fs
-
-
 def presets_payload(rate_hz: float = PRESET_RATE_HZ) -> dict:
     """What ``/presets.json`` holds: every preset of :mod:`lungdeform.presets`, one cycle each.
 
@@ -269,13 +252,14 @@ def presets_payload(rate_hz: float = PRESET_RATE_HZ) -> dict:
     curve ``s(t) = (V(t) − V_EE)/ΔV`` in [0, 1] (V_EE and ΔV: the samples' minimum and peak-to-peak;
     the viewer multiplies ``s`` by its tidal-volume control), ``sources`` and the PV ``params``.
     """
-    from .export import VolumeTrace
+    from .export import preset_trace
     from .presets import PRESETS
 
     out = []
     for name, preset in PRESETS.items():
-        curve, fs = preset_cycle(preset, rate_hz)
-        trace = VolumeTrace.from_breathing(curve, source=f"lungdeform.presets:{name}")
+        # one cycle of the periodic steady state, n = ceil(T·rate_hz) intervals ending exactly at T
+        _params, _curve, trace = preset_trace(preset, 1, rate_hz=rate_hz)
+        fs = (len(trace.t_s) - 1) / float(preset.params.period_s)
         span = float(np.ptp(trace.volume_ml))
         out.append({
             "name": name, "description": preset.description,

@@ -29,7 +29,7 @@ def test_demo_plays_the_normal_preset_and_writes_everything(tmp_path, capsys):
     assert summary["breathing"]["sources"] == list(preset.sources)
 
     # frame times: one breath of the preset (4 s at 15/min) at the paper's 66.66 frames/s, the last
-    # frame exactly at the end of the breath: n = round(4 s · 66.67) = 267 intervals
+    # frame exactly at the end of the breath: n = ⌈4 s · 66.67⌉ = 267 intervals (round gives the same here)
     t = np.array(summary["t_s"])
     n = round(preset.params.period_s * STEPS_PER_S)
     assert len(t) == n + 1 and t[0] == 0 and t[-1] == pytest.approx(preset.params.period_s, abs=1e-9)

@@ -3,14 +3,23 @@
 from __future__ import annotations
 
 import json
+import math
+import re
 import struct
 
 import numpy as np
 import pytest
 
+from lungdeform.breathing import simulate
 from lungdeform.cli.main import main
-from lungdeform.modelfile import save_model
+from lungdeform.constants import STEPS_PER_S
+from lungdeform.export import lung_shares
+from lungdeform.io import read_mesh
+from lungdeform.mesh import signed_volume
+from lungdeform.modelfile import load_model, save_model
+from lungdeform.presets import PRESET_NAMES, get_preset
 from tests.browser.support import two_lungs
+from tests.test_export import _accessor, _glb_json
 
 
 @pytest.fixture(scope="module")
@@ -55,6 +64,70 @@ def test_export_glb_with_curve_and_markers(model_file, tmp_path, capsys):
     assert [m["lung"] for m in ex["markers"]] == ["left", "right"]
 
 
+def test_export_glb_preset(model_file, tmp_path, capsys):
+    # copd (3.2 s breaths, air trapping: end-exhale is not at t = 0) for 2 breaths, rescaled to 600 mL
+    out = tmp_path / "copd.glb"
+    assert main(["export", str(model_file), "--format", "glb", "--out", str(out), "--preset", "copd",
+                 "--cycles", "2", "--tidal-ml", "600"]) == 0
+    printed = capsys.readouterr().out
+    assert "preset copd: 2 × 3.2 s" in printed and f"wrote {out}" in printed
+    doc, blob = _glb_json(out.read_bytes())
+    ex = doc["extras"]["lungdeform"]["curve"]
+    t, dv = np.array(ex["t_s"]), np.array(ex["volume_ml"])
+    # frame grid: 2 periods at >= the paper's 66.67 frames/s, the last key exactly at the end
+    preset = get_preset("copd")
+    duration = 2 * preset.params.period_s
+    n = len(t) - 1
+    assert n == math.ceil(duration * STEPS_PER_S - 1e-9) and t[0] == 0 and t[-1] == pytest.approx(duration, abs=1e-9)
+    # truth: the PV model simulated here, independently, on the same grid, with the preset's own
+    # parameters. The equation is linear and a_1 = 0, so 600 mL is 600/500 times its curve above
+    # end-exhale (the same shape, not a cosine, not the preset's 500 mL)
+    ref = simulate(preset.params, n_cycles=2, fs_hz=n / duration)
+    np.testing.assert_allclose(t, ref.t_s, atol=1e-9)
+    ref_dv = (ref.volume_ml - ref.volume_ml.min()) * 600.0 / preset.tidal_volume_ml
+    np.testing.assert_allclose(dv, ref_dv, atol=1e-4)  # two integrations (rtol 1e-7): ~1e-5 mL apart
+    assert dv.max() == pytest.approx(600, rel=2e-3) and dv[0] > 1.0  # air trapping: V(0) above V_EE
+    # the animation plays that volume: its key times are the curve's, and at the key frames each
+    # lung's weights give a mesh (measured by the divergence theorem) of exactly V_EE + share·ΔV(t)
+    times = _accessor(doc, blob, doc["animations"][0]["samplers"][0]["input"])
+    np.testing.assert_allclose(times, ref.t_s, rtol=1e-6, atol=1e-6)
+    model = load_model(model_file)
+    shares = lung_shares(model)
+    keys = sorted({0, n // 3, int(np.argmax(ref_dv)), int(np.argmin(ref_dv)), n})
+    for mesh in doc["meshes"]:
+        lung = model.lungs[mesh["name"]]
+        t0 = _accessor(doc, blob, mesh["primitives"][0]["targets"][0]["POSITION"]).astype(float)
+        ch = next(c for c in doc["animations"][0]["channels"]
+                  if doc["nodes"][c["target"]["node"]]["name"] == mesh["name"])
+        w = _accessor(doc, blob, doc["animations"][0]["samplers"][ch["sampler"]]["output"]).reshape(-1, 5)
+        assert len(w) == n + 1 and np.all(w[:, 1:] == 0)
+        for k in keys:
+            v = signed_volume(lung.surface.vertices + float(w[k, 0]) * t0, lung.surface.faces) / 1000
+            assert v == pytest.approx(lung.volume_ee_ml + shares[mesh["name"]] * ref_dv[k], rel=1e-6)
+
+
+def test_export_pvd_preset(model_file, tmp_path, capsys):
+    # one breath of 'normal' (4 s) at 2 frames/s: 2 lungs × (4 × 2 + 1) frames
+    out = tmp_path / "series.pvd"
+    assert main(["export", str(model_file), "--format", "pvd", "--out", str(out), "--fps", "2",
+                 "--preset", "normal"]) == 0
+    assert f"wrote {out} and 18 frames" in capsys.readouterr().out
+    # truth: the preset simulated here on the exporter's grid (n = ceil(4 s · 66.67) intervals); the
+    # frames at k/fps sample it linearly, and each frame's mesh (float32 .vtp) holds V_EE + share·ΔV(t)
+    preset = get_preset("normal")
+    n = math.ceil(preset.params.period_s * STEPS_PER_S - 1e-9)
+    ref = simulate(preset.params, n_cycles=1, fs_hz=n / preset.params.period_s)
+    model = load_model(model_file)
+    shares = lung_shares(model)
+    entries = re.findall(r'timestep="([^"]+)" part="\d" name="(\w+)" file="([^"]+)"', out.read_text())
+    assert len(entries) == 18
+    for ts, name, file in entries:
+        v, f = read_mesh(tmp_path / file)
+        dv = np.interp(float(ts), ref.t_s, ref.volume_ml - ref.volume_ml.min())
+        lung = model.lungs[name]
+        assert signed_volume(v, f) / 1000 == pytest.approx(lung.volume_ee_ml + shares[name] * dv, rel=1e-5)
+
+
 def test_export_pvd(model_file, tmp_path, capsys):
     out = tmp_path / "series.pvd"
     assert main(["export", str(model_file), "--format", "pvd", "--out", str(out), "--fps", "2",
@@ -67,11 +140,25 @@ def test_export_pvd(model_file, tmp_path, capsys):
 @pytest.mark.parametrize("args, message", [
     (["--format", "obj"], "--format must be glb or pvd"),
     (["--format", "pvd", "--markers", "m.csv"], "--markers applies to --format glb only"),
+    (["--format", "glb", "--curve", "c.csv", "--preset", "normal"], "--curve and --preset are mutually exclusive"),
+    (["--format", "glb", "--curve", "c.csv", "--tidal-ml", "600"], "do not apply to --curve"),
+    (["--format", "glb", "--preset", "normal", "--period", "3"], "a --preset has its own period"),
+    (["--format", "glb", "--cycles", "2"], "--cycles applies to --preset only"),
+    (["--format", "glb", "--preset", "normal", "--cycles", "0"], "--cycles must be >= 1"),
+    (["--format", "glb", "--preset", "normal", "--tidal-ml", "-5"], "tidal volume must be > 0 mL"),
 ])
 def test_export_bad_options(model_file, tmp_path, capsys, args, message):
     assert main(["export", str(model_file), "--out", str(tmp_path / "x"), *args]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0]
+
+
+def test_export_unknown_preset_lists_the_names(model_file, tmp_path, capsys):
+    out = tmp_path / "x.glb"
+    assert main(["export", str(model_file), "--format", "glb", "--out", str(out), "--preset", "panting"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "'panting'" in err[0] and all(name in err[0] for name in PRESET_NAMES)
+    assert not out.exists()
 
 
 def test_export_bad_model_and_curve(model_file, tmp_path, capsys):

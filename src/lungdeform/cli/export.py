@@ -14,9 +14,11 @@ def register(apps) -> None:
         fmt: str = typer.Option(..., "--format", help="glb (glTF 2.0 binary, morph targets) or pvd (VTK .pvd + .vtp)."),
         out: Path = typer.Option(..., "--out", help="Output file (.glb or .pvd; frames go beside a .pvd)."),
         curve: Path | None = typer.Option(None, "--curve", help="Breathing curve CSV (t_s, volume_ml, …) from 'lungdeform breathe'."),
+        preset: str | None = typer.Option(None, "--preset", help="Breathing preset of the PV model, simulated: normal, deep, copd, restrictive, dyspnoea or pneumothorax (not with --curve)."),
+        cycles: int | None = typer.Option(None, "--cycles", help="With --preset: whole breaths played (default 1)."),
         markers: Path | None = typer.Option(None, "--markers", help="Markers CSV: x_mm,y_mm,z_mm[,label] (LPS, end-exhale); glb only."),
-        tidal_ml: float = typer.Option(500.0, "--tidal-ml", help="Plain cycle without --curve: tidal volume (mL)."),
-        period_s: float = typer.Option(4.0, "--period", help="Plain cycle without --curve: period (s)."),
+        tidal_ml: float | None = typer.Option(None, "--tidal-ml", help="Tidal volume, both lungs (mL): of the plain cycle (default 500), or the --preset rescaled to it (same shape; default the preset's)."),
+        period_s: float | None = typer.Option(None, "--period", help="Plain cycle only (no --curve, no --preset): period (s), default 4."),
         fps: float = typer.Option(10.0, "--fps", help="pvd only: frames per second of the time series."),
     ) -> None:
         """Export MODEL for engines (glb: one mesh, morph targets, breathing animation) or ParaView (pvd)."""
@@ -29,10 +31,32 @@ def register(apps) -> None:
             raise InputError(f"--format must be glb or pvd, got {fmt!r}")
         if markers is not None and kind != "glb":
             raise InputError("--markers applies to --format glb only")
+        if curve is not None and preset is not None:
+            raise InputError("--curve and --preset are mutually exclusive: give one breathing curve")
+        if curve is not None and (tidal_ml, period_s, cycles) != (None, None, None):
+            raise InputError("--tidal-ml, --period and --cycles do not apply to --curve (the curve file sets them)")
+        if preset is not None and period_s is not None:
+            raise InputError("--period applies to the plain cycle; a --preset has its own period")
+        if cycles is not None and preset is None:
+            raise InputError("--cycles applies to --preset only")
+        if cycles is not None and cycles < 1:
+            raise InputError(f"--cycles must be >= 1, got {cycles}")
+        if preset is not None:
+            from lungdeform.presets import get_preset
+
+            chosen = get_preset(preset)  # an unknown name: InputError listing the names
         m = load_model(model)
-        trace = E.read_volume_csv(curve) if curve is not None else E.plain_cycle(tidal_ml, period_s)
-        if trace.shifted_ml:
-            typer.echo(f"{curve}: volume_ml reads as absolute; subtracted its minimum {trace.shifted_ml:.1f} mL")
+        if curve is not None:
+            trace = E.read_volume_csv(curve)
+            if trace.shifted_ml:
+                typer.echo(f"{curve}: volume_ml reads as absolute; subtracted its minimum {trace.shifted_ml:.1f} mL")
+        elif preset is not None:
+            params, _curve, trace = E.preset_trace(chosen, cycles or 1, tidal_ml)
+            typer.echo(f"preset {chosen.name}: {cycles or 1} × {params.period_s:g} s, PV model end-exhale "
+                       f"{trace.shifted_ml:.0f} mL; playing the volume above it")
+        else:
+            given = {"tidal_ml": tidal_ml, "period_s": period_s}
+            trace = E.plain_cycle(**{k: v for k, v in given.items() if v is not None})  # defaults 500 mL, 4 s
         shares = E.lung_shares(m)
         typer.echo(f"curve: {trace.source}, {trace.t_s[-1]:.2f} s, {len(trace.t_s)} samples, "
                    f"ΔV {trace.volume_ml.min():.0f}…{trace.volume_ml.max():.0f} mL split "
