@@ -30,6 +30,9 @@ COMMAND_MODULES = [
     "lungdeform.cli.validate_breathing",
     "lungdeform.cli.fit",
     "lungdeform.cli.validate_itk",
+    "lungdeform.cli.cohort",
+    "lungdeform.cli.bench_cohort",
+    "lungdeform.cli.synth_cohort",
 ]
 
 

@@ -1,0 +1,202 @@
+"""``lungdeform cohort MANIFEST.csv --out DIR``: fit every lung of a cohort on Dask, resumably.
+
+The manifest (:mod:`lungdeform.manifest`) is checked in full before any work starts. Each lung is
+fitted by :func:`lungdeform.cohort.fit_job` into ``DIR/subjects/<subject>/<side>/`` (written
+atomically); a summary goes to ``DIR/cohort.json`` and population statistics next to it.
+
+Exit status: 0 when at least one job succeeded (failed jobs are listed; their folders hold
+``result.json`` and ``traceback.txt``), 1 when every job failed, 2 for a bad manifest or bad
+options (one line naming the file and the rows), 130 when interrupted (Ctrl-C): what finished is
+kept, and running the same command again resumes.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+#: Bar labels of the stages (lungdeform.cohort.STAGES).
+STAGE_LABELS = {"read": "read / segment", "align": "align", "fit": "fit + measure", "write": "write"}
+MAX_NOTES = 5
+
+
+class Display:
+    """Renders run_cohort's progress events: one rich bar per stage on stderr (live), or else one
+    line per finished job on stdout. Keeps the tally the CLI reports at the end or on Ctrl-C."""
+
+    def __init__(self, live: bool):
+        self.live = live
+        self.progress = None
+        self.bars: dict[str, int] = {}
+        self.reached: dict[str, int] = {}
+        self.done: dict[str, dict] = {}
+        self.skipped: dict[str, dict] = {}
+        self.to_run = 0
+
+    # -- events
+    def __call__(self, ev: dict) -> None:
+        kind = ev["event"]
+        if kind == "start":
+            self._start(ev)
+        elif kind == "stage":
+            self._advance(ev["job"], self._stages().index(ev["stage"]))
+        elif kind == "done":
+            if ev["skipped"]:
+                self.skipped[ev["job"]] = ev["result"]
+                return
+            self._advance(ev["job"], len(self._stages()))
+            self.done[ev["job"]] = ev["result"]
+            self._line(_job_line(ev["result"]))
+        elif kind == "population":
+            self.stop()
+            self._line(f"population statistics of {ev['ok']} fitted lung{'s' if ev['ok'] != 1 else ''} …")
+
+    def _start(self, ev: dict) -> None:
+        self.to_run = ev["to_run"]
+        if ev["skipped"]:
+            self._line(f"skipping {ev['skipped']} of {ev['jobs']} jobs already done (inputs and options unchanged)")
+        if not ev["to_run"]:
+            return
+        where = (f"the Dask scheduler {ev['scheduler']}" if ev["scheduler"] != "local"
+                 else f"a local Dask cluster of {ev['workers']} worker{'s' if ev['workers'] != 1 else ''}")
+        self._line(f"fitting {ev['to_run']} job{'s' if ev['to_run'] != 1 else ''} on {where}")
+        if self.live:
+            from rich.console import Console
+            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+            self.progress = Progress(TextColumn("{task.description:<15}"), BarColumn(), MofNCompleteColumn(),
+                                     TimeElapsedColumn(), console=Console(stderr=True), redirect_stdout=False,
+                                     redirect_stderr=False)
+            self.progress.start()
+            for stage in self._stages():
+                self.bars[stage] = self.progress.add_task(STAGE_LABELS.get(stage, stage), total=ev["to_run"])
+
+    def _advance(self, job: str, upto: int) -> None:
+        """The job has finished every stage before index ``upto``."""
+        start = self.reached.get(job, 0)
+        if upto <= start:
+            return
+        self.reached[job] = upto
+        if self.progress is not None:
+            for stage in self._stages()[start:upto]:
+                self.progress.advance(self.bars[stage])
+
+    def _line(self, text: str) -> None:
+        if self.progress is not None:
+            self.progress.console.print(text, highlight=False, markup=False, soft_wrap=True)
+        else:
+            typer.echo(text)
+
+    @staticmethod
+    def _stages():
+        from lungdeform.cohort import STAGES
+
+        return STAGES
+
+    def stop(self) -> None:
+        if self.progress is not None:
+            self.progress.stop()
+            self.progress = None
+
+
+def _job_line(r: dict) -> str:
+    key = f"{r['subject']}/{r['side']}"
+    if r["status"] == "ok":
+        m = r["metrics"]
+        lm = f", landmarks {m['landmark_mean_mm']:.2f} mm" if m.get("landmark_mean_mm") is not None else ""
+        return (f"ok      {key:<24} {r['seconds']:7.1f} s  surface mean {m['surface_mean_mm']:.2f} mm, "
+                f"objective {m['objective_rms_mm']:.2f} mm{lm}")
+    return f"FAILED  {key:<24} {r['seconds']:7.1f} s  {r['error_type']}: {r['error']}"
+
+
+def _live() -> bool:
+    from lungdeform.cli.common import VERBOSE
+
+    return VERBOSE["on"] if VERBOSE["on"] is not None else sys.stderr.isatty()
+
+
+def register(apps) -> None:
+    @apps.root.command("cohort")
+    def cohort_command(
+        manifest: Path = typer.Argument(..., help="CSV: subject,side,volume_ml,path[,landmarks]; one row per scan."),
+        out: Path = typer.Option(..., "--out", help="Output folder: subjects/<subject>/<side>/, cohort.json, population statistics."),
+        scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Address of a running Dask scheduler (default: a local cluster)."),
+        workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes of the local cluster (default: one per CPU, at most one per job)."),
+        skip_failed: bool = typer.Option(False, "--skip-failed", help="Do not re-run jobs that failed in an earlier run."),
+        evaluations: int = typer.Option(300, "--evaluations", help="Optimiser budget per fit (objective evaluations)."),
+        baselines: bool = typer.Option(True, "--baselines/--no-baselines", help="Measure the baselines too."),
+        processes: bool = typer.Option(True, "--processes/--threads", help="Local workers as processes, or threads in this process (debugging)."),
+    ) -> None:
+        """Fit every lung of a cohort in parallel on Dask; resumable (finished subjects are skipped).
+
+        Exit 0 if at least one job succeeded (failures listed), 1 if all failed, 2 for a bad
+        manifest, 130 when interrupted (re-run the same command to resume)."""
+        from lungdeform.cli.common import output_dir
+        from lungdeform.cohort import FitOptions, run_cohort
+        from lungdeform.manifest import read_manifest
+
+        m = read_manifest(manifest)  # every problem reported before any work starts (exit 2)
+        options = FitOptions(max_evaluations=evaluations, baselines=baselines)
+        for note in m.notes[:MAX_NOTES]:
+            typer.echo(f"note: {note}")
+        if len(m.notes) > MAX_NOTES:
+            typer.echo(f"note: … and {len(m.notes) - MAX_NOTES} more such notes (all in cohort.json)")
+        folder = output_dir(out)
+        display = Display(_live())
+        try:
+            result = run_cohort(m, folder, scheduler=scheduler, workers=workers, options=options,
+                                skip_failed=skip_failed, processes=processes, progress=display)
+        except KeyboardInterrupt:
+            display.stop()
+            typer.echo(f"interrupted: {_tally(folder, display)}; results are in {folder / 'subjects'}, summary in "
+                       f"{folder / 'cohort.json'}. Run the same command again to resume: finished jobs are skipped.",
+                       err=True)
+            raise typer.Exit(130) from None
+        finally:
+            display.stop()
+        _report(result, folder)
+        if not result.ok:
+            first = result.failed[0]
+            typer.echo(f"error: all {len(result.results)} jobs failed (first: {first['subject']}/{first['side']}: "
+                       f"{first['error_type']}: {first['error']})", err=True)
+            raise typer.Exit(1)
+
+
+def _tally(folder: Path, display: Display) -> str:
+    """What finished, from the cohort.json written on the interrupt (it also counts jobs that
+    finished on a worker after this process stopped listening), else from the events seen."""
+    import json
+
+    try:
+        jobs = json.loads((folder / "cohort.json").read_text(encoding="utf-8"))["jobs"]
+        return (f"{jobs['ok'] + jobs['failed']} of {jobs['total']} jobs done ({jobs['ok']} ok, {jobs['failed']} "
+                f"failed, {jobs['skipped']} of them done before), {jobs['not_run']} not run")
+    except (OSError, ValueError, KeyError, TypeError):
+        ok = sum(r["status"] == "ok" for r in display.done.values())
+        return (f"{len(display.done)} of {display.to_run} jobs finished in this run ({ok} ok, "
+                f"{len(display.done) - ok} failed)")
+
+
+def _report(result, folder: Path) -> None:
+    n, ok, failed = len(result.results), len(result.ok), result.failed
+    typer.echo(f"cohort: {n} job{'s' if n != 1 else ''}: {ok} ok, {len(failed)} failed, "
+               f"{len(result.skipped)} skipped as already done ({result.seconds:.1f} s)")
+    if failed:
+        typer.echo("failed jobs (their folders hold result.json and traceback.txt; re-run to retry):")
+        for r in failed:
+            typer.echo(f"  {r['subject']}/{r['side']}: {r['error_type']}: {r['error']}")
+    typer.echo(f"wrote {folder / 'cohort.json'} and {folder / 'subjects'}/<subject>/<side>/")
+    if result.population:
+        files = result.population.get("files") or {}
+        if files:
+            typer.echo(f"population statistics in {folder}: {', '.join(sorted(_relative(p, folder) for p in files.values()))}")
+
+
+def _relative(path, folder: Path) -> str:
+    try:
+        return str(Path(path).resolve().relative_to(folder.resolve()))
+    except ValueError:
+        return str(path)

@@ -1,0 +1,206 @@
+"""The synthetic cohort: truth built by the model itself from the shipped real lung shapes.
+
+Checked against truth: the model form u = k·F·d rebuilt independently from its parts, the exact
+volume cubic, the fit's own evaluation at the true constants (zero residual), the noise's SD,
+files read back through lungdeform.io, and one tiny end-to-end fit."""
+
+import json
+import warnings
+
+import numpy as np
+import pytest
+
+from lungdeform import data
+from lungdeform.constants import table_constants
+from lungdeform.errors import InputError, ReadError
+from lungdeform.fit import DIRECTION_BOUNDS, LungFitter, Target, fit_lung
+from lungdeform.mesh import Surface
+from lungdeform.synthetic import (SOURCES, draw_constants, model_displacement, normal_noise, read_truth,
+                                  scaled_shape, synthesize_lung, synthetic_cohort, write_cohort)
+
+TRUE = np.array([0.1, 0.3, 0.45, 0.45, 0.12, 2.0, 0.05, 1.0, 0.1])
+
+
+@pytest.fixture(scope="module")
+def left():
+    return data.default_lungs()["left"]
+
+
+@pytest.fixture(scope="module")
+def linear_lung(left):
+    # the fit's own model form: linear playback, so the true constants reproduce every target
+    return synthesize_lung(left, "left", TRUE, [200.0, 350.0], rng=np.random.default_rng(1), law="linear")
+
+
+def test_displacement_is_k_F_d_rebuilt_from_parts(left):
+    # independent rebuild: directions (15)-(17), force (18) through the spring graph (direct solve),
+    # then u must be k·F·d for one scalar k, and p + u must enclose exactly V_EE + ΔV
+    from lungdeform.direction import directions
+    from lungdeform.force import field_basis, force_weights
+    from lungdeform.frame import lung_frame
+    from lungdeform.graph import spring_graph
+    from lungdeform.solve import ForceSolver
+    from lungdeform.transfer import local_transfer
+
+    u = model_displacement(left, "left", TRUE, 250.0)
+    p = left.vertices
+    frame = lung_frame(p, "left")
+    d = directions(frame, p, TRUE)
+    solver = ForceSolver(local_transfer(spring_graph(p, left.edges), np.ones(len(p))), "direct", n_mass=len(p))
+    force = solver.solve(force_weights(frame, "supine", TRUE) @ field_basis(frame.normalized(p)))[: len(p)]
+    raw = force[:, None] * d
+    k = float(np.sum(raw * u) / np.sum(raw * raw))
+    assert k > 0
+    assert np.abs(u - k * raw).max() < 1e-8 * np.abs(u).max()
+    assert Surface(p + u, left.faces).volume_ml - left.volume_ml == pytest.approx(250.0, rel=1e-9)
+
+
+def test_exact_law_gives_the_requested_volumes(left):
+    lung = synthesize_lung(left, "left", TRUE, [300.0, 500.0], rng=np.random.default_rng(2), law="exact")
+    assert lung.scales[0] == pytest.approx(1.0, abs=1e-12)
+    for j, dv in enumerate([300.0, 500.0]):
+        clean = Surface(lung.clean_vertices(j), left.faces)
+        assert clean.volume_ml - left.volume_ml == pytest.approx(dv, rel=1e-9)
+    # the cubic is not linear: the exact scale differs from the linear reading ΔV/ΔV1
+    assert abs(lung.scales[1] - 500.0 / 300.0) > 1e-3
+
+
+def test_linear_law_and_zero_noise_surfaces(linear_lung, left):
+    lung = linear_lung
+    assert lung.scales == pytest.approx([1.0, 1.75])
+    for j in range(2):
+        # zero noise: the written target is exactly p + s·u
+        assert np.array_equal(lung.target(j).vertices, left.vertices + lung.scales[j] * lung.displacement)
+    assert lung.volumes_ml == pytest.approx(left.volume_ml + np.array([0.0, 200.0, 350.0]))
+
+
+def test_true_constants_give_the_fit_a_near_zero_residual(linear_lung, left):
+    # The fitter evaluated at the true c1…c6, on noise-free model-form data: every ray along the true
+    # d that reaches the right place finds exactly |u| (the generator's u is the fit's k·F·d), and the
+    # objective is well below Table I's (0.33 mm here: a surface distance hardly separates constants
+    # that differ by 10–30 %, see the identifiability notes in the report). It is not exactly 0: about 10 % of the rays cross another
+    # part of the target first (measured: 293 of 3002) and grazing rays are dropped, which biases
+    # the ray-fitted c7…c9 slightly; 0.15 mm is 1 % of this lung's RMS displacement (≈ 15 mm).
+    lung = linear_lung
+    targets = [Target(lung.target(j), lung.volumes_ml[j + 1], name=f"t{j}") for j in range(2)]
+    fitter = LungFitter(left, "left", targets)
+    obj, parts = fitter.evaluate(TRUE[:6], full=True)
+    table = fitter.evaluate(table_constants("left")[:6])
+    hits = parts["hits"]
+    # rays are cast in float32 (embree): a correct hit is exact to ~1e-5 mm; a wrong one is mm off
+    exact = np.abs(hits.distance[hits.valid] - np.linalg.norm(lung.displacement, axis=1)[hits.valid]) < 1e-3
+    assert exact.mean() > 0.8
+    assert obj < 0.15 and obj < 0.5 * table
+    assert parts["constants"][6:] == pytest.approx(TRUE[6:], abs=0.05)
+
+
+def test_noise_is_normal_gaussian_with_requested_sd(left):
+    sigma = 0.5
+    lung = synthesize_lung(left, "left", TRUE, [300.0], rng=np.random.default_rng(5), noise_mm=sigma)
+    clean = lung.clean_vertices(0)
+    moved = lung.target(0).vertices - clean
+    normals = Surface(clean, left.faces).vertex_normals
+    eps = np.einsum("ij,ij->i", moved, normals)
+    # purely along the normal
+    assert np.abs(moved - eps[:, None] * normals).max() < 1e-12
+    # SD of a sample of n: standard error σ/√(2n) ≈ 0.0065 mm at n = 3002; allow 4 standard errors
+    se = sigma / np.sqrt(2 * len(eps))
+    assert np.std(eps) == pytest.approx(sigma, abs=4 * se)
+    assert abs(eps.mean()) < 4 * sigma / np.sqrt(len(eps))
+    # seeded: the same seed gives the same noise, another seed another
+    again = synthesize_lung(left, "left", TRUE, [300.0], rng=np.random.default_rng(5), noise_mm=sigma)
+    other = synthesize_lung(left, "left", TRUE, [300.0], rng=np.random.default_rng(6), noise_mm=sigma)
+    assert np.array_equal(again.noise, lung.noise) and not np.allclose(other.noise, lung.noise)
+    with pytest.raises(InputError, match="noise"):
+        normal_noise(clean, left.faces, -1.0, np.random.default_rng(0))
+
+
+def test_draw_constants_within_bounds_and_normalised(rng):
+    lo = np.array([b[0] for b in DIRECTION_BOUNDS])
+    hi = np.array([b[1] for b in DIRECTION_BOUNDS])
+    draws = np.array([draw_constants("right", rng, spread=2.0) for _ in range(200)])
+    assert np.all(draws[:, :6] >= lo) and np.all(draws[:, :6] <= hi)  # wide spread: clipping is exercised
+    assert np.abs(draws[:, 6:]).max(axis=1) == pytest.approx(np.ones(200))
+    mild = np.array([draw_constants("left", rng) for _ in range(400)])
+    # log-normal around Table I: the geometric mean of c1…c6 is Table I within sampling error
+    gm = np.exp(np.log(mild[:, :6]).mean(axis=0))
+    assert gm == pytest.approx(table_constants("left")[:6], rel=0.05)
+
+
+def test_scaled_shape_and_bad_input(left):
+    s = scaled_shape(left, [1.1, 0.9, 1.0])
+    assert s.volume_ml == pytest.approx(left.volume_ml * 0.99, rel=1e-9)  # det of the scale
+    with pytest.raises(InputError, match="scale"):
+        scaled_shape(left, [1.0, -1.0, 1.0])
+    with pytest.raises(InputError, match="increasing"):
+        synthesize_lung(left, "left", TRUE, [300.0, 200.0], rng=np.random.default_rng(0))
+    with pytest.raises(InputError, match="subjects"):
+        synthetic_cohort(0)
+    with pytest.raises(InputError, match="law"):
+        synthetic_cohort(1, law="quadratic")
+
+
+def test_cohort_files_read_back(tmp_path):
+    from lungdeform.io import load_surface
+    from lungdeform.landmarks import read_elastix_points
+
+    lungs = synthetic_cohort(2, noise_mm=0.3, seed=4, delta_ml=(250.0,), landmarks=20)
+    assert [(lu.subject, lu.side, lu.source) for lu in lungs] == [
+        ("synth000", "left", "coronacases_001_left"), ("synth000", "right", "coronacases_001_right"),
+        ("synth001", "left", "coronacases_001_left"), ("synth001", "right", "itk_right_lung")]
+    info = write_cohort(lungs, tmp_path, seed=4)
+    lines = (tmp_path / "manifest.csv").read_text().splitlines()
+    assert lines[0] == "subject,side,volume_ml,path,landmarks" and len(lines) == 1 + 2 * len(lungs)
+    truth = read_truth(info["truth"])
+    for lung in lungs:
+        rec = truth[(lung.subject, lung.side)]
+        assert rec["constants"] == pytest.approx(lung.constants.tolist())
+        assert rec["licence"] == SOURCES[lung.source].licence
+        surfaces = [load_surface(tmp_path / p)[0] for p in rec["files"]["surfaces"]]
+        assert np.array_equal(surfaces[0].vertices, lung.rest.vertices)  # PLY float64: exact
+        assert np.array_equal(surfaces[1].vertices, lung.target(0).vertices)
+        assert rec["volumes_ml"] == pytest.approx([lung.volume_ee_ml, lung.volume_ee_ml + 250.0])
+        lm = read_elastix_points(tmp_path / rec["files"]["landmarks"][1])
+        assert lm == pytest.approx(lung.landmarks(0), abs=1e-6)  # written with 6 decimals
+        with np.load(tmp_path / rec["files"]["arrays"]) as z:
+            assert np.array_equal(z["displacement"], lung.displacement)
+    # the same seed reproduces the same cohort; subjects are independent of the cohort size
+    again = synthetic_cohort(1, noise_mm=0.3, seed=4, delta_ml=(250.0,), landmarks=20)
+    assert np.array_equal(again[1].noise, lungs[1].noise)
+    (tmp_path / "bad.json").write_text(json.dumps({"schema": "other"}))
+    with pytest.raises(ReadError, match="bad.json"):
+        read_truth(tmp_path / "bad.json")
+
+
+def test_tiny_end_to_end_fit_recovers_the_normal_field_and_force_constants(linear_lung, left):
+    # One short fit (60 evaluations, a few seconds) on noise-free model-form data (linear law),
+    # started away from the truth in the exponents c2 (0.9 vs 0.3) and c6 (1.0 vs 2.0).
+    # Truth checks and tolerances (measured: objective 1.19 -> 0.31 mm, normal RMS error against the
+    # true surface 1.44 -> 0.34 mm, c7 0.074, c9 0.075):
+    # - the surface objective at least halves;
+    # - the normal component of the displacement error at the largest volume (what a surface fit
+    #   can see) falls below 0.5 mm and below 40 % of its starting value; the tangential part is
+    #   weakly identifiable from surfaces (c6 stays near its start), so it is not asserted here;
+    # - c8 normalises to 1 and dominates, as in truth; c7, c9 (true 0.05, 0.1) within 0.05.
+    lung = linear_lung
+    targets = [Target(lung.target(j), lung.volumes_ml[j + 1], name=f"t{j}") for j in range(2)]
+    start_c = np.array([0.1, 0.9, 0.45, 0.45, 0.12, 1.0])
+    true = lung.clean_vertices(1)
+    normals = Surface(true, left.faces).vertex_normals
+
+    def normal_rms(x):
+        return float(np.sqrt(np.mean(np.einsum("ij,ij->i", x - true, normals) ** 2)))
+
+    start_obj, parts = LungFitter(left, "left", targets, samples=2000).evaluate(start_c, full=True)
+    start_err = normal_rms(left.vertices + lung.scales[1] * parts["u"])
+    with warnings.catch_warnings():
+        # fit.py hands scipy's Powell an infinite objective for unusable candidates (no volume
+        # growth), and Powell's line search multiplies inf: a RuntimeWarning that fit.py, not this
+        # test, owns (reported); ignore only that message, only here
+        warnings.filterwarnings("ignore", "invalid value encountered", RuntimeWarning)
+        r = fit_lung(left, "left", targets, initial=start_c, max_evaluations=60, samples=2000)
+    assert r.objective_mm < 0.5 * start_obj
+    err = normal_rms(r.positions_at(left, lung.volumes_ml[-1]))
+    assert err < 0.5 and err < 0.4 * start_err
+    assert r.constants[7] == pytest.approx(1.0)
+    assert r.constants[[6, 8]] == pytest.approx(TRUE[[6, 8]], abs=0.05)
