@@ -7,7 +7,8 @@ import pytest
 
 from tests.conftest import require_path
 from lungdeform.errors import InputError, ReadError
-from lungdeform.trace import cycle_anchors, read_trace, resample
+from lungdeform.trace import (Trace, cycle_anchors, cycle_flags, dominant_period, inspiratory_share,
+                              mark_agreement, noise_level, read_trace, resample, turning_points)
 
 
 def breath(t, period=4.0):
@@ -46,10 +47,18 @@ def write_vxp(path, t_ms, amp, marks, layout="amplitude,phase,timestamp,validfla
     return path
 
 
-def test_marker_csv_decimal_commas_terminator_and_sign(tmp_path):
+def asymmetric_breath(t, period=4.0, ti=0.35):
+    """Inhale-positive breath with no end-exhale dwell: a rise over ``ti`` of the period, then a
+    slower fall; only its timing (inspiration shorter) tells its sign."""
+    ph = np.mod(t, period) / period
+    return np.where(ph < ti, np.sin(0.5 * np.pi * ph / ti) ** 2, np.cos(0.5 * np.pi * (ph - ti) / (1 - ti)) ** 2)
+
+
+@pytest.mark.parametrize("direction", [(0.3, 0.1, -0.95), (-0.3, -0.1, 0.95)])
+def test_marker_csv_decimal_commas_terminator_and_sign(tmp_path, direction):
     t = np.arange(0.0, 40.0, 0.1)
     s = 12.0 * breath(t)
-    f = write_marker_csv(tmp_path / "m.csv", t * 1000, s, direction=(0.3, 0.1, -0.95))
+    f = write_marker_csv(tmp_path / "m.csv", t * 1000, s, direction=direction)
     tr = read_trace(f)
     assert tr.n == t.size  # terminator dropped
     assert any("terminator" in x for x in tr.fixes)
@@ -75,6 +84,46 @@ def test_marker_csv_header_variants(tmp_path, header, sep, comma):
     assert np.ptp(tr.amplitude) == pytest.approx(10.0, rel=1e-3)
 
 
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_orientation_from_timing_alone(tmp_path, sign):
+    # truth: an inhale-positive breath without dwell (rise 35 %, fall 65 % of the period), written
+    # with either sign along the marker axis; the reader must return it inhale-positive both times
+    t = np.arange(0.0, 48.0, 0.1)
+    s = 10.0 * asymmetric_breath(t)
+    f = write_marker_csv(tmp_path / "a.csv", t * 1000, sign * s, direction=(0.2, 0.0, 1.0))
+    tr = read_trace(f)
+    assert np.allclose(tr.amplitude - tr.amplitude.mean(), s - s.mean(), atol=2e-3)
+    share, n = inspiratory_share(tr.t_s, tr.amplitude)
+    assert share == pytest.approx(0.35, abs=0.05) and n >= 8
+    # orient=False keeps the sign of the principal axis: the raw projection, whatever it is
+    raw = read_trace(f, orient=False)
+    assert np.allclose(np.abs(np.corrcoef(raw.amplitude, s)[0, 1]), 1.0)
+
+
+def test_vxp_falling_on_inhalation_is_negated_and_marks_swapped(tmp_path):
+    # truth: an RPM amplitude that falls on inhalation (as in the shared .vxp: 'Z' at the sharp minima);
+    # the reader negates it, relabels the marks (P = end-inhale), and says so in the fixes
+    t = np.arange(0.0, 48.0, 0.04)
+    s = 0.5 * asymmetric_breath(t)
+    marks = np.full(t.size, "", dtype=object)
+    ends_inhale = np.arange(0.35 * 4.0, 48.0, 4.0)
+    marks[np.searchsorted(t, ends_inhale - 1e-9)] = "Z"  # at the minima of the recorded amplitude
+    marks[np.searchsorted(t, np.arange(4.0, 48.0, 4.0) - 1e-9)] = "P"
+    f = write_vxp(tmp_path / "inv.vxp", t * 1000, -s, marks)
+    tr = read_trace(f)
+    assert np.allclose(tr.amplitude, np.round(s, 4), atol=1e-4)
+    assert any("negated" in x and "P/Z marks swapped" in x for x in tr.fixes)
+    assert np.allclose(tr.mark_times("P"), ends_inhale, atol=0.03)
+    raw = read_trace(f, orient=False)
+    assert np.allclose(raw.amplitude, np.round(-s, 4)) and not any("negated" in x for x in raw.fixes)
+    # recorded marks vs detected anchors: end-inhale marks on the detected peaks
+    u = resample(tr, 25.0)
+    agree = mark_agreement(u, cycle_anchors(u))
+    # (the marks at the first and the last breath lie outside the complete cycles: 10 of 12 inside)
+    assert agree["P"]["n"] == 12 and agree["P"]["within_0.5_s"] >= 10 / 12
+    assert agree["P"]["median_abs_offset_s"] < 0.08
+
+
 def test_vxp_parses_marks_and_layout(tmp_path):
     t = np.arange(0.0, 20.0, 0.04)
     a = 0.5 * breath(t)
@@ -90,7 +139,7 @@ def test_vxp_parses_marks_and_layout(tmp_path):
     g = write_vxp(tmp_path / "r2.vxp", 1000 + t * 1000, a, marks, layout="timestamp,amplitude,mark")
     tr2 = read_trace(g)
     assert np.allclose(tr2.amplitude, tr.amplitude) and (tr2.marks == tr.marks).all()
-    an = cycle_anchors(tr)
+    an = cycle_anchors(tr, use_marks=True)
     assert an.source.startswith("recorded") and an.n_cycles == 2
     assert np.allclose(an.peaks_s, [5.2, 9.2], atol=1e-3)
 
@@ -180,6 +229,89 @@ def test_detected_cycles_match_truth(tmp_path, rng):
     assert np.allclose(an.peaks_s - 4.0 * k[:-1], 1.2, atol=0.15)
 
 
+def test_dominant_period_ignores_drift_and_multiples(rng):
+    # truth: 5.4 s breaths under a slow baseline wander 4× larger than a breath and noise; the
+    # strongest autocorrelation peak of the raw signal is the wander, not the breath
+    t = np.arange(0.0, 200.0, 0.1)
+    wander = np.cumsum(rng.normal(0, 0.35, t.size))
+    a = breath(t, 5.4) + wander / np.ptp(wander) * 4.0 + rng.normal(0, 0.02, t.size)
+    assert dominant_period(t, a) == pytest.approx(5.4, rel=0.03)
+
+
+def test_turning_points_keep_breaths_and_drop_wiggles():
+    # truth: 6 big oscillations (excursion 2) with 40 small wiggles (excursion 0.1) on top
+    x = np.linspace(0, 6 * 2 * np.pi, 3000)
+    s = -np.cos(x) + 0.05 * np.sin(40 * x)
+    idx, kind = turning_points(s, 0.5)
+    assert (kind == 1).sum() == 6 and np.all(np.diff(kind) != 0)
+    peaks = x[idx[kind == 1]]
+    assert np.allclose(np.mod(peaks, 2 * np.pi), np.pi, atol=0.1)
+
+
+def test_cycles_found_around_large_events_and_drift(tmp_path, rng):
+    # truth: 4-s breaths (onsets at k·4 s) on a drifting baseline, with a 25-mm non-breathing excursion
+    # (5× a breath) at 60–66 s; every breath away from the event must be found, none added
+    t = np.arange(0.0, 120.0, 0.1)
+    event = 25.0 * np.exp(-0.5 * ((t - 63.0) / 1.5) ** 2)
+    s = 5.0 * breath(t) + 0.05 * t + event + rng.normal(0, 0.03, t.size)
+    f = write_marker_csv(tmp_path / "e.csv", t * 1000, s, terminator=False)
+    an = cycle_anchors(resample(read_trace(f), 10.0))
+    true_onsets = np.arange(4.0, 117.0, 4.0)
+    away = (true_onsets < 56.0) | (true_onsets > 72.0)
+    offset = np.array([an.starts_s[np.argmin(np.abs(an.starts_s - x))] - x for x in true_onsets[away]])
+    # the onset is where the (low-passed) rise crosses 5 % of the breath: a near-constant offset
+    assert np.all(np.abs(offset) < 0.35) and np.ptp(offset) < 0.15
+    assert an.n_cycles <= true_onsets.size
+
+
+def test_peaks_refined_below_the_sample_interval(tmp_path):
+    # truth: a symmetric breath (peak at onset + 0.3 × period) with a period that puts the peaks off
+    # the 10-Hz grid; the parabolic refinement must beat the 0.05-s rounding of a sample argmax
+    period = 4.03
+    t = np.arange(0.0, 60.0, 0.1)
+    f = write_marker_csv(tmp_path / "p.csv", t * 1000, 10 * breath(t, period), terminator=False)
+    an = cycle_anchors(resample(read_trace(f), 10.0))
+    k = np.floor(an.peaks_s / period)
+    err = an.peaks_s - (k * period + 0.3 * period)
+    assert np.max(np.abs(err)) < 0.02
+
+
+def test_cycle_flags_mark_the_irregular_cycles(rng):
+    # truth: regular 4-s breaths except a double breath (cycle 5: two inhalations with an 80 % partial
+    # exhalation between), a 9-s cycle (cycle 8) and a 3×-deep breath (cycle 11); the flags must
+    # name exactly those cycles
+    durations = np.full(15, 4.0)
+    durations[8] = 9.0
+    starts = np.concatenate([[0.0], np.cumsum(durations)])
+    t = np.arange(0.0, starts[-1], 0.1)
+    c = np.clip(np.searchsorted(starts, t, side="right") - 1, 0, 14)
+    ph = (t - starts[c]) / 4.0
+    a = np.where(ph < 0.6, np.sin(np.pi * ph / 0.6) ** 2, 0.0)
+    a[c == 11] *= 3.0
+    sel = c == 5
+    dip = 1.0 - 0.8 * np.exp(-0.5 * ((ph[sel] - 0.4) / 0.1) ** 2)
+    a[sel] = np.where(ph[sel] < 0.8, np.sin(np.pi * ph[sel] / 0.8) ** 2 * dip, 0.0)
+    tr = Trace(t, a + rng.normal(0, 0.01, t.size), "mm", np.full(t.size, ""), source="flags")
+    an = cycle_anchors(tr)
+    flags = cycle_flags(tr, an)
+    mids = 0.5 * (an.starts_s[:-1] + an.starts_s[1:])
+    flagged: dict = {}
+    for i, f in enumerate(flags):
+        if f:
+            flagged.setdefault(int(np.searchsorted(starts, mids[i]) - 1), set()).update(f)
+    assert set(flagged) == {5, 8, 11}, flagged
+    assert "multi-peak" in flagged[5] and "duration" in flagged[8] and "amplitude" in flagged[11]
+
+
+def test_noise_level_finds_injected_white_noise(rng):
+    # truth: a 12-mm breath at 10 Hz with white noise of known σ
+    t = np.arange(0.0, 120.0, 0.1)
+    for sigma in (0.02, 0.1):
+        a = 12.0 * breath(t) + rng.normal(0, sigma, t.size)
+        est = noise_level(Trace(t, a, "mm", np.full(t.size, ""), source="n"))
+        assert est == pytest.approx(sigma, rel=0.2)
+
+
 def test_real_traces_read(data_dir):
     rpm = require_path(data_dir, "breathing-traces", "rpm", "PT01_PT09-2_13112021.vxp")
     tr = read_trace(rpm)
@@ -192,3 +324,31 @@ def test_real_traces_read(data_dir):
     # this file holds 5 corrupted timestamps (e.g. "25,6" among 12700, 13017 ms) and a terminator
     assert any("out of order" in x for x in m.fixes) and any("terminator" in x for x in m.fixes)
     assert np.all(np.diff(m.t_s) > 0) and m.duration_s == pytest.approx(129.6, abs=0.5)
+
+
+@pytest.mark.realdata
+def test_real_traces_orientation_and_cycles(data_dir):
+    # real data, two independent truths for the sign. (1) All 15 marker files share one camera frame
+    # (same mean positions per marker across sessions): on inhalation the chest and abdomen rise, so
+    # every marker must move the same way, +z, once oriented — the principal-axis sign alone had two
+    # of them (LT session, upper markers) upside down. (2) The RPM's 'Z' marks (phase 0), relabelled
+    # 'P' by the flip, must sit on the detected end-inhale peaks.
+    markers = require_path(data_dir, "breathing-traces", "external-markers")
+    for f in sorted(markers.glob("*.csv")):
+        tr = read_trace(f)
+        x = tr.positions - tr.positions.mean(axis=0)
+        axis = np.linalg.lstsq(x, tr.amplitude - tr.amplitude.mean(), rcond=None)[0]
+        assert axis[2] > 0, f.name
+        share, n = inspiratory_share(tr.t_s, tr.amplitude)
+        assert share < 0.45 and n >= 18, (f.name, share, n)
+        u = resample(tr, 10.0)
+        an = cycle_anchors(u)
+        # about one breath per dominant period (5.4–6.7 s here): detection neither merges nor splits
+        assert an.n_cycles == pytest.approx(tr.duration_s / dominant_period(u.t_s, u.amplitude), rel=0.25)
+    rpm = read_trace(require_path(data_dir, "breathing-traces", "rpm", "PT01_PT09-2_13112021.vxp"))
+    assert any("negated" in x for x in rpm.fixes)
+    u = resample(rpm, 25.0)
+    agree = mark_agreement(u, cycle_anchors(u))
+    # (the RPM locates its marks its own way: measured median offset 0.16 s, 19 of 25 within 0.5 s;
+    # before the flip the 'P' marks fell 0.8 s from any end-inhale)
+    assert agree["P"]["median_abs_offset_s"] < 0.25 and agree["P"]["within_0.5_s"] >= 0.7

@@ -86,7 +86,7 @@ def fit_lujan(t_s, values, cycle_starts_s, per_cycle: bool = False, peaks_s=None
               peak_phase: float | None = None, drift: bool = False) -> LujanFit | list[LujanFit]:
     """Fit (n, φ) shared by all cycles, with a per-cycle (c0, b); or, ``per_cycle``, one fit per cycle.
 
-    The outer search is a grid over n ∈ [0.5, 6] and φ, then a bounded Powell polish. With
+    The outer search is a grid over n ∈ [0.5, 5] and φ ∈ [0.35, 2.85], then a bounded Powell polish. With
     ``peaks_s``/``peak_phase`` the phase is warped (see :func:`cycle_phase`).
     """
     from scipy.optimize import minimize
@@ -105,16 +105,19 @@ def fit_lujan(t_s, values, cycle_starts_s, per_cycle: bool = False, peaks_s=None
             m = _calibrated(ii, lujan_shape(th, x[0], x[1]), vv, ff, drift)
             return float(np.mean((m - vv) ** 2))
 
-        best = None
-        for n0 in (0.5, 1.0, 2.0, 3.0, 5.0):
-            for phi0 in np.linspace(0.9, 2.2, 7):
-                c = cost((n0, phi0))
-                if best is None or c < best[0]:
-                    best = (c, np.array([n0, phi0]))
-        res = minimize(cost, best[1], method="Powell", bounds=[(0.3, 8.0), (0.3, 2.9)],
-                       options={"xtol": 1e-3, "ftol": 1e-8})
-        fits.append(LujanFit(float(res.x[0]), float(res.x[1]), bool(res.success), str(res.message),
-                             float(np.sqrt(res.fun))))
+        # grid over the whole bounded range (φ every 0.1 rad: a narrow cos^{2n} needs it), then a
+        # bounded Powell polish from the three best starts; a polish that ends worse than its start
+        # (bounded Powell can jump basins) is discarded
+        grid = sorted((cost((n0, phi0)), n0, phi0) for n0 in (0.5, 1.0, 2.0, 3.0, 5.0)
+                      for phi0 in np.linspace(0.35, 2.85, 26))
+        best = (grid[0][0], np.array(grid[0][1:]), True, "grid point")
+        for c0, n0, phi0 in grid[:3]:
+            res = minimize(cost, np.array([n0, phi0]), method="Powell", bounds=[(0.3, 8.0), (0.3, 2.9)],
+                           options={"xtol": 1e-3, "ftol": 1e-8})
+            if float(res.fun) < best[0]:
+                best = (float(res.fun), res.x, bool(res.success), str(res.message))
+        fun, x, ok, msg = best
+        fits.append(LujanFit(float(x[0]), float(x[1]), ok, msg, float(np.sqrt(fun))))
     return fits if per_cycle else fits[0]
 
 

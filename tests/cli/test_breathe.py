@@ -1,4 +1,4 @@
-"""CLI: ``lungdeform breathe`` and ``lungdeform validate breathing``."""
+"""CLI: ``lungdeform breathe`` (``validate breathing``: tests/cli/test_validate_breathing.py)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 
 from lungdeform.cli.main import main
-from tests.conftest import require_path
 from tests.test_trace import breath, write_marker_csv
 
 
@@ -64,42 +63,3 @@ def test_breathe_needs_one_source(tmp_path, capsys):
     assert main(["breathe", "--preset", "zz", "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "unknown breathing preset 'zz'" in err[0]
-
-
-def test_validate_breathing_schema(tmp_path, rng, capsys):
-    data = tmp_path / "data"
-    data.mkdir()
-    _synthetic_trace(data / "a.csv", rng)
-    _synthetic_trace(data / "b.csv", rng, period=3.5)
-    (data / "short.csv").write_text("Frame;Timestamp;x;y;z\n0;0;1;2;3\n6;100;1;2;3\n")
-    out = tmp_path / "out"
-    assert main(["validate", "breathing", "--data", str(data), "--out", str(out)]) == 0
-    m = json.loads((out / "metrics.json").read_text())
-    assert set(m["traces"]) == {"a.csv", "b.csv"} and "short.csv" in m["errors"]
-    for r in m["traces"].values():
-        assert {"model_rms_percent", "lujan_rms_percent", "fourier_rms_percent"} <= set(r)
-    assert m["median_model_rms_percent"] == pytest.approx(
-        np.median([r["model_rms_percent"] for r in m["traces"].values()]))
-
-
-def test_validate_breathing_empty_folder(tmp_path, capsys):
-    assert main(["validate", "breathing", "--data", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
-    assert "no .vxp or .csv trace found" in capsys.readouterr().err
-
-
-@pytest.mark.realdata
-@pytest.mark.slow
-def test_validate_breathing_real_traces(data_dir, tmp_path):
-    # real data: the 16 shared traces (RPM + external markers), held-out cycles
-    traces = require_path(data_dir, "breathing-traces")
-    out = tmp_path / "val"
-    assert main(["validate", "breathing", "--data", str(traces), "--out", str(out)]) == 0
-    m = json.loads((out / "metrics.json").read_text())
-    assert len(m["traces"]) == 16 and not m["errors"]
-    # The issue's target (median < 5 %) is NOT met by the shared-shape held-out protocol (measured
-    # ≈ 9.6 %, see the report). What must hold under the same protocol and the same per-cycle
-    # freedom: the PV driver does at least as well as the Lujan and mean-cycle Fourier shapes.
-    assert m["median_model_rms_percent"] <= m["median_lujan_rms_percent"]
-    assert m["median_shared_shape"]["model"] <= m["median_shared_shape"]["fourier"]
-    for name, r in m["traces"].items():
-        assert 0 < r["model_rms_percent"] < 50, name
