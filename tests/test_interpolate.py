@@ -40,3 +40,24 @@ def test_bad_input():
         displacement_field(np.zeros((3, 3)), np.zeros((3, 3)))
     with pytest.raises(InputError):
         displacement_field(np.zeros((10, 3)), np.zeros((9, 3)))
+
+
+def test_interpolation_weights_equal_the_field(rng):
+    # the matrix form is the same interpolant as RBFInterpolator (truth: scipy), for any data and
+    # with smoothing; rows reproduce constants and affine fields exactly (degree-1 polynomial)
+    from lungdeform.interpolate import interpolation_weights
+
+    s = icosphere(3, 50.0)
+    u = rng.normal(size=s.vertices.shape)
+    q = rng.uniform(-35, 35, size=(30, 3))
+    for smoothing in (0.0, 5.0):
+        w = interpolation_weights(s.vertices, q, smoothing=smoothing)
+        ref = displacement_field(s.vertices, u, max_points=10**6, smoothing=smoothing)(q)
+        assert w @ u == pytest.approx(ref, abs=1e-7)
+    w = interpolation_weights(s.vertices, q)
+    assert w.sum(axis=1) == pytest.approx(np.ones(len(q)), abs=1e-10)
+    assert w @ s.vertices == pytest.approx(q, abs=1e-8)
+    with pytest.raises(InputError, match="max_points"):
+        interpolation_weights(s.vertices, q, max_points=100)
+    with pytest.raises(InputError, match="smoothing"):
+        interpolation_weights(s.vertices, q, smoothing=-1.0)

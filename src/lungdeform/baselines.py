@@ -5,7 +5,17 @@ vertices at the larger volume (same faces), all in the end-exhale scan's frame a
 alignment. :func:`measure` then applies the same metrics to every method: exact symmetric surface
 distance to the target surface (area weighted; crop faces optionally left out) and landmark error
 after moving the end-exhale landmarks by the thin-plate-spline interpolation of the method's
-surface displacement (:mod:`lungdeform.interpolate`).
+surface displacement at the kept vertices (:mod:`lungdeform.interpolate`; one matrix,
+:func:`landmark_matrix`, shared by all methods), or, for landmark-informed methods, from their
+held-out predictions.
+
+Landmark-informed references (used only when corresponding landmarks are given, and scored on
+landmarks held out from their fit, k-fold, with the same folds as the landmark-informed model):
+
+- :func:`affine_landmarks_cv`: the affine fit with the training landmarks added to its least
+  squares (same weighting as the model's objective: surface mean square + landmark mean square);
+- :func:`landmark_tps_cv`: no surface at all, the thin-plate spline through the training
+  landmarks' displacements (what the landmarks alone predict).
 
 Baselines:
 
@@ -25,7 +35,7 @@ import numpy as np
 
 from .distance import SurfaceDistance, symmetric_distance
 from .errors import ConvergenceError, InputError, require
-from .interpolate import displacement_field
+from .interpolate import interpolation_weights
 from .mesh import Surface, as_vertices
 
 
@@ -54,13 +64,16 @@ def _affine_lsq(src: np.ndarray, dst: np.ndarray, w: np.ndarray) -> np.ndarray:
 
 
 def affine_fit(surface: Surface, target: Surface, *, keep=None, keep_target=None,
-               samples: int = 6000, iterations: int = 100, tol_mm: float = 1e-5) -> tuple[np.ndarray, np.ndarray]:
+               samples: int = 6000, iterations: int = 100, tol_mm: float = 1e-5, landmarks=None,
+               landmarks_target=None, landmark_weight: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """Best affine map of ``surface`` onto ``target`` (symmetric ICP with exact closest points).
 
     Returns ``(predicted vertices (n, 3) mm, matrix (4, 4))``. Each iteration pairs the moved
     source vertices with their closest target points and target samples with their closest
     points on the moved source (mapped back through barycentric coordinates), then solves the
-    12-parameter least squares.
+    12-parameter least squares. With ``landmarks`` / ``landmarks_target : (m, 3)`` mm the
+    landmark pairs join the least squares: the objective is the mean of the two one-sided surface
+    mean squares plus ``landmark_weight`` × the landmark mean square (the model's weighting).
     """
     p = surface.vertices
     ks = np.ones(len(p), bool) if keep is None else np.asarray(keep, bool)
@@ -70,6 +83,13 @@ def affine_fit(surface: Surface, target: Surface, *, keep=None, keep_target=None
         idx = np.sort(np.random.default_rng(0).choice(idx, samples, replace=False))
     tpts = target.vertices[idx]
     tdist = SurfaceDistance(target.vertices, target.faces)
+    if landmarks is not None:
+        lm_src = as_vertices(landmarks, "landmarks")
+        lm_dst = as_vertices(landmarks_target, "landmarks_target")
+        if lm_src.shape != lm_dst.shape:
+            raise InputError(f"landmarks {lm_src.shape} and landmarks_target {lm_dst.shape} must correspond row by row")
+    else:
+        lm_src = lm_dst = np.zeros((0, 3))
     m = np.vstack([np.eye(3), np.zeros((1, 3))])
     last = np.inf
     for _ in range(iterations):
@@ -79,11 +99,13 @@ def affine_fit(surface: Surface, target: Surface, *, keep=None, keep_target=None
         d2, c2, face = sd.query(tpts)
         # source point (end-exhale) behind each closest point: barycentric on the moved face
         src2 = _barycentric_source(cur, p, surface.faces, face, c2)
-        src = np.vstack([p[ks], src2])
-        dst = np.vstack([c1, tpts])
-        w = np.concatenate([np.full(int(ks.sum()), 1.0 / max(ks.sum(), 1)), np.full(len(tpts), 1.0 / len(tpts))])
+        src = np.vstack([p[ks], src2, lm_src])
+        dst = np.vstack([c1, tpts, lm_dst])
+        w = np.concatenate([np.full(int(ks.sum()), 0.5 / max(ks.sum(), 1)), np.full(len(tpts), 0.5 / len(tpts)),
+                            np.full(len(lm_src), float(landmark_weight) / max(len(lm_src), 1))])
         m = _affine_lsq(src, dst, w)
-        err = float(np.sqrt(np.average(np.concatenate([np.linalg.norm(c1 - cur[ks], axis=1), d2]) ** 2, weights=w)))
+        err = float(np.sqrt(np.average(np.concatenate([np.linalg.norm(c1 - cur[ks], axis=1), d2]) ** 2,
+                                       weights=w[: len(c1) + len(d2)])))
         if abs(last - err) < tol_mm:
             break
         last = err
@@ -112,11 +134,12 @@ def _barycentric_source(moved, rest, faces, face, points):
 
 def cpd_deformable(surface: Surface, target: Surface, *, samples: int = 1500, alpha: float = 2.0,
                    beta: float = 2.0, w: float = 0.05, max_iterations: int = 100, tolerance: float = 1e-5,
-                   seed: int = 0) -> np.ndarray:
+                   seed: int = 0, keep=None, keep_target=None) -> np.ndarray:
     """Coherent Point Drift (deformable) of the end-exhale vertices onto the target surface.
 
-    ``samples`` random vertices of each surface are registered (CPD is O(N·M) per iteration); the
-    fitted Gaussian-kernel displacement ``G(y, Y_s) W`` is then evaluated at every vertex.
+    ``samples`` random vertices of each surface are registered (CPD is O(N·M) per iteration), drawn
+    from the kept ones (``keep``, ``keep_target``: e.g. crop faces left out, as for every method);
+    the fitted Gaussian-kernel displacement ``G(y, Y_s) W`` is then evaluated at every vertex.
     Coordinates are centred on the source and scaled by its RMS radius, so ``beta`` (kernel width)
     is relative to the lung size (2 = twice the RMS radius, the usual CPD setting on unit-variance data); ``alpha`` is the smoothness
     weight and ``w`` the outlier weight (pycpd's meanings). Returns ``(n, 3)`` mm.
@@ -128,8 +151,12 @@ def cpd_deformable(surface: Surface, target: Surface, *, samples: int = 1500, al
     p = surface.vertices
     c = p.mean(axis=0)
     scale = float(np.sqrt(np.mean(np.sum((p - c) ** 2, axis=1))))
-    ys = np.sort(rng.choice(len(p), min(samples, len(p)), replace=False))
-    xs = np.sort(rng.choice(target.n_vertices, min(samples, target.n_vertices), replace=False))
+    src = np.nonzero(np.ones(len(p), bool) if keep is None else np.asarray(keep, bool))[0]
+    dst = np.nonzero(np.ones(target.n_vertices, bool) if keep_target is None else np.asarray(keep_target, bool))[0]
+    if len(src) < 10 or len(dst) < 10:
+        raise InputError(f"CPD needs at least 10 kept vertices on each surface, got {len(src)} and {len(dst)}")
+    ys = np.sort(rng.choice(src, min(samples, len(src)), replace=False))
+    xs = np.sort(rng.choice(dst, min(samples, len(dst)), replace=False))
     x = (target.vertices[xs] - c) / scale
     y = (p[ys] - c) / scale
     reg = pycpd.DeformableRegistration(X=x, Y=y, alpha=alpha, beta=beta, w=w,
@@ -140,6 +167,45 @@ def cpd_deformable(surface: Surface, target: Surface, *, samples: int = 1500, al
     if not np.all(np.isfinite(moved)):
         raise ConvergenceError("CPD produced non-finite points")
     return moved
+
+
+def landmark_tps_cv(surface: Surface, landmarks, landmarks_target, folds) -> tuple[np.ndarray, np.ndarray]:
+    """Reference without surfaces: the thin-plate spline through the landmark displacements.
+
+    ``landmarks`` / ``landmarks_target : (m, 3)`` mm; ``folds``: index arrays (e.g.
+    :func:`lungdeform.fit.landmark_folds`). Returns ``(surface vertices moved by the spline of all
+    landmarks (n, 3) mm, held-out predictions (m, 3) mm)``: each fold's landmarks are predicted by
+    the spline through the other folds only.
+    """
+    a = as_vertices(landmarks, "landmarks")
+    b = as_vertices(landmarks_target, "landmarks_target")
+    held = np.full_like(a, np.nan)
+    for test in folds:
+        train = np.setdiff1d(np.arange(len(a)), test)
+        held[test] = a[test] + interpolation_weights(a[train], a[test]) @ (b[train] - a[train])
+    moved = surface.vertices + interpolation_weights(a, surface.vertices) @ (b - a)
+    return moved, held
+
+
+def affine_landmarks_cv(surface: Surface, target: Surface, landmarks, landmarks_target, folds, *, keep=None,
+                        keep_target=None, landmark_weight: float = 1.0, **kwargs) -> tuple[np.ndarray, np.ndarray]:
+    """The affine baseline informed by landmarks, scored held out.
+
+    Returns ``(vertices (n, 3) mm of the affine fitted with all landmarks, held-out predictions
+    (m, 3) mm)``: each fold's landmarks are moved by the affine fitted on the surfaces and the other
+    folds' landmarks. Keywords as :func:`affine_fit`.
+    """
+    a = as_vertices(landmarks, "landmarks")
+    b = as_vertices(landmarks_target, "landmarks_target")
+    held = np.full_like(a, np.nan)
+    for test in folds:
+        train = np.setdiff1d(np.arange(len(a)), test)
+        _, mat = affine_fit(surface, target, keep=keep, keep_target=keep_target, landmarks=a[train],
+                            landmarks_target=b[train], landmark_weight=landmark_weight, **kwargs)
+        held[test] = a[test] @ mat[:3, :3].T + mat[:3, 3]
+    moved, _ = affine_fit(surface, target, keep=keep, keep_target=keep_target, landmarks=a, landmarks_target=b,
+                          landmark_weight=landmark_weight, **kwargs)
+    return moved, held
 
 
 @dataclass(frozen=True)
@@ -154,13 +220,22 @@ class MethodMetrics:
     landmark_mean_mm: float
     landmark_max_mm: float
     landmark_rms_mm: float
+    landmark_median_mm: float = float("nan")
 
     def as_dict(self) -> dict[str, float]:
         return {k: float(v) for k, v in self.__dict__.items()}
 
 
+def landmark_matrix(rest: Surface, landmarks, keep=None) -> np.ndarray:
+    """``(m, k)``: the thin-plate interpolation from the kept vertices of ``rest`` to ``landmarks``
+    (the interior interpolation every method is measured with; crop faces carry no data)."""
+    kept = np.ones(rest.n_vertices, bool) if keep is None else np.asarray(keep, bool)
+    return interpolation_weights(rest.vertices[kept], as_vertices(landmarks, "landmarks"))
+
+
 def measure(rest: Surface, predicted, target: Surface, *, keep=None, keep_target=None,
-            landmarks=None, landmarks_target=None, target_distance: SurfaceDistance | None = None):
+            landmarks=None, landmarks_target=None, target_distance: SurfaceDistance | None = None,
+            landmark_weights=None, landmarks_predicted=None):
     """Metrics of a predicted surface and its interpolated landmark motion.
 
     Parameters
@@ -172,9 +247,15 @@ def measure(rest: Surface, predicted, target: Surface, *, keep=None, keep_target
     target : Surface
         Observed surface at that volume, aligned, mm.
     keep, keep_target : (n,), (n_target,) bool
-        Vertices measured (e.g. the crop face left out); ``surface_mean_all_mm`` uses all.
+        Vertices measured (e.g. the crop face left out); ``surface_mean_all_mm`` uses all. Only
+        kept vertices of ``rest`` carry data for the landmark interpolation.
     landmarks, landmarks_target : (k, 3) float
         End-exhale landmarks and their observed positions at the target volume (aligned), mm.
+    landmark_weights : (k, n_kept) float, optional
+        :func:`landmark_matrix` for these landmarks, precomputed (the same for every method).
+    landmarks_predicted : (k, 3) float, optional
+        Landmark positions predicted some other way (held-out predictions of a landmark-informed
+        method); then no interpolation is done.
 
     Returns ``(MethodMetrics, per-vertex distance of predicted to target (n,), landmark errors (k,))``.
     """
@@ -188,11 +269,21 @@ def measure(rest: Surface, predicted, target: Surface, *, keep=None, keep_target
     per_vertex = td.distance(x)
     lm_err = np.zeros(0)
     if landmarks is not None:
-        field = displacement_field(rest.vertices, x - rest.vertices)
-        lm_err = np.linalg.norm(field.move(landmarks) - as_vertices(landmarks_target, "landmarks_target"), axis=1)
+        obs = as_vertices(landmarks_target, "landmarks_target")
+        if landmarks_predicted is None:
+            kept = np.ones(rest.n_vertices, bool) if keep is None else np.asarray(keep, bool)
+            w = landmark_matrix(rest, landmarks, keep) if landmark_weights is None else landmark_weights
+            moved = as_vertices(landmarks, "landmarks") + w @ (x - rest.vertices)[kept]
+        else:
+            moved = as_vertices(landmarks_predicted, "landmarks_predicted")
+        if moved.shape != obs.shape:
+            raise InputError(f"landmark predictions {moved.shape} and observations {obs.shape} must match")
+        lm_err = np.linalg.norm(moved - obs, axis=1)
     st = sym.stats
     nan = float("nan")
+    has = len(lm_err) > 0
     m = MethodMetrics(st.mean, st.rms, st.p95, st.max, all_.stats.mean,
-                      float(lm_err.mean()) if len(lm_err) else nan, float(lm_err.max()) if len(lm_err) else nan,
-                      float(np.sqrt(np.mean(lm_err**2))) if len(lm_err) else nan)
+                      float(lm_err.mean()) if has else nan, float(lm_err.max()) if has else nan,
+                      float(np.sqrt(np.mean(lm_err**2))) if has else nan,
+                      float(np.median(lm_err)) if has else nan)
     return m, per_vertex, lm_err

@@ -139,7 +139,8 @@ def plot_history(history: dict[str, np.ndarray]) -> str:
 
 
 def _table(per: dict) -> str:
-    cols = ["surface_mean_mm", "surface_rms_mm", "surface_p95_mm", "surface_max_mm", "landmark_mean_mm", "landmark_max_mm"]
+    cols = ["surface_mean_mm", "surface_rms_mm", "surface_p95_mm", "surface_max_mm", "landmark_mean_mm",
+            "landmark_median_mm", "landmark_max_mm"]
     head = "".join(f"<th>{c}</th>" for c in cols)
     rows = "".join(
         f"<tr><td>{html.escape(name)}</td>" + "".join(f"<td>{v.get(c, float('nan')):.2f}</td>" for c in cols) + "</tr>"
@@ -147,8 +148,9 @@ def _table(per: dict) -> str:
     return f"<table><tr><th>method</th>{head}</tr>{rows}</table>"
 
 
-def write_report(path, *, rest, targets, fits, predictions, metrics) -> Path:
-    """Write the HTML report atomically; returns the path."""
+def write_report(path, *, rest, targets, fits, predictions, metrics, headline: str = "optimizer") -> Path:
+    """Write the HTML report atomically; returns the path. ``headline``: the key of ``fits`` whose
+    model is the headline ``model`` (rays and direction field are drawn for it)."""
     from .atomic import write_bytes
 
     parts = ["<!doctype html><html><head><meta charset='utf-8'><title>lungdeform fit report</title>",
@@ -159,7 +161,11 @@ def write_report(path, *, rest, targets, fits, predictions, metrics) -> Path:
              f"volumes {', '.join(f'{v:.1f}' for v in metrics['volumes_ml'])} mL; model mesh "
              f"{metrics['model_mesh_vertices']} vertices. Surfaces measured with the crop faces left out "
              "(exact point-to-triangle distances, area weighted); landmarks moved by a thin-plate spline of "
-             "each method's surface displacement.</p>"]
+             "each method's surface displacement (crop faces carry no data).</p>"]
+    protocols = metrics.get("protocols", {})
+    if protocols:
+        parts.append("<h2>What each method saw</h2><ul>" + "".join(
+            f"<li><b>{html.escape(k)}</b>: {html.escape(v)}</li>" for k, v in protocols.items()) + "</ul>")
     for tname, per in metrics["targets"].items():
         parts.append(f"<h2>Target {html.escape(tname)}</h2>{_table(per)}")
         errs = {name: predictions[(tname, name)][1] for name in per}
@@ -167,7 +173,7 @@ def write_report(path, *, rest, targets, fits, predictions, metrics) -> Path:
         x, e, _ = predictions[(tname, name0)]
         parts.append(_img(plot_error_map(x, e, f"model: distance to {tname}"), "Error colour map (model)"))
         parts.append(_img(plot_histograms(errs), "Error histograms"))
-    fit = fits["optimizer"]
+    fit = fits.get(headline, fits["optimizer"])
     parts.append(_img(plot_rays(*fit.rays.histogram()), "Ray hit distances (fitted directions)"))
     parts.append(f"<p>Rays: {html.escape(str(fit.rays.summary()))}</p>")
     parts.append(_img(plot_bounding_box(metrics["bounding_box"]), "Bounding box against volume (paper Fig. 4)"))

@@ -102,3 +102,33 @@ def test_landmarks_outside_image():
     check_landmarks(np.array([[0.0, 0, 0], [9.4, 9.4, 9.4]]), img, "lm.txt")
     with pytest.raises(InputError, match="lm.txt: 1 landmarks lie outside the image img.mha"):
         check_landmarks(np.array([[0.0, 0, 0], [0, 0, 12.0]]), img, "lm.txt")
+
+
+def test_fit_with_landmarks_is_held_out(tmp_path, pair, capsys):
+    # synthetic truth with interior landmarks moved by the true field (its thin-plate interpolation):
+    # the headline model is the landmark-informed fit, scored on held-out landmarks; the surface-only
+    # fit and the landmark-informed references are reported beside it, each with its protocol
+    from lungdeform.interpolate import interpolation_weights
+    from lungdeform.landmarks import write_elastix_points
+
+    a, b, lung = pair
+    u = build_lung(lung, "right", constants=TRUE, calibration_ml=200.0, unit_ml=200.0).displacement
+    rng = np.random.default_rng(2)
+    lm = lung.vertices.mean(0) + rng.uniform(-1, 1, size=(12, 3)) * np.array([20.0, 35.0, 55.0])
+    la = write_elastix_points(tmp_path / "ee.txt", lm)
+    lb = write_elastix_points(tmp_path / "ei.txt", lm + interpolation_weights(lung.vertices, lm) @ u)
+    out = tmp_path / "out"
+    assert main(["fit", str(a), str(b), "--side", "right", "--out", str(out), "--evaluations", "150",
+                 "--landmarks", str(la), "--landmarks", str(lb), "--folds", "3"]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["headline_fit"] == "landmarks" and m["landmark_cv"]["folds"] == 3
+    for name in ("model", "model_surface_only", "affine_landmarks", "landmarks_tps", "no_motion"):
+        assert name in m and name in m["protocols"]
+    assert "held-out" in m["protocols"]["model"]
+    # the truth is in the model's form: held-out landmarks within a fraction of their motion
+    assert m["model"]["landmark_mean_mm"] < 0.2 * m["no_motion"]["landmark_mean_mm"]
+    assert m["fit"]["landmarks"]["landmarks_used"] == 12 and m["fit"]["optimizer"]["landmarks_used"] == 0
+    capsys.readouterr()
+    assert main(["fit", str(a), str(b), "--side", "right", "--out", str(tmp_path / "o2"),
+                 "--landmarks", str(la), "--landmarks", str(lb), "--folds", "20"]) == 2
+    assert "--folds must be between 2 and the number of landmarks (12)" in _one_error_line(capsys)

@@ -8,6 +8,14 @@ Runs :func:`lungdeform.cli.fit.run_fit` with the grid mode and the baselines, wr
 ``surface_p95_mm``, ``landmark_mean_mm``, ``landmark_max_mm``), ``model.npz`` and ``report.html``,
 and prints the issue's targets with pass/fail (measured, not asserted: the exit code is 0 when the
 run completes).
+
+The headline ``model`` is what a user can run on a new pair with the same inputs (the two masks
+and the landmarks): the landmark-informed fit, whose landmark errors are measured on landmarks held
+out from it (5-fold). ``model_surface_only`` uses no landmark at all. The issue's baselines use the
+surfaces only; ``affine_landmarks`` and ``landmarks_tps`` are landmark-informed references scored
+on the same folds, so that the model is also compared with methods that saw the same information
+(``targets_met`` reports both comparisons). ``--no-landmark-fit`` makes the surface-only fit the
+headline.
 """
 
 from __future__ import annotations
@@ -33,15 +41,26 @@ def find_pair(data: Path) -> list[Path]:
     raise ReadError(f"{data}: not the ITK lung pair folder (missing {', '.join(missing)})")
 
 
+#: The issue's baselines (surfaces only) and the landmark-informed references.
+BASELINES = ("no_motion", "affine", "apex_scaling", "cpd")
+REFERENCES = ("affine_landmarks", "landmarks_tps")
+
+
 def targets_met(metrics: dict) -> dict[str, bool]:
-    """Issue 3 item 7 targets, measured."""
-    base = [k for k in ("no_motion", "affine", "apex_scaling", "cpd") if k in metrics]
+    """Issue 3 item 7 targets, measured; plus the like-for-like comparison with the
+    landmark-informed references when the headline model used landmarks."""
+    base = [k for k in BASELINES if k in metrics]
     model = metrics["model"]
-    return {
+    out = {
         "model landmark_mean_mm < 2.0": model["landmark_mean_mm"] < 2.0,
         "model landmark_mean_mm below every baseline": all(model["landmark_mean_mm"] < metrics[b]["landmark_mean_mm"] for b in base),
         "model surface_mean_mm < 1.4": model["surface_mean_mm"] < 1.4,
     }
+    refs = [k for k in REFERENCES if k in metrics]
+    if refs:
+        out["model landmark_mean_mm below the landmark-informed references"] = all(
+            model["landmark_mean_mm"] < metrics[r]["landmark_mean_mm"] for r in refs)
+    return out
 
 
 def register(apps) -> None:
@@ -52,6 +71,9 @@ def register(apps) -> None:
         grid: bool = typer.Option(True, "--grid/--no-grid", help="Also run the grid mode for comparison."),
         stiffness: bool = typer.Option(True, "--stiffness/--no-stiffness", help="Also fit a stiffness field (reported as model_stiffness)."),
         evaluations: int = typer.Option(300, "--evaluations", help="Optimiser budget."),
+        landmark_fit: bool = typer.Option(True, "--landmark-fit/--no-landmark-fit",
+                                          help="Headline model fitted on surfaces + landmarks, scored held out (k-fold)."),
+        folds: int = typer.Option(5, "--folds", help="Folds of the landmark cross-validation."),
     ) -> None:
         """Fit the model to the ITK right lung (3.36 → 3.97 L) and compare with baselines."""
         import json
@@ -66,13 +88,15 @@ def register(apps) -> None:
         folder = output_dir(out)
         metrics = run_fit([fixed, moving], side="right", out=folder, landmarks=[lm_f, lm_m], grid=grid,
                           stiffness=stiffness, max_evaluations=evaluations, command="validate itk-pair",
-                          progress=say)
+                          progress=say, landmark_fit=landmark_fit, folds=folds)
         rate, faces = rays_per_second(itk_right_lung(), 1_000_000)
         metrics["ray_throughput"] = {"rays_per_s": rate, "rays": 1_000_000, "faces": faces,
                                      "surface": "embedded itk_right_lung"}
         metrics["targets_met"] = targets_met(metrics)
         write_bytes(folder / "metrics.json", json.dumps(metrics, indent=2, default=str).encode())
         _print_table(metrics)
+        for name, text in metrics.get("protocols", {}).items():
+            typer.echo(f"  {name}: {text}")
         typer.echo(f"ray casting: {rate / 1e6:.2f} M rays/s (1 M rays, {faces} faces)")
         for name, ok in metrics["targets_met"].items():
             typer.echo(f"target {name}: {'met' if ok else 'NOT met'}")
