@@ -26,7 +26,7 @@ INSPIRATION_ML = 200.0
 #: Enough optimiser steps for the 162-vertex ellipsoid to beat no motion clearly, still ~1 s a fit.
 FAST = FitOptions(max_evaluations=60, baselines=False)
 RESULT_KEYS = {"schema", "version", "subject", "side", "status", "error", "error_type", "inputs", "volumes_ml",
-               "constants", "metrics", "seconds", "input_digest"}
+               "constants", "fit_kind", "metrics", "seconds", "input_digest"}
 METRIC_KEYS = {"surface_mean_mm", "surface_rms_mm", "surface_p95_mm", "landmark_mean_mm", "objective_rms_mm"}
 
 
@@ -127,6 +127,43 @@ def test_fit_job_result_schema_and_truth(tmp_path, cohort):
     assert {p.name for p in folder.iterdir()} == {"result.json", "model.npz", "metrics.json", "report.html"}
     assert _hidden(out) == []
     assert [e["stage"] for e in events] == list(C.STAGES)
+
+
+def test_result_constants_are_those_of_the_saved_model(tmp_path):
+    # with landmarks the headline (model.npz) is the landmark-informed fit: result.json must carry
+    # its constants, not the surface-only fit's; --no-landmark-fit skips the cross-validation
+    from lungdeform.io import write_mesh
+    from lungdeform.landmarks import write_elastix_points
+    from lungdeform.model import build_lung
+    from lungdeform.modelfile import load_model
+
+    lung = ellipsoid_lung("right", subdivisions=2)
+    model = build_lung(lung, "right", constants=TRUE, calibration_ml=INSPIRATION_ML, unit_ml=INSPIRATION_ML)
+    folder = tmp_path / "c"
+    idx = np.arange(0, lung.n_vertices, 16)  # surface landmarks at their true positions
+    write_mesh(folder / "ee.ply", lung.vertices, lung.faces)
+    write_mesh(folder / "ei.ply", lung.vertices + model.displacement, lung.faces)
+    write_elastix_points(folder / "ee.txt", lung.vertices[idx])
+    write_elastix_points(folder / "ei.txt", (lung.vertices + model.displacement)[idx])
+    (folder / "manifest.csv").write_text("subject,side,volume_ml,path,landmarks\n"
+                                         "S0,right,,ee.ply,ee.txt\nS0,right,,ei.ply,ei.txt\n")
+    job = read_manifest(folder / "manifest.csv").jobs[0]
+    with_lm = FitOptions(max_evaluations=40, baselines=False, folds=2, align="none")
+    r = fit_job(job, tmp_path / "o1", with_lm)
+    m = json.loads((job_folder(tmp_path / "o1", job) / "metrics.json").read_text())
+    saved = load_model(job_folder(tmp_path / "o1", job) / "model.npz").lungs["right"].constants
+    assert r["status"] == "ok" and r["fit_kind"] == "landmarks" == m["headline_fit"]
+    assert r["constants"] == pytest.approx(m["fit"]["landmarks"]["constants"])
+    assert r["constants"] == pytest.approx(np.asarray(saved))
+    assert m["landmark_cv"]["folds"] == 2
+    without = FitOptions(max_evaluations=40, baselines=False, landmark_fit=False, align="none")
+    assert input_digest(job, without) != input_digest(job, with_lm)
+    r2 = fit_job(job, tmp_path / "o2", without)
+    m2 = json.loads((job_folder(tmp_path / "o2", job) / "metrics.json").read_text())
+    assert r2["fit_kind"] == "optimizer" and "landmark_cv" not in m2 and "landmarks" not in m2["fit"]
+    assert r2["constants"] == pytest.approx(m2["fit"]["optimizer"]["constants"])
+    with pytest.raises(InputError, match="align"):
+        FitOptions(align="sideways")
 
 
 def test_given_volumes_are_used_in_order(tmp_path, cohort, quick_report):

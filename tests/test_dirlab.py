@@ -213,3 +213,125 @@ def test_real_dirlab_published_means_and_one_scalar(data_dir):
         s = [r.phase_scalars[p] for p in D.INTERMEDIATE]
         assert all(a > b for a, b in zip(s, s[1:])) and 0 < s[-1] < s[0] <= 1.05
         assert r.best_model_heldout_mean_mm <= r.heldout_mean_mm["one_scalar"]
+
+
+# --------------------------------------------------------------------------- real-archive variants
+CSV_1_10 = {  # (dims, spacing) as published for cases 1–10 (DIR-Lab site; Castillo et al. 2009, 2010)
+    c: g for c, g in D.PUBLISHED_GEOMETRY.items()
+}
+
+
+def _spacing_csv(style: str) -> str:
+    """voxel_spacing.csv for cases 1–10 written in one of several realistic dialects."""
+    rows = [(c, *dims, *sp) for c, (dims, sp) in sorted(CSV_1_10.items())]
+    if style == "reordered":  # other column order, extra columns, spaces, 'caseN' labels, a comment
+        head = " Spacing_Z_mm , notes, Case ,spacing_y_mm, spacing_x_mm , dim_z,dim_y,dim_x\n# from the DIR-Lab site\n"
+        body = "".join(f" {r[6]} , scan {r[0]}, case{r[0]} , {r[5]},{r[4]} , {r[3]},{r[2]},{r[1]}\n" for r in rows)
+        return head + body + "\n\n"
+    if style == "semicolon":  # European spreadsheet export, CRLF, no dims
+        return "case;spacing_x_mm;spacing_y_mm;spacing_z_mm\r\n" + "".join(
+            f"{r[0]};{r[4]};{r[5]};{r[6]}\r\n" for r in rows)
+    if style == "tabs":  # tab-separated, 'Case N' labels, aliases for the column names
+        return "Case\tx spacing (mm)\ty spacing (mm)\tz spacing (mm)\tsize x\tsize y\tsize z\n" + "".join(
+            f"Case {r[0]}\t{r[4]}\t{r[5]}\t{r[6]}\t{r[1]}\t{r[2]}\t{r[3]}\n" for r in rows)
+    raise ValueError(style)
+
+
+def _rewrite(src: Path, dst: Path, style: str) -> None:
+    """Copy one real DIR-Lab file to ``dst`` with another whitespace/number style (same values)."""
+    vals = [ln.split() for ln in src.read_text().splitlines() if ln.strip()]
+    if style == "spaces_lf":
+        text = "".join("   ".join(v) + "\n" for v in vals)
+    elif style == "tabs_crlf_blank_tail":
+        text = "".join("\t".join(v) + "\t\r\n" for v in vals) + "\r\n\r\n"
+    elif style == "floats":
+        text = "".join(" ".join(f"{float(x):.4f}" for x in v) + "\n" for v in vals) + "\n   \n"
+    else:
+        raise ValueError(style)
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    dst.write_bytes(text.encode())
+
+
+def make_real_variant_layout(real: Path, root: Path, csv_style: str = "reordered") -> None:
+    """Copy the real DIR-Lab cases 1–5 into the layouts and names of the real archive's cases 6–10.
+
+    Only ever written under a test's ``tmp_path`` (DIR-Lab content never enters the repository).
+    case 1: ``Case1Pack/extremePhases/case1_dirLab300_T00_xyz.txt`` + ``Sampled4D``, LF, spaces;
+    case 2: ``Case2Deploy/ExtremePhases/CASE2_DIRLAB300_T00_XYZ.TXT``, tabs, CRLF, blank tail;
+    case 3: float coordinates in both sets; case 4: the 300 pairs only; case 5: the 75 points only,
+    plus a T60 file the models do not use.
+    """
+    src = {c: real / f"Case{c}Pack" for c in range(1, 6)}
+    ext = lambda c, ph: next((src[c] / "ExtremePhases").glob(f"*_T{ph}_xyz.txt"))  # noqa: E731
+    smp = lambda c, ph: src[c] / "Sampled4D" / f"case{c}_4D-75_T{ph}.txt"  # noqa: E731
+    phases = ["00", "10", "20", "30", "40", "50"]
+    for ph in ("00", "50"):
+        _rewrite(ext(1, ph), root / "Case1Pack/extremePhases" / f"case1_dirLab300_T{ph}_xyz.txt", "spaces_lf")
+        _rewrite(ext(2, ph), root / "Case2Deploy/ExtremePhases" / f"CASE2_DIRLAB300_T{ph}_XYZ.TXT", "tabs_crlf_blank_tail")
+        _rewrite(ext(3, ph), root / "Case3Pack/ExtremePhases" / f"case3_dirLab300_T{ph}_xyz.txt", "floats")
+        _rewrite(ext(4, ph), root / "Case4Pack/ExtremePhases" / f"Case4_300_T{ph}_xyz.txt", "tabs_crlf_blank_tail")
+    for ph in phases:
+        _rewrite(smp(1, ph), root / "Case1Pack/Sampled4D" / f"case1_4D-75_T{ph}.txt", "spaces_lf")
+        _rewrite(smp(2, ph), root / "Case2Deploy/sampled4D" / f"Case2_4D-75_T{ph}.txt", "tabs_crlf_blank_tail")
+        _rewrite(smp(3, ph), root / "Case3Pack/Sampled4D" / f"case3_4D-75_T{ph}.txt", "floats")
+        _rewrite(smp(5, ph), root / "Case5Pack/Sampled4D" / f"case5_4D-75_T{ph}.txt", "spaces_lf")
+    _rewrite(smp(5, "50"), root / "Case5Pack/Sampled4D/case5_4D-75_T60.txt", "spaces_lf")
+    (root / "voxel_spacing.csv").write_bytes(_spacing_csv(csv_style).encode())
+
+
+@pytest.mark.parametrize("style", ["reordered", "semicolon", "tabs"])
+def test_voxel_spacing_dialects(tmp_path, style):
+    # every dialect must give back the published table exactly (dims only where the file has them)
+    p = tmp_path / "voxel_spacing.csv"
+    p.write_bytes(_spacing_csv(style).encode())
+    got = D.read_voxel_spacing(p)
+    assert sorted(got) == list(range(1, 11))
+    for c, (dims, sp) in D.PUBLISHED_GEOMETRY.items():
+        assert got[c][0] == pytest.approx(sp)
+        if style == "semicolon":
+            assert got[c][1] is None
+        else:
+            assert got[c][1].tolist() == list(dims)
+        assert D.geometry_notes(c, *got[c]) == []
+
+
+def test_voxel_spacing_blank_dims_and_bad_case(tmp_path):
+    p = tmp_path / "voxel_spacing.csv"
+    p.write_text("case,dim_x,dim_y,dim_z,spacing_x_mm,spacing_y_mm,spacing_z_mm\n6,,,,0.97,0.97,2.5\n")
+    assert D.read_voxel_spacing(p)[6][1] is None  # blank size cells: no size check, not a failure
+    p.write_text("case,spacing_x_mm,spacing_y_mm,spacing_z_mm\nlung,1,1,1\n")
+    with pytest.raises(ReadError, match=r"voxel_spacing.csv, line 2: .*'lung' is not a case number"):
+        D.read_voxel_spacing(p)
+    p.write_text("")
+    with pytest.raises(ReadError, match="voxel_spacing.csv: empty file"):
+        D.read_voxel_spacing(p)
+    # a wrong spacing is reported against the published table, not replaced
+    assert D.geometry_notes(7, [1.16, 1.16, 2.5], [512, 512, 136]) == [
+        "case 7: spacing [1.16, 1.16, 2.5] mm differs from the published [0.97, 0.97, 2.5] mm"]
+
+
+@pytest.mark.realdata
+@pytest.mark.parametrize("csv_style", ["reordered", "semicolon"])
+def test_real_cases_in_archive_variant_layouts(data_dir, tmp_path, csv_style):
+    real = require_path(data_dir, "dirlab-4dct-landmarks")
+    make_real_variant_layout(real, tmp_path, csv_style)
+    cases = D.find_cases(tmp_path)
+    assert sorted(cases) == [1, 2, 3, 4, 5]
+    assert cases[2].extreme["T00"].name == "CASE2_DIRLAB300_T00_XYZ.TXT"
+    assert set(cases[4].sampled) == set() and set(cases[5].extreme) == set()
+    assert any("no 75-point files" in n for n in cases[4].notes)
+    assert any("no 300-pair files" in n for n in cases[5].notes)
+    assert any("case5_4D-75_T60.txt" in n and "ignored" in n for n in cases[5].notes)
+    for c in (1, 2, 3, 4):
+        r = D.evaluate_case(D.load_case(cases[c]), cases[c].dims)
+        # whatever the layout, separators and number format: the published 300-pair means
+        assert r.mean_displacement_300_mm == pytest.approx(D.PUBLISHED_MEAN_300_MM[c], abs=0.01)
+    r5 = D.evaluate_case(D.load_case(cases[5]), cases[5].dims)
+    r1 = D.evaluate_case(D.load_case(D.find_cases(real)[1]), None)
+    assert r5.mean_displacement_300_mm is None and r5.n_tracked == 75 and r5.one_scalar_mean_mm < r5.no_motion_mean_mm
+    # case 3 written as floats reads back the same as the original integers/floats
+    orig3 = D.load_case(D.find_cases(real)[3])
+    new3 = D.load_case(cases[3])
+    for ph in D.PHASES:
+        np.testing.assert_allclose(new3.phases[ph], orig3.phases[ph], atol=1e-4)
+    assert r1.n_pairs == 300

@@ -327,3 +327,89 @@ def test_decimation_of_real_lung_valid_at_many_budgets(data_dir):
         _, _, report = check_surface(v, f)
         assert abs(len(v) - target) <= 0.07 * target
         assert report.volume_mm3 == pytest.approx(full.volume, rel=0.01)
+
+
+# --------------------------------------------------------------------------- lobe maps and flipped NIfTI
+def _lobe_map():
+    """(z, y, x) int16 lobe map: an ellipsoid 'left lung' (labels 1, 2) at high x index and a bigger
+    'right lung' (3, 4, 5) at low x index; with an identity LPS direction left is at larger x."""
+    a = np.zeros((48, 64, 96), np.int16)
+    zz, yy, xx = np.mgrid[:48, :64, :96]
+
+    def ell(cx, rx):
+        return ((xx - cx) / rx) ** 2 + ((yy - 32) / 20) ** 2 + ((zz - 24) / 20) ** 2 < 1
+
+    a[ell(70, 14) & (zz < 24)] = 1
+    a[ell(70, 14) & (zz >= 24)] = 2
+    a[ell(28, 19) & (zz < 16)] = 3
+    a[ell(28, 19) & (zz >= 16) & (zz < 24)] = 4
+    a[ell(28, 19) & (zz >= 24)] = 5
+    return a
+
+
+def test_side_mask_picks_the_side_lobes_also_from_a_ras_nifti(tmp_path):
+    import nibabel as nib
+    import SimpleITK as sitk
+
+    from lungdeform.mask import side_mask
+
+    a = _lobe_map()
+    sp = (2.0, 2.0, 2.5)
+    img = sitk.GetImageFromArray(a)
+    img.SetSpacing(sp)
+    img.SetOrigin((-96.0, -64.0, -60.0))
+    sitk.WriteImage(img, str(tmp_path / "lps.nii.gz"))
+    # the same voxels at the same places, stored as a NIfTI with a RAS affine whose i axis is
+    # flipped (array reversed along i, affine diag(+2, -2, 2.5)): ITK reports the LPS direction
+    # diag(-1, 1, 1), a mirrored (det < 0) non-identity direction. X_RAS = -x_LPS, Y_RAS = -y_LPS.
+    data = np.ascontiguousarray(a.transpose(2, 1, 0)[::-1])  # nibabel (i, j, k) order, i reversed
+    n0 = data.shape[0]
+    aff = np.diag([sp[0], -sp[1], sp[2], 1.0])
+    aff[:3, 3] = [96.0 - (n0 - 1) * sp[0], 64.0, -60.0]
+    nib.save(nib.Nifti1Image(data, aff), str(tmp_path / "ras.nii.gz"))
+    vols, cents = {}, {}
+    np.testing.assert_allclose(read_image(tmp_path / "ras.nii.gz").direction, np.diag([-1.0, 1, 1]), atol=1e-6)
+    for name in ("lps", "ras"):
+        im = read_image(tmp_path / f"{name}.nii.gz")
+        for side in ("left", "right"):
+            surf = mask_to_surface(side_mask(im, side), smooth_iterations=0)
+            vols[name, side] = surf.volume
+            cents[name, side] = surf.vertices.mean(axis=0)
+    for side, lab in (("left", (1, 2)), ("right", (3, 4, 5))):
+        # truth: the voxel count of the side's lobes × voxel volume (marching cubes within a few %)
+        truth = np.isin(a, lab).sum() * np.prod(sp)
+        assert vols["lps", side] == pytest.approx(truth, rel=0.06)
+        # the RAS-stored file is the same lungs in LPS: same volume, same place
+        assert vols["ras", side] == pytest.approx(vols["lps", side], rel=1e-6)
+        np.testing.assert_allclose(cents["ras", side], cents["lps", side], atol=1e-6)
+    assert cents["lps", "left"][0] > 0 > cents["lps", "right"][0]  # LPS: patient left at +x
+
+
+def test_side_mask_refuses_a_mirrored_convention_and_passes_binary_masks():
+    from lungdeform.errors import MaskError
+    from lungdeform.mask import Image, side_mask
+
+    a = _lobe_map()
+    swapped = np.where(np.isin(a, (1, 2)), a + 2, np.where(a > 2, (a - 2).clip(1, 2), 0)).astype(np.int16)
+    im = Image(swapped, np.array([2.0, 2.0, 2.5]), np.zeros(3), np.eye(3), "swapped.nii.gz")
+    with pytest.raises(MaskError, match=r"swapped.nii.gz: labels \[1, 2\] \(left lobes .* lie on the other side"):
+        side_mask(im, "left")
+    only_right = Image(np.where(a > 2, a, 0).astype(np.int16), im.spacing, im.origin, im.direction, "r.nii.gz")
+    with pytest.raises(MaskError, match="r.nii.gz: .*none of the left lobes"):
+        side_mask(only_right, "left")
+    binary = Image((a > 0).astype(np.uint8), im.spacing, im.origin, im.direction, "b.mha")
+    assert side_mask(binary, "left") is binary
+    with pytest.raises(InputError, match="side must be"):
+        side_mask(binary, "up")
+
+
+@pytest.mark.realdata
+def test_side_mask_on_real_coronacases(coronacases_001):
+    from lungdeform.mask import side_mask
+
+    im = coronacases_001
+    vox_ml = float(np.prod(im.spacing)) / 1000.0
+    # README: Coronacases_001 left/right 1.52/1.81 L; side_mask must give each side's lobes
+    for side, litres in (("left", 1.52), ("right", 1.81)):
+        m = side_mask(im, side)
+        assert m.array.sum() * vox_ml / 1000.0 == pytest.approx(litres, abs=0.02)

@@ -5,7 +5,6 @@ volume cubic, the fit's own evaluation at the true constants (zero residual), th
 files read back through lungdeform.io, and one tiny end-to-end fit."""
 
 import json
-import warnings
 
 import numpy as np
 import pytest
@@ -172,35 +171,46 @@ def test_cohort_files_read_back(tmp_path):
         read_truth(tmp_path / "bad.json")
 
 
-def test_tiny_end_to_end_fit_recovers_the_normal_field_and_force_constants(linear_lung, left):
-    # One short fit (60 evaluations, a few seconds) on noise-free model-form data (linear law),
-    # started away from the truth in the exponents c2 (0.9 vs 0.3) and c6 (1.0 vs 2.0).
-    # Truth checks and tolerances (measured: objective 1.19 -> 0.31 mm, normal RMS error against the
-    # true surface 1.44 -> 0.34 mm, c7 0.074, c9 0.075):
-    # - the surface objective at least halves;
-    # - the normal component of the displacement error at the largest volume (what a surface fit
-    #   can see) falls below 0.5 mm and below 40 % of its starting value; the tangential part is
-    #   weakly identifiable from surfaces (c6 stays near its start), so it is not asserted here;
-    # - c8 normalises to 1 and dominates, as in truth; c7, c9 (true 0.05, 0.1) within 0.05.
+def test_table_shift_moves_targets_and_landmarks_only(left, tmp_path):
+    # a known table shift per larger-volume scan: the surfaces and their landmarks are the unshifted
+    # ones translated by it (truth), the end-exhale scan stays, and the shift is drawn last, so the
+    # rest of the lung (constants, noise, landmarks) is the same as without one
+    kw = dict(rng=None, noise_mm=0.2, landmarks=10)
+    plain = synthesize_lung(left, "left", TRUE, [200.0, 350.0], **{**kw, "rng": np.random.default_rng(7)})
+    moved = synthesize_lung(left, "left", TRUE, [200.0, 350.0], table_shift_mm=5.0,
+                            **{**kw, "rng": np.random.default_rng(7)})
+    assert plain.table_shifts is None and moved.table_shifts.shape == (2, 3)
+    assert np.array_equal(moved.noise, plain.noise) and np.array_equal(moved.landmark_index, plain.landmark_index)
+    for j in range(2):
+        assert moved.target(j).vertices == pytest.approx(plain.target(j).vertices + moved.table_shifts[j])
+        assert moved.landmarks(j) == pytest.approx(plain.landmarks(j) + moved.table_shifts[j])
+    assert np.array_equal(moved.landmarks(None), plain.landmarks(None))
+    write_cohort([moved], tmp_path)
+    data = json.loads((tmp_path / "truth.json").read_text())
+    assert np.asarray(data["lungs"][0]["table_shifts_mm"]) == pytest.approx(moved.table_shifts)
+    assert data["cohort_command"].endswith("--align joint") and "--align none" in data["notes"]
+    with pytest.raises(InputError, match="table_shift_mm"):
+        synthesize_lung(left, "left", TRUE, [200.0], rng=np.random.default_rng(0), table_shift_mm=-1.0)
+
+
+def test_tiny_end_to_end_fit_recovers_the_constants(linear_lung, left):
+    # One short least-squares fit (about 70 evaluations, a few seconds) on noise-free model-form
+    # data (linear law), started away from the truth in the exponents c2 (0.9 vs 0.3) and c6 (1.0 vs
+    # 2.0). The start's c3 is the true one, so the gauge (c3 held fixed: c1, c3, c5 share a free
+    # factor) coincides with the truth and every constant is comparable directly.
+    # Tolerances: the data are exactly of the model's form, so the truth is a zero-residual minimum;
+    # measured: objective 4e-4 mm, per-vertex displacement error 6e-4 mm RMS, constants within 3e-4.
+    # The bounds (0.02 mm per vertex, 0.005 per constant) are 30x / 15x looser than that to allow
+    # for the solver's finite-difference path on other platforms, and still 50x tighter than the
+    # errors of the former Powell fit (about 1 mm per vertex, c6 off by 0.5).
     lung = linear_lung
     targets = [Target(lung.target(j), lung.volumes_ml[j + 1], name=f"t{j}") for j in range(2)]
     start_c = np.array([0.1, 0.9, 0.45, 0.45, 0.12, 1.0])
-    true = lung.clean_vertices(1)
-    normals = Surface(true, left.faces).vertex_normals
-
-    def normal_rms(x):
-        return float(np.sqrt(np.mean(np.einsum("ij,ij->i", x - true, normals) ** 2)))
-
-    start_obj, parts = LungFitter(left, "left", targets, samples=2000).evaluate(start_c, full=True)
-    start_err = normal_rms(left.vertices + lung.scales[1] * parts["u"])
-    with warnings.catch_warnings():
-        # fit.py hands scipy's Powell an infinite objective for unusable candidates (no volume
-        # growth), and Powell's line search multiplies inf: a RuntimeWarning that fit.py, not this
-        # test, owns (reported); ignore only that message, only here
-        warnings.filterwarnings("ignore", "invalid value encountered", RuntimeWarning)
-        r = fit_lung(left, "left", targets, initial=start_c, max_evaluations=60, samples=2000)
-    assert r.objective_mm < 0.5 * start_obj
-    err = normal_rms(r.positions_at(left, lung.volumes_ml[-1]))
-    assert err < 0.5 and err < 0.4 * start_err
-    assert r.constants[7] == pytest.approx(1.0)
-    assert r.constants[[6, 8]] == pytest.approx(TRUE[[6, 8]], abs=0.05)
+    start_obj = LungFitter(left, "left", targets, samples=2000).evaluate(start_c)
+    r = fit_lung(left, "left", targets, initial=start_c, max_evaluations=300, samples=2000)
+    assert r.success and r.mode == "least_squares"
+    assert r.objective_mm < 0.01 and start_obj > 0.5
+    err = r.displacement - lung.displacement
+    assert np.sqrt(np.mean(np.sum(err**2, axis=1))) < 0.02
+    assert r.constants[2] == TRUE[2]  # the gauge
+    assert r.constants == pytest.approx(TRUE, abs=0.005)

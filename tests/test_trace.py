@@ -352,3 +352,141 @@ def test_real_traces_orientation_and_cycles(data_dir):
     # (the RPM locates its marks its own way: measured median offset 0.16 s, 19 of 25 within 0.5 s;
     # before the flip the 'P' marks fell 0.8 s from any end-inhale)
     assert agree["P"]["median_abs_offset_s"] < 0.25 and agree["P"]["within_0.5_s"] >= 0.7
+
+
+# --------------------------------------------------------------------------- file-format variants
+def _vxp_variant(text: str, kind: str) -> bytes:
+    """One realistic variant of a VXP 1.6 text (same samples), as bytes."""
+    import re
+
+    if kind == "v17_extra_keys_crlf":
+        text = text.replace("Version=1.6", "Version=1.7\r\nSoftware=RPM 1.7.5\r\nGating=Amplitude\r\nComment=a=b")
+    elif kind == "no_header_keys":
+        text = re.sub(r"\[Header\].*?\[Data\]", "[Header]\r\n[Data]", text, flags=re.S)
+    elif kind == "no_header_section":
+        text = text[text.index("[Data]"):]
+    elif kind == "lowercase_sections_lf":
+        text = text.replace("[Data]", "[data]").replace("[Header]", "[header]").replace("\r\n", "\n")
+    elif kind == "no_marks":
+        text = re.sub(r",[PZ],", ",,", text)
+    elif kind == "latin1_header":
+        return text.replace("CRC=1", "CRC=1\r\nPatient_name=Müller").encode("latin-1")
+    elif kind == "truncated_last_row":
+        text = text.rstrip() + "\r\n0.2617,3.07"
+    elif kind == "blank_tail":
+        text = text + "\r\n\r\n\r\n"
+    return text.encode()
+
+
+VXP_KINDS = ["v17_extra_keys_crlf", "no_header_keys", "no_header_section", "lowercase_sections_lf", "no_marks",
+             "latin1_header", "truncated_last_row", "blank_tail"]
+
+
+@pytest.mark.parametrize("kind", VXP_KINDS)
+def test_vxp_variants_read_the_same_samples(tmp_path, kind):
+    t = np.arange(0, 60, 0.04)
+    amp = 0.5 * breath(t)
+    marks = np.where(np.isin(np.arange(t.size), np.searchsorted(t, np.arange(1.8, 60, 4.0))), "P", "")
+    base = read_trace(write_vxp(tmp_path / "base.vxp", 1e5 + t * 1000, amp, marks), orient=False)
+    f = tmp_path / ("VARIANT.VXP" if kind == "no_header_keys" else "variant.vxp")
+    f.write_bytes(_vxp_variant((tmp_path / "base.vxp").read_text(), kind))
+    tr = read_trace(f, orient=False)
+    # truth: the same file's samples, whatever the header, line endings or encoding
+    np.testing.assert_allclose(tr.t_s, base.t_s)
+    np.testing.assert_allclose(tr.amplitude, base.amplitude)
+    assert (tr.marks != "").sum() == (0 if kind == "no_marks" else (base.marks != "").sum())
+    if kind == "truncated_last_row":
+        assert any("truncated last row" in x for x in tr.fixes)
+    # an unmarked trace still splits into its breaths (marks are not needed)
+    assert cycle_anchors(tr).n_cycles >= 12
+
+
+@pytest.mark.parametrize("kind", ["dot_decimals", "comma_sep_dot", "tabs_comma", "no_terminator", "bom", "utf16",
+                                  "comment_preamble", "units_header", "trailing_sep", "truncated_last_row"])
+def test_marker_csv_variants_read_the_same_motion(tmp_path, kind):
+    t = np.arange(0, 60, 0.1)
+    sig = 12 * breath(t)
+    base = read_trace(write_marker_csv(tmp_path / "base.csv", t * 1000, sig), orient=False)
+    f = tmp_path / "201205101541-XYZ-2-Q-60-6.csv"  # another marker tag and session letters
+    kw = {}
+    if kind == "dot_decimals":
+        kw = dict(decimal_comma=False)
+    elif kind == "comma_sep_dot":
+        kw = dict(sep=",", decimal_comma=False, header="Frame,Timestamp,x,y,z")
+    elif kind == "tabs_comma":
+        kw = dict(sep="\t", header="Frame\tTimestamp\tx\ty\tz")
+    elif kind == "no_terminator":
+        kw = dict(terminator=False)
+    elif kind == "units_header":
+        kw = dict(header="Frame;Time (ms);X [mm];Y [mm];Z [mm]")
+    write_marker_csv(f, t * 1000, sig, **kw)
+    text = f.read_text()
+    if kind == "bom":
+        f.write_bytes(b"\xef\xbb\xbf" + text.encode())
+    elif kind == "utf16":
+        f.write_bytes(text.encode("utf-16"))
+    elif kind == "comment_preamble":
+        f.write_text("# exported by the tracker, 10 Hz\r\n" + text)
+    elif kind == "trailing_sep":
+        f.write_text("".join(ln + ";\r\n" for ln in text.splitlines()))
+    elif kind == "truncated_last_row":
+        f.write_text(text.rsplit("\r\n0;0;0;0;0", 1)[0] + "\r\n3606;60")
+    tr = read_trace(f, orient=False)
+    # truth: the same samples and the same principal-axis motion as the canonical file
+    np.testing.assert_allclose(tr.t_s, base.t_s)
+    np.testing.assert_allclose(tr.amplitude, base.amplitude, atol=2e-3)
+    assert np.ptp(tr.amplitude) == pytest.approx(12.0, rel=0.01)
+    if kind == "truncated_last_row":
+        assert any("truncated last row" in x for x in tr.fixes)
+
+
+def test_degenerate_files_refused_in_one_line(tmp_path):
+    t = np.arange(0, 5, 0.1)
+    cases = {
+        "empty.csv": (b"", "file is empty"),
+        "blank.vxp": (b"\r\n  \r\n", "file is empty"),
+        "header_only.csv": (b'"Frame";"Timestamp";"x";"y";"z"\r\n', "no data rows after the header"),
+        "terminator_only.csv": (b"Frame;Timestamp;x;y;z\r\n0;0;0;0;0\r\n", "no data rows besides the terminator"),
+        "two_rows.csv": (b"Frame;Timestamp;x;y;z\n0;0;1;2;3\n6;100;1;2;4\n", "only 2 data row"),
+        "comments_only.csv": (b"# nothing\n# here\n", "only comments"),
+        "header_only.vxp": (b"[Header]\r\nVersion=1.7\r\n[Data]\r\n", r"\[Data\] section holds no rows"),
+        "binary.csv": (b"\x00\x01\x02Frame", "binary file"),
+        "mid_truncated.vxp": (b"[Data]\n0.1,0,0,0,1,,0\n0.2,0\n0.3,0,80,0,1,,0\n", "line 3: expected 7 comma-separated"),
+    }
+    for name, (content, message) in cases.items():
+        (tmp_path / name).write_bytes(content)
+        with pytest.raises((ReadError, InputError)) as exc:
+            read_trace(tmp_path / name)
+        msg = str(exc.value)
+        assert name in msg and len(msg.splitlines()) == 1, msg
+        assert __import__("re").search(message, msg), msg
+    # one breath only: read, then refused when cycles are needed, naming the file
+    one = write_marker_csv(tmp_path / "one_breath.csv", t * 1000, 10 * breath(t, period=4.5))
+    with pytest.raises(InputError, match="one_breath.csv: .*too short"):
+        cycle_anchors(read_trace(one))
+
+
+@pytest.mark.realdata
+def test_real_trace_variants_keep_their_cycles(data_dir, tmp_path):
+    # the real RPM file and one marker file, rewritten (in tmp_path) as other exporter versions:
+    # each must give exactly the samples and the cycles of the original
+    import re
+
+    src = require_path(data_dir, "breathing-traces")
+    rpm = next((src / "rpm").glob("*.vxp"))
+    mk = sorted((src / "external-markers").glob("*.csv"))[3]
+    orig = {"vxp": read_trace(rpm), "csv": read_trace(mk)}
+    vtext, ctext = rpm.read_text(), mk.read_bytes().decode()
+    variants = {
+        "a.VXP": ("vxp", vtext.replace("Version=1.6", "Version=1.7\nExtra_key=1").replace("\n", "\r\n").encode()),
+        "b.vxp": ("vxp", re.sub(r",[PZ],", ",,", vtext[vtext.index("[Data]"):]).encode()),
+        "c.csv": ("csv", b"\xef\xbb\xbf" + ctext.replace(",", ".").rsplit("0;0;0;0;0", 1)[0].encode()),
+        "d.CSV": ("csv", ctext.replace(",", ".").replace(";", ",").encode()),
+    }
+    for name, (kind, content) in variants.items():
+        (tmp_path / name).write_bytes(content)
+        tr = read_trace(tmp_path / name)
+        np.testing.assert_allclose(tr.t_s, orig[kind].t_s)
+        np.testing.assert_allclose(tr.amplitude, orig[kind].amplitude, atol=1e-9)
+        n = [cycle_anchors(resample(x, 10.0, max_gap_s=5.0)).n_cycles for x in (tr, orig[kind])]
+        assert n[0] == n[1] >= 15, name  # ≈ 25 (RPM) and ≈ 19 (markers) breaths

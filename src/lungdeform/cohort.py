@@ -25,6 +25,14 @@ workers through Dask's event log; the stage is read from run_fit's progress mess
 ``{"event": "done", "job", "result", "skipped"}`` once per job (skipped jobs first), and
 ``{"event": "population", "ok"}`` before the population statistics.
 
+Fit options (:class:`FitOptions`, part of the digest): the budget, baselines, grid and stiffness,
+``align`` (``apex`` for scans with a table shift; ``none`` or ``joint`` for inputs already in one
+frame, e.g. a synthetic cohort from ``lungdeform synth-cohort``, whose truth the apex alignment
+would shift), and ``landmark_fit`` / ``folds`` (with landmarks, the landmark-informed fit and its
+k-fold cross-validation; off: the surface-only fit, much faster). ``result.json``'s
+``constants`` are those of the fit ``model.npz`` holds (``fit_kind``: ``optimizer`` or, with
+landmarks, ``landmarks``).
+
 With ``scheduler=ADDRESS`` the workers of that cluster run the jobs: they need lungdeform
 installed (the same version) and must see the manifest's input files and ``OUT`` at the same
 paths (a shared file system). The default local cluster starts worker processes with
@@ -72,10 +80,22 @@ class FitOptions:
     baselines: bool = True
     grid: bool = False
     stiffness: bool = False
+    #: how targets reach the end-exhale frame: "apex", "joint" or "none" (lungdeform.cli.fit.ALIGN_MODES);
+    #: synthetic cohorts (already in one frame) want "none" or "joint"
+    align: str = "apex"
+    #: with landmarks: the landmark-informed fit and its k-fold cross-validation (``folds`` folds)
+    landmark_fit: bool = True
+    folds: int = 5
 
     def __post_init__(self):
+        from .cli.fit import ALIGN_MODES
+
         if int(self.max_evaluations) < 1:
             raise InputError(f"max_evaluations (--evaluations) must be at least 1, got {self.max_evaluations}")
+        if self.align not in ALIGN_MODES:
+            raise InputError(f"align (--align) must be one of {', '.join(ALIGN_MODES)}, got {self.align!r}")
+        if int(self.folds) < 2:
+            raise InputError(f"folds (--folds) must be at least 2, got {self.folds}")
 
 
 @dataclass(frozen=True)
@@ -169,7 +189,8 @@ def fit_job(job: Job, out_dir, options: FitOptions = FitOptions(), *, progress: 
             metrics = run_fit(list(job.inputs), side=job.side, out=tmp, volumes=job.volumes_ml,
                               landmarks=job.landmarks, grid=options.grid, stiffness=options.stiffness,
                               baselines=options.baselines, max_evaluations=int(options.max_evaluations),
-                              command="cohort", progress=say)
+                              command="cohort", progress=say, align=options.align,
+                              landmark_fit=options.landmark_fit, folds=int(options.folds))
         except Exception as exc:  # isolate: any failure of this job becomes its result
             error = exc
         enter("write")
@@ -210,8 +231,10 @@ def _result(job: Job, status: str, digest: str, seconds: float, *, metrics: dict
             error: BaseException | None = None) -> dict:
     m = metrics or {}
     model = m.get("model", {})
-    optimizer = m.get("fit", {}).get("optimizer", {})
-    constants = optimizer.get("constants") if metrics else None
+    # the constants of the fit model.npz holds (with landmarks: the landmark-informed fit)
+    fit_kind = m.get("headline_fit", "optimizer") if metrics else None
+    headline = m.get("fit", {}).get(fit_kind, {})
+    constants = headline.get("constants") if metrics else None
     volumes = m.get("volumes_ml", job.volumes_ml) or []
     return {
         "schema": RESULT_SCHEMA,
@@ -224,12 +247,13 @@ def _result(job: Job, status: str, digest: str, seconds: float, *, metrics: dict
         "inputs": [str(p) for p in job.inputs],
         "volumes_ml": [float(v) for v in volumes],
         "constants": [float(c) for c in constants] if constants is not None else None,
+        "fit_kind": fit_kind,
         "metrics": {
             "surface_mean_mm": _finite(model.get("surface_mean_mm")),
             "surface_rms_mm": _finite(model.get("surface_rms_mm")),
             "surface_p95_mm": _finite(model.get("surface_p95_mm")),
             "landmark_mean_mm": _finite(model.get("landmark_mean_mm")),
-            "objective_rms_mm": _finite(optimizer.get("objective_rms_mm")),
+            "objective_rms_mm": _finite(headline.get("objective_rms_mm")),
         },
         "seconds": float(seconds),
         "input_digest": digest,

@@ -167,6 +167,39 @@ def read_image(path) -> Image:
 
 
 # =========================================================================== labels
+def side_mask(image: Image, side: str) -> Image:
+    """The ``side`` lung of a lobe label map as a 0/1 image; other images are returned unchanged.
+
+    A lobe map (non-zero labels within 1–5, more than one of them: the coronacases convention of
+    :data:`LOBE_LABELS`) gives the voxels of ``LOBE_LABELS[side]``. The convention is checked in
+    the world frame (LPS: the left lung lies at larger x): when the chosen lobes' centroid is not on
+    ``side`` of the other lobes' centroid, :class:`MaskError` is raised naming the file, rather than
+    returning the wrong lung. A binary mask or a single label is returned as it is.
+    """
+    if side not in LOBE_LABELS:
+        raise InputError(f"side must be 'left' or 'right', got {side!r}")
+    a = np.asarray(image.array)
+    values = np.unique(a[a != 0]) if a.size else np.zeros(0)
+    if values.size < 2 or not np.all(np.isin(values, np.arange(1, 6))):
+        return image
+    want = np.isin(a, LOBE_LABELS[side])
+    other = (a != 0) & ~want
+    if not want.any():
+        raise MaskError(f"{image.source}: lobe labels {sorted(int(v) for v in values)}: none of the {side} lobes "
+                        f"{list(LOBE_LABELS[side])}")
+    if other.any():
+        from scipy import ndimage
+
+        cw = image.index_to_world(np.array([ndimage.center_of_mass(want)[::-1]]))[0]
+        co = image.index_to_world(np.array([ndimage.center_of_mass(other)[::-1]]))[0]
+        if (cw[0] - co[0]) * (1 if side == "left" else -1) <= 0:
+            raise MaskError(f"{image.source}: labels {list(LOBE_LABELS[side])} ({side} lobes in the coronacases "
+                            f"convention) lie on the other side (LPS x {cw[0]:.0f} mm vs {co[0]:.0f} mm): "
+                            "not a left/right lobe map in that convention")
+    return Image(want.astype(np.uint8), image.spacing, image.origin, image.direction,
+                 f"{image.source} ({side} lobes {','.join(map(str, LOBE_LABELS[side]))})")
+
+
 def label_groups(spec) -> dict[str, tuple[int, ...] | None]:
     """Normalise a label selection to ``{group name: labels}``.
 

@@ -197,7 +197,8 @@ def _alignments(metrics_path: Path) -> list[np.ndarray | None]:
 
     try:
         m = json.loads(metrics_path.read_text(encoding="utf-8"))
-        return [np.asarray(a["apex"]["matrix"], float) for a in m.get("alignment", [])]
+        # "applied": the whole transform (any --align); older metrics files only have "apex"
+        return [np.asarray((a.get("applied") or a["apex"])["matrix"], float) for a in m.get("alignment", [])]
     except (OSError, ValueError, KeyError, TypeError):
         return []
 
@@ -217,13 +218,16 @@ def _point_errors(pred: np.ndarray, true: np.ndarray, faces: np.ndarray, suffix:
             f"tangential_rms{suffix}_mm": float(np.sqrt(np.mean(np.sum(et**2, axis=1))))}
 
 
-def _field_errors(model_path: Path, arrays_path: Path, side: str, volumes_ml, scales) -> list[dict] | None:
+def _field_errors(model_path: Path, arrays_path: Path, side: str, volumes_ml, scales,
+                  table_shifts=None) -> list[dict] | None:
     """Displacement-field error per target volume of a fitted model against the truth arrays.
 
     The truth lives in the end-exhale frame, as does the model. ``run_fit`` rigidly aligns each
     target onto the end-exhale surface first; when its ``metrics.json`` (beside the model) records
     that transform, the errors against the truth moved by the same transform (the target the fit
     actually saw) are reported too, with the suffix ``_aligned``, and the transform's translation.
+    ``table_shifts : (k, 3)`` mm (truth ``table_shifts_mm``): where the scans were moved; the target
+    the fit saw is then the truth plus that shift, moved by the transform.
     """
     from .distance import symmetric_distance
     from .errors import LungdeformError
@@ -253,8 +257,11 @@ def _field_errors(model_path: Path, arrays_path: Path, side: str, volumes_ml, sc
             row.update(_point_errors(pred, true, faces))
         if j < len(aligns):
             m = aligns[j]
-            moved = true @ m[:3, :3].T + m[:3, 3]
+            scan = true + (np.asarray(table_shifts[j], float) if table_shifts else 0.0)
+            moved = scan @ m[:3, :3].T + m[:3, 3]
             row["alignment_translation_mm"] = float(np.linalg.norm(m[:3, 3]))
+            # how far the alignment put the scan from where the truth is (0: the frame recovered)
+            row["alignment_error_rms_mm"] = float(np.sqrt(np.mean(np.sum((moved - true) ** 2, axis=1))))
             row["surface_to_aligned_truth_rms_mm"] = symmetric_distance(
                 Surface(pred, lung.surface.faces), Surface(moved, faces)).stats.rms
             if same_mesh:
@@ -265,7 +272,7 @@ def _field_errors(model_path: Path, arrays_path: Path, side: str, volumes_ml, sc
 
 FIELD_KEYS = ("point_mean_mm", "point_rms_mm", "point_max_mm", "normal_rms_mm", "tangential_rms_mm",
               "surface_to_truth_mean_mm", "surface_to_truth_rms_mm", "true_displacement_rms_mm",
-              "alignment_translation_mm", "point_rms_aligned_mm", "normal_rms_aligned_mm",
+              "alignment_translation_mm", "alignment_error_rms_mm", "point_rms_aligned_mm", "normal_rms_aligned_mm",
               "tangential_rms_aligned_mm", "surface_to_aligned_truth_rms_mm")
 
 
@@ -297,7 +304,7 @@ def recovery(results: Sequence[dict], truth: dict, *, subjects_dir: Path | None 
         if subjects_dir is not None and truth_dir is not None and rec.get("files", {}).get("arrays"):
             field = _field_errors(Path(subjects_dir) / key[0] / key[1] / "model.npz",
                                   Path(truth_dir) / rec["files"]["arrays"], key[1], r["volumes_ml"],
-                                  rec.get("scales", []))
+                                  rec.get("scales", []), rec.get("table_shifts_mm"))
         lungs.append({"subject": key[0], "side": key[1], "source": rec.get("source"),
                       "noise_mm": rec.get("noise_mm"), "true": dict(zip(names, map(float, tv))),
                       "fitted": dict(zip(names, map(float, fv))),

@@ -21,7 +21,15 @@ scale about its centroid, so that subjects differ. For each lung:
    model mesh, is kept exact;
 5. optional landmarks: a seeded subset of surface vertices at their true (noise-free) positions at
    every volume, so that a fit's landmark error measures the full displacement, tangential part
-   included, which a surface distance cannot see.
+   included, which a surface distance cannot see;
+6. optional table shift (``table_shift_mm`` > 0): each larger-volume surface and its landmarks are
+   translated by a known random vector (N(0, table_shift_mm²) per axis), as a patient table
+   between scans; drawn last, so a cohort without it is unchanged.
+
+The files are in one frame (without a table shift: the end-exhale frame). Fit them with
+``lungdeform cohort MANIFEST --align none`` (or ``--align joint``, which must then recover the
+table shift): the default apex alignment assumes that the apex cap and a posterior band do not
+move, but the model moves them, so it shifts these targets by several millimetres.
 
 Every random draw of one lung comes from ``numpy.random.default_rng([seed, subject_index, side_index])``:
 adding subjects never changes the earlier ones. Library functions return data; :func:`write_cohort`
@@ -200,6 +208,8 @@ class SyntheticLung:
     seed : tuple of int
         The generator's seed sequence entropy.
     law : 'exact' | 'linear'
+    table_shifts : (k, 3) float or None
+        Translation (mm) of each larger-volume scan (surface and landmarks); None: no shift.
     """
 
     subject: str
@@ -217,6 +227,7 @@ class SyntheticLung:
     landmark_index: np.ndarray
     seed: tuple
     law: str = "exact"
+    table_shifts: np.ndarray | None = None
 
     @property
     def volume_ee_ml(self) -> float:
@@ -231,15 +242,20 @@ class SyntheticLung:
         """``(n, 3) float`` mm: the noise-free surface j, ``p + s_j·u``."""
         return np.ascontiguousarray(self.rest.vertices + self.scales[j] * self.displacement)
 
+    def shift(self, j: int) -> np.ndarray:
+        """``(3,) float`` mm: the table shift of scan j (zeros without one)."""
+        return np.zeros(3) if self.table_shifts is None else np.asarray(self.table_shifts[j], float)
+
     def target(self, j: int) -> Surface:
-        """The noisy larger-volume surface j (mm LPS)."""
+        """The noisy larger-volume surface j (mm LPS), table shift included."""
         v = self.clean_vertices(j)
-        noisy = v + self.noise[j][:, None] * vertex_normals(v, self.rest.faces)
+        noisy = v + self.noise[j][:, None] * vertex_normals(v, self.rest.faces) + self.shift(j)
         return Surface(noisy, self.rest.faces, f"{self.subject}_{self.side}_dv{self.delta_ml[j]:g}")
 
     def landmarks(self, j: int | None) -> np.ndarray:
-        """``(m, 3) float`` mm: landmark positions at end-exhale (``j=None``) or at target j (noise-free)."""
-        v = self.rest.vertices if j is None else self.clean_vertices(j)
+        """``(m, 3) float`` mm: landmark positions at end-exhale (``j=None``) or at target j (noise-free,
+        table shift included)."""
+        v = self.rest.vertices if j is None else self.clean_vertices(j) + self.shift(j)
         return np.ascontiguousarray(v[self.landmark_index])
 
 
@@ -253,7 +269,7 @@ def _check_deltas(delta_ml) -> np.ndarray:
 def synthesize_lung(surface: Surface, side: str, constants, delta_ml: Sequence[float], *,
                     rng: np.random.Generator, noise_mm: float = 0.0, law: str = "exact",
                     landmarks: int = 0, subject: str = "synthetic", source: str = "",
-                    scale_factors=(1.0, 1.0, 1.0), seed: tuple = ()) -> SyntheticLung:
+                    scale_factors=(1.0, 1.0, 1.0), seed: tuple = (), table_shift_mm: float = 0.0) -> SyntheticLung:
     """Deform ``surface`` (end-exhale, mm LPS) by the model with ``constants`` to the volume changes
     ``delta_ml`` (mL above end-exhale, increasing), add normal noise, pick landmarks. See the module
     docstring for the steps."""
@@ -267,18 +283,22 @@ def synthesize_lung(surface: Surface, side: str, constants, delta_ml: Sequence[f
     for j in range(len(dv)):
         _, noise[j] = normal_noise(surface.vertices + s[j] * u, surface.faces, noise_mm, rng)
     idx = np.sort(rng.choice(surface.n_vertices, landmarks, replace=False)) if landmarks else np.zeros(0, int)
+    if not (np.isfinite(table_shift_mm) and table_shift_mm >= 0):
+        raise InputError(f"table_shift_mm must be a finite SD >= 0 mm, got {table_shift_mm!r}")
+    shifts = rng.normal(0.0, float(table_shift_mm), (len(dv), 3)) if table_shift_mm > 0 else None
     return SyntheticLung(subject, side, source, surface, c, u, float(dv[0]), dv, s, noise, float(noise_mm),
-                         np.asarray(scale_factors, float), idx.astype(np.int64), tuple(seed), law)
+                         np.asarray(scale_factors, float), idx.astype(np.int64), tuple(seed), law, shifts)
 
 
 def synthetic_cohort(n_subjects: int = 4, *, delta_ml: Sequence[float] = (300.0, 500.0), noise_mm: float = 0.0,
                      seed: int = 0, law: str = "exact", spread: float = 0.2, shape_spread: float = 0.1,
-                     landmarks: int = 50, sides: Sequence[str] = ("left", "right"),
+                     landmarks: int = 50, sides: Sequence[str] = ("left", "right"), table_shift_mm: float = 0.0,
                      progress: Callable[[str], None] | None = None) -> list[SyntheticLung]:
     """``n_subjects`` synthetic subjects, one :class:`SyntheticLung` per side.
 
     Shapes: :func:`subject_sources`, each scaled by factors drawn uniformly in
-    ``1 ± shape_spread`` per axis; constants: :func:`draw_constants` with ``spread``.
+    ``1 ± shape_spread`` per axis; constants: :func:`draw_constants` with ``spread``; table shifts
+    of the larger-volume scans: N(0, table_shift_mm²) per axis (0: none).
     """
     say = progress or (lambda _m: None)
     if int(n_subjects) != n_subjects or n_subjects < 1:
@@ -306,7 +326,7 @@ def synthetic_cohort(n_subjects: int = 4, *, delta_ml: Sequence[float] = (300.0,
             say(f"{subject} {side}: {src.name}, {shape.volume_ml:.0f} mL")
             lungs.append(synthesize_lung(shape, side, c, delta_ml, rng=rng, noise_mm=noise_mm, law=law,
                                          landmarks=landmarks, subject=subject, source=src.name,
-                                         scale_factors=factors, seed=key))
+                                         scale_factors=factors, seed=key, table_shift_mm=table_shift_mm))
     return lungs
 
 
@@ -332,6 +352,7 @@ def truth_record(lung: SyntheticLung, files: dict) -> dict:
         "law": lung.law,
         "noise_mm": lung.noise_mm,
         "noise_sd_measured_mm": [float(np.std(e)) for e in lung.noise],
+        "table_shifts_mm": None if lung.table_shifts is None else np.asarray(lung.table_shifts).tolist(),
         "displacement_rms_mm": float(np.sqrt(np.mean(np.sum((lung.scales[-1] * lung.displacement) ** 2, axis=1)))),
         "seed": list(lung.seed),
         "files": files,
@@ -402,7 +423,12 @@ def write_cohort(lungs: Sequence[SyntheticLung], out, *, seed: int | None = None
                   "stiffness, calibrated exactly at the first volume change). The end-exhale surface is "
                   "exact; larger-volume surfaces carry Gaussian noise along the vertex normal. "
                   "Landmarks are surface vertices at their true, noise-free positions. volumes_ml are "
-                  "the manifest's (nominal) volumes."),
+                  "the manifest's (nominal) volumes. The files are in one frame (larger-volume scans "
+                  "moved by table_shifts_mm where given): fit with `lungdeform cohort manifest.csv "
+                  "--align none` (no table shift) or `--align joint`; the default apex alignment "
+                  "assumes that the apex does not move, which the model contradicts."),
+        "cohort_command": ("lungdeform cohort manifest.csv --out OUT --align "
+                           + ("joint" if any(lung.table_shifts is not None for lung in lungs) else "none")),
         "sources": {k: {"side": v.side, "licence": v.licence, "attribution": v.attribution}
                     for k, v in SOURCES.items() if any(lung.source == k for lung in lungs)},
         "lungs": records,

@@ -107,13 +107,25 @@ def _read_lines(path: Path) -> list[str]:
     if not path.is_file():
         raise ReadError(f"{path}: no such file")
     raw = path.read_bytes()
+    if raw.startswith((b"\xff\xfe", b"\xfe\xff")):  # UTF-16 with a byte-order mark ("Unicode text" exports)
+        try:
+            raw = raw.decode("utf-16").encode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise ReadError(f"{path}: starts with a UTF-16 byte-order mark but is not UTF-16 text ({exc.reason})") from None
     if not raw.strip():
         raise ReadError(f"{path}: file is empty")
+    if b"\x00" in raw:
+        raise ReadError(f"{path}: binary file (NUL bytes), not a text trace")
     try:
         text = raw.decode("utf-8-sig")
     except UnicodeDecodeError:
         text = raw.decode("latin-1")
     return text.splitlines()
+
+
+def _is_truncated_last(lines: list[str], i: int) -> bool:
+    """True when line ``i`` is the last non-blank line of the data (a recording cut mid-row)."""
+    return not any(ln.strip() for ln in lines[i + 1:])
 
 
 def _number(text: str, path: Path, line: int, column: str, decimal_comma: bool) -> float:
@@ -151,7 +163,7 @@ def read_vxp(path, repair: bool = True, max_fix_fraction: float = 0.01, orient: 
             raise ReadError(f"{p}: Data_layout lacks '{need}' (got {','.join(layout)})")
     ia, it = layout.index("amplitude"), layout.index("timestamp")
     im = layout.index("mark") if "mark" in layout else None
-    rows_t, rows_a, rows_m, line_no = [], [], [], []
+    rows_t, rows_a, rows_m, line_no, vxp_fixes = [], [], [], [], []
     for i in range(data_at + 1, len(lines)):
         s = lines[i].strip()
         if not s:
@@ -160,6 +172,9 @@ def read_vxp(path, repair: bool = True, max_fix_fraction: float = 0.01, orient: 
             break
         parts = s.split(",")
         if len(parts) < max(ia, it) + 1:
+            if repair and rows_t and _is_truncated_last(lines, i):
+                vxp_fixes.append(f"dropped the truncated last row (line {i + 1}: {len(parts)} of {len(layout)} fields)")
+                break
             raise ReadError(f"{p}, line {i + 1}: expected {len(layout)} comma-separated fields "
                             f"({','.join(layout)}), got {len(parts)}")
         rows_a.append(_number(parts[ia], p, i + 1, "amplitude", False))
@@ -170,7 +185,7 @@ def read_vxp(path, repair: bool = True, max_fix_fraction: float = 0.01, orient: 
         raise ReadError(f"{p}: [Data] section holds no rows")
     t_ms = np.array(rows_t)
     tr = _finish(p, t_ms / 1000.0, np.array(rows_a), np.array(rows_m, dtype="<U1"), np.array(line_no),
-                 "cm", repair, max_fix_fraction, positions=None)
+                 "cm", repair, max_fix_fraction, positions=None, fixes=vxp_fixes)
     return orient_inhale_positive(tr) if orient else tr
 
 
@@ -186,7 +201,10 @@ def read_marker_csv(path, repair: bool = True, max_fix_fraction: float = 0.01, o
     :func:`principal_motion`)."""
     p = Path(path)
     lines = [ln for ln in _read_lines(p)]
-    first = next((i for i, ln in enumerate(lines) if ln.strip()), None)
+    # the header is the first line that is neither blank nor a '#' / '//' comment (exporter preamble)
+    first = next((i for i, ln in enumerate(lines) if ln.strip() and not ln.lstrip().startswith(("#", "//"))), None)
+    if first is None:
+        raise ReadError(f"{p}: only comments, no header 'Frame;Timestamp(ms);x;y;z'")
     head = lines[first].strip()
     sep = ";" if ";" in head else ("\t" if "\t" in head else ",")
     decimal_comma = sep != ","
@@ -206,13 +224,16 @@ def read_marker_csv(path, repair: bool = True, max_fix_fraction: float = 0.01, o
         unit_ms = True
     elif "(s)" in hl or "[s]" in hl:
         unit_ms = False
-    rows, line_no = [], []
+    rows, line_no, trunc_fix = [], [], None
     for i in range(first + 1, len(lines)):
         s = lines[i].strip()
         if not s:
             continue
         parts = s.split(sep)
         if len(parts) < len(names):
+            if repair and rows and _is_truncated_last(lines, i):
+                trunc_fix = f"dropped the truncated last row (line {i + 1}: {len(parts)} of {len(names)} fields)"
+                break
             raise ReadError(f"{p}, line {i + 1}: expected {len(names)} '{sep}'-separated fields, got {len(parts)}")
         rows.append([_number(parts[cols[k]], p, i + 1, k, decimal_comma) for k in ("timestamp", "x", "y", "z")])
         line_no.append(i + 1)
@@ -220,7 +241,7 @@ def read_marker_csv(path, repair: bool = True, max_fix_fraction: float = 0.01, o
         raise ReadError(f"{p}: no data rows after the header")
     arr = np.array(rows)
     line_no = np.array(line_no)
-    fixes = []
+    fixes = [trunc_fix] if trunc_fix else []
     if np.all(arr[-1] == 0) and "frame" in cols:
         fixes.append(f"dropped the 0;0;0;0;0 terminator row (line {line_no[-1]})")
         arr, line_no = arr[:-1], line_no[:-1]
@@ -229,6 +250,8 @@ def read_marker_csv(path, repair: bool = True, max_fix_fraction: float = 0.01, o
         arr, line_no = arr[:-1], line_no[:-1]
     if arr.shape[0] == 0:
         raise ReadError(f"{p}: no data rows besides the terminator")
+    if arr.shape[0] < 3:
+        raise ReadError(f"{p}: only {arr.shape[0]} data row(s): too few for a breathing trace")
     if unit_ms is None:  # a bare "time" column: a breathing trace is never sampled slower than 1 Hz
         dt = np.nanmedian(np.diff(arr[:, 0])) if arr.shape[0] > 1 else 0.0
         unit_ms = bool(dt >= 1.0)

@@ -16,6 +16,8 @@ def test_synth_cohort_writes_manifest_and_truth(tmp_path, capsys):
     assert rc == 0
     text = capsys.readouterr().out
     assert str(out / "manifest.csv") in text and str(out / "truth.json") in text
+    # the files are in one frame: the hint names the alignment that keeps them there
+    assert "--align none" in text
     with open(out / "manifest.csv") as fh:
         rows = list(csv.DictReader(fh))
     assert [(r["subject"], r["side"]) for r in rows] == [("synth000", "left")] * 3 + [("synth000", "right")] * 3

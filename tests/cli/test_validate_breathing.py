@@ -77,3 +77,49 @@ def test_validate_breathing_real_traces(data_dir, tmp_path):
                       "PT01_PT09-2_13112021.vxp"}
     for name, r in m["traces"].items():
         assert 0 < r["model_rms_percent"] < 50, name
+
+
+def test_validate_breathing_finds_variants_recursively(tmp_path, rng, capsys):
+    """Traces under sub-folders, upper-case extensions, a repeated file name, a VXP 1.7 without
+    marks, a BOM/dot-decimal CSV, plus files that must each be skipped with one line."""
+    from tests.test_trace import breath, write_vxp
+
+    data = tmp_path / "data"
+    (data / "rpm" / "s1").mkdir(parents=True)
+    (data / "rpm" / "s2").mkdir(parents=True)
+    (data / "markers").mkdir()
+    t = np.arange(0, 64, 0.04)
+    for k, sub in enumerate(("s1", "s2")):  # same name, two sessions
+        f = write_vxp(data / "rpm" / sub / "PT.VXP", 5e4 + t * 1000, 0.4 * breath(t, 4.0 + 0.3 * k) +
+                      rng.normal(0, 0.002, t.size), [""] * t.size)
+        f.write_text(f.read_text().replace("Version=1.6", "Version=1.7\nNew_key=x"))
+    m1 = _synthetic_trace(data / "markers" / "201205101541-ABC-1-Q-64-6.CSV", rng)
+    m1.write_bytes(b"\xef\xbb\xbf" + m1.read_text().replace(",", ".").encode())
+    (data / "markers" / "._201205101541-ABC-1-Q-64-6.CSV").write_bytes(b"\x00\x05\x16\x07Mac OS X")  # resource fork
+    (data / "markers" / "empty.csv").write_text("")
+    (data / "markers" / "header_only.csv").write_text('"Frame";"Timestamp";"x";"y";"z"\n')
+    _synthetic_trace(data / "markers" / "one_breath.csv", rng, seconds=5.0)
+    out = tmp_path / "out"
+    assert main(["validate", "breathing", "--data", str(data), "--out", str(out)]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    # truth: the three good traces are all scored, the repeated name kept apart by its folder
+    assert set(m["traces"]) == {"rpm/s1/PT.VXP", "rpm/s2/PT.VXP", "201205101541-ABC-1-Q-64-6.CSV"}
+    assert set(m["errors"]) == {"empty.csv", "header_only.csv", "one_breath.csv"}
+    assert "file is empty" in m["errors"]["empty.csv"]
+    assert "no complete breathing cycle" in m["errors"]["one_breath.csv"]
+    for r in m["traces"].values():
+        assert r["model_rms_percent"] < 5.0  # regular synthetic breaths: every trace fits well
+    err = capsys.readouterr().err
+    skipped = [ln for ln in err.splitlines() if ln.startswith("skipped ")]
+    assert len(skipped) == 3 and all(n in err for n in ("empty.csv", "header_only.csv", "one_breath.csv"))
+
+
+def test_validate_breathing_nothing_usable_is_one_line(tmp_path, capsys):
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "empty.VXP").write_text("")
+    (data / "header.csv").write_text("Frame;Timestamp;x;y;z\r\n0;0;0;0;0\r\n")
+    assert main(["validate", "breathing", "--data", str(data), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: ") and "no trace could be scored (2 failed" in err[0]
+    assert not (tmp_path / "o" / "metrics.json").exists()

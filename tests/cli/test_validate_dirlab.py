@@ -73,3 +73,62 @@ def test_real_dirlab(data_dir, tmp_path, run):
     for case, c in m["cases"].items():
         assert c["mean_displacement_300_mm"] == pytest.approx(published[case], abs=0.01)
         assert c["one_scalar_mean_mm"] < c["no_motion_mean_mm"]
+
+
+@pytest.mark.realdata
+def test_real_cases_in_archive_layouts_run_with_notes(data_dir, tmp_path, run, capsys):
+    """Real cases 1–5 copied (in tmp_path only) into the names/layouts of the archive's cases 6–10."""
+    from tests.test_dirlab import make_real_variant_layout
+
+    root = tmp_path / "data"
+    make_real_variant_layout(require_path(data_dir, "dirlab-4dct-landmarks"), root)
+    # case 1 again, relabelled as case 6 (published spacing 0.97 mm, as case 1): its mean must be
+    # reported against case 6's published 10.89 mm, as a note, not an error
+    for p in sorted((root / "Case1Pack").rglob("*.txt")):
+        dst = root / "Case6Pack" / p.parent.name / p.name.replace("case1_", "case6_")
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        dst.write_bytes(p.read_bytes())
+    out = tmp_path / "out"
+    assert run(["validate", "dirlab", "--data", str(root), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    m = json.loads((out / "metrics.json").read_text())
+    assert sorted(m["cases"], key=int) == ["1", "2", "3", "4", "5", "6"]
+    for case, pub in {"1": 3.89, "2": 4.34, "3": 6.94, "4": 9.83}.items():
+        assert m["cases"][case]["mean_displacement_300_mm"] == pytest.approx(pub, abs=0.01)
+    assert m["cases"]["4"]["best_model"] is None  # 300 pairs only: models skipped, case kept
+    assert m["cases"]["5"]["mean_displacement_300_mm"] is None and m["cases"]["5"]["best_model"]
+    assert m["cases"]["6"]["published_300_mm"] == 10.89
+    notes = "\n".join(m["notes"])
+    assert "case 4: no 75-point files" in notes and "case 5: no 300-pair files" in notes
+    assert "case5_4D-75_T60.txt" in notes
+    assert "case 6: 300-pair mean 3.89 mm differs from the published 10.89 mm" in notes
+    assert "note: case 4: no 75-point files" in text and "motion models skipped" in text
+
+
+@pytest.mark.realdata
+@pytest.mark.parametrize(
+    "mutate, pattern",
+    [
+        (lambda r: (r / "Case2Deploy/ExtremePhases/CASE2_DIRLAB300_T50_XYZ.TXT").unlink(),
+         r"case 2: 300-pair file for T50 missing beside .*CASE2_DIRLAB300_T00_XYZ\.TXT"),
+        (lambda r: (r / "Case1Pack/Sampled4D/case1_4D-75_T30.txt").unlink(),
+         r"case 1: 75-point files missing phase\(s\) T30 beside .*case1_4D-75_T"),
+        (lambda r: (r / "voxel_spacing.csv").write_text(
+            "case,spacing_x_mm,spacing_y_mm,spacing_z_mm\n1,0.97,0.97,2.5\n2,1.16,1.16,2.5\n"),
+         r"case 3: no row in .*voxel_spacing\.csv for its landmark files \(e\.g\. .*case3_.*\.txt\)"),
+        (lambda r: (r / "Case3Pack/Sampled4D/case3_4D-75_T20.txt").write_text("12 13 14\nx 1 2\n"),
+         r"case3_4D-75_T20\.txt, line 2: not a number"),
+    ],
+)
+def test_real_variant_layout_errors_are_one_line(data_dir, tmp_path, run, capsys, mutate, pattern):
+    import re
+
+    from tests.test_dirlab import make_real_variant_layout
+
+    root = tmp_path / "data"
+    make_real_variant_layout(require_path(data_dir, "dirlab-4dct-landmarks"), root)
+    mutate(root)
+    assert run(["validate", "dirlab", "--data", str(root), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("error: ") and re.search(pattern, err), err
+    assert not (tmp_path / "out" / "metrics.json").exists()

@@ -129,6 +129,12 @@ def register(apps) -> None:
         evaluations: int = typer.Option(300, "--evaluations", help="Optimiser budget per fit (objective evaluations)."),
         baselines: bool = typer.Option(True, "--baselines/--no-baselines", help="Measure the baselines too."),
         processes: bool = typer.Option(True, "--processes/--threads", help="Local workers as processes, or threads in this process (debugging)."),
+        align: str = typer.Option("apex", "--align", help="apex: rigid alignment on the apex cap (scans with a table shift); "
+                                  "joint: a translation per target fitted with the constants; none: inputs already in one "
+                                  "frame (a synthetic cohort from synth-cohort: use none or joint)."),
+        landmark_fit: bool = typer.Option(True, "--landmark-fit/--no-landmark-fit",
+                                          help="With landmarks: landmark-informed fit with k-fold cross-validation (slower)."),
+        folds: int = typer.Option(5, "--folds", help="Folds of the landmark cross-validation."),
     ) -> None:
         """Fit every lung of a cohort in parallel on Dask; resumable (finished subjects are skipped).
 
@@ -139,7 +145,12 @@ def register(apps) -> None:
         from lungdeform.manifest import read_manifest
 
         m = read_manifest(manifest)  # every problem reported before any work starts (exit 2)
-        options = FitOptions(max_evaluations=evaluations, baselines=baselines)
+        options = FitOptions(max_evaluations=evaluations, baselines=baselines, align=align,
+                             landmark_fit=landmark_fit, folds=folds)
+        if align == "apex" and (Path(manifest).parent / "truth.json").is_file():
+            typer.echo("note: this manifest's folder holds a synthetic truth.json: its surfaces are already in one "
+                       "frame, and the apex alignment shifts them (the model moves the apex); use --align none "
+                       "(or joint) to measure recovery")
         for note in m.notes[:MAX_NOTES]:
             typer.echo(f"note: {note}")
         if len(m.notes) > MAX_NOTES:

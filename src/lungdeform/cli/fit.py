@@ -7,12 +7,19 @@ The pipeline (:func:`run_fit`, also used by ``lungdeform validate itk-pair``):
    border faces the mask touches (crop faces) and check that all images share one voxel spacing;
 2. check the inputs: one side, volumes strictly increasing, landmarks inside their images;
 3. the first input is end-exhale; its surface is decimated to the model mesh (a few thousand
-   vertices); every other surface is rigidly aligned onto it (:func:`lungdeform.align.align_apex`)
-   and refused if the aligned surfaces do not overlap;
+   vertices); every other surface is brought into its frame (``align``, :data:`ALIGN_MODES`):
+   ``"apex"`` rigidly aligns it on the apex cap and a posterior band
+   (:func:`lungdeform.align.align_apex`; scans with a table shift), ``"none"`` takes it as it is
+   (inputs already in one frame, e.g. a synthetic cohort), ``"joint"`` starts from the apex
+   alignment and fits a translation per target jointly with the model constants (step 4), which
+   removes a table shift without assuming that the apex and the posterior band do not move; the
+   surfaces are refused if they do not overlap;
 4. fit (:func:`lungdeform.fit.fit_lung`), optimiser and optionally the grid mode, and the
    baselines (:mod:`lungdeform.baselines`), all measured with the same metrics, crop faces left out;
    with landmarks, also the landmark-informed fit and references, scored on held-out landmarks
-   (k-fold, :func:`lungdeform.fit.cross_validate_landmarks`), which becomes the headline ``model``;
+   (k-fold, :func:`lungdeform.crossval.cross_validate_landmarks`), which becomes the headline
+   ``model``; with ``"joint"`` the translations of the surface-only fit move the targets (and their
+   landmarks) before everything after it;
 5. write ``model.npz`` (docs/MODEL_FORMAT.md), ``metrics.json`` and ``report.html``.
 """
 
@@ -24,6 +31,9 @@ from pathlib import Path
 
 import numpy as np
 import typer
+
+#: Ways of bringing the larger-volume inputs into the end-exhale frame (see the module docstring).
+ALIGN_MODES = ("apex", "joint", "none")
 
 #: Model-mesh sizes tried in turn (mesh decimation can fail on a given budget; the next is tried).
 MODEL_MESH_BUDGETS = (3000, 3200, 2800, 3500, 4000, 2500, 5000)
@@ -93,7 +103,7 @@ def check_landmarks(points, image, path, margin_mm: float = 0.0) -> None:
 def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid: bool = False,
             stiffness: bool = False, baselines: bool = True, max_evaluations: int = 300,
             command: str = "fit", progress=None, landmark_fit: bool = True, folds: int = 5,
-            landmark_weight: float = 1.0) -> dict:
+            landmark_weight: float = 1.0, align: str = "apex", mode: str = "optimizer") -> dict:
     """Run the whole pipeline; write model.npz, metrics.json and report.html in ``out``; return
     the metrics dictionary.
 
@@ -103,13 +113,18 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
     measured on landmarks held out from the fit (``folds``-fold); the surface-only fit is reported as
     ``model_surface_only``, and the landmark-informed references ``affine_landmarks`` and
     ``landmarks_tps`` are scored on the same folds. ``metrics["protocols"]`` says, per method, what
-    it saw and how its landmark error was measured."""
+    it saw and how its landmark error was measured.
+
+    ``align``: one of :data:`ALIGN_MODES` (module docstring, step 3); ``metrics["alignment"][i]
+    ["applied"]`` is the rigid transform (moving → end-exhale) the fitted target went through.
+    ``mode``: the search mode of the fits (:data:`lungdeform.fit.MODES`, ``"grid"`` excepted)."""
     from lungdeform import baselines as B
-    from lungdeform.align import align_apex, align_landmarks, near_planes
+    from lungdeform.align import RigidTransform, align_apex, align_landmarks, near_planes
+    from lungdeform.crossval import cross_validate_landmarks, landmark_folds
     from lungdeform.cli.common import provenance
     from lungdeform.distance import SurfaceDistance
     from lungdeform.errors import InputError
-    from lungdeform.fit import Target, cross_validate_landmarks, fit_lung, landmark_folds, to_lung_model
+    from lungdeform.fit import MODES, Target, fit_lung, to_lung_model
     from lungdeform.frame import SIDES
     from lungdeform.atomic import write_bytes
     from lungdeform.landmarks import read_elastix_points
@@ -121,6 +136,12 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
     t_start = time.perf_counter()
     if side not in SIDES:
         raise InputError(f"--side must be 'left' or 'right', got {side!r}")
+    if align not in ALIGN_MODES:
+        raise InputError(f"--align must be one of {', '.join(ALIGN_MODES)}, got {align!r}")
+    if mode not in MODES or mode == "grid":
+        raise InputError(f"mode must be one of {', '.join(m for m in MODES if m != 'grid')}, got {mode!r}")
+    if align == "joint" and mode not in ("optimizer", "least_squares"):
+        raise InputError(f"--align joint needs the least-squares optimiser, not mode {mode!r}")
     if len(inputs) < 2:
         raise InputError(f"fit needs inputs at two or more volumes (end-exhale first), got {len(inputs)}")
     read = []
@@ -170,34 +191,55 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
     crop_all = list(fixed_planes)  # every crop face, in the end-exhale frame
     for i in range(1, len(surfaces)):
         moving, planes_m = surfaces[i], read[i][1]
-        al = align_apex(fixed_dense, moving, exclude_moving=near_planes(moving.vertices, planes_m),
-                        exclude_fixed=near_planes(fixed_dense.vertices, fixed_planes))
-        aligned = al.transform.apply_surface(moving)
+        if align == "none":
+            xf = RigidTransform.identity()
+        else:
+            al = align_apex(fixed_dense, moving, exclude_moving=near_planes(moving.vertices, planes_m),
+                            exclude_fixed=near_planes(fixed_dense.vertices, fixed_planes))
+            xf = al.transform
+        aligned = xf.apply_surface(moving)
         lo = np.maximum(fixed_dense.bounds[0], aligned.bounds[0])
         hi = np.minimum(fixed_dense.bounds[1], aligned.bounds[1])
         overlap = np.prod(np.clip(hi - lo, 0, None)) / np.prod(np.ptp(fixed_dense.vertices, axis=0))
         if overlap < 0.5:
             raise InputError(f"{inputs[i]}: after alignment its bounding box overlaps only {overlap:.0%} of the "
                              f"end-exhale lung's; the volumes do not overlap (different subject or wrong side?)")
-        planes = fixed_planes + [p.transformed(al.transform) for p in planes_m]
+        planes = fixed_planes + [p.transformed(xf) for p in planes_m]
         crop_all += planes[len(fixed_planes):]
         targets.append(Target(aligned, vols[i], ~near_planes(aligned.vertices, planes), Path(inputs[i]).name))
-        info = {"target": Path(inputs[i]).name, "apex": al.as_dict(), "crop_planes": len(planes)}
+        info = {"target": Path(inputs[i]).name, "method": align, "applied": xf.as_dict(), "crop_planes": len(planes)}
+        if align != "none":
+            info["apex"] = al.as_dict()
         if lms is not None:
             lal = align_landmarks(lms[0], lms[i])
             info["landmarks_rigid_for_comparison"] = lal.as_dict()
             # the two rigid parts compared where it matters (a rotation about the far-away world
             # origin makes the translations themselves incomparable): at the moving lung's centroid
             c = moving.vertices.mean(axis=0)[None]
-            info["landmarks_minus_apex_at_lung_centroid_mm"] = (lal.transform.apply(c) - al.transform.apply(c))[0].tolist()
-            aligned_lms.append(al.transform.apply(lms[i]))
+            info["landmarks_minus_apex_at_lung_centroid_mm"] = (lal.transform.apply(c) - xf.apply(c))[0].tolist()
+            aligned_lms.append(xf.apply(lms[i]))
         alignments.append(info)
-        say(f"aligned {inputs[i]}: translation {np.round(al.transform.translation, 2).tolist()} mm")
+        say(f"aligned {inputs[i]} ({align}): translation {np.round(xf.translation, 2).tolist()} mm")
     keep = ~near_planes(rest.vertices, crop_all)  # model vertices near any crop face are not measured
 
     say(f"fitting ({len(targets)} target(s), model mesh {rest.n_vertices} vertices)")
-    fit_opt = fit_lung(rest, side, targets, mode="optimizer", keep=keep, fit_stiffness=stiffness,
-                       max_evaluations=max_evaluations, progress=say)
+    fit_opt = fit_lung(rest, side, targets, mode=mode, keep=keep, fit_stiffness=stiffness,
+                       max_evaluations=max_evaluations, translate=align == "joint", progress=say)
+    if align == "joint":  # move every target (and its landmarks, crop faces) by its fitted translation
+        crop_all = list(fixed_planes)
+        for ti, (tg, t) in enumerate(zip(targets, fit_opt.translations)):
+            shift = RigidTransform(np.eye(3), np.asarray(t, float))
+            total = shift.compose(RigidTransform(np.asarray(alignments[ti]["applied"]["matrix"])[:3, :3],
+                                                 np.asarray(alignments[ti]["applied"]["matrix"])[:3, 3]))
+            moved = shift.apply_surface(tg.surface)
+            planes = [p.transformed(total) for p in read[ti + 1][1]]
+            crop_all += planes
+            targets[ti] = Target(moved, tg.volume_ml, ~near_planes(moved.vertices, fixed_planes + planes), tg.name)
+            if lms is not None:
+                aligned_lms[ti] = shift.apply(aligned_lms[ti])
+            alignments[ti].update(applied=total.as_dict(), joint_translation_mm=[float(x) for x in t])
+            say(f"joint alignment of {tg.name}: translation {np.round(t, 2).tolist()} mm on top of the apex alignment")
+        keep = ~near_planes(rest.vertices, crop_all)
     fits = {"optimizer": fit_opt}
     if grid:
         fits["grid"] = fit_lung(rest, side, targets, mode="grid", keep=keep, grid_span=0.1, progress=say)
@@ -208,13 +250,14 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
         lm_folds = landmark_folds(len(lms[0]), folds)
         say(f"landmark-informed fit ({folds}-fold cross-validation over {len(lms[0])} landmarks)")
         cv = cross_validate_landmarks(rest, side, targets, lms[0], lm_targets, folds=lm_folds, keep=keep,
-                                      initial=fit_opt.constants[:6], max_evaluations=max(100, max_evaluations * 2 // 3),
+                                      initial=fit_opt.constants, mode=mode,
+                                      max_evaluations=max(100, max_evaluations * 2 // 3),
                                       landmark_weight=landmark_weight, progress=say)
         fits["landmarks"] = cv.final
         if stiffness:
             say("landmark-informed fit with a stiffness field (cross-validated)")
             cv_stiff = cross_validate_landmarks(rest, side, targets, lms[0], lm_targets, folds=lm_folds, keep=keep,
-                                                initial=fit_opt.constants[:6], fit_stiffness=True,
+                                                initial=fit_opt.constants, fit_stiffness=True, mode=mode,
                                                 max_evaluations=max(100, max_evaluations * 2 // 3),
                                                 landmark_weight=landmark_weight, progress=say)
     headline = cv.final if use_lm else fit_opt
@@ -340,6 +383,9 @@ def register(apps) -> None:
         landmark_fit: bool = typer.Option(True, "--landmark-fit/--no-landmark-fit",
                                           help="With --landmarks: fit on surfaces + landmarks, landmark errors held out (k-fold)."),
         folds: int = typer.Option(5, "--folds", help="Folds of the landmark cross-validation."),
+        align: str = typer.Option("apex", "--align", help="apex: rigid alignment on the apex cap (scans with a table shift); "
+                                  "joint: a translation per target fitted with the constants, started from apex; "
+                                  "none: inputs already in one frame (e.g. synthetic)."),
     ) -> None:
         """Fit c1…c9 of one lung to two or more volumes; write the model, metrics and an HTML report."""
         from lungdeform.cli.common import output_dir, say
@@ -354,7 +400,7 @@ def register(apps) -> None:
         folder = output_dir(out)
         m = run_fit(list(inputs), side=side, out=folder, volumes=vols, landmarks=list(landmarks) if landmarks else None,
                     grid=grid, stiffness=stiffness, baselines=baselines, max_evaluations=evaluations, progress=say,
-                    landmark_fit=landmark_fit, folds=folds)
+                    landmark_fit=landmark_fit, folds=folds, align=align)
         _print_table(m)
         typer.echo(f"wrote {folder / 'model.npz'}, {folder / 'metrics.json'}, {folder / 'report.html'}")
 

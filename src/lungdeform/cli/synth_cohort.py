@@ -35,6 +35,7 @@ def register(apps) -> None:
         spread: float = typer.Option(0.2, "--spread", help="Log-normal SD of c1…c6 around Table I."),
         shape_spread: float = typer.Option(0.1, "--shape-spread", help="Anisotropic scale of each shape, uniform in 1 ± this, per axis."),
         landmarks: int = typer.Option(50, "--landmarks", help="Surface landmarks per lung at their true positions (0: none)."),
+        table_shift_mm: float = typer.Option(0.0, "--table-shift-mm", help="SD per axis of a known random translation of each larger-volume scan, mm (tests --align joint)."),
     ) -> None:
         """Generate a synthetic cohort with known constants, volumes and noise (truth.json)."""
         from lungdeform.cli.common import output_dir, say
@@ -44,7 +45,8 @@ def register(apps) -> None:
         if out.exists() and not out.is_dir():
             output_dir(out)  # refuses a file, naming it
         lungs = synthetic_cohort(subjects, delta_ml=deltas, noise_mm=noise_mm, seed=seed, law=law, spread=spread,
-                                 shape_spread=shape_spread, landmarks=landmarks, progress=say)
+                                 shape_spread=shape_spread, landmarks=landmarks, table_shift_mm=table_shift_mm,
+                                 progress=say)
         folder = output_dir(out)
         info = write_cohort(lungs, folder, seed=seed, progress=say)
         typer.echo(f"{'subject':<10} {'side':<6} {'source':<22} {'V_EE mL':>8}  c1…c9")
@@ -53,3 +55,6 @@ def register(apps) -> None:
             typer.echo(f"{lung.subject:<10} {lung.side:<6} {lung.source:<22} {lung.volume_ee_ml:8.1f}  {cs}")
         typer.echo(f"wrote {info['rows']} surfaces for {len(lungs)} lungs under {folder}")
         typer.echo(f"wrote {info['manifest']} and {info['truth']}")
+        how = "joint" if table_shift_mm > 0 else "none"
+        typer.echo(f"fit with: lungdeform cohort {info['manifest']} --out OUT --align {how} "
+                   f"(the files are in one frame{'' if how == 'none' else ' up to the table shifts'})")

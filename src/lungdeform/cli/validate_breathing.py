@@ -26,7 +26,9 @@ from .common import say
 
 
 def find_traces(data: Path) -> list[Path]:
-    files = [p for p in Path(data).rglob("*") if p.is_file() and p.suffix.lower() in (".vxp", ".csv")]
+    # by extension, case-insensitively; hidden files (e.g. macOS '._name.csv' resource forks) skipped
+    files = [p for p in Path(data).rglob("*") if p.is_file() and p.suffix.lower() in (".vxp", ".csv")
+             and not p.name.startswith(".")]
     return sorted(files, key=lambda p: str(p))
 
 
@@ -47,16 +49,19 @@ def validate_breathing(data: Path, out: Path, tidal_volume_ml: float = 500.0, tr
     if not files:
         raise InputError(f"--data {data}: no .vxp or .csv trace found")
     traces, errors = {}, {}
+    names = [f.name for f in files]
     for f in files:
+        # keyed by file name; by the path under --data when two sub-folders hold the same name
+        key = f.name if names.count(f.name) == 1 else f.relative_to(data).as_posix()
         if progress:
-            progress(f"fitting {f.name}")
+            progress(f"fitting {key}")
         try:
             res = evaluate(read_trace(f), tidal_volume_ml=tidal_volume_ml, train_fraction=train_fraction)
         except LungdeformError as exc:
-            errors[f.name] = " ".join(str(exc).split())
+            errors[key] = " ".join(str(exc).split())
             continue
         res.pop("_curves")
-        traces[f.name] = res
+        traces[key] = res
     if not traces:
         raise InputError(f"--data {data}: no trace could be scored ({len(errors)} failed; first: "
                          f"{next(iter(errors.items()))[1]})")

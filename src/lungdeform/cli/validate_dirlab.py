@@ -43,7 +43,7 @@ def register(apps) -> None:
             disp = "-" if r.mean_displacement_300_mm is None else f"{r.mean_displacement_300_mm:.2f}"
             pub = "-" if r.published_300_mm is None else f"{r.published_300_mm:.2f}"
             if r.best_model is None:
-                typer.echo(f"{r.case:>4} {disp:>8} {pub:>6}   (no 75-point phase files: motion models not evaluated)")
+                typer.echo(f"{r.case:>4} {disp:>8} {pub:>6}   (no 75-point phase files: motion models skipped)")
                 continue
             typer.echo(
                 f"{r.case:>4} {disp:>8} {pub:>6} {r.no_motion_mean_mm:>6.2f} {r.one_scalar_mean_mm:>6.2f} "
@@ -51,12 +51,21 @@ def register(apps) -> None:
                 + " ".join(f"{r.heldout_mean_mm[m]:>9.3f}" for m in names)
                 + f" | {r.best_model} ({r.best_model_heldout_mean_mm:.3f})"
             )
+        notes = [n for f in cases.values() for n in f.notes]
+        for r in results:
+            if r.mean_displacement_300_mm is not None and r.published_300_mm is not None and \
+                    abs(r.mean_displacement_300_mm - r.published_300_mm) > 0.05:
+                notes.append(f"case {r.case}: 300-pair mean {r.mean_displacement_300_mm:.2f} mm differs from the "
+                             f"published {r.published_300_mm:.2f} mm: check its voxel_spacing.csv row")
+        for n in notes:
+            typer.echo(f"note: {n}")
         typer.echo(f"magnitude set by one scalar per phase: {summary['magnitude_one_scalar']}")
         typer.echo(f"direction constant: {summary['direction_constant']}")
 
         metrics = {
             "cases": {str(r.case): r.to_dict() for r in results},
             "hypotheses": summary,
+            "notes": notes,
             "conventions": {
                 "frame": "mm = (1-based voxel index - 1) * spacing (voxel_spacing.csv), index-aligned, not LPS",
                 "phases": "T00 end-inhale, T50 end-exhale; T10-T40 on the exhale branch (no inhale samples)",
