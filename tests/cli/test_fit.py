@@ -163,3 +163,25 @@ def test_align_none_and_joint_against_a_known_translation(tmp_path, pair, capsys
     capsys.readouterr()
     assert main(["fit", str(a), str(c), "--out", str(tmp_path / "bad"), "--align", "sideways", *common]) == 2
     assert "--align" in _one_error_line(capsys)
+
+
+def test_read_input_takes_the_requested_side_of_a_lobe_map(tmp_path):
+    # A lobe label map (coronacases convention: 1-2 left, 3-5 right) holds both lungs; the larger
+    # right lung used to win for --side left. Truth: the side's lobe voxels lie at LPS x > 0 (left)
+    # or x < 0 (right), and its surface volume matches their voxel count.
+    import SimpleITK as sitk
+
+    from lungdeform.cli.fit import read_input
+    from tests.test_mask import _lobe_map
+
+    a = _lobe_map()
+    sp = (2.0, 2.0, 2.5)
+    img = sitk.GetImageFromArray(a)
+    img.SetSpacing(sp)
+    img.SetOrigin((-96.0, -64.0, -60.0))
+    path = tmp_path / "lobes.nii.gz"
+    sitk.WriteImage(img, str(path))
+    for side, labels, sign in (("left", (1, 2), 1.0), ("right", (3, 4, 5), -1.0)):
+        surface = read_input(path, side)[0]
+        assert sign * surface.vertices[:, 0].mean() > 0
+        assert surface.volume == pytest.approx(np.isin(a, labels).sum() * np.prod(sp), rel=0.06)

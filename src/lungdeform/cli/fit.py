@@ -61,6 +61,8 @@ def read_input(path: Path, side: str, *, progress=None):
         seg = segment_lungs(image, progress=progress)
         image = M.Image(getattr(seg, side).astype(np.uint8), image.spacing, image.origin, image.direction,
                         f"{image.source} ({side} lung)")
+    else:  # a lobe label map holds both lungs: keep this side's lobes (binary masks pass unchanged)
+        image = M.side_mask(image, side)
     surface = M.extract_surface(image, name=path.name).surface
     return surface, crop_planes(image), np.asarray(image.spacing, float), image
 
