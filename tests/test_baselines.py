@@ -52,7 +52,7 @@ def test_affine_with_landmarks_moves_toward_them():
     # the surfaces say "scale by a"; the landmarks say "translate by 3 mm in z": with no landmark
     # weight the surface affine comes back, with an overwhelming weight the landmarks' own affine
     from lungdeform.baselines import affine_landmarks_cv
-    from lungdeform.fit import landmark_folds
+    from lungdeform.crossval import landmark_folds
 
     s = ellipsoid_lung("right", 3)
     c = s.vertices.mean(0)
@@ -74,7 +74,7 @@ def test_landmark_tps_cv_held_out():
     # an affine landmark motion is reproduced exactly by the spline of the other folds (truth);
     # a landmark whose own target is wrong does not help predict itself
     from lungdeform.baselines import landmark_tps_cv
-    from lungdeform.fit import landmark_folds
+    from lungdeform.crossval import landmark_folds
 
     s = ellipsoid_lung("left", 2)
     rng = np.random.default_rng(5)

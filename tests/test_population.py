@@ -170,12 +170,27 @@ def test_recovery_against_fabricated_fits(synthetic, tmp_path):
     s = write_population(recs, tmp_path, folder)
     rec = _strict(tmp_path / "recovery.json")
     assert rec["n_matched"] == 2 and rec["unmatched"] == [{"subject": "stranger", "side": "left"}]
+    # c1, c3, c5 by hand: against the truth rescaled by fitted c3 / true c3 (c3's error is then 0);
+    # the raw offsets are kept under constants_raw. The other constants are gauge-free: raw offsets
+    gauged = []
+    for lung, off in ((left, off_l), (right, off_r)):
+        true, fit = lung.constants, lung.constants + off
+        gauged.append(fit - np.where(np.isin(np.arange(9), [0, 2, 4]), true * fit[2] / true[2], true))
+    gauged = np.array(gauged)
+    assert gauged[:, 2] == pytest.approx(0.0, abs=1e-15)  # c3 is the gauge: 0 up to rounding
     for k, name in enumerate(CONSTANTS):
-        e = np.array([off_l[k], off_r[k]])
+        e = gauged[:, k]
         got = rec["constants"][name]
         assert got["mean_error"] == pytest.approx(e.mean(), abs=1e-12)
         assert got["max_abs_error"] == pytest.approx(np.abs(e).max(), abs=1e-12)
         assert got["sd_error"] == pytest.approx(e.std(ddof=1), abs=1e-12)
+        if k in (0, 2, 4):
+            raw = np.array([off_l[k], off_r[k]])
+            assert rec["constants_raw"][name]["mean_error"] == pytest.approx(raw.mean(), abs=1e-12)
+            assert rec["constants_raw"][name]["max_abs_error"] == pytest.approx(np.abs(raw).max(), abs=1e-12)
+        else:
+            assert e == pytest.approx([off_l[k], off_r[k]], abs=1e-12)
+    assert set(rec["constants_raw"]) == {"c1", "c3", "c5"} and "fitted c3 / true c3" in rec["notes"]
     # the scale-free ratio c1/c3 by hand
     true, fit = left.constants, left.constants + off_l
     assert rec["lungs"][0]["error"]["c1/c3"] == pytest.approx(fit[0] / fit[2] - true[0] / true[2])
@@ -198,7 +213,33 @@ def test_recovery_against_fabricated_fits(synthetic, tmp_path):
     with open(tmp_path / "recovery.csv") as fh:
         rows = {r["quantity"]: r for r in csv.DictReader(fh)}
     assert float(rows["c9"]["mean_error"]) == pytest.approx(0.02)
+    assert float(rows["c3"]["mean_error"]) == pytest.approx(0.0, abs=1e-12) and "fitted c3 / true c3" in rows["c3"]["note"]
+    assert float(rows["c3_raw"]["mean_error"]) == pytest.approx(0.01) and "raw" in rows["c3_raw"]["note"]
+    with open(tmp_path / "recovery_by_lung.csv") as fh:
+        by_lung = list(csv.DictReader(fh))
+    assert float(by_lung[0]["gauge_factor"]) == pytest.approx((left.constants[2] + off_l[2]) / left.constants[2])
     assert (tmp_path / "plots" / "recovery.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_recovery_common_factor_of_c1_c3_c5_is_no_error(synthetic, tmp_path):
+    # truth: directions are normalised, so c1, c3, c5 times any common factor is the same model.
+    # A fit that returns the truth's c1, c3, c5 times 1.7 (others exact) has zero gauge-corrected
+    # error for every constant and ratio, while its raw errors are the 0.7·true offsets
+    folder, lungs = synthetic
+    from lungdeform.synthetic import read_truth
+
+    truth = read_truth(folder / "truth.json")
+    scale = np.array([1.7, 1, 1.7, 1, 1.7, 1, 1, 1, 1])
+    recs = [record(lu.subject, lu.side, lu.constants * scale, volumes=lu.volumes_ml.tolist()) for lu in lungs]
+    rec = recovery(recs, truth)
+    assert rec["n_matched"] == 2
+    for name, got in rec["constants"].items():
+        assert got["n"] == 2 and got["max_abs_error"] == pytest.approx(0.0, abs=1e-12), name
+    assert [lu["gauge_factor"] for lu in rec["lungs"]] == pytest.approx([1.7, 1.7])
+    for name, k in (("c1", 0), ("c3", 2), ("c5", 4)):
+        raw = 0.7 * np.array([lu.constants[k] for lu in lungs])
+        assert rec["constants_raw"][name]["max_abs_error"] == pytest.approx(np.abs(raw).max(), rel=1e-12)
+        assert rec["constants_raw"][name]["max_abs_error"] > 0.0
 
 
 def test_recovery_missing_and_failed(synthetic):
@@ -224,6 +265,9 @@ def test_recovery_guards_zero_denominators(synthetic):
     c = [0.1, 0.3, 0.0, 0.5, 0.1, 2.0, 0.02, 1.0, 0.1]
     rec = recovery([record(lungs[0].subject, "left", c)], truth)
     assert np.isnan(rec["lungs"][0]["fitted"]["c1/c3"]) and rec["constants"]["c1/c3"]["n"] == 0
+    # a fitted c3 of 0 also leaves the gauge undefined: no gauge-corrected c1, c3, c5 error (raw kept)
+    assert np.isnan(rec["lungs"][0]["gauge_factor"]) and rec["constants"]["c1"]["n"] == 0
+    assert rec["constants_raw"]["c3"]["mean_error"] == pytest.approx(-0.4)
     assert rec["constants"]["c7"]["mean_error"] == pytest.approx(0.02)
     assert rec["constants"]["c7"]["mean_relative_error"] is None
 

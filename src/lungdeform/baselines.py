@@ -173,7 +173,7 @@ def landmark_tps_cv(surface: Surface, landmarks, landmarks_target, folds) -> tup
     """Reference without surfaces: the thin-plate spline through the landmark displacements.
 
     ``landmarks`` / ``landmarks_target : (m, 3)`` mm; ``folds``: index arrays (e.g.
-    :func:`lungdeform.fit.landmark_folds`). Returns ``(surface vertices moved by the spline of all
+    :func:`lungdeform.crossval.landmark_folds`). Returns ``(surface vertices moved by the spline of all
     landmarks (n, 3) mm, held-out predictions (m, 3) mm)``: each fold's landmarks are predicted by
     the spline through the other folds only.
     """

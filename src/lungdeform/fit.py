@@ -25,36 +25,14 @@ Pipeline for one candidate c1…c6 (:meth:`LungFitter.evaluate`):
    distance (:mod:`lungdeform.distance`).
 
 The objective is the RMS of that forward symmetric surface distance (area weighted) over the
-targets in ``fit_on``: the predicted surface, not ray agreement, is judged. Search modes:
-
-``"least_squares"`` (the default ``"optimizer"``): a trust-region least-squares solver
-(``scipy.optimize.least_squares``, finite differences) on the per-point residual vector whose sum
-of squares is the objective squared. Two findings on synthetic lungs made by the model itself
-(known truth) shape it: (a) directions are normalised, so c1, c3, c5 are defined only up to a
-common factor (a zero singular value): c3 is held at its start (Table I) and the ratios c1/c3,
-c5/c3 are what is determined; (b) c7…c9 fitted to ray magnitudes are biased (about a tenth of the
-rays hit another part of the target first, a quarter are dropped as grazing), so the truth is not
-the minimum of the objective with ray-fitted force constants: they are refined against the surface
-objective itself, started from the ray fit, the largest held at ±1 (the scale is fixed by the
-volume calibration). With ``translate=True`` a translation per target is fitted jointly (removes
-a table shift without assuming that any region of the lung stays put). On noise-free synthetic
-lungs this recovers the displacement to a few µm per vertex; Powell on the RMS stopped on its
-budget with errors of about a millimetre.
-
-``"powell"`` (the former optimiser): Powell over c1…c6 from Table I or a given start (c7…c9 from
-the rays at every candidate), in variables that map onto the bounds through a sine, so that every
-candidate is inside them; the best point evaluated is returned.
-
-``"grid"`` (the paper's grid with step 0.01, read as cyclic coordinate search on that grid over
-c1…c6, c7…c9 from the rays: each constant in turn is scanned over its range at step 0.01 with the
-others fixed, until a full cycle brings no improvement; a full 6-D grid at 0.01 would be 10¹²
-models).
+targets in ``fit_on``: the predicted surface, not ray agreement, is judged. Search modes
+(:mod:`lungdeform.search`): ``"least_squares"`` (the default ``"optimizer"``; c3 held as the gauge,
+c7…c9 refined against the surface, optionally a translation per target), ``"powell"`` and
+``"grid"`` (the paper's grid at step 0.01 as cyclic coordinate search).
 
 Optional beyond the paper (``fit_stiffness=True``): a heterogeneous per-vertex stiffness field, an
-inverse estimate of regional alveolar expandability (paper Sec. VI): ``E`` is adjusted so that
-the forward force of the fitted applied force reproduces the smoothed observed magnitudes, with
-``log E`` smoothed over the mesh and bounded (:data:`STIFFNESS_RANGE`); it is kept only when it
-lowers the fit objective. The model keeps its run-time form.
+inverse estimate of regional alveolar expandability (paper Sec. VI; :mod:`lungdeform.expandability`),
+kept only when it lowers the fit objective. The model keeps its run-time form.
 
 Landmark-informed fitting (optional; paper Sec. IV-B fitted its constants on corresponding points
 of 4-D CT): surfaces cannot see tangential sliding, so c1…c6 are weakly identified by the surface
@@ -76,7 +54,6 @@ from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
 import numpy as np
-from scipy import optimize, sparse
 
 from .constants import gravity_vector, table_constants
 from .correspond import RayCaster, RayHits, correspond
@@ -84,18 +61,19 @@ from .direction import directions as direction_field
 from .displacement import calibrate
 from .distance import SurfaceDistance, vertex_areas
 from .errors import ConvergenceError, InputError, LungdeformError
+from .expandability import fit_stiffness_if_better
 from .force import field_basis, height_weights
 from .frame import lung_frame
 from .graph import spring_graph
 from .interpolate import interpolation_weights
 from .mesh import Surface
 from .model import LungModel
+from .search import grid_search, least_squares_search, powell_search
 from .solve import ForceSolver
 from .stiffness import as_moduli, uniform
 from .transfer import local_transfer, split_transfer
 
 # re-exported for callers of the former location (tests/test_baselines.py); the protocol lives in crossval
-from .crossval import landmark_folds  # noqa: F401
 
 #: Bounds of c1…c6 searched (scales c1, c3, c5; exponents c2, c4, c6).
 DIRECTION_BOUNDS = ((0.01, 3.0), (0.05, 4.0), (0.01, 3.0), (0.05, 4.0), (0.01, 3.0), (0.05, 4.0))
@@ -106,15 +84,6 @@ UNUSABLE_MM = 1.0e3
 #: Search modes of :func:`fit_lung`; ``"optimizer"`` is :data:`DEFAULT_OPTIMIZER`.
 MODES = ("optimizer", "least_squares", "powell", "grid")
 DEFAULT_OPTIMIZER = "least_squares"
-
-#: Bound of the free force constants in the least-squares mode, relative to the fixed one (|c| ≤).
-FORCE_BOUND = 3.0
-
-#: RMS (mm) of the residual vector handed to the least-squares solver for an unusable candidate.
-UNUSABLE_RESIDUAL_MM = 50.0
-
-#: Bound of the fitted stiffness field: ``E ∈ [1/STIFFNESS_RANGE, STIFFNESS_RANGE]`` (relative).
-STIFFNESS_RANGE = 4.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -483,37 +452,6 @@ class LungFitter:
         return f, c / (np.abs(c).max() or 1.0)
 
 
-def _from_unbounded(z: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Map unbounded ``z`` into the box ``[lo, hi]``: ``lo + (hi − lo)·(1 + sin z)/2``."""
-    return lo + (hi - lo) * (1.0 + np.sin(z)) / 2.0
-
-
-def _grid_search(fun, x0, bounds, step=0.01, max_cycles=20, span=None, progress=None):
-    """Cyclic coordinate search on a grid of ``step``; returns (x, f, cycles, converged)."""
-    x = np.round(np.asarray(x0, float) / step) * step
-    best = fun(x)
-    for cycle in range(1, max_cycles + 1):
-        improved = False
-        for k in range(len(x)):
-            lo, hi = bounds[k]
-            if span is not None:
-                lo, hi = max(lo, x[k] - span[k]), min(hi, x[k] + span[k])
-            grid = np.arange(np.ceil(lo / step) * step, hi + step / 2, step)
-            vals = []
-            for g in grid:
-                y = x.copy()
-                y[k] = g
-                vals.append(fun(y))
-            j = int(np.argmin(vals))
-            if vals[j] < best - 1e-9:
-                best, x[k], improved = vals[j], grid[j], True
-        if progress:
-            progress(f"grid cycle {cycle}: RMS {best:.3f} mm")
-        if not improved:
-            return x, best, cycle, True
-    return x, best, max_cycles, False
-
-
 def fit_lung(
     surface: Surface,
     side: str,
@@ -590,25 +528,15 @@ def fit_lung(
     success, message = True, "converged"
     if method == "least_squares":
         force0 = start_c[6:] if len(start_c) == 9 else None
-        x, force, shifts, best, success, message = _least_squares_search(
-            fitter, np.clip(x0, lo, hi), force0, translate=translate, max_evaluations=max_evaluations,
-            history=history)
+        x, force, shifts, best, success, message = least_squares_search(
+            fitter, np.clip(x0, lo, hi), force0, bounds=DIRECTION_BOUNDS, translate=translate,
+            max_evaluations=max_evaluations, history=history)
         say(f"{side}: least squares RMS {best:.3f} mm after {fitter.evaluations} evaluations")
     elif method == "powell":
-        # The bounds are built into the variables, x = lo + (hi − lo)·(1 + sin z)/2, and Powell runs
-        # unbounded in z. Not scipy's bounded Powell: its line search (fminbound) can return a point
-        # worse than the current one on a rough objective such as this one, and Powell accepts it
-        # (seen: a landmark-informed fit ending 1.5 mm above its start). Not clipping either: the
-        # flat region outside the box wastes a small budget on bracket searches.
-        z0 = np.arcsin(np.clip(2.0 * (np.clip(x0, lo, hi) - lo) / (hi - lo) - 1.0, -1.0, 1.0))
-        res = optimize.minimize(lambda z: fun(_from_unbounded(z, lo, hi)), z0, method="Powell",
-                                options={"maxfev": max_evaluations, "xtol": 1e-3, "ftol": 1e-5})
-        x, best = _from_unbounded(res.x, lo, hi), res.fun
-        if not res.success:
-            success, message = False, f"Powell: {res.message}"
+        x, best, success, message = powell_search(fun, x0, lo, hi, max_evaluations)
         say(f"{side}: optimiser RMS {best:.3f} mm after {fitter.evaluations} evaluations")
     else:
-        x, best, cycles, converged = _grid_search(fun, x0, DIRECTION_BOUNDS, 0.01, span=[grid_span] * 6, progress=say)
+        x, best, cycles, converged = grid_search(fun, x0, DIRECTION_BOUNDS, 0.01, span=[grid_span] * 6, progress=say)
         if converged:
             message = f"grid converged after {cycles} cycles"
         else:
@@ -621,7 +549,7 @@ def fit_lung(
     if fit_stiffness:
         _, uparts = fitter.evaluate(best_x, full=True, force=force, shifts=shifts)
         uniform_u = uparts["u"] if uparts is not None else None
-        log_e, best = _fit_stiffness(fitter, best_x, best, say, force=force, shifts=shifts)
+        log_e, best = fit_stiffness_if_better(fitter, best_x, best, say, force=force, shifts=shifts)
     obj, parts = fitter.evaluate(best_x, full=True, force=force, shifts=shifts)
     if parts is None or not np.isfinite(obj):
         raise ConvergenceError(f"{side}: the fitted constants give no usable model")
@@ -639,159 +567,6 @@ def fit_lung(
         landmark_rms_mm=parts["landmark_rms"], landmarks_used=len(fitter.lm_rest) if fitter.lm_targets else 0,
         translations=shifts,
     )
-
-
-#: Index of the direction constant held fixed in the least-squares mode (the gauge): c3.
-GAUGE = 2
-
-
-def _least_squares_search(fitter: LungFitter, x0: np.ndarray, force0, *, translate: bool,
-                          max_evaluations: int, history: list):
-    """Trust-region least squares (scipy ``least_squares``, ``trf``, finite differences) on the
-    per-point residual vector (:meth:`LungFitter.residual_vector`).
-
-    Free: c1, c2, c4, c5, c6 (c3 held at its start: directions are normalised, so c1, c3, c5 are
-    defined only up to a common factor, a zero singular value; the ratios c1/c3 and c5/c3 are what
-    the data determine); the two force constants other than the largest at the start (held at ±1,
-    the overall scale being fixed by the volume calibration), within ±:data:`FORCE_BOUND`; with
-    ``translate``, a translation (mm) of each target in ``fit_on``. c7…c9 start from ``force0`` or
-    the ray fit at ``x0``, which is only a start: rays that hit another part of the target or graze
-    bias it, so the force constants are refined against the surface objective itself.
-
-    Returns ``(c1…c6 (6,), c7…c9 (3,), shifts (k, 3) or None, objective mm, success, message)``.
-    """
-    lo6, hi6 = np.array([b[0] for b in DIRECTION_BOUNDS]), np.array([b[1] for b in DIRECTION_BOUNDS])
-    if force0 is None:
-        d0 = direction_field(fitter.frame, fitter.p, np.concatenate([x0, [0.0, 1.0, 0.0]]))
-        hits = correspond(fitter.p, d0, fitter.prepared[fitter.calib].caster, max_distance=fitter.max_distance,
-                          min_cosine=fitter.min_cosine)
-        force0 = fitter.ray_force_constants(d0, hits)
-        if force0 is None:
-            raise ConvergenceError(f"the starting constants {x0} give no ray hits to start c7…c9 from")
-    force0 = np.asarray(force0, float)
-    if not np.abs(force0).max() > 0:
-        raise ConvergenceError("the starting force constants c7…c9 are all zero")
-    pivot = int(np.argmax(np.abs(force0)))
-    force0 = force0 / abs(force0[pivot])
-    free_dir = [i for i in range(6) if i != GAUGE]
-    free_force = [i for i in range(3) if i != pivot]
-    n_shift = 3 * len(fitter.fit_on) if translate else 0
-    lo = np.concatenate([lo6[free_dir], [-FORCE_BOUND] * 2, [-np.inf] * n_shift])
-    hi = np.concatenate([hi6[free_dir], [FORCE_BOUND] * 2, [np.inf] * n_shift])
-    theta0 = np.concatenate([x0[free_dir], np.clip(force0[free_force], -FORCE_BOUND, FORCE_BOUND), np.zeros(n_shift)])
-    scale = np.concatenate([np.abs(theta0[: len(free_dir) + 2]) + 0.05, np.ones(n_shift)])
-
-    def unpack(theta):
-        c = x0.copy()
-        c[free_dir] = theta[: len(free_dir)]
-        f = force0.copy()
-        f[free_force] = theta[len(free_dir): len(free_dir) + 2]
-        sh = None
-        if translate:
-            sh = np.zeros((len(fitter.targets), 3))
-            sh[fitter.fit_on] = theta[len(free_dir) + 2:].reshape(-1, 3)
-        return c, f, sh
-
-    size = {"n": None}
-    best = {"f": np.inf, "theta": theta0}
-
-    def resid(theta):
-        fitter.evaluations += 1
-        c, f, sh = unpack(theta)
-        d = direction_field(fitter.frame, fitter.p, np.concatenate([c, [0.0, 1.0, 0.0]]))
-        u = fitter.displacement(d, f)
-        r = None if u is None else fitter.residual_vector(u, sh)[0]
-        if r is None or not np.all(np.isfinite(r)):
-            if size["n"] is None:
-                raise ConvergenceError(f"the starting constants {x0}, {force0} give no usable model")
-            r = np.full(size["n"], UNUSABLE_RESIDUAL_MM / np.sqrt(size["n"]))
-        size["n"] = len(r)
-        v = float(np.sqrt(np.sum(r**2)))
-        history.append(min(v, history[-1]) if history else v)
-        if v < best["f"]:
-            best["f"], best["theta"] = v, theta.copy()
-        return r
-
-    n_free = len(theta0)
-    max_nfev = max(1, int(max_evaluations) // (n_free + 1))
-    res = optimize.least_squares(resid, theta0, bounds=(lo, hi), x_scale=scale, diff_step=1e-3, method="trf",
-                                 ftol=1e-6, xtol=1e-6, gtol=1e-8, max_nfev=max_nfev)
-    theta, obj = res.x, float(np.sqrt(np.sum(res.fun**2)))
-    if best["f"] < obj:  # never return a point worse than one already evaluated
-        theta, obj = best["theta"], best["f"]
-    c, f, sh = unpack(theta)
-    if res.status > 0:
-        return c, f, sh, obj, True, f"least squares converged ({res.message})"
-    return c, f, sh, obj, False, (f"least squares stopped on its evaluation budget ({max_evaluations} evaluations, "
-                                  f"{res.nfev} iterations of {n_free + 1}): not converged")
-
-
-def smooth_observations(values: np.ndarray, weights: np.ndarray, faces: np.ndarray, iterations: int) -> np.ndarray:
-    """Normalised convolution on the mesh: weighted umbrella averaging of ``values (n,)`` with
-    ``weights (n,) ≥ 0`` (0 = no observation, filled from the neighbours)."""
-    from .mask import umbrella_operator
-
-    n = len(values)
-    avg = (umbrella_operator(n, faces) + sparse.identity(n)).tocsr()  # D⁻¹A: mean of neighbours
-    a = np.asarray(values, float) * weights
-    b = np.asarray(weights, float).copy()
-    for _ in range(int(iterations)):
-        a = 0.5 * a + 0.5 * (avg @ a)
-        b = 0.5 * b + 0.5 * (avg @ b)
-    return a / np.maximum(b, 1e-12)
-
-
-def fit_stiffness_field(fitter: LungFitter, c_dir, *, iterations: int = 20, smoothing: int = 10,
-                        target_smoothing: int = 10, log_range: float = float(np.log(STIFFNESS_RANGE)),
-                        force=None) -> np.ndarray:
-    """Inverse estimate of alveolar expandability: ``log E (n,)``, a per-vertex stiffness whose
-    forward force F(E) (for the fitted applied force) matches the observed magnitudes along the
-    fitted directions ``c_dir`` (ray hits of kept vertices, smoothed by ``target_smoothing``
-    normalised-convolution steps, misses filled by neighbours).
-
-    Softer nodes keep and attract more force (METHOD §3), so ``log E`` is updated by the damped
-    log-ratio of the predicted to the observed magnitude, then smoothed (``smoothing`` umbrella
-    steps) and bounded to ``|log E| ≤ log_range``, for ``iterations`` fixed-point steps. The
-    smoothing and the bound are the regularisation: without them (2 steps, ±4) the field was rough,
-    pinned a twentieth of the surface at near-zero motion and, on the ITK pair, raised the landmark
-    error from 5.5 to 9.3 mm while lowering the surface error (with them: 6.1 mm; along directions
-    fitted to surfaces, matching the surface better moves the interior worse). Leaves ``fitter``'s
-    stiffness unchanged.
-    """
-    _, parts = fitter.evaluate(c_dir, full=True, force=force)
-    if parts is None:
-        raise ConvergenceError("stiffness fit: the direction constants give no usable model")
-    hits = parts["hits"]
-    w = np.where(hits.valid & fitter.keep, np.nan_to_num(hits.cosine), 0.0)
-    target = smooth_observations(np.nan_to_num(hits.distance), w, fitter.surface.faces, target_smoothing)
-    target = np.maximum(target, 0.05 * max(float(np.abs(target).max()), 1e-9))
-    f = parts["constants"][6:] @ fitter.applied_fields
-    log_e = np.zeros(fitter.n)
-    for _ in range(int(iterations)):
-        solver = ForceSolver(local_transfer(fitter.graph, np.exp(log_e), fitter.d_min), "bicgstab",
-                             n_mass=fitter.n, tol=1e-10)
-        force = solver.solve(f)[: fitter.n]
-        scale = float(target @ force) / float(force @ force)
-        log_e = log_e + 0.7 * np.log(np.maximum(scale * force, 1e-3 * target) / target)
-        log_e = smooth_observations(log_e, np.ones(fitter.n), fitter.surface.faces, smoothing)
-        log_e = np.clip(log_e - np.median(log_e), -log_range, log_range)  # only ratios of E matter
-    return log_e
-
-
-def _fit_stiffness(fitter: LungFitter, c_dir, best, say, force=None, shifts=None, **kwargs):
-    """:func:`fit_stiffness_field`, kept only if it lowers the objective; returns
-    ``(log E (n,) or None, objective)`` and leaves the kept stiffness in ``fitter``. ``force`` /
-    ``shifts``: fixed c7…c9 and target translations (least-squares mode), else rays."""
-    uniform_e = fitter.stiffness
-    log_e = fit_stiffness_field(fitter, c_dir, force=force, **kwargs)
-    fitter.set_stiffness(np.exp(log_e))
-    obj = fitter.evaluate(c_dir, force=force, shifts=shifts)
-    if not obj < best:
-        fitter.set_stiffness(uniform_e)
-        say(f"stiffness field: RMS {obj:.3f} mm, not better than {best:.3f} mm: kept uniform")
-        return None, best
-    say(f"stiffness field: RMS {best:.3f} -> {obj:.3f} mm")
-    return log_e, obj
 
 
 def to_lung_model(surface: Surface, side: str, result: FitResult, gravity="supine", d_min: float = 1.0) -> LungModel:

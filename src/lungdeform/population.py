@@ -24,6 +24,12 @@ Readings chosen:
   from the saved ``model.npz``: per vertex (when the model mesh is the synthetic end-exhale mesh)
   total, normal and tangential parts against the true, noise-free surface, and the symmetric
   surface distance to it.
+- Gauge of c1, c3, c5 in the recovery: the same model has every common factor of c1, c3, c5 and the
+  fit holds c3 at its start (:data:`lungdeform.search.GAUGE`), so raw errors of these three mix the
+  gauge with the fit's error. Their errors are taken against the truth rescaled into the fit's
+  gauge, ``true·(fitted c3 / true c3)`` (:data:`SCALE_CONSTANTS`; the error of c3 is then zero by
+  construction; undefined, null, when either c3 is 0); the raw errors are kept as
+  ``constants_raw`` (per lung ``error_raw``). c1/c3, c5/c3 and c2, c4, c6…c9 are gauge-free.
 """
 
 from __future__ import annotations
@@ -48,6 +54,13 @@ VOLUMES = ("volume_ee_ml", "delta_volume_ml")
 QUANTITIES = CONSTANTS + METRICS + VOLUMES + ("seconds",)
 SIDES = ("left", "right")
 RATIOS = {"c1/c3": (0, 2), "c5/c3": (4, 2)}
+#: c1, c3, c5: defined only up to a common factor (directions are normalised); index of c3.
+SCALE_CONSTANTS = {"c1": 0, "c3": 2, "c5": 4}
+GAUGE_INDEX = 2
+#: What the recovery's errors of c1, c3, c5 are (recovery.json notes, recovery.csv).
+GAUGE_NOTE = ("c1, c3, c5 errors are against the truth rescaled into the fit's gauge, true·(fitted c3 / true c3) "
+              "(c1, c3, c5 share an arbitrary common factor and the fit holds c3 at its start; the c3 error is "
+              "then 0 by construction); the raw errors fitted − true of c1, c3, c5 are under constants_raw")
 
 
 @dataclass(frozen=True)
@@ -284,8 +297,11 @@ def recovery(results: Sequence[dict], truth: dict, *, subjects_dir: Path | None 
     ``OUT/subjects`` (for ``<subject>/<side>/model.npz``); ``truth_dir``: the folder the truth's
     relative array paths start from. Without them only the constants are compared.
 
-    Returns ``{"constants": {name: {...}}, "field": {key: Summary dict} (largest volume),
-    "lungs": [per lung], "missing": [...], "unmatched": [...]}``.
+    Errors of c1, c3, c5 are against the truth in the fit's gauge (:func:`gauge_factor`, module
+    docstring); their raw errors are under ``constants_raw``.
+
+    Returns ``{"constants": {name: {...}}, "constants_raw": {c1, c3, c5: {...}}, "field": {key:
+    Summary dict} (largest volume), "lungs": [per lung], "missing": [...], "unmatched": [...]}``.
     """
     ok, failed = split_results(results)
     lungs, unmatched = [], []
@@ -300,6 +316,10 @@ def recovery(results: Sequence[dict], truth: dict, *, subjects_dir: Path | None 
         true = np.asarray(rec["constants"], float)
         fv = list(fitted) + [_ratio(fitted[a], fitted[b]) for a, b in RATIOS.values()]
         tv = list(true) + [_ratio(true[a], true[b]) for a, b in RATIOS.values()]
+        gauge = gauge_factor(fitted, true)
+        ref = list(tv)  # the truth in the fit's gauge: c1, c3, c5 rescaled, the rest as they are
+        for k in SCALE_CONSTANTS.values():
+            ref[k] = float(true[k]) * gauge
         field = None
         if subjects_dir is not None and truth_dir is not None and rec.get("files", {}).get("arrays"):
             field = _field_errors(Path(subjects_dir) / key[0] / key[1] / "model.npz",
@@ -308,32 +328,46 @@ def recovery(results: Sequence[dict], truth: dict, *, subjects_dir: Path | None 
         lungs.append({"subject": key[0], "side": key[1], "source": rec.get("source"),
                       "noise_mm": rec.get("noise_mm"), "true": dict(zip(names, map(float, tv))),
                       "fitted": dict(zip(names, map(float, fv))),
-                      "error": {n: float(f - t) for n, f, t in zip(names, fv, tv)},
+                      "gauge_factor": gauge, "true_in_fit_gauge": dict(zip(names, map(float, ref))),
+                      "error": {n: float(f - t) for n, f, t in zip(names, fv, ref)},
+                      "error_raw": {n: float(fitted[k] - true[k]) for n, k in SCALE_CONSTANTS.items()},
                       "metrics": {k: _num((r.get("metrics") or {}).get(k)) for k in METRICS},
                       "field": field})
-    const = {}
-    for n in names:
-        err = np.array([lu["error"][n] for lu in lungs])
-        tru = np.array([lu["true"][n] for lu in lungs])
-        st = describe(err)
-        nz = np.isfinite(err) & (tru != 0)
-        rel = np.abs(err[nz]) / np.abs(tru[nz])
-        const[n] = {"mean_error": _num(st.mean), "sd_error": _num(st.sd),
-                    "max_abs_error": _num(np.nanmax(np.abs(err)) if st.n else math.nan),
-                    "rms_error": _num(np.sqrt(np.nanmean(err**2)) if st.n else math.nan),
-                    "mean_relative_error": _num(rel.mean() if len(rel) else math.nan), "n": st.n}
+    const = {n: _error_stats([lu["error"][n] for lu in lungs], [lu["true_in_fit_gauge"][n] for lu in lungs])
+             for n in names}
+    raw = {n: _error_stats([lu["error_raw"][n] for lu in lungs], [lu["true"][n] for lu in lungs])
+           for n in SCALE_CONSTANTS}
     last = [lu["field"][-1] for lu in lungs if lu["field"]]
     field_stats = {k: describe([row.get(k, math.nan) for row in last]).as_dict() for k in FIELD_KEYS}
     for k in METRICS:
         field_stats[f"fit_{k}"] = describe([lu["metrics"][k] for lu in lungs]).as_dict()
     done = {(r["subject"], r["side"]) for r in ok}
     missing = [{"subject": k[0], "side": k[1]} for k in truth if k is not None and k not in done]
-    return {"n_matched": len(lungs), "constants": const, "field": field_stats, "lungs": lungs,
+    return {"n_matched": len(lungs), "constants": const, "constants_raw": raw, "field": field_stats, "lungs": lungs,
             "missing": missing, "unmatched": unmatched, "n_failed": len(failed)}
 
 
 def _ratio(a: float, b: float) -> float:
     return float(a) / float(b) if b != 0 else math.nan
+
+
+def gauge_factor(fitted, true) -> float:
+    """``fitted c3 / true c3``: the common factor that takes the truth's c1, c3, c5 into the fit's
+    gauge (``fitted, true : (9,)`` constants); NaN when either c3 is 0 or not finite."""
+    f, t = float(fitted[GAUGE_INDEX]), float(true[GAUGE_INDEX])
+    return f / t if f != 0 and t != 0 and math.isfinite(f) and math.isfinite(t) else math.nan
+
+
+def _error_stats(errors, truths) -> dict:
+    """Mean, SD, max |error|, RMS and mean |error|/|truth| of the finite errors (truths ≠ 0)."""
+    err, tru = np.asarray(errors, float), np.asarray(truths, float)
+    st = describe(err)
+    nz = np.isfinite(err) & np.isfinite(tru) & (tru != 0)
+    rel = np.abs(err[nz]) / np.abs(tru[nz])
+    return {"mean_error": _num(st.mean), "sd_error": _num(st.sd),
+            "max_abs_error": _num(np.nanmax(np.abs(err)) if st.n else math.nan),
+            "rms_error": _num(np.sqrt(np.nanmean(err**2)) if st.n else math.nan),
+            "mean_relative_error": _num(rel.mean() if len(rel) else math.nan), "n": st.n}
 
 
 # --------------------------------------------------------------------------- tables and files
@@ -411,27 +445,32 @@ def write_population(results: list[dict], out: Path, manifest_dir: Path,
         files["recovery.json"] = str(write_json(out / "recovery.json", {
             "schema": "lungdeform.recovery", "version": 1, "truth": str(truth_path),
             "noise_mm": truth[None].get("noise_mm"), "law": truth[None].get("law"),
-            "notes": "error = fitted − true; c1/c3 and c5/c3 are scale-free (c1, c3, c5 share an arbitrary "
-                     "factor); field errors at the largest volume against the noise-free true surface",
+            "notes": "error = fitted − true; " + GAUGE_NOTE + "; c1/c3 and c5/c3 are scale-free; field errors "
+                     "at the largest volume against the noise-free true surface",
             **_jsonable(rec)}))
-        crow = [[n, v["mean_error"], v["sd_error"], v["max_abs_error"], v["rms_error"], v["mean_relative_error"], v["n"]]
-                for n, v in rec["constants"].items()]
-        frow = [[k, v["mean"], v["sd"], v["max"], None, None, v["n"]] for k, v in rec["field"].items()]
+        gauged = "against true·(fitted c3 / true c3): c1, c3, c5 share an arbitrary factor, c3 is the fit's gauge"
+        crow = [[n, v["mean_error"], v["sd_error"], v["max_abs_error"], v["rms_error"], v["mean_relative_error"], v["n"],
+                 gauged if n in SCALE_CONSTANTS else ""] for n, v in rec["constants"].items()]
+        crow += [[f"{n}_raw", v["mean_error"], v["sd_error"], v["max_abs_error"], v["rms_error"],
+                  v["mean_relative_error"], v["n"], "raw fitted − true, no gauge correction (not meaningful alone)"]
+                 for n, v in rec["constants_raw"].items()]
+        frow = [[k, v["mean"], v["sd"], v["max"], None, None, v["n"], ""] for k, v in rec["field"].items()]
         files["recovery.csv"] = str(write_text(out / "recovery.csv", _csv(
-            ["quantity", "mean_error", "sd_error", "max_abs_error", "rms_error", "mean_relative_error", "n"],
+            ["quantity", "mean_error", "sd_error", "max_abs_error", "rms_error", "mean_relative_error", "n", "note"],
             [[math.nan if x is None else x for x in row] for row in crow + frow])))
         lrows = []
         for lu in rec["lungs"]:
             last = (lu["field"] or [{}])[-1]
             lrows.append([lu["subject"], lu["side"], lu["source"]]
                          + [lu["true"][c] for c in CONSTANTS] + [lu["fitted"][c] for c in CONSTANTS]
-                         + [last.get(k, math.nan) for k in FIELD_KEYS])
+                         + [last.get(k, math.nan) for k in FIELD_KEYS] + [lu["gauge_factor"]])
         files["recovery_by_lung.csv"] = str(write_text(out / "recovery_by_lung.csv", _csv(
             ["subject", "side", "source"] + [f"true_{c}" for c in CONSTANTS] + [f"fit_{c}" for c in CONSTANTS]
-            + list(FIELD_KEYS), lrows)))
+            + list(FIELD_KEYS) + ["gauge_factor"], lrows)))
         files.update(recovery_plot(rec, out / "plots"))
         summary["recovery"] = {"n_matched": rec["n_matched"], "missing": rec["missing"],
-                               "constants": rec["constants"], "field": rec["field"]}
+                               "constants": rec["constants"], "constants_raw": rec["constants_raw"],
+                               "gauge": GAUGE_NOTE, "field": rec["field"]}
     return summary
 
 
@@ -545,16 +584,17 @@ def recovery_plot(rec: dict, folder: Path) -> dict[str, str]:
     for k, name in enumerate(names):
         ax = axes.flat[k]
         for side in SIDES:
-            pts = np.array([(lu["true"][name], lu["fitted"][name]) for lu in lungs if lu["side"] == side]).reshape(-1, 2)
+            pts = np.array([(lu["true_in_fit_gauge"][name], lu["fitted"][name]) for lu in lungs
+                            if lu["side"] == side]).reshape(-1, 2)
             ax.scatter(pts[:, 0], pts[:, 1], s=14, color=SIDE_COLOURS[side], label=side)
-        vals = np.array([[lu["true"][name], lu["fitted"][name]] for lu in lungs]).ravel()
+        vals = np.array([[lu["true_in_fit_gauge"][name], lu["fitted"][name]] for lu in lungs]).ravel()
         vals = vals[np.isfinite(vals)]
         if len(vals):
             lo, hi = vals.min(), vals.max()
             pad = 0.05 * (hi - lo) or 0.05 * abs(hi) or 0.05
             ax.plot([lo - pad, hi + pad], [lo - pad, hi + pad], color="grey", linewidth=1)
         ax.set_title(name)
-        ax.set_xlabel("true")
+        ax.set_xlabel("true · fitted c3/true c3" if name in SCALE_CONSTANTS else "true", fontsize=8)
         ax.set_ylabel("fitted")
         if k == 0 and lungs:
             ax.legend(fontsize=7)

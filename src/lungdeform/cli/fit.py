@@ -111,7 +111,7 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
 
     Without landmarks (or with ``landmark_fit=False``) the headline ``model`` is the surface-only
     fit. With landmarks and ``landmark_fit`` it is the landmark-informed fit (c1…c6 on the surfaces
-    plus the landmarks, :func:`lungdeform.fit.cross_validate_landmarks`), whose landmark errors are
+    plus the landmarks, :func:`lungdeform.crossval.cross_validate_landmarks`), whose landmark errors are
     measured on landmarks held out from the fit (``folds``-fold); the surface-only fit is reported as
     ``model_surface_only``, and the landmark-informed references ``affine_landmarks`` and
     ``landmarks_tps`` are scored on the same folds. ``metrics["protocols"]`` says, per method, what
