@@ -93,12 +93,7 @@ def calibrate_lsq(shape, t_s, values, cycle_starts_s, drift: bool = True) -> np.
     """Each cycle's least-squares gain, offset (and linear drift in the cycle fraction) of ``shape``
     (n,) to ``values`` (n,). Returns the calibrated model (n,), NaN outside the cycles."""
     idx, frac = rb.cycle_phase(t_s, cycle_starts_s)
-    out = np.full(np.shape(values), np.nan)
-    for c in np.unique(idx[idx >= 0]):
-        sel = idx == c
-        A = br.calibration_design(shape[sel], frac[sel], drift)
-        out[sel] = A @ np.linalg.lstsq(A, values[sel], rcond=None)[0]
-    return out
+    return rb.calibrated(idx, shape, values, frac, drift)
 
 
 def calibrate_anchored(shape_fn, t_s, anchors: CycleAnchors, level_fn) -> np.ndarray:

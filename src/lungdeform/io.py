@@ -42,6 +42,7 @@ from typing import Callable
 import numpy as np
 
 from . import vtkio
+from .vtkio import FormatError
 from .atomic import write_bytes
 from .errors import InputError, LungdeformError, ReadError
 from .mesh import Surface, SurfaceReport, check_surface
@@ -50,11 +51,6 @@ MESH_SUFFIXES = (".stl", ".obj", ".ply", ".vtk", ".vtp", ".off", ".gltf", ".glb"
 WRITE_SUFFIXES = (".stl", ".obj", ".ply", ".vtk", ".vtp", ".off")
 #: millimetres per unit
 UNITS_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
-
-
-class _FormatError(Exception):
-    """Raised inside a reader here; :func:`read_mesh` prefixes the path and turns it into ReadError
-    (as it does with :class:`lungdeform.vtkio.FormatError` from the VTK readers)."""
 
 
 # =========================================================================== public API
@@ -81,7 +77,7 @@ def read_mesh(path) -> tuple[np.ndarray, np.ndarray]:
         raise ReadError(f"{p}: file is empty")
     try:
         vertices, faces = reader(p)
-    except (_FormatError, vtkio.FormatError) as exc:
+    except FormatError as exc:  # from every reader here (and vtkio's): the message lacks the path
         raise ReadError(f"{p}: {exc}") from None
     except LungdeformError as exc:
         raise ReadError(f"{p}: {exc}") from exc
@@ -251,20 +247,20 @@ def _read_stl(p: Path):
     if not binary_ok and data[:5].lower() == b"solid":
         return _read_stl_ascii(data)
     if n is None:
-        raise _FormatError(f"truncated STL: {size} bytes, shorter than the 84-byte binary header")
+        raise FormatError(f"truncated STL: {size} bytes, shorter than the 84-byte binary header")
     expected = 84 + 50 * n
     if size < expected:
-        raise _FormatError(
+        raise FormatError(
             f"truncated binary STL (or not an STL): header announces {n} triangles "
             f"({expected} bytes) but the file has {size} bytes"
         )
     if size > expected:
-        raise _FormatError(
+        raise FormatError(
             f"not a valid binary STL: header announces {n} triangles ({expected} bytes) "
             f"but the file has {size} bytes"
         )
     if n == 0:
-        raise _FormatError("no triangles in the file (binary STL with 0 facets)")
+        raise FormatError("no triangles in the file (binary STL with 0 facets)")
     rec = np.frombuffer(data, dtype=np.dtype([("n", "<f4", 3), ("v", "<f4", (3, 3)), ("a", "<u2")]),
                         count=n, offset=84)
     soup = rec["v"].reshape(-1, 3).astype(np.float64)
@@ -278,11 +274,11 @@ def _read_stl_ascii(data: bytes):
     text = data.decode("ascii", errors="replace")
     rows = re.findall(rf"vertex\s+({_FLOAT})\s+({_FLOAT})\s+({_FLOAT})", text, flags=re.I)
     if not rows:
-        raise _FormatError("not an STL file (starts with 'solid' but has no 'vertex' lines)")
+        raise FormatError("not an STL file (starts with 'solid' but has no 'vertex' lines)")
     if len(rows) % 3:
-        raise _FormatError(f"truncated ASCII STL: {len(rows)} vertex lines, not a multiple of 3")
+        raise FormatError(f"truncated ASCII STL: {len(rows)} vertex lines, not a multiple of 3")
     if "endsolid" not in text[-200:].lower():
-        raise _FormatError("truncated ASCII STL: no 'endsolid' at the end")
+        raise FormatError("truncated ASCII STL: no 'endsolid' at the end")
     soup = np.array(rows, dtype=np.float64)
     return merge_duplicate_vertices(soup, np.arange(len(soup)).reshape(-1, 3))
 
@@ -308,23 +304,23 @@ def _read_obj(p: Path):
             if line.startswith(b"v ") or line.startswith(b"v\t"):
                 parts = line.split()
                 if len(parts) < 4:
-                    raise _FormatError(f"line {lineno}: a 'v' record needs 3 coordinates")
+                    raise FormatError(f"line {lineno}: a 'v' record needs 3 coordinates")
                 try:
                     verts.append([float(x) for x in parts[1:4]])
                 except ValueError:
-                    raise _FormatError(f"line {lineno}: bad vertex coordinates") from None
+                    raise FormatError(f"line {lineno}: bad vertex coordinates") from None
             elif line.startswith(b"f ") or line.startswith(b"f\t"):
                 try:
                     idx = [int(tok.split(b"/", 1)[0]) for tok in line.split()[1:]]
                 except ValueError:
-                    raise _FormatError(f"line {lineno}: bad face indices") from None
+                    raise FormatError(f"line {lineno}: bad face indices") from None
                 n = len(verts)
                 idx = [i - 1 if i > 0 else n + i for i in idx]
                 if len(idx) < 3:
-                    raise _FormatError(f"line {lineno}: a face needs at least 3 vertices")
+                    raise FormatError(f"line {lineno}: a face needs at least 3 vertices")
                 polys.append(idx)
     if not verts and not polys:
-        raise _FormatError("not an OBJ mesh (no 'v' or 'f' records)")
+        raise FormatError("not an OBJ mesh (no 'v' or 'f' records)")
     return np.array(verts, dtype=np.float64).reshape(-1, 3), _fan(polys)
 
 
@@ -341,19 +337,19 @@ def _read_off(p: Path):
     lines = [ln.split("#", 1)[0].strip() for ln in text.splitlines()]
     lines = [ln for ln in lines if ln]
     if not lines or not lines[0].split()[0].upper().endswith("OFF"):
-        raise _FormatError("not an OFF file (first keyword is not 'OFF')")
+        raise FormatError("not an OFF file (first keyword is not 'OFF')")
     head = lines[0].split()[1:]
     rest = lines[1:]
     if not head:
         if not rest:
-            raise _FormatError("truncated OFF: no vertex/face counts")
+            raise FormatError("truncated OFF: no vertex/face counts")
         head, rest = rest[0].split(), rest[1:]
     try:
         nv, nf = int(head[0]), int(head[1])
     except (ValueError, IndexError):
-        raise _FormatError("not a valid OFF file (bad vertex/face counts)") from None
+        raise FormatError("not a valid OFF file (bad vertex/face counts)") from None
     if len(rest) < nv + nf:
-        raise _FormatError(
+        raise FormatError(
             f"truncated OFF: header announces {nv} vertices and {nf} faces, "
             f"file has {len(rest)} data lines"
         )
@@ -365,7 +361,7 @@ def _read_off(p: Path):
             k = int(tok[0])
             polys.append([int(t) for t in tok[1 : 1 + k]])
     except ValueError:
-        raise _FormatError("not a valid OFF file (non-numeric data)") from None
+        raise FormatError("not a valid OFF file (non-numeric data)") from None
     return verts, _fan(polys)
 
 
@@ -382,11 +378,11 @@ def _read_ply(p: Path):
 
     with open(p, "rb") as fh:
         if fh.read(3) != b"ply":
-            raise _FormatError("not a PLY file (no 'ply' magic)")
+            raise FormatError("not a PLY file (no 'ply' magic)")
     geom = trimesh.load(str(p), file_type="ply", process=False)
     faces = getattr(geom, "faces", None)
     if faces is None or len(faces) == 0:
-        raise _FormatError("no triangles in the file (a point cloud?)")
+        raise FormatError("no triangles in the file (a point cloud?)")
     return np.asarray(geom.vertices), np.asarray(faces)
 
 
@@ -411,14 +407,14 @@ def _read_gltf(p: Path):
         with open(p, "rb") as fh:
             head = fh.read(12)
         if head[:4] != b"glTF":
-            raise _FormatError("not a GLB file (no 'glTF' magic)")
+            raise FormatError("not a GLB file (no 'glTF' magic)")
         if len(head) < 12 or struct.unpack("<I", head[8:12])[0] > p.stat().st_size:
-            raise _FormatError("truncated GLB: shorter than the length in its header")
+            raise FormatError("truncated GLB: shorter than the length in its header")
     else:
         try:
             json.loads(p.read_bytes())
         except (ValueError, UnicodeDecodeError):
-            raise _FormatError("not a glTF file (not valid JSON)") from None
+            raise FormatError("not a glTF file (not valid JSON)") from None
     scene = trimesh.load_scene(str(p), file_type=suffix[1:], process=False)
     chunks_v, chunks_f, offset = [], [], 0
     for node in scene.graph.nodes_geometry:
@@ -434,7 +430,7 @@ def _read_gltf(p: Path):
         chunks_f.append(ff + offset)
         offset += len(vv)
     if not chunks_f:
-        raise _FormatError("no triangle primitives in the default scene")
+        raise FormatError("no triangle primitives in the default scene")
     return merge_duplicate_vertices(np.vstack(chunks_v), np.vstack(chunks_f))
 
 

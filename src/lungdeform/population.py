@@ -43,11 +43,10 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from .constants import TABLE_I
+from .cohort import RESULT_SCHEMA, RESULT_VERSION
+from .constants import TABLE_I, table_constants
 from .errors import InputError
-
-RESULT_SCHEMA = "lungdeform.cohort.result"
-RESULT_VERSION = 1
+from .search import GAUGE
 CONSTANTS = tuple(f"c{i}" for i in range(1, 10))
 METRICS = ("surface_mean_mm", "surface_rms_mm", "surface_p95_mm", "landmark_mean_mm", "objective_rms_mm")
 VOLUMES = ("volume_ee_ml", "delta_volume_ml")
@@ -56,7 +55,6 @@ SIDES = ("left", "right")
 RATIOS = {"c1/c3": (0, 2), "c5/c3": (4, 2)}
 #: c1, c3, c5: defined only up to a common factor (directions are normalised); index of c3.
 SCALE_CONSTANTS = {"c1": 0, "c3": 2, "c5": 4}
-GAUGE_INDEX = 2
 #: What the recovery's errors of c1, c3, c5 are (recovery.json notes, recovery.csv).
 GAUGE_NOTE = ("c1, c3, c5 errors are against the truth rescaled into the fit's gauge, true·(fitted c3 / true c3) "
               "(c1, c3, c5 share an arbitrary common factor and the fit holds c3 at its start; the c3 error is "
@@ -74,8 +72,7 @@ class Summary:
     n: int
 
     def as_dict(self) -> dict:
-        return {"mean": _num(self.mean), "sd": _num(self.sd), "min": _num(self.min),
-                "max": _num(self.max), "n": self.n}
+        return {k: finite_or_none(getattr(self, k)) for k in ("mean", "sd", "min", "max")} | {"n": self.n}
 
 
 def describe(values) -> Summary:
@@ -88,7 +85,7 @@ def describe(values) -> Summary:
     return Summary(float(v.mean()), sd, float(v.min()), float(v.max()), int(len(v)))
 
 
-def _num(x):
+def finite_or_none(x):
     """JSON-safe float: NaN and infinities become None."""
     if x is None:
         return None
@@ -174,9 +171,9 @@ def population_statistics(results: Sequence[dict]) -> dict:
 def table_i(side: str) -> np.ndarray:
     """Table I's c1…c9 for ``side`` in the fit's convention ``(9,) float``: c7…c9 divided by their
     largest ``|c|`` (the paper's 0.01, 0.95, 0.07 become 0.0105, 1, 0.0737 for the left lung)."""
-    c = np.array(TABLE_I[side], float)
-    c[6:] /= np.abs(c[6:]).max()
-    return c
+    from .synthetic import normalise_force_constants
+
+    return normalise_force_constants(table_constants(side))
 
 
 def table_comparison(by_side: dict[str, dict[str, Summary]]) -> dict:
@@ -197,7 +194,7 @@ def table_comparison(by_side: dict[str, dict[str, Summary]]) -> dict:
             in_range = None if st.n == 0 else bool(st.min <= paper <= st.max)
             z = (paper - st.mean) / st.sd if st.n > 1 and st.sd > 0 else math.nan
             rows[name] = {"paper": paper, "paper_as_printed": float(TABLE_I[side][k]), **st.as_dict(),
-                          "in_range": in_range, "sd_from_mean": _num(z)}
+                          "in_range": in_range, "sd_from_mean": finite_or_none(z)}
         out[side] = rows
     return out
 
@@ -331,7 +328,7 @@ def recovery(results: Sequence[dict], truth: dict, *, subjects_dir: Path | None 
                       "gauge_factor": gauge, "true_in_fit_gauge": dict(zip(names, map(float, ref))),
                       "error": {n: float(f - t) for n, f, t in zip(names, fv, ref)},
                       "error_raw": {n: float(fitted[k] - true[k]) for n, k in SCALE_CONSTANTS.items()},
-                      "metrics": {k: _num((r.get("metrics") or {}).get(k)) for k in METRICS},
+                      "metrics": {k: finite_or_none((r.get("metrics") or {}).get(k)) for k in METRICS},
                       "field": field})
     const = {n: _error_stats([lu["error"][n] for lu in lungs], [lu["true_in_fit_gauge"][n] for lu in lungs])
              for n in names}
@@ -354,7 +351,7 @@ def _ratio(a: float, b: float) -> float:
 def gauge_factor(fitted, true) -> float:
     """``fitted c3 / true c3``: the common factor that takes the truth's c1, c3, c5 into the fit's
     gauge (``fitted, true : (9,)`` constants); NaN when either c3 is 0 or not finite."""
-    f, t = float(fitted[GAUGE_INDEX]), float(true[GAUGE_INDEX])
+    f, t = float(fitted[GAUGE]), float(true[GAUGE])
     return f / t if f != 0 and t != 0 and math.isfinite(f) and math.isfinite(t) else math.nan
 
 
@@ -364,10 +361,10 @@ def _error_stats(errors, truths) -> dict:
     st = describe(err)
     nz = np.isfinite(err) & np.isfinite(tru) & (tru != 0)
     rel = np.abs(err[nz]) / np.abs(tru[nz])
-    return {"mean_error": _num(st.mean), "sd_error": _num(st.sd),
-            "max_abs_error": _num(np.nanmax(np.abs(err)) if st.n else math.nan),
-            "rms_error": _num(np.sqrt(np.nanmean(err**2)) if st.n else math.nan),
-            "mean_relative_error": _num(rel.mean() if len(rel) else math.nan), "n": st.n}
+    return {"mean_error": finite_or_none(st.mean), "sd_error": finite_or_none(st.sd),
+            "max_abs_error": finite_or_none(np.nanmax(np.abs(err)) if st.n else math.nan),
+            "rms_error": finite_or_none(np.sqrt(np.nanmean(err**2)) if st.n else math.nan),
+            "mean_relative_error": finite_or_none(rel.mean() if len(rel) else math.nan), "n": st.n}
 
 
 # --------------------------------------------------------------------------- tables and files
@@ -481,7 +478,7 @@ def _jsonable(x):
     if isinstance(x, (list, tuple)):
         return [_jsonable(v) for v in x]
     if isinstance(x, (float, np.floating)):
-        return _num(x)
+        return finite_or_none(x)
     if isinstance(x, np.integer):
         return int(x)
     return x

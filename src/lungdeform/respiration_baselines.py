@@ -70,9 +70,12 @@ class LujanFit:
     rms: float
 
 
-def _calibrated(idx, shape, values, frac, drift: bool = False):
+def calibrated(idx, shape, values, frac, drift: bool = False) -> np.ndarray:
     """Per-cycle least-squares gain and offset (and drift along the cycle fraction ``frac``) of
-    ``shape`` to ``values``; returns the model."""
+    ``shape`` to ``values``; returns the model (n,), NaN outside the cycles.
+
+    ``idx`` : (n,) int cycle index (−1 outside), ``frac`` : (n,) float cycle fraction (both from
+    :func:`cycle_phase`), ``shape``, ``values`` : (n,) float."""
     model = np.full(values.shape, np.nan)
     for c in np.unique(idx[idx >= 0]):
         sel = idx == c
@@ -102,7 +105,7 @@ def fit_lujan(t_s, values, cycle_starts_s, per_cycle: bool = False, peaks_s=None
         ii, th, vv, ff = idx[sel], theta[sel], v[sel], frac[sel]
 
         def cost(x, ii=ii, th=th, vv=vv, ff=ff):
-            m = _calibrated(ii, lujan_shape(th, x[0], x[1]), vv, ff, drift)
+            m = calibrated(ii, lujan_shape(th, x[0], x[1]), vv, ff, drift)
             return float(np.mean((m - vv) ** 2))
 
         # grid over the whole bounded range (φ every 0.1 rad: a narrow cos^{2n} needs it), then a
@@ -136,7 +139,7 @@ def predict_lujan(fit, t_s, values, cycle_starts_s, peaks_s=None, peak_phase: fl
             shape[sel] = lujan_shape(theta[sel], fit[j].n, fit[j].phi)
     else:
         shape = lujan_shape(theta, fit.n, fit.phi)
-    return _calibrated(idx, shape, v, cycle_phase(t_s, cycle_starts_s)[1], drift)
+    return calibrated(idx, shape, v, cycle_phase(t_s, cycle_starts_s)[1], drift)
 
 
 # --------------------------------------------------------------------------- Fourier
@@ -194,11 +197,3 @@ def fit_fourier_shape(t_s, values, cycle_starts_s, harmonics: int = 2, n_iter: i
     p2p = np.ptp(grid)
     return coef / p2p if p2p > 0 else coef
 
-
-def predict_fourier_shape(coef, t_s, values, cycle_starts_s, peaks_s=None,
-                          peak_phase: float | None = None, drift: bool = False) -> np.ndarray:
-    """Shared Fourier shape with each cycle's own gain and offset (and drift). NaN outside cycles."""
-    idx, theta = cycle_phase(t_s, cycle_starts_s, peaks_s, peak_phase)
-    harmonics = len(coef) // 2
-    shape = fourier_design(theta, harmonics)[:, 1:] @ np.asarray(coef)
-    return _calibrated(idx, shape, np.asarray(values, float), cycle_phase(t_s, cycle_starts_s)[1], drift)

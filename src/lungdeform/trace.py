@@ -509,7 +509,12 @@ def inspiratory_share(t_s, amplitude, onset_level: float = 0.05) -> tuple[float,
     end-inhale). Returns (share, number of breaths); (nan, n) with fewer than 3 breaths."""
     t, a, dt = _uniform(t_s, amplitude)
     period = dominant_period(t, a)
-    ipk, onsets = _breaths(t, *_smoothed(a, period, 1.0 / dt), period, onset_level)
+    return _share(t, *_smoothed(a, period, 1.0 / dt), period, onset_level)
+
+
+def _share(t, s, fine, period: float, onset_level: float) -> tuple[float, int]:
+    """:func:`inspiratory_share` from the detection and fine signals (see :func:`_breaths`)."""
+    ipk, onsets = _breaths(t, s, fine, period, onset_level)
     if onsets.size < 3:
         return float("nan"), int(onsets.size)
     tpk = t[ipk]
@@ -523,8 +528,12 @@ def orient_inhale_positive(trace: Trace) -> Trace:
     if trace.n < 16 or trace.duration_s < 4 * CYCLE_RANGE_S[0]:
         return trace
     try:
-        keep, n = inspiratory_share(trace.t_s, trace.amplitude)
-        flip, m = inspiratory_share(trace.t_s, -trace.amplitude)
+        # the period and the (linear) low-passes do not depend on the sign: computed once, negated
+        t, a, dt = _uniform(trace.t_s, trace.amplitude)
+        period = dominant_period(t, a)
+        s, fine = _smoothed(a, period, 1.0 / dt)
+        keep, n = _share(t, s, fine, period, 0.05)
+        flip, _ = _share(t, -s, -fine, period, 0.05)
     except InputError:
         return trace
     if not (np.isfinite(keep) and np.isfinite(flip)) or flip >= keep:

@@ -30,7 +30,8 @@ import numpy as np
 
 
 class FormatError(Exception):
-    """A malformed VTK file; the message does not name the path (:func:`lungdeform.io.read_mesh` adds it)."""
+    """A malformed mesh file (raised by the VTK readers here and the other readers in
+    :mod:`lungdeform.io`); the message does not name the path (:func:`lungdeform.io.read_mesh` adds it)."""
 
 
 # =========================================================================== cell layouts
@@ -255,8 +256,6 @@ def read_vtp(path) -> tuple[np.ndarray, np.ndarray]:
         if underscore < 0 or stop < underscore:
             raise FormatError("truncated: <AppendedData> is not closed")
         appended = data[underscore + 1 : stop]
-        if encoding == "raw" and appended.endswith(b"\n"):
-            pass  # trailing whitespace after raw data is harmless: arrays carry their own sizes
         xml_text = data[:start] + b"</VTKFile>"
     else:
         xml_text = data

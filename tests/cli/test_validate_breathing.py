@@ -123,3 +123,33 @@ def test_validate_breathing_nothing_usable_is_one_line(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: ") and "no trace could be scored (2 failed" in err[0]
     assert not (tmp_path / "o" / "metrics.json").exists()
+
+
+def test_validate_breathing_all_scores_nan(tmp_path, rng, capsys, monkeypatch):
+    # every score undefined (NaN: e.g. no regular held-out cycle to score): the medians are null in
+    # metrics.json and "n/a" in the summary, never a TypeError from formatting None
+    import lungdeform.holdout as holdout
+
+    real = holdout.evaluate
+
+    def nan_scores(*args, **kwargs):
+        r = real(*args, **kwargs)
+        for key in ("model_rms_percent", "lujan_rms_percent", "fourier_rms_percent", "noise_floor_percent"):
+            r[key] = float("nan")
+        for key in ("shared_shape", "shared_shape_no_drift", "anchored", "per_cycle_refit",
+                    "percent_of_trace_range", "regular_cycles"):
+            r[key].update({m: float("nan") for m in holdout.MODELS})
+        return r
+
+    monkeypatch.setattr(holdout, "evaluate", nan_scores)
+    data = tmp_path / "data"
+    data.mkdir()
+    _synthetic_trace(data / "a.csv", rng)
+    out = tmp_path / "out"
+    assert main(["validate", "breathing", "--data", str(data), "--out", str(out)]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["median_model_rms_percent"] is None and m["median_noise_floor_percent"] is None
+    assert all(v is None for v in m["median_anchored"].values())
+    text = capsys.readouterr().out
+    assert "median held-out RMS: PV n/a %, Lujan n/a %, Fourier per cycle n/a %" in text
+    assert "white-noise floor n/a %" in text

@@ -17,12 +17,15 @@ from lungdeform.errors import InputError
 VERBOSE = {"on": None}
 
 
-def say(message: str) -> None:
-    """Progress line on stderr (stdout stays for results)."""
+def progress_enabled() -> bool:
+    """Whether progress goes to stderr: ``--verbose`` given, or else stderr is a terminal."""
     on = VERBOSE["on"]
-    if on is None:
-        on = sys.stderr.isatty()
-    if on:
+    return sys.stderr.isatty() if on is None else bool(on)
+
+
+def say(message: str) -> None:
+    """Progress line on stderr (stdout stays for results), when :func:`progress_enabled`."""
+    if progress_enabled():
         typer.echo(message, err=True)
 
 

@@ -42,12 +42,10 @@ def register(apps) -> None:
         from lungdeform.synthetic import synthetic_cohort, write_cohort
 
         deltas = _floats(volumes, "--volumes")
-        if out.exists() and not out.is_dir():
-            output_dir(out)  # refuses a file, naming it
         lungs = synthetic_cohort(subjects, delta_ml=deltas, noise_mm=noise_mm, seed=seed, law=law, spread=spread,
                                  shape_spread=shape_spread, landmarks=landmarks, table_shift_mm=table_shift_mm,
                                  progress=say)
-        folder = output_dir(out)
+        folder = output_dir(out)  # after the checks of every other option: bad input leaves no folder
         info = write_cohort(lungs, folder, seed=seed, progress=say)
         typer.echo(f"{'subject':<10} {'side':<6} {'source':<22} {'V_EE mL':>8}  c1…c9")
         for lung in lungs:

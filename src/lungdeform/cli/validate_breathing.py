@@ -25,6 +25,11 @@ import typer
 from .common import say
 
 
+def _pct(x) -> str:
+    """A median for the summary lines: 'n/a' where undefined (None: no finite score)."""
+    return "n/a" if x is None else f"{x:.2f}"
+
+
 def find_traces(data: Path) -> list[Path]:
     # by extension, case-insensitively; hidden files (e.g. macOS '._name.csv' resource forks) skipped
     files = [p for p in Path(data).rglob("*") if p.is_file() and p.suffix.lower() in (".vxp", ".csv")
@@ -39,6 +44,7 @@ def validate_breathing(data: Path, out: Path, tidal_volume_ml: float = 500.0, tr
     from lungdeform.atomic import write_text
     from lungdeform.cli.breathe import _clean, to_json
     from lungdeform.errors import InputError, LungdeformError
+    from lungdeform.holdout import MODELS as models
     from lungdeform.holdout import evaluate
     from lungdeform.trace import read_trace
 
@@ -71,7 +77,6 @@ def validate_breathing(data: Path, out: Path, tidal_volume_ml: float = 500.0, tr
         vals = [v for v in vals if v is not None and np.isfinite(v)]
         return float(np.median(vals)) if vals else None
 
-    models = ("model", "lujan", "fourier")
     normal = {k: v for k, v in traces.items() if "-N-" in k or "-NO-" in k}
     diff = np.array([r["shared_shape"]["model"] - r["shared_shape"]["lujan"] for r in traces.values()])
     metrics = {
@@ -119,6 +124,8 @@ def register(apps) -> None:
         train_fraction: float = typer.Option(0.5, "--train-fraction"),
     ):
         """Fit the PV driver to every breathing trace; held-out RMS against Lujan and Fourier."""
+        from lungdeform.holdout import MODELS
+
         m = validate_breathing(data, out, tidal_volume_ml, train_fraction,
                                progress=say)
         for name, r in m["traces"].items():
@@ -126,17 +133,18 @@ def register(apps) -> None:
                        f"Fourier/cycle {r['fourier_rms_percent']:.2f} %")
         for name, err in m["errors"].items():
             typer.echo(f"skipped {name}: {err}", err=True)
-        typer.echo(f"median held-out RMS: PV {m['median_model_rms_percent']:.2f} %, "
-                   f"Lujan {m['median_lujan_rms_percent']:.2f} %, "
-                   f"Fourier per cycle {m['median_fourier_rms_percent']:.2f} % (target PV < 5 %)")
+        typer.echo(f"median held-out RMS: PV {_pct(m['median_model_rms_percent'])} %, "
+                   f"Lujan {_pct(m['median_lujan_rms_percent'])} %, "
+                   f"Fourier per cycle {_pct(m['median_fourier_rms_percent'])} % (target PV < 5 %)")
+
         def f(d):
-            return " / ".join("n/a" if d[k] is None else f"{d[k]:.2f}" for k in ("model", "lujan", "fourier")) + " %"
+            return " / ".join(_pct(d[k]) for k in MODELS) + " %"
 
         typer.echo(f"medians PV / Lujan / Fourier: shared shape, no drift {f(m['median_shared_shape_no_drift'])}; "
                    f"anchored {f(m['median_anchored'])}; per-cycle refit {f(m['median_per_cycle_refit'])}")
         typer.echo(f"  as % of each held-out trace's whole range {f(m['median_percent_of_trace_range'])}; "
                    f"regular cycles only {f(m['median_regular_cycles'])}; "
-                   f"white-noise floor {m['median_noise_floor_percent']:.2f} %")
+                   f"white-noise floor {_pct(m['median_noise_floor_percent'])} %")
         p = m["paired_model_vs_lujan"]
         typer.echo(f"  PV better than Lujan on {p['traces_model_better']} of {p['traces']} traces "
                    f"(median difference {p['median_difference_percent']:+.2f} points)")
