@@ -54,3 +54,15 @@ def left_lung():
 @pytest.fixture
 def right_lung():
     return ellipsoid_lung("right")
+
+
+@pytest.fixture(autouse=True)
+def _process_locale_restored():
+    # GDCM's DICOM writer (used to build test series) leaves the process locale at "C", which turns
+    # every later open() without an explicit encoding ASCII: each test ends with the locale it began with
+    import locale
+
+    saved = locale.setlocale(locale.LC_ALL)
+    yield
+    if locale.setlocale(locale.LC_ALL) != saved:
+        locale.setlocale(locale.LC_ALL, saved)

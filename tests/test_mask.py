@@ -231,8 +231,11 @@ def test_nifti_ras_is_converted_to_lps(tmp_path):
 
 def test_read_dicom_series_directory(tmp_path):
     # a label volume written as a DICOM series (one file per slice), read back from the folder
+    import locale
+
     import SimpleITK as sitk
 
+    saved = locale.setlocale(locale.LC_ALL)
     arr = np.zeros((6, 10, 12), np.int16)
     arr[1:5, 2:8, 3:9] = 1
     spacing, origin = (2.9, 2.9, 4.0), (-50.0, -40.0, 30.0)
@@ -254,7 +257,11 @@ def test_read_dicom_series_directory(tmp_path):
             sl.SetMetaData(tag, value)
         writer.SetFileName(str(tmp_path / f"slice{k:03d}.dcm"))
         writer.Execute(sl)
+    # GDCM's writer leaves the process locale at "C", which turns every later open() without an
+    # explicit encoding ASCII and broke a later test in the suite: give it back (test set-up only)
+    locale.setlocale(locale.LC_ALL, saved)
     im = read_image(tmp_path)
+    assert locale.setlocale(locale.LC_ALL) == saved  # the reader itself leaves the locale alone
     np.testing.assert_array_equal(im.array, arr)
     np.testing.assert_allclose(im.spacing, spacing, atol=1e-6)
     np.testing.assert_allclose(im.origin, origin, atol=1e-6)

@@ -119,12 +119,12 @@ def test_write_population_files(cohort, tmp_path):
     doc = _strict(tmp_path / "population.json")
     assert doc["by_side"]["left"]["c1"]["mean"] == pytest.approx(np.mean([c[0] for c, _ in values["left"]]))
     assert doc["failed"][0]["subject"] == "s9"
-    with open(tmp_path / "population_by_side.csv") as fh:
+    with open(tmp_path / "population_by_side.csv", encoding="utf-8", newline="") as fh:
         rows = list(csv.DictReader(fh))
     got = {(r["side"], r["quantity"]): r for r in rows}
     want = np.std([c[8] for c, _ in values["right"]], ddof=1)
     assert float(got[("right", "c9")]["sd"]) == pytest.approx(want, rel=1e-5)
-    with open(tmp_path / "table1.csv") as fh:
+    with open(tmp_path / "table1.csv", encoding="utf-8", newline="") as fh:
         t = list(csv.DictReader(fh))
     assert len(t) == 18 and {r["paper_in_range"] for r in t} <= {"true", "false"}
     for name in ("constants_by_side", "constants_vs_volume", "fit_errors"):
@@ -210,12 +210,12 @@ def test_recovery_against_fabricated_fits(synthetic, tmp_path):
     assert exact["point_rms_mm"] < 1e-9 and exact["surface_to_truth_rms_mm"] < 1e-6
     assert "alignment_translation_mm" not in exact
     assert s["recovery"]["constants"]["c6"]["max_abs_error"] == pytest.approx(0.3)
-    with open(tmp_path / "recovery.csv") as fh:
+    with open(tmp_path / "recovery.csv", encoding="utf-8", newline="") as fh:
         rows = {r["quantity"]: r for r in csv.DictReader(fh)}
     assert float(rows["c9"]["mean_error"]) == pytest.approx(0.02)
     assert float(rows["c3"]["mean_error"]) == pytest.approx(0.0, abs=1e-12) and "fitted c3 / true c3" in rows["c3"]["note"]
     assert float(rows["c3_raw"]["mean_error"]) == pytest.approx(0.01) and "raw" in rows["c3_raw"]["note"]
-    with open(tmp_path / "recovery_by_lung.csv") as fh:
+    with open(tmp_path / "recovery_by_lung.csv", encoding="utf-8", newline="") as fh:
         by_lung = list(csv.DictReader(fh))
     assert float(by_lung[0]["gauge_factor"]) == pytest.approx((left.constants[2] + off_l[2]) / left.constants[2])
     assert (tmp_path / "plots" / "recovery.png").read_bytes()[:4] == b"\x89PNG"

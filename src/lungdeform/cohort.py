@@ -6,7 +6,7 @@ Layout of the output folder ``OUT``::
     OUT/subjects/<subject>/<side>/          one finished job: result.json (+ model.npz,
                                             metrics.json, report.html when the fit succeeded)
 
-A job (:class:`lungdeform.manifest.Job`) runs :func:`lungdeform.cli.fit.run_fit` into a hidden
+A job (:class:`lungdeform.manifest.Job`) runs :func:`lungdeform.pipeline.run_fit` into a hidden
 temporary folder next to its final one (``.<side>.partial-<hex>``) and renames it into place when
 complete, so a folder under ``subjects/`` is always whole; one that existed before is moved aside
 (``.<side>.old-<hex>``) and removed. Both kinds of leftover (after a kill) are removed at the start
@@ -80,7 +80,7 @@ class FitOptions:
     baselines: bool = True
     grid: bool = False
     stiffness: bool = False
-    #: how targets reach the end-exhale frame: "apex", "joint" or "none" (lungdeform.cli.fit.ALIGN_MODES);
+    #: how targets reach the end-exhale frame: "apex", "joint" or "none" (lungdeform.pipeline.ALIGN_MODES);
     #: synthetic cohorts (already in one frame) want "none" or "joint"
     align: str = "apex"
     #: with landmarks: the landmark-informed fit and its k-fold cross-validation (``folds`` folds)
@@ -88,7 +88,7 @@ class FitOptions:
     folds: int = 5
 
     def __post_init__(self):
-        from .cli.fit import ALIGN_MODES
+        from .pipeline import ALIGN_MODES
 
         if int(self.max_evaluations) < 1:
             raise InputError(f"max_evaluations (--evaluations) must be at least 1, got {self.max_evaluations}")
@@ -162,7 +162,7 @@ def fit_job(job: Job, out_dir, options: FitOptions = FitOptions(), *, progress: 
     Never raises for a failed fit (the result says ``failed`` with the error); raises only if the
     result itself cannot be written (e.g. the disk is full), leaving no folder half-written.
     """
-    from .cli.fit import run_fit
+    from .pipeline import run_fit
 
     out_dir = Path(out_dir)
     emit = progress or (lambda _e: None)

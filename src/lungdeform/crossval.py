@@ -17,15 +17,16 @@ import numpy as np
 from .errors import InputError
 from .interpolate import interpolation_weights
 
-if TYPE_CHECKING:  # fit.py imports this module (landmark_folds); fit_lung is imported where used
+if TYPE_CHECKING:  # fit_lung is imported where used (fit.py's docstring refers to this module)
     from .fit import FitResult, Target
     from .mesh import Surface
 
 
-def landmark_folds(n: int, folds: int = 5, seed: int = 0) -> list[np.ndarray]:
-    """``folds`` disjoint index arrays covering ``range(n)`` (seeded random split, sizes within 1)."""
+def landmark_folds(n: int, folds: int = 5, seed: int = 0, *, parameter: str = "folds") -> list[np.ndarray]:
+    """``folds`` disjoint index arrays covering ``range(n)`` (seeded random split, sizes within 1).
+    ``parameter``: how the error for a bad ``folds`` names it (e.g. ``"--folds"``)."""
     if not 2 <= int(folds) <= n:
-        raise InputError(f"folds must be between 2 and the number of landmarks ({n}), got {folds}")
+        raise InputError(f"{parameter} must be between 2 and the number of landmarks ({n}), got {folds}")
     idx = np.random.default_rng(seed).permutation(int(n))
     return [np.sort(part) for part in np.array_split(idx, int(folds))]
 
@@ -56,7 +57,7 @@ class LandmarkCV:
 def cross_validate_landmarks(surface: Surface, side: str, targets: Sequence[Target], landmarks_rest,
                              landmarks_targets: dict, *, folds=5, seed: int = 0, initial=None,
                              max_evaluations: int = 200, progress: Callable[[str], None] | None = None,
-                             **fit_kwargs) -> LandmarkCV:
+                             landmark_matrix=None, **fit_kwargs) -> LandmarkCV:
     """k-fold protocol for the landmark-informed fit: for each fold, fit on the surfaces and the
     other folds' landmarks (:func:`fit_lung` with the landmark term), then move the fold's
     landmarks with that fit; finally fit on all landmarks.
@@ -64,7 +65,9 @@ def cross_validate_landmarks(surface: Surface, side: str, targets: Sequence[Targ
     ``landmarks_rest : (m, 3)`` mm and ``landmarks_targets : {target index: (m, 3)}`` mm, aligned.
     ``folds``: a number of folds (split by :func:`landmark_folds` with ``seed``) or the index
     arrays themselves. ``initial``: c1…c6 to start every fold from (e.g. the surface-only fit).
-    Other keywords go to :func:`fit_lung`. Landmark errors computed from
+    ``landmark_matrix : (m, k) float``, optional: the thin-plate interpolation from the kept
+    vertices to all of ``landmarks_rest`` (:func:`lungdeform.baselines.landmark_matrix`),
+    computed once here when not given; each fold uses its rows. Other keywords go to :func:`fit_lung`. Landmark errors computed from
     :attr:`LandmarkCV.predicted` are held out.
     """
     from .fit import fit_lung
@@ -82,19 +85,25 @@ def cross_validate_landmarks(surface: Surface, side: str, targets: Sequence[Targ
     predicted = {int(i): np.full_like(rest, np.nan) for i in landmarks_targets}
     consts = []
     kept = np.ones(surface.n_vertices, bool) if fit_kwargs.get("keep") is None else np.asarray(fit_kwargs["keep"], bool)
+    # one thin-plate matrix for all landmarks: row j depends only on landmark j, so the folds take rows
+    w_all = interpolation_weights(surface.vertices[kept], rest) if landmark_matrix is None else np.asarray(landmark_matrix, float)
+    if w_all.shape != (len(rest), int(kept.sum())):
+        raise InputError(f"landmark_matrix has shape {w_all.shape}, expected ({len(rest)}, {int(kept.sum())}) "
+                         "(landmarks, kept vertices)")
     for k, test in enumerate(parts):
         fold[test] = k
         train = np.setdiff1d(np.arange(len(rest)), test)
         r = fit_lung(surface, side, targets, initial=initial, max_evaluations=max_evaluations,
                      landmarks_rest=rest[train], landmarks_targets={i: np.asarray(v)[train] for i, v in landmarks_targets.items()},
-                     progress=progress, **fit_kwargs)
+                     landmark_matrix=w_all[train], progress=progress, **fit_kwargs)
         consts.append(r.constants)
-        w = interpolation_weights(surface.vertices[kept], rest[test])
+        w = w_all[test]
         for i in predicted:
             s = (targets[i].volume_ml - r.volume_ee_ml) / r.unit_ml
             predicted[i][test] = rest[test] + s * (w @ r.displacement[kept])
         say(f"landmark fold {k + 1}/{len(parts)}: surface RMS {r.surface_rms_mm:.2f} mm, "
             f"training landmarks RMS {r.landmark_rms_mm:.2f} mm")
     final = fit_lung(surface, side, targets, initial=initial, max_evaluations=max_evaluations,
-                     landmarks_rest=rest, landmarks_targets=landmarks_targets, progress=progress, **fit_kwargs)
+                     landmarks_rest=rest, landmarks_targets=landmarks_targets, landmark_matrix=w_all,
+                     progress=progress, **fit_kwargs)
     return LandmarkCV(final, predicted, fold, np.asarray(consts))

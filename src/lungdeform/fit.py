@@ -73,10 +73,13 @@ from .solve import ForceSolver
 from .stiffness import as_moduli, uniform
 from .transfer import local_transfer, split_transfer
 
-# re-exported for callers of the former location (tests/test_baselines.py); the protocol lives in crossval
-
 #: Bounds of c1…c6 searched (scales c1, c3, c5; exponents c2, c4, c6).
 DIRECTION_BOUNDS = ((0.01, 3.0), (0.05, 4.0), (0.01, 3.0), (0.05, 4.0), (0.01, 3.0), (0.05, 4.0))
+#: The same bounds as two (6,) arrays, lower and upper (read-only).
+DIRECTION_LO = np.array([b[0] for b in DIRECTION_BOUNDS])
+DIRECTION_HI = np.array([b[1] for b in DIRECTION_BOUNDS])
+DIRECTION_LO.flags.writeable = False
+DIRECTION_HI.flags.writeable = False
 
 #: Objective value given to the optimiser for a candidate that gives no usable model (mm).
 UNUSABLE_MM = 1.0e3
@@ -114,6 +117,39 @@ class _PreparedTarget:
     caster: RayCaster
     samples: np.ndarray  # (k, 3) target points used by the fit objective
     sample_weights: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class Evaluation:
+    """One forward evaluation of candidate constants (:meth:`LungFitter.residuals`).
+
+    Attributes
+    ----------
+    directions : (n, 3) float
+        Unit directions from c1…c6.
+    hits : RayHits or None
+        Rays to the calibration target (None when they were not cast: c7…c9 given, no ``rays``).
+    force_constants : (3,) float or None
+        c7…c9 used (unnormalised; None when the rays gave too few hits).
+    u : (n, 3) float or None
+        Displacement, mm per ``delta_ml`` (None: an unusable candidate, no growth or no hits).
+    vector : (r,) float or None
+        Weighted residuals (mm) whose sum of squares is the objective squared
+        (:meth:`LungFitter.residual_vector`); None with ``u``.
+    residuals : dict[str, (k,) float]
+        Per target name: symmetric distances (mm) of the fit samples (empty when unusable).
+    surface_ms, landmark_ms : float
+        Mean squares (mm²) of the surface and landmark parts (NaN when unusable / no landmarks).
+    """
+
+    directions: np.ndarray
+    hits: RayHits | None
+    force_constants: np.ndarray | None
+    u: np.ndarray | None
+    vector: np.ndarray | None
+    residuals: dict
+    surface_ms: float
+    landmark_ms: float
 
 
 @dataclass(frozen=True, eq=False)
@@ -273,12 +309,18 @@ class LungFitter:
         have them (only targets in ``fit_on`` enter the objective).
     landmark_weight : float
         Weight of the landmark mean square against the surface mean square (1: both in mm²).
+    landmark_matrix : (m, k) float, optional
+        The thin-plate interpolation from the kept vertices to ``landmarks_rest``
+        (:func:`lungdeform.interpolate.interpolation_weights` of ``surface.vertices[keep]`` at
+        ``landmarks_rest``), precomputed by the caller (one dense solve of size ~k saved per
+        fitter); computed here when not given. Row ``j`` depends only on landmark ``j``, so rows of
+        one matrix serve any subset of the landmarks.
     """
 
     def __init__(self, surface: Surface, side: str, targets: Sequence[Target], *, fit_on=None,
                  keep=None, gravity="supine", max_distance: float = 25.0, min_cosine: float = 0.25,
                  samples: int = 6000, d_min: float = 1.0, stiffness=None, landmarks_rest=None,
-                 landmarks_targets=None, landmark_weight: float = 1.0):
+                 landmarks_targets=None, landmark_weight: float = 1.0, landmark_matrix=None):
         if not targets:
             raise InputError("targets: fitting needs at least one larger-volume surface")
         self.surface = surface
@@ -315,11 +357,11 @@ class LungFitter:
                                                  RayCaster(t.surface.vertices, t.surface.faces), pts, w))
         self.calib = self.fit_on[0]
         self.delta_ml = vols[self.calib] - self.v_ee
-        self._set_landmarks(landmarks_rest, landmarks_targets, landmark_weight)
+        self._set_landmarks(landmarks_rest, landmarks_targets, landmark_weight, landmark_matrix)
         self.set_stiffness(uniform(self.n) if stiffness is None else as_moduli(stiffness, self.n))
         self.evaluations = 0
 
-    def _set_landmarks(self, rest, observed, weight) -> None:
+    def _set_landmarks(self, rest, observed, weight, matrix=None) -> None:
         self.landmark_weight = float(weight)
         self.lm_rest, self.lm_targets, self.lm_matrix = None, {}, None
         if rest is None or not observed:
@@ -338,7 +380,13 @@ class LungFitter:
         self.lm_rest = rest
         self.lm_targets = {int(i): as_vertices(v, "landmarks") for i, v in observed.items() if int(i) in self.fit_on}
         # the metrics' interpolation: thin-plate spline through the kept vertices (crop face out)
-        self.lm_matrix = interpolation_weights(self.p[self.keep], rest)
+        if matrix is None:
+            self.lm_matrix = interpolation_weights(self.p[self.keep], rest)
+        else:
+            self.lm_matrix = np.asarray(matrix, float)
+            if self.lm_matrix.shape != (len(rest), int(self.keep.sum())):
+                raise InputError(f"landmark_matrix has shape {self.lm_matrix.shape}, expected "
+                                 f"({len(rest)}, {int(self.keep.sum())}) (landmarks, kept vertices)")
 
     def landmark_positions(self, u: np.ndarray, target: int) -> np.ndarray:
         """``(m, 3)`` mm: the landmarks moved by the thin-plate interpolation of ``s·u`` at ``target``."""
@@ -409,31 +457,47 @@ class LungFitter:
             parts += [e * scale for e in errs]
         return np.concatenate(parts), residuals, surface_ms, lm_ms
 
+    def directions(self, c_dir: np.ndarray) -> np.ndarray:
+        """Unit directions ``(n, 3)`` from c1…c6 ``c_dir (6,)`` (step 1)."""
+        return direction_field(self.frame, self.p, np.concatenate([np.asarray(c_dir, float)[:6], [0.0, 1.0, 0.0]]))
+
+    def rays(self, d: np.ndarray) -> RayHits:
+        """Rays from the end-exhale vertices along ``±d (n, 3)`` to the calibration target (step 2)."""
+        return correspond(self.p, d, self.prepared[self.calib].caster, max_distance=self.max_distance,
+                          min_cosine=self.min_cosine)
+
+    def residuals(self, c_dir: np.ndarray, force=None, shifts=None, *, rays: bool = False) -> Evaluation:
+        """One forward evaluation (counted in :attr:`evaluations`) of direction constants
+        ``c_dir (6,)``: directions, c7…c9 (``force``, or fitted to the ray magnitudes when None,
+        steps 2–4), displacement and the residual vector of :meth:`residual_vector` for the targets
+        translated by ``shifts : (k, 3)`` mm. ``rays``: cast the rays even when ``force`` is given
+        (for :attr:`Evaluation.hits`)."""
+        self.evaluations += 1
+        d = self.directions(c_dir)
+        hits = self.rays(d) if force is None or rays else None
+        c_force = self.ray_force_constants(d, hits) if force is None else np.asarray(force, float)
+        u = None if c_force is None else self.displacement(d, c_force)
+        if u is None:
+            return Evaluation(d, hits, c_force, None, None, {}, float("nan"), float("nan"))
+        r, residuals, surface_ms, lm_ms = self.residual_vector(u, shifts)
+        return Evaluation(d, hits, c_force, u, r, residuals, surface_ms, lm_ms)
+
     def evaluate(self, c_dir: np.ndarray, *, full: bool = False, force=None, shifts=None):
         """Objective (mm) for direction constants ``c_dir (6,)``; with ``full`` also the parts.
 
         ``force``: c7…c9 to use (default: fitted to the ray magnitudes, steps 2–4);
         ``shifts : (k, 3)`` mm: translations of the targets (see :meth:`residual_vector`)."""
-        self.evaluations += 1
-        c_dir = np.asarray(c_dir, float)[:6]
-        c_full = np.concatenate([c_dir, [0.0, 1.0, 0.0]])
-        d = direction_field(self.frame, self.p, c_full)
-        hits = None
-        if force is None or full:
-            target = self.prepared[self.calib]
-            hits = correspond(self.p, d, target.caster, max_distance=self.max_distance, min_cosine=self.min_cosine)
-        c_force = self.ray_force_constants(d, hits) if force is None else np.asarray(force, float)
-        u = None if c_force is None else self.displacement(d, c_force)
-        if u is None:
+        ev = self.residuals(c_dir, force, shifts, rays=full)
+        if ev.u is None:
             return (np.inf, None) if full else np.inf
-        _, residuals, surface_ms, lm_ms = self.residual_vector(u, shifts)
-        obj = float(np.sqrt(surface_ms + (self.landmark_weight * lm_ms if self.lm_targets else 0.0)))
+        obj = float(np.sqrt(ev.surface_ms + (self.landmark_weight * ev.landmark_ms if self.lm_targets else 0.0)))
         if not full:
             return obj
+        c_force = ev.force_constants
         scale = np.abs(c_force).max()
-        parts = dict(directions=d, hits=hits, force=c_force @ self.fields, u=u, residuals=residuals,
-                     constants=np.concatenate([c_dir, c_force / scale]),
-                     surface_rms=float(np.sqrt(surface_ms)), landmark_rms=float(np.sqrt(lm_ms)))
+        parts = dict(directions=ev.directions, hits=ev.hits, force=c_force @ self.fields, u=ev.u,
+                     residuals=ev.residuals, constants=np.concatenate([np.asarray(c_dir, float)[:6], c_force / scale]),
+                     surface_rms=float(np.sqrt(ev.surface_ms)), landmark_rms=float(np.sqrt(ev.landmark_ms)))
         return obj, parts
 
     def _two_sided(self, positions: np.ndarray, pt: _PreparedTarget, shift=None):
@@ -471,6 +535,7 @@ def fit_lung(
     landmarks_rest=None,
     landmarks_targets=None,
     landmark_weight: float = 1.0,
+    landmark_matrix=None,
     translate: bool = False,
     progress: Callable[[str], None] | None = None,
 ) -> FitResult:
@@ -480,8 +545,8 @@ def fit_lung(
     ``"grid"``. ``initial``: c1…c6 (or c1…c9) to start from; default Table I (the least-squares
     mode keeps the start's c3 as the gauge and takes c7…c9 from ``initial`` when given, else from
     the rays at the start). ``grid_span``: half-width around the start that the grid scans per
-    constant (step 0.01). ``landmarks_rest`` / ``landmarks_targets`` / ``landmark_weight``: optional
-    landmark term of the objective (see :class:`LungFitter`); the landmark error of the result is
+    constant (step 0.01). ``landmarks_rest`` / ``landmarks_targets`` / ``landmark_weight`` /
+    ``landmark_matrix``: optional landmark term of the objective (see :class:`LungFitter`); the landmark error of the result is
     in-sample, use :func:`lungdeform.crossval.cross_validate_landmarks` for a held-out figure.
     ``translate`` (least squares only): fit a translation of each target in ``fit_on`` jointly
     with the constants (:attr:`FitResult.translations`). ``max_evaluations``: budget of forward
@@ -500,14 +565,14 @@ def fit_lung(
     fitter = LungFitter(surface, side, targets, fit_on=fit_on, keep=keep, gravity=gravity,
                         max_distance=max_distance, min_cosine=min_cosine, samples=samples,
                         landmarks_rest=landmarks_rest, landmarks_targets=landmarks_targets,
-                        landmark_weight=landmark_weight)
+                        landmark_weight=landmark_weight, landmark_matrix=landmark_matrix)
     start_c = table_constants(side) if initial is None else np.asarray(initial, float)
     if start_c.shape not in ((6,), (9,)) or not np.all(np.isfinite(start_c)):
         raise InputError(f"initial must be 6 or 9 finite constants (c1…c6 or c1…c9), got shape {start_c.shape}")
     x0 = start_c[:6]
     history: list[float] = []
 
-    lo, hi = np.array([b[0] for b in DIRECTION_BOUNDS]), np.array([b[1] for b in DIRECTION_BOUNDS])
+    lo, hi = DIRECTION_LO, DIRECTION_HI
     seen = {"x": None, "f": np.inf}  # the best point evaluated (Powell may return a worse last point)
     force, shifts = None, None
 
@@ -529,7 +594,7 @@ def fit_lung(
     if method == "least_squares":
         force0 = start_c[6:] if len(start_c) == 9 else None
         x, force, shifts, best, success, message = least_squares_search(
-            fitter, np.clip(x0, lo, hi), force0, bounds=DIRECTION_BOUNDS, translate=translate,
+            fitter, np.clip(x0, lo, hi), force0, lo=lo, hi=hi, translate=translate,
             max_evaluations=max_evaluations, history=history)
         say(f"{side}: least squares RMS {best:.3f} mm after {fitter.evaluations} evaluations")
     elif method == "powell":

@@ -31,8 +31,6 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy import optimize
 
-from .correspond import correspond
-from .direction import directions as direction_field
 from .errors import ConvergenceError
 
 if TYPE_CHECKING:  # fit.py imports this module
@@ -48,10 +46,10 @@ UNUSABLE_RESIDUAL_MM = 50.0
 GAUGE = 2
 
 
-def least_squares_search(fitter: LungFitter, x0: np.ndarray, force0, *, bounds, translate: bool,
+def least_squares_search(fitter: LungFitter, x0: np.ndarray, force0, *, lo, hi, translate: bool,
                          max_evaluations: int, history: list):
     """Trust-region least squares (scipy ``least_squares``, ``trf``, finite differences) on the
-    per-point residual vector (:meth:`LungFitter.residual_vector`).
+    per-point residual vector (:meth:`LungFitter.residuals`, :meth:`LungFitter.residual_vector`).
 
     Free: c1, c2, c4, c5, c6 (c3 held at its start: directions are normalised, so c1, c3, c5 are
     defined only up to a common factor, a zero singular value; the ratios c1/c3 and c5/c3 are what
@@ -59,17 +57,15 @@ def least_squares_search(fitter: LungFitter, x0: np.ndarray, force0, *, bounds, 
     the overall scale being fixed by the volume calibration), within ±:data:`FORCE_BOUND`; with
     ``translate``, a translation (mm) of each target in ``fit_on``. c7…c9 start from ``force0`` or
     the ray fit at ``x0``, which is only a start: rays that hit another part of the target or graze
-    bias it, so the force constants are refined against the surface objective itself. ``bounds``:
-    six ``(lo, hi)`` pairs of c1…c6 (:data:`lungdeform.fit.DIRECTION_BOUNDS`).
+    bias it, so the force constants are refined against the surface objective itself. ``lo``,
+    ``hi``: ``(6,)`` bounds of c1…c6 (:data:`lungdeform.fit.DIRECTION_LO`, ``DIRECTION_HI``).
 
     Returns ``(c1…c6 (6,), c7…c9 (3,), shifts (k, 3) or None, objective mm, success, message)``.
     """
-    lo6, hi6 = np.array([b[0] for b in bounds]), np.array([b[1] for b in bounds])
+    lo6, hi6 = np.asarray(lo, float), np.asarray(hi, float)
     if force0 is None:
-        d0 = direction_field(fitter.frame, fitter.p, np.concatenate([x0, [0.0, 1.0, 0.0]]))
-        hits = correspond(fitter.p, d0, fitter.prepared[fitter.calib].caster, max_distance=fitter.max_distance,
-                          min_cosine=fitter.min_cosine)
-        force0 = fitter.ray_force_constants(d0, hits)
+        d0 = fitter.directions(x0)
+        force0 = fitter.ray_force_constants(d0, fitter.rays(d0))
         if force0 is None:
             raise ConvergenceError(f"the starting constants {x0} give no ray hits to start c7…c9 from")
     force0 = np.asarray(force0, float)
@@ -100,11 +96,8 @@ def least_squares_search(fitter: LungFitter, x0: np.ndarray, force0, *, bounds, 
     best = {"f": np.inf, "theta": theta0}
 
     def resid(theta):
-        fitter.evaluations += 1
         c, f, sh = unpack(theta)
-        d = direction_field(fitter.frame, fitter.p, np.concatenate([c, [0.0, 1.0, 0.0]]))
-        u = fitter.displacement(d, f)
-        r = None if u is None else fitter.residual_vector(u, sh)[0]
+        r = fitter.residuals(c, f, sh).vector
         if r is None or not np.all(np.isfinite(r)):
             if size["n"] is None:
                 raise ConvergenceError(f"the starting constants {x0}, {force0} give no usable model")

@@ -112,15 +112,13 @@ def draw_constants(side: str, rng: np.random.Generator, *, spread: float = 0.2,
     (:data:`lungdeform.fit.DIRECTION_BOUNDS`); c7, c9 = |Table I + N(0, force_spread²)|, c8 = Table I;
     c7…c9 normalised (:func:`normalise_force_constants`), so c8 = 1 while it dominates.
     """
-    from .fit import DIRECTION_BOUNDS
+    from .fit import DIRECTION_HI, DIRECTION_LO
 
     if not (spread >= 0 and force_spread >= 0):
         raise InputError(f"spread and force_spread must be >= 0, got {spread!r}, {force_spread!r}")
     t = table_constants(side)
-    lo = np.array([b[0] for b in DIRECTION_BOUNDS])
-    hi = np.array([b[1] for b in DIRECTION_BOUNDS])
     c = t.copy()
-    c[:6] = np.clip(t[:6] * np.exp(rng.normal(0.0, spread, 6)), lo, hi)
+    c[:6] = np.clip(t[:6] * np.exp(rng.normal(0.0, spread, 6)), DIRECTION_LO, DIRECTION_HI)
     c[6] = abs(t[6] + rng.normal(0.0, force_spread))
     c[8] = abs(t[8] + rng.normal(0.0, force_spread))
     return normalise_force_constants(c)

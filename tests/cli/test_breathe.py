@@ -23,7 +23,7 @@ def test_breathe_preset_writes_outputs(tmp_path, capsys):
     assert main(["breathe", "--preset", "normal", "--out", str(out), "--cycles", "2", "--fs", "25"]) == 0
     for name in ("curve.csv", "metrics.json", "volume.png", "pv_loop.png", "residuals.png"):
         assert (out / name).stat().st_size > 0, name
-    with open(out / "curve.csv") as fh:
+    with open(out / "curve.csv", encoding="utf-8", newline="") as fh:
         rows = list(csv.reader(fh))
     assert rows[0] == ["t_s", "volume_ml", "flow_ml_s", "pressure_cmH2O"]
     vol = np.array([float(r[1]) for r in rows[1:]])

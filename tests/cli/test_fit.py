@@ -94,7 +94,7 @@ def test_inconsistent_spacing(tmp_path, capsys):
 
 
 def test_landmarks_outside_image():
-    from lungdeform.cli.fit import check_landmarks
+    from lungdeform.pipeline import check_landmarks
     from lungdeform.errors import InputError
     from lungdeform.mask import Image
 
@@ -171,7 +171,7 @@ def test_read_input_takes_the_requested_side_of_a_lobe_map(tmp_path):
     # or x < 0 (right), and its surface volume matches their voxel count.
     import SimpleITK as sitk
 
-    from lungdeform.cli.fit import read_input
+    from lungdeform.pipeline import read_input
     from tests.test_mask import _lobe_map
 
     a = _lobe_map()

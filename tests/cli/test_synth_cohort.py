@@ -18,7 +18,7 @@ def test_synth_cohort_writes_manifest_and_truth(tmp_path, capsys):
     assert str(out / "manifest.csv") in text and str(out / "truth.json") in text
     # the files are in one frame: the hint names the alignment that keeps them there
     assert "--align none" in text
-    with open(out / "manifest.csv") as fh:
+    with open(out / "manifest.csv", encoding="utf-8", newline="") as fh:
         rows = list(csv.DictReader(fh))
     assert [(r["subject"], r["side"]) for r in rows] == [("synth000", "left")] * 3 + [("synth000", "right")] * 3
     truth = json.loads((out / "truth.json").read_text())

@@ -3,7 +3,7 @@
 Data (``--data``, the folder itself or a parent holding ``itk-right-lung-two-volumes``):
 ``CT_3D_lung_fixed_mask.mha`` (smaller volume, end-exhale), ``CT_3D_lung_moving_mask.mha``
 (larger volume) and the 51 landmark pairs ``CT_3D_lung_{fixed,moving}_point_set_corrected.txt``.
-Runs :func:`lungdeform.cli.fit.run_fit` with the grid mode and the baselines, writes
+Runs :func:`lungdeform.pipeline.run_fit` with the grid mode and the baselines, writes
 ``OUT/metrics.json`` (``model`` and each baseline: ``surface_mean_mm``, ``surface_rms_mm``,
 ``surface_p95_mm``, ``landmark_mean_mm``, ``landmark_max_mm``), ``model.npz`` and ``report.html``,
 and prints the issue's targets with pass/fail (measured, not asserted: the exit code is 0 when the
@@ -79,7 +79,8 @@ def register(apps) -> None:
         import json
 
         from lungdeform.cli.common import output_dir, say
-        from lungdeform.cli.fit import _print_table, run_fit
+        from lungdeform.cli.fit import _print_table
+        from lungdeform.pipeline import run_fit
         from lungdeform.correspond import rays_per_second
         from lungdeform.data import itk_right_lung
         from lungdeform.atomic import write_bytes
