@@ -24,7 +24,9 @@ Loading checks the schema name and version, that every key is present, and every
 
 from __future__ import annotations
 
+import datetime as _dt
 import json
+import sys
 import zipfile
 from pathlib import Path
 
@@ -144,3 +146,16 @@ def _lung(path: Path, name: str, data: dict) -> LungModel:
         gravity=a["gravity"], displacement=a["displacement"], unit_ml=float(a["unit_ml"]),
         calibration_ml=float(a["calibration_ml"]), d_min=float(a["d_min"]),
     )
+
+
+def provenance(command: str, **extra) -> dict:
+    """What a model file records about its making: software version, command, argv, time (UTC)."""
+    from . import __version__
+
+    return {
+        "software": f"lungdeform {__version__}",
+        "command": command,
+        "argv": sys.argv[1:],
+        "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        **extra,
+    }

@@ -26,9 +26,7 @@ Library code behind ``lungdeform fit``, ``lungdeform validate itk-pair`` and the
 
 from __future__ import annotations
 
-import datetime as _dt
 import json
-import sys
 import time
 from pathlib import Path
 
@@ -132,7 +130,7 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
     from lungdeform.atomic import write_bytes
     from lungdeform.landmarks import read_elastix_points
     from lungdeform.model import Model
-    from lungdeform.modelfile import save_model
+    from lungdeform.modelfile import provenance, save_model
     from lungdeform.report import write_report
 
     say = progress or (lambda _m: None)
@@ -307,8 +305,8 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
             if use_lm:
                 methods["affine_landmarks"] = B.affine_landmarks_cv(rest, tg.surface, lm0, lmt, lm_folds, keep=keep,
                                                                     keep_target=tg.keep, landmark_weight=landmark_weight)
-                protocols["affine_landmarks"] = (f"reference: affine fitted on the surfaces and the training landmarks "
-                                                 f"(same weighting and folds as the model); held-out landmark errors")
+                protocols["affine_landmarks"] = ("reference: affine fitted on the surfaces and the training landmarks "
+                                                 "(same weighting and folds as the model); held-out landmark errors")
                 methods["landmarks_tps"] = B.landmark_tps_cv(rest, lm0, lmt, lm_folds)
                 protocols["landmarks_tps"] = ("reference without surfaces: thin-plate spline through the training "
                                               "landmarks; held-out landmark errors; its surface is that spline applied "
@@ -338,7 +336,7 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
 
     out.mkdir(parents=True, exist_ok=True)
     lung = to_lung_model(rest, side, headline)
-    model = Model({side: lung}, _provenance(command, inputs=[str(p) for p in inputs], volumes_ml=vols,
+    model = Model({side: lung}, provenance(command, inputs=[str(p) for p in inputs], volumes_ml=vols,
                                           fit=headline.as_dict(), alignment=alignments,
                                           fit_kind=metrics["headline_fit"]))
     save_model(out / "model.npz", model)
@@ -371,19 +369,6 @@ def _bounding_boxes(rest, fit, surfaces, vols):
         dims = np.ptp(x, axis=0)
         model.append({"volume_ml": float(v), "dims_mm": dims.tolist(), "ratio": float(v * 1000.0 / np.prod(dims))})
     return {"observed": obs, "model": model}
-
-
-def _provenance(command: str, **extra) -> dict:
-    """What the model file records about its making: software version, command, argv, time (UTC)."""
-    from lungdeform import __version__
-
-    return {
-        "software": f"lungdeform {__version__}",
-        "command": command,
-        "argv": sys.argv[1:],
-        "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-        **extra,
-    }
 
 
 def _json(o):

@@ -7,7 +7,9 @@ from typing import Optional
 
 import typer
 
-from .common import parse_orientation, provenance, say
+from lungdeform.modelfile import provenance
+
+from .common import parse_orientation, say
 
 
 def register(apps) -> None:

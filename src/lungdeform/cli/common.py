@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import datetime as _dt
 import sys
 from pathlib import Path
 
@@ -58,13 +57,3 @@ def parse_orientation(text: str):
     return parse_vector(text, "--orientation")
 
 
-def provenance(command: str, **extra) -> dict:
-    from lungdeform import __version__
-
-    return {
-        "software": f"lungdeform {__version__}",
-        "command": command,
-        "argv": sys.argv[1:],
-        "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-        **extra,
-    }
