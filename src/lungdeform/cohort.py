@@ -249,19 +249,19 @@ def _result(job: Job, status: str, digest: str, seconds: float, *, metrics: dict
         "constants": [float(c) for c in constants] if constants is not None else None,
         "fit_kind": fit_kind,
         "metrics": {
-            "surface_mean_mm": _finite(model.get("surface_mean_mm")),
-            "surface_rms_mm": _finite(model.get("surface_rms_mm")),
-            "surface_p95_mm": _finite(model.get("surface_p95_mm")),
-            "landmark_mean_mm": _finite(model.get("landmark_mean_mm")),
-            "objective_rms_mm": _finite(headline.get("objective_rms_mm")),
+            "surface_mean_mm": finite_or_none(model.get("surface_mean_mm")),
+            "surface_rms_mm": finite_or_none(model.get("surface_rms_mm")),
+            "surface_p95_mm": finite_or_none(model.get("surface_p95_mm")),
+            "landmark_mean_mm": finite_or_none(model.get("landmark_mean_mm")),
+            "objective_rms_mm": finite_or_none(headline.get("objective_rms_mm")),
         },
         "seconds": float(seconds),
         "input_digest": digest,
     }
 
 
-def _finite(v):
-    """A finite float, or None (NaN: e.g. landmark errors without landmarks)."""
+def finite_or_none(v):
+    """JSON-safe float: NaN and infinities become None (e.g. landmark errors without landmarks)."""
     if v is None:
         return None
     v = float(v)

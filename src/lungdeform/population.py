@@ -43,7 +43,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from .cohort import RESULT_SCHEMA, RESULT_VERSION
+from .cohort import RESULT_SCHEMA, RESULT_VERSION, finite_or_none
 from .constants import TABLE_I, table_constants
 from .errors import InputError
 from .search import GAUGE
@@ -83,14 +83,6 @@ def describe(values) -> Summary:
         return Summary(math.nan, math.nan, math.nan, math.nan, 0)
     sd = float(np.std(v, ddof=1)) if len(v) > 1 else math.nan
     return Summary(float(v.mean()), sd, float(v.min()), float(v.max()), int(len(v)))
-
-
-def finite_or_none(x):
-    """JSON-safe float: NaN and infinities become None."""
-    if x is None:
-        return None
-    x = float(x)
-    return x if math.isfinite(x) else None
 
 
 # --------------------------------------------------------------------------- result records

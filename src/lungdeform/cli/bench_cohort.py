@@ -30,6 +30,7 @@ def make_bench_cohort(folder: Path, subjects: int, *, vertices: int | None = Non
     a factor in [0.9, 1.1] (end-exhale), and the same surface moved by the model with Table I
     constants by +:data:`INSPIRATION_ML` mL (the second scan). Volumes are left to be measured.
     """
+    from lungdeform.atomic import write_text
     from lungdeform.bench import lung_with_vertices
     from lungdeform.data import default_lungs
     from lungdeform.io import write_mesh
@@ -52,9 +53,7 @@ def make_bench_cohort(folder: Path, subjects: int, *, vertices: int | None = Non
         write_mesh(folder / name / "ee.ply", ee.vertices, ee.faces)
         write_mesh(folder / name / "ei.ply", ee.vertices + model.displacement, ee.faces)
         rows += [f"{name},{side},,{name}/ee.ply", f"{name},{side},,{name}/ei.ply"]
-    manifest = folder / "manifest.csv"
-    manifest.write_text("\n".join(rows) + "\n", encoding="utf-8")
-    return manifest
+    return write_text(folder / "manifest.csv", "\n".join(rows) + "\n")
 
 
 def bench_cohort(manifest: Path, work: Path, workers: list[int], options, *, progress=None) -> list[dict]:

@@ -12,7 +12,6 @@ kept, and running the same command again resumes.
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 from typing import Optional
 
@@ -112,12 +111,6 @@ def _job_line(r: dict) -> str:
     return f"FAILED  {key:<24} {r['seconds']:7.1f} s  {r['error_type']}: {r['error']}"
 
 
-def _live() -> bool:
-    from lungdeform.cli.common import VERBOSE
-
-    return VERBOSE["on"] if VERBOSE["on"] is not None else sys.stderr.isatty()
-
-
 def register(apps) -> None:
     @apps.root.command("cohort")
     def cohort_command(
@@ -140,7 +133,7 @@ def register(apps) -> None:
 
         Exit 0 if at least one job succeeded (failures listed), 1 if all failed, 2 for a bad
         manifest, 130 when interrupted (re-run the same command to resume)."""
-        from lungdeform.cli.common import output_dir
+        from lungdeform.cli.common import output_dir, progress_enabled
         from lungdeform.cohort import FitOptions, run_cohort
         from lungdeform.manifest import read_manifest
 
@@ -156,7 +149,7 @@ def register(apps) -> None:
         if len(m.notes) > MAX_NOTES:
             typer.echo(f"note: … and {len(m.notes) - MAX_NOTES} more such notes (all in cohort.json)")
         folder = output_dir(out)
-        display = Display(_live())
+        display = Display(progress_enabled())
         try:
             result = run_cohort(m, folder, scheduler=scheduler, workers=workers, options=options,
                                 skip_failed=skip_failed, processes=processes, progress=display)
