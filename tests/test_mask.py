@@ -354,18 +354,28 @@ def _lobe_map():
     return a
 
 
+LOBE_SPACING = (2.0, 2.0, 2.5)  # mm, (x, y, z)
+
+
+def write_lobe_map(path):
+    """Write :func:`_lobe_map` with :data:`LOBE_SPACING` and an identity LPS direction; return the array."""
+    import SimpleITK as sitk
+
+    a = _lobe_map()
+    img = sitk.GetImageFromArray(a)
+    img.SetSpacing(LOBE_SPACING)
+    img.SetOrigin((-96.0, -64.0, -60.0))
+    sitk.WriteImage(img, str(path))
+    return a
+
+
 def test_side_mask_picks_the_side_lobes_also_from_a_ras_nifti(tmp_path):
     import nibabel as nib
-    import SimpleITK as sitk
 
     from lungdeform.mask import side_mask
 
-    a = _lobe_map()
-    sp = (2.0, 2.0, 2.5)
-    img = sitk.GetImageFromArray(a)
-    img.SetSpacing(sp)
-    img.SetOrigin((-96.0, -64.0, -60.0))
-    sitk.WriteImage(img, str(tmp_path / "lps.nii.gz"))
+    a = write_lobe_map(tmp_path / "lps.nii.gz")
+    sp = LOBE_SPACING
     # the same voxels at the same places, stored as a NIfTI with a RAS affine whose i axis is
     # flipped (array reversed along i, affine diag(+2, -2, 2.5)): ITK reports the LPS direction
     # diag(-1, 1, 1), a mirrored (det < 0) non-identity direction. X_RAS = -x_LPS, Y_RAS = -y_LPS.

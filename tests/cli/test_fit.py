@@ -169,18 +169,12 @@ def test_read_input_takes_the_requested_side_of_a_lobe_map(tmp_path):
     # A lobe label map (coronacases convention: 1-2 left, 3-5 right) holds both lungs; the larger
     # right lung used to win for --side left. Truth: the side's lobe voxels lie at LPS x > 0 (left)
     # or x < 0 (right), and its surface volume matches their voxel count.
-    import SimpleITK as sitk
-
     from lungdeform.pipeline import read_input
-    from tests.test_mask import _lobe_map
+    from tests.test_mask import LOBE_SPACING as sp
+    from tests.test_mask import write_lobe_map
 
-    a = _lobe_map()
-    sp = (2.0, 2.0, 2.5)
-    img = sitk.GetImageFromArray(a)
-    img.SetSpacing(sp)
-    img.SetOrigin((-96.0, -64.0, -60.0))
     path = tmp_path / "lobes.nii.gz"
-    sitk.WriteImage(img, str(path))
+    a = write_lobe_map(path)
     for side, labels, sign in (("left", (1, 2), 1.0), ("right", (3, 4, 5), -1.0)):
         surface = read_input(path, side)[0]
         assert sign * surface.vertices[:, 0].mean() > 0
