@@ -21,7 +21,9 @@ def data_dir() -> Path:
     value = os.environ.get("LUNGDEFORM_DATA")
     if not value:
         pytest.skip("real data not available: set LUNGDEFORM_DATA=../shared/data to run this test")
-    path = Path(value)
+    # Absolute: CI sets the relative ``../shared/data``, and tests write manifests into ``tmp_path``
+    # whose relative paths would then resolve against the wrong folder.
+    path = Path(value).resolve()
     if not path.is_dir():
         pytest.skip(f"LUNGDEFORM_DATA={value} is not a directory")
     return path
