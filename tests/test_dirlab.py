@@ -1,4 +1,8 @@
-"""DIR-Lab discovery, the one-scalar model and the richer models (lungdeform.dirlab)."""
+"""The one-scalar model, the richer models and their evaluation on DIR-Lab cases (lungdeform.dirlab).
+
+Also the builders of DIR-Lab-like folders (synthetic, or real cases copied into other archive
+layouts under ``tmp_path``) shared with tests/test_dirlab_files.py and tests/cli/test_validate_dirlab.py.
+"""
 
 from __future__ import annotations
 
@@ -68,20 +72,6 @@ def make_case_folder(root: Path, rng, motion="one_scalar", n75=75, n300=300):
     return truth, pairs
 
 
-def test_find_cases_both_naming_schemes(tmp_path, rng):
-    truth, pairs = make_case_folder(tmp_path, rng)
-    cases = D.find_cases(tmp_path)
-    assert sorted(cases) == [1, 2]
-    assert set(cases[2].extreme) == {"T00", "T50"} and set(cases[2].sampled) == set(D.PHASES)
-    assert cases[2].extreme["T00"].name == "case2_dirLab300_T00_xyz.txt"
-    assert np.allclose(cases[2].spacing, SPACING[2]) and list(cases[1].dims) == [256, 256, 94]
-    for case in (1, 2):
-        data = D.load_case(cases[case])
-        # truth: the mean computed from the generated indices with mm = (index - 1) * spacing
-        assert D.mean_displacement(data.pairs["T00"], data.pairs["T50"]) == pytest.approx(pairs[case])
-        assert np.allclose(data.phases["T30"], truth[case]["T30"], atol=1e-5)
-
-
 def test_one_scalar_motion_is_recovered_exactly(tmp_path, rng):
     make_case_folder(tmp_path, rng, motion="one_scalar")
     files = D.find_cases(tmp_path)[1]
@@ -143,32 +133,6 @@ def test_rounding_floor_matches_uniform_error():
     assert D.rounding_floor_mm((1, 1, 1), [0.0]) == pytest.approx(direct, rel=0.01)
 
 
-@pytest.mark.parametrize(
-    "mutate, message",
-    [
-        (lambda r: (r / "voxel_spacing.csv").unlink(), "no voxel_spacing.csv"),
-        (lambda r: (r / "Case1Pack/Sampled4D/case1_4D-75_T20.txt").unlink(), "case 1: 75-point files missing phase.*T20"),
-        (lambda r: (r / "voxel_spacing.csv").write_text("case,spacing_x_mm,spacing_y_mm,spacing_z_mm\n1,1,1,1\n"),
-         "case 2: no row in"),
-        (lambda r: (r / "voxel_spacing.csv").write_text("case,spacing_x_mm,spacing_y_mm,spacing_z_mm\n1,1,0,1\n2,1,1,1\n"),
-         r"voxel_spacing.csv, line 2: inconsistent spacing"),
-        (lambda r: (r / "voxel_spacing.csv").write_text(
-            "case,spacing_x_mm,spacing_y_mm,spacing_z_mm\n1,1,1,1\n2,1,1,1\n1,1,1,2.5\n"),
-         r"line 4: inconsistent spacing for case 1"),
-        (lambda r: (r / "voxel_spacing.csv").write_text("case,sx,sy,sz\n1,1,1,1\n"), "missing column"),
-        (lambda r: (r / "Case1Pack/ExtremePhases/case1_300_T00_xyz_copy.txt").write_text(""), None),
-    ],
-)
-def test_discovery_errors(tmp_path, rng, mutate, message):
-    make_case_folder(tmp_path, rng)
-    mutate(tmp_path)
-    if message is None:  # a file that does not match the pattern is ignored
-        assert sorted(D.find_cases(tmp_path)) == [1, 2]
-        return
-    with pytest.raises(ReadError, match=message):
-        D.find_cases(tmp_path)
-
-
 def test_case_with_extreme_phases_only(tmp_path, rng):
     _, pairs = make_case_folder(tmp_path, rng)
     for f in (tmp_path / "case2" / "sampled4D").iterdir():
@@ -193,7 +157,7 @@ def test_load_errors(tmp_path, rng):
     dup = tmp_path / "extra" / "CASE1_4d-75_t30.TXT"
     dup.parent.mkdir()
     dup.write_text("1 1 1\n")
-    with pytest.raises(ReadError, match="case 1: two files for sampled phase T30"):
+    with pytest.raises(ReadError, match="case 1: two different files for sampled phase T30"):
         D.find_cases(tmp_path)
 
 
@@ -221,7 +185,7 @@ CSV_1_10 = {  # (dims, spacing) as published for cases 1–10 (DIR-Lab site; Cas
 }
 
 
-def _spacing_csv(style: str) -> str:
+def spacing_csv_text(style: str) -> str:
     """voxel_spacing.csv for cases 1–10 written in one of several realistic dialects."""
     rows = [(c, *dims, *sp) for c, (dims, sp) in sorted(CSV_1_10.items())]
     if style == "reordered":  # other column order, extra columns, spaces, 'caseN' labels, a comment
@@ -237,7 +201,7 @@ def _spacing_csv(style: str) -> str:
     raise ValueError(style)
 
 
-def _rewrite(src: Path, dst: Path, style: str) -> None:
+def rewrite_landmark_file(src: Path, dst: Path, style: str) -> None:
     """Copy one real DIR-Lab file to ``dst`` with another whitespace/number style (same values)."""
     vals = [ln.split() for ln in src.read_text().splitlines() if ln.strip()]
     if style == "spaces_lf":
@@ -266,72 +230,77 @@ def make_real_variant_layout(real: Path, root: Path, csv_style: str = "reordered
     smp = lambda c, ph: src[c] / "Sampled4D" / f"case{c}_4D-75_T{ph}.txt"  # noqa: E731
     phases = ["00", "10", "20", "30", "40", "50"]
     for ph in ("00", "50"):
-        _rewrite(ext(1, ph), root / "Case1Pack/extremePhases" / f"case1_dirLab300_T{ph}_xyz.txt", "spaces_lf")
-        _rewrite(ext(2, ph), root / "Case2Deploy/ExtremePhases" / f"CASE2_DIRLAB300_T{ph}_XYZ.TXT", "tabs_crlf_blank_tail")
-        _rewrite(ext(3, ph), root / "Case3Pack/ExtremePhases" / f"case3_dirLab300_T{ph}_xyz.txt", "floats")
-        _rewrite(ext(4, ph), root / "Case4Pack/ExtremePhases" / f"Case4_300_T{ph}_xyz.txt", "tabs_crlf_blank_tail")
+        rewrite_landmark_file(ext(1, ph), root / "Case1Pack/extremePhases" / f"case1_dirLab300_T{ph}_xyz.txt", "spaces_lf")
+        rewrite_landmark_file(ext(2, ph), root / "Case2Deploy/ExtremePhases" / f"CASE2_DIRLAB300_T{ph}_XYZ.TXT", "tabs_crlf_blank_tail")
+        rewrite_landmark_file(ext(3, ph), root / "Case3Pack/ExtremePhases" / f"case3_dirLab300_T{ph}_xyz.txt", "floats")
+        rewrite_landmark_file(ext(4, ph), root / "Case4Pack/ExtremePhases" / f"Case4_300_T{ph}_xyz.txt", "tabs_crlf_blank_tail")
     for ph in phases:
-        _rewrite(smp(1, ph), root / "Case1Pack/Sampled4D" / f"case1_4D-75_T{ph}.txt", "spaces_lf")
-        _rewrite(smp(2, ph), root / "Case2Deploy/sampled4D" / f"Case2_4D-75_T{ph}.txt", "tabs_crlf_blank_tail")
-        _rewrite(smp(3, ph), root / "Case3Pack/Sampled4D" / f"case3_4D-75_T{ph}.txt", "floats")
-        _rewrite(smp(5, ph), root / "Case5Pack/Sampled4D" / f"case5_4D-75_T{ph}.txt", "spaces_lf")
-    _rewrite(smp(5, "50"), root / "Case5Pack/Sampled4D/case5_4D-75_T60.txt", "spaces_lf")
-    (root / "voxel_spacing.csv").write_bytes(_spacing_csv(csv_style).encode())
+        rewrite_landmark_file(smp(1, ph), root / "Case1Pack/Sampled4D" / f"case1_4D-75_T{ph}.txt", "spaces_lf")
+        rewrite_landmark_file(smp(2, ph), root / "Case2Deploy/sampled4D" / f"Case2_4D-75_T{ph}.txt", "tabs_crlf_blank_tail")
+        rewrite_landmark_file(smp(3, ph), root / "Case3Pack/Sampled4D" / f"case3_4D-75_T{ph}.txt", "floats")
+        rewrite_landmark_file(smp(5, ph), root / "Case5Pack/Sampled4D" / f"case5_4D-75_T{ph}.txt", "spaces_lf")
+    rewrite_landmark_file(smp(5, "50"), root / "Case5Pack/Sampled4D/case5_4D-75_T60.txt", "spaces_lf")
+    (root / "voxel_spacing.csv").write_bytes(spacing_csv_text(csv_style).encode())
 
 
-@pytest.mark.parametrize("style", ["reordered", "semicolon", "tabs"])
-def test_voxel_spacing_dialects(tmp_path, style):
-    # every dialect must give back the published table exactly (dims only where the file has them)
-    p = tmp_path / "voxel_spacing.csv"
-    p.write_bytes(_spacing_csv(style).encode())
-    got = D.read_voxel_spacing(p)
-    assert sorted(got) == list(range(1, 11))
-    for c, (dims, sp) in D.PUBLISHED_GEOMETRY.items():
-        assert got[c][0] == pytest.approx(sp)
-        if style == "semicolon":
-            assert got[c][1] is None
-        else:
-            assert got[c][1].tolist() == list(dims)
-        assert D.geometry_notes(c, *got[c]) == []
+# --------------------------------------------------------------------------- unseen archives: cases 1–10
+# --------------------------------------------------------------------------- unseen archives: cases 1–10
+#: Where DIR-Lab's original archives put each case's files (folder and file-name spelling differ from
+ARCHIVE_LAYOUT = {
+    1: ("Case1Pack/ExtremePhases/Case1_300_T{ph}_xyz.txt", "Case1Pack/Sampled4D/case1_4D-75_T{ph}.txt", "tabs_crlf"),
+    2: ("Case2Pack/ExtremePhases/Case2_300_T{ph}_xyz.txt", None, "spaces"),
+    3: ("case3/extremephases/case3_300_t{ph}_xyz.txt", None, "floats_crlf"),
+    4: ("Case4Pack/ExtremePhases/Case4_300_T{ph}_xyz.txt", None, "spaces"),
+    5: ("Case5Deploy/ExtremePhases/CASE5_300_T{ph}_XYZ.TXT", None, "tabs_crlf"),
+    6: ("Case6Pack/ExtremePhases/case6_dirLab300_T{ph}_xyz.txt", "Case6Pack/Sampled4D/case6_4D-75_T{ph}.txt",
+        "floats_crlf"),
+    7: ("Case7Pack/extremePhases/case7_dirLab300_T{ph}_xyz.txt", None, "spaces"),
+    8: ("Case8Deploy/extremePhases/case8_dirLab300_T{ph}_xyz.txt", None, "tabs_crlf"),
+    9: ("case9/ExtremePhases/case9_dirLab300_T{ph}_xyz.txt", None, "spaces"),
+    10: ("Case10Pack/ExtremePhases/case10_dirLab300_T{ph}_xyz.txt", "Case10Pack/Sampled4D/case10_4D-75_T{ph}.txt",
+         "floats_crlf"),
+}
 
 
-def test_voxel_spacing_blank_dims_and_bad_case(tmp_path):
-    p = tmp_path / "voxel_spacing.csv"
-    p.write_text("case,dim_x,dim_y,dim_z,spacing_x_mm,spacing_y_mm,spacing_z_mm\n6,,,,0.97,0.97,2.5\n")
-    assert D.read_voxel_spacing(p)[6][1] is None  # blank size cells: no size check, not a failure
-    p.write_text("case,spacing_x_mm,spacing_y_mm,spacing_z_mm\nlung,1,1,1\n")
-    with pytest.raises(ReadError, match=r"voxel_spacing.csv, line 2: .*'lung' is not a case number"):
-        D.read_voxel_spacing(p)
-    p.write_text("")
-    with pytest.raises(ReadError, match="voxel_spacing.csv: empty file"):
-        D.read_voxel_spacing(p)
-    # a wrong spacing is reported against the published table, not replaced
-    assert D.geometry_notes(7, [1.16, 1.16, 2.5], [512, 512, 136]) == [
-        "case 7: spacing [1.16, 1.16, 2.5] mm differs from the published [0.97, 0.97, 2.5] mm"]
+def _write_styled(path: Path, idx: np.ndarray, style: str) -> np.ndarray:
+    """Write 1-based indices in one of the archives' text styles; return the values as written."""
+    if style == "tabs_crlf":  # whole numbers, tab separated, CRLF, a blank line at the end
+        vals = np.rint(idx)
+        text = "".join("%d\t%d\t%d\r\n" % tuple(r) for r in vals) + "\r\n"
+    elif style == "spaces":  # whole numbers, runs of spaces, leading blanks, LF
+        vals = np.rint(idx)
+        text = "".join("  %d    %d   %d\n" % tuple(r) for r in vals)
+    else:  # floats_crlf: fractional indices, tabs and spaces mixed, CRLF
+        vals = np.round(idx, 4)
+        text = "".join(" %.4f \t%.4f   %.4f\r\n" % tuple(r) for r in vals)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(text.encode())
+    return vals
 
 
-@pytest.mark.realdata
-@pytest.mark.parametrize("csv_style", ["reordered", "semicolon"])
-def test_real_cases_in_archive_variant_layouts(data_dir, tmp_path, csv_style):
-    real = require_path(data_dir, "dirlab-4dct-landmarks")
-    make_real_variant_layout(real, tmp_path, csv_style)
-    cases = D.find_cases(tmp_path)
-    assert sorted(cases) == [1, 2, 3, 4, 5]
-    assert cases[2].extreme["T00"].name == "CASE2_DIRLAB300_T00_XYZ.TXT"
-    assert set(cases[4].sampled) == set() and set(cases[5].extreme) == set()
-    assert any("no 75-point files" in n for n in cases[4].notes)
-    assert any("no 300-pair files" in n for n in cases[5].notes)
-    assert any("case5_4D-75_T60.txt" in n and "ignored" in n for n in cases[5].notes)
-    for c in (1, 2, 3, 4):
-        r = D.evaluate_case(D.load_case(cases[c]), cases[c].dims)
-        # whatever the layout, separators and number format: the published 300-pair means
-        assert r.mean_displacement_300_mm == pytest.approx(D.PUBLISHED_MEAN_300_MM[c], abs=0.01)
-    r5 = D.evaluate_case(D.load_case(cases[5]), cases[5].dims)
-    r1 = D.evaluate_case(D.load_case(D.find_cases(real)[1]), None)
-    assert r5.mean_displacement_300_mm is None and r5.n_tracked == 75 and r5.one_scalar_mean_mm < r5.no_motion_mean_mm
-    # case 3 written as floats reads back the same as the original integers/floats
-    orig3 = D.load_case(D.find_cases(real)[3])
-    new3 = D.load_case(cases[3])
-    for ph in D.PHASES:
-        np.testing.assert_allclose(new3.phases[ph], orig3.phases[ph], atol=1e-4)
-    assert r1.n_pairs == 300
+def make_archive_1_10(root: Path, rng, spacing_rows=(1, 2, 3, 4, 5)) -> dict[int, float]:
+    """Synthetic landmark files for DIR-Lab cases 1–10 laid out as in :data:`ARCHIVE_LAYOUT`.
+
+    Coordinates are random (seeded), inside each case's published image size; case ``c`` moves
+    about ``c`` voxels so that every case has its own mean (case 10's files read as case 1's would
+    show). ``voxel_spacing.csv`` lists only ``spacing_rows``. Returns the true 300-pair mean (mm)
+    per case, from the values as written and the published spacing.
+    """
+    root.mkdir(parents=True, exist_ok=True)
+    truth = {}
+    for c, (ext, smp, style) in ARCHIVE_LAYOUT.items():
+        dims, sp = np.array(D.PUBLISHED_GEOMETRY[c][0]), np.array(D.PUBLISHED_GEOMETRY[c][1])
+        a = rng.uniform(20, dims - 20, (300, 3))
+        b = np.clip(a + rng.normal(0, c / 2, (300, 3)), 1, dims)
+        va = _write_styled(root / ext.format(ph="00"), a, style)
+        vb = _write_styled(root / ext.format(ph="50"), b, style)
+        truth[c] = float(np.linalg.norm((va - vb) * sp, axis=1).mean())
+        if smp:
+            x50 = rng.uniform(30, dims - 30, (75, 3))
+            d = rng.normal(0, 2, (75, 3)) + [0, 0, 4]
+            for ph, s in S_TRUE.items():
+                _write_styled(root / smp.format(ph=ph[1:]), x50 + s * d, "floats_crlf")
+    rows = "".join(f"{c},{','.join(map(str, D.PUBLISHED_GEOMETRY[c][0]))},{','.join(map(str, D.PUBLISHED_GEOMETRY[c][1]))}\n"
+                   for c in spacing_rows)
+    (root / "voxel_spacing.csv").write_text("case,dim_x,dim_y,dim_z,spacing_x_mm,spacing_y_mm,spacing_z_mm\n" + rows)
+    return truth

@@ -1,4 +1,6 @@
-"""DIR-Lab 4-D CT landmarks: case discovery, the paper's one-scalar model and richer real-time models.
+"""DIR-Lab 4-D CT landmarks: loading a case, the paper's one-scalar model, richer real-time models
+and their evaluation. Finding the files and reading ``voxel_spacing.csv`` is
+:mod:`lungdeform.dirlab_files` (its public names are re-exported here).
 
 Data (Castillo et al. 2009, 2010): per case, 300 landmark pairs at the extreme phases T00 and T50
 and 75 landmarks tracked through T00, T10, …, T50. In DIR-Lab's phase convention **T00 is
@@ -37,257 +39,35 @@ a landmark's prediction has seen that landmark at that phase.
 
 from __future__ import annotations
 
-import csv
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+# Finding the files and reading voxel_spacing.csv live in dirlab_files; its public names are
+# re-exported here so that ``lungdeform.dirlab.discover`` etc. keep working.
+from .dirlab_files import (
+    PHASES,
+    PUBLISHED_GEOMETRY,
+    PUBLISHED_SOURCE,
+    CaseFiles,
+    Discovery,
+    discover,
+    find_cases,
+    geometry_notes,
+    read_voxel_spacing,
+)
 from .errors import InputError, ReadError
 from .landmarks import as_spacing, read_dirlab_points
 
-PHASES = ("T00", "T10", "T20", "T30", "T40", "T50")
 INTERMEDIATE = ("T10", "T20", "T30", "T40")
 #: Published mean T00→T50 displacement of the 300 pairs, mm (Castillo et al. 2009 for cases 1–5,
 #: Castillo et al. 2010 / the DIR-Lab site for cases 6–10).
 PUBLISHED_MEAN_300_MM = {1: 3.89, 2: 4.34, 3: 6.94, 4: 9.83, 5: 7.48, 6: 10.89, 7: 11.03, 8: 14.99, 9: 7.92, 10: 7.30}
-#: Published image geometry per case: ((dim_x, dim_y, dim_z) voxels, (sx, sy, sz) mm). Only used to
-#: *cross-check* voxel_spacing.csv (a mismatch is reported, never silently replaced).
-PUBLISHED_GEOMETRY = {
-    1: ((256, 256, 94), (0.97, 0.97, 2.5)),
-    2: ((256, 256, 112), (1.16, 1.16, 2.5)),
-    3: ((256, 256, 104), (1.15, 1.15, 2.5)),
-    4: ((256, 256, 99), (1.13, 1.13, 2.5)),
-    5: ((256, 256, 106), (1.10, 1.10, 2.5)),
-    6: ((512, 512, 128), (0.97, 0.97, 2.5)),
-    7: ((512, 512, 136), (0.97, 0.97, 2.5)),
-    8: ((512, 512, 128), (0.97, 0.97, 2.5)),
-    9: ((512, 512, 128), (0.97, 0.97, 2.5)),
-    10: ((512, 512, 120), (0.97, 0.97, 2.5)),
-}
 MODELS = ("one_scalar", "lag_region", "lag_landmark", "curved_region", "curved_landmark", "two_component")
 
-# caseN_dirLab300_T00_xyz.txt, CaseN_300_T00_xyz.txt, caseN_4D-75_T10.txt, … (case-insensitive)
-_FILE_RE = re.compile(r"^case(?P<case>\d+)[_-](?P<mid>.*?)_?t(?P<phase>\d0)(?:_xyz)?\.txt$", re.IGNORECASE)
-# voxel_spacing.csv column aliases (after lower-casing and mapping spaces/hyphens/dots to '_')
-_COL_ALIASES = {
-    "case": ("case", "case_id", "case_no", "case_number", "id"),
-    **{f"spacing_{a}_mm": (f"spacing_{a}_mm", f"spacing_{a}", f"{a}_spacing_mm", f"{a}_spacing", f"voxel_{a}_mm",
-                           f"{a}res", f"{a}_res")
-       for a in "xyz"},
-    **{f"dim_{a}": (f"dim_{a}", f"dims_{a}", f"size_{a}", f"n_{a}", f"{a}_dim", f"n{a}") for a in "xyz"},
-}
 
-
-# --------------------------------------------------------------------------- discovery and loading
-def _norm_col(name: str) -> str:
-    return re.sub(r"[\s\-.()\[\]]+", "_", (name or "").strip().lower()).strip("_")
-
-
-def _sniff_rows(path: Path) -> list[tuple[int, list[str]]]:
-    """``[(line number, fields)]`` of a small delimited table: comma, semicolon, tab or spaces."""
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except UnicodeDecodeError as exc:
-        raise ReadError(f"{path}: not a text file ({exc.reason})") from exc
-    lines = [(i, ln) for i, ln in enumerate(text.splitlines(), start=1) if ln.strip() and not ln.lstrip().startswith("#")]
-    if not lines:
-        return []
-    head = lines[0][1]
-    delim = next((d for d in (",", ";", "\t") if d in head), None)
-    if delim is None:
-        return [(i, ln.split()) for i, ln in lines]
-    rows = csv.reader([ln for _, ln in lines], delimiter=delim, skipinitialspace=True)
-    return [(i, [f.strip() for f in r]) for (i, _), r in zip(lines, rows)]
-
-
-def _case_number(text: str) -> int:
-    """``6``, ``"06"``, ``"6.0"``, ``"case6"``, ``"Case 6"``, ``"Case8Deploy"``, ``"4DCT6"`` → int."""
-    t = text.strip().lower()
-    m = re.fullmatch(r"(?:4dct|case)?\s*_?(\d+)(?:\.0*)?(?:pack|deploy)?", t)
-    if not m:
-        raise ValueError(f"case {text!r} is not a case number")
-    return int(m.group(1))
-
-
-def read_voxel_spacing(path) -> dict[int, tuple[np.ndarray, np.ndarray | None]]:
-    """Read DIR-Lab's ``voxel_spacing.csv``: ``{case: (spacing (3,) mm, dims (3,) int or None)}``.
-
-    Needs columns ``case``, ``spacing_x_mm``, ``spacing_y_mm``, ``spacing_z_mm`` in any order, with
-    any extra columns; ``dim_x``, ``dim_y``, ``dim_z`` are optional (blank cells give ``None``).
-    Column names are matched case-insensitively with a few aliases (``spacing_x``, ``x_spacing``,
-    ``dx``; ``size_x``, ``nx``); the separator may be comma, semicolon, tab or spaces; cells may
-    carry spaces; ``#`` lines are comments; case cells may read ``6``, ``case6`` or ``Case8Deploy``.
-    Non-positive spacings and a case listed twice with different values are refused
-    (:class:`ReadError` naming file and line).
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise ReadError(f"{path}: no such file")
-    rows = _sniff_rows(path)
-    if not rows:
-        raise ReadError(f"{path}: empty file (expected a header 'case,spacing_x_mm,spacing_y_mm,spacing_z_mm')")
-    header = [_norm_col(c) for c in rows[0][1]]
-    cols: dict[str, int] = {}
-    for key, aliases in _COL_ALIASES.items():
-        for alias in aliases:
-            if alias in header:
-                cols[key] = header.index(alias)
-                break
-    need = ["case", "spacing_x_mm", "spacing_y_mm", "spacing_z_mm"]
-    missing = [c for c in need if c not in cols]
-    if missing:
-        raise ReadError(f"{path}: missing column(s) {', '.join(missing)} (have {rows[0][1]})")
-    has_dims = all(f"dim_{a}" in cols for a in "xyz")
-    out: dict[int, tuple[np.ndarray, np.ndarray | None]] = {}
-    for lineno, row in rows[1:]:
-        if not any(row):
-            continue
-        cell = lambda key: row[cols[key]] if cols[key] < len(row) else ""  # noqa: E731
-        try:
-            case = _case_number(cell("case"))
-            sp = [float(cell(f"spacing_{a}_mm")) for a in "xyz"]
-            dcells = [cell(f"dim_{a}") for a in "xyz"] if has_dims else []
-            dims = np.array([int(float(c)) for c in dcells]) if dcells and all(dcells) else None
-        except (TypeError, ValueError) as exc:
-            raise ReadError(f"{path}, line {lineno}: not a number ({exc})") from exc
-        try:
-            spacing = as_spacing(sp)
-        except InputError as exc:
-            raise ReadError(f"{path}, line {lineno}: inconsistent spacing {sp}: each must be > 0 mm") from exc
-        if dims is not None and np.any(dims < 1):
-            raise ReadError(f"{path}, line {lineno}: image size {dims.tolist()} must be positive")
-        if case in out and not np.allclose(out[case][0], spacing):
-            raise ReadError(
-                f"{path}, line {lineno}: inconsistent spacing for case {case}: "
-                f"{spacing.tolist()} here, {out[case][0].tolist()} earlier"
-            )
-        out[case] = (spacing, dims)
-    if not out:
-        raise ReadError(f"{path}: no cases listed")
-    return out
-
-
-def geometry_notes(case: int, spacing, dims=None) -> list[str]:
-    """Differences between a case's ``spacing`` (3,) mm / ``dims`` (3,) and :data:`PUBLISHED_GEOMETRY`."""
-    if case not in PUBLISHED_GEOMETRY:
-        return []
-    pub_dims, pub_sp = PUBLISHED_GEOMETRY[case]
-    notes = []
-    if not np.allclose(np.asarray(spacing, dtype=float), pub_sp, atol=0.005):
-        notes.append(f"case {case}: spacing {np.round(spacing, 3).tolist()} mm differs from the published {list(pub_sp)} mm")
-    if dims is not None and tuple(int(v) for v in dims) != pub_dims:
-        notes.append(f"case {case}: image size {[int(v) for v in dims]} differs from the published {list(pub_dims)}")
-    return notes
-
-
-@dataclass(frozen=True)
-class CaseFiles:
-    """Where one DIR-Lab case's files are.
-
-    ``extreme``: phase ('T00', 'T50') → 300-pair file; ``sampled``: phase ('T00'…'T50') → 75-point
-    file; ``spacing : (3,) float`` mm; ``dims``: (3,) voxels or None.
-    """
-
-    case: int
-    spacing: np.ndarray
-    dims: np.ndarray | None
-    extreme: dict[str, Path] = field(default_factory=dict)
-    sampled: dict[str, Path] = field(default_factory=dict)
-    #: what discovery noticed and did about this case (ignored files, a missing set), one line each
-    notes: tuple[str, ...] = ()
-
-
-def _classify(name: str) -> tuple[int, str, str] | None:
-    m = _FILE_RE.match(name)
-    if not m:
-        return None
-    mid = m.group("mid").lower()
-    if "300" in mid:
-        kind = "extreme"
-    elif "75" in mid:
-        kind = "sampled"
-    else:
-        return None
-    return int(m.group("case")), kind, "T" + m.group("phase")
-
-
-def find_cases(root) -> dict[int, CaseFiles]:
-    """Find DIR-Lab cases under ``root`` by file-name pattern, case-insensitively.
-
-    Recognised: ``caseN_dirLab300_T00_xyz.txt``, ``CaseN_300_T50_xyz.txt`` (300 pairs) and
-    ``caseN_4D-75_T10.txt`` (75 tracked points), in any folder depth, and ``voxel_spacing.csv``
-    anywhere under ``root``. A case needs a spacing row and both extreme phases (T00, T50) and/or
-    all six sampled phases (T00–T50); a partial set raises :class:`ReadError` naming a file of the
-    case and what is missing. A case with only one of the two sets is kept, with a note in
-    :attr:`CaseFiles.notes` (the other set's measurements are skipped); so are files of phases
-    not used here (e.g. T60–T90), which are ignored with a note. Spacings differing from
-    :data:`PUBLISHED_GEOMETRY` are noted too (never replaced).
-    """
-    root = Path(root)
-    if not root.is_dir():
-        raise ReadError(f"{root}: not a directory")
-    csvs = sorted(p for p in root.rglob("*") if p.is_file() and p.name.lower() == "voxel_spacing.csv")
-    if not csvs:
-        raise ReadError(f"{root}: no voxel_spacing.csv found (DIR-Lab spacings come from it)")
-    if len(csvs) > 1:
-        raise ReadError(f"{root}: several voxel_spacing.csv files: {', '.join(map(str, csvs))}")
-    spacing = read_voxel_spacing(csvs[0])
-    found: dict[int, dict[str, dict[str, Path]]] = {}
-    ignored: dict[int, list[Path]] = {}
-    for p in sorted(root.rglob("*")):
-        if not p.is_file():
-            continue
-        hit = _classify(p.name)
-        if hit is None:
-            continue
-        case, kind, phase = hit
-        if phase not in (("T00", "T50") if kind == "extreme" else PHASES):
-            ignored.setdefault(case, []).append(p)  # e.g. T60–T90 files: not used by the models here
-            continue
-        slot = found.setdefault(case, {"extreme": {}, "sampled": {}})[kind]
-        if phase in slot:
-            raise ReadError(f"case {case}: two files for {kind} phase {phase}: {slot[phase]} and {p}")
-        slot[phase] = p
-    if not found:
-        raise ReadError(f"{root}: no DIR-Lab landmark files (caseN_…300_T00_xyz.txt, caseN_4D-75_T00.txt)")
-    cases: dict[int, CaseFiles] = {}
-    for case, kinds in sorted(found.items()):
-        if case not in spacing:
-            first = next(iter({**kinds["extreme"], **kinds["sampled"]}.values()))
-            raise ReadError(f"case {case}: no row in {csvs[0]} for its landmark files (e.g. {first})")
-        ext, smp = kinds["extreme"], kinds["sampled"]
-        if ext and set(ext) != {"T00", "T50"}:
-            have = next(iter(ext.values()))
-            missing = sorted({"T00", "T50"} - set(ext))
-            raise ReadError(
-                f"case {case}: 300-pair file for {', '.join(missing)} missing beside {have} "
-                f"(need T00 and T50; found {', '.join(sorted(ext))})"
-            )
-        if smp and set(smp) != set(PHASES):
-            missing = sorted(set(PHASES) - set(smp))
-            have = next(iter(smp.values()))
-            raise ReadError(
-                f"case {case}: 75-point files missing phase(s) {', '.join(missing)} beside {have} "
-                f"(need {', '.join(PHASES)})"
-            )
-        sp, dims = spacing[case]
-        notes = [f"case {case}: ignored {p} (phase outside {'T00/T50' if '300' in p.name else 'T00–T50'})"
-                 for p in ignored.get(case, [])]
-        if not smp:
-            notes.append(f"case {case}: no 75-point files (caseN_4D-75_T00…T50): motion models skipped, "
-                         "300-pair displacement only")
-        if not ext:
-            notes.append(f"case {case}: no 300-pair files (caseN_…300_T00/T50_xyz): 300-pair displacement skipped")
-        notes += geometry_notes(case, sp, dims)
-        cases[case] = CaseFiles(case, sp, dims, dict(ext), dict(smp), tuple(notes))
-    for case, paths in sorted(ignored.items()):
-        if case not in cases:
-            raise ReadError(f"case {case}: only files for phases this tool does not use, e.g. {paths[0]}")
-    return cases
-
-
+# --------------------------------------------------------------------------- loading
 @dataclass(frozen=True)
 class CaseData:
     """Landmarks of one case in mm (index-aligned frame).

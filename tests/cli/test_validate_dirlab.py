@@ -37,22 +37,24 @@ def test_validate_dirlab_writes_metrics(tmp_path, rng, run, capsys):
 
 
 @pytest.mark.parametrize(
-    "prepare, message",
+    "prepare, message, extra",
     [
-        (lambda d: (d / "voxel_spacing.csv").unlink(), "no voxel_spacing.csv"),
+        (lambda d: (d / "voxel_spacing.csv").unlink(), "case 1: no voxel_spacing.csv found", ["--no-published-spacing"]),
         (lambda d: (d / "Case1Pack/Sampled4D/case1_4D-75_T10.txt").write_text("1 2\n"),
-         r"case1_4D-75_T10\.txt, line 1: expected 3 numbers"),
+         r"case1_4D-75_T10\.txt, line 1: expected 3 numbers", []),
         (lambda d: (d / "voxel_spacing.csv").write_text("case,spacing_x_mm,spacing_y_mm,spacing_z_mm\n1,1,-1,1\n2,1,1,1\n"),
-         "inconsistent spacing"),
+         "inconsistent spacing", []),
+        (lambda d: (d / "case2/extremePhases/case2_dirLab300_T50_xyz.txt").write_bytes(b"\x00\xff\xfe 1 2 3\r\n"),
+         r"case2_dirLab300_T50_xyz\.txt: not a text file", []),
     ],
 )
-def test_bad_input_exits_2_with_one_line(tmp_path, rng, run, capsys, prepare, message):
+def test_bad_input_exits_2_with_one_line(tmp_path, rng, run, capsys, prepare, message, extra):
     import re
 
     make_case_folder(tmp_path / "data", rng)
     prepare(tmp_path / "data")
     out = tmp_path / "out"
-    assert run(["validate", "dirlab", "--data", str(tmp_path / "data"), "--out", str(out)]) == 2
+    assert run(["validate", "dirlab", "--data", str(tmp_path / "data"), "--out", str(out), *extra]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and err.startswith("error: ") and re.search(message, err)
     assert not (out / "metrics.json").exists()
@@ -128,7 +130,54 @@ def test_real_variant_layout_errors_are_one_line(data_dir, tmp_path, run, capsys
     root = tmp_path / "data"
     make_real_variant_layout(require_path(data_dir, "dirlab-4dct-landmarks"), root)
     mutate(root)
-    assert run(["validate", "dirlab", "--data", str(root), "--out", str(tmp_path / "out")]) == 2
+    # strict spacing: a case the table does not list is an error, not a fall-back on the published table
+    argv = ["validate", "dirlab", "--data", str(root), "--out", str(tmp_path / "out"), "--no-published-spacing"]
+    assert run(argv) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and err.startswith("error: ") and re.search(pattern, err), err
     assert not (tmp_path / "out" / "metrics.json").exists()
+
+
+def test_archive_layout_cases_1_to_10(tmp_path, rng, run, capsys):
+    """Synthetic files for cases 1–10 in the archives' layouts; voxel_spacing.csv lists 1–5 only."""
+    from tests.test_dirlab import ARCHIVE_LAYOUT, make_archive_1_10
+
+    data = tmp_path / "data"
+    truth = make_archive_1_10(data, rng)
+    ext = data / "Case7Pack/extremePhases"
+    for ph in ("00", "50"):  # case 11 is no DIR-Lab case: no published spacing, so it is skipped
+        (ext / f"case7_dirLab300_T{ph}_xyz.txt").rename(data / f"case11_dirLab300_T{ph}_xyz.txt")
+    out = tmp_path / "out"
+    assert run(["validate", "dirlab", "--data", str(data), "--out", str(out)]) == 0
+    captured = capsys.readouterr()
+    m = json.loads((out / "metrics.json").read_text())
+    assert sorted(m["cases"], key=int) == [str(c) for c in (1, 2, 3, 4, 5, 6, 8, 9, 10)]
+    for case, c in m["cases"].items():
+        # truth: the generated pairs' mean in mm, whatever the folder/file spelling and text style
+        assert c["mean_displacement_300_mm"] == pytest.approx(truth[int(case)])
+        assert (c["best_model"] is None) == (ARCHIVE_LAYOUT[int(case)][1] is None)
+        assert c["spacing_source"].endswith("voxel_spacing.csv") == (int(case) <= 5)
+    assert m["cases"]["10"]["published_300_mm"] == 7.30 and m["cases"]["10"]["spacing_mm"] == [0.97, 0.97, 2.5]
+    assert m["skipped"]["11"].startswith("case 11: skipped: no row in")
+    notes = "\n".join(m["notes"])
+    assert "case 8: no row in" in notes and "used the published DIR-Lab spacing [0.97, 0.97, 2.5] mm" in notes
+    assert "case 9: no 75-point files" in notes
+    assert "  11   (skipped: no row in" in captured.out and "motion models skipped" in captured.out
+    assert captured.err == ""
+    # strict spacing: the first case without a row is a one-line error naming the table
+    argv = ["validate", "dirlab", "--data", str(data), "--out", str(tmp_path / "strict"), "--no-published-spacing"]
+    assert run(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "case 6: no row in" in err and "voxel_spacing.csv" in err
+    assert not (tmp_path / "strict" / "metrics.json").exists()
+
+
+def test_data_folder_is_one_case_folder(tmp_path, rng, run, capsys):
+    from tests.test_dirlab import make_archive_1_10
+
+    truth = make_archive_1_10(tmp_path / "data", rng, spacing_rows=range(1, 11))
+    out = tmp_path / "out"
+    assert run(["validate", "dirlab", "--data", str(tmp_path / "data" / "Case8Deploy"), "--out", str(out)]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert list(m["cases"]) == ["8"] and m["cases"]["8"]["mean_displacement_300_mm"] == pytest.approx(truth[8])
+    assert "voxel spacing from" in capsys.readouterr().out

@@ -10,9 +10,15 @@ import typer
 def register(apps) -> None:
     @apps.validate.command("dirlab")
     def dirlab_command(
-        data: Path = typer.Option(..., "--data", help="Folder laid out like DIR-Lab (cases found by file name)."),
+        data: Path = typer.Option(..., "--data", help="DIR-Lab folder: the one holding the case folders, a folder above it, or one case folder "
+                                       "(cases are found by file name)."),
         out: Path = typer.Option(..., "--out", help="Output folder; metrics.json is written there."),
         folds: int = typer.Option(5, "--folds", help="Landmark folds for fitting held-out drivers."),
+        published_spacing: bool = typer.Option(
+            True, "--published-spacing/--no-published-spacing",
+            help="For a case 1–10 that voxel_spacing.csv does not list (or with no table at all), use DIR-Lab's "
+                 "published spacing, with a note; --no-published-spacing makes it an error.",
+        ),
     ) -> None:
         """Predict T10–T40 landmarks from T00/T50 with one scalar per phase, and richer real-time models."""
         import json
@@ -26,7 +32,8 @@ def register(apps) -> None:
         if folds < 2:
             raise InputError(f"--folds must be ≥ 2, got {folds}")
         t0 = time.perf_counter()
-        cases = D.find_cases(data)
+        found = D.discover(data, published_fallback=published_spacing)
+        cases = found.cases
         results = [D.evaluate_case(D.load_case(f), f.dims, folds=folds) for f in cases.values()]
         summary = D.hypothesis_summary(results)
         elapsed = time.perf_counter() - t0
@@ -51,19 +58,28 @@ def register(apps) -> None:
                 + " ".join(f"{r.heldout_mean_mm[m]:>9.3f}" for m in names)
                 + f" | {r.best_model} ({r.best_model_heldout_mean_mm:.3f})"
             )
-        notes = [n for f in cases.values() for n in f.notes]
+        for case, why in sorted(found.skipped.items()):
+            typer.echo(f"{case:>4}   (skipped: {why.split(': skipped: ', 1)[-1]})")
+        notes = list(found.notes) + [n for f in cases.values() for n in f.notes] + list(found.skipped.values())
         for r in results:
             if r.mean_displacement_300_mm is not None and r.published_300_mm is not None and \
                     abs(r.mean_displacement_300_mm - r.published_300_mm) > 0.05:
+                src = cases[r.case].spacing_source
+                check = "check its landmark files" if src == D.PUBLISHED_SOURCE else f"check its row in {src}"
                 notes.append(f"case {r.case}: 300-pair mean {r.mean_displacement_300_mm:.2f} mm differs from the "
-                             f"published {r.published_300_mm:.2f} mm: check its voxel_spacing.csv row")
+                             f"published {r.published_300_mm:.2f} mm: {check}")
         for n in notes:
             typer.echo(f"note: {n}")
         typer.echo(f"magnitude set by one scalar per phase: {summary['magnitude_one_scalar']}")
         typer.echo(f"direction constant: {summary['direction_constant']}")
 
         metrics = {
-            "cases": {str(r.case): r.to_dict() for r in results},
+            "cases": {
+                str(r.case): {**r.to_dict(), "spacing_mm": cases[r.case].spacing.tolist(),
+                              "spacing_source": cases[r.case].spacing_source}
+                for r in results
+            },
+            "skipped": {str(c): why for c, why in sorted(found.skipped.items())},
             "hypotheses": summary,
             "notes": notes,
             "conventions": {
