@@ -152,15 +152,19 @@ def test_result_constants_are_those_of_the_saved_model(tmp_path):
     r = fit_job(job, tmp_path / "o1", with_lm)
     m = json.loads((job_folder(tmp_path / "o1", job) / "metrics.json").read_text())
     saved = load_model(job_folder(tmp_path / "o1", job) / "model.npz").lungs["right"].constants
-    assert r["status"] == "ok" and r["fit_kind"] == "landmarks" == m["headline_fit"]
-    assert r["constants"] == pytest.approx(m["fit"]["landmarks"]["constants"])
+    assert r["status"] == "ok" and r["fit_kind"] == "optimizer" == m["headline_fit"] and m["interior_correction"]
+    assert r["constants"] == pytest.approx(m["fit"]["optimizer"]["constants"])
     assert r["constants"] == pytest.approx(np.asarray(saved))
+    # the landmarks went into the saved model's interior correction
+    assert load_model(job_folder(tmp_path / "o1", job) / "model.npz").lungs["right"].landmarks.shape == (len(idx), 3)
     assert m["landmark_cv"]["folds"] == 2
     without = FitOptions(max_evaluations=40, baselines=False, landmark_fit=False, align="none")
     assert input_digest(job, without) != input_digest(job, with_lm)
     r2 = fit_job(job, tmp_path / "o2", without)
     m2 = json.loads((job_folder(tmp_path / "o2", job) / "metrics.json").read_text())
     assert r2["fit_kind"] == "optimizer" and "landmark_cv" not in m2 and "landmarks" not in m2["fit"]
+    assert not m2["interior_correction"]
+    assert load_model(job_folder(tmp_path / "o2", job) / "model.npz").lungs["right"].landmarks is None
     assert r2["constants"] == pytest.approx(m2["fit"]["optimizer"]["constants"])
     with pytest.raises(InputError, match="align"):
         FitOptions(align="sideways")

@@ -135,3 +135,18 @@ def test_bad_shapes_are_input_errors():
         Surface(np.zeros((4, 2)), np.zeros((1, 3), int))
     with pytest.raises(InputError, match="outside"):
         Surface(np.zeros((3, 3)), np.array([[0, 1, 5]]))
+
+
+def test_winding_numbers_of_a_sphere(rng):
+    # analytic: 1 inside a closed outward surface, 0 outside (points kept 1 mm off the faceted
+    # sphere of radius 50, whose facets lie within 0.3 mm of it), -1 inside a reversed surface
+    from lungdeform.mesh import winding_numbers
+
+    s = icosphere(3, 50.0)
+    d = rng.normal(size=(200, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    r = np.concatenate([rng.uniform(0, 48.5, 100), rng.uniform(51, 200, 100)])
+    w = winding_numbers(d * r[:, None], s.vertices, s.faces, chunk=37)
+    assert w[:100] == pytest.approx(np.ones(100), abs=1e-9)
+    assert w[100:] == pytest.approx(np.zeros(100), abs=1e-9)
+    assert winding_numbers(np.zeros((1, 3)), s.vertices, s.faces[:, ::-1])[0] == pytest.approx(-1.0)

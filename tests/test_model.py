@@ -103,6 +103,29 @@ def test_model_file_refuses_wrong_version_and_shapes(tmp_path, model):
         load_model(tmp_path / "junk.npz")
 
 
+def test_model_file_keeps_the_landmark_correction(tmp_path, model, rng):
+    # the interior correction of a fit with landmarks survives the file (same interior motion),
+    # a file with only part of it is refused, and re-orienting drops it (observed in one posture)
+    from dataclasses import replace
+
+    lo, hi = model.surface.bounds
+    lm = lo + (hi - lo) * rng.uniform(0.3, 0.7, size=(8, 3))
+    lung = replace(model, landmarks=lm, landmark_correction=rng.normal(size=(8, 3)), landmark_smoothing=10.0)
+    path = save_model(tmp_path / "c.npz", Model({"left": lung}))
+    back = load_model(path).lungs["left"]
+    assert back.landmark_smoothing == 10.0 and back.interior.corrected
+    q = lm + 1.0
+    assert back.points_at(q, scale=2.0) == pytest.approx(lung.points_at(q, scale=2.0), abs=1e-9)
+    assert not np.allclose(back.points_at(q, scale=2.0), model.points_at(q, scale=2.0))
+    assert load_model(save_model(tmp_path / "plain.npz", Model({"left": model}))).lungs["left"].landmarks is None
+    with np.load(path) as z:
+        data = {k: z[k] for k in z.files if k != "lung/left/landmark_smoothing"}
+    np.savez(tmp_path / "part.npz", **data)
+    with pytest.raises(ModelFileError, match="only part of the landmark correction"):
+        load_model(tmp_path / "part.npz")
+    assert lung.oriented("prone").landmarks is None
+
+
 def _check_tidal_linearity(lung_model):
     # Across the tidal range the enclosed volume at s units is V_EE + s·ΔV within 1 %.
     v0 = lung_model.volume_ee_ml

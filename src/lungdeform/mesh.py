@@ -89,6 +89,22 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return n / np.where(length > 0, length, 1.0)
 
 
+def winding_numbers(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, chunk: int = 64) -> np.ndarray:
+    """Generalised winding number ``(q,) float`` of ``points : (q, 3)`` mm about a closed, outward
+    surface: 1 inside, 0 outside (the solid angles of the faces seen from each point, over 4π;
+    Van Oosterom–Strackee). O(q·m); ``chunk`` points at a time bound the memory."""
+    out = np.empty(len(points))
+    for start in range(0, len(points), chunk):
+        q = points[start:start + chunk]
+        a, b, c = (vertices[faces[:, k]][None] - q[:, None] for k in range(3))  # (q, m, 3)
+        la, lb, lc = (np.linalg.norm(x, axis=2) for x in (a, b, c))
+        det = np.einsum("qmi,qmi->qm", a, np.cross(b, c))
+        den = (la * lb * lc + np.einsum("qmi,qmi->qm", a, b) * lc + np.einsum("qmi,qmi->qm", b, c) * la
+               + np.einsum("qmi,qmi->qm", c, a) * lb)
+        out[start:start + chunk] = np.arctan2(det, den).sum(axis=1) / (2.0 * np.pi)
+    return out
+
+
 def bounding_box(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(min, max)``, each ``(3,) float`` in the frame of ``vertices``."""
     return vertices.min(axis=0), vertices.max(axis=0)

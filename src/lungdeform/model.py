@@ -61,6 +61,12 @@ class LungModel:
         Volume change at which the calibration is exact (mL).
     d_min : float
         Minimum transfer distance, mm.
+    landmarks : (m, 3) float or None
+        End-exhale interior landmarks of the fit, mm LPS, when the fit had them.
+    landmark_correction : (m, 3) float or None
+        The landmarks' motion the surface cannot see, mm per unit (:mod:`lungdeform.interior`).
+    landmark_smoothing : float
+        Thin-plate smoothing of that correction, mm².
     """
 
     side: str
@@ -75,6 +81,9 @@ class LungModel:
     unit_ml: float = 1.0
     calibration_ml: float = TIDAL_VOLUME_ML
     d_min: float = 1.0
+    landmarks: np.ndarray | None = None
+    landmark_correction: np.ndarray | None = None
+    landmark_smoothing: float = 0.0
 
     @property
     def n_vertices(self) -> int:
@@ -130,6 +139,24 @@ class LungModel:
         s = self.scale_for(volume_ml, exact) if scale is None else float(scale)
         return Surface(self.positions_at(s), self.surface.faces, f"{self.side} at s={s:.4g}")
 
+    @cached_property
+    def interior(self):
+        """The :class:`~lungdeform.interior.InteriorField` of this lung: displacement per unit of any
+        point inside it (surface-driven, plus the landmark correction when the model has one)."""
+        from .interior import interior_field
+
+        return interior_field(self.surface.vertices, self.displacement, self.landmarks,
+                              self.landmark_correction, self.landmark_smoothing)
+
+    def points_at(self, points, volume_ml: float | None = None, *, scale: float | None = None,
+                  exact: bool = False) -> np.ndarray:
+        """Interior ``points : (q, 3)`` mm LPS (end-exhale) moved to an absolute volume (mL) or to
+        ``scale`` units: ``q + s·v(q) : (q, 3) float`` mm LPS (:attr:`interior`)."""
+        if (volume_ml is None) == (scale is None):
+            raise InputError("give exactly one of volume_ml or scale")
+        s = self.scale_for(volume_ml, exact) if scale is None else float(scale)
+        return self.interior.positions(points, s)
+
     def playback(self, dtype=np.float32) -> Playback:
         """A :class:`Playback` over this lung (float32 by default, as a GPU buffer)."""
         return Playback(self.surface.vertices, self.displacement, dtype=dtype)
@@ -143,7 +170,9 @@ class LungModel:
         d = direction_field(self.frame.supported(g), self.surface.vertices, self.constants)
         raw = (w @ self.force_basis)[:, None] * d
         u = _calibrated(self.surface, raw, self.calibration_ml, self.unit_ml, gravity)
-        return replace(self, gravity=g, directions=d, displacement=u)
+        # the landmark correction was observed in the scan's posture: it does not carry over
+        return replace(self, gravity=g, directions=d, displacement=u, landmarks=None,
+                       landmark_correction=None, landmark_smoothing=0.0)
 
 
 def build_lung(

@@ -17,7 +17,9 @@ Per lung, under ``lung/<name>/``: ``side`` str; ``vertices (n, 3) float64`` mm L
 (end-exhale box, lung-frame mm); ``directions (n, 3)`` unit, LPS; ``force_basis (4, n)``
 (elastostatic force for fields 1, x̂, ŷ, ẑ); ``gravity (3,)`` unit LPS; ``force_weights (4,)``;
 ``displacement (n, 3) float64`` mm per ``unit_ml``; ``unit_ml``; ``calibration_ml``; ``d_min`` mm;
-``volume_ee_ml``; ``volume_poly (4,)`` mm³ (volume of p + s·u as a cubic in s).
+``volume_ee_ml``; ``volume_poly (4,)`` mm³ (volume of p + s·u as a cubic in s). Optional (a fit
+with interior landmarks): ``landmarks (m, 3)`` mm LPS, ``landmark_correction (m, 3)`` mm per unit,
+``landmark_smoothing`` mm² (:mod:`lungdeform.interior`).
 
 Loading checks the schema name and version, that every key is present, and every shape.
 """
@@ -41,6 +43,7 @@ from .model import LungModel, Model
 SCHEMA = "lungdeform.model"
 SCHEMA_VERSION = 1
 
+_OPTIONAL = ("landmarks", "landmark_correction", "landmark_smoothing")
 _PER_LUNG = ("side", "vertices", "faces", "constants", "stiffness", "frame_axes", "frame_lower",
              "frame_upper", "directions", "force_basis", "gravity", "force_weights",
              "displacement", "unit_ml", "calibration_ml", "d_min", "volume_ee_ml", "volume_poly")
@@ -48,7 +51,7 @@ _PER_LUNG = ("side", "vertices", "faces", "constants", "stiffness", "frame_axes"
 
 def lung_arrays(lung: LungModel) -> dict[str, np.ndarray]:
     """The per-lung arrays of the schema (also used by exporters)."""
-    return {
+    out = {
         "side": np.array(lung.side),
         "vertices": lung.surface.vertices,
         "faces": lung.surface.faces.astype(np.int32),
@@ -68,6 +71,10 @@ def lung_arrays(lung: LungModel) -> dict[str, np.ndarray]:
         "volume_ee_ml": np.array(lung.volume_ee_ml),
         "volume_poly": lung.volume_poly,
     }
+    if lung.landmarks is not None and lung.landmark_correction is not None:
+        out.update(landmarks=lung.landmarks, landmark_correction=lung.landmark_correction,
+                   landmark_smoothing=np.array(lung.landmark_smoothing))
+    return out
 
 
 def save_model(path, model: Model) -> Path:
@@ -138,6 +145,15 @@ def _lung(path: Path, name: str, data: dict) -> LungModel:
             )
     if int(a["faces"].max(initial=-1)) >= n:
         raise ModelFileError(f"{path}: lung '{name}' faces index beyond its {n} vertices")
+    opt = {k: data[prefix + k] for k in _OPTIONAL if prefix + k in data}
+    if opt and len(opt) != len(_OPTIONAL):
+        raise ModelFileError(f"{path}: lung '{name}' has only part of the landmark correction "
+                             f"({', '.join(sorted(opt))}; expected {', '.join(_OPTIONAL)})")
+    if opt:
+        lm, cor = opt["landmarks"], opt["landmark_correction"]
+        if lm.ndim != 2 or lm.shape[1:] != (3,) or cor.shape != lm.shape:
+            raise ModelFileError(f"{path}: lung '{name}' landmarks {lm.shape} and landmark_correction "
+                                 f"{cor.shape} must both be (m, 3)")
     surface = Surface(v, a["faces"].astype(np.int64), name)
     frame = LungFrame(str(a["side"]), a["frame_axes"], a["frame_lower"], a["frame_upper"])
     return LungModel(
@@ -145,6 +161,8 @@ def _lung(path: Path, name: str, data: dict) -> LungModel:
         frame=frame, directions=a["directions"], force_basis=a["force_basis"],
         gravity=a["gravity"], displacement=a["displacement"], unit_ml=float(a["unit_ml"]),
         calibration_ml=float(a["calibration_ml"]), d_min=float(a["d_min"]),
+        landmarks=opt.get("landmarks"), landmark_correction=opt.get("landmark_correction"),
+        landmark_smoothing=float(opt.get("landmark_smoothing", 0.0)),
     )
 
 

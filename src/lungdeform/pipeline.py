@@ -17,9 +17,10 @@ Library code behind ``lungdeform fit``, ``lungdeform validate itk-pair`` and the
    surfaces are refused if they do not overlap;
 4. fit (:func:`lungdeform.fit.fit_lung`), optimiser and optionally the grid mode, and the
    baselines (:mod:`lungdeform.baselines`), all measured with the same metrics, crop faces left out;
-   with landmarks, also the landmark-informed fit and references, scored on held-out landmarks
-   (k-fold, :func:`lungdeform.crossval.cross_validate_landmarks`), which becomes the headline
-   ``model``; with ``"joint"`` the translations of the surface-only fit move the targets (and their
+   with landmarks, the headline ``model`` is the surface fit with the interior landmark correction
+   (:mod:`lungdeform.interior`), and the landmark-informed fit of c1…c9
+   (:func:`lungdeform.crossval.cross_validate_landmarks`) and references are reported beside it, all
+   scored on held-out landmarks (k-fold); with ``"joint"`` the translations of the surface-only fit move the targets (and their
    landmarks) before everything after it;
 5. write ``model.npz`` (docs/MODEL_FORMAT.md), ``metrics.json`` and ``report.html``.
 """
@@ -28,6 +29,7 @@ from __future__ import annotations
 
 import json
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -110,11 +112,13 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
     the metrics dictionary.
 
     Without landmarks (or with ``landmark_fit=False``) the headline ``model`` is the surface-only
-    fit. With landmarks and ``landmark_fit`` it is the landmark-informed fit (c1…c6 on the surfaces
-    plus the landmarks, :func:`lungdeform.crossval.cross_validate_landmarks`), whose landmark errors are
-    measured on landmarks held out from the fit (``folds``-fold); the surface-only fit is reported as
-    ``model_surface_only``, and the landmark-informed references ``affine_landmarks`` and
-    ``landmarks_tps`` are scored on the same folds. ``metrics["protocols"]`` says, per method, what
+    fit. With landmarks and ``landmark_fit`` it is the same surface fit whose interior field carries
+    the landmark correction (:mod:`lungdeform.interior`; stored in ``model.npz``), with landmark
+    errors measured on landmarks held out from the correction (``folds``-fold); the surface-driven
+    field alone is reported as ``model_surface_only``, the landmark-informed fit of c1…c9
+    (:func:`lungdeform.crossval.cross_validate_landmarks`) as ``model_landmark_fit``, and the
+    landmark-informed references ``affine_landmarks`` and ``landmarks_tps`` are scored on the same
+    folds. ``metrics["protocols"]`` says, per method, what
     it saw and how its landmark error was measured.
 
     ``align``: one of :data:`ALIGN_MODES` (module docstring, step 3); ``metrics["alignment"][i]
@@ -262,10 +266,14 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
                                                 initial=fit_opt.constants, fit_stiffness=True, mode=mode,
                                                 max_evaluations=max(100, max_evaluations * 2 // 3),
                                                 landmark_weight=landmark_weight, landmark_matrix=lm_w, progress=say)
-    headline = cv.final if use_lm else fit_opt
+    headline = fit_opt
     surface_name = "model_surface_only" if use_lm else "model"
     protocols = {surface_name: "surface-only fit (no landmark used); landmarks moved by the thin-plate "
                                "interpolation of its surface displacement"}
+    interior = None
+    if use_lm:  # the landmark correction of the interior field (lungdeform.interior), held out per fold
+        say("interior landmark correction (cross-validated)")
+        interior = _interior_correction(fit_opt, rest, keep, lm_w, lms[0], aligned_lms, targets, lm_folds)
 
     metrics = {"inputs": [str(p) for p in inputs], "side": side, "volumes_ml": vols,
                "model_mesh_vertices": rest.n_vertices, "alignment": alignments, "targets": {}}
@@ -276,12 +284,19 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
         methods = {}  # name -> (predicted vertices, held-out landmark predictions or None)
         s_opt = (tg.volume_ml - fit_opt.volume_ee_ml) / fit_opt.unit_ml
         if use_lm:
-            methods["model"] = (cv.final.positions_at(rest, tg.volume_ml), cv.predicted[ti])
-            protocols["model"] = (f"landmark-informed fit: c1…c9 on the surfaces and the training landmarks; landmark "
-                                  f"errors on held-out landmarks ({folds}-fold), surface from the fit on all landmarks")
+            methods["model"] = (fit_opt.positions_at(rest, tg.volume_ml), interior["held_out"][ti])
+            protocols["model"] = (f"surface fit (c1…c9{', stiffness field' if stiffness else ''}; no landmark used) "
+                                  f"with the interior landmark correction (lungdeform.interior): landmarks moved by "
+                                  f"the surface-driven thin-plate field plus a thin-plate correction through the "
+                                  f"training landmarks' residual motion; held-out landmark errors ({folds}-fold)")
+            methods["model_landmark_fit"] = (cv.final.positions_at(rest, tg.volume_ml), cv.predicted[ti])
+            protocols["model_landmark_fit"] = (f"landmark-informed fit: c1…c9 on the surfaces and the training "
+                                               f"landmarks, landmarks moved by the surface-driven field only; "
+                                               f"held-out landmark errors ({folds}-fold), surface from the fit on all "
+                                               f"landmarks")
             if cv_stiff is not None:
                 methods["model_landmarks_stiffness"] = (cv_stiff.final.positions_at(rest, tg.volume_ml), cv_stiff.predicted[ti])
-                protocols["model_landmarks_stiffness"] = protocols["model"] + ", with a fitted stiffness field"
+                protocols["model_landmarks_stiffness"] = protocols["model_landmark_fit"] + ", with a fitted stiffness field"
         if stiffness and fit_opt.uniform_displacement is not None:
             methods[surface_name] = (rest.vertices + s_opt * fit_opt.uniform_displacement, None)
             methods["model_stiffness"] = (fit_opt.positions_at(rest, tg.volume_ml), None)
@@ -323,27 +338,46 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
     last = targets[-1].name
     metrics.update(metrics["targets"][last])
     metrics["protocols"] = protocols
-    metrics["headline_fit"] = "landmarks" if use_lm else "optimizer"
+    metrics["headline_fit"] = "optimizer"  # the key in metrics["fit"] of the saved constants
+    metrics["interior_correction"] = interior is not None
     metrics["fit"] = {k: r.as_dict() for k, r in fits.items()}
     metrics["fit"]["optimizer"]["uniform_objective_rms_mm"] = fit_opt.uniform_objective_mm
     if use_lm:
         metrics["landmark_cv"] = {"folds": int(folds), "landmarks": int(len(lms[0])), "seed": 0,
                                   "landmark_weight": float(landmark_weight),
                                   "fold_constants": cv.fold_constants.tolist(),
-                                  "fold_constants_spread": cv.fold_constants.std(axis=0).tolist()}
+                                  "fold_constants_spread": cv.fold_constants.std(axis=0).tolist(),
+                                  "interior_smoothing_mm2": interior["smoothing"]}
     metrics["bounding_box"] = _bounding_boxes(rest, headline, surfaces, vols)
     metrics["seconds"] = time.perf_counter() - t_start
 
     out.mkdir(parents=True, exist_ok=True)
     lung = to_lung_model(rest, side, headline)
+    if interior is not None:
+        lung = replace(lung, landmarks=lms[0], landmark_correction=interior["correction"],
+                       landmark_smoothing=interior["smoothing"])
     model = Model({side: lung}, provenance(command, inputs=[str(p) for p in inputs], volumes_ml=vols,
                                           fit=headline.as_dict(), alignment=alignments,
-                                          fit_kind=metrics["headline_fit"]))
+                                          fit_kind=metrics["headline_fit"],
+                                          interior_correction=interior is not None))
     save_model(out / "model.npz", model)
     write_bytes(out / "metrics.json", json.dumps(metrics, indent=2, default=_json).encode())
     write_report(out / "report.html", rest=rest, targets=targets, fits=fits, predictions=predictions,
                  metrics=metrics, headline=metrics["headline_fit"])
     return metrics
+
+
+def _interior_correction(fit, rest, keep, lm_w, landmarks, aligned, targets, folds) -> dict:
+    """The interior field's landmark correction for ``fit`` (:mod:`lungdeform.interior`): held-out
+    landmark positions per target (k-fold), and the correction and smoothing from all landmarks."""
+    from lungdeform.interior import correction_per_unit, held_out_positions, select_smoothing
+
+    unit = lm_w @ fit.displacement[keep]  # surface-driven displacement per unit at the landmarks
+    observed = [np.asarray(a) - landmarks for a in aligned]
+    scales = [(tg.volume_ml - fit.volume_ee_ml) / fit.unit_ml for tg in targets]
+    correction = correction_per_unit(observed, scales, unit)
+    return {"held_out": held_out_positions(landmarks, observed, scales, unit, folds),
+            "correction": correction, "smoothing": select_smoothing(landmarks, correction)}
 
 
 def _place(surface, planes, transform, fixed_planes, volume_ml: float, name: str):

@@ -19,11 +19,12 @@ def test_itk_pair_real_data(data_dir, tmp_path):
                  "--no-stiffness", "--evaluations", "150", "--folds", "3"]) == 0
     m = json.loads((out / "metrics.json").read_text())
     keys = {"surface_mean_mm", "surface_rms_mm", "surface_p95_mm", "landmark_mean_mm", "landmark_max_mm"}
-    for name in ("model", "model_surface_only", "no_motion", "affine", "apex_scaling", "cpd",
+    for name in ("model", "model_surface_only", "model_landmark_fit", "no_motion", "affine", "apex_scaling", "cpd",
                  "affine_landmarks", "landmarks_tps"):
         assert keys <= set(m[name]) and name in m["protocols"]
-    # the headline model used landmarks, so its landmark errors are held out (3-fold here)
-    assert m["headline_fit"] == "landmarks" and m["landmark_cv"]["folds"] == 3
+    # the headline model used landmarks (its interior correction), so its landmark errors are held
+    # out (3-fold here)
+    assert m["headline_fit"] == "optimizer" and m["interior_correction"] and m["landmark_cv"]["folds"] == 3
     assert "held-out" in m["protocols"]["model"] and "no landmark" in m["protocols"]["model_surface_only"]
     # what the fitted models do meet (measured 2026, 5-fold, 300 evaluations: landmark-informed
     # 4.5 mm held out, surface-only 5.2 mm, no motion 11.3 mm, apex scaling 8.0 mm): both beat no
@@ -32,6 +33,11 @@ def test_itk_pair_real_data(data_dir, tmp_path):
         assert m["model"]["landmark_mean_mm"] < m[base]["landmark_mean_mm"]
         assert m["model_surface_only"]["landmark_mean_mm"] < m[base]["landmark_mean_mm"]
         assert m["model_surface_only"]["surface_mean_mm"] < m[base]["surface_mean_mm"]
+    # the interior correction is what brings held-out landmarks below every surface baseline
+    # (measured 2026-11, 5-fold: 2.4 mm against CPD 4.4 mm, affine 5.6 mm, the surface-driven field
+    # alone 5.2 mm)
+    for base in ("no_motion", "affine", "apex_scaling", "cpd", "model_surface_only"):
+        assert m["model"]["landmark_mean_mm"] < m[base]["landmark_mean_mm"]
     # the landmark-informed references are scored on the same held-out folds as the model
     assert m["affine_landmarks"]["landmark_mean_mm"] < m["affine"]["landmark_mean_mm"]
     assert set(m["targets_met"]) == {"model landmark_mean_mm < 2.0", "model landmark_mean_mm below every baseline",

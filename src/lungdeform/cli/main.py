@@ -33,6 +33,7 @@ COMMAND_MODULES = [
     "lungdeform.cli.cohort",
     "lungdeform.cli.bench_cohort",
     "lungdeform.cli.synth_cohort",
+    "lungdeform.cli.track",
 ]
 
 

@@ -10,8 +10,10 @@ and prints the issue's targets with pass/fail (measured, not asserted: the exit 
 run completes).
 
 The headline ``model`` is what a user can run on a new pair with the same inputs (the two masks
-and the landmarks): the landmark-informed fit, whose landmark errors are measured on landmarks held
-out from it (5-fold). ``model_surface_only`` uses no landmark at all. The issue's baselines use the
+and the landmarks): the surface fit with the interior landmark correction
+(:mod:`lungdeform.interior`), whose landmark errors are measured on landmarks held out from the
+correction (5-fold). ``model_surface_only`` uses no landmark at all; ``model_landmark_fit`` fits
+c1…c9 on the surfaces and the training landmarks and moves landmarks by its surface only. The issue's baselines use the
 surfaces only; ``affine_landmarks`` and ``landmarks_tps`` are landmark-informed references scored
 on the same folds, so that the model is also compared with methods that saw the same information
 (``targets_met`` reports both comparisons). ``--no-landmark-fit`` makes the surface-only fit the

@@ -1,0 +1,94 @@
+"""CLI tests of ``lungdeform track``: interior points moved by a model over volumes or a breath."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from lungdeform.cli.main import main
+from lungdeform.modelfile import save_model
+from lungdeform.trajectory import lung_scales
+from tests.browser.support import two_lungs
+
+
+@pytest.fixture(scope="module")
+def model_file(tmp_path_factory):
+    return save_model(tmp_path_factory.mktemp("model") / "m.npz", two_lungs(2))
+
+
+@pytest.fixture
+def points_csv(tmp_path):
+    path = tmp_path / "points.csv"
+    path.write_text("x_mm,y_mm,z_mm,label\n90,0,-40,tumour\n-90,10,20,clip\n")
+    return path
+
+
+def _rows(path):
+    with open(path, newline="", encoding="utf-8") as fh:
+        return list(csv.DictReader(fh))
+
+
+def test_track_at_volumes(model_file, points_csv, tmp_path, capsys):
+    # at the end-exhale volume nothing moves; 500 mL more moves each point by its lung's interior
+    # field at that lung's exact share of the 500 mL (the same scale as surface playback)
+    out = tmp_path / "o"
+    v_ee = sum(lung.volume_ee_ml for lung in two_lungs(2).lungs.values())
+    assert main(["track", str(model_file), "--points", str(points_csv), "--out", str(out),
+                 "--volume-ml", f"{v_ee}", "--volume-ml", f"{v_ee + 500}"]) == 0
+    rows = _rows(out / "trajectories.csv")
+    assert len(rows) == 4 and rows[0]["label"] == "tumour" and rows[0]["lung"] == "left"
+    assert rows[1]["lung"] == "right" and rows[0]["t_s"] == ""
+    still = np.array([[float(r[k]) for k in ("dx_mm", "dy_mm", "dz_mm")] for r in rows[:2]])
+    moved = np.array([[float(r[k]) for k in ("dx_mm", "dy_mm", "dz_mm")] for r in rows[2:]])
+    assert np.abs(still).max() < 1e-3 and np.linalg.norm(moved, axis=1).min() > 1.0
+    info = json.loads((out / "points.json").read_text())
+    assert info["points"][0]["inside"] and info["landmark_correction"] == {"left": False, "right": False}
+    m = two_lungs(2)
+    scales = lung_scales(m, [500.0])
+    for row, (name, q) in zip(moved, [("left", [90.0, 0, -40]), ("right", [-90.0, 10, 20])]):
+        want = scales[name][0] * m.lungs[name].interior.displacement(np.array([q]))[0]
+        assert row == pytest.approx(want, abs=1e-3)
+    assert info["points"][0]["peak_to_peak_mm"]["SI"] == pytest.approx(abs(moved[0, 2]), abs=1e-3)
+    assert (out / "motion.png").read_bytes()[:4] == b"\x89PNG"
+    assert "tumour: left lung (inside)" in capsys.readouterr().out
+
+
+def test_track_over_a_preset_breath(model_file, points_csv, tmp_path):
+    # one breath: the trajectory starts and ends at end-exhale (a closed cycle), frames at --fps
+    out = tmp_path / "p"
+    assert main(["track", str(model_file), "--points", str(points_csv), "--out", str(out),
+                 "--preset", "normal", "--fps", "10"]) == 0
+    rows = _rows(out / "trajectories.csv")
+    t = sorted({float(r["t_s"]) for r in rows})
+    assert len(rows) == 2 * len(t) and t[0] == 0.0
+    assert np.diff(t) == pytest.approx(np.full(len(t) - 1, np.diff(t)[0]))
+    first, last = rows[:2], rows[-2:]
+    for a, b in zip(first, last):
+        assert [float(a[k]) for k in ("x_mm", "y_mm", "z_mm")] == pytest.approx(
+            [float(b[k]) for k in ("x_mm", "y_mm", "z_mm")], abs=0.05)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--volume-ml", "3000", "--preset", "normal"], "mutually exclusive"),
+    (["--cycles", "2"], "--cycles applies to --preset only"),
+    (["--volume-ml", "-5"], "--volume-ml must be > 0"),
+    (["--fps", "0"], "--fps must be > 0"),
+    (["--lung", "middle"], "lung 'middle' is not in the model"),
+])
+def test_track_bad_options(model_file, points_csv, tmp_path, capsys, args, message):
+    assert main(["track", str(model_file), "--points", str(points_csv), "--out", str(tmp_path / "x"), *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0]
+
+
+def test_track_refuses_points_far_outside(model_file, tmp_path, capsys):
+    # points in metres, or in another frame, land far from every lung: refused, naming the file
+    bad = tmp_path / "metres.csv"
+    bad.write_text("x_mm,y_mm,z_mm\n0.09,0,0.5\n0.3,0.2,-400\n")
+    assert main(["track", str(model_file), "--points", str(bad), "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "metres.csv: 1 point(s) lie more than 30 mm outside every lung" in err[0]
+    assert not (tmp_path / "x").exists()

@@ -1,0 +1,94 @@
+"""Interior field: surface-driven thin-plate motion plus the landmark correction."""
+
+import numpy as np
+import pytest
+
+from lungdeform.errors import InputError
+from lungdeform.interior import (correction_per_unit, held_out_positions, interior_field,
+                                 select_smoothing)
+from lungdeform.mesh import icosphere
+
+
+def _inside(rng, n, radius):
+    q = rng.normal(size=(n, 3))
+    return q / np.linalg.norm(q, axis=1, keepdims=True) * rng.uniform(0, radius, size=(n, 1))
+
+
+def test_correction_recovers_the_missing_motion(rng):
+    # truth: observed_i = s_i·(p + c) at two scales, so least squares gives c back exactly
+    p = rng.normal(size=(20, 3))
+    c = rng.normal(size=(20, 3))
+    scales = [0.6, 1.0]
+    assert correction_per_unit([s * (p + c) for s in scales], scales, p) == pytest.approx(c, abs=1e-12)
+    with pytest.raises(InputError, match="scales"):
+        correction_per_unit([p], [0.0], p)
+    with pytest.raises(InputError, match="one per observed"):
+        correction_per_unit([p, p], [1.0], p)
+
+
+def test_affine_surface_motion_moves_interior_points_exactly(rng):
+    # the thin-plate spline reproduces affine fields: a sphere whose surface moves by u = A·x + b
+    # moves every interior point by the same law (no correction)
+    s = icosphere(3, 50.0)
+    a = np.array([[0.05, 0.01, 0.0], [0.0, -0.02, 0.03], [0.01, 0.0, 0.1]])
+    b = np.array([1.0, -2.0, 3.0])
+    field = interior_field(s.vertices, s.vertices @ a.T + b)
+    q = _inside(rng, 40, 45.0)
+    assert not field.corrected
+    assert field.positions(q, 2.0) == pytest.approx(q + 2.0 * (q @ a.T + b), abs=1e-6)
+
+
+def test_correction_adds_the_landmark_motion(rng):
+    # landmarks that slide by a smooth field the surface does not show (surface at rest): the
+    # corrected field moves them (in sample, no smoothing) exactly, and points near them close to it
+    s = icosphere(3, 50.0)
+    lm = _inside(rng, 30, 40.0)
+
+    def slide(x):
+        return np.stack([np.sin(x[:, 2] / 30.0), 0.5 * np.cos(x[:, 0] / 25.0), np.zeros(len(x))], axis=1)
+
+    field = interior_field(s.vertices, np.zeros_like(s.vertices), lm, slide(lm), 0.0)
+    assert field.corrected
+    assert field.displacement(lm) == pytest.approx(slide(lm), abs=1e-6)
+    q = _inside(rng, 50, 30.0)
+    err = np.linalg.norm(field.displacement(q) - slide(q), axis=1)
+    assert err.mean() < 0.2 * np.linalg.norm(slide(q), axis=1).mean()
+
+
+def test_held_out_predictions_do_not_see_their_own_landmark(rng):
+    # invariant of the k-fold protocol: changing the observation of one landmark leaves its own
+    # held-out prediction unchanged (it moves the others of the same fold not at all either)
+    lm = _inside(rng, 25, 40.0)
+    unit = 0.02 * lm  # a surface-driven field: uniform expansion
+    obs = 1.0 * (unit + 0.3 * np.sin(lm / 20.0))
+    folds = [np.arange(i, 25, 5) for i in range(5)]
+    a = held_out_positions(lm, [obs], [1.0], unit, folds)[0]
+    obs2 = obs.copy()
+    obs2[0] += 50.0
+    b = held_out_positions(lm, [obs2], [1.0], unit, folds)[0]
+    assert a[folds[0]] == pytest.approx(b[folds[0]], abs=1e-12)
+    assert not np.allclose(a[folds[1]], b[folds[1]])
+    # and the correction helps: held-out error below that of the surface-driven field alone
+    truth = lm + obs
+    assert np.linalg.norm(a - truth, axis=1).mean() < np.linalg.norm(lm + unit - truth, axis=1).mean()
+
+
+def test_select_smoothing_follows_the_noise(rng):
+    # noiseless smooth data: interpolation (0) predicts best; pure noise: the smoothest candidate
+    p = _inside(rng, 40, 40.0)
+    smooth = np.stack([np.sin(p[:, 0] / 15.0), np.cos(p[:, 1] / 20.0), p[:, 2] ** 2 / 800.0], axis=1)
+    assert select_smoothing(p, smooth) == 0.0
+    assert select_smoothing(p, rng.normal(size=(40, 3))) == 1000.0
+    assert select_smoothing(p[:6], smooth[:6]) == 1000.0  # too few to judge
+
+
+def test_bad_input():
+    v = icosphere(1, 10.0).vertices
+    with pytest.raises(InputError, match="same shape"):
+        interior_field(v, v[:-1])
+    with pytest.raises(InputError, match="at least 5 landmarks"):
+        interior_field(v, v, v[:3], v[:3])
+    with pytest.raises(InputError, match="smoothing"):
+        interior_field(v, v, smoothing=-1.0)
+    with pytest.raises(InputError, match="NaN"):
+        interior_field(v, v).displacement(np.array([[np.nan, 0.0, 0.0]]))
