@@ -32,6 +32,18 @@ def test_single_triangle_regions():
     assert d[3] == pytest.approx(abs(6 + 6 - 10) / np.sqrt(2), abs=1e-12)
 
 
+def test_degenerate_triangles(rng):
+    # a predicted surface can collapse faces (two or three corners coincide): the distance is then
+    # to the remaining segment or point, analytic, and never a division by zero
+    seg = np.array([[0.0, 0, 0], [0, 0, 0], [10, 0, 0]])  # a == b: the segment a–c
+    pts = np.array([[5.0, 3, 4], [-3, 0, 4], [13, 4, 0]])
+    for order in ([0, 1, 2], [1, 2, 0], [2, 0, 1], [0, 2, 1]):
+        assert point_to_surface(pts, seg, np.array([order])) == pytest.approx([5.0, 5.0, 5.0], abs=1e-12)
+    dot = np.zeros((3, 3))  # all three corners at the origin
+    q = rng.normal(size=(5, 3))
+    assert point_to_surface(q, dot, np.array([[0, 1, 2]])) == pytest.approx(np.linalg.norm(q, axis=1), abs=1e-12)
+
+
 def test_matches_brute_force(rng):
     s = icosphere(2, 30.0)
     pts = rng.normal(size=(60, 3)) * 25

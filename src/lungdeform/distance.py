@@ -29,10 +29,39 @@ from .mesh import Surface, as_faces, as_vertices, face_areas
 
 
 @numba.njit(cache=True, inline="always")
+def _closest_on_segment(px, py, pz, ax, ay, az, bx, by, bz):
+    """Closest point of segment ab to p and its squared distance (a == b allowed)."""
+    ux, uy, uz = bx - ax, by - ay, bz - az
+    uu = ux * ux + uy * uy + uz * uz
+    t = 0.0
+    if uu > 0.0:
+        t = min(max(((px - ax) * ux + (py - ay) * uy + (pz - az) * uz) / uu, 0.0), 1.0)
+    qx, qy, qz = ax + t * ux, ay + t * uy, az + t * uz
+    return qx, qy, qz, (px - qx) ** 2 + (py - qy) ** 2 + (pz - qz) ** 2
+
+
+@numba.njit(cache=True)
+def _closest_on_degenerate(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
+    """Closest point of a zero-area triangle (its corners on a line or at one point): the nearest of
+    its three edges as segments."""
+    x1, y1, z1, e1 = _closest_on_segment(px, py, pz, ax, ay, az, bx, by, bz)
+    x2, y2, z2, e2 = _closest_on_segment(px, py, pz, bx, by, bz, cx, cy, cz)
+    x3, y3, z3, e3 = _closest_on_segment(px, py, pz, cx, cy, cz, ax, ay, az)
+    if e1 <= e2 and e1 <= e3:
+        return x1, y1, z1
+    if e2 <= e3:
+        return x2, y2, z2
+    return x3, y3, z3
+
+
+@numba.njit(cache=True, inline="always")
 def _closest_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
     """Closest point of triangle abc to p, on scalars (no allocation in the hot loop)."""
     abx, aby, abz = bx - ax, by - ay, bz - az
     acx, acy, acz = cx - ax, cy - ay, cz - az
+    nx, ny, nz = aby * acz - abz * acy, abz * acx - abx * acz, abx * acy - aby * acx
+    if nx == 0.0 and ny == 0.0 and nz == 0.0:  # zero area (collinear or coincident corners)
+        return _closest_on_degenerate(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz)
     apx, apy, apz = px - ax, py - ay, pz - az
     d1 = abx * apx + aby * apy + abz * apz
     d2 = acx * apx + acy * apy + acz * apz
@@ -45,7 +74,7 @@ def _closest_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
         return bx, by, bz
     vc = d1 * d4 - d3 * d2
     if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
-        t = d1 / (d1 - d3)
+        t = d1 / (d1 - d3) if d1 != d3 else 0.0  # d1 == d3 == 0: a == b, a degenerate edge
         return ax + t * abx, ay + t * aby, az + t * abz
     cpx, cpy, cpz = px - cx, py - cy, pz - cz
     d5 = abx * cpx + aby * cpy + abz * cpz
@@ -54,11 +83,12 @@ def _closest_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
         return cx, cy, cz
     vb = d5 * d2 - d1 * d6
     if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
-        t = d2 / (d2 - d6)
+        t = d2 / (d2 - d6) if d2 != d6 else 0.0
         return ax + t * acx, ay + t * acy, az + t * acz
     va = d3 * d6 - d5 * d4
     if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
-        t = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        e = (d4 - d3) + (d5 - d6)
+        t = (d4 - d3) / e if e != 0.0 else 0.0
         return bx + t * (cx - bx), by + t * (cy - by), bz + t * (cz - bz)
     denom = va + vb + vc
     if denom == 0.0:  # degenerate triangle: the nearest corner
