@@ -23,3 +23,21 @@ def test_failure_keeps_the_old_file(tmp_path):
             raise RuntimeError("interrupted")
     assert target.read_text().strip().startswith("{") and '"a": 1' in target.read_text()
     assert [p.name for p in tmp_path.iterdir()] == ["m.json"]
+
+
+def test_unwritable_folder_names_the_target_not_the_temporary(tmp_path, monkeypatch):
+    # a read-only folder (simulated: tests may run as root, who can write anywhere) used to report
+    # "error: /out/.model.npz.m2_yo8ap.npz: Read-only file system", a file the user never named
+    import errno
+    import tempfile
+
+    from lungdeform.atomic import write_bytes
+
+    def refuse(*args, **kwargs):
+        raise OSError(errno.EROFS, "Read-only file system", str(tmp_path / ".model.npz.abc123.npz"))
+
+    monkeypatch.setattr(tempfile, "mkstemp", refuse)
+    with pytest.raises(OSError) as info:
+        write_bytes(tmp_path / "model.npz", b"x")
+    assert info.value.filename == str(tmp_path / "model.npz") and info.value.errno == errno.EROFS
+    assert list(tmp_path.iterdir()) == []

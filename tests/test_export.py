@@ -99,6 +99,24 @@ def test_curve_csv_relative_and_absolute(tmp_path):
     assert tr.t_s[0] == 0  # time starts at 0
 
 
+@pytest.mark.parametrize("encoding, sep, decimal", [
+    ("utf-8-sig", ",", "."),   # "CSV UTF-8" from a spreadsheet: a byte-order mark before "t_s"
+    ("utf-8", ";", ","),       # re-saved in a decimal-comma locale
+    ("utf-8-sig", ";", ","),
+    ("utf-8", "\t", "."),
+])
+def test_curve_csv_spreadsheet_variants(tmp_path, encoding, sep, decimal):
+    # truth: the same curve as the plain file; before, a BOM or ';' gave "needs a 't_s' column"
+    t = np.linspace(0, 8, 81)
+    v = 250 * (1 - np.cos(np.pi * t / 2))
+    rows = [sep.join(["t_s", "volume_ml", "flow_ml_s"])]
+    rows += [sep.join(f"{x:.6g}".replace(".", decimal) for x in (a, b, 0.5)) for a, b in zip(t, v)]
+    path = tmp_path / "curve.csv"
+    path.write_text("\r\n".join(rows) + "\r\n", encoding=encoding)
+    tr = E.read_volume_csv(path)
+    assert np.allclose(tr.t_s, t) and np.allclose(tr.volume_ml, v, atol=1e-3)
+
+
 def test_volume_trace_from_breathing_curve(tmp_path):
     # truth: an analytic absolute-volume curve (2.4 L + a 500 mL cosine, clock starting at 3 s)
     from lungdeform.breathing import BreathingCurve

@@ -430,3 +430,79 @@ def test_side_mask_on_real_coronacases(coronacases_001):
     for side, litres in (("left", 1.52), ("right", 1.81)):
         m = side_mask(im, side)
         assert m.array.sum() * vox_ml / 1000.0 == pytest.approx(litres, abs=0.02)
+
+
+def _tiny_series(folder, series_uid, n=4):
+    """``n`` 6×5 int16 slices of one DICOM series ``series_uid`` in ``folder`` (locale restored)."""
+    import locale
+
+    import SimpleITK as sitk
+
+    saved = locale.setlocale(locale.LC_ALL)
+    folder.mkdir(parents=True, exist_ok=True)
+    writer = sitk.ImageFileWriter()
+    writer.KeepOriginalImageUIDOn()
+    for k in range(n):
+        sl = sitk.GetImageFromArray(np.full((5, 6), k, np.int16))
+        for tag, value in {"0008|0060": "CT", "0020|000d": "1.2.826.0.1.3680043.2.1125.7",
+                           "0020|000e": series_uid, "0008|0018": f"{series_uid}.{k + 1}",
+                           "0020|0013": str(k + 1), "0020|0032": f"0\\0\\{2.0 * k}",
+                           "0020|0037": "1\\0\\0\\0\\1\\0"}.items():
+            sl.SetMetaData(tag, value)
+        writer.SetFileName(str(folder / f"{series_uid[-2:]}_{k:03d}.dcm"))
+        writer.Execute(sl)
+    locale.setlocale(locale.LC_ALL, saved)
+
+
+def test_dicom_series_files_choices(tmp_path):
+    from pathlib import Path
+
+    from lungdeform.mask import dicom_series_files, is_dicom_file
+
+    # one folder, a CT of 4 slices and a 2-slice scout: the CT is the series (largest)
+    _tiny_series(tmp_path / "ct", "1.2.826.0.1.3680043.2.1125.7.11", 4)
+    _tiny_series(tmp_path / "ct", "1.2.826.0.1.3680043.2.1125.7.12", 2)
+    files = dicom_series_files(tmp_path / "ct")
+    assert len(files) == 4 and all(Path(f).name.startswith("11_") for f in files)
+    # one file of the scout: its own series, not the largest
+    assert len(dicom_series_files(tmp_path / "ct" / "12_000.dcm")) == 2
+    assert is_dicom_file(tmp_path / "ct" / "12_000.dcm") and not is_dicom_file(tmp_path / "ct")
+    im = read_image(tmp_path / "ct" / "11_002.dcm")  # reads the whole series it belongs to
+    assert im.array.shape == (4, 5, 6) and [int(im.array[k, 0, 0]) for k in range(4)] == [0, 1, 2, 3]
+    # two series of the same size in one folder (the phases of a 4-D CT): ambiguous, refused
+    _tiny_series(tmp_path / "4d", "1.2.826.0.1.3680043.2.1125.7.21", 3)
+    _tiny_series(tmp_path / "4d", "1.2.826.0.1.3680043.2.1125.7.22", 3)
+    with pytest.raises(ReadError, match=r"4d: holds 2 DICOM series, 2 of them with 3 files .*ambiguous"):
+        dicom_series_files(tmp_path / "4d")
+
+
+# a 59-voxel random blob (numpy default_rng(0), p = 0.55 in a 5³ box, largest component, filled)
+# whose marching-cubes surface has duplicate (fin) faces where one-voxel sheets meet diagonally,
+# as real masks have (2 such faces on the POPI left lung)
+_FIN_BLOB = [[1, 1, 4], [1, 1, 5], [1, 3, 1], [1, 3, 2], [1, 3, 4], [1, 4, 1], [1, 4, 2], [1, 4, 3], [1, 4, 4],
+             [1, 4, 5], [1, 5, 2], [1, 5, 3], [2, 1, 4], [2, 2, 3], [2, 2, 4], [2, 2, 5], [2, 3, 4], [2, 3, 5],
+             [2, 4, 2], [2, 4, 3], [2, 4, 5], [2, 5, 1], [2, 5, 2], [2, 5, 3], [2, 5, 5], [3, 1, 1], [3, 1, 4],
+             [3, 2, 1], [3, 2, 3], [3, 2, 4], [3, 3, 1], [3, 3, 2], [3, 3, 3], [3, 4, 3], [3, 4, 4], [3, 5, 1],
+             [3, 5, 3], [3, 5, 5], [4, 1, 2], [4, 1, 4], [4, 1, 5], [4, 2, 2], [4, 2, 3], [4, 2, 5], [4, 3, 2],
+             [4, 3, 5], [4, 4, 2], [4, 5, 2], [5, 1, 5], [5, 2, 4], [5, 2, 5], [5, 3, 2], [5, 3, 3], [5, 4, 2],
+             [5, 4, 4], [5, 5, 2], [5, 5, 3], [5, 5, 4], [5, 5, 5]]
+
+
+def test_full_resolution_surface_is_cleaned_when_needed():
+    # without decimation the surface used to skip the cleanup and fail its own check ("2 duplicate
+    # faces [after mask_to_surface ...]"), so `lungdeform build` refused segment's own masks
+    from skimage.measure import marching_cubes
+
+    a = np.zeros((7, 7, 7), np.uint8)
+    a[tuple(np.array(_FIN_BLOB).T)] = 1
+    v, f, _, _ = marching_cubes(np.pad(a, 1).astype(np.float32), 0.5, allow_degenerate=False)
+    fs = np.sort(f, axis=1)
+    assert len(np.unique(fs, axis=0)) < len(fs)  # the premise: raw marching cubes has duplicate faces
+    res = extract_surface(Image(a, (10.0, 10.0, 10.0), (0, 0, 0), np.eye(3), "fins.nii.gz"))
+    assert any("duplicate (fin) faces removed" in n for n in res.notes)
+    check_surface(res.surface.vertices, res.surface.faces)  # closed, manifold, outward: raises otherwise
+    # a mask that passes as it is goes through unchanged: no cleanup note
+    k, j, i = np.mgrid[:20, :20, :20]
+    ball = ((((k - 9.5) / 8) ** 2 + ((j - 9.5) / 6) ** 2 + ((i - 9.5) / 7) ** 2) <= 1).astype(np.uint8)
+    res = extract_surface(Image(ball, (10.0, 10.0, 10.0), (0, 0, 0), np.eye(3), "ball.nii.gz"))
+    assert not any(n.startswith("cleanup") for n in res.notes)

@@ -84,6 +84,23 @@ def test_marker_csv_header_variants(tmp_path, header, sep, comma):
     assert np.ptp(tr.amplitude) == pytest.approx(10.0, rel=1e-3)
 
 
+@pytest.mark.parametrize("header,scale", [
+    ("Frame;Timestamp (s);x;y;z", 1.0),       # an explicit unit beats the "timestamp means ms" default
+    ("Frame;Timestamp [s];x;y;z", 1.0),
+    ("Frame;Timestamp (ms);x;y;z", 1000.0),
+    ("frame;time_ms;x_mm;y_mm;z_mm", 1000.0),  # units as name suffixes
+    ("frame;t_s;x_mm;y_mm;z_mm", 1.0),
+])
+def test_marker_csv_time_unit_from_the_time_column(tmp_path, header, scale):
+    # truth: a 30 s trace at 10 Hz written in the unit its header names; read back in seconds
+    # (before, "Timestamp (s)" was read as ms: a 0.03 s trace, refused as too short)
+    t = np.arange(0.0, 30.0, 0.1)
+    f = write_marker_csv(tmp_path / "u.csv", t * scale, 10 * breath(t), header=header, terminator=False)
+    tr = read_trace(f)
+    assert tr.n == t.size and np.allclose(tr.t_s, t)
+    assert not any("unit not given" in x for x in tr.fixes)
+
+
 @pytest.mark.parametrize("sign", [1.0, -1.0])
 def test_orientation_from_timing_alone(tmp_path, sign):
     # truth: an inhale-positive breath without dwell (rise 35 %, fall 65 % of the period), written

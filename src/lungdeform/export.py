@@ -187,14 +187,20 @@ def read_volume_csv(path) -> VolumeTrace:
     path = Path(path)
     if not path.is_file():
         raise ReadError(f"{path}: no such curve file")
-    try:
-        with open(path, newline="", encoding="utf-8") as fh:
-            rows = list(csv.reader(fh))
+    try:  # utf-8-sig: spreadsheet "CSV UTF-8" exports start with a byte-order mark
+        with open(path, newline="", encoding="utf-8-sig") as fh:
+            text = fh.read()
     except (OSError, UnicodeDecodeError) as exc:
         raise ReadError(f"{path}: cannot read curve ({exc})") from exc
+    first = next((ln for ln in text.splitlines() if ln.strip()), "")
+    # a curve re-saved by a spreadsheet in a decimal-comma locale: ';' separated, decimal commas
+    sep = ";" if ";" in first and "," not in first else ("\t" if "\t" in first and "," not in first else ",")
+    rows = list(csv.reader(text.splitlines(), delimiter=sep))
     if not rows:
         raise ReadError(f"{path}: empty curve file")
-    header = [h.strip() for h in rows[0]]
+    if sep != ",":
+        rows = [rows[0]] + [[c.replace(",", ".") for c in r] for r in rows[1:]]
+    header = [h.strip().strip('"') for h in rows[0]]
     for col in ("t_s", "volume_ml"):
         if col not in header:
             raise ReadError(f"{path}: curve needs a '{col}' column, header is {','.join(header)}")
@@ -538,7 +544,10 @@ def export_pvd(model: Model, path, trace: VolumeTrace | None = None, fps: float 
     dv = trace.sample(times)
     frames_name = f"{path.stem}_frames"
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp_dir = Path(tempfile.mkdtemp(prefix=f".{frames_name}.", dir=path.parent))
+    try:
+        tmp_dir = Path(tempfile.mkdtemp(prefix=f".{frames_name}.", dir=path.parent))
+    except OSError as exc:  # name the output asked for, not the hidden temporary folder
+        raise OSError(exc.errno, exc.strerror, str(path)) from exc
     entries = []
     try:
         for part, (name, lung) in enumerate(model.lungs.items()):

@@ -24,7 +24,9 @@ voxel indices ``ijk`` are ordered ``(x, y, z)``.
 from __future__ import annotations
 
 import dataclasses
+import os
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Mapping
@@ -109,9 +111,93 @@ def index_to_world(ijk, spacing, origin, direction) -> np.ndarray:
 
 
 def is_image_path(path) -> bool:
-    """True for a DICOM directory or a file with an image suffix (:data:`IMAGE_SUFFIXES`)."""
+    """True for a directory (DICOM), a DICOM file, or a file with an image suffix (:data:`IMAGE_SUFFIXES`)."""
     p = Path(path)
-    return p.is_dir() or p.name.lower().endswith(IMAGE_SUFFIXES)
+    return p.is_dir() or p.name.lower().endswith(IMAGE_SUFFIXES) or is_dicom_file(p)
+
+
+def is_dicom_file(path) -> bool:
+    """True for a file named ``*.dcm``/``*.ima`` or holding the DICOM preamble (``DICM`` at byte 128)."""
+    p = Path(path)
+    if not p.is_file():
+        return False
+    if p.name.lower().endswith((".dcm", ".ima", ".dicom")):
+        return True
+    try:
+        with open(p, "rb") as fh:
+            head = fh.read(132)
+    except OSError:
+        return False
+    return len(head) == 132 and head[128:132] == b"DICM"
+
+
+@contextmanager
+def _quiet_itk():
+    """Silence ITK's own warnings on stderr (e.g. GDCM's "No Series were found"): the CLI's
+    contract is one error line; what went wrong is said by the :class:`ReadError` raised instead."""
+    import SimpleITK as sitk
+
+    before = sitk.ProcessObject.GetGlobalWarningDisplay()
+    sitk.ProcessObject.SetGlobalWarningDisplay(False)
+    try:
+        yield
+    finally:
+        sitk.ProcessObject.SetGlobalWarningDisplay(before)
+
+
+def _series_in(folder: Path) -> list[tuple[str, tuple[str, ...]]]:
+    """``[(series UID, file names)]`` of the DICOM series directly in ``folder``, largest first."""
+    import SimpleITK as sitk
+
+    reader = sitk.ImageSeriesReader
+    with _quiet_itk():
+        ids = reader.GetGDCMSeriesIDs(str(folder))
+        series = [(sid, tuple(reader.GetGDCMSeriesFileNames(str(folder), sid))) for sid in ids]
+    return sorted(series, key=lambda s: -len(s[1]))
+
+
+def dicom_series_files(path) -> list[str]:
+    """The files of the DICOM series that ``path`` names, in slice order.
+
+    ``path`` may be a folder holding the series (the largest series in it is taken, but two or more
+    series of that size, e.g. the phases of a 4-D CT, are refused as ambiguous), a parent folder
+    whose subfolders hold exactly one series, or one file of the series (its series is read from
+    its folder). Raises :class:`ReadError` naming the path when there is no series, or more than
+    one to choose from.
+    """
+    p = Path(path)
+    if p.is_file():
+        folder = p.parent
+        target = p.resolve()
+        for sid, files in _series_in(folder):
+            if any(Path(f).resolve() == target for f in files):
+                return list(files)
+        raise ReadError(f"{p}: not a readable DICOM image slice (no DICOM series in {folder} contains it)")
+    series = _series_in(p)
+    where = p
+    if not series:  # a parent folder (patient/study/series exports): look one or more levels down
+        found, visited = [], 0
+        for root, dirs, _files in os.walk(p):
+            dirs.sort()
+            if Path(root) != p:
+                found += [(Path(root), sid, files) for sid, files in _series_in(Path(root))]
+            visited += 1
+            if len(found) > 20 or visited > 2000:  # enough to say it is ambiguous; do not crawl a disk
+                break
+        if not found:
+            raise ReadError(f"{p}: no DICOM series in this directory or its subfolders")
+        if len(found) > 1:
+            listed = "; ".join(f"{d.relative_to(p)} ({len(files)} files)" for d, _, files in found[:6])
+            raise ReadError(f"{p}: holds no DICOM series itself, and its subfolders hold {len(found)}"
+                            f"{'+' if len(found) > 20 else ''} series ({listed}); give the folder of one")
+        where, sid, files = found[0]
+        series = [(sid, files)]
+    if len(series) > 1 and len(series[1][1]) == len(series[0][1]):
+        n_same = sum(len(f) == len(series[0][1]) for _, f in series)
+        raise ReadError(f"{where}: holds {len(series)} DICOM series, {n_same} of them with {len(series[0][1])} "
+                        "files (e.g. the phases of a 4-D CT): ambiguous; put the series you want in a folder "
+                        "of its own")
+    return list(series[0][1])
 
 
 def read_image(path) -> Image:
@@ -123,8 +209,9 @@ def read_image(path) -> Image:
     ``diag(1, -1, 1)``, origin ``(-213.1, 206.9, -220.1)`` LPS: the same voxels land on the same
     points), and tested in tests/test_mask.py. So no conversion is done here.
 
-    A DICOM directory is read as the series with the most files. Raises :class:`ReadError`
-    naming the path when it is missing, empty, unreadable, or not 3-D scalar.
+    DICOM: a folder, a parent folder of one series, or one file of a series
+    (:func:`dicom_series_files`). Raises :class:`ReadError` naming the path when it is missing,
+    empty, unreadable, ambiguous (several series) or not 3-D scalar.
     """
     import SimpleITK as sitk
 
@@ -132,19 +219,17 @@ def read_image(path) -> Image:
     if not p.exists():
         raise ReadError(f"{p}: no such file or directory")
     try:
-        if p.is_dir():
+        if not p.is_dir() and p.stat().st_size == 0:
+            raise ReadError(f"{p}: file is empty")
+        if p.is_dir() or (not p.name.lower().endswith(IMAGE_SUFFIXES) and is_dicom_file(p)):
             reader = sitk.ImageSeriesReader()
-            ids = reader.GetGDCMSeriesIDs(str(p))
-            if not ids:
-                raise ReadError(f"{p}: no DICOM series in this directory")
-            files = max((reader.GetGDCMSeriesFileNames(str(p), sid) for sid in ids), key=len)
-            reader.SetFileNames(files)
-            img = reader.Execute()
+            reader.SetFileNames(dicom_series_files(p))
+            with _quiet_itk():
+                img = reader.Execute()
         else:
-            if p.stat().st_size == 0:
-                raise ReadError(f"{p}: file is empty")
             if not p.name.lower().endswith(IMAGE_SUFFIXES):
-                raise ReadError(f"{p}: unknown image format (supported: {', '.join(IMAGE_SUFFIXES)})")
+                raise ReadError(f"{p}: unknown image format (supported: {', '.join(IMAGE_SUFFIXES)}, "
+                                "a DICOM file or folder)")
             img = sitk.ReadImage(str(p))
     except ReadError:
         raise
@@ -394,7 +479,17 @@ def extract_surface(
     t["decimate"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     try:
-        v, f, report = check_surface(v, f, source=f"{source} ({what})")
+        try:
+            v, f, report = check_surface(v, f, source=f"{source} ({what})")
+        except UnitsError:
+            raise
+        except MeshError:
+            # an undecimated surface has not been cleaned: marching cubes on a real mask can leave
+            # fins and sheets touching along an edge (voxels that share only an edge). Clean it only
+            # when needed, so that surfaces that pass as they are stay bit-identical.
+            v, f, cleaned = clean_mesh(v, f)
+            notes.extend(cleaned)
+            v, f, report = check_surface(v, f, source=f"{source} ({what})")
     except UnitsError as exc:  # image spacing is in mm: a wrong size is the mask's, not the units'
         size = float(np.linalg.norm(np.ptp(v, axis=0)))
         raise MaskError(

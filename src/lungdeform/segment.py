@@ -46,7 +46,7 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from .errors import InputError, MaskError, ReadError
-from .mask import Image, read_image
+from .mask import Image, is_dicom_file, read_image
 
 ARCHIVE_SUFFIXES = (".tar.gz", ".tgz", ".tar", ".zip")
 _SIX = ndi.generate_binary_structure(3, 1)
@@ -92,18 +92,19 @@ def extracted(path, workdir=None):
 def check_slice_spacing(folder, tolerance: float = 0.01) -> None:
     """Refuse a DICOM series whose slices are not evenly spaced (missing or duplicated slices).
 
-    Reads ImagePositionPatient and ImageOrientationPatient of every file of the largest series in
-    ``folder``; the gaps along the slice normal must agree within ``tolerance`` (relative) and be
+    Reads ImagePositionPatient and ImageOrientationPatient of every file of the series that
+    ``folder`` names (:func:`lungdeform.mask.dicom_series_files`: a folder, a parent folder or one file); the gaps along the slice normal must agree within ``tolerance`` (relative) and be
     non-zero. Raises :class:`ReadError` naming the folder, the gaps and the files around the worst one.
     """
     import SimpleITK as sitk
 
+    from .mask import dicom_series_files
+
     folder = Path(folder)
-    reader = sitk.ImageSeriesReader()
-    ids = reader.GetGDCMSeriesIDs(str(folder))
-    if not ids:
-        return
-    files = max((reader.GetGDCMSeriesFileNames(str(folder), sid) for sid in ids), key=len)
+    try:
+        files = dicom_series_files(folder)
+    except ReadError:
+        return  # no series to check: read_image says what is wrong
     if len(files) < 3:
         return
     pos, normal = [], None
@@ -146,7 +147,7 @@ def read_ct(path, workdir=None) -> Image:
             img = read_image(folder)
         img = Image(img.array, img.spacing, img.origin, img.direction, source=str(path))
     else:
-        if path.is_dir():
+        if path.is_dir() or is_dicom_file(path):
             check_slice_spacing(path)
         img = read_image(path)
     check_ct(img)
@@ -166,6 +167,42 @@ def check_ct(image: Image) -> None:
             f"{image.source}: minimum value {lo:g} — a CT in HU has air near −1000; "
             "this looks like a mask or an image without its rescale slope/intercept"
         )
+
+
+#: cos 30°: each index axis must lie within 30° of a world axis (a gantry tilt up to 30° passes).
+MAX_TILT_COS = float(np.cos(np.radians(30.0)))
+
+
+def axial_axes(image: Image) -> tuple[int, int, int]:
+    """Array axes of ``image`` that run along world z, y and x (LPS), in that order.
+
+    ``(0, 1, 2)`` for the usual axial (z, y, x) array; another permutation for an image stored
+    as sagittal or coronal slices or with swapped in-plane axes (e.g. a NIfTI written in another
+    axis order). Signs (feet-first, mirrored) are not part of it. Raises :class:`InputError` when
+    an index axis lies more than 30° from every world axis (oblique slices, e.g. a gantry tilt
+    beyond 30°), which needs resampling.
+    """
+    d = np.abs(np.asarray(image.direction, float))  # columns: index axes i, j, k in LPS
+    world = [int(np.argmax(d[:, a])) for a in range(3)]  # world axis of each index axis
+    if sorted(world) != [0, 1, 2] or min(d[w, a] for a, w in enumerate(world)) < MAX_TILT_COS:
+        raise InputError(f"{image.source}: slices are not axial (direction {np.round(image.direction, 4).tolist()}); "
+                         "resample to axial slices first")
+    # array axis of index axis a is 2 - a (SimpleITK order (k, j, i))
+    return tuple(2 - world.index(w) for w in (2, 1, 0))
+
+
+def to_axial(image: Image, perm: tuple[int, int, int] | None = None) -> Image:
+    """``image`` transposed so that its array is (z, y, x) along world z, y, x (:func:`axial_axes`).
+
+    An exact reordering (no resampling): every voxel keeps its world position; the origin (the
+    first voxel) is unchanged, spacing and direction columns follow their axes."""
+    perm = axial_axes(image) if perm is None else tuple(perm)
+    if perm == (0, 1, 2):
+        return image
+    index_axes = [2 - a for a in perm[::-1]]  # index axes (i, j, k) of the axial image, in the old order
+    sp = np.asarray(image.spacing, float)[index_axes]
+    d = np.asarray(image.direction, float)[:, index_axes]
+    return Image(np.transpose(np.asarray(image.array), perm), sp, image.origin, d, source=image.source)
 
 
 def downsample(image: Image, factors=(1, 2, 2)) -> Image:
@@ -446,9 +483,18 @@ def segment_lungs(
             progress(msg)
 
     check_ct(image)
-    if abs(image.direction[2, 2]) < 0.5:
-        raise InputError(f"{image.source}: slices are not axial (direction {image.direction.tolist()}); "
-                         "resample to axial slices first")
+    perm = axial_axes(image)
+    if perm != (0, 1, 2):  # stored in another axis order (e.g. sagittal or coronal stacks): segment in
+        # axial (z, y, x) order, an exact transpose, and give the masks back on the image's own grid
+        inv = tuple(int(a) for a in np.argsort(perm))
+        seg = segment_lungs(to_axial(image, perm), air_hu=air_hu, lumen_hu=lumen_hu, airway_max_hu=airway_max_hu,
+                            airway_max_ml=airway_max_ml, min_lung_ml=min_lung_ml, max_erosions=max_erosions,
+                            progress=progress)
+        back = {k: np.ascontiguousarray(np.transpose(getattr(seg, k), inv)) for k in ("left", "right", "airway")}
+        details = {**seg.details, "array_axes_to_axial_zyx": list(perm)}
+        desc = seg.airway_removal + (f" (Slice numbers refer to the image transposed to axial order: array axes "
+                                     f"{list(perm)} of the file are z, y, x.)")
+        return LungSegmentation(back["left"], back["right"], back["airway"], image, seg.volumes_ml, desc, details)
     ct = np.asarray(image.array)
     sp = np.asarray(image.spacing, float)
     vml = _voxel_ml(image)
@@ -580,16 +626,19 @@ def overlay_png(seg: LungSegmentation, path, n_axial: int = 3) -> Path:
 
     from .atomic import write_bytes
 
-    ct = np.asarray(seg.image.array)
-    d = seg.image.direction
-    sp = np.asarray(seg.image.spacing, float)
+    perm = axial_axes(seg.image)  # draw in axial (z, y, x) order whatever the file's axis order
+    axial = to_axial(seg.image, perm)
+    ct = np.asarray(axial.array)
+    d = axial.direction
+    sp = np.asarray(axial.spacing, float)
     lab = seg.labels().astype(np.int16)
     lab[seg.airway & (lab == 0)] = 3
+    lab = np.transpose(lab, perm)
+    lung = np.transpose(seg.left | seg.right, perm)
     zs = np.nonzero(lab.any(axis=(1, 2)) & (lab != 3).any(axis=(1, 2)))[0]
     if zs.size == 0:
         raise MaskError(f"{seg.image.source}: empty lung masks, nothing to draw")
     picks = [int(zs[int(round(q * (len(zs) - 1)))]) for q in np.linspace(0.2, 0.8, n_axial)]
-    lung = seg.left | seg.right
     ycen = int(round(np.nonzero(lung.any(axis=(0, 2)))[0].mean()))
     cmap = ListedColormap([(0, 0, 0, 0), (0.1, 0.4, 1.0, 0.4), (1.0, 0.15, 0.1, 0.4), (1.0, 0.9, 0.0, 0.7)])
 

@@ -208,7 +208,9 @@ def read_marker_csv(path, repair: bool = True, max_fix_fraction: float = 0.01, o
     head = lines[first].strip()
     sep = ";" if ";" in head else ("\t" if "\t" in head else ",")
     decimal_comma = sep != ","
-    names = [re.sub(r"\(.*?\)|\[.*?\]", "", h.strip().strip('"').strip("'")).strip().lower() for h in head.split(sep)]
+    raw_names = [h.strip().strip('"').strip("'").strip().lower() for h in head.split(sep)]
+    # "Timestamp (ms)", "X [mm]", "time_ms", "x_mm": the name without its unit
+    names = [re.sub(r"_(ms|s|sec|mm|cm|m)$", "", re.sub(r"\(.*?\)|\[.*?\]", "", h).strip()) for h in raw_names]
     cols = {}
     for j, nm in enumerate(names):
         key = _HEADER_ALIASES.get(nm)
@@ -218,12 +220,16 @@ def read_marker_csv(path, repair: bool = True, max_fix_fraction: float = 0.01, o
     if missing:
         raise ReadError(f"{p}, line {first + 1}: header {head!r} lacks column(s) {', '.join(missing)} "
                         "(expected Frame;Timestamp(ms);x;y;z)")
-    hl = head.lower()
+    # the time unit from the time column's own header: an explicit unit first, else "timestamp"
+    # means ms (the marker files' convention), else it is guessed from the step below
+    tl = raw_names[cols["timestamp"]]
     unit_ms = None
-    if "(ms)" in hl or "[ms]" in hl or "timestamp" in hl:
+    if re.search(r"[(\[]\s*ms\s*[)\]]|_ms$", tl):
         unit_ms = True
-    elif "(s)" in hl or "[s]" in hl:
+    elif re.search(r"[(\[]\s*(s|sec|seconds?)\s*[)\]]|_(s|sec)$", tl):
         unit_ms = False
+    elif "timestamp" in tl:
+        unit_ms = True
     rows, line_no, trunc_fix = [], [], None
     for i in range(first + 1, len(lines)):
         s = lines[i].strip()

@@ -63,3 +63,40 @@ def test_breathe_needs_one_source(tmp_path, capsys):
     assert main(["breathe", "--preset", "zz", "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "unknown breathing preset 'zz'" in err[0]
+
+
+def test_breathe_preset_numbers_do_not_depend_on_fs(tmp_path, capsys):
+    # truth: the preset's own tidal volume (500 mL). Measured on the output samples, 2 Hz (8 samples
+    # per 4 s breath) used to report about 410 mL; the summary now comes from a fine run
+    m = {}
+    for fs in ("2", "50"):
+        assert main(["breathe", "--preset", "normal", "--out", str(tmp_path / fs), "--fs", fs]) == 0
+        m[fs] = json.loads((tmp_path / fs / "metrics.json").read_text())
+    assert m["2"]["tidal_volume_ml"] == pytest.approx(500.0, rel=1e-3)
+    assert m["2"]["tidal_volume_ml"] == pytest.approx(m["50"]["tidal_volume_ml"], rel=1e-6)
+    assert m["2"]["peak_flow_ml_s"] == pytest.approx(m["50"]["peak_flow_ml_s"], rel=1e-6)
+    capsys.readouterr()
+    # fewer than 8 samples per breath: refused in one line naming the option
+    assert main(["breathe", "--preset", "normal", "--out", str(tmp_path / "low"), "--fs", "1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--fs 1 Hz gives 4 samples per 4 s breath" in err[0]
+    assert not (tmp_path / "low").exists()
+
+
+def test_breathe_deep_preset_is_not_negative_air_trapping(tmp_path, capsys):
+    # the deep preset exhales actively below the relaxation volume: that is not "air trapping -1452 mL"
+    assert main(["breathe", "--preset", "deep", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    m = json.loads((tmp_path / "metrics.json").read_text())
+    assert m["end_expiratory_above_relaxation_ml"] < -100.0 and m["air_trapping_ml"] == 0.0
+    assert "active expiration to" in out and "air trapping -" not in out
+
+
+def test_breathe_fit_progress_only_when_verbose(tmp_path, rng, capsys):
+    # stderr is not a terminal under pytest: without --verbose only the notes (what the reader fixed)
+    trace = _synthetic_trace(tmp_path / "synthetic.csv", rng)
+    assert main(["breathe", "--fit", str(trace), "--out", str(tmp_path / "a")]) == 0
+    err = capsys.readouterr().err
+    assert "fits on" not in err and all(ln.startswith("note: ") for ln in err.strip().splitlines())
+    assert main(["--verbose", "breathe", "--fit", str(trace), "--out", str(tmp_path / "b")]) == 0
+    assert "fits on" in capsys.readouterr().err

@@ -97,3 +97,33 @@ def test_truncated_mesh_and_empty_mask_exit_2(tmp_path, capsys):
     sitk.WriteImage(img, str(empty))
     _fails(["build", str(empty), "--side", "left", "--out", str(out)], capsys, "empty_mask.mha", "foreground")
     assert not out.exists()
+
+
+def test_swapped_sides_refused(tmp_path, lung_files, capsys):
+    # truth: lung_files[0] is the left lung (at +x, LPS). Telling build the opposite, or naming the
+    # groups of a label map the wrong way round, used to build a model with swapped sides
+    out = tmp_path / "m.npz"
+    err = _fails(["build", *map(str, lung_files), "--side", "right", "--side", "left", "--out", str(out)], capsys,
+                 "the surface taken as left (lung_right", "sides or labels swapped, or the meshes are in RAS")
+    assert "mean x -" in err
+    assert not out.exists()
+    # a lobe map with its groups swapped: labels 3–5 (right lobes) called "left"
+    import SimpleITK as sitk
+
+    k, j, i = np.mgrid[:24, :20, :40]
+    lab = np.zeros((24, 20, 40), np.uint8)
+    for lobe, xc in ((1, 29.5), (3, 9.5)):  # index x grows to patient left (identity direction)
+        lab[((k - 11.5) / 9) ** 2 + ((j - 9.5) / 7) ** 2 + ((i - xc) / 7) ** 2 <= 1] = lobe
+    sitk.WriteImage(sitk.GetImageFromArray(lab), str(tmp_path / "lobes.nii.gz"))
+    _fails(["build", str(tmp_path / "lobes.nii.gz"), "--labels", "left=3;right=1", "--out", str(out)], capsys,
+           "the surface taken as left (lobes-left")
+    assert main(["build", str(tmp_path / "lobes.nii.gz"), "--labels", "left=1;right=3", "--out", str(out)]) == 0
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--solver", "gauss"], "--solver must be one of bicgstab, gmres, direct, got 'gauss'"),
+    (["--d-min", "0"], "--d-min must be > 0 mm, got 0"),
+    (["--target-vertices", "50"], "--target-vertices must be at least 100, got 50"),
+])
+def test_options_named_in_errors(tmp_path, lung_files, capsys, args, message):
+    _fails(["build", str(lung_files[0]), "--side", "left", "--out", str(tmp_path / "m.npz"), *args], capsys, message)

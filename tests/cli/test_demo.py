@@ -110,3 +110,20 @@ def test_demo_refuses_an_unknown_preset(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "panting" in err[0] and "normal" in err[0]
     assert not (tmp_path / "x" / "summary.json").exists()
+
+
+@pytest.mark.parametrize("args, message", [
+    # 1e5 s used to run for minutes and would have written millions of mesh files
+    (["--duration", "1e5"], "--duration must be at most 300 s, got 100000"),
+    (["--duration", "nan"], "--duration must be at most 300 s, got nan"),
+    # 1e6 mL used to give 458 L lungs without a word
+    (["--tidal-ml", "1e6"], "--tidal-ml must be a tidal volume in mL in (0, 10000]"),
+    (["--orientation", "sideways"], "--orientation must be one of supine, prone, upright"),
+    (["--orientation", "0,0,0"], "--orientation must be a non-zero finite vector"),
+])
+def test_demo_refuses_absurd_settings_before_writing(tmp_path, capsys, args, message):
+    out = tmp_path / "x"
+    assert main(["demo", "--out", str(out), *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0]
+    assert not out.exists()

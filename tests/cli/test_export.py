@@ -44,6 +44,16 @@ def test_export_glb_plain_cycle(model_file, tmp_path, capsys):
     assert [m["name"] for m in doc["meshes"]] == ["left", "right"]
 
 
+@pytest.mark.parametrize("kind", ["glb", "pvd"])
+def test_export_into_an_existing_folder(model_file, tmp_path, capsys, kind):
+    # --out an existing folder: the file goes inside it (it used to be written beside it, as DIR.glb)
+    folder = tmp_path / "exports"
+    folder.mkdir()
+    assert main(["export", str(model_file), "--format", kind, "--out", str(folder)]) == 0
+    assert (folder / f"m.{kind}").is_file() and not (tmp_path / f"exports.{kind}").exists()
+    assert f"wrote {folder / f'm.{kind}'}" in capsys.readouterr().out
+
+
 def test_export_glb_with_curve_and_markers(model_file, tmp_path, capsys):
     # an absolute-volume curve (2.5 L baseline) is shifted to its minimum, and the CLI says so
     t = np.linspace(0, 10, 101)
@@ -145,7 +155,9 @@ def test_export_pvd(model_file, tmp_path, capsys):
     (["--format", "glb", "--preset", "normal", "--period", "3"], "a --preset has its own period"),
     (["--format", "glb", "--cycles", "2"], "--cycles applies to --preset only"),
     (["--format", "glb", "--preset", "normal", "--cycles", "0"], "--cycles must be >= 1"),
-    (["--format", "glb", "--preset", "normal", "--tidal-ml", "-5"], "tidal volume must be > 0 mL"),
+    (["--format", "glb", "--preset", "normal", "--tidal-ml", "-5"], "--tidal-ml must be a tidal volume in mL"),
+    # a typo far above any vital capacity used to give lungs of hundreds of litres
+    (["--format", "glb", "--tidal-ml", "500000"], "--tidal-ml must be a tidal volume in mL in (0, 10000]"),
 ])
 def test_export_bad_options(model_file, tmp_path, capsys, args, message):
     assert main(["export", str(model_file), "--out", str(tmp_path / "x"), *args]) == 2

@@ -111,3 +111,49 @@ def test_segment_with_surfaces(tmp_path, rng, run):
         assert report["surfaces"][side]["vertices"] == len(np.unique(f))
     # LPS: the left lung surface lies at +x
     assert read_mesh(out / "left_lung.stl")[0][:, 0].mean() > 0 > read_mesh(out / "right_lung.stl")[0][:, 0].mean()
+
+
+def _dicom_phantom(folder, rng):
+    """The phantom CT as a DICOM series in ``folder`` (locale restored: GDCM's writer resets it)."""
+    import locale
+
+    from tests.test_segment import _write_dicom_series
+
+    saved = locale.setlocale(locale.LC_ALL)
+    img, _ = phantom(rng, gap_mm=10.0)
+    sp = img.spacing
+    _write_dicom_series(folder, img.array, sp, [float(k * sp[2]) for k in range(img.array.shape[0])])
+    locale.setlocale(locale.LC_ALL, saved)
+    return folder
+
+
+def test_dicom_series_from_its_folder_one_file_or_a_parent_folder(tmp_path, rng, run, capfd):
+    # truth: the same series read three ways gives the same masks. Before, one .dcm file was an
+    # "unknown image format", and a patient/study/series parent "no DICOM series" plus two ITK
+    # WARNING blocks on stderr
+    series = _dicom_phantom(tmp_path / "patient 1" / "study" / "series", rng)
+    volumes = {}
+    for name, path in {"folder": series, "file": series / "slice007.dcm", "parent": tmp_path / "patient 1"}.items():
+        out = tmp_path / f"out-{name}"
+        assert run(["segment", str(path), "--out", str(out)]) == 0, name
+        volumes[name] = json.loads((out / "volumes.json").read_text())["volumes_ml"]
+    assert volumes["file"] == volumes["folder"] == volumes["parent"]
+    assert volumes["folder"]["left"] > 100 and volumes["folder"]["airway"] > 1
+    assert "WARNING" not in capfd.readouterr().err
+
+
+def test_dicom_ambiguous_or_missing_series_one_error_line(tmp_path, rng, run, capfd):
+    # two series under one parent (e.g. two phases): refused naming both, never picked at random
+    _dicom_phantom(tmp_path / "two" / "phase00", rng)
+    _dicom_phantom(tmp_path / "two" / "phase50", rng)
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "fake.dcm").write_text("not dicom")
+    cases = {tmp_path / "two": "its subfolders hold 2 series (phase00 (50 files); phase50 (50 files))",
+             tmp_path / "empty": "no DICOM series in this directory or its subfolders",
+             tmp_path / "fake.dcm": "not a readable DICOM image slice"}
+    for path, message in cases.items():
+        out = tmp_path / "out"
+        assert run(["segment", str(path), "--out", str(out)]) == 2
+        err = capfd.readouterr().err.strip().splitlines()  # capfd: ITK writes to fd 2 itself
+        assert len(err) == 1 and err[0].startswith(f"error: {path}") and message in err[0], err
+        assert not out.exists()

@@ -59,3 +59,14 @@ def test_out_is_a_file(tmp_path, capsys):
     f.write_text("x")
     assert main(["synth-cohort", "--out", str(f)]) == 2
     assert str(f) in capsys.readouterr().err
+
+
+def test_hint_is_a_command_that_survives_spaces(tmp_path, capsys):
+    # a folder with a space: the printed hint used to split into two arguments when pasted
+    import shlex
+
+    out = tmp_path / "my cohort ü"
+    assert main(["synth-cohort", "--out", str(out), "--subjects", "1", "--volumes", "200"]) == 0
+    hint = next(ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("fit with: "))
+    argv = shlex.split(hint[len("fit with: "):].split(" (")[0])
+    assert argv[:3] == ["lungdeform", "cohort", str(out / "manifest.csv")]

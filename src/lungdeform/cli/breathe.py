@@ -95,31 +95,52 @@ def plot_residuals(t, resid, path: Path, title: str, ylabel: str = "residual (mL
 
 
 # --------------------------------------------------------------------------- the work
+#: Fewest output samples per breath ``--fs`` may give (below, the curve does not show a breath).
+MIN_SAMPLES_PER_BREATH = 8
+#: Samples per breath of the run the summary numbers (tidal volume, peaks) are measured on.
+METRICS_SAMPLES_PER_BREATH = 200
+
+
 def run_preset(name: str, out: Path, cycles: int, fs_hz: float) -> dict:
     import numpy as np
 
     from lungdeform import breathing as br
     from lungdeform.presets import get_preset
 
+    from lungdeform.errors import InputError
+
     preset = get_preset(name)
     p = preset.params
+    per_breath = fs_hz * p.period_s if np.isfinite(fs_hz) else float("nan")
+    if per_breath < MIN_SAMPLES_PER_BREATH:
+        raise InputError(f"--fs {fs_hz:g} Hz gives {per_breath:.2g} samples per {p.period_s:g} s breath of preset "
+                         f"{preset.name}; use at least {MIN_SAMPLES_PER_BREATH} (--fs ≥ "
+                         f"{MIN_SAMPLES_PER_BREATH / p.period_s:.3g})")
     curve = br.simulate(p, n_cycles=cycles, fs_hz=fs_hz)
     # check: the integrator against the exact periodic (Fourier) solution of the same equation
     vol, _ = br.periodic_response(p.period_s, p.mechanics, p.insp_fraction, p.decay)
     exact = p.relaxation_ml + 1000.0 * br.interp_periodic(vol @ p.a, curve.t_s / p.period_s)
     resid = curve.volume_ml - exact
-    rest = br.simulate(p, n_cycles=max(cycles, 8), fs_hz=fs_hz, start="rest")
+    # the summary numbers from a finely sampled run, so that they do not depend on --fs (at 1 Hz a
+    # 4 s breath is 4 samples: its sampled range misses the peak)
+    fine_fs = max(fs_hz, METRICS_SAMPLES_PER_BREATH / p.period_s)
+    fine = curve if fine_fs == fs_hz else br.simulate(p, n_cycles=cycles, fs_hz=fine_fs)
+    rest = br.simulate(p, n_cycles=max(cycles, 8), fs_hz=fine_fs, start="rest")
     last = rest.t_s >= rest.t_s[-1] - p.period_s
+    end_exp = float(rest.volume_ml[last].min() - p.relaxation_ml)
     metrics = {
         "mode": "preset",
         "preset": preset.as_dict(),
         "cycles": cycles,
         "sample_rate_hz": fs_hz,
-        "tidal_volume_ml": curve.tidal_volume_ml,
-        "v_ee_ml": curve.v_ee_ml,
-        "peak_flow_ml_s": float(curve.flow_ml_s.max()),
-        "peak_pressure_cmH2O": float(curve.pressure_cmH2O.max()),
-        "air_trapping_ml": float(rest.volume_ml[last].min() - p.relaxation_ml),
+        "tidal_volume_ml": fine.tidal_volume_ml,
+        "v_ee_ml": fine.v_ee_ml,
+        "peak_flow_ml_s": float(fine.flow_ml_s.max()),
+        "peak_pressure_cmH2O": float(fine.pressure_cmH2O.max()),
+        # end-expiratory volume above the relaxation volume, once settled from rest: > 0 is air
+        # trapping (expiration too short); < 0 is active expiration below it (e.g. the deep preset)
+        "end_expiratory_above_relaxation_ml": end_exp,
+        "air_trapping_ml": max(end_exp, 0.0),
         "integrator_vs_periodic_max_abs_ml": float(np.max(np.abs(resid))),
         "playback": "s(t) = (volume_ml(t) - v_ee_ml) / unit_ml",
     }
@@ -242,12 +263,15 @@ def register(apps) -> None:
             if cycles < 1:
                 raise InputError(f"--cycles must be >= 1, got {cycles}")
             m = run_preset(preset, out, cycles, fs)
+            ee = m["end_expiratory_above_relaxation_ml"]
+            settled = (f"air trapping {ee:.0f} mL" if ee > -1.0 else
+                       f"active expiration to {-ee:.0f} mL below the relaxation volume")
             typer.echo(f"preset {m['preset']['name']}: V_T {m['tidal_volume_ml']:.0f} mL, "
-                       f"period {m['preset']['params']['period_s']:.2f} s, "
-                       f"air trapping {m['air_trapping_ml']:.0f} mL")
+                       f"period {m['preset']['params']['period_s']:.2f} s, {settled}")
         else:
-            m = run_fit(fit, out, tidal_volume_ml, train_fraction,
-                        progress=lambda msg: typer.echo(msg, err=True))
+            from lungdeform.cli.common import say
+
+            m = run_fit(fit, out, tidal_volume_ml, train_fraction, progress=say)
             for fix in m.get("fixes", []):
                 typer.echo(f"note: {fix}", err=True)
             typer.echo(f"{m['trace']}: held-out RMS % of p2p: PV {m['model_rms_percent']:.2f}, "

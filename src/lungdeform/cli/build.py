@@ -9,7 +9,7 @@ import typer
 
 from lungdeform.modelfile import provenance
 
-from .common import parse_orientation, say
+from .common import check_tidal_ml, parse_orientation, say
 
 
 def register(apps) -> None:
@@ -34,6 +34,13 @@ def register(apps) -> None:
         from lungdeform.model import build_model
         from lungdeform.modelfile import save_model
 
+        check_tidal_ml(tidal_ml)  # before the (slow) reading, with the options' own names
+        if solver not in SOLVERS:
+            raise InputError(f"--solver must be one of {', '.join(SOLVERS)}, got {solver!r}")
+        if not d_min > 0:
+            raise InputError(f"--d-min must be > 0 mm, got {d_min:g}")
+        if target_vertices is not None and target_vertices < 100:
+            raise InputError(f"--target-vertices must be at least 100, got {target_vertices}")
         loaded = []
         for src in sources:
             for surface, report in io.load(src, labels=labels, units=units, repair=repair,
@@ -60,8 +67,16 @@ def register(apps) -> None:
         typer.echo(f"model written to {path}")
 
 
+SOLVERS = ("bicgstab", "gmres", "direct")
+
+
 def resolve_sides(surfaces, given: list[str] | None) -> list[str]:
-    """Sides from --side, from names ending in -left/-right, or from position (two lungs)."""
+    """Sides from --side, from names ending in -left/-right, or from position (two lungs).
+
+    Given or named sides of a left and a right surface are checked against their positions: in
+    LPS the left lung lies at larger x. A pair the other way round (sides or labels swapped, or
+    meshes in RAS) is refused rather than built with the wrong sides and the wrong gravity frame.
+    """
     from lungdeform.errors import InputError
     from lungdeform.frame import SIDES, guess_sides
 
@@ -71,13 +86,23 @@ def resolve_sides(surfaces, given: list[str] | None) -> list[str]:
         bad = [s for s in given if s not in SIDES]
         if bad:
             raise InputError(f"--side must be left or right, got {bad[0]!r}")
-        return list(given)
-    named = [next((sd for sd in SIDES if s.name.lower().endswith(sd)), None) for s in surfaces]
-    if all(named):
-        return named
-    if len(surfaces) == 2:
-        return guess_sides([float(s.vertices[:, 0].mean()) for s in surfaces])
-    raise InputError(f"cannot tell the side of {surfaces[0].name}: pass --side left or --side right")
+        sides = list(given)
+    else:
+        named = [next((sd for sd in SIDES if s.name.lower().endswith(sd)), None) for s in surfaces]
+        if all(named):
+            sides = named
+        elif len(surfaces) == 2:
+            return guess_sides([float(s.vertices[:, 0].mean()) for s in surfaces])
+        else:
+            raise InputError(f"cannot tell the side of {surfaces[0].name}: pass --side left or --side right")
+    if sorted(sides) == ["left", "right"]:
+        x = {sd: float(s.vertices[:, 0].mean()) for sd, s in zip(sides, surfaces)}
+        if x["left"] <= x["right"]:
+            name = {sd: s.name for sd, s in zip(sides, surfaces)}
+            raise InputError(f"the surface taken as left ({name['left']}, mean x {x['left']:.0f} mm) lies to the "
+                             f"patient's right of the one taken as right ({name['right']}, {x['right']:.0f} mm); in "
+                             "LPS the left lung has the larger x: sides or labels swapped, or the meshes are in RAS")
+    return sides
 
 
 def stiffness_field(spec: str, surface, gravity):

@@ -54,6 +54,25 @@ def parse_orientation(text: str):
 
     if text.strip().lower() in GRAVITY:
         return text.strip().lower()
-    return parse_vector(text, "--orientation")
+    if not any(c.isdigit() for c in text):  # a misspelt name, not a vector: list the names
+        raise InputError(f"--orientation must be one of {', '.join(GRAVITY)} or a gravity vector 'x,y,z' (LPS), "
+                         f"got {text!r}")
+    v = parse_vector(text, "--orientation")
+    if not (np.isfinite(v).all() and np.linalg.norm(v) > 0):
+        raise InputError(f"--orientation must be a non-zero finite vector 'x,y,z' (LPS), got {text!r}")
+    return v
+
+
+#: Largest tidal volume the commands accept, mL: above any vital capacity (a typo, e.g. a volume in µL).
+MAX_TIDAL_ML = 10000.0
+
+
+def check_tidal_ml(value: float | None, option: str = "--tidal-ml") -> None:
+    """Refuse a tidal volume that is not finite, not positive, or above :data:`MAX_TIDAL_ML` (None passes)."""
+    if value is None:
+        return
+    if not (np.isfinite(value) and 0 < value <= MAX_TIDAL_ML):
+        raise InputError(f"{option} must be a tidal volume in mL in (0, {MAX_TIDAL_ML:g}] (both lungs; quiet "
+                         f"breathing ≈ 500, a vital capacity 3000–6000), got {value:g}")
 
 

@@ -6,7 +6,10 @@ from pathlib import Path
 
 import typer
 
-from .common import output_dir, parse_orientation, say
+from .common import check_tidal_ml, output_dir, parse_orientation, say
+
+#: Longest playback the demo writes (s): its ParaView series is 20 files (~2.7 MB) per second.
+MAX_DURATION_S = 300.0
 
 
 def register(apps) -> None:
@@ -20,10 +23,17 @@ def register(apps) -> None:
     ):
         """Build both embedded lungs (Table I, supine) and play one breath of a PV-model preset."""
         from lungdeform.demo import run_demo
+        from lungdeform.errors import InputError
 
+        check_tidal_ml(tidal_ml)
+        if duration_s is not None and not duration_s <= MAX_DURATION_S:  # also NaN
+            raise InputError(f"--duration must be at most {MAX_DURATION_S:g} s, got {duration_s:g}: the demo writes "
+                             "20 mesh files per second of playback; for long playback use 'lungdeform export "
+                             "--format glb --preset NAME --cycles N' (one file)")
+        gravity = parse_orientation(orientation)
         folder = output_dir(out)
         r = run_demo(folder, preset=preset, duration_s=duration_s, tidal_ml=tidal_ml,
-                     orientation=parse_orientation(orientation), progress=say)
+                     orientation=gravity, progress=say)
         b = r.summary_data["breathing"]
         typer.echo(f"breathing: preset '{b['preset']}' ({b['description']}), {r.summary_data['duration_s']:g} s "
                    f"at {r.summary_data['frames_per_second']:.2f} frames/s, {r.summary_data['tidal_ml']:g} mL")

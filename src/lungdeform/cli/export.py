@@ -12,7 +12,7 @@ def register(apps) -> None:
     def export_command(
         model: Path = typer.Argument(..., help="Model file (.npz) written by build, fit or demo."),
         fmt: str = typer.Option(..., "--format", help="glb (glTF 2.0 binary, morph targets) or pvd (VTK .pvd + .vtp)."),
-        out: Path = typer.Option(..., "--out", help="Output file (.glb or .pvd; frames go beside a .pvd)."),
+        out: Path = typer.Option(..., "--out", help="Output file (.glb or .pvd; frames go beside a .pvd), or an existing folder (MODEL's name is used)."),
         curve: Path | None = typer.Option(None, "--curve", help="Breathing curve CSV (t_s, volume_ml, …) from 'lungdeform breathe'."),
         preset: str | None = typer.Option(None, "--preset", help="Breathing preset of the PV model, simulated: normal, deep, copd, restrictive, dyspnoea or pneumothorax (not with --curve)."),
         cycles: int | None = typer.Option(None, "--cycles", help="With --preset: whole breaths played (default 1)."),
@@ -41,6 +41,9 @@ def register(apps) -> None:
             raise InputError("--cycles applies to --preset only")
         if cycles is not None and cycles < 1:
             raise InputError(f"--cycles must be >= 1, got {cycles}")
+        from lungdeform.cli.common import check_tidal_ml
+
+        check_tidal_ml(tidal_ml)
         if preset is not None:
             from lungdeform.presets import get_preset
 
@@ -61,6 +64,8 @@ def register(apps) -> None:
         typer.echo(f"curve: {trace.source}, {trace.t_s[-1]:.2f} s, {len(trace.t_s)} samples, "
                    f"ΔV {trace.volume_ml.min():.0f}…{trace.volume_ml.max():.0f} mL split "
                    + ", ".join(f"{k} {v:.2f}" for k, v in shares.items()))
+        if out.is_dir():  # an existing folder: the file goes inside it, named after the model
+            out = out / f"{Path(model).stem}.{kind}"
         if kind == "glb":
             out_path = out if out.suffix.lower() == ".glb" else out.with_name(out.name + ".glb")
             anchors = None

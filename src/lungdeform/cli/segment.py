@@ -12,7 +12,7 @@ MASK_FORMATS = ("nii.gz", "mha")
 def register(apps) -> None:
     @apps.root.command("segment")
     def segment_command(
-        ct: Path = typer.Argument(..., help="CT in HU: NIfTI/MHA/NRRD, a DICOM folder, or a .tar.gz/.zip of one."),
+        ct: Path = typer.Argument(..., help="CT in HU: NIfTI/MHA/NRRD, a DICOM folder (or one of its files, or a parent folder of one series), or a .tar.gz/.zip of one."),
         out: Path = typer.Option(..., "--out", help="Output folder."),
         fmt: str = typer.Option("nii.gz", "--format", help="Mask format: nii.gz or mha."),
         surfaces: bool = typer.Option(False, "--surfaces/--no-surfaces", help="Also build left/right lung surfaces (STL) with lungdeform.mask."),
@@ -35,8 +35,8 @@ def register(apps) -> None:
             raise InputError(f"--downsample must be ≥ 1, got {downsample}")
         t0 = time.perf_counter()
         image = S.read_ct(ct)
-        if downsample > 1:
-            image = S.downsample(image, (1, downsample, downsample))
+        if downsample > 1:  # in-plane: along world x and y whatever the file's axis order
+            image = S.downsample(S.to_axial(image), (1, downsample, downsample))
         t_read = time.perf_counter() - t0
         seg = S.segment_lungs(image, progress=say)
         t_seg = time.perf_counter() - t0 - t_read

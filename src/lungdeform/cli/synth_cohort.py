@@ -54,5 +54,7 @@ def register(apps) -> None:
         typer.echo(f"wrote {info['rows']} surfaces for {len(lungs)} lungs under {folder}")
         typer.echo(f"wrote {info['manifest']} and {info['truth']}")
         how = "joint" if table_shift_mm > 0 else "none"
-        typer.echo(f"fit with: lungdeform cohort {info['manifest']} --out OUT --align {how} "
+        import shlex
+
+        typer.echo(f"fit with: lungdeform cohort {shlex.quote(str(info['manifest']))} --out OUT --align {how} "
                    f"(the files are in one frame{'' if how == 'none' else ' up to the table shifts'})")
