@@ -86,6 +86,8 @@ class FitOptions:
     #: with landmarks: the landmark-informed fit and its k-fold cross-validation (``folds`` folds)
     landmark_fit: bool = True
     folds: int = 5
+    #: degree of the smooth correction of the paper's directions (lungdeform.direction_correction; 0: none)
+    direction_degree: int = 3
 
     def __post_init__(self):
         from .pipeline import ALIGN_MODES
@@ -96,6 +98,8 @@ class FitOptions:
             raise InputError(f"align (--align) must be one of {', '.join(ALIGN_MODES)}, got {self.align!r}")
         if int(self.folds) < 2:
             raise InputError(f"folds (--folds) must be at least 2, got {self.folds}")
+        if not 0 <= int(self.direction_degree) <= 4:
+            raise InputError(f"direction_degree (--direction-degree) must be 0…4, got {self.direction_degree}")
 
 
 @dataclass(frozen=True)
@@ -190,7 +194,8 @@ def fit_job(job: Job, out_dir, options: FitOptions = FitOptions(), *, progress: 
                               landmarks=job.landmarks, grid=options.grid, stiffness=options.stiffness,
                               baselines=options.baselines, max_evaluations=int(options.max_evaluations),
                               command="cohort", progress=say, align=options.align,
-                              landmark_fit=options.landmark_fit, folds=int(options.folds))
+                              landmark_fit=options.landmark_fit, folds=int(options.folds),
+                              direction_degree=int(options.direction_degree))
         except Exception as exc:  # isolate: any failure of this job becomes its result
             error = exc
         enter("write")

@@ -44,11 +44,12 @@ def smooth_observations(values: np.ndarray, weights: np.ndarray, faces: np.ndarr
 
 def fit_stiffness_field(fitter: LungFitter, c_dir, *, iterations: int = 20, smoothing: int = 10,
                         target_smoothing: int = 10, log_range: float = float(np.log(STIFFNESS_RANGE)),
-                        force=None) -> np.ndarray:
+                        force=None, directions=None) -> np.ndarray:
     """Inverse estimate of alveolar expandability: ``log E (n,)``, a per-vertex stiffness whose
     forward force F(E) (for the fitted applied force) matches the observed magnitudes along the
-    fitted directions ``c_dir`` (ray hits of kept vertices, smoothed by ``target_smoothing``
-    normalised-convolution steps, misses filled by neighbours).
+    fitted directions ``c_dir`` — or ``directions (n, 3)`` when given (a corrected field,
+    :mod:`lungdeform.direction_correction`) — (ray hits of kept vertices, smoothed by
+    ``target_smoothing`` normalised-convolution steps, misses filled by neighbours).
 
     Softer nodes keep and attract more force (METHOD §3), so ``log E`` is updated by the damped
     log-ratio of the predicted to the observed magnitude, then smoothed (``smoothing`` umbrella
@@ -59,7 +60,10 @@ def fit_stiffness_field(fitter: LungFitter, c_dir, *, iterations: int = 20, smoo
     fitted to surfaces, matching the surface better moves the interior worse). Leaves ``fitter``'s
     stiffness unchanged.
     """
-    _, parts = fitter.evaluate(c_dir, full=True, force=force)
+    if directions is None:
+        _, parts = fitter.evaluate(c_dir, full=True, force=force)
+    else:
+        _, parts = fitter.evaluate_directions(directions, c_dir, force)
     if parts is None:
         raise ConvergenceError("stiffness fit: the direction constants give no usable model")
     hits = parts["hits"]
@@ -80,17 +84,21 @@ def fit_stiffness_field(fitter: LungFitter, c_dir, *, iterations: int = 20, smoo
 
 
 def fit_stiffness_if_better(fitter: LungFitter, c_dir, best, say: Callable[[str], None], force=None, shifts=None,
-                            **kwargs):
+                            directions=None, **kwargs):
     """:func:`fit_stiffness_field`, kept only if it lowers the objective; returns
     ``(log E (n,) or None, objective)`` and leaves the kept stiffness in ``fitter``. ``force`` /
-    ``shifts``: fixed c7…c9 and target translations (least-squares mode), else rays."""
-    uniform_e = fitter.stiffness
-    log_e = fit_stiffness_field(fitter, c_dir, force=force, **kwargs)
+    ``shifts``: fixed c7…c9 and target translations (least-squares mode), else rays;
+    ``directions (n, 3)``: a corrected direction field to use instead of that of ``c_dir``."""
+    previous = fitter.stiffness
+    log_e = fit_stiffness_field(fitter, c_dir, force=force, directions=directions, **kwargs)
     fitter.set_stiffness(np.exp(log_e))
-    obj = fitter.evaluate(c_dir, force=force, shifts=shifts)
+    if directions is None:
+        obj = fitter.evaluate(c_dir, force=force, shifts=shifts)
+    else:
+        obj = fitter.evaluate_directions(directions, c_dir, force, shifts)[0]
     if not obj < best:
-        fitter.set_stiffness(uniform_e)
-        say(f"stiffness field: RMS {obj:.3f} mm, not better than {best:.3f} mm: kept uniform")
+        fitter.set_stiffness(previous)
+        say(f"stiffness field: RMS {obj:.3f} mm, not better than {best:.3f} mm: kept the previous one")
         return None, best
     say(f"stiffness field: RMS {best:.3f} -> {obj:.3f} mm")
     return log_e, obj

@@ -32,7 +32,9 @@ c7…c9 refined against the surface, optionally a translation per target), ``"po
 
 Optional beyond the paper (``fit_stiffness=True``): a heterogeneous per-vertex stiffness field, an
 inverse estimate of regional alveolar expandability (paper Sec. VI; :mod:`lungdeform.expandability`),
-kept only when it lowers the fit objective. The model keeps its run-time form.
+kept only when it lowers the fit objective. The model keeps its run-time form. Also optional
+(``direction_degree > 0``): a smooth polynomial correction of the directions fitted to the same
+surfaces (:mod:`lungdeform.direction_correction`), kept only when it lowers the objective.
 
 Landmark-informed fitting (optional; paper Sec. IV-B fitted its constants on corresponding points
 of 4-D CT): surfaces cannot see tangential sliding, so c1…c6 are weakly identified by the surface
@@ -50,7 +52,7 @@ stiffness fit, their vertices do not enter the objective, and they carry no inte
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Sequence
 
 import numpy as np
@@ -58,6 +60,7 @@ import numpy as np
 from .constants import gravity_vector, table_constants
 from .correspond import RayCaster, RayHits, correspond
 from .direction import directions as direction_field
+from .direction_correction import DirectionCorrection, fit_direction_correction
 from .displacement import calibrate
 from .distance import SurfaceDistance, vertex_areas
 from .errors import ConvergenceError, InputError, LungdeformError
@@ -199,6 +202,16 @@ class FitResult:
     translations : (k, 3) float or None
         With ``translate=True``: the translation (mm) fitted jointly for each target; the model was
         fitted to ``target + translations[i]`` (zeros for targets outside ``fit_on``).
+    uniform_displacement : (n, 3) float or None
+        With a fitted stiffness field: ``u`` with uniform stiffness and the paper's directions.
+    direction_correction : DirectionCorrection or None
+        With ``direction_degree > 0``: the fitted correction of the directions
+        (:mod:`lungdeform.direction_correction`); :attr:`directions` and :attr:`displacement` include
+        it when it was accepted.
+    paper_displacement : (n, 3) float or None
+        With an accepted correction: ``u`` with the paper's directions (same stiffness, c7…c9).
+    paper_objective_mm : float
+        The objective with the paper's directions, mm.
     """
 
     constants: np.ndarray
@@ -223,6 +236,9 @@ class FitResult:
     stiffness_fitted: bool = False
     uniform_displacement: np.ndarray | None = None
     uniform_objective_mm: float = float("nan")
+    direction_correction: DirectionCorrection | None = None
+    paper_displacement: np.ndarray | None = None
+    paper_objective_mm: float = float("nan")
     surface_rms_mm: float = float("nan")
     landmark_rms_mm: float = float("nan")
     landmarks_used: int = 0
@@ -242,7 +258,8 @@ class FitResult:
                 "stiffness_range": [float(self.stiffness.min()), float(self.stiffness.max())],
                 "surface_rms_mm": self.surface_rms_mm, "landmarks_used": self.landmarks_used,
                 "landmark_rms_in_fit_mm": self.landmark_rms_mm,
-                "translations_mm": None if self.translations is None else np.asarray(self.translations).tolist()}
+                "translations_mm": None if self.translations is None else np.asarray(self.translations).tolist(),
+                "direction_correction": None if self.direction_correction is None else self.direction_correction.as_dict()}
 
 
 # --------------------------------------------------------------------------- free functions
@@ -490,15 +507,30 @@ class LungFitter:
         ev = self.residuals(c_dir, force, shifts, rays=full)
         if ev.u is None:
             return (np.inf, None) if full else np.inf
-        obj = float(np.sqrt(ev.surface_ms + (self.landmark_weight * ev.landmark_ms if self.lm_targets else 0.0)))
-        if not full:
-            return obj
+        obj = self._objective(ev)
+        return (obj, self._parts(ev, c_dir)) if full else obj
+
+    def evaluate_directions(self, d: np.ndarray, c_dir: np.ndarray, force, shifts=None):
+        """``(objective mm, parts)`` as :meth:`evaluate` with ``full``, for given unit directions
+        ``d (n, 3)`` (e.g. corrected, :mod:`lungdeform.direction_correction`) in place of those of
+        ``c_dir (6,)`` (still reported as c1…c6), and c7…c9 ``force (3,)``; rays cast along ``d``."""
+        self.evaluations += 1
+        u = self.displacement(d, force)
+        if u is None:
+            return np.inf, None
+        r, residuals, surface_ms, lm_ms = self.residual_vector(u, shifts)
+        ev = Evaluation(d, self.rays(d), np.asarray(force, float), u, r, residuals, surface_ms, lm_ms)
+        return self._objective(ev), self._parts(ev, c_dir)
+
+    def _objective(self, ev: Evaluation) -> float:
+        return float(np.sqrt(ev.surface_ms + (self.landmark_weight * ev.landmark_ms if self.lm_targets else 0.0)))
+
+    def _parts(self, ev: Evaluation, c_dir) -> dict:
         c_force = ev.force_constants
         scale = np.abs(c_force).max()
-        parts = dict(directions=ev.directions, hits=ev.hits, force=c_force @ self.fields, u=ev.u,
-                     residuals=ev.residuals, constants=np.concatenate([np.asarray(c_dir, float)[:6], c_force / scale]),
-                     surface_rms=float(np.sqrt(ev.surface_ms)), landmark_rms=float(np.sqrt(ev.landmark_ms)))
-        return obj, parts
+        return dict(directions=ev.directions, hits=ev.hits, force=c_force @ self.fields, u=ev.u,
+                    residuals=ev.residuals, constants=np.concatenate([np.asarray(c_dir, float)[:6], c_force / scale]),
+                    surface_rms=float(np.sqrt(ev.surface_ms)), landmark_rms=float(np.sqrt(ev.landmark_ms)))
 
     def _two_sided(self, positions: np.ndarray, pt: _PreparedTarget, shift=None):
         """Distances (mm) model → target and target samples → model, the target moved by ``shift``."""
@@ -537,6 +569,7 @@ def fit_lung(
     landmark_weight: float = 1.0,
     landmark_matrix=None,
     translate: bool = False,
+    direction_degree: int = 0,
     progress: Callable[[str], None] | None = None,
 ) -> FitResult:
     """Fit c1…c9 (and optionally a stiffness field) of one lung; see the module docstring.
@@ -549,7 +582,9 @@ def fit_lung(
     ``landmark_matrix``: optional landmark term of the objective (see :class:`LungFitter`); the landmark error of the result is
     in-sample, use :func:`lungdeform.crossval.cross_validate_landmarks` for a held-out figure.
     ``translate`` (least squares only): fit a translation of each target in ``fit_on`` jointly
-    with the constants (:attr:`FitResult.translations`). ``max_evaluations``: budget of forward
+    with the constants (:attr:`FitResult.translations`). ``direction_degree`` > 0: after the
+    constants (and stiffness), fit a smooth correction of that polynomial degree to the directions
+    (:mod:`lungdeform.direction_correction`), kept only if it lowers the objective. ``max_evaluations``: budget of forward
     model evaluations (the least-squares mode counts those of its finite-difference Jacobians).
     Raises :class:`InputError` for bad input; a fit whose objective is not finite raises
     :class:`ConvergenceError`; a search that stops on its evaluation budget returns
@@ -618,6 +653,12 @@ def fit_lung(
     obj, parts = fitter.evaluate(best_x, full=True, force=force, shifts=shifts)
     if parts is None or not np.isfinite(obj):
         raise ConvergenceError(f"{side}: the fitted constants give no usable model")
+    correction, paper_u, paper_obj = None, None, float(obj)
+    if direction_degree:
+        correction, log_e = _correct_directions(fitter, parts, best_x, shifts, direction_degree, log_e, say)
+        if correction.accepted:
+            paper_u = parts["u"]
+            obj, parts = fitter.evaluate_directions(correction.directions, best_x, parts["constants"][6:], shifts)
     w = np.where(parts["hits"].valid & fitter.keep, fitter.areas, 0.0)
     f_inv, c_inv = fitter.inverse_parts(np.nan_to_num(parts["hits"].distance), w)
     return FitResult(
@@ -630,8 +671,32 @@ def fit_lung(
         stiffness_fitted=log_e is not None, uniform_displacement=uniform_u,
         uniform_objective_mm=uniform_obj, surface_rms_mm=parts["surface_rms"],
         landmark_rms_mm=parts["landmark_rms"], landmarks_used=len(fitter.lm_rest) if fitter.lm_targets else 0,
-        translations=shifts,
+        translations=shifts, direction_correction=correction, paper_displacement=paper_u,
+        paper_objective_mm=paper_obj,
     )
+
+
+def _correct_directions(fitter: LungFitter, parts: dict, c_dir, shifts, degree: int, log_e, say,
+                        rounds: int = 3):
+    """The direction correction of :func:`fit_lung`; with a fitted stiffness field, alternated with a
+    refit of that field along the corrected directions (``rounds`` corrections at most, each kept
+    only if it lowers the objective). Returns ``(DirectionCorrection relative to the paper's
+    directions, log E or None)``; the kept stiffness stays in ``fitter``."""
+    d0, c_force = parts["directions"], parts["constants"][6:]
+    first = fit_direction_correction(fitter, d0, c_force, shifts, degree=degree, progress=say)
+    best = first
+    for _ in range(rounds - 1 if log_e is not None else 0):
+        if not best.accepted:
+            break
+        new_log_e, obj = fit_stiffness_if_better(fitter, c_dir, best.objective_mm, say, force=c_force,
+                                                 shifts=shifts, directions=best.directions)
+        if new_log_e is None:
+            break
+        log_e = new_log_e
+        again = fit_direction_correction(fitter, d0, c_force, shifts, degree=degree, initial=best.coefficients,
+                                         progress=say)
+        best = replace(again, accepted=True) if again.accepted else replace(best, objective_mm=obj)
+    return replace(best, start_objective_mm=first.start_objective_mm), log_e
 
 
 def to_lung_model(surface: Surface, side: str, result: FitResult, gravity="supine", d_min: float = 1.0) -> LungModel:

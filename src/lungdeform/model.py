@@ -164,7 +164,10 @@ class LungModel:
     def oriented(self, gravity) -> "LungModel":
         """A new model for another gravity direction (name or LPS vector): 4-term recombination of
         the precomputed responses, directions with their origins on the supported side
-        (:meth:`LungFrame.supported`), then exact volume calibration. No new solve."""
+        (:meth:`LungFrame.supported`), then exact volume calibration. No new solve. A fitted
+        direction correction (:mod:`lungdeform.direction_correction`) and landmark correction
+        belong to the scans' posture: the new directions are the paper's (15)–(17) and the
+        landmark correction is dropped."""
         g = gravity_vector(gravity)
         w = force_weights(self.frame, g, self.constants)
         d = direction_field(self.frame.supported(g), self.surface.vertices, self.constants)

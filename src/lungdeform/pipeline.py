@@ -34,6 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
+from lungdeform.direction_correction import DEFAULT_DEGREE, MAX_DEGREE
+
 #: Ways of bringing the larger-volume inputs into the end-exhale frame (see the module docstring).
 ALIGN_MODES = ("apex", "joint", "none")
 
@@ -107,7 +109,8 @@ def check_landmarks(points, image, path, margin_mm: float = 0.0) -> None:
 def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid: bool = False,
             stiffness: bool = False, baselines: bool = True, max_evaluations: int = 300,
             command: str = "fit", progress=None, landmark_fit: bool = True, folds: int = 5,
-            landmark_weight: float = 1.0, align: str = "apex", mode: str = "optimizer") -> dict:
+            landmark_weight: float = 1.0, align: str = "apex", mode: str = "optimizer",
+            direction_degree: int = DEFAULT_DEGREE) -> dict:
     """Run the whole pipeline; write model.npz, metrics.json and report.html in ``out``; return
     the metrics dictionary.
 
@@ -120,6 +123,11 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
     landmark-informed references ``affine_landmarks`` and ``landmarks_tps`` are scored on the same
     folds. ``metrics["protocols"]`` says, per method, what
     it saw and how its landmark error was measured.
+
+    ``direction_degree``: the smooth correction of the directions fitted after the constants
+    (:mod:`lungdeform.direction_correction`; 0: the paper's directions only); with it, the paper's
+    field is reported as ``model_paper_directions``; with a stiffness field, the paper's model
+    (uniform stiffness, paper directions) as ``model_uniform_stiffness``.
 
     ``align``: one of :data:`ALIGN_MODES` (module docstring, step 3); ``metrics["alignment"][i]
     ["applied"]`` is the rigid transform (moving → end-exhale) the fitted target went through.
@@ -143,6 +151,8 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
         raise InputError(f"--side must be 'left' or 'right', got {side!r}")
     if align not in ALIGN_MODES:
         raise InputError(f"--align must be one of {', '.join(ALIGN_MODES)}, got {align!r}")
+    if not (isinstance(direction_degree, (int, np.integer)) and 0 <= direction_degree <= MAX_DEGREE):
+        raise InputError(f"--direction-degree must be a whole number 0…{MAX_DEGREE}, got {direction_degree!r}")
     if mode not in MODES or mode == "grid":
         raise InputError(f"mode must be one of {', '.join(m for m in MODES if m != 'grid')}, got {mode!r}")
     if align == "joint" and mode not in ("optimizer", "least_squares"):
@@ -230,7 +240,8 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
 
     say(f"fitting ({len(targets)} target(s), model mesh {rest.n_vertices} vertices)")
     fit_opt = fit_lung(rest, side, targets, mode=mode, keep=keep, fit_stiffness=stiffness,
-                       max_evaluations=max_evaluations, translate=align == "joint", progress=say)
+                       max_evaluations=max_evaluations, translate=align == "joint",
+                       direction_degree=direction_degree, progress=say)
     if align == "joint":  # move every target (and its landmarks, crop faces) by its fitted translation
         crop_all = list(fixed_planes)
         for ti, (tg, t) in enumerate(zip(targets, fit_opt.translations)):
@@ -268,7 +279,10 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
                                                 landmark_weight=landmark_weight, landmark_matrix=lm_w, progress=say)
     headline = fit_opt
     surface_name = "model_surface_only" if use_lm else "model"
-    protocols = {surface_name: "surface-only fit (no landmark used); landmarks moved by the thin-plate "
+    corrected = fit_opt.paper_displacement is not None
+    kind = ", ".join(["c1…c9"] + (["stiffness field"] if fit_opt.stiffness_fitted else [])
+                     + ([f"direction correction of degree {direction_degree}"] if corrected else []))
+    protocols = {surface_name: f"surface fit ({kind}; no landmark used); landmarks moved by the thin-plate "
                                "interpolation of its surface displacement"}
     interior = None
     if use_lm:  # the landmark correction of the interior field (lungdeform.interior), held out per fold
@@ -285,27 +299,33 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
         s_opt = (tg.volume_ml - fit_opt.volume_ee_ml) / fit_opt.unit_ml
         if use_lm:
             methods["model"] = (fit_opt.positions_at(rest, tg.volume_ml), interior["held_out"][ti])
-            protocols["model"] = (f"surface fit (c1…c9{', stiffness field' if stiffness else ''}; no landmark used) "
-                                  f"with the interior landmark correction (lungdeform.interior): landmarks moved by "
-                                  f"the surface-driven thin-plate field plus a thin-plate correction through the "
-                                  f"training landmarks' residual motion; held-out landmark errors ({folds}-fold)")
+            protocols["model"] = (f"surface fit ({kind}; no landmark used) with the interior landmark correction "
+                                  f"(lungdeform.interior): landmarks moved by the surface-driven thin-plate field "
+                                  f"plus a thin-plate correction through the training landmarks' residual motion; "
+                                  f"held-out landmark errors ({folds}-fold)")
             methods["model_landmark_fit"] = (cv.final.positions_at(rest, tg.volume_ml), cv.predicted[ti])
-            protocols["model_landmark_fit"] = (f"landmark-informed fit: c1…c9 on the surfaces and the training "
-                                               f"landmarks, landmarks moved by the surface-driven field only; "
+            protocols["model_landmark_fit"] = (f"landmark-informed fit: c1…c9 (paper directions) on the surfaces and the "
+                                               f"training landmarks, landmarks moved by the surface-driven field only; "
                                                f"held-out landmark errors ({folds}-fold), surface from the fit on all "
                                                f"landmarks")
             if cv_stiff is not None:
                 methods["model_landmarks_stiffness"] = (cv_stiff.final.positions_at(rest, tg.volume_ml), cv_stiff.predicted[ti])
                 protocols["model_landmarks_stiffness"] = protocols["model_landmark_fit"] + ", with a fitted stiffness field"
-        if stiffness and fit_opt.uniform_displacement is not None:
-            methods[surface_name] = (rest.vertices + s_opt * fit_opt.uniform_displacement, None)
-            methods["model_stiffness"] = (fit_opt.positions_at(rest, tg.volume_ml), None)
-            protocols["model_stiffness"] = protocols[surface_name] + ", with a fitted stiffness field"
-        else:
-            methods[surface_name] = (fit_opt.positions_at(rest, tg.volume_ml), None)
+        methods[surface_name] = (fit_opt.positions_at(rest, tg.volume_ml), None)
+        if corrected:
+            methods["model_paper_directions"] = (rest.vertices + s_opt * fit_opt.paper_displacement, None)
+            protocols["model_paper_directions"] = (f"the same fit with the paper's directions (15)–(17), no direction "
+                                                   f"correction{' (stiffness field kept)' if fit_opt.stiffness_fitted else ''}; "
+                                                   f"landmarks moved by the thin-plate interpolation of its surface")
+        if fit_opt.uniform_displacement is not None:
+            methods["model_uniform_stiffness"] = (rest.vertices + s_opt * fit_opt.uniform_displacement, None)
+            protocols["model_uniform_stiffness"] = ("the paper's model: c1…c9 fitted to the surfaces, uniform stiffness, "
+                                                    "the paper's directions; landmarks moved by the thin-plate "
+                                                    "interpolation of its surface")
         if "grid" in fits:
             methods["model_grid"] = (fits["grid"].positions_at(rest, tg.volume_ml), None)
-            protocols["model_grid"] = protocols[surface_name] + " (the paper's grid search)"
+            protocols["model_grid"] = ("the paper's grid search of c1…c6 (uniform stiffness, paper directions); "
+                                       "landmarks moved by the thin-plate interpolation of its surface")
         if baselines:
             say("baselines")
             methods["no_motion"] = (B.no_motion(rest), None)

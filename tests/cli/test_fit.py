@@ -150,7 +150,9 @@ def test_align_none_and_joint_against_a_known_translation(tmp_path, pair, capsys
     shift = np.array([1.5, -2.0, 2.5])
     surf, _ = load_surface(b)
     c = write_mesh(tmp_path / "ei_shifted.ply", surf.vertices + shift, surf.faces)
-    common = ["--side", "right", "--evaluations", "300", "--no-baselines"]
+    # the paper's directions only: the direction correction's constant term would hide part of an
+    # unremoved shift, and this test is about the alignment
+    common = ["--side", "right", "--evaluations", "300", "--no-baselines", "--direction-degree", "0"]
     assert main(["fit", str(a), str(c), "--out", str(tmp_path / "none"), "--align", "none", *common]) == 0
     m = json.loads((tmp_path / "none" / "metrics.json").read_text())
     assert m["alignment"][0]["method"] == "none" and "apex" not in m["alignment"][0]
@@ -183,3 +185,19 @@ def test_read_input_takes_the_requested_side_of_a_lobe_map(tmp_path):
         surface = read_input(path, side)[0]
         assert sign * surface.vertices[:, 0].mean() > 0
         assert surface.volume == pytest.approx(np.isin(a, labels).sum() * np.prod(sp), rel=0.06)
+
+
+def test_unconverged_fit_is_said_and_zero_evaluations_refused(tmp_path, pair, capsys):
+    a, b, _ = pair
+    # a budget of 1 evaluation cannot converge: metrics.json records success false, and the user is
+    # told on stderr (it used to exit 0 with no word, the table showing a model worse than no motion)
+    out = tmp_path / "o"
+    assert main(["fit", str(a), str(b), "--side", "right", "--out", str(out), "--evaluations", "1",
+                 "--no-baselines"]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["fit"]["optimizer"]["success"] is False
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("warning: the optimizer fit did not converge")
+    assert main(["fit", str(a), str(b), "--side", "right", "--out", str(tmp_path / "z"), "--evaluations", "0"]) == 2
+    assert "--evaluations must be ≥ 1, got 0" in _one_error_line(capsys)
+    assert not (tmp_path / "z").exists()

@@ -128,6 +128,7 @@ def register(apps) -> None:
         landmark_fit: bool = typer.Option(True, "--landmark-fit/--no-landmark-fit",
                                           help="With landmarks: landmark-informed fit with k-fold cross-validation (slower)."),
         folds: int = typer.Option(5, "--folds", help="Folds of the landmark cross-validation."),
+        direction_degree: int = typer.Option(3, "--direction-degree", help="Degree of the smooth correction of the paper's directions fitted to the surfaces (0: the paper's directions only)."),
     ) -> None:
         """Fit every lung of a cohort in parallel on Dask; resumable (finished subjects are skipped).
 
@@ -139,7 +140,8 @@ def register(apps) -> None:
 
         m = read_manifest(manifest)  # every problem reported before any work starts (exit 2)
         options = FitOptions(max_evaluations=evaluations, baselines=baselines, align=align,
-                             landmark_fit=landmark_fit, folds=folds)
+                             landmark_fit=landmark_fit, folds=folds,
+                             direction_degree=direction_degree)
         if align == "apex" and (Path(manifest).parent / "truth.json").is_file():
             typer.echo("note: this manifest's folder holds a synthetic truth.json: its surfaces are already in one "
                        "frame, and the apex alignment shifts them (the model moves the apex); use --align none "

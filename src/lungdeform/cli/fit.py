@@ -26,6 +26,7 @@ def register(apps) -> None:
         landmark_fit: bool = typer.Option(True, "--landmark-fit/--no-landmark-fit",
                                           help="With --landmarks: fit on surfaces + landmarks, landmark errors held out (k-fold)."),
         folds: int = typer.Option(5, "--folds", help="Folds of the landmark cross-validation."),
+        direction_degree: int = typer.Option(3, "--direction-degree", help="Degree of the smooth correction of the paper's directions fitted to the surfaces (0: the paper's directions only)."),
         align: str = typer.Option("apex", "--align", help="apex: rigid alignment on the apex cap (scans with a table shift); "
                                   "joint: a translation per target fitted with the constants, started from apex; "
                                   "none: inputs already in one frame (e.g. synthetic)."),
@@ -35,6 +36,8 @@ def register(apps) -> None:
         from lungdeform.errors import InputError
         from lungdeform.pipeline import run_fit
 
+        if evaluations < 1:
+            raise InputError(f"--evaluations must be ≥ 1, got {evaluations}")
         vols = None
         if volumes:
             try:
@@ -44,9 +47,19 @@ def register(apps) -> None:
         folder = output_dir(out)
         m = run_fit(list(inputs), side=side, out=folder, volumes=vols, landmarks=list(landmarks) if landmarks else None,
                     grid=grid, stiffness=stiffness, baselines=baselines, max_evaluations=evaluations, progress=say,
-                    landmark_fit=landmark_fit, folds=folds, align=align)
+                    landmark_fit=landmark_fit, folds=folds, align=align,
+                    direction_degree=direction_degree)
         _print_table(m)
         typer.echo(f"wrote {folder / 'model.npz'}, {folder / 'metrics.json'}, {folder / 'report.html'}")
+        _warn_unconverged(m)
+
+
+def _warn_unconverged(m: dict) -> None:
+    """One line on stderr per fit that stopped before converging (metrics.json holds it too)."""
+    for name, fit in (m.get("fit") or {}).items():
+        if isinstance(fit, dict) and fit.get("success") is False:
+            typer.echo(f"warning: the {name} fit did not converge ({fit.get('message', 'no message')}); "
+                       "the model is its best point so far: raise --evaluations", err=True)
 
 
 def _print_table(m: dict) -> None:
