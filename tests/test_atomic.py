@@ -41,3 +41,20 @@ def test_unwritable_folder_names_the_target_not_the_temporary(tmp_path, monkeypa
         write_bytes(tmp_path / "model.npz", b"x")
     assert info.value.filename == str(tmp_path / "model.npz") and info.value.errno == errno.EROFS
     assert list(tmp_path.iterdir()) == []
+
+
+def test_finite_json_makes_strict_json():
+    # NaN and infinities (also numpy's, inside arrays and nested containers) become null, so the
+    # output parses with a strict reader; finite values are unchanged
+    import json
+    import math
+
+    import numpy as np
+
+    from lungdeform.atomic import finite_json
+
+    data = {"a": float("nan"), "b": [1.0, np.inf, np.float64(2.5)], "c": np.array([np.nan, 3.0]), "d": "x", "e": 4}
+    text = json.dumps(finite_json(data), allow_nan=False)
+    back = json.loads(text, parse_constant=lambda c: (_ for _ in ()).throw(ValueError(c)))
+    assert back == {"a": None, "b": [1.0, None, 2.5], "c": [None, 3.0], "d": "x", "e": 4}
+    assert not math.isnan(back["b"][2])

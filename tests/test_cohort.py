@@ -173,7 +173,8 @@ def test_result_constants_are_those_of_the_saved_model(tmp_path):
 def test_given_volumes_are_used_in_order(tmp_path, cohort, quick_report):
     job = read_manifest(cohort).jobs[1]  # S1: rows listed inhale first; the manifest sorts by volume
     r = fit_job(job, tmp_path / "out", FAST)
-    assert r["status"] == "ok" and r["volumes_ml"] == job.volumes_ml
+    # the given volumes fix the volume changes; the end-exhale volume is the model surface's own
+    assert r["status"] == "ok" and np.diff(r["volumes_ml"]) == pytest.approx(np.diff(job.volumes_ml))
     assert r["volumes_ml"][0] < r["volumes_ml"][1] and Path(r["inputs"][0]).name == "ee.ply"
 
 

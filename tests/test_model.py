@@ -98,6 +98,10 @@ def test_model_file_refuses_wrong_version_and_shapes(tmp_path, model):
     np.savez(tmp_path / "s.npz", **bad)
     with pytest.raises(ModelFileError, match="displacement has shape"):
         load_model(tmp_path / "s.npz")
+    np.save(tmp_path / "objects.npy", np.array([{"a": 1}], dtype=object), allow_pickle=True)
+    (tmp_path / "objects.npy").rename(tmp_path / "objects.npz")  # pickled objects: named as such
+    with pytest.raises(ModelFileError, match="objects.npz: not a lungdeform model file \\(it holds Python objects"):
+        load_model(tmp_path / "objects.npz")
     (tmp_path / "junk.npz").write_bytes(b"not a zip")
     with pytest.raises(ModelFileError, match="junk.npz"):
         load_model(tmp_path / "junk.npz")

@@ -22,3 +22,38 @@ def test_pipeline_and_cohort_import_nothing_from_the_cli():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "", f"CLI modules imported by library code: {out.stdout.strip()}"
+
+
+def test_landmarks_outside_their_own_mask_are_reported(tmp_path):
+    # a 20 mm cube of lung in a 1 mm grid: landmarks inside give no warning; a set shifted by 15 mm
+    # (another frame, or the other scan's file) has most of its points outside and is reported
+    import numpy as np
+
+    from lungdeform.mask import Image
+    from lungdeform.pipeline import landmark_mask_warnings
+
+    a = np.zeros((40, 40, 40), np.uint8)
+    a[10:30, 10:30, 10:30] = 1
+    img = Image(a, np.ones(3), np.array([-5.0, 0, 0]), np.eye(3), "mask.mha")
+    pts = np.random.default_rng(4).uniform(6, 23, size=(30, 3))  # world x = index − 5
+    assert landmark_mask_warnings(pts, img, "ee.txt") == []
+    w = landmark_mask_warnings(pts + np.array([0, 0, 15.0]), img, "ee.txt")
+    assert len(w) == 1 and w[0].startswith("ee.txt: ") and "outside the lung mask of mask.mha" in w[0]
+    assert landmark_mask_warnings(pts, None, "ee.txt") == []  # a mesh input: nothing to check
+
+
+def test_swapped_itk_landmark_files_are_reported(data_dir):
+    # real data: each ITK landmark set lies inside its own lung mask, and the swapped files do not
+    # (8-12 % of them land outside the other scan's mask), so a swap is reported
+    import pytest  # noqa: F401  (data_dir skips without LUNGDEFORM_DATA)
+
+    from lungdeform.landmarks import read_elastix_points
+    from lungdeform.mask import read_image
+    from lungdeform.pipeline import landmark_mask_warnings
+    from tests.conftest import require_path
+
+    folder = require_path(data_dir, "itk-right-lung-two-volumes")
+    fixed, moving = (read_image(folder / f"CT_3D_lung_{k}_mask.mha") for k in ("fixed", "moving"))
+    lf, lm = (read_elastix_points(folder / f"CT_3D_lung_{k}_point_set_corrected.txt") for k in ("fixed", "moving"))
+    assert landmark_mask_warnings(lf, fixed, "f") == [] and landmark_mask_warnings(lm, moving, "m") == []
+    assert landmark_mask_warnings(lm, fixed, "m") and landmark_mask_warnings(lf, moving, "f")

@@ -62,6 +62,27 @@ def jsonable(value):
     raise TypeError(f"not JSON serialisable: {type(value).__name__}")
 
 
+def finite_json(value):
+    """``value`` with every float NaN or infinity (also inside numpy arrays, lists and dicts)
+    replaced by ``None``: strict JSON (``null``), which every reader accepts; bare ``NaN`` is not
+    JSON and JavaScript's ``JSON.parse`` rejects it."""
+    import math
+
+    import numpy as np
+
+    if isinstance(value, dict):
+        return {k: finite_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [finite_json(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return finite_json(value.tolist())
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
 def write_json(path, data, **kwargs) -> Path:
     kwargs.setdefault("indent", 2)
     kwargs.setdefault("default", jsonable)

@@ -105,7 +105,10 @@ def load_model(path) -> Model:
     try:
         with np.load(path, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+    except ValueError as exc:  # numpy's advice on pickled objects is not for our users
+        why = "it holds Python objects, not arrays" if "pickle" in str(exc) else str(exc)
+        raise ModelFileError(f"{path}: not a lungdeform model file ({why})") from exc
+    except (OSError, zipfile.BadZipFile, EOFError) as exc:
         raise ModelFileError(f"{path}: not a lungdeform model file ({exc})") from exc
     if str(data.get("schema", "")) != SCHEMA:
         raise ModelFileError(f"{path}: not a lungdeform model file (schema {data.get('schema')!r})")

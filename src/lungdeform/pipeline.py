@@ -90,6 +90,36 @@ def model_mesh(surface, image=None):
     raise last
 
 
+#: Landmark sets whose rigid motion differs more than this from the apex alignment (at the lung
+#: centroid) are reported (measured on the ITK pair: 9 mm in order, 74 mm with the files swapped).
+LANDMARK_ALIGNMENT_GAP_MM = 30.0
+#: Landmarks more than this outside their own image's lung mask count as outside (mm).
+LANDMARK_OUTSIDE_MM = 3.0
+
+
+def landmark_mask_warnings(points, image, path, limit: float = 0.05) -> list[str]:
+    """A warning when more than ``limit`` of the landmarks ``points : (m, 3)`` mm lie more than
+    :data:`LANDMARK_OUTSIDE_MM` outside the lung mask of their own ``image`` (files swapped, or in
+    another frame; on the ITK pair every landmark is inside its own mask, 8–12 % are not inside
+    the other's)."""
+    from scipy import ndimage
+
+    if image is None or len(points) == 0:
+        return []
+    mask = np.asarray(image.array) > 0
+    if not mask.any():
+        return []
+    outside = ndimage.distance_transform_edt(~mask, sampling=np.asarray(image.spacing, float)[::-1])
+    ijk = (np.asarray(points, float) - image.origin) @ np.asarray(image.direction) / image.spacing
+    i, j, k = np.clip(np.rint(ijk).astype(np.int64), 0, np.array(mask.shape[::-1]) - 1).T
+    far = outside[k, j, i] > LANDMARK_OUTSIDE_MM
+    if far.mean() <= limit:
+        return []
+    return [f"{path}: {int(far.sum())} of {len(far)} landmarks lie more than {LANDMARK_OUTSIDE_MM:g} mm outside "
+            f"the lung mask of {image.source} (first: row {int(np.flatnonzero(far)[0]) + 1}); are the landmark files "
+            f"in the inputs' order and frame?"]
+
+
 def check_landmarks(points, image, path, margin_mm: float = 0.0) -> None:
     """Refuse landmarks outside the image's world bounding box (mm)."""
     from lungdeform.errors import InputError
@@ -176,26 +206,37 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
         if abs(c - cx[0]) > 0.75 * max(widths):
             raise InputError(f"{p}: this lung lies {c - cx[0]:+.0f} mm from the end-exhale lung along x; "
                              "the sides do not match (left and right lungs mixed)")
+    warnings: list[str] = []  # suspicious but usable input: in metrics["warnings"], printed by the CLI
+    given = None
     if volumes is None:
         vols = [s.volume_ml for s in surfaces]
     else:
-        vols = [float(v) for v in volumes]
-        if len(vols) != len(surfaces):
-            raise InputError(f"--volumes has {len(vols)} values for {len(surfaces)} inputs")
+        given = [float(v) for v in volumes]
+        if len(given) != len(surfaces):
+            raise InputError(f"--volumes has {len(given)} values for {len(surfaces)} inputs")
+        if not all(np.isfinite(v) and v > 0 for v in given):
+            raise InputError(f"--volumes must be positive mL, got {', '.join(f'{v:g}' for v in given)}")
+        # the model's end-exhale volume is its surface's; the given volumes fix the changes from it
+        # (spirometry and segmentation disagree on absolute volume, not on its changes)
+        vols = [surfaces[0].volume_ml + v - given[0] for v in given]
     for i in range(1, len(vols)):
         if not vols[i] > vols[i - 1]:
-            raise InputError(f"{inputs[i]}: volume {vols[i]:.1f} mL is not larger than that of "
-                             f"{inputs[i - 1]} ({vols[i - 1]:.1f} mL); volumes must increase (end-exhale first)")
+            shown = given or vols
+            raise InputError(f"{inputs[i]}: volume {shown[i]:.1f} mL is not larger than that of "
+                             f"{inputs[i - 1]} ({shown[i - 1]:.1f} mL); volumes must increase (end-exhale first)")
     lms = None
     if landmarks:
         if len(landmarks) != len(inputs):
             raise InputError(f"--landmarks needs one file per input ({len(inputs)}), got {len(landmarks)}")
-        lms = [read_elastix_points(p) for p in landmarks]
+        # 'index' point files are voxel indices of their own image
+        lms = [read_elastix_points(p, *(() if r[3] is None else (r[3].spacing, r[3].origin, r[3].direction)))
+               for p, r in zip(landmarks, read)]
         for p, pts in zip(landmarks[1:], lms[1:]):
             if pts.shape != lms[0].shape:
                 raise InputError(f"{p}: {len(pts)} landmarks, the end-exhale file has {len(lms[0])}")
         for p, pts, r in zip(landmarks, lms, read):
             check_landmarks(pts, r[3], p)
+            warnings += landmark_mask_warnings(pts, r[3], p)
     # the landmark folds, split (and --folds checked) once, before any fitting
     lm_folds = landmark_folds(len(lms[0]), folds, parameter="--folds") if lms is not None and landmark_fit else None
 
@@ -233,6 +274,11 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
             # origin makes the translations themselves incomparable): at the moving lung's centroid
             c = moving.vertices.mean(axis=0)[None]
             info["landmarks_minus_apex_at_lung_centroid_mm"] = (lal.transform.apply(c) - xf.apply(c))[0].tolist()
+            gap = float(np.linalg.norm(info["landmarks_minus_apex_at_lung_centroid_mm"]))
+            if align != "none" and gap > LANDMARK_ALIGNMENT_GAP_MM:
+                warnings.append(f"{landmarks[i]}: the landmarks' rigid motion differs from the apex alignment by "
+                                f"{gap:.0f} mm at the lung centroid (expected a few mm): are the landmark files in "
+                                f"the inputs' order and frame?")
             aligned_lms.append(xf.apply(lms[i]))
         alignments.append(info)
         say(f"aligned {inputs[i]} ({align}): translation {np.round(xf.translation, 2).tolist()} mm")
@@ -289,7 +335,8 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
         say("interior landmark correction (cross-validated)")
         interior = _interior_correction(fit_opt, rest, keep, lm_w, lms[0], aligned_lms, targets, lm_folds)
 
-    metrics = {"inputs": [str(p) for p in inputs], "side": side, "volumes_ml": vols,
+    metrics = {"inputs": [str(p) for p in inputs], "side": side, "volumes_ml": vols, "volumes_given_ml": given,
+               "warnings": warnings,
                "model_mesh_vertices": rest.n_vertices, "alignment": alignments, "targets": {}}
     predictions = {}
     for ti, tg in enumerate(targets):
@@ -381,7 +428,7 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
                                           fit_kind=metrics["headline_fit"],
                                           interior_correction=interior is not None))
     save_model(out / "model.npz", model)
-    write_bytes(out / "metrics.json", json.dumps(metrics, indent=2, default=_json).encode())
+    write_bytes(out / "metrics.json", json.dumps(finite_json(metrics), indent=2, default=_json, allow_nan=False).encode())
     write_report(out / "report.html", rest=rest, targets=targets, fits=fits, predictions=predictions,
                  metrics=metrics, headline=metrics["headline_fit"])
     return metrics
@@ -423,6 +470,13 @@ def _bounding_boxes(rest, fit, surfaces, vols):
         dims = np.ptp(x, axis=0)
         model.append({"volume_ml": float(v), "dims_mm": dims.tolist(), "ratio": float(v * 1000.0 / np.prod(dims))})
     return {"observed": obs, "model": model}
+
+
+def finite_json(metrics):
+    """The metrics as strict JSON values (NaN and infinities become null)."""
+    from lungdeform.atomic import finite_json as clean
+
+    return clean(metrics)
 
 
 def _json(o):

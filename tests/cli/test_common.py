@@ -20,3 +20,12 @@ def test_progress_enabled_follows_verbose_then_terminal(monkeypatch, capsys):
     monkeypatch.setitem(common.VERBOSE, "on", None)
     monkeypatch.setattr(sys.stderr, "isatty", lambda: True)
     assert common.progress_enabled() is True  # no --verbose, but a terminal: progress shown
+
+
+def test_version_prints_without_a_command(capsys):
+    # --version is eager: it prints the package version and exits 0 before any command is needed
+    from lungdeform import __version__
+    from lungdeform.cli.main import main
+
+    assert main(["--version"]) == 0
+    assert capsys.readouterr().out.strip() == __version__

@@ -49,6 +49,27 @@ def test_fit_writes_model_metrics_report(tmp_path, pair, capsys):
     assert "wrote" in capsys.readouterr().out
 
 
+def test_given_volumes_fix_the_changes_and_metrics_are_strict_json(tmp_path, pair, capsys):
+    # truth: given volumes 100 mL off the measured ones in absolute terms but with the measured
+    # change keep the model's end-exhale volume (its surface's) and its unit (the change); the
+    # metrics parse with a strict JSON reader (no bare NaN, e.g. landmark errors without landmarks)
+    from lungdeform.io import load_surface
+
+    a, b, _ = pair
+    va, vb = (load_surface(p)[0].volume_ml for p in (a, b))
+    out = tmp_path / "given"
+    assert main(["fit", str(a), str(b), "--side", "right", "--out", str(out), "--evaluations", "60",
+                 "--no-baselines", "--direction-degree", "0", "--volumes", f"{va + 100},{vb + 100}"]) == 0
+    text = (out / "metrics.json").read_text()
+    m = json.loads(text, parse_constant=lambda c: pytest.fail(f"metrics.json holds {c}"))
+    assert m["volumes_given_ml"] == pytest.approx([va + 100, vb + 100])
+    assert m["volumes_ml"] == pytest.approx([va, vb])
+    assert load_model(out / "model.npz").lungs["right"].unit_ml == pytest.approx(vb - va)
+    capsys.readouterr()
+    assert main(["fit", str(a), str(b), "--side", "right", "--out", str(tmp_path / "neg"), "--volumes", "-5,10"]) == 2
+    assert "--volumes must be positive mL" in _one_error_line(capsys)
+
+
 def test_volumes_not_increasing(tmp_path, pair, capsys):
     a, b, _ = pair
     code = main(["fit", str(a), str(b), "--side", "right", "--out", str(tmp_path / "o"), "--volumes", "1500,1400"])

@@ -51,11 +51,14 @@ def register(apps) -> None:
                     direction_degree=direction_degree)
         _print_table(m)
         typer.echo(f"wrote {folder / 'model.npz'}, {folder / 'metrics.json'}, {folder / 'report.html'}")
-        _warn_unconverged(m)
+        warn(m)
 
 
-def _warn_unconverged(m: dict) -> None:
-    """One line on stderr per fit that stopped before converging (metrics.json holds it too)."""
+def warn(m: dict) -> None:
+    """One line on stderr per input warning of the pipeline and per fit that stopped before
+    converging (metrics.json holds them too)."""
+    for text in m.get("warnings") or []:
+        typer.echo(f"warning: {text}", err=True)
     for name, fit in (m.get("fit") or {}).items():
         if isinstance(fit, dict) and fit.get("success") is False:
             typer.echo(f"warning: the {name} fit did not converge ({fit.get('message', 'no message')}); "

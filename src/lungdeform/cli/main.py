@@ -57,19 +57,22 @@ def make_app() -> typer.Typer:
     root.add_typer(validate, name="validate")
     root.add_typer(bench, name="bench")
 
+    def _print_version(value: bool) -> None:
+        if value:  # eager: runs before click asks for a command
+            from lungdeform import __version__
+
+            typer.echo(__version__)
+            raise typer.Exit(0)
+
     @root.callback()
     def _root(
-        version: bool = typer.Option(False, "--version", help="Print the version and exit."),
+        version: bool = typer.Option(False, "--version", help="Print the version and exit.", is_eager=True,
+                                     callback=_print_version),
         verbose: bool = typer.Option(False, "--verbose", "-v", help="Show progress even when stderr is not a terminal."),
     ):
         from lungdeform.cli.common import VERBOSE
 
         VERBOSE["on"] = True if verbose else None
-        if version:
-            from lungdeform import __version__
-
-            typer.echo(__version__)
-            raise typer.Exit(0)
 
     apps = Apps(root, validate, bench)
     for name in COMMAND_MODULES:

@@ -86,8 +86,8 @@ def register(apps) -> None:
         import json
 
         from lungdeform.cli.common import output_dir, say
-        from lungdeform.cli.fit import _print_table
-        from lungdeform.pipeline import run_fit
+        from lungdeform.cli.fit import _print_table, warn
+        from lungdeform.pipeline import finite_json, run_fit
         from lungdeform.correspond import rays_per_second
         from lungdeform.data import itk_right_lung
         from lungdeform.atomic import write_bytes
@@ -102,8 +102,9 @@ def register(apps) -> None:
         metrics["ray_throughput"] = {"rays_per_s": rate, "rays": 1_000_000, "faces": faces,
                                      "surface": "embedded itk_right_lung"}
         metrics["targets_met"] = targets_met(metrics)
-        write_bytes(folder / "metrics.json", json.dumps(metrics, indent=2, default=str).encode())
+        write_bytes(folder / "metrics.json", json.dumps(finite_json(metrics), indent=2, default=str, allow_nan=False).encode())
         _print_table(metrics)
+        warn(metrics)
         for name, text in metrics.get("protocols", {}).items():
             typer.echo(f"  {name}: {text}")
         typer.echo(f"ray casting: {rate / 1e6:.2f} M rays/s (1 M rays, {faces} faces)")
