@@ -264,11 +264,16 @@ def test_glb_passes_khronos_validator(model, tmp_path):
 def test_glb_in_threejs_gltfloader(model, tmp_path):
     # three.js's GLTFLoader + AnimationMixer in node (viewer/tests/gltf.test.ts) against Python's numbers
     viewer = node_modules_or_skip("three", "vitest")
+    from lungdeform.trajectory import place_points, point_trajectories
+
     trace = E.plain_cycle(500, 4.0)
-    path = E.export_glb(model, tmp_path / "m.glb", trace)
+    path = E.export_glb(model, tmp_path / "m.glb", trace, E.marker_anchors(model, INTERIOR, list("abcd")))
     shares = E.lung_shares(model)
-    times = [0.0, 0.5, 1.0, 2.0, 3.3]
-    expect = {"times": times, "lungs": {}}
+    times = [0.0, 0.5, 1.0, 2.0, 3.3]  # key frames of the 30 Hz plain cycle
+    track = point_trajectories(model, INTERIOR, place_points(model, INTERIOR), trace.sample(times))
+    expect = {"times": times, "lungs": {},
+              "markers": [{"label": lab, "lung": str(lung), "positions": track[:, j].tolist()}
+                          for j, (lab, lung) in enumerate(zip("abcd", place_points(model, INTERIOR).lungs))]}
     for name, lung in model.lungs.items():
         dv = shares[name] * trace.sample(times)
         targets, _ = E.lung_targets(lung)
@@ -282,16 +287,107 @@ def test_glb_in_threejs_gltfloader(model, tmp_path):
                    env={"LUNGDEFORM_GLB": str(path), "LUNGDEFORM_EXPECT": str(tmp_path / "expect.json"),
                         "NO_COLOR": "1"})
     assert res.returncode == 0, res.stdout[-4000:] + res.stderr[-2000:]
-    assert "3 passed" in res.stdout, res.stdout[-2000:]
+    assert "4 passed" in res.stdout, res.stdout[-2000:]
 
 
-def test_markers_follow_nearest_lung(model):
-    anchors = E.marker_anchors(model, np.array([[95.0, 0, 0], [-80.0, 0, 0]]), ["a", "b"])
-    assert [a["lung"] for a in anchors] == ["left", "right"]
+#: Markers inside the test ellipsoids (semi-axes 60, 80, 110 mm about x = ±90): deep, off-centre, near the wall.
+INTERIOR = np.array([[90.0, 10.0, -20.0], [-90.0, 0.0, 50.0], [110.0, -40.0, 60.0], [-60.0, 30.0, -80.0]])
+
+
+def _marker_at(a: dict, lam: float) -> np.ndarray:
+    # the glb extras' formula (schema 2): position at weight λ of the lung's target 0
+    return np.array(a["position_mm"]) + lam * np.array(a["tidal_mm"])
+
+
+def test_marker_on_a_vertex_moves_with_that_vertex(model, rng):
+    # truth: the lung's own tidal target at that vertex (the interior field interpolates the surface
+    # displacement exactly at its vertices: thin-plate spline without smoothing, all 642 vertices)
+    for name, lung in model.lungs.items():
+        idx = rng.choice(lung.n_vertices, 5, replace=False)
+        anchors = E.marker_anchors(model, lung.surface.vertices[idx])
+        t0 = E.lung_targets(lung)[0][0]
+        assert [a["lung"] for a in anchors] == [name] * 5
+        for a, i in zip(anchors, idx):
+            assert a["distance_mm"] == pytest.approx(0, abs=1e-9)
+            for lam in (0.0, 0.4, 1.0, 1.7):
+                np.testing.assert_allclose(_marker_at(a, lam), lung.surface.vertices[i] + lam * t0[i], atol=1e-6)
+
+
+def test_interior_marker_moves_as_points_at(model):
+    # truth: LungModel.points_at (the interior field of `lungdeform track`) at the scale that weight λ
+    # of target 0 stands for, s = λ·calibration_ml/unit_ml
+    anchors = E.marker_anchors(model, INTERIOR, ["a", "b", "c", "d"])
+    assert [a["lung"] for a in anchors] == ["left", "right", "left", "right"]
+    assert all(a["inside"] and a["distance_mm"] > 1 and not a["landmark_corrected"] for a in anchors)
     for a in anchors:
-        assert sum(a["weights"]) == pytest.approx(1.0) and len(a["vertices"]) == 4
-    with pytest.raises(InputError):
+        lung = model.lungs[a["lung"]]
+        for lam in (0.25, 1.0, 1.6):
+            s = lam * lung.calibration_ml / lung.unit_ml
+            np.testing.assert_allclose(_marker_at(a, lam), lung.points_at([a["position_mm"]], scale=s)[0], atol=1e-6)
+    # and not the old nearest-wall reading: deep inside, the interior field differs from the
+    # displacement of the nearest surface vertex by millimetres (so the check above can fail)
+    lung = model.lungs["left"]
+    t0 = E.lung_targets(lung)[0][0]
+    nearest = np.argmin(np.linalg.norm(lung.surface.vertices - INTERIOR[0], axis=1))
+    assert np.linalg.norm(np.array(anchors[0]["tidal_mm"]) - t0[nearest]) > 1.0
+
+
+def test_glb_markers_follow_track_over_the_animation(model, tmp_path):
+    # truth: lungdeform.trajectory (what `lungdeform track` writes) at the curve's volumes; the glb
+    # carries float32 animation weights, so agreement is to ~1e-6 of the motion
+    from lungdeform.trajectory import place_points, point_trajectories
+
+    trace = E.plain_cycle(500, 4.0)
+    doc, blob = _glb_json(E.glb_bytes(model, trace, E.marker_anchors(model, INTERIOR)))
+    meta = doc["extras"]["lungdeform"]
+    assert meta["schema_version"] == E.GLB_SCHEMA_VERSION == 2 and "tidal_mm" in meta["marker_motion"]
+    markers = meta["markers"]
+    assert all("vertices" not in m and len(m["tidal_mm"]) == 3 for m in markers)
+    track = point_trajectories(model, INTERIOR, place_points(model, INTERIOR), trace.volume_ml)  # (k, 4, 3)
+    weights = {}
+    for ch in doc["animations"][0]["channels"]:
+        w = _accessor(doc, blob, doc["animations"][0]["samplers"][ch["sampler"]]["output"]).reshape(-1, 5)
+        weights[doc["nodes"][ch["target"]["node"]]["name"]] = w[:, 0].astype(float)
+    for j, m in enumerate(markers):
+        got = np.array([_marker_at(m, lam) for lam in weights[m["lung"]]])
+        np.testing.assert_allclose(got, track[:, j], atol=1e-4)
+        assert np.ptp(got, axis=0).max() > 1.0  # mm: it does move
+
+
+def test_landmark_corrected_markers_use_the_correction(model, rng):
+    # a lung carrying a landmark correction: the markers' field includes it (truth: points_at)
+    from dataclasses import replace
+
+    from lungdeform.model import Model
+
+    lung = model.lungs["left"]
+    lm = np.array([90.0, 0.0, 0.0]) + rng.uniform(-1, 1, (8, 3)) * [30.0, 40.0, 60.0]
+    corrected = replace(lung, landmarks=lm, landmark_correction=rng.normal(0, 0.01, (8, 3)), landmark_smoothing=10.0)
+    m2 = Model({"left": corrected, "right": model.lungs["right"]}, {"source": "test"})
+    plain, fixed = E.marker_anchors(model, INTERIOR[:1]), E.marker_anchors(m2, INTERIOR[:1])
+    assert fixed[0]["landmark_corrected"] and not plain[0]["landmark_corrected"]
+    s = corrected.calibration_ml / corrected.unit_ml
+    np.testing.assert_allclose(_marker_at(fixed[0], 1.0), corrected.points_at(INTERIOR[:1], scale=s)[0], atol=1e-6)
+    assert np.linalg.norm(np.subtract(fixed[0]["tidal_mm"], plain[0]["tidal_mm"])) > 1e-3
+
+
+def test_markers_refused_far_outside_or_malformed(model):
+    with pytest.raises(InputError, match=r"^tumours\.csv: 1 point\(s\) lie more than 30 mm outside every lung.*2 \("):
+        E.marker_anchors(model, np.array([[90.0, 0, 0], [0.0, 300.0, 0]]), source="tumours.csv")
+    with pytest.raises(InputError, match="finite"):
         E.marker_anchors(model, np.array([[np.nan, 0, 0]]))
+    with pytest.raises(InputError, match="1 labels for 2 markers"):
+        E.marker_anchors(model, INTERIOR[:2], ["a"])
+    with pytest.raises(InputError, match=r"\(p, 3\)"):
+        E.marker_anchors(model, np.zeros((2, 2)))
+
+
+def test_markers_csv_with_a_byte_order_mark(tmp_path):
+    path = tmp_path / "m.csv"
+    path.write_text("x_mm,y_mm,z_mm,label\n90,10,-20,tumour\n-90,0,50\n", encoding="utf-8-sig")
+    pts, labels = E.read_markers_csv(path)
+    np.testing.assert_array_equal(pts, [[90, 10, -20], [-90, 0, 50]])
+    assert labels == ["tumour", "marker 2"]
 
 
 def _read_vtp(path):

@@ -5,7 +5,9 @@ Runs ``node tests/browser/viewer.test.mjs`` against a server on a free loopback 
 one whose ``/presets.json`` is broken, for the fallback). Screenshots go to
 ``$LUNGDEFORM_ARTIFACTS/browser`` (default ``tests/artifacts/browser``), printed at the end.
 Skips, naming what is missing, without node, viewer/node_modules or /usr/bin/chromium
-(``make test`` installs them).
+(``make test`` installs them). The page is the bundle shipped in the package (``make test`` rebuilds
+it when ``viewer/src`` is newer), or ``$LUNGDEFORM_VIEWER_BUNDLE``: a folder built with
+``npx vite build --outDir DIR`` in ``viewer/``, to test changed sources without touching the package.
 """
 
 from __future__ import annotations
@@ -36,7 +38,9 @@ def test_viewer_in_headless_chromium():
     expect = {"names": [p["name"] for p in served],
               "volume_at_1s": {p["name"]: p["tidal_volume_ml"] * float(np.interp(1.0, p["t_s"], p["s"]))
                                for p in served}}
-    with ViewerServer(glb) as server, ViewerServer(glb, presets=b"<html>not json</html>") as broken:
+    bundle = os.environ.get("LUNGDEFORM_VIEWER_BUNDLE") or None
+    with ViewerServer(glb, bundle=bundle) as server, \
+            ViewerServer(glb, presets=b"<html>not json</html>", bundle=bundle) as broken:
         res = run_node([str(REPO / "tests" / "browser" / "viewer.test.mjs"), server.url, str(artifacts),
                         broken.url], cwd=REPO,
                        env={"VIEWER_DIR": str(viewer), "CHROMIUM": CHROMIUM, "EXPECT_PRESETS": json.dumps(expect)},

@@ -30,6 +30,16 @@ Topology is written once; positions move by morph targets (displacements), never
   ``A3 (4,4,4)`` are in the mesh extras). For the model's own gravity, use target 0 alone with the
   cubic ``tidal_volume_poly_mm3``. The mesh extras also list, for the five named orientations, the
   basis weights ``λ·w`` that add exactly ``calibration_ml``.
+- Markers (``--markers``; asset ``extras.lungdeform.markers``, :func:`marker_anchors`; schema
+  version 2): per marker ``label``, ``position_mm`` (end-exhale), ``lung``, ``inside``,
+  ``distance_mm`` and ``tidal_mm``, its displacement per unit weight of its lung's target 0:
+  ``x(λ) = position_mm + λ·tidal_mm`` with the λ that drives ``tidal`` (the animation's), from the
+  lung's interior field (:attr:`lungdeform.model.LungModel.interior`), not from nearby vertices, so
+  a point deep inside moves as ``lungdeform track`` moves it. Three multiply-adds per marker per
+  frame. Re-oriented playback (targets 1–4) has no exact marker motion (the landmark correction
+  belongs to the scan's posture; the surface-driven field would need one spline per basis field):
+  a player may keep markers on ``λ_tidal(ΔV)·tidal_mm``, the model's own gravity at the same volume.
+  (Schema 1 tied markers to 4 surface vertices with inverse-distance weights instead.)
 - Animation ``breathing``: one ``weights`` channel per lung, LINEAR, sampled at the curve's times;
   ``weights = [λ(t), 0, 0, 0, 0]`` where ``λ(t)`` makes the lung's volume exactly
   ``V_EE + share · ΔV(t)`` (cubic inverted per key; ``share`` = the lung's ``calibration_ml`` over
@@ -71,7 +81,11 @@ from .mesh import vertex_normals
 from .model import LungModel, Model
 
 GLB_SCHEMA = "lungdeform.glb"
-GLB_SCHEMA_VERSION = 1
+#: 2: markers carry ``tidal_mm`` (interior field) instead of anchor vertices and weights.
+GLB_SCHEMA_VERSION = 2
+MARKER_MOTION = ("a marker of lung L at morph weight λ of L's target 0 ('tidal') is at position_mm + λ·tidal_mm "
+                 "(mm, LPS; interior field of lungdeform.interior); re-oriented playback (targets 1-4) has "
+                 "no exact marker motion")
 TARGET_NAMES = ("tidal", "basis_1", "basis_x", "basis_y", "basis_z")
 #: Root-node rotation (x, y, z, w) taking LPS to glTF: (x, y, z) → (x, z, −y); a −90° turn about x.
 LPS_TO_GLTF_ROTATION = (-np.sqrt(0.5), 0.0, 0.0, np.sqrt(0.5))
@@ -320,26 +334,51 @@ def orientation_table(lung: LungModel, a1, a2, a3) -> dict:
 
 
 # --------------------------------------------------------------------------- markers
-def marker_anchors(model: Model, points: np.ndarray, labels=None, k: int = 4) -> list[dict]:
-    """Tie marker points ``(p, 3) float`` (mm LPS, end-exhale) to their nearest lung's ``k`` nearest
-    vertices with inverse-distance weights: the marker moves by the weighted vertex displacement."""
-    from scipy.spatial import cKDTree
+def marker_anchors(model: Model, points: np.ndarray, labels=None, *, source: str = "markers") -> list[dict]:
+    """Markers (a tumour, fiducials) for the glb extras: each tied to a lung and given its motion
+    per unit of that lung's tidal morph weight.
 
-    pts = np.asarray(points, float).reshape(-1, 3)
-    if not np.all(np.isfinite(pts)):
-        raise InputError("marker positions must be finite mm (LPS)")
-    labels = list(labels) if labels is not None else [f"marker {i + 1}" for i in range(len(pts))]
-    trees = {name: cKDTree(lung.surface.vertices) for name, lung in model.lungs.items()}
+    Parameters
+    ----------
+    points : (p, 3) float
+        Marker positions, mm LPS of the end-exhale scan.
+    labels : sequence of str, optional
+        One per point (default ``marker 1``, ``marker 2``, …).
+    source : str
+        Named in errors (the markers file).
+
+    Each marker goes to the lung that contains it, else the nearest
+    (:func:`lungdeform.trajectory.place_points`; more than
+    :data:`~lungdeform.trajectory.OUTSIDE_LIMIT_MM` outside every lung raises :class:`InputError`).
+    Its ``tidal_mm`` is ``w = (calibration_ml/unit_ml) · v(p)`` with ``v`` the lung's interior field
+    (:attr:`LungModel.interior`, mm per unit): at the weight ``λ`` of the lung's target 0
+    (``tidal``) the marker is at ``p + λ·w``, i.e. ``lung.points_at(p, scale=λ·calibration_ml/unit_ml)``,
+    so marker and mesh move with one weight. Returns one dict per marker: ``label``,
+    ``position_mm`` (3,), ``lung``, ``inside`` (inside that lung's end-exhale surface),
+    ``distance_mm`` (to that surface), ``tidal_mm`` (3,) and ``landmark_corrected`` (whether the
+    field includes the model's landmark correction).
+    """
+    from .trajectory import place_points
+
+    pts = np.asarray(points, float)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise InputError(f"{source}: marker positions must be (p, 3) mm LPS, got shape {pts.shape}")
+    pts = np.ascontiguousarray(pts)
+    labels = [f"marker {i + 1}" for i in range(len(pts))] if labels is None else [str(x) for x in labels]
+    if len(labels) != len(pts):
+        raise InputError(f"{source}: {len(labels)} labels for {len(pts)} markers")
+    placement = place_points(model, pts, source=source)
+    tidal = np.empty_like(pts)
+    for name, lung in model.lungs.items():
+        idx = np.flatnonzero(placement.lungs == name)
+        if len(idx):
+            tidal[idx] = (lung.calibration_ml / lung.unit_ml) * lung.interior.displacement(pts[idx])
     out = []
-    for label, q in zip(labels, pts):
-        best = min(trees, key=lambda name: trees[name].query(q)[0])
-        kk = min(k, model.lungs[best].n_vertices)
-        dist, idx = trees[best].query(q, k=kk)
-        dist, idx = np.atleast_1d(dist), np.atleast_1d(idx)
-        w = 1.0 / np.maximum(dist, 1e-6)
-        out.append({"label": str(label), "position_mm": q.tolist(), "lung": best,
-                    "vertices": idx.astype(int).tolist(), "weights": (w / w.sum()).tolist(),
-                    "distance_mm": float(dist.min())})
+    for j, (label, q) in enumerate(zip(labels, pts)):
+        lung = model.lungs[str(placement.lungs[j])]
+        out.append({"label": label, "position_mm": q.tolist(), "lung": str(placement.lungs[j]),
+                    "inside": bool(placement.inside[j]), "distance_mm": float(placement.distance_mm[j]),
+                    "tidal_mm": tidal[j].tolist(), "landmark_corrected": bool(lung.interior.corrected)})
     return out
 
 
@@ -347,7 +386,7 @@ def read_markers_csv(path) -> tuple[np.ndarray, list[str]]:
     """Markers CSV: header ``x_mm,y_mm,z_mm[,label]`` (LPS mm, end-exhale)."""
     path = Path(path)
     try:
-        with open(path, newline="", encoding="utf-8") as fh:
+        with open(path, newline="", encoding="utf-8-sig") as fh:  # -sig: a spreadsheet's byte-order mark
             rows = [r for r in csv.reader(fh) if r and any(c.strip() for c in r)]
     except (OSError, UnicodeDecodeError) as exc:
         raise ReadError(f"{path}: cannot read markers ({exc})") from exc
@@ -473,6 +512,7 @@ def glb_bytes(model: Model, trace: VolumeTrace | None = None, markers: list[dict
                   "meaning": "volume of both lungs above end-exhale; each lung takes 'share' of it"},
         "lungs": [m["lung"] for m in lungs_meta],
         "markers": markers or [],
+        "marker_motion": MARKER_MOTION,
         "provenance": json.loads(json.dumps(model.provenance, default=str)),
     }}
     data = b"".join(blob.parts)

@@ -233,7 +233,7 @@ def model_glb(path, curve=None, markers=None) -> bytes:
     anchors = None
     if markers is not None:
         pts, labels = read_markers_csv(markers)
-        anchors = marker_anchors(model, pts, labels)
+        anchors = marker_anchors(model, pts, labels, source=str(markers))
     return glb_bytes(model, trace, anchors)
 
 

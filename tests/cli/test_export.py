@@ -72,6 +72,26 @@ def test_export_glb_with_curve_and_markers(model_file, tmp_path, capsys):
     assert max(ex["curve"]["volume_ml"]) == pytest.approx(600, rel=1e-6)
     assert [m["label"] for m in ex["markers"]] == ["tumour", "nodule"]
     assert [m["lung"] for m in ex["markers"]] == ["left", "right"]
+    assert "markers: 2 (tumour in left; nodule in right), moving with each lung's interior field" in printed
+    # truth: the model file's own interior field (LungModel.points_at) at the scale of target 0's
+    # weight λ = 1 (calibration_ml), through the extras' formula position_mm + λ·tidal_mm
+    model = load_model(model_file)
+    for m in ex["markers"]:
+        lung = model.lungs[m["lung"]]
+        want = lung.points_at([m["position_mm"]], scale=lung.calibration_ml / lung.unit_ml)[0]
+        np.testing.assert_allclose(np.add(m["position_mm"], m["tidal_mm"]), want, atol=1e-6)
+
+
+def test_export_markers_far_outside_every_lung(model_file, tmp_path, capsys):
+    # a marker in the wrong frame or unit (here 300 mm anterior of both lungs): refused, one line
+    # naming the markers file and the marker, and no output written
+    markers = tmp_path / "markers.csv"
+    markers.write_text("x_mm,y_mm,z_mm,label\n90,0,0,tumour\n0,-300,0,typo\n")
+    out = tmp_path / "x.glb"
+    assert main(["export", str(model_file), "--format", "glb", "--out", str(out), "--markers", str(markers)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(markers) in err[0] and "outside every lung" in err[0] and ": 2 (" in err[0]
+    assert not out.exists()
 
 
 def test_export_glb_preset(model_file, tmp_path, capsys):

@@ -9,7 +9,7 @@ import * as THREE from 'three';
 import { GLTFLoader } from 'three/examples/jsm/loaders/GLTFLoader.js';
 import { OrbitControls } from 'three/examples/jsm/controls/OrbitControls.js';
 import './style.css';
-import { GRAVITY, LungWeights, normalize, type LungMeta, type Marker, type Vec3 } from './physics';
+import { GRAVITY, isMovable, LungWeights, MarkerMotion, normalize, type LungMeta, type Marker, type Vec3 } from './physics';
 import { loadPresets, loopDuration, sampledCurve, volumeAt, type Curve, type PresetSet } from './curves';
 import { colourise, legendGradient } from './overlay';
 import { FrameStats } from './stats';
@@ -30,9 +30,10 @@ interface Lung {
   meta: LungMeta;
   weights: LungWeights;
   influences: number[];
-  targets: Float32Array[]; // CPU copies of the 5 targets (markers; CPU path)
-  base: Float32Array; // end-exhale positions (CPU path)
-  markers: { marker: Marker; sphere: THREE.Mesh }[];
+  targets: Float32Array[]; // CPU copies of the 5 targets (CPU path only; empty on the GPU path)
+  base: Float32Array; // end-exhale positions (CPU path only)
+  markers: MarkerMotion | null; // this lung's markers, packed once (LPS mm)
+  spheres: THREE.Mesh[]; // one per marker, in the order of markers
 }
 
 const state = {
@@ -108,22 +109,19 @@ function cpuDeform(lung: Lung): void {
   attr.needsUpdate = true;
 }
 
-/** Markers ride on their anchor vertices' displacement (a few vertices each: constant cost). */
+/**
+ * Markers move with the lung's interior field: x = p + lambda * w, w their displacement per unit
+ * weight of target 0 (glb extras), lambda that target's weight now (three multiply-adds per marker,
+ * no allocation). Re-oriented (targets 1-4), lambda is the tidal weight for the same volume: the
+ * tidal-vector approximation (docs/VIEWER.md).
+ */
 function placeMarkers(lung: Lung): void {
-  for (const { marker, sphere } of lung.markers) {
-    let dx = 0, dy = 0, dz = 0;
-    marker.vertices.forEach((v, j) => {
-      const wv = marker.weights[j];
-      for (let k = 0; k < 5; k++) {
-        const w = lung.influences[k];
-        if (w === 0) continue;
-        const t = lung.targets[k];
-        dx += wv * w * t[3 * v]; dy += wv * w * t[3 * v + 1]; dz += wv * w * t[3 * v + 2];
-      }
-    });
-    const p = marker.position_mm;
-    sphere.position.set(p[0] + dx, p[1] + dy, p[2] + dz);
-  }
+  const motion = lung.markers;
+  if (!motion) return;
+  const lambda = lung.weights.native ? lung.influences[0]
+    : lung.weights.tidalWeight(lung.meta.share * state.dvMl, state.gain);
+  const x = motion.positions(lambda);
+  for (let i = 0; i < motion.count; i++) lung.spheres[i].position.set(x[3 * i], x[3 * i + 1], x[3 * i + 2]);
 }
 
 function frame(now: number): void {
@@ -142,7 +140,7 @@ async function loadModel(): Promise<void> {
   const gltf = await new GLTFLoader().loadAsync('model.glb');
   root = gltf.scene;
   scene.add(root);
-  const extras = (gltf.userData?.lungdeform ?? {}) as { curve?: { t_s: number[]; volume_ml: number[]; source: string }; markers?: Marker[] };
+  const extras = (gltf.userData?.lungdeform ?? {}) as { curve?: { t_s: number[]; volume_ml: number[]; source: string }; markers?: Partial<Marker>[] };
   root.traverse((obj) => {
     const mesh = obj as THREE.Mesh;
     const meta = mesh.isMesh ? (mesh.userData?.lungdeform as LungMeta | undefined) : undefined;
@@ -150,9 +148,10 @@ async function loadModel(): Promise<void> {
     const geom = mesh.geometry;
     const morph = geom.morphAttributes.position ?? [];
     if (morph.length !== 5) throw new Error(`lung ${meta.lung}: expected 5 morph targets, found ${morph.length}`);
-    const targets = morph.map((a) => Float32Array.from(a.array as ArrayLike<number>));
-    const base = Float32Array.from(geom.getAttribute('position').array as ArrayLike<number>);
-    if (deformMode === 'cpu') {
+    const cpu = deformMode === 'cpu';
+    const targets = cpu ? morph.map((a) => Float32Array.from(a.array as ArrayLike<number>)) : [];
+    const base = cpu ? Float32Array.from(geom.getAttribute('position').array as ArrayLike<number>) : new Float32Array(0);
+    if (cpu) {
       geom.morphAttributes = {};
       mesh.morphTargetInfluences = undefined;
       (geom.getAttribute('position') as THREE.BufferAttribute).setUsage(THREE.DynamicDrawUsage);
@@ -161,7 +160,7 @@ async function loadModel(): Promise<void> {
     const material = (mesh.material as THREE.MeshStandardMaterial).clone();
     mesh.material = material;
     lungs.push({ name: meta.lung, mesh, meta, weights: new LungWeights(meta), influences: [0, 0, 0, 0, 0],
-                 targets, base, markers: [] });
+                 targets, base, markers: null, spheres: [] });
   });
   if (lungs.length === 0) throw new Error('model.glb holds no lungdeform lungs (mesh extras missing)');
   addMarkers(extras.markers ?? []);
@@ -179,20 +178,27 @@ async function loadModel(): Promise<void> {
   addGravityArrow();
 }
 
-function addMarkers(markers: Marker[]): void {
+function addMarkers(markers: Partial<Marker>[]): void {
   const geo = new THREE.SphereGeometry(4, 16, 12); // mm, in the lung's LPS frame
-  for (const m of markers) {
-    const lung = lungs.find((l) => l.name === m.lung);
-    if (!lung) continue;
-    const sphere = new THREE.Mesh(geo, new THREE.MeshStandardMaterial({ color: 0xffd54f, emissive: 0x553300 }));
-    sphere.position.set(...m.position_mm);
-    sphere.visible = false;
-    sphere.renderOrder = 2;
-    lung.mesh.add(sphere);
-    lung.markers.push({ marker: m, sphere });
+  // markers of an older export (glb schema 1: anchor vertices, no tidal_mm) cannot follow the interior field
+  const movable = markers.filter(isMovable).filter((m) => lungs.some((l) => l.name === m.lung));
+  for (const lung of lungs) {
+    const own = movable.filter((m) => m.lung === lung.name);
+    if (own.length === 0) continue;
+    lung.markers = new MarkerMotion(own);
+    for (const m of own) {
+      const sphere = new THREE.Mesh(geo, new THREE.MeshStandardMaterial({ color: 0xffd54f, emissive: 0x553300 }));
+      sphere.position.set(...m.position_mm);
+      sphere.visible = false;
+      sphere.renderOrder = 2;
+      lung.mesh.add(sphere);
+      lung.spheres.push(sphere);
+    }
   }
-  $('marker-count').textContent = markers.length ? `(${markers.length})` : '(none in model)';
-  ($('markers') as HTMLInputElement).disabled = markers.length === 0;
+  const skipped = markers.length - movable.length;
+  $('marker-count').textContent = markers.length === 0 ? '(none in model)'
+    : `(${movable.length})` + (skipped ? `, ${skipped} not shown: older export, re-export the model` : '');
+  ($('markers') as HTMLInputElement).disabled = movable.length === 0;
 }
 
 function fitCamera(): void {
@@ -268,7 +274,7 @@ function setOverlay(kind: string): void {
 function setMarkers(on: boolean): void {
   state.markers = on;
   for (const l of lungs) {
-    for (const m of l.markers) m.sphere.visible = on;
+    for (const sphere of l.spheres) sphere.visible = on;
     const mat = l.mesh.material as THREE.MeshStandardMaterial;
     mat.transparent = on; mat.opacity = on ? 0.45 : 1; mat.depthWrite = !on;
     mat.needsUpdate = true;
@@ -433,7 +439,7 @@ function rendererName(): string {
 const api = {
   ready: null as unknown as Promise<object>,
   info: () => ({ lungs: lungs.map((l) => ({ name: l.name, vertices: l.meta.n_vertices, share: l.meta.share })),
-                 markers: lungs.reduce((n, l) => n + l.markers.length, 0),
+                 markers: lungs.reduce((n, l) => n + l.spheres.length, 0),
                  presets: curves.map((c) => c.name), presetOrigin: presetSet?.origin, presetNote: presetSet?.note,
                  deform: deformMode, manualClock, renderer: rendererName() }),
   state: () => ({ t: state.t, dvMl: state.dvMl, playing: state.playing, preset: state.curve?.name, tidalMl: state.tidalMl,
@@ -448,6 +454,8 @@ const api = {
   setRate: (bpm: number) => { state.rateBpm = bpm; syncUI(); },
   setGain: (g: number) => { state.gain = g; syncUI(); },
   renderOnce, snapshot, diff, bench, stats: () => stats.summary(),
+  /** Marker positions per lung (LPS mm, 3 per marker) as last placed (while markers are shown). */
+  markerPositions: () => Object.fromEntries(lungs.map((l) => [l.name, l.markers ? Array.from(l.markers.out) : []])),
   /** Sum of the position buffers' versions: constant on the GPU path (no per-frame vertex upload). */
   positionUploads: () => lungs.reduce((n, l) => n + (l.mesh.geometry.getAttribute('position') as THREE.BufferAttribute).version, 0),
 };

@@ -25,13 +25,58 @@ export interface LungMeta {
   orientations: Record<string, { gravity: Vec3; force_weights: number[]; basis_weights: number[] }>;
 }
 
+/**
+ * A marker written by lungdeform.export.marker_anchors (asset extras.lungdeform.markers, glb schema 2):
+ * at the weight lambda of its lung's target 0 ('tidal') it is at position_mm + lambda * tidal_mm
+ * (LPS mm; the lung's interior field, not its nearest vertices).
+ */
 export interface Marker {
   label: string;
   position_mm: Vec3;
   lung: string;
-  vertices: number[];
-  weights: number[];
+  inside: boolean;
   distance_mm: number;
+  tidal_mm: Vec3;
+  landmark_corrected?: boolean;
+}
+
+const isVec3 = (v: unknown): v is Vec3 =>
+  Array.isArray(v) && v.length === 3 && v.every((x) => typeof x === 'number' && Number.isFinite(x));
+
+/** True for a marker this viewer can move (schema 2: a finite tidal_mm); schema-1 markers lack it. */
+export function isMovable(m: Partial<Marker>): m is Marker {
+  return isVec3(m.position_mm) && isVec3(m.tidal_mm) && typeof m.lung === 'string';
+}
+
+/**
+ * The markers of one lung, packed once into flat buffers (LPS mm): positions(lambda) writes
+ * p + lambda * w for every marker into a buffer allocated here, three multiply-adds per marker and
+ * no allocation per frame.
+ */
+export class MarkerMotion {
+  readonly count: number;
+  readonly base: Float64Array;
+  readonly tidal: Float64Array;
+  readonly out: Float64Array;
+
+  constructor(markers: Marker[]) {
+    this.count = markers.length;
+    this.base = new Float64Array(3 * markers.length);
+    this.tidal = new Float64Array(3 * markers.length);
+    this.out = new Float64Array(3 * markers.length);
+    markers.forEach((m, i) => {
+      if (!isMovable(m)) throw new Error(`marker ${JSON.stringify((m as Partial<Marker>).label)}: needs finite position_mm and tidal_mm (glb schema 2)`);
+      for (let c = 0; c < 3; c++) { this.base[3 * i + c] = m.position_mm[c]; this.tidal[3 * i + c] = m.tidal_mm[c]; }
+    });
+    this.out.set(this.base);
+  }
+
+  /** Positions (3 per marker, LPS mm) at tidal weight lambda, in this.out (returned). */
+  positions(lambda: number): Float64Array {
+    const { base, tidal, out } = this;
+    for (let i = 0; i < out.length; i++) out[i] = base[i] + lambda * tidal[i];
+    return out;
+  }
 }
 
 export const GRAVITY: Record<string, Vec3> = {
@@ -110,12 +155,15 @@ export class LungWeights {
   private w: number[];
   native: boolean;
 
+  private tidalCubic: [number, number, number];
+
   constructor(meta: LungMeta) {
     this.meta = meta;
     this.native = true;
     this.w = [0, 0, 0, 0];
     const p = meta.tidal_volume_poly_mm3;
-    this.cubic = [p[1], p[2], p[3]];
+    this.tidalCubic = [p[1], p[2], p[3]];
+    this.cubic = this.tidalCubic;
   }
 
   /**
@@ -126,8 +174,7 @@ export class LungWeights {
   setGravity(gravity: Vec3 | 'model'): boolean {
     if (gravity === 'model') {
       this.native = true;
-      const p = this.meta.tidal_volume_poly_mm3;
-      this.cubic = [p[1], p[2], p[3]];
+      this.cubic = this.tidalCubic;
       this.w = [0, 0, 0, 0];
     } else {
       this.native = false;
@@ -155,6 +202,17 @@ export class LungWeights {
       for (let k = 0; k < 4; k++) out[k + 1] = l * this.w[k];
     }
     return out;
+  }
+
+  /**
+   * The weight of target 0 for dvMl (mL, this lung) under the model's own gravity, times gain: the
+   * markers' lambda. Equals weights()[0] when native; re-oriented (targets 1-4) it is the
+   * tidal-vector approximation (markers move as under the model's gravity at the same volume), and
+   * 0 while this gravity reaches no volume (the lung is then held at end-exhale too).
+   */
+  tidalWeight(dvMl: number, gain: number): number {
+    if (!this.valid) return 0;
+    return cubicRoot(this.tidalCubic, dvMl * 1000) * gain;
   }
 }
 

@@ -5,7 +5,7 @@ import { readFileSync } from 'node:fs';
 import { describe, expect, it } from 'vitest';
 import * as THREE from 'three';
 import { GLTFLoader } from 'three/examples/jsm/loaders/GLTFLoader.js';
-import { LungWeights, meshVolume, type LungMeta } from '../src/physics';
+import { LungWeights, MarkerMotion, meshVolume, type LungMeta, type Marker } from '../src/physics';
 
 const glbPath = process.env.LUNGDEFORM_GLB;
 const expectPath = process.env.LUNGDEFORM_EXPECT;
@@ -13,6 +13,8 @@ const expectPath = process.env.LUNGDEFORM_EXPECT;
 interface Expect {
   times: number[];
   lungs: Record<string, { weights: number[]; volume_ml: number[]; orientations: Record<string, number[]> }>;
+  // per marker (in the extras' order): positions (LPS mm) at each time, from lungdeform track's maths
+  markers: { label: string; lung: string; positions: number[][] }[];
 }
 
 async function load() {
@@ -96,5 +98,31 @@ describe.skipIf(!glbPath || !expectPath)('exported glb in three.js', () => {
       for (let i = 0; i < viaBasis.length; i++) worst = Math.max(worst, Math.abs(viaBasis[i] - viaTidal[i]));
       expect(worst).toBeLessThan(1e-2); // mm
     }
+  });
+  it('markers follow the interior field at the animated tidal weight', async () => {
+    const gltf = await load();
+    const ex = JSON.parse(readFileSync(expectPath!, 'utf8')) as Expect;
+    const extras = gltf.userData.lungdeform as { schema_version: number; markers: Marker[] };
+    expect(extras.schema_version).toBe(2);
+    expect(extras.markers.map((m) => m.label)).toEqual(ex.markers.map((m) => m.label));
+    expect(ex.markers.length).toBeGreaterThan(0);
+    const mixer = new THREE.AnimationMixer(gltf.scene);
+    mixer.clipAction(gltf.animations[0]).play();
+    const motions = new Map(extras.markers.map((m, j) => [j, new MarkerMotion([m])]));
+    let moved = 0;
+    for (let i = 0; i < ex.times.length; i++) {
+      mixer.setTime(ex.times[i]);
+      extras.markers.forEach((m, j) => {
+        const mesh = gltf.scene.getObjectByName(m.lung) as THREE.Mesh;
+        // what the viewer does: position + (weight of target 0) * tidal_mm
+        const x = motions.get(j)!.positions(mesh.morphTargetInfluences![0]);
+        const want = ex.markers[j].positions[i];
+        // truth: lungdeform.trajectory (LungModel.interior at the exact per-lung scale) in Python;
+        // the animation's weights are float32 keys, so agreement is to ~1e-6 of the motion
+        for (let c = 0; c < 3; c++) expect(Math.abs(x[c] - want[c])).toBeLessThan(1e-4);
+        moved = Math.max(moved, Math.hypot(x[0] - m.position_mm[0], x[1] - m.position_mm[1], x[2] - m.position_mm[2]));
+      });
+    }
+    expect(moved).toBeGreaterThan(1); // mm: the check is not on a marker that stands still
   });
 });

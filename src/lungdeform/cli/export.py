@@ -16,7 +16,7 @@ def register(apps) -> None:
         curve: Path | None = typer.Option(None, "--curve", help="Breathing curve CSV (t_s, volume_ml, …) from 'lungdeform breathe'."),
         preset: str | None = typer.Option(None, "--preset", help="Breathing preset of the PV model, simulated: normal, deep, copd, restrictive, dyspnoea or pneumothorax (not with --curve)."),
         cycles: int | None = typer.Option(None, "--cycles", help="With --preset: whole breaths played (default 1)."),
-        markers: Path | None = typer.Option(None, "--markers", help="Markers CSV: x_mm,y_mm,z_mm[,label] (LPS, end-exhale); glb only."),
+        markers: Path | None = typer.Option(None, "--markers", help="Markers CSV: x_mm,y_mm,z_mm[,label] (LPS, end-exhale); they move with the lung's interior field; glb only."),
         tidal_ml: float | None = typer.Option(None, "--tidal-ml", help="Tidal volume, both lungs (mL): of the plain cycle (default 500), or the --preset rescaled to it (same shape; default the preset's)."),
         period_s: float | None = typer.Option(None, "--period", help="Plain cycle only (no --curve, no --preset): period (s), default 4."),
         fps: float = typer.Option(10.0, "--fps", help="pvd only: frames per second of the time series."),
@@ -71,7 +71,11 @@ def register(apps) -> None:
             anchors = None
             if markers is not None:
                 pts, labels = E.read_markers_csv(markers)
-                anchors = E.marker_anchors(m, pts, labels)
+                anchors = E.marker_anchors(m, pts, labels, source=str(markers))
+                shown = [f"{a['label']} in {a['lung']}" + ("" if a["inside"] else f" ({a['distance_mm']:.0f} mm outside)")
+                         for a in anchors[:6]]
+                typer.echo(f"markers: {len(anchors)} ({'; '.join(shown)}{' …' if len(anchors) > 6 else ''}), "
+                           "moving with each lung's interior field")
             E.export_glb(m, out_path, trace, anchors)
             typer.echo(f"wrote {out_path} ({out_path.stat().st_size / 1e6:.2f} MB: "
                        f"{sum(l.n_vertices for l in m.lungs.values())} vertices, 5 morph targets per lung, "
