@@ -451,6 +451,7 @@ def _run_on_dask(jobs: list[Job], out: Path, options: FitOptions, scheduler, n_w
     cluster = client = None
     events: queue.Queue = queue.Queue()
     futures = {}
+    interrupt, restore = _sigint_flag()
     try:
         if scheduler:
             try:
@@ -476,6 +477,8 @@ def _run_on_dask(jobs: list[Job], out: Path, options: FitOptions, scheduler, n_w
             futures[f] = job
         pending, running = set(futures), {j.key for j in jobs}
         while pending:
+            if interrupt.is_set():
+                raise KeyboardInterrupt
             try:
                 _, ev = events.get(timeout=0.2)
                 if ev.get("job") in running:  # a stage event may arrive after its job's result: dropped
@@ -489,8 +492,11 @@ def _run_on_dask(jobs: list[Job], out: Path, options: FitOptions, scheduler, n_w
                 running.discard(job.key)
                 results[job.key] = _collect(f, job, out, options)
                 emit({"event": "done", "job": job.key, "result": results[job.key], "skipped": False})
+        if interrupt.is_set():  # Ctrl-C after the last result: still an interruption
+            raise KeyboardInterrupt
         return address
     finally:
+        restore()
         if client is not None:
             if futures:
                 client.cancel(list(futures), force=True)
@@ -498,6 +504,21 @@ def _run_on_dask(jobs: list[Job], out: Path, options: FitOptions, scheduler, n_w
             client.close()
         if cluster is not None:
             cluster.close()
+
+
+def _sigint_flag():
+    """While the jobs run, Ctrl-C (SIGINT) only sets a flag that the waiting loop turns into a
+    KeyboardInterrupt: raised asynchronously inside the Dask client's own code (a blocking
+    ``sync`` call, a lock) the interrupt could be lost and the run would go on. Returns
+    ``(flag, restore)``; outside the main thread the flag is never set."""
+    import signal
+    import threading
+
+    flag = threading.Event()
+    if threading.current_thread() is not threading.main_thread():
+        return flag, lambda: None
+    previous = signal.signal(signal.SIGINT, lambda _signum, _frame: flag.set())
+    return flag, lambda: signal.signal(signal.SIGINT, previous)
 
 
 @contextmanager
