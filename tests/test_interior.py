@@ -86,7 +86,7 @@ def test_bad_input():
     v = icosphere(1, 10.0).vertices
     with pytest.raises(InputError, match="same shape"):
         interior_field(v, v[:-1])
-    with pytest.raises(InputError, match="at least 5 landmarks"):
+    with pytest.raises(InputError, match="at least 5 points"):
         interior_field(v, v, v[:3], v[:3])
     with pytest.raises(InputError, match="smoothing"):
         interior_field(v, v, smoothing=-1.0)

@@ -32,14 +32,17 @@ def test_landmarks_outside_their_own_mask_are_reported(tmp_path):
     from lungdeform.mask import Image
     from lungdeform.pipeline import landmark_mask_warnings
 
+    from lungdeform.mask import extract_surface
+
     a = np.zeros((40, 40, 40), np.uint8)
     a[10:30, 10:30, 10:30] = 1
     img = Image(a, np.ones(3), np.array([-5.0, 0, 0]), np.eye(3), "mask.mha")
-    pts = np.random.default_rng(4).uniform(6, 23, size=(30, 3))  # world x = index − 5
-    assert landmark_mask_warnings(pts, img, "ee.txt") == []
-    w = landmark_mask_warnings(pts + np.array([0, 0, 15.0]), img, "ee.txt")
+    surface = extract_surface(img).surface
+    pts = np.random.default_rng(4).uniform(6, 23, size=(30, 3))  # world x = index − 5: all inside the cube
+    assert landmark_mask_warnings(pts, img, surface, "ee.txt") == []
+    w = landmark_mask_warnings(pts + np.array([0, 0, 15.0]), img, surface, "ee.txt")
     assert len(w) == 1 and w[0].startswith("ee.txt: ") and "outside the lung mask of mask.mha" in w[0]
-    assert landmark_mask_warnings(pts, None, "ee.txt") == []  # a mesh input: nothing to check
+    assert landmark_mask_warnings(pts, None, None, "ee.txt") == []  # a mesh input: nothing to check
 
 
 def test_swapped_itk_landmark_files_are_reported(data_dir):
@@ -53,7 +56,10 @@ def test_swapped_itk_landmark_files_are_reported(data_dir):
     from tests.conftest import require_path
 
     folder = require_path(data_dir, "itk-right-lung-two-volumes")
+    from lungdeform.mask import extract_surface
+
     fixed, moving = (read_image(folder / f"CT_3D_lung_{k}_mask.mha") for k in ("fixed", "moving"))
+    sf, sm = (extract_surface(img).surface for img in (fixed, moving))
     lf, lm = (read_elastix_points(folder / f"CT_3D_lung_{k}_point_set_corrected.txt") for k in ("fixed", "moving"))
-    assert landmark_mask_warnings(lf, fixed, "f") == [] and landmark_mask_warnings(lm, moving, "m") == []
-    assert landmark_mask_warnings(lm, fixed, "m") and landmark_mask_warnings(lf, moving, "f")
+    assert landmark_mask_warnings(lf, fixed, sf, "f") == [] and landmark_mask_warnings(lm, moving, sm, "m") == []
+    assert landmark_mask_warnings(lm, fixed, sf, "m") and landmark_mask_warnings(lf, moving, sm, "f")

@@ -51,7 +51,7 @@ def test_points_on_the_surface_move_with_it():
     s = lung_scales(m, dv)["left"][1]
     assert traj[0] == pytest.approx(pts, abs=1e-9)
     assert traj[1] == pytest.approx(left.positions_at(s)[idx], abs=1e-6)
-    summary = motion_summary(traj)
+    summary = motion_summary(traj, pts)
     assert summary["max_excursion_mm"] == pytest.approx(np.linalg.norm(traj[1] - traj[0], axis=1).tolist())
 
 
@@ -65,5 +65,8 @@ def test_read_points_csv_and_elastix(tmp_path):
     write_elastix_points(tmp_path / "p.txt", pts)
     again, labels = read_points(tmp_path / "p.txt")
     assert again == pytest.approx(pts) and labels == ["point 1", "point 2"]
+    (tmp_path / "i.txt").write_text("index\n1\n10 20 30\n")
+    with pytest.raises(ReadError, match="'index' point file holds voxel indices"):
+        read_points(tmp_path / "i.txt")
     with pytest.raises(ReadError, match="no such points file"):
         read_points(tmp_path / "missing.csv")

@@ -83,7 +83,12 @@ def finite_json(value):
     return value
 
 
-def write_json(path, data, **kwargs) -> Path:
+def write_json(path, data, *, strict: bool = False, **kwargs) -> Path:
+    """``data`` as JSON (indent 2, numpy values converted) written atomically; ``strict``: NaN and
+    infinities become ``null`` (:func:`finite_json`), so any JSON reader accepts the file."""
     kwargs.setdefault("indent", 2)
     kwargs.setdefault("default", jsonable)
+    if strict:
+        data = finite_json(data)
+        kwargs["allow_nan"] = False
     return write_text(path, json.dumps(data, **kwargs) + "\n")

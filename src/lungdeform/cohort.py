@@ -28,10 +28,10 @@ workers through Dask's event log; the stage is read from run_fit's progress mess
 Fit options (:class:`FitOptions`, part of the digest): the budget, baselines, grid and stiffness,
 ``align`` (``apex`` for scans with a table shift; ``none`` or ``joint`` for inputs already in one
 frame, e.g. a synthetic cohort from ``lungdeform synth-cohort``, whose truth the apex alignment
-would shift), and ``landmark_fit`` / ``folds`` (with landmarks, the landmark-informed fit and its
-k-fold cross-validation; off: the surface-only fit, much faster). ``result.json``'s
-``constants`` are those of the fit ``model.npz`` holds (``fit_kind``: ``optimizer`` or, with
-landmarks, ``landmarks``).
+would shift), ``landmark_fit`` / ``folds`` (with landmarks, the interior landmark correction and the
+landmark-informed comparison fits with their k-fold cross-validation; off: much faster) and
+``direction_degree``. ``result.json``'s ``constants`` are those of the fit ``model.npz`` holds
+(``fit_kind``: the key of that fit in ``metrics.json``'s ``fit``, ``optimizer``).
 
 With ``scheduler=ADDRESS`` the workers of that cluster run the jobs: they need lungdeform
 installed (the same version) and must see the manifest's input files and ``OUT`` at the same
@@ -98,8 +98,11 @@ class FitOptions:
             raise InputError(f"align (--align) must be one of {', '.join(ALIGN_MODES)}, got {self.align!r}")
         if int(self.folds) < 2:
             raise InputError(f"folds (--folds) must be at least 2, got {self.folds}")
-        if not 0 <= int(self.direction_degree) <= 4:
-            raise InputError(f"direction_degree (--direction-degree) must be 0…4, got {self.direction_degree}")
+        from .direction_correction import MAX_DEGREE
+
+        if not (isinstance(self.direction_degree, int) and not isinstance(self.direction_degree, bool) and 0 <= self.direction_degree <= MAX_DEGREE):
+            raise InputError(f"direction_degree (--direction-degree) must be a whole number 0…{MAX_DEGREE}, "
+                             f"got {self.direction_degree!r}")
 
 
 @dataclass(frozen=True)

@@ -98,12 +98,6 @@ class DirectionCorrection:
                 "coefficients": self.coefficients.tolist()}
 
 
-def _objective(fitter: LungFitter, u, shifts) -> float:
-    _, _, surface_ms, lm_ms = fitter.residual_vector(u, shifts)
-    lm = fitter.landmark_weight * lm_ms if fitter.lm_targets else 0.0
-    return float(np.sqrt(surface_ms + lm))
-
-
 def _correspondence(fitter: LungFitter, u, shifts):
     """For the displacement ``u : (n, 3)`` and each target in the fit: per model vertex, the mean of
     its closest-point residuals (mm; its own closest point on the target, and the target samples
@@ -149,16 +143,12 @@ def fit_direction_correction(fitter: LungFitter, d0, c_force, shifts=None, *, de
     u0 = fitter.displacement(d_start, c_force)
     if u0 is None:
         raise InputError("direction correction: the starting directions give no usable model")
-    start = _objective(fitter, u0, shifts)
+    start = fitter.objective(u0, shifts)
     best = (start, coef.copy(), d_start, u0)
+    d, u = d_start, u0  # the field at the current coefficients
     since, taken = 0, 0
     for taken in range(1, int(steps) + 1):
-        raw = np.asarray(d0, float) + basis @ coef
-        length = np.linalg.norm(raw, axis=1)
-        d = corrected_directions(d0, basis, coef)
-        u = fitter.displacement(d, c_force)
-        if u is None:
-            break
+        length = np.linalg.norm(np.asarray(d0, float) + basis @ coef, axis=1)
         raw_u = force[:, None] * d
         gain = float(np.sum(u * raw_u) / max(np.sum(raw_u * raw_u), 1e-30))  # the calibration k
         rows, s, res = _correspondence(fitter, u, shifts)
@@ -174,7 +164,8 @@ def fit_direction_correction(fitter: LungFitter, d0, c_force, shifts=None, *, de
         u_new = fitter.displacement(d_new, c_force)
         if u_new is None:
             break
-        obj = _objective(fitter, u_new, shifts)
+        d, u = d_new, u_new
+        obj = fitter.objective(u, shifts)
         if obj < best[0] - 1e-6:
             best, since = (obj, coef.copy(), d_new, u_new), 0
         else:

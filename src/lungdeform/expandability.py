@@ -60,10 +60,9 @@ def fit_stiffness_field(fitter: LungFitter, c_dir, *, iterations: int = 20, smoo
     fitted to surfaces, matching the surface better moves the interior worse). Leaves ``fitter``'s
     stiffness unchanged.
     """
-    if directions is None:
-        _, parts = fitter.evaluate(c_dir, full=True, force=force)
-    else:
-        _, parts = fitter.evaluate_directions(directions, c_dir, force)
+    if directions is not None and force is None:
+        raise ConvergenceError("stiffness fit: corrected directions need the fitted c7…c9 (force)")
+    _, parts = fitter.evaluate(c_dir, full=True, force=force, directions=directions)
     if parts is None:
         raise ConvergenceError("stiffness fit: the direction constants give no usable model")
     hits = parts["hits"]
@@ -92,10 +91,7 @@ def fit_stiffness_if_better(fitter: LungFitter, c_dir, best, say: Callable[[str]
     previous = fitter.stiffness
     log_e = fit_stiffness_field(fitter, c_dir, force=force, directions=directions, **kwargs)
     fitter.set_stiffness(np.exp(log_e))
-    if directions is None:
-        obj = fitter.evaluate(c_dir, force=force, shifts=shifts)
-    else:
-        obj = fitter.evaluate_directions(directions, c_dir, force, shifts)[0]
+    obj = fitter.evaluate(c_dir, force=force, shifts=shifts, directions=directions)
     if not obj < best:
         fitter.set_stiffness(previous)
         say(f"stiffness field: RMS {obj:.3f} mm, not better than {best:.3f} mm: kept the previous one")

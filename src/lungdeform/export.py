@@ -358,7 +358,7 @@ def marker_anchors(model: Model, points: np.ndarray, labels=None, *, source: str
     ``distance_mm`` (to that surface), ``tidal_mm`` (3,) and ``landmark_corrected`` (whether the
     field includes the model's landmark correction).
     """
-    from .trajectory import place_points
+    from .trajectory import place_points, unit_displacements
 
     pts = np.asarray(points, float)
     if pts.ndim != 2 or pts.shape[1] != 3:
@@ -368,11 +368,9 @@ def marker_anchors(model: Model, points: np.ndarray, labels=None, *, source: str
     if len(labels) != len(pts):
         raise InputError(f"{source}: {len(labels)} labels for {len(pts)} markers")
     placement = place_points(model, pts, source=source)
-    tidal = np.empty_like(pts)
-    for name, lung in model.lungs.items():
-        idx = np.flatnonzero(placement.lungs == name)
-        if len(idx):
-            tidal[idx] = (lung.calibration_ml / lung.unit_ml) * lung.interior.displacement(pts[idx])
+    per_unit = unit_displacements(model, pts, placement)
+    cal = np.array([model.lungs[str(n)].calibration_ml / model.lungs[str(n)].unit_ml for n in placement.lungs])
+    tidal = cal[:, None] * per_unit
     out = []
     for j, (label, q) in enumerate(zip(labels, pts)):
         lung = model.lungs[str(placement.lungs[j])]

@@ -209,9 +209,10 @@ class FitResult:
         (:mod:`lungdeform.direction_correction`); :attr:`directions` and :attr:`displacement` include
         it when it was accepted.
     paper_displacement : (n, 3) float or None
-        With an accepted correction: ``u`` with the paper's directions (same stiffness, c7…c9).
+        With an accepted correction: ``u`` with the paper's directions (same final stiffness and
+        c7…c9).
     paper_objective_mm : float
-        The objective with the paper's directions, mm.
+        The objective with the paper's directions (final stiffness), mm.
     """
 
     constants: np.ndarray
@@ -483,14 +484,16 @@ class LungFitter:
         return correspond(self.p, d, self.prepared[self.calib].caster, max_distance=self.max_distance,
                           min_cosine=self.min_cosine)
 
-    def residuals(self, c_dir: np.ndarray, force=None, shifts=None, *, rays: bool = False) -> Evaluation:
+    def residuals(self, c_dir: np.ndarray, force=None, shifts=None, *, rays: bool = False,
+                  directions=None) -> Evaluation:
         """One forward evaluation (counted in :attr:`evaluations`) of direction constants
         ``c_dir (6,)``: directions, c7…c9 (``force``, or fitted to the ray magnitudes when None,
         steps 2–4), displacement and the residual vector of :meth:`residual_vector` for the targets
         translated by ``shifts : (k, 3)`` mm. ``rays``: cast the rays even when ``force`` is given
-        (for :attr:`Evaluation.hits`)."""
+        (for :attr:`Evaluation.hits`). ``directions (n, 3)``: unit directions to use instead of
+        those of ``c_dir`` (a corrected field, :mod:`lungdeform.direction_correction`)."""
         self.evaluations += 1
-        d = self.directions(c_dir)
+        d = self.directions(c_dir) if directions is None else np.asarray(directions, float)
         hits = self.rays(d) if force is None or rays else None
         c_force = self.ray_force_constants(d, hits) if force is None else np.asarray(force, float)
         u = None if c_force is None else self.displacement(d, c_force)
@@ -499,31 +502,25 @@ class LungFitter:
         r, residuals, surface_ms, lm_ms = self.residual_vector(u, shifts)
         return Evaluation(d, hits, c_force, u, r, residuals, surface_ms, lm_ms)
 
-    def evaluate(self, c_dir: np.ndarray, *, full: bool = False, force=None, shifts=None):
+    def evaluate(self, c_dir: np.ndarray, *, full: bool = False, force=None, shifts=None, directions=None):
         """Objective (mm) for direction constants ``c_dir (6,)``; with ``full`` also the parts.
 
         ``force``: c7…c9 to use (default: fitted to the ray magnitudes, steps 2–4);
-        ``shifts : (k, 3)`` mm: translations of the targets (see :meth:`residual_vector`)."""
-        ev = self.residuals(c_dir, force, shifts, rays=full)
+        ``shifts : (k, 3)`` mm: translations of the targets (see :meth:`residual_vector`);
+        ``directions``: as :meth:`residuals`."""
+        ev = self.residuals(c_dir, force, shifts, rays=full, directions=directions)
         if ev.u is None:
             return (np.inf, None) if full else np.inf
-        obj = self._objective(ev)
+        obj = self._combine(ev.surface_ms, ev.landmark_ms)
         return (obj, self._parts(ev, c_dir)) if full else obj
 
-    def evaluate_directions(self, d: np.ndarray, c_dir: np.ndarray, force, shifts=None):
-        """``(objective mm, parts)`` as :meth:`evaluate` with ``full``, for given unit directions
-        ``d (n, 3)`` (e.g. corrected, :mod:`lungdeform.direction_correction`) in place of those of
-        ``c_dir (6,)`` (still reported as c1…c6), and c7…c9 ``force (3,)``; rays cast along ``d``."""
-        self.evaluations += 1
-        u = self.displacement(d, force)
-        if u is None:
-            return np.inf, None
-        r, residuals, surface_ms, lm_ms = self.residual_vector(u, shifts)
-        ev = Evaluation(d, self.rays(d), np.asarray(force, float), u, r, residuals, surface_ms, lm_ms)
-        return self._objective(ev), self._parts(ev, c_dir)
+    def objective(self, u: np.ndarray, shifts=None) -> float:
+        """The objective (mm) of a displacement ``u (n, 3)`` mm per unit."""
+        _, _, surface_ms, lm_ms = self.residual_vector(u, shifts)
+        return self._combine(surface_ms, lm_ms)
 
-    def _objective(self, ev: Evaluation) -> float:
-        return float(np.sqrt(ev.surface_ms + (self.landmark_weight * ev.landmark_ms if self.lm_targets else 0.0)))
+    def _combine(self, surface_ms: float, landmark_ms: float) -> float:
+        return float(np.sqrt(surface_ms + (self.landmark_weight * landmark_ms if self.lm_targets else 0.0)))
 
     def _parts(self, ev: Evaluation, c_dir) -> dict:
         c_force = ev.force_constants
@@ -657,8 +654,12 @@ def fit_lung(
     if direction_degree:
         correction, log_e = _correct_directions(fitter, parts, best_x, shifts, direction_degree, log_e, say)
         if correction.accepted:
-            paper_u = parts["u"]
-            obj, parts = fitter.evaluate_directions(correction.directions, best_x, parts["constants"][6:], shifts)
+            c_force = parts["constants"][6:]
+            # the paper's directions with the final stiffness (the alternation may have refitted it)
+            paper_obj, paper_parts = fitter.evaluate(best_x, full=True, force=c_force, shifts=shifts)
+            paper_u = paper_parts["u"]
+            obj, parts = fitter.evaluate(best_x, full=True, force=c_force, shifts=shifts,
+                                         directions=correction.directions)
     w = np.where(parts["hits"].valid & fitter.keep, fitter.areas, 0.0)
     f_inv, c_inv = fitter.inverse_parts(np.nan_to_num(parts["hits"].distance), w)
     return FitResult(

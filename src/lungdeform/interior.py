@@ -24,12 +24,11 @@ correction 2.4 mm (``lungdeform validate itk-pair``).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
 
 import numpy as np
 
 from .errors import InputError
-from .interpolate import interpolation_weights
+from .interpolate import DisplacementField, displacement_field, interpolation_weights
 from .mesh import as_vertices
 
 #: Candidate smoothings (mm², thin-plate regularisation) of the landmark correction.
@@ -73,7 +72,9 @@ def select_smoothing(points, values, candidates=SMOOTHING_MM2, folds: int = 5, s
     v = as_vertices(values, "values")
     if len(p) < 10:
         return float(max(candidates))
-    parts = np.array_split(np.random.default_rng(seed).permutation(len(p)), min(int(folds), len(p)))
+    from .crossval import landmark_folds
+
+    parts = landmark_folds(len(p), min(int(folds), len(p)), seed)
     best, best_err = None, np.inf
     for sm in candidates:
         err = 0.0
@@ -114,52 +115,25 @@ class InteriorField:
 
     Attributes
     ----------
-    surface_points : (k, 3) float
-        End-exhale surface vertices, mm LPS (all, or a seeded subset of ``MAX_SURFACE_POINTS``).
-    surface_displacement : (k, 3) float
-        The model's displacement there, mm per unit.
-    landmarks : (m, 3) float
-        End-exhale landmarks of the correction, mm LPS (``m = 0``: no correction).
-    correction : (m, 3) float
-        Per-unit correction at the landmarks, mm (:func:`correction_per_unit`).
-    smoothing : float
-        Thin-plate smoothing of the correction, mm².
+    surface : DisplacementField
+        The thin-plate spline of the surface displacement (mm per unit) through the end-exhale
+        vertices (all, or a seeded subset of :data:`MAX_SURFACE_POINTS`).
+    landmark : DisplacementField or None
+        The thin-plate spline of the landmark correction (:func:`correction_per_unit`, mm per unit)
+        through the end-exhale landmarks, with its smoothing; None without landmarks.
     """
 
-    surface_points: np.ndarray
-    surface_displacement: np.ndarray
-    landmarks: np.ndarray
-    correction: np.ndarray
-    smoothing: float = 0.0
-
-    @cached_property
-    def _surface_spline(self):
-        from scipy.interpolate import RBFInterpolator
-
-        return RBFInterpolator(self.surface_points, self.surface_displacement, kernel="thin_plate_spline", degree=1)
-
-    @cached_property
-    def _landmark_spline(self):
-        from scipy.interpolate import RBFInterpolator
-
-        if len(self.landmarks) < 5:
-            return None
-        return RBFInterpolator(self.landmarks, self.correction, kernel="thin_plate_spline", degree=1,
-                               smoothing=self.smoothing)
+    surface: DisplacementField
+    landmark: DisplacementField | None = None
 
     @property
     def corrected(self) -> bool:
-        return len(self.landmarks) >= 5
+        return self.landmark is not None
 
     def displacement(self, points) -> np.ndarray:
         """``v : (q, 3) float`` mm per unit at ``points : (q, 3)`` mm LPS."""
-        q = as_vertices(points, "points")
-        if not np.all(np.isfinite(q)):
-            raise InputError("points contain NaN or infinity")
-        v = self._surface_spline(q)
-        if self._landmark_spline is not None:
-            v = v + self._landmark_spline(q)
-        return np.ascontiguousarray(v)
+        v = self.surface(points)
+        return v if self.landmark is None else np.ascontiguousarray(v + self.landmark(points))
 
     def positions(self, points, scale: float) -> np.ndarray:
         """``q + s·v(q) : (q, 3) float`` mm LPS."""
@@ -170,25 +144,12 @@ class InteriorField:
 def interior_field(vertices, displacement, landmarks=None, correction=None, smoothing: float = 0.0,
                    *, seed: int = 0) -> InteriorField:
     """An :class:`InteriorField` from a lung's ``vertices : (n, 3)`` mm and ``displacement : (n, 3)``
-    mm per unit, with an optional landmark ``correction : (m, 3)`` at ``landmarks : (m, 3)`` mm."""
-    p = as_vertices(vertices, "vertices")
-    u = as_vertices(displacement, "displacement")
-    if p.shape != u.shape:
-        raise InputError(f"vertices {p.shape} and displacement {u.shape} must have the same shape")
-    if len(p) > MAX_SURFACE_POINTS:
-        idx = np.sort(np.random.default_rng(seed).choice(len(p), MAX_SURFACE_POINTS, replace=False))
-        p, u = p[idx], u[idx]
-    if landmarks is None or correction is None:
-        lm = np.zeros((0, 3))
-        c = np.zeros((0, 3))
-    else:
-        lm = as_vertices(landmarks, "landmarks")
-        c = as_vertices(correction, "correction")
-        if lm.shape != c.shape:
-            raise InputError(f"landmarks {lm.shape} and correction {c.shape} must have the same shape")
-        if 0 < len(lm) < 5:
-            raise InputError(f"a landmark correction needs at least 5 landmarks, got {len(lm)}")
+    mm per unit, with an optional landmark ``correction : (m, 3)`` at ``landmarks : (m, 3)`` mm
+    (``smoothing`` mm²)."""
     if not (np.isfinite(smoothing) and smoothing >= 0):
         raise InputError(f"smoothing must be >= 0 mm², got {smoothing!r}")
-    return InteriorField(p, u, lm, c, float(smoothing))
-
+    surface = displacement_field(vertices, displacement, max_points=MAX_SURFACE_POINTS, seed=seed)
+    if landmarks is None or correction is None:
+        return InteriorField(surface)
+    m = len(np.asarray(landmarks))  # every landmark: the correction is never thinned
+    return InteriorField(surface, displacement_field(landmarks, correction, smoothing=float(smoothing), max_points=max(m, 1)))

@@ -154,9 +154,12 @@ def _lung(path: Path, name: str, data: dict) -> LungModel:
                              f"({', '.join(sorted(opt))}; expected {', '.join(_OPTIONAL)})")
     if opt:
         lm, cor = opt["landmarks"], opt["landmark_correction"]
-        if lm.ndim != 2 or lm.shape[1:] != (3,) or cor.shape != lm.shape:
+        if lm.ndim != 2 or lm.shape[1:] != (3,) or cor.shape != lm.shape or len(lm) < 5:
             raise ModelFileError(f"{path}: lung '{name}' landmarks {lm.shape} and landmark_correction "
-                                 f"{cor.shape} must both be (m, 3)")
+                                 f"{cor.shape} must both be (m, 3) with m >= 5")
+        sm = float(opt["landmark_smoothing"])
+        if not (np.all(np.isfinite(lm)) and np.all(np.isfinite(cor)) and np.isfinite(sm) and sm >= 0):
+            raise ModelFileError(f"{path}: lung '{name}' landmark correction holds NaN, infinity or a negative smoothing")
     surface = Surface(v, a["faces"].astype(np.int64), name)
     frame = LungFrame(str(a["side"]), a["frame_axes"], a["frame_lower"], a["frame_upper"])
     return LungModel(

@@ -27,7 +27,6 @@ Library code behind ``lungdeform fit``, ``lungdeform validate itk-pair`` and the
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -97,22 +96,26 @@ LANDMARK_ALIGNMENT_GAP_MM = 30.0
 LANDMARK_OUTSIDE_MM = 3.0
 
 
-def landmark_mask_warnings(points, image, path, limit: float = 0.05) -> list[str]:
+def landmark_mask_warnings(points, image, surface, path, limit: float = 0.05) -> list[str]:
     """A warning when more than ``limit`` of the landmarks ``points : (m, 3)`` mm lie more than
     :data:`LANDMARK_OUTSIDE_MM` outside the lung mask of their own ``image`` (files swapped, or in
     another frame; on the ITK pair every landmark is inside its own mask, 8–12 % are not inside
-    the other's)."""
-    from scipy import ndimage
+    the other's). Points off the mask are measured to the mask's ``surface`` (mm)."""
+    from lungdeform.distance import point_to_surface
 
     if image is None or len(points) == 0:
         return []
     mask = np.asarray(image.array) > 0
-    if not mask.any():
-        return []
-    outside = ndimage.distance_transform_edt(~mask, sampling=np.asarray(image.spacing, float)[::-1])
-    ijk = (np.asarray(points, float) - image.origin) @ np.asarray(image.direction) / image.spacing
-    i, j, k = np.clip(np.rint(ijk).astype(np.int64), 0, np.array(mask.shape[::-1]) - 1).T
-    far = outside[k, j, i] > LANDMARK_OUTSIDE_MM
+    pts = np.asarray(points, float)
+    ijk = np.rint((pts - image.origin) @ np.asarray(image.direction) / image.spacing).astype(np.int64)
+    shape = np.array(mask.shape[::-1])
+    inside = np.all((ijk >= 0) & (ijk < shape), axis=1)
+    i, j, k = ijk[inside].T
+    on = np.zeros(len(pts), bool)
+    on[np.flatnonzero(inside)] = mask[k, j, i]
+    far = np.zeros(len(pts), bool)
+    if (~on).any():
+        far[~on] = point_to_surface(pts[~on], surface.vertices, surface.faces) > LANDMARK_OUTSIDE_MM
     if far.mean() <= limit:
         return []
     return [f"{path}: {int(far.sum())} of {len(far)} landmarks lie more than {LANDMARK_OUTSIDE_MM:g} mm outside "
@@ -169,7 +172,7 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
     from lungdeform.errors import InputError
     from lungdeform.fit import MODES, fit_lung, to_lung_model
     from lungdeform.frame import SIDES
-    from lungdeform.atomic import write_bytes
+    from lungdeform.atomic import write_json
     from lungdeform.landmarks import read_elastix_points
     from lungdeform.model import Model
     from lungdeform.modelfile import provenance, save_model
@@ -236,7 +239,7 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
                 raise InputError(f"{p}: {len(pts)} landmarks, the end-exhale file has {len(lms[0])}")
         for p, pts, r in zip(landmarks, lms, read):
             check_landmarks(pts, r[3], p)
-            warnings += landmark_mask_warnings(pts, r[3], p)
+            warnings += landmark_mask_warnings(pts, r[3], r[0], p)
     # the landmark folds, split (and --folds checked) once, before any fitting
     lm_folds = landmark_folds(len(lms[0]), folds, parameter="--folds") if lms is not None and landmark_fit else None
 
@@ -333,7 +336,7 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
     interior = None
     if use_lm:  # the landmark correction of the interior field (lungdeform.interior), held out per fold
         say("interior landmark correction (cross-validated)")
-        interior = _interior_correction(fit_opt, rest, keep, lm_w, lms[0], aligned_lms, targets, lm_folds)
+        interior = _interior_correction(fit_opt, rest, lms[0], aligned_lms, targets, lm_folds)
 
     metrics = {"inputs": [str(p) for p in inputs], "side": side, "volumes_ml": vols, "volumes_given_ml": given,
                "warnings": warnings,
@@ -428,18 +431,19 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
                                           fit_kind=metrics["headline_fit"],
                                           interior_correction=interior is not None))
     save_model(out / "model.npz", model)
-    write_bytes(out / "metrics.json", json.dumps(finite_json(metrics), indent=2, default=_json, allow_nan=False).encode())
+    write_json(out / "metrics.json", metrics, strict=True, default=_json)
     write_report(out / "report.html", rest=rest, targets=targets, fits=fits, predictions=predictions,
                  metrics=metrics, headline=metrics["headline_fit"])
     return metrics
 
 
-def _interior_correction(fit, rest, keep, lm_w, landmarks, aligned, targets, folds) -> dict:
+def _interior_correction(fit, rest, landmarks, aligned, targets, folds) -> dict:
     """The interior field's landmark correction for ``fit`` (:mod:`lungdeform.interior`): held-out
-    landmark positions per target (k-fold), and the correction and smoothing from all landmarks."""
-    from lungdeform.interior import correction_per_unit, held_out_positions, select_smoothing
+    landmark positions per target (k-fold), and the correction and smoothing from all landmarks.
+    The surface-driven part is the one the saved model plays back (its vertices and displacement)."""
+    from lungdeform.interior import correction_per_unit, held_out_positions, interior_field, select_smoothing
 
-    unit = lm_w @ fit.displacement[keep]  # surface-driven displacement per unit at the landmarks
+    unit = interior_field(rest.vertices, fit.displacement).displacement(landmarks)  # mm per unit
     observed = [np.asarray(a) - landmarks for a in aligned]
     scales = [(tg.volume_ml - fit.volume_ee_ml) / fit.unit_ml for tg in targets]
     correction = correction_per_unit(observed, scales, unit)
@@ -470,13 +474,6 @@ def _bounding_boxes(rest, fit, surfaces, vols):
         dims = np.ptp(x, axis=0)
         model.append({"volume_ml": float(v), "dims_mm": dims.tolist(), "ratio": float(v * 1000.0 / np.prod(dims))})
     return {"observed": obs, "model": model}
-
-
-def finite_json(metrics):
-    """The metrics as strict JSON values (NaN and infinities become null)."""
-    from lungdeform.atomic import finite_json as clean
-
-    return clean(metrics)
 
 
 def _json(o):

@@ -71,42 +71,50 @@ def place_points(model, points, lung: str | None = None, *, limit_mm: float = OU
 
 def lung_scales(model, delta_ml) -> dict[str, np.ndarray]:
     """Per lung, ``s : (f,) float`` units at which its volume is exactly ``V_EE + share·ΔV``, for
-    ``delta_ml : (f,)`` mL of both lungs above end-exhale (the playback of ``lungdeform export``)."""
-    from .displacement import scale_for_volume
-    from .export import lung_shares
+    ``delta_ml : (f,)`` mL of both lungs above end-exhale: the playback of ``lungdeform export``
+    (its tidal weights :func:`lungdeform.export.tidal_weights` times the calibration's units)."""
+    from .export import lung_shares, tidal_weights
 
     dv = np.asarray(delta_ml, float).ravel()
     if not np.all(np.isfinite(dv)):
         raise InputError("volumes must be finite mL")
     shares = lung_shares(model)
-    return {name: np.array([scale_for_volume(lung.volume_poly, float(shares[name] * v)) for v in dv])
+    return {name: tidal_weights(lung, shares[name] * dv) * (lung.calibration_ml / lung.unit_ml)
             for name, lung in model.lungs.items()}
+
+
+def unit_displacements(model, points, placement: PointPlacement) -> np.ndarray:
+    """``v : (q, 3) float`` mm per unit: each point's displacement by its own lung's interior field
+    (:attr:`LungModel.interior`)."""
+    q = as_vertices(points, "points")
+    out = np.empty_like(q)
+    for name, lung in model.lungs.items():
+        idx = np.flatnonzero(placement.lungs == name)
+        if len(idx):
+            out[idx] = lung.interior.displacement(q[idx])
+    return out
 
 
 def point_trajectories(model, points, placement: PointPlacement, delta_ml) -> np.ndarray:
     """Positions ``(f, q, 3) float`` mm LPS of ``points : (q, 3)`` at ``delta_ml : (f,)`` mL of both
-    lungs above end-exhale, each moved by its lung's :attr:`LungModel.interior` field."""
+    lungs above end-exhale, each moved by its lung's interior field at its lung's scale."""
     q = as_vertices(points, "points")
     scales = lung_scales(model, delta_ml)
-    out = np.empty((len(scales[next(iter(scales))]), len(q), 3))
-    for name, s in scales.items():
-        idx = np.flatnonzero(placement.lungs == name)
-        if len(idx):
-            v = model.lungs[name].interior.displacement(q[idx])  # (k, 3) mm per unit
-            out[:, idx] = q[idx][None] + s[:, None, None] * v[None]
-    return out
+    v = unit_displacements(model, q, placement)
+    s = np.stack([scales[str(name)] for name in placement.lungs], axis=1)  # (f, q) units
+    return q[None] + s[:, :, None] * v[None]
 
 
 #: LPS axes as a clinician names them (x: right→left, y: anterior→posterior, z: inferior→superior).
 AXES = ("LR", "AP", "SI")
 
 
-def motion_summary(positions: np.ndarray) -> dict:
+def motion_summary(positions: np.ndarray, points) -> dict:
     """Per point of ``positions : (f, q, 3)`` mm: peak-to-peak range along LR, AP, SI and the
-    largest 3-D excursion from the first frame, mm."""
+    largest 3-D excursion from its end-exhale position ``points : (q, 3)`` mm."""
     p = np.asarray(positions, float)
     ptp = np.ptp(p, axis=0)  # (q, 3)
-    excursion = np.linalg.norm(p - p[:1], axis=2).max(axis=0)
+    excursion = np.linalg.norm(p - np.asarray(points, float)[None], axis=2).max(axis=0)
     return {"peak_to_peak_mm": {a: ptp[:, k].tolist() for k, a in enumerate(AXES)},
             "max_excursion_mm": excursion.tolist()}
 
@@ -131,7 +139,7 @@ def write_trajectories(out: Path, points, labels, placement: PointPlacement, pos
             w.writerow([t, f"{dv[f]:.6g}", j + 1, labels[j], placement.lungs[j],
                         *(f"{x:.4f}" for x in pos[f, j]), *(f"{x:.4f}" for x in disp[f, j])])
     paths = {"csv": write_bytes(Path(out) / "trajectories.csv", buf.getvalue().encode())}
-    summary = motion_summary(pos)
+    summary = motion_summary(pos, q)
     info = {"frame": "LPS mm, the end-exhale scan of the model", "frames": int(len(pos)),
             "points": [{"point": j + 1, "label": labels[j], "lung": str(placement.lungs[j]),
                         "inside": bool(placement.inside[j]), "distance_to_surface_mm": float(placement.distance_mm[j]),
@@ -184,7 +192,10 @@ def read_points(path) -> tuple[np.ndarray, list[str]]:
         first = next((line.strip().lower() for line in path.read_text(encoding="utf-8-sig").splitlines() if line.strip()), "")
     except (OSError, UnicodeDecodeError) as exc:
         raise ReadError(f"{path}: cannot read points ({exc})") from exc
-    if first in ("point", "index"):
+    if first == "index":
+        raise ReadError(f"{path}: an elastix 'index' point file holds voxel indices of an image; give the points "
+                        f"in world mm ('point' file or a CSV x_mm,y_mm,z_mm)")
+    if first == "point":
         pts = read_elastix_points(path)
         return pts, [f"point {i + 1}" for i in range(len(pts))]
     return read_markers_csv(path)

@@ -74,6 +74,8 @@ def test_track_over_a_preset_breath(model_file, points_csv, tmp_path):
 @pytest.mark.parametrize("args, message", [
     (["--volume-ml", "3000", "--preset", "normal"], "mutually exclusive"),
     (["--cycles", "2"], "--cycles applies to --preset only"),
+    (["--preset", "normal", "--cycles", "0"], "--cycles must be >= 1"),
+    (["--tidal-ml", "1e6"], "--tidal-ml must be a tidal volume"),
     (["--volume-ml", "-5"], "--volume-ml must be > 0"),
     (["--fps", "0"], "--fps must be > 0"),
     (["--lung", "middle"], "lung 'middle' is not in the model"),

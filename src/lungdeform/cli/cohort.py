@@ -17,6 +17,8 @@ from typing import Optional
 
 import typer
 
+from lungdeform.cli.common import DIRECTION_DEGREE_HELP
+
 #: Bar labels of the stages (lungdeform.cohort.STAGES).
 STAGE_LABELS = {"read": "read / segment", "align": "align", "fit": "fit + measure", "write": "write"}
 MAX_NOTES = 5
@@ -126,9 +128,9 @@ def register(apps) -> None:
                                   "joint: a translation per target fitted with the constants; none: inputs already in one "
                                   "frame (a synthetic cohort from synth-cohort: use none or joint)."),
         landmark_fit: bool = typer.Option(True, "--landmark-fit/--no-landmark-fit",
-                                          help="With landmarks: landmark-informed fit with k-fold cross-validation (slower)."),
+                                          help="With landmarks: the interior landmark correction and the landmark-informed comparison fits, k-fold cross-validated (slower)."),
         folds: int = typer.Option(5, "--folds", help="Folds of the landmark cross-validation."),
-        direction_degree: int = typer.Option(3, "--direction-degree", help="Degree of the smooth correction of the paper's directions fitted to the surfaces (0: the paper's directions only)."),
+        direction_degree: int = typer.Option(3, "--direction-degree", help=DIRECTION_DEGREE_HELP),
     ) -> None:
         """Fit every lung of a cohort in parallel on Dask; resumable (finished subjects are skipped).
 

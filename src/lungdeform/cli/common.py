@@ -76,3 +76,6 @@ def check_tidal_ml(value: float | None, option: str = "--tidal-ml") -> None:
                          f"breathing ≈ 500, a vital capacity 3000–6000), got {value:g}")
 
 
+#: Help of ``--direction-degree`` (fit, validate itk-pair, cohort).
+DIRECTION_DEGREE_HELP = ("Degree of the smooth correction of the paper's directions fitted to the surfaces "
+                         "(lungdeform.direction_correction; 0: the paper's directions only).")

@@ -10,6 +10,8 @@ from pathlib import Path
 
 import typer
 
+from lungdeform.cli.common import DIRECTION_DEGREE_HELP
+
 
 def register(apps) -> None:
     @apps.root.command("fit")
@@ -24,9 +26,9 @@ def register(apps) -> None:
         baselines: bool = typer.Option(True, "--baselines/--no-baselines", help="Measure the baselines too."),
         evaluations: int = typer.Option(300, "--evaluations", help="Optimiser budget (objective evaluations)."),
         landmark_fit: bool = typer.Option(True, "--landmark-fit/--no-landmark-fit",
-                                          help="With --landmarks: fit on surfaces + landmarks, landmark errors held out (k-fold)."),
+                                          help="With --landmarks: the model's interior landmark correction (stored in model.npz) and the landmark-informed comparison fits (slower), landmark errors held out (k-fold)."),
         folds: int = typer.Option(5, "--folds", help="Folds of the landmark cross-validation."),
-        direction_degree: int = typer.Option(3, "--direction-degree", help="Degree of the smooth correction of the paper's directions fitted to the surfaces (0: the paper's directions only)."),
+        direction_degree: int = typer.Option(3, "--direction-degree", help=DIRECTION_DEGREE_HELP),
         align: str = typer.Option("apex", "--align", help="apex: rigid alignment on the apex cap (scans with a table shift); "
                                   "joint: a translation per target fitted with the constants, started from apex; "
                                   "none: inputs already in one frame (e.g. synthetic)."),

@@ -28,7 +28,7 @@ def register(apps) -> None:
 
         from lungdeform import export as E
         from lungdeform import trajectory as T
-        from lungdeform.cli.common import output_dir
+        from lungdeform.cli.common import check_tidal_ml, output_dir
         from lungdeform.errors import InputError
         from lungdeform.modelfile import load_model
 
@@ -37,6 +37,9 @@ def register(apps) -> None:
             raise InputError(f"{' and '.join(given)} are mutually exclusive: give one volume schedule")
         if cycles is not None and preset is None:
             raise InputError("--cycles applies to --preset only")
+        if cycles is not None and cycles < 1:
+            raise InputError(f"--cycles must be >= 1, got {cycles}")
+        check_tidal_ml(tidal_ml)
         if tidal_ml is not None and (volume_ml or curve is not None):
             raise InputError("--tidal-ml applies to --preset or the plain cycle")
         if not (np.isfinite(fps) and fps > 0):
@@ -54,6 +57,8 @@ def register(apps) -> None:
         else:
             if curve is not None:
                 trace = E.read_volume_csv(curve)
+                if trace.shifted_ml:
+                    typer.echo(f"{curve}: volume_ml reads as absolute; subtracted its minimum {trace.shifted_ml:.1f} mL")
             elif preset is not None:
                 from lungdeform.presets import get_preset
 
@@ -72,7 +77,7 @@ def register(apps) -> None:
             "landmark_correction": corrected,
             "interior_field": "thin-plate spline of the surface displacement"
                               + (" plus the fit's landmark correction" if any(corrected.values()) else "")})
-        summary = T.motion_summary(positions)
+        summary = T.motion_summary(positions, pts)
         typer.echo(f"{len(pts)} point(s), {len(delta)} frame(s): {source}")
         for j, label in enumerate(labels[:20]):
             where = "inside" if placement.inside[j] else f"outside by {placement.distance_mm[j]:.1f} mm"
