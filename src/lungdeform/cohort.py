@@ -28,8 +28,8 @@ workers through Dask's event log; the stage is read from run_fit's progress mess
 Fit options (:class:`FitOptions`, part of the digest): the budget, baselines, grid and stiffness,
 ``align`` (``apex`` for scans with a table shift; ``none`` or ``joint`` for inputs already in one
 frame, e.g. a synthetic cohort from ``lungdeform synth-cohort``, whose truth the apex alignment
-would shift), ``landmark_fit`` / ``folds`` (with landmarks, the interior landmark correction and the
-landmark-informed comparison fits with their k-fold cross-validation; off: much faster) and
+would shift), ``landmark_fit`` / ``folds`` (with landmarks, the interior landmark correction with its
+k-fold cross-validation) and
 ``direction_degree``. ``result.json``'s ``constants`` are those of the fit ``model.npz`` holds
 (``fit_kind``: the key of that fit in ``metrics.json``'s ``fit``, ``optimizer``).
 
@@ -83,7 +83,7 @@ class FitOptions:
     #: how targets reach the end-exhale frame: "apex", "joint" or "none" (lungdeform.pipeline.ALIGN_MODES);
     #: synthetic cohorts (already in one frame) want "none" or "joint"
     align: str = "apex"
-    #: with landmarks: the landmark-informed fit and its k-fold cross-validation (``folds`` folds)
+    #: with landmarks: the interior landmark correction, cross-validated over ``folds`` folds
     landmark_fit: bool = True
     folds: int = 5
     #: degree of the smooth correction of the paper's directions (lungdeform.direction_correction; 0: none)

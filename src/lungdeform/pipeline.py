@@ -143,7 +143,7 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
             stiffness: bool = False, baselines: bool = True, max_evaluations: int = 300,
             command: str = "fit", progress=None, landmark_fit: bool = True, folds: int = 5,
             landmark_weight: float = 1.0, align: str = "apex", mode: str = "optimizer",
-            direction_degree: int = DEFAULT_DEGREE) -> dict:
+            direction_degree: int = DEFAULT_DEGREE, landmark_comparisons: bool = False) -> dict:
     """Run the whole pipeline; write model.npz, metrics.json and report.html in ``out``; return
     the metrics dictionary.
 
@@ -151,11 +151,15 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
     fit. With landmarks and ``landmark_fit`` it is the same surface fit whose interior field carries
     the landmark correction (:mod:`lungdeform.interior`; stored in ``model.npz``), with landmark
     errors measured on landmarks held out from the correction (``folds``-fold); the surface-driven
-    field alone is reported as ``model_surface_only``, the landmark-informed fit of c1…c9
-    (:func:`lungdeform.crossval.cross_validate_landmarks`) as ``model_landmark_fit``, and the
-    landmark-informed references ``affine_landmarks`` and ``landmarks_tps`` are scored on the same
+    field alone is reported as ``model_surface_only``, the landmark-informed fit of c1…c9 as
+    ``model_landmark_fit`` (with ``landmark_comparisons``), and the landmark-informed references ``affine_landmarks`` and ``landmarks_tps`` are scored on the same
     folds. ``metrics["protocols"]`` says, per method, what
     it saw and how its landmark error was measured.
+
+    ``landmark_comparisons`` (with landmarks): also run the landmark-informed fits of c1…c9
+    (:func:`lungdeform.crossval.cross_validate_landmarks`, ``folds`` + 1 fits, and as many again with
+    ``stiffness``) as comparison rows ``model_landmark_fit`` / ``model_landmarks_stiffness``; slow,
+    so off by default (``validate itk-pair`` turns it on).
 
     ``direction_degree``: the smooth correction of the directions fitted after the constants
     (:mod:`lungdeform.direction_correction`; 0: the paper's directions only); with it, the paper's
@@ -312,7 +316,7 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
     lm0 = lms[0] if lms is not None else None
     lm_w = B.landmark_matrix(rest, lm0, keep) if lms is not None else None
     cv, cv_stiff = None, None
-    if use_lm:
+    if use_lm and landmark_comparisons:
         lm_targets = {ti: aligned_lms[ti] for ti in range(len(targets))}
         say(f"landmark-informed fit ({folds}-fold cross-validation over {len(lms[0])} landmarks)")
         cv = cross_validate_landmarks(rest, side, targets, lms[0], lm_targets, folds=lm_folds, keep=keep,
@@ -353,6 +357,7 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
                                   f"(lungdeform.interior): landmarks moved by the surface-driven thin-plate field "
                                   f"plus a thin-plate correction through the training landmarks' residual motion; "
                                   f"held-out landmark errors ({folds}-fold)")
+        if cv is not None:
             methods["model_landmark_fit"] = (cv.final.positions_at(rest, tg.volume_ml), cv.predicted[ti])
             protocols["model_landmark_fit"] = (f"landmark-informed fit: c1…c9 (paper directions) on the surfaces and the "
                                                f"training landmarks, landmarks moved by the surface-driven field only; "
@@ -414,10 +419,11 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
     metrics["fit"]["optimizer"]["uniform_objective_rms_mm"] = fit_opt.uniform_objective_mm
     if use_lm:
         metrics["landmark_cv"] = {"folds": int(folds), "landmarks": int(len(lms[0])), "seed": 0,
-                                  "landmark_weight": float(landmark_weight),
-                                  "fold_constants": cv.fold_constants.tolist(),
-                                  "fold_constants_spread": cv.fold_constants.std(axis=0).tolist(),
                                   "interior_smoothing_mm2": interior["smoothing"]}
+        if cv is not None:
+            metrics["landmark_cv"].update(landmark_weight=float(landmark_weight),
+                                          fold_constants=cv.fold_constants.tolist(),
+                                          fold_constants_spread=cv.fold_constants.std(axis=0).tolist())
     metrics["bounding_box"] = _bounding_boxes(rest, headline, surfaces, vols)
     metrics["seconds"] = time.perf_counter() - t_start
 

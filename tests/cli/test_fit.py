@@ -141,7 +141,7 @@ def test_fit_with_landmarks_is_held_out(tmp_path, pair, capsys):
     lb = write_elastix_points(tmp_path / "ei.txt", lm + interpolation_weights(lung.vertices, lm) @ u)
     out = tmp_path / "out"
     assert main(["fit", str(a), str(b), "--side", "right", "--out", str(out), "--evaluations", "150",
-                 "--landmarks", str(la), "--landmarks", str(lb), "--folds", "3"]) == 0
+                 "--landmarks", str(la), "--landmarks", str(lb), "--folds", "3", "--landmark-comparisons"]) == 0
     m = json.loads((out / "metrics.json").read_text())
     assert m["headline_fit"] == "optimizer" and m["interior_correction"] and m["landmark_cv"]["folds"] == 3
     for name in ("model", "model_surface_only", "model_landmark_fit", "affine_landmarks", "landmarks_tps", "no_motion"):
@@ -153,6 +153,11 @@ def test_fit_with_landmarks_is_held_out(tmp_path, pair, capsys):
     # the model file carries the correction, so 'lungdeform track' moves interior points with it
     saved = load_model(out / "model.npz").lungs["right"]
     assert saved.landmarks.shape == saved.landmark_correction.shape == (12, 3) and saved.interior.corrected
+    # without --landmark-comparisons: the correction only, no landmark-informed fits
+    assert main(["fit", str(a), str(b), "--side", "right", "--out", str(tmp_path / "quick"), "--evaluations", "60",
+                 "--no-baselines", "--landmarks", str(la), "--landmarks", str(lb), "--folds", "3"]) == 0
+    q = json.loads((tmp_path / "quick" / "metrics.json").read_text())
+    assert q["interior_correction"] and "landmarks" not in q["fit"] and "model_landmark_fit" not in q
     capsys.readouterr()
     assert main(["fit", str(a), str(b), "--side", "right", "--out", str(tmp_path / "o2"),
                  "--landmarks", str(la), "--landmarks", str(lb), "--folds", "20"]) == 2

@@ -128,7 +128,7 @@ def register(apps) -> None:
                                   "joint: a translation per target fitted with the constants; none: inputs already in one "
                                   "frame (a synthetic cohort from synth-cohort: use none or joint)."),
         landmark_fit: bool = typer.Option(True, "--landmark-fit/--no-landmark-fit",
-                                          help="With landmarks: the interior landmark correction and the landmark-informed comparison fits, k-fold cross-validated (slower)."),
+                                          help="With landmarks: the interior landmark correction, k-fold cross-validated."),
         folds: int = typer.Option(5, "--folds", help="Folds of the landmark cross-validation."),
         direction_degree: int = typer.Option(3, "--direction-degree", help=DIRECTION_DEGREE_HELP),
     ) -> None:

@@ -97,7 +97,7 @@ def register(apps) -> None:
         metrics = run_fit([fixed, moving], side="right", out=folder, landmarks=[lm_f, lm_m], grid=grid,
                           stiffness=stiffness, max_evaluations=evaluations, command="validate itk-pair",
                           progress=say, landmark_fit=landmark_fit, folds=folds,
-                          direction_degree=direction_degree)
+                          direction_degree=direction_degree, landmark_comparisons=landmark_fit)
         rate, faces = rays_per_second(itk_right_lung(), 1_000_000)
         metrics["ray_throughput"] = {"rays_per_s": rate, "rays": 1_000_000, "faces": faces,
                                      "surface": "embedded itk_right_lung"}
