@@ -90,16 +90,9 @@ def _closest_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
         e = (d4 - d3) + (d5 - d6)
         t = (d4 - d3) / e if e != 0.0 else 0.0
         return bx + t * (cx - bx), by + t * (cy - by), bz + t * (cz - bz)
-    denom = va + vb + vc
-    if denom == 0.0:  # degenerate triangle: the nearest corner
-        da = apx * apx + apy * apy + apz * apz
-        db = bpx * bpx + bpy * bpy + bpz * bpz
-        dc = cpx * cpx + cpy * cpy + cpz * cpz
-        if da <= db and da <= dc:
-            return ax, ay, az
-        if db <= dc:
-            return bx, by, bz
-        return cx, cy, cz
+    denom = va + vb + vc  # = |ab × ac|²: zero only for a zero-area triangle (rounding)
+    if denom == 0.0:
+        return _closest_on_degenerate(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz)
     v = vb / denom
     w = vc / denom
     return ax + abx * v + acx * w, ay + aby * v + acy * w, az + abz * v + acz * w
