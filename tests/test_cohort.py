@@ -303,5 +303,14 @@ def test_refuses_bad_options_and_a_busy_output(tmp_path, cohort):
     with C._exclusive(busy):
         with pytest.raises(InputError, match="in use by another cohort run"):
             run_cohort(cohort, busy, processes=False)
-    with pytest.raises(InputError, match=r"max_evaluations \(--evaluations\) must be at least 1"):
+    with pytest.raises(InputError, match=r"max_evaluations \(--evaluations\) must be a whole number >= 1"):
         FitOptions(max_evaluations=0)
+    # no silent coercion: fractions and strings are refused, numpy integers accepted
+    for bad, match in (({"folds": 2.9}, "folds"), ({"direction_degree": "3"}, "direction_degree"),
+                       ({"landmark_fit": "no"}, "landmark_fit"), ({"max_evaluations": True}, "max_evaluations")):
+        with pytest.raises(InputError, match=match):
+            FitOptions(**bad)
+    numpy_ints = FitOptions(direction_degree=np.int64(2), folds=np.int64(3))
+    assert type(numpy_ints.direction_degree) is int and numpy_ints.folds == 3
+    job = read_manifest(cohort).jobs[0]
+    assert input_digest(job, numpy_ints) == input_digest(job, FitOptions(direction_degree=2, folds=3))

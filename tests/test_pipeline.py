@@ -43,6 +43,13 @@ def test_landmarks_outside_their_own_mask_are_reported(tmp_path):
     w = landmark_mask_warnings(pts + np.array([0, 0, 15.0]), img, surface, "ee.txt")
     assert len(w) == 1 and w[0].startswith("ee.txt: ") and "outside the lung mask of mask.mha" in w[0]
     assert landmark_mask_warnings(pts, None, None, "ee.txt") == []  # a mesh input: nothing to check
+    # a hole in the mask (a vessel left out of a user's mask) is inside the lung: landmarks there
+    # are not outside, although their voxels are off the mask
+    holed = a.copy()
+    holed[16:24, 16:24, 16:24] = 0
+    img2 = Image(holed, np.ones(3), np.array([-5.0, 0, 0]), np.eye(3), "holed.mha")
+    in_hole = np.random.default_rng(5).uniform(12, 18, size=(10, 3))  # world = index (y, z); x index − 5
+    assert landmark_mask_warnings(np.vstack([pts, in_hole]), img2, extract_surface(img2).surface, "ee.txt") == []
 
 
 def test_swapped_itk_landmark_files_are_reported(data_dir):

@@ -58,6 +58,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable
 
+import numpy as np
+
 from .atomic import write_json
 from .errors import InputError
 from .manifest import Job, read_manifest
@@ -90,19 +92,28 @@ class FitOptions:
     direction_degree: int = 3
 
     def __post_init__(self):
+        from .direction_correction import MAX_DEGREE
         from .pipeline import ALIGN_MODES
 
-        if int(self.max_evaluations) < 1:
-            raise InputError(f"max_evaluations (--evaluations) must be at least 1, got {self.max_evaluations}")
+        def whole(x) -> bool:
+            return isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_))
+
+        for name in ("baselines", "grid", "stiffness", "landmark_fit"):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise InputError(f"{name} must be True or False, got {getattr(self, name)!r}")
+        if not (whole(self.max_evaluations) and self.max_evaluations >= 1):
+            raise InputError(f"max_evaluations (--evaluations) must be a whole number >= 1, got {self.max_evaluations!r}")
         if self.align not in ALIGN_MODES:
             raise InputError(f"align (--align) must be one of {', '.join(ALIGN_MODES)}, got {self.align!r}")
-        if int(self.folds) < 2:
-            raise InputError(f"folds (--folds) must be at least 2, got {self.folds}")
-        from .direction_correction import MAX_DEGREE
-
-        if not (isinstance(self.direction_degree, int) and not isinstance(self.direction_degree, bool) and 0 <= self.direction_degree <= MAX_DEGREE):
+        if not (whole(self.folds) and self.folds >= 2):
+            raise InputError(f"folds (--folds) must be a whole number >= 2, got {self.folds!r}")
+        if not (whole(self.direction_degree) and 0 <= self.direction_degree <= MAX_DEGREE):
             raise InputError(f"direction_degree (--direction-degree) must be a whole number 0…{MAX_DEGREE}, "
                              f"got {self.direction_degree!r}")
+        for name in ("max_evaluations", "folds", "direction_degree"):  # plain ints: the digest is JSON
+            object.__setattr__(self, name, int(getattr(self, name)))
+        for name in ("baselines", "grid", "stiffness", "landmark_fit"):
+            object.__setattr__(self, name, bool(getattr(self, name)))
 
 
 @dataclass(frozen=True)
@@ -239,7 +250,7 @@ def _result(job: Job, status: str, digest: str, seconds: float, *, metrics: dict
             error: BaseException | None = None) -> dict:
     m = metrics or {}
     model = m.get("model", {})
-    # the constants of the fit model.npz holds (with landmarks: the landmark-informed fit)
+    # the constants of the fit model.npz holds (metrics['headline_fit'], the optimiser's)
     fit_kind = m.get("headline_fit", "optimizer") if metrics else None
     headline = m.get("fit", {}).get(fit_kind, {})
     constants = headline.get("constants") if metrics else None

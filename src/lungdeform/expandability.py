@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Callable
 import numpy as np
 from scipy import sparse
 
-from .errors import ConvergenceError
+from .errors import ConvergenceError, InputError
 from .solve import ForceSolver
 from .transfer import local_transfer
 
@@ -61,7 +61,7 @@ def fit_stiffness_field(fitter: LungFitter, c_dir, *, iterations: int = 20, smoo
     stiffness unchanged.
     """
     if directions is not None and force is None:
-        raise ConvergenceError("stiffness fit: corrected directions need the fitted c7…c9 (force)")
+        raise InputError("stiffness fit: corrected directions need the fitted c7…c9 (force)")
     _, parts = fitter.evaluate(c_dir, full=True, force=force, directions=directions)
     if parts is None:
         raise ConvergenceError("stiffness fit: the direction constants give no usable model")

@@ -657,7 +657,7 @@ def fit_lung(
             c_force = parts["constants"][6:]
             # the paper's directions with the final stiffness (the alternation may have refitted it)
             paper_obj, paper_parts = fitter.evaluate(best_x, full=True, force=c_force, shifts=shifts)
-            paper_u = paper_parts["u"]
+            paper_u = None if paper_parts is None else paper_parts["u"]
             obj, parts = fitter.evaluate(best_x, full=True, force=c_force, shifts=shifts,
                                          directions=correction.directions)
     w = np.where(parts["hits"].valid & fitter.keep, fitter.areas, 0.0)

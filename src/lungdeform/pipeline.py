@@ -18,9 +18,10 @@ Library code behind ``lungdeform fit``, ``lungdeform validate itk-pair`` and the
 4. fit (:func:`lungdeform.fit.fit_lung`), optimiser and optionally the grid mode, and the
    baselines (:mod:`lungdeform.baselines`), all measured with the same metrics, crop faces left out;
    with landmarks, the headline ``model`` is the surface fit with the interior landmark correction
-   (:mod:`lungdeform.interior`), and the landmark-informed fit of c1…c9
-   (:func:`lungdeform.crossval.cross_validate_landmarks`) and references are reported beside it, all
-   scored on held-out landmarks (k-fold); with ``"joint"`` the translations of the surface-only fit move the targets (and their
+   (:mod:`lungdeform.interior`), with the landmark-informed references (and, with
+   ``landmark_comparisons``, the landmark-informed fit of c1…c9,
+   :func:`lungdeform.crossval.cross_validate_landmarks`) beside it, all scored on held-out
+   landmarks (k-fold); with ``"joint"`` the translations of the surface-only fit move the targets (and their
    landmarks) before everything after it;
 5. write ``model.npz`` (docs/MODEL_FORMAT.md), ``metrics.json`` and ``report.html``.
 """
@@ -102,6 +103,7 @@ def landmark_mask_warnings(points, image, surface, path, limit: float = 0.05) ->
     another frame; on the ITK pair every landmark is inside its own mask, 8–12 % are not inside
     the other's). Points off the mask are measured to the mask's ``surface`` (mm)."""
     from lungdeform.distance import point_to_surface
+    from lungdeform.mesh import winding_numbers
 
     if image is None or len(points) == 0:
         return []
@@ -114,8 +116,11 @@ def landmark_mask_warnings(points, image, surface, path, limit: float = 0.05) ->
     on = np.zeros(len(pts), bool)
     on[np.flatnonzero(inside)] = mask[k, j, i]
     far = np.zeros(len(pts), bool)
-    if (~on).any():
-        far[~on] = point_to_surface(pts[~on], surface.vertices, surface.faces) > LANDMARK_OUTSIDE_MM
+    off = np.flatnonzero(~on)
+    if len(off):  # off the mask's voxels: outside only if also outside its closed surface (holes count as in)
+        q = pts[off]
+        far[off] = ((winding_numbers(q, surface.vertices, surface.faces) < 0.5)
+                    & (point_to_surface(q, surface.vertices, surface.faces) > LANDMARK_OUTSIDE_MM))
     if far.mean() <= limit:
         return []
     return [f"{path}: {int(far.sum())} of {len(far)} landmarks lie more than {LANDMARK_OUTSIDE_MM:g} mm outside "
@@ -419,10 +424,10 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
     metrics["fit"]["optimizer"]["uniform_objective_rms_mm"] = fit_opt.uniform_objective_mm
     if use_lm:
         metrics["landmark_cv"] = {"folds": int(folds), "landmarks": int(len(lms[0])), "seed": 0,
+                                  "landmark_weight": float(landmark_weight),
                                   "interior_smoothing_mm2": interior["smoothing"]}
         if cv is not None:
-            metrics["landmark_cv"].update(landmark_weight=float(landmark_weight),
-                                          fold_constants=cv.fold_constants.tolist(),
+            metrics["landmark_cv"].update(fold_constants=cv.fold_constants.tolist(),
                                           fold_constants_spread=cv.fold_constants.std(axis=0).tolist())
     metrics["bounding_box"] = _bounding_boxes(rest, headline, surfaces, vols)
     metrics["seconds"] = time.perf_counter() - t_start

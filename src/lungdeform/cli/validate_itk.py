@@ -14,7 +14,7 @@ and the landmarks): the surface fit with the interior landmark correction
 (:mod:`lungdeform.interior`), whose landmark errors are measured on landmarks held out from the
 correction (5-fold). Its surface is the fit of c1…c9, the stiffness field and the direction
 correction (:mod:`lungdeform.direction_correction`); ``model_surface_only`` is the same field with
-no landmark used at all, ``model_paper_directions`` the field before the direction correction,
+no landmark used at all, ``model_paper_directions`` the paper's directions with the same stiffness,
 ``model_uniform_stiffness`` the paper's model (uniform stiffness, the paper's directions);
 ``model_landmark_fit`` fits c1…c9 on the surfaces and the training landmarks and moves landmarks by
 its surface only. The issue's baselines use the
