@@ -190,11 +190,16 @@ def test_fit_job_failure_is_a_result(tmp_path, cohort):
     assert "ReadError" in (folder / "traceback.txt").read_text()
 
 
-def test_input_digest_tracks_files_and_options(tmp_path, cohort):
+def test_input_digest_tracks_files_and_options(tmp_path, cohort, monkeypatch):
     job = read_manifest(cohort).jobs[0]
     d = input_digest(job, FAST)
     assert input_digest(job, FAST) == d
     assert input_digest(job, FitOptions(max_evaluations=61, baselines=False)) != d
+    import lungdeform
+
+    monkeypatch.setattr(lungdeform, "__version__", "99.0.0")  # an upgrade re-fits
+    assert input_digest(job, FAST) != d
+    monkeypatch.undo()
     st = job.inputs[1].stat()
     os.utime(job.inputs[1], ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000_000))
     assert input_digest(job, FAST) != d

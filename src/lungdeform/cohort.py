@@ -152,8 +152,11 @@ def job_folder(out: Path, job: Job) -> Path:
 
 def input_digest(job: Job, options: FitOptions) -> str:
     """SHA-256 of what a job's result depends on: each input's and landmark file's absolute path,
-    size and modification time (a DICOM folder: every file in it), the volumes, the order and the
-    fit options."""
+    size and modification time (a DICOM folder: every file in it), the volumes, the order, the
+    fit options and the lungdeform version (an upgrade re-fits: results from another version are
+    not reused)."""
+    from . import __version__
+
     def stat(p: Path):
         p = Path(p)
         if p.is_dir():
@@ -162,7 +165,8 @@ def input_digest(job: Job, options: FitOptions) -> str:
 
     doc = {"subject": job.subject, "side": job.side, "inputs": [stat(p) for p in job.inputs],
            "landmarks": [stat(p) for p in job.landmarks] if job.landmarks else None,
-           "volumes_ml": job.volumes_ml, "ordered_by": job.ordered_by, "options": asdict(options)}
+           "volumes_ml": job.volumes_ml, "ordered_by": job.ordered_by, "options": asdict(options),
+           "lungdeform": __version__}
     return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()
 
 
