@@ -477,3 +477,18 @@ def test_glb_in_blender(model, tmp_path):
         assert mesh["shape_keys"] == ["Basis", *E.TARGET_NAMES]
         expected = lung.volume_ee_ml + shares[name] * E.plain_cycle(500, 4.0).sample(times)
         np.testing.assert_allclose(np.array(mesh["volume_mm3"]) / 1000, expected, rtol=1e-5)
+
+
+def test_provenance_with_nan_exports_as_strict_json(tmp_path):
+    # a fitted model's provenance holds NaN (e.g. no landmark error without landmarks): the glb's
+    # JSON and the model file's provenance must still be strict JSON (null), or glTF readers fail
+    from lungdeform.model import Model
+    from lungdeform.modelfile import load_model, save_model
+
+    m = two_lungs(2)
+    nan_model = Model(dict(m.lungs), {"fit": {"landmark_rms_in_fit_mm": float("nan"), "objective": 1.5}})
+    doc, _ = _glb_json(E.glb_bytes(nan_model, E.plain_cycle()))
+    fit = doc["extras"]["lungdeform"]["provenance"]["fit"]  # (the glTF writer drops null members)
+    assert fit.get("landmark_rms_in_fit_mm") is None and fit["objective"] == 1.5
+    back = load_model(save_model(tmp_path / "nan.npz", nan_model))
+    assert back.provenance["fit"]["landmark_rms_in_fit_mm"] is None

@@ -74,7 +74,7 @@ import numpy as np
 
 from .constants import GRAVITY, STEPS_PER_S, TIDAL_VOLUME_ML
 from .displacement import scale_for_volume, smallest_positive_root
-from .atomic import write_bytes
+from .atomic import finite_json, write_bytes
 from .errors import InputError, LungdeformError, ReadError
 from .force import force_weights
 from .mesh import vertex_normals
@@ -511,7 +511,8 @@ def glb_bytes(model: Model, trace: VolumeTrace | None = None, markers: list[dict
         "lungs": [m["lung"] for m in lungs_meta],
         "markers": markers or [],
         "marker_motion": MARKER_MOTION,
-        "provenance": json.loads(json.dumps(model.provenance, default=str)),
+        # strict JSON: a fit's provenance holds NaN (e.g. no landmark error), which glTF's JSON refuses
+        "provenance": finite_json(json.loads(json.dumps(model.provenance, default=str))),
     }}
     data = b"".join(blob.parts)
     gl.buffers[0].byteLength = len(data)

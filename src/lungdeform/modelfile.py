@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import atomic_path
+from .atomic import atomic_path, finite_json
 from .errors import ModelFileError
 from .frame import LungFrame
 from .mesh import Surface
@@ -86,7 +86,7 @@ def save_model(path, model: Model) -> Path:
         "schema": np.array(SCHEMA),
         "schema_version": np.array(SCHEMA_VERSION),
         "lungs": np.array(model.names),
-        "provenance": np.array(json.dumps(model.provenance, default=str)),
+        "provenance": np.array(json.dumps(finite_json(model.provenance), default=str, allow_nan=False)),
     }
     for name, lung in model.lungs.items():
         for key, value in lung_arrays(lung).items():

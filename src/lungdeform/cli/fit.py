@@ -22,7 +22,7 @@ def register(apps) -> None:
         volumes: str = typer.Option(None, "--volumes", help="Lung volumes in mL, comma-separated (default: measured from the surfaces)."),
         landmarks: list[Path] = typer.Option(None, "--landmarks", help="elastix point-set file per input (world mm), rows corresponding."),
         grid: bool = typer.Option(False, "--grid", help="Also run the paper's grid search (step 0.01) for comparison."),
-        stiffness: bool = typer.Option(False, "--stiffness", help="Also fit a heterogeneous stiffness field (inverse expandability)."),
+        stiffness: bool = typer.Option(True, "--stiffness/--no-stiffness", help="Fit a heterogeneous stiffness field (inverse expandability), kept only if it lowers the objective; --no-stiffness: uniform, faster."),
         baselines: bool = typer.Option(True, "--baselines/--no-baselines", help="Measure the baselines too."),
         evaluations: int = typer.Option(300, "--evaluations", help="Optimiser budget (objective evaluations)."),
         landmark_fit: bool = typer.Option(True, "--landmark-fit/--no-landmark-fit",
