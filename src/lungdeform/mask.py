@@ -473,7 +473,10 @@ def extract_surface(
 
     t0 = time.perf_counter()
     if target_vertices is not None and target_vertices < len(v):
-        v, f, cleaned = decimate(v, f, target_vertices)
+        try:
+            v, f, cleaned = decimate(v, f, target_vertices)
+        except MeshError as exc:
+            raise MeshError(f"{name or image.source}: {exc}") from exc
         notes.append(f"decimated {n_mc} -> {len(v)} vertices")
         notes.extend(cleaned)
     t["decimate"] = time.perf_counter() - t0
@@ -562,8 +565,8 @@ def decimate(
     ``2 * target_vertices``. fast-simplification now and then folds two sheets onto one edge
     (edges with 4 faces) that cleanup cannot undo without opening the surface; the result is
     then checked with :func:`check_surface` and, if it fails, decimation is rerun with the
-    target nudged by 1 %, 2 %, ... 6 % and then with aggressiveness 5 (deterministic; at most
-    22 tries; one is enough for most targets). Returns
+    target nudged by 1 %, 2 %, ... 6 % and then with aggressiveness 5, then with targets 10–30 %
+    smaller (deterministic; at most 26 tries; one is enough for most targets). Returns
     ``(vertices, faces, notes)``; raises :class:`MeshError` if no try gives a valid surface.
     """
     import fast_simplification
@@ -574,7 +577,10 @@ def decimate(
     v64 = np.array(vertices, dtype=np.float64, order="C")  # writable copies: the binding refuses
     f32 = np.array(faces, dtype=np.int32, order="C")  # read-only arrays (Surface's)
     errors = []
+    # then coarser targets (a slit hole a few percent either side can persist; measured on the
+    # POPI right lung, 162k vertices: every target from 18,000 to 22,000 failed, 17,000 passed)
     tries = [(nudge, agg) for agg in (7, 5) for nudge in (0, 1, -1, 2, -2, 3, -3, 4, -4, 6, -6)]
+    tries += [(nudge, 7) for nudge in (-10, -15, -20, -30)]
     for nudge, agg in tries:
         target = int(round(target_vertices * (1 + nudge / 100)))
         v, f = fast_simplification.simplify(

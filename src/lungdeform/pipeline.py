@@ -179,7 +179,7 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
     from lungdeform.crossval import cross_validate_landmarks, landmark_folds
     from lungdeform.distance import SurfaceDistance
     from lungdeform.errors import InputError
-    from lungdeform.fit import MODES, fit_lung, to_lung_model
+    from lungdeform.fit import DIRECTION_HI, DIRECTION_LO, MODES, fit_lung, to_lung_model
     from lungdeform.frame import SIDES
     from lungdeform.atomic import write_json
     from lungdeform.landmarks import read_elastix_points
@@ -228,9 +228,7 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
             raise InputError(f"--volumes has {len(given)} values for {len(surfaces)} inputs")
         if not all(np.isfinite(v) and v > 0 for v in given):
             raise InputError(f"--volumes must be positive mL, got {', '.join(f'{v:g}' for v in given)}")
-        # the model's end-exhale volume is its surface's; the given volumes fix the changes from it
-        # (spirometry and segmentation disagree on absolute volume, not on its changes)
-        vols = [surfaces[0].volume_ml + v - given[0] for v in given]
+        vols = list(given)  # anchored on the model mesh below, once it exists
     for i in range(1, len(vols)):
         if not vols[i] > vols[i - 1]:
             shown = given or vols
@@ -255,6 +253,10 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
     fixed_dense, fixed_planes = surfaces[0], read[0][1]
     say("model mesh (decimation)")
     rest = model_mesh(fixed_dense)
+    if given is not None:
+        # the model's end-exhale volume is its mesh's; the given volumes fix the changes from it
+        # (spirometry and segmentation disagree on absolute volume, not on its changes)
+        vols = [rest.volume_ml + v - given[0] for v in given]
     targets, alignments, aligned_lms, transforms = [], [], [], []
     crop_all = list(fixed_planes)  # every crop face, in the end-exhale frame
     for i in range(1, len(surfaces)):
@@ -312,6 +314,11 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
             alignments[ti].update(applied=total.as_dict(), joint_translation_mm=[float(x) for x in t])
             say(f"joint alignment of {tg.name}: translation {np.round(t, 2).tolist()} mm on top of the apex alignment")
         keep = ~near_planes(rest.vertices, crop_all)
+    at_bound = [f"c{i + 1}" for i in range(6) if np.isclose(fit_opt.constants[i], DIRECTION_LO[i], rtol=0, atol=1e-6)
+                or np.isclose(fit_opt.constants[i], DIRECTION_HI[i], rtol=0, atol=1e-6)]
+    if at_bound:
+        warnings.append(f"{', '.join(at_bound)} ended on the bound of the search ({', '.join(f'{n} = {fit_opt.constants[int(n[1:]) - 1]:g}' for n in at_bound)}): "
+                        "the surfaces may not be one lung at two volumes, or the alignment is off")
     fits = {"optimizer": fit_opt}
     if grid:
         fits["grid"] = fit_lung(rest, side, targets, mode="grid", keep=keep, grid_span=0.1, progress=say)

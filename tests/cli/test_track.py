@@ -53,7 +53,29 @@ def test_track_at_volumes(model_file, points_csv, tmp_path, capsys):
         assert row == pytest.approx(want, abs=1e-3)
     assert info["points"][0]["peak_to_peak_mm"]["SI"] == pytest.approx(abs(moved[0, 2]), abs=1e-3)
     assert (out / "motion.png").read_bytes()[:4] == b"\x89PNG"
-    assert "tumour: left lung (inside)" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "tumour: left lung (inside)" in printed and "note:" not in printed
+    # far beyond the model's volume range: played, with a note that it is extrapolated
+    assert main(["track", str(model_file), "--points", str(points_csv), "--out", str(tmp_path / "far"),
+                 "--volume-ml", f"{v_ee + 5000}"]) == 0
+    assert "outside the model's range" in capsys.readouterr().out
+
+
+def test_track_one_volume_reports_the_excursion(model_file, points_csv, tmp_path, capsys):
+    # with one --volume-ml there is one frame, so every peak-to-peak range is 0: the console line
+    # must still show how far each point moved from end-exhale (the 3-D norm of its displacement)
+    out = tmp_path / "o"
+    v_ee = sum(lung.volume_ee_ml for lung in two_lungs(2).lungs.values())
+    assert main(["track", str(model_file), "--points", str(points_csv), "--out", str(out),
+                 "--volume-ml", f"{v_ee + 500}"]) == 0
+    rows = _rows(out / "trajectories.csv")
+    moved = np.linalg.norm([[float(r[k]) for k in ("dx_mm", "dy_mm", "dz_mm")] for r in rows], axis=1)
+    assert moved.min() > 1.0
+    text = capsys.readouterr().out
+    for label, dist in zip(("tumour", "clip"), moved):
+        line = next(x for x in text.splitlines() if x.strip().startswith(f"{label}:"))
+        assert "peak-to-peak mm LR 0.0 AP 0.0 SI 0.0" in line
+        assert f"largest excursion from end-exhale {dist:.1f} mm" in line
 
 
 def test_track_over_a_preset_breath(model_file, points_csv, tmp_path):

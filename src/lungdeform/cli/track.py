@@ -69,6 +69,10 @@ def register(apps) -> None:
             t_s = np.linspace(trace.t_s[0], trace.t_s[-1], n)
             delta = trace.sample(t_s)
             source = trace.source
+        fitted = sum(lg.calibration_ml for lg in m.lungs.values())  # the volume change the model was made for
+        if delta.min() < -1.0 or delta.max() > 1.5 * fitted:
+            typer.echo(f"note: volumes from {delta.min():+.0f} to {delta.max():+.0f} mL about end-exhale, outside the "
+                       f"model's range (0 to {fitted:.0f} mL): the motion there is extrapolated along the same field")
         positions = T.point_trajectories(m, pts, placement, delta)
         corrected = {name: bool(lg.interior.corrected) for name, lg in m.lungs.items()}
         folder = output_dir(out)
@@ -82,7 +86,9 @@ def register(apps) -> None:
         for j, label in enumerate(labels[:20]):
             where = "inside" if placement.inside[j] else f"outside by {placement.distance_mm[j]:.1f} mm"
             ptp = " ".join(f"{a} {summary['peak_to_peak_mm'][a][j]:.1f}" for a in T.AXES)
-            typer.echo(f"  {label}: {placement.lungs[j]} lung ({where}); peak-to-peak mm {ptp}")
+            # peak-to-peak alone reads 0 for a single --volume-ml: also the excursion from end-exhale
+            typer.echo(f"  {label}: {placement.lungs[j]} lung ({where}); peak-to-peak mm {ptp}; "
+                       f"largest excursion from end-exhale {summary['max_excursion_mm'][j]:.1f} mm")
         if len(labels) > 20:
             typer.echo(f"  … {len(labels) - 20} more in {paths['json']}")
         typer.echo(f"wrote {paths['csv']}, {paths['json']}, {paths['png']}")
