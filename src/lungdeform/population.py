@@ -43,6 +43,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from .atomic import finite_json
 from .cohort import RESULT_SCHEMA, RESULT_VERSION, finite_or_none
 from .constants import TABLE_I, table_constants
 from .errors import InputError
@@ -436,7 +437,7 @@ def write_population(results: list[dict], out: Path, manifest_dir: Path,
             "noise_mm": truth[None].get("noise_mm"), "law": truth[None].get("law"),
             "notes": "error = fitted − true; " + GAUGE_NOTE + "; c1/c3 and c5/c3 are scale-free; field errors "
                      "at the largest volume against the noise-free true surface",
-            **_jsonable(rec)}))
+            **finite_json(rec)}))
         gauged = "against true·(fitted c3 / true c3): c1, c3, c5 share an arbitrary factor, c3 is the fit's gauge"
         crow = [[n, v["mean_error"], v["sd_error"], v["max_abs_error"], v["rms_error"], v["mean_relative_error"], v["n"],
                  gauged if n in SCALE_CONSTANTS else ""] for n, v in rec["constants"].items()]
@@ -461,19 +462,6 @@ def write_population(results: list[dict], out: Path, manifest_dir: Path,
                                "constants": rec["constants"], "constants_raw": rec["constants_raw"],
                                "gauge": GAUGE_NOTE, "field": rec["field"]}
     return summary
-
-
-def _jsonable(x):
-    """Nested dicts/lists with NaN → None (strict JSON)."""
-    if isinstance(x, dict):
-        return {k: _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, (float, np.floating)):
-        return finite_or_none(x)
-    if isinstance(x, np.integer):
-        return int(x)
-    return x
 
 
 # --------------------------------------------------------------------------- plots

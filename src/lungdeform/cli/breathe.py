@@ -13,7 +13,7 @@ from pathlib import Path
 
 import typer
 
-from lungdeform.atomic import write_text
+from lungdeform.atomic import finite_json, write_text
 
 
 # --------------------------------------------------------------------------- atomic outputs
@@ -28,12 +28,6 @@ def to_json(obj) -> str:
     from lungdeform.atomic import jsonable
 
     return json.dumps(obj, indent=2, default=jsonable, allow_nan=False) + "\n"
-
-
-def finite_or_none(x):
-    import math
-
-    return x if isinstance(x, (int, float)) and math.isfinite(x) else None
 
 
 def curve_csv(curve) -> str:
@@ -228,19 +222,8 @@ def run_fit(path: Path, out: Path, tidal_volume_ml: float, train_fraction: float
     r_v = curves["volume_ml"][test] - curves["pv_held_out_ml"]
     plot_residuals(r_t, r_v, out / "residuals.png",
                    f"held-out residuals (shared shape), RMS {res['model_rms_percent']:.1f} % of p2p")
-    write_text(out / "metrics.json", to_json(_clean(metrics)))
+    write_text(out / "metrics.json", to_json(finite_json(metrics)))
     return metrics
-
-
-def _clean(obj):
-    """Replace non-finite floats by None so the JSON stays standard."""
-    if isinstance(obj, dict):
-        return {k: _clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_clean(v) for v in obj]
-    if isinstance(obj, float):
-        return finite_or_none(obj)
-    return obj
 
 
 def register(apps) -> None:

@@ -42,7 +42,8 @@ def validate_breathing(data: Path, out: Path, tidal_volume_ml: float = 500.0, tr
     import numpy as np
 
     from lungdeform.atomic import write_text
-    from lungdeform.cli.breathe import _clean, to_json
+    from lungdeform.atomic import finite_json
+    from lungdeform.cli.breathe import to_json
     from lungdeform.errors import InputError, LungdeformError
     from lungdeform.holdout import MODELS as models
     from lungdeform.holdout import evaluate
@@ -111,7 +112,7 @@ def validate_breathing(data: Path, out: Path, tidal_volume_ml: float = 500.0, tr
             "(percent_of_trace_range: of the held-out trace's whole range)."),
     }
     Path(out).mkdir(parents=True, exist_ok=True)
-    write_text(Path(out) / "metrics.json", to_json(_clean(metrics)))
+    write_text(Path(out) / "metrics.json", to_json(finite_json(metrics)))
     return metrics
 
 
