@@ -94,14 +94,14 @@ def test_bad_volumes(truth):
 
 
 def _interior_landmarks(lung, u, count=24, seed=1):
-    """Interior points and their positions under the thin-plate interpolation of ``u`` (the
+    """Interior points and their positions under the sliding interpolation of ``u`` (the
     metrics' interior motion): the truth a model with displacement ``u`` predicts exactly."""
-    from lungdeform.interpolate import interpolation_weights
+    from lungdeform.sliding import surface_weights
 
     rng = np.random.default_rng(seed)
     c = lung.vertices.mean(0)
     pts = c + rng.uniform(-1, 1, size=(count, 3)) * np.array([25.0, 40.0, 60.0])
-    return pts, pts + interpolation_weights(lung.vertices, pts) @ u
+    return pts, pts + surface_weights(lung, pts) @ u
 
 
 def test_landmark_term_of_the_objective(truth):

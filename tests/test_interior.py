@@ -1,4 +1,4 @@
-"""Interior field: surface-driven thin-plate motion plus the landmark correction."""
+"""Interior field: surface-driven sliding motion plus the landmark correction."""
 
 import numpy as np
 import pytest
@@ -27,12 +27,13 @@ def test_correction_recovers_the_missing_motion(rng):
 
 
 def test_affine_surface_motion_moves_interior_points_exactly(rng):
-    # the thin-plate spline reproduces affine fields: a sphere whose surface moves by u = A·x + b
-    # moves every interior point by the same law (no correction)
+    # the sliding interpolation reproduces affine fields: a sphere whose surface moves by
+    # u = A·x + b (A symmetric: a sphere's rotation is invisible to its normals) moves every
+    # interior point by the same law (no correction)
     s = icosphere(3, 50.0)
-    a = np.array([[0.05, 0.01, 0.0], [0.0, -0.02, 0.03], [0.01, 0.0, 0.1]])
+    a = np.array([[0.05, 0.01, 0.0], [0.01, -0.02, 0.03], [0.0, 0.03, 0.1]])
     b = np.array([1.0, -2.0, 3.0])
-    field = interior_field(s.vertices, s.vertices @ a.T + b)
+    field = interior_field(s.vertices, s.vertices @ a.T + b, normals=s.vertex_normals)
     q = _inside(rng, 40, 45.0)
     assert not field.corrected
     assert field.positions(q, 2.0) == pytest.approx(q + 2.0 * (q @ a.T + b), abs=1e-6)
@@ -47,7 +48,7 @@ def test_correction_adds_the_landmark_motion(rng):
     def slide(x):
         return np.stack([np.sin(x[:, 2] / 30.0), 0.5 * np.cos(x[:, 0] / 25.0), np.zeros(len(x))], axis=1)
 
-    field = interior_field(s.vertices, np.zeros_like(s.vertices), lm, slide(lm), 0.0)
+    field = interior_field(s.vertices, np.zeros_like(s.vertices), lm, slide(lm), 0.0, normals=s.vertex_normals)
     assert field.corrected
     assert field.displacement(lm) == pytest.approx(slide(lm), abs=1e-6)
     q = _inside(rng, 50, 30.0)
@@ -83,12 +84,17 @@ def test_select_smoothing_follows_the_noise(rng):
 
 
 def test_bad_input():
-    v = icosphere(1, 10.0).vertices
-    with pytest.raises(InputError, match="same shape"):
-        interior_field(v, v[:-1])
+    s = icosphere(1, 10.0)
+    v, n = s.vertices, s.vertex_normals
+    with pytest.raises(InputError, match="shape"):
+        interior_field(v, v[:-1], normals=n)
+    with pytest.raises(InputError, match="shape"):
+        interior_field(v, v, normals=n[:-1])
+    with pytest.raises(InputError, match="unit length"):
+        interior_field(v, v, normals=2.0 * n)
     with pytest.raises(InputError, match="at least 5 points"):
-        interior_field(v, v, v[:3], v[:3])
+        interior_field(v, v, v[:3], v[:3], normals=n)
     with pytest.raises(InputError, match="smoothing"):
-        interior_field(v, v, smoothing=-1.0)
+        interior_field(v, v, smoothing=-1.0, normals=n)
     with pytest.raises(InputError, match="NaN"):
-        interior_field(v, v).displacement(np.array([[np.nan, 0.0, 0.0]]))
+        interior_field(v, v, normals=n).displacement(np.array([[np.nan, 0.0, 0.0]]))

@@ -85,6 +85,26 @@ def test_model_file_round_trip(tmp_path, model, right_lung):
         assert b.volume_ee_ml == pytest.approx(a.volume_ee_ml)
 
 
+def test_schema_1_files_keep_their_thin_plate_interior(tmp_path, model, rng):
+    # schema 2 changed only how interior points move: a version-1 file is read, and its interior
+    # field is the thin-plate spline of the whole displacement it was made with (truth: that
+    # spline, fitted here directly); a version-2 file uses the sliding field
+    from lungdeform.interpolate import displacement_field
+
+    path = save_model(tmp_path / "m.npz", Model({"left": model}))
+    with np.load(path) as z:
+        data = {k: z[k] for k in z.files}
+    assert int(data["schema_version"]) == SCHEMA_VERSION == 2
+    np.savez(tmp_path / "v1.npz", **dict(data, schema_version=np.array(1)))
+    old, new = load_model(tmp_path / "v1.npz").lungs["left"], load_model(path).lungs["left"]
+    assert (old.interior_kind, new.interior_kind) == ("thin_plate", "sliding")
+    v = model.surface.vertices
+    q = v.mean(axis=0) + rng.uniform(-5, 5, size=(10, 3))
+    ref = displacement_field(v, model.displacement, max_points=4000)(q)
+    assert old.interior.displacement(q) == pytest.approx(ref, abs=1e-9)
+    assert not np.allclose(new.interior.displacement(q), ref, atol=1e-3)
+
+
 def test_model_file_refuses_wrong_version_and_shapes(tmp_path, model):
     path = save_model(tmp_path / "m.npz", Model({"left": model}))
     with np.load(path) as z:

@@ -40,8 +40,9 @@ def test_scales_give_each_lung_its_exact_share():
 
 
 def test_points_on_the_surface_move_with_it():
-    # the interior field interpolates the surface displacement, so a point on a vertex moves with
-    # that vertex; points at end-exhale (ΔV = 0) do not move
+    # the interior field is the sliding interpolation of the surface's normal motion, so a point on
+    # a vertex follows that vertex's normal motion (to a few % of it: the interpolation is smoothed)
+    # and slides along the surface; points at end-exhale (ΔV = 0) do not move
     m = two_lungs(2)
     left = m.lungs["left"]
     idx = np.array([0, 10, 40])
@@ -50,7 +51,11 @@ def test_points_on_the_surface_move_with_it():
     traj = point_trajectories(m, pts, place_points(m, pts), dv)
     s = lung_scales(m, dv)["left"][1]
     assert traj[0] == pytest.approx(pts, abs=1e-9)
-    assert traj[1] == pytest.approx(left.positions_at(s)[idx], abs=1e-6)
+    n = left.surface.vertex_normals[idx]
+    vertex = left.positions_at(s)[idx] - pts
+    normal = np.einsum("ij,ij->i", vertex, n)
+    assert np.einsum("ij,ij->i", traj[1] - pts, n) == pytest.approx(normal, abs=0.1 * np.abs(normal).max())
+    assert np.linalg.norm(traj[1] - pts, axis=1) == pytest.approx(np.linalg.norm(vertex, axis=1), rel=0.3)
     summary = motion_summary(traj, pts)
     assert summary["max_excursion_mm"] == pytest.approx(np.linalg.norm(traj[1] - traj[0], axis=1).tolist())
 

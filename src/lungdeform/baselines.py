@@ -4,9 +4,9 @@ Every method here, like the model, maps the end-exhale mesh vertices ``p (n, 3)`
 vertices at the larger volume (same faces), all in the end-exhale scan's frame after the rigid
 alignment. :func:`measure` then applies the same metrics to every method: exact symmetric surface
 distance to the target surface (area weighted; crop faces optionally left out) and landmark error
-after moving the end-exhale landmarks by the thin-plate-spline interpolation of the method's
-surface displacement at the kept vertices (:mod:`lungdeform.interpolate`; one matrix,
-:func:`landmark_matrix`, shared by all methods), or, for landmark-informed methods, from their
+after moving the end-exhale landmarks by the sliding interpolation of the method's surface
+displacement at the kept vertices (:mod:`lungdeform.sliding`: the smoothest field with the
+surface's normal motion; one operator, :func:`landmark_matrix`, shared by all methods), or, for landmark-informed methods, from their
 held-out predictions.
 
 Landmark-informed references (used only when corresponding landmarks are given, and scored on
@@ -226,11 +226,13 @@ class MethodMetrics:
         return {k: float(v) for k, v in self.__dict__.items()}
 
 
-def landmark_matrix(rest: Surface, landmarks, keep=None) -> np.ndarray:
-    """``(m, k)``: the thin-plate interpolation from the kept vertices of ``rest`` to ``landmarks``
-    (the interior interpolation every method is measured with; crop faces carry no data)."""
-    kept = np.ones(rest.n_vertices, bool) if keep is None else np.asarray(keep, bool)
-    return interpolation_weights(rest.vertices[kept], as_vertices(landmarks, "landmarks"))
+def landmark_matrix(rest: Surface, landmarks, keep=None):
+    """The sliding interpolation (:mod:`lungdeform.sliding`) from the kept vertices of ``rest`` to
+    ``landmarks``, an operator of shape ``(m, k)`` with ``W @ u`` for ``u : (k, 3)`` mm: the interior
+    interpolation every method is measured with (crop faces carry no data)."""
+    from .sliding import surface_weights
+
+    return surface_weights(rest, as_vertices(landmarks, "landmarks"), keep)
 
 
 def measure(rest: Surface, predicted, target: Surface, *, keep=None, keep_target=None,

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Callable, Sequence
 import numpy as np
 
 from .errors import InputError
-from .interpolate import interpolation_weights
+from .sliding import checked_operator, surface_weights
 
 if TYPE_CHECKING:  # fit_lung is imported where used (fit.py's docstring refers to this module)
     from .fit import FitResult, Target
@@ -65,7 +65,7 @@ def cross_validate_landmarks(surface: Surface, side: str, targets: Sequence[Targ
     ``landmarks_rest : (m, 3)`` mm and ``landmarks_targets : {target index: (m, 3)}`` mm, aligned.
     ``folds``: a number of folds (split by :func:`landmark_folds` with ``seed``) or the index
     arrays themselves. ``initial``: c1…c6 to start every fold from (e.g. the surface-only fit).
-    ``landmark_matrix : (m, k) float``, optional: the thin-plate interpolation from the kept
+    ``landmark_matrix : (m, k) operator``, optional: the sliding interpolation from the kept
     vertices to all of ``landmarks_rest`` (:func:`lungdeform.baselines.landmark_matrix`),
     computed once here when not given; each fold uses its rows. Other keywords go to :func:`fit_lung`. Landmark errors computed from
     :attr:`LandmarkCV.predicted` are held out.
@@ -85,11 +85,9 @@ def cross_validate_landmarks(surface: Surface, side: str, targets: Sequence[Targ
     predicted = {int(i): np.full_like(rest, np.nan) for i in landmarks_targets}
     consts = []
     kept = np.ones(surface.n_vertices, bool) if fit_kwargs.get("keep") is None else np.asarray(fit_kwargs["keep"], bool)
-    # one thin-plate matrix for all landmarks: row j depends only on landmark j, so the folds take rows
-    w_all = interpolation_weights(surface.vertices[kept], rest) if landmark_matrix is None else np.asarray(landmark_matrix, float)
-    if w_all.shape != (len(rest), int(kept.sum())):
-        raise InputError(f"landmark_matrix has shape {w_all.shape}, expected ({len(rest)}, {int(kept.sum())}) "
-                         "(landmarks, kept vertices)")
+    # one interpolation operator for all landmarks: row j depends only on landmark j, so the folds take rows
+    w_all = (surface_weights(surface, rest, kept) if landmark_matrix is None
+             else checked_operator(landmark_matrix, (len(rest), int(kept.sum()))))
     for k, test in enumerate(parts):
         fold[test] = k
         train = np.setdiff1d(np.arange(len(rest)), test)

@@ -40,8 +40,8 @@ Landmark-informed fitting (optional; paper Sec. IV-B fitted its constants on cor
 of 4-D CT): surfaces cannot see tangential sliding, so c1…c6 are weakly identified by the surface
 objective alone. Given corresponding interior landmarks, the objective becomes
 ``sqrt(surface_ms + landmark_weight · landmark_ms)`` where the landmarks are moved by the same
-thin-plate interpolation of the model's surface displacement that the metrics use
-(:func:`lungdeform.interpolate.interpolation_weights`). Landmark errors of such a fit are only
+sliding interpolation of the model's surface displacement that the metrics use
+(:func:`lungdeform.sliding.surface_weights`). Landmark errors of such a fit are only
 meaningful on landmarks held out from it: :func:`lungdeform.crossval.cross_validate_landmarks` runs
 the k-fold protocol.
 
@@ -68,7 +68,7 @@ from .expandability import fit_stiffness_if_better
 from .force import field_basis, height_weights
 from .frame import lung_frame
 from .graph import spring_graph
-from .interpolate import interpolation_weights
+from .sliding import checked_operator, surface_weights
 from .mesh import Surface
 from .model import LungModel
 from .search import grid_search, least_squares_search, powell_search
@@ -327,10 +327,10 @@ class LungFitter:
         have them (only targets in ``fit_on`` enter the objective).
     landmark_weight : float
         Weight of the landmark mean square against the surface mean square (1: both in mm²).
-    landmark_matrix : (m, k) float, optional
-        The thin-plate interpolation from the kept vertices to ``landmarks_rest``
-        (:func:`lungdeform.interpolate.interpolation_weights` of ``surface.vertices[keep]`` at
-        ``landmarks_rest``), precomputed by the caller (one dense solve of size ~k saved per
+    landmark_matrix : (m, k) operator, optional
+        The sliding interpolation from the kept vertices to ``landmarks_rest``
+        (:func:`lungdeform.sliding.surface_weights` of ``surface`` with ``keep`` at
+        ``landmarks_rest``; an ``(m, k)`` array is also accepted), precomputed by the caller (one dense solve of size ~k saved per
         fitter); computed here when not given. Row ``j`` depends only on landmark ``j``, so rows of
         one matrix serve any subset of the landmarks.
     """
@@ -397,17 +397,14 @@ class LungFitter:
                                  f"landmarks {rest.shape}; rows must correspond")
         self.lm_rest = rest
         self.lm_targets = {int(i): as_vertices(v, "landmarks") for i, v in observed.items() if int(i) in self.fit_on}
-        # the metrics' interpolation: thin-plate spline through the kept vertices (crop face out)
+        # the metrics' interpolation: the sliding interpolation from the kept vertices (crop face out)
         if matrix is None:
-            self.lm_matrix = interpolation_weights(self.p[self.keep], rest)
+            self.lm_matrix = surface_weights(self.surface, rest, self.keep)
         else:
-            self.lm_matrix = np.asarray(matrix, float)
-            if self.lm_matrix.shape != (len(rest), int(self.keep.sum())):
-                raise InputError(f"landmark_matrix has shape {self.lm_matrix.shape}, expected "
-                                 f"({len(rest)}, {int(self.keep.sum())}) (landmarks, kept vertices)")
+            self.lm_matrix = checked_operator(matrix, (len(rest), int(self.keep.sum())))
 
     def landmark_positions(self, u: np.ndarray, target: int) -> np.ndarray:
-        """``(m, 3)`` mm: the landmarks moved by the thin-plate interpolation of ``s·u`` at ``target``."""
+        """``(m, 3)`` mm: the landmarks moved by the sliding interpolation of ``s·u`` at ``target``."""
         s = (self.targets[target].volume_ml - self.v_ee) / self.delta_ml
         return self.lm_rest + s * (self.lm_matrix @ u[self.keep])
 

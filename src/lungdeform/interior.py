@@ -3,8 +3,9 @@
 The model moves surface vertices, ``x = p + s·u`` (METHOD §7). A point ``q`` inside the lung moves
 by the same law, ``q + s·v(q)``, with ``v : R³ → R³`` (mm per unit ``s``) built from two parts:
 
-1. **surface-driven**: the thin-plate spline through the surface's displacement per unit
-   (:mod:`lungdeform.interpolate`: minimal bending, reproduces any affine motion);
+1. **surface-driven**: the sliding interpolation of the surface's displacement per unit
+   (:mod:`lungdeform.sliding`: the smoothest field with the surface's *normal* motion, since the
+   lung slides along its boundary; reproduces any affine motion);
 2. **landmark correction** (optional): where corresponding interior landmarks were observed at the
    fitted volumes, the part of their motion the surface cannot see (sliding along the chest wall,
    uneven expansion inside), as a second thin-plate spline through the per-unit residuals
@@ -16,9 +17,9 @@ Both parts are linear in ``s``, so a point's displacement per unit is precompute
 costs three multiply-adds per point, as for vertices. The correction holds for the posture the
 landmarks were observed in: a model re-oriented to another gravity drops it.
 
-Measured on the ITK right-lung pair (51 landmarks, 5-fold held out, surface-only fit): the
-surface-driven field alone moves held-out landmarks with a mean error of 5.2 mm; with the landmark
-correction 2.4 mm (``lungdeform validate itk-pair``).
+Measured on the ITK right-lung pair (51 landmarks, 5-fold held out; ``lungdeform validate
+itk-pair``): see ``docs/FITTING.md`` for the current figures of the surface-driven field alone and
+with the landmark correction.
 """
 
 from __future__ import annotations
@@ -29,11 +30,15 @@ import numpy as np
 
 from .errors import InputError
 from .interpolate import DisplacementField, displacement_field, interpolation_weights
+from .sliding import SlidingField, sliding_field
 from .mesh import as_vertices
 
 #: Candidate smoothings (mm², thin-plate regularisation) of the landmark correction.
 SMOOTHING_MM2 = (0.0, 10.0, 100.0, 1000.0)
-#: Thin-plate splines through more surface vertices than this use a seeded subset.
+#: How the surface displacement extends inside: its normal motion (the default), or all of it
+#: (the thin-plate spline of model files of schema 1).
+KINDS = ("sliding", "thin_plate")
+#: Surface fields through more vertices than this use a seeded subset.
 MAX_SURFACE_POINTS = 4000
 
 
@@ -115,15 +120,15 @@ class InteriorField:
 
     Attributes
     ----------
-    surface : DisplacementField
-        The thin-plate spline of the surface displacement (mm per unit) through the end-exhale
-        vertices (all, or a seeded subset of :data:`MAX_SURFACE_POINTS`).
+    surface : SlidingField
+        The sliding interpolation of the surface displacement (mm per unit) through the end-exhale
+        vertices and their outward normals (all, or a seeded subset of :data:`MAX_SURFACE_POINTS`).
     landmark : DisplacementField or None
         The thin-plate spline of the landmark correction (:func:`correction_per_unit`, mm per unit)
         through the end-exhale landmarks, with its smoothing; None without landmarks.
     """
 
-    surface: DisplacementField
+    surface: SlidingField | DisplacementField
     landmark: DisplacementField | None = None
 
     @property
@@ -142,13 +147,20 @@ class InteriorField:
 
 
 def interior_field(vertices, displacement, landmarks=None, correction=None, smoothing: float = 0.0,
-                   *, seed: int = 0) -> InteriorField:
-    """An :class:`InteriorField` from a lung's ``vertices : (n, 3)`` mm and ``displacement : (n, 3)``
-    mm per unit, with an optional landmark ``correction : (m, 3)`` at ``landmarks : (m, 3)`` mm
-    (``smoothing`` mm²)."""
+                   *, normals, kind: str = "sliding", seed: int = 0) -> InteriorField:
+    """An :class:`InteriorField` from a lung's ``vertices : (n, 3)`` mm, their unit outward
+    ``normals : (n, 3)`` and ``displacement : (n, 3)`` mm per unit, with an optional landmark
+    ``correction : (m, 3)`` at ``landmarks : (m, 3)`` mm (``smoothing`` mm²). ``kind``: one of
+    :data:`KINDS`; ``"thin_plate"`` (the thin-plate spline of the whole displacement, no normals
+    used) is how model files of schema 1 were made."""
     if not (np.isfinite(smoothing) and smoothing >= 0):
         raise InputError(f"smoothing must be >= 0 mm², got {smoothing!r}")
-    surface = displacement_field(vertices, displacement, max_points=MAX_SURFACE_POINTS, seed=seed)
+    if kind == "sliding":
+        surface = sliding_field(vertices, normals, displacement, max_points=MAX_SURFACE_POINTS, seed=seed)
+    elif kind == "thin_plate":
+        surface = displacement_field(vertices, displacement, max_points=MAX_SURFACE_POINTS, seed=seed)
+    else:
+        raise InputError(f"interior kind must be one of {', '.join(KINDS)}, got {kind!r}")
     if landmarks is None or correction is None:
         return InteriorField(surface)
     m = len(np.asarray(landmarks))  # every landmark: the correction is never thinned

@@ -1,26 +1,24 @@
-"""Surface-driven interpolation of a displacement field into the lung's interior.
+"""Thin-plate-spline interpolation of displacements known at scattered points.
 
-The model (and every baseline) moves surface vertices only; interior points (landmarks) are moved
-by interpolating the surface displacement. Reading chosen: a **thin-plate spline** radial basis
-function (kernel ``φ(r) = r² log r``, degree-1 polynomial, as ``scipy.interpolate.RBFInterpolator``
-with ``kernel="thin_plate_spline"``), fitted to the displacement at the surface vertices, one
-component at a time. It reproduces any affine displacement exactly (the polynomial part), so the
-affine baseline moves landmarks exactly as its transform does; it is the minimal-bending smooth
-field through the surface data.
+Used where only points are known: the interior landmark correction (:mod:`lungdeform.interior`),
+the landmark-only reference (:func:`lungdeform.baselines.landmark_tps_cv`), and the interior field
+of model files of schema 1. The surface-driven interior field of every method is the sliding
+interpolation of :mod:`lungdeform.sliding` (it uses the surface's normals, which scattered points
+do not have).
 
-Why this one (measured on the ITK right-lung pair, 51 landmarks, the surface fields of the model,
-affine, apex scaling and CPD): the biharmonic ``r`` and smoothing thin-plate splines (smoothing
-10–100 mm²) change each method's mean landmark error by at most 0.3 mm, in no consistent
-direction; the triharmonic ``r³`` changes CPD's by −0.07 mm but raises the model's by 0.9 mm. The
-thin-plate spline is never the worst, so it is kept, and it is used for **every** method (one
-choice, so it decides no comparison). Crop-face vertices (an image-boundary artefact, not lung
-surface) are left out of the data by the callers (``keep``); on the ITK pair that changes landmark
-errors by ≤ 0.01 mm.
+The spline: kernel ``φ(r) = r² log r``, degree-1 polynomial, as
+``scipy.interpolate.RBFInterpolator`` with ``kernel="thin_plate_spline"``, one component at a time.
+It reproduces any affine displacement exactly (the polynomial part) and is the minimal-bending
+smooth field through the data; ``smoothing`` (mm², scipy's meaning) trades exactness for
+smoothness.
+
+Until version 0.3 the surface-driven field was this spline through the whole surface displacement.
+Measured on the ITK right-lung pair (51 landmarks, the model's surface field): it moves the
+landmarks with a mean error of 4.6 mm, the sliding interpolation with 3.8 mm.
 
 Because the interpolant is linear in the data, :func:`interpolation_weights` returns it as a
-matrix ``W (m, k)``: the displacement at ``m`` query points is ``W @ u`` for *any* surface field
-``u (k, 3)``. The fit uses it to score thousands of candidate fields at the landmarks cheaply, and
-the metrics use the same matrix, so fitting and measuring interpolate identically.
+matrix ``W (m, k)``: the displacement at ``m`` query points is ``W @ u`` for *any* field
+``u (k, 3)`` at the points.
 """
 
 from __future__ import annotations

@@ -67,6 +67,10 @@ class LungModel:
         The landmarks' motion the surface cannot see, mm per unit (:mod:`lungdeform.interior`).
     landmark_smoothing : float
         Thin-plate smoothing of that correction, mm².
+    interior_kind : str
+        How the surface displacement extends inside (:data:`lungdeform.interior.KINDS`):
+        ``"sliding"`` (its normal motion, :mod:`lungdeform.sliding`; model files of schema 2) or
+        ``"thin_plate"`` (the whole displacement; schema-1 files, played back as they were made).
     """
 
     side: str
@@ -84,6 +88,7 @@ class LungModel:
     landmarks: np.ndarray | None = None
     landmark_correction: np.ndarray | None = None
     landmark_smoothing: float = 0.0
+    interior_kind: str = "sliding"
 
     @property
     def n_vertices(self) -> int:
@@ -146,7 +151,8 @@ class LungModel:
         from .interior import interior_field
 
         return interior_field(self.surface.vertices, self.displacement, self.landmarks,
-                              self.landmark_correction, self.landmark_smoothing)
+                              self.landmark_correction, self.landmark_smoothing,
+                              normals=self.surface.vertex_normals, kind=self.interior_kind)
 
     def points_at(self, points, volume_ml: float | None = None, *, scale: float | None = None,
                   exact: bool = False) -> np.ndarray:

@@ -1,12 +1,12 @@
 """The model file: a versioned ``.npz`` (numpy zip) holding everything playback needs.
 
-Schema ``lungdeform.model``, version 1 (documented in docs/MODEL_FORMAT.md). Top-level keys:
+Schema ``lungdeform.model``, version 2 (documented in docs/MODEL_FORMAT.md). Top-level keys:
 
 =================  ==================  =====================================================
 key                type                meaning
 =================  ==================  =====================================================
 schema             str                 ``"lungdeform.model"``
-schema_version     int                 1
+schema_version     int                 2 (1 is read too)
 lungs              (k,) str            lung names (``"left"``, ``"right"``)
 provenance         str (JSON)          sources, settings, software version, creation time
 =================  ==================  =====================================================
@@ -22,6 +22,10 @@ with interior landmarks): ``landmarks (m, 3)`` mm LPS, ``landmark_correction (m,
 ``landmark_smoothing`` mm² (:mod:`lungdeform.interior`).
 
 Loading checks the schema name and version, that every key is present, and every shape.
+Version 2 changed no key; it changed how interior points move (:attr:`LungModel.interior_kind`:
+the sliding interpolation of the surface's normal motion, where version 1 used the thin-plate
+spline of the whole displacement). Version-1 files are read and keep their thin-plate field, so
+their interior points (and a landmark correction fitted against that field) play back as made.
 """
 
 from __future__ import annotations
@@ -41,7 +45,9 @@ from .mesh import Surface
 from .model import LungModel, Model
 
 SCHEMA = "lungdeform.model"
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+#: Schema versions this lungdeform reads: 1 differs only in its interior field (thin-plate, not sliding).
+READABLE_VERSIONS = (1, 2)
 
 _OPTIONAL = ("landmarks", "landmark_correction", "landmark_smoothing")
 _PER_LUNG = ("side", "vertices", "faces", "constants", "stiffness", "frame_axes", "frame_lower",
@@ -113,20 +119,21 @@ def load_model(path) -> Model:
     if str(data.get("schema", "")) != SCHEMA:
         raise ModelFileError(f"{path}: not a lungdeform model file (schema {data.get('schema')!r})")
     version = int(data.get("schema_version", -1))
-    if version != SCHEMA_VERSION:
+    if version not in READABLE_VERSIONS:
         raise ModelFileError(
-            f"{path}: model schema version {version} is not supported (this lungdeform reads {SCHEMA_VERSION})"
+            f"{path}: model schema version {version} is not supported (this lungdeform reads "
+            f"{', '.join(map(str, READABLE_VERSIONS))})"
         )
     try:
         provenance = json.loads(str(data["provenance"]))
         names = [str(x) for x in data["lungs"]]
     except (KeyError, ValueError) as exc:
         raise ModelFileError(f"{path}: damaged header ({exc})") from exc
-    lungs = {name: _lung(path, name, data) for name in names}
+    lungs = {name: _lung(path, name, data, version) for name in names}
     return Model(lungs, provenance)
 
 
-def _lung(path: Path, name: str, data: dict) -> LungModel:
+def _lung(path: Path, name: str, data: dict, version: int = SCHEMA_VERSION) -> LungModel:
     prefix = f"lung/{name}/"
     missing = [k for k in _PER_LUNG if prefix + k not in data]
     if missing:
@@ -169,6 +176,7 @@ def _lung(path: Path, name: str, data: dict) -> LungModel:
         calibration_ml=float(a["calibration_ml"]), d_min=float(a["d_min"]),
         landmarks=opt.get("landmarks"), landmark_correction=opt.get("landmark_correction"),
         landmark_smoothing=float(opt.get("landmark_smoothing", 0.0)),
+        interior_kind="thin_plate" if version == 1 else "sliding",
     )
 
 

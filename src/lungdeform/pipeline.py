@@ -323,7 +323,7 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
     if grid:
         fits["grid"] = fit_lung(rest, side, targets, mode="grid", keep=keep, grid_span=0.1, progress=say)
     use_lm = lms is not None and landmark_fit
-    # the thin-plate interpolation from the kept model vertices to the landmarks: one dense solve,
+    # the sliding interpolation from the kept model vertices to the landmarks: one dense solve,
     # shared by every landmark-informed fit (rows per fold) and by the metrics of every method
     lm0 = lms[0] if lms is not None else None
     lm_w = B.landmark_matrix(rest, lm0, keep) if lms is not None else None
@@ -347,7 +347,7 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
     corrected = fit_opt.paper_displacement is not None
     kind = ", ".join(["c1…c9"] + (["stiffness field"] if fit_opt.stiffness_fitted else [])
                      + ([f"direction correction of degree {direction_degree}"] if corrected else []))
-    protocols = {surface_name: f"surface fit ({kind}; no landmark used); landmarks moved by the thin-plate "
+    protocols = {surface_name: f"surface fit ({kind}; no landmark used); landmarks moved by the sliding "
                                "interpolation of its surface displacement"}
     interior = None
     if use_lm:  # the landmark correction of the interior field (lungdeform.interior), held out per fold
@@ -366,7 +366,7 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
         if use_lm:
             methods["model"] = (fit_opt.positions_at(rest, tg.volume_ml), interior["held_out"][ti])
             protocols["model"] = (f"surface fit ({kind}; no landmark used) with the interior landmark correction "
-                                  f"(lungdeform.interior): landmarks moved by the surface-driven thin-plate field "
+                                  f"(lungdeform.interior): landmarks moved by the surface-driven sliding field "
                                   f"plus a thin-plate correction through the training landmarks' residual motion; "
                                   f"held-out landmark errors ({folds}-fold)")
         if cv is not None:
@@ -383,16 +383,16 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
             methods["model_paper_directions"] = (rest.vertices + s_opt * fit_opt.paper_displacement, None)
             protocols["model_paper_directions"] = (f"the same fit with the paper's directions (15)–(17), no direction "
                                                    f"correction{' (stiffness field kept)' if fit_opt.stiffness_fitted else ''}; "
-                                                   f"landmarks moved by the thin-plate interpolation of its surface")
+                                                   f"landmarks moved by the sliding interpolation of its surface")
         if fit_opt.uniform_displacement is not None:
             methods["model_uniform_stiffness"] = (rest.vertices + s_opt * fit_opt.uniform_displacement, None)
             protocols["model_uniform_stiffness"] = ("the paper's model: c1…c9 fitted to the surfaces, uniform stiffness, "
-                                                    "the paper's directions; landmarks moved by the thin-plate "
+                                                    "the paper's directions; landmarks moved by the sliding "
                                                     "interpolation of its surface")
         if "grid" in fits:
             methods["model_grid"] = (fits["grid"].positions_at(rest, tg.volume_ml), None)
             protocols["model_grid"] = ("the paper's grid search of c1…c6 (uniform stiffness, paper directions); "
-                                       "landmarks moved by the thin-plate interpolation of its surface")
+                                       "landmarks moved by the sliding interpolation of its surface")
         if baselines:
             say("baselines")
             methods["no_motion"] = (B.no_motion(rest), None)
@@ -403,7 +403,7 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
             except ImportError as exc:  # pycpd missing: reported, not fatal
                 metrics.setdefault("skipped", {})["cpd"] = str(exc)
             for name in ("no_motion", "affine", "apex_scaling", "cpd"):
-                protocols[name] = "baseline from the surfaces only; landmarks moved by the same thin-plate interpolation"
+                protocols[name] = "baseline from the surfaces only; landmarks moved by the same sliding interpolation"
             if use_lm:
                 methods["affine_landmarks"] = B.affine_landmarks_cv(rest, tg.surface, lm0, lmt, lm_folds, keep=keep,
                                                                     keep_target=tg.keep, landmark_weight=landmark_weight)
@@ -461,7 +461,7 @@ def _interior_correction(fit, rest, landmarks, aligned, targets, folds) -> dict:
     The surface-driven part is the one the saved model plays back (its vertices and displacement)."""
     from lungdeform.interior import correction_per_unit, held_out_positions, interior_field, select_smoothing
 
-    unit = interior_field(rest.vertices, fit.displacement).displacement(landmarks)  # mm per unit
+    unit = interior_field(rest.vertices, fit.displacement, normals=rest.vertex_normals).displacement(landmarks)  # mm per unit
     observed = [np.asarray(a) - landmarks for a in aligned]
     scales = [(tg.volume_ml - fit.volume_ee_ml) / fit.unit_ml for tg in targets]
     correction = correction_per_unit(observed, scales, unit)

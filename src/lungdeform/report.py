@@ -160,8 +160,8 @@ def write_report(path, *, rest, targets, fits, predictions, metrics, headline: s
              f"<p>Inputs: {html.escape(', '.join(metrics['inputs']))}; side {html.escape(metrics['side'])}; "
              f"volumes {', '.join(f'{v:.1f}' for v in metrics['volumes_ml'])} mL; model mesh "
              f"{metrics['model_mesh_vertices']} vertices. Surfaces measured with the crop faces left out "
-             "(exact point-to-triangle distances, area weighted); landmarks moved by a thin-plate spline of "
-             "each method's surface displacement (crop faces carry no data).</p>"]
+             "(exact point-to-triangle distances, area weighted); landmarks moved by the sliding interpolation "
+             "of each method's surface displacement (the smoothest field with its normal motion; crop faces carry no data).</p>"]
     protocols = metrics.get("protocols", {})
     if protocols:
         parts.append("<h2>What each method saw</h2><ul>" + "".join(

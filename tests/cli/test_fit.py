@@ -126,19 +126,19 @@ def test_landmarks_outside_image():
 
 
 def test_fit_with_landmarks_is_held_out(tmp_path, pair, capsys):
-    # synthetic truth with interior landmarks moved by the true field (its thin-plate interpolation):
+    # synthetic truth with interior landmarks moved by the true field (its sliding interpolation):
     # the headline model is the surface fit with the interior landmark correction, scored on held-out
     # landmarks; the surface-driven field alone, the landmark-informed fit and references are
     # reported beside it, each with its protocol
-    from lungdeform.interpolate import interpolation_weights
     from lungdeform.landmarks import write_elastix_points
+    from lungdeform.sliding import surface_weights
 
     a, b, lung = pair
     u = build_lung(lung, "right", constants=TRUE, calibration_ml=200.0, unit_ml=200.0).displacement
     rng = np.random.default_rng(2)
     lm = lung.vertices.mean(0) + rng.uniform(-1, 1, size=(12, 3)) * np.array([20.0, 35.0, 55.0])
     la = write_elastix_points(tmp_path / "ee.txt", lm)
-    lb = write_elastix_points(tmp_path / "ei.txt", lm + interpolation_weights(lung.vertices, lm) @ u)
+    lb = write_elastix_points(tmp_path / "ei.txt", lm + surface_weights(lung, lm) @ u)
     out = tmp_path / "out"
     assert main(["fit", str(a), str(b), "--side", "right", "--out", str(out), "--evaluations", "150",
                  "--landmarks", str(la), "--landmarks", str(lb), "--folds", "3", "--landmark-comparisons"]) == 0

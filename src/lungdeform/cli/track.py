@@ -79,7 +79,7 @@ def register(apps) -> None:
         paths = T.write_trajectories(folder, pts, labels, placement, positions, delta, t_s, meta={
             "model": str(model), "schedule": source, "end_exhale_ml": v_ee,
             "landmark_correction": corrected,
-            "interior_field": "thin-plate spline of the surface displacement"
+            "interior_field": "sliding interpolation of the surface's normal motion"
                               + (" plus the fit's landmark correction" if any(corrected.values()) else "")})
         summary = T.motion_summary(positions, pts)
         typer.echo(f"{len(pts)} point(s), {len(delta)} frame(s): {source}")
