@@ -299,23 +299,24 @@ def _marker_at(a: dict, lam: float) -> np.ndarray:
     return np.array(a["position_mm"]) + lam * np.array(a["tidal_mm"])
 
 
-def test_marker_on_a_vertex_follows_its_normal_motion(model, rng):
+def test_marker_on_a_vertex_follows_its_normal_motion(model):
     # truth: the lung's own tidal target at that vertex, along the vertex normal. The interior field
-    # is the sliding interpolation of the surface's normal motion (smoothing 100 mm), so a marker
-    # on the surface stays on it to within a few % of the tidal motion, sliding along it freely
+    # is the sliding interpolation of the surface's normal motion (smoothing 100 mm), so a marker on
+    # the surface stays on it to within 10 % of that vertex's own normal motion (the vertices chosen
+    # are those that move most along their normal, where a wrong or zero field cannot pass)
     for name, lung in model.lungs.items():
-        idx = rng.choice(lung.n_vertices, 5, replace=False)
-        anchors = E.marker_anchors(model, lung.surface.vertices[idx])
         t0 = E.lung_targets(lung)[0][0]
         n = lung.surface.vertex_normals
-        tol = 0.1 * np.abs(np.einsum("ij,ij->i", t0, n)).max()
+        normal = np.einsum("ij,ij->i", t0, n)
+        idx = np.argsort(-np.abs(normal))[:5]
+        anchors = E.marker_anchors(model, lung.surface.vertices[idx])
         assert [a["lung"] for a in anchors] == [name] * 5
         for a, i in zip(anchors, idx):
             assert a["distance_mm"] == pytest.approx(0, abs=1e-9)
             np.testing.assert_allclose(_marker_at(a, 0.0), lung.surface.vertices[i], atol=1e-9)
             for lam in (0.4, 1.0, 1.7):
                 moved = _marker_at(a, lam) - lung.surface.vertices[i]
-                assert abs(moved @ n[i] - lam * t0[i] @ n[i]) < lam * tol
+                assert moved @ n[i] == pytest.approx(lam * normal[i], rel=0.1)
 
 
 def test_interior_marker_moves_as_points_at(model):

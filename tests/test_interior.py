@@ -96,5 +96,7 @@ def test_bad_input():
         interior_field(v, v, v[:3], v[:3], normals=n)
     with pytest.raises(InputError, match="smoothing"):
         interior_field(v, v, smoothing=-1.0, normals=n)
+    with pytest.raises(InputError, match="interior kind"):
+        interior_field(v, v, normals=n, kind="spline")
     with pytest.raises(InputError, match="NaN"):
         interior_field(v, v, normals=n).displacement(np.array([[np.nan, 0.0, 0.0]]))

@@ -103,6 +103,39 @@ def test_schema_1_files_keep_their_thin_plate_interior(tmp_path, model, rng):
     ref = displacement_field(v, model.displacement, max_points=4000)(q)
     assert old.interior.displacement(q) == pytest.approx(ref, abs=1e-9)
     assert not np.allclose(new.interior.displacement(q), ref, atol=1e-3)
+    # saved again (as schema 2), the old lung keeps its thin-plate field
+    again = load_model(save_model(tmp_path / "again.npz", Model({"left": old}))).lungs["left"]
+    assert again.interior_kind == "thin_plate"
+    assert again.interior.displacement(q) == pytest.approx(ref, abs=1e-9)
+    np.savez(tmp_path / "k.npz", **dict(data, **{"lung/left/interior_kind": np.array("spline")}))
+    with pytest.raises(ModelFileError, match="interior_kind"):
+        load_model(tmp_path / "k.npz")
+
+
+def test_interior_vertices_are_saved_and_leave_the_others_out(tmp_path, model, rng):
+    # truth: vertices outside interior_vertices (a scan's crop face) carry no data for the interior
+    # field, so garbage displacement there changes no interior motion; the mask survives the model
+    # file and a re-orientation, and a bad mask is refused naming the key
+    from dataclasses import replace
+
+    from lungdeform.errors import ModelFileError
+
+    keep = model.surface.vertices[:, 0] < np.percentile(model.surface.vertices[:, 0], 85)
+    lung = replace(model, interior_vertices=keep)
+    spoiled = replace(lung, displacement=np.where(keep[:, None], model.displacement, 1e3))
+    q = model.surface.vertices.mean(axis=0) + rng.uniform(-5, 5, size=(10, 3))
+    assert spoiled.interior.displacement(q) == pytest.approx(lung.interior.displacement(q), abs=1e-9)
+    assert not np.allclose(lung.interior.displacement(q), model.interior.displacement(q), atol=1e-6)
+    loaded = load_model(save_model(tmp_path / "k.npz", Model({"left": lung}))).lungs["left"]
+    assert np.array_equal(loaded.interior_vertices, keep)
+    assert loaded.interior.displacement(q) == pytest.approx(lung.interior.displacement(q), abs=1e-12)
+    assert np.array_equal(lung.oriented("prone").interior_vertices, keep)
+    assert load_model(save_model(tmp_path / "a.npz", Model({"left": model}))).lungs["left"].interior_vertices is None
+    with np.load(tmp_path / "k.npz") as z:
+        data = {k: z[k] for k in z.files}
+    np.savez(tmp_path / "bad.npz", **dict(data, **{"lung/left/interior_vertices": keep[:-1]}))
+    with pytest.raises(ModelFileError, match="interior_vertices"):
+        load_model(tmp_path / "bad.npz")
 
 
 def test_model_file_refuses_wrong_version_and_shapes(tmp_path, model):

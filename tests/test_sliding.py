@@ -94,3 +94,41 @@ def test_bad_input():
     with pytest.raises(InputError, match="landmark_matrix has shape"):
         checked_operator(w, (3, len(v)))
     assert checked_operator(w, (2, len(v))) is w
+
+
+def test_default_field_matches_the_documented_formula(rng):
+    # dense reference written from docs/MODEL_FORMAT.md, independently of the module: kernel −r,
+    # λ = 100 mm, all 12 affine columns (the blob sees every affine direction, so none is dropped)
+    s = _blob()
+    p, n = s.vertices, s.vertex_normals
+    u = 2.0 * np.sin(p / 25.0)
+    k = len(p)
+    c = p.mean(axis=0)
+    h = np.abs(p - c).max()
+    xh = np.hstack([np.ones((k, 1)), (p - c) / h])
+    P = np.einsum("ic,il->icl", n, xh).reshape(k, 12)
+    r = np.linalg.norm(p[:, None] - p[None], axis=2)
+    a = np.block([[-r * (n @ n.T) + 100.0 * np.eye(k), P], [P.T, np.zeros((12, 12))]])
+    sol = np.linalg.solve(a, np.concatenate([np.einsum("ij,ij->i", n, u), np.zeros(12)]))
+    alpha, beta = sol[:k], sol[k:].reshape(3, 4)
+    q = rng.uniform(-15, 15, size=(20, 3))
+    rq = np.linalg.norm(q[:, None] - p[None], axis=2)
+    ref = (-rq * alpha) @ n + np.hstack([np.ones((20, 1)), (q - c) / h]) @ beta.T
+    assert sliding_field(p, n, u)(q) == pytest.approx(ref, abs=1e-8)
+
+
+def test_operator_indexing_and_thinning(rng):
+    # one query keeps its axis; the operator is not a matrix; above max_points the operator and the
+    # field use the same seeded subset (one interpolant), the other points get zero weight
+    s = _blob()
+    u = rng.normal(size=s.vertices.shape)
+    q = rng.uniform(-15, 15, size=(6, 3))
+    w = sliding_weights(s.vertices, s.vertex_normals, q, max_points=200)
+    assert w[2].shape == (1, s.n_vertices) and w[2] @ u == pytest.approx((w @ u)[2:3], abs=1e-12)
+    with pytest.raises(InputError, match="rows"):
+        w[:, :3]
+    with pytest.raises(InputError, match="not a matrix"):
+        np.asarray(w)
+    field = sliding_field(s.vertices, s.vertex_normals, u, max_points=200)
+    assert len(field.points) == 200 and int((np.abs(w.weights).sum(axis=(0, 1)) > 0).sum()) == 200
+    assert w @ u == pytest.approx(field(q), abs=1e-8)

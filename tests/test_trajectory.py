@@ -51,11 +51,10 @@ def test_points_on_the_surface_move_with_it():
     traj = point_trajectories(m, pts, place_points(m, pts), dv)
     s = lung_scales(m, dv)["left"][1]
     assert traj[0] == pytest.approx(pts, abs=1e-9)
+    assert traj[1] == pytest.approx(left.points_at(pts, scale=s), abs=1e-9)  # the lung's interior field
     n = left.surface.vertex_normals[idx]
-    vertex = left.positions_at(s)[idx] - pts
-    normal = np.einsum("ij,ij->i", vertex, n)
+    normal = np.einsum("ij,ij->i", left.positions_at(s)[idx] - pts, n)
     assert np.einsum("ij,ij->i", traj[1] - pts, n) == pytest.approx(normal, abs=0.1 * np.abs(normal).max())
-    assert np.linalg.norm(traj[1] - pts, axis=1) == pytest.approx(np.linalg.norm(vertex, axis=1), rel=0.3)
     summary = motion_summary(traj, pts)
     assert summary["max_excursion_mm"] == pytest.approx(np.linalg.norm(traj[1] - traj[0], axis=1).tolist())
 

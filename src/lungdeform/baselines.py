@@ -253,7 +253,7 @@ def measure(rest: Surface, predicted, target: Surface, *, keep=None, keep_target
         kept vertices of ``rest`` carry data for the landmark interpolation.
     landmarks, landmarks_target : (k, 3) float
         End-exhale landmarks and their observed positions at the target volume (aligned), mm.
-    landmark_weights : (k, n_kept) float, optional
+    landmark_weights : (k, n_kept) operator, optional
         :func:`landmark_matrix` for these landmarks, precomputed (the same for every method).
     landmarks_predicted : (k, 3) float, optional
         Landmark positions predicted some other way (held-out predictions of a landmark-informed

@@ -1,7 +1,8 @@
 """Held-out landmark errors of the landmark-informed fit: the k-fold protocol (METHOD §8).
 
-Surfaces cannot see tangential sliding, so a fit may add corresponding interior landmarks to its
-objective (:func:`lungdeform.fit.fit_lung` with ``landmarks_rest`` / ``landmarks_targets``). The
+Surfaces constrain the constants only through the shape they predict, so a fit may add
+corresponding interior landmarks to its objective (moved by the sliding interpolation of the
+model's surface motion, :mod:`lungdeform.sliding`) (:func:`lungdeform.fit.fit_lung` with ``landmarks_rest`` / ``landmarks_targets``). The
 landmark error of such a fit is in-sample; :func:`cross_validate_landmarks` fits once per fold on
 the surfaces and the other folds' landmarks, moves the fold's landmarks with that fit, and finally
 fits on all landmarks (the model a user keeps).

@@ -37,7 +37,7 @@ Topology is written once; positions move by morph targets (displacements), never
   lung's interior field (:attr:`lungdeform.model.LungModel.interior`), not from nearby vertices, so
   a point deep inside moves as ``lungdeform track`` moves it. Three multiply-adds per marker per
   frame. Re-oriented playback (targets 1–4) has no exact marker motion (the landmark correction
-  belongs to the scan's posture; the surface-driven field would need one spline per basis field):
+  belongs to the scan's posture; the surface-driven field would need one interpolation per basis field):
   a player may keep markers on ``λ_tidal(ΔV)·tidal_mm``, the model's own gravity at the same volume.
   (Schema 1 tied markers to 4 surface vertices with inverse-distance weights instead.)
 - Animation ``breathing``: one ``weights`` channel per lung, LINEAR, sampled at the curve's times;

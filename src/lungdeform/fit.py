@@ -37,8 +37,8 @@ kept only when it lowers the fit objective. The model keeps its run-time form. A
 surfaces (:mod:`lungdeform.direction_correction`), kept only when it lowers the objective.
 
 Landmark-informed fitting (optional; paper Sec. IV-B fitted its constants on corresponding points
-of 4-D CT): surfaces cannot see tangential sliding, so c1…c6 are weakly identified by the surface
-objective alone. Given corresponding interior landmarks, the objective becomes
+of 4-D CT): c1…c6 are weakly identified by the surface objective alone (a surface distance sees
+only the predicted shape). Given corresponding interior landmarks, the objective becomes
 ``sqrt(surface_ms + landmark_weight · landmark_ms)`` where the landmarks are moved by the same
 sliding interpolation of the model's surface displacement that the metrics use
 (:func:`lungdeform.sliding.surface_weights`). Landmark errors of such a fit are only

@@ -30,8 +30,8 @@ import numpy as np
 
 from .errors import InputError
 from .interpolate import DisplacementField, displacement_field, interpolation_weights
-from .sliding import SlidingField, sliding_field
 from .mesh import as_vertices
+from .sliding import MAX_POINTS, SlidingField, sliding_field
 
 #: Candidate smoothings (mm², thin-plate regularisation) of the landmark correction.
 SMOOTHING_MM2 = (0.0, 10.0, 100.0, 1000.0)
@@ -39,7 +39,7 @@ SMOOTHING_MM2 = (0.0, 10.0, 100.0, 1000.0)
 #: (the thin-plate spline of model files of schema 1).
 KINDS = ("sliding", "thin_plate")
 #: Surface fields through more vertices than this use a seeded subset.
-MAX_SURFACE_POINTS = 4000
+MAX_SURFACE_POINTS = MAX_POINTS
 
 
 def correction_per_unit(observed, scales, predicted_unit) -> np.ndarray:

@@ -67,6 +67,10 @@ class LungModel:
         The landmarks' motion the surface cannot see, mm per unit (:mod:`lungdeform.interior`).
     landmark_smoothing : float
         Thin-plate smoothing of that correction, mm².
+    interior_vertices : (n,) bool or None
+        The vertices whose motion drives the interior field; None: all. A fit leaves out the
+        vertices on the crop faces of its scans (an image boundary, not lung surface: the model's
+        motion there was never fitted).
     interior_kind : str
         How the surface displacement extends inside (:data:`lungdeform.interior.KINDS`):
         ``"sliding"`` (its normal motion, :mod:`lungdeform.sliding`; model files of schema 2) or
@@ -88,6 +92,7 @@ class LungModel:
     landmarks: np.ndarray | None = None
     landmark_correction: np.ndarray | None = None
     landmark_smoothing: float = 0.0
+    interior_vertices: np.ndarray | None = None
     interior_kind: str = "sliding"
 
     @property
@@ -150,9 +155,10 @@ class LungModel:
         point inside it (surface-driven, plus the landmark correction when the model has one)."""
         from .interior import interior_field
 
-        return interior_field(self.surface.vertices, self.displacement, self.landmarks,
+        on = slice(None) if self.interior_vertices is None else np.asarray(self.interior_vertices, bool)
+        return interior_field(self.surface.vertices[on], self.displacement[on], self.landmarks,
                               self.landmark_correction, self.landmark_smoothing,
-                              normals=self.surface.vertex_normals, kind=self.interior_kind)
+                              normals=self.surface.vertex_normals[on], kind=self.interior_kind)
 
     def points_at(self, points, volume_ml: float | None = None, *, scale: float | None = None,
                   exact: bool = False) -> np.ndarray:

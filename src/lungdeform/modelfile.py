@@ -19,7 +19,10 @@ Per lung, under ``lung/<name>/``: ``side`` str; ``vertices (n, 3) float64`` mm L
 ``displacement (n, 3) float64`` mm per ``unit_ml``; ``unit_ml``; ``calibration_ml``; ``d_min`` mm;
 ``volume_ee_ml``; ``volume_poly (4,)`` mm³ (volume of p + s·u as a cubic in s). Optional (a fit
 with interior landmarks): ``landmarks (m, 3)`` mm LPS, ``landmark_correction (m, 3)`` mm per unit,
-``landmark_smoothing`` mm² (:mod:`lungdeform.interior`).
+``landmark_smoothing`` mm² (:mod:`lungdeform.interior`). Optional (a fit of cropped scans):
+``interior_vertices (n,) bool``, the vertices whose motion drives the interior field (the crop
+faces left out); ``interior_kind`` str, only ``"thin_plate"`` (a schema-1 lung saved again: it keeps
+the interior field it was made with; absent: ``"sliding"``).
 
 Loading checks the schema name and version, that every key is present, and every shape.
 Version 2 changed no key; it changed how interior points move (:attr:`LungModel.interior_kind`:
@@ -41,6 +44,7 @@ import numpy as np
 from .atomic import atomic_path, finite_json
 from .errors import ModelFileError
 from .frame import LungFrame
+from .interior import KINDS
 from .mesh import Surface
 from .model import LungModel, Model
 
@@ -80,6 +84,10 @@ def lung_arrays(lung: LungModel) -> dict[str, np.ndarray]:
     if lung.landmarks is not None and lung.landmark_correction is not None:
         out.update(landmarks=lung.landmarks, landmark_correction=lung.landmark_correction,
                    landmark_smoothing=np.array(lung.landmark_smoothing))
+    if lung.interior_vertices is not None:
+        out["interior_vertices"] = np.asarray(lung.interior_vertices, bool)
+    if lung.interior_kind != "sliding":  # a schema-1 lung saved again keeps its thin-plate field
+        out["interior_kind"] = np.array(lung.interior_kind)
     return out
 
 
@@ -167,6 +175,13 @@ def _lung(path: Path, name: str, data: dict, version: int = SCHEMA_VERSION) -> L
         sm = float(opt["landmark_smoothing"])
         if not (np.all(np.isfinite(lm)) and np.all(np.isfinite(cor)) and np.isfinite(sm) and sm >= 0):
             raise ModelFileError(f"{path}: lung '{name}' landmark correction holds NaN, infinity or a negative smoothing")
+    inner = data.get(prefix + "interior_vertices")
+    if inner is not None and (inner.dtype != bool or inner.shape != (n,) or int(inner.sum()) < 13):
+        raise ModelFileError(f"{path}: lung '{name}' interior_vertices must be ({n},) bool with at least 13 "
+                             f"set, got {inner.dtype} {inner.shape}")
+    kind = "thin_plate" if version == 1 else str(data.get(prefix + "interior_kind", "sliding"))
+    if kind not in KINDS:
+        raise ModelFileError(f"{path}: lung '{name}' interior_kind {kind!r} is not one of {', '.join(KINDS)}")
     surface = Surface(v, a["faces"].astype(np.int64), name)
     frame = LungFrame(str(a["side"]), a["frame_axes"], a["frame_lower"], a["frame_upper"])
     return LungModel(
@@ -176,7 +191,8 @@ def _lung(path: Path, name: str, data: dict, version: int = SCHEMA_VERSION) -> L
         calibration_ml=float(a["calibration_ml"]), d_min=float(a["d_min"]),
         landmarks=opt.get("landmarks"), landmark_correction=opt.get("landmark_correction"),
         landmark_smoothing=float(opt.get("landmark_smoothing", 0.0)),
-        interior_kind="thin_plate" if version == 1 else "sliding",
+        interior_vertices=inner,
+        interior_kind=kind,
     )
 
 

@@ -352,7 +352,7 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
     interior = None
     if use_lm:  # the landmark correction of the interior field (lungdeform.interior), held out per fold
         say("interior landmark correction (cross-validated)")
-        interior = _interior_correction(fit_opt, rest, lms[0], aligned_lms, targets, lm_folds)
+        interior = _interior_correction(fit_opt, rest, lms[0], aligned_lms, targets, lm_folds, keep)
 
     metrics = {"inputs": [str(p) for p in inputs], "side": side, "volumes_ml": vols, "volumes_given_ml": given,
                "warnings": warnings,
@@ -440,7 +440,8 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
     metrics["seconds"] = time.perf_counter() - t_start
 
     out.mkdir(parents=True, exist_ok=True)
-    lung = to_lung_model(rest, side, headline)
+    # the crop faces (image boundary, motion never fitted) do not drive the interior field
+    lung = replace(to_lung_model(rest, side, headline), interior_vertices=None if keep.all() else keep.copy())
     if interior is not None:
         lung = replace(lung, landmarks=lms[0], landmark_correction=interior["correction"],
                        landmark_smoothing=interior["smoothing"])
@@ -455,13 +456,15 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
     return metrics
 
 
-def _interior_correction(fit, rest, landmarks, aligned, targets, folds) -> dict:
+def _interior_correction(fit, rest, landmarks, aligned, targets, folds, keep) -> dict:
     """The interior field's landmark correction for ``fit`` (:mod:`lungdeform.interior`): held-out
     landmark positions per target (k-fold), and the correction and smoothing from all landmarks.
-    The surface-driven part is the one the saved model plays back (its vertices and displacement)."""
+    The surface-driven part is the one the saved model plays back (its kept vertices, normals and
+    displacement: ``LungModel.interior_vertices``)."""
     from lungdeform.interior import correction_per_unit, held_out_positions, interior_field, select_smoothing
 
-    unit = interior_field(rest.vertices, fit.displacement, normals=rest.vertex_normals).displacement(landmarks)  # mm per unit
+    unit = interior_field(rest.vertices[keep], fit.displacement[keep],
+                          normals=rest.vertex_normals[keep]).displacement(landmarks)  # mm per unit
     observed = [np.asarray(a) - landmarks for a in aligned]
     scales = [(tg.volume_ml - fit.volume_ee_ml) / fit.unit_ml for tg in targets]
     correction = correction_per_unit(observed, scales, unit)

@@ -11,17 +11,21 @@ with ``x̂`` the centred, scaled position, fitted by ``n_i · v(p_i) + λ α_i =
 ``Σ_j α_j n_j x̂_j^T = 0``, ``Σ_j α_j n_j = 0`` (a Hermite–Birkhoff radial-basis interpolant of the
 functionals ``u ↦ n_i · u(p_i)``). The field minimises the 3-D bending energy of each component
 among all fields with that normal motion (smoothed by ``λ``, mm). Any affine displacement is
-reproduced exactly (the polynomial part), except linear motions the normals cannot see (a rotation
-of a body of revolution about its axis): those directions of the polynomial part (relative singular
-value below :data:`POLY_TOLERANCE`) are left out, so such a rotation gives no motion. Translations
-are always kept.
+reproduced exactly (the polynomial part), except linear flows that (nearly) map the surface onto
+itself, which its normals cannot see: a sphere's rotations, or an ellipsoid's three "elliptic
+rotations" ``x ↦ E R E⁻¹ x``. Those directions of the polynomial part (relative singular value
+below :data:`POLY_TOLERANCE`, after the translations, which are always kept, are projected out) are
+left out, so such a flow gives no motion. Real lungs keep all twelve (the ITK right lung's weakest
+direction: 0.13).
 
 Why this reading (measured on the ITK right-lung pair, 51 landmarks, the model's surface field,
 ``λ`` = 100 mm): the landmarks move with a mean error of 3.8 mm, against 4.6 mm for the thin-plate
 spline of the full surface displacement (:mod:`lungdeform.interpolate`) and 4.2 mm for the full
 biharmonic spline with the same smoothing; with the interior landmark correction
 (:mod:`lungdeform.interior`, 5-fold held out) 2.0–2.2 mm against 2.5–2.7 mm, over three fold
-splits. ``λ`` was chosen on that pair (0: 4.1 mm, 100: 3.8, 1000: 3.9, 10⁴: 4.6 mm).
+splits. The reading and ``λ`` were chosen on that pair (0: 4.1 mm, 100: 3.8, 1000: 3.9, 10⁴:
+4.6 mm), with the same landmarks that measure it: the figures are optimistic by an unknown amount
+until measured on another subject.
 
 The interpolant is linear in the displacement, so :func:`sliding_weights` returns it as an operator
 ``W`` with ``W @ u`` for any surface field ``u : (k, 3)``, like
@@ -39,6 +43,8 @@ from .mesh import as_vertices
 
 #: Default smoothing ``λ`` (mm) of the sliding interpolant.
 SMOOTHING_MM = 100.0
+#: More surface points than this use a seeded subset (the dense solve is O(k³)).
+MAX_POINTS = 4000
 #: Linear directions whose normal footprint (beyond what translations explain) has a singular value
 #: below this fraction of the whole polynomial block's largest are left out (a sphere's rotations:
 #: 0.004; the ITK right lung's weakest direction: about 0.1).
@@ -148,22 +154,43 @@ class SlidingWeights:
         return np.ascontiguousarray((self.weights @ g).T)
 
     def __getitem__(self, rows) -> "SlidingWeights":
-        """The same map for a subset of the queries."""
+        """The same map for a subset of the queries (an index, a slice, an index array or a mask;
+        a single index keeps its query axis: shape ``(1, k)``)."""
+        if isinstance(rows, tuple):
+            raise InputError("a SlidingWeights operator selects queries (rows) only")
+        if isinstance(rows, (int, np.integer)):
+            rows = [rows]
         return SlidingWeights(self.weights[:, rows], self.normals)
 
+    def __array__(self, dtype=None, copy=None):
+        raise InputError("a SlidingWeights operator is not a matrix: apply it as W @ u, u : (k, 3)")
 
-def sliding_weights(points, normals, query, *, smoothing: float = SMOOTHING_MM) -> SlidingWeights:
+
+def _subset(k: int, max_points: int, seed: int) -> np.ndarray:
+    """The points used: all, or a seeded random subset of ``max_points`` (sorted)."""
+    if k <= max_points:
+        return np.arange(k)
+    return np.sort(np.random.default_rng(seed).choice(k, max_points, replace=False))
+
+
+def sliding_weights(points, normals, query, *, smoothing: float = SMOOTHING_MM, max_points: int = MAX_POINTS,
+                    seed: int = 0) -> SlidingWeights:
     """The sliding interpolant through ``points : (k, 3)`` mm with unit ``normals : (k, 3)``,
     evaluated at ``query : (m, 3)`` mm, as a :class:`SlidingWeights` operator (one dense solve of
-    size ``k + 12`` at most)."""
+    size ``k + 12`` at most). More than ``max_points`` points: the same seeded subset as
+    :func:`sliding_field` (the others get zero weight), so both are one interpolant."""
     p, n = _check(points, normals)
     q = as_vertices(query, "query")
     if not np.all(np.isfinite(q)):
         raise InputError("query points contain NaN or infinity")
-    a, center, scale, basis = _system(p, n, _check_smoothing(smoothing))
-    design = _design(p, n, q, center, scale, basis).reshape(3 * len(q), -1)
-    w = _solve(a, design.T)[:len(p)].T  # a is symmetric: design @ a⁻¹ = (a⁻¹ designᵀ)ᵀ
-    return SlidingWeights(np.ascontiguousarray(w.reshape(3, len(q), len(p))), n)
+    idx = _subset(len(p), max_points, seed)
+    ps, ns = p[idx], n[idx]
+    a, center, scale, basis = _system(ps, ns, _check_smoothing(smoothing))
+    design = _design(ps, ns, q, center, scale, basis).reshape(3 * len(q), -1)
+    w = _solve(a, design.T)[:len(ps)].T  # a is symmetric: design @ a⁻¹ = (a⁻¹ designᵀ)ᵀ
+    full = np.zeros((3, len(q), len(p)))
+    full[:, :, idx] = w.reshape(3, len(q), len(ps))
+    return SlidingWeights(full, n)
 
 
 @dataclass(frozen=True, eq=False)
@@ -204,7 +231,7 @@ class SlidingField:
 
 
 def sliding_field(points, normals, displacements, *, smoothing: float = SMOOTHING_MM,
-                  max_points: int = 4000, seed: int = 0) -> SlidingField:
+                  max_points: int = MAX_POINTS, seed: int = 0) -> SlidingField:
     """Fit the sliding interpolant to ``displacements : (k, 3)`` mm at ``points : (k, 3)`` mm with
     unit ``normals``. More than ``max_points`` points are thinned to a seeded random subset (the
     dense solve is O(k³))."""
@@ -212,9 +239,8 @@ def sliding_field(points, normals, displacements, *, smoothing: float = SMOOTHIN
     u = as_vertices(displacements, "displacements")
     if u.shape != p.shape or not np.all(np.isfinite(u)):
         raise InputError(f"displacements must be finite with shape {p.shape}, got {u.shape}")
-    if len(p) > max_points:
-        idx = np.sort(np.random.default_rng(seed).choice(len(p), max_points, replace=False))
-        p, n, u = p[idx], n[idx], u[idx]
+    idx = _subset(len(p), max_points, seed)
+    p, n, u = p[idx], n[idx], u[idx]
     a, center, scale, basis = _system(p, n, _check_smoothing(smoothing))
     g = np.einsum("kc,kc->k", n, u)
     coef = _solve(a, np.concatenate([g, np.zeros(basis.shape[1])]))

@@ -20,8 +20,10 @@ scale about its centroid, so that subjects differ. For each lung:
    along the clean surface's outward vertex normal ``n`` (seeded). The end-exhale surface, the
    model mesh, is kept exact;
 5. optional landmarks: a seeded subset of surface vertices at their true (noise-free) positions at
-   every volume, so that a fit's landmark error measures the full displacement, tangential part
-   included, which a surface distance cannot see;
+   every volume, moved by the full displacement, tangential part included, which a surface
+   distance cannot see. The interior field (the sliding interpolation of the normal motion) does
+   not see it either: even the true model moves such landmarks about 0.5 mm (mean) off, and the
+   interior landmark correction learns the rest;
 6. optional table shift (``table_shift_mm`` > 0): each larger-volume surface and its landmarks are
    translated by a known random vector (N(0, table_shift_mm²) per axis), as a patient table
    between scans; drawn last, so a cohort without it is unchanged.

@@ -79,8 +79,10 @@ def register(apps) -> None:
         paths = T.write_trajectories(folder, pts, labels, placement, positions, delta, t_s, meta={
             "model": str(model), "schedule": source, "end_exhale_ml": v_ee,
             "landmark_correction": corrected,
-            "interior_field": "sliding interpolation of the surface's normal motion"
-                              + (" plus the fit's landmark correction" if any(corrected.values()) else "")})
+            "interior_field": {name: ("sliding interpolation of the surface's normal motion" if lg.interior_kind == "sliding"
+                                      else "thin-plate spline of the surface displacement (model schema 1)")
+                               + (" plus the fit's landmark correction" if corrected[name] else "")
+                               for name, lg in m.lungs.items()}})
         summary = T.motion_summary(positions, pts)
         typer.echo(f"{len(pts)} point(s), {len(delta)} frame(s): {source}")
         for j, label in enumerate(labels[:20]):
