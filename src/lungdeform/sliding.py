@@ -219,9 +219,9 @@ class SlidingField:
         if not np.all(np.isfinite(q)):
             raise InputError("query points contain NaN or infinity")
         out = np.empty((len(q), 3))
-        for start in range(0, len(q), 2048):  # bounded memory for many queries
-            part = _design(self.points, self.normals, q[start:start + 2048], self.center, self.scale, self.basis)
-            out[start:start + 2048] = (part @ self.coefficients).T
+        for start in range(0, len(q), 512):  # bounded memory: 3 × 512 × k floats per chunk
+            part = _design(self.points, self.normals, q[start:start + 512], self.center, self.scale, self.basis)
+            out[start:start + 512] = (part @ self.coefficients).T
         return out
 
     def move(self, query) -> np.ndarray:
