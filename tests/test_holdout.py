@@ -7,8 +7,9 @@ import pytest
 
 from lungdeform import breathing as br
 from lungdeform import holdout
+from lungdeform.cycles import CycleAnchors, cycle_anchors
 from lungdeform.errors import InputError
-from lungdeform.trace import CycleAnchors, Trace, cycle_anchors, read_trace, resample
+from lungdeform.trace import Trace, read_trace, resample
 from tests.conftest import require_path
 
 #: A PV breath with known parameters (τ = R/E = 0.5 s).

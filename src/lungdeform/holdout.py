@@ -4,7 +4,7 @@ Protocol (one trace):
 
 1. Resample to a uniform grid at the trace's own rate (the readers have already signed it
    inhalation-positive, :func:`lungdeform.trace.orient_inhale_positive`); split into cycles at the
-   detected inspiration onsets with the detected end-inhale peaks (:func:`lungdeform.trace.cycle_anchors`,
+   detected inspiration onsets with the detected end-inhale peaks (:func:`lungdeform.cycles.cycle_anchors`,
    the same detector for every format; the RPM's own marks are compared with it, not used: in the
    real .vxp file one in five is off by more than 0.5 s).
 2. Calibrate amplitude to volume linearly: the median peak-to-peak of the *training* cycles maps to
@@ -37,17 +37,18 @@ when the baseline drifts or when non-breathing events occur, so a stricter figur
 a % of the held-out trace's whole range is reported alongside (``percent_of_trace_range``). Also
 reported, to explain the figures, never used by any fit: the white-noise floor (% of the breath
 amplitude), the score on held-out cycles that model-free flags call regular
-(:func:`lungdeform.trace.cycle_flags`; same denominator), and the agreement of recorded marks.
+(:func:`lungdeform.cycles.cycle_flags`; same denominator), and the agreement of recorded marks.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from . import breathing as br
+from . import inversion as inv
 from . import respiration_baselines as rb
+from .cycles import CycleAnchors, cycle_anchors, cycle_flags, mark_agreement, noise_level, smooth
 from .errors import InputError
-from .trace import CycleAnchors, Trace, cycle_anchors, cycle_flags, mark_agreement, noise_level, resample, smooth
+from .trace import Trace, resample
 
 MODELS = ("model", "lujan", "fourier")
 #: Low-pass (Hz) for the anchor levels of the "anchored" calibration.
@@ -114,7 +115,7 @@ def calibrate_anchored(shape_fn, t_s, anchors: CycleAnchors, level_fn) -> np.nda
         A = np.array([[sa[c], 1.0, -0.5], [sa[k + c], 1.0, pk_frac[c] - 0.5], [sa[2 * k + c], 1.0, 0.5]])
         coef = np.linalg.lstsq(A, la[[c, k + c, 2 * k + c]], rcond=None)[0]
         sel = idx == c
-        out[sel] = br.calibration_design(shape[sel], frac[sel], True) @ coef
+        out[sel] = inv.calibration_design(shape[sel], frac[sel], True) @ coef
     return out
 
 
@@ -123,7 +124,7 @@ def fit_shapes(t_s, volume_ml, train: CycleAnchors, elastance: float, drift: boo
     """Fit the three shared shapes on the training cycles only. Returns {"pv": BreathingFit,
     "lujan": LujanFit, "fourier": (4,) coefficients, "peak_phase": float}."""
     ph = rb.median_peak_phase(train.starts_s, train.peaks_s)
-    pv = br.invert(t_s, volume_ml, train.starts_s, peaks_s=train.peaks_s, elastance=elastance,
+    pv = inv.invert(t_s, volume_ml, train.starts_s, peaks_s=train.peaks_s, elastance=elastance,
                    per_cycle_calibration=True, drift=drift)
     lj = rb.fit_lujan(t_s, volume_ml, train.starts_s, peaks_s=train.peaks_s, peak_phase=ph, drift=drift)
     fo = rb.fit_fourier_shape(t_s, volume_ml, train.starts_s, peaks_s=train.peaks_s, peak_phase=ph, drift=drift)
@@ -139,7 +140,7 @@ def shape_functions(fits: dict, cycles: CycleAnchors) -> dict:
         return rb.cycle_phase(x, st, pk, ph)[1]
 
     return {
-        "model": lambda x: br.predict_cycles(fits["pv"], x, st, peaks_s=pk, calibrate=False),
+        "model": lambda x: inv.predict_cycles(fits["pv"], x, st, peaks_s=pk, calibrate=False),
         "lujan": lambda x: rb.lujan_shape(warped(x), lj.n, lj.phi),
         "fourier": lambda x: rb.fourier_design(warped(x), fo.size // 2)[:, 1:] @ fo,
     }
@@ -192,7 +193,7 @@ def evaluate(trace: Trace, tidal_volume_ml: float = 500.0, train_fraction: float
 
     if progress:
         progress(f"{trace.source}: per-cycle refits")
-    pv_refit, _ = br.refit_control(fits["pv"], tt, vt, s_test, peaks_s=test.peaks_s)
+    pv_refit, _ = inv.refit_control(fits["pv"], tt, vt, s_test, peaks_s=test.peaks_s)
     lj_refit = rb.predict_lujan(rb.fit_lujan(tt, vt, s_test, per_cycle=True), tt, vt, s_test)
     fo_refit, _ = rb.fit_fourier_per_cycle(tt, vt, s_test)
     refit = {"model": pv_refit, "lujan": lj_refit, "fourier": fo_refit}

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .breathing import calibration_design
+from .inversion import calibration_design
 from .errors import InputError
 
 

@@ -132,7 +132,7 @@ def offline_volume(t_s, amplitude, tidal_volume_ml: float = 500.0, v_ee_ml: floa
     min/max window (uniform t_s). Comparing the stream against it isolates what causality costs."""
     from scipy.ndimage import maximum_filter1d, minimum_filter1d
 
-    from .trace import smooth
+    from .cycles import smooth
 
     t = np.asarray(t_s, float)
     fs = 1.0 / float(np.median(np.diff(t)))

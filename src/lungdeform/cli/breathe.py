@@ -153,11 +153,12 @@ def fitted_curve(fit, anchors):
     import numpy as np
 
     from lungdeform import breathing as br
+    from lungdeform import inversion as inv
 
     p = fit.params
     t = fit.t_s
     starts = fit.cycle_starts_s
-    rho = br.insp_fractions(starts, anchors.peaks_s, fit.peak_lag_s) if fit.peak_lag_s is not None \
+    rho = inv.insp_fractions(starts, anchors.peaks_s, fit.peak_lag_s) if fit.peak_lag_s is not None \
         else np.full(starts.size - 1, p.insp_fraction)
     idx = np.clip(np.searchsorted(starts, t, side="right") - 1, 0, starts.size - 2)
     theta = (t - starts[idx]) / (starts[idx + 1] - starts[idx])
@@ -172,7 +173,7 @@ def fitted_curve(fit, anchors):
 def run_fit(path: Path, out: Path, tidal_volume_ml: float, train_fraction: float, progress=None) -> dict:
     import numpy as np
 
-    from lungdeform import breathing as br
+    from lungdeform import inversion as inv
     from lungdeform.holdout import calibrate, evaluate
     from lungdeform.stream import StreamingVolumeEstimator, offline_volume, replay, signal_delay_s
     from lungdeform.trace import read_trace, resample
@@ -185,7 +186,7 @@ def run_fit(path: Path, out: Path, tidal_volume_ml: float, train_fraction: float
     fs = res["sample_rate_hz"]
     tr = resample(trace, fs)
     vol, _, _ = calibrate(tr, anchors.starts_s, tidal_volume_ml)
-    full = br.invert(tr.t_s, vol, anchors.starts_s, peaks_s=anchors.peaks_s, per_cycle_calibration=True)
+    full = inv.invert(tr.t_s, vol, anchors.starts_s, peaks_s=anchors.peaks_s, per_cycle_calibration=True)
     curve = fitted_curve(full, anchors)
 
     # streaming: replay the trace sample by sample; compare with the non-causal twin of the estimator
