@@ -24,7 +24,8 @@ import time
 from pathlib import Path
 
 from lungdeform.io import write_mesh
-from lungdeform.mask import LOBE_LABELS, extract_surface, read_image
+from lungdeform.image import read_image
+from lungdeform.mask import LOBE_LABELS, extract_surface
 
 TARGET_VERTICES = 3000
 OUT = Path(__file__).resolve().parents[1] / "src" / "lungdeform" / "data"

@@ -5,7 +5,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from lungdeform.align import (RigidTransform, align_apex, align_landmarks, crop_planes, kabsch, near_planes)
-from lungdeform.mask import Image
+from lungdeform.image import Image
 from tests.conftest import ellipsoid_lung
 
 

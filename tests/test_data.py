@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from lungdeform.data import default_lungs, itk_right_lung
-from lungdeform.mask import LOBE_LABELS, extract_surface, read_image
+from lungdeform.image import read_image
+from lungdeform.mask import LOBE_LABELS, extract_surface
 from lungdeform.mesh import check_surface
 
 from .conftest import require_path

@@ -7,9 +7,10 @@ from lungdeform.direction_correction import (corrected_directions, fit_direction
                                              polynomial_basis)
 from lungdeform.displacement import calibrate
 from lungdeform.errors import InputError
-from lungdeform.fit import LungFitter, Target, fit_lung
+from lungdeform.fit import fit_lung
 from lungdeform.mesh import Surface
 from lungdeform.model import build_lung
+from lungdeform.objective import LungFitter, Target
 from tests.conftest import ellipsoid_lung
 
 TRUE = np.array([0.2, 1.5, 0.4, 0.8, 0.9, 1.8, 0.3, 1.0, 0.5])

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from lungdeform.expandability import STIFFNESS_RANGE, fit_stiffness_field, fit_stiffness_if_better, smooth_observations
-from lungdeform.fit import LungFitter, Target
 from lungdeform.model import build_lung
+from lungdeform.objective import LungFitter, Target
 from tests.conftest import ellipsoid_lung
 
 TRUE = np.array([0.2, 1.5, 0.4, 0.8, 0.9, 1.8, 0.3, 1.0, 0.5])

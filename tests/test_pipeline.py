@@ -29,7 +29,7 @@ def test_landmarks_outside_their_own_mask_are_reported(tmp_path):
     # (another frame, or the other scan's file) has most of its points outside and is reported
     import numpy as np
 
-    from lungdeform.mask import Image
+    from lungdeform.image import Image
     from lungdeform.pipeline import landmark_mask_warnings
 
     from lungdeform.mask import extract_surface
@@ -58,7 +58,7 @@ def test_swapped_itk_landmark_files_are_reported(data_dir):
     import pytest  # noqa: F401  (data_dir skips without LUNGDEFORM_DATA)
 
     from lungdeform.landmarks import read_elastix_points
-    from lungdeform.mask import read_image
+    from lungdeform.image import read_image
     from lungdeform.pipeline import landmark_mask_warnings
     from tests.conftest import require_path
 

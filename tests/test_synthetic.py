@@ -12,8 +12,9 @@ import pytest
 from lungdeform import data
 from lungdeform.constants import table_constants
 from lungdeform.errors import InputError, ReadError
-from lungdeform.fit import DIRECTION_BOUNDS, LungFitter, Target, fit_lung
+from lungdeform.fit import DIRECTION_BOUNDS, fit_lung
 from lungdeform.mesh import Surface
+from lungdeform.objective import LungFitter, Target
 from lungdeform.synthetic import (SOURCES, draw_constants, model_displacement, normal_noise, read_truth,
                                   scaled_shape, synthesize_lung, synthetic_cohort, write_cohort)
 

@@ -20,7 +20,7 @@ def lung_with_vertices(target: int, base: Surface | None = None) -> Surface:
     """A real lung surface with about ``target`` vertices: the embedded right lung decimated to
     ``target / 4^k`` vertices, then midpoint-subdivided ``k`` times (each ×4, shape unchanged)."""
     from .data import default_lungs
-    from .mask import decimate
+    from .remesh import decimate
 
     lung = base if base is not None else default_lungs()["right"]
     k = 0

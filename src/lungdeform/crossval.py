@@ -19,8 +19,9 @@ from .errors import InputError
 from .sliding import checked_operator, surface_weights
 
 if TYPE_CHECKING:  # fit_lung is imported where used (fit.py's docstring refers to this module)
-    from .fit import FitResult, Target
+    from .fit import FitResult
     from .mesh import Surface
+    from .objective import Target
 
 
 def landmark_folds(n: int, folds: int = 5, seed: int = 0, *, parameter: str = "folds") -> list[np.ndarray]:

@@ -14,7 +14,7 @@ Fit (:func:`fit_direction_correction`): Gauss–Newton steps on closest-point co
 symmetric surface distance (model vertices → target surface, target samples → nearest model
 vertex), with the linearised normalisation ``∂d = (I − d dᵀ)/|d⁰ + Cᵀφ| · ∂(Cᵀφ)`` and a ridge
 of 1 % of the mean curvature of the normal equations; every step is scored by the fit's own exact
-objective (:meth:`lungdeform.fit.LungFitter.residual_vector`) and the best is kept, only if it
+objective (:meth:`lungdeform.objective.LungFitter.residual_vector`) and the best is kept, only if it
 lowers the objective. Measured on the ITK right lung (stiffness field fitted): surface mean
 distance 1.95 → 1.53 mm at degree 3 (degree 2: 1.65 mm; degree 4 does no better).
 
@@ -33,8 +33,8 @@ from scipy.spatial import cKDTree
 
 from .errors import InputError
 
-if TYPE_CHECKING:  # fit.py imports this module
-    from .fit import LungFitter
+if TYPE_CHECKING:  # annotations only
+    from .objective import LungFitter
 
 #: Default polynomial degree of the correction (0: the paper's directions only).
 DEFAULT_DEGREE = 3

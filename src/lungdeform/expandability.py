@@ -20,8 +20,8 @@ from .errors import ConvergenceError, InputError
 from .solve import ForceSolver
 from .transfer import local_transfer
 
-if TYPE_CHECKING:  # fit.py imports this module
-    from .fit import LungFitter
+if TYPE_CHECKING:  # annotations only
+    from .objective import LungFitter
 
 #: Bound of the fitted stiffness field: ``E ∈ [1/STIFFNESS_RANGE, STIFFNESS_RANGE]`` (relative).
 STIFFNESS_RANGE = 4.0
@@ -30,7 +30,7 @@ STIFFNESS_RANGE = 4.0
 def smooth_observations(values: np.ndarray, weights: np.ndarray, faces: np.ndarray, iterations: int) -> np.ndarray:
     """Normalised convolution on the mesh: weighted umbrella averaging of ``values (n,)`` with
     ``weights (n,) ≥ 0`` (0 = no observation, filled from the neighbours)."""
-    from .mask import umbrella_operator
+    from .remesh import umbrella_operator
 
     n = len(values)
     avg = (umbrella_operator(n, faces) + sparse.identity(n)).tocsr()  # D⁻¹A: mean of neighbours

@@ -168,6 +168,7 @@ def load(
     Each surface passed :func:`check_surface` (messages start with the path). ``repair`` applies
     to mesh files; surfaces made from masks are closed, manifold and outward by construction.
     """
+    from . import image as _image
     from . import mask as _mask
 
     p = Path(path)
@@ -177,19 +178,19 @@ def load(
         if progress:
             progress(f"reading {p}")
         return [load_surface(p, units=units, repair=repair)]
-    if not _mask.is_image_path(p):
+    if not _image.is_image_path(p):
         if not p.exists():
             raise ReadError(f"{p}: no such file or directory")
         raise ReadError(
             f"{p}: unknown format (meshes: {', '.join(MESH_SUFFIXES)}; images: "
-            f"{', '.join(_mask.IMAGE_SUFFIXES)} or a DICOM directory)"
+            f"{', '.join(_image.IMAGE_SUFFIXES)} or a DICOM directory)"
         )
     if _unit_factor(units) != 1.0:
         raise InputError(f"{p}: units={units!r} applies to mesh files; image spacing is in mm already")
     groups = _mask.label_groups(labels)
     if progress:
         progress(f"reading {p}")
-    image = _mask.read_image(p)
+    image = _image.read_image(p)
     out = []
     for group, values in groups.items():
         if progress:

@@ -171,7 +171,7 @@ def check_manifest(path) -> tuple[Manifest | None, list[Problem]]:
 def _parse(text: str, folder: Path) -> tuple[list[_Row], set[str], list[Problem]]:
     """Rows usable for grouping, the subjects with unusable rows, and the problems found."""
     from .io import MESH_SUFFIXES
-    from .mask import IMAGE_SUFFIXES
+    from .image import IMAGE_SUFFIXES
 
     problems: list[Problem] = []
     reader = csv.reader(io.StringIO(text))

@@ -47,6 +47,7 @@ def read_input(path: Path, side: str, *, progress=None):
     """``(dense Surface, crop planes, spacing or None, image or None)`` for one input path."""
     from lungdeform import io as lio
     from lungdeform import mask as M
+    from lungdeform.image import Image, is_image_path, read_image
     from lungdeform.align import crop_planes
 
     path = Path(path)
@@ -54,17 +55,17 @@ def read_input(path: Path, side: str, *, progress=None):
         from lungdeform.errors import ReadError
 
         raise ReadError(f"{path}: no such file or directory")
-    if not M.is_image_path(path):
+    if not is_image_path(path):
         surface, _ = lio.load_surface(path, name=path.name)
         return surface, [], None, None
-    image = M.read_image(path)
+    image = read_image(path)
     a = np.asarray(image.array)
     if a.size and a.min() < -100:  # a CT in HU: segment the lungs first
         from lungdeform.segment import segment_lungs
 
         seg = segment_lungs(image, progress=progress)
-        image = M.Image(getattr(seg, side).astype(np.uint8), image.spacing, image.origin, image.direction,
-                        f"{image.source} ({side} lung)")
+        image = Image(getattr(seg, side).astype(np.uint8), image.spacing, image.origin, image.direction,
+                      f"{image.source} ({side} lung)")
     else:  # a lobe label map holds both lungs: keep this side's lobes (binary masks pass unchanged)
         image = M.side_mask(image, side)
     surface = M.extract_surface(image, name=path.name).surface
@@ -74,7 +75,7 @@ def read_input(path: Path, side: str, *, progress=None):
 def model_mesh(surface, image=None):
     """The end-exhale model mesh: the mask's surface decimated to about 3000 vertices."""
     from lungdeform.errors import LungdeformError
-    from lungdeform.mask import decimate
+    from lungdeform.remesh import decimate
     from lungdeform.mesh import Surface, check_surface
 
     if surface.n_vertices <= MODEL_MESH_BUDGETS[0] * 1.2:
@@ -477,7 +478,7 @@ def _place(surface, planes, transform, fixed_planes, volume_ml: float, name: str
     end-exhale): ``(Target, its crop planes moved by transform)``; the target's vertices near any
     of those planes or of the end-exhale ``fixed_planes`` are not measured."""
     from lungdeform.align import near_planes
-    from lungdeform.fit import Target
+    from lungdeform.objective import Target
 
     placed = transform.apply_surface(surface)
     moved = [p.transformed(transform) for p in planes]

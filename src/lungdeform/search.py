@@ -2,7 +2,7 @@
 
 ``least_squares`` (the default optimiser): a trust-region least-squares solver
 (``scipy.optimize.least_squares``, finite differences) on the per-point residual vector of
-:meth:`lungdeform.fit.LungFitter.residual_vector`, whose sum of squares is the objective squared.
+:meth:`lungdeform.objective.LungFitter.residual_vector`, whose sum of squares is the objective squared.
 Two findings on synthetic lungs made by the model itself (known truth) shape it: (a) directions are
 normalised, so c1, c3, c5 are defined only up to a common factor (a zero singular value): c3 is
 held at its start (:data:`GAUGE`, Table I) and the ratios c1/c3, c5/c3 are what is determined;
@@ -33,8 +33,8 @@ from scipy import optimize
 
 from .errors import ConvergenceError
 
-if TYPE_CHECKING:  # fit.py imports this module
-    from .fit import LungFitter
+if TYPE_CHECKING:  # annotations only
+    from .objective import LungFitter
 
 #: Bound of the free force constants in the least-squares mode, relative to the fixed one (|c| ≤).
 FORCE_BOUND = 3.0

@@ -28,201 +28,28 @@ Pipeline of :func:`segment_lungs` (each step names what it is for):
    slice (2-D) and in 3-D.
 
 Frames: masks are ``(z, y, x) bool`` arrays on the CT grid (SimpleITK order); geometry follows
-:class:`lungdeform.mask.Image` (spacing x y z mm, origin mm LPS, direction columns in LPS).
-Volumes are mL (= voxel count × voxel volume / 1000).
+:class:`lungdeform.image.Image` (spacing x y z mm, origin mm LPS, direction columns in LPS).
+Volumes are mL (= voxel count × voxel volume / 1000). Reading the CT and reordering its grid are
+in :mod:`lungdeform.ct`.
 """
 
 from __future__ import annotations
 
-import tarfile
-import tempfile
-import zipfile
 from collections.abc import Callable
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 from scipy import ndimage as ndi
 
-from .errors import InputError, MaskError, ReadError
-from .mask import Image, is_dicom_file, read_image
+from .ct import axial_axes, check_ct, to_axial
+from .errors import InputError, MaskError
+from .image import Image
 
-ARCHIVE_SUFFIXES = (".tar.gz", ".tgz", ".tar", ".zip")
 _SIX = ndi.generate_binary_structure(3, 1)
 #: 4-connected in-plane structure with no link across slices: per-slice (2-D) operations on a 3-D array.
 _INPLANE = np.zeros((3, 3, 3), bool)
 _INPLANE[1] = ndi.generate_binary_structure(2, 1)
-
-
-# =========================================================================== reading
-def is_archive(path) -> bool:
-    """True if ``path`` names a .tar.gz/.tgz/.tar/.zip file."""
-    return Path(path).name.lower().endswith(ARCHIVE_SUFFIXES)
-
-
-@contextmanager
-def extracted(path, workdir=None):
-    """Extract a .tar.gz/.tgz/.tar/.zip archive into a temporary folder (inside ``workdir`` if
-    given); yield the folder that holds the most files (the DICOM series). Removed on exit."""
-    path = Path(path)
-    with tempfile.TemporaryDirectory(prefix="lungdeform-ct-", dir=workdir) as tmp:
-        try:
-            if path.name.lower().endswith(".zip"):
-                with zipfile.ZipFile(path) as zf:
-                    for member in zf.namelist():
-                        target = (Path(tmp) / member).resolve()
-                        if not str(target).startswith(str(Path(tmp).resolve())):
-                            raise ReadError(f"{path}: archive member {member!r} points outside the archive")
-                    zf.extractall(tmp)
-            else:
-                with tarfile.open(path) as tf:
-                    tf.extractall(tmp, filter="data")
-        except (tarfile.TarError, zipfile.BadZipFile, EOFError, OSError) as exc:
-            raise ReadError(f"{path}: cannot extract archive ({exc})") from exc
-        counts: dict[Path, int] = {}
-        for f in Path(tmp).rglob("*"):
-            if f.is_file():
-                counts[f.parent] = counts.get(f.parent, 0) + 1
-        if not counts:
-            raise ReadError(f"{path}: the archive is empty")
-        yield max(counts, key=lambda d: (counts[d], -len(d.parts)))
-
-
-def check_slice_spacing(folder, tolerance: float = 0.01) -> None:
-    """Refuse a DICOM series whose slices are not evenly spaced (missing or duplicated slices).
-
-    Reads ImagePositionPatient and ImageOrientationPatient of every file of the series that
-    ``folder`` names (:func:`lungdeform.mask.dicom_series_files`: a folder, a parent folder or one file); the gaps along the slice normal must agree within ``tolerance`` (relative) and be
-    non-zero. Raises :class:`ReadError` naming the folder, the gaps and the files around the worst one.
-    """
-    import SimpleITK as sitk
-
-    from .mask import dicom_series_files
-
-    folder = Path(folder)
-    try:
-        files = dicom_series_files(folder)
-    except ReadError:
-        return  # no series to check: read_image says what is wrong
-    if len(files) < 3:
-        return
-    pos, normal = [], None
-    fr = sitk.ImageFileReader()
-    for f in files:
-        fr.SetFileName(f)
-        fr.ReadImageInformation()
-        try:
-            pos.append([float(v) for v in fr.GetMetaData("0020|0032").split("\\")])
-            if normal is None:
-                o = [float(v) for v in fr.GetMetaData("0020|0037").split("\\")]
-                normal = np.cross(o[:3], o[3:])
-        except (RuntimeError, ValueError):
-            return  # no position tags: nothing to check, SimpleITK's geometry stands
-    gaps = np.diff(np.asarray(pos) @ normal)
-    med = float(np.median(np.abs(gaps)))
-    bad = np.abs(np.abs(gaps) - med) > tolerance * max(med, 1e-6)
-    if med <= 0 or bad.any():
-        k = int(np.argmax(np.abs(np.abs(gaps) - med)))
-        raise ReadError(
-            f"{folder}: inconsistent slice spacing: gaps {np.abs(gaps).min():.3g}–{np.abs(gaps).max():.3g} mm "
-            f"(median {med:.3g} mm), worst between {Path(files[k]).name} and {Path(files[k + 1]).name}; "
-            "slices are missing or duplicated"
-        )
-
-
-def read_ct(path, workdir=None) -> Image:
-    """Read a CT: NIfTI/MHA/NRRD file, a DICOM directory, or a .tar.gz/.zip of a DICOM series.
-
-    DICOM series are checked for even slice spacing (:func:`check_slice_spacing`). The image must
-    look like HU (some voxels below −500): otherwise :class:`InputError`. Archives are extracted
-    into a temporary folder (inside ``workdir`` if given) that is removed afterwards.
-    """
-    path = Path(path)
-    if not path.exists():
-        raise ReadError(f"{path}: no such file or directory")
-    if is_archive(path):
-        with extracted(path, workdir) as folder:
-            check_slice_spacing(folder)
-            img = read_image(folder)
-        img = Image(img.array, img.spacing, img.origin, img.direction, source=str(path))
-    else:
-        if path.is_dir() or is_dicom_file(path):
-            check_slice_spacing(path)
-        img = read_image(path)
-    check_ct(img)
-    return img
-
-
-def check_ct(image: Image) -> None:
-    """Refuse images that are not CT in Hounsfield units (no air-like values, or not finite)."""
-    a = image.array
-    if a.size == 0:
-        raise InputError(f"{image.source}: the image is empty")
-    lo = float(a.min())
-    if not np.isfinite(lo) or not np.isfinite(float(a.max())):
-        raise InputError(f"{image.source}: the image holds NaN or infinite values")
-    if lo > -500:
-        raise InputError(
-            f"{image.source}: minimum value {lo:g} — a CT in HU has air near −1000; "
-            "this looks like a mask or an image without its rescale slope/intercept"
-        )
-
-
-#: cos 30°: each index axis must lie within 30° of a world axis (a gantry tilt up to 30° passes).
-MAX_TILT_COS = float(np.cos(np.radians(30.0)))
-
-
-def axial_axes(image: Image) -> tuple[int, int, int]:
-    """Array axes of ``image`` that run along world z, y and x (LPS), in that order.
-
-    ``(0, 1, 2)`` for the usual axial (z, y, x) array; another permutation for an image stored
-    as sagittal or coronal slices or with swapped in-plane axes (e.g. a NIfTI written in another
-    axis order). Signs (feet-first, mirrored) are not part of it. Raises :class:`InputError` when
-    an index axis lies more than 30° from every world axis (oblique slices, e.g. a gantry tilt
-    beyond 30°), which needs resampling.
-    """
-    d = np.abs(np.asarray(image.direction, float))  # columns: index axes i, j, k in LPS
-    world = [int(np.argmax(d[:, a])) for a in range(3)]  # world axis of each index axis
-    if sorted(world) != [0, 1, 2] or min(d[w, a] for a, w in enumerate(world)) < MAX_TILT_COS:
-        raise InputError(f"{image.source}: slices are not axial (direction {np.round(image.direction, 4).tolist()}); "
-                         "resample to axial slices first")
-    # array axis of index axis a is 2 - a (SimpleITK order (k, j, i))
-    return tuple(2 - world.index(w) for w in (2, 1, 0))
-
-
-def to_axial(image: Image, perm: tuple[int, int, int] | None = None) -> Image:
-    """``image`` transposed so that its array is (z, y, x) along world z, y, x (:func:`axial_axes`).
-
-    An exact reordering (no resampling): every voxel keeps its world position; the origin (the
-    first voxel) is unchanged, spacing and direction columns follow their axes."""
-    perm = axial_axes(image) if perm is None else tuple(perm)
-    if perm == (0, 1, 2):
-        return image
-    index_axes = [2 - a for a in perm[::-1]]  # index axes (i, j, k) of the axial image, in the old order
-    sp = np.asarray(image.spacing, float)[index_axes]
-    d = np.asarray(image.direction, float)[:, index_axes]
-    return Image(np.transpose(np.asarray(image.array), perm), sp, image.origin, d, source=image.source)
-
-
-def downsample(image: Image, factors=(1, 2, 2)) -> Image:
-    """Block-mean downsampling by integer ``factors`` along (z, y, x); spacing scales accordingly.
-
-    The origin moves to the centre of the first block, so world positions stay consistent.
-    """
-    f = tuple(int(v) for v in factors)
-    if len(f) != 3 or min(f) < 1:
-        raise InputError(f"factors must be 3 positive integers (z, y, x), got {factors!r}")
-    a = np.asarray(image.array, dtype=np.float32)
-    shp = tuple(s // k for s, k in zip(a.shape, f))
-    if min(shp) < 1:
-        raise InputError(f"factors {f} leave no voxel of an image of shape {a.shape}")
-    a = a[: shp[0] * f[0], : shp[1] * f[1], : shp[2] * f[2]]
-    a = a.reshape(shp[0], f[0], shp[1], f[1], shp[2], f[2]).mean(axis=(1, 3, 5))
-    fx = np.array([f[2], f[1], f[0]], float)
-    shift = (fx - 1) / 2 * np.asarray(image.spacing)
-    return Image(a, np.asarray(image.spacing) * fx, np.asarray(image.origin) + image.direction @ shift,
-                 image.direction, source=image.source)
 
 
 # =========================================================================== result
@@ -670,28 +497,4 @@ def overlay_png(seg: LungSegmentation, path, n_axial: int = 3) -> Path:
     plt.close(fig)
     path = Path(path)
     write_bytes(path, buf.getvalue())
-    return path
-
-
-def write_mask(image: Image, path) -> Path:
-    """Write a mask :class:`Image` as .nii.gz/.nii/.mha/.nrrd (by suffix), atomically.
-
-    SimpleITK writes the LPS geometry; for NIfTI it converts to the file's RAS convention itself.
-    """
-
-    import SimpleITK as sitk
-
-    path = Path(path)
-    name = path.name.lower()
-    suffix = next((s for s in (".nii.gz", ".nii", ".mha", ".mhd", ".nrrd") if name.endswith(s)), None)
-    if suffix is None:
-        raise InputError(f"{path}: mask format must be .nii.gz, .nii, .mha or .nrrd")
-    img = sitk.GetImageFromArray(np.ascontiguousarray(image.array, dtype=np.uint8))
-    img.SetSpacing([float(v) for v in image.spacing])
-    img.SetOrigin([float(v) for v in image.origin])
-    img.SetDirection([float(v) for v in np.asarray(image.direction).ravel()])
-    from .atomic import atomic_path
-
-    with atomic_path(path, suffix) as tmp:
-        sitk.WriteImage(img, str(tmp), useCompression=True)
     return path

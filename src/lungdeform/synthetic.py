@@ -10,7 +10,7 @@ scale about its centroid, so that subjects differ. For each lung:
 2. the displacement ``u = k·F·d`` is built by :func:`lungdeform.model.build_lung` (supine, uniform
    stiffness): directions from c1…c6, the force response of ``f = c7·x̂ + c8·ĥ + c9·ẑ`` through the
    spring-node graph, ``k`` calibrated exactly at the first volume change ΔV₁ with ``unit_ml = ΔV₁``.
-   That is the form :class:`lungdeform.fit.LungFitter` assumes (same frame, same force fields,
+   That is the form :class:`lungdeform.objective.LungFitter` assumes (same frame, same force fields,
    same calibration), so the true constants give a zero-residual model for ``law="linear"``;
 3. the larger-volume surfaces are ``p + s_j·u``. ``law="exact"`` (default): ``s_j`` is the root of
    the exact volume cubic (:func:`lungdeform.displacement.scale_for_volume`), so every surface

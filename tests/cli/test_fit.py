@@ -117,7 +117,7 @@ def test_inconsistent_spacing(tmp_path, capsys):
 def test_landmarks_outside_image():
     from lungdeform.pipeline import check_landmarks
     from lungdeform.errors import InputError
-    from lungdeform.mask import Image
+    from lungdeform.image import Image
 
     img = Image(np.zeros((10, 10, 10), np.uint8), np.ones(3), np.zeros(3), np.eye(3), "img.mha")
     check_landmarks(np.array([[0.0, 0, 0], [9.4, 9.4, 9.4]]), img, "lm.txt")

@@ -9,7 +9,7 @@ import pytest
 import SimpleITK as sitk
 
 from lungdeform.cli import main as cli_main
-from lungdeform.mask import read_image
+from lungdeform.image import read_image
 from tests.conftest import require_path
 from tests.test_segment import phantom
 
@@ -117,7 +117,7 @@ def _dicom_phantom(folder, rng):
     """The phantom CT as a DICOM series in ``folder`` (locale restored: GDCM's writer resets it)."""
     import locale
 
-    from tests.test_segment import _write_dicom_series
+    from tests.test_ct import _write_dicom_series
 
     saved = locale.setlocale(locale.LC_ALL)
     img, _ = phantom(rng, gap_mm=10.0)

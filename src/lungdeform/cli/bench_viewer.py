@@ -46,7 +46,7 @@ def model_with_vertices(total: int, say):
     import numpy as np
 
     from lungdeform.data import default_lungs
-    from lungdeform.mask import decimate
+    from lungdeform.remesh import decimate
     from lungdeform.mesh import Surface
     from lungdeform.model import Model, build_lung
 

@@ -23,6 +23,7 @@ def register(apps) -> None:
         import json
         import time
 
+        from lungdeform import ct as C
         from lungdeform import segment as S
         from lungdeform.cli.common import output_dir, say
         from lungdeform.errors import InputError
@@ -34,9 +35,9 @@ def register(apps) -> None:
         if downsample < 1:
             raise InputError(f"--downsample must be ≥ 1, got {downsample}")
         t0 = time.perf_counter()
-        image = S.read_ct(ct)
+        image = C.read_ct(ct)
         if downsample > 1:  # in-plane: along world x and y whatever the file's axis order
-            image = S.downsample(S.to_axial(image), (1, downsample, downsample))
+            image = C.downsample(C.to_axial(image), (1, downsample, downsample))
         t_read = time.perf_counter() - t0
         seg = S.segment_lungs(image, progress=say)
         t_seg = time.perf_counter() - t0 - t_read
@@ -53,7 +54,7 @@ def register(apps) -> None:
         out = output_dir(out)
         written = []
         for side in ("left", "right"):
-            written.append(S.write_mask(seg.mask_image(side), out / f"{side}_lung.{fmt}"))
+            written.append(C.write_mask(seg.mask_image(side), out / f"{side}_lung.{fmt}"))
         written.append(S.overlay_png(seg, out / "overlay.png"))
         if meshes:
             from lungdeform.io import write_mesh
