@@ -54,6 +54,26 @@ def test_dicom_archive_roundtrip_and_uneven_slices(tmp_path, rng):
         C.read_ct(tmp_path / "gap")
 
 
+def test_folder_holding_one_archive(tmp_path, rng):
+    # a dataset folder as downloaded (no DICOM file, one archive in it) is read through its archive,
+    # and the image names the archive; two archives are refused, naming them
+    import tarfile
+
+    arr = rng.integers(-1000, 100, size=(6, 12, 12)).astype(np.int16)
+    series = tmp_path / "series"
+    _write_dicom_series(series, arr, (1.5, 1.5, 2.0), [2.0 * k for k in range(6)])
+    folder = tmp_path / "dataset"
+    folder.mkdir()
+    with tarfile.open(folder / "ct.tar.gz", "w:gz") as tf:
+        tf.add(series, arcname="series")
+    img = C.read_ct(folder, workdir=tmp_path)
+    assert img.source.endswith("ct.tar.gz") and np.array_equal(img.array, arr)
+    with tarfile.open(folder / "other.tar.gz", "w:gz") as tf:
+        tf.add(series, arcname="series")
+    with pytest.raises(ReadError, match="2 archives.*ct.tar.gz"):
+        C.read_ct(folder, workdir=tmp_path)
+
+
 def test_bad_archive_and_mask_input(tmp_path):
     bad = tmp_path / "broken.tar.gz"
     bad.write_bytes(b"not a tar file")

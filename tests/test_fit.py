@@ -6,20 +6,8 @@ import pytest
 
 from lungdeform.errors import InputError
 from lungdeform.fit import fit_lung, to_lung_model
-from lungdeform.model import build_lung
 from lungdeform.objective import LungFitter, Target
-from tests.conftest import ellipsoid_lung
-from tests.test_objective import _interior_landmarks
-
-TRUE = np.array([0.2, 1.5, 0.4, 0.8, 0.9, 1.8, 0.3, 1.0, 0.5])
-
-
-@pytest.fixture(scope="module")
-def truth():
-    lung = ellipsoid_lung("right", 3)
-    model = build_lung(lung, "right", constants=TRUE, calibration_ml=200.0, unit_ml=200.0)
-    target = lung.deformed(model.displacement).with_name("target")
-    return lung, model, target
+from tests.test_objective import TRUE, _interior_landmarks, truth  # noqa: F401  (truth: a fixture)
 
 
 def test_fit_reproduces_surface_from_table_start(truth):

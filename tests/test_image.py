@@ -10,17 +10,7 @@ from lungdeform.image import index_to_world, read_image
 from lungdeform.mask import mask_to_surface
 
 from .conftest import require_path
-
-
-def rotation(axis, angle_deg) -> np.ndarray:
-    a = np.asarray(axis, float) / np.linalg.norm(axis)
-    t = np.radians(angle_deg)
-    k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    return np.eye(3) + np.sin(t) * k + (1 - np.cos(t)) * k @ k
-
-
-ROTATED = rotation([1, 2, 3], 35.0)
-MIRRORED = ROTATED @ np.diag([1.0, -1.0, 1.0])  # det < 0, like the coronacases NIfTI (y flipped)
+from .test_mask import MIRRORED, rotation
 
 
 def test_index_to_world_matches_simpleitk():

@@ -102,8 +102,23 @@ def check_slice_spacing(folder, tolerance: float = 0.01) -> None:
         )
 
 
+def _archive_in(path: Path) -> Path:
+    """``path``, or the one archive inside the folder ``path`` when the folder holds no DICOM file
+    (a downloaded dataset folder: ``popi-ct-phase00/popi_phase00_dicom_141slices.tar.gz``)."""
+    if not path.is_dir():
+        return path
+    archives = sorted(p for p in path.iterdir() if p.is_file() and is_archive(p))
+    if not archives or any(is_dicom_file(p) for p in path.rglob("*") if p.is_file()):
+        return path
+    if len(archives) > 1:
+        raise ReadError(f"{path}: no DICOM series here, and {len(archives)} archives "
+                        f"({', '.join(a.name for a in archives[:4])}{', …' if len(archives) > 4 else ''}): give one of them")
+    return archives[0]
+
+
 def read_ct(path, workdir=None) -> Image:
-    """Read a CT: NIfTI/MHA/NRRD file, a DICOM directory, or a .tar.gz/.zip of a DICOM series.
+    """Read a CT: NIfTI/MHA/NRRD file, a DICOM directory, or a .tar.gz/.zip of a DICOM series
+    (or a folder that holds only such an archive: the archive is read, and named as the source).
 
     DICOM series are checked for even slice spacing (:func:`check_slice_spacing`). The image must
     look like HU (some voxels below −500): otherwise :class:`InputError`. Archives are extracted
@@ -112,6 +127,7 @@ def read_ct(path, workdir=None) -> Image:
     path = Path(path)
     if not path.exists():
         raise ReadError(f"{path}: no such file or directory")
+    path = _archive_in(path)
     if is_archive(path):
         with extracted(path, workdir) as folder:
             check_slice_spacing(folder)
