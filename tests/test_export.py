@@ -10,10 +10,12 @@ import numpy as np
 import pytest
 
 from lungdeform import export as E
+from lungdeform import markers as M
+from lungdeform import schedule as S
 from lungdeform.displacement import volume_polynomial
-from lungdeform.errors import InputError, ReadError
 from lungdeform.mesh import signed_volume
 from tests.browser.support import node_modules_or_skip, run_node, two_lungs
+from tests.test_markers import INTERIOR, _marker_at
 
 
 @pytest.fixture(scope="module")
@@ -77,132 +79,8 @@ def test_tidal_weights_give_exact_volumes(model):
     assert E.tidal_weights(lung, [lung.calibration_ml])[0] == pytest.approx(1.0, rel=1e-9)
 
 
-def test_plain_cycle_is_one_cosine_breath():
-    tr = E.plain_cycle(500, 4.0)
-    assert tr.t_s[0] == 0 and tr.t_s[-1] == pytest.approx(4.0)
-    assert tr.volume_ml[0] == pytest.approx(0) and tr.volume_ml[-1] == pytest.approx(0, abs=1e-9)
-    assert tr.sample(2.0) == pytest.approx(500.0)
-    assert tr.sample(1.0) == pytest.approx(250.0)
-
-
-def test_curve_csv_relative_and_absolute(tmp_path):
-    t = np.linspace(0, 8, 81)
-    v = 250 * (1 - np.cos(np.pi * t / 2))
-    rel = tmp_path / "rel.csv"
-    rel.write_text("t_s,volume_ml,flow_ml_s,pressure_cmH2O\n" + "".join(f"{a},{b},0,0\n" for a, b in zip(t, v)))
-    tr = E.read_volume_csv(rel)
-    assert tr.shifted_ml == 0 and np.allclose(tr.volume_ml, v)
-    absolute = tmp_path / "abs.csv"  # volumes of 2.4–2.9 L: far above 0, so the minimum is removed
-    absolute.write_text("t_s,volume_ml\n" + "".join(f"{a + 3},{b + 2400}\n" for a, b in zip(t, v)))
-    tr = E.read_volume_csv(absolute)
-    assert tr.shifted_ml == pytest.approx(2400) and np.allclose(tr.volume_ml, v)
-    assert tr.t_s[0] == 0  # time starts at 0
-
-
-@pytest.mark.parametrize("encoding, sep, decimal", [
-    ("utf-8-sig", ",", "."),   # "CSV UTF-8" from a spreadsheet: a byte-order mark before "t_s"
-    ("utf-8", ";", ","),       # re-saved in a decimal-comma locale
-    ("utf-8-sig", ";", ","),
-    ("utf-8", "\t", "."),
-])
-def test_curve_csv_spreadsheet_variants(tmp_path, encoding, sep, decimal):
-    # truth: the same curve as the plain file; before, a BOM or ';' gave "needs a 't_s' column"
-    t = np.linspace(0, 8, 81)
-    v = 250 * (1 - np.cos(np.pi * t / 2))
-    rows = [sep.join(["t_s", "volume_ml", "flow_ml_s"])]
-    rows += [sep.join(f"{x:.6g}".replace(".", decimal) for x in (a, b, 0.5)) for a, b in zip(t, v)]
-    path = tmp_path / "curve.csv"
-    path.write_text("\r\n".join(rows) + "\r\n", encoding=encoding)
-    tr = E.read_volume_csv(path)
-    assert np.allclose(tr.t_s, t) and np.allclose(tr.volume_ml, v, atol=1e-3)
-
-
-def test_volume_trace_from_breathing_curve(tmp_path):
-    # truth: an analytic absolute-volume curve (2.4 L + a 500 mL cosine, clock starting at 3 s)
-    from lungdeform.breathing import BreathingCurve
-
-    t = np.linspace(3.0, 7.0, 201)
-    v = 2400.0 + 250.0 * (1 - np.cos(np.pi * (t - 3.0) / 2))
-    curve = BreathingCurve(t, v, np.gradient(v, t), np.zeros_like(t), meta={"source": "test breath"})
-    tr = E.VolumeTrace.from_breathing(curve)
-    assert tr.t_s[0] == 0 and tr.t_s[-1] == pytest.approx(4.0)
-    assert tr.shifted_ml == pytest.approx(2400.0) and tr.source == "test breath"
-    np.testing.assert_allclose(tr.volume_ml, v - 2400.0, atol=1e-12)
-    assert tr.sample(2.0) == pytest.approx(500.0)
-    assert E.VolumeTrace.from_breathing(curve, source="x").source == "x"
-
-
-def test_from_breathing_agrees_with_the_curve_csv_reader(tmp_path):
-    # the two ways a simulated preset reaches the exporter give one trace: in memory through the
-    # adapter, and through curve.csv (t_s, volume_ml, … as 'lungdeform breathe' writes it)
-    from lungdeform.breathing import simulate
-    from lungdeform.presets import get_preset
-
-    curve = simulate(get_preset("copd").params, n_cycles=2, fs_hz=25.0)
-    path = tmp_path / "curve.csv"
-    path.write_text("t_s,volume_ml,flow_ml_s,pressure_cmH2O\n" + "".join(
-        f"{a!r},{b!r},{c!r},{d!r}\n" for a, b, c, d in
-        zip(*(x.tolist() for x in (curve.t_s, curve.volume_ml, curve.flow_ml_s, curve.pressure_cmH2O)))))
-    via_csv, direct = E.read_volume_csv(path), E.VolumeTrace.from_breathing(curve)
-    np.testing.assert_allclose(direct.t_s, via_csv.t_s, atol=1e-12)
-    np.testing.assert_allclose(direct.volume_ml, via_csv.volume_ml, atol=1e-9)
-    assert direct.shifted_ml == pytest.approx(via_csv.shifted_ml) == pytest.approx(curve.v_ee_ml)
-    assert direct.volume_ml.min() == 0 and direct.volume_ml.max() == pytest.approx(500.0, rel=2e-3)  # 25 Hz samples
-
-
-def test_preset_trace_is_the_pv_simulation_on_an_exact_grid():
-    # truth: lungdeform.breathing.simulate run here on the grid the docstring promises:
-    # n = ceil(D·rate) intervals ending exactly at D (dyspnoea, T = 1.875 s: 2 breaths at >= 50 Hz
-    # is 3.75 s · 50 = 187.5 → 188 intervals, 50.13 Hz)
-    from lungdeform.breathing import simulate
-    from lungdeform.presets import get_preset
-
-    p = get_preset("dyspnoea")
-    params, curve, tr = E.preset_trace("dyspnoea", 2, rate_hz=50.0)
-    assert params is p.params and len(tr.t_s) == 189 and tr.t_s[-1] == pytest.approx(3.75, abs=1e-12)
-    ref = simulate(p.params, n_cycles=2, fs_hz=188 / 3.75)
-    np.testing.assert_allclose(tr.t_s, ref.t_s, atol=1e-12)
-    np.testing.assert_allclose(tr.volume_ml, ref.volume_ml - ref.volume_ml.min(), atol=1e-12)
-    assert tr.shifted_ml == pytest.approx(ref.volume_ml.min()) and "lungdeform.presets:dyspnoea" in tr.source
-    np.testing.assert_allclose(curve.volume_ml, ref.volume_ml, atol=1e-12)
-    # any duration: 3 s is cut from two whole cycles, 150 intervals, volume above the cut's minimum
-    _, _, cut = E.preset_trace(p, duration_s=3.0, rate_hz=50.0)
-    ref = simulate(p.params, n_cycles=2, fs_hz=50.0)
-    keep = ref.t_s <= 3.0 + 1e-9
-    assert len(cut.t_s) == 151 == keep.sum()
-    np.testing.assert_allclose(cut.volume_ml, ref.volume_ml[keep] - ref.volume_ml[keep].min(), atol=1e-12)
-
-
-@pytest.mark.parametrize("kwargs, message", [
-    ({"preset": "panting"}, "unknown breathing preset 'panting'; choose one of: normal, deep"),
-    ({"preset": "normal", "cycles": 0}, "cycles must be a whole number >= 1"),
-    ({"preset": "normal", "cycles": 1.5}, "cycles must be a whole number >= 1"),
-    ({"preset": "normal", "duration_s": -1.0}, "duration must be > 0 s"),
-    ({"preset": "normal", "tidal_ml": float("nan")}, "tidal volume must be > 0 mL"),
-    ({"preset": "normal", "rate_hz": 0.0}, "rate_hz must be > 0"),
-])
-def test_preset_trace_bad_input(kwargs, message):
-    with pytest.raises(InputError, match=message):
-        E.preset_trace(**kwargs)
-
-
-@pytest.mark.parametrize("text, message", [
-    ("time,volume\n0,1\n1,2\n", "needs a 't_s' column"),
-    ("t_s,volume_ml\n0,1\n", "at least 2 rows"),
-    ("t_s,volume_ml\n0,1\n0,2\n", "strictly increasing"),
-    ("t_s,volume_ml\n0,1\n1,nan\n", "finite"),
-    ("t_s,volume_ml\n0,1\n1,abc\n", "line 3"),
-])
-def test_bad_curve_names_file_and_problem(tmp_path, text, message):
-    path = tmp_path / "bad.csv"
-    path.write_text(text)
-    with pytest.raises(ReadError, match=message) as info:
-        E.read_volume_csv(path)
-    assert str(path) in str(info.value)
-
-
 def test_glb_layout_and_animation(model, tmp_path):
-    trace = E.plain_cycle(500, 4.0)
+    trace = S.plain_cycle(500, 4.0)
     path = E.export_glb(model, tmp_path / "m.glb", trace)
     doc, blob = _glb_json(path.read_bytes())
     meta = doc["extras"]["lungdeform"]
@@ -216,7 +94,7 @@ def test_glb_layout_and_animation(model, tmp_path):
                   [2 * (qx * qz - qy * qw), 2 * (qy * qz + qx * qw), 1 - 2 * (qx * qx + qy * qy)]])
     np.testing.assert_allclose(r @ [0, 0, 1], [0, 1, 0], atol=1e-12)  # head is up
     np.testing.assert_allclose(r @ [0, -1, 0], [0, 0, 1], atol=1e-12)  # anterior is +Z (forward)
-    shares = E.lung_shares(model)
+    shares = S.lung_shares(model)
     times = _accessor(doc, blob, doc["animations"][0]["samplers"][0]["input"])
     np.testing.assert_allclose(times, trace.t_s, rtol=1e-6)
     for mi, mesh in enumerate(doc["meshes"]):
@@ -248,8 +126,8 @@ def test_glb_layout_and_animation(model, tmp_path):
 def test_glb_passes_khronos_validator(model, tmp_path):
     viewer = node_modules_or_skip("gltf-validator")
     path = tmp_path / "m.glb"
-    anchors = E.marker_anchors(model, np.array([[90.0, 0.0, 0.0], [-90.0, 10.0, 100.0]]), ["tumour", "apex"])
-    E.export_glb(model, path, E.plain_cycle(), anchors)
+    anchors = M.marker_anchors(model, np.array([[90.0, 0.0, 0.0], [-90.0, 10.0, 100.0]]), ["tumour", "apex"])
+    E.export_glb(model, path, S.plain_cycle(), anchors)
     res = run_node(["scripts/validate-glb.mjs", str(path)], cwd=viewer)
     report = json.loads(res.stdout)
     issues = report["issues"]
@@ -266,9 +144,9 @@ def test_glb_in_threejs_gltfloader(model, tmp_path):
     viewer = node_modules_or_skip("three", "vitest")
     from lungdeform.trajectory import place_points, point_trajectories
 
-    trace = E.plain_cycle(500, 4.0)
-    path = E.export_glb(model, tmp_path / "m.glb", trace, E.marker_anchors(model, INTERIOR, list("abcd")))
-    shares = E.lung_shares(model)
+    trace = S.plain_cycle(500, 4.0)
+    path = E.export_glb(model, tmp_path / "m.glb", trace, M.marker_anchors(model, INTERIOR, list("abcd")))
+    shares = S.lung_shares(model)
     times = [0.0, 0.5, 1.0, 2.0, 3.3]  # key frames of the 30 Hz plain cycle
     track = point_trajectories(model, INTERIOR, place_points(model, INTERIOR), trace.sample(times))
     expect = {"times": times, "lungs": {},
@@ -290,61 +168,13 @@ def test_glb_in_threejs_gltfloader(model, tmp_path):
     assert "4 passed" in res.stdout, res.stdout[-2000:]
 
 
-#: Markers inside the test ellipsoids (semi-axes 60, 80, 110 mm about x = ±90): deep, off-centre, near the wall.
-INTERIOR = np.array([[90.0, 10.0, -20.0], [-90.0, 0.0, 50.0], [110.0, -40.0, 60.0], [-60.0, 30.0, -80.0]])
-
-
-def _marker_at(a: dict, lam: float) -> np.ndarray:
-    # the glb extras' formula (schema 2): position at weight λ of the lung's target 0
-    return np.array(a["position_mm"]) + lam * np.array(a["tidal_mm"])
-
-
-def test_marker_on_a_vertex_follows_its_normal_motion(model):
-    # truth: the lung's own tidal target at that vertex, along the vertex normal. The interior field
-    # is the sliding interpolation of the surface's normal motion (smoothing 100 mm), so a marker on
-    # the surface stays on it to within 10 % of that vertex's own normal motion (the vertices chosen
-    # are those that move most along their normal, where a wrong or zero field cannot pass)
-    for name, lung in model.lungs.items():
-        t0 = E.lung_targets(lung)[0][0]
-        n = lung.surface.vertex_normals
-        normal = np.einsum("ij,ij->i", t0, n)
-        idx = np.argsort(-np.abs(normal))[:5]
-        anchors = E.marker_anchors(model, lung.surface.vertices[idx])
-        assert [a["lung"] for a in anchors] == [name] * 5
-        for a, i in zip(anchors, idx):
-            assert a["distance_mm"] == pytest.approx(0, abs=1e-9)
-            np.testing.assert_allclose(_marker_at(a, 0.0), lung.surface.vertices[i], atol=1e-9)
-            for lam in (0.4, 1.0, 1.7):
-                moved = _marker_at(a, lam) - lung.surface.vertices[i]
-                assert moved @ n[i] == pytest.approx(lam * normal[i], rel=0.1)
-
-
-def test_interior_marker_moves_as_points_at(model):
-    # truth: LungModel.points_at (the interior field of `lungdeform track`) at the scale that weight λ
-    # of target 0 stands for, s = λ·calibration_ml/unit_ml
-    anchors = E.marker_anchors(model, INTERIOR, ["a", "b", "c", "d"])
-    assert [a["lung"] for a in anchors] == ["left", "right", "left", "right"]
-    assert all(a["inside"] and a["distance_mm"] > 1 and not a["landmark_corrected"] for a in anchors)
-    for a in anchors:
-        lung = model.lungs[a["lung"]]
-        for lam in (0.25, 1.0, 1.6):
-            s = lam * lung.calibration_ml / lung.unit_ml
-            np.testing.assert_allclose(_marker_at(a, lam), lung.points_at([a["position_mm"]], scale=s)[0], atol=1e-6)
-    # and not the old nearest-wall reading: deep inside, the interior field differs from the
-    # displacement of the nearest surface vertex by millimetres (so the check above can fail)
-    lung = model.lungs["left"]
-    t0 = E.lung_targets(lung)[0][0]
-    nearest = np.argmin(np.linalg.norm(lung.surface.vertices - INTERIOR[0], axis=1))
-    assert np.linalg.norm(np.array(anchors[0]["tidal_mm"]) - t0[nearest]) > 1.0
-
-
 def test_glb_markers_follow_track_over_the_animation(model, tmp_path):
     # truth: lungdeform.trajectory (what `lungdeform track` writes) at the curve's volumes; the glb
     # carries float32 animation weights, so agreement is to ~1e-6 of the motion
     from lungdeform.trajectory import place_points, point_trajectories
 
-    trace = E.plain_cycle(500, 4.0)
-    doc, blob = _glb_json(E.glb_bytes(model, trace, E.marker_anchors(model, INTERIOR)))
+    trace = S.plain_cycle(500, 4.0)
+    doc, blob = _glb_json(E.glb_bytes(model, trace, M.marker_anchors(model, INTERIOR)))
     meta = doc["extras"]["lungdeform"]
     assert meta["schema_version"] == E.GLB_SCHEMA_VERSION == 2 and "tidal_mm" in meta["marker_motion"]
     markers = meta["markers"]
@@ -358,42 +188,6 @@ def test_glb_markers_follow_track_over_the_animation(model, tmp_path):
         got = np.array([_marker_at(m, lam) for lam in weights[m["lung"]]])
         np.testing.assert_allclose(got, track[:, j], atol=1e-4)
         assert np.ptp(got, axis=0).max() > 1.0  # mm: it does move
-
-
-def test_landmark_corrected_markers_use_the_correction(model, rng):
-    # a lung carrying a landmark correction: the markers' field includes it (truth: points_at)
-    from dataclasses import replace
-
-    from lungdeform.model import Model
-
-    lung = model.lungs["left"]
-    lm = np.array([90.0, 0.0, 0.0]) + rng.uniform(-1, 1, (8, 3)) * [30.0, 40.0, 60.0]
-    corrected = replace(lung, landmarks=lm, landmark_correction=rng.normal(0, 0.01, (8, 3)), landmark_smoothing=10.0)
-    m2 = Model({"left": corrected, "right": model.lungs["right"]}, {"source": "test"})
-    plain, fixed = E.marker_anchors(model, INTERIOR[:1]), E.marker_anchors(m2, INTERIOR[:1])
-    assert fixed[0]["landmark_corrected"] and not plain[0]["landmark_corrected"]
-    s = corrected.calibration_ml / corrected.unit_ml
-    np.testing.assert_allclose(_marker_at(fixed[0], 1.0), corrected.points_at(INTERIOR[:1], scale=s)[0], atol=1e-6)
-    assert np.linalg.norm(np.subtract(fixed[0]["tidal_mm"], plain[0]["tidal_mm"])) > 1e-3
-
-
-def test_markers_refused_far_outside_or_malformed(model):
-    with pytest.raises(InputError, match=r"^tumours\.csv: 1 point\(s\) lie more than 30 mm outside every lung.*2 \("):
-        E.marker_anchors(model, np.array([[90.0, 0, 0], [0.0, 300.0, 0]]), source="tumours.csv")
-    with pytest.raises(InputError, match="finite"):
-        E.marker_anchors(model, np.array([[np.nan, 0, 0]]))
-    with pytest.raises(InputError, match="1 labels for 2 markers"):
-        E.marker_anchors(model, INTERIOR[:2], ["a"])
-    with pytest.raises(InputError, match=r"\(p, 3\)"):
-        E.marker_anchors(model, np.zeros((2, 2)))
-
-
-def test_markers_csv_with_a_byte_order_mark(tmp_path):
-    path = tmp_path / "m.csv"
-    path.write_text("x_mm,y_mm,z_mm,label\n90,10,-20,tumour\n-90,0,50\n", encoding="utf-8-sig")
-    pts, labels = E.read_markers_csv(path)
-    np.testing.assert_array_equal(pts, [[90, 10, -20], [-90, 0, 50]])
-    assert labels == ["tumour", "marker 2"]
 
 
 def _read_vtp(path):
@@ -413,11 +207,11 @@ def _read_vtp(path):
 
 
 def test_pvd_time_series(model, tmp_path):
-    trace = E.plain_cycle(500, 4.0)
+    trace = S.plain_cycle(500, 4.0)
     path = E.export_pvd(model, tmp_path / "series.pvd", trace, fps=5)
     entries = ET.parse(path).getroot().find("Collection").findall("DataSet")
     assert len(entries) == 2 * 21  # 2 lungs × (4 s × 5 fps + 1)
-    shares = E.lung_shares(model)
+    shares = S.lung_shares(model)
     for e in entries:
         f = tmp_path / e.get("file")
         a = _read_vtp(f)
@@ -429,14 +223,14 @@ def test_pvd_time_series(model, tmp_path):
         vol = signed_volume(a["Points"].astype(float), lung.surface.faces) / 1000
         assert vol == pytest.approx(lung.volume_ee_ml + shares[lung.side] * trace.sample(t), rel=1e-5)
     # a second export replaces the frames folder: no stale or temporary files are left
-    E.export_pvd(model, path, E.plain_cycle(500, 2.0), fps=5)
+    E.export_pvd(model, path, S.plain_cycle(500, 2.0), fps=5)
     assert len(list((tmp_path / "series_frames").iterdir())) == 2 * 11
     assert sorted(p.name for p in tmp_path.iterdir()) == ["series.pvd", "series_frames"]
 
 
 def test_pvd_frames_readable_by_lungdeform_io(model, tmp_path):
     io = pytest.importorskip("lungdeform.io")  # an independent .vtp reader, when present
-    path = E.export_pvd(model, tmp_path / "s.pvd", E.plain_cycle(500, 1.0), fps=2)
+    path = E.export_pvd(model, tmp_path / "s.pvd", S.plain_cycle(500, 1.0), fps=2)
     v, f = io.read_mesh(tmp_path / "s_frames" / "left_0001.vtp")
     lung = model.lungs["left"]
     np.testing.assert_array_equal(f, lung.surface.faces)
@@ -467,7 +261,7 @@ def test_glb_in_blender(model, tmp_path):
 
     if shutil.which("blender") is None:
         pytest.skip("blender is not installed (apt-get install blender python3-numpy to run this test)")
-    path = E.export_glb(model, tmp_path / "m.glb", E.plain_cycle(500, 4.0))
+    path = E.export_glb(model, tmp_path / "m.glb", S.plain_cycle(500, 4.0))
     times = [0.0, 1.0, 2.0]
     res = subprocess.run(["blender", "-b", "--factory-startup", "--python",
                           str(REPO / "tests" / "browser" / "blender_import.py"), "--", str(path),
@@ -476,12 +270,12 @@ def test_glb_in_blender(model, tmp_path):
     assert lines, res.stdout[-2000:] + res.stderr[-2000:]
     out = json.loads(lines[-1][len("RESULT "):])
     assert len(out["actions"]) == 2
-    shares = E.lung_shares(model)
+    shares = S.lung_shares(model)
     for name, lung in model.lungs.items():
         mesh = out["meshes"][name]
         assert mesh["vertices"] == lung.n_vertices and mesh["faces"] == len(lung.surface.faces)
         assert mesh["shape_keys"] == ["Basis", *E.TARGET_NAMES]
-        expected = lung.volume_ee_ml + shares[name] * E.plain_cycle(500, 4.0).sample(times)
+        expected = lung.volume_ee_ml + shares[name] * S.plain_cycle(500, 4.0).sample(times)
         np.testing.assert_allclose(np.array(mesh["volume_mm3"]) / 1000, expected, rtol=1e-5)
 
 
@@ -493,7 +287,7 @@ def test_provenance_with_nan_exports_as_strict_json(tmp_path):
 
     m = two_lungs(2)
     nan_model = Model(dict(m.lungs), {"fit": {"landmark_rms_in_fit_mm": float("nan"), "objective": 1.5}})
-    doc, _ = _glb_json(E.glb_bytes(nan_model, E.plain_cycle()))
+    doc, _ = _glb_json(E.glb_bytes(nan_model, S.plain_cycle()))
     fit = doc["extras"]["lungdeform"]["provenance"]["fit"]  # (the glTF writer drops null members)
     assert fit.get("landmark_rms_in_fit_mm") is None and fit["objective"] == 1.5
     back = load_model(save_model(tmp_path / "nan.npz", nan_model))

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from lungdeform.errors import InputError
-from lungdeform.export import lung_shares
+from lungdeform.schedule import lung_shares
 from lungdeform.trajectory import (lung_scales, motion_summary, place_points, point_trajectories,
                                    read_points)
 from tests.browser.support import two_lungs

@@ -19,7 +19,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lungdeform.export import glb_bytes, marker_anchors
+from lungdeform.export import glb_bytes
+from lungdeform.markers import marker_anchors
 from lungdeform.server import ViewerServer, presets_json
 from tests.browser.support import CHROMIUM, REPO, node_modules_or_skip, run_node, two_lungs
 

@@ -3,7 +3,7 @@
 Steps (issue 2 item 7): build the left and right lungs of the embedded default (Coronacases 001,
 CC BY 4.0) with the Table I constants, supine; play one breath of the ``normal`` preset of the PV
 breathing model (:mod:`lungdeform.presets` → :func:`lungdeform.breathing.simulate` → the volume above
-end-exhale; 15/min, 500 mL; :func:`lungdeform.export.preset_trace`) at the paper's 66.66 frames/s; write the model, a mesh time series,
+end-exhale; 15/min, 500 mL; :func:`lungdeform.schedule.preset_trace`) at the paper's 66.66 frames/s; write the model, a mesh time series,
 ``summary.json`` (volume per frame, per lung, and its error) and a PNG snapshot.
 
 The breathing curve drives each lung's share of the volume (in proportion to its end-exhale volume)
@@ -51,7 +51,7 @@ def run_demo(
     """Build the default lungs and play ``preset`` (one period unless ``duration_s``) into ``out``."""
     from .data import default_lungs
     from .displacement import scale_for_volume
-    from .export import lung_shares, preset_trace
+    from .schedule import lung_shares, preset_trace
     from .model import build_model
     from .modelfile import save_model
     from .presets import get_preset

@@ -225,8 +225,10 @@ def model_glb(path, curve=None, markers=None) -> bytes:
         if curve is not None or markers is not None:
             raise InputError(f"{p}: --curve and --markers apply to a model file, not to a .glb")
         return check_glb(p.read_bytes(), str(p))
-    from .export import glb_bytes, marker_anchors, read_markers_csv, read_volume_csv
+    from .export import glb_bytes
+    from .markers import marker_anchors, read_markers_csv
     from .modelfile import load_model
+    from .schedule import read_volume_csv
 
     model = load_model(p)
     trace = read_volume_csv(curve) if curve is not None else None
@@ -252,8 +254,8 @@ def presets_payload(rate_hz: float = PRESET_RATE_HZ) -> dict:
     curve ``s(t) = (V(t) − V_EE)/ΔV`` in [0, 1] (V_EE and ΔV: the samples' minimum and peak-to-peak;
     the viewer multiplies ``s`` by its tidal-volume control), ``sources`` and the PV ``params``.
     """
-    from .export import preset_trace
     from .presets import PRESETS
+    from .schedule import preset_trace
 
     out = []
     for name, preset in PRESETS.items():

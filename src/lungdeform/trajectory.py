@@ -73,7 +73,8 @@ def lung_scales(model, delta_ml) -> dict[str, np.ndarray]:
     """Per lung, ``s : (f,) float`` units at which its volume is exactly ``V_EE + share·ΔV``, for
     ``delta_ml : (f,)`` mL of both lungs above end-exhale: the playback of ``lungdeform export``
     (its tidal weights :func:`lungdeform.export.tidal_weights` times the calibration's units)."""
-    from .export import lung_shares, tidal_weights
+    from .export import tidal_weights
+    from .schedule import lung_shares
 
     dv = np.asarray(delta_ml, float).ravel()
     if not np.all(np.isfinite(dv)):
@@ -182,8 +183,8 @@ def read_points(path) -> tuple[np.ndarray, list[str]]:
     """Points to track: a CSV with ``x_mm,y_mm,z_mm[,label]`` (LPS mm) or an elastix point set
     (``point`` header, world mm). Returns ``(points (q, 3) float mm, labels)``."""
     from .errors import ReadError
-    from .export import read_markers_csv
     from .landmarks import read_elastix_points
+    from .markers import read_markers_csv
 
     path = Path(path)
     if not path.is_file():

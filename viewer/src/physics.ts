@@ -26,7 +26,7 @@ export interface LungMeta {
 }
 
 /**
- * A marker written by lungdeform.export.marker_anchors (asset extras.lungdeform.markers, glb schema 2):
+ * A marker written by lungdeform.markers.marker_anchors (asset extras.lungdeform.markers, glb schema 2):
  * at the weight lambda of its lung's target 0 ('tidal') it is at position_mm + lambda * tidal_mm
  * (LPS mm; the lung's interior field, not its nearest vertices).
  */

@@ -23,6 +23,8 @@ def register(apps) -> None:
     ) -> None:
         """Export MODEL for engines (glb: one mesh, morph targets, breathing animation) or ParaView (pvd)."""
         from lungdeform import export as E
+        from lungdeform import markers as M
+        from lungdeform import schedule as S
         from lungdeform.errors import InputError
         from lungdeform.modelfile import load_model
 
@@ -50,17 +52,17 @@ def register(apps) -> None:
             chosen = get_preset(preset)  # an unknown name: InputError listing the names
         m = load_model(model)
         if curve is not None:
-            trace = E.read_volume_csv(curve)
+            trace = S.read_volume_csv(curve)
             if trace.shifted_ml:
                 typer.echo(f"{curve}: volume_ml reads as absolute; subtracted its minimum {trace.shifted_ml:.1f} mL")
         elif preset is not None:
-            params, _curve, trace = E.preset_trace(chosen, cycles or 1, tidal_ml)
+            params, _curve, trace = S.preset_trace(chosen, cycles or 1, tidal_ml)
             typer.echo(f"preset {chosen.name}: {cycles or 1} × {params.period_s:g} s, PV model end-exhale "
                        f"{trace.shifted_ml:.0f} mL; playing the volume above it")
         else:
             given = {"tidal_ml": tidal_ml, "period_s": period_s}
-            trace = E.plain_cycle(**{k: v for k, v in given.items() if v is not None})  # defaults 500 mL, 4 s
-        shares = E.lung_shares(m)
+            trace = S.plain_cycle(**{k: v for k, v in given.items() if v is not None})  # defaults 500 mL, 4 s
+        shares = S.lung_shares(m)
         typer.echo(f"curve: {trace.source}, {trace.t_s[-1]:.2f} s, {len(trace.t_s)} samples, "
                    f"ΔV {trace.volume_ml.min():.0f}…{trace.volume_ml.max():.0f} mL split "
                    + ", ".join(f"{k} {v:.2f}" for k, v in shares.items()))
@@ -70,8 +72,8 @@ def register(apps) -> None:
             out_path = out if out.suffix.lower() == ".glb" else out.with_name(out.name + ".glb")
             anchors = None
             if markers is not None:
-                pts, labels = E.read_markers_csv(markers)
-                anchors = E.marker_anchors(m, pts, labels, source=str(markers))
+                pts, labels = M.read_markers_csv(markers)
+                anchors = M.marker_anchors(m, pts, labels, source=str(markers))
                 shown = [f"{a['label']} in {a['lung']}" + ("" if a["inside"] else f" ({a['distance_mm']:.0f} mm outside)")
                          for a in anchors[:6]]
                 typer.echo(f"markers: {len(anchors)} ({'; '.join(shown)}{' …' if len(anchors) > 6 else ''}), "

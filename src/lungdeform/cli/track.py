@@ -26,7 +26,7 @@ def register(apps) -> None:
         Without --volume-ml, --curve or --preset: one plain 500 mL, 4 s cosine breath."""
         import numpy as np
 
-        from lungdeform import export as E
+        from lungdeform import schedule as S
         from lungdeform import trajectory as T
         from lungdeform.cli.common import check_tidal_ml, output_dir
         from lungdeform.errors import InputError
@@ -56,15 +56,15 @@ def register(apps) -> None:
             source = f"volumes {', '.join(f'{v:g}' for v in volume_ml)} mL (end-exhale {v_ee:.0f} mL)"
         else:
             if curve is not None:
-                trace = E.read_volume_csv(curve)
+                trace = S.read_volume_csv(curve)
                 if trace.shifted_ml:
                     typer.echo(f"{curve}: volume_ml reads as absolute; subtracted its minimum {trace.shifted_ml:.1f} mL")
             elif preset is not None:
                 from lungdeform.presets import get_preset
 
-                _params, _curve, trace = E.preset_trace(get_preset(preset), cycles or 1, tidal_ml)
+                _params, _curve, trace = S.preset_trace(get_preset(preset), cycles or 1, tidal_ml)
             else:
-                trace = E.plain_cycle(**({} if tidal_ml is None else {"tidal_ml": tidal_ml}))
+                trace = S.plain_cycle(**({} if tidal_ml is None else {"tidal_ml": tidal_ml}))
             n = max(int(round((trace.t_s[-1] - trace.t_s[0]) * fps)), 1) + 1
             t_s = np.linspace(trace.t_s[0], trace.t_s[-1], n)
             delta = trace.sample(t_s)
