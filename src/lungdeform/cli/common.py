@@ -77,5 +77,7 @@ def check_tidal_ml(value: float | None, option: str = "--tidal-ml") -> None:
 
 
 #: Help of ``--direction-degree`` (fit, validate itk-pair, cohort).
+#: Exit code of a validation command run with ``--strict`` when a target is not met.
+STRICT_EXIT = 3
 DIRECTION_DEGREE_HELP = ("Degree of the smooth correction of the paper's directions fitted to the surfaces "
                          "(lungdeform.direction_correction; 0: the paper's directions only).")

@@ -5,7 +5,8 @@ Each command lives in its own module under ``lungdeform.cli`` and exposes ``regi
 name to :data:`COMMAND_MODULES` to make its commands appear.
 
 Exit codes: 0 success; 1 an unexpected internal error (traceback shown); 2 bad input or a
-failed check (one line on stderr naming the file and the problem); 130 interrupted.
+failed check (one line on stderr naming the file and the problem); 3 a validation target not met
+(``validate itk-pair`` / ``validate breathing`` with ``--strict``); 130 interrupted.
 """
 
 from __future__ import annotations

@@ -20,9 +20,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import typer
 
-from .common import say
+from .common import STRICT_EXIT, say
 
 
 def _pct(x) -> str:
@@ -39,8 +40,6 @@ def find_traces(data: Path) -> list[Path]:
 
 def validate_breathing(data: Path, out: Path, tidal_volume_ml: float = 500.0, train_fraction: float = 0.5,
                        progress=None) -> dict:
-    import numpy as np
-
     from lungdeform.atomic import write_text
     from lungdeform.atomic import finite_json
     from lungdeform.cli.breathe import to_json
@@ -123,6 +122,7 @@ def register(apps) -> None:
         out: Path = typer.Option(..., "--out", help="Output folder for metrics.json."),
         tidal_volume_ml: float = typer.Option(500.0, "--tidal-volume-ml"),
         train_fraction: float = typer.Option(0.5, "--train-fraction"),
+        strict: bool = typer.Option(False, "--strict", help="Exit with code 3 when the median target is not met (for CI)."),
     ):
         """Fit the PV driver to every breathing trace; held-out RMS against Lujan and Fourier."""
         from lungdeform.holdout import MODELS
@@ -150,3 +150,6 @@ def register(apps) -> None:
         typer.echo(f"  PV better than Lujan on {p['traces_model_better']} of {p['traces']} traces "
                    f"(median difference {p['median_difference_percent']:+.2f} points)")
         typer.echo(f"wrote {Path(out) / 'metrics.json'}")
+        median = m["median_model_rms_percent"]
+        if strict and not (median is not None and np.isfinite(median) and median < m["target_median_model_rms_percent"]):
+            raise typer.Exit(STRICT_EXIT)

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import typer
 
-from lungdeform.cli.common import DIRECTION_DEGREE_HELP
+from lungdeform.cli.common import DIRECTION_DEGREE_HELP, STRICT_EXIT
 
 FOLDER = "itk-right-lung-two-volumes"
 FILES = ("CT_3D_lung_fixed_mask.mha", "CT_3D_lung_moving_mask.mha",
@@ -83,6 +83,7 @@ def register(apps) -> None:
                                           help="With the landmarks: the model's interior landmark correction, and the landmark-informed comparison fits (slower), scored held out (k-fold)."),
         folds: int = typer.Option(5, "--folds", help="Folds of the landmark cross-validation."),
         direction_degree: int = typer.Option(3, "--direction-degree", help=DIRECTION_DEGREE_HELP),
+        strict: bool = typer.Option(False, "--strict", help="Exit with code 3 when a target is not met (for CI)."),
     ) -> None:
         """Fit the model to the ITK right lung (3.36 → 3.97 L) and compare with baselines."""
         from lungdeform.cli.common import output_dir, say
@@ -111,3 +112,5 @@ def register(apps) -> None:
         for name, ok in metrics["targets_met"].items():
             typer.echo(f"target {name}: {'met' if ok else 'NOT met'}")
         typer.echo(f"wrote {folder / 'metrics.json'}, {folder / 'model.npz'}, {folder / 'report.html'}")
+        if strict and not all(metrics["targets_met"].values()):
+            raise typer.Exit(STRICT_EXIT)
