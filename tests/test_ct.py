@@ -68,10 +68,39 @@ def test_folder_holding_one_archive(tmp_path, rng):
         tf.add(series, arcname="series")
     img = C.read_ct(folder, workdir=tmp_path)
     assert img.source.endswith("ct.tar.gz") and np.array_equal(img.array, arr)
+    (folder / "._ct.tar.gz").write_bytes(b"macOS resource fork")  # hidden files do not count
+    assert C.read_ct(folder, workdir=tmp_path).source.endswith("ct.tar.gz")
     with tarfile.open(folder / "other.tar.gz", "w:gz") as tf:
         tf.add(series, arcname="series")
     with pytest.raises(ReadError, match="2 archives.*ct.tar.gz"):
         C.read_ct(folder, workdir=tmp_path)
+    # a folder with anything else beside the archive is not a downloaded dataset: read as it is
+    (folder / "other.tar.gz").unlink()
+    (folder / "notes.txt").write_text("x")
+    assert C.archive_in(folder) == folder
+
+
+def test_archive_of_one_image_file_and_errors_name_the_archive(tmp_path, rng):
+    # an archive holding one NIfTI is read (truth: the array written); an archive with neither a
+    # DICOM series nor an image is refused in one line naming the archive, not a temporary folder
+    import tarfile
+
+    import SimpleITK as sitk
+
+    arr = rng.integers(-1000, 100, size=(5, 9, 11)).astype(np.int16)
+    (tmp_path / "in").mkdir()
+    sitk.WriteImage(sitk.GetImageFromArray(arr), str(tmp_path / "in" / "ct.nii.gz"))
+    with tarfile.open(tmp_path / "nii.tar.gz", "w:gz") as tf:
+        tf.add(tmp_path / "in" / "ct.nii.gz", arcname="x/ct.nii.gz")
+    assert np.array_equal(C.read_ct(tmp_path / "nii.tar.gz", workdir=tmp_path).array, arr)
+    (tmp_path / "junk").mkdir()
+    (tmp_path / "junk" / "readme.txt").write_text("no image")
+    with tarfile.open(tmp_path / "junk.tar.gz", "w:gz") as tf:
+        tf.add(tmp_path / "junk", arcname="junk")
+    with pytest.raises(ReadError) as err:
+        C.read_ct(tmp_path / "junk.tar.gz", workdir=tmp_path)
+    msg = str(err.value)
+    assert msg.startswith(str(tmp_path / "junk.tar.gz")) and "lungdeform-ct-" not in msg and "\n" not in msg
 
 
 def test_bad_archive_and_mask_input(tmp_path):

@@ -136,6 +136,13 @@ def test_interior_vertices_are_saved_and_leave_the_others_out(tmp_path, model, r
     np.savez(tmp_path / "bad.npz", **dict(data, **{"lung/left/interior_vertices": keep[:-1]}))
     with pytest.raises(ModelFileError, match="interior_vertices"):
         load_model(tmp_path / "bad.npz")
+    # and the model itself refuses a mask that is not one bool per vertex, or an unknown kind
+    from lungdeform.errors import InputError
+
+    with pytest.raises(InputError, match="interior_vertices"):
+        replace(model, interior_vertices=np.flatnonzero(keep))
+    with pytest.raises(InputError, match="interior_kind"):
+        replace(model, interior_kind="spline")
 
 
 def test_model_file_refuses_wrong_version_and_shapes(tmp_path, model):

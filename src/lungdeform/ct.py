@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError, ReadError
-from .image import Image, dicom_series_files, is_dicom_file, read_image
+from .image import IMAGE_SUFFIXES, Image, dicom_series_files, is_dicom_file, read_image
 
 ARCHIVE_SUFFIXES = (".tar.gz", ".tgz", ".tar", ".zip")
 
@@ -102,13 +102,17 @@ def check_slice_spacing(folder, tolerance: float = 0.01) -> None:
         )
 
 
-def _archive_in(path: Path) -> Path:
-    """``path``, or the one archive inside the folder ``path`` when the folder holds no DICOM file
-    (a downloaded dataset folder: ``popi-ct-phase00/popi_phase00_dicom_141slices.tar.gz``)."""
+def archive_in(path) -> Path:
+    """``path``, or the archive inside the folder ``path`` when that folder holds nothing else: no
+    subfolder and no other file, hidden files (``.DS_Store``, ``._name``) aside. That is a dataset
+    folder as downloaded: ``popi-ct-phase00/popi_phase00_dicom_141slices.tar.gz``. Several archives
+    alone in a folder are refused, naming them. Only the folder's own entries are listed."""
+    path = Path(path)
     if not path.is_dir():
         return path
-    archives = sorted(p for p in path.iterdir() if p.is_file() and is_archive(p))
-    if not archives or any(is_dicom_file(p) for p in path.rglob("*") if p.is_file()):
+    entries = [p for p in path.iterdir() if not p.name.startswith(".")]
+    archives = sorted(p for p in entries if is_archive(p) and p.is_file())
+    if not archives or len(archives) != len(entries):
         return path
     if len(archives) > 1:
         raise ReadError(f"{path}: no DICOM series here, and {len(archives)} archives "
@@ -117,8 +121,9 @@ def _archive_in(path: Path) -> Path:
 
 
 def read_ct(path, workdir=None) -> Image:
-    """Read a CT: NIfTI/MHA/NRRD file, a DICOM directory, or a .tar.gz/.zip of a DICOM series
-    (or a folder that holds only such an archive: the archive is read, and named as the source).
+    """Read a CT: NIfTI/MHA/NRRD file, a DICOM directory, or a .tar.gz/.zip of a DICOM series or of
+    one image file (or a folder that holds only such an archive, :func:`archive_in`: the archive is
+    read, and named as the source).
 
     DICOM series are checked for even slice spacing (:func:`check_slice_spacing`). The image must
     look like HU (some voxels below −500): otherwise :class:`InputError`. Archives are extracted
@@ -127,11 +132,18 @@ def read_ct(path, workdir=None) -> Image:
     path = Path(path)
     if not path.exists():
         raise ReadError(f"{path}: no such file or directory")
-    path = _archive_in(path)
+    path = archive_in(path)
     if is_archive(path):
         with extracted(path, workdir) as folder:
-            check_slice_spacing(folder)
-            img = read_image(folder)
+            images = [p for p in folder.rglob("*") if p.is_file() and p.name.lower().endswith(IMAGE_SUFFIXES)]
+            try:
+                if len(images) == 1:  # one NIfTI/MHA/NRRD file in the archive
+                    img = read_image(images[0])
+                else:
+                    check_slice_spacing(folder)
+                    img = read_image(folder)
+            except ReadError as exc:  # name the archive, not the temporary folder (gone by now)
+                raise ReadError(f"{path}: {str(exc).replace(str(folder), 'in the archive')}") from exc
         img = Image(img.array, img.spacing, img.origin, img.direction, source=str(path))
     else:
         if path.is_dir() or is_dicom_file(path):

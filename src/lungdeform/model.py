@@ -95,6 +95,18 @@ class LungModel:
     interior_vertices: np.ndarray | None = None
     interior_kind: str = "sliding"
 
+    def __post_init__(self):
+        from .interior import KINDS
+
+        if self.interior_kind not in KINDS:
+            raise InputError(f"interior_kind must be one of {', '.join(KINDS)}, got {self.interior_kind!r}")
+        iv = self.interior_vertices
+        if iv is not None:
+            iv = np.asarray(iv)
+            if iv.dtype != bool or iv.shape != (self.surface.n_vertices,) or int(iv.sum()) < 13:
+                raise InputError(f"interior_vertices must be ({self.surface.n_vertices},) bool with at least 13 set, "
+                                 f"got {iv.dtype} {iv.shape}")
+
     @property
     def n_vertices(self) -> int:
         return self.surface.n_vertices

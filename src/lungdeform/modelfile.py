@@ -20,14 +20,14 @@ Per lung, under ``lung/<name>/``: ``side`` str; ``vertices (n, 3) float64`` mm L
 ``volume_ee_ml``; ``volume_poly (4,)`` mm³ (volume of p + s·u as a cubic in s). Optional (a fit
 with interior landmarks): ``landmarks (m, 3)`` mm LPS, ``landmark_correction (m, 3)`` mm per unit,
 ``landmark_smoothing`` mm² (:mod:`lungdeform.interior`). Optional (a fit of cropped scans):
-``interior_vertices (n,) bool``, the vertices whose motion drives the interior field (the crop
-faces left out); ``interior_kind`` str, only ``"thin_plate"`` (a schema-1 lung saved again: it keeps
-the interior field it was made with; absent: ``"sliding"``).
+``interior_vertices (n,) bool`` (at least 13 set), the vertices whose motion drives the interior
+field (the crop faces left out). Optional (a schema-1 lung saved again): ``interior_kind`` str,
+only ``"thin_plate"`` (it keeps the interior field it was made with; absent: ``"sliding"``).
 
 Loading checks the schema name and version, that every key is present, and every shape.
-Version 2 changed no key; it changed how interior points move (:attr:`LungModel.interior_kind`:
-the sliding interpolation of the surface's normal motion, where version 1 used the thin-plate
-spline of the whole displacement). Version-1 files are read and keep their thin-plate field, so
+Version 2 added the two optional keys above and changed how interior points move
+(:attr:`LungModel.interior_kind`: the sliding interpolation of the surface's normal motion, where
+version 1 used the thin-plate spline of the whole displacement). Version-1 files are read and keep their thin-plate field, so
 their interior points (and a landmark correction fitted against that field) play back as made.
 """
 
@@ -178,7 +178,7 @@ def _lung(path: Path, name: str, data: dict, version: int = SCHEMA_VERSION) -> L
     inner = data.get(prefix + "interior_vertices")
     if inner is not None and (inner.dtype != bool or inner.shape != (n,) or int(inner.sum()) < 13):
         raise ModelFileError(f"{path}: lung '{name}' interior_vertices must be ({n},) bool with at least 13 "
-                             f"set, got {inner.dtype} {inner.shape}")
+                             f"set, got {inner.dtype} {inner.shape} with {int(np.count_nonzero(inner))} set")
     kind = "thin_plate" if version == 1 else str(data.get(prefix + "interior_kind", "sliding"))
     if kind not in KINDS:
         raise ModelFileError(f"{path}: lung '{name}' interior_kind {kind!r} is not one of {', '.join(KINDS)}")

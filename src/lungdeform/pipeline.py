@@ -55,10 +55,16 @@ def read_input(path: Path, side: str, *, progress=None):
         from lungdeform.errors import ReadError
 
         raise ReadError(f"{path}: no such file or directory")
-    if not is_image_path(path):
+    from lungdeform.ct import archive_in, is_archive, read_ct
+
+    path = archive_in(path)  # a dataset folder holding one archive: that archive
+    if is_archive(path):  # a zipped or tarred DICOM series (or image): a CT
+        image = read_ct(path)
+    elif not is_image_path(path):
         surface, _ = lio.load_surface(path, name=path.name)
         return surface, [], None, None
-    image = read_image(path)
+    else:
+        image = read_image(path)
     a = np.asarray(image.array)
     if a.size and a.min() < -100:  # a CT in HU: segment the lungs first
         from lungdeform.segment import segment_lungs

@@ -22,8 +22,8 @@ Why this reading (measured on the ITK right-lung pair, 51 landmarks, the model's
 ``λ`` = 100 mm): the landmarks move with a mean error of 3.8 mm, against 4.6 mm for the thin-plate
 spline of the full surface displacement (:mod:`lungdeform.interpolate`) and 4.2 mm for the full
 biharmonic spline with the same smoothing; with the interior landmark correction
-(:mod:`lungdeform.interior`, 5-fold held out) 2.0–2.2 mm against 2.5–2.7 mm, over three fold
-splits. The reading and ``λ`` were chosen on that pair (0: 4.1 mm, 100: 3.8, 1000: 3.9, 10⁴:
+(:mod:`lungdeform.interior`, crop faces left out) 2.00–2.25 mm (mean 2.08) over ten 5-fold splits
+and 2.02 mm leave-one-out, against 2.51–2.68 mm (five splits) and 2.48 mm leave-one-out. The reading and ``λ`` were chosen on that pair (0: 4.1 mm, 100: 3.8, 1000: 3.9, 10⁴:
 4.6 mm), with the same landmarks that measure it: the figures are optimistic by an unknown amount
 until measured on another subject.
 

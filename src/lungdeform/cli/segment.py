@@ -12,7 +12,7 @@ MASK_FORMATS = ("nii.gz", "mha")
 def register(apps) -> None:
     @apps.root.command("segment")
     def segment_command(
-        ct: Path = typer.Argument(..., help="CT in HU: NIfTI/MHA/NRRD, a DICOM folder (or one of its files, or a parent folder of one series), or a .tar.gz/.zip of one."),
+        ct: Path = typer.Argument(..., help="CT in HU: NIfTI/MHA/NRRD, a DICOM folder (or one of its files, or a parent folder of one series), or a .tar.gz/.zip of one, or a dataset folder holding only such an archive."),
         out: Path = typer.Option(..., "--out", help="Output folder."),
         fmt: str = typer.Option("nii.gz", "--format", help="Mask format: nii.gz or mha."),
         surfaces: bool = typer.Option(False, "--surfaces/--no-surfaces", help="Also build left/right lung surfaces (STL) with lungdeform.mask."),
