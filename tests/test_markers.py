@@ -90,11 +90,3 @@ def test_markers_refused_far_outside_or_malformed(model):
         M.marker_anchors(model, INTERIOR[:2], ["a"])
     with pytest.raises(InputError, match=r"\(p, 3\)"):
         M.marker_anchors(model, np.zeros((2, 2)))
-
-
-def test_markers_csv_with_a_byte_order_mark(tmp_path):
-    path = tmp_path / "m.csv"
-    path.write_text("x_mm,y_mm,z_mm,label\n90,10,-20,tumour\n-90,0,50\n", encoding="utf-8-sig")
-    pts, labels = M.read_markers_csv(path)
-    np.testing.assert_array_equal(pts, [[90, 10, -20], [-90, 0, 50]])
-    assert labels == ["tumour", "marker 2"]

@@ -74,3 +74,13 @@ def test_read_points_csv_and_elastix(tmp_path):
         read_points(tmp_path / "i.txt")
     with pytest.raises(ReadError, match="no such points file"):
         read_points(tmp_path / "missing.csv")
+
+
+def test_markers_csv_with_a_byte_order_mark(tmp_path):
+    from lungdeform.trajectory import read_markers_csv
+
+    path = tmp_path / "m.csv"
+    path.write_text("x_mm,y_mm,z_mm,label\n90,10,-20,tumour\n-90,0,50\n", encoding="utf-8-sig")
+    pts, labels = read_markers_csv(path)
+    np.testing.assert_array_equal(pts, [[90, 10, -20], [-90, 0, 50]])
+    assert labels == ["tumour", "marker 2"]

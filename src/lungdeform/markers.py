@@ -1,8 +1,7 @@
 """Markers (a tumour, fiducials) carried in an exported glb: read, tied to a lung, given their motion.
 
-Markers CSV (:func:`read_markers_csv`): header ``x_mm,y_mm,z_mm[,label]``, one marker per row,
-positions in mm, LPS of the end-exhale scan (``export --markers``, the viewer server, and the CSV
-form of ``lungdeform track --points``).
+Markers are read like any points to track (:func:`lungdeform.trajectory.read_markers_csv`: header
+``x_mm,y_mm,z_mm[,label]``, one marker per row, positions in mm, LPS of the end-exhale scan).
 
 :func:`marker_anchors` makes the records of the glb's asset extras ``extras.lungdeform.markers``
 (schema version 2; the layout is in :mod:`lungdeform.export`): each marker goes to a lung
@@ -14,13 +13,11 @@ form of ``lungdeform track --points``).
 
 from __future__ import annotations
 
-import csv
-from pathlib import Path
-
 import numpy as np
 
-from .errors import InputError, ReadError
+from .errors import InputError
 from .model import Model
+from .trajectory import place_points, unit_displacements
 
 
 def marker_anchors(model: Model, points: np.ndarray, labels=None, *, source: str = "markers") -> list[dict]:
@@ -47,8 +44,6 @@ def marker_anchors(model: Model, points: np.ndarray, labels=None, *, source: str
     ``distance_mm`` (to that surface), ``tidal_mm`` (3,) and ``landmark_corrected`` (whether the
     field includes the model's landmark correction).
     """
-    from .trajectory import place_points, unit_displacements
-
     pts = np.asarray(points, float)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise InputError(f"{source}: marker positions must be (p, 3) mm LPS, got shape {pts.shape}")
@@ -67,28 +62,3 @@ def marker_anchors(model: Model, points: np.ndarray, labels=None, *, source: str
                     "inside": bool(placement.inside[j]), "distance_mm": float(placement.distance_mm[j]),
                     "tidal_mm": tidal[j].tolist(), "landmark_corrected": bool(lung.interior.corrected)})
     return out
-
-
-def read_markers_csv(path) -> tuple[np.ndarray, list[str]]:
-    """Markers CSV: header ``x_mm,y_mm,z_mm[,label]`` (LPS mm, end-exhale)."""
-    path = Path(path)
-    try:
-        with open(path, newline="", encoding="utf-8-sig") as fh:  # -sig: a spreadsheet's byte-order mark
-            rows = [r for r in csv.reader(fh) if r and any(c.strip() for c in r)]
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ReadError(f"{path}: cannot read markers ({exc})") from exc
-    header = [h.strip() for h in rows[0]] if rows else []
-    if not {"x_mm", "y_mm", "z_mm"} <= set(header):
-        raise ReadError(f"{path}: markers need a header with x_mm,y_mm,z_mm[,label]")
-    ix, iy, iz = (header.index(c) for c in ("x_mm", "y_mm", "z_mm"))
-    il = header.index("label") if "label" in header else None
-    pts, labels = [], []
-    for lineno, r in enumerate(rows[1:], start=2):
-        try:
-            pts.append([float(r[ix]), float(r[iy]), float(r[iz])])
-        except (IndexError, ValueError) as exc:
-            raise ReadError(f"{path}: line {lineno}: expected numbers in x_mm,y_mm,z_mm") from exc
-        labels.append(r[il].strip() if il is not None and il < len(r) else f"marker {lineno - 1}")
-    if not pts or not np.all(np.isfinite(pts)):
-        raise ReadError(f"{path}: no finite marker rows")
-    return np.array(pts), labels

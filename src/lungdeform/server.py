@@ -226,9 +226,10 @@ def model_glb(path, curve=None, markers=None) -> bytes:
             raise InputError(f"{p}: --curve and --markers apply to a model file, not to a .glb")
         return check_glb(p.read_bytes(), str(p))
     from .export import glb_bytes
-    from .markers import marker_anchors, read_markers_csv
+    from .markers import marker_anchors
     from .modelfile import load_model
     from .schedule import read_volume_csv
+    from .trajectory import read_markers_csv
 
     model = load_model(p)
     trace = read_volume_csv(curve) if curve is not None else None

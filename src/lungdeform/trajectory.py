@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from .atomic import write_bytes
-from .errors import InputError
+from .errors import InputError, ReadError
 from .mesh import as_vertices
 
 #: Points farther than this outside every lung are refused (a wrong frame or unit, not a tumour).
@@ -182,9 +182,7 @@ def _plot(path: Path, disp: np.ndarray, x: np.ndarray, xlabel: str, labels, max_
 def read_points(path) -> tuple[np.ndarray, list[str]]:
     """Points to track: a CSV with ``x_mm,y_mm,z_mm[,label]`` (LPS mm) or an elastix point set
     (``point`` header, world mm). Returns ``(points (q, 3) float mm, labels)``."""
-    from .errors import ReadError
     from .landmarks import read_elastix_points
-    from .markers import read_markers_csv
 
     path = Path(path)
     if not path.is_file():
@@ -200,3 +198,28 @@ def read_points(path) -> tuple[np.ndarray, list[str]]:
         pts = read_elastix_points(path)
         return pts, [f"point {i + 1}" for i in range(len(pts))]
     return read_markers_csv(path)
+
+
+def read_markers_csv(path) -> tuple[np.ndarray, list[str]]:
+    """Markers CSV: header ``x_mm,y_mm,z_mm[,label]`` (LPS mm, end-exhale)."""
+    path = Path(path)
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as fh:  # -sig: a spreadsheet's byte-order mark
+            rows = [r for r in csv.reader(fh) if r and any(c.strip() for c in r)]
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ReadError(f"{path}: cannot read markers ({exc})") from exc
+    header = [h.strip() for h in rows[0]] if rows else []
+    if not {"x_mm", "y_mm", "z_mm"} <= set(header):
+        raise ReadError(f"{path}: markers need a header with x_mm,y_mm,z_mm[,label]")
+    ix, iy, iz = (header.index(c) for c in ("x_mm", "y_mm", "z_mm"))
+    il = header.index("label") if "label" in header else None
+    pts, labels = [], []
+    for lineno, r in enumerate(rows[1:], start=2):
+        try:
+            pts.append([float(r[ix]), float(r[iy]), float(r[iz])])
+        except (IndexError, ValueError) as exc:
+            raise ReadError(f"{path}: line {lineno}: expected numbers in x_mm,y_mm,z_mm") from exc
+        labels.append(r[il].strip() if il is not None and il < len(r) else f"marker {lineno - 1}")
+    if not pts or not np.all(np.isfinite(pts)):
+        raise ReadError(f"{path}: no finite marker rows")
+    return np.array(pts), labels

@@ -24,6 +24,7 @@ def register(apps) -> None:
         """Export MODEL for engines (glb: one mesh, morph targets, breathing animation) or ParaView (pvd)."""
         from lungdeform import export as E
         from lungdeform import markers as M
+        from lungdeform.trajectory import read_markers_csv
         from lungdeform import schedule as S
         from lungdeform.errors import InputError
         from lungdeform.modelfile import load_model
@@ -72,7 +73,7 @@ def register(apps) -> None:
             out_path = out if out.suffix.lower() == ".glb" else out.with_name(out.name + ".glb")
             anchors = None
             if markers is not None:
-                pts, labels = M.read_markers_csv(markers)
+                pts, labels = read_markers_csv(markers)
                 anchors = M.marker_anchors(m, pts, labels, source=str(markers))
                 shown = [f"{a['label']} in {a['lung']}" + ("" if a["inside"] else f" ({a['distance_mm']:.0f} mm outside)")
                          for a in anchors[:6]]
