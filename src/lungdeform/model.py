@@ -105,7 +105,7 @@ class LungModel:
             iv = np.asarray(iv)
             if iv.dtype != bool or iv.shape != (self.surface.n_vertices,) or int(iv.sum()) < 13:
                 raise InputError(f"interior_vertices must be ({self.surface.n_vertices},) bool with at least 13 set, "
-                                 f"got {iv.dtype} {iv.shape}")
+                                 f"got {iv.dtype} {iv.shape} with {int(np.count_nonzero(iv))} set")
 
     @property
     def n_vertices(self) -> int:
