@@ -359,7 +359,7 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
     interior = None
     if use_lm:  # the landmark correction of the interior field (lungdeform.interior), held out per fold
         say("interior landmark correction (cross-validated)")
-        interior = _interior_correction(fit_opt, rest, lms[0], aligned_lms, targets, lm_folds, keep)
+        interior = _interior_correction(fit_opt, lms[0], aligned_lms, targets, lm_folds, keep, lm_w)
 
     metrics = {"inputs": [str(p) for p in inputs], "side": side, "volumes_ml": vols, "volumes_given_ml": given,
                "warnings": warnings,
@@ -463,15 +463,15 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
     return metrics
 
 
-def _interior_correction(fit, rest, landmarks, aligned, targets, folds, keep) -> dict:
+def _interior_correction(fit, landmarks, aligned, targets, folds, keep, weights) -> dict:
     """The interior field's landmark correction for ``fit`` (:mod:`lungdeform.interior`): held-out
     landmark positions per target (k-fold), and the correction and smoothing from all landmarks.
-    The surface-driven part is the one the saved model plays back (its kept vertices, normals and
-    displacement: ``LungModel.interior_vertices``)."""
-    from lungdeform.interior import correction_per_unit, held_out_positions, interior_field, select_smoothing
+    The surface-driven part is the one the saved model plays back: the sliding interpolation from
+    its kept vertices (``LungModel.interior_vertices``), here as the metrics' operator ``weights``
+    (:func:`lungdeform.baselines.landmark_matrix`, the same interpolant)."""
+    from lungdeform.interior import correction_per_unit, held_out_positions, select_smoothing
 
-    unit = interior_field(rest.vertices[keep], fit.displacement[keep],
-                          normals=rest.vertex_normals[keep]).displacement(landmarks)  # mm per unit
+    unit = weights @ fit.displacement[keep]  # mm per unit
     observed = [np.asarray(a) - landmarks for a in aligned]
     scales = [(tg.volume_ml - fit.volume_ee_ml) / fit.unit_ml for tg in targets]
     correction = correction_per_unit(observed, scales, unit)
