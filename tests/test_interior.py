@@ -93,10 +93,38 @@ def test_bad_input():
     with pytest.raises(InputError, match="unit length"):
         interior_field(v, v, normals=2.0 * n)
     with pytest.raises(InputError, match="at least 5 points"):
-        interior_field(v, v, v[:3], v[:3], normals=n)
+        interior_field(v, v, v[:3], v[:3], normals=n, kind="sliding_thin_plate")
+    with pytest.raises(InputError, match="values must be finite with the anchors' shape"):
+        interior_field(v, v, v[:3], v[:2], normals=n)
     with pytest.raises(InputError, match="smoothing"):
         interior_field(v, v, smoothing=-1.0, normals=n)
     with pytest.raises(InputError, match="interior kind"):
         interior_field(v, v, normals=n, kind="spline")
     with pytest.raises(InputError, match="NaN"):
         interior_field(v, v, normals=n).displacement(np.array([[np.nan, 0.0, 0.0]]))
+
+
+def test_sliding_correction_is_cross_validated_without_leaks(rng):
+    # the k-fold protocol of the sliding correction: a landmark's own held-out prediction does not
+    # depend on its observation, and the correction helps over the surface-driven field alone
+    # (truth: a smooth interior slide the surface does not show)
+    from lungdeform.interior import correction_solvers, held_out_sliding, select_correction_smoothing
+
+    s = icosphere(3, 50.0)
+    lm = _inside(rng, 25, 40.0)
+    unit = 0.02 * lm
+    obs = unit + np.stack([np.sin(lm[:, 2] / 30.0), 0.5 * np.cos(lm[:, 0] / 25.0), np.zeros(25)], axis=1)
+    folds = [np.arange(i, 25, 5) for i in range(5)]
+    solvers = correction_solvers(s.vertices, s.vertex_normals, lm)
+    assert sorted(solvers) == [100.0, 300.0, 1000.0]
+    a = held_out_sliding([obs], [1.0], unit, folds, solvers)[0]
+    obs2 = obs.copy()
+    obs2[0] += 50.0
+    b = held_out_sliding([obs2], [1.0], unit, folds, solvers)[0]
+    assert a[folds[0]] == pytest.approx(b[folds[0]], abs=1e-12)
+    assert not np.allclose(a[folds[1]], b[folds[1]])
+    truth = lm + obs
+    assert np.linalg.norm(a - truth, axis=1).mean() < 0.5 * np.linalg.norm(lm + unit - truth, axis=1).mean()
+    assert select_correction_smoothing(solvers, np.arange(6), (obs - unit)[:6]) == 1000.0  # too few to judge
+    with pytest.raises(InputError, match="one row per landmark"):
+        held_out_sliding([obs], [1.0], unit[:-1], folds, solvers)

@@ -88,13 +88,13 @@ def test_model_file_round_trip(tmp_path, model, right_lung):
 def test_schema_1_files_keep_their_thin_plate_interior(tmp_path, model, rng):
     # schema 2 changed only how interior points move: a version-1 file is read, and its interior
     # field is the thin-plate spline of the whole displacement it was made with (truth: that
-    # spline, fitted here directly); a version-2 file uses the sliding field
+    # spline, fitted here directly); a version-2 or 3 file uses the sliding field
     from lungdeform.interpolate import displacement_field
 
     path = save_model(tmp_path / "m.npz", Model({"left": model}))
     with np.load(path) as z:
         data = {k: z[k] for k in z.files}
-    assert int(data["schema_version"]) == SCHEMA_VERSION == 2
+    assert int(data["schema_version"]) == SCHEMA_VERSION == 3
     np.savez(tmp_path / "v1.npz", **dict(data, schema_version=np.array(1)))
     old, new = load_model(tmp_path / "v1.npz").lungs["left"], load_model(path).lungs["left"]
     assert (old.interior_kind, new.interior_kind) == ("thin_plate", "sliding")
@@ -103,13 +103,46 @@ def test_schema_1_files_keep_their_thin_plate_interior(tmp_path, model, rng):
     ref = displacement_field(v, model.displacement, max_points=4000)(q)
     assert old.interior.displacement(q) == pytest.approx(ref, abs=1e-9)
     assert not np.allclose(new.interior.displacement(q), ref, atol=1e-3)
-    # saved again (as schema 2), the old lung keeps its thin-plate field
+    # saved again (as schema 3), the old lung keeps its thin-plate field
     again = load_model(save_model(tmp_path / "again.npz", Model({"left": old}))).lungs["left"]
     assert again.interior_kind == "thin_plate"
     assert again.interior.displacement(q) == pytest.approx(ref, abs=1e-9)
     np.savez(tmp_path / "k.npz", **dict(data, **{"lung/left/interior_kind": np.array("spline")}))
     with pytest.raises(ModelFileError, match="interior_kind"):
         load_model(tmp_path / "k.npz")
+
+
+def test_schema_2_files_keep_their_thin_plate_correction(tmp_path, model, rng):
+    # schema 3 changed only the landmark correction: a version-2 file's correction is read as the
+    # thin-plate spline it was fitted as (truth: the surface's sliding field plus that spline,
+    # built here directly), also when saved again; the same data as schema 3 is the sliding
+    # correction, which keeps the surface's normal motion (a different field)
+    from dataclasses import replace
+
+    from lungdeform.interpolate import displacement_field
+    from lungdeform.sliding import sliding_field
+
+    v, n = model.surface.vertices, model.surface.vertex_normals
+    lm = v.mean(axis=0) + rng.uniform(-15, 15, size=(12, 3))
+    lung = replace(model, landmarks=lm, landmark_correction=rng.normal(size=(12, 3)), landmark_smoothing=10.0)
+    path = save_model(tmp_path / "m.npz", Model({"left": lung}))
+    with np.load(path) as z:
+        data = {k: z[k] for k in z.files}
+    np.savez(tmp_path / "v2.npz", **dict(data, schema_version=np.array(2)))
+    old, new = load_model(tmp_path / "v2.npz").lungs["left"], load_model(path).lungs["left"]
+    assert (old.interior_kind, new.interior_kind) == ("sliding_thin_plate", "sliding")
+    q = v.mean(axis=0) + rng.uniform(-20, 20, size=(10, 3))
+    ref = (sliding_field(v, n, model.displacement)(q)
+           + displacement_field(lm, lung.landmark_correction, smoothing=10.0, max_points=12)(q))
+    assert old.interior.displacement(q) == pytest.approx(ref, abs=1e-9)
+    assert not np.allclose(new.interior.displacement(q), ref, atol=1e-3)
+    again = load_model(save_model(tmp_path / "again.npz", Model({"left": old}))).lungs["left"]
+    assert again.interior_kind == "sliding_thin_plate"
+    assert again.interior.displacement(q) == pytest.approx(ref, abs=1e-9)
+    # a schema-2 lung without landmarks is simply sliding (the two kinds differ only in the correction)
+    np.savez(tmp_path / "bare.npz", **dict({k: x for k, x in data.items() if "landmark" not in k},
+                                            schema_version=np.array(2)))
+    assert load_model(tmp_path / "bare.npz").lungs["left"].interior_kind == "sliding"
 
 
 def test_interior_vertices_are_saved_and_leave_the_others_out(tmp_path, model, rng):

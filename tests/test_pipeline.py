@@ -55,7 +55,6 @@ def test_landmarks_outside_their_own_mask_are_reported(tmp_path):
 def test_swapped_itk_landmark_files_are_reported(data_dir):
     # real data: each ITK landmark set lies inside its own lung mask, and the swapped files do not
     # (8-12 % of them land outside the other scan's mask), so a swap is reported
-    import pytest  # noqa: F401  (data_dir skips without LUNGDEFORM_DATA)
 
     from lungdeform.landmarks import read_elastix_points
     from lungdeform.image import read_image

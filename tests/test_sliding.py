@@ -132,3 +132,87 @@ def test_operator_indexing_and_thinning(rng):
     field = sliding_field(s.vertices, s.vertex_normals, u, max_points=200)
     assert len(field.points) == 200 and int((np.abs(w.weights).sum(axis=(0, 1)) > 0).sum()) == 200
     assert w @ u == pytest.approx(field(q), abs=1e-8)
+
+
+def test_correction_moves_the_anchors_and_not_the_boundary(rng):
+    # truth, from its definition: without smoothing the correction interpolates the anchors' values
+    # exactly and has zero normal motion at every surface sample; a thin-plate spline through the
+    # same values moves the boundary (what the sliding correction is for)
+    from lungdeform.interpolate import displacement_field
+    from lungdeform.sliding import sliding_correction
+
+    s = _blob()
+    n = s.vertex_normals
+    q = rng.uniform(-20, 20, size=(15, 3))
+    values = rng.normal(size=(15, 3))
+    field = sliding_correction(s.vertices, n, q, values, smoothing=0.0)
+    assert field(q) == pytest.approx(values, abs=1e-8)
+    assert np.abs(np.einsum("ij,ij->i", field(s.vertices), n)).max() < 1e-6
+    tps = displacement_field(q, values, max_points=15)(s.vertices)
+    assert np.abs(np.einsum("ij,ij->i", tps, n)).mean() > 0.1
+    # smoothed, the boundary moves a little (soft), the anchors still exactly
+    soft = sliding_correction(s.vertices, n, q, values, smoothing=100.0)
+    assert soft(q) == pytest.approx(values, abs=1e-8)
+    assert 1e-6 < np.abs(np.einsum("ij,ij->i", soft(s.vertices), n)).mean() < np.abs(np.einsum("ij,ij->i", tps, n)).mean()
+
+
+def test_correction_solver_equals_the_dense_field(rng):
+    # dense reference: the solver's Schur-complement prediction for any subset of the anchors is
+    # the field solved directly through that subset, also when the surface is thinned
+    from lungdeform.sliding import CorrectionSolver, sliding_correction
+
+    s = _blob()
+    n = s.vertex_normals
+    q = rng.uniform(-20, 20, size=(20, 3))
+    values = rng.normal(size=(20, 3))
+    for max_points in (4000, 300):
+        solver = CorrectionSolver(s.vertices, n, q, smoothing=50.0, max_points=max_points, seed=2)
+        train, test = rng.permutation(20)[:14], np.arange(20)[:6]
+        ref = sliding_correction(s.vertices, n, q[train], values[train], smoothing=50.0, max_points=max_points, seed=2)
+        assert solver.predict(train, values[train], test) == pytest.approx(ref(q[test]), abs=1e-9)
+    with pytest.raises(InputError, match="anchor indices"):
+        solver.predict([0, 25], values[:2], [1])
+    with pytest.raises(InputError, match="one row per train anchor"):
+        solver.predict([0, 1], values[:3], [2])
+    with pytest.raises(InputError, match="anchors"):
+        CorrectionSolver(s.vertices, n, np.full((2, 3), np.nan))
+
+
+def test_correction_matches_the_documented_formula(rng):
+    # dense reference written from docs/MODEL_FORMAT.md ("landmark correction"), independently of
+    # the module: kernel −r per component at the landmarks, −r n_j at the surface, zero normal data
+    # with smoothing λ', the landmark values exactly, all 12 affine columns (the blob sees them all)
+    from lungdeform.sliding import sliding_correction
+
+    s = _blob()
+    p, n = s.vertices, s.vertex_normals
+    k, m, lam = len(p), 8, 40.0
+    q = rng.uniform(-20, 20, size=(m, 3))
+    cval = rng.normal(size=(m, 3))
+    c = p.mean(axis=0)
+    h = np.abs(p - c).max()
+
+    def xhat(x):
+        return np.hstack([np.ones((len(x), 1)), (x - c) / h])
+
+    rpp = np.linalg.norm(p[:, None] - p[None], axis=2)
+    rpq = np.linalg.norm(p[:, None] - q[None], axis=2)
+    rqq = np.linalg.norm(q[:, None] - q[None], axis=2)
+    # unknowns: γ (k), β (m × 3, row i = β_i), affine (3 × 4); equations: surface, landmarks, orthogonality
+    a = np.zeros((k + 3 * m + 12, k + 3 * m + 12))
+    a[:k, :k] = -rpp * (n @ n.T) + lam * np.eye(k)
+    for comp in range(3):
+        cols = k + 3 * np.arange(m) + comp
+        a[:k, cols] = -rpq * n[:, [comp]]  # n_j · (φ(|p_j − q_i|) e_comp)
+        a[cols, :k] = (-rpq * n[:, [comp]]).T
+        a[np.ix_(cols, cols)] = -rqq
+        a[:k, k + 3 * m + 4 * comp:k + 3 * m + 4 * comp + 4] = n[:, [comp]] * xhat(p)
+        a[cols, k + 3 * m + 4 * comp:k + 3 * m + 4 * comp + 4] = xhat(q)
+    a[k + 3 * m:, :k + 3 * m] = a[:k + 3 * m, k + 3 * m:].T
+    sol = np.linalg.solve(a, np.concatenate([np.zeros(k), cval.ravel(), np.zeros(12)]))
+    gamma, beta, aff = sol[:k], sol[k:k + 3 * m].reshape(m, 3), sol[k + 3 * m:].reshape(3, 4)
+    x = rng.uniform(-25, 25, size=(15, 3))
+    rxp = np.linalg.norm(x[:, None] - p[None], axis=2)
+    rxq = np.linalg.norm(x[:, None] - q[None], axis=2)
+    ref = (-rxp * gamma) @ n + (-rxq) @ beta + xhat(x) @ aff.T
+    assert sliding_correction(p, n, q, cval, smoothing=lam)(x) == pytest.approx(ref, abs=1e-8)

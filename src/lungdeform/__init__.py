@@ -16,7 +16,7 @@ from .errors import (
 )
 from .mesh import Surface, check_surface
 
-__version__ = "0.3.0"
+__version__ = "0.4.0"
 
 __all__ = [
     "ConvergenceError",

@@ -8,14 +8,22 @@ by the same law, ``q + s·v(q)``, with ``v : R³ → R³`` (mm per unit ``s``) b
    lung slides along its boundary; reproduces any affine motion);
 2. **landmark correction** (optional): where corresponding interior landmarks were observed at the
    fitted volumes, the part of their motion the surface cannot see (sliding along the chest wall,
-   uneven expansion inside), as a second thin-plate spline through the per-unit residuals
+   uneven expansion inside), the per-unit residuals
    ``c_j = Σ_i s_i (o_ij − s_i·v_s(q_j)) / Σ_i s_i²`` (least squares over the targets ``i`` at
-   scales ``s_i``, ``o_ij`` the observed displacement of landmark ``j``). Its smoothing (mm², the
-   thin-plate regularisation) is chosen by k-fold cross-validation on the landmarks themselves.
+   scales ``s_i``, ``o_ij`` the observed displacement of landmark ``j``), interpolated by
+   :func:`lungdeform.sliding.sliding_correction`: the smoothest field through the ``c_j`` that
+   leaves the surface's normal motion unchanged (softly: surface smoothing ``λ`` mm, chosen from
+   :data:`CORRECTION_SMOOTHING_MM` by k-fold cross-validation on the landmarks themselves).
 
 Both parts are linear in ``s``, so a point's displacement per unit is precomputed once and playback
 costs three multiply-adds per point, as for vertices. The correction holds for the posture the
 landmarks were observed in: a model re-oriented to another gravity drops it.
+
+:data:`KINDS` names the three fields a model file can hold: ``"sliding"`` (the above; schema 3),
+``"sliding_thin_plate"`` (schema-2 files: the same surface part, the correction a thin-plate spline
+through the ``c_j`` that ignores the surface, smoothing in mm²) and ``"thin_plate"`` (schema-1 files:
+the thin-plate spline of the whole surface displacement, and the same thin-plate correction).
+Older files play back as they were made.
 
 Measured on the ITK right-lung pair (51 landmarks, 5-fold held out; ``lungdeform validate
 itk-pair``): see ``docs/FITTING.md`` for the current figures of the surface-driven field alone and
@@ -31,13 +39,21 @@ import numpy as np
 from .errors import InputError
 from .interpolate import DisplacementField, displacement_field, interpolation_weights
 from .mesh import as_vertices
-from .sliding import MAX_POINTS, SlidingField, sliding_field
+from .sliding import MAX_POINTS, CorrectionSolver, SlidingField, sliding_correction, sliding_field
 
-#: Candidate smoothings (mm², thin-plate regularisation) of the landmark correction.
+#: Candidate smoothings (mm², thin-plate regularisation) of the thin-plate landmark correction.
 SMOOTHING_MM2 = (0.0, 10.0, 100.0, 1000.0)
-#: How the surface displacement extends inside: its normal motion (the default), or all of it
-#: (the thin-plate spline of model files of schema 1).
-KINDS = ("sliding", "thin_plate")
+#: Candidate surface smoothings ``λ`` (mm) of the sliding landmark correction.
+CORRECTION_SMOOTHING_MM = (100.0, 300.0, 1000.0)
+#: The interior fields: surface part and landmark correction (module docstring).
+KINDS = ("sliding", "sliding_thin_plate", "thin_plate")
+#: Each kind in words: the surface part, and the landmark correction (for reports).
+KIND_TEXT = {"sliding": ("sliding interpolation of the surface's normal motion",
+                         "the fit's landmark correction, which keeps the surface's normal motion"),
+             "sliding_thin_plate": ("sliding interpolation of the surface's normal motion",
+                                    "the fit's thin-plate landmark correction (model schema 2)"),
+             "thin_plate": ("thin-plate spline of the surface displacement (model schema 1)",
+                            "the fit's thin-plate landmark correction")}
 #: Surface fields through more vertices than this use a seeded subset.
 MAX_SURFACE_POINTS = MAX_POINTS
 
@@ -114,6 +130,59 @@ def held_out_positions(landmarks, observed, scales, predicted_unit, folds, *, ca
     return out
 
 
+def correction_solvers(points, normals, landmarks, candidates=CORRECTION_SMOOTHING_MM, *,
+                       seed: int = 0) -> dict[float, CorrectionSolver]:
+    """One :class:`~lungdeform.sliding.CorrectionSolver` per candidate surface smoothing (mm): the
+    sliding landmark correction from the surface ``points : (k, 3)`` mm (unit ``normals``) through
+    any subset of ``landmarks : (m, 3)`` mm, each factorised once."""
+    return {float(lam): CorrectionSolver(points, normals, landmarks, smoothing=float(lam), max_points=MAX_SURFACE_POINTS,
+                                         seed=seed) for lam in candidates}
+
+
+def select_correction_smoothing(solvers: dict, index, values, folds: int = 5, seed: int = 0) -> float:
+    """The surface smoothing (mm, a key of ``solvers``) whose sliding correction through
+    ``values : (len(index), 3)`` at the solvers' landmarks ``index`` has the least mean held-out
+    error (``folds``-fold, seeded split). Fewer than 10 landmarks: the largest (the smoothest)."""
+    idx = np.asarray(index, int).ravel()
+    v = as_vertices(values, "values")
+    if len(idx) < 10:
+        return float(max(solvers))
+    from .crossval import landmark_folds
+
+    parts = landmark_folds(len(idx), min(int(folds), len(idx)), seed)
+    best, best_err = None, np.inf
+    for lam, solver in solvers.items():
+        err = 0.0
+        for test in parts:
+            train = np.setdiff1d(np.arange(len(idx)), test)
+            err += np.linalg.norm(solver.predict(idx[train], v[train], idx[test]) - v[test], axis=1).sum()
+        if err < best_err - 1e-9:
+            best, best_err = float(lam), err
+    return best
+
+
+def held_out_sliding(observed, scales, predicted_unit, folds, solvers: dict, *, seed: int = 0) -> list[np.ndarray]:
+    """As :func:`held_out_positions`, with the sliding landmark correction: per fold, the
+    correction and its surface smoothing (:func:`select_correction_smoothing`, inner folds) come
+    from the other folds' landmarks only. ``solvers``: :func:`correction_solvers` over every
+    landmark (end-exhale, mm). Returns per target ``(m, 3) float`` mm predicted positions."""
+    solver = next(iter(solvers.values()))
+    m = solver.n_anchors
+    q = solver.anchors
+    p = as_vertices(predicted_unit, "predicted_unit")
+    if len(p) != m:
+        raise InputError(f"predicted_unit: need one row per landmark ({m}), got {len(p)}")
+    out = [np.full_like(q, np.nan) for _ in scales]
+    for test in folds:
+        train = np.setdiff1d(np.arange(m), test)
+        c = correction_per_unit([np.asarray(o)[train] for o in observed], scales, p[train])
+        lam = select_correction_smoothing(solvers, train, c, seed=seed)
+        v = p[test] + solvers[lam].predict(train, c, test)
+        for i, s in enumerate(scales):
+            out[i][test] = q[test] + float(s) * v
+    return out
+
+
 @dataclass(frozen=True, eq=False)
 class InteriorField:
     """Displacement per unit ``s`` of any point of a lung, mm (LPS, end-exhale frame).
@@ -123,13 +192,14 @@ class InteriorField:
     surface : SlidingField
         The sliding interpolation of the surface displacement (mm per unit) through the end-exhale
         vertices and their outward normals (all, or a seeded subset of :data:`MAX_SURFACE_POINTS`).
-    landmark : DisplacementField or None
-        The thin-plate spline of the landmark correction (:func:`correction_per_unit`, mm per unit)
-        through the end-exhale landmarks, with its smoothing; None without landmarks.
+    landmark : SlidingField, DisplacementField or None
+        The landmark correction (:func:`correction_per_unit`, mm per unit) through the end-exhale
+        landmarks: the sliding correction (kind ``"sliding"``) or a thin-plate spline (older kinds),
+        with its smoothing; None without landmarks.
     """
 
     surface: SlidingField | DisplacementField
-    landmark: DisplacementField | None = None
+    landmark: SlidingField | DisplacementField | None = None
 
     @property
     def corrected(self) -> bool:
@@ -150,12 +220,12 @@ def interior_field(vertices, displacement, landmarks=None, correction=None, smoo
                    *, normals, kind: str = "sliding", seed: int = 0) -> InteriorField:
     """An :class:`InteriorField` from a lung's ``vertices : (n, 3)`` mm, their unit outward
     ``normals : (n, 3)`` and ``displacement : (n, 3)`` mm per unit, with an optional landmark
-    ``correction : (m, 3)`` at ``landmarks : (m, 3)`` mm (``smoothing`` mm²). ``kind``: one of
-    :data:`KINDS`; ``"thin_plate"`` (the thin-plate spline of the whole displacement, no normals
-    used) is how model files of schema 1 were made."""
+    ``correction : (m, 3)`` mm per unit at ``landmarks : (m, 3)`` mm. ``kind``: one of
+    :data:`KINDS`; ``smoothing``: the correction's, in mm (``"sliding"``: the surface smoothing of
+    :func:`lungdeform.sliding.sliding_correction`) or mm² (the thin-plate kinds)."""
     if not (np.isfinite(smoothing) and smoothing >= 0):
-        raise InputError(f"smoothing must be >= 0 mm², got {smoothing!r}")
-    if kind == "sliding":
+        raise InputError(f"smoothing must be >= 0, got {smoothing!r}")
+    if kind in ("sliding", "sliding_thin_plate"):
         surface = sliding_field(vertices, normals, displacement, max_points=MAX_SURFACE_POINTS, seed=seed)
     elif kind == "thin_plate":
         surface = displacement_field(vertices, displacement, max_points=MAX_SURFACE_POINTS, seed=seed)
@@ -163,5 +233,8 @@ def interior_field(vertices, displacement, landmarks=None, correction=None, smoo
         raise InputError(f"interior kind must be one of {', '.join(KINDS)}, got {kind!r}")
     if landmarks is None or correction is None:
         return InteriorField(surface)
+    if kind == "sliding":
+        return InteriorField(surface, sliding_correction(vertices, normals, landmarks, correction, smoothing=float(smoothing),
+                                                         max_points=MAX_SURFACE_POINTS, seed=seed))
     m = len(np.asarray(landmarks))  # every landmark: the correction is never thinned
     return InteriorField(surface, displacement_field(landmarks, correction, smoothing=float(smoothing), max_points=max(m, 1)))

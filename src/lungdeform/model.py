@@ -66,15 +66,19 @@ class LungModel:
     landmark_correction : (m, 3) float or None
         The landmarks' motion the surface cannot see, mm per unit (:mod:`lungdeform.interior`).
     landmark_smoothing : float
-        Thin-plate smoothing of that correction, mm².
+        Smoothing of that correction: the surface smoothing of the sliding correction, mm (kind
+        ``"sliding"``), or the thin-plate smoothing, mm² (the older kinds).
     interior_vertices : (n,) bool or None
         The vertices whose motion drives the interior field; None: all. A fit leaves out the
         vertices on the crop faces of its scans (an image boundary, not lung surface: the model's
         motion there was never fitted).
     interior_kind : str
-        How the surface displacement extends inside (:data:`lungdeform.interior.KINDS`):
-        ``"sliding"`` (its normal motion, :mod:`lungdeform.sliding`; model files of schema 2) or
-        ``"thin_plate"`` (the whole displacement; schema-1 files, played back as they were made).
+        How the surface displacement and the landmark correction extend inside
+        (:data:`lungdeform.interior.KINDS`): ``"sliding"`` (the surface's normal motion,
+        :mod:`lungdeform.sliding`, and a correction that keeps it; model files of schema 3),
+        ``"sliding_thin_plate"`` (the same surface part, a thin-plate correction; schema-2 files) or
+        ``"thin_plate"`` (the thin-plate spline of the whole displacement; schema-1 files). Older
+        files play back as they were made.
     """
 
     side: str

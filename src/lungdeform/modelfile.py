@@ -1,12 +1,12 @@
 """The model file: a versioned ``.npz`` (numpy zip) holding everything playback needs.
 
-Schema ``lungdeform.model``, version 2 (documented in docs/MODEL_FORMAT.md). Top-level keys:
+Schema ``lungdeform.model``, version 3 (documented in docs/MODEL_FORMAT.md). Top-level keys:
 
 =================  ==================  =====================================================
 key                type                meaning
 =================  ==================  =====================================================
 schema             str                 ``"lungdeform.model"``
-schema_version     int                 2 (1 is read too)
+schema_version     int                 3 (1 and 2 are read too)
 lungs              (k,) str            lung names (``"left"``, ``"right"``)
 provenance         str (JSON)          sources, settings, software version, creation time
 =================  ==================  =====================================================
@@ -19,16 +19,20 @@ Per lung, under ``lung/<name>/``: ``side`` str; ``vertices (n, 3) float64`` mm L
 ``displacement (n, 3) float64`` mm per ``unit_ml``; ``unit_ml``; ``calibration_ml``; ``d_min`` mm;
 ``volume_ee_ml``; ``volume_poly (4,)`` mm³ (volume of p + s·u as a cubic in s). Optional (a fit
 with interior landmarks): ``landmarks (m, 3)`` mm LPS, ``landmark_correction (m, 3)`` mm per unit,
-``landmark_smoothing`` mm² (:mod:`lungdeform.interior`). Optional (a fit of cropped scans):
-``interior_vertices (n,) bool`` (at least 13 set), the vertices whose motion drives the interior
-field (the crop faces left out). Optional (a schema-1 lung saved again): ``interior_kind`` str,
-only ``"thin_plate"`` (it keeps the interior field it was made with; absent: ``"sliding"``).
+``landmark_smoothing`` (mm, or mm² for the thin-plate kinds; :mod:`lungdeform.interior`). Optional
+(a fit of cropped scans): ``interior_vertices (n,) bool`` (at least 13 set), the vertices whose
+motion drives the interior field (the crop faces left out). Optional (an older lung saved again):
+``interior_kind`` str, ``"sliding_thin_plate"`` or ``"thin_plate"`` (it keeps the interior field it
+was made with; absent: ``"sliding"``).
 
 Loading checks the schema name and version, that every key is present, and every shape.
-Version 2 added the two optional keys above and changed how interior points move
-(:attr:`LungModel.interior_kind`: the sliding interpolation of the surface's normal motion, where
-version 1 used the thin-plate spline of the whole displacement). Version-1 files are read and keep their thin-plate field, so
-their interior points (and a landmark correction fitted against that field) play back as made.
+Each version changed only how interior points move (:attr:`LungModel.interior_kind`). Version 3:
+the landmark correction is the sliding correction (:func:`lungdeform.sliding.sliding_correction`,
+which keeps the surface's normal motion), where version 2 used a thin-plate spline through the same
+per-unit residuals (``interior_kind = "sliding_thin_plate"``). Version 2 made the surface part the
+sliding interpolation of the surface's normal motion, where version 1 used the thin-plate spline of
+the whole displacement (``"thin_plate"``). Older files are read and keep their fields, so their
+interior points play back as made.
 """
 
 from __future__ import annotations
@@ -48,9 +52,9 @@ from .mesh import Surface
 from .model import LungModel, Model
 
 SCHEMA = "lungdeform.model"
-SCHEMA_VERSION = 2
-#: Schema versions this lungdeform reads: 1 differs only in its interior field (thin-plate, not sliding).
-READABLE_VERSIONS = (1, 2)
+SCHEMA_VERSION = 3
+#: Schema versions this lungdeform reads: 1 and 2 differ only in their interior field (module docstring).
+READABLE_VERSIONS = (1, 2, 3)
 
 _OPTIONAL = ("landmarks", "landmark_correction", "landmark_smoothing")
 _PER_LUNG = ("side", "vertices", "faces", "constants", "stiffness", "frame_axes", "frame_lower",
@@ -85,7 +89,7 @@ def lung_arrays(lung: LungModel) -> dict[str, np.ndarray]:
                    landmark_smoothing=np.array(lung.landmark_smoothing))
     if lung.interior_vertices is not None:
         out["interior_vertices"] = np.asarray(lung.interior_vertices, bool)
-    if lung.interior_kind != "sliding":  # a schema-1 lung saved again keeps its thin-plate field
+    if lung.interior_kind != "sliding":  # an older lung saved again keeps its interior field
         out["interior_kind"] = np.array(lung.interior_kind)
     return out
 
@@ -177,6 +181,8 @@ def _lung(path: Path, name: str, data: dict, version: int = SCHEMA_VERSION) -> L
     surface = Surface(v, a["faces"].astype(np.int64), name)
     frame = LungFrame(str(a["side"]), a["frame_axes"], a["frame_lower"], a["frame_upper"])
     kind = "thin_plate" if version == 1 else str(data.get(prefix + "interior_kind", "sliding"))
+    if version == 2 and kind == "sliding" and opt:  # a schema-2 correction is a thin-plate spline
+        kind = "sliding_thin_plate"
     try:  # LungModel checks interior_vertices and interior_kind; the error names the file
         return LungModel(
             side=str(a["side"]), surface=surface, constants=a["constants"], stiffness=a["stiffness"],

@@ -359,7 +359,7 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
     interior = None
     if use_lm:  # the landmark correction of the interior field (lungdeform.interior), held out per fold
         say("interior landmark correction (cross-validated)")
-        interior = _interior_correction(fit_opt, lms[0], aligned_lms, targets, lm_folds, keep, lm_w)
+        interior = _interior_correction(fit_opt, lms[0], aligned_lms, targets, lm_folds, keep, lm_w, rest)
 
     metrics = {"inputs": [str(p) for p in inputs], "side": side, "volumes_ml": vols, "volumes_given_ml": given,
                "warnings": warnings,
@@ -374,7 +374,8 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
             methods["model"] = (fit_opt.positions_at(rest, tg.volume_ml), interior["held_out"][ti])
             protocols["model"] = (f"surface fit ({kind}; no landmark used) with the interior landmark correction "
                                   f"(lungdeform.interior): landmarks moved by the surface-driven sliding field "
-                                  f"plus a thin-plate correction through the training landmarks' residual motion; "
+                                  f"plus the sliding correction through the training landmarks' residual motion (it keeps the "
+                                  f"surface's normal motion; smoothing chosen by inner cross-validation); "
                                   f"held-out landmark errors ({folds}-fold)")
         if cv is not None:
             methods["model_landmark_fit"] = (cv.final.positions_at(rest, tg.volume_ml), cv.predicted[ti])
@@ -439,7 +440,7 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
     if use_lm:
         metrics["landmark_cv"] = {"folds": int(folds), "landmarks": int(len(lms[0])), "seed": 0,
                                   "landmark_weight": float(landmark_weight),
-                                  "interior_smoothing_mm2": interior["smoothing"]}
+                                  "interior_smoothing_mm": interior["smoothing"]}
         if cv is not None:
             metrics["landmark_cv"].update(fold_constants=cv.fold_constants.tolist(),
                                           fold_constants_spread=cv.fold_constants.std(axis=0).tolist())
@@ -463,20 +464,24 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
     return metrics
 
 
-def _interior_correction(fit, landmarks, aligned, targets, folds, keep, weights) -> dict:
+def _interior_correction(fit, landmarks, aligned, targets, folds, keep, weights, rest) -> dict:
     """The interior field's landmark correction for ``fit`` (:mod:`lungdeform.interior`): held-out
-    landmark positions per target (k-fold), and the correction and smoothing from all landmarks.
+    landmark positions per target (k-fold), and the correction and its smoothing from all landmarks.
     The surface-driven part is the one the saved model plays back: the sliding interpolation from
     its kept vertices (``LungModel.interior_vertices``), here as the metrics' operator ``weights``
-    (:func:`lungdeform.baselines.landmark_matrix`, the same interpolant)."""
-    from lungdeform.interior import correction_per_unit, held_out_positions, select_smoothing
+    (:func:`lungdeform.baselines.landmark_matrix`, the same interpolant); the correction is the
+    sliding correction through the same kept vertices of ``rest``."""
+    from lungdeform.interior import (correction_per_unit, correction_solvers, held_out_sliding,
+                                     select_correction_smoothing)
 
     unit = weights @ fit.displacement[keep]  # mm per unit
     observed = [np.asarray(a) - landmarks for a in aligned]
     scales = [(tg.volume_ml - fit.volume_ee_ml) / fit.unit_ml for tg in targets]
     correction = correction_per_unit(observed, scales, unit)
-    return {"held_out": held_out_positions(landmarks, observed, scales, unit, folds),
-            "correction": correction, "smoothing": select_smoothing(landmarks, correction)}
+    solvers = correction_solvers(rest.vertices[keep], rest.vertex_normals[keep], landmarks)
+    return {"held_out": held_out_sliding(observed, scales, unit, folds, solvers),
+            "correction": correction,
+            "smoothing": select_correction_smoothing(solvers, np.arange(len(landmarks)), correction)}
 
 
 def _place(surface, planes, transform, fixed_planes, volume_ml: float, name: str):

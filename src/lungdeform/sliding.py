@@ -22,10 +22,16 @@ Why this reading (measured on the ITK right-lung pair, 51 landmarks, the model's
 ``λ`` = 100 mm): the landmarks move with a mean error of 3.8 mm, against 4.6 mm for the thin-plate
 spline of the full surface displacement (:mod:`lungdeform.interpolate`) and 4.2 mm for the full
 biharmonic spline with the same smoothing; with the interior landmark correction
-(:mod:`lungdeform.interior`, crop faces left out) 2.00–2.25 mm (mean 2.08) over ten 5-fold splits
-and 2.02 mm leave-one-out, against 2.51–2.68 mm (five splits) and 2.48 mm leave-one-out. The reading and ``λ`` were chosen on that pair (0: 4.1 mm, 100: 3.8, 1000: 3.9, 10⁴:
-4.6 mm), with the same landmarks that measure it: the figures are optimistic by an unknown amount
-until measured on another subject.
+(:mod:`lungdeform.interior`, crop faces left out; the thin-plate correction of 0.3) 2.00–2.25 mm
+(mean 2.08) over ten 5-fold splits and 2.02 mm leave-one-out, against 2.51–2.68 mm (five splits)
+and 2.48 mm leave-one-out with the thin-plate surface field; with :func:`sliding_correction` as the landmark correction 1.90–2.07 mm
+(mean 1.97) and 1.92 mm leave-one-out. The reading and ``λ`` were chosen on that pair (0: 4.1 mm,
+100: 3.8, 1000: 3.9, 10⁴: 4.6 mm), with the same landmarks that measure it: the figures are
+optimistic by an unknown amount until measured on another subject.
+
+:func:`sliding_correction` adds interior *anchors* (landmarks) whose whole displacement the field
+matches, with zero normal data on the surface: a correction that leaves the boundary where a
+surface-driven field put it; :class:`CorrectionSolver` cross-validates it cheaply.
 
 The interpolant is linear in the displacement, so :func:`sliding_weights` returns it as an operator
 ``W`` with ``W @ u`` for any surface field ``u : (k, 3)``, like
@@ -103,18 +109,36 @@ def _system(p: np.ndarray, n: np.ndarray, smoothing: float):
     return a, center, scale, basis
 
 
-def _design(p: np.ndarray, n: np.ndarray, query: np.ndarray, center, scale, basis) -> np.ndarray:
-    """``(3, q, k + r)``: component ``c`` of ``v(query)`` is ``design[c] @ coefficients``."""
+def _design(p: np.ndarray, n: np.ndarray, query: np.ndarray, center, scale, basis, anchors=None) -> np.ndarray:
+    """``(3, q, k + 3a + r)``: component ``c`` of ``v(query)`` is ``design[c] @ coefficients``
+    (coefficients: ``k`` normal weights, ``3a`` anchor weights by component, ``r`` polynomial)."""
     from scipy.spatial.distance import cdist
 
     k, m = len(p), len(query)
+    a = 0 if anchors is None else len(anchors)
     kq = -cdist(query, p)
     xq = np.hstack([np.ones((m, 1)), (query - center) / scale])
-    out = np.empty((3, m, k + basis.shape[1]))
+    out = np.zeros((3, m, k + 3 * a + basis.shape[1]))
+    ka = -cdist(query, anchors) if a else None
     for c in range(3):
         out[c, :, :k] = kq * n[:, c]
-        out[c, :, k:] = xq @ basis[4 * c:4 * c + 4]
+        if a:
+            out[c, :, k + c * a:k + (c + 1) * a] = ka
+        out[c, :, k + 3 * a:] = xq @ basis[4 * c:4 * c + 4]
     return out
+
+
+def _anchor_blocks(p, n, anchors, center, scale, basis):
+    """The saddle matrix's anchor blocks: ``(k + r, 3a)`` against the surface functionals and the
+    polynomial part, and ``(3a, 3a)`` between anchors (point values, by component)."""
+    from scipy.spatial.distance import cdist
+
+    a = len(anchors)
+    kpa = -cdist(p, anchors)
+    xa = np.hstack([np.ones((a, 1)), (anchors - center) / scale])
+    cross = np.vstack([np.hstack([kpa * n[:, [c]] for c in range(3)]),
+                       np.hstack([(xa @ basis[4 * c:4 * c + 4]).T for c in range(3)])])
+    return cross, np.kron(np.eye(3), -cdist(anchors, anchors))
 
 
 def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -203,6 +227,8 @@ class SlidingField:
         Surface points (mm) and their unit outward normals.
     displacements : (k, 3) float
         The surface displacement at the points, mm (only its normal part is used).
+    anchors : (a, 3) float or None
+        Interior points whose whole displacement the field also matches (:func:`sliding_correction`).
     """
 
     points: np.ndarray
@@ -212,6 +238,7 @@ class SlidingField:
     center: np.ndarray
     scale: float
     basis: np.ndarray
+    anchors: np.ndarray | None = None
 
     def __call__(self, query) -> np.ndarray:
         """Displacement ``(m, 3) float`` mm at ``query : (m, 3)`` mm."""
@@ -220,7 +247,8 @@ class SlidingField:
             raise InputError("query points contain NaN or infinity")
         out = np.empty((len(q), 3))
         for start in range(0, len(q), 512):  # bounded memory: 3 × 512 × k floats per chunk
-            part = _design(self.points, self.normals, q[start:start + 512], self.center, self.scale, self.basis)
+            part = _design(self.points, self.normals, q[start:start + 512], self.center, self.scale, self.basis,
+                           self.anchors)
             out[start:start + 512] = (part @ self.coefficients).T
         return out
 
@@ -262,3 +290,81 @@ def checked_operator(matrix, shape: tuple[int, int], name: str = "landmark_matri
     if tuple(op.shape) != tuple(shape):
         raise InputError(f"{name} has shape {tuple(op.shape)}, expected {tuple(shape)} (landmarks, kept vertices)")
     return op
+
+
+def _check_anchors(anchors, values=None):
+    q = as_vertices(anchors, "anchors")
+    if len(q) < 1 or not np.all(np.isfinite(q)):
+        raise InputError(f"anchors must be finite (a, 3) mm with a >= 1, got {q.shape}")
+    if values is None:
+        return q
+    v = as_vertices(values, "values")
+    if v.shape != q.shape or not np.all(np.isfinite(v)):
+        raise InputError(f"values must be finite with the anchors' shape {q.shape}, got {v.shape}")
+    return q, v
+
+
+def sliding_correction(points, normals, anchors, values, *, smoothing: float = SMOOTHING_MM,
+                       max_points: int = MAX_POINTS, seed: int = 0) -> SlidingField:
+    """The smoothest field that moves ``anchors : (a, 3)`` mm by ``values : (a, 3)`` mm exactly and
+    leaves the *normal* motion of the surface ``points`` (unit ``normals``) unchanged, softly
+    (smoothing ``λ`` mm, as in :func:`sliding_field`): a correction added to a surface-driven field
+    that keeps the lung's boundary where that field put it. It is the sliding interpolant of zero
+    normal motion plus the anchors' point values (kernel ``−|x − q_i|`` per component), with the
+    same polynomial part. Solved once, densely (``k + 3a + 12`` unknowns at most)."""
+    p, n = _check(points, normals)
+    q, v = _check_anchors(anchors, values)
+    idx = _subset(len(p), max_points, seed)
+    p, n = p[idx], n[idx]
+    m, center, scale, basis = _system(p, n, _check_smoothing(smoothing))
+    cross, between = _anchor_blocks(p, n, q, center, scale, basis)
+    k, r = len(p), basis.shape[1]
+    a = np.block([[m, cross], [cross.T, between]])
+    order = np.r_[np.arange(k), k + r + np.arange(3 * len(q)), k + np.arange(r)]  # [normal | anchors | poly]
+    rhs = np.concatenate([np.zeros(k + r), v.T.ravel()])
+    coef = _solve(a, rhs)[order]
+    return SlidingField(p, n, np.zeros_like(p), coef, center, scale, basis, q)
+
+
+class CorrectionSolver:
+    """:func:`sliding_correction` through any subset of one set of anchors, for cross-validation:
+    the surface system is factorised once, and each subset costs one solve of ``3 × subset`` size
+    (its Schur complement). ``predict(train, values, test)`` equals
+    ``sliding_correction(points, normals, anchors[train], values, smoothing=λ)(anchors[test])``."""
+
+    def __init__(self, points, normals, anchors, *, smoothing: float = SMOOTHING_MM,
+                 max_points: int = MAX_POINTS, seed: int = 0):
+        from scipy.linalg import lu_factor, lu_solve
+
+        p, n = _check(points, normals)
+        q = _check_anchors(anchors)
+        idx = _subset(len(p), max_points, seed)
+        p, n = p[idx], n[idx]
+        m, center, scale, basis = _system(p, n, _check_smoothing(smoothing))
+        self.cross, between = _anchor_blocks(p, n, q, center, scale, basis)  # (k + r, 3a), (3a, 3a)
+        try:
+            self._m_cross = lu_solve(lu_factor(m, check_finite=False), self.cross)
+        except (np.linalg.LinAlgError, ValueError) as exc:
+            raise InputError("the sliding interpolation is singular (repeated points or a flat surface?)") from exc
+        self.between = between
+        self.schur = between - self.cross.T @ self._m_cross
+        self.anchors = q
+        self.n_anchors = len(q)
+
+    def _rows(self, ids) -> np.ndarray:
+        ids = np.asarray(ids, int).ravel()
+        if ids.size and (ids.min() < 0 or ids.max() >= self.n_anchors):
+            raise InputError(f"anchor indices must lie in [0, {self.n_anchors}), got {ids.min()}..{ids.max()}")
+        return np.concatenate([c * self.n_anchors + ids for c in range(3)])
+
+    def predict(self, train, values, test) -> np.ndarray:
+        """``(len(test), 3) float`` mm: the correction through ``values : (len(train), 3)`` mm at the
+        anchors ``train`` (indices), at the anchors ``test``."""
+        tr, te = self._rows(train), self._rows(test)
+        v = as_vertices(values, "values")
+        if 3 * len(v) != len(tr):
+            raise InputError(f"values: need one row per train anchor ({len(tr) // 3}), got {len(v)}")
+        beta = _solve(self.schur[np.ix_(tr, tr)], v.T.ravel())
+        x = -self._m_cross[:, tr] @ beta
+        out = self.cross[:, te].T @ x + self.between[np.ix_(te, tr)] @ beta
+        return np.ascontiguousarray(out.reshape(3, -1).T)

@@ -72,5 +72,25 @@ def test_itk_pair_real_data(data_dir, tmp_path):
     err = {kind: np.linalg.norm(replace(bare, interior_kind=kind).points_at(lm0, m["volumes_ml"][1]) - lm1, axis=1).mean()
            for kind in ("sliding", "thin_plate")}
     assert err["sliding"] < err["thin_plate"] - 0.3
+    # the sliding landmark correction (it keeps the surface's normal motion) predicts held-out
+    # landmarks better than the thin-plate correction of schema 2, on every split tried (measured
+    # 2026-11-21 with every default, ten 5-fold splits: 1.90-2.07 mm, mean 1.97, against 2.00-2.25,
+    # mean 2.08; with this test's faster fit, seeds 0-2: 1.97/2.01/2.17 against 2.00/2.04/2.28)
+    from lungdeform.crossval import landmark_folds
+    from lungdeform.interior import correction_solvers, held_out_positions, held_out_sliding
+
+    on = lung.interior_vertices
+    s = lung.scale_for(m["volumes_ml"][1])
+    unit = bare.interior.displacement(lm0)
+    solvers = correction_solvers(lung.surface.vertices[on], lung.surface.vertex_normals[on], lm0)
+    errors = []
+    for seed in range(3):
+        folds = landmark_folds(len(lm0), 5, seed)
+        sliding = held_out_sliding([lm1 - lm0], [s], unit, folds, solvers)[0]
+        thin = held_out_positions(lm0, [lm1 - lm0], [s], unit, folds)[0]
+        errors.append([np.linalg.norm(sliding - lm1, axis=1).mean(), np.linalg.norm(thin - lm1, axis=1).mean()])
+    errors = np.array(errors)
+    print("held-out landmark error, sliding / thin-plate correction (mm):", errors.round(3).tolist())
+    assert np.all(errors[:, 0] < errors[:, 1]) and errors[:, 0].mean() < errors[:, 1].mean() - 0.03
     # the table shift (≈ 40 mm in z) was removed and reported
     assert abs(m["alignment"][0]["apex"]["translation_mm"][2] + 40.0) < 3.0

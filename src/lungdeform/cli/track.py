@@ -30,6 +30,7 @@ def register(apps) -> None:
         from lungdeform import trajectory as T
         from lungdeform.cli.common import check_tidal_ml, output_dir
         from lungdeform.errors import InputError
+        from lungdeform.interior import KIND_TEXT
         from lungdeform.modelfile import load_model
 
         given = [name for name, v in (("--volume-ml", volume_ml or None), ("--curve", curve), ("--preset", preset)) if v]
@@ -79,9 +80,8 @@ def register(apps) -> None:
         paths = T.write_trajectories(folder, pts, labels, placement, positions, delta, t_s, meta={
             "model": str(model), "schedule": source, "end_exhale_ml": v_ee,
             "landmark_correction": corrected,
-            "interior_field": {name: ("sliding interpolation of the surface's normal motion" if lg.interior_kind == "sliding"
-                                      else "thin-plate spline of the surface displacement (model schema 1)")
-                               + (" plus the fit's landmark correction" if corrected[name] else "")
+            "interior_field": {name: KIND_TEXT[lg.interior_kind][0]
+                               + (f" plus {KIND_TEXT[lg.interior_kind][1]}" if corrected[name] else "")
                                for name, lg in m.lungs.items()}})
         summary = T.motion_summary(positions, pts)
         typer.echo(f"{len(pts)} point(s), {len(delta)} frame(s): {source}")
