@@ -100,3 +100,51 @@ def guess_sides(centroids_x: list[float]) -> list[str]:
     if len(centroids_x) != 2:
         raise InputError("sides can be guessed only for exactly two lungs; pass --side")
     return ["left", "right"] if centroids_x[0] > centroids_x[1] else ["right", "left"]
+
+
+#: |score| of :func:`side_from_shape` above which the shape's side is taken as known (measured on
+#: thirteen real lungs, left and right: 0.053–0.105; docs/FITTING.md).
+SIDE_SCORE_MIN = 0.03
+
+
+def side_from_shape(vertices: np.ndarray, faces: np.ndarray, max_points: int = 20000,
+                    seed: int = 0) -> tuple[str, float]:
+    """Which lung a closed surface is, from its shape: ``(side, score)``.
+
+    The medial face of a lung is concave (the heart and the hilum press into it) and the lateral
+    face follows the ribs, so the surface lies deepest below its convex hull medially: toward +x
+    (LPS, patient left) for a right lung, −x for a left one. ``score`` is the x offset, from the
+    lung's centroid and over its x extent, of the surface's centroid weighted by area × depth below
+    the hull (``vertices : (n, 3)`` mm LPS; depths at ``max_points`` seeded vertices at most). Trust the side only when ``|score|`` >
+    :data:`SIDE_SCORE_MIN`; measured values are in ``docs/FITTING.md``."""
+    from scipy.spatial import ConvexHull
+
+    from .mesh import face_areas
+
+    v = np.asarray(vertices, float)
+    f = np.asarray(faces)
+    area = np.zeros(len(v))
+    np.add.at(area, f.ravel(), np.repeat(face_areas(v, f) / 3.0, 3))
+    eq = ConvexHull(v).equations
+    pick = np.random.default_rng(seed).permutation(len(v))[:max_points]  # a seeded subset bounds the cost
+    depth = np.zeros(len(v))
+    for start in range(0, len(pick), 2048):
+        part = pick[start:start + 2048]
+        depth[part] = np.maximum(-(v[part] @ eq[:, :3].T + eq[:, 3]).max(axis=1), 0.0)  # mm below the hull
+    w = np.zeros(len(v))
+    w[pick] = area[pick] * depth[pick]
+    width = float(np.ptp(v[:, 0]))
+    if w.sum() <= 1e-9 * area.sum() * max(width, 1e-9):  # convex: no medial side to see
+        return ("right", 0.0)
+    score = float((w @ v[:, 0] / w.sum() - area @ v[:, 0] / area.sum()) / width)
+    return ("right" if score > 0 else "left", score)
+
+
+def check_side(vertices: np.ndarray, faces: np.ndarray, side: str, source: str) -> None:
+    """Refuse a lung whose shape clearly says the other side than ``side`` (:func:`side_from_shape`),
+    naming ``source``: a wrong ``--side``, or a surface in RAS (x flipped). Unclear shapes pass."""
+    shape_side, score = side_from_shape(vertices, faces)
+    if shape_side != side and abs(score) > SIDE_SCORE_MIN:
+        raise InputError(f"{source}: the lung's shape says {shape_side}, not {side} (its concave medial face lies "
+                         f"toward {'+' if score > 0 else '-'}x in LPS, score {score:+.2f}): is the side wrong, or the "
+                         "surface in RAS (x flipped)?")

@@ -187,7 +187,7 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
     from lungdeform.distance import SurfaceDistance
     from lungdeform.errors import InputError
     from lungdeform.fit import DIRECTION_HI, DIRECTION_LO, MODES, fit_lung, to_lung_model
-    from lungdeform.frame import SIDES
+    from lungdeform.frame import SIDES, check_side
     from lungdeform.atomic import write_json
     from lungdeform.landmarks import read_elastix_points
     from lungdeform.model import Model
@@ -225,6 +225,8 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
         if abs(c - cx[0]) > 0.75 * max(widths):
             raise InputError(f"{p}: this lung lies {c - cx[0]:+.0f} mm from the end-exhale lung along x; "
                              "the sides do not match (left and right lungs mixed)")
+    for p, s in zip(inputs, surfaces):  # and each is the lung --side says (its concave medial face)
+        check_side(s.vertices, s.faces, side, str(p))
     warnings: list[str] = []  # suspicious but usable input: in metrics["warnings"], printed by the CLI
     given = None
     if volumes is None:

@@ -127,3 +127,18 @@ def test_swapped_sides_refused(tmp_path, lung_files, capsys):
 ])
 def test_options_named_in_errors(tmp_path, lung_files, capsys, args, message):
     _fails(["build", str(lung_files[0]), "--side", "left", "--out", str(tmp_path / "m.npz"), *args], capsys, message)
+
+
+def test_build_one_lung_takes_its_side_from_its_shape(tmp_path, capsys):
+    # truth: the embedded right lung (from CT) written without a side in its name is built as the
+    # right lung (its concave medial face lies toward +x); told it is the left, build refuses
+    from lungdeform.data import default_lungs
+
+    s = default_lungs()["right"]
+    path = write_mesh(tmp_path / "lung.ply", s.vertices, s.faces)
+    assert main(["build", str(path), "--out", str(tmp_path / "m.npz")]) == 0
+    assert load_model(tmp_path / "m.npz").names == ["right"]
+    capsys.readouterr()
+    assert main(["build", str(path), "--side", "left", "--out", str(tmp_path / "bad.npz")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "shape says right, not left" in err[0] and not (tmp_path / "bad.npz").exists()

@@ -87,6 +87,20 @@ def test_sides_do_not_match(tmp_path, pair, capsys):
     assert "sides do not match" in _one_error_line(capsys)
 
 
+def test_side_that_the_shape_contradicts(tmp_path, capsys):
+    # truth: the embedded right lung (from CT) and a 5 % larger copy, fitted as the left lung: the
+    # concave medial face lies toward +x, so the side is wrong (or the surfaces are in RAS)
+    from lungdeform.data import default_lungs
+
+    s = default_lungs()["right"]
+    a = write_mesh(tmp_path / "ee.ply", s.vertices, s.faces)
+    c = s.vertices.mean(axis=0)
+    b = write_mesh(tmp_path / "ei.ply", c + 1.05 * (s.vertices - c), s.faces)
+    assert main(["fit", str(a), str(b), "--side", "left", "--out", str(tmp_path / "o")]) == 2
+    line = _one_error_line(capsys)
+    assert "ee.ply: the lung's shape says right, not left" in line and not (tmp_path / "o" / "model.npz").exists()
+
+
 def test_missing_and_empty_inputs(tmp_path, pair, capsys):
     import SimpleITK as sitk
 

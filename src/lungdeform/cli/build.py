@@ -17,7 +17,7 @@ def register(apps) -> None:
     def build(
         sources: list[Path] = typer.Argument(..., help="Mesh files (STL, OBJ, PLY, VTK, VTP, OFF, glTF/GLB) or masks (NIfTI, MHA/MHD, NRRD, DICOM folder)."),
         out: Path = typer.Option(..., "--out", "-o", help="Model file to write (.npz)."),
-        side: Optional[list[str]] = typer.Option(None, "--side", help="Side of each surface in order: left|right. Default: from label names, or guessed from position for two surfaces."),
+        side: Optional[list[str]] = typer.Option(None, "--side", help="Side of each surface in order: left|right. Default: from label names, from position for two surfaces, or from the shape (the concave medial face) for one."),
         labels: Optional[str] = typer.Option(None, "--labels", help="Mask labels: 'lungs' (lobe map → left, right), 'left=1,2;right=3,4,5', or '1,2'."),
         units: str = typer.Option("mm", "--units", help="Units of mesh files: mm, cm or m (converted to mm)."),
         repair: bool = typer.Option(False, "--repair", help="Repair fixable surface defects and report them."),
@@ -71,14 +71,16 @@ SOLVERS = ("bicgstab", "gmres", "direct")
 
 
 def resolve_sides(surfaces, given: list[str] | None) -> list[str]:
-    """Sides from --side, from names ending in -left/-right, or from position (two lungs).
+    """Sides from --side, from names ending in -left/-right, from position (two lungs) or from the
+    shape (one lung: :func:`lungdeform.frame.side_from_shape`). Each lung's side is checked
+    against its shape (:func:`lungdeform.frame.check_side`).
 
     Given or named sides of a left and a right surface are checked against their positions: in
     LPS the left lung lies at larger x. A pair the other way round (sides or labels swapped, or
     meshes in RAS) is refused rather than built with the wrong sides and the wrong gravity frame.
     """
     from lungdeform.errors import InputError
-    from lungdeform.frame import SIDES, guess_sides
+    from lungdeform.frame import SIDE_SCORE_MIN, SIDES, check_side, guess_sides, side_from_shape
 
     if given:
         if len(given) != len(surfaces):
@@ -92,9 +94,15 @@ def resolve_sides(surfaces, given: list[str] | None) -> list[str]:
         if all(named):
             sides = named
         elif len(surfaces) == 2:
-            return guess_sides([float(s.vertices[:, 0].mean()) for s in surfaces])
-        else:
-            raise InputError(f"cannot tell the side of {surfaces[0].name}: pass --side left or --side right")
+            sides = guess_sides([float(s.vertices[:, 0].mean()) for s in surfaces])
+        else:  # one lung: its shape (the concave medial face) tells, when it is clear
+            shape_side, score = side_from_shape(surfaces[0].vertices, surfaces[0].faces)
+            if abs(score) <= SIDE_SCORE_MIN:
+                raise InputError(f"cannot tell the side of {surfaces[0].name} (its shape is not clear enough): "
+                                 "pass --side left or --side right")
+            sides = [shape_side]
+    for sd, s in zip(sides, surfaces):  # each lung is the side its shape says, when that is clear
+        check_side(s.vertices, s.faces, sd, s.name)
     if sorted(sides) == ["left", "right"]:
         x = {sd: float(s.vertices[:, 0].mean()) for sd, s in zip(sides, surfaces)}
         if x["left"] <= x["right"]:
