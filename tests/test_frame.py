@@ -101,8 +101,14 @@ def test_side_from_shape_reads_the_medial_face():
         assert side_from_shape(mirrored, flipped)[0] != name
         with pytest.raises(InputError, match=r"mirror\.ply: the lung's shape says"):
             check_side(mirrored, flipped, name, "mirror.ply")
+        # the shape, not the position: moved 300 mm across (where the other lung would be), the
+        # lung still reads as itself
+        across = s.vertices + np.array([300.0 if name == "right" else -300.0, 0.0, 0.0])
+        assert side_from_shape(across, s.faces) == pytest.approx(side_from_shape(s.vertices, s.faces))
     e = ellipsoid_lung("left")
     assert abs(side_from_shape(e.vertices, e.faces)[1]) < SIDE_SCORE_MIN
+    with pytest.raises(InputError, match="no convex hull"):
+        side_from_shape(np.c_[np.random.default_rng(0).normal(size=(20, 2)), np.zeros(20)], np.zeros((0, 3), int))
     check_side(e.vertices, e.faces, "right", "ellipsoid.stl")  # unclear: passes
 
 

@@ -109,6 +109,7 @@ def test_sliding_correction_is_cross_validated_without_leaks(rng):
     # depend on its observation, and the correction helps over the surface-driven field alone
     # (truth: a smooth interior slide the surface does not show)
     from lungdeform.interior import correction_solvers, held_out_sliding, select_correction_smoothing
+    from lungdeform.sliding import sliding_correction
 
     s = icosphere(3, 50.0)
     lm = _inside(rng, 25, 40.0)
@@ -125,6 +126,11 @@ def test_sliding_correction_is_cross_validated_without_leaks(rng):
     assert not np.allclose(a[folds[1]], b[folds[1]])
     truth = lm + obs
     assert np.linalg.norm(a - truth, axis=1).mean() < 0.5 * np.linalg.norm(lm + unit - truth, axis=1).mean()
+    # fold 0 is the sliding correction through the other folds, at the smoothing chosen on them
+    train, test = np.setdiff1d(np.arange(25), folds[0]), folds[0]
+    lam = select_correction_smoothing(solvers, train, (obs - unit)[train])
+    ref = sliding_correction(s.vertices, s.vertex_normals, lm[train], (obs - unit)[train], smoothing=lam)
+    assert a[test] == pytest.approx(lm[test] + unit[test] + ref(lm[test]), abs=1e-9)
     assert select_correction_smoothing(solvers, np.arange(6), (obs - unit)[:6]) == 1000.0  # too few to judge
     with pytest.raises(InputError, match="one row per landmark"):
         held_out_sliding([obs], [1.0], unit[:-1], folds, solvers)

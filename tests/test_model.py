@@ -136,6 +136,12 @@ def test_schema_2_files_keep_their_thin_plate_correction(tmp_path, model, rng):
            + displacement_field(lm, lung.landmark_correction, smoothing=10.0, max_points=12)(q))
     assert old.interior.displacement(q) == pytest.approx(ref, abs=1e-9)
     assert not np.allclose(new.interior.displacement(q), ref, atol=1e-3)
+    # schema 3: the same surface part plus the sliding correction with smoothing 10 mm
+    from lungdeform.sliding import sliding_correction
+
+    ref3 = sliding_field(v, n, model.displacement)(q) + sliding_correction(v, n, lm, lung.landmark_correction,
+                                                                           smoothing=10.0)(q)
+    assert new.interior.displacement(q) == pytest.approx(ref3, abs=1e-9)
     again = load_model(save_model(tmp_path / "again.npz", Model({"left": old}))).lungs["left"]
     assert again.interior_kind == "sliding_thin_plate"
     assert again.interior.displacement(q) == pytest.approx(ref, abs=1e-9)

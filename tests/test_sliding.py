@@ -176,6 +176,10 @@ def test_correction_solver_equals_the_dense_field(rng):
         solver.predict([0, 1], values[:3], [2])
     with pytest.raises(InputError, match="anchors"):
         CorrectionSolver(s.vertices, n, np.full((2, 3), np.nan))
+    with pytest.raises(InputError, match="landmarks. 2 and 4 coincide"):
+        CorrectionSolver(s.vertices, n, q[[0, 1, 2, 1]])
+    with pytest.raises(InputError, match="coincide"):
+        sliding_correction(s.vertices, n, q[[0, 1, 2, 1]], values[:4])
 
 
 def test_correction_matches_the_documented_formula(rng):

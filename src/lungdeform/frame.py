@@ -121,15 +121,21 @@ def side_from_shape(vertices: np.ndarray, faces: np.ndarray, max_points: int = 2
 
     from .mesh import face_areas
 
-    v = np.asarray(vertices, float)
+    from scipy.spatial import QhullError
+
+    v = as_vertices(vertices, "vertices")
     f = np.asarray(faces)
     area = np.zeros(len(v))
     np.add.at(area, f.ravel(), np.repeat(face_areas(v, f) / 3.0, 3))
-    eq = ConvexHull(v).equations
+    try:
+        eq = ConvexHull(v).equations
+    except QhullError as exc:
+        raise InputError(f"the surface has no convex hull (flat or degenerate: {len(v)} vertices)") from exc
     pick = np.random.default_rng(seed).permutation(len(v))[:max_points]  # a seeded subset bounds the cost
     depth = np.zeros(len(v))
-    for start in range(0, len(pick), 2048):
-        part = pick[start:start + 2048]
+    rows = max(1, 2 ** 22 // len(eq))  # at most 4 M distances (32 MB) per chunk
+    for start in range(0, len(pick), rows):
+        part = pick[start:start + rows]
         depth[part] = np.maximum(-(v[part] @ eq[:, :3].T + eq[:, 3]).max(axis=1), 0.0)  # mm below the hull
     w = np.zeros(len(v))
     w[pick] = area[pick] * depth[pick]
@@ -140,11 +146,12 @@ def side_from_shape(vertices: np.ndarray, faces: np.ndarray, max_points: int = 2
     return ("right" if score > 0 else "left", score)
 
 
-def check_side(vertices: np.ndarray, faces: np.ndarray, side: str, source: str) -> None:
-    """Refuse a lung whose shape clearly says the other side than ``side`` (:func:`side_from_shape`),
-    naming ``source``: a wrong ``--side``, or a surface in RAS (x flipped). Unclear shapes pass."""
-    shape_side, score = side_from_shape(vertices, faces)
+def check_side(vertices: np.ndarray, faces: np.ndarray, side: str, source: str, shape=None) -> None:
+    """Refuse a lung whose shape clearly says the other side than ``side`` (:func:`side_from_shape`,
+    or its result ``shape`` when already computed), naming ``source``: a wrong ``--side``, or a
+    surface in RAS (x flipped). Unclear shapes pass."""
+    shape_side, score = side_from_shape(vertices, faces) if shape is None else shape
     if shape_side != side and abs(score) > SIDE_SCORE_MIN:
         raise InputError(f"{source}: the lung's shape says {shape_side}, not {side} (its concave medial face lies "
                          f"toward {'+' if score > 0 else '-'}x in LPS, score {score:+.2f}): is the side wrong, or the "
-                         "surface in RAS (x flipped)?")
+                         "surface in RAS (x flipped)? (--no-side-check skips this check)")

@@ -1,7 +1,8 @@
 """Thin-plate-spline interpolation of displacements known at scattered points.
 
-Used where only points are known: the interior landmark correction (:mod:`lungdeform.interior`),
-the landmark-only reference (:func:`lungdeform.baselines.landmark_tps_cv`), and the interior field
+Used where only points are known: the landmark correction of model files of schema 1 and 2
+(:mod:`lungdeform.interior`; newer ones use :func:`lungdeform.sliding.sliding_correction`), the
+landmark-only reference (:func:`lungdeform.baselines.landmark_tps_cv`), and the interior field
 of model files of schema 1. The surface-driven interior field of every method is the sliding
 interpolation of :mod:`lungdeform.sliding` (it uses the surface's normals, which scattered points
 do not have).

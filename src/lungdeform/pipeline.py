@@ -155,7 +155,8 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
             stiffness: bool = False, baselines: bool = True, max_evaluations: int = 300,
             command: str = "fit", progress=None, landmark_fit: bool = True, folds: int = 5,
             landmark_weight: float = 1.0, align: str = "apex", mode: str = "optimizer",
-            direction_degree: int = DEFAULT_DEGREE, landmark_comparisons: bool = False) -> dict:
+            direction_degree: int = DEFAULT_DEGREE, landmark_comparisons: bool = False,
+            side_check: bool = True) -> dict:
     """Run the whole pipeline; write model.npz, metrics.json and report.html in ``out``; return
     the metrics dictionary.
 
@@ -177,6 +178,9 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
     (:mod:`lungdeform.direction_correction`; 0: the paper's directions only); with it, the paper's
     field is reported as ``model_paper_directions``; with a stiffness field, the paper's model
     (uniform stiffness, paper directions) as ``model_uniform_stiffness``.
+
+    ``side_check``: refuse inputs whose shape clearly says the other side
+    (:func:`lungdeform.frame.check_side`).
 
     ``align``: one of :data:`ALIGN_MODES` (module docstring, step 3); ``metrics["alignment"][i]
     ["applied"]`` is the rigid transform (moving → end-exhale) the fitted target went through.
@@ -225,7 +229,7 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
         if abs(c - cx[0]) > 0.75 * max(widths):
             raise InputError(f"{p}: this lung lies {c - cx[0]:+.0f} mm from the end-exhale lung along x; "
                              "the sides do not match (left and right lungs mixed)")
-    for p, s in zip(inputs, surfaces):  # and each is the lung --side says (its concave medial face)
+    for p, s in zip(inputs, surfaces) if side_check else ():  # each is the lung --side says (its medial face)
         check_side(s.vertices, s.faces, side, str(p))
     warnings: list[str] = []  # suspicious but usable input: in metrics["warnings"], printed by the CLI
     given = None

@@ -293,9 +293,15 @@ def checked_operator(matrix, shape: tuple[int, int], name: str = "landmark_matri
 
 
 def _check_anchors(anchors, values=None):
+    from scipy.spatial import cKDTree
+
     q = as_vertices(anchors, "anchors")
     if len(q) < 1 or not np.all(np.isfinite(q)):
         raise InputError(f"anchors must be finite (a, 3) mm with a >= 1, got {q.shape}")
+    close = sorted(cKDTree(q).query_pairs(1e-3))
+    if close:  # an exact interpolant cannot pass one point twice
+        i, j = close[0]
+        raise InputError(f"anchors (landmarks) {i + 1} and {j + 1} coincide (within 0.001 mm): drop the repeated one")
     if values is None:
         return q
     v = as_vertices(values, "values")
@@ -334,7 +340,9 @@ class CorrectionSolver:
 
     def __init__(self, points, normals, anchors, *, smoothing: float = SMOOTHING_MM,
                  max_points: int = MAX_POINTS, seed: int = 0):
-        from scipy.linalg import lu_factor, lu_solve
+        import warnings
+
+        from scipy.linalg import LinAlgWarning, lu_factor, lu_solve
 
         p, n = _check(points, normals)
         q = _check_anchors(anchors)
@@ -342,10 +350,12 @@ class CorrectionSolver:
         p, n = p[idx], n[idx]
         m, center, scale, basis = _system(p, n, _check_smoothing(smoothing))
         self.cross, between = _anchor_blocks(p, n, q, center, scale, basis)  # (k + r, 3a), (3a, 3a)
-        try:
-            self._m_cross = lu_solve(lu_factor(m, check_finite=False), self.cross)
-        except (np.linalg.LinAlgError, ValueError) as exc:
-            raise InputError("the sliding interpolation is singular (repeated points or a flat surface?)") from exc
+        with warnings.catch_warnings():  # lu_factor only warns on an exactly singular matrix: raise instead
+            warnings.simplefilter("ignore", LinAlgWarning)
+            lu = lu_factor(m, check_finite=False, overwrite_a=True)
+        if not np.all(np.abs(np.diag(lu[0])) > 0):
+            raise InputError("the sliding interpolation is singular (repeated points or a flat surface?)")
+        self._m_cross = lu_solve(lu, self.cross)
         self.between = between
         self.schur = between - self.cross.T @ self._m_cross
         self.anchors = q

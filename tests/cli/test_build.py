@@ -135,10 +135,14 @@ def test_build_one_lung_takes_its_side_from_its_shape(tmp_path, capsys):
     from lungdeform.data import default_lungs
 
     s = default_lungs()["right"]
-    path = write_mesh(tmp_path / "lung.ply", s.vertices, s.faces)
+    # placed 300 mm toward patient left (where a left lung lies): the shape, not the position, decides
+    path = write_mesh(tmp_path / "lung.ply", s.vertices + np.array([300.0, 0.0, 0.0]), s.faces)
     assert main(["build", str(path), "--out", str(tmp_path / "m.npz")]) == 0
     assert load_model(tmp_path / "m.npz").names == ["right"]
     capsys.readouterr()
     assert main(["build", str(path), "--side", "left", "--out", str(tmp_path / "bad.npz")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "shape says right, not left" in err[0] and not (tmp_path / "bad.npz").exists()
+    # a user who knows better skips the check
+    assert main(["build", str(path), "--side", "left", "--no-side-check", "--out", str(tmp_path / "ok.npz")]) == 0
+    assert load_model(tmp_path / "ok.npz").names == ["left"]

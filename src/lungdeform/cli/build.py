@@ -22,6 +22,7 @@ def register(apps) -> None:
         units: str = typer.Option("mm", "--units", help="Units of mesh files: mm, cm or m (converted to mm)."),
         repair: bool = typer.Option(False, "--repair", help="Repair fixable surface defects and report them."),
         target_vertices: Optional[int] = typer.Option(None, "--target-vertices", help="Decimate mask surfaces to about this many vertices."),
+        side_check: bool = typer.Option(True, "--side-check/--no-side-check", help="Do not check each lung's side against its shape (the concave medial face); for a lung whose shape misleads the check."),
         orientation: str = typer.Option("supine", "--orientation", help="supine, prone, upright, left-decubitus, right-decubitus, or a gravity vector 'x,y,z' (LPS)."),
         tidal_ml: float = typer.Option(500.0, "--tidal-ml", help="Tidal volume for both lungs together (mL); calibration is exact there."),
         stiffness: str = typer.Option("uniform", "--stiffness", help="uniform | gradient:DEPENDENT,NONDEPENDENT | sphere:X,Y,Z,RADIUS,E (mm, LPS)."),
@@ -48,7 +49,7 @@ def register(apps) -> None:
                 for line in report.repairs:
                     say(f"{surface.name}: {line}")
                 loaded.append((src, surface))
-        sides = resolve_sides([s for _, s in loaded], side)
+        sides = resolve_sides([s for _, s in loaded], side, check=side_check)
         if len(set(sides)) != len(sides):
             raise InputError(f"two surfaces for the same side: {', '.join(sides)}")
         surfaces = {sd: s for sd, (_, s) in zip(sides, loaded)}
@@ -70,10 +71,10 @@ def register(apps) -> None:
 SOLVERS = ("bicgstab", "gmres", "direct")
 
 
-def resolve_sides(surfaces, given: list[str] | None) -> list[str]:
+def resolve_sides(surfaces, given: list[str] | None, check: bool = True) -> list[str]:
     """Sides from --side, from names ending in -left/-right, from position (two lungs) or from the
     shape (one lung: :func:`lungdeform.frame.side_from_shape`). Each lung's side is checked
-    against its shape (:func:`lungdeform.frame.check_side`).
+    against its shape (:func:`lungdeform.frame.check_side`) unless ``check`` is False.
 
     Given or named sides of a left and a right surface are checked against their positions: in
     LPS the left lung lies at larger x. A pair the other way round (sides or labels swapped, or
@@ -96,12 +97,12 @@ def resolve_sides(surfaces, given: list[str] | None) -> list[str]:
         elif len(surfaces) == 2:
             sides = guess_sides([float(s.vertices[:, 0].mean()) for s in surfaces])
         else:  # one lung: its shape (the concave medial face) tells, when it is clear
-            shape_side, score = side_from_shape(surfaces[0].vertices, surfaces[0].faces)
-            if abs(score) <= SIDE_SCORE_MIN:
+            shape = side_from_shape(surfaces[0].vertices, surfaces[0].faces)
+            if abs(shape[1]) <= SIDE_SCORE_MIN:
                 raise InputError(f"cannot tell the side of {surfaces[0].name} (its shape is not clear enough): "
                                  "pass --side left or --side right")
-            sides = [shape_side]
-    for sd, s in zip(sides, surfaces):  # each lung is the side its shape says, when that is clear
+            return [shape[0]]
+    for sd, s in zip(sides, surfaces) if check else ():  # each lung is the side its shape says, when that is clear
         check_side(s.vertices, s.faces, sd, s.name)
     if sorted(sides) == ["left", "right"]:
         x = {sd: float(s.vertices[:, 0].mean()) for sd, s in zip(sides, surfaces)}

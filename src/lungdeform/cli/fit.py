@@ -19,6 +19,7 @@ def register(apps) -> None:
         inputs: list[Path] = typer.Argument(..., help="Surfaces, masks or CTs of one lung, end-exhale first, volumes increasing."),
         out: Path = typer.Option(..., "--out", help="Output folder: model.npz, metrics.json, report.html."),
         side: str = typer.Option(..., "--side", help="'left' or 'right'."),
+        side_check: bool = typer.Option(True, "--side-check/--no-side-check", help="Do not check each lung's side against its shape (the concave medial face); for a lung whose shape misleads the check."),
         volumes: str = typer.Option(None, "--volumes", help="Lung volumes in mL, comma-separated (default: measured from the surfaces)."),
         landmarks: list[Path] = typer.Option(None, "--landmarks", help="elastix point-set file per input (world mm), rows corresponding."),
         grid: bool = typer.Option(False, "--grid", help="Also run the paper's grid search (step 0.01) for comparison."),
@@ -51,7 +52,8 @@ def register(apps) -> None:
         m = run_fit(list(inputs), side=side, out=folder, volumes=vols, landmarks=list(landmarks) if landmarks else None,
                     grid=grid, stiffness=stiffness, baselines=baselines, max_evaluations=evaluations, progress=say,
                     landmark_fit=landmark_fit, folds=folds, align=align,
-                    direction_degree=direction_degree, landmark_comparisons=landmark_comparisons)
+                    direction_degree=direction_degree, landmark_comparisons=landmark_comparisons,
+                    side_check=side_check)
         _print_table(m)
         typer.echo(f"wrote {folder / 'model.npz'}, {folder / 'metrics.json'}, {folder / 'report.html'}")
         warn(m)
