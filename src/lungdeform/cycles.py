@@ -22,7 +22,7 @@ import numpy as np
 
 from .errors import InputError
 
-if TYPE_CHECKING:  # trace.py imports this module (its readers orient a trace with _share)
+if TYPE_CHECKING:  # trace.py imports this module (its readers orient a trace with inspiratory_shares)
     from .trace import Trace
 
 #: Shortest cycle / longest cycle a breathing signal can have, s.
@@ -172,6 +172,18 @@ def inspiratory_share(t_s, amplitude, onset_level: float = 0.05) -> tuple[float,
     t, a, dt = _uniform(t_s, amplitude)
     period = dominant_period(t, a)
     return _share(t, *_smoothed(a, period, 1.0 / dt), period, onset_level)
+
+
+def inspiratory_shares(t_s, amplitude, onset_level: float = 0.05) -> tuple[float, float, int]:
+    """:func:`inspiratory_share` of the trace as recorded and negated, ``(share, negated share,
+    breaths as recorded)``: the period and the (linear) low-passes do not depend on the sign, so
+    they are computed once. The phase with the smaller share is inspiration."""
+    t, a, dt = _uniform(t_s, amplitude)
+    period = dominant_period(t, a)
+    s, fine = _smoothed(a, period, 1.0 / dt)
+    keep, n = _share(t, s, fine, period, onset_level)
+    flip, _ = _share(t, -s, -fine, period, onset_level)
+    return keep, flip, n
 
 
 def _share(t, s, fine, period: float, onset_level: float) -> tuple[float, int]:

@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .cycles import CYCLE_RANGE_S, _share, _smoothed, _uniform, dominant_period
+from .cycles import CYCLE_RANGE_S, inspiratory_shares
 from .errors import InputError, ReadError
 
 VXP_DEFAULT_LAYOUT = ("amplitude", "phase", "timestamp", "validflag", "ttlin", "mark", "ttlout")
@@ -379,12 +379,7 @@ def orient_inhale_positive(trace: Trace) -> Trace:
     if trace.n < 16 or trace.duration_s < 4 * CYCLE_RANGE_S[0]:
         return trace
     try:
-        # the period and the (linear) low-passes do not depend on the sign: computed once, negated
-        t, a, dt = _uniform(trace.t_s, trace.amplitude)
-        period = dominant_period(t, a)
-        s, fine = _smoothed(a, period, 1.0 / dt)
-        keep, n = _share(t, s, fine, period, 0.05)
-        flip, _ = _share(t, -s, -fine, period, 0.05)
+        keep, flip, n = inspiratory_shares(trace.t_s, trace.amplitude, 0.05)
     except InputError:
         return trace
     if not (np.isfinite(keep) and np.isfinite(flip)) or flip >= keep:
