@@ -6,13 +6,13 @@ import sys
 
 
 def test_pipeline_and_cohort_import_nothing_from_the_cli():
-    # Dask workers run cohort.fit_job → pipeline.run_fit: neither may pull in the CLI (typer).
+    # Dask workers run job.fit_job → pipeline.run_fit: neither may pull in the CLI (typer).
     # A fresh interpreter, so that modules other tests imported do not hide an import; every
     # module run_fit imports where used is imported too.
     code = (
         "import sys\n"
-        "import lungdeform.pipeline, lungdeform.cohort\n"
-        "lungdeform.cohort.FitOptions()\n"
+        "import lungdeform.pipeline, lungdeform.cohort, lungdeform.job\n"
+        "lungdeform.job.FitOptions()\n"
         "import lungdeform.baselines, lungdeform.align, lungdeform.crossval, lungdeform.distance, "
         "lungdeform.fit, lungdeform.frame, lungdeform.atomic, lungdeform.landmarks, lungdeform.model, "
         "lungdeform.modelfile, lungdeform.report, lungdeform.io, lungdeform.mask, lungdeform.segment, "

@@ -32,9 +32,9 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from .cohort import RESULT_SCHEMA, RESULT_VERSION, finite_or_none
 from .constants import TABLE_I, table_constants
 from .errors import InputError
+from .job import RESULT_SCHEMA, RESULT_VERSION, finite_or_none
 
 CONSTANTS = tuple(f"c{i}" for i in range(1, 10))
 METRICS = ("surface_mean_mm", "surface_rms_mm", "surface_p95_mm", "landmark_mean_mm", "objective_rms_mm")

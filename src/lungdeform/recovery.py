@@ -26,7 +26,7 @@ from typing import Sequence
 import numpy as np
 
 from .atomic import finite_json, write_json, write_text
-from .cohort import finite_or_none
+from .job import finite_or_none
 from .population import (CONSTANTS, METRICS, SIDE_COLOURS, SIDES, csv_text, describe, figure, save_png,
                          split_results)
 from .search import GAUGE

@@ -11,7 +11,8 @@ import time
 import pytest
 
 from lungdeform.cli.main import main
-from tests.test_cohort import make_cohort, population_stub, quick_report  # noqa: F401 (fixtures)
+from tests.test_cohort import population_stub  # noqa: F401 (fixtures)
+from tests.test_job import make_cohort, quick_report  # noqa: F401 (fixtures)
 
 FAST = ["--evaluations", "60", "--no-baselines"]
 

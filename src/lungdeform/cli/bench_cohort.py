@@ -1,7 +1,7 @@
 """``lungdeform bench cohort --subjects N --workers 1 --workers 2 [--json FILE]``.
 
 Throughput (subjects per minute) of the cohort fit, in one run: a plain serial loop of
-:func:`lungdeform.cohort.fit_job` in this process (the yardstick), then the Dask path
+:func:`lungdeform.job.fit_job` in this process (the yardstick), then the Dask path
 (:func:`lungdeform.cohort.run_cohort`, a fresh local cluster of worker processes) at each worker
 count. The Dask figures include everything a user waits for: cluster start-up, worker imports,
 scheduling and the transfer of results. The ratio to the serial loop is what to compare across
@@ -58,7 +58,8 @@ def make_bench_cohort(folder: Path, subjects: int, *, vertices: int | None = Non
 
 def bench_cohort(manifest: Path, work: Path, workers: list[int], options, *, progress=None) -> list[dict]:
     """Serial loop then Dask at each worker count on the same cohort; one record per run."""
-    from lungdeform.cohort import fit_job, run_cohort
+    from lungdeform.cohort import run_cohort
+    from lungdeform.job import fit_job
     from lungdeform.manifest import read_manifest
 
     say = progress or (lambda _m: None)
@@ -101,8 +102,8 @@ def register(apps) -> None:
         """Cohort throughput (subjects/min): a serial loop against Dask at each worker count, same run."""
         from lungdeform.cli.bench import _write_json
         from lungdeform.cli.common import say
-        from lungdeform.cohort import FitOptions
         from lungdeform.errors import InputError
+        from lungdeform.job import FitOptions
 
         if subjects < 1:
             raise InputError(f"--subjects must be at least 1, got {subjects}")
