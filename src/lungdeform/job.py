@@ -66,6 +66,8 @@ class FitOptions:
     folds: int = 5
     #: degree of the smooth correction of the paper's directions (lungdeform.direction_correction; 0: none)
     direction_degree: int = 3
+    #: refuse a lung whose shape clearly says the other side (lungdeform.frame.check_side)
+    side_check: bool = True
 
     def __post_init__(self):
         from .direction_correction import MAX_DEGREE
@@ -74,7 +76,7 @@ class FitOptions:
         def whole(x) -> bool:
             return isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_))
 
-        for name in ("baselines", "grid", "stiffness", "landmark_fit"):
+        for name in ("baselines", "grid", "stiffness", "landmark_fit", "side_check"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise InputError(f"{name} must be True or False, got {getattr(self, name)!r}")
         if not (whole(self.max_evaluations) and self.max_evaluations >= 1):
@@ -88,7 +90,7 @@ class FitOptions:
                              f"got {self.direction_degree!r}")
         for name in ("max_evaluations", "folds", "direction_degree"):  # plain ints: the digest is JSON
             object.__setattr__(self, name, int(getattr(self, name)))
-        for name in ("baselines", "grid", "stiffness", "landmark_fit"):
+        for name in ("baselines", "grid", "stiffness", "landmark_fit", "side_check"):
             object.__setattr__(self, name, bool(getattr(self, name)))
 
 
@@ -159,7 +161,7 @@ def fit_job(job: Job, out_dir, options: FitOptions = FitOptions(), *, progress: 
                               baselines=options.baselines, max_evaluations=int(options.max_evaluations),
                               command="cohort", progress=say, align=options.align,
                               landmark_fit=options.landmark_fit, folds=int(options.folds),
-                              direction_degree=int(options.direction_degree))
+                              direction_degree=int(options.direction_degree), side_check=options.side_check)
         except Exception as exc:  # isolate: any failure of this job becomes its result
             error = exc
         enter("write")

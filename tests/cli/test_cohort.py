@@ -167,3 +167,22 @@ def test_cohort_on_the_real_itk_pair(tmp_path, capsys, data_dir, quick_report): 
     assert 0.0 < result["metrics"]["landmark_mean_mm"] < 10.0
     population = json.loads((out / "population.json").read_text())
     assert population["n_ok"] == 1 and population["n_failed"] == 0
+
+
+def test_cohort_options_reach_every_job(tmp_path, monkeypatch):
+    # the command's fit options become the jobs' FitOptions (part of their digest): defaults, then
+    # --stiffness and --no-side-check (truth: the options object run_cohort receives)
+    import lungdeform.cohort as C
+
+    seen = []
+
+    def capture(m, folder, *, options, **kw):
+        seen.append(options)
+        raise KeyboardInterrupt  # stop before any work: exit 130
+
+    monkeypatch.setattr(C, "run_cohort", capture)
+    manifest = make_cohort(tmp_path / "c")
+    assert main(["cohort", str(manifest), "--out", str(tmp_path / "o")]) == 130
+    assert main(["cohort", str(manifest), "--out", str(tmp_path / "o"), "--stiffness", "--no-side-check"]) == 130
+    assert (seen[0].stiffness, seen[0].side_check) == (False, True)
+    assert (seen[1].stiffness, seen[1].side_check) == (True, False)

@@ -131,6 +131,8 @@ def register(apps) -> None:
                                           help="With landmarks: the interior landmark correction, k-fold cross-validated."),
         folds: int = typer.Option(5, "--folds", help="Folds of the landmark cross-validation."),
         direction_degree: int = typer.Option(3, "--direction-degree", help=DIRECTION_DEGREE_HELP),
+        stiffness: bool = typer.Option(False, "--stiffness/--no-stiffness", help="Also fit a heterogeneous stiffness field per lung (kept only if it lowers the objective; slower)."),
+        side_check: bool = typer.Option(True, "--side-check/--no-side-check", help="Check each lung's side against its shape (the concave medial face)."),
     ) -> None:
         """Fit every lung of a cohort in parallel on Dask; resumable (finished subjects are skipped).
 
@@ -144,7 +146,7 @@ def register(apps) -> None:
         m = read_manifest(manifest)  # every problem reported before any work starts (exit 2)
         options = FitOptions(max_evaluations=evaluations, baselines=baselines, align=align,
                              landmark_fit=landmark_fit, folds=folds,
-                             direction_degree=direction_degree)
+                             direction_degree=direction_degree, stiffness=stiffness, side_check=side_check)
         if align == "apex" and (Path(manifest).parent / "truth.json").is_file():
             typer.echo("note: this manifest's folder holds a synthetic truth.json: its surfaces are already in one "
                        "frame, and the apex alignment shifts them (the model moves the apex); use --align none "
