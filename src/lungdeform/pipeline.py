@@ -43,8 +43,11 @@ ALIGN_MODES = ("apex", "joint", "none")
 MODEL_MESH_BUDGETS = (3000, 3200, 2800, 3500, 4000, 2500, 5000)
 
 
-def read_input(path: Path, side: str, *, progress=None):
-    """``(dense Surface, crop planes, spacing or None, image or None)`` for one input path."""
+def read_input(path: Path, side: str, *, progress=None, spacing_like=None):
+    """``(dense Surface, crop planes, spacing or None, image or None)`` for one input path.
+
+    ``spacing_like``: ``(path, spacing (3,) mm)`` of an image read before; an image of another
+    spacing is refused as soon as it is read, before the (slow) segmentation and surface."""
     from lungdeform import io as lio
     from lungdeform import mask as M
     from lungdeform.image import Image, is_image_path, read_image
@@ -65,6 +68,11 @@ def read_input(path: Path, side: str, *, progress=None):
         return surface, [], None, None
     else:
         image = read_image(path)
+    if spacing_like is not None and not np.allclose(image.spacing, spacing_like[1], rtol=1e-3):
+        from lungdeform.errors import InputError
+
+        raise InputError(f"{path}: voxel spacing {np.asarray(image.spacing, float).tolist()} mm differs from "
+                         f"{spacing_like[0]} ({np.asarray(spacing_like[1], float).tolist()} mm); inconsistent spacing")
     a = np.asarray(image.array)
     if a.size and a.min() < -100:  # a CT in HU: segment the lungs first
         from lungdeform.segment import segment_lungs
@@ -212,15 +220,12 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
         raise InputError(f"--align joint needs the least-squares optimiser, not mode {mode!r}")
     if len(inputs) < 2:
         raise InputError(f"fit needs inputs at two or more volumes (end-exhale first), got {len(inputs)}")
-    read = []
+    read, first_image = [], None  # every image is checked against the first one's spacing as soon as it is read
     for p in inputs:
         say(f"reading {p}")
-        read.append(read_input(Path(p), side, progress=say))
-    spacings = [(p, r[2]) for p, r in zip(inputs, read) if r[2] is not None]
-    for p, sp in spacings[1:]:
-        if not np.allclose(sp, spacings[0][1], rtol=1e-3):
-            raise InputError(f"{p}: voxel spacing {sp.tolist()} mm differs from {spacings[0][0]} "
-                             f"({spacings[0][1].tolist()} mm); inconsistent spacing")
+        read.append(read_input(Path(p), side, progress=say, spacing_like=first_image))
+        if first_image is None and read[-1][2] is not None:
+            first_image = (p, read[-1][2])
     surfaces = [r[0] for r in read]
     # sides: every input must be the same lung (centroids on the same side of each other's medial face)
     widths = [np.ptp(s.vertices[:, 0]) for s in surfaces]

@@ -113,8 +113,16 @@ def test_missing_and_empty_inputs(tmp_path, pair, capsys):
     assert "empty.mha" in _one_error_line(capsys)
 
 
-def test_inconsistent_spacing(tmp_path, capsys):
+def test_inconsistent_spacing(tmp_path, capsys, monkeypatch):
+    # refused as soon as the second image is read: its surface is never extracted (for a CT, its
+    # segmentation never runs)
     import SimpleITK as sitk
+
+    import lungdeform.mask as M
+
+    extracted = []
+    real = M.extract_surface
+    monkeypatch.setattr(M, "extract_surface", lambda image, **kw: extracted.append(image.source) or real(image, **kw))
 
     z, y, x = np.mgrid[:30, :30, :30]
     ball = (((x - 15) ** 2 + (y - 15) ** 2 + (z - 15) ** 2) < 100).astype(np.uint8)
@@ -125,7 +133,8 @@ def test_inconsistent_spacing(tmp_path, capsys):
         sitk.WriteImage(img, str(tmp_path / name))
         paths.append(str(tmp_path / name))
     assert main(["fit", *paths, "--side", "right", "--out", str(tmp_path / "o")]) == 2
-    assert "inconsistent spacing" in _one_error_line(capsys)
+    assert "b.mha: voxel spacing [2.0, 2.0, 2.5] mm differs from" in _one_error_line(capsys)
+    assert len(extracted) == 1 and "a.mha" in extracted[0]
 
 
 def test_landmarks_outside_image():
