@@ -115,13 +115,12 @@ def side_from_shape(vertices: np.ndarray, faces: np.ndarray, max_points: int = 2
     face follows the ribs, so the surface lies deepest below its convex hull medially: toward +x
     (LPS, patient left) for a right lung, −x for a left one. ``score`` is the x offset, from the
     lung's centroid and over its x extent, of the surface's centroid weighted by area × depth below
-    the hull (``vertices : (n, 3)`` mm LPS; depths at ``max_points`` seeded vertices at most). Trust the side only when ``|score|`` >
-    :data:`SIDE_SCORE_MIN`; measured values are in ``docs/FITTING.md``."""
-    from scipy.spatial import ConvexHull
+    the hull (``vertices : (n, 3)`` mm LPS; depths at ``max_points`` seeded vertices at most).
+    Trust the side only when ``|score|`` > :data:`SIDE_SCORE_MIN`; measured values are in
+    ``docs/FITTING.md``."""
+    from scipy.spatial import ConvexHull, QhullError
 
     from .mesh import face_areas
-
-    from scipy.spatial import QhullError
 
     v = as_vertices(vertices, "vertices")
     f = np.asarray(faces)
@@ -146,11 +145,10 @@ def side_from_shape(vertices: np.ndarray, faces: np.ndarray, max_points: int = 2
     return ("right" if score > 0 else "left", score)
 
 
-def check_side(vertices: np.ndarray, faces: np.ndarray, side: str, source: str, shape=None) -> None:
-    """Refuse a lung whose shape clearly says the other side than ``side`` (:func:`side_from_shape`,
-    or its result ``shape`` when already computed), naming ``source``: a wrong ``--side``, or a
-    surface in RAS (x flipped). Unclear shapes pass."""
-    shape_side, score = side_from_shape(vertices, faces) if shape is None else shape
+def check_side(vertices: np.ndarray, faces: np.ndarray, side: str, source: str) -> None:
+    """Refuse a lung whose shape clearly says the other side than ``side`` (:func:`side_from_shape`),
+    naming ``source``: a wrong ``--side``, or a surface in RAS (x flipped). Unclear shapes pass."""
+    shape_side, score = side_from_shape(vertices, faces)
     if shape_side != side and abs(score) > SIDE_SCORE_MIN:
         raise InputError(f"{source}: the lung's shape says {shape_side}, not {side} (its concave medial face lies "
                          f"toward {'+' if score > 0 else '-'}x in LPS, score {score:+.2f}): is the side wrong, or the "

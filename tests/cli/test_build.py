@@ -146,3 +146,17 @@ def test_build_one_lung_takes_its_side_from_its_shape(tmp_path, capsys):
     # a user who knows better skips the check
     assert main(["build", str(path), "--side", "left", "--no-side-check", "--out", str(tmp_path / "ok.npz")]) == 0
     assert load_model(tmp_path / "ok.npz").names == ["left"]
+
+
+def test_build_refuses_sides_it_cannot_tell(tmp_path, capsys):
+    # an unnamed convex lung has no medial face to read, and three unnamed surfaces cannot be
+    # paired by position: both ask for --side, with one line and no output
+    e = ellipsoid_lung("left")
+    one = write_mesh(tmp_path / "blob.stl", e.vertices, e.faces)
+    assert main(["build", str(one), "--out", str(tmp_path / "a.npz")]) == 2
+    assert "cannot tell the side of" in capsys.readouterr().err
+    three = [write_mesh(tmp_path / f"b{i}.stl", e.vertices + 200.0 * i, e.faces) for i in range(3)]
+    assert main(["build", *map(str, three), "--out", str(tmp_path / "b.npz")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "cannot tell the sides of 3 surfaces" in err[0]
+    assert not (tmp_path / "a.npz").exists() and not (tmp_path / "b.npz").exists()

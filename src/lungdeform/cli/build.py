@@ -96,12 +96,14 @@ def resolve_sides(surfaces, given: list[str] | None, check: bool = True) -> list
             sides = named
         elif len(surfaces) == 2:
             sides = guess_sides([float(s.vertices[:, 0].mean()) for s in surfaces])
-        else:  # one lung: its shape (the concave medial face) tells, when it is clear
-            shape = side_from_shape(surfaces[0].vertices, surfaces[0].faces)
-            if abs(shape[1]) <= SIDE_SCORE_MIN:
+        elif len(surfaces) == 1:  # one lung: its shape (the concave medial face) tells, when it is clear
+            shape_side, score = side_from_shape(surfaces[0].vertices, surfaces[0].faces)
+            if abs(score) <= SIDE_SCORE_MIN:
                 raise InputError(f"cannot tell the side of {surfaces[0].name} (its shape is not clear enough): "
                                  "pass --side left or --side right")
-            return [shape[0]]
+            return [shape_side]
+        else:
+            raise InputError(f"cannot tell the sides of {len(surfaces)} surfaces: pass --side for each")
     for sd, s in zip(sides, surfaces) if check else ():  # each lung is the side its shape says, when that is clear
         check_side(s.vertices, s.faces, sd, s.name)
     if sorted(sides) == ["left", "right"]:
