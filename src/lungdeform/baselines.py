@@ -36,7 +36,7 @@ import numpy as np
 from .distance import SurfaceDistance, symmetric_distance
 from .errors import ConvergenceError, InputError, require
 from .interpolate import interpolation_weights
-from .mesh import Surface, as_vertices
+from .mesh import Surface, as_vertices, thinned
 
 
 def no_motion(surface: Surface) -> np.ndarray:
@@ -79,8 +79,7 @@ def affine_fit(surface: Surface, target: Surface, *, keep=None, keep_target=None
     ks = np.ones(len(p), bool) if keep is None else np.asarray(keep, bool)
     kt = np.ones(target.n_vertices, bool) if keep_target is None else np.asarray(keep_target, bool)
     idx = np.nonzero(kt)[0]
-    if len(idx) > samples:
-        idx = np.sort(np.random.default_rng(0).choice(idx, samples, replace=False))
+    idx = idx[thinned(len(idx), samples)]
     tpts = target.vertices[idx]
     tdist = SurfaceDistance(target.vertices, target.faces)
     if landmarks is not None:

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import InputError
-from .mesh import as_vertices
+from .mesh import as_vertices, thinned
 
 
 @dataclass(frozen=True, eq=False)
@@ -87,9 +87,8 @@ def displacement_field(points, displacements, *, max_points: int = 2500, smoothi
     from scipy.interpolate import RBFInterpolator
 
     p, u = _check(points, displacements)
-    if len(p) > max_points:
-        idx = np.sort(np.random.default_rng(seed).choice(len(p), max_points, replace=False))
-        p, u = p[idx], u[idx]
+    idx = thinned(len(p), max_points, seed)
+    p, u = p[idx], u[idx]
     rbf = RBFInterpolator(p, u, kernel=kernel, degree=1, smoothing=smoothing)
     return DisplacementField(p, u, rbf)
 

@@ -34,6 +34,14 @@ def as_vertices(vertices, name: str = "vertices") -> np.ndarray:
     return arr
 
 
+def thinned(n: int, count: int, seed: int = 0) -> np.ndarray:
+    """Indices ``(min(n, count),) int`` into ``n`` items: all of them, or a seeded random subset of
+    ``count`` (sorted; ``numpy.random.default_rng(seed).choice``), to bound a dense solve or a sample."""
+    if n <= count:
+        return np.arange(n)
+    return np.sort(np.random.default_rng(seed).choice(n, count, replace=False))
+
+
 def as_faces(faces, n_vertices: int | None = None, name: str = "faces") -> np.ndarray:
     """Return ``faces`` as a C-contiguous ``(m, 3) int64`` array, or raise :class:`InputError`."""
     arr = np.asarray(faces)

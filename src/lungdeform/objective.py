@@ -56,7 +56,7 @@ from .errors import InputError, LungdeformError
 from .force import field_basis, height_weights
 from .frame import lung_frame
 from .graph import spring_graph
-from .mesh import Surface
+from .mesh import Surface, thinned
 from .sliding import checked_operator, surface_weights
 from .solve import ForceSolver
 from .stiffness import as_moduli, uniform
@@ -158,8 +158,7 @@ def _sample(surface: Surface, keep: np.ndarray, count: int, seed: int = 0) -> tu
     """Up to ``count`` kept vertices (random, reproducible) with area weights rescaled to the kept area."""
     idx = np.nonzero(keep)[0]
     w = vertex_areas(surface.vertices, surface.faces)
-    if len(idx) > count:
-        idx = np.sort(np.random.default_rng(seed).choice(idx, count, replace=False))
+    idx = idx[thinned(len(idx), count, seed)]
     return surface.vertices[idx], w[idx]
 
 

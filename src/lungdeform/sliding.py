@@ -45,7 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import InputError
-from .mesh import as_vertices
+from .mesh import as_vertices, thinned
 
 #: Default smoothing ``λ`` (mm) of the sliding interpolant.
 SMOOTHING_MM = 100.0
@@ -190,13 +190,6 @@ class SlidingWeights:
         raise InputError("a SlidingWeights operator is not a matrix: apply it as W @ u, u : (k, 3)")
 
 
-def _subset(k: int, max_points: int, seed: int) -> np.ndarray:
-    """The points used: all, or a seeded random subset of ``max_points`` (sorted)."""
-    if k <= max_points:
-        return np.arange(k)
-    return np.sort(np.random.default_rng(seed).choice(k, max_points, replace=False))
-
-
 def sliding_weights(points, normals, query, *, smoothing: float = SMOOTHING_MM, max_points: int = MAX_POINTS,
                     seed: int = 0) -> SlidingWeights:
     """The sliding interpolant through ``points : (k, 3)`` mm with unit ``normals : (k, 3)``,
@@ -207,7 +200,7 @@ def sliding_weights(points, normals, query, *, smoothing: float = SMOOTHING_MM, 
     q = as_vertices(query, "query")
     if not np.all(np.isfinite(q)):
         raise InputError("query points contain NaN or infinity")
-    idx = _subset(len(p), max_points, seed)
+    idx = thinned(len(p), max_points, seed)
     ps, ns = p[idx], n[idx]
     a, center, scale, basis = _system(ps, ns, _check_smoothing(smoothing))
     design = _design(ps, ns, q, center, scale, basis).reshape(3 * len(q), -1)
@@ -267,7 +260,7 @@ def sliding_field(points, normals, displacements, *, smoothing: float = SMOOTHIN
     u = as_vertices(displacements, "displacements")
     if u.shape != p.shape or not np.all(np.isfinite(u)):
         raise InputError(f"displacements must be finite with shape {p.shape}, got {u.shape}")
-    idx = _subset(len(p), max_points, seed)
+    idx = thinned(len(p), max_points, seed)
     p, n, u = p[idx], n[idx], u[idx]
     a, center, scale, basis = _system(p, n, _check_smoothing(smoothing))
     g = np.einsum("kc,kc->k", n, u)
@@ -320,7 +313,7 @@ def sliding_correction(points, normals, anchors, values, *, smoothing: float = S
     same polynomial part. Solved once, densely (``k + 3a + 12`` unknowns at most)."""
     p, n = _check(points, normals)
     q, v = _check_anchors(anchors, values)
-    idx = _subset(len(p), max_points, seed)
+    idx = thinned(len(p), max_points, seed)
     p, n = p[idx], n[idx]
     m, center, scale, basis = _system(p, n, _check_smoothing(smoothing))
     cross, between = _anchor_blocks(p, n, q, center, scale, basis)
@@ -346,7 +339,7 @@ class CorrectionSolver:
 
         p, n = _check(points, normals)
         q = _check_anchors(anchors)
-        idx = _subset(len(p), max_points, seed)
+        idx = thinned(len(p), max_points, seed)
         p, n = p[idx], n[idx]
         m, center, scale, basis = _system(p, n, _check_smoothing(smoothing))
         self.cross, between = _anchor_blocks(p, n, q, center, scale, basis)  # (k + r, 3a), (3a, 3a)
