@@ -130,15 +130,19 @@ def _design(p: np.ndarray, n: np.ndarray, query: np.ndarray, center, scale, basi
 
 def _anchor_blocks(p, n, anchors, center, scale, basis):
     """The saddle matrix's anchor blocks: ``(k + r, 3a)`` against the surface functionals and the
-    polynomial part, and ``(3a, 3a)`` between anchors (point values, by component)."""
-    from scipy.spatial.distance import cdist
+    polynomial part, and ``(3a, 3a)`` between anchors (point values, by component): the anchors'
+    point values applied to every basis function, i.e. :func:`_design` at the anchors."""
+    k, a = len(p), len(anchors)
+    d = _design(p, n, anchors, center, scale, basis, anchors).reshape(3 * a, -1)  # row c·a + i
+    return np.hstack([d[:, :k], d[:, k + 3 * a:]]).T, d[:, k:k + 3 * a]
 
-    a = len(anchors)
-    kpa = -cdist(p, anchors)
-    xa = np.hstack([np.ones((a, 1)), (anchors - center) / scale])
-    cross = np.vstack([np.hstack([kpa * n[:, [c]] for c in range(3)]),
-                       np.hstack([(xa @ basis[4 * c:4 * c + 4]).T for c in range(3)])])
-    return cross, np.kron(np.eye(3), -cdist(anchors, anchors))
+
+def _prepared(points, normals, smoothing, max_points: int, seed: int):
+    """Checked ``points``, ``normals`` (all of them), the indices of the seeded subset used
+    (:func:`lungdeform.mesh.thinned`), and that subset's saddle system (:func:`_system`)."""
+    p, n = _check(points, normals)
+    idx = thinned(len(p), max_points, seed)
+    return p, n, idx, _system(p[idx], n[idx], _check_smoothing(smoothing))
 
 
 def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -196,13 +200,11 @@ def sliding_weights(points, normals, query, *, smoothing: float = SMOOTHING_MM, 
     evaluated at ``query : (m, 3)`` mm, as a :class:`SlidingWeights` operator (one dense solve of
     size ``k + 12`` at most). More than ``max_points`` points: the same seeded subset as
     :func:`sliding_field` (the others get zero weight), so both are one interpolant."""
-    p, n = _check(points, normals)
+    p, n, idx, (a, center, scale, basis) = _prepared(points, normals, smoothing, max_points, seed)
     q = as_vertices(query, "query")
     if not np.all(np.isfinite(q)):
         raise InputError("query points contain NaN or infinity")
-    idx = thinned(len(p), max_points, seed)
     ps, ns = p[idx], n[idx]
-    a, center, scale, basis = _system(ps, ns, _check_smoothing(smoothing))
     design = _design(ps, ns, q, center, scale, basis).reshape(3 * len(q), -1)
     w = _solve(a, design.T)[:len(ps)].T  # a is symmetric: design @ a⁻¹ = (a⁻¹ designᵀ)ᵀ
     full = np.zeros((3, len(q), len(p)))
@@ -256,13 +258,11 @@ def sliding_field(points, normals, displacements, *, smoothing: float = SMOOTHIN
     """Fit the sliding interpolant to ``displacements : (k, 3)`` mm at ``points : (k, 3)`` mm with
     unit ``normals``. More than ``max_points`` points are thinned to a seeded random subset (the
     dense solve is O(k³))."""
-    p, n = _check(points, normals)
+    p, n, idx, (a, center, scale, basis) = _prepared(points, normals, smoothing, max_points, seed)
     u = as_vertices(displacements, "displacements")
     if u.shape != p.shape or not np.all(np.isfinite(u)):
         raise InputError(f"displacements must be finite with shape {p.shape}, got {u.shape}")
-    idx = thinned(len(p), max_points, seed)
     p, n, u = p[idx], n[idx], u[idx]
-    a, center, scale, basis = _system(p, n, _check_smoothing(smoothing))
     g = np.einsum("kc,kc->k", n, u)
     coef = _solve(a, np.concatenate([g, np.zeros(basis.shape[1])]))
     return SlidingField(p, n, u, coef, center, scale, basis)
@@ -311,11 +311,9 @@ def sliding_correction(points, normals, anchors, values, *, smoothing: float = S
     that keeps the lung's boundary where that field put it. It is the sliding interpolant of zero
     normal motion plus the anchors' point values (kernel ``−|x − q_i|`` per component), with the
     same polynomial part. Solved once, densely (``k + 3a + 12`` unknowns at most)."""
-    p, n = _check(points, normals)
+    p, n, idx, (m, center, scale, basis) = _prepared(points, normals, smoothing, max_points, seed)
     q, v = _check_anchors(anchors, values)
-    idx = thinned(len(p), max_points, seed)
     p, n = p[idx], n[idx]
-    m, center, scale, basis = _system(p, n, _check_smoothing(smoothing))
     cross, between = _anchor_blocks(p, n, q, center, scale, basis)
     k, r = len(p), basis.shape[1]
     a = np.block([[m, cross], [cross.T, between]])
@@ -333,26 +331,16 @@ class CorrectionSolver:
 
     def __init__(self, points, normals, anchors, *, smoothing: float = SMOOTHING_MM,
                  max_points: int = MAX_POINTS, seed: int = 0):
-        import warnings
-
-        from scipy.linalg import LinAlgWarning, lu_factor, lu_solve
-
-        p, n = _check(points, normals)
+        p, n, idx, (m, center, scale, basis) = _prepared(points, normals, smoothing, max_points, seed)
         q = _check_anchors(anchors)
-        idx = thinned(len(p), max_points, seed)
-        p, n = p[idx], n[idx]
-        m, center, scale, basis = _system(p, n, _check_smoothing(smoothing))
-        self.cross, between = _anchor_blocks(p, n, q, center, scale, basis)  # (k + r, 3a), (3a, 3a)
-        with warnings.catch_warnings():  # lu_factor only warns on an exactly singular matrix: raise instead
-            warnings.simplefilter("ignore", LinAlgWarning)
-            lu = lu_factor(m, check_finite=False, overwrite_a=True)
-        if not np.all(np.abs(np.diag(lu[0])) > 0):
-            raise InputError("the sliding interpolation is singular (repeated points or a flat surface?)")
-        self._m_cross = lu_solve(lu, self.cross)
-        self.between = between
-        self.schur = between - self.cross.T @ self._m_cross
+        self.cross, self.between = _anchor_blocks(p[idx], n[idx], q, center, scale, basis)  # (k + r, 3a), (3a, 3a)
+        self._m_cross = _solve(m, self.cross)  # the surface system, solved once for every anchor column
+        self.schur = self.between - self.cross.T @ self._m_cross
         self.anchors = q
-        self.n_anchors = len(q)
+
+    @property
+    def n_anchors(self) -> int:
+        return len(self.anchors)
 
     def _rows(self, ids) -> np.ndarray:
         ids = np.asarray(ids, int).ravel()
