@@ -85,26 +85,57 @@ def spline_predict(points, values, query, smoothing: float) -> np.ndarray:
     return interpolation_weights(points, query, smoothing=smoothing) @ np.asarray(values, float)
 
 
+def _select(candidates, predict, index, values, folds: int, seed: int) -> float:
+    """The candidate whose ``predict(candidate, train, values[train], test)`` (landmark indices
+    into ``index``'s space) has the least summed held-out error over a seeded ``folds``-fold split
+    of ``index``; fewer than 10 points: the largest candidate (too few to judge; the smoothest is
+    safest)."""
+    idx = np.asarray(index, int).ravel()
+    v = as_vertices(values, "values")
+    if len(idx) < 10:
+        return float(max(candidates))
+    from .crossval import landmark_folds
+
+    parts = landmark_folds(len(idx), min(int(folds), len(idx)), seed)
+    best, best_err = None, np.inf
+    for cand in candidates:
+        err = 0.0
+        for test in parts:
+            train = np.setdiff1d(np.arange(len(idx)), test)
+            err += np.linalg.norm(predict(cand, idx[train], v[train], idx[test]) - v[test], axis=1).sum()
+        if err < best_err - 1e-9:
+            best, best_err = float(cand), err
+    return best
+
+
+def _held_out(q, observed, scales, predicted_unit, folds, select, predict) -> list[np.ndarray]:
+    """Per fold, the correction through the other folds' landmarks (``select(train, c)`` picks its
+    smoothing on them, ``predict(smoothing, train, c, test)`` moves the fold's own): the landmarks
+    ``q : (m, 3)`` mm moved to each target, ``(m, 3) float`` mm per target."""
+    p = as_vertices(predicted_unit, "predicted_unit")
+    if len(p) != len(q):
+        raise InputError(f"predicted_unit: need one row per landmark ({len(q)}), got {len(p)}")
+    out = [np.full_like(q, np.nan) for _ in scales]
+    for test in folds:
+        train = np.setdiff1d(np.arange(len(q)), test)
+        c = correction_per_unit([np.asarray(o)[train] for o in observed], scales, p[train])
+        v = p[test] + predict(select(train, c), train, c, test)
+        for i, s in enumerate(scales):
+            out[i][test] = q[test] + float(s) * v
+    return out
+
+
+def _spline_predictor(points):
+    p = as_vertices(points, "points")
+    return lambda sm, train, values, test: spline_predict(p[train], values, p[test], sm)
+
+
 def select_smoothing(points, values, candidates=SMOOTHING_MM2, folds: int = 5, seed: int = 0) -> float:
     """The candidate smoothing (mm²) with the least mean held-out error of the thin-plate spline
     through ``values : (k, 3)`` at ``points : (k, 3)`` (``folds``-fold, seeded split).
     Fewer than 10 points: the largest candidate (too few to judge; the smoothest is safest)."""
     p = as_vertices(points, "points")
-    v = as_vertices(values, "values")
-    if len(p) < 10:
-        return float(max(candidates))
-    from .crossval import landmark_folds
-
-    parts = landmark_folds(len(p), min(int(folds), len(p)), seed)
-    best, best_err = None, np.inf
-    for sm in candidates:
-        err = 0.0
-        for test in parts:
-            train = np.setdiff1d(np.arange(len(p)), test)
-            err += np.linalg.norm(spline_predict(p[train], v[train], p[test], sm) - v[test], axis=1).sum()
-        if err < best_err - 1e-9:
-            best, best_err = float(sm), err
-    return best
+    return _select(candidates, _spline_predictor(p), np.arange(len(p)), values, folds, seed)
 
 
 def held_out_positions(landmarks, observed, scales, predicted_unit, folds, *, candidates=SMOOTHING_MM2,
@@ -118,16 +149,9 @@ def held_out_positions(landmarks, observed, scales, predicted_unit, folds, *, ca
     Returns per target ``(m, 3) float`` mm predicted positions.
     """
     q = as_vertices(landmarks, "landmarks")
-    p = as_vertices(predicted_unit, "predicted_unit")
-    out = [np.full_like(q, np.nan) for _ in scales]
-    for test in folds:
-        train = np.setdiff1d(np.arange(len(q)), test)
-        c = correction_per_unit([np.asarray(o)[train] for o in observed], scales, p[train])
-        sm = select_smoothing(q[train], c, candidates, seed=seed)
-        v = p[test] + spline_predict(q[train], c, q[test], sm)
-        for i, s in enumerate(scales):
-            out[i][test] = q[test] + float(s) * v
-    return out
+    predict = _spline_predictor(q)
+    return _held_out(q, observed, scales, predicted_unit, folds,
+                     lambda train, c: _select(candidates, predict, train, c, 5, seed), predict)
 
 
 def correction_solvers(points, normals, landmarks, candidates=CORRECTION_SMOOTHING_MM, *,
@@ -139,26 +163,15 @@ def correction_solvers(points, normals, landmarks, candidates=CORRECTION_SMOOTHI
                                          seed=seed) for lam in candidates}
 
 
+def _solver_predictor(solvers: dict):
+    return lambda lam, train, values, test: solvers[lam].predict(train, values, test)
+
+
 def select_correction_smoothing(solvers: dict, index, values, folds: int = 5, seed: int = 0) -> float:
     """The surface smoothing (mm, a key of ``solvers``) whose sliding correction through
     ``values : (len(index), 3)`` at the solvers' landmarks ``index`` has the least mean held-out
     error (``folds``-fold, seeded split). Fewer than 10 landmarks: the largest (the smoothest)."""
-    idx = np.asarray(index, int).ravel()
-    v = as_vertices(values, "values")
-    if len(idx) < 10:
-        return float(max(solvers))
-    from .crossval import landmark_folds
-
-    parts = landmark_folds(len(idx), min(int(folds), len(idx)), seed)
-    best, best_err = None, np.inf
-    for lam, solver in solvers.items():
-        err = 0.0
-        for test in parts:
-            train = np.setdiff1d(np.arange(len(idx)), test)
-            err += np.linalg.norm(solver.predict(idx[train], v[train], idx[test]) - v[test], axis=1).sum()
-        if err < best_err - 1e-9:
-            best, best_err = float(lam), err
-    return best
+    return _select(solvers, _solver_predictor(solvers), index, values, folds, seed)
 
 
 def held_out_sliding(observed, scales, predicted_unit, folds, solvers: dict, *, seed: int = 0) -> list[np.ndarray]:
@@ -166,21 +179,9 @@ def held_out_sliding(observed, scales, predicted_unit, folds, solvers: dict, *, 
     correction and its surface smoothing (:func:`select_correction_smoothing`, inner folds) come
     from the other folds' landmarks only. ``solvers``: :func:`correction_solvers` over every
     landmark (end-exhale, mm). Returns per target ``(m, 3) float`` mm predicted positions."""
-    solver = next(iter(solvers.values()))
-    m = solver.n_anchors
-    q = solver.anchors
-    p = as_vertices(predicted_unit, "predicted_unit")
-    if len(p) != m:
-        raise InputError(f"predicted_unit: need one row per landmark ({m}), got {len(p)}")
-    out = [np.full_like(q, np.nan) for _ in scales]
-    for test in folds:
-        train = np.setdiff1d(np.arange(m), test)
-        c = correction_per_unit([np.asarray(o)[train] for o in observed], scales, p[train])
-        lam = select_correction_smoothing(solvers, train, c, seed=seed)
-        v = p[test] + solvers[lam].predict(train, c, test)
-        for i, s in enumerate(scales):
-            out[i][test] = q[test] + float(s) * v
-    return out
+    predict = _solver_predictor(solvers)
+    return _held_out(next(iter(solvers.values())).anchors, observed, scales, predicted_unit, folds,
+                     lambda train, c: _select(solvers, predict, train, c, 5, seed), predict)
 
 
 @dataclass(frozen=True, eq=False)
