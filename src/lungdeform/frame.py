@@ -120,12 +120,10 @@ def side_from_shape(vertices: np.ndarray, faces: np.ndarray, max_points: int = 2
     ``docs/FITTING.md``."""
     from scipy.spatial import ConvexHull, QhullError
 
-    from .mesh import face_areas
+    from .distance import vertex_areas
 
     v = as_vertices(vertices, "vertices")
-    f = np.asarray(faces)
-    area = np.zeros(len(v))
-    np.add.at(area, f.ravel(), np.repeat(face_areas(v, f) / 3.0, 3))
+    area = vertex_areas(v, np.asarray(faces))
     try:
         eq = ConvexHull(v).equations
     except QhullError as exc:
@@ -145,11 +143,17 @@ def side_from_shape(vertices: np.ndarray, faces: np.ndarray, max_points: int = 2
     return ("right" if score > 0 else "left", score)
 
 
+def clear_side(vertices: np.ndarray, faces: np.ndarray) -> tuple[str | None, float]:
+    """:func:`side_from_shape`, with the side ``None`` unless ``|score|`` > :data:`SIDE_SCORE_MIN`."""
+    side, score = side_from_shape(vertices, faces)
+    return (side if abs(score) > SIDE_SCORE_MIN else None), score
+
+
 def check_side(vertices: np.ndarray, faces: np.ndarray, side: str, source: str) -> None:
-    """Refuse a lung whose shape clearly says the other side than ``side`` (:func:`side_from_shape`),
+    """Refuse a lung whose shape clearly says the other side than ``side`` (:func:`clear_side`),
     naming ``source``: a wrong ``--side``, or a surface in RAS (x flipped). Unclear shapes pass."""
-    shape_side, score = side_from_shape(vertices, faces)
-    if shape_side != side and abs(score) > SIDE_SCORE_MIN:
+    shape_side, score = clear_side(vertices, faces)
+    if shape_side not in (None, side):
         raise InputError(f"{source}: the lung's shape says {shape_side}, not {side} (its concave medial face lies "
                          f"toward {'+' if score > 0 else '-'}x in LPS, score {score:+.2f}): is the side wrong, or the "
                          "surface in RAS (x flipped)? (--no-side-check skips this check)")

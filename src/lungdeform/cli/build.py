@@ -81,8 +81,9 @@ def resolve_sides(surfaces, given: list[str] | None, check: bool = True) -> list
     meshes in RAS) is refused rather than built with the wrong sides and the wrong gravity frame.
     """
     from lungdeform.errors import InputError
-    from lungdeform.frame import SIDE_SCORE_MIN, SIDES, check_side, guess_sides, side_from_shape
+    from lungdeform.frame import SIDES, check_side, clear_side, guess_sides
 
+    by_position = False
     if given:
         if len(given) != len(surfaces):
             raise InputError(f"--side given {len(given)} times for {len(surfaces)} surfaces")
@@ -94,11 +95,11 @@ def resolve_sides(surfaces, given: list[str] | None, check: bool = True) -> list
         named = [next((sd for sd in SIDES if s.name.lower().endswith(sd)), None) for s in surfaces]
         if all(named):
             sides = named
-        elif len(surfaces) == 2:
-            sides = guess_sides([float(s.vertices[:, 0].mean()) for s in surfaces])
+        elif len(surfaces) == 2:  # from position (so the position check below has nothing to add)
+            sides, by_position = guess_sides([float(s.vertices[:, 0].mean()) for s in surfaces]), True
         elif len(surfaces) == 1:  # one lung: its shape (the concave medial face) tells, when it is clear
-            shape_side, score = side_from_shape(surfaces[0].vertices, surfaces[0].faces)
-            if abs(score) <= SIDE_SCORE_MIN:
+            shape_side, _ = clear_side(surfaces[0].vertices, surfaces[0].faces)
+            if shape_side is None:
                 raise InputError(f"cannot tell the side of {surfaces[0].name} (its shape is not clear enough): "
                                  "pass --side left or --side right")
             return [shape_side]
@@ -106,7 +107,7 @@ def resolve_sides(surfaces, given: list[str] | None, check: bool = True) -> list
             raise InputError(f"cannot tell the sides of {len(surfaces)} surfaces: pass --side for each")
     for sd, s in zip(sides, surfaces) if check else ():  # each lung is the side its shape says, when that is clear
         check_side(s.vertices, s.faces, sd, s.name)
-    if sorted(sides) == ["left", "right"]:
+    if sorted(sides) == ["left", "right"] and not by_position:
         x = {sd: float(s.vertices[:, 0].mean()) for sd, s in zip(sides, surfaces)}
         if x["left"] <= x["right"]:
             name = {sd: s.name for sd, s in zip(sides, surfaces)}
