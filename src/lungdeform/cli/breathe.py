@@ -8,12 +8,11 @@ model playback as s(t) = (V(t) − V_EE)/ΔV (:func:`lungdeform.breathing.scale_
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import typer
 
-from lungdeform.atomic import finite_json, write_text
+from lungdeform.atomic import write_json, write_text
 
 
 # --------------------------------------------------------------------------- atomic outputs
@@ -22,12 +21,6 @@ def atomic_savefig(fig, path: Path) -> None:
 
     with atomic_path(path, ".png") as tmp:
         fig.savefig(tmp, dpi=110, format="png")
-
-
-def to_json(obj) -> str:
-    from lungdeform.atomic import jsonable
-
-    return json.dumps(obj, indent=2, default=jsonable, allow_nan=False) + "\n"
 
 
 def curve_csv(curve) -> str:
@@ -144,7 +137,7 @@ def run_preset(name: str, out: Path, cycles: int, fs_hz: float) -> dict:
     plot_pv_loop(curve, out / "pv_loop.png", f"PV loop, preset {preset.name}")
     plot_residuals(curve.t_s, resid, out / "residuals.png",
                    "Radau integrator minus exact periodic solution", "difference (mL)")
-    write_text(out / "metrics.json", to_json(metrics))
+    write_json(out / "metrics.json", metrics, allow_nan=False)
     return metrics
 
 
@@ -223,7 +216,7 @@ def run_fit(path: Path, out: Path, tidal_volume_ml: float, train_fraction: float
     r_v = curves["volume_ml"][test] - curves["pv_held_out_ml"]
     plot_residuals(r_t, r_v, out / "residuals.png",
                    f"held-out residuals (shared shape), RMS {res['model_rms_percent']:.1f} % of p2p")
-    write_text(out / "metrics.json", to_json(finite_json(metrics)))
+    write_json(out / "metrics.json", metrics, strict=True)
     return metrics
 
 

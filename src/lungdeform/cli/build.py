@@ -9,7 +9,7 @@ import typer
 
 from lungdeform.modelfile import provenance
 
-from .common import check_tidal_ml, parse_orientation, say
+from .common import SIDE_CHECK_HELP, check_tidal_ml, parse_orientation, say
 
 
 def register(apps) -> None:
@@ -22,7 +22,7 @@ def register(apps) -> None:
         units: str = typer.Option("mm", "--units", help="Units of mesh files: mm, cm or m (converted to mm)."),
         repair: bool = typer.Option(False, "--repair", help="Repair fixable surface defects and report them."),
         target_vertices: Optional[int] = typer.Option(None, "--target-vertices", help="Decimate mask surfaces to about this many vertices."),
-        side_check: bool = typer.Option(True, "--side-check/--no-side-check", help="Do not check each lung's side against its shape (the concave medial face); for a lung whose shape misleads the check."),
+        side_check: bool = typer.Option(True, "--side-check/--no-side-check", help=SIDE_CHECK_HELP),
         orientation: str = typer.Option("supine", "--orientation", help="supine, prone, upright, left-decubitus, right-decubitus, or a gravity vector 'x,y,z' (LPS)."),
         tidal_ml: float = typer.Option(500.0, "--tidal-ml", help="Tidal volume for both lungs together (mL); calibration is exact there."),
         stiffness: str = typer.Option("uniform", "--stiffness", help="uniform | gradient:DEPENDENT,NONDEPENDENT | sphere:X,Y,Z,RADIUS,E (mm, LPS)."),

@@ -17,7 +17,7 @@ from typing import Optional
 
 import typer
 
-from lungdeform.cli.common import DIRECTION_DEGREE_HELP
+from lungdeform.cli.common import DIRECTION_DEGREE_HELP, SIDE_CHECK_HELP
 
 #: Bar labels of the stages (lungdeform.job.STAGES).
 STAGE_LABELS = {"read": "read / segment", "align": "align", "fit": "fit + measure", "write": "write"}
@@ -132,7 +132,7 @@ def register(apps) -> None:
         folds: int = typer.Option(5, "--folds", help="Folds of the landmark cross-validation."),
         direction_degree: int = typer.Option(3, "--direction-degree", help=DIRECTION_DEGREE_HELP),
         stiffness: bool = typer.Option(False, "--stiffness/--no-stiffness", help="Also fit a heterogeneous stiffness field per lung (kept only if it lowers the objective; slower)."),
-        side_check: bool = typer.Option(True, "--side-check/--no-side-check", help="Check each lung's side against its shape (the concave medial face)."),
+        side_check: bool = typer.Option(True, "--side-check/--no-side-check", help=SIDE_CHECK_HELP),
     ) -> None:
         """Fit every lung of a cohort in parallel on Dask; resumable (finished subjects are skipped).
 

@@ -76,8 +76,11 @@ def check_tidal_ml(value: float | None, option: str = "--tidal-ml") -> None:
                          f"breathing ≈ 500, a vital capacity 3000–6000), got {value:g}")
 
 
-#: Help of ``--direction-degree`` (fit, validate itk-pair, cohort).
 #: Exit code of a validation command run with ``--strict`` when a target is not met.
 STRICT_EXIT = 3
+#: Help of ``--side-check/--no-side-check`` (fit, build, cohort).
+SIDE_CHECK_HELP = ("Check each lung's side against its shape (the concave medial face); --no-side-check for a "
+                   "lung whose shape misleads the check.")
+#: Help of ``--direction-degree`` (fit, validate itk-pair, cohort).
 DIRECTION_DEGREE_HELP = ("Degree of the smooth correction of the paper's directions fitted to the surfaces "
                          "(lungdeform.direction_correction; 0: the paper's directions only).")

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import typer
 
-from lungdeform.cli.common import DIRECTION_DEGREE_HELP
+from lungdeform.cli.common import DIRECTION_DEGREE_HELP, SIDE_CHECK_HELP
 
 
 def register(apps) -> None:
@@ -19,7 +19,7 @@ def register(apps) -> None:
         inputs: list[Path] = typer.Argument(..., help="Surfaces, masks or CTs of one lung, end-exhale first, volumes increasing."),
         out: Path = typer.Option(..., "--out", help="Output folder: model.npz, metrics.json, report.html."),
         side: str = typer.Option(..., "--side", help="'left' or 'right'."),
-        side_check: bool = typer.Option(True, "--side-check/--no-side-check", help="Do not check each lung's side against its shape (the concave medial face); for a lung whose shape misleads the check."),
+        side_check: bool = typer.Option(True, "--side-check/--no-side-check", help=SIDE_CHECK_HELP),
         volumes: str = typer.Option(None, "--volumes", help="Lung volumes in mL, comma-separated (default: measured from the surfaces)."),
         landmarks: list[Path] = typer.Option(None, "--landmarks", help="elastix point-set file per input (world mm), rows corresponding."),
         grid: bool = typer.Option(False, "--grid", help="Also run the paper's grid search (step 0.01) for comparison."),
