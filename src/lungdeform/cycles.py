@@ -169,21 +169,25 @@ def inspiratory_share(t_s, amplitude, onset_level: float = 0.05) -> tuple[float,
     """Median over breaths of (t_peak − t_onset)/(t_peak − t_previous peak): the share of each breath
     from the end of the end-exhale dwell to end-inhale, with the signal taken as it is (maxima =
     end-inhale). Returns (share, number of breaths); (nan, n) with fewer than 3 breaths."""
-    t, a, dt = _uniform(t_s, amplitude)
-    period = dominant_period(t, a)
-    return _share(t, *_smoothed(a, period, 1.0 / dt), period, onset_level)
+    t, s, fine, period = _detection_signals(t_s, amplitude)
+    return _share(t, s, fine, period, onset_level)
 
 
 def inspiratory_shares(t_s, amplitude, onset_level: float = 0.05) -> tuple[float, float, int]:
     """:func:`inspiratory_share` of the trace as recorded and negated, ``(share, negated share,
     breaths as recorded)``: the period and the (linear) low-passes do not depend on the sign, so
     they are computed once. The phase with the smaller share is inspiration."""
-    t, a, dt = _uniform(t_s, amplitude)
-    period = dominant_period(t, a)
-    s, fine = _smoothed(a, period, 1.0 / dt)
+    t, s, fine, period = _detection_signals(t_s, amplitude)
     keep, n = _share(t, s, fine, period, onset_level)
     flip, _ = _share(t, -s, -fine, period, onset_level)
     return keep, flip, n
+
+
+def _detection_signals(t_s, amplitude):
+    """``(t, detection signal, fine signal, period s)`` on the trace's uniform grid (:func:`_smoothed`)."""
+    t, a, dt = _uniform(t_s, amplitude)
+    period = dominant_period(t, a)
+    return (t, *_smoothed(a, period, 1.0 / dt), period)
 
 
 def _share(t, s, fine, period: float, onset_level: float) -> tuple[float, int]:
