@@ -45,8 +45,8 @@ from typing import Callable
 
 from .atomic import write_json
 from .errors import InputError
-from .job import (_OLD, _PARTIAL, FitOptions, _discard, _json_default, _one_line, _result, failed_result, fit_job,
-                  input_digest, job_folder, read_result)
+from .job import (FitOptions, _json_default, _one_line, _result, clean_partial, failed_result, fit_job, input_digest,
+                  job_folder, read_result)
 from .manifest import Job, read_manifest
 
 SUMMARY_SCHEMA = "lungdeform.cohort.summary"
@@ -84,16 +84,7 @@ class CohortResult:
 def clean_stale(out: Path) -> list[Path]:
     """Remove the temporary and moved-aside folders a killed run left under ``out/subjects`` and
     half-written ``cohort.json`` temporaries; return what was removed."""
-    removed = []
-    subjects = Path(out) / "subjects"
-    if subjects.is_dir():
-        for subject in subjects.iterdir():
-            if not subject.is_dir():
-                continue
-            for p in subject.iterdir():
-                if p.name.startswith(".") and (_PARTIAL in p.name or _OLD in p.name):
-                    _discard(p)
-                    removed.append(p)
+    removed = clean_partial(out)
     for p in Path(out).glob(".cohort.json.*"):
         p.unlink(missing_ok=True)
         removed.append(p)

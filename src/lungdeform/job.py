@@ -4,7 +4,7 @@ A job (:class:`lungdeform.manifest.Job`) runs :func:`lungdeform.pipeline.run_fit
 temporary folder next to its final one (``.<side>.partial-<hex>``) and renames it into place when
 complete, so a folder under ``subjects/`` is always whole; one that existed before is moved aside
 (``.<side>.old-<hex>``) and removed. Both kinds of leftover (after a kill) are removed at the start
-of the next run (:func:`lungdeform.cohort.clean_stale`). Every job ends with a ``result.json``
+of the next run (:func:`clean_partial`). Every job ends with a ``result.json``
 (:data:`RESULT_SCHEMA`), ``status`` ``ok`` or ``failed``: an exception in one job is recorded there
 and never stops the others.
 
@@ -33,7 +33,7 @@ import time
 import traceback
 import uuid
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Callable
 
@@ -76,7 +76,8 @@ class FitOptions:
         def whole(x) -> bool:
             return isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_))
 
-        for name in ("baselines", "grid", "stiffness", "landmark_fit", "side_check"):
+        switches = [f.name for f in fields(self) if f.type == "bool"]
+        for name in switches:
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise InputError(f"{name} must be True or False, got {getattr(self, name)!r}")
         if not (whole(self.max_evaluations) and self.max_evaluations >= 1):
@@ -90,7 +91,7 @@ class FitOptions:
                              f"got {self.direction_degree!r}")
         for name in ("max_evaluations", "folds", "direction_degree"):  # plain ints: the digest is JSON
             object.__setattr__(self, name, int(getattr(self, name)))
-        for name in ("baselines", "grid", "stiffness", "landmark_fit", "side_check"):
+        for name in switches:
             object.__setattr__(self, name, bool(getattr(self, name)))
 
 
@@ -158,10 +159,10 @@ def fit_job(job: Job, out_dir, options: FitOptions = FitOptions(), *, progress: 
         try:
             metrics = run_fit(list(job.inputs), side=job.side, out=tmp, volumes=job.volumes_ml,
                               landmarks=job.landmarks, grid=options.grid, stiffness=options.stiffness,
-                              baselines=options.baselines, max_evaluations=int(options.max_evaluations),
+                              baselines=options.baselines, max_evaluations=options.max_evaluations,
                               command="cohort", progress=say, align=options.align,
-                              landmark_fit=options.landmark_fit, folds=int(options.folds),
-                              direction_degree=int(options.direction_degree), side_check=options.side_check)
+                              landmark_fit=options.landmark_fit, folds=options.folds,
+                              direction_degree=options.direction_degree, side_check=options.side_check)
         except Exception as exc:  # isolate: any failure of this job becomes its result
             error = exc
         enter("write")
@@ -270,6 +271,19 @@ def _empty(folder: Path) -> None:
         if p.name == _MARK:
             continue
         shutil.rmtree(p) if p.is_dir() and not p.is_symlink() else p.unlink()
+
+
+def clean_partial(out: Path) -> list[Path]:
+    """Remove the temporary and moved-aside job folders (:func:`_partial_folder`, :func:`_publish`)
+    a killed run left under ``out/subjects``; return what was removed."""
+    removed = []
+    subjects = Path(out) / "subjects"
+    for subject in subjects.iterdir() if subjects.is_dir() else ():
+        for p in subject.iterdir() if subject.is_dir() else ():
+            if p.name.startswith(".") and (_PARTIAL in p.name or _OLD in p.name):
+                _discard(p)
+                removed.append(p)
+    return removed
 
 
 def _discard(path: Path) -> None:
