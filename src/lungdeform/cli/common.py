@@ -76,6 +76,25 @@ def check_tidal_ml(value: float | None, option: str = "--tidal-ml") -> None:
                          f"breathing ≈ 500, a vital capacity 3000–6000), got {value:g}")
 
 
+def check_cycles(cycles: int | None, preset: str | None) -> None:
+    """Refuse ``--cycles`` without ``--preset`` or below 1 (export, track)."""
+    if cycles is not None and preset is None:
+        raise InputError("--cycles applies to --preset only")
+    if cycles is not None and cycles < 1:
+        raise InputError(f"--cycles must be >= 1, got {cycles}")
+
+
+def read_curve(curve: Path):
+    """A ``--curve`` volume CSV (:func:`lungdeform.schedule.read_volume_csv`), saying when its
+    volumes read as absolute and were shifted (export, track)."""
+    from lungdeform.schedule import read_volume_csv
+
+    trace = read_volume_csv(curve)
+    if trace.shifted_ml:
+        typer.echo(f"{curve}: volume_ml reads as absolute; subtracted its minimum {trace.shifted_ml:.1f} mL")
+    return trace
+
+
 #: Exit code of a validation command run with ``--strict`` when a target is not met.
 STRICT_EXIT = 3
 #: Help of ``--side-check/--no-side-check`` (fit, build, cohort).

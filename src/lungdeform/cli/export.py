@@ -40,12 +40,9 @@ def register(apps) -> None:
             raise InputError("--tidal-ml, --period and --cycles do not apply to --curve (the curve file sets them)")
         if preset is not None and period_s is not None:
             raise InputError("--period applies to the plain cycle; a --preset has its own period")
-        if cycles is not None and preset is None:
-            raise InputError("--cycles applies to --preset only")
-        if cycles is not None and cycles < 1:
-            raise InputError(f"--cycles must be >= 1, got {cycles}")
-        from lungdeform.cli.common import check_tidal_ml
+        from lungdeform.cli.common import check_cycles, check_tidal_ml, read_curve
 
+        check_cycles(cycles, preset)
         check_tidal_ml(tidal_ml)
         if preset is not None:
             from lungdeform.presets import get_preset
@@ -53,9 +50,7 @@ def register(apps) -> None:
             chosen = get_preset(preset)  # an unknown name: InputError listing the names
         m = load_model(model)
         if curve is not None:
-            trace = S.read_volume_csv(curve)
-            if trace.shifted_ml:
-                typer.echo(f"{curve}: volume_ml reads as absolute; subtracted its minimum {trace.shifted_ml:.1f} mL")
+            trace = read_curve(curve)
         elif preset is not None:
             params, _curve, trace = S.preset_trace(chosen, cycles or 1, tidal_ml)
             typer.echo(f"preset {chosen.name}: {cycles or 1} × {params.period_s:g} s, PV model end-exhale "

@@ -28,7 +28,7 @@ def register(apps) -> None:
 
         from lungdeform import schedule as S
         from lungdeform import trajectory as T
-        from lungdeform.cli.common import check_tidal_ml, output_dir
+        from lungdeform.cli.common import check_cycles, check_tidal_ml, output_dir, read_curve
         from lungdeform.errors import InputError
         from lungdeform.interior import KIND_TEXT
         from lungdeform.modelfile import load_model
@@ -36,10 +36,7 @@ def register(apps) -> None:
         given = [name for name, v in (("--volume-ml", volume_ml or None), ("--curve", curve), ("--preset", preset)) if v]
         if len(given) > 1:
             raise InputError(f"{' and '.join(given)} are mutually exclusive: give one volume schedule")
-        if cycles is not None and preset is None:
-            raise InputError("--cycles applies to --preset only")
-        if cycles is not None and cycles < 1:
-            raise InputError(f"--cycles must be >= 1, got {cycles}")
+        check_cycles(cycles, preset)
         check_tidal_ml(tidal_ml)
         if tidal_ml is not None and (volume_ml or curve is not None):
             raise InputError("--tidal-ml applies to --preset or the plain cycle")
@@ -57,9 +54,7 @@ def register(apps) -> None:
             source = f"volumes {', '.join(f'{v:g}' for v in volume_ml)} mL (end-exhale {v_ee:.0f} mL)"
         else:
             if curve is not None:
-                trace = S.read_volume_csv(curve)
-                if trace.shifted_ml:
-                    typer.echo(f"{curve}: volume_ml reads as absolute; subtracted its minimum {trace.shifted_ml:.1f} mL")
+                trace = read_curve(curve)
             elif preset is not None:
                 from lungdeform.presets import get_preset
 
