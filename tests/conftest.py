@@ -29,6 +29,14 @@ def data_dir() -> Path:
     return path
 
 
+@pytest.fixture(scope="session")
+def coronacases_001(data_dir):
+    """The real Coronacases 001 lobe map (read once per run; tests must not modify it)."""
+    from lungdeform.image import read_image
+
+    return read_image(require_path(data_dir, "coronacases-lung-lobes", "Coronacases_001_lobes.nii.gz"))
+
+
 def require_path(base: Path, *parts: str) -> Path:
     """``base/parts`` or skip, naming what is missing."""
     path = base.joinpath(*parts)

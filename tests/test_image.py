@@ -9,7 +9,6 @@ from lungdeform.errors import ReadError
 from lungdeform.image import index_to_world, read_image
 from lungdeform.mask import mask_to_surface
 
-from .conftest import require_path
 from .test_mask import MIRRORED, rotation
 
 
@@ -123,11 +122,6 @@ def test_read_dicom_series_directory(tmp_path):
 
 
 # --------------------------------------------------------------------------- real data
-@pytest.fixture(scope="module")
-def coronacases_001(data_dir):
-    return read_image(require_path(data_dir, "coronacases-lung-lobes", "Coronacases_001_lobes.nii.gz"))
-
-
 @pytest.mark.realdata
 def test_coronacases_frame_matches_nibabel(coronacases_001):
     # the real file: ITK's LPS geometry equals nibabel's RAS affine with x and y negated

@@ -143,11 +143,6 @@ def test_label_groups():
 
 
 # --------------------------------------------------------------------------- real data
-@pytest.fixture(scope="module")
-def coronacases_001(data_dir):
-    return read_image(require_path(data_dir, "coronacases-lung-lobes", "Coronacases_001_lobes.nii.gz"))
-
-
 @pytest.mark.realdata
 @pytest.mark.parametrize("name, litres", [("CT_3D_lung_fixed_mask.mha", 3.36), ("CT_3D_lung_moving_mask.mha", 3.97)])
 def test_itk_masks_volumes(data_dir, name, litres):
