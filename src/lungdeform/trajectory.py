@@ -72,15 +72,15 @@ def place_points(model, points, lung: str | None = None, *, limit_mm: float = OU
 def lung_scales(model, delta_ml) -> dict[str, np.ndarray]:
     """Per lung, ``s : (f,) float`` units at which its volume is exactly ``V_EE + share·ΔV``, for
     ``delta_ml : (f,)`` mL of both lungs above end-exhale: the playback of ``lungdeform export``
-    (its tidal weights :func:`lungdeform.export.tidal_weights` times the calibration's units)."""
-    from .export import tidal_weights
+    (whose tidal weights :func:`lungdeform.export.tidal_weights` are these over the calibration's units)."""
+    from .displacement import scale_for_volume
     from .schedule import lung_shares
 
     dv = np.asarray(delta_ml, float).ravel()
     if not np.all(np.isfinite(dv)):
         raise InputError("volumes must be finite mL")
     shares = lung_shares(model)
-    return {name: tidal_weights(lung, shares[name] * dv) * (lung.calibration_ml / lung.unit_ml)
+    return {name: np.array([scale_for_volume(lung.volume_poly, float(shares[name] * v)) for v in dv])
             for name, lung in model.lungs.items()}
 
 
