@@ -11,7 +11,7 @@ src/lungdeform/data/README.md):
 - coronacases-lung-lobes/Coronacases_001_lobes.nii.gz (CC BY 4.0), labels 1,2 -> left,
   3,4,5 -> right -> coronacases_001_left.ply, coronacases_001_right.ply
 
-Each: lungdeform.mask.extract_surface (largest component, cavities filled, 1-voxel pad,
+Each: lungdeform.io.mask.extract_surface (largest component, cavities filled, 1-voxel pad,
 marching cubes at 0.5, world mm LPS, Taubin 10 iterations, decimation to TARGET_VERTICES,
 cleanup), checked with check_surface, written as binary PLY.
 """
@@ -23,9 +23,9 @@ import sys
 import time
 from pathlib import Path
 
-from lungdeform.io import write_mesh
-from lungdeform.image import read_image
-from lungdeform.mask import LOBE_LABELS, extract_surface
+from lungdeform.io.meshfile import write_mesh
+from lungdeform.io.image import read_image
+from lungdeform.io.mask import LOBE_LABELS, extract_surface
 
 TARGET_VERTICES = 3000
 OUT = Path(__file__).resolve().parents[1] / "src" / "lungdeform" / "data"

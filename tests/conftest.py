@@ -32,7 +32,7 @@ def data_dir() -> Path:
 @pytest.fixture(scope="session")
 def coronacases_001(data_dir):
     """The real Coronacases 001 lobe map (read once per run; tests must not modify it)."""
-    from lungdeform.image import read_image
+    from lungdeform.io.image import read_image
 
     return read_image(require_path(data_dir, "coronacases-lung-lobes", "Coronacases_001_lobes.nii.gz"))
 
@@ -48,7 +48,7 @@ def require_path(base: Path, *parts: str) -> Path:
 def ellipsoid_lung(side: str = "left", subdivisions: int = 3):
     """A lung-sized ellipsoid (semi-axes 45 × 70 × 110 mm, ≈ 1.45 L) on the patient's ``side``
     (LPS: left lung at x > 0), for tests that need a plausible closed lung surface."""
-    from lungdeform.mesh import Surface, icosphere
+    from lungdeform.geometry.mesh import Surface, icosphere
 
     s = icosphere(subdivisions, 1.0)
     x = 90.0 if side == "left" else -90.0

@@ -1,4 +1,4 @@
-"""The browser viewer end to end: lungdeform.server + headless Debian Chromium driven by Playwright;
+"""The browser viewer end to end: lungdeform.playback.server + headless Debian Chromium driven by Playwright;
 and the viewer's own unit tests (vitest, node) with the real ``/presets.json``.
 
 Runs ``node tests/browser/viewer.test.mjs`` against a server on a free loopback port (and a second
@@ -19,9 +19,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lungdeform.export import glb_bytes
-from lungdeform.markers import marker_anchors
-from lungdeform.server import ViewerServer, presets_json
+from lungdeform.playback.export import glb_bytes
+from lungdeform.playback.markers import marker_anchors
+from lungdeform.playback.server import ViewerServer, presets_json
 from tests.browser.support import CHROMIUM, REPO, node_modules_or_skip, run_node, two_lungs
 
 
@@ -33,7 +33,7 @@ def test_viewer_in_headless_chromium():
     model = two_lungs(3)
     anchors = marker_anchors(model, np.array([[90.0, 10.0, -20.0]]), ["tumour"])
     glb = glb_bytes(model, markers=anchors)
-    # what the page must show: the presets of lungdeform.presets as served, and the volume (both
+    # what the page must show: the presets of lungdeform.breathing.presets as served, and the volume (both
     # lungs, mL) each plays at t = 1 s, tidal · s(1 s), interpolated here from the served samples
     served = json.loads(presets_json())["presets"]
     expect = {"names": [p["name"] for p in served],

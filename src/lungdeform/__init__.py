@@ -4,7 +4,7 @@ The method is described equation by equation in the project's METHOD notes; ever
 equations it implements. Heavy optional libraries are imported lazily where they are used.
 """
 
-from .errors import (
+from lungdeform.errors import (
     ConvergenceError,
     InputError,
     LungdeformError,
@@ -14,7 +14,7 @@ from .errors import (
     ReadError,
     UnitsError,
 )
-from .mesh import Surface, check_surface
+from lungdeform.geometry.mesh import Surface, check_surface
 
 __version__ = "0.4.0"
 

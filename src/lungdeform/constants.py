@@ -29,7 +29,7 @@ GRAVITY = {
 
 def table_constants(side: str) -> np.ndarray:
     """``c : (9,) float``, c1…c9 of Table I for ``side`` ('left' or 'right')."""
-    from .errors import InputError
+    from lungdeform.errors import InputError
 
     if side not in TABLE_I:
         raise InputError(f"side must be 'left' or 'right', got {side!r}")
@@ -38,7 +38,7 @@ def table_constants(side: str) -> np.ndarray:
 
 def gravity_vector(orientation) -> np.ndarray:
     """Unit gravity ``(3,) float`` in LPS from a name in :data:`GRAVITY` or a 3-vector."""
-    from .errors import InputError
+    from lungdeform.errors import InputError
 
     if isinstance(orientation, str):
         key = orientation.strip().lower()

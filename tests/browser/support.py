@@ -18,7 +18,7 @@ CHROMIUM = os.environ.get("CHROMIUM", "/usr/bin/chromium")
 
 def ellipsoid(side: str, subdivisions: int = 3):
     """A lung-sized ellipsoid (semi-axes 60, 80, 110 mm) centred at x = ±90 mm, LPS."""
-    from lungdeform.mesh import Surface, icosphere
+    from lungdeform.geometry.mesh import Surface, icosphere
 
     s = icosphere(subdivisions)
     centre = np.array([90.0 if side == "left" else -90.0, 0.0, 0.0])
@@ -28,7 +28,7 @@ def ellipsoid(side: str, subdivisions: int = 3):
 @lru_cache(maxsize=4)
 def two_lungs(subdivisions: int = 3):
     """A built two-lung model (Table I constants, supine), cached for the session."""
-    from lungdeform.model import Model, build_lung
+    from lungdeform.model.lung import Model, build_lung
 
     lungs = {side: build_lung(ellipsoid(side, subdivisions), side) for side in ("left", "right")}
     return Model(lungs, {"source": "test ellipsoids", "subdivisions": subdivisions})

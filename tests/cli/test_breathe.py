@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from lungdeform.cli.main import main
-from tests.test_trace import breath, write_marker_csv
+from tests.breathing.test_trace import breath, write_marker_csv
 
 
 def _synthetic_trace(path, rng, seconds=64.0, period=4.0):

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from lungdeform.cli.main import main
-from lungdeform.io import write_mesh
-from lungdeform.modelfile import load_model
+from lungdeform.io.meshfile import write_mesh
+from lungdeform.io.modelfile import load_model
 from tests.conftest import ellipsoid_lung
 
 

@@ -11,8 +11,8 @@ import time
 import pytest
 
 from lungdeform.cli.main import main
-from tests.test_cohort import population_stub  # noqa: F401 (fixtures)
-from tests.test_job import make_cohort, quick_report  # noqa: F401 (fixtures)
+from tests.cohort.test_runner import population_stub  # noqa: F401 (fixtures)
+from tests.cohort.test_job import make_cohort, quick_report  # noqa: F401 (fixtures)
 
 FAST = ["--evaluations", "60", "--no-baselines"]
 
@@ -172,7 +172,7 @@ def test_cohort_on_the_real_itk_pair(tmp_path, capsys, data_dir, quick_report): 
 def test_cohort_options_reach_every_job(tmp_path, monkeypatch):
     # the command's fit options become the jobs' FitOptions (part of their digest): defaults, then
     # --stiffness and --no-side-check (truth: the options object run_cohort receives)
-    import lungdeform.cohort as C
+    import lungdeform.cohort.runner as C
 
     seen = []
 

@@ -6,12 +6,12 @@ import re
 import numpy as np
 import pytest
 
-from lungdeform.breathing import simulate
+from lungdeform.breathing.pv import simulate
 from lungdeform.cli.main import main
 from lungdeform.constants import STEPS_PER_S
-from lungdeform.mesh import signed_volume
-from lungdeform.modelfile import load_model
-from lungdeform.presets import get_preset
+from lungdeform.geometry.mesh import signed_volume
+from lungdeform.io.modelfile import load_model
+from lungdeform.breathing.presets import get_preset
 
 
 def test_demo_plays_the_normal_preset_and_writes_everything(tmp_path, capsys):
@@ -67,7 +67,7 @@ def test_demo_plays_the_normal_preset_and_writes_everything(tmp_path, capsys):
     # the saved model reproduces a frame: the peak frame's mesh volume from model.npz alone
     peak = int(np.argmax(dv))
     for name, lung in model.lungs.items():
-        from lungdeform.displacement import scale_for_volume
+        from lungdeform.model.displacement import scale_for_volume
 
         share = ee[name] / total_ee
         x = lung.positions_at(scale_for_volume(lung.volume_poly, share * dv[peak]))

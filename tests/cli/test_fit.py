@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from lungdeform.cli.main import main
-from lungdeform.io import write_mesh
-from lungdeform.model import build_lung
-from lungdeform.modelfile import load_model
+from lungdeform.io.meshfile import write_mesh
+from lungdeform.model.lung import build_lung
+from lungdeform.io.modelfile import load_model
 from tests.conftest import ellipsoid_lung
 
 TRUE = np.array([0.2, 1.5, 0.4, 0.8, 0.9, 1.8, 0.3, 1.0, 0.5])
@@ -53,7 +53,7 @@ def test_given_volumes_fix_the_changes_and_metrics_are_strict_json(tmp_path, pai
     # truth: given volumes 100 mL off the measured ones in absolute terms but with the measured
     # change keep the model's end-exhale volume (its surface's) and its unit (the change); the
     # metrics parse with a strict JSON reader (no bare NaN, e.g. landmark errors without landmarks)
-    from lungdeform.io import load_surface
+    from lungdeform.io.meshfile import load_surface
 
     a, b, _ = pair
     va, vb = (load_surface(p)[0].volume_ml for p in (a, b))
@@ -118,7 +118,7 @@ def test_inconsistent_spacing(tmp_path, capsys, monkeypatch):
     # segmentation never runs)
     import SimpleITK as sitk
 
-    import lungdeform.mask as M
+    import lungdeform.io.mask as M
 
     extracted = []
     real = M.extract_surface
@@ -138,9 +138,9 @@ def test_inconsistent_spacing(tmp_path, capsys, monkeypatch):
 
 
 def test_landmarks_outside_image():
-    from lungdeform.pipeline import check_landmarks
+    from lungdeform.fit.pipeline import check_landmarks
     from lungdeform.errors import InputError
-    from lungdeform.image import Image
+    from lungdeform.io.image import Image
 
     img = Image(np.zeros((10, 10, 10), np.uint8), np.ones(3), np.zeros(3), np.eye(3), "img.mha")
     check_landmarks(np.array([[0.0, 0, 0], [9.4, 9.4, 9.4]]), img, "lm.txt")
@@ -153,8 +153,8 @@ def test_fit_with_landmarks_is_held_out(tmp_path, pair, capsys):
     # the headline model is the surface fit with the interior landmark correction, scored on held-out
     # landmarks; the surface-driven field alone, the landmark-informed fit and references are
     # reported beside it, each with its protocol
-    from lungdeform.landmarks import write_elastix_points
-    from lungdeform.sliding import surface_weights
+    from lungdeform.io.landmarks import write_elastix_points
+    from lungdeform.interior.sliding import surface_weights
 
     a, b, lung = pair
     u = build_lung(lung, "right", constants=TRUE, calibration_ml=200.0, unit_ml=200.0).displacement
@@ -193,7 +193,7 @@ def test_align_none_and_joint_against_a_known_translation(tmp_path, pair, capsys
     # --align joint must find the shift back (applied translation = −shift; the model form is exact,
     # measured error 0.001 mm, the apex alignment alone 1.1 mm off; asserted within 0.1 mm) and then
     # fit the surface to near zero (measured 0.0007 mm).
-    from lungdeform.io import load_surface
+    from lungdeform.io.meshfile import load_surface
 
     a, b, lung = pair
     shift = np.array([1.5, -2.0, 2.5])
@@ -224,9 +224,9 @@ def test_read_input_takes_the_requested_side_of_a_lobe_map(tmp_path):
     # A lobe label map (coronacases convention: 1-2 left, 3-5 right) holds both lungs; the larger
     # right lung used to win for --side left. Truth: the side's lobe voxels lie at LPS x > 0 (left)
     # or x < 0 (right), and its surface volume matches their voxel count.
-    from lungdeform.pipeline import read_input
-    from tests.test_mask import LOBE_SPACING as sp
-    from tests.test_mask import write_lobe_map
+    from lungdeform.fit.pipeline import read_input
+    from tests.io.test_mask import LOBE_SPACING as sp
+    from tests.io.test_mask import write_lobe_map
 
     path = tmp_path / "lobes.nii.gz"
     a = write_lobe_map(path)

@@ -9,9 +9,9 @@ import pytest
 import SimpleITK as sitk
 
 from lungdeform.cli import main as cli_main
-from lungdeform.image import read_image
+from lungdeform.io.image import read_image
 from tests.conftest import require_path
-from tests.test_segment import phantom
+from tests.fit.test_segment import phantom
 
 
 @pytest.fixture
@@ -96,8 +96,8 @@ def test_popi_archive(data_dir, tmp_path, run, monkeypatch):
 
 
 def test_segment_with_surfaces(tmp_path, rng, run):
-    from lungdeform.io import read_mesh
-    from lungdeform.mesh import signed_volume
+    from lungdeform.io.meshfile import read_mesh
+    from lungdeform.geometry.mesh import signed_volume
 
     img, _ = phantom(rng, gap_mm=10.0)
     ct = _write_ct(img, tmp_path / "ct.mha")
@@ -117,7 +117,7 @@ def _dicom_phantom(folder, rng):
     """The phantom CT as a DICOM series in ``folder`` (locale restored: GDCM's writer resets it)."""
     import locale
 
-    from tests.test_ct import _write_dicom_series
+    from tests.fit.test_ct import _write_dicom_series
 
     saved = locale.setlocale(locale.LC_ALL)
     img, _ = phantom(rng, gap_mm=10.0)

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from lungdeform.cli.main import main
-from lungdeform.modelfile import save_model
-from lungdeform.trajectory import lung_scales
+from lungdeform.io.modelfile import save_model
+from lungdeform.playback.trajectory import lung_scales
 from tests.browser.support import two_lungs
 
 

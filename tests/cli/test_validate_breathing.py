@@ -86,7 +86,7 @@ def test_validate_breathing_real_traces(data_dir, tmp_path):
 def test_validate_breathing_finds_variants_recursively(tmp_path, rng, capsys):
     """Traces under sub-folders, upper-case extensions, a repeated file name, a VXP 1.7 without
     marks, a BOM/dot-decimal CSV, plus files that must each be skipped with one line."""
-    from tests.test_trace import breath, write_vxp
+    from tests.breathing.test_trace import breath, write_vxp
 
     data = tmp_path / "data"
     (data / "rpm" / "s1").mkdir(parents=True)
@@ -132,7 +132,7 @@ def test_validate_breathing_nothing_usable_is_one_line(tmp_path, capsys):
 def test_validate_breathing_all_scores_nan(tmp_path, rng, capsys, monkeypatch):
     # every score undefined (NaN: e.g. no regular held-out cycle to score): the medians are null in
     # metrics.json and "n/a" in the summary, never a TypeError from formatting None
-    import lungdeform.holdout as holdout
+    import lungdeform.breathing.holdout as holdout
 
     real = holdout.evaluate
 

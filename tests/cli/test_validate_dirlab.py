@@ -8,7 +8,7 @@ import pytest
 
 from lungdeform.cli import main as cli_main
 from tests.conftest import require_path
-from tests.test_dirlab import make_case_folder
+from tests.validate.test_dirlab import make_case_folder
 
 
 @pytest.fixture
@@ -80,7 +80,7 @@ def test_real_dirlab(data_dir, tmp_path, run):
 @pytest.mark.realdata
 def test_real_cases_in_archive_layouts_run_with_notes(data_dir, tmp_path, run, capsys):
     """Real cases 1–5 copied (in tmp_path only) into the names/layouts of the archive's cases 6–10."""
-    from tests.test_dirlab import make_real_variant_layout
+    from tests.validate.test_dirlab import make_real_variant_layout
 
     root = tmp_path / "data"
     make_real_variant_layout(require_path(data_dir, "dirlab-4dct-landmarks"), root)
@@ -125,7 +125,7 @@ def test_real_cases_in_archive_layouts_run_with_notes(data_dir, tmp_path, run, c
 def test_real_variant_layout_errors_are_one_line(data_dir, tmp_path, run, capsys, mutate, pattern):
     import re
 
-    from tests.test_dirlab import make_real_variant_layout
+    from tests.validate.test_dirlab import make_real_variant_layout
 
     root = tmp_path / "data"
     make_real_variant_layout(require_path(data_dir, "dirlab-4dct-landmarks"), root)
@@ -140,7 +140,7 @@ def test_real_variant_layout_errors_are_one_line(data_dir, tmp_path, run, capsys
 
 def test_archive_layout_cases_1_to_10(tmp_path, rng, run, capsys):
     """Synthetic files for cases 1–10 in the archives' layouts; voxel_spacing.csv lists 1–5 only."""
-    from tests.test_dirlab import ARCHIVE_LAYOUT, make_archive_1_10
+    from tests.validate.test_dirlab import ARCHIVE_LAYOUT, make_archive_1_10
 
     data = tmp_path / "data"
     truth = make_archive_1_10(data, rng)
@@ -173,7 +173,7 @@ def test_archive_layout_cases_1_to_10(tmp_path, rng, run, capsys):
 
 
 def test_data_folder_is_one_case_folder(tmp_path, rng, run, capsys):
-    from tests.test_dirlab import make_archive_1_10
+    from tests.validate.test_dirlab import make_archive_1_10
 
     truth = make_archive_1_10(tmp_path / "data", rng, spacing_rows=range(1, 11))
     out = tmp_path / "out"

@@ -53,7 +53,7 @@ def test_itk_pair_real_data(data_dir, tmp_path):
                                      "model landmark_mean_mm below the landmark-informed references"}
     # the saved model's interior field leaves out the crop face (the mask touches the image's
     # medial face; the model's motion there was never fitted)
-    from lungdeform.modelfile import load_model
+    from lungdeform.io.modelfile import load_model
 
     lung = load_model(out / "model.npz").lungs["right"]
     assert lung.interior_vertices is not None and 0 < (~lung.interior_vertices).sum() < 0.2 * lung.n_vertices
@@ -64,7 +64,7 @@ def test_itk_pair_real_data(data_dir, tmp_path):
 
     import numpy as np
 
-    from lungdeform.landmarks import read_elastix_points
+    from lungdeform.io.landmarks import read_elastix_points
 
     folder = data_dir / "itk-right-lung-two-volumes"
     xf = np.array(m["alignment"][0]["applied"]["matrix"])
@@ -78,8 +78,8 @@ def test_itk_pair_real_data(data_dir, tmp_path):
     # landmarks better than the thin-plate correction of schema 2, on every split tried (measured
     # 2026-11-21 with every default, ten 5-fold splits: 1.90-2.07 mm, mean 1.97, against 2.00-2.25,
     # mean 2.08; with this test's faster fit, seeds 0-2: 1.97/2.01/2.17 against 2.00/2.04/2.28)
-    from lungdeform.crossval import landmark_folds
-    from lungdeform.interior import correction_solvers, held_out_positions, held_out_sliding
+    from lungdeform.interior.field import landmark_folds
+    from lungdeform.interior.field import correction_solvers, held_out_positions, held_out_sliding
 
     on = lung.interior_vertices
     s = lung.scale_for(m["volumes_ml"][1])
@@ -97,7 +97,7 @@ def test_itk_pair_real_data(data_dir, tmp_path):
     # and the headline is that sliding correction: recomputed here on the command's folds (3, seed
     # 0) it gives the reported figure; the saved model carries it (its smoothing one of the
     # candidates, in mm) and, in sample, moves the landmarks onto their observed positions
-    from lungdeform.interior import CORRECTION_SMOOTHING_MM
+    from lungdeform.interior.field import CORRECTION_SMOOTHING_MM
 
     again = held_out_sliding([lm1 - lm0], [s], unit, landmark_folds(len(lm0), 3), solvers)[0]
     assert np.linalg.norm(again - lm1, axis=1).mean() == pytest.approx(m["model"]["landmark_mean_mm"], abs=1e-6)

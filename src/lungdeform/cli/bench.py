@@ -21,7 +21,7 @@ def _write_json(path: Path, results: list[dict], kind: str) -> None:
 
 
 def _surfaces(vertices: list[int]):
-    from lungdeform.bench import lung_with_vertices
+    from lungdeform.bench.kernels import lung_with_vertices
     from lungdeform.errors import InputError
 
     for n in vertices:
@@ -40,7 +40,7 @@ def register(apps) -> None:
         push_tol: float = typer.Option(1e-8, "--push-tol", help="Push loop stops at max|P| ≤ tol·max|f|."),
     ):
         """Push loop (the paper's algorithm) against the sparse solve of its fixed point."""
-        from lungdeform.bench import bench_solve
+        from lungdeform.bench.kernels import bench_solve
 
         results = []
         for s in _surfaces(vertices):
@@ -65,7 +65,7 @@ def register(apps) -> None:
         frames: int = typer.Option(200, "--frames", help="Frames timed per size (median reported)."),
     ):
         """Per-frame playback (x += Δs·u, float32) against a memcpy of the same bytes."""
-        from lungdeform.bench import bench_playback
+        from lungdeform.bench.kernels import bench_playback
 
         results = []
         for s in _surfaces(vertices):

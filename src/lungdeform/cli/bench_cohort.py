@@ -1,8 +1,8 @@
 """``lungdeform bench cohort --subjects N --workers 1 --workers 2 [--json FILE]``.
 
 Throughput (subjects per minute) of the cohort fit, in one run: a plain serial loop of
-:func:`lungdeform.job.fit_job` in this process (the yardstick), then the Dask path
-(:func:`lungdeform.cohort.run_cohort`, a fresh local cluster of worker processes) at each worker
+:func:`lungdeform.cohort.job.fit_job` in this process (the yardstick), then the Dask path
+(:func:`lungdeform.cohort.runner.run_cohort`, a fresh local cluster of worker processes) at each worker
 count. The Dask figures include everything a user waits for: cluster start-up, worker imports,
 scheduling and the transfer of results. The ratio to the serial loop is what to compare across
 machines (this one is shared and noisy).
@@ -31,11 +31,11 @@ def make_bench_cohort(folder: Path, subjects: int, *, vertices: int | None = Non
     constants by +:data:`INSPIRATION_ML` mL (the second scan). Volumes are left to be measured.
     """
     from lungdeform.atomic import write_text
-    from lungdeform.bench import lung_with_vertices
+    from lungdeform.bench.kernels import lung_with_vertices
     from lungdeform.data import default_lungs
-    from lungdeform.io import write_mesh
-    from lungdeform.mesh import Surface
-    from lungdeform.model import build_lung
+    from lungdeform.io.meshfile import write_mesh
+    from lungdeform.geometry.mesh import Surface
+    from lungdeform.model.lung import build_lung
 
     rng = np.random.default_rng(seed)
     lungs = default_lungs()
@@ -58,9 +58,9 @@ def make_bench_cohort(folder: Path, subjects: int, *, vertices: int | None = Non
 
 def bench_cohort(manifest: Path, work: Path, workers: list[int], options, *, progress=None) -> list[dict]:
     """Serial loop then Dask at each worker count on the same cohort; one record per run."""
-    from lungdeform.cohort import run_cohort
-    from lungdeform.job import fit_job
-    from lungdeform.manifest import read_manifest
+    from lungdeform.cohort.runner import run_cohort
+    from lungdeform.cohort.job import fit_job
+    from lungdeform.cohort.manifest import read_manifest
 
     say = progress or (lambda _m: None)
     m = read_manifest(manifest)
@@ -100,10 +100,10 @@ def register(apps) -> None:
         baselines: bool = typer.Option(False, "--baselines/--no-baselines", help="Measure the baselines in each fit too."),
     ):
         """Cohort throughput (subjects/min): a serial loop against Dask at each worker count, same run."""
-        from lungdeform.cli.bench import _write_json
-        from lungdeform.cli.common import say
+        from .bench import _write_json
+        from .common import say
         from lungdeform.errors import InputError
-        from lungdeform.job import FitOptions
+        from lungdeform.cohort.job import FitOptions
 
         if subjects < 1:
             raise InputError(f"--subjects must be at least 1, got {subjects}")

@@ -23,7 +23,7 @@ def upsampled(lung, levels: int):
 
     import numpy as np
 
-    from lungdeform.mesh import Surface, subdivide, unique_edges
+    from lungdeform.geometry.mesh import Surface, subdivide, unique_edges
 
     v, f = lung.surface.vertices, lung.surface.faces
     per_vertex = {"stiffness": lung.stiffness[:, None], "directions": lung.directions,
@@ -46,9 +46,9 @@ def model_with_vertices(total: int, say):
     import numpy as np
 
     from lungdeform.data import default_lungs
-    from lungdeform.remesh import decimate
-    from lungdeform.mesh import Surface
-    from lungdeform.model import Model, build_lung
+    from lungdeform.geometry.remesh import decimate
+    from lungdeform.geometry.mesh import Surface
+    from lungdeform.model.lung import Model, build_lung
 
     lungs = {}
     for side, surf in default_lungs().items():
@@ -81,12 +81,12 @@ def register(apps) -> None:
         import numpy as np
 
         from lungdeform.atomic import write_json
-        from lungdeform.bench import bench_playback
-        from lungdeform.cli.common import say
+        from lungdeform.bench.kernels import bench_playback
+        from .common import say
         from lungdeform.errors import InputError
-        from lungdeform.export import glb_bytes
-        from lungdeform.mesh import Surface
-        from lungdeform.server import ViewerServer
+        from lungdeform.playback.export import glb_bytes
+        from lungdeform.geometry.mesh import Surface
+        from lungdeform.playback.server import ViewerServer
 
         for n in vertices:
             if n < 1000:

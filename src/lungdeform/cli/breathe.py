@@ -3,7 +3,7 @@
 Writes into ``--out``: curve.csv (t_s, volume_ml, flow_ml_s, pressure_cmH2O), metrics.json, and PNG
 plots volume.png (volume against time), pv_loop.png (P_mus against volume) and residuals.png (fit
 residuals; for a preset, the ODE integrator against the exact periodic solution). The curve drives
-model playback as s(t) = (V(t) − V_EE)/ΔV (:func:`lungdeform.breathing.scale_from_volume`).
+model playback as s(t) = (V(t) − V_EE)/ΔV (:func:`lungdeform.breathing.pv.scale_from_volume`).
 """
 
 from __future__ import annotations
@@ -91,8 +91,8 @@ METRICS_SAMPLES_PER_BREATH = 200
 def run_preset(name: str, out: Path, cycles: int, fs_hz: float) -> dict:
     import numpy as np
 
-    from lungdeform import breathing as br
-    from lungdeform.presets import get_preset
+    from lungdeform.breathing import pv as br
+    from lungdeform.breathing.presets import get_preset
 
     from lungdeform.errors import InputError
 
@@ -145,8 +145,8 @@ def fitted_curve(fit, anchors):
     """The fitted model over the fitted cycles as a BreathingCurve (per-cycle gain/offset applied)."""
     import numpy as np
 
-    from lungdeform import breathing as br
-    from lungdeform import inversion as inv
+    from lungdeform.breathing import pv as br
+    from lungdeform.breathing import inversion as inv
 
     p = fit.params
     t = fit.t_s
@@ -166,10 +166,10 @@ def fitted_curve(fit, anchors):
 def run_fit(path: Path, out: Path, tidal_volume_ml: float, train_fraction: float, progress=None) -> dict:
     import numpy as np
 
-    from lungdeform import inversion as inv
-    from lungdeform.holdout import calibrate, evaluate
-    from lungdeform.stream import StreamingVolumeEstimator, offline_volume, replay, signal_delay_s
-    from lungdeform.trace import read_trace, resample
+    from lungdeform.breathing import inversion as inv
+    from lungdeform.breathing.holdout import calibrate, evaluate
+    from lungdeform.breathing.stream import StreamingVolumeEstimator, offline_volume, replay, signal_delay_s
+    from lungdeform.breathing.trace import read_trace, resample
 
     trace = read_trace(path)
     res = evaluate(trace, tidal_volume_ml=tidal_volume_ml, train_fraction=train_fraction, progress=progress)
@@ -246,7 +246,7 @@ def register(apps) -> None:
             typer.echo(f"preset {m['preset']['name']}: V_T {m['tidal_volume_ml']:.0f} mL, "
                        f"period {m['preset']['params']['period_s']:.2f} s, {settled}")
         else:
-            from lungdeform.cli.common import say
+            from .common import say
 
             m = run_fit(fit, out, tidal_volume_ml, train_fraction, progress=say)
             for fix in m.get("fixes", []):

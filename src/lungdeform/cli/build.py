@@ -7,7 +7,7 @@ from typing import Optional
 
 import typer
 
-from lungdeform.modelfile import provenance
+from lungdeform.io.modelfile import provenance
 
 from .common import SIDE_CHECK_HELP, check_tidal_ml, parse_orientation, say
 
@@ -30,10 +30,10 @@ def register(apps) -> None:
         d_min: float = typer.Option(1.0, "--d-min", help="Minimum transfer distance (mm)."),
     ):
         """Build a breathing lung model from one or two lung surfaces."""
-        from lungdeform import io
+        from lungdeform.io import meshfile as io
         from lungdeform.errors import InputError
-        from lungdeform.model import build_model
-        from lungdeform.modelfile import save_model
+        from lungdeform.model.lung import build_model
+        from lungdeform.io.modelfile import save_model
 
         check_tidal_ml(tidal_ml)  # before the (slow) reading, with the options' own names
         if solver not in SOLVERS:
@@ -73,15 +73,15 @@ SOLVERS = ("bicgstab", "gmres", "direct")
 
 def resolve_sides(surfaces, given: list[str] | None, check: bool = True) -> list[str]:
     """Sides from --side, from names ending in -left/-right, from position (two lungs) or from the
-    shape (one lung: :func:`lungdeform.frame.side_from_shape`). Each lung's side is checked
-    against its shape (:func:`lungdeform.frame.check_side`) unless ``check`` is False.
+    shape (one lung: :func:`lungdeform.geometry.frame.side_from_shape`). Each lung's side is checked
+    against its shape (:func:`lungdeform.geometry.frame.check_side`) unless ``check`` is False.
 
     Given or named sides of a left and a right surface are checked against their positions: in
     LPS the left lung lies at larger x. A pair the other way round (sides or labels swapped, or
     meshes in RAS) is refused rather than built with the wrong sides and the wrong gravity frame.
     """
     from lungdeform.errors import InputError
-    from lungdeform.frame import SIDES, check_side, clear_side, guess_sides
+    from lungdeform.geometry.frame import SIDES, check_side, clear_side, guess_sides
 
     by_position = False
     if given:
@@ -119,7 +119,7 @@ def resolve_sides(surfaces, given: list[str] | None, check: bool = True) -> list
 
 def stiffness_field(spec: str, surface, gravity):
     """Per-vertex moduli from the --stiffness option (None = uniform)."""
-    from lungdeform import stiffness as st
+    from lungdeform.model import stiffness as st
     from lungdeform.constants import gravity_vector
     from lungdeform.errors import InputError
 

@@ -1,7 +1,7 @@
 """``lungdeform cohort MANIFEST.csv --out DIR``: fit every lung of a cohort on Dask, resumably.
 
-The manifest (:mod:`lungdeform.manifest`) is checked in full before any work starts. Each lung is
-fitted by :func:`lungdeform.job.fit_job` into ``DIR/subjects/<subject>/<side>/`` (written
+The manifest (:mod:`lungdeform.cohort.manifest`) is checked in full before any work starts. Each lung is
+fitted by :func:`lungdeform.cohort.job.fit_job` into ``DIR/subjects/<subject>/<side>/`` (written
 atomically); a summary goes to ``DIR/cohort.json`` and population statistics next to it.
 
 Exit status: 0 when at least one job succeeded (failed jobs are listed; their folders hold
@@ -17,9 +17,9 @@ from typing import Optional
 
 import typer
 
-from lungdeform.cli.common import DIRECTION_DEGREE_HELP, SIDE_CHECK_HELP
+from .common import DIRECTION_DEGREE_HELP, SIDE_CHECK_HELP
 
-#: Bar labels of the stages (lungdeform.job.STAGES).
+#: Bar labels of the stages (lungdeform.cohort.job.STAGES).
 STAGE_LABELS = {"read": "read / segment", "align": "align", "fit": "fit + measure", "write": "write"}
 MAX_NOTES = 5
 
@@ -93,7 +93,7 @@ class Display:
 
     @staticmethod
     def _stages():
-        from lungdeform.job import STAGES
+        from lungdeform.cohort.job import STAGES
 
         return STAGES
 
@@ -138,10 +138,10 @@ def register(apps) -> None:
 
         Exit 0 if at least one job succeeded (failures listed), 1 if all failed, 2 for a bad
         manifest, 130 when interrupted (re-run the same command to resume)."""
-        from lungdeform.cli.common import output_dir, progress_enabled
-        from lungdeform.cohort import run_cohort
-        from lungdeform.job import FitOptions
-        from lungdeform.manifest import read_manifest
+        from .common import output_dir, progress_enabled
+        from lungdeform.cohort.runner import run_cohort
+        from lungdeform.cohort.job import FitOptions
+        from lungdeform.cohort.manifest import read_manifest
 
         m = read_manifest(manifest)  # every problem reported before any work starts (exit 2)
         options = FitOptions(max_evaluations=evaluations, baselines=baselines, align=align,

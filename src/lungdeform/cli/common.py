@@ -85,9 +85,9 @@ def check_cycles(cycles: int | None, preset: str | None) -> None:
 
 
 def read_curve(curve: Path):
-    """A ``--curve`` volume CSV (:func:`lungdeform.schedule.read_volume_csv`), saying when its
+    """A ``--curve`` volume CSV (:func:`lungdeform.playback.schedule.read_volume_csv`), saying when its
     volumes read as absolute and were shifted (export, track)."""
-    from lungdeform.schedule import read_volume_csv
+    from lungdeform.playback.schedule import read_volume_csv
 
     trace = read_volume_csv(curve)
     if trace.shifted_ml:
@@ -102,4 +102,4 @@ SIDE_CHECK_HELP = ("Check each lung's side against its shape (the concave medial
                    "lung whose shape misleads the check.")
 #: Help of ``--direction-degree`` (fit, validate itk-pair, cohort).
 DIRECTION_DEGREE_HELP = ("Degree of the smooth correction of the paper's directions fitted to the surfaces "
-                         "(lungdeform.direction_correction; 0: the paper's directions only).")
+                         "(lungdeform.fit.direction_correction; 0: the paper's directions only).")

@@ -16,13 +16,13 @@ def register(apps) -> None:
     @apps.root.command("demo")
     def demo(
         out: Path = typer.Option(Path("demo-out"), "--out", "-o", help="Output folder."),
-        preset: str = typer.Option("normal", "--preset", help="Breathing preset of the PV model (lungdeform.presets, as in 'lungdeform breathe --preset'); an unknown name lists them."),
+        preset: str = typer.Option("normal", "--preset", help="Breathing preset of the PV model (lungdeform.breathing.presets, as in 'lungdeform breathe --preset'); an unknown name lists them."),
         duration_s: float | None = typer.Option(None, "--duration", help="Length played (s); default one breath of the preset."),
         tidal_ml: float | None = typer.Option(None, "--tidal-ml", help="Tidal volume, both lungs (mL); default the preset's."),
         orientation: str = typer.Option("supine", "--orientation", help="supine, prone, upright, left-decubitus, right-decubitus or 'x,y,z'."),
     ):
         """Build both embedded lungs (Table I, supine) and play one breath of a PV-model preset."""
-        from lungdeform.demo import run_demo
+        from lungdeform.playback.demo import run_demo
         from lungdeform.errors import InputError
 
         check_tidal_ml(tidal_ml)

@@ -1,7 +1,7 @@
 """``lungdeform fit``: fit a lung model to surfaces, masks or CTs at two or more volumes.
 
 The pipeline itself (reading, alignment, fits, baselines, outputs) is
-:func:`lungdeform.pipeline.run_fit`; this module parses the options and prints the table.
+:func:`lungdeform.fit.pipeline.run_fit`; this module parses the options and prints the table.
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from pathlib import Path
 
 import typer
 
-from lungdeform.cli.common import DIRECTION_DEGREE_HELP, SIDE_CHECK_HELP
+from .common import DIRECTION_DEGREE_HELP, SIDE_CHECK_HELP
 
 
 def register(apps) -> None:
@@ -36,9 +36,9 @@ def register(apps) -> None:
                                   "none: inputs already in one frame (e.g. synthetic)."),
     ) -> None:
         """Fit c1…c9 of one lung to two or more volumes; write the model, metrics and an HTML report."""
-        from lungdeform.cli.common import output_dir, say
+        from .common import output_dir, say
         from lungdeform.errors import InputError
-        from lungdeform.pipeline import run_fit
+        from lungdeform.fit.pipeline import run_fit
 
         if evaluations < 1:
             raise InputError(f"--evaluations must be ≥ 1, got {evaluations}")

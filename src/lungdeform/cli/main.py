@@ -71,7 +71,7 @@ def make_app() -> typer.Typer:
                                      callback=_print_version),
         verbose: bool = typer.Option(False, "--verbose", "-v", help="Show progress even when stderr is not a terminal."),
     ):
-        from lungdeform.cli.common import VERBOSE
+        from .common import VERBOSE
 
         VERBOSE["on"] = True if verbose else None
 

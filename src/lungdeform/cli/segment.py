@@ -15,7 +15,7 @@ def register(apps) -> None:
         ct: Path = typer.Argument(..., help="CT in HU: NIfTI/MHA/NRRD, a DICOM folder (or one of its files, or a parent folder of one series), or a .tar.gz/.zip of one, or a dataset folder holding only such an archive."),
         out: Path = typer.Option(..., "--out", help="Output folder."),
         fmt: str = typer.Option("nii.gz", "--format", help="Mask format: nii.gz or mha."),
-        surfaces: bool = typer.Option(False, "--surfaces/--no-surfaces", help="Also build left/right lung surfaces (STL) with lungdeform.mask."),
+        surfaces: bool = typer.Option(False, "--surfaces/--no-surfaces", help="Also build left/right lung surfaces (STL) with lungdeform.io.mask."),
         target_vertices: int = typer.Option(20000, "--target-vertices", help="Vertex budget per surface."),
         downsample: int = typer.Option(1, "--downsample", help="In-plane block-mean factor before segmenting (speed)."),
     ) -> None:
@@ -23,9 +23,9 @@ def register(apps) -> None:
         import json
         import time
 
-        from lungdeform import ct as C
-        from lungdeform import segment as S
-        from lungdeform.cli.common import output_dir, say
+        from lungdeform.fit import ct as C
+        from lungdeform.fit import segment as S
+        from .common import output_dir, say
         from lungdeform.errors import InputError
         from lungdeform.atomic import jsonable, write_bytes
 
@@ -43,7 +43,7 @@ def register(apps) -> None:
         t_seg = time.perf_counter() - t0 - t_read
         surf_info, meshes = {}, {}
         if surfaces:  # built before anything is written: a failure leaves no partial output
-            from lungdeform.mask import extract_surface
+            from lungdeform.io.mask import extract_surface
 
             for side in ("left", "right"):
                 say(f"surface of the {side} lung")
@@ -57,7 +57,7 @@ def register(apps) -> None:
             written.append(C.write_mask(seg.mask_image(side), out / f"{side}_lung.{fmt}"))
         written.append(S.overlay_png(seg, out / "overlay.png"))
         if meshes:
-            from lungdeform.io import write_mesh
+            from lungdeform.io.meshfile import write_mesh
 
             for side, surf in meshes.items():
                 written.append(write_mesh(out / f"{side}_lung.stl", surf.vertices, surf.faces))

@@ -1,7 +1,7 @@
 """``lungdeform synth-cohort``: a synthetic cohort with known truth (issue 6 item 3).
 
 Writes lung surfaces deformed by the model itself from the shipped real lung shapes, a
-``manifest.csv`` for ``lungdeform cohort`` and ``truth.json`` (see :mod:`lungdeform.synthetic`).
+``manifest.csv`` for ``lungdeform cohort`` and ``truth.json`` (see :mod:`lungdeform.cohort.synthetic`).
 """
 
 from __future__ import annotations
@@ -38,8 +38,8 @@ def register(apps) -> None:
         table_shift_mm: float = typer.Option(0.0, "--table-shift-mm", help="SD per axis of a known random translation of each larger-volume scan, mm (tests --align joint)."),
     ) -> None:
         """Generate a synthetic cohort with known constants, volumes and noise (truth.json)."""
-        from lungdeform.cli.common import output_dir, say
-        from lungdeform.synthetic import synthetic_cohort, write_cohort
+        from .common import output_dir, say
+        from lungdeform.cohort.synthetic import synthetic_cohort, write_cohort
 
         deltas = _floats(volumes, "--volumes")
         lungs = synthetic_cohort(subjects, delta_ml=deltas, noise_mm=noise_mm, seed=seed, law=law, spread=spread,

@@ -26,12 +26,12 @@ def register(apps) -> None:
         Without --volume-ml, --curve or --preset: one plain 500 mL, 4 s cosine breath."""
         import numpy as np
 
-        from lungdeform import schedule as S
-        from lungdeform import trajectory as T
-        from lungdeform.cli.common import check_cycles, check_tidal_ml, output_dir, read_curve
+        from lungdeform.playback import schedule as S
+        from lungdeform.playback import trajectory as T
+        from .common import check_cycles, check_tidal_ml, output_dir, read_curve
         from lungdeform.errors import InputError
-        from lungdeform.interior import KIND_TEXT
-        from lungdeform.modelfile import load_model
+        from lungdeform.interior.field import KIND_TEXT
+        from lungdeform.io.modelfile import load_model
 
         given = [name for name, v in (("--volume-ml", volume_ml or None), ("--curve", curve), ("--preset", preset)) if v]
         if len(given) > 1:
@@ -56,7 +56,7 @@ def register(apps) -> None:
             if curve is not None:
                 trace = read_curve(curve)
             elif preset is not None:
-                from lungdeform.presets import get_preset
+                from lungdeform.breathing.presets import get_preset
 
                 _params, _curve, trace = S.preset_trace(get_preset(preset), cycles or 1, tidal_ml)
             else:

@@ -1,7 +1,7 @@
 """``lungdeform validate breathing``: fit every trace under a folder, score held-out cycles.
 
 Finds RPM ``.vxp`` and marker ``.csv`` files under ``--data`` (recursively), runs the held-out protocol
-of :mod:`lungdeform.holdout` on each (PV driver, Lujan cos^{2n}, per-cycle Fourier) and writes
+of :mod:`lungdeform.breathing.holdout` on each (PV driver, Lujan cos^{2n}, per-cycle Fourier) and writes
 ``OUT/metrics.json``::
 
     {"traces": {"<file name>": {"model_rms_percent": …, "lujan_rms_percent": …,
@@ -42,9 +42,9 @@ def validate_breathing(data: Path, out: Path, tidal_volume_ml: float = 500.0, tr
                        progress=None) -> dict:
     from lungdeform.atomic import write_json
     from lungdeform.errors import InputError, LungdeformError
-    from lungdeform.holdout import MODELS as models
-    from lungdeform.holdout import evaluate
-    from lungdeform.trace import read_trace
+    from lungdeform.breathing.holdout import MODELS as models
+    from lungdeform.breathing.holdout import evaluate
+    from lungdeform.breathing.trace import read_trace
 
     data = Path(data)
     if not data.is_dir():
@@ -123,7 +123,7 @@ def register(apps) -> None:
         strict: bool = typer.Option(False, "--strict", help="Exit with code 3 when the median target is not met (for CI)."),
     ):
         """Fit the PV driver to every breathing trace; held-out RMS against Lujan and Fourier."""
-        from lungdeform.holdout import MODELS
+        from lungdeform.breathing.holdout import MODELS
 
         m = validate_breathing(data, out, tidal_volume_ml, train_fraction,
                                progress=say)

@@ -24,8 +24,8 @@ def register(apps) -> None:
         import json
         import time
 
-        from lungdeform import dirlab as D
-        from lungdeform.cli.common import output_dir
+        from lungdeform.validate import dirlab as D
+        from .common import output_dir
         from lungdeform.errors import InputError
         from lungdeform.atomic import write_bytes
 

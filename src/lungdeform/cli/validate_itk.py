@@ -3,7 +3,7 @@
 Data (``--data``, the folder itself or a parent holding ``itk-right-lung-two-volumes``):
 ``CT_3D_lung_fixed_mask.mha`` (smaller volume, end-exhale), ``CT_3D_lung_moving_mask.mha``
 (larger volume) and the 51 landmark pairs ``CT_3D_lung_{fixed,moving}_point_set_corrected.txt``.
-Runs :func:`lungdeform.pipeline.run_fit` with the grid mode and the baselines, writes
+Runs :func:`lungdeform.fit.pipeline.run_fit` with the grid mode and the baselines, writes
 ``OUT/metrics.json`` (``model`` and each baseline: ``surface_mean_mm``, ``surface_rms_mm``,
 ``surface_p95_mm``, ``landmark_mean_mm``, ``landmark_max_mm``), ``model.npz`` and ``report.html``,
 and prints the issue's targets with pass/fail (measured, not asserted: the exit code is 0 when the
@@ -11,9 +11,9 @@ run completes).
 
 The headline ``model`` is what a user can run on a new pair with the same inputs (the two masks
 and the landmarks): the surface fit with the interior landmark correction
-(:mod:`lungdeform.interior`), whose landmark errors are measured on landmarks held out from the
+(:mod:`lungdeform.interior.field`), whose landmark errors are measured on landmarks held out from the
 correction (5-fold). Its surface is the fit of c1…c9, the stiffness field and the direction
-correction (:mod:`lungdeform.direction_correction`); ``model_surface_only`` is the same field with
+correction (:mod:`lungdeform.fit.direction_correction`); ``model_surface_only`` is the same field with
 no landmark used at all, ``model_paper_directions`` the paper's directions with the same stiffness,
 ``model_uniform_stiffness`` the paper's model (uniform stiffness, the paper's directions);
 ``model_landmark_fit`` fits c1…c9 on the surfaces and the training landmarks and moves landmarks by
@@ -30,7 +30,7 @@ from pathlib import Path
 
 import typer
 
-from lungdeform.cli.common import DIRECTION_DEGREE_HELP, STRICT_EXIT
+from .common import DIRECTION_DEGREE_HELP, STRICT_EXIT
 
 FOLDER = "itk-right-lung-two-volumes"
 FILES = ("CT_3D_lung_fixed_mask.mha", "CT_3D_lung_moving_mask.mha",
@@ -86,10 +86,10 @@ def register(apps) -> None:
         strict: bool = typer.Option(False, "--strict", help="Exit with code 3 when a target is not met (for CI)."),
     ) -> None:
         """Fit the model to the ITK right lung (3.36 → 3.97 L) and compare with baselines."""
-        from lungdeform.cli.common import output_dir, say
-        from lungdeform.cli.fit import _print_table, warn
-        from lungdeform.pipeline import run_fit
-        from lungdeform.correspond import rays_per_second
+        from .common import output_dir, say
+        from .fit import _print_table, warn
+        from lungdeform.fit.pipeline import run_fit
+        from lungdeform.fit.correspond import rays_per_second
         from lungdeform.data import itk_right_lung
         from lungdeform.atomic import write_json
 

@@ -20,7 +20,7 @@ def register(apps) -> None:
         import json
         import time
 
-        from lungdeform import paper as P
+        from lungdeform.validate import paper as P
         from lungdeform.errors import InputError
 
         out = Path(out)

@@ -20,10 +20,10 @@ def register(apps) -> None:
         """Show both lungs breathing in the browser (three.js, deformation on the GPU, WebXR)."""
         import ipaddress
 
-        from lungdeform.server import ViewerServer, model_glb
+        from lungdeform.playback.server import ViewerServer, model_glb
 
         glb = model_glb(model, curve, markers)
-        server = ViewerServer(glb, host=host, port=port)  # /presets.json: lungdeform.presets
+        server = ViewerServer(glb, host=host, port=port)  # /presets.json: lungdeform.breathing.presets
         try:
             exposed = not ipaddress.ip_address(host).is_loopback
         except ValueError:

@@ -9,7 +9,7 @@ from __future__ import annotations
 from functools import lru_cache
 from importlib import resources
 
-from ..mesh import Surface, check_surface
+from lungdeform.geometry.mesh import Surface, check_surface
 
 FILES = {
     "left": "coronacases_001_left.ply",
@@ -20,7 +20,7 @@ FILES = {
 
 @lru_cache(maxsize=None)
 def _load(filename: str, name: str) -> Surface:
-    from ..io import read_mesh
+    from lungdeform.io.meshfile import read_mesh
 
     with resources.as_file(resources.files(__name__).joinpath(filename)) as path:
         vertices, faces = read_mesh(path)

@@ -1,0 +1,28 @@
+"""Breathing over time: the pressure–volume model (Sec. III-A/B), measured traces and their cycles.
+
+Owns: :mod:`~lungdeform.breathing.pv` (the single-compartment PV model and its simulation),
+:mod:`~lungdeform.breathing.inversion` (its fit to a measured trace), :mod:`~lungdeform.breathing.presets`
+(named breathing patterns with their sources), :mod:`~lungdeform.breathing.trace` (trace readers),
+:mod:`~lungdeform.breathing.cycles` (cycle detection), :mod:`~lungdeform.breathing.holdout` (held-out
+scoring), :mod:`~lungdeform.breathing.stream` (causal streaming) and
+:mod:`~lungdeform.breathing.baselines` (Lujan and Fourier curves to compare against).
+
+May import: the core modules only. Volumes are mL, time s, pressures cmH2O; nothing here knows a mesh.
+"""
+
+from .pv import (
+    N_CONTROL,
+    N_PHASE,
+    BreathingCurve,
+    BreathingParams,
+    Mechanics,
+    basis,
+    interp_periodic,
+    muscle_pressure,
+    periodic_response,
+    scale_from_volume,
+    scaled_to_tidal_volume,
+    simulate,
+    simulate_pressure,
+    transfer,
+)

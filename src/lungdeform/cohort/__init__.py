@@ -1,0 +1,13 @@
+"""Many subjects: manifests, one job per lung, the Dask runner, population statistics, synthetic cohorts.
+
+Owns: :mod:`~lungdeform.cohort.manifest`, :mod:`~lungdeform.cohort.job` (one lung's fit and its result
+record, the resume digest), :mod:`~lungdeform.cohort.runner` (the Dask runner),
+:mod:`~lungdeform.cohort.population` (statistics of c1…c9 against Table I),
+:mod:`~lungdeform.cohort.synthetic` (cohorts made by the model with known truth) and
+:mod:`~lungdeform.cohort.recovery` (how well fits recover that truth).
+
+May import: :mod:`lungdeform.fit`, :mod:`lungdeform.playback` and everything below them. Dask is optional
+(``pip install 'lungdeform[cohort]'``) and imported only where a cohort is run.
+"""
+
+from .runner import SUMMARY_SCHEMA, CohortResult, clean_stale, run_cohort

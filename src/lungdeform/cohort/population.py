@@ -1,0 +1,340 @@
+"""Population statistics of fitted constants over a cohort (issue 6 item 2). For a synthetic cohort
+(a ``truth.json`` in the manifest folder) :func:`write_population` also writes the recovery of the
+known truth (item 3), :mod:`lungdeform.recovery`.
+
+Input: the per-job result records the cohort runner writes (``OUT/subjects/<subject>/<side>/result.json``,
+schema ``lungdeform.cohort.result`` version 1; see :func:`check_result`). Failed records are counted
+and listed, never part of a statistic.
+
+Readings chosen:
+
+- Statistics per quantity: mean, SD (sample SD, ``ddof=1``; undefined, written as null, for fewer
+  than two values), min, max and n over the lungs where the quantity is finite (a missing
+  landmark error is left out, not zero). Overall and per side.
+- Quantities: c1…c9 (the fit's normalisation: c7…c9 scaled so that the largest ``|c|`` among them
+  is 1), the fit errors ``surface_mean_mm``, ``surface_rms_mm``, ``surface_p95_mm``,
+  ``landmark_mean_mm``, ``objective_rms_mm``, the end-exhale volume (the first of ``volumes_ml``)
+  and ``delta_volume_ml`` (largest minus end-exhale volume), and the fit time ``seconds``.
+- Table I comparison per side and constant: the population mean ± SD against the paper's value
+  (c7…c9 normalised like the fit's, so that c8 = 0.95 of the paper reads 1), whether it lies in
+  the observed range [min, max], and its distance from the mean in SDs. Note: directions are normalised (15)–(17), so c1, c3, c5 are defined only up to a
+  common factor; their raw values compare with Table I only in the gauge the fit starts from.
+"""
+
+from __future__ import annotations
+
+import csv
+import io as _io
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from lungdeform.constants import TABLE_I, table_constants
+from lungdeform.errors import InputError
+from .job import RESULT_SCHEMA, RESULT_VERSION, finite_or_none
+
+CONSTANTS = tuple(f"c{i}" for i in range(1, 10))
+METRICS = ("surface_mean_mm", "surface_rms_mm", "surface_p95_mm", "landmark_mean_mm", "objective_rms_mm")
+VOLUMES = ("volume_ee_ml", "delta_volume_ml")
+QUANTITIES = CONSTANTS + METRICS + VOLUMES + ("seconds",)
+SIDES = ("left", "right")
+
+
+@dataclass(frozen=True)
+class Summary:
+    """Statistics of one quantity (same unit as the quantity); NaN where undefined."""
+
+    mean: float
+    sd: float
+    min: float
+    max: float
+    n: int
+
+    def as_dict(self) -> dict:
+        return {k: finite_or_none(getattr(self, k)) for k in ("mean", "sd", "min", "max")} | {"n": self.n}
+
+
+def describe(values) -> Summary:
+    """Mean, sample SD (ddof=1), min, max and n of the finite entries of ``values : (k,)``."""
+    v = np.asarray([np.nan if x is None else x for x in np.ravel(values)], float)
+    v = v[np.isfinite(v)]
+    if len(v) == 0:
+        return Summary(math.nan, math.nan, math.nan, math.nan, 0)
+    sd = float(np.std(v, ddof=1)) if len(v) > 1 else math.nan
+    return Summary(float(v.mean()), sd, float(v.min()), float(v.max()), int(len(v)))
+
+
+# --------------------------------------------------------------------------- result records
+def check_result(record, where: str = "result") -> dict:
+    """Validate one cohort result record; return it. Raises :class:`InputError` naming ``where``
+    (the subject/side or file) and the field at fault."""
+    if not isinstance(record, dict):
+        raise InputError(f"{where}: a result must be a JSON object, got {type(record).__name__}")
+    if record.get("schema") != RESULT_SCHEMA or record.get("version") != RESULT_VERSION:
+        raise InputError(f"{where}: not a {RESULT_SCHEMA} v{RESULT_VERSION} record "
+                         f"(schema {record.get('schema')!r}, version {record.get('version')!r})")
+    for key in ("subject", "side", "status"):
+        if not isinstance(record.get(key), str):
+            raise InputError(f"{where}: field '{key}' must be a string")
+    where = f"{where} {record['subject']}/{record['side']}"
+    if record["side"] not in SIDES:
+        raise InputError(f"{where}: side must be 'left' or 'right', got {record['side']!r}")
+    if record["status"] not in ("ok", "failed"):
+        raise InputError(f"{where}: status must be 'ok' or 'failed', got {record['status']!r}")
+    if record["status"] == "ok":
+        c = record.get("constants")
+        if not isinstance(c, (list, tuple)) or len(c) != 9:
+            raise InputError(f"{where}: an ok result needs 'constants' with 9 values c1…c9")
+        vols = record.get("volumes_ml")
+        if not isinstance(vols, (list, tuple)) or len(vols) < 2:
+            raise InputError(f"{where}: an ok result needs 'volumes_ml' with at least 2 volumes")
+        if not isinstance(record.get("metrics"), dict):
+            raise InputError(f"{where}: an ok result needs a 'metrics' object")
+    return record
+
+
+def result_values(record: dict) -> dict[str, float]:
+    """``{quantity: value}`` of one ok record (NaN where missing)."""
+    out = {name: float(v) for name, v in zip(CONSTANTS, record["constants"])}
+    metrics = record.get("metrics") or {}
+    for name in METRICS:
+        v = metrics.get(name)
+        out[name] = math.nan if v is None else float(v)
+    vols = [float(v) for v in record["volumes_ml"]]
+    out["volume_ee_ml"] = vols[0]
+    out["delta_volume_ml"] = vols[-1] - vols[0]
+    s = record.get("seconds")
+    out["seconds"] = math.nan if s is None else float(s)
+    return out
+
+
+def split_results(results: Sequence[dict]) -> tuple[list[dict], list[dict]]:
+    """Validate and split into ``(ok, failed)``; duplicated (subject, side) ok records are refused."""
+    ok, failed, seen = [], [], set()
+    for i, r in enumerate(results):
+        check_result(r, f"result {i + 1}")
+        if r["status"] == "ok":
+            key = (r["subject"], r["side"])
+            if key in seen:
+                raise InputError(f"result {i + 1}: {key[0]}/{key[1]} appears twice")
+            seen.add(key)
+            ok.append(r)
+        else:
+            failed.append(r)
+    return ok, failed
+
+
+# --------------------------------------------------------------------------- statistics
+def population_statistics(results: Sequence[dict]) -> dict:
+    """``{"overall": {q: Summary}, "by_side": {side: {q: Summary}}, "n_results", "n_ok",
+    "n_failed", "failed": [...]}`` over the ok records."""
+    ok, failed = split_results(results)
+    rows = [(r["side"], result_values(r)) for r in ok]
+    overall = {q: describe([v[q] for _, v in rows]) for q in QUANTITIES}
+    by_side = {side: {q: describe([v[q] for s, v in rows if s == side]) for q in QUANTITIES}
+               for side in SIDES if any(s == side for s, _ in rows)}
+    return {"n_results": len(results), "n_ok": len(ok), "n_failed": len(failed),
+            "overall": overall, "by_side": by_side,
+            "failed": [{"subject": r["subject"], "side": r["side"], "error_type": r.get("error_type"),
+                        "error": r.get("error")} for r in failed]}
+
+
+def table_i(side: str) -> np.ndarray:
+    """Table I's c1…c9 for ``side`` in the fit's convention ``(9,) float``: c7…c9 divided by their
+    largest ``|c|`` (the paper's 0.01, 0.95, 0.07 become 0.0105, 1, 0.0737 for the left lung)."""
+    from .synthetic import normalise_force_constants
+
+    return normalise_force_constants(table_constants(side))
+
+
+def table_comparison(by_side: dict[str, dict[str, Summary]]) -> dict:
+    """Per side and constant: the paper's Table I value against the population.
+
+    ``{side: {c: {"paper", "paper_as_printed", "mean", "sd", "min", "max", "n", "in_range",
+    "sd_from_mean"}}}``. ``paper``: Table I in the fit's normalisation (:func:`table_i`; only
+    c7…c9 differ from ``paper_as_printed``); ``in_range``: min ≤ paper ≤ max (None without data);
+    ``sd_from_mean``: (paper − mean)/SD.
+    """
+    out = {}
+    for side, stats in by_side.items():
+        rows = {}
+        ref = table_i(side)
+        for k, name in enumerate(CONSTANTS):
+            st = stats[name]
+            paper = float(ref[k])
+            in_range = None if st.n == 0 else bool(st.min <= paper <= st.max)
+            z = (paper - st.mean) / st.sd if st.n > 1 and st.sd > 0 else math.nan
+            rows[name] = {"paper": paper, "paper_as_printed": float(TABLE_I[side][k]), **st.as_dict(),
+                          "in_range": in_range, "sd_from_mean": finite_or_none(z)}
+        out[side] = rows
+    return out
+
+
+# --------------------------------------------------------------------------- tables and files
+def csv_text(header: list[str], rows: list[list]) -> str:
+    """CSV text of ``header`` and ``rows``: floats as ``%.6g``, None and non-finite floats as empty cells."""
+    buf = _io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(header)
+    for row in rows:
+        w.writerow(["" if (isinstance(x, float) and not math.isfinite(x)) or x is None else
+                    (f"{x:.6g}" if isinstance(x, float) else x) for x in row])
+    return buf.getvalue()
+
+
+def statistics_csv(stats: dict[str, Summary], side: str | None = None) -> list[list]:
+    lead = [] if side is None else [side]
+    return [lead + [q, s.mean, s.sd, s.min, s.max, s.n] for q, s in stats.items()]
+
+
+def write_population(results: list[dict], out: Path, manifest_dir: Path,
+                     progress: Callable[[str], None] | None = None) -> dict:
+    """Population statistics (and recovery for a synthetic cohort) of a cohort run.
+
+    ``results``: the runner's result records (ok and failed). ``out``: the cohort output folder
+    (the one holding ``subjects/``); written there, atomically: ``population.json``,
+    ``population.csv`` (overall), ``population_by_side.csv``, ``table1.csv`` (Table I comparison),
+    ``plots/constants_by_side.png``, ``plots/constants_vs_volume.png``, ``plots/fit_errors.png``;
+    when ``manifest_dir/truth.json`` exists also ``recovery.json``, ``recovery.csv``,
+    ``recovery_by_lung.csv`` and ``plots/recovery.png``. Returns a summary dict (counts, the file
+    paths, the Table I flags and, with a truth, the recovery headline of
+    :func:`lungdeform.cohort.recovery.write_recovery`).
+    """
+    from lungdeform.atomic import write_json, write_text
+
+    say = progress or (lambda _m: None)
+    out = Path(out)
+    stats = population_statistics(results)
+    table = table_comparison(stats["by_side"])
+    files: dict[str, str] = {}
+    doc = {
+        "schema": "lungdeform.population", "version": 1,
+        "n_results": stats["n_results"], "n_ok": stats["n_ok"], "n_failed": stats["n_failed"],
+        "failed": stats["failed"],
+        "statistics": {"sd": "sample SD (ddof=1); null for fewer than 2 values",
+                       "excluded": "failed results; non-finite values (e.g. no landmarks)"},
+        "overall": {q: s.as_dict() for q, s in stats["overall"].items()},
+        "by_side": {side: {q: s.as_dict() for q, s in st.items()} for side, st in stats["by_side"].items()},
+        "table_i": table,
+        "notes": "c7…c9 normalised so that the largest |c| among them is 1; c1, c3, c5 are defined only "
+                 "up to a common factor (directions are normalised).",
+    }
+    files["population.json"] = str(write_json(out / "population.json", doc))
+    head = ["quantity", "mean", "sd", "min", "max", "n"]
+    files["population.csv"] = str(write_text(out / "population.csv", csv_text(head, statistics_csv(stats["overall"]))))
+    side_rows = [row for side, st in stats["by_side"].items() for row in statistics_csv(st, side)]
+    files["population_by_side.csv"] = str(write_text(out / "population_by_side.csv", csv_text(["side"] + head, side_rows)))
+    t_rows = [[side, c, v["paper"], v["paper_as_printed"], v["mean"], v["sd"], v["min"], v["max"], v["n"],
+               "" if v["in_range"] is None else str(v["in_range"]).lower(), v["sd_from_mean"]]
+              for side, rows in table.items() for c, v in rows.items()]
+    files["table1.csv"] = str(write_text(out / "table1.csv", csv_text(
+        ["side", "constant", "paper", "paper_as_printed", "mean", "sd", "min", "max", "n", "paper_in_range",
+         "paper_sd_from_mean"],
+        [[x if x is not None else math.nan for x in row] for row in t_rows])))
+    ok, _ = split_results(results)
+    say("population plots")
+    files.update(population_plots(ok, out / "plots"))
+    summary = {"n_results": stats["n_results"], "n_ok": stats["n_ok"], "n_failed": stats["n_failed"],
+               "failed": stats["failed"],
+               "table_i_in_range": {side: {c: v["in_range"] for c, v in rows.items()} for side, rows in table.items()},
+               "recovery": None, "files": files}
+    truth_path = Path(manifest_dir) / "truth.json"
+    if truth_path.is_file():
+        from .recovery import write_recovery  # recovery builds on this module: imported here, where it is used
+
+        say("recovery of the synthetic truth")
+        recovered, summary["recovery"] = write_recovery(results, truth_path, out)
+        files.update(recovered)
+    return summary
+
+
+# --------------------------------------------------------------------------- plots
+SIDE_COLOURS = {"left": "tab:blue", "right": "tab:orange"}
+
+
+def figure(rows: int, cols: int, size=(3.2, 2.6)):
+    """A matplotlib Figure on the Agg canvas (no pyplot state, safe in workers)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    height = size[1] * rows
+    fig = Figure(figsize=(size[0] * cols, height))
+    # fixed margins in inches (constrained layout costs a second per figure): title, axis labels
+    fig.subplots_adjust(left=0.07, right=0.98, bottom=0.6 / height, top=1 - 0.75 / height, hspace=0.75, wspace=0.35)
+    FigureCanvasAgg(fig)
+    return fig, fig.subplots(rows, cols, squeeze=False)
+
+
+def save_png(fig, path: Path) -> str:
+    """Write ``fig`` as PNG to ``path`` atomically; return the path as a string."""
+    from lungdeform.atomic import atomic_path
+
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=110)
+    return str(path)
+
+
+def _strip_box(ax, groups: list[np.ndarray], rng: np.random.Generator, colours: list[str]) -> None:
+    """Box (median, quartiles) and jittered points per group at x = 0, 1, …"""
+    for x, (vals, col) in enumerate(zip(groups, colours)):
+        vals = vals[np.isfinite(vals)]
+        if len(vals) == 0:
+            continue
+        if len(vals) > 1:
+            ax.boxplot([vals], positions=[x], widths=0.5, showfliers=False, manage_ticks=False,
+                       medianprops={"color": "black"})
+        ax.scatter(x + rng.uniform(-0.12, 0.12, len(vals)), vals, s=14, color=col, alpha=0.8, zorder=3)
+
+
+def population_plots(ok: Sequence[dict], folder: Path) -> dict[str, str]:
+    """Per-constant distributions per side with Table I marked, constants against end-exhale
+    volume, and the fit errors per side (PNG, atomically). ``ok``: validated ok records."""
+    rng = np.random.default_rng(0)  # jitter only
+    rows = [(r["side"], result_values(r)) for r in ok]
+    sides = [s for s in SIDES if any(side == s for side, _ in rows)] or list(SIDES)
+    col = [SIDE_COLOURS[s] for s in sides]
+    files = {}
+
+    fig, axes = figure(3, 3)
+    for k, name in enumerate(CONSTANTS):
+        ax = axes.flat[k]
+        groups = [np.array([v[name] for s, v in rows if s == side]) for side in sides]
+        _strip_box(ax, groups, rng, col)
+        for x, side in enumerate(sides):
+            ax.hlines(table_i(side)[k], x - 0.35, x + 0.35, colors="red", linewidth=2,
+                      label="Table I" if x == 0 else None, zorder=4)
+        ax.set_xticks(range(len(sides)), [f"{s}\n(n={len(g[np.isfinite(g)])})" for s, g in zip(sides, groups)])
+        ax.set_xlim(-0.6, len(sides) - 0.4)
+        ax.set_title(name)
+        if k == 0:
+            ax.legend(fontsize=7, loc="best")
+    fig.suptitle("Fitted constants per side (boxes: quartiles; red: Santhanam et al. Table I, c7…c9 normalised)")
+    files["plots/constants_by_side.png"] = save_png(fig, folder / "constants_by_side.png")
+
+    fig, axes = figure(3, 3)
+    for k, name in enumerate(CONSTANTS):
+        ax = axes.flat[k]
+        for side in sides:
+            pts = np.array([(v["volume_ee_ml"], v[name]) for s, v in rows if s == side]).reshape(-1, 2)
+            ax.scatter(pts[:, 0], pts[:, 1], s=14, color=SIDE_COLOURS[side], label=side)
+            ax.axhline(table_i(side)[k], color=SIDE_COLOURS[side], linestyle="--", linewidth=1)
+        ax.set_title(name)
+        ax.set_xlabel("end-exhale volume (mL)")
+        if k == 0 and rows:
+            ax.legend(fontsize=7)
+    fig.suptitle("Constants against end-exhale lung volume (dashed: Table I per side)")
+    files["plots/constants_vs_volume.png"] = save_png(fig, folder / "constants_vs_volume.png")
+
+    fig, axes = figure(1, len(METRICS))
+    for k, name in enumerate(METRICS):
+        ax = axes.flat[k]
+        _strip_box(ax, [np.array([v[name] for s, v in rows if s == side]) for side in sides], rng, col)
+        ax.set_xticks(range(len(sides)), sides)
+        ax.set_xlim(-0.6, len(sides) - 0.4)
+        ax.set_title(name.replace("_mm", " (mm)"), fontsize=9)
+    fig.suptitle("Fit errors per side (largest-volume target)")
+    files["plots/fit_errors.png"] = save_png(fig, folder / "fit_errors.png")
+    return files

@@ -1,0 +1,17 @@
+"""Fitting the model to a patient: CT to lungs, alignment, correspondence, the objective, the search.
+
+Owns: :mod:`~lungdeform.fit.ct` and :mod:`~lungdeform.fit.segment` (CT input, lungs without learned
+weights), :mod:`~lungdeform.fit.align` (rigid alignment), :mod:`~lungdeform.fit.correspond` (ray
+correspondence), :mod:`~lungdeform.fit.objective` (one lung's objective), :mod:`~lungdeform.fit.fitting`
+(c1…c9, stiffness and direction correction), :mod:`~lungdeform.fit.search` (optimiser and the paper's
+grid), :mod:`~lungdeform.fit.crossval` (landmark cross-validation), :mod:`~lungdeform.fit.expandability`
+(the fitted stiffness field), :mod:`~lungdeform.fit.direction_correction`, :mod:`~lungdeform.fit.baselines`
+(comparison methods), :mod:`~lungdeform.fit.pipeline` (inputs to a saved model and its metrics) and
+:mod:`~lungdeform.fit.report` (the HTML report).
+
+May import: :mod:`lungdeform.data`, :mod:`lungdeform.io`, :mod:`lungdeform.breathing`,
+:mod:`lungdeform.model`, :mod:`lungdeform.interior`, :mod:`lungdeform.geometry` and the core modules;
+not :mod:`lungdeform.playback` (independent of it) and nothing above.
+"""
+
+from .fitting import DEFAULT_OPTIMIZER, DIRECTION_BOUNDS, DIRECTION_HI, DIRECTION_LO, MODES, UNUSABLE_MM, FitResult, fit_lung, to_lung_model

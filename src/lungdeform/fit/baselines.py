@@ -1,0 +1,290 @@
+"""Baselines the fitted model is compared with, and the shared metrics (issue 3, item 6).
+
+Every method here, like the model, maps the end-exhale mesh vertices ``p (n, 3)`` mm to predicted
+vertices at the larger volume (same faces), all in the end-exhale scan's frame after the rigid
+alignment. :func:`measure` then applies the same metrics to every method: exact symmetric surface
+distance to the target surface (area weighted; crop faces optionally left out) and landmark error
+after moving the end-exhale landmarks by the sliding interpolation of the method's surface
+displacement at the kept vertices (:mod:`lungdeform.interior.sliding`: the smoothest field with the
+surface's normal motion; one operator, :func:`landmark_matrix`, shared by all methods), or, for landmark-informed methods, from their
+held-out predictions.
+
+Landmark-informed references (used only when corresponding landmarks are given, and scored on
+landmarks held out from their fit, k-fold, with the same folds as the landmark-informed model):
+
+- :func:`affine_landmarks_cv`: the affine fit with the training landmarks added to its least
+  squares (same weighting as the model's objective: surface mean square + landmark mean square);
+- :func:`landmark_tps_cv`: no surface at all, the thin-plate spline through the training
+  landmarks' displacements (what the landmarks alone predict).
+
+Baselines:
+
+- :func:`no_motion`: the end-exhale surface itself (after the rigid alignment);
+- :func:`affine_fit`: the best affine map (12 parameters) by symmetric iterative closest points;
+- :func:`apex_scaling`: uniform scaling about the apex by ``(V / V_EE)^(1/3)`` (exact volume);
+- :func:`cpd_deformable`: non-physical deformable surface registration, Coherent Point Drift
+  (Myronenko & Song 2010) via ``pycpd`` (MIT), on coordinates normalised to unit RMS radius,
+  beta = 2, alpha = 2 (beta 0.2–1 gave tangential sliding of 15–30 mm on the ITK pair).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from lungdeform.geometry.distance import SurfaceDistance, symmetric_distance
+from lungdeform.errors import ConvergenceError, InputError, require
+from lungdeform.interior.interpolate import interpolation_weights
+from lungdeform.geometry.mesh import Surface, as_vertices, thinned
+
+
+def no_motion(surface: Surface) -> np.ndarray:
+    """``(n, 3)`` mm: the end-exhale vertices unchanged."""
+    return np.array(surface.vertices)
+
+
+def apex_scaling(surface: Surface, volume_ml: float, apex=None) -> np.ndarray:
+    """``(n, 3)`` mm: ``surface`` scaled about its apex so that it encloses ``volume_ml``.
+
+    ``apex : (3,)`` mm defaults to the highest vertex (largest LPS z).
+    """
+    if not volume_ml > 0:
+        raise InputError(f"volume_ml must be > 0 mL, got {volume_ml!r}")
+    a = surface.vertices[np.argmax(surface.vertices[:, 2])] if apex is None else np.asarray(apex, float)
+    factor = (float(volume_ml) / surface.volume_ml) ** (1.0 / 3.0)
+    return a + factor * (surface.vertices - a)
+
+
+def _affine_lsq(src: np.ndarray, dst: np.ndarray, w: np.ndarray) -> np.ndarray:
+    h = np.hstack([src, np.ones((len(src), 1))])
+    sw = np.sqrt(w)[:, None]
+    m, *_ = np.linalg.lstsq(h * sw, dst * sw, rcond=None)
+    return m  # (4, 3): x' = [x 1] @ m
+
+
+def affine_fit(surface: Surface, target: Surface, *, keep=None, keep_target=None,
+               samples: int = 6000, iterations: int = 100, tol_mm: float = 1e-5, landmarks=None,
+               landmarks_target=None, landmark_weight: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Best affine map of ``surface`` onto ``target`` (symmetric ICP with exact closest points).
+
+    Returns ``(predicted vertices (n, 3) mm, matrix (4, 4))``. Each iteration pairs the moved
+    source vertices with their closest target points and target samples with their closest
+    points on the moved source (mapped back through barycentric coordinates), then solves the
+    12-parameter least squares. With ``landmarks`` / ``landmarks_target : (m, 3)`` mm the
+    landmark pairs join the least squares: the objective is the mean of the two one-sided surface
+    mean squares plus ``landmark_weight`` × the landmark mean square (the model's weighting).
+    """
+    p = surface.vertices
+    ks = np.ones(len(p), bool) if keep is None else np.asarray(keep, bool)
+    kt = np.ones(target.n_vertices, bool) if keep_target is None else np.asarray(keep_target, bool)
+    idx = np.nonzero(kt)[0]
+    idx = idx[thinned(len(idx), samples)]
+    tpts = target.vertices[idx]
+    tdist = SurfaceDistance(target.vertices, target.faces)
+    if landmarks is not None:
+        lm_src = as_vertices(landmarks, "landmarks")
+        lm_dst = as_vertices(landmarks_target, "landmarks_target")
+        if lm_src.shape != lm_dst.shape:
+            raise InputError(f"landmarks {lm_src.shape} and landmarks_target {lm_dst.shape} must correspond row by row")
+    else:
+        lm_src = lm_dst = np.zeros((0, 3))
+    m = np.vstack([np.eye(3), np.zeros((1, 3))])
+    last = np.inf
+    for _ in range(iterations):
+        cur = np.hstack([p, np.ones((len(p), 1))]) @ m
+        _, c1, _ = tdist.query(cur[ks])
+        sd = SurfaceDistance(cur, surface.faces)
+        d2, c2, face = sd.query(tpts)
+        # source point (end-exhale) behind each closest point: barycentric on the moved face
+        src2 = _barycentric_source(cur, p, surface.faces, face, c2)
+        src = np.vstack([p[ks], src2, lm_src])
+        dst = np.vstack([c1, tpts, lm_dst])
+        w = np.concatenate([np.full(int(ks.sum()), 0.5 / max(ks.sum(), 1)), np.full(len(tpts), 0.5 / len(tpts)),
+                            np.full(len(lm_src), float(landmark_weight) / max(len(lm_src), 1))])
+        m = _affine_lsq(src, dst, w)
+        err = float(np.sqrt(np.average(np.concatenate([np.linalg.norm(c1 - cur[ks], axis=1), d2]) ** 2,
+                                       weights=w[: len(c1) + len(d2)])))
+        if abs(last - err) < tol_mm:
+            break
+        last = err
+    mat = np.eye(4)
+    mat[:3, :3] = m[:3].T
+    mat[:3, 3] = m[3]
+    return np.hstack([p, np.ones((len(p), 1))]) @ m, mat
+
+
+def _barycentric_source(moved, rest, faces, face, points):
+    a, b, c = (moved[faces[face, k]] for k in range(3))
+    v0, v1, v2 = b - a, c - a, points - a
+    d00 = np.einsum("ij,ij->i", v0, v0)
+    d01 = np.einsum("ij,ij->i", v0, v1)
+    d11 = np.einsum("ij,ij->i", v1, v1)
+    d20 = np.einsum("ij,ij->i", v2, v0)
+    d21 = np.einsum("ij,ij->i", v2, v1)
+    den = d00 * d11 - d01 * d01
+    den = np.where(np.abs(den) > 1e-18, den, 1.0)
+    v = (d11 * d20 - d01 * d21) / den
+    w = (d00 * d21 - d01 * d20) / den
+    u = 1.0 - v - w
+    ra, rb, rc = (rest[faces[face, k]] for k in range(3))
+    return u[:, None] * ra + v[:, None] * rb + w[:, None] * rc
+
+
+def cpd_deformable(surface: Surface, target: Surface, *, samples: int = 1500, alpha: float = 2.0,
+                   beta: float = 2.0, w: float = 0.05, max_iterations: int = 100, tolerance: float = 1e-5,
+                   seed: int = 0, keep=None, keep_target=None) -> np.ndarray:
+    """Coherent Point Drift (deformable) of the end-exhale vertices onto the target surface.
+
+    ``samples`` random vertices of each surface are registered (CPD is O(N·M) per iteration), drawn
+    from the kept ones (``keep``, ``keep_target``: e.g. crop faces left out, as for every method);
+    the fitted Gaussian-kernel displacement ``G(y, Y_s) W`` is then evaluated at every vertex.
+    Coordinates are centred on the source and scaled by its RMS radius, so ``beta`` (kernel width)
+    is relative to the lung size (2 = twice the RMS radius, the usual CPD setting on unit-variance data); ``alpha`` is the smoothness
+    weight and ``w`` the outlier weight (pycpd's meanings). Returns ``(n, 3)`` mm.
+    """
+    pycpd = require("pycpd", "the CPD baseline", "pycpd")
+    from scipy.spatial.distance import cdist
+
+    rng = np.random.default_rng(seed)
+    p = surface.vertices
+    c = p.mean(axis=0)
+    scale = float(np.sqrt(np.mean(np.sum((p - c) ** 2, axis=1))))
+    src = np.nonzero(np.ones(len(p), bool) if keep is None else np.asarray(keep, bool))[0]
+    dst = np.nonzero(np.ones(target.n_vertices, bool) if keep_target is None else np.asarray(keep_target, bool))[0]
+    if len(src) < 10 or len(dst) < 10:
+        raise InputError(f"CPD needs at least 10 kept vertices on each surface, got {len(src)} and {len(dst)}")
+    ys = np.sort(rng.choice(src, min(samples, len(src)), replace=False))
+    xs = np.sort(rng.choice(dst, min(samples, len(dst)), replace=False))
+    x = (target.vertices[xs] - c) / scale
+    y = (p[ys] - c) / scale
+    reg = pycpd.DeformableRegistration(X=x, Y=y, alpha=alpha, beta=beta, w=w,
+                                       max_iterations=max_iterations, tolerance=tolerance)
+    reg.register()
+    g = np.exp(-cdist((p - c) / scale, y, "sqeuclidean") / (2.0 * beta**2))
+    moved = c + scale * ((p - c) / scale + g @ reg.W)
+    if not np.all(np.isfinite(moved)):
+        raise ConvergenceError("CPD produced non-finite points")
+    return moved
+
+
+def landmark_tps_cv(surface: Surface, landmarks, landmarks_target, folds) -> tuple[np.ndarray, np.ndarray]:
+    """Reference without surfaces: the thin-plate spline through the landmark displacements.
+
+    ``landmarks`` / ``landmarks_target : (m, 3)`` mm; ``folds``: index arrays (e.g.
+    :func:`lungdeform.interior.field.landmark_folds`). Returns ``(surface vertices moved by the spline of all
+    landmarks (n, 3) mm, held-out predictions (m, 3) mm)``: each fold's landmarks are predicted by
+    the spline through the other folds only.
+    """
+    a = as_vertices(landmarks, "landmarks")
+    b = as_vertices(landmarks_target, "landmarks_target")
+    held = np.full_like(a, np.nan)
+    for test in folds:
+        train = np.setdiff1d(np.arange(len(a)), test)
+        held[test] = a[test] + interpolation_weights(a[train], a[test]) @ (b[train] - a[train])
+    moved = surface.vertices + interpolation_weights(a, surface.vertices) @ (b - a)
+    return moved, held
+
+
+def affine_landmarks_cv(surface: Surface, target: Surface, landmarks, landmarks_target, folds, *, keep=None,
+                        keep_target=None, landmark_weight: float = 1.0, **kwargs) -> tuple[np.ndarray, np.ndarray]:
+    """The affine baseline informed by landmarks, scored held out.
+
+    Returns ``(vertices (n, 3) mm of the affine fitted with all landmarks, held-out predictions
+    (m, 3) mm)``: each fold's landmarks are moved by the affine fitted on the surfaces and the other
+    folds' landmarks. Keywords as :func:`affine_fit`.
+    """
+    a = as_vertices(landmarks, "landmarks")
+    b = as_vertices(landmarks_target, "landmarks_target")
+    held = np.full_like(a, np.nan)
+    for test in folds:
+        train = np.setdiff1d(np.arange(len(a)), test)
+        _, mat = affine_fit(surface, target, keep=keep, keep_target=keep_target, landmarks=a[train],
+                            landmarks_target=b[train], landmark_weight=landmark_weight, **kwargs)
+        held[test] = a[test] @ mat[:3, :3].T + mat[:3, 3]
+    moved, _ = affine_fit(surface, target, keep=keep, keep_target=keep_target, landmarks=a, landmarks_target=b,
+                          landmark_weight=landmark_weight, **kwargs)
+    return moved, held
+
+
+@dataclass(frozen=True)
+class MethodMetrics:
+    """Metrics of one method (mm)."""
+
+    surface_mean_mm: float
+    surface_rms_mm: float
+    surface_p95_mm: float
+    surface_max_mm: float
+    surface_mean_all_mm: float
+    landmark_mean_mm: float
+    landmark_max_mm: float
+    landmark_rms_mm: float
+    landmark_median_mm: float = float("nan")
+
+    def as_dict(self) -> dict[str, float]:
+        return {k: float(v) for k, v in self.__dict__.items()}
+
+
+def landmark_matrix(rest: Surface, landmarks, keep=None):
+    """The sliding interpolation (:mod:`lungdeform.interior.sliding`) from the kept vertices of ``rest`` to
+    ``landmarks``, an operator of shape ``(m, k)`` with ``W @ u`` for ``u : (k, 3)`` mm: the interior
+    interpolation every method is measured with (crop faces carry no data)."""
+    from lungdeform.interior.sliding import surface_weights
+
+    return surface_weights(rest, as_vertices(landmarks, "landmarks"), keep)
+
+
+def measure(rest: Surface, predicted, target: Surface, *, keep=None, keep_target=None,
+            landmarks=None, landmarks_target=None, target_distance: SurfaceDistance | None = None,
+            landmark_weights=None, landmarks_predicted=None):
+    """Metrics of a predicted surface and its interpolated landmark motion.
+
+    Parameters
+    ----------
+    rest : Surface
+        End-exhale surface (the model mesh), mm.
+    predicted : (n, 3) float
+        Predicted vertices at the target volume, mm (faces of ``rest``).
+    target : Surface
+        Observed surface at that volume, aligned, mm.
+    keep, keep_target : (n,), (n_target,) bool
+        Vertices measured (e.g. the crop face left out); ``surface_mean_all_mm`` uses all. Only
+        kept vertices of ``rest`` carry data for the landmark interpolation.
+    landmarks, landmarks_target : (k, 3) float
+        End-exhale landmarks and their observed positions at the target volume (aligned), mm.
+    landmark_weights : (k, n_kept) operator, optional
+        :func:`landmark_matrix` for these landmarks, precomputed (the same for every method).
+    landmarks_predicted : (k, 3) float, optional
+        Landmark positions predicted some other way (held-out predictions of a landmark-informed
+        method); then no interpolation is done.
+
+    Returns ``(MethodMetrics, per-vertex distance of predicted to target (n,), landmark errors (k,))``.
+    """
+    x = as_vertices(predicted, "predicted")
+    if x.shape != rest.vertices.shape:
+        raise InputError(f"predicted must have shape {rest.vertices.shape}, got {x.shape}")
+    pred = Surface(x, rest.faces, "predicted")
+    td = target_distance or SurfaceDistance(target.vertices, target.faces)
+    sym = symmetric_distance(pred, target, keep_a=keep, keep_b=keep_target, b_distance=td)
+    all_ = symmetric_distance(pred, target, b_distance=td)
+    per_vertex = td.distance(x)
+    lm_err = np.zeros(0)
+    if landmarks is not None:
+        obs = as_vertices(landmarks_target, "landmarks_target")
+        if landmarks_predicted is None:
+            kept = np.ones(rest.n_vertices, bool) if keep is None else np.asarray(keep, bool)
+            w = landmark_matrix(rest, landmarks, keep) if landmark_weights is None else landmark_weights
+            moved = as_vertices(landmarks, "landmarks") + w @ (x - rest.vertices)[kept]
+        else:
+            moved = as_vertices(landmarks_predicted, "landmarks_predicted")
+        if moved.shape != obs.shape:
+            raise InputError(f"landmark predictions {moved.shape} and observations {obs.shape} must match")
+        lm_err = np.linalg.norm(moved - obs, axis=1)
+    st = sym.stats
+    nan = float("nan")
+    has = len(lm_err) > 0
+    m = MethodMetrics(st.mean, st.rms, st.p95, st.max, all_.stats.mean,
+                      float(lm_err.mean()) if has else nan, float(lm_err.max()) if has else nan,
+                      float(np.sqrt(np.mean(lm_err**2))) if has else nan,
+                      float(np.median(lm_err)) if has else nan)
+    return m, per_vertex, lm_err

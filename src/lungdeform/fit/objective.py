@@ -1,0 +1,404 @@
+"""The fit's objective for one lung: candidate constants judged against the observed surfaces
+(paper Sec. IV-B; METHOD §8). :class:`LungFitter` precomputes once per end-exhale surface and
+evaluates many candidates; :func:`lungdeform.fit.fitting.fit_lung` searches over them.
+
+The model keeps the paper's form: per vertex ``u_i = k·F_i·d_i`` with ``d_i`` from c1…c6 (15)–(17),
+``F`` the elastostatic response of the applied force (18) ``f = c7·x̂ + c8·ŷ + c9·ẑ`` through the
+spring-node graph, and ``k`` fixed by the exact volume of the calibration target. At volume V the
+surface is ``p + s·u`` with ``s = (V − V_EE)/ΔV``: three additions per vertex at run time.
+
+Pipeline for one candidate c1…c6 (:meth:`LungFitter.evaluate`):
+
+1. directions ``d`` from c1…c6;
+2. rays from the end-exhale vertices along ``±d`` to the calibration target
+   (:func:`lungdeform.fit.correspond.correspond`: bounded, both directions, grazing rejected, misses
+   explicit) → observed magnitudes ``t`` (mm);
+3. observed force ``F_obs ∝ t``; **inverse force** ``f = (I − Qᵀ)(F_obs / T_e[i→i])`` (one sparse
+   product; spring nodes take the mean of their two mass nodes' F, METHOD §4);
+4. c7…c9 by weighted linear least squares (weights: vertex area; misses 0; one robust pass drops
+   rays more than 3 robust standard deviations, at least 1 mm, from the first fit). Reading chosen: the fit is done on the forward side,
+   ``F_obs ≈ c7·F_x + c8·F_y + c9·F_z`` (``F_x`` = precomputed response to the field x̂, …), which
+   is the same linear model as ``f ≈ c7·x̂ + c8·ŷ + c9·ẑ`` pushed through the solver but does not
+   amplify the ray noise by the sparse differentiation of step 3; the paper's reading (least
+   squares on the inverse force ``f / max f``) is also computed and reported
+   (:attr:`lungdeform.fit.fitting.FitResult.force_constants_inverse`). Misses have zero weight;
+5. forward check: ``F`` from the fitted c7…c9, ``u = k·F·d`` calibrated to the exact target volume,
+   predicted surface ``p + s·u`` measured against every target by the exact symmetric surface
+   distance (:mod:`lungdeform.geometry.distance`).
+
+The objective is the RMS of that forward symmetric surface distance (area weighted) over the
+targets in ``fit_on``: the predicted surface, not ray agreement, is judged.
+
+Landmark term (optional; paper Sec. IV-B fitted its constants on corresponding points of 4-D CT):
+c1…c6 are weakly identified by the surface objective alone (a surface distance sees only the
+predicted shape). Given corresponding interior landmarks, the objective becomes
+``sqrt(surface_ms + landmark_weight · landmark_ms)`` where the landmarks are moved by the same
+sliding interpolation of the model's surface displacement that the metrics use
+(:func:`lungdeform.interior.sliding.surface_weights`).
+
+Crop faces (``keep`` False) are left out everywhere: their rays do not enter the force fit or the
+stiffness fit, their vertices do not enter the objective, and they carry no interpolation data.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from lungdeform.constants import gravity_vector
+from .correspond import RayCaster, RayHits, correspond
+from lungdeform.model.direction import directions as direction_field
+from lungdeform.model.displacement import calibrate
+from lungdeform.geometry.distance import SurfaceDistance, vertex_areas
+from lungdeform.errors import InputError, LungdeformError
+from lungdeform.model.force import field_basis, height_weights
+from lungdeform.geometry.frame import lung_frame
+from lungdeform.model.graph import spring_graph
+from lungdeform.geometry.mesh import Surface, thinned
+from lungdeform.interior.sliding import checked_operator, surface_weights
+from lungdeform.model.solve import ForceSolver
+from lungdeform.model.stiffness import as_moduli, uniform
+from lungdeform.model.transfer import local_transfer, split_transfer
+
+
+@dataclass(frozen=True, eq=False)
+class Target:
+    """One observed surface at a larger volume, in the end-exhale scan's frame (aligned).
+
+    Attributes
+    ----------
+    surface : Surface
+        mm LPS, already rigidly aligned to the end-exhale scan.
+    volume_ml : float
+        Its lung volume (mL), measured or given.
+    keep : (n_target,) bool
+        Target vertices measured (False: an artefact such as a crop face).
+    name : str
+    """
+
+    surface: Surface
+    volume_ml: float
+    keep: np.ndarray | None = None
+    name: str = "target"
+
+
+@dataclass(frozen=True, eq=False)
+class _PreparedTarget:
+    target: Target
+    distance: SurfaceDistance
+    caster: RayCaster
+    samples: np.ndarray  # (k, 3) target points used by the fit objective
+    sample_weights: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class Evaluation:
+    """One forward evaluation of candidate constants (:meth:`LungFitter.residuals`).
+
+    Attributes
+    ----------
+    directions : (n, 3) float
+        Unit directions from c1…c6.
+    hits : RayHits or None
+        Rays to the calibration target (None when they were not cast: c7…c9 given, no ``rays``).
+    force_constants : (3,) float or None
+        c7…c9 used (unnormalised; None when the rays gave too few hits).
+    u : (n, 3) float or None
+        Displacement, mm per ``delta_ml`` (None: an unusable candidate, no growth or no hits).
+    vector : (r,) float or None
+        Weighted residuals (mm) whose sum of squares is the objective squared
+        (:meth:`LungFitter.residual_vector`); None with ``u``.
+    residuals : dict[str, (k,) float]
+        Per target name: symmetric distances (mm) of the fit samples (empty when unusable).
+    surface_ms, landmark_ms : float
+        Mean squares (mm²) of the surface and landmark parts (NaN when unusable / no landmarks).
+    """
+
+    directions: np.ndarray
+    hits: RayHits | None
+    force_constants: np.ndarray | None
+    u: np.ndarray | None
+    vector: np.ndarray | None
+    residuals: dict
+    surface_ms: float
+    landmark_ms: float
+
+
+# --------------------------------------------------------------------------- free functions
+def inverse_force(transfer, kept_mass: np.ndarray, spring_ends: np.ndarray) -> np.ndarray:
+    """Applied force on all graph nodes from the kept force on mass nodes (METHOD §8).
+
+    ``f = (I − Qᵀ)(F / T_e[i→i])`` with spring-node F the mean of its two mass nodes.
+    ``kept_mass : (n,) float``; ``spring_ends : (e, 2) int``; returns ``f : (n + e,) float``.
+    """
+    keep, q = split_transfer(transfer)
+    fm = np.asarray(kept_mass, float)
+    f_all = np.concatenate([fm, 0.5 * (fm[spring_ends[:, 0]] + fm[spring_ends[:, 1]])])
+    x = f_all / keep
+    return x - q.T @ x
+
+
+def least_squares_constants(fields: np.ndarray, values: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """Weighted linear least squares ``values ≈ c @ fields``: ``fields (k, n)``, ``values (n,)`` →
+    ``c (k,)``. Rows with zero weight are ignored."""
+    a = np.asarray(fields, float).T
+    b = np.asarray(values, float)
+    w = np.ones(len(b)) if weights is None else np.asarray(weights, float)
+    m = w > 0
+    if m.sum() < a.shape[1]:
+        raise LungdeformError(f"too few observations ({int(m.sum())}) to fit {a.shape[1]} constants")
+    sw = np.sqrt(w[m])
+    c, *_ = np.linalg.lstsq(a[m] * sw[:, None], b[m] * sw, rcond=None)
+    return c
+
+
+def _sample(surface: Surface, keep: np.ndarray, count: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Up to ``count`` kept vertices (random, reproducible) with area weights rescaled to the kept area."""
+    idx = np.nonzero(keep)[0]
+    w = vertex_areas(surface.vertices, surface.faces)
+    idx = idx[thinned(len(idx), count, seed)]
+    return surface.vertices[idx], w[idx]
+
+
+# --------------------------------------------------------------------------- the fitter
+class LungFitter:
+    """Precompute once for one end-exhale surface, then evaluate many candidate constants.
+
+    Parameters
+    ----------
+    surface : Surface
+        End-exhale surface p (the model mesh; a few thousand vertices), mm LPS.
+    side : 'left' | 'right'
+    targets : sequence of Target
+        Aligned surfaces at larger volumes (volumes must increase, all above V_EE).
+    fit_on : sequence of int, optional
+        Indices of the targets in the objective (default: all). The first is the calibration
+        target (``k`` makes its volume exact) and the one rays are cast to.
+    keep : (n,) bool, optional
+        Model vertices measured by the objective (False: e.g. the crop face).
+    gravity : str or (3,)
+    max_distance, min_cosine : ray search bound (mm) and grazing threshold.
+    samples : int
+        Target points per target used by the objective.
+    landmarks_rest : (m, 3) float, optional
+        Landmarks at end-exhale, mm, same frame as ``surface``.
+    landmarks_targets : dict[int, (m, 3) float], optional
+        Observed positions of those landmarks at target ``i`` (aligned, mm), for the targets that
+        have them (only targets in ``fit_on`` enter the objective).
+    landmark_weight : float
+        Weight of the landmark mean square against the surface mean square (1: both in mm²).
+    landmark_matrix : (m, k) operator, optional
+        The sliding interpolation from the kept vertices to ``landmarks_rest``
+        (:func:`lungdeform.interior.sliding.surface_weights` of ``surface`` with ``keep`` at
+        ``landmarks_rest``; an ``(m, k)`` array is also accepted), precomputed by the caller (one dense solve of size ~k saved per
+        fitter); computed here when not given. Row ``j`` depends only on landmark ``j``, so rows of
+        one matrix serve any subset of the landmarks.
+    """
+
+    def __init__(self, surface: Surface, side: str, targets: Sequence[Target], *, fit_on=None,
+                 keep=None, gravity="supine", max_distance: float = 25.0, min_cosine: float = 0.25,
+                 samples: int = 6000, d_min: float = 1.0, stiffness=None, landmarks_rest=None,
+                 landmarks_targets=None, landmark_weight: float = 1.0, landmark_matrix=None):
+        if not targets:
+            raise InputError("targets: fitting needs at least one larger-volume surface")
+        self.surface = surface
+        self.side = side
+        self.p = surface.vertices
+        self.n = surface.n_vertices
+        self.v_ee = surface.volume_ml
+        vols = [float(t.volume_ml) for t in targets]
+        for t, v in zip(targets, vols):
+            if not np.isfinite(v) or v <= self.v_ee:
+                raise InputError(
+                    f"{t.name}: volume {v:.1f} mL is not larger than the end-exhale volume "
+                    f"{self.v_ee:.1f} mL; volumes must increase from the end-exhale surface")
+        if any(b <= a for a, b in zip(vols, vols[1:])):
+            raise InputError(f"target volumes must increase strictly, got {', '.join(f'{v:.1f}' for v in vols)} mL")
+        self.targets = list(targets)
+        self.fit_on = list(range(len(targets))) if fit_on is None else [int(i) for i in fit_on]
+        if not self.fit_on or any(i < 0 or i >= len(targets) for i in self.fit_on):
+            raise InputError(f"fit_on must index the {len(targets)} targets, got {fit_on!r}")
+        self.keep = np.ones(self.n, bool) if keep is None else np.asarray(keep, bool)
+        self.gravity = gravity_vector(gravity)
+        self.max_distance = float(max_distance)
+        self.min_cosine = float(min_cosine)
+        self.d_min = float(d_min)
+        self.frame = lung_frame(self.p, side)
+        self.xyz = self.frame.normalized(self.p)
+        self.graph = spring_graph(self.p, surface.edges)
+        self.areas = vertex_areas(self.p, surface.faces)
+        self.prepared = []
+        for i, t in enumerate(self.targets):
+            k = np.ones(t.surface.n_vertices, bool) if t.keep is None else np.asarray(t.keep, bool)
+            pts, w = _sample(t.surface, k, samples, seed=i)
+            self.prepared.append(_PreparedTarget(t, SurfaceDistance(t.surface.vertices, t.surface.faces),
+                                                 RayCaster(t.surface.vertices, t.surface.faces), pts, w))
+        self.calib = self.fit_on[0]
+        self.delta_ml = vols[self.calib] - self.v_ee
+        self._set_landmarks(landmarks_rest, landmarks_targets, landmark_weight, landmark_matrix)
+        self.set_stiffness(uniform(self.n) if stiffness is None else as_moduli(stiffness, self.n))
+        self.evaluations = 0
+
+    def _set_landmarks(self, rest, observed, weight, matrix=None) -> None:
+        self.landmark_weight = float(weight)
+        self.lm_rest, self.lm_targets, self.lm_matrix = None, {}, None
+        if rest is None or not observed:
+            return
+        from lungdeform.geometry.mesh import as_vertices
+
+        rest = as_vertices(rest, "landmarks_rest")
+        if not (np.isfinite(self.landmark_weight) and self.landmark_weight >= 0):
+            raise InputError(f"landmark_weight must be >= 0, got {weight!r}")
+        for i, pts in observed.items():
+            if int(i) not in range(len(self.targets)):
+                raise InputError(f"landmarks_targets: no target {i} (there are {len(self.targets)})")
+            if np.shape(pts) != rest.shape:
+                raise InputError(f"landmarks of target {i} have shape {np.shape(pts)}, the end-exhale "
+                                 f"landmarks {rest.shape}; rows must correspond")
+        self.lm_rest = rest
+        self.lm_targets = {int(i): as_vertices(v, "landmarks") for i, v in observed.items() if int(i) in self.fit_on}
+        # the metrics' interpolation: the sliding interpolation from the kept vertices (crop face out)
+        if matrix is None:
+            self.lm_matrix = surface_weights(self.surface, rest, self.keep)
+        else:
+            self.lm_matrix = checked_operator(matrix, (len(rest), int(self.keep.sum())))
+
+    def landmark_positions(self, u: np.ndarray, target: int) -> np.ndarray:
+        """``(m, 3)`` mm: the landmarks moved by the sliding interpolation of ``s·u`` at ``target``."""
+        s = (self.targets[target].volume_ml - self.v_ee) / self.delta_ml
+        return self.lm_rest + s * (self.lm_matrix @ u[self.keep])
+
+    # ----------------------------------------------------------------- stiffness-dependent part
+    def set_stiffness(self, stiffness: np.ndarray) -> None:
+        """(Re)build the transfer and the force responses for a stiffness field ``(n,)``."""
+        self.stiffness = stiffness
+        self.transfer = local_transfer(self.graph, stiffness, self.d_min)
+        solver = ForceSolver(self.transfer, "bicgstab", n_mass=self.n, tol=1e-10)
+        self.basis = np.stack([solver.solve(fld)[: self.n] for fld in field_basis(self.xyz)])  # (4, n)
+        w = height_weights(self.frame, self.gravity)
+        # the three fields of (18) for this gravity: x̂, ĥ(gravity), ẑ
+        self.fields = np.stack([self.basis[1], w @ self.basis, self.basis[3]])  # responses F_x, F_h, F_z
+        self.applied_fields = np.stack([self.xyz[:, 0], w @ field_basis(self.xyz), self.xyz[:, 2]])
+
+    # ----------------------------------------------------------------- one candidate
+    def ray_force_constants(self, d: np.ndarray, hits: RayHits) -> np.ndarray | None:
+        """c7…c9 ``(3,)`` (unnormalised) fitted to the ray magnitudes of ``hits`` along ``d`` (steps
+        2–4 of the module docstring); None when fewer than 10 kept rays hit."""
+        w = np.where(hits.valid & self.keep, self.areas, 0.0)  # crop-face rays carry no data
+        t = np.nan_to_num(hits.distance)
+        if (w > 0).sum() < 10:
+            return None
+        c_force = least_squares_constants(self.fields, t, w)
+        # one robust pass: rays whose magnitude is far from the fitted force (a wrong wall) are dropped
+        resid = np.abs(c_force @ self.fields - t)
+        mad = 1.4826 * np.median(resid[w > 0])
+        w2 = np.where(resid <= max(3.0 * mad, 1.0), w, 0.0)
+        if (w2 > 0).sum() >= 10:
+            c_force = least_squares_constants(self.fields, t, w2)
+        return c_force
+
+    def displacement(self, d: np.ndarray, c_force: np.ndarray) -> np.ndarray | None:
+        """``u (n, 3)`` mm per ``delta_ml``: ``k·F·d`` calibrated on the calibration target's volume
+        for directions ``d (n, 3)`` and c7…c9 ``c_force (3,)``; None when it gives no volume growth."""
+        force = np.asarray(c_force, float) @ self.fields
+        try:
+            return calibrate(self.p, self.surface.faces, force[:, None] * d, calibration_ml=self.delta_ml,
+                             unit_ml=self.delta_ml)
+        except LungdeformError:
+            return None
+
+    def residual_vector(self, u: np.ndarray, shifts=None) -> tuple[np.ndarray, dict, float, float]:
+        """Weighted per-point residuals (mm) of the displacement ``u (n, 3)`` whose sum of squares is
+        the objective squared: both directions of the symmetric surface distance for every target
+        in ``fit_on`` (area weights), then the landmark errors (x, y, z) scaled by
+        ``landmark_weight``. ``shifts : (k, 3)`` mm, optional: target ``i`` is taken as its surface
+        (and landmarks) translated by ``shifts[i]``. Returns ``(r, residuals by target name,
+        surface_ms, landmark_ms)``."""
+        sh = np.zeros((len(self.targets), 3)) if shifts is None else np.asarray(shifts, float)
+        parts, residuals = [], {}
+        norm = np.sqrt(2.0 * len(self.fit_on))
+        for i in self.fit_on:
+            pt = self.prepared[i]
+            s = (pt.target.volume_ml - self.v_ee) / self.delta_ml
+            a_to_b, b_to_a, wa, wb = self._two_sided(self.p + s * u, pt, sh[i])
+            residuals[pt.target.name] = np.concatenate([a_to_b, b_to_a])
+            parts += [a_to_b * np.sqrt(wa / wa.sum()) / norm, b_to_a * np.sqrt(wb / wb.sum()) / norm]
+        surface_ms = float(sum(np.sum(r**2) for r in parts))
+        lm_ms = float("nan")
+        if self.lm_targets:
+            errs = [(self.landmark_positions(u, i) - (obs + sh[i])).ravel() for i, obs in self.lm_targets.items()]
+            lm_ms = float(np.mean([np.sum(e**2) / len(self.lm_rest) for e in errs]))
+            scale = np.sqrt(self.landmark_weight / (len(errs) * len(self.lm_rest)))
+            parts += [e * scale for e in errs]
+        return np.concatenate(parts), residuals, surface_ms, lm_ms
+
+    def directions(self, c_dir: np.ndarray) -> np.ndarray:
+        """Unit directions ``(n, 3)`` from c1…c6 ``c_dir (6,)`` (step 1)."""
+        return direction_field(self.frame, self.p, np.concatenate([np.asarray(c_dir, float)[:6], [0.0, 1.0, 0.0]]))
+
+    def rays(self, d: np.ndarray) -> RayHits:
+        """Rays from the end-exhale vertices along ``±d (n, 3)`` to the calibration target (step 2)."""
+        return correspond(self.p, d, self.prepared[self.calib].caster, max_distance=self.max_distance,
+                          min_cosine=self.min_cosine)
+
+    def residuals(self, c_dir: np.ndarray, force=None, shifts=None, *, rays: bool = False,
+                  directions=None) -> Evaluation:
+        """One forward evaluation (counted in :attr:`evaluations`) of direction constants
+        ``c_dir (6,)``: directions, c7…c9 (``force``, or fitted to the ray magnitudes when None,
+        steps 2–4), displacement and the residual vector of :meth:`residual_vector` for the targets
+        translated by ``shifts : (k, 3)`` mm. ``rays``: cast the rays even when ``force`` is given
+        (for :attr:`Evaluation.hits`). ``directions (n, 3)``: unit directions to use instead of
+        those of ``c_dir`` (a corrected field, :mod:`lungdeform.fit.direction_correction`)."""
+        self.evaluations += 1
+        d = self.directions(c_dir) if directions is None else np.asarray(directions, float)
+        hits = self.rays(d) if force is None or rays else None
+        c_force = self.ray_force_constants(d, hits) if force is None else np.asarray(force, float)
+        u = None if c_force is None else self.displacement(d, c_force)
+        if u is None:
+            return Evaluation(d, hits, c_force, None, None, {}, float("nan"), float("nan"))
+        r, residuals, surface_ms, lm_ms = self.residual_vector(u, shifts)
+        return Evaluation(d, hits, c_force, u, r, residuals, surface_ms, lm_ms)
+
+    def evaluate(self, c_dir: np.ndarray, *, full: bool = False, force=None, shifts=None, directions=None):
+        """Objective (mm) for direction constants ``c_dir (6,)``; with ``full`` also the parts.
+
+        ``force``: c7…c9 to use (default: fitted to the ray magnitudes, steps 2–4);
+        ``shifts : (k, 3)`` mm: translations of the targets (see :meth:`residual_vector`);
+        ``directions``: as :meth:`residuals`."""
+        ev = self.residuals(c_dir, force, shifts, rays=full, directions=directions)
+        if ev.u is None:
+            return (np.inf, None) if full else np.inf
+        obj = self._combine(ev.surface_ms, ev.landmark_ms)
+        return (obj, self._parts(ev, c_dir)) if full else obj
+
+    def objective(self, u: np.ndarray, shifts=None) -> float:
+        """The objective (mm) of a displacement ``u (n, 3)`` mm per unit."""
+        _, _, surface_ms, lm_ms = self.residual_vector(u, shifts)
+        return self._combine(surface_ms, lm_ms)
+
+    def _combine(self, surface_ms: float, landmark_ms: float) -> float:
+        return float(np.sqrt(surface_ms + (self.landmark_weight * landmark_ms if self.lm_targets else 0.0)))
+
+    def _parts(self, ev: Evaluation, c_dir) -> dict:
+        c_force = ev.force_constants
+        scale = np.abs(c_force).max()
+        return dict(directions=ev.directions, hits=ev.hits, force=c_force @ self.fields, u=ev.u,
+                    residuals=ev.residuals, constants=np.concatenate([np.asarray(c_dir, float)[:6], c_force / scale]),
+                    surface_rms=float(np.sqrt(ev.surface_ms)), landmark_rms=float(np.sqrt(ev.landmark_ms)))
+
+    def _two_sided(self, positions: np.ndarray, pt: _PreparedTarget, shift=None):
+        """Distances (mm) model → target and target samples → model, the target moved by ``shift``."""
+        t = np.zeros(3) if shift is None else np.asarray(shift, float)
+        a_to_b = pt.distance.distance(positions[self.keep] - t)
+        b_to_a = SurfaceDistance(positions, self.surface.faces).distance(pt.samples + t)
+        return a_to_b, b_to_a, self.areas[self.keep], pt.sample_weights
+
+    def inverse_parts(self, force_obs: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(f (n,) normalised by max |f|, c7…c9 (3,))``: inverse force and its paper-style fit."""
+        f = inverse_force(self.transfer, force_obs, self.graph.spring_ends)[: self.n]
+        scale = np.abs(f[weights > 0]).max() if np.any(weights > 0) else 1.0
+        f = f / (scale or 1.0)
+        c = least_squares_constants(self.applied_fields, f, weights)
+        return f, c / (np.abs(c).max() or 1.0)

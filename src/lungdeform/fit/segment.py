@@ -1,0 +1,500 @@
+"""Thoracic CT → left and right lung masks, with no learned weights.
+
+Pipeline of :func:`segment_lungs` (each step names what it is for):
+
+1. **threshold**: ``air = HU < air_hu`` (default −400 HU; lung parenchyma is ≈ −850 HU, soft
+   tissue > −100 HU).
+2. **outside air**: air components (6-connected, 3-D) that touch the in-plane border of the volume
+   (front, back, left, right faces) are outside the body and dropped. The top and bottom faces are
+   not used: lung apices and bases often touch them.
+3. **lung candidate**: the 3-D components of the remaining air larger than ``min_lung_ml``
+   (default 100 mL; bowel gas and stray bubbles are smaller). Lungs and airways usually form one
+   component here.
+4. **trachea seed**: from the top slice down, 2-D components of ``candidate ∧ HU < lumen_hu``
+   (default −900 HU) of tracheal size (``30–1200 mm²``) whose centre lies within ``25 mm`` of the
+   body's left–right centre; the topmost such component, closest to the centre, is the seed.
+5. **airway tree**: region growing from the seed inside the candidate with a rising threshold
+   (−1000 HU up to ``airway_max_hu``, default −900 HU, steps of 20 HU) and *explosion control*:
+   growing stops before the first step whose volume more than doubles once the tree holds
+   ≥ 5 mL, or exceeds ``airway_max_ml`` (leakage into parenchyma). The tree (trachea, main and
+   the visible lobar bronchi) is removed with a one-voxel 6-connected dilation (its wall).
+6. **left/right split**: the two largest remaining components ≥ 10 % of the total. If the lungs
+   still touch (one component), the component is eroded in-plane until it separates (at most
+   ``max_erosions`` voxels); the pieces are grown back geodesically inside the original mask.
+   If erosion does not separate them, each axial slice is cut along the column with the fewest
+   lung voxels within ``25 mm`` of the midline (minimal-cost cut). Side: the piece whose
+   centroid lies at larger LPS world x is the **left** lung (LPS: +x = patient left).
+7. **hole filling**: vessels, nodules and carved bronchi inside each lung are filled, per axial
+   slice (2-D) and in 3-D.
+
+Frames: masks are ``(z, y, x) bool`` arrays on the CT grid (SimpleITK order); geometry follows
+:class:`lungdeform.io.image.Image` (spacing x y z mm, origin mm LPS, direction columns in LPS).
+Volumes are mL (= voxel count × voxel volume / 1000). Reading the CT and reordering its grid are
+in :mod:`lungdeform.fit.ct`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage as ndi
+
+from .ct import axial_axes, check_ct, to_axial
+from lungdeform.errors import InputError, MaskError
+from lungdeform.io.image import Image
+
+_SIX = ndi.generate_binary_structure(3, 1)
+#: 4-connected in-plane structure with no link across slices: per-slice (2-D) operations on a 3-D array.
+_INPLANE = np.zeros((3, 3, 3), bool)
+_INPLANE[1] = ndi.generate_binary_structure(2, 1)
+
+
+# =========================================================================== result
+@dataclass(frozen=True, eq=False)
+class LungSegmentation:
+    """Left and right lung masks of one CT and what was done to get them.
+
+    Attributes
+    ----------
+    left, right : (z, y, x) bool
+        Lung masks on the CT grid (``left`` = patient left, larger LPS x).
+    airway : (z, y, x) bool
+        The airway tree that was grown and removed (before the wall dilation).
+    image : Image
+        The CT (HU) whose geometry the masks share.
+    volumes_ml : dict
+        ``left``, ``right``, ``airway`` (grown tree), ``removed`` (tree + wall), ``candidate``
+        (all inside-body air of the lung component(s), i.e. lungs + airways by plain threshold), mL.
+    airway_removal : str
+        One paragraph saying how the trachea and bronchi were found and removed.
+    details : dict
+        Seeds, thresholds, component sizes, split method, timings (s).
+    """
+
+    left: np.ndarray
+    right: np.ndarray
+    airway: np.ndarray
+    image: Image
+    volumes_ml: dict
+    airway_removal: str
+    details: dict = field(default_factory=dict)
+
+    def labels(self) -> np.ndarray:
+        """``(z, y, x) uint8`` label map: 0 background, 1 left lung, 2 right lung."""
+        out = np.zeros(self.left.shape, np.uint8)
+        out[self.left] = 1
+        out[self.right] = 2
+        return out
+
+    def mask_image(self, side: str) -> Image:
+        """The ``"left"`` or ``"right"`` mask as a uint8 :class:`Image` with the CT's geometry."""
+        if side not in ("left", "right"):
+            raise InputError(f"side must be 'left' or 'right', got {side!r}")
+        m = (self.left if side == "left" else self.right).astype(np.uint8)
+        im = self.image
+        return Image(m, im.spacing, im.origin, im.direction, source=f"{im.source} ({side} lung)")
+
+
+# =========================================================================== steps
+def _voxel_ml(image: Image) -> float:
+    return float(np.prod(image.spacing)) / 1000.0
+
+
+def inside_body_air(ct: np.ndarray, air_hu: float) -> np.ndarray:
+    """``(z, y, x) bool``: voxels below ``air_hu`` not connected (6-conn., 3-D) to the in-plane border."""
+    air = ct < air_hu
+    lab, _ = ndi.label(air, structure=_SIX)
+    border = np.unique(np.concatenate([lab[:, 0, :].ravel(), lab[:, -1, :].ravel(),
+                                       lab[:, :, 0].ravel(), lab[:, :, -1].ravel()]))
+    keep = np.ones(lab.max() + 1, bool)
+    keep[border] = False
+    keep[0] = False
+    return keep[lab]
+
+
+def largest_components(mask: np.ndarray, min_voxels: int, structure=_SIX) -> tuple[np.ndarray, np.ndarray]:
+    """Label ``mask``; return ``(labels (z, y, x) int, ids)`` of components ≥ ``min_voxels``, largest first."""
+    lab, n = ndi.label(mask, structure=structure)
+    if n == 0:
+        return lab, np.zeros(0, int)
+    sizes = np.bincount(lab.ravel())
+    sizes[0] = 0
+    ids = np.nonzero(sizes >= max(min_voxels, 1))[0]
+    return lab, ids[np.argsort(sizes[ids])[::-1]]
+
+
+def find_trachea_seed(ct, candidate, spacing, body_center_x, lumen_hu=-900.0,
+                      area_mm2=(30.0, 1200.0), max_offset_mm=25.0, search_fraction=0.35):
+    """Find the trachea in the top slices. Returns ``(z, seed mask (y, x) bool, info)`` or None.
+
+    Scans from the top slice of ``candidate`` down through ``search_fraction`` of its height; in each
+    slice takes the 2-D components of ``candidate ∧ ct < lumen_hu`` with area in ``area_mm2`` and
+    centre within ``max_offset_mm`` of ``body_center_x`` (voxel x, per slice); returns the first
+    slice's component closest to the centre. Arrays are (z, y, x) in head-up order: the highest
+    z index is the most cranial slice.
+    """
+    px = float(spacing[0] * spacing[1])
+    zs = np.nonzero(candidate.any(axis=(1, 2)))[0]
+    if zs.size == 0:
+        return None
+    order = zs[::-1]
+    n_scan = max(1, int(np.ceil(search_fraction * len(zs))))
+    for z in order[:n_scan]:
+        lab, n = ndi.label(candidate[z] & (ct[z] < lumen_hu))
+        if n == 0:
+            continue
+        sizes = np.bincount(lab.ravel())[1:] * px
+        best = None
+        for i in np.nonzero((sizes >= area_mm2[0]) & (sizes <= area_mm2[1]))[0] + 1:
+            yy, xx = np.nonzero(lab == i)
+            off = abs(xx.mean() - body_center_x[z]) * spacing[0]
+            if off <= max_offset_mm and (best is None or off < best[1]):
+                best = (i, off, float(sizes[i - 1]), float(xx.mean()), float(yy.mean()))
+        if best is not None:
+            info = {"slice": int(z), "area_mm2": best[2], "offset_mm": best[1],
+                    "centre_voxel_xy": [best[3], best[4]]}
+            return int(z), lab == best[0], info
+    return None
+
+
+def grow_airways(ct, candidate, seed, voxel_ml, start_hu=-1000.0, max_hu=-900.0, step_hu=20.0,
+                 min_tree_ml=5.0, explosion_ratio=2.0, max_ml=400.0):
+    """Region-grow the airway tree from ``seed`` with a rising threshold and explosion control.
+
+    Returns ``(tree (z, y, x) bool, info)``; ``info['history']`` lists ``[threshold HU, volume mL]``
+    per step, ``info['threshold_hu']`` the accepted one and ``info['stopped']`` why growing stopped.
+    """
+    # work in the candidate's bounding box (speed)
+    nz = [np.nonzero(candidate.any(axis=ax))[0] for ax in ((1, 2), (0, 2), (0, 1))]
+    box = tuple(slice(v.min(), v.max() + 1) for v in nz)
+    c, s, a = candidate[box], seed[box], ct[box]
+    best, best_t, prev_ml, history, stopped = None, None, 0.0, [], "reached the maximum threshold"
+    t = start_hu
+    while t <= max_hu + 1e-9:
+        lab, _ = ndi.label(c & (a < t), structure=_SIX)
+        ids = np.unique(lab[s])
+        ids = ids[ids > 0]
+        grown = np.isin(lab, ids) if ids.size else np.zeros_like(c)
+        ml = float(grown.sum()) * voxel_ml
+        history.append([float(t), ml])
+        if ml > max_ml:
+            stopped = f"volume {ml:.0f} mL at {t:g} HU exceeds {max_ml:g} mL (leak)"
+            break
+        if prev_ml >= min_tree_ml and ml > explosion_ratio * prev_ml:
+            stopped = f"volume jumped {prev_ml:.1f} → {ml:.1f} mL at {t:g} HU (leak)"
+            break
+        best, best_t, prev_ml = grown, t, ml
+        t += step_hu
+    tree = np.zeros_like(candidate)
+    if best is not None:
+        tree[box] = best
+    return tree, {"threshold_hu": best_t, "history": history, "stopped": stopped}
+
+
+def _two_seeds_grown(separated, m, shape, box, min_fraction):
+    """Labels 1/2 grown back over ``m`` from the two largest pieces of ``separated``, or None when
+    there are not two pieces or the smaller is below ``min_fraction`` of both."""
+    lab, ids = largest_components(separated, 1)
+    if ids.size < 2:
+        return None
+    sizes = np.bincount(lab.ravel())[ids[:2]]
+    if sizes[1] < min_fraction * sizes.sum():
+        return None
+    seeds = np.zeros(lab.shape, np.int32)
+    seeds[lab == ids[0]] = 1
+    seeds[lab == ids[1]] = 2
+    out = np.zeros(shape, np.int32)
+    out[box] = _grow_back(m, seeds)
+    return out
+
+
+def _grow_back(mask: np.ndarray, seeds: np.ndarray) -> np.ndarray:
+    """Geodesic growth of the labelled ``seeds`` (int, 0 = none) inside ``mask``, one in-plane/6-conn
+    step at a time for every label in turn, until no voxel changes. Returns the labels on ``mask``."""
+    out = np.where(mask, seeds, 0)
+    while True:
+        free = mask & (out == 0)
+        if not free.any():
+            break
+        changed = False
+        for k in np.unique(out[out > 0]):
+            add = ndi.binary_dilation(out == k, structure=_SIX) & free
+            if add.any():
+                out[add] = k
+                free &= ~add
+                changed = True
+        if not changed:
+            break
+    return out
+
+
+def split_touching(mask: np.ndarray, spacing, midline_x: float, max_erosions: int = 10,
+                   min_fraction: float = 0.1, cut_window_mm: float = 25.0):
+    """Split one component holding both lungs into two labels (1, 2). Returns ``(labels, info)``.
+
+    First in-plane erosion until two pieces of ≥ ``min_fraction`` of the eroded volume appear,
+    grown back geodesically (:func:`_grow_back`); if ``max_erosions`` steps do not separate them,
+    a per-slice cut along the column (x) with the fewest lung voxels within ``cut_window_mm`` of
+    ``midline_x`` (voxel x). Raises :class:`MaskError` if neither separates the lungs.
+    """
+    nz = [np.nonzero(mask.any(axis=ax))[0] for ax in ((1, 2), (0, 2), (0, 1))]
+    box = tuple(slice(max(v.min() - 1, 0), v.max() + 2) for v in nz)
+    m = mask[box]
+    eroded = m
+    for k in range(1, max_erosions + 1):
+        eroded = ndi.binary_erosion(eroded, structure=_INPLANE)
+        out = _two_seeds_grown(eroded, m, mask.shape, box, min_fraction)
+        if out is not None:
+            return out, {"method": "in-plane erosion", "erosions": k}
+    # minimal-cost cut per slice near the midline
+    x0 = box[2].start
+    half = int(round(cut_window_mm / spacing[0]))
+    cut = m.copy()
+    lo = max(int(midline_x) - half - x0, 0)
+    hi = min(int(midline_x) + half - x0 + 1, m.shape[2])
+    if hi <= lo:
+        raise MaskError("the lungs touch and the midline lies outside the lung mask: cannot split them")
+    for z in range(m.shape[0]):
+        cols = m[z, :, lo:hi].sum(axis=0)
+        if not cols.any():
+            continue
+        dist = np.abs(np.arange(lo, hi) + x0 - midline_x)
+        j = lo + int(np.lexsort((dist, cols))[0])
+        cut[z, :, j] = False
+    out = _two_seeds_grown(cut, m, mask.shape, box, min_fraction)
+    if out is not None:
+        return out, {"method": "minimal-cost cut per slice near the midline", "erosions": max_erosions}
+    raise MaskError(
+        f"the lungs form one component that neither {max_erosions} in-plane erosions nor a midline cut "
+        "separate; check the CT (one lung only, or lungs fused by disease)"
+    )
+
+
+def fill_holes(mask: np.ndarray) -> np.ndarray:
+    """Fill holes per axial slice (2-D) and then in 3-D (vessels, nodules, carved bronchi)."""
+    nz = [np.nonzero(mask.any(axis=ax))[0] for ax in ((1, 2), (0, 2), (0, 1))]
+    if any(v.size == 0 for v in nz):
+        return mask.copy()
+    box = tuple(slice(v.min(), v.max() + 1) for v in nz)
+    m = ndi.binary_fill_holes(mask[box], structure=_INPLANE)
+    m = ndi.binary_fill_holes(m, structure=_SIX)
+    out = np.zeros_like(mask)
+    out[box] = m
+    return out
+
+
+# =========================================================================== pipeline
+def segment_lungs(
+    image: Image,
+    *,
+    air_hu: float = -400.0,
+    lumen_hu: float = -900.0,
+    airway_max_hu: float = -900.0,
+    airway_max_ml: float = 400.0,
+    min_lung_ml: float = 100.0,
+    max_erosions: int = 10,
+    progress: Callable[[str], None] | None = None,
+) -> LungSegmentation:
+    """Segment left and right lungs of a CT in HU (module docstring: the steps and their defaults).
+
+    Raises :class:`MaskError` when no lung-sized air is found inside the body, or the lungs cannot
+    be split, and :class:`InputError` for an image that is not CT in HU.
+    """
+    import time
+
+    def say(msg):
+        if progress:
+            progress(msg)
+
+    check_ct(image)
+    perm = axial_axes(image)
+    if perm != (0, 1, 2):  # stored in another axis order (e.g. sagittal or coronal stacks): segment in
+        # axial (z, y, x) order, an exact transpose, and give the masks back on the image's own grid
+        inv = tuple(int(a) for a in np.argsort(perm))
+        seg = segment_lungs(to_axial(image, perm), air_hu=air_hu, lumen_hu=lumen_hu, airway_max_hu=airway_max_hu,
+                            airway_max_ml=airway_max_ml, min_lung_ml=min_lung_ml, max_erosions=max_erosions,
+                            progress=progress)
+        back = {k: np.ascontiguousarray(np.transpose(getattr(seg, k), inv)) for k in ("left", "right", "airway")}
+        details = {**seg.details, "array_axes_to_axial_zyx": list(perm)}
+        desc = seg.airway_removal + (f" (Slice numbers refer to the image transposed to axial order: array axes "
+                                     f"{list(perm)} of the file are z, y, x.)")
+        return LungSegmentation(back["left"], back["right"], back["airway"], image, seg.volumes_ml, desc, details)
+    ct = np.asarray(image.array)
+    sp = np.asarray(image.spacing, float)
+    vml = _voxel_ml(image)
+    timings, t0 = {}, time.perf_counter()
+    # axial slices with the head at the top index: flip a feet-up stack into head-up order for the scan
+    head_up = image.direction[2, 2] > 0
+    if not head_up:
+        ct = ct[::-1]
+
+    say("threshold and outside air")
+    inside = inside_body_air(ct, air_hu)
+    timings["outside_air_s"] = time.perf_counter() - t0
+    lab, ids = largest_components(inside, int(np.ceil(min_lung_ml / vml)))
+    if ids.size == 0:
+        raise MaskError(
+            f"{image.source}: no air region ≥ {min_lung_ml:g} mL below {air_hu:g} HU inside the body: "
+            "no lungs found (empty mask)"
+        )
+    candidate = np.isin(lab, ids[:2])
+    cand_ml = float(candidate.sum()) * vml
+    comp_ml = [float(v) * vml for v in np.bincount(lab.ravel())[ids[:6]]]
+    del lab
+    timings["candidate_s"] = time.perf_counter() - t0
+
+    say("trachea and bronchi")
+    body = ct > air_hu
+    body_cx = np.array([np.nonzero(row)[0].mean() if row.any() else ct.shape[2] / 2
+                        for row in body.any(axis=1)])
+    del body
+    seed = find_trachea_seed(ct, candidate, sp, body_cx, lumen_hu)
+    if seed is None:
+        tree = np.zeros_like(candidate)
+        grow = {"threshold_hu": None, "history": [], "stopped": "no trachea seed found"}
+        seed_info = None
+        removed = tree
+    else:
+        z, seed2d, seed_info = seed
+        seed_mask = np.zeros_like(candidate)
+        seed_mask[z] = seed2d
+        tree, grow = grow_airways(ct, candidate, seed_mask, vml, max_hu=airway_max_hu, max_ml=airway_max_ml)
+        removed = ndi.binary_dilation(tree, structure=_SIX) & candidate
+    lungs = candidate & ~removed
+    timings["airways_s"] = time.perf_counter() - t0
+
+    say("left/right split")
+    lab, ids = largest_components(lungs, 1)
+    total = float(lungs.sum())
+    big = [i for i in ids[:2] if np.count_nonzero(lab == i) >= 0.1 * total]
+    if len(big) == 2:
+        labels = np.where(lab == big[0], 1, np.where(lab == big[1], 2, 0)).astype(np.int32)
+        split = {"method": "two components after airway removal", "erosions": 0}
+    elif len(big) == 1:
+        midline = float(np.median(body_cx[lungs.any(axis=(1, 2))]))
+        labels, split = split_touching(lab == big[0], sp, midline, max_erosions)
+    else:
+        raise MaskError(f"{image.source}: nothing left of the lungs after airway removal (empty mask)")
+    n_dropped = int(ids.size - 2)
+    dropped_ml = float(total - np.count_nonzero(labels)) * vml
+    del lab
+    timings["split_s"] = time.perf_counter() - t0
+
+    say("hole filling")
+    parts = [fill_holes(labels == k) for k in (1, 2)]
+    # side from the world x of each centroid (LPS: +x = patient left)
+    cx = []
+    for p in parts:
+        ijk = np.array(ndi.center_of_mass(p))[::-1].copy()
+        if not head_up:
+            ijk[2] = ct.shape[0] - 1 - ijk[2]
+        cx.append(float((image.direction @ (ijk * sp) + image.origin)[0]))
+    left, right = (parts[0], parts[1]) if cx[0] > cx[1] else (parts[1], parts[0])
+    overlap = left & right
+    if overlap.any():  # hole filling of one lung cannot reach into the other, but be explicit
+        right &= ~overlap
+    if not head_up:
+        left, right, tree, removed = left[::-1], right[::-1], tree[::-1], removed[::-1]
+    timings["fill_s"] = time.perf_counter() - t0
+
+    vol = {
+        "left": float(left.sum()) * vml,
+        "right": float(right.sum()) * vml,
+        "airway": float(tree.sum()) * vml,
+        "removed": float(removed.sum()) * vml,
+        "candidate": cand_ml,
+    }
+    if vol["left"] == 0 or vol["right"] == 0:
+        raise MaskError(f"{image.source}: an empty lung mask after segmentation (left {vol['left']:.0f} mL, "
+                        f"right {vol['right']:.0f} mL)")
+    if seed_info is None:
+        desc = (f"No trachea found in the top slices (no {lumen_hu:g} HU component of tracheal size within "
+                "25 mm of the body centre); no airway was removed.")
+    else:
+        zw = seed_info["slice"] if head_up else ct.shape[0] - 1 - seed_info["slice"]
+        zz = np.nonzero(tree.any(axis=(1, 2)))[0]
+        desc = (
+            f"Trachea seed: a {seed_info['area_mm2']:.0f} mm² air component below {lumen_hu:g} HU in slice "
+            f"{zw}, {seed_info['offset_mm']:.1f} mm from the body's left-right centre. Airways region-grown "
+            f"from it with a threshold rising from -1000 HU in 20 HU steps up to {grow['threshold_hu']:g} HU "
+            f"({grow['stopped']}): {vol['airway']:.1f} mL spanning slices {zz.min()}-{zz.max()} "
+            f"(trachea, main and visible lobar bronchi). Removed with a one-voxel wall dilation: "
+            f"{vol['removed']:.1f} mL in all. Lungs split by: {split['method']}."
+        )
+    details = {
+        "air_hu": air_hu,
+        "candidate_components_ml": comp_ml,
+        "trachea_seed": None if seed_info is None else {**seed_info, "slice": int(zw)},
+        "airway_growing": grow,
+        "split": split,
+        "small_pieces_dropped": n_dropped,
+        "small_pieces_dropped_ml": dropped_ml,
+        "centroid_world_x_mm": sorted(cx, reverse=True),
+        "timings_s": timings,
+    }
+    return LungSegmentation(left, right, tree, image, vol, desc, details)
+
+
+# =========================================================================== overlay
+def overlay_png(seg: LungSegmentation, path, n_axial: int = 3) -> Path:
+    """Write a PNG of the masks over CT slices: ``n_axial`` axial slices through the lungs and one
+    coronal slice; left lung blue, right lung red, removed airways yellow. Radiological display
+    (patient right on the image's left, anterior up, head up). Written atomically."""
+    import io as _io
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib import pyplot as plt
+    from matplotlib.colors import ListedColormap
+
+    from lungdeform.atomic import write_bytes
+
+    perm = axial_axes(seg.image)  # draw in axial (z, y, x) order whatever the file's axis order
+    axial = to_axial(seg.image, perm)
+    ct = np.asarray(axial.array)
+    d = axial.direction
+    sp = np.asarray(axial.spacing, float)
+    lab = seg.labels().astype(np.int16)
+    lab[seg.airway & (lab == 0)] = 3
+    lab = np.transpose(lab, perm)
+    lung = np.transpose(seg.left | seg.right, perm)
+    zs = np.nonzero(lab.any(axis=(1, 2)) & (lab != 3).any(axis=(1, 2)))[0]
+    if zs.size == 0:
+        raise MaskError(f"{seg.image.source}: empty lung masks, nothing to draw")
+    picks = [int(zs[int(round(q * (len(zs) - 1)))]) for q in np.linspace(0.2, 0.8, n_axial)]
+    ycen = int(round(np.nonzero(lung.any(axis=(0, 2)))[0].mean()))
+    cmap = ListedColormap([(0, 0, 0, 0), (0.1, 0.4, 1.0, 0.4), (1.0, 0.15, 0.1, 0.4), (1.0, 0.9, 0.0, 0.7)])
+
+    def orient_axial(a):
+        a = a[:, ::-1] if d[0, 0] < 0 else a  # patient right on the image's left
+        return a[::-1] if d[1, 1] < 0 else a  # anterior up
+
+    def orient_coronal(a):
+        a = a[:, ::-1] if d[0, 0] < 0 else a
+        return a[::-1] if d[2, 2] > 0 else a  # head up
+
+    fig, axes = plt.subplots(1, n_axial + 1, figsize=(4.2 * (n_axial + 1), 4.6))
+    views = [(orient_axial(ct[z]), orient_axial(lab[z]), sp[1] / sp[0], f"axial slice {z}") for z in picks]
+    views.append((orient_coronal(ct[:, ycen]), orient_coronal(lab[:, ycen]), sp[2] / sp[0], f"coronal row {ycen}"))
+    for ax, (img, lb, aspect, title) in zip(axes, views):
+        ax.imshow(img, cmap="gray", vmin=-1000, vmax=400, aspect=aspect, interpolation="nearest")
+        ax.imshow(lb, cmap=cmap, vmin=0, vmax=3, aspect=aspect, interpolation="nearest")
+        ax.set_title(title, fontsize=9)
+        ax.set_xticks([])
+        ax.set_yticks([])
+        ax.text(0.02, 0.5, "R", color="w", transform=ax.transAxes, fontsize=10)
+        ax.text(0.95, 0.5, "L", color="w", transform=ax.transAxes, fontsize=10)
+    v = seg.volumes_ml
+    fig.suptitle(f"{Path(seg.image.source).name}: left (blue) {v['left']:.0f} mL, right (red) {v['right']:.0f} mL, "
+                 f"airways removed (yellow) {v['airway']:.0f} mL", fontsize=10)
+    fig.tight_layout()
+    buf = _io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90)
+    plt.close(fig)
+    path = Path(path)
+    write_bytes(path, buf.getvalue())
+    return path

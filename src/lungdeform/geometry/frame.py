@@ -1,0 +1,159 @@
+"""The per-lung frame of the paper (Sec. IV-B.1; METHOD §1).
+
+Axes, as unit vectors in LPS (x → patient left, y → posterior, z → head):
+
+- X grows laterally from the heart: +x for the left lung, −x for the right lung;
+- Y grows anteriorly from the posterior side: −y;
+- Z grows toward the base from the apex: −z.
+
+Origins sit on the end-exhale bounding box: X at its medial face, Y at its posterior face, Z at its
+apex. Normalised coordinates ``x̂, ŷ, ẑ ∈ [0, 1]`` use that box (min, max).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from lungdeform.errors import InputError
+from .mesh import as_vertices
+
+SIDES = ("left", "right")
+
+
+def frame_axes(side: str) -> np.ndarray:
+    """``(3, 3) float``: rows are the lung-frame X, Y, Z axes in LPS for ``side``."""
+    if side not in SIDES:
+        raise InputError(f"side must be 'left' or 'right', got {side!r}")
+    lateral = 1.0 if side == "left" else -1.0
+    return np.array([[lateral, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
+
+
+@dataclass(frozen=True)
+class LungFrame:
+    """A lung's frame.
+
+    Attributes
+    ----------
+    side : 'left' | 'right'
+    axes : (3, 3) float
+        Rows = lung X, Y, Z unit axes in LPS.
+    lower, upper : (3,) float
+        End-exhale bounding box in lung-frame mm (``lower`` is the origin).
+    """
+
+    side: str
+    axes: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+
+    def to_frame(self, points: np.ndarray) -> np.ndarray:
+        """``(n, 3)`` LPS mm → lung-frame mm (origin at the box's lower corner)."""
+        return as_vertices(points, "points") @ self.axes.T - self.lower
+
+    def normalized(self, points: np.ndarray) -> np.ndarray:
+        """``(n, 3)`` LPS mm → ``(x̂, ŷ, ẑ)`` in [0, 1] over the end-exhale box (values outside
+        the box fall outside [0, 1])."""
+        return self.to_frame(points) / (self.upper - self.lower)
+
+    def to_world(self, vectors: np.ndarray) -> np.ndarray:
+        """Lung-frame vectors ``(n, 3)`` → LPS vectors."""
+        return np.ascontiguousarray(np.asarray(vectors, float) @ self.axes)
+
+    def supported(self, gravity) -> "LungFrame":
+        """The frame whose X and Y origins sit on the side the lung rests on under ``gravity``.
+
+        Paper Sec. IV-B.1 puts the Y origin at the posterior side because, supine, the posterior
+        part of the lung rests on the table and cannot move forward. By the same reasoning, an
+        axis (X or Y) that grows toward the dependent side (``axis · gravity > 0``) is flipped so
+        that it grows away from the support: prone flips Y (origin anterior), the lower lung in a
+        decubitus position flips X (origin lateral). Z (apex → base) never flips. Supine and
+        upright return the anatomical frame unchanged.
+        """
+        from lungdeform.constants import gravity_vector
+
+        g = gravity_vector(gravity)
+        flip = np.array([1.0, 1.0, 1.0])
+        for k in (0, 1):
+            if self.axes[k] @ g > 1e-9:
+                flip[k] = -1.0
+        if np.all(flip > 0):
+            return self
+        lower = np.where(flip > 0, self.lower, -self.upper)
+        upper = np.where(flip > 0, self.upper, -self.lower)
+        return LungFrame(self.side, self.axes * flip[:, None], lower, upper)
+
+
+def lung_frame(vertices: np.ndarray, side: str) -> LungFrame:
+    """The frame of a lung whose end-exhale vertices are ``(n, 3) float`` mm LPS."""
+    axes = frame_axes(side)
+    q = as_vertices(vertices) @ axes.T
+    lower, upper = q.min(axis=0), q.max(axis=0)
+    if np.any(upper - lower <= 0):
+        raise InputError("lung surface is flat along a frame axis: cannot normalise coordinates")
+    return LungFrame(side, axes, lower, upper)
+
+
+def guess_sides(centroids_x: list[float]) -> list[str]:
+    """Sides for two lungs from their LPS x centroids: the larger x (patient left) is 'left'."""
+    if len(centroids_x) != 2:
+        raise InputError("sides can be guessed only for exactly two lungs; pass --side")
+    return ["left", "right"] if centroids_x[0] > centroids_x[1] else ["right", "left"]
+
+
+#: |score| of :func:`side_from_shape` above which the shape's side is taken as known (measured on
+#: thirteen real lungs, left and right: 0.053–0.105; docs/FITTING.md).
+SIDE_SCORE_MIN = 0.03
+
+
+def side_from_shape(vertices: np.ndarray, faces: np.ndarray, max_points: int = 20000,
+                    seed: int = 0) -> tuple[str, float]:
+    """Which lung a closed surface is, from its shape: ``(side, score)``.
+
+    The medial face of a lung is concave (the heart and the hilum press into it) and the lateral
+    face follows the ribs, so the surface lies deepest below its convex hull medially: toward +x
+    (LPS, patient left) for a right lung, −x for a left one. ``score`` is the x offset, from the
+    lung's centroid and over its x extent, of the surface's centroid weighted by area × depth below
+    the hull (``vertices : (n, 3)`` mm LPS; depths at ``max_points`` seeded vertices at most).
+    Trust the side only when ``|score|`` > :data:`SIDE_SCORE_MIN`; measured values are in
+    ``docs/FITTING.md``."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    from .distance import vertex_areas
+
+    v = as_vertices(vertices, "vertices")
+    area = vertex_areas(v, np.asarray(faces))
+    try:
+        eq = ConvexHull(v).equations
+    except QhullError as exc:
+        raise InputError(f"the surface has no convex hull (flat or degenerate: {len(v)} vertices)") from exc
+    pick = np.random.default_rng(seed).permutation(len(v))[:max_points]  # a seeded subset bounds the cost
+    depth = np.zeros(len(v))
+    rows = max(1, 2 ** 22 // len(eq))  # at most 4 M distances (32 MB) per chunk
+    for start in range(0, len(pick), rows):
+        part = pick[start:start + rows]
+        depth[part] = np.maximum(-(v[part] @ eq[:, :3].T + eq[:, 3]).max(axis=1), 0.0)  # mm below the hull
+    w = np.zeros(len(v))
+    w[pick] = area[pick] * depth[pick]
+    width = float(np.ptp(v[:, 0]))
+    if w.sum() <= 1e-9 * area.sum() * max(width, 1e-9):  # convex: no medial side to see
+        return ("right", 0.0)
+    score = float((w @ v[:, 0] / w.sum() - area @ v[:, 0] / area.sum()) / width)
+    return ("right" if score > 0 else "left", score)
+
+
+def clear_side(vertices: np.ndarray, faces: np.ndarray) -> tuple[str | None, float]:
+    """:func:`side_from_shape`, with the side ``None`` unless ``|score|`` > :data:`SIDE_SCORE_MIN`."""
+    side, score = side_from_shape(vertices, faces)
+    return (side if abs(score) > SIDE_SCORE_MIN else None), score
+
+
+def check_side(vertices: np.ndarray, faces: np.ndarray, side: str, source: str) -> None:
+    """Refuse a lung whose shape clearly says the other side than ``side`` (:func:`clear_side`),
+    naming ``source``: a wrong ``--side``, or a surface in RAS (x flipped). Unclear shapes pass."""
+    shape_side, score = clear_side(vertices, faces)
+    if shape_side not in (None, side):
+        raise InputError(f"{source}: the lung's shape says {shape_side}, not {side} (its concave medial face lies "
+                         f"toward {'+' if score > 0 else '-'}x in LPS, score {score:+.2f}): is the side wrong, or the "
+                         "surface in RAS (x flipped)? (--no-side-check skips this check)")

@@ -1,0 +1,499 @@
+"""Closed triangle surfaces: the :class:`Surface` bundle and the free functions behind it.
+
+Conventions used across lungdeform:
+
+- ``vertices : (n, 3) float64``, millimetres, LPS world frame unless a docstring says otherwise,
+  C-contiguous.
+- ``faces : (m, 3) int64``, indices into ``vertices``, counter-clockwise seen from outside, so the
+  signed volume of a valid lung surface is positive.
+
+All the math lives in free functions on plain arrays; :class:`Surface` only bundles the two arrays,
+caches derived data and delegates.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+from scipy import sparse
+
+from lungdeform.errors import InputError, MeshError, UnitsError
+
+#: A lung's bounding-box diagonal is 150–400 mm; anything outside this range is not in millimetres.
+PLAUSIBLE_DIAGONAL_MM = (20.0, 2000.0)
+
+
+# --------------------------------------------------------------------------- normalisation
+def as_vertices(vertices, name: str = "vertices") -> np.ndarray:
+    """Return ``vertices`` as a C-contiguous ``(n, 3) float64`` array, or raise :class:`InputError`."""
+    arr = np.ascontiguousarray(vertices, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise InputError(f"{name} must have shape (n, 3), got {arr.shape}")
+    return arr
+
+
+def thinned(n: int, count: int, seed: int = 0) -> np.ndarray:
+    """Indices ``(min(n, count),) int`` into ``n`` items: all of them, or a seeded random subset of
+    ``count`` (sorted; ``numpy.random.default_rng(seed).choice``), to bound a dense solve or a sample."""
+    if n <= count:
+        return np.arange(n)
+    return np.sort(np.random.default_rng(seed).choice(n, count, replace=False))
+
+
+def as_faces(faces, n_vertices: int | None = None, name: str = "faces") -> np.ndarray:
+    """Return ``faces`` as a C-contiguous ``(m, 3) int64`` array, or raise :class:`InputError`."""
+    arr = np.asarray(faces)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise InputError(f"{name} must have shape (m, 3), got {arr.shape}")
+    if arr.size and not np.issubdtype(arr.dtype, np.integer):
+        if not np.all(np.mod(arr, 1) == 0):
+            raise InputError(f"{name} must hold integer vertex indices")
+    arr = np.ascontiguousarray(arr, dtype=np.int64)
+    if n_vertices is not None and arr.size and (arr.min() < 0 or arr.max() >= n_vertices):
+        raise InputError(f"{name} index a vertex outside 0..{n_vertices - 1}")
+    return arr
+
+
+# --------------------------------------------------------------------------- measures
+def face_normals(vertices: np.ndarray, faces: np.ndarray, normalize: bool = True) -> np.ndarray:
+    """Face normals ``(m, 3) float``; unnormalised ones have length twice the face area (mm²)."""
+    v = vertices[faces]
+    n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+    if normalize:
+        length = np.linalg.norm(n, axis=1, keepdims=True)
+        n = n / np.where(length > 0, length, 1.0)
+    return n
+
+
+def face_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Face areas ``(m,) float`` in mm²."""
+    return 0.5 * np.linalg.norm(face_normals(vertices, faces, normalize=False), axis=1)
+
+
+def surface_area(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """Total area in mm²."""
+    return float(face_areas(vertices, faces).sum())
+
+
+def signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """Enclosed volume in mm³ by the divergence theorem; positive for outward-oriented faces.
+
+    Computed about the centroid of the vertices to limit cancellation far from the origin.
+    """
+    c = vertices.mean(axis=0) if len(vertices) else np.zeros(3)
+    v = vertices[faces] - c
+    return float(np.einsum("ij,ij->i", v[:, 0], np.cross(v[:, 1], v[:, 2])).sum() / 6.0)
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted vertex normals ``(n, 3) float``, unit length (zero for isolated vertices)."""
+    fn = face_normals(vertices, faces, normalize=False)
+    n = np.zeros_like(vertices)
+    for k in range(3):
+        np.add.at(n, faces[:, k], fn)
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    return n / np.where(length > 0, length, 1.0)
+
+
+def winding_numbers(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, chunk: int = 64) -> np.ndarray:
+    """Generalised winding number ``(q,) float`` of ``points : (q, 3)`` mm about a closed, outward
+    surface: 1 inside, 0 outside (the solid angles of the faces seen from each point, over 4π;
+    Van Oosterom–Strackee). O(q·m); ``chunk`` points at a time bound the memory."""
+    out = np.empty(len(points))
+    for start in range(0, len(points), chunk):
+        q = points[start:start + chunk]
+        a, b, c = (vertices[faces[:, k]][None] - q[:, None] for k in range(3))  # (q, m, 3)
+        la, lb, lc = (np.linalg.norm(x, axis=2) for x in (a, b, c))
+        det = np.einsum("qmi,qmi->qm", a, np.cross(b, c))
+        den = (la * lb * lc + np.einsum("qmi,qmi->qm", a, b) * lc + np.einsum("qmi,qmi->qm", b, c) * la
+               + np.einsum("qmi,qmi->qm", c, a) * lb)
+        out[start:start + chunk] = np.arctan2(det, den).sum(axis=1) / (2.0 * np.pi)
+    return out
+
+
+def bounding_box(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(min, max)``, each ``(3,) float`` in the frame of ``vertices``."""
+    return vertices.min(axis=0), vertices.max(axis=0)
+
+
+# --------------------------------------------------------------------------- topology
+def _edge_keys(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """One int64 key per vertex pair ``(a, b)`` (order kept): sorting keys beats ``unique(axis=0)``."""
+    return a.astype(np.int64) << np.int64(32) | b.astype(np.int64)
+
+
+def unique_edges(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Undirected edges and the face-edge map.
+
+    Returns
+    -------
+    edges : (e, 2) int64
+        Sorted vertex pairs ``(a, b)`` with ``a < b``, in lexicographic order.
+    face_edges : (m, 3) int64
+        ``face_edges[f, k]`` is the edge from ``faces[f, k]`` to ``faces[f, (k + 1) % 3]``.
+    """
+    f = np.asarray(faces, dtype=np.int64)
+    a, b = f.ravel(), np.roll(f, -1, axis=1).ravel()
+    keys, inverse = np.unique(_edge_keys(np.minimum(a, b), np.maximum(a, b)), return_inverse=True)
+    edges = np.stack([keys >> np.int64(32), keys & np.int64(0xFFFFFFFF)], axis=1)
+    return np.ascontiguousarray(edges), inverse.reshape(-1, 3)
+
+
+def edge_face_counts(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(edges (e, 2), counts (e,))``: how many faces share each undirected edge."""
+    edges, face_edges = unique_edges(faces)
+    counts = np.bincount(face_edges.ravel(), minlength=len(edges))
+    return edges, counts
+
+
+def vertex_adjacency(n_vertices: int, edges: np.ndarray) -> sparse.csr_matrix:
+    """Symmetric ``(n, n)`` 0/1 adjacency of the edge graph."""
+    data = np.ones(2 * len(edges))
+    rows = np.concatenate([edges[:, 0], edges[:, 1]])
+    cols = np.concatenate([edges[:, 1], edges[:, 0]])
+    return sparse.csr_matrix((data, (rows, cols)), shape=(n_vertices, n_vertices))
+
+
+def face_components(faces: np.ndarray) -> tuple[int, np.ndarray]:
+    """Connected components of faces through shared vertices: ``(count, labels (m,))``."""
+    from scipy.sparse.csgraph import connected_components
+
+    m = len(faces)
+    if m == 0:
+        return 0, np.zeros(0, dtype=np.int64)
+    n = int(faces.max()) + 1
+    # bipartite face-vertex incidence: faces are nodes 0..m-1, vertices m..m+n-1
+    rows = np.repeat(np.arange(m), 3)
+    cols = m + faces.ravel()
+    g = sparse.csr_matrix((np.ones(3 * m), (rows, cols)), shape=(m + n, m + n))
+    count, labels = connected_components(g, directed=False)
+    face_labels = labels[:m]
+    uniq, relabelled = np.unique(face_labels, return_inverse=True)
+    return len(uniq), relabelled
+
+
+def orientation_consistent(faces: np.ndarray) -> bool:
+    """True when every directed edge occurs once: neighbouring faces wind the same way."""
+    f = np.asarray(faces, dtype=np.int64)
+    keys = _edge_keys(f.ravel(), np.roll(f, -1, axis=1).ravel())
+    return len(np.unique(keys)) == len(keys)
+
+
+def non_manifold_vertices(faces: np.ndarray, n_vertices: int) -> np.ndarray:
+    """Indices of vertices whose fan of faces is more than one disc (pinched vertices).
+
+    Face corners at the same vertex are linked when their faces share an edge through that vertex;
+    a manifold vertex has all its corners in one linked group.
+    """
+    from scipy.sparse.csgraph import connected_components
+
+    m = len(faces)
+    _, face_edges = unique_edges(faces)
+    corner = np.arange(3 * m).reshape(m, 3)
+    # each face edge k touches corner k (its start) and corner k+1 (its end)
+    rec_edge = np.concatenate([face_edges.ravel(), face_edges.ravel()])
+    rec_corner = np.concatenate([corner.ravel(), np.roll(corner, -1, axis=1).ravel()])
+    rec_vertex = faces.ravel()[rec_corner]
+    order = np.lexsort((rec_vertex, rec_edge))
+    e, vv, c = rec_edge[order], rec_vertex[order], rec_corner[order]
+    same = (e[1:] == e[:-1]) & (vv[1:] == vv[:-1])
+    g = sparse.csr_matrix(
+        (np.ones(int(same.sum())), (c[:-1][same], c[1:][same])), shape=(3 * m, 3 * m)
+    )
+    _, labels = connected_components(g, directed=False)
+    fans = np.unique(np.stack([faces.ravel(), labels]), axis=1)[0]
+    per_vertex = np.bincount(fans, minlength=n_vertices)
+    return np.nonzero(per_vertex > 1)[0].astype(np.int64)
+
+
+# --------------------------------------------------------------------------- checks
+@dataclass(frozen=True)
+class SurfaceReport:
+    """What :func:`check_surface` found and, with ``repair=True``, what it changed."""
+
+    n_vertices: int
+    n_faces: int
+    volume_mm3: float
+    area_mm2: float
+    repairs: tuple[str, ...] = field(default_factory=tuple)
+
+    @property
+    def volume_ml(self) -> float:
+        return self.volume_mm3 / 1000.0
+
+
+def check_surface(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    *,
+    source: str = "surface",
+    repair: bool = False,
+) -> tuple[np.ndarray, np.ndarray, SurfaceReport]:
+    """Check that a surface can be a lung model; optionally repair what can be repaired.
+
+    Checks, in order: finite coordinates; no degenerate faces; closed (every edge in exactly two
+    faces); 2-manifold (no pinched vertices); consistently oriented; a single component; outward
+    orientation (positive signed volume); millimetre units (bounding-box diagonal within
+    :data:`PLAUSIBLE_DIAGONAL_MM`).
+
+    With ``repair=True`` these are fixed and reported: unreferenced vertices are dropped,
+    degenerate and duplicate faces removed, all but the largest component dropped, and inward
+    orientation flipped. Open, non-manifold or NaN surfaces and wrong units are never repaired.
+
+    Returns ``(vertices (n, 3) float mm, faces (m, 3) int, report)``. Raises :class:`MeshError`
+    (or :class:`UnitsError`) whose message starts with ``source``.
+    """
+    v = as_vertices(vertices, f"{source}: vertices")
+    f = as_faces(faces, len(v), f"{source}: faces")
+    repairs: list[str] = []
+    if len(f) < 4:
+        raise MeshError(f"{source}: a closed surface needs at least 4 faces, got {len(f)}")
+    if not np.isfinite(v[np.unique(f)]).all():
+        raise MeshError(f"{source}: vertex coordinates contain NaN or infinity")
+
+    used = np.unique(f)
+    if len(used) < len(v):
+        if not repair:
+            pass  # unreferenced vertices are harmless for checks; drop them quietly only on repair
+        else:
+            v, f = _compact(v, f)
+            repairs.append(f"dropped {len(vertices) - len(v)} unreferenced vertices")
+
+    degenerate = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
+    degenerate |= face_areas(v, f) <= 1e-12 * max(1.0, float(np.ptp(v, axis=0).max()) ** 2)
+    if degenerate.any():
+        if not repair:
+            raise MeshError(
+                f"{source}: {int(degenerate.sum())} degenerate (zero-area) faces; pass repair to remove them"
+            )
+        f = f[~degenerate]
+        repairs.append(f"removed {int(degenerate.sum())} degenerate faces")
+        v, f = _compact(v, f)
+
+    key = np.sort(f, axis=1)
+    if len(v) < 2_000_000:  # one int64 per face (n³ < 2⁶³): much faster than unique(axis=0)
+        n = np.int64(len(v))
+        key = (key[:, 0] * n + key[:, 1]) * n + key[:, 2]
+    _, first = np.unique(key, axis=0, return_index=True)
+    if len(first) < len(f):
+        if not repair:
+            raise MeshError(f"{source}: {len(f) - len(first)} duplicate faces")
+        repairs.append(f"removed {len(f) - len(first)} duplicate faces")
+        f = f[np.sort(first)]
+
+    n_comp, labels = face_components(f)
+    if n_comp > 1:
+        if not repair:
+            raise MeshError(
+                f"{source}: {n_comp} separate components; a lung surface must be one piece "
+                "(pass repair to keep the largest, or select one label)"
+            )
+        sizes = np.bincount(labels)
+        keep = int(np.argmax(sizes))
+        repairs.append(f"kept the largest of {n_comp} components ({sizes[keep]} of {len(f)} faces)")
+        f = f[labels == keep]
+        v, f = _compact(v, f)
+
+    edges, counts = edge_face_counts(f)
+    if (counts == 1).any():
+        raise MeshError(f"{source}: surface is open ({int((counts == 1).sum())} boundary edges)")
+    if (counts > 2).any():
+        raise MeshError(
+            f"{source}: surface is not 2-manifold ({int((counts > 2).sum())} edges shared by 3+ faces)"
+        )
+    pinched = non_manifold_vertices(f, len(v))
+    if len(pinched):
+        raise MeshError(f"{source}: surface is not 2-manifold ({len(pinched)} pinched vertices)")
+    if not orientation_consistent(f):
+        if not repair:
+            raise MeshError(f"{source}: faces are not consistently oriented")
+        f = _orient_consistently(f)
+        repairs.append("re-oriented faces consistently")
+
+    vol = signed_volume(v, f)
+    if vol < 0:
+        if not repair:
+            raise MeshError(f"{source}: faces point inward (negative volume); pass repair to flip them")
+        f = np.ascontiguousarray(f[:, ::-1])
+        vol = -vol
+        repairs.append("flipped inward-facing orientation")
+
+    lo, hi = PLAUSIBLE_DIAGONAL_MM
+    diag = float(np.linalg.norm(np.ptp(v, axis=0)))
+    if not lo <= diag <= hi:
+        hint = " (looks like metres: use --units m)" if diag < lo else " (use --units to rescale)"
+        raise UnitsError(
+            f"{source}: bounding-box diagonal is {diag:.4g}, not a lung in millimetres "
+            f"(expected {lo:g}–{hi:g} mm){hint}"
+        )
+    report = SurfaceReport(len(v), len(f), vol, surface_area(v, f), tuple(repairs))
+    return v, f, report
+
+
+def _compact(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    used, inverse = np.unique(f, return_inverse=True)
+    return np.ascontiguousarray(v[used]), inverse.reshape(f.shape).astype(np.int64)
+
+
+def _orient_consistently(f: np.ndarray) -> np.ndarray:
+    """Flip faces so that neighbours agree, by breadth-first search over the face graph."""
+    from collections import deque
+
+    edges, face_edges = unique_edges(f)
+    m = len(f)
+    owners: dict[int, list[int]] = {}
+    for fi in range(m):
+        for e in face_edges[fi]:
+            owners.setdefault(int(e), []).append(fi)
+    f = f.copy()
+    seen = np.zeros(m, dtype=bool)
+    for start in range(m):
+        if seen[start]:
+            continue
+        seen[start] = True
+        queue = deque([start])
+        while queue:
+            a = queue.popleft()
+            da = {(f[a, k], f[a, (k + 1) % 3]) for k in range(3)}
+            for e in face_edges[a]:
+                for b in owners[int(e)]:
+                    if seen[b]:
+                        continue
+                    db = {(f[b, k], f[b, (k + 1) % 3]) for k in range(3)}
+                    if da & db:  # same directed edge: b winds the other way
+                        f[b] = f[b, ::-1]
+                    seen[b] = True
+                    queue.append(b)
+    return f
+
+
+# --------------------------------------------------------------------------- the bundle
+@dataclass(frozen=True, eq=False)
+class Surface:
+    """A closed triangle surface.
+
+    Attributes
+    ----------
+    vertices : (n, 3) float64
+        Vertex positions, mm, LPS world frame (unless ``frame`` says otherwise).
+    faces : (m, 3) int64
+        Counter-clockwise seen from outside.
+    name : str
+        Where the surface came from (a file name, ``"left"``); used in messages.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    name: str = "surface"
+
+    def __post_init__(self):
+        v = as_vertices(self.vertices, f"{self.name}: vertices")
+        f = as_faces(self.faces, len(v), f"{self.name}: faces")
+        v.setflags(write=False)
+        f.setflags(write=False)
+        object.__setattr__(self, "vertices", v)
+        object.__setattr__(self, "faces", f)
+
+    # derived data, cached
+    @cached_property
+    def volume(self) -> float:
+        """Enclosed volume, mm³."""
+        return signed_volume(self.vertices, self.faces)
+
+    @property
+    def volume_ml(self) -> float:
+        """Enclosed volume, mL."""
+        return self.volume / 1000.0
+
+    @cached_property
+    def area(self) -> float:
+        """Surface area, mm²."""
+        return surface_area(self.vertices, self.faces)
+
+    @cached_property
+    def edges(self) -> np.ndarray:
+        """``(e, 2) int64`` undirected edges, sorted."""
+        e = unique_edges(self.faces)[0]
+        e.setflags(write=False)
+        return e
+
+    @cached_property
+    def vertex_normals(self) -> np.ndarray:
+        """``(n, 3) float`` unit outward normals."""
+        return vertex_normals(self.vertices, self.faces)
+
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(min (3,), max (3,))`` in mm."""
+        return bounding_box(self.vertices)
+
+    @property
+    def n_vertices(self) -> int:
+        return len(self.vertices)
+
+    def checked(self, repair: bool = False) -> tuple["Surface", SurfaceReport]:
+        """Run :func:`check_surface`; return the (possibly repaired) surface and the report."""
+        v, f, report = check_surface(self.vertices, self.faces, source=self.name, repair=repair)
+        if not report.repairs:
+            return self, report
+        return Surface(v, f, self.name), report
+
+    def deformed(self, displacement: np.ndarray) -> "Surface":
+        """A new surface with ``vertices + displacement`` (``(n, 3) float`` mm)."""
+        d = as_vertices(displacement, "displacement")
+        if d.shape != self.vertices.shape:
+            raise InputError(f"displacement must have shape {self.vertices.shape}, got {d.shape}")
+        return Surface(self.vertices + d, self.faces, self.name)
+
+    def scaled(self, factor: float, about: np.ndarray | None = None) -> "Surface":
+        """A new surface scaled by ``factor`` about ``about`` (default: the vertex centroid)."""
+        c = self.vertices.mean(axis=0) if about is None else np.asarray(about, dtype=float)
+        return Surface(c + factor * (self.vertices - c), self.faces, self.name)
+
+    def transformed(self, matrix: np.ndarray) -> "Surface":
+        """A new surface under a 4×4 homogeneous transform (orientation kept if det > 0)."""
+        m = np.asarray(matrix, dtype=float)
+        if m.shape != (4, 4):
+            raise InputError(f"matrix must be 4×4, got {m.shape}")
+        v = self.vertices @ m[:3, :3].T + m[:3, 3]
+        f = self.faces if np.linalg.det(m[:3, :3]) > 0 else self.faces[:, ::-1]
+        return Surface(v, f, self.name)
+
+    def with_name(self, name: str) -> "Surface":
+        return Surface(self.vertices, self.faces, name)
+
+    def __repr__(self) -> str:
+        return f"Surface({self.name!r}, {self.n_vertices} vertices, {len(self.faces)} faces)"
+
+
+def icosphere(subdivisions: int = 3, radius: float = 1.0, center=(0.0, 0.0, 0.0)) -> Surface:
+    """An outward-oriented geodesic sphere (for tests and analytic checks)."""
+    t = (1.0 + 5**0.5) / 2.0
+    v = np.array(
+        [[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t],
+         [0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]], dtype=float)
+    f = np.array(
+        [[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4],
+         [11, 10, 2], [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8],
+         [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]], dtype=np.int64)
+    for _ in range(subdivisions):
+        v, f = subdivide(v, f)
+    v = v / np.linalg.norm(v, axis=1, keepdims=True)
+    return Surface(np.asarray(center, float) + radius * v, f, "icosphere")
+
+
+def subdivide(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Loop-free midpoint subdivision: every face becomes four (shape unchanged, 4× faces)."""
+    edges, face_edges = unique_edges(faces)
+    mid = 0.5 * (vertices[edges[:, 0]] + vertices[edges[:, 1]])
+    n = len(vertices)
+    v = np.vstack([vertices, mid])
+    a, b, c = faces.T
+    ab, bc, ca = (n + face_edges[:, k] for k in range(3))
+    f = np.concatenate(
+        [np.stack([a, ab, ca], 1), np.stack([ab, b, bc], 1), np.stack([ca, bc, c], 1),
+         np.stack([ab, bc, ca], 1)]
+    )
+    return np.ascontiguousarray(v), np.ascontiguousarray(f, dtype=np.int64)

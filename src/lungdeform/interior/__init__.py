@@ -1,0 +1,27 @@
+"""Motion inside the lung, interpolated from the surface's motion.
+
+Owns: :mod:`~lungdeform.interior.interpolate` (thin-plate splines), :mod:`~lungdeform.interior.sliding`
+(the sliding interpolation of the surface's normal motion, and the landmark correction that keeps it)
+and :mod:`~lungdeform.interior.field` (the interior field a lung model plays back, its landmark
+correction's held-out selection, the landmark folds).
+
+May import: :mod:`lungdeform.geometry` and the core modules. It works on plain arrays (surface
+points, unit displacements, landmarks), so the run-time model can carry a field without any fitting code.
+"""
+
+from .field import (
+    CORRECTION_SMOOTHING_MM,
+    KIND_TEXT,
+    KINDS,
+    MAX_SURFACE_POINTS,
+    SMOOTHING_MM2,
+    InteriorField,
+    correction_per_unit,
+    correction_solvers,
+    held_out_positions,
+    held_out_sliding,
+    interior_field,
+    select_correction_smoothing,
+    select_smoothing,
+    spline_predict,
+)

@@ -1,0 +1,219 @@
+"""Reading 3-D medical images: NIfTI, MetaImage (.mha/.mhd), NRRD and DICOM series.
+
+:func:`read_image` reads a file or a DICOM folder with SimpleITK into an :class:`Image` and refuses
+what is missing, empty, unreadable, ambiguous (several DICOM series) or not 3-D scalar, with a
+:class:`ReadError` naming the path; :func:`dicom_series_files` picks the series a path names.
+
+Frames and units: arrays follow SimpleITK: ``array`` is indexed ``[k, j, i]`` = ``[z, y, x]``;
+spacing (mm), origin (mm, LPS world) and voxel indices ``ijk`` are ordered ``(x, y, z)``; the
+columns of ``direction`` are the index axes in LPS. :func:`index_to_world` maps ``ijk : (n, 3)
+float`` to world points ``(n, 3) float`` mm LPS.
+"""
+
+from __future__ import annotations
+
+import os
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from lungdeform.errors import InputError, ReadError
+
+IMAGE_SUFFIXES = (".nii", ".nii.gz", ".mha", ".mhd", ".nrrd", ".nhdr")
+
+
+@dataclass(frozen=True, eq=False)
+class Image:
+    """A 3-D scalar image in the ITK/LPS convention.
+
+    Attributes
+    ----------
+    array : (z, y, x) array
+        Voxel values, indexed ``[k, j, i]`` as SimpleITK gives them.
+    spacing : (3,) float
+        Voxel size in mm along ``(i, j, k)`` = ``(x, y, z)`` index axes.
+    origin : (3,) float
+        World position (mm, LPS) of the centre of voxel ``(0, 0, 0)``.
+    direction : (3, 3) float
+        Columns are the unit directions of the index axes ``i, j, k`` in LPS world.
+    source : str
+        The file or folder it came from (used in messages).
+    """
+
+    array: np.ndarray
+    spacing: np.ndarray
+    origin: np.ndarray
+    direction: np.ndarray
+    source: str = "image"
+
+    def __post_init__(self):
+        a = np.asarray(self.array)
+        if a.ndim != 3:
+            raise InputError(f"{self.source}: image array must be 3-D (z, y, x), got shape {a.shape}")
+        sp = np.asarray(self.spacing, dtype=np.float64).reshape(3)
+        org = np.asarray(self.origin, dtype=np.float64).reshape(3)
+        d = np.asarray(self.direction, dtype=np.float64).reshape(3, 3)
+        if not (sp > 0).all():
+            raise InputError(f"{self.source}: spacing must be positive, got {sp}")
+        if abs(abs(np.linalg.det(d)) - 1.0) > 1e-3:
+            raise InputError(f"{self.source}: direction must be orthonormal, det = {np.linalg.det(d):.4g}")
+        for name, value in (("array", a), ("spacing", sp), ("origin", org), ("direction", d)):
+            value.setflags(write=False)
+            object.__setattr__(self, name, value)
+
+    def index_to_world(self, ijk) -> np.ndarray:
+        """``(n, 3)`` voxel indices (i=x, j=y, k=z) -> ``(n, 3) float`` mm LPS."""
+        return index_to_world(ijk, self.spacing, self.origin, self.direction)
+
+
+def index_to_world(ijk, spacing, origin, direction) -> np.ndarray:
+    """World points ``(n, 3) float`` mm LPS of voxel indices ``ijk : (n, 3) float`` (i, j, k).
+
+    ``world = origin + direction @ (spacing * ijk)`` (ITK's TransformContinuousIndexToPhysicalPoint).
+    """
+    ijk = np.asarray(ijk, dtype=np.float64).reshape(-1, 3)
+    d = np.asarray(direction, dtype=np.float64).reshape(3, 3)
+    return np.ascontiguousarray((ijk * np.asarray(spacing, float)) @ d.T + np.asarray(origin, float))
+
+
+def is_image_path(path) -> bool:
+    """True for a directory (DICOM), a DICOM file, or a file with an image suffix (:data:`IMAGE_SUFFIXES`)."""
+    p = Path(path)
+    return p.is_dir() or p.name.lower().endswith(IMAGE_SUFFIXES) or is_dicom_file(p)
+
+
+def is_dicom_file(path) -> bool:
+    """True for a file named ``*.dcm``/``*.ima`` or holding the DICOM preamble (``DICM`` at byte 128)."""
+    p = Path(path)
+    if not p.is_file():
+        return False
+    if p.name.lower().endswith((".dcm", ".ima", ".dicom")):
+        return True
+    try:
+        with open(p, "rb") as fh:
+            head = fh.read(132)
+    except OSError:
+        return False
+    return len(head) == 132 and head[128:132] == b"DICM"
+
+
+@contextmanager
+def _quiet_itk():
+    """Silence ITK's own warnings on stderr (e.g. GDCM's "No Series were found"): the CLI's
+    contract is one error line; what went wrong is said by the :class:`ReadError` raised instead."""
+    import SimpleITK as sitk
+
+    before = sitk.ProcessObject.GetGlobalWarningDisplay()
+    sitk.ProcessObject.SetGlobalWarningDisplay(False)
+    try:
+        yield
+    finally:
+        sitk.ProcessObject.SetGlobalWarningDisplay(before)
+
+
+def _series_in(folder: Path) -> list[tuple[str, tuple[str, ...]]]:
+    """``[(series UID, file names)]`` of the DICOM series directly in ``folder``, largest first."""
+    import SimpleITK as sitk
+
+    reader = sitk.ImageSeriesReader
+    with _quiet_itk():
+        ids = reader.GetGDCMSeriesIDs(str(folder))
+        series = [(sid, tuple(reader.GetGDCMSeriesFileNames(str(folder), sid))) for sid in ids]
+    return sorted(series, key=lambda s: -len(s[1]))
+
+
+def dicom_series_files(path) -> list[str]:
+    """The files of the DICOM series that ``path`` names, in slice order.
+
+    ``path`` may be a folder holding the series (the largest series in it is taken, but two or more
+    series of that size, e.g. the phases of a 4-D CT, are refused as ambiguous), a parent folder
+    whose subfolders hold exactly one series, or one file of the series (its series is read from
+    its folder). Raises :class:`ReadError` naming the path when there is no series, or more than
+    one to choose from.
+    """
+    p = Path(path)
+    if p.is_file():
+        folder = p.parent
+        target = p.resolve()
+        for sid, files in _series_in(folder):
+            if any(Path(f).resolve() == target for f in files):
+                return list(files)
+        raise ReadError(f"{p}: not a readable DICOM image slice (no DICOM series in {folder} contains it)")
+    series = _series_in(p)
+    where = p
+    if not series:  # a parent folder (patient/study/series exports): look one or more levels down
+        found, visited = [], 0
+        for root, dirs, _files in os.walk(p):
+            dirs.sort()
+            if Path(root) != p:
+                found += [(Path(root), sid, files) for sid, files in _series_in(Path(root))]
+            visited += 1
+            if len(found) > 20 or visited > 2000:  # enough to say it is ambiguous; do not crawl a disk
+                break
+        if not found:
+            raise ReadError(f"{p}: no DICOM series in this directory or its subfolders")
+        if len(found) > 1:
+            listed = "; ".join(f"{d.relative_to(p)} ({len(files)} files)" for d, _, files in found[:6])
+            raise ReadError(f"{p}: holds no DICOM series itself, and its subfolders hold {len(found)}"
+                            f"{'+' if len(found) > 20 else ''} series ({listed}); give the folder of one")
+        where, sid, files = found[0]
+        series = [(sid, files)]
+    if len(series) > 1 and len(series[1][1]) == len(series[0][1]):
+        n_same = sum(len(f) == len(series[0][1]) for _, f in series)
+        raise ReadError(f"{where}: holds {len(series)} DICOM series, {n_same} of them with {len(series[0][1])} "
+                        "files (e.g. the phases of a 4-D CT): ambiguous; put the series you want in a folder "
+                        "of its own")
+    return list(series[0][1])
+
+
+def read_image(path) -> Image:
+    """Read a 3-D image with SimpleITK: NIfTI, MetaImage (.mha/.mhd), NRRD, or a DICOM directory.
+
+    Frame: ITK reports every format in LPS. For NIfTI this means ITK has already negated the
+    first two rows of the file's RAS qform/sform; checked on Coronacases_001 (nibabel affine
+    ``diag(-0.81, 0.81, 1)``, offset ``(213.1, -206.9, -220.1)`` RAS; ITK direction
+    ``diag(1, -1, 1)``, origin ``(-213.1, 206.9, -220.1)`` LPS: the same voxels land on the same
+    points), and tested in tests/io/test_image.py. So no conversion is done here.
+
+    DICOM: a folder, a parent folder of one series, or one file of a series
+    (:func:`dicom_series_files`). Raises :class:`ReadError` naming the path when it is missing,
+    empty, unreadable, ambiguous (several series) or not 3-D scalar.
+    """
+    import SimpleITK as sitk
+
+    p = Path(path)
+    if not p.exists():
+        raise ReadError(f"{p}: no such file or directory")
+    try:
+        if not p.is_dir() and p.stat().st_size == 0:
+            raise ReadError(f"{p}: file is empty")
+        if p.is_dir() or (not p.name.lower().endswith(IMAGE_SUFFIXES) and is_dicom_file(p)):
+            reader = sitk.ImageSeriesReader()
+            reader.SetFileNames(dicom_series_files(p))
+            with _quiet_itk():
+                img = reader.Execute()
+        else:
+            if not p.name.lower().endswith(IMAGE_SUFFIXES):
+                raise ReadError(f"{p}: unknown image format (supported: {', '.join(IMAGE_SUFFIXES)}, "
+                                "a DICOM file or folder)")
+            img = sitk.ReadImage(str(p))
+    except ReadError:
+        raise
+    except Exception as exc:  # SimpleITK raises RuntimeError with a long multi-line text
+        lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+        detail = next((ln for ln in lines if "rror" in ln or "nable" in ln), lines[-1] if lines else "")
+        raise ReadError(f"{p}: cannot read image ({detail[:200]})") from exc
+    if img.GetDimension() != 3 or img.GetNumberOfComponentsPerPixel() != 1:
+        raise ReadError(
+            f"{p}: expected a 3-D scalar image, got {img.GetDimension()}-D with "
+            f"{img.GetNumberOfComponentsPerPixel()} components per voxel"
+        )
+    return Image(
+        array=sitk.GetArrayFromImage(img),
+        spacing=np.array(img.GetSpacing()),
+        origin=np.array(img.GetOrigin()),
+        direction=np.array(img.GetDirection()).reshape(3, 3),
+        source=str(p),
+    )

@@ -1,0 +1,210 @@
+"""The model file: a versioned ``.npz`` (numpy zip) holding everything playback needs.
+
+Schema ``lungdeform.model``, version 3 (documented in docs/MODEL_FORMAT.md). Top-level keys:
+
+=================  ==================  =====================================================
+key                type                meaning
+=================  ==================  =====================================================
+schema             str                 ``"lungdeform.model"``
+schema_version     int                 3 (1 and 2 are read too)
+lungs              (k,) str            lung names (``"left"``, ``"right"``)
+provenance         str (JSON)          sources, settings, software version, creation time
+=================  ==================  =====================================================
+
+Per lung, under ``lung/<name>/``: ``side`` str; ``vertices (n, 3) float64`` mm LPS (end-exhale p);
+``faces (m, 3) int32`` (outward); ``constants (9,)`` c1…c9; ``stiffness (n,)``;
+``frame_axes (3, 3)`` (rows: lung X, Y, Z in LPS); ``frame_lower (3,)``, ``frame_upper (3,)``
+(end-exhale box, lung-frame mm); ``directions (n, 3)`` unit, LPS; ``force_basis (4, n)``
+(elastostatic force for fields 1, x̂, ŷ, ẑ); ``gravity (3,)`` unit LPS; ``force_weights (4,)``;
+``displacement (n, 3) float64`` mm per ``unit_ml``; ``unit_ml``; ``calibration_ml``; ``d_min`` mm;
+``volume_ee_ml``; ``volume_poly (4,)`` mm³ (volume of p + s·u as a cubic in s). Optional (a fit
+with interior landmarks): ``landmarks (m, 3)`` mm LPS, ``landmark_correction (m, 3)`` mm per unit,
+``landmark_smoothing`` (mm, or mm² for the thin-plate kinds; :mod:`lungdeform.interior.field`). Optional
+(a fit of cropped scans): ``interior_vertices (n,) bool`` (at least 13 set), the vertices whose
+motion drives the interior field (the crop faces left out). Optional (an older lung saved again):
+``interior_kind`` str, ``"sliding_thin_plate"`` or ``"thin_plate"`` (it keeps the interior field it
+was made with; absent: ``"sliding"``).
+
+Loading checks the schema name and version, that every key is present, and every shape.
+Each version changed only how interior points move (:attr:`LungModel.interior_kind`). Version 3:
+the landmark correction is the sliding correction (:func:`lungdeform.interior.sliding.sliding_correction`,
+which keeps the surface's normal motion), where version 2 used a thin-plate spline through the same
+per-unit residuals (``interior_kind = "sliding_thin_plate"``). Version 2 made the surface part the
+sliding interpolation of the surface's normal motion, where version 1 used the thin-plate spline of
+the whole displacement (``"thin_plate"``). Older files are read and keep their fields, so their
+interior points play back as made.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import sys
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from lungdeform.atomic import atomic_path, finite_json
+from lungdeform.errors import InputError, ModelFileError
+from lungdeform.geometry.frame import LungFrame
+from lungdeform.geometry.mesh import Surface
+from lungdeform.model.lung import LungModel, Model
+
+SCHEMA = "lungdeform.model"
+SCHEMA_VERSION = 3
+#: Schema versions this lungdeform reads: 1 and 2 differ only in their interior field (module docstring).
+READABLE_VERSIONS = (1, 2, 3)
+
+_OPTIONAL = ("landmarks", "landmark_correction", "landmark_smoothing")
+_PER_LUNG = ("side", "vertices", "faces", "constants", "stiffness", "frame_axes", "frame_lower",
+             "frame_upper", "directions", "force_basis", "gravity", "force_weights",
+             "displacement", "unit_ml", "calibration_ml", "d_min", "volume_ee_ml", "volume_poly")
+
+
+def lung_arrays(lung: LungModel) -> dict[str, np.ndarray]:
+    """The per-lung arrays of the schema (also used by exporters)."""
+    out = {
+        "side": np.array(lung.side),
+        "vertices": lung.surface.vertices,
+        "faces": lung.surface.faces.astype(np.int32),
+        "constants": lung.constants,
+        "stiffness": lung.stiffness,
+        "frame_axes": lung.frame.axes,
+        "frame_lower": lung.frame.lower,
+        "frame_upper": lung.frame.upper,
+        "directions": lung.directions,
+        "force_basis": lung.force_basis,
+        "gravity": lung.gravity,
+        "force_weights": lung.force_weights,
+        "displacement": lung.displacement,
+        "unit_ml": np.array(lung.unit_ml),
+        "calibration_ml": np.array(lung.calibration_ml),
+        "d_min": np.array(lung.d_min),
+        "volume_ee_ml": np.array(lung.volume_ee_ml),
+        "volume_poly": lung.volume_poly,
+    }
+    if lung.landmarks is not None and lung.landmark_correction is not None:
+        out.update(landmarks=lung.landmarks, landmark_correction=lung.landmark_correction,
+                   landmark_smoothing=np.array(lung.landmark_smoothing))
+    if lung.interior_vertices is not None:
+        out["interior_vertices"] = np.asarray(lung.interior_vertices, bool)
+    if lung.interior_kind != "sliding":  # an older lung saved again keeps its interior field
+        out["interior_kind"] = np.array(lung.interior_kind)
+    return out
+
+
+def save_model(path, model: Model) -> Path:
+    """Write ``model`` to ``path`` (``.npz`` appended if missing) atomically; return the path."""
+    path = Path(path)
+    if path.suffix != ".npz":
+        path = path.with_name(path.name + ".npz")
+    arrays: dict[str, np.ndarray] = {
+        "schema": np.array(SCHEMA),
+        "schema_version": np.array(SCHEMA_VERSION),
+        "lungs": np.array(model.names),
+        "provenance": np.array(json.dumps(finite_json(model.provenance), default=str, allow_nan=False)),
+    }
+    for name, lung in model.lungs.items():
+        for key, value in lung_arrays(lung).items():
+            arrays[f"lung/{name}/{key}"] = value
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez_compressed(fh, **arrays)
+    return path
+
+
+def load_model(path) -> Model:
+    """Read a model file; raise :class:`ModelFileError` naming the file and the problem."""
+    path = Path(path)
+    if not path.is_file():
+        raise ModelFileError(f"{path}: no such model file")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except ValueError as exc:  # numpy's advice on pickled objects is not for our users
+        why = "it holds Python objects, not arrays" if "pickle" in str(exc) else str(exc)
+        raise ModelFileError(f"{path}: not a lungdeform model file ({why})") from exc
+    except (OSError, zipfile.BadZipFile, EOFError) as exc:
+        raise ModelFileError(f"{path}: not a lungdeform model file ({exc})") from exc
+    if str(data.get("schema", "")) != SCHEMA:
+        raise ModelFileError(f"{path}: not a lungdeform model file (schema {data.get('schema')!r})")
+    version = int(data.get("schema_version", -1))
+    if version not in READABLE_VERSIONS:
+        raise ModelFileError(
+            f"{path}: model schema version {version} is not supported (this lungdeform reads "
+            f"{', '.join(map(str, READABLE_VERSIONS))})"
+        )
+    try:
+        provenance = json.loads(str(data["provenance"]))
+        names = [str(x) for x in data["lungs"]]
+    except (KeyError, ValueError) as exc:
+        raise ModelFileError(f"{path}: damaged header ({exc})") from exc
+    lungs = {name: _lung(path, name, data, version) for name in names}
+    return Model(lungs, provenance)
+
+
+def _lung(path: Path, name: str, data: dict, version: int = SCHEMA_VERSION) -> LungModel:
+    prefix = f"lung/{name}/"
+    missing = [k for k in _PER_LUNG if prefix + k not in data]
+    if missing:
+        raise ModelFileError(f"{path}: lung '{name}' lacks {', '.join(missing)}")
+    a = {k: data[prefix + k] for k in _PER_LUNG}
+    v = a["vertices"]
+    if v.ndim != 2 or v.shape[1] != 3:
+        raise ModelFileError(f"{path}: lung '{name}' vertices have shape {v.shape}, expected (n, 3)")
+    n = len(v)
+    expected = {"faces": (None, 3), "constants": (9,), "stiffness": (n,), "frame_axes": (3, 3),
+                "frame_lower": (3,), "frame_upper": (3,), "directions": (n, 3),
+                "force_basis": (4, n), "gravity": (3,), "force_weights": (4,),
+                "displacement": (n, 3), "volume_poly": (4,)}
+    for key, shape in expected.items():
+        got = a[key].shape
+        if len(got) != len(shape) or any(s is not None and s != g for s, g in zip(shape, got)):
+            raise ModelFileError(
+                f"{path}: lung '{name}' {key} has shape {got}, expected {tuple(s or 'm' for s in shape)}"
+            )
+    if int(a["faces"].max(initial=-1)) >= n:
+        raise ModelFileError(f"{path}: lung '{name}' faces index beyond its {n} vertices")
+    opt = {k: data[prefix + k] for k in _OPTIONAL if prefix + k in data}
+    if opt and len(opt) != len(_OPTIONAL):
+        raise ModelFileError(f"{path}: lung '{name}' has only part of the landmark correction "
+                             f"({', '.join(sorted(opt))}; expected {', '.join(_OPTIONAL)})")
+    if opt:
+        lm, cor = opt["landmarks"], opt["landmark_correction"]
+        if lm.ndim != 2 or lm.shape[1:] != (3,) or cor.shape != lm.shape or len(lm) < 5:
+            raise ModelFileError(f"{path}: lung '{name}' landmarks {lm.shape} and landmark_correction "
+                                 f"{cor.shape} must both be (m, 3) with m >= 5")
+        sm = float(opt["landmark_smoothing"])
+        if not (np.all(np.isfinite(lm)) and np.all(np.isfinite(cor)) and np.isfinite(sm) and sm >= 0):
+            raise ModelFileError(f"{path}: lung '{name}' landmark correction holds NaN, infinity or a negative smoothing")
+    surface = Surface(v, a["faces"].astype(np.int64), name)
+    frame = LungFrame(str(a["side"]), a["frame_axes"], a["frame_lower"], a["frame_upper"])
+    kind = "thin_plate" if version == 1 else str(data.get(prefix + "interior_kind", "sliding"))
+    if version == 2 and kind == "sliding" and opt:  # a schema-2 correction is a thin-plate spline
+        kind = "sliding_thin_plate"
+    try:  # LungModel checks interior_vertices and interior_kind; the error names the file
+        return LungModel(
+            side=str(a["side"]), surface=surface, constants=a["constants"], stiffness=a["stiffness"],
+            frame=frame, directions=a["directions"], force_basis=a["force_basis"],
+            gravity=a["gravity"], displacement=a["displacement"], unit_ml=float(a["unit_ml"]),
+            calibration_ml=float(a["calibration_ml"]), d_min=float(a["d_min"]),
+            landmarks=opt.get("landmarks"), landmark_correction=opt.get("landmark_correction"),
+            landmark_smoothing=float(opt.get("landmark_smoothing", 0.0)),
+            interior_vertices=data.get(prefix + "interior_vertices"), interior_kind=kind,
+        )
+    except InputError as exc:
+        raise ModelFileError(f"{path}: lung '{name}' {exc}") from exc
+
+
+def provenance(command: str, **extra) -> dict:
+    """What a model file records about its making: software version, command, argv, time (UTC)."""
+    from lungdeform import __version__
+
+    return {
+        "software": f"lungdeform {__version__}",
+        "command": command,
+        "argv": sys.argv[1:],
+        "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        **extra,
+    }

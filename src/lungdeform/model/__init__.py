@@ -1,0 +1,16 @@
+"""The paper's model (Santhanam et al. 2008), equation by equation, and the run-time lung model.
+
+Owns: :mod:`~lungdeform.model.graph` (spring-node graph, Sec. III-E), :mod:`~lungdeform.model.stiffness`
+(Young's modulus fields), :mod:`~lungdeform.model.transfer` (local transfer (8)–(9), Green's matrix
+(10)–(11)), :mod:`~lungdeform.model.solve` (the push loop (12)–(14) and the sparse fixed point),
+:mod:`~lungdeform.model.response` (force → response, the one entry point every caller uses),
+:mod:`~lungdeform.model.force` (applied force (18)), :mod:`~lungdeform.model.direction` (directions
+(15)–(17)), :mod:`~lungdeform.model.displacement` (``u = k·F·d``, (1), exact volume calibration,
+playback) and :mod:`~lungdeform.model.lung` (:class:`LungModel` and :class:`Model`, the bundles a
+viewer or exporter plays).
+
+May import: :mod:`lungdeform.interior`, :mod:`lungdeform.geometry` and the core modules. Never the
+fitting code (:mod:`lungdeform.fit`), files (:mod:`lungdeform.io`) or playback.
+"""
+
+from .lung import LungModel, Model, build_lung, build_model

@@ -1,0 +1,330 @@
+"""A lung model: everything playback needs, precomputed once (METHOD §2–7).
+
+:func:`build_lung` runs the pipeline on one closed surface:
+
+1. lung frame and normalised coordinates (``frame``);
+2. spring-node graph and local transfer ``T_e`` with the stiffness field (``graph``, ``transfer``);
+3. the elastostatic responses to the four force fields ``1, x̂, ŷ, ẑ`` (``force``, ``solve``);
+4. the applied force for the chosen gravity (a 4-term combination) and its response ``F``;
+5. the directions (15)–(17) (``direction``);
+6. the calibrated displacement per unit volume ``u = k·F·d`` (``displacement``).
+
+A :class:`Model` bundles one or two lungs with provenance; :mod:`lungdeform.io.modelfile` stores it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from functools import cached_property
+from typing import Callable
+
+import numpy as np
+
+from lungdeform.constants import TIDAL_VOLUME_ML, gravity_vector, table_constants
+from .direction import directions as direction_field
+from .displacement import Playback, calibrate, scale_for_volume, volume_polynomial
+from lungdeform.errors import InputError, LungdeformError
+from .force import field_basis, force_weights
+from lungdeform.geometry.frame import LungFrame, lung_frame
+from .graph import spring_graph
+from lungdeform.geometry.mesh import Surface
+from .solve import ForceSolver, LinearSolver
+from .stiffness import as_moduli, uniform
+from .transfer import local_transfer
+
+
+@dataclass(frozen=True, eq=False)
+class LungModel:
+    """One lung's precomputed model.
+
+    Attributes
+    ----------
+    side : 'left' | 'right'
+    surface : Surface
+        End-exhale surface p, mm LPS.
+    constants : (9,) float
+        c1…c9.
+    stiffness : (n,) float
+        Young's modulus per vertex (relative units).
+    frame : LungFrame
+    directions : (n, 3) float
+        Unit displacement directions d, LPS, for :attr:`gravity` (origins on the supported side).
+    force_basis : (4, n) float
+        Elastostatic force F (kept force on mass nodes) for the fields 1, x̂, ŷ, ẑ.
+    gravity : (3,) float
+        Unit gravity direction (LPS) that :attr:`displacement` was built for.
+    displacement : (n, 3) float
+        u, mm per ``unit_ml`` of volume, LPS.
+    unit_ml : float
+        ΔV, mL per unit.
+    calibration_ml : float
+        Volume change at which the calibration is exact (mL).
+    d_min : float
+        Minimum transfer distance, mm.
+    landmarks : (m, 3) float or None
+        End-exhale interior landmarks of the fit, mm LPS, when the fit had them.
+    landmark_correction : (m, 3) float or None
+        The landmarks' motion the surface cannot see, mm per unit (:mod:`lungdeform.interior.field`).
+    landmark_smoothing : float
+        Smoothing of that correction: the surface smoothing of the sliding correction, mm (kind
+        ``"sliding"``), or the thin-plate smoothing, mm² (the older kinds).
+    interior_vertices : (n,) bool or None
+        The vertices whose motion drives the interior field; None: all. A fit leaves out the
+        vertices on the crop faces of its scans (an image boundary, not lung surface: the model's
+        motion there was never fitted).
+    interior_kind : str
+        How the surface displacement and the landmark correction extend inside
+        (:data:`lungdeform.interior.field.KINDS`): ``"sliding"`` (the surface's normal motion,
+        :mod:`lungdeform.interior.sliding`, and a correction that keeps it; model files of schema 3),
+        ``"sliding_thin_plate"`` (the same surface part, a thin-plate correction; schema-2 files) or
+        ``"thin_plate"`` (the thin-plate spline of the whole displacement; schema-1 files). Older
+        files play back as they were made.
+    """
+
+    side: str
+    surface: Surface
+    constants: np.ndarray
+    stiffness: np.ndarray
+    frame: LungFrame
+    directions: np.ndarray
+    force_basis: np.ndarray
+    gravity: np.ndarray
+    displacement: np.ndarray
+    unit_ml: float = 1.0
+    calibration_ml: float = TIDAL_VOLUME_ML
+    d_min: float = 1.0
+    landmarks: np.ndarray | None = None
+    landmark_correction: np.ndarray | None = None
+    landmark_smoothing: float = 0.0
+    interior_vertices: np.ndarray | None = None
+    interior_kind: str = "sliding"
+
+    def __post_init__(self):
+        from lungdeform.interior.field import KINDS
+
+        if self.interior_kind not in KINDS:
+            raise InputError(f"interior_kind must be one of {', '.join(KINDS)}, got {self.interior_kind!r}")
+        iv = self.interior_vertices
+        if iv is not None:
+            iv = np.asarray(iv)
+            if iv.dtype != bool or iv.shape != (self.surface.n_vertices,) or int(iv.sum()) < 13:
+                raise InputError(f"interior_vertices must be ({self.surface.n_vertices},) bool with at least 13 set, "
+                                 f"got {iv.dtype} {iv.shape} with {int(np.count_nonzero(iv))} set")
+
+    @property
+    def n_vertices(self) -> int:
+        return self.surface.n_vertices
+
+    @property
+    def volume_ee_ml(self) -> float:
+        """End-exhale volume V_EE, mL."""
+        return self.surface.volume_ml
+
+    @cached_property
+    def volume_poly(self) -> np.ndarray:
+        """``(4,)`` mm³: V(p + s·u) = a0 + a1 s + a2 s² + a3 s³, s in units."""
+        return volume_polynomial(self.surface.vertices, self.surface.faces, self.displacement)
+
+    @cached_property
+    def force_weights(self) -> np.ndarray:
+        """``(4,)`` weights of the four fields for :attr:`gravity`."""
+        return force_weights(self.frame, self.gravity, self.constants)
+
+    @property
+    def force(self) -> np.ndarray:
+        """Elastostatic force ``F : (n,)`` for :attr:`gravity`."""
+        return self.force_weights @ self.force_basis
+
+    def applied_force(self, gravity=None) -> np.ndarray:
+        """Applied force ``f : (n,)`` (18) for ``gravity`` (default: the model's)."""
+        g = self.gravity if gravity is None else gravity
+        w = force_weights(self.frame, g, self.constants)
+        return w @ field_basis(self.frame.normalized(self.surface.vertices))
+
+    @property
+    def basis_displacement(self) -> np.ndarray:
+        """``(4, n, 3) float``: ``F_k · d`` per field (unscaled), for engines that re-orient."""
+        return self.force_basis[:, :, None] * self.directions[None, :, :]
+
+    def scale_for(self, volume_ml: float, exact: bool = False) -> float:
+        """Units ``s`` for an absolute lung volume (mL): linear ``(V − V_EE)/ΔV`` or exact."""
+        delta = float(volume_ml) - self.volume_ee_ml
+        if exact:
+            return scale_for_volume(self.volume_poly, delta)
+        return delta / self.unit_ml
+
+    def positions_at(self, scale: float) -> np.ndarray:
+        """``x = p + s·u : (n, 3) float`` mm LPS."""
+        return self.surface.vertices + float(scale) * self.displacement
+
+    def surface_at(self, volume_ml: float | None = None, *, scale: float | None = None,
+                   exact: bool = False) -> Surface:
+        """The surface at an absolute volume (mL) or at ``scale`` units above end-exhale."""
+        if (volume_ml is None) == (scale is None):
+            raise InputError("give exactly one of volume_ml or scale")
+        s = self.scale_for(volume_ml, exact) if scale is None else float(scale)
+        return Surface(self.positions_at(s), self.surface.faces, f"{self.side} at s={s:.4g}")
+
+    @cached_property
+    def interior(self):
+        """The :class:`~lungdeform.interior.field.InteriorField` of this lung: displacement per unit of any
+        point inside it (surface-driven, plus the landmark correction when the model has one)."""
+        from lungdeform.interior.field import interior_field
+
+        on = slice(None) if self.interior_vertices is None else np.asarray(self.interior_vertices, bool)
+        return interior_field(self.surface.vertices[on], self.displacement[on], self.landmarks,
+                              self.landmark_correction, self.landmark_smoothing,
+                              normals=self.surface.vertex_normals[on], kind=self.interior_kind)
+
+    def points_at(self, points, volume_ml: float | None = None, *, scale: float | None = None,
+                  exact: bool = False) -> np.ndarray:
+        """Interior ``points : (q, 3)`` mm LPS (end-exhale) moved to an absolute volume (mL) or to
+        ``scale`` units: ``q + s·v(q) : (q, 3) float`` mm LPS (:attr:`interior`)."""
+        if (volume_ml is None) == (scale is None):
+            raise InputError("give exactly one of volume_ml or scale")
+        s = self.scale_for(volume_ml, exact) if scale is None else float(scale)
+        return self.interior.positions(points, s)
+
+    def playback(self, dtype=np.float32) -> Playback:
+        """A :class:`Playback` over this lung (float32 by default, as a GPU buffer)."""
+        return Playback(self.surface.vertices, self.displacement, dtype=dtype)
+
+    def oriented(self, gravity) -> "LungModel":
+        """A new model for another gravity direction (name or LPS vector): 4-term recombination of
+        the precomputed responses, directions with their origins on the supported side
+        (:meth:`LungFrame.supported`), then exact volume calibration. No new solve. A fitted
+        direction correction (:mod:`lungdeform.fit.direction_correction`) and landmark correction
+        belong to the scans' posture: the new directions are the paper's (15)–(17) and the
+        landmark correction is dropped."""
+        g = gravity_vector(gravity)
+        w = force_weights(self.frame, g, self.constants)
+        d = direction_field(self.frame.supported(g), self.surface.vertices, self.constants)
+        raw = (w @ self.force_basis)[:, None] * d
+        u = _calibrated(self.surface, raw, self.calibration_ml, self.unit_ml, gravity)
+        # the landmark correction was observed in the scan's posture: it does not carry over
+        return replace(self, gravity=g, directions=d, displacement=u, landmarks=None,
+                       landmark_correction=None, landmark_smoothing=0.0)
+
+
+def build_lung(
+    surface: Surface,
+    side: str,
+    *,
+    constants=None,
+    stiffness=None,
+    gravity="supine",
+    solver: str | LinearSolver = "bicgstab",
+    d_min: float = 1.0,
+    calibration_ml: float = TIDAL_VOLUME_ML,
+    unit_ml: float = 1.0,
+    progress: Callable[[str], None] | None = None,
+) -> LungModel:
+    """Precompute a lung model from its end-exhale surface.
+
+    Parameters
+    ----------
+    surface : Surface
+        Closed, outward, mm LPS (check it first with :meth:`Surface.checked`).
+    side : 'left' | 'right'
+    constants : (9,) float, optional
+        c1…c9; default Table I for ``side``.
+    stiffness : (n,) float, optional
+        Young's modulus per vertex; default uniform 1.
+    gravity : str or (3,) float
+        'supine', 'prone', 'upright', 'left-decubitus', 'right-decubitus' or an LPS vector.
+    solver : 'bicgstab' | 'gmres' | 'direct' | callable
+        Linear solver for the force fixed point.
+    calibration_ml : float
+        Volume change (mL) at which the displacement's volume is exact.
+    unit_ml : float
+        ΔV: the displacement is mm per this many mL.
+    """
+    say = progress or (lambda _msg: None)
+    c = table_constants(side) if constants is None else np.asarray(constants, dtype=float)
+    if c.shape != (9,) or not np.all(np.isfinite(c)):
+        raise InputError(f"constants must be 9 finite values c1…c9, got shape {c.shape}")
+    n = surface.n_vertices
+    e = uniform(n) if stiffness is None else as_moduli(stiffness, n)
+    g = gravity_vector(gravity)
+    p = surface.vertices
+    frame = lung_frame(p, side)
+    xyz = frame.normalized(p)
+    say(f"{side}: spring graph and transfer ({n} vertices)")
+    graph = spring_graph(p, surface.edges)
+    t = local_transfer(graph, e, d_min)
+    fs = ForceSolver(t, solver, n_mass=n)
+    say(f"{side}: force responses ({graph.n_nodes} graph nodes, 4 fields)")
+    basis = np.stack([fs.solve(field)[:n] for field in field_basis(xyz)])
+    d = direction_field(frame.supported(g), p, c)  # origins on the supported side (frame.py)
+    raw = (force_weights(frame, g, c) @ basis)[:, None] * d
+    u = _calibrated(surface, raw, calibration_ml, unit_ml, gravity)
+    return LungModel(side, surface, c, e, frame, d, basis, g, u, float(unit_ml),
+                     float(calibration_ml), float(d_min))
+
+
+def _calibrated(surface: Surface, raw: np.ndarray, calibration_ml: float, unit_ml: float, gravity):
+    """:func:`calibrate`, with a message that says why a field may not expand the lung."""
+    try:
+        return calibrate(surface.vertices, surface.faces, raw, calibration_ml=calibration_ml,
+                         unit_ml=unit_ml)
+    except LungdeformError as exc:
+        if isinstance(exc, InputError):
+            raise
+        raise LungdeformError(
+            f"{surface.name}: with gravity {gravity!r} the applied force and the directions "
+            "(c1…c6) do not expand the lung (the force is largest where the directions run inward). "
+            "Table I's directions were fitted supine; fit directions for this orientation "
+            "(lungdeform fit) or give constants that suit it"
+        ) from exc
+
+
+@dataclass(frozen=True, eq=False)
+class Model:
+    """One or two lungs with provenance (what was built from what, with which settings)."""
+
+    lungs: dict[str, LungModel]
+    provenance: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        if not self.lungs:
+            raise InputError("a model needs at least one lung")
+
+    @property
+    def names(self) -> list[str]:
+        return list(self.lungs)
+
+    def oriented(self, gravity) -> "Model":
+        return Model({k: v.oriented(gravity) for k, v in self.lungs.items()}, dict(self.provenance))
+
+
+def build_model(
+    surfaces: dict[str, Surface],
+    *,
+    tidal_ml: float = TIDAL_VOLUME_ML,
+    constants: dict[str, np.ndarray] | None = None,
+    stiffness: dict[str, np.ndarray] | None = None,
+    provenance: dict | None = None,
+    progress: Callable[[str], None] | None = None,
+    **kwargs,
+) -> Model:
+    """Build one model per side from ``{side: surface}``.
+
+    The tidal volume (mL, both lungs together) is split between the lungs in proportion to their
+    end-exhale volumes; each lung is calibrated exactly at its share. Other keyword arguments go to
+    :func:`build_lung` (``gravity``, ``solver``, ``d_min``, ``unit_ml``).
+    """
+    if not tidal_ml > 0:
+        raise InputError(f"tidal_ml must be > 0 mL, got {tidal_ml!r}")
+    total = sum(s.volume_ml for s in surfaces.values())
+    lungs = {}
+    for side, surface in surfaces.items():
+        share = tidal_ml * surface.volume_ml / total
+        lungs[side] = build_lung(
+            surface, side,
+            constants=None if constants is None else constants.get(side),
+            stiffness=None if stiffness is None else stiffness.get(side),
+            calibration_ml=share, progress=progress, **kwargs,
+        )
+    prov = dict(provenance or {})
+    prov.setdefault("tidal_ml", tidal_ml)
+    return Model(lungs, prov)

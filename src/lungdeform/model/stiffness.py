@@ -1,0 +1,83 @@
+"""Stiffness (Young's modulus) fields over the mass nodes (METHOD §2).
+
+The model only uses ratios of moduli, so units are relative (1 = the reference tissue). Every field
+here returns ``E : (n,) float`` per mass node (mesh vertex), strictly positive. Spring nodes take
+the mean of their two mass nodes (:func:`node_moduli`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lungdeform.errors import InputError
+from lungdeform.geometry.mesh import as_vertices
+
+
+def uniform(n: int, modulus: float = 1.0) -> np.ndarray:
+    """``E : (n,) float``, the same modulus everywhere."""
+    _check_positive(modulus, "modulus")
+    return np.full(int(n), float(modulus))
+
+
+def gravity_gradient(
+    vertices: np.ndarray,
+    gravity: np.ndarray,
+    dependent: float = 1.0,
+    nondependent: float = 1.0,
+) -> np.ndarray:
+    """``E : (n,) float`` varying linearly with height along gravity.
+
+    ``dependent`` is the modulus at the lowest point (along ``gravity``), ``nondependent`` at the
+    highest, linear in between. ``vertices : (n, 3) float`` mm; ``gravity : (3,) float`` any length,
+    same frame as the vertices (LPS: supine gravity is ``(0, 1, 0)``).
+    """
+    v = as_vertices(vertices)
+    g = np.asarray(gravity, dtype=float)
+    if g.shape != (3,) or not np.linalg.norm(g) > 0:
+        raise InputError(f"gravity must be a non-zero (3,) vector, got {gravity!r}")
+    _check_positive(dependent, "dependent")
+    _check_positive(nondependent, "nondependent")
+    depth = v @ (g / np.linalg.norm(g))
+    span = np.ptp(depth)
+    t = (depth - depth.min()) / span if span > 0 else np.zeros(len(v))
+    return nondependent + t * (dependent - nondependent)
+
+
+def sphere_override(
+    moduli: np.ndarray,
+    vertices: np.ndarray,
+    center: np.ndarray,
+    radius: float,
+    modulus: float,
+) -> np.ndarray:
+    """A copy of ``moduli : (n,) float`` with ``modulus`` inside a sphere (a stiff or soft tumour).
+
+    ``vertices : (n, 3) float`` mm; ``center : (3,) float`` mm, same frame; ``radius`` mm.
+    """
+    e = as_moduli(moduli, len(vertices))
+    _check_positive(modulus, "modulus")
+    inside = np.linalg.norm(as_vertices(vertices) - np.asarray(center, float), axis=1) <= radius
+    out = e.copy()
+    out[inside] = modulus
+    return out
+
+
+def as_moduli(moduli, n: int, name: str = "stiffness") -> np.ndarray:
+    """Validate a per-vertex array: ``(n,) float``, finite and > 0."""
+    e = np.ascontiguousarray(moduli, dtype=np.float64)
+    if e.shape != (n,):
+        raise InputError(f"{name} must have shape ({n},) (one modulus per vertex), got {e.shape}")
+    if not np.all(np.isfinite(e)) or np.any(e <= 0):
+        raise InputError(f"{name} must be finite and > 0 everywhere")
+    return e
+
+
+def node_moduli(mass_moduli: np.ndarray, spring_ends: np.ndarray) -> np.ndarray:
+    """``E : (N,) float`` over all graph nodes: mass nodes, then spring nodes (mean of their ends)."""
+    e = np.asarray(mass_moduli, dtype=float)
+    return np.concatenate([e, 0.5 * (e[spring_ends[:, 0]] + e[spring_ends[:, 1]])])
+
+
+def _check_positive(value: float, name: str) -> None:
+    if not (np.isfinite(value) and value > 0):
+        raise InputError(f"{name} must be a finite modulus > 0, got {value!r}")

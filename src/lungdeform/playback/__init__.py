@@ -1,0 +1,13 @@
+"""Playing a built model: exporters, the breathing schedule, tracked points, the viewer server, the demo.
+
+Owns: :mod:`~lungdeform.playback.schedule` (the volume over time an export plays: a curve CSV, a
+simulated preset, a plain cycle), :mod:`~lungdeform.playback.export` (glTF 2.0 with morph targets,
+ParaView series), :mod:`~lungdeform.playback.markers` (markers carried in a glb),
+:mod:`~lungdeform.playback.trajectory` (where interior points go as the model breathes),
+:mod:`~lungdeform.playback.server` (the three.js viewer on 127.0.0.1), :mod:`~lungdeform.playback.render`
+(off-screen snapshots) and :mod:`~lungdeform.playback.demo` (the demo run).
+
+May import: :mod:`lungdeform.data`, :mod:`lungdeform.io`, :mod:`lungdeform.breathing`,
+:mod:`lungdeform.model`, :mod:`lungdeform.interior`, :mod:`lungdeform.geometry` and the core modules;
+never the fitting code.
+"""

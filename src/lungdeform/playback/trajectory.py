@@ -1,0 +1,225 @@
+"""Trajectories of interior points (a tumour, fiducials) of a lung model over a breathing schedule.
+
+``lungdeform track`` behind it: points (mm, LPS of the end-exhale scan) are assigned to a lung
+(:func:`place_points`), moved by that lung's interior field (:mod:`lungdeform.interior.field`) at the
+same exact per-lung scales as surface playback (:func:`lung_scales`, as ``lungdeform export``), and
+written as a CSV of positions, a JSON summary of each point's motion and a plot
+(:func:`write_trajectories`).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from lungdeform.atomic import write_bytes
+from lungdeform.errors import InputError, ReadError
+from lungdeform.geometry.mesh import as_vertices
+
+#: Points farther than this outside every lung are refused (a wrong frame or unit, not a tumour).
+OUTSIDE_LIMIT_MM = 30.0
+
+
+@dataclass(frozen=True, eq=False)
+class PointPlacement:
+    """Which lung each point belongs to.
+
+    lungs : (q,) str — the lung's name in the model; inside : (q,) bool — inside that lung's
+    end-exhale surface; distance_mm : (q,) float — distance to that surface, mm.
+    """
+
+    lungs: np.ndarray
+    inside: np.ndarray
+    distance_mm: np.ndarray
+
+
+def place_points(model, points, lung: str | None = None, *, limit_mm: float = OUTSIDE_LIMIT_MM,
+                 source: str = "points") -> PointPlacement:
+    """Assign ``points : (q, 3)`` mm LPS (end-exhale) to the lungs of ``model``: the lung that
+    contains the point, else the nearest; ``lung`` forces one. Points more than ``limit_mm`` outside
+    their lung raise :class:`InputError` naming ``source`` and the points (1-based)."""
+    from lungdeform.geometry.distance import point_to_surface
+    from lungdeform.geometry.mesh import winding_numbers
+
+    q = as_vertices(points, "points")
+    if len(q) == 0 or not np.all(np.isfinite(q)):
+        raise InputError(f"{source}: need at least one point, all finite (mm, LPS)")
+    names = list(model.lungs) if lung is None else [lung]
+    if lung is not None and lung not in model.lungs:
+        raise InputError(f"lung {lung!r} is not in the model (it has {', '.join(model.lungs)})")
+    wind = np.stack([winding_numbers(q, model.lungs[n].surface.vertices, model.lungs[n].surface.faces) for n in names])
+    dist = np.stack([point_to_surface(q, model.lungs[n].surface.vertices, model.lungs[n].surface.faces) for n in names])
+    inside = wind > 0.5
+    # containing lung first (if several, the deeper one), else the nearest surface
+    key = np.where(inside, -dist, dist + 1e9)
+    pick = np.argmin(key, axis=0)
+    cols = np.arange(len(q))
+    d, ins = dist[pick, cols], inside[pick, cols]
+    far = np.flatnonzero(~ins & (d > limit_mm))
+    if len(far):
+        listed = ", ".join(f"{i + 1} ({d[i]:.0f} mm)" for i in far[:8]) + (" …" if len(far) > 8 else "")
+        raise InputError(f"{source}: {len(far)} point(s) lie more than {limit_mm:g} mm outside "
+                         f"{'lung ' + lung if lung else 'every lung'} of the model: {listed}. Points are mm "
+                         f"in the model's frame (LPS world of the end-exhale scan)")
+    return PointPlacement(np.array([names[i] for i in pick]), ins, d)
+
+
+def lung_scales(model, delta_ml) -> dict[str, np.ndarray]:
+    """Per lung, ``s : (f,) float`` units at which its volume is exactly ``V_EE + share·ΔV``, for
+    ``delta_ml : (f,)`` mL of both lungs above end-exhale: the playback of ``lungdeform export``
+    (whose tidal weights :func:`lungdeform.playback.export.tidal_weights` are these over the calibration's units)."""
+    from lungdeform.model.displacement import scale_for_volume
+    from .schedule import lung_shares
+
+    dv = np.asarray(delta_ml, float).ravel()
+    if not np.all(np.isfinite(dv)):
+        raise InputError("volumes must be finite mL")
+    shares = lung_shares(model)
+    return {name: np.array([scale_for_volume(lung.volume_poly, float(shares[name] * v)) for v in dv])
+            for name, lung in model.lungs.items()}
+
+
+def unit_displacements(model, points, placement: PointPlacement) -> np.ndarray:
+    """``v : (q, 3) float`` mm per unit: each point's displacement by its own lung's interior field
+    (:attr:`LungModel.interior`)."""
+    q = as_vertices(points, "points")
+    out = np.empty_like(q)
+    for name, lung in model.lungs.items():
+        idx = np.flatnonzero(placement.lungs == name)
+        if len(idx):
+            out[idx] = lung.interior.displacement(q[idx])
+    return out
+
+
+def point_trajectories(model, points, placement: PointPlacement, delta_ml) -> np.ndarray:
+    """Positions ``(f, q, 3) float`` mm LPS of ``points : (q, 3)`` at ``delta_ml : (f,)`` mL of both
+    lungs above end-exhale, each moved by its lung's interior field at its lung's scale."""
+    q = as_vertices(points, "points")
+    scales = lung_scales(model, delta_ml)
+    v = unit_displacements(model, q, placement)
+    s = np.stack([scales[str(name)] for name in placement.lungs], axis=1)  # (f, q) units
+    return q[None] + s[:, :, None] * v[None]
+
+
+#: LPS axes as a clinician names them (x: right→left, y: anterior→posterior, z: inferior→superior).
+AXES = ("LR", "AP", "SI")
+
+
+def motion_summary(positions: np.ndarray, points) -> dict:
+    """Per point of ``positions : (f, q, 3)`` mm: peak-to-peak range along LR, AP, SI and the
+    largest 3-D excursion from its end-exhale position ``points : (q, 3)`` mm."""
+    p = np.asarray(positions, float)
+    ptp = np.ptp(p, axis=0)  # (q, 3)
+    excursion = np.linalg.norm(p - np.asarray(points, float)[None], axis=2).max(axis=0)
+    return {"peak_to_peak_mm": {a: ptp[:, k].tolist() for k, a in enumerate(AXES)},
+            "max_excursion_mm": excursion.tolist()}
+
+
+def write_trajectories(out: Path, points, labels, placement: PointPlacement, positions, delta_ml,
+                       t_s=None, *, meta: dict | None = None) -> dict[str, Path]:
+    """Write ``trajectories.csv`` (one row per frame and point: ``t_s`` (blank without times),
+    ``delta_ml``, point, label, lung, ``x_mm, y_mm, z_mm`` and the displacement ``dx_mm, dy_mm,
+    dz_mm``, LPS), ``points.json`` (placement and :func:`motion_summary` per point, plus ``meta``)
+    and ``motion.png`` (displacement along LR, AP, SI against time or volume) into ``out``, each
+    atomically. ``positions : (f, q, 3)`` mm; ``delta_ml : (f,)`` mL of both lungs above end-exhale."""
+    q = as_vertices(points, "points")
+    pos = np.asarray(positions, float)
+    dv = np.asarray(delta_ml, float)
+    disp = pos - q[None]
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["t_s", "delta_ml", "point", "label", "lung", "x_mm", "y_mm", "z_mm", "dx_mm", "dy_mm", "dz_mm"])
+    for f in range(len(pos)):
+        t = "" if t_s is None else f"{float(t_s[f]):.6g}"
+        for j in range(len(q)):
+            w.writerow([t, f"{dv[f]:.6g}", j + 1, labels[j], placement.lungs[j],
+                        *(f"{x:.4f}" for x in pos[f, j]), *(f"{x:.4f}" for x in disp[f, j])])
+    paths = {"csv": write_bytes(Path(out) / "trajectories.csv", buf.getvalue().encode())}
+    summary = motion_summary(pos, q)
+    info = {"frame": "LPS mm, the end-exhale scan of the model", "frames": int(len(pos)),
+            "points": [{"point": j + 1, "label": labels[j], "lung": str(placement.lungs[j]),
+                        "inside": bool(placement.inside[j]), "distance_to_surface_mm": float(placement.distance_mm[j]),
+                        "end_exhale_mm": q[j].tolist(),
+                        "peak_to_peak_mm": {a: summary["peak_to_peak_mm"][a][j] for a in AXES},
+                        "max_excursion_mm": summary["max_excursion_mm"][j]} for j in range(len(q))],
+            **(meta or {})}
+    paths["json"] = write_bytes(Path(out) / "points.json", json.dumps(info, indent=2).encode())
+    paths["png"] = _plot(Path(out) / "motion.png", disp, dv if t_s is None else np.asarray(t_s, float),
+                         "time (s)" if t_s is not None else "volume above end-exhale (mL)", labels)
+    return paths
+
+
+def _plot(path: Path, disp: np.ndarray, x: np.ndarray, xlabel: str, labels, max_points: int = 12) -> Path:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(11, 3.4))
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(1, 3, sharey=True)
+    order = np.argsort(x) if xlabel.startswith("volume") else np.arange(len(x))
+    for k, (ax, name) in enumerate(zip(axes, AXES)):
+        for j in range(min(disp.shape[1], max_points)):
+            ax.plot(x[order], disp[order, j, k], marker="." if len(x) < 20 else None, label=str(labels[j]))
+        ax.set_title(f"{name} displacement (LPS {'xyz'[k]})")
+        ax.set_xlabel(xlabel)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("mm")
+    if disp.shape[1] <= max_points:
+        axes[-1].legend(fontsize=7, loc="best")
+    else:
+        axes[-1].set_title(f"SI displacement (first {max_points} of {disp.shape[1]} points)")
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    return write_bytes(path, buf.getvalue())
+
+
+def read_points(path) -> tuple[np.ndarray, list[str]]:
+    """Points to track: a CSV with ``x_mm,y_mm,z_mm[,label]`` (LPS mm) or an elastix point set
+    (``point`` header, world mm). Returns ``(points (q, 3) float mm, labels)``."""
+    from lungdeform.io.landmarks import read_elastix_points
+
+    path = Path(path)
+    if not path.is_file():
+        raise ReadError(f"{path}: no such points file")
+    try:
+        first = next((line.strip().lower() for line in path.read_text(encoding="utf-8-sig").splitlines() if line.strip()), "")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ReadError(f"{path}: cannot read points ({exc})") from exc
+    if first == "index":
+        raise ReadError(f"{path}: an elastix 'index' point file holds voxel indices of an image; give the points "
+                        f"in world mm ('point' file or a CSV x_mm,y_mm,z_mm)")
+    if first == "point":
+        pts = read_elastix_points(path)
+        return pts, [f"point {i + 1}" for i in range(len(pts))]
+    return read_markers_csv(path)
+
+
+def read_markers_csv(path) -> tuple[np.ndarray, list[str]]:
+    """Markers CSV: header ``x_mm,y_mm,z_mm[,label]`` (LPS mm, end-exhale)."""
+    path = Path(path)
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as fh:  # -sig: a spreadsheet's byte-order mark
+            rows = [r for r in csv.reader(fh) if r and any(c.strip() for c in r)]
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ReadError(f"{path}: cannot read markers ({exc})") from exc
+    header = [h.strip() for h in rows[0]] if rows else []
+    if not {"x_mm", "y_mm", "z_mm"} <= set(header):
+        raise ReadError(f"{path}: markers need a header with x_mm,y_mm,z_mm[,label]")
+    ix, iy, iz = (header.index(c) for c in ("x_mm", "y_mm", "z_mm"))
+    il = header.index("label") if "label" in header else None
+    pts, labels = [], []
+    for lineno, r in enumerate(rows[1:], start=2):
+        try:
+            pts.append([float(r[ix]), float(r[iy]), float(r[iz])])
+        except (IndexError, ValueError) as exc:
+            raise ReadError(f"{path}: line {lineno}: expected numbers in x_mm,y_mm,z_mm") from exc
+        labels.append(r[il].strip() if il is not None and il < len(r) else f"marker {lineno - 1}")
+    if not pts or not np.all(np.isfinite(pts)):
+        raise ReadError(f"{path}: no finite marker rows")
+    return np.array(pts), labels

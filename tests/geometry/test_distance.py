@@ -1,0 +1,86 @@
+"""Exact surface distances: analytic spheres, a brute-force reference, and the vertex pitfall."""
+
+import numpy as np
+import pytest
+
+from lungdeform.geometry.distance import (SurfaceDistance, _closest_on_triangle, distance_stats, point_to_surface,
+                                 symmetric_distance, vertex_areas, weighted_percentile)
+from lungdeform.errors import InputError
+from lungdeform.geometry.mesh import icosphere
+
+
+def _brute(points, v, f):
+    # dense reference: the same exact triangle routine over every face (tests the grid culling)
+    out = []
+    for p in points:
+        best = np.inf
+        for tri in f:
+            q = np.array(_closest_on_triangle(*p, *v[tri].ravel()))
+            best = min(best, float(np.linalg.norm(p - q)))
+        out.append(best)
+    return np.array(out)
+
+
+def test_single_triangle_regions():
+    # analytic: above the interior → height; beyond a vertex → distance to it; beyond an edge → to the line
+    v = np.array([[0.0, 0, 0], [10, 0, 0], [0, 10, 0]])
+    f = np.array([[0, 1, 2]])
+    pts = np.array([[2.0, 2, 5], [-3, -4, 0], [5, -2, 1], [6, 6, 0]])
+    expected = [5.0, 5.0, np.hypot(2, 1), np.hypot(1, 1) * np.sqrt(2) * np.sqrt(2) / np.sqrt(2)]
+    d = point_to_surface(pts, v, f)
+    assert d[:3] == pytest.approx(expected[:3], abs=1e-12)
+    assert d[3] == pytest.approx(abs(6 + 6 - 10) / np.sqrt(2), abs=1e-12)
+
+
+def test_degenerate_triangles(rng):
+    # a predicted surface can collapse faces (two or three corners coincide): the distance is then
+    # to the remaining segment or point, analytic, and never a division by zero
+    seg = np.array([[0.0, 0, 0], [0, 0, 0], [10, 0, 0]])  # a == b: the segment a–c
+    pts = np.array([[5.0, 3, 4], [-3, 0, 4], [13, 4, 0]])
+    for order in ([0, 1, 2], [1, 2, 0], [2, 0, 1], [0, 2, 1]):
+        assert point_to_surface(pts, seg, np.array([order])) == pytest.approx([5.0, 5.0, 5.0], abs=1e-12)
+    dot = np.zeros((3, 3))  # all three corners at the origin
+    q = rng.normal(size=(5, 3))
+    assert point_to_surface(q, dot, np.array([[0, 1, 2]])) == pytest.approx(np.linalg.norm(q, axis=1), abs=1e-12)
+
+
+def test_matches_brute_force(rng):
+    s = icosphere(2, 30.0)
+    pts = rng.normal(size=(60, 3)) * 25
+    d = SurfaceDistance(s.vertices, s.faces).distance(pts)
+    assert d == pytest.approx(_brute(pts, s.vertices, s.faces), abs=1e-9)
+
+
+def test_concentric_spheres_radius_difference():
+    # outer sphere vertices to the inner sphere: the radius difference, up to the inner mesh's
+    # faceting (sagitta of an edge ≈ e²/8r ≈ 0.03 mm here)
+    inner, outer = icosphere(4, 40.0), icosphere(4, 50.0)
+    d = SurfaceDistance(inner.vertices, inner.faces).distance(outer.vertices)
+    assert d.min() >= 10.0 - 1e-9
+    assert d.max() == pytest.approx(10.0, abs=0.05)
+    sym = symmetric_distance(inner, outer).stats
+    assert sym.mean == pytest.approx(10.0, abs=0.05)
+    assert sym.p95 == pytest.approx(10.0, abs=0.05)
+
+
+def test_not_nearest_vertex():
+    # a face centre lies on the surface: distance 0, while its nearest vertex is far away
+    s = icosphere(0, 100.0)
+    c = s.vertices[s.faces[0]].mean(axis=0)
+    d = point_to_surface(c[None], s.vertices, s.faces)[0]
+    assert d == pytest.approx(0.0, abs=1e-9)
+    assert np.linalg.norm(s.vertices - c, axis=1).min() > 30.0
+
+
+def test_stats_weighted():
+    st = distance_stats(np.array([1.0, 3.0]), np.array([3.0, 1.0]))
+    assert st.mean == pytest.approx(1.5)
+    assert st.rms == pytest.approx(np.sqrt((3 * 1 + 9) / 4))
+    assert weighted_percentile(np.array([1.0, 2.0, 3.0]), np.array([1.0, 1.0, 8.0]), 50) == 3.0
+    with pytest.raises(InputError):
+        distance_stats(np.zeros(0))
+
+
+def test_vertex_areas_sum_to_area():
+    s = icosphere(3, 10.0)
+    assert vertex_areas(s.vertices, s.faces).sum() == pytest.approx(s.area)

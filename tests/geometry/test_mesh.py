@@ -1,0 +1,163 @@
+"""Surface checks against analytic shapes and deliberately broken meshes."""
+
+import numpy as np
+import pytest
+
+from lungdeform.errors import InputError, MeshError, UnitsError
+from lungdeform.geometry.mesh import (
+    Surface,
+    check_surface,
+    icosphere,
+    non_manifold_vertices,
+    signed_volume,
+    subdivide,
+    surface_area,
+)
+
+
+def test_sphere_volume_and_area_converge_to_analytic():
+    # A geodesic sphere is inscribed: its volume and area approach 4/3·π·r³ and 4·π·r² from below.
+    r = 100.0
+    errors = []
+    for k in (2, 3, 4):
+        s = icosphere(k, r)
+        vol_err = 1 - s.volume / (4 / 3 * np.pi * r**3)
+        area_err = 1 - s.area / (4 * np.pi * r**2)
+        assert 0 < vol_err < 0.05 and 0 < area_err < 0.05
+        errors.append(vol_err)
+    assert errors[0] > errors[1] > errors[2]  # refinement converges
+    assert errors[-1] < 0.003
+
+
+def test_volume_is_translation_invariant_far_from_origin():
+    # The divergence-theorem volume must not depend on where the lung sits in LPS space.
+    s = icosphere(3, 50.0)
+    far = s.vertices + np.array([1e5, -2e5, 3e5])
+    assert signed_volume(far, s.faces) == pytest.approx(s.volume, rel=1e-9)
+
+
+def test_transforms_return_new_surfaces():
+    s = icosphere(2, 10.0)
+    big = s.scaled(2.0)
+    assert big.volume == pytest.approx(8 * s.volume, rel=1e-12)
+    assert s.volume == pytest.approx(icosphere(2, 10.0).volume)  # original untouched
+    mirrored = s.transformed(np.diag([-1.0, 1.0, 1.0, 1.0]))
+    assert mirrored.volume == pytest.approx(s.volume, rel=1e-12)  # orientation kept on reflection
+    moved = s.deformed(np.ones_like(s.vertices))
+    assert np.allclose(moved.vertices - s.vertices, 1.0)
+    with pytest.raises(ValueError):
+        s.vertices[0, 0] = 1.0  # arrays are read-only
+
+
+def test_subdivide_keeps_shape_and_quadruples_faces():
+    s = icosphere(2, 80.0)
+    v, f = subdivide(s.vertices, s.faces)
+    assert len(f) == 4 * len(s.faces)
+    assert signed_volume(v, f) == pytest.approx(s.volume, rel=1e-12)  # midpoints lie on the flat faces
+    assert surface_area(v, f) == pytest.approx(s.area, rel=1e-12)
+
+
+def test_check_accepts_a_closed_outward_sphere():
+    s = icosphere(3, 100.0)
+    v, f, report = check_surface(s.vertices, s.faces)
+    assert report.repairs == ()
+    assert report.volume_ml == pytest.approx(s.volume / 1000)
+
+
+def test_check_refuses_open_surface():
+    s = icosphere(2, 100.0)
+    with pytest.raises(MeshError, match="open"):
+        check_surface(s.vertices, s.faces[1:], source="lung.stl")
+
+
+def test_check_refuses_nan():
+    s = icosphere(2, 100.0)
+    v = s.vertices.copy()
+    v[3] = np.nan
+    with pytest.raises(MeshError, match="lung.stl: .*NaN"):
+        check_surface(v, s.faces, source="lung.stl")
+
+
+def test_check_refuses_metres_and_suggests_units():
+    s = icosphere(2, 0.1)
+    with pytest.raises(UnitsError, match="--units"):
+        check_surface(s.vertices, s.faces)
+
+
+def test_inward_orientation_refused_or_repaired():
+    s = icosphere(2, 100.0)
+    inward = s.faces[:, ::-1]
+    with pytest.raises(MeshError, match="inward"):
+        check_surface(s.vertices, inward)
+    v, f, report = check_surface(s.vertices, inward, repair=True)
+    assert signed_volume(v, f) > 0
+    assert any("flipped" in r for r in report.repairs)
+
+
+def test_inconsistent_winding_repaired(rng):
+    s = icosphere(2, 100.0)
+    f = s.faces.copy()
+    flip = rng.choice(len(f), 10, replace=False)
+    f[flip] = f[flip, ::-1]
+    with pytest.raises(MeshError, match="consistently"):
+        check_surface(s.vertices, f)
+    v, f2, report = check_surface(s.vertices, f, repair=True)
+    assert signed_volume(v, f2) == pytest.approx(s.volume, rel=1e-12)
+
+
+def test_two_components_refused_or_largest_kept():
+    a = icosphere(2, 100.0)
+    b = icosphere(1, 20.0, center=(500.0, 0, 0))
+    v = np.vstack([a.vertices, b.vertices])
+    f = np.vstack([a.faces, b.faces + len(a.vertices)])
+    with pytest.raises(MeshError, match="2 separate components"):
+        check_surface(v, f)
+    v2, f2, report = check_surface(v, f, repair=True)
+    assert len(f2) == len(a.faces)
+
+
+def test_pinched_vertex_is_not_manifold():
+    # Two tetrahedra sharing one vertex: every edge has two faces, but the shared vertex's fan is
+    # two discs, so the surface is not a 2-manifold.
+    t = np.array([[0, 0, 0], [100, 0, 0], [0, 100, 0], [0, 0, 100]], float)
+    tf = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    v = np.vstack([t, -t[1:]])
+    f2 = tf.copy()
+    f2 = np.where(f2 == 0, 0, f2 + 3)
+    f = np.vstack([tf, f2[:, ::-1]])
+    assert list(non_manifold_vertices(f, len(v))) == [0]
+    with pytest.raises(MeshError, match="manifold"):
+        check_surface(v, f)
+
+
+def test_bad_shapes_are_input_errors():
+    with pytest.raises(InputError, match=r"\(n, 3\)"):
+        Surface(np.zeros((4, 2)), np.zeros((1, 3), int))
+    with pytest.raises(InputError, match="outside"):
+        Surface(np.zeros((3, 3)), np.array([[0, 1, 5]]))
+
+
+def test_winding_numbers_of_a_sphere(rng):
+    # analytic: 1 inside a closed outward surface, 0 outside (points kept 1 mm off the faceted
+    # sphere of radius 50, whose facets lie within 0.3 mm of it), -1 inside a reversed surface
+    from lungdeform.geometry.mesh import winding_numbers
+
+    s = icosphere(3, 50.0)
+    d = rng.normal(size=(200, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    r = np.concatenate([rng.uniform(0, 48.5, 100), rng.uniform(51, 200, 100)])
+    w = winding_numbers(d * r[:, None], s.vertices, s.faces, chunk=37)
+    assert w[:100] == pytest.approx(np.ones(100), abs=1e-9)
+    assert w[100:] == pytest.approx(np.zeros(100), abs=1e-9)
+    assert winding_numbers(np.zeros((1, 3)), s.vertices, s.faces[:, ::-1])[0] == pytest.approx(-1.0)
+
+
+def test_thinned_is_all_or_a_seeded_sorted_subset():
+    # invariants: every index when few enough; otherwise `count` distinct indices, sorted, the same
+    # for the same seed (the interior fields rely on playback and fitting picking the same points)
+    from lungdeform.geometry.mesh import thinned
+
+    assert thinned(5, 10).tolist() == [0, 1, 2, 3, 4]
+    a = thinned(1000, 40, seed=3)
+    assert len(a) == len(set(a.tolist())) == 40 and np.all(np.diff(a) > 0) and a.max() < 1000
+    assert np.array_equal(a, thinned(1000, 40, seed=3)) and not np.array_equal(a, thinned(1000, 40, seed=4))

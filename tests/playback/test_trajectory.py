@@ -1,0 +1,86 @@
+"""Trajectories of interior points: placement in a lung, exact per-lung scales, motion summary."""
+
+import numpy as np
+import pytest
+
+from lungdeform.errors import InputError
+from lungdeform.playback.schedule import lung_shares
+from lungdeform.playback.trajectory import (lung_scales, motion_summary, place_points, point_trajectories,
+                                   read_points)
+from tests.browser.support import two_lungs
+
+
+def test_points_go_to_the_lung_that_holds_them():
+    # the test ellipsoids are centred at x = ±90 mm (left lung at x > 0, LPS)
+    m = two_lungs(2)
+    pts = np.array([[90.0, 0, 0], [-90.0, 10, -20], [160.0, 0, 0]])  # last: 10 mm outside the left lung
+    p = place_points(m, pts)
+    assert p.lungs.tolist() == ["left", "right", "left"]
+    assert p.inside.tolist() == [True, True, False]
+    assert 8.0 < p.distance_mm[2] < 12.0
+    forced = place_points(m, np.array([[-25.0, 0, 0]]), "right")  # 5 mm outside the right lung
+    assert forced.lungs.tolist() == ["right"] and not forced.inside[0]
+    with pytest.raises(InputError, match="outside lung right"):  # a left-lung point forced right
+        place_points(m, pts[:1], "right")
+    with pytest.raises(InputError, match="pts.csv: 1 point.*more than 30 mm outside every lung.*2 \\("):
+        place_points(m, np.array([[90.0, 0, 0], [0.0, 0, 400.0]]), source="pts.csv")
+    with pytest.raises(InputError, match="not in the model"):
+        place_points(m, pts, "middle")
+
+
+def test_scales_give_each_lung_its_exact_share():
+    # truth: the surface at each lung's scale encloses V_EE + share·ΔV (the export's playback)
+    m = two_lungs(2)
+    dv = np.array([0.0, 250.0, 500.0, -50.0])
+    shares = lung_shares(m)
+    for name, s in lung_scales(m, dv).items():
+        lung = m.lungs[name]
+        for sk, v in zip(s, dv):
+            assert lung.surface_at(scale=sk).volume_ml == pytest.approx(lung.volume_ee_ml + shares[name] * v, abs=1e-6)
+
+
+def test_points_on_the_surface_move_with_it():
+    # the interior field is the sliding interpolation of the surface's normal motion, so a point on
+    # a vertex follows that vertex's normal motion (to a few % of it: the interpolation is smoothed)
+    # and slides along the surface; points at end-exhale (ΔV = 0) do not move
+    m = two_lungs(2)
+    left = m.lungs["left"]
+    idx = np.array([0, 10, 40])
+    pts = left.surface.vertices[idx]
+    dv = np.array([0.0, 300.0])
+    traj = point_trajectories(m, pts, place_points(m, pts), dv)
+    s = lung_scales(m, dv)["left"][1]
+    assert traj[0] == pytest.approx(pts, abs=1e-9)
+    assert traj[1] == pytest.approx(left.points_at(pts, scale=s), abs=1e-9)  # the lung's interior field
+    n = left.surface.vertex_normals[idx]
+    normal = np.einsum("ij,ij->i", left.positions_at(s)[idx] - pts, n)
+    assert np.einsum("ij,ij->i", traj[1] - pts, n) == pytest.approx(normal, abs=0.1 * np.abs(normal).max())
+    summary = motion_summary(traj, pts)
+    assert summary["max_excursion_mm"] == pytest.approx(np.linalg.norm(traj[1] - traj[0], axis=1).tolist())
+
+
+def test_read_points_csv_and_elastix(tmp_path):
+    from lungdeform.errors import ReadError
+    from lungdeform.io.landmarks import write_elastix_points
+
+    (tmp_path / "p.csv").write_text("x_mm,y_mm,z_mm,label\n1,2,3,tumour\n4,5,6,clip\n")
+    pts, labels = read_points(tmp_path / "p.csv")
+    assert pts.tolist() == [[1, 2, 3], [4, 5, 6]] and labels == ["tumour", "clip"]
+    write_elastix_points(tmp_path / "p.txt", pts)
+    again, labels = read_points(tmp_path / "p.txt")
+    assert again == pytest.approx(pts) and labels == ["point 1", "point 2"]
+    (tmp_path / "i.txt").write_text("index\n1\n10 20 30\n")
+    with pytest.raises(ReadError, match="'index' point file holds voxel indices"):
+        read_points(tmp_path / "i.txt")
+    with pytest.raises(ReadError, match="no such points file"):
+        read_points(tmp_path / "missing.csv")
+
+
+def test_markers_csv_with_a_byte_order_mark(tmp_path):
+    from lungdeform.playback.trajectory import read_markers_csv
+
+    path = tmp_path / "m.csv"
+    path.write_text("x_mm,y_mm,z_mm,label\n90,10,-20,tumour\n-90,0,50\n", encoding="utf-8-sig")
+    pts, labels = read_markers_csv(path)
+    np.testing.assert_array_equal(pts, [[90, 10, -20], [-90, 0, 50]])
+    assert labels == ["tumour", "marker 2"]
