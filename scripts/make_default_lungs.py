@@ -23,9 +23,9 @@ import sys
 import time
 from pathlib import Path
 
-from lungdeform.io.meshfile import write_mesh
 from lungdeform.io.image import read_image
 from lungdeform.io.mask import LOBE_LABELS, extract_surface
+from lungdeform.io.meshfile import write_mesh
 
 TARGET_VERTICES = 3000
 OUT = Path(__file__).resolve().parents[1] / "src" / "lungdeform" / "data"

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from lungdeform.data import default_lungs, itk_right_lung
+from lungdeform.geometry.mesh import check_surface
 from lungdeform.io.image import read_image
 from lungdeform.io.mask import LOBE_LABELS, extract_surface
-from lungdeform.geometry.mesh import check_surface
 
 from .conftest import require_path
 

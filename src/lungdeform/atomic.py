@@ -7,11 +7,14 @@ any previous file at the target is untouched.
 from __future__ import annotations
 
 import json
+import math
 import os
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
+
+import numpy as np
 
 
 @contextmanager
@@ -53,7 +56,6 @@ def write_text(path, text: str) -> Path:
 
 def jsonable(value):
     """``json.dumps`` default for numpy scalars and arrays; anything else is an error."""
-    import numpy as np
 
     if isinstance(value, np.generic):
         return value.item()
@@ -66,9 +68,7 @@ def finite_json(value):
     """``value`` with every float NaN or infinity (also inside numpy arrays, lists and dicts)
     replaced by ``None``: strict JSON (``null``), which every reader accepts; bare ``NaN`` is not
     JSON and JavaScript's ``JSON.parse`` rejects it."""
-    import math
 
-    import numpy as np
 
     if isinstance(value, dict):
         return {k: finite_json(v) for k, v in value.items()}

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from lungdeform.errors import InputError
+
 #: Table I: c1…c6 shape the displacement direction (15)–(17); c7…c9 the applied force (18).
 TABLE_I: dict[str, tuple[float, ...]] = {
     "left": (0.09, 0.23, 0.4, 0.5, 0.1, 2.3, 0.01, 0.95, 0.07),
@@ -29,7 +31,6 @@ GRAVITY = {
 
 def table_constants(side: str) -> np.ndarray:
     """``c : (9,) float``, c1…c9 of Table I for ``side`` ('left' or 'right')."""
-    from lungdeform.errors import InputError
 
     if side not in TABLE_I:
         raise InputError(f"side must be 'left' or 'right', got {side!r}")
@@ -38,7 +39,6 @@ def table_constants(side: str) -> np.ndarray:
 
 def gravity_vector(orientation) -> np.ndarray:
     """Unit gravity ``(3,) float`` in LPS from a name in :data:`GRAVITY` or a 3-vector."""
-    from lungdeform.errors import InputError
 
     if isinstance(orientation, str):
         key = orientation.strip().lower()

@@ -6,6 +6,8 @@ Every message should name the parameter or file at fault and what was expected.
 
 from __future__ import annotations
 
+import importlib
+
 
 class LungdeformError(Exception):
     """Base class of every error lungdeform raises on purpose."""
@@ -45,7 +47,6 @@ class MissingDependencyError(LungdeformError, ImportError):
 
 def require(module: str, feature: str, package: str | None = None):
     """Import an optional module or raise :class:`MissingDependencyError` naming the feature."""
-    import importlib
 
     try:
         return importlib.import_module(module)

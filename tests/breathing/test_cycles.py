@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from lungdeform.breathing.cycles import cycle_anchors, cycle_flags, dominant_period, noise_level, turning_points
-from lungdeform.errors import InputError
 from lungdeform.breathing.trace import Trace, read_trace, resample
+from lungdeform.errors import InputError
 from tests.breathing.test_trace import breath, write_marker_csv
 
 

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lungdeform.breathing import pv as br
 from lungdeform.breathing import holdout
+from lungdeform.breathing import pv as br
 from lungdeform.breathing.cycles import CycleAnchors, cycle_anchors
-from lungdeform.errors import InputError
 from lungdeform.breathing.trace import Trace, read_trace, resample
+from lungdeform.errors import InputError
 from tests.conftest import require_path
 
 #: A PV breath with known parameters (τ = R/E = 0.5 s).

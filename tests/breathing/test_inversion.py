@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lungdeform.breathing import pv as br
 from lungdeform.breathing import inversion as inv
+from lungdeform.breathing import pv as br
 from lungdeform.errors import InputError
 
 NORMAL = br.BreathingParams(br.Mechanics(10.0, 2.5, 0.01), (0.5, 4.0, 2.0, -0.5, 1.0), period_s=4.0,

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from lungdeform.breathing.presets import PRESET_NAMES, get_preset
 from lungdeform.breathing.pv import simulate
 from lungdeform.errors import InputError
-from lungdeform.breathing.presets import PRESET_NAMES, get_preset
 
 
 @pytest.mark.parametrize("name", PRESET_NAMES)

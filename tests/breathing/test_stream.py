@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lungdeform.errors import InputError
 from lungdeform.breathing.stream import StreamingVolumeEstimator, replay, signal_delay_s
+from lungdeform.errors import InputError
 
 
 def test_causal_no_look_ahead(rng):

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.conftest import require_path
 from lungdeform.breathing.cycles import cycle_anchors, dominant_period, inspiratory_share, mark_agreement
-from lungdeform.errors import InputError, ReadError
 from lungdeform.breathing.trace import read_trace, resample
+from lungdeform.errors import InputError, ReadError
+from tests.conftest import require_path
 
 
 def breath(t, period=4.0):

@@ -11,8 +11,8 @@ import time
 import pytest
 
 from lungdeform.cli.main import main
-from tests.cohort.test_runner import population_stub  # noqa: F401 (fixtures)
 from tests.cohort.test_job import make_cohort, quick_report  # noqa: F401 (fixtures)
+from tests.cohort.test_runner import population_stub  # noqa: F401 (fixtures)
 
 FAST = ["--evaluations", "60", "--no-baselines"]
 

@@ -6,12 +6,12 @@ import re
 import numpy as np
 import pytest
 
+from lungdeform.breathing.presets import get_preset
 from lungdeform.breathing.pv import simulate
 from lungdeform.cli.main import main
 from lungdeform.constants import STEPS_PER_S
 from lungdeform.geometry.mesh import signed_volume
 from lungdeform.io.modelfile import load_model
-from lungdeform.breathing.presets import get_preset
 
 
 def test_demo_plays_the_normal_preset_and_writes_everything(tmp_path, capsys):

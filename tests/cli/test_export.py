@@ -10,13 +10,13 @@ import struct
 import numpy as np
 import pytest
 
+from lungdeform.breathing.presets import PRESET_NAMES, get_preset
 from lungdeform.breathing.pv import simulate
 from lungdeform.cli.main import main
 from lungdeform.constants import STEPS_PER_S
-from lungdeform.io.meshfile import read_mesh
 from lungdeform.geometry.mesh import signed_volume
+from lungdeform.io.meshfile import read_mesh
 from lungdeform.io.modelfile import load_model, save_model
-from lungdeform.breathing.presets import PRESET_NAMES, get_preset
 from lungdeform.playback.schedule import lung_shares
 from tests.browser.support import two_lungs
 from tests.playback.test_export import _accessor, _glb_json

@@ -7,8 +7,8 @@ import pytest
 
 from lungdeform.cli.main import main
 from lungdeform.io.meshfile import write_mesh
-from lungdeform.model.lung import build_lung
 from lungdeform.io.modelfile import load_model
+from lungdeform.model.lung import build_lung
 from tests.conftest import ellipsoid_lung
 
 TRUE = np.array([0.2, 1.5, 0.4, 0.8, 0.9, 1.8, 0.3, 1.0, 0.5])
@@ -138,8 +138,8 @@ def test_inconsistent_spacing(tmp_path, capsys, monkeypatch):
 
 
 def test_landmarks_outside_image():
-    from lungdeform.fit.pipeline import check_landmarks
     from lungdeform.errors import InputError
+    from lungdeform.fit.pipeline import check_landmarks
     from lungdeform.io.image import Image
 
     img = Image(np.zeros((10, 10, 10), np.uint8), np.ones(3), np.zeros(3), np.eye(3), "img.mha")
@@ -153,8 +153,8 @@ def test_fit_with_landmarks_is_held_out(tmp_path, pair, capsys):
     # the headline model is the surface fit with the interior landmark correction, scored on held-out
     # landmarks; the surface-driven field alone, the landmark-informed fit and references are
     # reported beside it, each with its protocol
-    from lungdeform.io.landmarks import write_elastix_points
     from lungdeform.interior.sliding import surface_weights
+    from lungdeform.io.landmarks import write_elastix_points
 
     a, b, lung = pair
     u = build_lung(lung, "right", constants=TRUE, calibration_ml=200.0, unit_ml=200.0).displacement

@@ -96,8 +96,8 @@ def test_popi_archive(data_dir, tmp_path, run, monkeypatch):
 
 
 def test_segment_with_surfaces(tmp_path, rng, run):
-    from lungdeform.io.meshfile import read_mesh
     from lungdeform.geometry.mesh import signed_volume
+    from lungdeform.io.meshfile import read_mesh
 
     img, _ = phantom(rng, gap_mm=10.0)
     ct = _write_ct(img, tmp_path / "ct.mha")

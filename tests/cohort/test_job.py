@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 
 from lungdeform.cohort import job as J
-from lungdeform.errors import InputError
 from lungdeform.cohort.job import FitOptions, fit_job, input_digest, job_folder
 from lungdeform.cohort.manifest import read_manifest
+from lungdeform.errors import InputError
 from tests.conftest import ellipsoid_lung
 
 TRUE = np.array([0.2, 1.5, 0.4, 0.8, 0.9, 1.8, 0.3, 1.0, 0.5])
@@ -113,10 +113,10 @@ def test_fit_job_result_schema_and_truth(tmp_path, cohort):
 def test_result_constants_are_those_of_the_saved_model(tmp_path):
     # with landmarks the headline (model.npz) is the landmark-informed fit: result.json must carry
     # its constants, not the surface-only fit's; --no-landmark-fit skips the cross-validation
-    from lungdeform.io.meshfile import write_mesh
     from lungdeform.io.landmarks import write_elastix_points
-    from lungdeform.model.lung import build_lung
+    from lungdeform.io.meshfile import write_mesh
     from lungdeform.io.modelfile import load_model
+    from lungdeform.model.lung import build_lung
 
     lung = ellipsoid_lung("right", subdivisions=2)
     model = build_lung(lung, "right", constants=TRUE, calibration_ml=INSPIRATION_ML, unit_ml=INSPIRATION_ML)

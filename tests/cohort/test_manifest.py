@@ -5,8 +5,8 @@ from pathlib import Path
 
 import pytest
 
-from lungdeform.errors import InputError
 from lungdeform.cohort.manifest import check_manifest, read_manifest
+from lungdeform.errors import InputError
 
 
 def _files(folder: Path, *names: str) -> None:

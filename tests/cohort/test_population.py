@@ -6,10 +6,17 @@ import json
 import numpy as np
 import pytest
 
+from lungdeform.cohort.population import (
+    CONSTANTS,
+    check_result,
+    describe,
+    population_statistics,
+    table_comparison,
+    table_i,
+    write_population,
+)
 from lungdeform.constants import TABLE_I
 from lungdeform.errors import InputError
-from lungdeform.cohort.population import (CONSTANTS, check_result, describe, population_statistics, table_comparison,
-                                   table_i, write_population)
 
 
 def record(subject, side, constants=None, *, status="ok", volumes=(1500.0, 1800.0, 2000.0), landmark=1.0, seconds=10.0):

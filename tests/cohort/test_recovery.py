@@ -8,9 +8,9 @@ import json
 import numpy as np
 import pytest
 
-from lungdeform.constants import TABLE_I
 from lungdeform.cohort.population import CONSTANTS, write_population
-from lungdeform.cohort.recovery import recovery
+from lungdeform.cohort.recovery import add_recovery, recovery
+from lungdeform.constants import TABLE_I
 from tests.cohort.test_population import _strict, record
 
 
@@ -26,8 +26,8 @@ def synthetic(tmp_path_factory):
 
 def _fabricate(out, lung, offset, eps, translation=None):
     """A fitted model whose u is (1 + eps)·u_true and constants true + offset (known errors)."""
-    from lungdeform.model.lung import Model, build_lung
     from lungdeform.io.modelfile import save_model
+    from lungdeform.model.lung import Model, build_lung
 
     model = build_lung(lung.rest, lung.side, constants=lung.constants, calibration_ml=lung.unit_ml, unit_ml=lung.unit_ml)
     model = dataclasses.replace(model, displacement=model.displacement * (1.0 + eps))
@@ -48,7 +48,7 @@ def test_recovery_against_fabricated_fits(synthetic, tmp_path):
     shift = np.array([1.0, -2.0, 2.0])
     recs = [_fabricate(tmp_path, left, off_l, 0.05, translation=shift), _fabricate(tmp_path, right, off_r, 0.0),
             record("stranger", "left", TABLE_I["left"])]
-    s = write_population(recs, tmp_path, folder)
+    s = add_recovery(write_population(recs, tmp_path, folder), recs, tmp_path, folder)
     rec = _strict(tmp_path / "recovery.json")
     assert rec["n_matched"] == 2 and rec["unmatched"] == [{"subject": "stranger", "side": "left"}]
     # c1, c3, c5 by hand: against the truth rescaled by fitted c3 / true c3 (c3's error is then 0);

@@ -6,19 +6,17 @@ runs the default worker processes.
 """
 
 import json
-import sys
-import types
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from lungdeform.cohort import runner as C
 from lungdeform.cohort import job as J
-from lungdeform.cohort.runner import run_cohort
-from lungdeform.errors import InputError
+from lungdeform.cohort import runner as C
 from lungdeform.cohort.job import FitOptions, fit_job, input_digest, job_folder
 from lungdeform.cohort.manifest import read_manifest
+from lungdeform.cohort.runner import run_cohort
+from lungdeform.errors import InputError
 from tests.cohort.test_job import FAST, _hidden, cohort, make_cohort, quick_report  # noqa: F401 (fixtures)
 
 
@@ -32,9 +30,7 @@ def population_stub(monkeypatch):
         calls.append((list(results), Path(out), Path(manifest_dir)))
         return {"files": {}, "n_ok": sum(r["status"] == "ok" for r in results)}
 
-    module = types.ModuleType("lungdeform.cohort.population")
-    module.write_population = write_population
-    monkeypatch.setitem(sys.modules, "lungdeform.cohort.population", module)
+    monkeypatch.setattr(C, "write_population", write_population)
     return calls
 
 

@@ -10,13 +10,22 @@ import numpy as np
 import pytest
 
 from lungdeform import data
+from lungdeform.cohort.synthetic import (
+    SOURCES,
+    draw_constants,
+    model_displacement,
+    normal_noise,
+    read_truth,
+    scaled_shape,
+    synthesize_lung,
+    synthetic_cohort,
+    write_cohort,
+)
 from lungdeform.constants import table_constants
 from lungdeform.errors import InputError, ReadError
 from lungdeform.fit.fitting import DIRECTION_BOUNDS, fit_lung
-from lungdeform.geometry.mesh import Surface
 from lungdeform.fit.objective import LungFitter, Target
-from lungdeform.cohort.synthetic import (SOURCES, draw_constants, model_displacement, normal_noise, read_truth,
-                                  scaled_shape, synthesize_lung, synthetic_cohort, write_cohort)
+from lungdeform.geometry.mesh import Surface
 
 TRUE = np.array([0.1, 0.3, 0.45, 0.45, 0.12, 2.0, 0.05, 1.0, 0.1])
 
@@ -35,9 +44,9 @@ def linear_lung(left):
 def test_displacement_is_k_F_d_rebuilt_from_parts(left):
     # independent rebuild: directions (15)-(17), force (18) through the spring graph (direct solve),
     # then u must be k·F·d for one scalar k, and p + u must enclose exactly V_EE + ΔV
+    from lungdeform.geometry.frame import lung_frame
     from lungdeform.model.direction import directions
     from lungdeform.model.force import field_basis, force_weights
-    from lungdeform.geometry.frame import lung_frame
     from lungdeform.model.graph import spring_graph
     from lungdeform.model.solve import ForceSolver
     from lungdeform.model.transfer import local_transfer
@@ -141,8 +150,8 @@ def test_scaled_shape_and_bad_input(left):
 
 
 def test_cohort_files_read_back(tmp_path):
-    from lungdeform.io.meshfile import load_surface
     from lungdeform.io.landmarks import read_elastix_points
+    from lungdeform.io.meshfile import load_surface
 
     lungs = synthetic_cohort(2, noise_mm=0.3, seed=4, delta_ml=(250.0,), landmarks=20)
     assert [(lu.subject, lu.side, lu.source) for lu in lungs] == [

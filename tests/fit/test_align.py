@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from lungdeform.fit.align import (RigidTransform, align_apex, align_landmarks, crop_planes, kabsch, near_planes)
+from lungdeform.fit.align import RigidTransform, align_apex, align_landmarks, crop_planes, kabsch, near_planes
 from lungdeform.io.image import Image
 from tests.conftest import ellipsoid_lung
 

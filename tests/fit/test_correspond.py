@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from lungdeform.fit.correspond import BACKWARD, FORWARD, GRAZING, MISS, NO_DIRECTION, RayCaster, correspond
 from lungdeform.errors import InputError
+from lungdeform.fit.correspond import BACKWARD, FORWARD, GRAZING, MISS, NO_DIRECTION, RayCaster, correspond
 from lungdeform.geometry.mesh import icosphere
 
 R = 100.0

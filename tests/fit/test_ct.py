@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from lungdeform.errors import InputError, ReadError
 from lungdeform.fit import ct as C
 from lungdeform.fit import segment as S
-from lungdeform.errors import InputError, ReadError
 from lungdeform.io.image import Image, read_image
 from tests.fit.test_segment import phantom
 

@@ -3,14 +3,13 @@
 import numpy as np
 import pytest
 
-from lungdeform.fit.direction_correction import (corrected_directions, fit_direction_correction,
-                                             polynomial_basis)
-from lungdeform.model.displacement import calibrate
 from lungdeform.errors import InputError
+from lungdeform.fit.direction_correction import corrected_directions, fit_direction_correction, polynomial_basis
 from lungdeform.fit.fitting import fit_lung
-from lungdeform.geometry.mesh import Surface
-from lungdeform.model.lung import build_lung
 from lungdeform.fit.objective import LungFitter, Target
+from lungdeform.geometry.mesh import Surface
+from lungdeform.model.displacement import calibrate
+from lungdeform.model.lung import build_lung
 from tests.conftest import ellipsoid_lung
 
 TRUE = np.array([0.2, 1.5, 0.4, 0.8, 0.9, 1.8, 0.3, 1.0, 0.5])

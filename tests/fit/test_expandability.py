@@ -4,9 +4,14 @@ model built with a known soft region deforms a lung, the fitted field finds the 
 import numpy as np
 import pytest
 
-from lungdeform.fit.expandability import STIFFNESS_RANGE, fit_stiffness_field, fit_stiffness_if_better, smooth_observations
-from lungdeform.model.lung import build_lung
+from lungdeform.fit.expandability import (
+    STIFFNESS_RANGE,
+    fit_stiffness_field,
+    fit_stiffness_if_better,
+    smooth_observations,
+)
 from lungdeform.fit.objective import LungFitter, Target
+from lungdeform.model.lung import build_lung
 from tests.conftest import ellipsoid_lung
 
 TRUE = np.array([0.2, 1.5, 0.4, 0.8, 0.9, 1.8, 0.3, 1.0, 0.5])

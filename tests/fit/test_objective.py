@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from lungdeform.errors import InputError
+from lungdeform.fit.objective import LungFitter, Target, inverse_force, least_squares_constants
 from lungdeform.model.graph import spring_graph
 from lungdeform.model.lung import build_lung
-from lungdeform.fit.objective import LungFitter, Target, inverse_force, least_squares_constants
 from lungdeform.model.solve import ForceSolver
 from lungdeform.model.transfer import local_transfer
 from tests.conftest import ellipsoid_lung

@@ -29,9 +29,8 @@ def test_landmarks_outside_their_own_mask_are_reported(tmp_path):
     # (another frame, or the other scan's file) has most of its points outside and is reported
     import numpy as np
 
-    from lungdeform.io.image import Image
     from lungdeform.fit.pipeline import landmark_mask_warnings
-
+    from lungdeform.io.image import Image
     from lungdeform.io.mask import extract_surface
 
     a = np.zeros((40, 40, 40), np.uint8)
@@ -56,9 +55,9 @@ def test_swapped_itk_landmark_files_are_reported(data_dir):
     # real data: each ITK landmark set lies inside its own lung mask, and the swapped files do not
     # (8-12 % of them land outside the other scan's mask), so a swap is reported
 
-    from lungdeform.io.landmarks import read_elastix_points
-    from lungdeform.io.image import read_image
     from lungdeform.fit.pipeline import landmark_mask_warnings
+    from lungdeform.io.image import read_image
+    from lungdeform.io.landmarks import read_elastix_points
     from tests.conftest import require_path
 
     folder = require_path(data_dir, "itk-right-lung-two-volumes")

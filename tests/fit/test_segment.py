@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from lungdeform.errors import InputError, MaskError
 from lungdeform.fit import ct as C
 from lungdeform.fit import segment as S
-from lungdeform.errors import InputError, MaskError
 from lungdeform.io.image import Image
 from tests.conftest import require_path
 

@@ -3,9 +3,16 @@
 import numpy as np
 import pytest
 
-from lungdeform.geometry.distance import (SurfaceDistance, _closest_on_triangle, distance_stats, point_to_surface,
-                                 symmetric_distance, vertex_areas, weighted_percentile)
 from lungdeform.errors import InputError
+from lungdeform.geometry.distance import (
+    SurfaceDistance,
+    _closest_on_triangle,
+    distance_stats,
+    point_to_surface,
+    symmetric_distance,
+    vertex_areas,
+    weighted_percentile,
+)
 from lungdeform.geometry.mesh import icosphere
 
 

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 
 from lungdeform.constants import GRAVITY, table_constants
-from lungdeform.model.direction import directions
 from lungdeform.errors import InputError
-from lungdeform.model.force import applied_force, field_basis, force_weights, height_weights
 from lungdeform.geometry.frame import lung_frame
+from lungdeform.model.direction import directions
+from lungdeform.model.force import applied_force, field_basis, force_weights, height_weights
 
 
 def test_frame_origin_is_apex_posterior_medial(left_lung, right_lung):
@@ -115,8 +115,8 @@ def test_side_from_shape_reads_the_medial_face():
 def test_side_from_shape_on_real_lobe_maps(data_dir):
     # real data: both lungs of a CT lobe map (Coronacases 002, full resolution; its right lung has
     # the weakest score measured, +0.053) read as the sides the lobe labels say
-    from lungdeform.geometry.frame import SIDE_SCORE_MIN, side_from_shape
     from lungdeform.fit.pipeline import read_input
+    from lungdeform.geometry.frame import SIDE_SCORE_MIN, side_from_shape
     from tests.conftest import require_path
 
     path = require_path(data_dir, "coronacases-lung-lobes", "Coronacases_002_lobes.nii.gz")

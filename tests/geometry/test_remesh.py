@@ -7,11 +7,10 @@ import numpy as np
 import pytest
 
 from lungdeform.errors import InputError
-from lungdeform.io.image import read_image
-from lungdeform.io.mask import extract_surface
 from lungdeform.geometry.mesh import check_surface, icosphere, signed_volume
 from lungdeform.geometry.remesh import decimate, laplacian_smooth, taubin_smooth
-
+from lungdeform.io.image import read_image
+from lungdeform.io.mask import extract_surface
 from tests.conftest import require_path
 
 

@@ -4,9 +4,8 @@ import numpy as np
 import pytest
 
 from lungdeform.errors import InputError
-from lungdeform.interior.field import (correction_per_unit, held_out_positions, interior_field,
-                                 select_smoothing)
 from lungdeform.geometry.mesh import icosphere
+from lungdeform.interior.field import correction_per_unit, held_out_positions, interior_field, select_smoothing
 
 
 def _inside(rng, n, radius):

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from lungdeform.errors import InputError
-from lungdeform.interior.interpolate import displacement_field
 from lungdeform.geometry.mesh import icosphere
+from lungdeform.interior.interpolate import displacement_field
 
 
 def test_affine_field_reproduced_exactly(rng):

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from lungdeform.errors import InputError, MaskError
+from lungdeform.geometry.mesh import check_surface
 from lungdeform.io.image import Image, index_to_world, read_image
 from lungdeform.io.mask import (
     LOBE_LABELS,
@@ -13,8 +14,6 @@ from lungdeform.io.mask import (
     label_groups,
     mask_to_surface,
 )
-from lungdeform.geometry.mesh import check_surface
-
 from tests.conftest import require_path
 
 

@@ -7,10 +7,10 @@ import os
 import numpy as np
 import pytest
 
-from lungdeform.io import meshfile as lio
 from lungdeform.errors import InputError, MeshError, ReadError, UnitsError
-from lungdeform.io.meshfile import WRITE_SUFFIXES, load, load_surface, read_mesh, write_mesh
 from lungdeform.geometry.mesh import check_surface, icosphere, signed_volume
+from lungdeform.io import meshfile as lio
+from lungdeform.io.meshfile import WRITE_SUFFIXES, load, load_surface, read_mesh, write_mesh
 
 SPHERE = icosphere(3, radius=60.0, center=(10.0, -20.0, 30.0))
 

@@ -10,8 +10,8 @@ import zlib
 import numpy as np
 import pytest
 
-from lungdeform.io.meshfile import load_surface, read_mesh
 from lungdeform.geometry.mesh import icosphere
+from lungdeform.io.meshfile import load_surface, read_mesh
 from tests.io.test_meshfile import CUBE_VOLUME, SPHERE, cube_quads
 
 

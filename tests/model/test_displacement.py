@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from lungdeform.model.displacement import Playback, calibrate, scale_for_volume, volume_polynomial
 from lungdeform.geometry.mesh import icosphere, signed_volume
+from lungdeform.model.displacement import Playback, calibrate, scale_for_volume, volume_polynomial
 
 
 def test_volume_polynomial_is_exact(rng):

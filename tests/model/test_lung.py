@@ -4,12 +4,12 @@ import numpy as np
 import pytest
 
 from lungdeform.errors import InputError, ModelFileError
-from lungdeform.model.lung import Model, build_lung
 from lungdeform.io.modelfile import SCHEMA_VERSION, load_model, save_model
-from lungdeform.model.solve import push
-from lungdeform.model.graph import spring_graph
-from lungdeform.model.transfer import local_transfer
 from lungdeform.model.force import field_basis
+from lungdeform.model.graph import spring_graph
+from lungdeform.model.lung import Model, build_lung
+from lungdeform.model.solve import push
+from lungdeform.model.transfer import local_transfer
 
 
 @pytest.fixture

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from lungdeform.errors import ConvergenceError, InputError
-from lungdeform.model.graph import spring_graph
 from lungdeform.geometry.mesh import icosphere
+from lungdeform.model.graph import spring_graph
 from lungdeform.model.solve import ForceSolver, push, solve_force
 from lungdeform.model.transfer import green_matrix, local_transfer
 

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from lungdeform.model.graph import spring_graph
 from lungdeform.geometry.mesh import icosphere
+from lungdeform.model.graph import spring_graph
 from lungdeform.model.transfer import compliance, full_transfer, green_matrix, local_transfer, split_transfer
 
 

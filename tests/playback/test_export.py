@@ -9,11 +9,11 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 
+from lungdeform.geometry.mesh import signed_volume
+from lungdeform.model.displacement import volume_polynomial
 from lungdeform.playback import export as E
 from lungdeform.playback import markers as M
 from lungdeform.playback import schedule as S
-from lungdeform.model.displacement import volume_polynomial
-from lungdeform.geometry.mesh import signed_volume
 from tests.browser.support import node_modules_or_skip, run_node, two_lungs
 from tests.playback.test_markers import INTERIOR, _marker_at
 
@@ -282,8 +282,8 @@ def test_glb_in_blender(model, tmp_path):
 def test_provenance_with_nan_exports_as_strict_json(tmp_path):
     # a fitted model's provenance holds NaN (e.g. no landmark error without landmarks): the glb's
     # JSON and the model file's provenance must still be strict JSON (null), or glTF readers fail
-    from lungdeform.model.lung import Model
     from lungdeform.io.modelfile import load_model, save_model
+    from lungdeform.model.lung import Model
 
     m = two_lungs(2)
     nan_model = Model(dict(m.lungs), {"fit": {"landmark_rms_in_fit_mm": float("nan"), "objective": 1.5}})

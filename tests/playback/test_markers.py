@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from lungdeform.errors import InputError
 from lungdeform.playback import export as E
 from lungdeform.playback import markers as M
-from lungdeform.errors import InputError
 from tests.browser.support import two_lungs
 
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lungdeform.playback import schedule as S
 from lungdeform.errors import InputError, ReadError
+from lungdeform.playback import schedule as S
 
 
 def test_plain_cycle_is_one_cosine_breath():
@@ -67,8 +67,8 @@ def test_volume_trace_from_breathing_curve(tmp_path):
 def test_from_breathing_agrees_with_the_curve_csv_reader(tmp_path):
     # the two ways a simulated preset reaches the exporter give one trace: in memory through the
     # adapter, and through curve.csv (t_s, volume_ml, … as 'lungdeform breathe' writes it)
-    from lungdeform.breathing.pv import simulate
     from lungdeform.breathing.presets import get_preset
+    from lungdeform.breathing.pv import simulate
 
     curve = simulate(get_preset("copd").params, n_cycles=2, fs_hz=25.0)
     path = tmp_path / "curve.csv"
@@ -86,8 +86,8 @@ def test_preset_trace_is_the_pv_simulation_on_an_exact_grid():
     # truth: lungdeform.breathing.pv.simulate run here on the grid the docstring promises:
     # n = ceil(D·rate) intervals ending exactly at D (dyspnoea, T = 1.875 s: 2 breaths at >= 50 Hz
     # is 3.75 s · 50 = 187.5 → 188 intervals, 50.13 Hz)
-    from lungdeform.breathing.pv import simulate
     from lungdeform.breathing.presets import get_preset
+    from lungdeform.breathing.pv import simulate
 
     p = get_preset("dyspnoea")
     params, curve, tr = S.preset_trace("dyspnoea", 2, rate_hz=50.0)

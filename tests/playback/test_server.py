@@ -8,10 +8,10 @@ import json
 import numpy as np
 import pytest
 
+from lungdeform.breathing.presets import PRESET_NAMES, PRESETS
+from lungdeform.breathing.pv import simulate
 from lungdeform.errors import InputError, ReadError
 from lungdeform.playback.export import glb_bytes
-from lungdeform.breathing.pv import simulate
-from lungdeform.breathing.presets import PRESET_NAMES, PRESETS
 from lungdeform.playback.server import PRESET_RATE_HZ, ViewerServer, check_glb, model_glb, presets_json, viewer_dir
 from tests.browser.support import two_lungs
 

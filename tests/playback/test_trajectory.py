@@ -5,8 +5,7 @@ import pytest
 
 from lungdeform.errors import InputError
 from lungdeform.playback.schedule import lung_shares
-from lungdeform.playback.trajectory import (lung_scales, motion_summary, place_points, point_trajectories,
-                                   read_points)
+from lungdeform.playback.trajectory import lung_scales, motion_summary, place_points, point_trajectories, read_points
 from tests.browser.support import two_lungs
 
 

@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lungdeform.validate import dirlab as D
 from lungdeform.errors import InputError, ReadError
+from lungdeform.validate import dirlab as D
 from tests.conftest import require_path
 
 SPACING = {1: (0.97, 0.97, 2.5), 2: (1.16, 1.16, 2.5)}

@@ -9,9 +9,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from lungdeform.errors import ReadError
 from lungdeform.validate import dirlab as D
 from lungdeform.validate import dirlab_files as F
-from lungdeform.errors import ReadError
 from tests.conftest import require_path
 from tests.validate.test_dirlab import (
     ARCHIVE_LAYOUT,

@@ -7,8 +7,10 @@ import pytest
 from scipy import sparse
 
 from lungdeform.errors import ConvergenceError, InputError
-from lungdeform.model.graph import spring_graph
 from lungdeform.geometry.mesh import icosphere
+from lungdeform.model.graph import spring_graph
+from lungdeform.model.solve import ForceSolver
+from lungdeform.model.transfer import green_matrix, local_transfer
 from lungdeform.validate.msd import (
     MSDIntegrator,
     highest_frequency_bound,
@@ -17,8 +19,6 @@ from lungdeform.validate.msd import (
     spring_network,
     transfer_network,
 )
-from lungdeform.model.solve import ForceSolver
-from lungdeform.model.transfer import green_matrix, local_transfer
 
 
 def _sphere_graph(subdivisions=1, radius=30.0):

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lungdeform.validate import paper as P
 from lungdeform.errors import InputError
 from lungdeform.model.transfer import green_matrix, local_transfer
+from lungdeform.validate import paper as P
 
 
 @pytest.fixture(scope="module")

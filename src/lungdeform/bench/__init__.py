@@ -7,3 +7,9 @@ May import: everything below it (:mod:`lungdeform.cohort`, :mod:`lungdeform.play
 """
 
 from .kernels import bench_playback, bench_solve, lung_with_vertices
+
+__all__ = [
+    "bench_playback",
+    "bench_solve",
+    "lung_with_vertices",
+]

@@ -13,14 +13,21 @@ from typing import Callable
 
 import numpy as np
 
+from lungdeform.constants import table_constants
+from lungdeform.data import default_lungs
+from lungdeform.geometry.frame import lung_frame
 from lungdeform.geometry.mesh import Surface, subdivide
+from lungdeform.geometry.remesh import decimate
+from lungdeform.model.displacement import Playback
+from lungdeform.model.force import applied_force
+from lungdeform.model.graph import spring_graph
+from lungdeform.model.solve import ForceSolver, push
+from lungdeform.model.transfer import local_transfer
 
 
 def lung_with_vertices(target: int, base: Surface | None = None) -> Surface:
     """A real lung surface with about ``target`` vertices: the embedded right lung decimated to
     ``target / 4^k`` vertices, then midpoint-subdivided ``k`` times (each ×4, shape unchanged)."""
-    from lungdeform.data import default_lungs
-    from lungdeform.geometry.remesh import decimate
 
     lung = base if base is not None else default_lungs()["right"]
     k = 0
@@ -47,12 +54,6 @@ def _median_time(fn: Callable[[], object], repeats: int) -> float:
 def bench_solve(surface: Surface, *, push_tol: float = 1e-8, sparse_tol: float = 1e-10,
                 include_push: bool = True, repeats: int = 3) -> list[dict]:
     """Time the supine force solve on ``surface`` by the sparse solver and by the push loop."""
-    from lungdeform.constants import table_constants
-    from lungdeform.model.force import applied_force
-    from lungdeform.geometry.frame import lung_frame
-    from lungdeform.model.graph import spring_graph
-    from lungdeform.model.solve import ForceSolver, push
-    from lungdeform.model.transfer import local_transfer
 
     n = surface.n_vertices
     t0 = time.perf_counter()
@@ -89,7 +90,6 @@ def bench_solve(surface: Surface, *, push_tol: float = 1e-8, sparse_tol: float =
 
 def bench_playback(surface: Surface, *, frames: int = 200, dtype=np.float32) -> list[dict]:
     """Per-frame cost of ``x += Δs·u`` (in place) against ``memcpy`` of the same frame bytes."""
-    from lungdeform.model.displacement import Playback
 
     rng = np.random.default_rng(0)
     n = surface.n_vertices

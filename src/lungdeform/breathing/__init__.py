@@ -26,3 +26,20 @@ from .pv import (
     simulate_pressure,
     transfer,
 )
+
+__all__ = [
+    "BreathingCurve",
+    "BreathingParams",
+    "Mechanics",
+    "N_CONTROL",
+    "N_PHASE",
+    "basis",
+    "interp_periodic",
+    "muscle_pressure",
+    "periodic_response",
+    "scale_from_volume",
+    "scaled_to_tidal_volume",
+    "simulate",
+    "simulate_pressure",
+    "transfer",
+]

@@ -18,9 +18,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.optimize import minimize
+
+from lungdeform.errors import InputError
 
 from .inversion import calibration_design
-from lungdeform.errors import InputError
 
 
 def cycle_phase(t_s, cycle_starts_s, peaks_s=None, peak_phase: float | None = None):
@@ -92,7 +94,6 @@ def fit_lujan(t_s, values, cycle_starts_s, per_cycle: bool = False, peaks_s=None
     The outer search is a grid over n ∈ [0.5, 5] and φ ∈ [0.35, 2.85], then a bounded Powell polish. With
     ``peaks_s``/``peak_phase`` the phase is warped (see :func:`cycle_phase`).
     """
-    from scipy.optimize import minimize
 
     idx, theta = cycle_phase(t_s, cycle_starts_s, peaks_s, peak_phase)
     frac = cycle_phase(t_s, cycle_starts_s)[1]

@@ -16,14 +16,32 @@ signed it inhalation-positive, with :func:`inspiratory_share` from here).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
+from scipy.signal import butter, find_peaks, sosfiltfilt
 
 from lungdeform.errors import InputError
 
-if TYPE_CHECKING:  # trace.py imports this module (its readers orient a trace with inspiratory_shares)
-    from .trace import Trace
+
+class Trace(Protocol):
+    """What cycle detection reads of a trace (:class:`lungdeform.breathing.trace.Trace` has it; this
+    module cannot import that one, whose readers orient a trace with :func:`inspiratory_shares`)."""
+
+    source: str
+    t_s: np.ndarray
+    amplitude: np.ndarray
+
+    @property
+    def n(self) -> int: ...
+
+    @property
+    def duration_s(self) -> float: ...
+
+    @property
+    def sample_interval_s(self) -> float: ...
+
+    def mark_times(self, kind: str) -> np.ndarray: ...
 
 #: Shortest cycle / longest cycle a breathing signal can have, s.
 CYCLE_RANGE_S = (1.0, 20.0)
@@ -49,7 +67,6 @@ def dominant_period(t_s, amplitude) -> float:
     that reaches half the highest one (the highest alone picks a multiple of the period on irregular
     traces), refined by a parabola through its three samples.
     """
-    from scipy.signal import butter, find_peaks, sosfiltfilt
 
     t, a, dt = _uniform(t_s, amplitude)
     n = a.size
@@ -77,7 +94,6 @@ def dominant_period(t_s, amplitude) -> float:
 
 def smooth(amplitude, fs_hz: float, cutoff_hz: float = 1.0) -> np.ndarray:
     """Zero-phase low-pass (offline only): 2nd-order Butterworth, forward-backward."""
-    from scipy.signal import butter, sosfiltfilt
 
     wn = min(cutoff_hz / (0.5 * fs_hz), 0.99)
     sos = butter(2, wn, output="sos")
@@ -304,7 +320,6 @@ def cycle_flags(trace: Trace, anchors: CycleAnchors, cutoff_hz: float = 1.0,
     ``second_peak`` × the excursion: double breath, sigh, cough, speech). Returns one tuple per cycle
     (empty = regular).
     """
-    from scipy.signal import find_peaks
 
     t = trace.t_s
     s = smooth(trace.amplitude, 1.0 / trace.sample_interval_s, cutoff_hz)

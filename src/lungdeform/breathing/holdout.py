@@ -44,10 +44,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from lungdeform.breathing import inversion as inv
 from lungdeform.breathing import baselines as rb
-from .cycles import CycleAnchors, cycle_anchors, cycle_flags, mark_agreement, noise_level, smooth
+from lungdeform.breathing import inversion as inv
 from lungdeform.errors import InputError
+
+from .cycles import CycleAnchors, cycle_anchors, cycle_flags, mark_agreement, noise_level, smooth
 from .trace import Trace, resample
 
 MODELS = ("model", "lujan", "fourier")

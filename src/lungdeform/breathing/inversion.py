@@ -31,9 +31,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.optimize import minimize
+
+from lungdeform.errors import InputError
 
 from .pv import N_CONTROL, BreathingParams, Mechanics, basis, interp_periodic, periodic_response
-from lungdeform.errors import InputError
 
 
 # --------------------------------------------------------------------------- inversion
@@ -181,7 +183,6 @@ def invert(t_s, volume_ml, cycle_starts_s, peaks_s=None, elastance: float = 10.0
     Returns a :class:`BreathingFit`; ``success`` is False (with the reason) when the outer search
     fails to converge or the fitted system is non-physical.
     """
-    from scipy.optimize import minimize
 
     t = np.asarray(t_s, dtype=float)
     v_ml = np.asarray(volume_ml, dtype=float)

@@ -38,8 +38,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from .pv import BreathingParams, Mechanics, scaled_to_tidal_volume
 from lungdeform.errors import InputError
+
+from .pv import BreathingParams, Mechanics, scaled_to_tidal_volume
 
 
 @dataclass(frozen=True)

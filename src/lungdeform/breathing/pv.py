@@ -54,6 +54,7 @@ import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from scipy.integrate import solve_ivp
 
 from lungdeform.errors import ConvergenceError, InputError
 
@@ -278,7 +279,6 @@ def simulate(params: BreathingParams, n_cycles: int | None = 3, fs_hz: float = 5
     kink of P_mus (start and end of inspiration) so the implicit solver never steps over one.
     Raises ConvergenceError if the integrator fails.
     """
-    from scipy.integrate import solve_ivp
 
     if not (np.isfinite(fs_hz) and fs_hz > 0):
         raise InputError(f"fs_hz must be > 0, got {fs_hz!r}")
@@ -356,7 +356,6 @@ def simulate_pressure(t_s, pressure_fn, mechanics: Mechanics, v0_l: float = 0.0,
 
     t_s : (n,) float, s, increasing. Returns (volume (n,) L above V_r, flow (n,) L/s).
     """
-    from scipy.integrate import solve_ivp
 
     t = np.asarray(t_s, dtype=float)
     e, r, inert = mechanics.elastance, mechanics.resistance, mechanics.inertance

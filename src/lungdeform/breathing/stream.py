@@ -22,8 +22,11 @@ from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.ndimage import maximum_filter1d, minimum_filter1d
 
 from lungdeform.errors import InputError
+
+from .cycles import smooth
 
 
 @dataclass(frozen=True)
@@ -130,9 +133,7 @@ def offline_volume(t_s, amplitude, tidal_volume_ml: float = 500.0, v_ee_ml: floa
                    window_s: float = 10.0, cutoff_hz: float = 1.5) -> np.ndarray:
     """The non-causal twin of the streaming estimator: zero-phase low-pass and a *centred* sliding
     min/max window (uniform t_s). Comparing the stream against it isolates what causality costs."""
-    from scipy.ndimage import maximum_filter1d, minimum_filter1d
 
-    from .cycles import smooth
 
     t = np.asarray(t_s, float)
     fs = 1.0 / float(np.median(np.diff(t)))

@@ -37,8 +37,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .cycles import CYCLE_RANGE_S, inspiratory_shares
 from lungdeform.errors import InputError, ReadError
+
+from .cycles import CYCLE_RANGE_S, inspiratory_shares
 
 VXP_DEFAULT_LAYOUT = ("amplitude", "phase", "timestamp", "validflag", "ttlin", "mark", "ttlout")
 

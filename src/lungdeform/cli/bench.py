@@ -10,6 +10,8 @@ from typing import Optional
 import typer
 
 from lungdeform.atomic import write_json
+from lungdeform.bench.kernels import bench_playback, bench_solve, lung_with_vertices
+from lungdeform.errors import InputError
 
 from .common import say
 
@@ -21,8 +23,6 @@ def _write_json(path: Path, results: list[dict], kind: str) -> None:
 
 
 def _surfaces(vertices: list[int]):
-    from lungdeform.bench.kernels import lung_with_vertices
-    from lungdeform.errors import InputError
 
     for n in vertices:
         if n < 100:
@@ -40,7 +40,6 @@ def register(apps) -> None:
         push_tol: float = typer.Option(1e-8, "--push-tol", help="Push loop stops at max|P| ≤ tol·max|f|."),
     ):
         """Push loop (the paper's algorithm) against the sparse solve of its fixed point."""
-        from lungdeform.bench.kernels import bench_solve
 
         results = []
         for s in _surfaces(vertices):
@@ -65,7 +64,6 @@ def register(apps) -> None:
         frames: int = typer.Option(200, "--frames", help="Frames timed per size (median reported)."),
     ):
         """Per-frame playback (x += Δs·u, float32) against a memcpy of the same bytes."""
-        from lungdeform.bench.kernels import bench_playback
 
         results = []
         for s in _surfaces(vertices):

@@ -18,6 +18,20 @@ from typing import Optional
 import numpy as np
 import typer
 
+from lungdeform.atomic import write_text
+from lungdeform.bench.kernels import lung_with_vertices
+from lungdeform.cohort.job import FitOptions, fit_job
+from lungdeform.cohort.manifest import read_manifest
+from lungdeform.cohort.runner import run_cohort
+from lungdeform.data import default_lungs
+from lungdeform.errors import InputError
+from lungdeform.geometry.mesh import Surface
+from lungdeform.io.meshfile import write_mesh
+from lungdeform.model.lung import build_lung
+
+from .bench import _write_json
+from .common import say
+
 #: Volume added by the model to make each subject's second scan (mL).
 INSPIRATION_ML = 400.0
 
@@ -30,12 +44,6 @@ def make_bench_cohort(folder: Path, subjects: int, *, vertices: int | None = Non
     a factor in [0.9, 1.1] (end-exhale), and the same surface moved by the model with Table I
     constants by +:data:`INSPIRATION_ML` mL (the second scan). Volumes are left to be measured.
     """
-    from lungdeform.atomic import write_text
-    from lungdeform.bench.kernels import lung_with_vertices
-    from lungdeform.data import default_lungs
-    from lungdeform.io.meshfile import write_mesh
-    from lungdeform.geometry.mesh import Surface
-    from lungdeform.model.lung import build_lung
 
     rng = np.random.default_rng(seed)
     lungs = default_lungs()
@@ -58,9 +66,6 @@ def make_bench_cohort(folder: Path, subjects: int, *, vertices: int | None = Non
 
 def bench_cohort(manifest: Path, work: Path, workers: list[int], options, *, progress=None) -> list[dict]:
     """Serial loop then Dask at each worker count on the same cohort; one record per run."""
-    from lungdeform.cohort.runner import run_cohort
-    from lungdeform.cohort.job import fit_job
-    from lungdeform.cohort.manifest import read_manifest
 
     say = progress or (lambda _m: None)
     m = read_manifest(manifest)
@@ -100,10 +105,6 @@ def register(apps) -> None:
         baselines: bool = typer.Option(False, "--baselines/--no-baselines", help="Measure the baselines in each fit too."),
     ):
         """Cohort throughput (subjects/min): a serial loop against Dask at each worker count, same run."""
-        from .bench import _write_json
-        from .common import say
-        from lungdeform.errors import InputError
-        from lungdeform.cohort.job import FitOptions
 
         if subjects < 1:
             raise InputError(f"--subjects must be at least 1, got {subjects}")

@@ -8,10 +8,28 @@ midpoint-subdivided (surface and per-vertex model data interpolated alike) to re
 
 from __future__ import annotations
 
+import json
+import math
+import shutil
+import subprocess
+from dataclasses import replace
 from pathlib import Path
 from typing import Optional
 
+import numpy as np
 import typer
+
+from lungdeform.atomic import write_json
+from lungdeform.bench.kernels import bench_playback
+from lungdeform.data import default_lungs
+from lungdeform.errors import InputError
+from lungdeform.geometry.mesh import Surface, subdivide, unique_edges
+from lungdeform.geometry.remesh import decimate
+from lungdeform.model.lung import Model, build_lung
+from lungdeform.playback.export import glb_bytes
+from lungdeform.playback.server import ViewerServer
+
+from .common import say
 
 REPO_VIEWER = Path(__file__).resolve().parents[3] / "viewer"
 
@@ -19,11 +37,8 @@ REPO_VIEWER = Path(__file__).resolve().parents[3] / "viewer"
 def upsampled(lung, levels: int):
     """A lung model on a surface subdivided ``levels`` times: every per-vertex array is linearly
     interpolated at the new edge midpoints, as the positions are (benchmark use: same cost per vertex)."""
-    from dataclasses import replace
 
-    import numpy as np
 
-    from lungdeform.geometry.mesh import Surface, subdivide, unique_edges
 
     v, f = lung.surface.vertices, lung.surface.faces
     per_vertex = {"stiffness": lung.stiffness[:, None], "directions": lung.directions,
@@ -41,14 +56,8 @@ def upsampled(lung, levels: int):
 
 def model_with_vertices(total: int, say):
     """Two real lungs with about ``total`` vertices together."""
-    import math
 
-    import numpy as np
 
-    from lungdeform.data import default_lungs
-    from lungdeform.geometry.remesh import decimate
-    from lungdeform.geometry.mesh import Surface
-    from lungdeform.model.lung import Model, build_lung
 
     lungs = {}
     for side, surf in default_lungs().items():
@@ -74,19 +83,8 @@ def register(apps) -> None:
         viewer_dir: Path = typer.Option(REPO_VIEWER, "--viewer-dir", help="viewer/ with node_modules installed."),
     ):
         """Viewer frame time (GPU morph targets vs CPU blending) and the CPU playback step, per size."""
-        import json
-        import shutil
-        import subprocess
 
-        import numpy as np
 
-        from lungdeform.atomic import write_json
-        from lungdeform.bench.kernels import bench_playback
-        from .common import say
-        from lungdeform.errors import InputError
-        from lungdeform.playback.export import glb_bytes
-        from lungdeform.geometry.mesh import Surface
-        from lungdeform.playback.server import ViewerServer
 
         for n in vertices:
             if n < 1000:

@@ -10,14 +10,23 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import typer
 
-from lungdeform.atomic import write_json, write_text
+from lungdeform.atomic import atomic_path, write_json, write_text
+from lungdeform.breathing import inversion as inv
+from lungdeform.breathing import pv as br
+from lungdeform.breathing.holdout import calibrate, evaluate
+from lungdeform.breathing.presets import get_preset
+from lungdeform.breathing.stream import StreamingVolumeEstimator, offline_volume, replay, signal_delay_s
+from lungdeform.breathing.trace import read_trace, resample
+from lungdeform.errors import InputError
+
+from .common import say
 
 
 # --------------------------------------------------------------------------- atomic outputs
 def atomic_savefig(fig, path: Path) -> None:
-    from lungdeform.atomic import atomic_path
 
     with atomic_path(path, ".png") as tmp:
         fig.savefig(tmp, dpi=110, format="png")
@@ -89,12 +98,8 @@ METRICS_SAMPLES_PER_BREATH = 200
 
 
 def run_preset(name: str, out: Path, cycles: int, fs_hz: float) -> dict:
-    import numpy as np
 
-    from lungdeform.breathing import pv as br
-    from lungdeform.breathing.presets import get_preset
 
-    from lungdeform.errors import InputError
 
     preset = get_preset(name)
     p = preset.params
@@ -143,10 +148,7 @@ def run_preset(name: str, out: Path, cycles: int, fs_hz: float) -> dict:
 
 def fitted_curve(fit, anchors):
     """The fitted model over the fitted cycles as a BreathingCurve (per-cycle gain/offset applied)."""
-    import numpy as np
 
-    from lungdeform.breathing import pv as br
-    from lungdeform.breathing import inversion as inv
 
     p = fit.params
     t = fit.t_s
@@ -164,12 +166,7 @@ def fitted_curve(fit, anchors):
 
 
 def run_fit(path: Path, out: Path, tidal_volume_ml: float, train_fraction: float, progress=None) -> dict:
-    import numpy as np
 
-    from lungdeform.breathing import inversion as inv
-    from lungdeform.breathing.holdout import calibrate, evaluate
-    from lungdeform.breathing.stream import StreamingVolumeEstimator, offline_volume, replay, signal_delay_s
-    from lungdeform.breathing.trace import read_trace, resample
 
     trace = read_trace(path)
     res = evaluate(trace, tidal_volume_ml=tidal_volume_ml, train_fraction=train_fraction, progress=progress)
@@ -232,7 +229,6 @@ def register(apps) -> None:
         train_fraction: float = typer.Option(0.5, "--train-fraction", help="Fit: share of cycles fitted."),
     ):
         """Breathing curve (volume, flow, pressure) from a preset or fitted to a trace."""
-        from lungdeform.errors import InputError
 
         if (preset is None) == (fit is None):
             raise InputError("breathe: give exactly one of --preset NAME or --fit TRACE")
@@ -246,7 +242,6 @@ def register(apps) -> None:
             typer.echo(f"preset {m['preset']['name']}: V_T {m['tidal_volume_ml']:.0f} mL, "
                        f"period {m['preset']['params']['period_s']:.2f} s, {settled}")
         else:
-            from .common import say
 
             m = run_fit(fit, out, tidal_volume_ml, train_fraction, progress=say)
             for fix in m.get("fixes", []):

@@ -7,7 +7,13 @@ from typing import Optional
 
 import typer
 
-from lungdeform.io.modelfile import provenance
+from lungdeform.constants import gravity_vector
+from lungdeform.errors import InputError
+from lungdeform.geometry.frame import SIDES, check_side, clear_side, guess_sides
+from lungdeform.io import meshfile as io
+from lungdeform.io.modelfile import provenance, save_model
+from lungdeform.model import stiffness as st
+from lungdeform.model.lung import build_model
 
 from .common import SIDE_CHECK_HELP, check_tidal_ml, parse_orientation, say
 
@@ -30,10 +36,6 @@ def register(apps) -> None:
         d_min: float = typer.Option(1.0, "--d-min", help="Minimum transfer distance (mm)."),
     ):
         """Build a breathing lung model from one or two lung surfaces."""
-        from lungdeform.io import meshfile as io
-        from lungdeform.errors import InputError
-        from lungdeform.model.lung import build_model
-        from lungdeform.io.modelfile import save_model
 
         check_tidal_ml(tidal_ml)  # before the (slow) reading, with the options' own names
         if solver not in SOLVERS:
@@ -80,8 +82,6 @@ def resolve_sides(surfaces, given: list[str] | None, check: bool = True) -> list
     LPS the left lung lies at larger x. A pair the other way round (sides or labels swapped, or
     meshes in RAS) is refused rather than built with the wrong sides and the wrong gravity frame.
     """
-    from lungdeform.errors import InputError
-    from lungdeform.geometry.frame import SIDES, check_side, clear_side, guess_sides
 
     by_position = False
     if given:
@@ -119,9 +119,6 @@ def resolve_sides(surfaces, given: list[str] | None, check: bool = True) -> list
 
 def stiffness_field(spec: str, surface, gravity):
     """Per-vertex moduli from the --stiffness option (None = uniform)."""
-    from lungdeform.model import stiffness as st
-    from lungdeform.constants import gravity_vector
-    from lungdeform.errors import InputError
 
     kind, _, args = spec.partition(":")
     kind = kind.strip().lower()

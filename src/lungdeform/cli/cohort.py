@@ -12,12 +12,19 @@ kept, and running the same command again resumes.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Optional
 
 import typer
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-from .common import DIRECTION_DEGREE_HELP, SIDE_CHECK_HELP
+from lungdeform.cohort.job import STAGES, FitOptions
+from lungdeform.cohort.manifest import read_manifest
+from lungdeform.cohort.runner import run_cohort
+
+from .common import DIRECTION_DEGREE_HELP, SIDE_CHECK_HELP, output_dir, progress_enabled
 
 #: Bar labels of the stages (lungdeform.cohort.job.STAGES).
 STAGE_LABELS = {"read": "read / segment", "align": "align", "fit": "fit + measure", "write": "write"}
@@ -65,8 +72,6 @@ class Display:
                  else f"a local Dask cluster of {ev['workers']} worker{'s' if ev['workers'] != 1 else ''}")
         self._line(f"fitting {ev['to_run']} job{'s' if ev['to_run'] != 1 else ''} on {where}")
         if self.live:
-            from rich.console import Console
-            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
             self.progress = Progress(TextColumn("{task.description:<15}"), BarColumn(), MofNCompleteColumn(),
                                      TimeElapsedColumn(), console=Console(stderr=True), redirect_stdout=False,
@@ -93,7 +98,6 @@ class Display:
 
     @staticmethod
     def _stages():
-        from lungdeform.cohort.job import STAGES
 
         return STAGES
 
@@ -138,10 +142,6 @@ def register(apps) -> None:
 
         Exit 0 if at least one job succeeded (failures listed), 1 if all failed, 2 for a bad
         manifest, 130 when interrupted (re-run the same command to resume)."""
-        from .common import output_dir, progress_enabled
-        from lungdeform.cohort.runner import run_cohort
-        from lungdeform.cohort.job import FitOptions
-        from lungdeform.cohort.manifest import read_manifest
 
         m = read_manifest(manifest)  # every problem reported before any work starts (exit 2)
         options = FitOptions(max_evaluations=evaluations, baselines=baselines, align=align,
@@ -179,7 +179,6 @@ def register(apps) -> None:
 def _tally(folder: Path, display: Display) -> str:
     """What finished, from the cohort.json written on the interrupt (it also counts jobs that
     finished on a worker after this process stopped listening), else from the events seen."""
-    import json
 
     try:
         jobs = json.loads((folder / "cohort.json").read_text(encoding="utf-8"))["jobs"]

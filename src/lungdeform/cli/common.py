@@ -8,8 +8,9 @@ from pathlib import Path
 import numpy as np
 import typer
 
+from lungdeform.constants import GRAVITY
 from lungdeform.errors import InputError
-
+from lungdeform.playback.schedule import read_volume_csv
 
 #: Progress lines go to stderr when it is a terminal, or always after ``lungdeform --verbose``;
 #: so that in pipes and CI an error is the only line on stderr.
@@ -50,7 +51,6 @@ def parse_vector(text: str, name: str) -> np.ndarray:
 
 def parse_orientation(text: str):
     """A named orientation (supine, prone, upright, left-decubitus, right-decubitus) or 'x,y,z' (LPS)."""
-    from lungdeform.constants import GRAVITY
 
     if text.strip().lower() in GRAVITY:
         return text.strip().lower()
@@ -87,7 +87,6 @@ def check_cycles(cycles: int | None, preset: str | None) -> None:
 def read_curve(curve: Path):
     """A ``--curve`` volume CSV (:func:`lungdeform.playback.schedule.read_volume_csv`), saying when its
     volumes read as absolute and were shifted (export, track)."""
-    from lungdeform.playback.schedule import read_volume_csv
 
     trace = read_volume_csv(curve)
     if trace.shifted_ml:

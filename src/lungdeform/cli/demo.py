@@ -6,6 +6,9 @@ from pathlib import Path
 
 import typer
 
+from lungdeform.errors import InputError
+from lungdeform.playback.demo import run_demo
+
 from .common import check_tidal_ml, output_dir, parse_orientation, say
 
 #: Longest playback the demo writes (s): its ParaView series is 20 files (~2.7 MB) per second.
@@ -22,8 +25,6 @@ def register(apps) -> None:
         orientation: str = typer.Option("supine", "--orientation", help="supine, prone, upright, left-decubitus, right-decubitus or 'x,y,z'."),
     ):
         """Build both embedded lungs (Table I, supine) and play one breath of a PV-model preset."""
-        from lungdeform.playback.demo import run_demo
-        from lungdeform.errors import InputError
 
         check_tidal_ml(tidal_ml)
         if duration_s is not None and not duration_s <= MAX_DURATION_S:  # also NaN

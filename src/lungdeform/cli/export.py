@@ -6,6 +6,16 @@ from pathlib import Path
 
 import typer
 
+from lungdeform.breathing.presets import get_preset
+from lungdeform.errors import InputError
+from lungdeform.io.modelfile import load_model
+from lungdeform.playback import export as E
+from lungdeform.playback import markers as M
+from lungdeform.playback import schedule as S
+from lungdeform.playback.trajectory import read_markers_csv
+
+from .common import check_cycles, check_tidal_ml, read_curve
+
 
 def register(apps) -> None:
     @apps.root.command("export")
@@ -22,12 +32,6 @@ def register(apps) -> None:
         fps: float = typer.Option(10.0, "--fps", help="pvd only: frames per second of the time series."),
     ) -> None:
         """Export MODEL for engines (glb: one mesh, morph targets, breathing animation) or ParaView (pvd)."""
-        from lungdeform.playback import export as E
-        from lungdeform.playback import markers as M
-        from lungdeform.playback.trajectory import read_markers_csv
-        from lungdeform.playback import schedule as S
-        from lungdeform.errors import InputError
-        from lungdeform.io.modelfile import load_model
 
         kind = fmt.strip().lower()
         if kind not in ("glb", "pvd"):
@@ -40,12 +44,10 @@ def register(apps) -> None:
             raise InputError("--tidal-ml, --period and --cycles do not apply to --curve (the curve file sets them)")
         if preset is not None and period_s is not None:
             raise InputError("--period applies to the plain cycle; a --preset has its own period")
-        from .common import check_cycles, check_tidal_ml, read_curve
 
         check_cycles(cycles, preset)
         check_tidal_ml(tidal_ml)
         if preset is not None:
-            from lungdeform.breathing.presets import get_preset
 
             chosen = get_preset(preset)  # an unknown name: InputError listing the names
         m = load_model(model)

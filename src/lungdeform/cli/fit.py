@@ -10,7 +10,10 @@ from pathlib import Path
 
 import typer
 
-from .common import DIRECTION_DEGREE_HELP, SIDE_CHECK_HELP
+from lungdeform.errors import InputError
+from lungdeform.fit.pipeline import run_fit
+
+from .common import DIRECTION_DEGREE_HELP, SIDE_CHECK_HELP, output_dir, say
 
 
 def register(apps) -> None:
@@ -36,9 +39,6 @@ def register(apps) -> None:
                                   "none: inputs already in one frame (e.g. synthetic)."),
     ) -> None:
         """Fit c1…c9 of one lung to two or more volumes; write the model, metrics and an HTML report."""
-        from .common import output_dir, say
-        from lungdeform.errors import InputError
-        from lungdeform.fit.pipeline import run_fit
 
         if evaluations < 1:
             raise InputError(f"--evaluations must be ≥ 1, got {evaluations}")

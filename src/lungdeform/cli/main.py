@@ -17,6 +17,11 @@ from dataclasses import dataclass
 
 import typer
 
+from lungdeform import __version__
+from lungdeform.errors import LungdeformError
+
+from .common import VERBOSE
+
 COMMAND_MODULES = [
     "lungdeform.cli.build",
     "lungdeform.cli.demo",
@@ -60,7 +65,6 @@ def make_app() -> typer.Typer:
 
     def _print_version(value: bool) -> None:
         if value:  # eager: runs before click asks for a command
-            from lungdeform import __version__
 
             typer.echo(__version__)
             raise typer.Exit(0)
@@ -71,7 +75,6 @@ def make_app() -> typer.Typer:
                                      callback=_print_version),
         verbose: bool = typer.Option(False, "--verbose", "-v", help="Show progress even when stderr is not a terminal."),
     ):
-        from .common import VERBOSE
 
         VERBOSE["on"] = True if verbose else None
 
@@ -83,7 +86,6 @@ def make_app() -> typer.Typer:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the CLI; return the exit code (also used by ``python -m lungdeform``)."""
-    from lungdeform.errors import LungdeformError
 
     for stream in (sys.stdout, sys.stderr):  # never crash on "→" or "Δ" under an ASCII locale
         if hasattr(stream, "reconfigure") and (stream.encoding or "").lower().replace("-", "") != "utf8":

@@ -2,9 +2,20 @@
 
 from __future__ import annotations
 
+import json
+import time
 from pathlib import Path
 
 import typer
+
+from lungdeform.atomic import jsonable, write_bytes
+from lungdeform.errors import InputError
+from lungdeform.fit import ct as C
+from lungdeform.fit import segment as S
+from lungdeform.io.mask import extract_surface
+from lungdeform.io.meshfile import write_mesh
+
+from .common import output_dir, say
 
 MASK_FORMATS = ("nii.gz", "mha")
 
@@ -20,14 +31,7 @@ def register(apps) -> None:
         downsample: int = typer.Option(1, "--downsample", help="In-plane block-mean factor before segmenting (speed)."),
     ) -> None:
         """Segment the lungs (no learned weights): masks, volumes.json, overlay.png, surfaces."""
-        import json
-        import time
 
-        from lungdeform.fit import ct as C
-        from lungdeform.fit import segment as S
-        from .common import output_dir, say
-        from lungdeform.errors import InputError
-        from lungdeform.atomic import jsonable, write_bytes
 
         fmt = fmt.lower().lstrip(".")
         if fmt not in MASK_FORMATS:
@@ -43,7 +47,6 @@ def register(apps) -> None:
         t_seg = time.perf_counter() - t0 - t_read
         surf_info, meshes = {}, {}
         if surfaces:  # built before anything is written: a failure leaves no partial output
-            from lungdeform.io.mask import extract_surface
 
             for side in ("left", "right"):
                 say(f"surface of the {side} lung")
@@ -57,7 +60,6 @@ def register(apps) -> None:
             written.append(C.write_mask(seg.mask_image(side), out / f"{side}_lung.{fmt}"))
         written.append(S.overlay_png(seg, out / "overlay.png"))
         if meshes:
-            from lungdeform.io.meshfile import write_mesh
 
             for side, surf in meshes.items():
                 written.append(write_mesh(out / f"{side}_lung.stl", surf.vertices, surf.faces))

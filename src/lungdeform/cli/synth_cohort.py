@@ -6,13 +6,18 @@ Writes lung surfaces deformed by the model itself from the shipped real lung sha
 
 from __future__ import annotations
 
+import shlex
 from pathlib import Path
 
 import typer
 
+from lungdeform.cohort.synthetic import synthetic_cohort, write_cohort
+from lungdeform.errors import InputError
+
+from .common import output_dir, say
+
 
 def _floats(text: str, option: str) -> list[float]:
-    from lungdeform.errors import InputError
 
     try:
         values = [float(v) for v in text.split(",") if v.strip()]
@@ -38,8 +43,6 @@ def register(apps) -> None:
         table_shift_mm: float = typer.Option(0.0, "--table-shift-mm", help="SD per axis of a known random translation of each larger-volume scan, mm (tests --align joint)."),
     ) -> None:
         """Generate a synthetic cohort with known constants, volumes and noise (truth.json)."""
-        from .common import output_dir, say
-        from lungdeform.cohort.synthetic import synthetic_cohort, write_cohort
 
         deltas = _floats(volumes, "--volumes")
         lungs = synthetic_cohort(subjects, delta_ml=deltas, noise_mm=noise_mm, seed=seed, law=law, spread=spread,
@@ -54,7 +57,6 @@ def register(apps) -> None:
         typer.echo(f"wrote {info['rows']} surfaces for {len(lungs)} lungs under {folder}")
         typer.echo(f"wrote {info['manifest']} and {info['truth']}")
         how = "joint" if table_shift_mm > 0 else "none"
-        import shlex
 
         typer.echo(f"fit with: lungdeform cohort {shlex.quote(str(info['manifest']))} --out OUT --align {how} "
                    f"(the files are in one frame{'' if how == 'none' else ' up to the table shifts'})")

@@ -4,7 +4,17 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import typer
+
+from lungdeform.breathing.presets import get_preset
+from lungdeform.errors import InputError
+from lungdeform.interior.field import KIND_TEXT
+from lungdeform.io.modelfile import load_model
+from lungdeform.playback import schedule as S
+from lungdeform.playback import trajectory as T
+
+from .common import check_cycles, check_tidal_ml, output_dir, read_curve
 
 
 def register(apps) -> None:
@@ -24,14 +34,7 @@ def register(apps) -> None:
         """Move interior points with the model: positions at given volumes or over a breathing curve.
 
         Without --volume-ml, --curve or --preset: one plain 500 mL, 4 s cosine breath."""
-        import numpy as np
 
-        from lungdeform.playback import schedule as S
-        from lungdeform.playback import trajectory as T
-        from .common import check_cycles, check_tidal_ml, output_dir, read_curve
-        from lungdeform.errors import InputError
-        from lungdeform.interior.field import KIND_TEXT
-        from lungdeform.io.modelfile import load_model
 
         given = [name for name, v in (("--volume-ml", volume_ml or None), ("--curve", curve), ("--preset", preset)) if v]
         if len(given) > 1:
@@ -56,7 +59,6 @@ def register(apps) -> None:
             if curve is not None:
                 trace = read_curve(curve)
             elif preset is not None:
-                from lungdeform.breathing.presets import get_preset
 
                 _params, _curve, trace = S.preset_trace(get_preset(preset), cycles or 1, tidal_ml)
             else:

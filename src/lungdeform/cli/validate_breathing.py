@@ -23,6 +23,12 @@ from pathlib import Path
 import numpy as np
 import typer
 
+from lungdeform.atomic import write_json
+from lungdeform.breathing.holdout import MODELS, evaluate
+from lungdeform.breathing.holdout import MODELS as models
+from lungdeform.breathing.trace import read_trace
+from lungdeform.errors import InputError, LungdeformError
+
 from .common import STRICT_EXIT, say
 
 
@@ -40,11 +46,6 @@ def find_traces(data: Path) -> list[Path]:
 
 def validate_breathing(data: Path, out: Path, tidal_volume_ml: float = 500.0, train_fraction: float = 0.5,
                        progress=None) -> dict:
-    from lungdeform.atomic import write_json
-    from lungdeform.errors import InputError, LungdeformError
-    from lungdeform.breathing.holdout import MODELS as models
-    from lungdeform.breathing.holdout import evaluate
-    from lungdeform.breathing.trace import read_trace
 
     data = Path(data)
     if not data.is_dir():
@@ -123,7 +124,6 @@ def register(apps) -> None:
         strict: bool = typer.Option(False, "--strict", help="Exit with code 3 when the median target is not met (for CI)."),
     ):
         """Fit the PV driver to every breathing trace; held-out RMS against Lujan and Fourier."""
-        from lungdeform.breathing.holdout import MODELS
 
         m = validate_breathing(data, out, tidal_volume_ml, train_fraction,
                                progress=say)

@@ -2,9 +2,17 @@
 
 from __future__ import annotations
 
+import json
+import time
 from pathlib import Path
 
 import typer
+
+from lungdeform.atomic import write_bytes
+from lungdeform.errors import InputError
+from lungdeform.validate import dirlab as D
+
+from .common import output_dir
 
 
 def register(apps) -> None:
@@ -21,13 +29,7 @@ def register(apps) -> None:
         ),
     ) -> None:
         """Predict T10–T40 landmarks from T00/T50 with one scalar per phase, and richer real-time models."""
-        import json
-        import time
 
-        from lungdeform.validate import dirlab as D
-        from .common import output_dir
-        from lungdeform.errors import InputError
-        from lungdeform.atomic import write_bytes
 
         if folds < 2:
             raise InputError(f"--folds must be ≥ 2, got {folds}")

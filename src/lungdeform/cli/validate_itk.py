@@ -30,7 +30,14 @@ from pathlib import Path
 
 import typer
 
-from .common import DIRECTION_DEGREE_HELP, STRICT_EXIT
+from lungdeform.atomic import write_json
+from lungdeform.data import itk_right_lung
+from lungdeform.errors import ReadError
+from lungdeform.fit.correspond import rays_per_second
+from lungdeform.fit.pipeline import run_fit
+
+from .common import DIRECTION_DEGREE_HELP, STRICT_EXIT, output_dir, say
+from .fit import _print_table, warn
 
 FOLDER = "itk-right-lung-two-volumes"
 FILES = ("CT_3D_lung_fixed_mask.mha", "CT_3D_lung_moving_mask.mha",
@@ -39,7 +46,6 @@ FILES = ("CT_3D_lung_fixed_mask.mha", "CT_3D_lung_moving_mask.mha",
 
 def find_pair(data: Path) -> list[Path]:
     """The four files of the pair under ``data`` (or ``data/itk-right-lung-two-volumes``)."""
-    from lungdeform.errors import ReadError
 
     data = Path(data)
     for folder in (data, data / FOLDER):
@@ -86,12 +92,6 @@ def register(apps) -> None:
         strict: bool = typer.Option(False, "--strict", help="Exit with code 3 when a target is not met (for CI)."),
     ) -> None:
         """Fit the model to the ITK right lung (3.36 → 3.97 L) and compare with baselines."""
-        from .common import output_dir, say
-        from .fit import _print_table, warn
-        from lungdeform.fit.pipeline import run_fit
-        from lungdeform.fit.correspond import rays_per_second
-        from lungdeform.data import itk_right_lung
-        from lungdeform.atomic import write_json
 
         fixed, moving, lm_f, lm_m = find_pair(data)
         folder = output_dir(out)

@@ -2,9 +2,15 @@
 
 from __future__ import annotations
 
+import json
+import time
 from pathlib import Path
 
 import typer
+
+from lungdeform.atomic import write_text
+from lungdeform.errors import InputError
+from lungdeform.validate import paper as P
 
 
 def register(apps) -> None:
@@ -17,11 +23,7 @@ def register(apps) -> None:
         tol: float = typer.Option(1e-6, "--tol", help="Relative residual that counts as converged (Fig. 7)."),
     ) -> None:
         """Transfer model vs a mass–spring–damper run to rest; variable-E disc; convergence curves."""
-        import json
-        import time
 
-        from lungdeform.validate import paper as P
-        from lungdeform.errors import InputError
 
         out = Path(out)
         if out.exists() and not out.is_dir():
@@ -54,7 +56,6 @@ def register(apps) -> None:
             "elapsed_s": elapsed,
         }
         path = out / "metrics.json"
-        from lungdeform.atomic import write_text
 
         write_text(path, json.dumps(metrics, indent=2) + "\n")
 

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import ipaddress
 from pathlib import Path
 
 import typer
+
+from lungdeform.playback.server import ViewerServer, model_glb
 
 
 def register(apps) -> None:
@@ -18,9 +21,7 @@ def register(apps) -> None:
         open_browser: bool = typer.Option(False, "--open", help="Open the default web browser."),
     ) -> None:
         """Show both lungs breathing in the browser (three.js, deformation on the GPU, WebXR)."""
-        import ipaddress
 
-        from lungdeform.playback.server import ViewerServer, model_glb
 
         glb = model_glb(model, curve, markers)
         server = ViewerServer(glb, host=host, port=port)  # /presets.json: lungdeform.breathing.presets

@@ -11,3 +11,10 @@ May import: :mod:`lungdeform.fit`, :mod:`lungdeform.playback` and everything bel
 """
 
 from .runner import SUMMARY_SCHEMA, CohortResult, clean_stale, run_cohort
+
+__all__ = [
+    "CohortResult",
+    "SUMMARY_SCHEMA",
+    "clean_stale",
+    "run_cohort",
+]

@@ -39,8 +39,12 @@ from typing import Callable
 
 import numpy as np
 
-from lungdeform.atomic import write_json
+from lungdeform import __version__
+from lungdeform.atomic import jsonable, write_json
 from lungdeform.errors import InputError
+from lungdeform.fit.direction_correction import MAX_DEGREE
+from lungdeform.fit.pipeline import ALIGN_MODES, run_fit
+
 from .manifest import Job
 
 RESULT_SCHEMA = "lungdeform.cohort.result"
@@ -70,8 +74,6 @@ class FitOptions:
     side_check: bool = True
 
     def __post_init__(self):
-        from lungdeform.fit.direction_correction import MAX_DEGREE
-        from lungdeform.fit.pipeline import ALIGN_MODES
 
         def whole(x) -> bool:
             return isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_))
@@ -104,7 +106,6 @@ def input_digest(job: Job, options: FitOptions) -> str:
     size and modification time (a DICOM folder: every file in it), the volumes, the order, the
     fit options and the lungdeform version (an upgrade re-fits: results from another version are
     not reused)."""
-    from lungdeform import __version__
 
     def stat(p: Path):
         p = Path(p)
@@ -133,7 +134,6 @@ def fit_job(job: Job, out_dir, options: FitOptions = FitOptions(), *, progress: 
     Never raises for a failed fit (the result says ``failed`` with the error); raises only if the
     result itself cannot be written (e.g. the disk is full), leaving no folder half-written.
     """
-    from lungdeform.fit.pipeline import run_fit
 
     out_dir = Path(out_dir)
     emit = progress or (lambda _e: None)
@@ -245,7 +245,6 @@ def _one_line(exc: BaseException) -> str:
 
 
 def _json_default(o):
-    from lungdeform.atomic import jsonable
 
     if isinstance(o, Path):
         return str(o)

@@ -39,6 +39,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from lungdeform.errors import InputError
+from lungdeform.io.image import IMAGE_SUFFIXES
+from lungdeform.io.meshfile import MESH_SUFFIXES
 
 REQUIRED_COLUMNS = ("subject", "side", "volume_ml", "path")
 OPTIONAL_COLUMNS = ("landmarks",)
@@ -170,8 +172,6 @@ def check_manifest(path) -> tuple[Manifest | None, list[Problem]]:
 
 def _parse(text: str, folder: Path) -> tuple[list[_Row], set[str], list[Problem]]:
     """Rows usable for grouping, the subjects with unusable rows, and the problems found."""
-    from lungdeform.io.meshfile import MESH_SUFFIXES
-    from lungdeform.io.image import IMAGE_SUFFIXES
 
     problems: list[Problem] = []
     reader = csv.reader(io.StringIO(text))

@@ -32,9 +32,12 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from lungdeform.atomic import atomic_path, write_json, write_text
 from lungdeform.constants import TABLE_I, table_constants
 from lungdeform.errors import InputError
+
 from .job import RESULT_SCHEMA, RESULT_VERSION, finite_or_none
+from .synthetic import normalise_force_constants
 
 CONSTANTS = tuple(f"c{i}" for i in range(1, 10))
 METRICS = ("surface_mean_mm", "surface_rms_mm", "surface_p95_mm", "landmark_mean_mm", "objective_rms_mm")
@@ -145,7 +148,6 @@ def population_statistics(results: Sequence[dict]) -> dict:
 def table_i(side: str) -> np.ndarray:
     """Table I's c1…c9 for ``side`` in the fit's convention ``(9,) float``: c7…c9 divided by their
     largest ``|c|`` (the paper's 0.01, 0.95, 0.07 become 0.0105, 1, 0.0737 for the left lung)."""
-    from .synthetic import normalise_force_constants
 
     return normalise_force_constants(table_constants(side))
 
@@ -198,12 +200,9 @@ def write_population(results: list[dict], out: Path, manifest_dir: Path,
     (the one holding ``subjects/``); written there, atomically: ``population.json``,
     ``population.csv`` (overall), ``population_by_side.csv``, ``table1.csv`` (Table I comparison),
     ``plots/constants_by_side.png``, ``plots/constants_vs_volume.png``, ``plots/fit_errors.png``;
-    when ``manifest_dir/truth.json`` exists also ``recovery.json``, ``recovery.csv``,
-    ``recovery_by_lung.csv`` and ``plots/recovery.png``. Returns a summary dict (counts, the file
-    paths, the Table I flags and, with a truth, the recovery headline of
-    :func:`lungdeform.cohort.recovery.write_recovery`).
+    the recovery of a synthetic cohort's truth is :func:`lungdeform.cohort.recovery.add_recovery`.
+    Returns a summary dict (counts, the file paths, the Table I flags, ``"recovery": None``).
     """
-    from lungdeform.atomic import write_json, write_text
 
     say = progress or (lambda _m: None)
     out = Path(out)
@@ -241,13 +240,6 @@ def write_population(results: list[dict], out: Path, manifest_dir: Path,
                "failed": stats["failed"],
                "table_i_in_range": {side: {c: v["in_range"] for c, v in rows.items()} for side, rows in table.items()},
                "recovery": None, "files": files}
-    truth_path = Path(manifest_dir) / "truth.json"
-    if truth_path.is_file():
-        from .recovery import write_recovery  # recovery builds on this module: imported here, where it is used
-
-        say("recovery of the synthetic truth")
-        recovered, summary["recovery"] = write_recovery(results, truth_path, out)
-        files.update(recovered)
     return summary
 
 
@@ -270,7 +262,6 @@ def figure(rows: int, cols: int, size=(3.2, 2.6)):
 
 def save_png(fig, path: Path) -> str:
     """Write ``fig`` as PNG to ``path`` atomically; return the path as a string."""
-    from lungdeform.atomic import atomic_path
 
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=110)

@@ -19,17 +19,23 @@ Readings chosen:
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
 from lungdeform.atomic import finite_json, write_json, write_text
-from .job import finite_or_none
-from .population import (CONSTANTS, METRICS, SIDE_COLOURS, SIDES, csv_text, describe, figure, save_png,
-                         split_results)
+from lungdeform.errors import LungdeformError
 from lungdeform.fit.search import GAUGE
+from lungdeform.geometry.distance import symmetric_distance
+from lungdeform.geometry.mesh import Surface, vertex_normals
+from lungdeform.io.modelfile import load_model
+
+from .job import finite_or_none
+from .population import CONSTANTS, METRICS, SIDE_COLOURS, SIDES, csv_text, describe, figure, save_png, split_results
+from .synthetic import read_truth
 
 #: The scale-free ratios compared besides c1…c9: name → (numerator, denominator) index.
 RATIOS = {"c1/c3": (0, 2), "c5/c3": (4, 2)}
@@ -44,7 +50,6 @@ GAUGE_NOTE = ("c1, c3, c5 errors are against the truth rescaled into the fit's g
 def _alignments(metrics_path: Path) -> list[np.ndarray | None]:
     """The 4×4 rigid transforms (moving → end-exhale) ``run_fit`` applied to each target, from its
     ``metrics.json`` (empty when absent)."""
-    import json
 
     try:
         m = json.loads(metrics_path.read_text(encoding="utf-8"))
@@ -57,7 +62,6 @@ def _alignments(metrics_path: Path) -> list[np.ndarray | None]:
 def _point_errors(pred: np.ndarray, true: np.ndarray, faces: np.ndarray, suffix: str = "") -> dict:
     """Per-vertex error of ``pred`` against ``true`` (both (n, 3) mm, same mesh): total, and its
     parts along the true surface's normal and tangent to it."""
-    from lungdeform.geometry.mesh import vertex_normals
 
     e = pred - true
     n = vertex_normals(true, faces)
@@ -80,10 +84,6 @@ def _field_errors(model_path: Path, arrays_path: Path, side: str, volumes_ml, sc
     ``table_shifts : (k, 3)`` mm (truth ``table_shifts_mm``): where the scans were moved; the target
     the fit saw is then the truth plus that shift, moved by the transform.
     """
-    from lungdeform.geometry.distance import symmetric_distance
-    from lungdeform.errors import LungdeformError
-    from lungdeform.geometry.mesh import Surface
-    from lungdeform.io.modelfile import load_model
 
     if not model_path.is_file() or not arrays_path.is_file():
         return None
@@ -220,7 +220,6 @@ def write_recovery(results: Sequence[dict], truth_path: Path, out: Path) -> tupl
     (matched and missing lungs, constant and field errors) of
     :func:`lungdeform.cohort.population.write_population`'s summary.
     """
-    from .synthetic import read_truth
 
     out, truth_path = Path(out), Path(truth_path)
     files: dict[str, str] = {}
@@ -291,3 +290,18 @@ def recovery_plot(rec: dict, folder: Path) -> dict[str, str]:
     ax.set_title("displacement error, largest volume", fontsize=9)
     fig.suptitle("Recovery of the synthetic truth (grey: fitted = true)")
     return {"plots/recovery.png": save_png(fig, folder / "recovery.png")}
+
+
+def add_recovery(summary: dict, results: list[dict], out: Path, manifest_dir: Path,
+                 progress: Callable[[str], None] | None = None) -> dict:
+    """When ``manifest_dir/truth.json`` exists (a synthetic cohort), write the recovery of that truth
+    (:func:`write_recovery`: ``recovery.json``, ``recovery.csv``, ``recovery_by_lung.csv``,
+    ``plots/recovery.png``) into ``out`` and put its headline and files into ``summary`` (the dict
+    :func:`lungdeform.cohort.population.write_population` returned); else return ``summary`` unchanged."""
+    truth_path = Path(manifest_dir) / "truth.json"
+    if not truth_path.is_file():
+        return summary
+    if progress is not None:
+        progress("recovery of the synthetic truth")
+    recovered, headline = write_recovery(results, truth_path, out)
+    return {**summary, "recovery": headline, "files": {**summary.get("files", {}), **recovered}}

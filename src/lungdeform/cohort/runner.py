@@ -35,7 +35,9 @@ import datetime as _dt
 import logging
 import os
 import queue
+import signal
 import socket
+import threading
 import time
 import uuid
 from contextlib import contextmanager
@@ -44,10 +46,23 @@ from pathlib import Path
 from typing import Callable
 
 from lungdeform.atomic import write_json
-from lungdeform.errors import InputError
-from .job import (FitOptions, _json_default, _one_line, _result, clean_partial, failed_result, fit_job, input_digest,
-                  job_folder, read_result)
-from .manifest import Job, read_manifest
+from lungdeform.errors import InputError, require
+
+from .job import (
+    FitOptions,
+    _json_default,
+    _one_line,
+    _result,
+    clean_partial,
+    failed_result,
+    fit_job,
+    input_digest,
+    job_folder,
+    read_result,
+)
+from .manifest import Job, Manifest, read_manifest
+from .population import write_population
+from .recovery import add_recovery
 
 SUMMARY_SCHEMA = "lungdeform.cohort.summary"
 #: Dask event-log topic of the stage events sent by workers.
@@ -112,7 +127,6 @@ def run_cohort(manifest, out, *, scheduler: str | None = None, workers: int | No
     ``cohort.json`` records what finished (``"interrupted": true``) and the KeyboardInterrupt is
     raised again; re-running resumes.
     """
-    from .manifest import Manifest
 
     t_start = time.perf_counter()
     started = _now()
@@ -169,10 +183,9 @@ def run_cohort(manifest, out, *, scheduler: str | None = None, workers: int | No
         ordered = tuple(results[j.key] for j in m.jobs)
         pop = None
         if population and any(r["status"] == "ok" for r in ordered):
-            from .population import write_population
 
             emit({"event": "population", "ok": sum(r["status"] == "ok" for r in ordered)})
-            pop = write_population(list(ordered), out, m.folder)
+            pop = add_recovery(write_population(list(ordered), out, m.folder), list(ordered), out, m.folder)
             write_json(out / "cohort.json", summary(False, pop), default=_json_default)
     return CohortResult(out, ordered, frozenset(skipped), time.perf_counter() - t_start, address, n_workers,
                         summary_path, pop, m.notes)
@@ -182,7 +195,6 @@ def _run_on_dask(jobs: list[Job], out: Path, options: FitOptions, scheduler, n_w
                  connect_timeout_s, results: dict, emit) -> str:
     """Submit one task per job, relay stage events, record results as they finish; return the
     scheduler's address. Closes what it opened, also on Ctrl-C."""
-    from lungdeform.errors import require
 
     require("distributed", "lungdeform cohort", "dask[distributed]")
     from distributed import Client, LocalCluster
@@ -250,8 +262,6 @@ def _sigint_flag():
     KeyboardInterrupt: raised asynchronously inside the Dask client's own code (a blocking
     ``sync`` call, a lock) the interrupt could be lost and the run would go on. Returns
     ``(flag, restore)``; outside the main thread the flag is never set."""
-    import signal
-    import threading
 
     flag = threading.Event()
     if threading.current_thread() is not threading.main_thread():
@@ -269,8 +279,6 @@ def _sigint_ignored():
     this process is interrupted and it closes the cluster itself (the interrupted job's temporary
     folder is removed on the next run). A Ctrl-C during the start-up (about a second) is ignored.
     """
-    import signal
-    import threading
 
     if threading.current_thread() is not threading.main_thread():
         yield

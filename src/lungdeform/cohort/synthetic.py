@@ -42,15 +42,23 @@ from __future__ import annotations
 
 import csv
 import io as _io
+import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
 
+from lungdeform import __version__, data
+from lungdeform.atomic import atomic_path, write_json, write_text
 from lungdeform.constants import table_constants
-from lungdeform.errors import InputError
+from lungdeform.errors import InputError, ReadError
+from lungdeform.fit.fitting import DIRECTION_HI, DIRECTION_LO
 from lungdeform.geometry.mesh import Surface, vertex_normals
+from lungdeform.io.landmarks import write_elastix_points
+from lungdeform.io.meshfile import write_mesh
+from lungdeform.model.displacement import scale_for_volume, volume_polynomial
+from lungdeform.model.lung import build_lung
 
 TRUTH_SCHEMA = "lungdeform.synthetic.truth"
 TRUTH_VERSION = 1
@@ -68,7 +76,6 @@ class SourceShape:
     attribution: str
 
     def load(self) -> Surface:
-        from lungdeform import data
 
         if self.name == "itk_right_lung":
             return data.itk_right_lung()
@@ -114,7 +121,6 @@ def draw_constants(side: str, rng: np.random.Generator, *, spread: float = 0.2,
     (:data:`lungdeform.fit.fitting.DIRECTION_BOUNDS`); c7, c9 = |Table I + N(0, force_spread²)|, c8 = Table I;
     c7…c9 normalised (:func:`normalise_force_constants`), so c8 = 1 while it dominates.
     """
-    from lungdeform.fit.fitting import DIRECTION_HI, DIRECTION_LO
 
     if not (spread >= 0 and force_spread >= 0):
         raise InputError(f"spread and force_spread must be >= 0, got {spread!r}, {force_spread!r}")
@@ -139,7 +145,6 @@ def model_displacement(surface: Surface, side: str, constants, unit_ml: float, *
     """``u : (n, 3) float``, mm per ``unit_ml``, LPS: the model's displacement ``k·F·d`` for
     c1…c9, calibrated so that ``p + u`` encloses exactly ``V_EE + unit_ml``
     (:func:`lungdeform.model.lung.build_lung`, uniform stiffness)."""
-    from lungdeform.model.lung import build_lung
 
     if not unit_ml > 0:
         raise InputError(f"unit_ml must be > 0 mL, got {unit_ml!r}")
@@ -153,7 +158,6 @@ def volume_scales(surface: Surface, displacement: np.ndarray, delta_ml, unit_ml:
 
     ``law="exact"``: ``V(p + s·u) = V_EE + ΔV`` exactly (cubic root); ``"linear"``: ``s = ΔV/unit_ml``.
     """
-    from lungdeform.model.displacement import scale_for_volume, volume_polynomial
 
     if law not in LAWS:
         raise InputError(f"law must be one of {', '.join(LAWS)}, got {law!r}")
@@ -369,10 +373,6 @@ def write_cohort(lungs: Sequence[SyntheticLung], out, *, seed: int | None = None
     The truth arrays (``.npz``): ``vertices (n, 3)``, ``faces (m, 3)``, ``displacement (n, 3)`` mm
     per ``unit_ml``, ``scales (k,)``, ``noise (k, n)`` mm, ``landmark_index (m,)``.
     """
-    from lungdeform import __version__
-    from lungdeform.atomic import atomic_path, write_json, write_text
-    from lungdeform.io.meshfile import write_mesh
-    from lungdeform.io.landmarks import write_elastix_points
 
     say = progress or (lambda _m: None)
     if not lungs:
@@ -441,9 +441,7 @@ def read_truth(path) -> dict:
 
     Raises :class:`lungdeform.errors.ReadError` naming the file for a wrong schema or a broken file.
     """
-    import json
 
-    from lungdeform.errors import ReadError
 
     path = Path(path)
     try:

@@ -10,6 +10,7 @@ from functools import lru_cache
 from importlib import resources
 
 from lungdeform.geometry.mesh import Surface, check_surface
+from lungdeform.io.meshfile import read_mesh
 
 FILES = {
     "left": "coronacases_001_left.ply",
@@ -20,7 +21,6 @@ FILES = {
 
 @lru_cache(maxsize=None)
 def _load(filename: str, name: str) -> Surface:
-    from lungdeform.io.meshfile import read_mesh
 
     with resources.as_file(resources.files(__name__).joinpath(filename)) as path:
         vertices, faces = read_mesh(path)

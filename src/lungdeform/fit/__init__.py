@@ -14,4 +14,26 @@ May import: :mod:`lungdeform.data`, :mod:`lungdeform.io`, :mod:`lungdeform.breat
 not :mod:`lungdeform.playback` (independent of it) and nothing above.
 """
 
-from .fitting import DEFAULT_OPTIMIZER, DIRECTION_BOUNDS, DIRECTION_HI, DIRECTION_LO, MODES, UNUSABLE_MM, FitResult, fit_lung, to_lung_model
+from .fitting import (
+    DEFAULT_OPTIMIZER,
+    DIRECTION_BOUNDS,
+    DIRECTION_HI,
+    DIRECTION_LO,
+    MODES,
+    UNUSABLE_MM,
+    FitResult,
+    fit_lung,
+    to_lung_model,
+)
+
+__all__ = [
+    "DEFAULT_OPTIMIZER",
+    "DIRECTION_BOUNDS",
+    "DIRECTION_HI",
+    "DIRECTION_LO",
+    "FitResult",
+    "MODES",
+    "UNUSABLE_MM",
+    "fit_lung",
+    "to_lung_model",
+]

@@ -28,8 +28,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from lungdeform.geometry.distance import SurfaceDistance
 from lungdeform.errors import InputError
+from lungdeform.geometry.distance import SurfaceDistance
 from lungdeform.geometry.mesh import Surface, as_vertices
 
 

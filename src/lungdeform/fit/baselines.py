@@ -32,11 +32,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial.distance import cdist
 
-from lungdeform.geometry.distance import SurfaceDistance, symmetric_distance
 from lungdeform.errors import ConvergenceError, InputError, require
-from lungdeform.interior.interpolate import interpolation_weights
+from lungdeform.geometry.distance import SurfaceDistance, symmetric_distance
 from lungdeform.geometry.mesh import Surface, as_vertices, thinned
+from lungdeform.interior.interpolate import interpolation_weights
+from lungdeform.interior.sliding import surface_weights
 
 
 def no_motion(surface: Surface) -> np.ndarray:
@@ -144,7 +146,6 @@ def cpd_deformable(surface: Surface, target: Surface, *, samples: int = 1500, al
     weight and ``w`` the outlier weight (pycpd's meanings). Returns ``(n, 3)`` mm.
     """
     pycpd = require("pycpd", "the CPD baseline", "pycpd")
-    from scipy.spatial.distance import cdist
 
     rng = np.random.default_rng(seed)
     p = surface.vertices
@@ -229,7 +230,6 @@ def landmark_matrix(rest: Surface, landmarks, keep=None):
     """The sliding interpolation (:mod:`lungdeform.interior.sliding`) from the kept vertices of ``rest`` to
     ``landmarks``, an operator of shape ``(m, k)`` with ``W @ u`` for ``u : (k, 3)`` mm: the interior
     interpolation every method is measured with (crop faces carry no data)."""
-    from lungdeform.interior.sliding import surface_weights
 
     return surface_weights(rest, as_vertices(landmarks, "landmarks"), keep)
 

@@ -21,6 +21,7 @@ mean to keep float32 precision at world coordinates far from the origin.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -209,7 +210,6 @@ def rays_per_second(target: Surface, n_rays: int = 1_000_000, seed: int = 0) -> 
     Rays start at random vertices of the surface (jittered 1 mm) in random directions, bounded
     by the surface's bounding-box diagonal; the scene is built before timing (warm).
     """
-    import time
 
     rng = np.random.default_rng(seed)
     caster = RayCaster(target.vertices, target.faces)

@@ -16,12 +16,16 @@ from typing import TYPE_CHECKING, Callable, Sequence
 import numpy as np
 
 from lungdeform.errors import InputError
+from lungdeform.geometry.mesh import as_vertices
 from lungdeform.interior.field import landmark_folds
 from lungdeform.interior.sliding import checked_operator, surface_weights
 
+from .fitting import fit_lung
+
 if TYPE_CHECKING:  # fit_lung is imported where used (fit.py's docstring refers to this module)
-    from .fitting import FitResult
     from lungdeform.geometry.mesh import Surface
+
+    from .fitting import FitResult
     from .objective import Target
 
 
@@ -64,8 +68,6 @@ def cross_validate_landmarks(surface: Surface, side: str, targets: Sequence[Targ
     computed once here when not given; each fold uses its rows. Other keywords go to :func:`fit_lung`. Landmark errors computed from
     :attr:`LandmarkCV.predicted` are held out.
     """
-    from .fitting import fit_lung
-    from lungdeform.geometry.mesh import as_vertices
 
     say = progress or (lambda _m: None)
     rest = as_vertices(landmarks_rest, "landmarks_rest")

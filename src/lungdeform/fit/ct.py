@@ -21,7 +21,9 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
+import SimpleITK as sitk
 
+from lungdeform.atomic import atomic_path
 from lungdeform.errors import InputError, ReadError
 from lungdeform.io.image import IMAGE_SUFFIXES, Image, dicom_series_files, is_dicom_file, read_image
 
@@ -69,7 +71,6 @@ def check_slice_spacing(folder, tolerance: float = 0.01) -> None:
     ``folder`` names (:func:`lungdeform.io.image.dicom_series_files`: a folder, a parent folder or one file); the gaps along the slice normal must agree within ``tolerance`` (relative) and be
     non-zero. Raises :class:`ReadError` naming the folder, the gaps and the files around the worst one.
     """
-    import SimpleITK as sitk
 
     folder = Path(folder)
     try:
@@ -232,7 +233,6 @@ def write_mask(image: Image, path) -> Path:
     SimpleITK writes the LPS geometry; for NIfTI it converts to the file's RAS convention itself.
     """
 
-    import SimpleITK as sitk
 
     path = Path(path)
     name = path.name.lower()
@@ -243,7 +243,6 @@ def write_mask(image: Image, path) -> Path:
     img.SetSpacing([float(v) for v in image.spacing])
     img.SetOrigin([float(v) for v in image.origin])
     img.SetDirection([float(v) for v in np.asarray(image.direction).ravel()])
-    from lungdeform.atomic import atomic_path
 
     with atomic_path(path, suffix) as tmp:
         sitk.WriteImage(img, str(tmp), useCompression=True)

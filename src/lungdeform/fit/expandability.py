@@ -17,6 +17,7 @@ import numpy as np
 from scipy import sparse
 
 from lungdeform.errors import ConvergenceError, InputError
+from lungdeform.geometry.remesh import umbrella_operator
 from lungdeform.model.solve import ForceSolver
 from lungdeform.model.transfer import local_transfer
 
@@ -30,7 +31,6 @@ STIFFNESS_RANGE = 4.0
 def smooth_observations(values: np.ndarray, weights: np.ndarray, faces: np.ndarray, iterations: int) -> np.ndarray:
     """Normalised convolution on the mesh: weighted umbrella averaging of ``values (n,)`` with
     ``weights (n,) ≥ 0`` (0 = no observation, filled from the neighbours)."""
-    from lungdeform.geometry.remesh import umbrella_operator
 
     n = len(values)
     avg = (umbrella_operator(n, faces) + sparse.identity(n)).tocsr()  # D⁻¹A: mean of neighbours

@@ -32,19 +32,20 @@ from typing import Callable, Sequence
 import numpy as np
 
 from lungdeform.constants import gravity_vector, table_constants
-from .correspond import RayHits
-from .direction_correction import DirectionCorrection, fit_direction_correction
 from lungdeform.errors import ConvergenceError, InputError
-from .expandability import fit_stiffness_if_better
-from lungdeform.model.force import field_basis
 from lungdeform.geometry.frame import lung_frame
-from lungdeform.model.graph import spring_graph
 from lungdeform.geometry.mesh import Surface
+from lungdeform.model.force import field_basis
+from lungdeform.model.graph import spring_graph
 from lungdeform.model.lung import LungModel
-from .objective import LungFitter, Target
-from .search import grid_search, least_squares_search, powell_search
 from lungdeform.model.solve import ForceSolver
 from lungdeform.model.transfer import local_transfer
+
+from .correspond import RayHits
+from .direction_correction import DirectionCorrection, fit_direction_correction
+from .expandability import fit_stiffness_if_better
+from .objective import LungFitter, Target
+from .search import grid_search, least_squares_search, powell_search
 
 #: Bounds of c1…c6 searched (scales c1, c3, c5; exponents c2, c4, c6).
 DIRECTION_BOUNDS = ((0.01, 3.0), (0.05, 4.0), (0.01, 3.0), (0.05, 4.0), (0.01, 3.0), (0.05, 4.0))

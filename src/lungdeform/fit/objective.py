@@ -48,19 +48,20 @@ from typing import Sequence
 import numpy as np
 
 from lungdeform.constants import gravity_vector
-from .correspond import RayCaster, RayHits, correspond
+from lungdeform.errors import InputError, LungdeformError
+from lungdeform.geometry.distance import SurfaceDistance, vertex_areas
+from lungdeform.geometry.frame import lung_frame
+from lungdeform.geometry.mesh import Surface, as_vertices, thinned
+from lungdeform.interior.sliding import checked_operator, surface_weights
 from lungdeform.model.direction import directions as direction_field
 from lungdeform.model.displacement import calibrate
-from lungdeform.geometry.distance import SurfaceDistance, vertex_areas
-from lungdeform.errors import InputError, LungdeformError
 from lungdeform.model.force import field_basis, height_weights
-from lungdeform.geometry.frame import lung_frame
 from lungdeform.model.graph import spring_graph
-from lungdeform.geometry.mesh import Surface, thinned
-from lungdeform.interior.sliding import checked_operator, surface_weights
 from lungdeform.model.solve import ForceSolver
 from lungdeform.model.stiffness import as_moduli, uniform
 from lungdeform.model.transfer import local_transfer, split_transfer
+
+from .correspond import RayCaster, RayHits, correspond
 
 
 @dataclass(frozen=True, eq=False)
@@ -246,7 +247,6 @@ class LungFitter:
         self.lm_rest, self.lm_targets, self.lm_matrix = None, {}, None
         if rest is None or not observed:
             return
-        from lungdeform.geometry.mesh import as_vertices
 
         rest = as_vertices(rest, "landmarks_rest")
         if not (np.isfinite(self.landmark_weight) and self.landmark_weight >= 0):

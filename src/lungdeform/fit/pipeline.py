@@ -34,7 +34,34 @@ from pathlib import Path
 
 import numpy as np
 
+from lungdeform.atomic import jsonable, write_json
+from lungdeform.errors import InputError, LungdeformError, ReadError
+from lungdeform.fit import baselines as B
+from lungdeform.fit.align import RigidTransform, align_apex, align_landmarks, crop_planes, near_planes
+from lungdeform.fit.crossval import cross_validate_landmarks
+from lungdeform.fit.ct import archive_in, is_archive, read_ct
 from lungdeform.fit.direction_correction import DEFAULT_DEGREE, MAX_DEGREE
+from lungdeform.fit.fitting import DIRECTION_HI, DIRECTION_LO, MODES, fit_lung, to_lung_model
+from lungdeform.fit.objective import Target
+from lungdeform.fit.report import write_report
+from lungdeform.fit.segment import segment_lungs
+from lungdeform.geometry.distance import SurfaceDistance, point_to_surface
+from lungdeform.geometry.frame import SIDES, check_side
+from lungdeform.geometry.mesh import Surface, check_surface, winding_numbers
+from lungdeform.geometry.remesh import decimate
+from lungdeform.interior.field import (
+    correction_per_unit,
+    correction_solvers,
+    held_out_sliding,
+    landmark_folds,
+    select_correction_smoothing,
+)
+from lungdeform.io import mask as M
+from lungdeform.io import meshfile as lio
+from lungdeform.io.image import Image, is_image_path, read_image
+from lungdeform.io.landmarks import read_elastix_points
+from lungdeform.io.modelfile import provenance, save_model
+from lungdeform.model.lung import Model
 
 #: Ways of bringing the larger-volume inputs into the end-exhale frame (see the module docstring).
 ALIGN_MODES = ("apex", "joint", "none")
@@ -48,17 +75,11 @@ def read_input(path: Path, side: str, *, progress=None, spacing_like=None):
 
     ``spacing_like``: ``(path, spacing (3,) mm)`` of an image read before; an image of another
     spacing is refused as soon as it is read, before the (slow) segmentation and surface."""
-    from lungdeform.io import meshfile as lio
-    from lungdeform.io import mask as M
-    from lungdeform.io.image import Image, is_image_path, read_image
-    from lungdeform.fit.align import crop_planes
 
     path = Path(path)
     if not path.exists():
-        from lungdeform.errors import ReadError
 
         raise ReadError(f"{path}: no such file or directory")
-    from lungdeform.fit.ct import archive_in, is_archive, read_ct
 
     path = archive_in(path)  # a dataset folder holding one archive: that archive
     if is_archive(path):  # a zipped or tarred DICOM series (or image): a CT
@@ -69,13 +90,11 @@ def read_input(path: Path, side: str, *, progress=None, spacing_like=None):
     else:
         image = read_image(path)
     if spacing_like is not None and not np.allclose(image.spacing, spacing_like[1], rtol=1e-3):
-        from lungdeform.errors import InputError
 
         raise InputError(f"{path}: voxel spacing {np.asarray(image.spacing, float).tolist()} mm differs from "
                          f"{spacing_like[0]} ({np.asarray(spacing_like[1], float).tolist()} mm); inconsistent spacing")
     a = np.asarray(image.array)
     if a.size and a.min() < -100:  # a CT in HU: segment the lungs first
-        from lungdeform.fit.segment import segment_lungs
 
         seg = segment_lungs(image, progress=progress)
         image = Image(getattr(seg, side).astype(np.uint8), image.spacing, image.origin, image.direction,
@@ -88,9 +107,6 @@ def read_input(path: Path, side: str, *, progress=None, spacing_like=None):
 
 def model_mesh(surface, image=None):
     """The end-exhale model mesh: the mask's surface decimated to about 3000 vertices."""
-    from lungdeform.errors import LungdeformError
-    from lungdeform.geometry.remesh import decimate
-    from lungdeform.geometry.mesh import Surface, check_surface
 
     if surface.n_vertices <= MODEL_MESH_BUDGETS[0] * 1.2:
         return surface
@@ -117,8 +133,6 @@ def landmark_mask_warnings(points, image, surface, path, limit: float = 0.05) ->
     :data:`LANDMARK_OUTSIDE_MM` outside the lung mask of their own ``image`` (files swapped, or in
     another frame; on the ITK pair every landmark is inside its own mask, 8–12 % are not inside
     the other's). Points off the mask are measured to the mask's ``surface`` (mm)."""
-    from lungdeform.geometry.distance import point_to_surface
-    from lungdeform.geometry.mesh import winding_numbers
 
     if image is None or len(points) == 0:
         return []
@@ -145,7 +159,6 @@ def landmark_mask_warnings(points, image, surface, path, limit: float = 0.05) ->
 
 def check_landmarks(points, image, path, margin_mm: float = 0.0) -> None:
     """Refuse landmarks outside the image's world bounding box (mm)."""
-    from lungdeform.errors import InputError
 
     if image is None:
         return
@@ -193,19 +206,6 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
     ``align``: one of :data:`ALIGN_MODES` (module docstring, step 3); ``metrics["alignment"][i]
     ["applied"]`` is the rigid transform (moving → end-exhale) the fitted target went through.
     ``mode``: the search mode of the fits (:data:`lungdeform.fit.fitting.MODES`, ``"grid"`` excepted)."""
-    from lungdeform.fit import baselines as B
-    from lungdeform.fit.align import RigidTransform, align_apex, align_landmarks, near_planes
-    from lungdeform.fit.crossval import cross_validate_landmarks
-    from lungdeform.interior.field import landmark_folds
-    from lungdeform.geometry.distance import SurfaceDistance
-    from lungdeform.errors import InputError
-    from lungdeform.fit.fitting import DIRECTION_HI, DIRECTION_LO, MODES, fit_lung, to_lung_model
-    from lungdeform.geometry.frame import SIDES, check_side
-    from lungdeform.atomic import write_json
-    from lungdeform.io.landmarks import read_elastix_points
-    from lungdeform.model.lung import Model
-    from lungdeform.io.modelfile import provenance, save_model
-    from lungdeform.fit.report import write_report
 
     say = progress or (lambda _m: None)
     t_start = time.perf_counter()
@@ -483,8 +483,6 @@ def _interior_correction(fit, landmarks, aligned, targets, folds, keep, weights,
     its kept vertices (``LungModel.interior_vertices``), here as the metrics' operator ``weights``
     (:func:`lungdeform.fit.baselines.landmark_matrix`, the same interpolant); the correction is the
     sliding correction through the same kept vertices of ``rest``."""
-    from lungdeform.interior.field import (correction_per_unit, correction_solvers, held_out_sliding,
-                                     select_correction_smoothing)
 
     unit = weights @ fit.displacement[keep]  # mm per unit
     observed = [np.asarray(a) - landmarks for a in aligned]
@@ -500,8 +498,6 @@ def _place(surface, planes, transform, fixed_planes, volume_ml: float, name: str
     """Target ``surface`` placed in the end-exhale frame by the rigid ``transform`` (moving →
     end-exhale): ``(Target, its crop planes moved by transform)``; the target's vertices near any
     of those planes or of the end-exhale ``fixed_planes`` are not measured."""
-    from lungdeform.fit.align import near_planes
-    from lungdeform.fit.objective import Target
 
     placed = transform.apply_surface(surface)
     moved = [p.transformed(transform) for p in planes]
@@ -522,7 +518,6 @@ def _bounding_boxes(rest, fit, surfaces, vols):
 
 
 def _json(o):
-    from lungdeform.atomic import jsonable
 
     try:
         return jsonable(o)

@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from lungdeform.atomic import write_bytes
+
 
 def _png(fig) -> str:
     buf = io.BytesIO()
@@ -151,7 +153,6 @@ def _table(per: dict) -> str:
 def write_report(path, *, rest, targets, fits, predictions, metrics, headline: str = "optimizer") -> Path:
     """Write the HTML report atomically; returns the path. ``headline``: the key of ``fits`` whose
     model is the headline ``model`` (rays and direction field are drawn for it)."""
-    from lungdeform.atomic import write_bytes
 
     parts = ["<!doctype html><html><head><meta charset='utf-8'><title>lungdeform fit report</title>",
              "<style>body{font-family:sans-serif;max-width:1100px;margin:auto}table{border-collapse:collapse}"

@@ -35,6 +35,8 @@ in :mod:`lungdeform.fit.ct`.
 
 from __future__ import annotations
 
+import io as _io
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,9 +44,11 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage as ndi
 
-from .ct import axial_axes, check_ct, to_axial
+from lungdeform.atomic import write_bytes
 from lungdeform.errors import InputError, MaskError
 from lungdeform.io.image import Image
+
+from .ct import axial_axes, check_ct, to_axial
 
 _SIX = ndi.generate_binary_structure(3, 1)
 #: 4-connected in-plane structure with no link across slices: per-slice (2-D) operations on a 3-D array.
@@ -303,7 +307,6 @@ def segment_lungs(
     Raises :class:`MaskError` when no lung-sized air is found inside the body, or the lungs cannot
     be split, and :class:`InputError` for an image that is not CT in HU.
     """
-    import time
 
     def say(msg):
         if progress:
@@ -443,7 +446,6 @@ def overlay_png(seg: LungSegmentation, path, n_axial: int = 3) -> Path:
     """Write a PNG of the masks over CT slices: ``n_axial`` axial slices through the lungs and one
     coronal slice; left lung blue, right lung red, removed airways yellow. Radiological display
     (patient right on the image's left, anterior up, head up). Written atomically."""
-    import io as _io
 
     import matplotlib
 
@@ -451,7 +453,6 @@ def overlay_png(seg: LungSegmentation, path, n_axial: int = 3) -> Path:
     from matplotlib import pyplot as plt
     from matplotlib.colors import ListedColormap
 
-    from lungdeform.atomic import write_bytes
 
     perm = axial_axes(seg.image)  # draw in axial (z, y, x) order whatever the file's axis order
     axial = to_axial(seg.image, perm)

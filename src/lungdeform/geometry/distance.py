@@ -25,6 +25,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from lungdeform.errors import InputError
+
 from .mesh import Surface, as_faces, as_vertices, face_areas
 
 

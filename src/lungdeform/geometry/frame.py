@@ -15,8 +15,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import ConvexHull, QhullError
 
+from lungdeform.constants import gravity_vector
 from lungdeform.errors import InputError
+
+from .distance import vertex_areas
 from .mesh import as_vertices
 
 SIDES = ("left", "right")
@@ -71,7 +75,6 @@ class LungFrame:
         decubitus position flips X (origin lateral). Z (apex → base) never flips. Supine and
         upright return the anatomical frame unchanged.
         """
-        from lungdeform.constants import gravity_vector
 
         g = gravity_vector(gravity)
         flip = np.array([1.0, 1.0, 1.0])
@@ -118,9 +121,7 @@ def side_from_shape(vertices: np.ndarray, faces: np.ndarray, max_points: int = 2
     the hull (``vertices : (n, 3)`` mm LPS; depths at ``max_points`` seeded vertices at most).
     Trust the side only when ``|score|`` > :data:`SIDE_SCORE_MIN`; measured values are in
     ``docs/FITTING.md``."""
-    from scipy.spatial import ConvexHull, QhullError
 
-    from .distance import vertex_areas
 
     v = as_vertices(vertices, "vertices")
     area = vertex_areas(v, np.asarray(faces))

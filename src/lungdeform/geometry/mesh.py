@@ -13,11 +13,13 @@ caches derived data and delegates.
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
 from scipy import sparse
+from scipy.sparse.csgraph import connected_components
 
 from lungdeform.errors import InputError, MeshError, UnitsError
 
@@ -158,7 +160,6 @@ def vertex_adjacency(n_vertices: int, edges: np.ndarray) -> sparse.csr_matrix:
 
 def face_components(faces: np.ndarray) -> tuple[int, np.ndarray]:
     """Connected components of faces through shared vertices: ``(count, labels (m,))``."""
-    from scipy.sparse.csgraph import connected_components
 
     m = len(faces)
     if m == 0:
@@ -187,7 +188,6 @@ def non_manifold_vertices(faces: np.ndarray, n_vertices: int) -> np.ndarray:
     Face corners at the same vertex are linked when their faces share an edge through that vertex;
     a manifold vertex has all its corners in one linked group.
     """
-    from scipy.sparse.csgraph import connected_components
 
     m = len(faces)
     _, face_edges = unique_edges(faces)
@@ -339,7 +339,6 @@ def _compact(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def _orient_consistently(f: np.ndarray) -> np.ndarray:
     """Flip faces so that neighbours agree, by breadth-first search over the face graph."""
-    from collections import deque
 
     edges, face_edges = unique_edges(f)
     m = len(f)

@@ -15,10 +15,13 @@ Arrays: ``vertices : (n, 3) float`` in mm (LPS world for surfaces made from imag
 
 from __future__ import annotations
 
+import fast_simplification
 import numpy as np
 from scipy import sparse
+from scipy.sparse.csgraph import connected_components
 
 from lungdeform.errors import InputError, MeshError
+
 from .mesh import (
     check_surface,
     edge_face_counts,
@@ -85,7 +88,6 @@ def decimate(
     smaller (deterministic; at most 26 tries; one is enough for most targets). Returns
     ``(vertices, faces, notes)``; raises :class:`MeshError` if no try gives a valid surface.
     """
-    import fast_simplification
 
     n_faces = len(faces)
     if 2 * int(target_vertices) >= n_faces:
@@ -247,7 +249,6 @@ def _split_pinched(v: np.ndarray, f: np.ndarray, pinched: np.ndarray, heavy: set
     Faces around ``p`` are linked when they share an edge ``(p, q)`` that is not in ``heavy``
     (sorted vertex pairs of edges with more than two faces).
     """
-    from scipy.sparse.csgraph import connected_components
 
     v = list(v)
     f = f.copy()

@@ -25,3 +25,20 @@ from .field import (
     select_smoothing,
     spline_predict,
 )
+
+__all__ = [
+    "CORRECTION_SMOOTHING_MM",
+    "InteriorField",
+    "KINDS",
+    "KIND_TEXT",
+    "MAX_SURFACE_POINTS",
+    "SMOOTHING_MM2",
+    "correction_per_unit",
+    "correction_solvers",
+    "held_out_positions",
+    "held_out_sliding",
+    "interior_field",
+    "select_correction_smoothing",
+    "select_smoothing",
+    "spline_predict",
+]

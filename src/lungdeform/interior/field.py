@@ -37,8 +37,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from lungdeform.errors import InputError
-from .interpolate import DisplacementField, displacement_field, interpolation_weights
 from lungdeform.geometry.mesh import as_vertices
+
+from .interpolate import DisplacementField, displacement_field, interpolation_weights
 from .sliding import MAX_POINTS, CorrectionSolver, SlidingField, sliding_correction, sliding_field
 
 #: Candidate smoothings (mm², thin-plate regularisation) of the thin-plate landmark correction.

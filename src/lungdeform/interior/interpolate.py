@@ -27,6 +27,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.interpolate import RBFInterpolator
+from scipy.spatial.distance import cdist
 
 from lungdeform.errors import InputError
 from lungdeform.geometry.mesh import as_vertices, thinned
@@ -84,7 +86,6 @@ def displacement_field(points, displacements, *, max_points: int = 2500, smoothi
     ``smoothing`` (mm², scipy's meaning) trades exactness for smoothness; 0 interpolates. More than
     ``max_points`` points are thinned to a random subset (seeded) to bound the dense O(k³) solve.
     """
-    from scipy.interpolate import RBFInterpolator
 
     p, u = _check(points, displacements)
     idx = thinned(len(p), max_points, seed)
@@ -110,7 +111,6 @@ def interpolation_weights(points, query, *, smoothing: float = 0.0, max_points: 
     points) gives. Rows sum to 1 (constants are reproduced) and ``W @ points == query`` (so is
     any affine field). One dense solve of size ``k + 4``; ``max_points`` refuses larger ``k``.
     """
-    from scipy.spatial.distance import cdist
 
     p, _ = _check(points)
     q = as_vertices(query, "query")

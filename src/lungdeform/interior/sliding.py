@@ -43,6 +43,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
+from scipy.spatial.distance import cdist
 
 from lungdeform.errors import InputError
 from lungdeform.geometry.mesh import as_vertices, thinned
@@ -81,7 +83,6 @@ def _check_smoothing(smoothing) -> float:
 def _system(p: np.ndarray, n: np.ndarray, smoothing: float):
     """The (k + r)² saddle matrix, the centre and scale of the polynomial coordinates, and the
     ``(12, r)`` basis of the affine directions the normals see."""
-    from scipy.spatial.distance import cdist
 
     k = len(p)
     center = p.mean(axis=0)
@@ -112,7 +113,6 @@ def _system(p: np.ndarray, n: np.ndarray, smoothing: float):
 def _design(p: np.ndarray, n: np.ndarray, query: np.ndarray, center, scale, basis, anchors=None) -> np.ndarray:
     """``(3, q, k + 3a + r)``: component ``c`` of ``v(query)`` is ``design[c] @ coefficients``
     (coefficients: ``k`` normal weights, ``3a`` anchor weights by component, ``r`` polynomial)."""
-    from scipy.spatial.distance import cdist
 
     k, m = len(p), len(query)
     a = 0 if anchors is None else len(anchors)
@@ -286,7 +286,6 @@ def checked_operator(matrix, shape: tuple[int, int], name: str = "landmark_matri
 
 
 def _check_anchors(anchors, values=None):
-    from scipy.spatial import cKDTree
 
     q = as_vertices(anchors, "anchors")
     if len(q) < 1 or not np.all(np.isfinite(q)):

@@ -11,4 +11,24 @@ core modules. Every reader normalises to ``(n, 3)`` C-contiguous float64 mm once
 :class:`~lungdeform.errors.ReadError` (or a subclass) naming the file.
 """
 
-from .meshfile import MESH_SUFFIXES, UNITS_MM, WRITE_SUFFIXES, load, load_surface, merge_duplicate_vertices, read_mesh, write_mesh
+from .meshfile import (
+    MESH_SUFFIXES,
+    UNITS_MM,
+    WRITE_SUFFIXES,
+    load,
+    load_surface,
+    merge_duplicate_vertices,
+    read_mesh,
+    write_mesh,
+)
+
+__all__ = [
+    "MESH_SUFFIXES",
+    "UNITS_MM",
+    "WRITE_SUFFIXES",
+    "load",
+    "load_surface",
+    "merge_duplicate_vertices",
+    "read_mesh",
+    "write_mesh",
+]

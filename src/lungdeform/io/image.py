@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import SimpleITK as sitk
 
 from lungdeform.errors import InputError, ReadError
 
@@ -103,7 +104,6 @@ def is_dicom_file(path) -> bool:
 def _quiet_itk():
     """Silence ITK's own warnings on stderr (e.g. GDCM's "No Series were found"): the CLI's
     contract is one error line; what went wrong is said by the :class:`ReadError` raised instead."""
-    import SimpleITK as sitk
 
     before = sitk.ProcessObject.GetGlobalWarningDisplay()
     sitk.ProcessObject.SetGlobalWarningDisplay(False)
@@ -115,7 +115,6 @@ def _quiet_itk():
 
 def _series_in(folder: Path) -> list[tuple[str, tuple[str, ...]]]:
     """``[(series UID, file names)]`` of the DICOM series directly in ``folder``, largest first."""
-    import SimpleITK as sitk
 
     reader = sitk.ImageSeriesReader
     with _quiet_itk():
@@ -181,7 +180,6 @@ def read_image(path) -> Image:
     (:func:`dicom_series_files`). Raises :class:`ReadError` naming the path when it is missing,
     empty, unreadable, ambiguous (several series) or not 3-D scalar.
     """
-    import SimpleITK as sitk
 
     p = Path(path)
     if not p.exists():

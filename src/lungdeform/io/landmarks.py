@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lungdeform.atomic import write_text
 from lungdeform.errors import InputError, ReadError
 
 
@@ -173,7 +174,6 @@ def write_elastix_points(path, points) -> Path:
         raise InputError("points must be finite")
     path = Path(path)
     body = "point\n%d\n" % len(pts) + "".join("%.6f %.6f %.6f\n" % tuple(p) for p in pts)
-    from lungdeform.atomic import write_text
 
     write_text(path, body)
     return path

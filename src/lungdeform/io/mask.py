@@ -34,11 +34,14 @@ from pathlib import Path
 from typing import Mapping
 
 import numpy as np
+from scipy import ndimage
+from skimage.measure import marching_cubes
 
 from lungdeform.errors import InputError, MaskError, MeshError, UnitsError
-from .image import Image, index_to_world
 from lungdeform.geometry.mesh import Surface, SurfaceReport, check_surface, signed_volume
 from lungdeform.geometry.remesh import clean_mesh, decimate, largest_surface_piece, taubin_smooth
+
+from .image import Image, index_to_world
 
 #: Lobe label maps (coronacases convention): 1 left upper, 2 left lower, 3 right upper,
 #: 4 right middle, 5 right lower lobe.
@@ -67,7 +70,6 @@ def side_mask(image: Image, side: str) -> Image:
         raise MaskError(f"{image.source}: lobe labels {sorted(int(v) for v in values)}: none of the {side} lobes "
                         f"{list(LOBE_LABELS[side])}")
     if other.any():
-        from scipy import ndimage
 
         cw = image.index_to_world(np.array([ndimage.center_of_mass(want)[::-1]]))[0]
         co = image.index_to_world(np.array([ndimage.center_of_mass(other)[::-1]]))[0]
@@ -189,8 +191,6 @@ def extract_surface(
     ``labels``: None (any non-zero voxel) or a sequence of ints. ``target_vertices``: decimate
     to about this many vertices (None: keep the marching-cubes resolution).
     """
-    from scipy import ndimage
-    from skimage.measure import marching_cubes
 
     what = "any non-zero label" if labels is None else f"labels {list(_as_labels(labels, 'labels'))}"
     source = image.source

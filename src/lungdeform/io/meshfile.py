@@ -40,12 +40,16 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
+import trimesh
 
-from lungdeform.io import vtk as vtkio
-from .vtk import FormatError
 from lungdeform.atomic import write_bytes
 from lungdeform.errors import InputError, LungdeformError, ReadError
-from lungdeform.geometry.mesh import Surface, SurfaceReport, check_surface
+from lungdeform.geometry.mesh import Surface, SurfaceReport, as_faces, as_vertices, check_surface
+from lungdeform.io import image as _image
+from lungdeform.io import mask as _mask
+from lungdeform.io import vtk as vtkio
+
+from .vtk import FormatError
 
 MESH_SUFFIXES = (".stl", ".obj", ".ply", ".vtk", ".vtp", ".off", ".gltf", ".glb")
 WRITE_SUFFIXES = (".stl", ".obj", ".ply", ".vtk", ".vtp", ".off")
@@ -125,7 +129,6 @@ def write_mesh(path, vertices, faces) -> Path:
     ``faces : (m, 3) int``. Formats: binary STL, OBJ, binary PLY, legacy binary VTK POLYDATA,
     VTK XML PolyData (inline base64) and OFF. Returns the path.
     """
-    from lungdeform.geometry.mesh import as_faces, as_vertices
 
     p = Path(path)
     suffix = p.suffix.lower()
@@ -168,8 +171,6 @@ def load(
     Each surface passed :func:`check_surface` (messages start with the path). ``repair`` applies
     to mesh files; surfaces made from masks are closed, manifold and outward by construction.
     """
-    from lungdeform.io import image as _image
-    from lungdeform.io import mask as _mask
 
     p = Path(path)
     if _is_mesh_path(p):
@@ -375,7 +376,6 @@ def _write_off(v: np.ndarray, f: np.ndarray) -> bytes:
 
 # =========================================================================== PLY
 def _read_ply(p: Path):
-    import trimesh
 
     with open(p, "rb") as fh:
         if fh.read(3) != b"ply":
@@ -401,7 +401,6 @@ def _write_ply(v: np.ndarray, f: np.ndarray) -> bytes:
 
 # =========================================================================== glTF / GLB
 def _read_gltf(p: Path):
-    import trimesh
 
     suffix = p.suffix.lower()
     if suffix == ".glb":

@@ -45,6 +45,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lungdeform import __version__
 from lungdeform.atomic import atomic_path, finite_json
 from lungdeform.errors import InputError, ModelFileError
 from lungdeform.geometry.frame import LungFrame
@@ -199,7 +200,6 @@ def _lung(path: Path, name: str, data: dict, version: int = SCHEMA_VERSION) -> L
 
 def provenance(command: str, **extra) -> dict:
     """What a model file records about its making: software version, command, argv, time (UTC)."""
-    from lungdeform import __version__
 
     return {
         "software": f"lungdeform {__version__}",

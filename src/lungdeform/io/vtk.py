@@ -21,11 +21,16 @@ Arrays: ``vertices : (n, 3) float64`` in the file's units and frame, ``faces : (
 from __future__ import annotations
 
 import base64
+import contextlib
+import io as _io
+import lzma
 import re
 import struct
+import xml.etree.ElementTree as ET
 import zlib
 from pathlib import Path
 
+import meshio
 import numpy as np
 
 
@@ -201,10 +206,7 @@ def _split_classic_cells(flat: np.ndarray, n_cells: int) -> tuple[np.ndarray, np
 
 
 def _read_unstructured(p: Path):
-    import contextlib
-    import io as _io
 
-    import meshio
 
     sink = _io.StringIO()
     with contextlib.redirect_stdout(sink), contextlib.redirect_stderr(sink):
@@ -240,7 +242,6 @@ _VTK_XML_TYPES = {
 
 def read_vtp(path) -> tuple[np.ndarray, np.ndarray]:
     """VTK XML PolyData file ``path`` → ``(vertices (n, 3) float64, faces (m, 3) int64)``; see the module docstring."""
-    import xml.etree.ElementTree as ET
 
     p = Path(path)
     data = p.read_bytes()
@@ -368,7 +369,6 @@ def _decode_binary(blob: bytes, dtype: np.dtype, ctx, *, base64_encoded: bool) -
     if comp == "vtkZLibDataCompressor":
         decompress = zlib.decompress
     elif comp == "vtkLZMADataCompressor":
-        import lzma
 
         decompress = lzma.decompress
     else:

@@ -14,3 +14,10 @@ fitting code (:mod:`lungdeform.fit`), files (:mod:`lungdeform.io`) or playback.
 """
 
 from .lung import LungModel, Model, build_lung, build_model
+
+__all__ = [
+    "LungModel",
+    "Model",
+    "build_lung",
+    "build_model",
+]

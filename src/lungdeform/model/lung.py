@@ -21,13 +21,15 @@ from typing import Callable
 import numpy as np
 
 from lungdeform.constants import TIDAL_VOLUME_ML, gravity_vector, table_constants
+from lungdeform.errors import InputError, LungdeformError
+from lungdeform.geometry.frame import LungFrame, lung_frame
+from lungdeform.geometry.mesh import Surface
+from lungdeform.interior.field import KINDS, interior_field
+
 from .direction import directions as direction_field
 from .displacement import Playback, calibrate, scale_for_volume, volume_polynomial
-from lungdeform.errors import InputError, LungdeformError
 from .force import field_basis, force_weights
-from lungdeform.geometry.frame import LungFrame, lung_frame
 from .graph import spring_graph
-from lungdeform.geometry.mesh import Surface
 from .solve import ForceSolver, LinearSolver
 from .stiffness import as_moduli, uniform
 from .transfer import local_transfer
@@ -100,7 +102,6 @@ class LungModel:
     interior_kind: str = "sliding"
 
     def __post_init__(self):
-        from lungdeform.interior.field import KINDS
 
         if self.interior_kind not in KINDS:
             raise InputError(f"interior_kind must be one of {', '.join(KINDS)}, got {self.interior_kind!r}")
@@ -169,7 +170,6 @@ class LungModel:
     def interior(self):
         """The :class:`~lungdeform.interior.field.InteriorField` of this lung: displacement per unit of any
         point inside it (surface-driven, plus the landmark correction when the model has one)."""
-        from lungdeform.interior.field import interior_field
 
         on = slice(None) if self.interior_vertices is None else np.asarray(self.interior_vertices, bool)
         return interior_field(self.surface.vertices[on], self.displacement[on], self.landmarks,

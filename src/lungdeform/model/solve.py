@@ -25,6 +25,7 @@ from scipy import sparse
 from scipy.sparse import linalg as spla
 
 from lungdeform.errors import ConvergenceError, InputError
+
 from .transfer import split_transfer
 
 

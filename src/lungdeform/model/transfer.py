@@ -17,6 +17,7 @@ import numpy as np
 from scipy import sparse
 
 from lungdeform.errors import InputError
+
 from .graph import SpringGraph
 from .stiffness import node_moduli
 

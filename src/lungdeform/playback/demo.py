@@ -23,8 +23,17 @@ from typing import Callable
 import numpy as np
 
 from lungdeform.atomic import write_json
+from lungdeform.breathing.presets import get_preset
 from lungdeform.constants import STEPS_PER_S
+from lungdeform.data import default_lungs
 from lungdeform.geometry.mesh import signed_volume
+from lungdeform.io.modelfile import save_model
+from lungdeform.model.displacement import scale_for_volume
+from lungdeform.model.lung import build_model
+
+from .export import export_pvd
+from .render import snapshot
+from .schedule import lung_shares, preset_trace
 
 DEFAULT_PRESET = "normal"
 
@@ -49,13 +58,6 @@ def run_demo(
     progress: Callable[[str], None] | None = None,
 ) -> DemoResult:
     """Build the default lungs and play ``preset`` (one period unless ``duration_s``) into ``out``."""
-    from lungdeform.data import default_lungs
-    from lungdeform.model.displacement import scale_for_volume
-    from .schedule import lung_shares, preset_trace
-    from lungdeform.model.lung import build_model
-    from lungdeform.io.modelfile import save_model
-    from lungdeform.breathing.presets import get_preset
-    from .render import snapshot
 
     say = progress or (lambda _m: None)
     chosen = get_preset(preset)
@@ -133,7 +135,6 @@ def run_demo(
 
 def _write_series(out: Path, model, breath, fps, say) -> Path:
     """Mesh time series for ParaView (``series.pvd`` + one ``.vtp`` per lung and frame)."""
-    from .export import export_pvd
 
     say(f"writing the mesh time series at {fps:g} frames/s")
     return export_pvd(model, out / "series.pvd", breath, fps=fps, progress=say)

@@ -63,14 +63,17 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+import pygltflib as g
 
-from lungdeform.constants import GRAVITY
-from lungdeform.model.displacement import scale_for_volume, smallest_positive_root
+from lungdeform import __version__
 from lungdeform.atomic import finite_json, write_bytes
+from lungdeform.constants import GRAVITY
 from lungdeform.errors import InputError, LungdeformError
-from lungdeform.model.force import force_weights
 from lungdeform.geometry.mesh import vertex_normals
+from lungdeform.model.displacement import scale_for_volume, smallest_positive_root
+from lungdeform.model.force import force_weights
 from lungdeform.model.lung import LungModel, Model
+
 from .schedule import VolumeTrace, lung_shares, plain_cycle
 
 GLB_SCHEMA = "lungdeform.glb"
@@ -177,7 +180,6 @@ class _Blob:
         self.gl, self.parts, self.size = gl, [], 0
 
     def add(self, array: np.ndarray, kind: str, target=None, minmax: bool = False) -> int:
-        import pygltflib as g
 
         a = np.ascontiguousarray(array)
         ctype = {np.dtype(np.float32): g.FLOAT, np.dtype(np.uint32): g.UNSIGNED_INT}[a.dtype]
@@ -198,9 +200,7 @@ class _Blob:
 
 def glb_bytes(model: Model, trace: VolumeTrace | None = None, markers: list[dict] | None = None) -> bytes:
     """The model as a glTF 2.0 binary (see the module docstring for the layout)."""
-    import pygltflib as g
 
-    from lungdeform import __version__
 
     trace = trace or plain_cycle()
     shares = lung_shares(model)

@@ -17,6 +17,7 @@ import numpy as np
 
 from lungdeform.errors import InputError
 from lungdeform.model.lung import Model
+
 from .trajectory import place_points, unit_displacements
 
 

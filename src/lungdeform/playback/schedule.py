@@ -25,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from lungdeform.breathing.presets import get_preset
+from lungdeform.breathing.pv import BreathingCurve, scaled_to_tidal_volume, simulate
 from lungdeform.constants import STEPS_PER_S, TIDAL_VOLUME_ML
 from lungdeform.errors import InputError, LungdeformError, ReadError
 from lungdeform.model.lung import Model
@@ -91,8 +93,6 @@ def preset_trace(preset, cycles: int = 1, tidal_ml: float | None = None, rate_hz
     :class:`VolumeTrace` (volume above the curve's minimum, end-exhale, mL; that minimum in
     ``shifted_ml``).
     """
-    from lungdeform.breathing.pv import BreathingCurve, scaled_to_tidal_volume, simulate
-    from lungdeform.breathing.presets import get_preset
 
     if isinstance(preset, str):
         preset = get_preset(preset)

@@ -22,6 +22,7 @@ from __future__ import annotations
 import functools
 import ipaddress
 import json
+import struct
 import threading
 from dataclasses import dataclass
 from http import HTTPStatus
@@ -31,7 +32,14 @@ from typing import Callable
 
 import numpy as np
 
+from lungdeform.breathing.presets import PRESETS
 from lungdeform.errors import InputError, ReadError
+from lungdeform.io.modelfile import load_model
+
+from .export import glb_bytes
+from .markers import marker_anchors
+from .schedule import preset_trace, read_volume_csv
+from .trajectory import read_markers_csv
 
 DEFAULT_HOST = "127.0.0.1"
 CONTENT_TYPES = {
@@ -75,7 +83,6 @@ def bundle_routes(bundle: Path | None = None) -> dict[str, Resource]:
 
 def check_glb(data: bytes, source: str = "model") -> bytes:
     """Refuse bytes that are not a glTF 2.0 binary (magic ``glTF``, version 2, consistent length)."""
-    import struct
 
     if len(data) < 20 or data[:4] != b"glTF":
         raise ReadError(f"{source}: not a glTF binary (.glb) file")
@@ -225,11 +232,6 @@ def model_glb(path, curve=None, markers=None) -> bytes:
         if curve is not None or markers is not None:
             raise InputError(f"{p}: --curve and --markers apply to a model file, not to a .glb")
         return check_glb(p.read_bytes(), str(p))
-    from .export import glb_bytes
-    from .markers import marker_anchors
-    from lungdeform.io.modelfile import load_model
-    from .schedule import read_volume_csv
-    from .trajectory import read_markers_csv
 
     model = load_model(p)
     trace = read_volume_csv(curve) if curve is not None else None
@@ -255,8 +257,6 @@ def presets_payload(rate_hz: float = PRESET_RATE_HZ) -> dict:
     curve ``s(t) = (V(t) − V_EE)/ΔV`` in [0, 1] (V_EE and ΔV: the samples' minimum and peak-to-peak;
     the viewer multiplies ``s`` by its tidal-volume control), ``sources`` and the PV ``params``.
     """
-    from lungdeform.breathing.presets import PRESETS
-    from .schedule import preset_trace
 
     out = []
     for name, preset in PRESETS.items():

@@ -19,7 +19,12 @@ import numpy as np
 
 from lungdeform.atomic import write_bytes
 from lungdeform.errors import InputError, ReadError
-from lungdeform.geometry.mesh import as_vertices
+from lungdeform.geometry.distance import point_to_surface
+from lungdeform.geometry.mesh import as_vertices, winding_numbers
+from lungdeform.io.landmarks import read_elastix_points
+from lungdeform.model.displacement import scale_for_volume
+
+from .schedule import lung_shares
 
 #: Points farther than this outside every lung are refused (a wrong frame or unit, not a tumour).
 OUTSIDE_LIMIT_MM = 30.0
@@ -43,8 +48,6 @@ def place_points(model, points, lung: str | None = None, *, limit_mm: float = OU
     """Assign ``points : (q, 3)`` mm LPS (end-exhale) to the lungs of ``model``: the lung that
     contains the point, else the nearest; ``lung`` forces one. Points more than ``limit_mm`` outside
     their lung raise :class:`InputError` naming ``source`` and the points (1-based)."""
-    from lungdeform.geometry.distance import point_to_surface
-    from lungdeform.geometry.mesh import winding_numbers
 
     q = as_vertices(points, "points")
     if len(q) == 0 or not np.all(np.isfinite(q)):
@@ -73,8 +76,6 @@ def lung_scales(model, delta_ml) -> dict[str, np.ndarray]:
     """Per lung, ``s : (f,) float`` units at which its volume is exactly ``V_EE + share·ΔV``, for
     ``delta_ml : (f,)`` mL of both lungs above end-exhale: the playback of ``lungdeform export``
     (whose tidal weights :func:`lungdeform.playback.export.tidal_weights` are these over the calibration's units)."""
-    from lungdeform.model.displacement import scale_for_volume
-    from .schedule import lung_shares
 
     dv = np.asarray(delta_ml, float).ravel()
     if not np.all(np.isfinite(dv)):
@@ -182,7 +183,6 @@ def _plot(path: Path, disp: np.ndarray, x: np.ndarray, xlabel: str, labels, max_
 def read_points(path) -> tuple[np.ndarray, list[str]]:
     """Points to track: a CSV with ``x_mm,y_mm,z_mm[,label]`` (LPS mm) or an elastix point set
     (``point`` header, world mm). Returns ``(points (q, 3) float mm, labels)``."""
-    from lungdeform.io.landmarks import read_elastix_points
 
     path = Path(path)
     if not path.is_file():

@@ -44,6 +44,9 @@ from pathlib import Path
 
 import numpy as np
 
+from lungdeform.errors import InputError, ReadError
+from lungdeform.io.landmarks import as_spacing, read_dirlab_points
+
 # Finding the files and reading voxel_spacing.csv live in dirlab_files; its public names are
 # re-exported here so that ``lungdeform.validate.dirlab.discover`` etc. keep working.
 from .dirlab_files import (
@@ -57,8 +60,6 @@ from .dirlab_files import (
     geometry_notes,
     read_voxel_spacing,
 )
-from lungdeform.errors import InputError, ReadError
-from lungdeform.io.landmarks import as_spacing, read_dirlab_points
 
 INTERMEDIATE = ("T10", "T20", "T30", "T40")
 #: Published mean T00→T50 displacement of the 300 pairs, mm (Castillo et al. 2009 for cases 1–5,

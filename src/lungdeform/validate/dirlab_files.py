@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from lungdeform.errors import InputError, ReadError
-from lungdeform.io.landmarks import as_spacing
+from lungdeform.io.landmarks import as_spacing, read_dirlab_indices
 
 PHASES = ("T00", "T10", "T20", "T30", "T40", "T50")
 #: Published image geometry per case: ((dim_x, dim_y, dim_z) voxels, (sx, sy, sz) mm). Used to
@@ -344,7 +344,6 @@ def _is_spacing_table(path: Path) -> bool:
 
 
 def _same_file_content(a: Path, b: Path) -> bool:
-    from lungdeform.io.landmarks import read_dirlab_indices
 
     x, y = read_dirlab_indices(a), read_dirlab_indices(b)
     return x.shape == y.shape and bool(np.array_equal(x, y))

@@ -55,13 +55,17 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import Delaunay
+from scipy.stats import spearmanr
 
+from lungdeform.atomic import atomic_path
 from lungdeform.errors import InputError
-from lungdeform.model.graph import SpringGraph, spring_graph
 from lungdeform.geometry.mesh import unique_edges
-from .msd import MSDIntegrator, MSDResult, transfer_network
+from lungdeform.model.graph import SpringGraph, spring_graph
 from lungdeform.model.solve import ForceSolver, push
 from lungdeform.model.transfer import local_transfer
+
+from .msd import MSDIntegrator, MSDResult, transfer_network
 
 CONVERGENCE_DEFINITION = (
     "relative residual of (I - Q^T) x = f: push loop max|Pitcher|/max|f|, MSD max|f - K u|/max|f| "
@@ -99,7 +103,6 @@ def circular_mesh(rings: int = 12, spacing: float = 3.0) -> tuple[np.ndarray, np
     Returns ``vertices : (1 + 3·rings·(rings+1), 3) float`` mm in the plane ``z = 0``, centre first,
     and ``faces : (m, 3) int`` from a Delaunay triangulation (counter-clockwise seen from +z).
     """
-    from scipy.spatial import Delaunay
 
     if int(rings) < 1:
         raise InputError(f"rings must be ≥ 1, got {rings!r}")
@@ -372,7 +375,6 @@ def circular_experiment(rings: int = 12, spacing: float = 3.0, *, pattern: str =
     order = rim[np.argsort(e[rim], kind="stable")]
     soft, stiff = order[:k], order[-k:]
     rel = c / c1
-    from scipy.stats import spearmanr
 
     rho = float(spearmanr(np.log(e[rim]), rel[rim]).statistic)
     return CircularResult(
@@ -567,7 +569,6 @@ def _figure(size):
 
 
 def _save(fig, canvas, path) -> Path:
-    from lungdeform.atomic import atomic_path
 
     with atomic_path(path, ".png") as tmp:
         canvas.print_png(str(tmp))
