@@ -145,7 +145,9 @@ def test_validate_breathing_all_scores_nan(tmp_path, rng, capsys, monkeypatch):
             r[key].update({m: float("nan") for m in holdout.MODELS})
         return r
 
-    monkeypatch.setattr(holdout, "evaluate", nan_scores)
+    import lungdeform.cli.validate_breathing as command
+
+    monkeypatch.setattr(command, "evaluate", nan_scores)  # where the command looks it up
     data = tmp_path / "data"
     data.mkdir()
     _synthetic_trace(data / "a.csv", rng)
