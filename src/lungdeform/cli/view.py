@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ipaddress
+import webbrowser
 from pathlib import Path
 
 import typer
@@ -33,7 +34,6 @@ def register(apps) -> None:
             typer.echo(f"warning: serving on {host}, reachable from other machines", err=True)
         typer.echo(f"viewer for {model} at {server.url}  (Ctrl-C to stop)")
         if open_browser:
-            import webbrowser
 
             webbrowser.open(server.url)
         try:

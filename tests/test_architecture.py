@@ -1,0 +1,184 @@
+"""The package's architecture is a contract (docs/ARCHITECTURE.md): layers, no import cycles, short
+functions, one plotting module. Each figure is measured from the source here, so a change that breaks
+the contract fails ``make test``.
+"""
+
+from __future__ import annotations
+
+import ast
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+PACKAGE = Path(__file__).resolve().parents[1] / "src" / "lungdeform"
+REPO = PACKAGE.parents[1]
+#: optional dependencies: the only imports allowed inside functions
+OPTIONAL = {"distributed", "dask", "fcntl"}  # fcntl: POSIX only (the cohort lock)
+MAX_FUNCTION_LINES = 80
+
+
+def _modules() -> dict[str, ast.Module]:
+    out = {}
+    for path in sorted(PACKAGE.rglob("*.py")):
+        parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
+        name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+        out[name] = (path, ast.parse(path.read_text(encoding="utf-8")))
+    return out
+
+
+MODULES = _modules()
+
+
+def _imported(name: str, path: Path, node) -> list[str]:
+    """The lungdeform modules an import statement of module ``name`` names (relative ones resolved)."""
+    if isinstance(node, ast.Import):
+        return [a.name for a in node.names if a.name.split(".")[0] == "lungdeform"]
+    base = name.split(".") if path.name == "__init__.py" else name.split(".")[:-1]
+    if node.level:
+        base = base[: len(base) - node.level + 1]
+        module = ".".join(base + ([node.module] if node.module else []))
+    else:
+        module = node.module or ""
+    if module.split(".")[0] != "lungdeform":
+        return []
+    # `from package import submodule` names the submodule when it is one
+    subs = [f"{module}.{a.name}" for a in node.names if f"{module}.{a.name}" in MODULES]
+    return subs + [module]
+
+
+def _graph() -> dict[str, set[str]]:
+    graph = {}
+    for name, (path, tree) in MODULES.items():
+        deps = set()
+        for node in ast.walk(tree):  # function-local and TYPE_CHECKING imports count too
+            if isinstance(node, (ast.Import, ast.ImportFrom)):
+                deps.update(d for d in _imported(name, path, node) if d in MODULES and d != name)
+        graph[name] = deps
+    return graph
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components of more than one module (Tarjan)."""
+    index, low, stack, on, out = {}, {}, [], set(), []
+
+    def visit(v):
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in graph:
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_no_import_cycles_between_modules():
+    # a package __init__ importing its own submodules is not a cycle of concern; every other
+    # strongly connected component is (truth: Tarjan's algorithm over every import statement)
+    graph = {m: {d for d in deps if not m.startswith(d + ".") and not (d.startswith(m + ".") and
+                                                                        MODULES[m][0].name == "__init__.py")}
+             for m, deps in _graph().items()}
+    assert _cycles(graph) == []
+
+
+def test_cycle_detector_finds_a_cycle():
+    # the detector itself: a → b → c → a is one component, d alone is none
+    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+
+
+def test_layers_contract_passes_lint_imports():
+    # import-linter checks the layers and independence contracts of pyproject.toml
+    exe = Path(sys.executable).parent / "lint-imports"
+    if not exe.exists():
+        exe = shutil.which("lint-imports")
+    if exe is None:
+        pytest.skip("lint-imports is not installed (make test installs it into .venv)")
+    res = subprocess.run([str(exe), "--config", str(REPO / "pyproject.toml")], cwd=REPO, capture_output=True,
+                         text=True, timeout=300)
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-2000:]
+    assert "BROKEN" not in res.stdout and "KEPT" in res.stdout
+
+
+def test_package_root_holds_few_modules_and_the_subpackages_are_many():
+    root = [p.stem for p in PACKAGE.glob("*.py") if p.stem not in ("__init__", "__main__")]
+    subpackages = [p.name for p in PACKAGE.iterdir() if (p / "__init__.py").exists()]
+    assert len(root) <= 6, root
+    assert len(subpackages) >= 8, subpackages
+
+
+def test_every_subpackage_says_what_it_owns_and_may_import():
+    for init in PACKAGE.glob("*/__init__.py"):
+        doc = ast.get_docstring(ast.parse(init.read_text(encoding="utf-8"))) or ""
+        assert "May import" in doc or init.parent.name in ("cli", "data"), init
+
+
+def test_functions_are_short():
+    long = []
+    for name, (_, tree) in MODULES.items():
+        for node in ast.walk(tree):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                n = node.end_lineno - node.lineno + 1
+                if n > MAX_FUNCTION_LINES:
+                    long.append(f"{name}:{node.name} ({n} lines)")
+    assert long == []
+
+
+def test_imports_inside_functions_only_for_optional_dependencies():
+    local = []
+    for name, (_, tree) in MODULES.items():
+        for fn in ast.walk(tree):
+            if isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                for node in ast.walk(fn):
+                    if isinstance(node, ast.Import):
+                        mods = [a.name for a in node.names]
+                    elif isinstance(node, ast.ImportFrom):
+                        mods = ["lungdeform" if node.level else node.module or ""]
+                    else:
+                        continue
+                    local += [f"{name}:{fn.name} imports {m}" for m in mods if m.split(".")[0] not in OPTIONAL]
+    assert local == []
+
+
+def test_matplotlib_backend_chosen_nowhere_and_plots_in_one_module():
+    use, users = [], set()
+    for name, (path, tree) in MODULES.items():
+        for node in ast.walk(tree):
+            if (isinstance(node, ast.Call) and getattr(node.func, "attr", "") == "use"
+                    and getattr(getattr(node.func, "value", None), "id", "") == "matplotlib"):
+                use.append(name)
+            if isinstance(node, (ast.Import, ast.ImportFrom)):
+                mods = [a.name for a in node.names] if isinstance(node, ast.Import) else [node.module or ""]
+                if any(m.split(".")[0] == "matplotlib" for m in mods):
+                    users.add(name)
+    assert use == []
+    assert users <= {"lungdeform.plot"}, sorted(users)
+
+
+def test_no_references_to_documents_outside_the_repository():
+    # "issue N" and the project's METHOD notes are not in the repository: cite the paper's
+    # equations and docs/ instead
+    bad = []
+    for name, (path, _) in MODULES.items():
+        text = path.read_text(encoding="utf-8")
+        bad += [f"{name}: {m.group(0)}" for m in re.finditer(r"(?i:\bissue \d+)|\bMETHOD\b", text)]
+    assert bad == []
