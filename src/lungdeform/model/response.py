@@ -93,10 +93,16 @@ class ResponseSolver:
         """Krylov iterations of the last solve (0 for ``"direct"`` and callables)."""
         return self._solver.last_iterations
 
+    def kept(self, applied: np.ndarray) -> np.ndarray:
+        """``C : (N,) float``, the force kept at every graph node (mass nodes, then spring nodes),
+        for ``applied : (n,) float`` on the mass nodes (spring nodes start at 0) or ``(N,) float``
+        on all graph nodes. Force is conserved: ``ΣC = Σf``."""
+        return self._solver.solve(applied)
+
     def response(self, applied: np.ndarray) -> np.ndarray:
-        """``F : (n,) float``, the force kept at each mass node, for ``applied : (n,) float`` on the
-        mass nodes (spring nodes start at 0) or ``(N,) float`` on all graph nodes."""
-        return self._solver.solve(applied)[: self.n_mass]
+        """``F : (n,) float``, the force kept at each mass node (:meth:`kept` read at the mass
+        nodes), for ``applied : (n,)`` or ``(N,) float``."""
+        return self.kept(applied)[: self.n_mass]
 
     def responses(self, applied: np.ndarray) -> np.ndarray:
         """``(k, n) float``: :meth:`response` of each row of ``applied : (k, n)`` or ``(k, N)``
