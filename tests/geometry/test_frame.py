@@ -1,13 +1,11 @@
-"""Lung frame, applied force (18) with its orientation basis, and directions (15)–(17)."""
+"""Lung frame (Sec. IV-B.1), sides and orientations (the force (18) and directions (15)–(17) that use
+it are tested in tests/model/test_force.py and tests/model/test_direction.py)."""
 
 import numpy as np
 import pytest
 
-from lungdeform.constants import GRAVITY, table_constants
 from lungdeform.errors import InputError
 from lungdeform.geometry.frame import lung_frame
-from lungdeform.model.direction import directions
-from lungdeform.model.force import applied_force, field_basis, force_weights, height_weights
 
 
 def test_frame_origin_is_apex_posterior_medial(left_lung, right_lung):
@@ -23,56 +21,6 @@ def test_frame_origin_is_apex_posterior_medial(left_lung, right_lung):
         assert q[apex, 2] == pytest.approx(0)
         assert q[posterior, 1] == pytest.approx(0)
         assert q[medial, 0] == pytest.approx(0)
-
-
-def test_supine_force_is_equation_18(left_lung):
-    # Supine gravity (+y LPS) makes the height term equal ŷ, so Table I's (18) is reproduced.
-    fr = lung_frame(left_lung.vertices, "left")
-    q = fr.normalized(left_lung.vertices)
-    c = table_constants("left")
-    f = force_weights(fr, "supine", c) @ field_basis(q)
-    assert np.allclose(f, applied_force(q, c))
-
-
-@pytest.mark.parametrize("name", list(GRAVITY))
-def test_height_is_zero_at_bottom_one_at_top(left_lung, name):
-    fr = lung_frame(left_lung.vertices, "left")
-    h = height_weights(fr, name) @ field_basis(fr.normalized(left_lung.vertices))
-    up = -np.array(GRAVITY[name])
-    elevation = left_lung.vertices @ up
-    assert h[np.argmin(elevation)] == pytest.approx(0, abs=1e-12)
-    assert h[np.argmax(elevation)] == pytest.approx(1, abs=1e-12)
-    assert np.corrcoef(h, elevation)[0, 1] == pytest.approx(1)
-
-
-def test_prone_mirrors_supine(left_lung):
-    fr = lung_frame(left_lung.vertices, "left")
-    q = fr.normalized(left_lung.vertices)
-    hs = height_weights(fr, "supine") @ field_basis(q)
-    hp = height_weights(fr, "prone") @ field_basis(q)
-    assert np.allclose(hs + hp, 1)
-
-
-def test_directions_point_lateral_anterior_inferior(left_lung, right_lung):
-    # With positive c1, c3, c5 every direction has lateral, anterior (−y) and inferior (−z) parts.
-    for lung in (left_lung, right_lung):
-        fr = lung_frame(lung.vertices, lung.name)
-        d = directions(fr, lung.vertices, table_constants(lung.name))
-        n = np.linalg.norm(d, axis=1)
-        assert np.allclose(n[n > 0], 1)
-        lateral = 1 if lung.name == "left" else -1
-        assert np.all(lateral * d[:, 0] >= 0)
-        assert np.all(d[:, 1] <= 0) and np.all(d[:, 2] <= 0)
-
-
-def test_direction_formula_by_hand(left_lung):
-    fr = lung_frame(left_lung.vertices, "left")
-    c = np.array([1.0, 1.0, 2.0, 1.0, 3.0, 1.0])
-    q = fr.normalized(left_lung.vertices)
-    d = directions(fr, left_lung.vertices, c)
-    raw = np.stack([q[:, 0], -2 * q[:, 1], -3 * q[:, 2]], axis=1)  # lung axes X=+x, Y=−y, Z=−z
-    raw /= np.linalg.norm(raw, axis=1, keepdims=True)
-    assert np.allclose(d, raw)
 
 
 def test_bad_side_and_gravity():

@@ -13,16 +13,6 @@ def _graph(k=2, r=60.0):
     return s, spring_graph(s.vertices, s.edges)
 
 
-def test_graph_counts_and_links():
-    s, g = _graph()
-    # n mass nodes + one spring node per edge; each spring node links to its two mass nodes.
-    assert g.n_nodes == s.n_vertices + len(s.edges)
-    assert g.adjacency.nnz == 4 * len(s.edges)
-    deg = np.asarray(g.adjacency.sum(axis=1)).ravel()
-    assert np.all(deg[g.n_mass:] == 2)
-    assert np.allclose(g.positions[g.n_mass:], s.vertices[s.edges].mean(axis=1))
-
-
 def test_rows_sum_to_one_with_heterogeneous_stiffness(rng):
     # Every node hands on exactly what it receives: rows of T_e sum to 1 (paper eq. (3)).
     s, g = _graph()

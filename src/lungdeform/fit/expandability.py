@@ -18,8 +18,7 @@ from scipy import sparse
 
 from lungdeform.errors import ConvergenceError, InputError
 from lungdeform.geometry.remesh import umbrella_operator
-from lungdeform.model.solve import ForceSolver
-from lungdeform.model.transfer import local_transfer
+from lungdeform.model.response import ResponseSolver
 
 if TYPE_CHECKING:  # annotations only
     from .objective import LungFitter
@@ -72,9 +71,7 @@ def fit_stiffness_field(fitter: LungFitter, c_dir, *, iterations: int = 20, smoo
     f = parts["constants"][6:] @ fitter.applied_fields
     log_e = np.zeros(fitter.n)
     for _ in range(int(iterations)):
-        solver = ForceSolver(local_transfer(fitter.graph, np.exp(log_e), fitter.d_min), "bicgstab",
-                             n_mass=fitter.n, tol=1e-10)
-        force = solver.solve(f)[: fitter.n]
+        force = ResponseSolver(fitter.graph, np.exp(log_e), d_min=fitter.d_min).response(f)
         scale = float(target @ force) / float(force @ force)
         log_e = log_e + 0.7 * np.log(np.maximum(scale * force, 1e-3 * target) / target)
         log_e = smooth_observations(log_e, np.ones(fitter.n), fitter.surface.faces, smoothing)

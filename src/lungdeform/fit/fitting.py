@@ -36,10 +36,8 @@ from lungdeform.errors import ConvergenceError, InputError
 from lungdeform.geometry.frame import lung_frame
 from lungdeform.geometry.mesh import Surface
 from lungdeform.model.force import field_basis
-from lungdeform.model.graph import spring_graph
 from lungdeform.model.lung import LungModel
-from lungdeform.model.solve import ForceSolver
-from lungdeform.model.transfer import local_transfer
+from lungdeform.model.response import solve_response
 
 from .correspond import RayHits
 from .direction_correction import DirectionCorrection, fit_direction_correction
@@ -335,9 +333,7 @@ def to_lung_model(surface: Surface, side: str, result: FitResult, gravity="supin
     """
     frame = lung_frame(surface.vertices, side)
     xyz = frame.normalized(surface.vertices)
-    graph = spring_graph(surface.vertices, surface.edges)
-    solver = ForceSolver(local_transfer(graph, result.stiffness, d_min), "bicgstab", n_mass=surface.n_vertices)
-    basis = np.stack([solver.solve(fld)[: surface.n_vertices] for fld in field_basis(xyz)])
+    basis = solve_response(surface, field_basis(xyz), result.stiffness, d_min=d_min)
     return LungModel(side, surface, np.asarray(result.constants, float), result.stiffness, frame,
                      result.directions, basis, gravity_vector(gravity), result.displacement,
                      float(result.unit_ml), float(result.calibration_ml), float(d_min))

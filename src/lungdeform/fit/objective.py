@@ -57,9 +57,9 @@ from lungdeform.model.direction import directions as direction_field
 from lungdeform.model.displacement import calibrate
 from lungdeform.model.force import field_basis, height_weights
 from lungdeform.model.graph import spring_graph
-from lungdeform.model.solve import ForceSolver
+from lungdeform.model.response import ResponseSolver
 from lungdeform.model.stiffness import as_moduli, uniform
-from lungdeform.model.transfer import local_transfer, split_transfer
+from lungdeform.model.transfer import split_transfer
 
 from .correspond import RayCaster, RayHits, correspond
 
@@ -274,9 +274,9 @@ class LungFitter:
     def set_stiffness(self, stiffness: np.ndarray) -> None:
         """(Re)build the transfer and the force responses for a stiffness field ``(n,)``."""
         self.stiffness = stiffness
-        self.transfer = local_transfer(self.graph, stiffness, self.d_min)
-        solver = ForceSolver(self.transfer, "bicgstab", n_mass=self.n, tol=1e-10)
-        self.basis = np.stack([solver.solve(fld)[: self.n] for fld in field_basis(self.xyz)])  # (4, n)
+        response = ResponseSolver(self.graph, stiffness, d_min=self.d_min)
+        self.transfer = response.transfer
+        self.basis = response.responses(field_basis(self.xyz))  # (4, n)
         w = height_weights(self.frame, self.gravity)
         # the three fields of (18) for this gravity: x̂, ĥ(gravity), ẑ
         self.fields = np.stack([self.basis[1], w @ self.basis, self.basis[3]])  # responses F_x, F_h, F_z

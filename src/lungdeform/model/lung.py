@@ -3,8 +3,8 @@
 :func:`build_lung` runs the pipeline on one closed surface:
 
 1. lung frame and normalised coordinates (``frame``);
-2. spring-node graph and local transfer ``T_e`` with the stiffness field (``graph``, ``transfer``);
-3. the elastostatic responses to the four force fields ``1, x̂, ŷ, ẑ`` (``force``, ``solve``);
+2. spring-node graph and local transfer ``T_e`` with the stiffness field, and
+3. the elastostatic responses to the four force fields ``1, x̂, ŷ, ẑ`` (``force``, ``response``);
 4. the applied force for the chosen gravity (a 4-term combination) and its response ``F``;
 5. the directions (15)–(17) (``direction``);
 6. the calibrated displacement per unit volume ``u = k·F·d`` (``displacement``).
@@ -29,10 +29,9 @@ from lungdeform.interior.field import KINDS, interior_field
 from .direction import directions as direction_field
 from .displacement import Playback, calibrate, scale_for_volume, volume_polynomial
 from .force import field_basis, force_weights
-from .graph import spring_graph
-from .solve import ForceSolver, LinearSolver
+from .response import ResponseSolver
+from .solve import LinearSolver
 from .stiffness import as_moduli, uniform
-from .transfer import local_transfer
 
 
 @dataclass(frozen=True, eq=False)
@@ -250,11 +249,9 @@ def build_lung(
     frame = lung_frame(p, side)
     xyz = frame.normalized(p)
     say(f"{side}: spring graph and transfer ({n} vertices)")
-    graph = spring_graph(p, surface.edges)
-    t = local_transfer(graph, e, d_min)
-    fs = ForceSolver(t, solver, n_mass=n)
-    say(f"{side}: force responses ({graph.n_nodes} graph nodes, 4 fields)")
-    basis = np.stack([fs.solve(field)[:n] for field in field_basis(xyz)])
+    responses = ResponseSolver.from_surface(surface, e, d_min=d_min, method=solver)
+    say(f"{side}: force responses ({responses.graph.n_nodes} graph nodes, 4 fields)")
+    basis = responses.responses(field_basis(xyz))
     d = direction_field(frame.supported(g), p, c)  # origins on the supported side (frame.py)
     raw = (force_weights(frame, g, c) @ basis)[:, None] * d
     u = _calibrated(surface, raw, calibration_ml, unit_ml, gravity)
