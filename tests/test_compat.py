@@ -125,3 +125,16 @@ def test_package_code_never_uses_an_old_name():
     expected = sum(1 for _ in pkgutil.walk_packages(lungdeform.__path__, "lungdeform."))
     assert int(run.stdout.split()[-1]) == expected > 50
 
+
+
+def test_documented_mapping_is_the_one_used():
+    # docs/ARCHITECTURE.md ("Compatibility") lists old → new for users; it must be MOVED exactly,
+    # row by row, or the page would promise an import that fails (or hide one that works).
+    doc = (Path(__file__).parents[1] / "docs" / "ARCHITECTURE.md").read_text(encoding="utf-8")
+    table = doc.split("| old (≤ 0.4) | new (0.5) |", 1)[1].split("\n\n", 1)[0]
+    documented = {}
+    for row in table.strip().splitlines()[1:]:
+        old, new = ([n.strip(" `") for n in cell.split(",")] for cell in row.strip("|").split("|"))
+        assert len(old) == len(new), row
+        documented.update(zip(old, new))
+    assert documented == MOVED
