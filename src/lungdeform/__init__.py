@@ -4,6 +4,7 @@ The method is described equation by equation in the project's METHOD notes; ever
 equations it implements. Heavy optional libraries are imported lazily where they are used.
 """
 
+from lungdeform._compat import install as _install_compat
 from lungdeform.errors import (
     ConvergenceError,
     InputError,
@@ -17,6 +18,8 @@ from lungdeform.errors import (
 from lungdeform.geometry.mesh import Surface, check_surface
 
 __version__ = "0.4.0"
+
+_install_compat()  # the module names of 0.4 (lungdeform.mesh, …) still import, with a warning
 
 __all__ = [
     "ConvergenceError",
