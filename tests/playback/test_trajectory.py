@@ -4,8 +4,20 @@ import numpy as np
 import pytest
 
 from lungdeform.errors import InputError
-from lungdeform.playback.schedule import lung_shares
-from lungdeform.playback.trajectory import lung_scales, motion_summary, place_points, point_trajectories, read_points
+from lungdeform.interior.field import KIND_TEXT
+from lungdeform.playback.schedule import lung_shares, plain_cycle
+from lungdeform.playback.trajectory import (
+    end_exhale_ml,
+    extrapolation_note,
+    interior_meta,
+    lung_scales,
+    motion_summary,
+    place_points,
+    point_trajectories,
+    read_points,
+    trace_frames,
+    volume_frames,
+)
 from tests.browser.support import two_lungs
 
 
@@ -83,3 +95,45 @@ def test_markers_csv_with_a_byte_order_mark(tmp_path):
     pts, labels = read_markers_csv(path)
     np.testing.assert_array_equal(pts, [[90, 10, -20], [-90, 0, 50]])
     assert labels == ["tumour", "marker 2"]
+
+
+def test_volume_frames_are_volumes_above_end_exhale():
+    m = two_lungs(2)
+    v_ee = end_exhale_ml(m)
+    # truth: the model's end-exhale volume is the sum of its lungs' (each lung's own volume at scale 0)
+    assert v_ee == pytest.approx(sum(lung.surface_at(scale=0.0).volume_ml for lung in m.lungs.values()))
+    frames = volume_frames(m, [v_ee, v_ee + 300.0])
+    assert frames.delta_ml == pytest.approx([0.0, 300.0]) and frames.t_s is None
+    assert frames.source == f"volumes {v_ee:g}, {v_ee + 300.0:g} mL (end-exhale {v_ee:.0f} mL)"
+    with pytest.raises(InputError, match="volumes_ml must be > 0 mL"):
+        volume_frames(m, [v_ee, -5.0])
+
+
+def test_trace_frames_sample_the_trace_at_fps():
+    trace = plain_cycle(500.0, period_s=4.0)
+    frames = trace_frames(trace, 10.0)
+    # 4 s at 10 frames per second: 40 intervals, first and last sample included
+    assert frames.t_s == pytest.approx(np.linspace(0.0, 4.0, 41))
+    # the cosine breath: 0 at both ends, the tidal volume half-way (t = 2 s is a sample of the trace)
+    assert frames.delta_ml[[0, 20, 40]] == pytest.approx([0.0, 500.0, 0.0], abs=1e-9)
+    assert frames.source == trace.source
+    assert len(trace_frames(trace, 0.01).t_s) == 2  # at least one interval
+    with pytest.raises(InputError, match="fps must be > 0"):
+        trace_frames(trace, 0.0)
+
+
+def test_extrapolation_note_outside_the_fitted_range():
+    m = two_lungs(2)
+    fitted = sum(lung.calibration_ml for lung in m.lungs.values())
+    # inside: from end-exhale (1 mL below is rounding) to 1.5 times the volume change fitted for
+    assert extrapolation_note(m, [-1.0, 1.5 * fitted]) is None
+    assert "outside the model's range" in extrapolation_note(m, [-2.0, 10.0])
+    assert f"to {1.5 * fitted + 1:+.0f} mL" in extrapolation_note(m, [0.0, 1.5 * fitted + 1])
+
+
+def test_interior_meta_names_each_lungs_field():
+    m = two_lungs(2)
+    meta = interior_meta(m)
+    # a built model has no landmark correction: each field is its kind's surface part alone
+    assert meta["landmark_correction"] == {"left": False, "right": False}
+    assert meta["interior_field"] == {name: KIND_TEXT[lung.interior_kind][0] for name, lung in m.lungs.items()}

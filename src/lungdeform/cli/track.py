@@ -9,7 +9,6 @@ import typer
 
 from lungdeform.breathing.presets import get_preset
 from lungdeform.errors import InputError
-from lungdeform.interior.field import KIND_TEXT
 from lungdeform.io.modelfile import load_model
 from lungdeform.playback import schedule as S
 from lungdeform.playback import trajectory as T
@@ -48,46 +47,41 @@ def register(apps) -> None:
         m = load_model(model)
         pts, labels = T.read_points(points)
         placement = T.place_points(m, pts, lung, source=str(points))
-        v_ee = sum(lg.volume_ee_ml for lg in m.lungs.values())
-        t_s = None
         if volume_ml:
             if not all(np.isfinite(v) and v > 0 for v in volume_ml):
                 raise InputError(f"--volume-ml must be > 0 mL, got {volume_ml}")
-            delta = np.asarray(volume_ml, float) - v_ee
-            source = f"volumes {', '.join(f'{v:g}' for v in volume_ml)} mL (end-exhale {v_ee:.0f} mL)"
+            frames = T.volume_frames(m, volume_ml)
         else:
-            if curve is not None:
-                trace = read_curve(curve)
-            elif preset is not None:
-
-                _params, _curve, trace = S.preset_trace(get_preset(preset), cycles or 1, tidal_ml)
-            else:
-                trace = S.plain_cycle(**({} if tidal_ml is None else {"tidal_ml": tidal_ml}))
-            n = max(int(round((trace.t_s[-1] - trace.t_s[0]) * fps)), 1) + 1
-            t_s = np.linspace(trace.t_s[0], trace.t_s[-1], n)
-            delta = trace.sample(t_s)
-            source = trace.source
-        fitted = sum(lg.calibration_ml for lg in m.lungs.values())  # the volume change the model was made for
-        if delta.min() < -1.0 or delta.max() > 1.5 * fitted:
-            typer.echo(f"note: volumes from {delta.min():+.0f} to {delta.max():+.0f} mL about end-exhale, outside the "
-                       f"model's range (0 to {fitted:.0f} mL): the motion there is extrapolated along the same field")
-        positions = T.point_trajectories(m, pts, placement, delta)
-        corrected = {name: bool(lg.interior.corrected) for name, lg in m.lungs.items()}
+            frames = T.trace_frames(_trace(curve, preset, cycles, tidal_ml), fps)
+        note = T.extrapolation_note(m, frames.delta_ml)
+        if note:
+            typer.echo(f"note: {note}")
+        positions = T.point_trajectories(m, pts, placement, frames.delta_ml)
         folder = output_dir(out)
-        paths = T.write_trajectories(folder, pts, labels, placement, positions, delta, t_s, meta={
-            "model": str(model), "schedule": source, "end_exhale_ml": v_ee,
-            "landmark_correction": corrected,
-            "interior_field": {name: KIND_TEXT[lg.interior_kind][0]
-                               + (f" plus {KIND_TEXT[lg.interior_kind][1]}" if corrected[name] else "")
-                               for name, lg in m.lungs.items()}})
-        summary = T.motion_summary(positions, pts)
-        typer.echo(f"{len(pts)} point(s), {len(delta)} frame(s): {source}")
-        for j, label in enumerate(labels[:20]):
-            where = "inside" if placement.inside[j] else f"outside by {placement.distance_mm[j]:.1f} mm"
-            ptp = " ".join(f"{a} {summary['peak_to_peak_mm'][a][j]:.1f}" for a in T.AXES)
-            # peak-to-peak alone reads 0 for a single --volume-ml: also the excursion from end-exhale
-            typer.echo(f"  {label}: {placement.lungs[j]} lung ({where}); peak-to-peak mm {ptp}; "
-                       f"largest excursion from end-exhale {summary['max_excursion_mm'][j]:.1f} mm")
-        if len(labels) > 20:
-            typer.echo(f"  … {len(labels) - 20} more in {paths['json']}")
+        meta = {"model": str(model), "schedule": frames.source, "end_exhale_ml": T.end_exhale_ml(m), **T.interior_meta(m)}
+        paths = T.write_trajectories(folder, pts, labels, placement, positions, frames.delta_ml, frames.t_s, meta=meta)
+        typer.echo(f"{len(pts)} point(s), {len(frames.delta_ml)} frame(s): {frames.source}")
+        _print_points(labels, placement, T.motion_summary(positions, pts), paths)
         typer.echo(f"wrote {paths['csv']}, {paths['json']}, {paths['png']}")
+
+
+def _trace(curve: Path | None, preset: str | None, cycles: int | None, tidal_ml: float | None):
+    """The volume trace the options name: ``--curve``, ``--preset`` or the plain cycle."""
+    if curve is not None:
+        return read_curve(curve)
+    if preset is not None:
+        _params, _curve, trace = S.preset_trace(get_preset(preset), cycles or 1, tidal_ml)
+        return trace
+    return S.plain_cycle(**({} if tidal_ml is None else {"tidal_ml": tidal_ml}))
+
+
+def _print_points(labels, placement, summary: dict, paths: dict) -> None:
+    """One line per point (the first 20): its lung, inside or how far outside, its motion."""
+    for j, label in enumerate(labels[:20]):
+        where = "inside" if placement.inside[j] else f"outside by {placement.distance_mm[j]:.1f} mm"
+        ptp = " ".join(f"{a} {summary['peak_to_peak_mm'][a][j]:.1f}" for a in T.AXES)
+        # peak-to-peak alone reads 0 for a single --volume-ml: also the excursion from end-exhale
+        typer.echo(f"  {label}: {placement.lungs[j]} lung ({where}); peak-to-peak mm {ptp}; "
+                   f"largest excursion from end-exhale {summary['max_excursion_mm'][j]:.1f} mm")
+    if len(labels) > 20:
+        typer.echo(f"  … {len(labels) - 20} more in {paths['json']}")

@@ -187,20 +187,9 @@ def _parse(text: str, folder: Path) -> tuple[list[_Row], set[str], list[Problem]
             continue  # blank line
         if header is None:
             header = [c.strip().lower() for c in rec]
-            missing = [c for c in REQUIRED_COLUMNS if c not in header]
-            unknown = [c for c in header if c not in REQUIRED_COLUMNS + OPTIONAL_COLUMNS]
-            dup = sorted({c for c in header if header.count(c) > 1})
-            if missing or unknown or dup:
-                what = []
-                if missing:
-                    what.append(f"missing column(s) {', '.join(missing)}")
-                if unknown:
-                    what.append(f"unknown column(s) {', '.join(repr(c) for c in unknown)}")
-                if dup:
-                    what.append(f"repeated column(s) {', '.join(dup)}")
-                expected = ",".join(REQUIRED_COLUMNS) + "[,landmarks]"
-                return [], set(), [Problem((line,), f"header {','.join(header)!r}: {'; '.join(what)} "
-                                             f"(expected {expected})")]
+            bad = _header_problem(header, line)
+            if bad is not None:
+                return [], set(), [bad]
             columns = {c: header.index(c) for c in header}
             continue
         if len(rec) != len(header):
@@ -208,55 +197,98 @@ def _parse(text: str, folder: Path) -> tuple[list[_Row], set[str], list[Problem]
             tainted.add(rec[columns["subject"]].strip() if len(rec) > columns["subject"] else "")
             continue
         cell = {c: rec[i].strip() for c, i in columns.items()}
-        subject, side = cell["subject"], cell["side"].lower()
-        ok = True
-        if not SUBJECT_PATTERN.match(subject):
-            problems.append(Problem((line,), f"subject {subject!r} is not a usable folder name "
-                                             "(letters, digits, '.', '_', '-'; starting with a letter or digit)"))
-            ok = False
-        if side not in MANIFEST_SIDES:
-            problems.append(Problem((line,), f"side {cell['side']!r} is not left, right or both"))
-            ok = False
-        volume = None
-        if cell["volume_ml"]:
-            try:
-                volume = float(cell["volume_ml"])
-            except ValueError:
-                problems.append(Problem((line,), f"volume_ml {cell['volume_ml']!r} is not a number (mL, or empty)"))
-                ok = False
-            else:
-                if not (math.isfinite(volume) and volume > 0):
-                    problems.append(Problem((line,), f"volume_ml {cell['volume_ml']!r} must be a positive number of mL"))
-                    ok = False
-        scan = None
-        if not cell["path"]:
-            problems.append(Problem((line,), "path is empty"))
-            ok = False
+        row, row_problems = _parse_row(line, cell, folder)
+        problems += row_problems
+        if row is not None:
+            rows.append(row)
         else:
-            scan = _resolve(folder, cell["path"])
-            name = scan.name.lower()
-            if not scan.exists():
-                problems.append(Problem((line,), f"path {cell['path']}: no such file ({scan})"))
-            elif not (scan.is_dir() or name.endswith(MESH_SUFFIXES + IMAGE_SUFFIXES)):
-                problems.append(Problem((line,), f"path {cell['path']}: not a surface ({', '.join(MESH_SUFFIXES)}), "
-                                                 f"an image ({', '.join(IMAGE_SUFFIXES)}) or a DICOM folder"))
-            elif side == "both" and name.endswith(MESH_SUFFIXES):
-                problems.append(Problem((line,), f"path {cell['path']}: a surface holds one lung; side 'both' "
-                                                 "needs a CT (both lungs are segmented from it)"))
-        landmarks = None
-        if cell.get("landmarks"):
-            landmarks = _resolve(folder, cell["landmarks"])
-            if not landmarks.is_file():
-                problems.append(Problem((line,), f"landmarks {cell['landmarks']}: no such file ({landmarks})"))
-        if ok:  # a missing file does not stop the grouping checks; a bad value does, for its subject
-            rows.append(_Row(line, subject, side, volume, scan, landmarks))
-        else:
-            tainted.add(subject)
+            tainted.add(cell["subject"])
     if header is None:
         problems.append(Problem((), "empty: no header row (expected " + ",".join(REQUIRED_COLUMNS) + "[,landmarks])"))
     elif not rows and not problems:
         problems.append(Problem((), "no scans listed (only a header)"))
     return rows, tainted, problems
+
+
+def _header_problem(header: list[str], line: int) -> Problem | None:
+    """What is wrong with the (lower-cased) ``header`` at ``line``: missing, unknown or repeated
+    columns; None when it is usable."""
+    missing = [c for c in REQUIRED_COLUMNS if c not in header]
+    unknown = [c for c in header if c not in REQUIRED_COLUMNS + OPTIONAL_COLUMNS]
+    dup = sorted({c for c in header if header.count(c) > 1})
+    if not (missing or unknown or dup):
+        return None
+    what = []
+    if missing:
+        what.append(f"missing column(s) {', '.join(missing)}")
+    if unknown:
+        what.append(f"unknown column(s) {', '.join(repr(c) for c in unknown)}")
+    if dup:
+        what.append(f"repeated column(s) {', '.join(dup)}")
+    expected = ",".join(REQUIRED_COLUMNS) + "[,landmarks]"
+    return Problem((line,), f"header {','.join(header)!r}: {'; '.join(what)} (expected {expected})")
+
+
+def _parse_row(line: int, cell: dict[str, str], folder: Path) -> tuple[_Row | None, list[Problem]]:
+    """One data row (``cell``: column → stripped text) at ``line``: ``(row, problems)``; ``row`` is
+    None when a value is bad (its subject is then not judged further). A missing file is a
+    problem but keeps the row: it does not stop the grouping checks."""
+    problems: list[Problem] = []
+    subject, side = cell["subject"], cell["side"].lower()
+    ok = True
+    if not SUBJECT_PATTERN.match(subject):
+        problems.append(Problem((line,), f"subject {subject!r} is not a usable folder name "
+                                         "(letters, digits, '.', '_', '-'; starting with a letter or digit)"))
+        ok = False
+    if side not in MANIFEST_SIDES:
+        problems.append(Problem((line,), f"side {cell['side']!r} is not left, right or both"))
+        ok = False
+    volume, volume_problem = _parse_volume(cell["volume_ml"])
+    if volume_problem:
+        problems.append(Problem((line,), volume_problem))
+        ok = False
+    scan = None
+    if not cell["path"]:
+        problems.append(Problem((line,), "path is empty"))
+        ok = False
+    else:
+        scan = _resolve(folder, cell["path"])
+        path_problem = _scan_problem(scan, cell["path"], side)
+        if path_problem:
+            problems.append(Problem((line,), path_problem))
+    landmarks = None
+    if cell.get("landmarks"):
+        landmarks = _resolve(folder, cell["landmarks"])
+        if not landmarks.is_file():
+            problems.append(Problem((line,), f"landmarks {cell['landmarks']}: no such file ({landmarks})"))
+    return (_Row(line, subject, side, volume, scan, landmarks) if ok else None), problems
+
+
+def _parse_volume(text: str) -> tuple[float | None, str | None]:
+    """``(volume mL or None when empty, problem or None)`` of a ``volume_ml`` cell."""
+    if not text:
+        return None, None
+    try:
+        volume = float(text)
+    except ValueError:
+        return None, f"volume_ml {text!r} is not a number (mL, or empty)"
+    if not (math.isfinite(volume) and volume > 0):
+        return volume, f"volume_ml {text!r} must be a positive number of mL"
+    return volume, None
+
+
+def _scan_problem(scan: Path, text: str, side: str) -> str | None:
+    """What is wrong with the scan ``scan`` (resolved from the ``path`` cell ``text``) for ``side``:
+    missing, not a surface, image or DICOM folder, or a one-lung surface for side 'both'."""
+    name = scan.name.lower()
+    if not scan.exists():
+        return f"path {text}: no such file ({scan})"
+    if not (scan.is_dir() or name.endswith(MESH_SUFFIXES + IMAGE_SUFFIXES)):
+        return (f"path {text}: not a surface ({', '.join(MESH_SUFFIXES)}), "
+                f"an image ({', '.join(IMAGE_SUFFIXES)}) or a DICOM folder")
+    if side == "both" and name.endswith(MESH_SUFFIXES):
+        return f"path {text}: a surface holds one lung; side 'both' needs a CT (both lungs are segmented from it)"
+    return None
 
 
 def _resolve(folder: Path, text: str) -> Path:

@@ -131,11 +131,7 @@ def run_cohort(manifest, out, *, scheduler: str | None = None, workers: int | No
     t_start = time.perf_counter()
     started = _now()
     emit = progress or (lambda _e: None)
-    if scheduler and workers is not None:
-        raise InputError("--workers sets the size of the local cluster; with --scheduler the cluster's own "
-                         "workers run the jobs (leave --workers out)")
-    if workers is not None and int(workers) < 1:
-        raise InputError(f"--workers must be at least 1, got {workers}")
+    _check_cluster(scheduler, workers)
     m = manifest if isinstance(manifest, Manifest) else read_manifest(manifest)
     out = Path(out)
     if out.exists() and not out.is_dir():
@@ -143,17 +139,7 @@ def run_cohort(manifest, out, *, scheduler: str | None = None, workers: int | No
     out.mkdir(parents=True, exist_ok=True)
     with _exclusive(out):
         clean_stale(out)
-        results: dict[str, dict] = {}
-        skipped: set[str] = set()
-        to_run: list[Job] = []
-        for job in m.jobs:
-            stored = read_result(job_folder(out, job))
-            valid = stored is not None and stored.get("input_digest") == input_digest(job, options)
-            if valid and (stored.get("status") == "ok" or skip_failed):
-                results[job.key] = stored
-                skipped.add(job.key)
-            else:
-                to_run.append(job)
+        results, skipped, to_run = _stored_results(m, out, options, skip_failed)
         n_workers = None
         if to_run and not scheduler:
             n_workers = int(workers) if workers else max(1, min(os.cpu_count() or 1, len(to_run)))
@@ -173,10 +159,7 @@ def run_cohort(manifest, out, *, scheduler: str | None = None, workers: int | No
                 address = _run_on_dask(to_run, out, options, scheduler, n_workers, processes, connect_timeout_s,
                                        results, emit)
         except KeyboardInterrupt:
-            for job in to_run:  # jobs that finished on a worker while this process was interrupted
-                stored = read_result(job_folder(out, job))
-                if job.key not in results and stored and stored.get("input_digest") == input_digest(job, options):
-                    results[job.key] = stored
+            _collect_finished(to_run, out, options, results)
             write_json(out / "cohort.json", summary(True))
             raise
         summary_path = write_json(out / "cohort.json", summary(False))
@@ -189,6 +172,43 @@ def run_cohort(manifest, out, *, scheduler: str | None = None, workers: int | No
             write_json(out / "cohort.json", summary(False, pop), default=_json_default)
     return CohortResult(out, ordered, frozenset(skipped), time.perf_counter() - t_start, address, n_workers,
                         summary_path, pop, m.notes)
+
+
+def _check_cluster(scheduler: str | None, workers: int | None) -> None:
+    """Refuse ``workers`` with a ``scheduler`` (the cluster's own workers run the jobs) or below 1."""
+    if scheduler and workers is not None:
+        raise InputError("--workers sets the size of the local cluster; with --scheduler the cluster's own "
+                         "workers run the jobs (leave --workers out)")
+    if workers is not None and int(workers) < 1:
+        raise InputError(f"--workers must be at least 1, got {workers}")
+
+
+def _stored_results(m: Manifest, out: Path, options: FitOptions,
+                    skip_failed: bool) -> tuple[dict[str, dict], set[str], list[Job]]:
+    """``(results, skipped, to_run)``: the stored results of the jobs of ``m`` that need not run
+    again (same input digest, and ``ok`` or ``skip_failed``) by job key, their keys, and the other
+    jobs, manifest order."""
+    results: dict[str, dict] = {}
+    skipped: set[str] = set()
+    to_run: list[Job] = []
+    for job in m.jobs:
+        stored = read_result(job_folder(out, job))
+        valid = stored is not None and stored.get("input_digest") == input_digest(job, options)
+        if valid and (stored.get("status") == "ok" or skip_failed):
+            results[job.key] = stored
+            skipped.add(job.key)
+        else:
+            to_run.append(job)
+    return results, skipped, to_run
+
+
+def _collect_finished(jobs: list[Job], out: Path, options: FitOptions, results: dict[str, dict]) -> None:
+    """Add to ``results`` the valid stored results of ``jobs`` not in it: jobs that finished on a
+    worker while this process was interrupted."""
+    for job in jobs:
+        stored = read_result(job_folder(out, job))
+        if job.key not in results and stored and stored.get("input_digest") == input_digest(job, options):
+            results[job.key] = stored
 
 
 def _run_on_dask(jobs: list[Job], out: Path, options: FitOptions, scheduler, n_workers, processes,

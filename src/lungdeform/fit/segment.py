@@ -307,24 +307,13 @@ def segment_lungs(
     Raises :class:`MaskError` when no lung-sized air is found inside the body, or the lungs cannot
     be split, and :class:`InputError` for an image that is not CT in HU.
     """
-
-    def say(msg):
-        if progress:
-            progress(msg)
-
+    say = progress or (lambda _msg: None)
+    options = {"air_hu": air_hu, "lumen_hu": lumen_hu, "airway_max_hu": airway_max_hu, "airway_max_ml": airway_max_ml,
+               "min_lung_ml": min_lung_ml, "max_erosions": max_erosions, "progress": progress}
     check_ct(image)
     perm = axial_axes(image)
-    if perm != (0, 1, 2):  # stored in another axis order (e.g. sagittal or coronal stacks): segment in
-        # axial (z, y, x) order, an exact transpose, and give the masks back on the image's own grid
-        inv = tuple(int(a) for a in np.argsort(perm))
-        seg = segment_lungs(to_axial(image, perm), air_hu=air_hu, lumen_hu=lumen_hu, airway_max_hu=airway_max_hu,
-                            airway_max_ml=airway_max_ml, min_lung_ml=min_lung_ml, max_erosions=max_erosions,
-                            progress=progress)
-        back = {k: np.ascontiguousarray(np.transpose(getattr(seg, k), inv)) for k in ("left", "right", "airway")}
-        details = {**seg.details, "array_axes_to_axial_zyx": list(perm)}
-        desc = seg.airway_removal + (f" (Slice numbers refer to the image transposed to axial order: array axes "
-                                     f"{list(perm)} of the file are z, y, x.)")
-        return LungSegmentation(back["left"], back["right"], back["airway"], image, seg.volumes_ml, desc, details)
+    if perm != (0, 1, 2):  # stored in another axis order (e.g. sagittal or coronal stacks)
+        return _segment_transposed(image, perm, options)
     ct = np.asarray(image.array)
     sp = np.asarray(image.spacing, float)
     vml = _voxel_ml(image)
@@ -337,100 +326,34 @@ def segment_lungs(
     say("threshold and outside air")
     inside = inside_body_air(ct, air_hu)
     timings["outside_air_s"] = time.perf_counter() - t0
-    lab, ids = largest_components(inside, int(np.ceil(min_lung_ml / vml)))
-    if ids.size == 0:
-        raise MaskError(
-            f"{image.source}: no air region ≥ {min_lung_ml:g} mL below {air_hu:g} HU inside the body: "
-            "no lungs found (empty mask)"
-        )
-    candidate = np.isin(lab, ids[:2])
-    cand_ml = float(candidate.sum()) * vml
-    comp_ml = [float(v) * vml for v in np.bincount(lab.ravel())[ids[:6]]]
-    del lab
+    candidate, cand_ml, comp_ml = _lung_candidate(inside, vml, air_hu, min_lung_ml, image.source)
     timings["candidate_s"] = time.perf_counter() - t0
 
     say("trachea and bronchi")
-    body = ct > air_hu
-    body_cx = np.array([np.nonzero(row)[0].mean() if row.any() else ct.shape[2] / 2
-                        for row in body.any(axis=1)])
-    del body
-    seed = find_trachea_seed(ct, candidate, sp, body_cx, lumen_hu)
-    if seed is None:
-        tree = np.zeros_like(candidate)
-        grow = {"threshold_hu": None, "history": [], "stopped": "no trachea seed found"}
-        seed_info = None
-        removed = tree
-    else:
-        z, seed2d, seed_info = seed
-        seed_mask = np.zeros_like(candidate)
-        seed_mask[z] = seed2d
-        tree, grow = grow_airways(ct, candidate, seed_mask, vml, max_hu=airway_max_hu, max_ml=airway_max_ml)
-        removed = ndi.binary_dilation(tree, structure=_SIX) & candidate
+    body_cx = _body_centre_x(ct, air_hu)
+    tree, removed, grow, seed_info = _remove_airways(ct, candidate, sp, body_cx, vml, lumen_hu, airway_max_hu,
+                                                     airway_max_ml)
     lungs = candidate & ~removed
     timings["airways_s"] = time.perf_counter() - t0
 
     say("left/right split")
-    lab, ids = largest_components(lungs, 1)
-    total = float(lungs.sum())
-    big = [i for i in ids[:2] if np.count_nonzero(lab == i) >= 0.1 * total]
-    if len(big) == 2:
-        labels = np.where(lab == big[0], 1, np.where(lab == big[1], 2, 0)).astype(np.int32)
-        split = {"method": "two components after airway removal", "erosions": 0}
-    elif len(big) == 1:
-        midline = float(np.median(body_cx[lungs.any(axis=(1, 2))]))
-        labels, split = split_touching(lab == big[0], sp, midline, max_erosions)
-    else:
-        raise MaskError(f"{image.source}: nothing left of the lungs after airway removal (empty mask)")
-    n_dropped = int(ids.size - 2)
-    dropped_ml = float(total - np.count_nonzero(labels)) * vml
-    del lab
+    labels, split, n_dropped, dropped_ml = _split_left_right(lungs, body_cx, sp, vml, max_erosions, image.source)
     timings["split_s"] = time.perf_counter() - t0
 
     say("hole filling")
-    parts = [fill_holes(labels == k) for k in (1, 2)]
-    # side from the world x of each centroid (LPS: +x = patient left)
-    cx = []
-    for p in parts:
-        ijk = np.array(ndi.center_of_mass(p))[::-1].copy()
-        if not head_up:
-            ijk[2] = ct.shape[0] - 1 - ijk[2]
-        cx.append(float((image.direction @ (ijk * sp) + image.origin)[0]))
-    left, right = (parts[0], parts[1]) if cx[0] > cx[1] else (parts[1], parts[0])
-    overlap = left & right
-    if overlap.any():  # hole filling of one lung cannot reach into the other, but be explicit
-        right &= ~overlap
+    left, right, cx = _filled_sides(labels, image, sp, head_up)
     if not head_up:
         left, right, tree, removed = left[::-1], right[::-1], tree[::-1], removed[::-1]
     timings["fill_s"] = time.perf_counter() - t0
 
-    vol = {
-        "left": float(left.sum()) * vml,
-        "right": float(right.sum()) * vml,
-        "airway": float(tree.sum()) * vml,
-        "removed": float(removed.sum()) * vml,
-        "candidate": cand_ml,
-    }
-    if vol["left"] == 0 or vol["right"] == 0:
-        raise MaskError(f"{image.source}: an empty lung mask after segmentation (left {vol['left']:.0f} mL, "
-                        f"right {vol['right']:.0f} mL)")
-    if seed_info is None:
-        desc = (f"No trachea found in the top slices (no {lumen_hu:g} HU component of tracheal size within "
-                "25 mm of the body centre); no airway was removed.")
-    else:
-        zw = seed_info["slice"] if head_up else ct.shape[0] - 1 - seed_info["slice"]
-        zz = np.nonzero(tree.any(axis=(1, 2)))[0]
-        desc = (
-            f"Trachea seed: a {seed_info['area_mm2']:.0f} mm² air component below {lumen_hu:g} HU in slice "
-            f"{zw}, {seed_info['offset_mm']:.1f} mm from the body's left-right centre. Airways region-grown "
-            f"from it with a threshold rising from -1000 HU in 20 HU steps up to {grow['threshold_hu']:g} HU "
-            f"({grow['stopped']}): {vol['airway']:.1f} mL spanning slices {zz.min()}-{zz.max()} "
-            f"(trachea, main and visible lobar bronchi). Removed with a one-voxel wall dilation: "
-            f"{vol['removed']:.1f} mL in all. Lungs split by: {split['method']}."
-        )
+    vol = _volumes_ml(left, right, tree, removed, cand_ml, vml, image.source)
+    if seed_info is not None and not head_up:  # the seed's slice number on the image's own grid
+        seed_info = {**seed_info, "slice": ct.shape[0] - 1 - seed_info["slice"]}
+    desc = _airway_removal_text(seed_info, grow, tree, vol, split, lumen_hu)
     details = {
         "air_hu": air_hu,
         "candidate_components_ml": comp_ml,
-        "trachea_seed": None if seed_info is None else {**seed_info, "slice": int(zw)},
+        "trachea_seed": seed_info,
         "airway_growing": grow,
         "split": split,
         "small_pieces_dropped": n_dropped,
@@ -439,6 +362,126 @@ def segment_lungs(
         "timings_s": timings,
     }
     return LungSegmentation(left, right, tree, image, vol, desc, details)
+
+
+def _segment_transposed(image: Image, perm: tuple[int, int, int], options: dict) -> LungSegmentation:
+    """:func:`segment_lungs` of an image stored in another axis order: segment it in axial
+    (z, y, x) order, an exact transpose (``perm``, from :func:`~lungdeform.fit.ct.axial_axes`), and
+    give the masks back on the image's own grid."""
+    inv = tuple(int(a) for a in np.argsort(perm))
+    seg = segment_lungs(to_axial(image, perm), **options)
+    back = {k: np.ascontiguousarray(np.transpose(getattr(seg, k), inv)) for k in ("left", "right", "airway")}
+    details = {**seg.details, "array_axes_to_axial_zyx": list(perm)}
+    desc = seg.airway_removal + (f" (Slice numbers refer to the image transposed to axial order: array axes "
+                                 f"{list(perm)} of the file are z, y, x.)")
+    return LungSegmentation(back["left"], back["right"], back["airway"], image, seg.volumes_ml, desc, details)
+
+
+def _lung_candidate(inside, voxel_ml, air_hu, min_lung_ml, source):
+    """Step 3: ``(candidate (z, y, x) bool, its volume mL, the largest components' volumes mL)``:
+    the two largest components of ``inside`` (:func:`inside_body_air`) of at least ``min_lung_ml``."""
+    lab, ids = largest_components(inside, int(np.ceil(min_lung_ml / voxel_ml)))
+    if ids.size == 0:
+        raise MaskError(
+            f"{source}: no air region ≥ {min_lung_ml:g} mL below {air_hu:g} HU inside the body: "
+            "no lungs found (empty mask)"
+        )
+    candidate = np.isin(lab, ids[:2])
+    cand_ml = float(candidate.sum()) * voxel_ml
+    comp_ml = [float(v) * voxel_ml for v in np.bincount(lab.ravel())[ids[:6]]]
+    return candidate, cand_ml, comp_ml
+
+
+def _body_centre_x(ct, air_hu) -> np.ndarray:
+    """``(z,) float``: per slice, the mean voxel x of the body (``ct > air_hu``); mid-width for an
+    empty slice."""
+    body = ct > air_hu
+    return np.array([np.nonzero(row)[0].mean() if row.any() else ct.shape[2] / 2 for row in body.any(axis=1)])
+
+
+def _remove_airways(ct, candidate, spacing, body_cx, voxel_ml, lumen_hu, airway_max_hu, airway_max_ml):
+    """Steps 4–5: ``(tree, removed, growing info, seed info or None)``; ``tree`` the grown airways,
+    ``removed`` the tree with its one-voxel wall, both ``(z, y, x) bool`` (empty with no seed)."""
+    seed = find_trachea_seed(ct, candidate, spacing, body_cx, lumen_hu)
+    if seed is None:
+        tree = np.zeros_like(candidate)
+        grow = {"threshold_hu": None, "history": [], "stopped": "no trachea seed found"}
+        return tree, tree, grow, None
+    z, seed2d, seed_info = seed
+    seed_mask = np.zeros_like(candidate)
+    seed_mask[z] = seed2d
+    tree, grow = grow_airways(ct, candidate, seed_mask, voxel_ml, max_hu=airway_max_hu, max_ml=airway_max_ml)
+    removed = ndi.binary_dilation(tree, structure=_SIX) & candidate
+    return tree, removed, grow, seed_info
+
+
+def _split_left_right(lungs, body_cx, spacing, voxel_ml, max_erosions, source):
+    """Step 6: ``(labels (z, y, x) int32 with lungs 1 and 2, split info, pieces dropped, mL dropped)``:
+    the two largest components of ``lungs`` ≥ 10 % of it, or one split by :func:`split_touching`."""
+    lab, ids = largest_components(lungs, 1)
+    total = float(lungs.sum())
+    big = [i for i in ids[:2] if np.count_nonzero(lab == i) >= 0.1 * total]
+    if len(big) == 2:
+        labels = np.where(lab == big[0], 1, np.where(lab == big[1], 2, 0)).astype(np.int32)
+        split = {"method": "two components after airway removal", "erosions": 0}
+    elif len(big) == 1:
+        midline = float(np.median(body_cx[lungs.any(axis=(1, 2))]))
+        labels, split = split_touching(lab == big[0], spacing, midline, max_erosions)
+    else:
+        raise MaskError(f"{source}: nothing left of the lungs after airway removal (empty mask)")
+    n_dropped = int(ids.size - 2)
+    dropped_ml = float(total - np.count_nonzero(labels)) * voxel_ml
+    return labels, split, n_dropped, dropped_ml
+
+
+def _filled_sides(labels, image: Image, spacing, head_up: bool):
+    """Step 7 and the sides: ``(left, right, centroid world x mm of labels 1 and 2)``; the hole-filled
+    masks of labels 1 and 2 (head-up order, as ``labels``), the one at larger LPS x is the left lung."""
+    parts = [fill_holes(labels == k) for k in (1, 2)]
+    # side from the world x of each centroid (LPS: +x = patient left)
+    cx = []
+    for p in parts:
+        ijk = np.array(ndi.center_of_mass(p))[::-1].copy()
+        if not head_up:
+            ijk[2] = labels.shape[0] - 1 - ijk[2]
+        cx.append(float((image.direction @ (ijk * spacing) + image.origin)[0]))
+    left, right = (parts[0], parts[1]) if cx[0] > cx[1] else (parts[1], parts[0])
+    overlap = left & right
+    if overlap.any():  # hole filling of one lung cannot reach into the other, but be explicit
+        right &= ~overlap
+    return left, right, cx
+
+
+def _volumes_ml(left, right, tree, removed, candidate_ml, voxel_ml, source) -> dict:
+    """:attr:`LungSegmentation.volumes_ml` of the final masks; :class:`MaskError` if a lung is empty."""
+    vol = {
+        "left": float(left.sum()) * voxel_ml,
+        "right": float(right.sum()) * voxel_ml,
+        "airway": float(tree.sum()) * voxel_ml,
+        "removed": float(removed.sum()) * voxel_ml,
+        "candidate": candidate_ml,
+    }
+    if vol["left"] == 0 or vol["right"] == 0:
+        raise MaskError(f"{source}: an empty lung mask after segmentation (left {vol['left']:.0f} mL, "
+                        f"right {vol['right']:.0f} mL)")
+    return vol
+
+
+def _airway_removal_text(seed_info, grow, tree, vol, split, lumen_hu) -> str:
+    """The paragraph of :attr:`LungSegmentation.airway_removal`; ``seed_info['slice']`` on the
+    image's own grid, ``tree`` in its orientation."""
+    if seed_info is None:
+        return (f"No trachea found in the top slices (no {lumen_hu:g} HU component of tracheal size within "
+                "25 mm of the body centre); no airway was removed.")
+    zz = np.nonzero(tree.any(axis=(1, 2)))[0]
+    return (
+        f"Trachea seed: a {seed_info['area_mm2']:.0f} mm² air component below {lumen_hu:g} HU in slice "
+        f"{seed_info['slice']}, {seed_info['offset_mm']:.1f} mm from the body's left-right centre. Airways "
+        f"region-grown from it with a threshold rising from -1000 HU in 20 HU steps up to "
+        f"{grow['threshold_hu']:g} HU ({grow['stopped']}): {vol['airway']:.1f} mL spanning slices "
+        f"{zz.min()}-{zz.max()} (trachea, main and visible lobar bronchi). Removed with a one-voxel wall "
+        f"dilation: {vol['removed']:.1f} mL in all. Lungs split by: {split['method']}."
+    )
 
 
 # =========================================================================== overlay

@@ -252,51 +252,84 @@ def check_surface(
         raise MeshError(f"{source}: a closed surface needs at least 4 faces, got {len(f)}")
     if not np.isfinite(v[np.unique(f)]).all():
         raise MeshError(f"{source}: vertex coordinates contain NaN or infinity")
-
-    used = np.unique(f)
-    if len(used) < len(v):
+    # unreferenced vertices are harmless for checks; drop them quietly only on repair
+    if repair and len(np.unique(f)) < len(v):
+        n_before = len(v)
+        v, f = _compact(v, f)
+        repairs.append(f"dropped {n_before - len(v)} unreferenced vertices")
+    v, f = _without_degenerate_faces(v, f, source, repair, repairs)
+    f = _without_duplicate_faces(v, f, source, repair, repairs)
+    v, f = _largest_component(v, f, source, repair, repairs)
+    _check_closed_manifold(v, f, source)
+    if not orientation_consistent(f):
         if not repair:
-            pass  # unreferenced vertices are harmless for checks; drop them quietly only on repair
-        else:
-            v, f = _compact(v, f)
-            repairs.append(f"dropped {len(vertices) - len(v)} unreferenced vertices")
+            raise MeshError(f"{source}: faces are not consistently oriented")
+        f = _orient_consistently(f)
+        repairs.append("re-oriented faces consistently")
+    vol = signed_volume(v, f)
+    if vol < 0:
+        if not repair:
+            raise MeshError(f"{source}: faces point inward (negative volume); pass repair to flip them")
+        f = np.ascontiguousarray(f[:, ::-1])
+        vol = -vol
+        repairs.append("flipped inward-facing orientation")
+    _check_millimetres(v, source)
+    report = SurfaceReport(len(v), len(f), vol, surface_area(v, f), tuple(repairs))
+    return v, f, report
 
+
+def _without_degenerate_faces(v, f, source: str, repair: bool, repairs: list[str]):
+    """``(v, f)`` without faces that repeat a vertex or have (near) zero area: refused, or with
+    ``repair`` removed (noted in ``repairs``) and the vertices compacted."""
     degenerate = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
     degenerate |= face_areas(v, f) <= 1e-12 * max(1.0, float(np.ptp(v, axis=0).max()) ** 2)
-    if degenerate.any():
-        if not repair:
-            raise MeshError(
-                f"{source}: {int(degenerate.sum())} degenerate (zero-area) faces; pass repair to remove them"
-            )
-        f = f[~degenerate]
-        repairs.append(f"removed {int(degenerate.sum())} degenerate faces")
-        v, f = _compact(v, f)
+    if not degenerate.any():
+        return v, f
+    if not repair:
+        raise MeshError(
+            f"{source}: {int(degenerate.sum())} degenerate (zero-area) faces; pass repair to remove them"
+        )
+    repairs.append(f"removed {int(degenerate.sum())} degenerate faces")
+    return _compact(v, f[~degenerate])
 
+
+def _without_duplicate_faces(v, f, source: str, repair: bool, repairs: list[str]) -> np.ndarray:
+    """``f`` without faces on the same three vertices as an earlier one: refused, or with
+    ``repair`` removed (noted in ``repairs``)."""
     key = np.sort(f, axis=1)
     if len(v) < 2_000_000:  # one int64 per face (n³ < 2⁶³): much faster than unique(axis=0)
         n = np.int64(len(v))
         key = (key[:, 0] * n + key[:, 1]) * n + key[:, 2]
     _, first = np.unique(key, axis=0, return_index=True)
-    if len(first) < len(f):
-        if not repair:
-            raise MeshError(f"{source}: {len(f) - len(first)} duplicate faces")
-        repairs.append(f"removed {len(f) - len(first)} duplicate faces")
-        f = f[np.sort(first)]
+    if len(first) == len(f):
+        return f
+    if not repair:
+        raise MeshError(f"{source}: {len(f) - len(first)} duplicate faces")
+    repairs.append(f"removed {len(f) - len(first)} duplicate faces")
+    return f[np.sort(first)]
 
+
+def _largest_component(v, f, source: str, repair: bool, repairs: list[str]):
+    """``(v, f)`` as one piece: several components are refused, or with ``repair`` all but the
+    largest dropped (noted in ``repairs``) and the vertices compacted."""
     n_comp, labels = face_components(f)
-    if n_comp > 1:
-        if not repair:
-            raise MeshError(
-                f"{source}: {n_comp} separate components; a lung surface must be one piece "
-                "(pass repair to keep the largest, or select one label)"
-            )
-        sizes = np.bincount(labels)
-        keep = int(np.argmax(sizes))
-        repairs.append(f"kept the largest of {n_comp} components ({sizes[keep]} of {len(f)} faces)")
-        f = f[labels == keep]
-        v, f = _compact(v, f)
+    if n_comp <= 1:
+        return v, f
+    if not repair:
+        raise MeshError(
+            f"{source}: {n_comp} separate components; a lung surface must be one piece "
+            "(pass repair to keep the largest, or select one label)"
+        )
+    sizes = np.bincount(labels)
+    keep = int(np.argmax(sizes))
+    repairs.append(f"kept the largest of {n_comp} components ({sizes[keep]} of {len(f)} faces)")
+    return _compact(v, f[labels == keep])
 
-    edges, counts = edge_face_counts(f)
+
+def _check_closed_manifold(v, f, source: str) -> None:
+    """Refuse an open surface (an edge in one face) or a non-manifold one (an edge in 3+ faces, a
+    pinched vertex): never repaired."""
+    _, counts = edge_face_counts(f)
     if (counts == 1).any():
         raise MeshError(f"{source}: surface is open ({int((counts == 1).sum())} boundary edges)")
     if (counts > 2).any():
@@ -306,20 +339,11 @@ def check_surface(
     pinched = non_manifold_vertices(f, len(v))
     if len(pinched):
         raise MeshError(f"{source}: surface is not 2-manifold ({len(pinched)} pinched vertices)")
-    if not orientation_consistent(f):
-        if not repair:
-            raise MeshError(f"{source}: faces are not consistently oriented")
-        f = _orient_consistently(f)
-        repairs.append("re-oriented faces consistently")
 
-    vol = signed_volume(v, f)
-    if vol < 0:
-        if not repair:
-            raise MeshError(f"{source}: faces point inward (negative volume); pass repair to flip them")
-        f = np.ascontiguousarray(f[:, ::-1])
-        vol = -vol
-        repairs.append("flipped inward-facing orientation")
 
+def _check_millimetres(v, source: str) -> None:
+    """Refuse a surface whose bounding-box diagonal is outside :data:`PLAUSIBLE_DIAGONAL_MM`
+    (:class:`UnitsError`): not a lung in millimetres."""
     lo, hi = PLAUSIBLE_DIAGONAL_MM
     diag = float(np.linalg.norm(np.ptp(v, axis=0)))
     if not lo <= diag <= hi:
@@ -328,8 +352,6 @@ def check_surface(
             f"{source}: bounding-box diagonal is {diag:.4g}, not a lung in millimetres "
             f"(expected {lo:g}–{hi:g} mm){hint}"
         )
-    report = SurfaceReport(len(v), len(f), vol, surface_area(v, f), tuple(repairs))
-    return v, f, report
 
 
 def _compact(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -201,7 +201,42 @@ def extract_surface(
         raise InputError(f"target_vertices must be at least 100, got {target_vertices}")
     t = {}
     t0 = time.perf_counter()
-    a = image.array
+    fg = _foreground(image.array, labels, source, what)
+    notes: list[str] = []
+    fg, lo, dropped, n_filled = _prepared_mask(fg, notes)
+    t["mask"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    v, f = _marching_cubes_world(fg, lo, image, what, notes)
+    del fg
+    t["marching_cubes"] = time.perf_counter() - t0
+    n_mc = len(v)
+
+    t0 = time.perf_counter()
+    if smooth_iterations:
+        v = taubin_smooth(v, f, smooth_iterations)
+        notes.append(f"Taubin-smoothed ({smooth_iterations} iterations)")
+    t["smooth"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    if target_vertices is not None and target_vertices < len(v):
+        try:
+            v, f, cleaned = decimate(v, f, target_vertices)
+        except MeshError as exc:
+            raise MeshError(f"{name or image.source}: {exc}") from exc
+        notes.append(f"decimated {n_mc} -> {len(v)} vertices")
+        notes.extend(cleaned)
+    t["decimate"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    v, f, report = _checked_surface(v, f, source, what, notes)
+    t["check"] = time.perf_counter() - t0
+    report = dataclasses.replace(report, repairs=tuple(notes))
+    return MaskSurface(Surface(v, f, name), report, tuple(notes), dropped, n_filled, t)
+
+
+def _foreground(a: np.ndarray, labels, source: str, what: str) -> np.ndarray:
+    """Step 1: ``(z, y, x) bool`` voxels of ``labels`` in the array ``a`` (None: any non-zero, after
+    refusing a CT in HU). :class:`MaskError` naming ``source`` when there are none."""
     if labels is None:
         if np.issubdtype(a.dtype, np.floating) or (a.size and a.min() < 0):
             lo, hi = a.min(), a.max()
@@ -215,8 +250,13 @@ def extract_surface(
         fg = np.isin(a, _as_labels(labels, "labels"))
     if not fg.any():
         raise MaskError(f"{source}: no foreground voxels for {what}")
-    notes: list[str] = []
-    # crop to the foreground bounding box
+    return fg
+
+
+def _prepared_mask(fg: np.ndarray, notes: list[str]) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """Steps 2–5 on ``fg : (z, y, x) bool``: ``(padded mask, lo (3,) int, components dropped, voxels
+    filled)``; ``lo`` is the (z, y, x) index of the crop's first voxel (before the one-voxel pad).
+    What was changed is appended to ``notes``."""
     idx = np.nonzero(fg.any(axis=(1, 2)))[0], np.nonzero(fg.any(axis=(0, 2)))[0], np.nonzero(fg.any(axis=(0, 1)))[0]
     lo = np.array([x[0] for x in idx])
     hi = np.array([x[-1] for x in idx]) + 1
@@ -238,15 +278,17 @@ def extract_surface(
     n_filled = int(filled.sum() - fg.sum())
     if n_filled:
         notes.append(f"filled {n_filled} voxels of internal cavities")
-    fg = np.pad(filled, 1)
-    t["mask"] = time.perf_counter() - t0
+    return np.pad(filled, 1), lo, dropped, n_filled
 
-    t0 = time.perf_counter()
+
+def _marching_cubes_world(fg: np.ndarray, lo: np.ndarray, image: Image, what: str,
+                          notes: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """Step 6: ``(vertices (n, 3) float mm LPS, faces (m, 3) int)`` of the padded crop ``fg`` whose
+    first unpadded voxel is (z, y, x) index ``lo`` of ``image``; the largest piece, faces outward."""
     try:
         verts_zyx, faces, _, _ = marching_cubes(fg.astype(np.float32), level=0.5, allow_degenerate=False)
     except (ValueError, RuntimeError) as exc:
-        raise MaskError(f"{source}: marching cubes failed for {what} ({exc})") from exc
-    del fg
+        raise MaskError(f"{image.source}: marching cubes failed for {what} ({exc})") from exc
     # padded cropped index (z, y, x) -> full-volume index (i, j, k) = (x, y, z)
     ijk = verts_zyx[:, ::-1].astype(np.float64) - 1.0 + lo[::-1]
     v = index_to_world(ijk, image.spacing, image.origin, image.direction)
@@ -256,28 +298,15 @@ def extract_surface(
         notes.append(f"dropped {extra} small surface pieces")
     if signed_volume(v, f) < 0:  # index->world flips handedness when det(direction) < 0, etc.
         f = np.ascontiguousarray(f[:, ::-1])
-    t["marching_cubes"] = time.perf_counter() - t0
-    n_mc = len(v)
+    return v, f
 
-    t0 = time.perf_counter()
-    if smooth_iterations:
-        v = taubin_smooth(v, f, smooth_iterations)
-        notes.append(f"Taubin-smoothed ({smooth_iterations} iterations)")
-    t["smooth"] = time.perf_counter() - t0
 
-    t0 = time.perf_counter()
-    if target_vertices is not None and target_vertices < len(v):
-        try:
-            v, f, cleaned = decimate(v, f, target_vertices)
-        except MeshError as exc:
-            raise MeshError(f"{name or image.source}: {exc}") from exc
-        notes.append(f"decimated {n_mc} -> {len(v)} vertices")
-        notes.extend(cleaned)
-    t["decimate"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
+def _checked_surface(v: np.ndarray, f: np.ndarray, source: str, what: str, notes: list[str]):
+    """:func:`check_surface` of the final surface, cleaned (:func:`clean_mesh`, noted) only when the
+    check fails; a wrong size becomes :class:`MaskError` (the mask's spacing, not the units)."""
     try:
         try:
-            v, f, report = check_surface(v, f, source=f"{source} ({what})")
+            return check_surface(v, f, source=f"{source} ({what})")
         except UnitsError:
             raise
         except MeshError:
@@ -286,7 +315,7 @@ def extract_surface(
             # when needed, so that surfaces that pass as they are stay bit-identical.
             v, f, cleaned = clean_mesh(v, f)
             notes.extend(cleaned)
-            v, f, report = check_surface(v, f, source=f"{source} ({what})")
+            return check_surface(v, f, source=f"{source} ({what})")
     except UnitsError as exc:  # image spacing is in mm: a wrong size is the mask's, not the units'
         size = float(np.linalg.norm(np.ptp(v, axis=0)))
         raise MaskError(
@@ -295,7 +324,3 @@ def extract_surface(
         ) from exc
     except MeshError as exc:  # a defect of this pipeline, not of the input: say so
         raise MeshError(f"{exc} [after mask_to_surface; try other smoothing/decimation settings]") from exc
-    t["check"] = time.perf_counter() - t0
-    report = dataclasses.replace(report, repairs=tuple(notes))
-    return MaskSurface(Surface(v, f, name), report, tuple(notes), dropped, n_filled, t)
-

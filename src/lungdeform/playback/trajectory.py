@@ -2,7 +2,8 @@
 
 ``lungdeform track`` behind it: points (mm, LPS of the end-exhale scan) are assigned to a lung
 (:func:`place_points`), moved by that lung's interior field (:mod:`lungdeform.interior.field`) at the
-same exact per-lung scales as surface playback (:func:`lung_scales`, as ``lungdeform export``), and
+same exact per-lung scales as surface playback (:func:`lung_scales`, as ``lungdeform export``) over
+frames of absolute volumes or of a volume trace (:func:`volume_frames`, :func:`trace_frames`), and
 written as a CSV of positions, a JSON summary of each point's motion and a plot
 (:func:`write_trajectories`).
 """
@@ -21,6 +22,7 @@ from lungdeform.atomic import write_bytes
 from lungdeform.errors import InputError, ReadError
 from lungdeform.geometry.distance import point_to_surface
 from lungdeform.geometry.mesh import as_vertices, winding_numbers
+from lungdeform.interior.field import KIND_TEXT
 from lungdeform.io.landmarks import read_elastix_points
 from lungdeform.model.displacement import scale_for_volume
 
@@ -105,6 +107,65 @@ def point_trajectories(model, points, placement: PointPlacement, delta_ml) -> np
     v = unit_displacements(model, q, placement)
     s = np.stack([scales[str(name)] for name in placement.lungs], axis=1)  # (f, q) units
     return q[None] + s[:, :, None] * v[None]
+
+
+@dataclass(frozen=True, eq=False)
+class FrameSchedule:
+    """The frames points are tracked over.
+
+    delta_ml : (f,) float — mL of both lungs above end-exhale; t_s : (f,) float — s, or None for
+    volumes without times; source : the schedule in words (for the output's ``schedule``).
+    """
+
+    delta_ml: np.ndarray
+    t_s: np.ndarray | None
+    source: str
+
+
+def end_exhale_ml(model) -> float:
+    """Volume of the model's lungs together at end-exhale, mL."""
+    return sum(lung.volume_ee_ml for lung in model.lungs.values())
+
+
+def volume_frames(model, volumes_ml) -> FrameSchedule:
+    """One frame per absolute volume ``volumes_ml`` (mL, both lungs together; no times)."""
+    if not all(np.isfinite(v) and v > 0 for v in volumes_ml):
+        raise InputError(f"volumes_ml must be > 0 mL, got {volumes_ml}")
+    v_ee = end_exhale_ml(model)
+    delta = np.asarray(volumes_ml, float) - v_ee
+    source = f"volumes {', '.join(f'{v:g}' for v in volumes_ml)} mL (end-exhale {v_ee:.0f} mL)"
+    return FrameSchedule(delta, None, source)
+
+
+def trace_frames(trace, fps: float) -> FrameSchedule:
+    """Frames at ``fps`` per second over a volume trace (:class:`lungdeform.playback.schedule.VolumeTrace`,
+    mL above end-exhale), first to last sample inclusive, its volume interpolated linearly."""
+    if not (np.isfinite(fps) and fps > 0):
+        raise InputError(f"fps must be > 0, got {fps}")
+    n = max(int(round((trace.t_s[-1] - trace.t_s[0]) * fps)), 1) + 1
+    t_s = np.linspace(trace.t_s[0], trace.t_s[-1], n)
+    return FrameSchedule(trace.sample(t_s), t_s, trace.source)
+
+
+def extrapolation_note(model, delta_ml) -> str | None:
+    """A note when ``delta_ml : (f,)`` mL leaves the model's range (below end-exhale by more than
+    1 mL, or above 1.5 × the volume change it was fitted for): the motion there is extrapolated."""
+    fitted = sum(lung.calibration_ml for lung in model.lungs.values())  # the volume change the model was made for
+    dv = np.asarray(delta_ml, float)
+    if dv.min() < -1.0 or dv.max() > 1.5 * fitted:
+        return (f"volumes from {dv.min():+.0f} to {dv.max():+.0f} mL about end-exhale, outside the model's "
+                f"range (0 to {fitted:.0f} mL): the motion there is extrapolated along the same field")
+    return None
+
+
+def interior_meta(model) -> dict:
+    """Per lung, whether its interior field carries the fit's landmark correction and the field in
+    words (:data:`lungdeform.interior.field.KIND_TEXT`): ``landmark_correction``, ``interior_field``."""
+    corrected = {name: bool(lung.interior.corrected) for name, lung in model.lungs.items()}
+    return {"landmark_correction": corrected,
+            "interior_field": {name: KIND_TEXT[lung.interior_kind][0]
+                               + (f" plus {KIND_TEXT[lung.interior_kind][1]}" if corrected[name] else "")
+                               for name, lung in model.lungs.items()}}
 
 
 #: LPS axes as a clinician names them (x: right→left, y: anterior→posterior, z: inferior→superior).

@@ -1,8 +1,9 @@
 """Validation experiments: the paper's Sec. IV-A, DIR-Lab landmarks, the ITK lung pair, breathing traces.
 
 Owns: :mod:`~lungdeform.validate.paper` and :mod:`~lungdeform.validate.msd` (the transfer model against
-a mass–spring–damper run to rest, Figs. 7–9), :mod:`~lungdeform.validate.dirlab` and
-:mod:`~lungdeform.validate.dirlab_files` (DIR-Lab 4-D CT landmarks).
+a mass–spring–damper run to rest, Figs. 7–9), :mod:`~lungdeform.validate.dirlab`,
+:mod:`~lungdeform.validate.dirlab_files` and :mod:`~lungdeform.validate.dirlab_experiment` (DIR-Lab 4-D
+CT landmarks: the models, finding the files, the experiment of ``lungdeform validate dirlab``).
 
 May import: everything below it (:mod:`lungdeform.cohort`, :mod:`lungdeform.fit`, …); never the CLI.
 """

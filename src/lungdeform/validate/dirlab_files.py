@@ -376,18 +376,61 @@ def discover(root, published_fallback: bool = True) -> Discovery:
     if not root.is_dir():
         raise ReadError(f"{root}: not a directory")
     files = _walk_files(root)
+    spacing, tables, notes = _read_spacing_tables(_find_spacing_tables(root, files))
+    table_names = " and ".join(map(str, tables)) if tables else None
+    if table_names:
+        notes.append(f"voxel spacing from {table_names}")
+    found, ignored, case_notes, unnumbered = _landmark_files(root, files)
+    if unnumbered:
+        notes.append(f"ignored {len(unnumbered)} landmark file(s) with no case number in their name or folder, "
+                     f"e.g. {unnumbered[0]}")
+    if not found:
+        archives = [p for p in files if p.name.lower().endswith(_ARCHIVE_SUFFIXES)]
+        hint = f"; extract the archive(s) first, e.g. {archives[0]}" if archives else ""
+        raise ReadError(f"{root}: no DIR-Lab landmark files (caseN_…300_T00_xyz.txt, caseN_4D-75_T00.txt){hint}")
+    where = f"no row in {table_names}" if table_names else \
+        f"no voxel_spacing.csv found in {root} or the folders above it"
+    cases: dict[int, CaseFiles] = {}
+    skipped: dict[int, str] = {}
+    for case, kinds in sorted(found.items()):
+        got = _case_files(case, kinds, spacing.get(case), where, published_fallback, case_notes.get(case, []),
+                          ignored.get(case, []))
+        if isinstance(got, str):
+            skipped[case] = got
+        else:
+            cases[case] = got
+    for case, paths in sorted(ignored.items()):
+        if case not in found:
+            skipped[case] = (f"case {case}: skipped: only files of phases outside T00–T50, which this tool does "
+                             f"not use, e.g. {paths[0]}")
+    if not cases:
+        raise ReadError(f"{root}: no usable DIR-Lab case: " + "; ".join(skipped.values()))
+    return Discovery(root, cases, skipped, tuple(tables), tuple(notes))
+
+
+def _find_spacing_tables(root: Path, files: list[Path]) -> list[Path]:
+    """The spacing tables among ``files`` (under ``root``); when there are none, those beside
+    ``root`` or up to two folders above it (the nearest folder holding one)."""
     tables = [p for p in files if _is_spacing_table(p) and _classify(p.name) is None]
-    if not tables:
-        ups = list(Path(os.path.abspath(root)).parents)[:3] + list(root.resolve().parents)[:3]
-        for up in dict.fromkeys(ups):
-            try:
-                tables = sorted(p for p in up.iterdir() if p.is_file() and _is_spacing_table(p))
-            except OSError:
-                continue
-            if tables:
-                break
-    spacing: dict[int, tuple[np.ndarray, np.ndarray | None]] = {}
-    source: dict[int, Path] = {}
+    if tables:
+        return tables
+    ups = list(Path(os.path.abspath(root)).parents)[:3] + list(root.resolve().parents)[:3]
+    for up in dict.fromkeys(ups):
+        try:
+            tables = sorted(p for p in up.iterdir() if p.is_file() and _is_spacing_table(p))
+        except OSError:
+            continue
+        if tables:
+            break
+    return tables
+
+
+def _read_spacing_tables(tables: list[Path]):
+    """``(spacing, tables read, notes)``: ``spacing`` is case → ``(spacing (3,) mm, dims (3,) or None,
+    the table)`` merged over ``tables`` (dims from a table that has them); a case given two different
+    spacings raises :class:`ReadError`, and so does a broken ``voxel_spacing`` table, while another
+    file that only looks like one is ignored with a note."""
+    spacing: dict[int, tuple[np.ndarray, np.ndarray | None, Path]] = {}
     notes: list[str] = []
     read_tables = []
     for t in tables:
@@ -402,14 +445,18 @@ def discover(root, published_fallback: bool = True) -> Discovery:
         for case, (sp, dims) in table.items():
             if case in spacing and not np.allclose(spacing[case][0], sp):
                 raise ReadError(f"case {case}: spacing {sp.tolist()} mm in {t} but {spacing[case][0].tolist()} mm "
-                                f"in {source[case]}")
+                                f"in {spacing[case][2]}")
             if case not in spacing or (spacing[case][1] is None and dims is not None):
-                spacing[case], source[case] = (sp, dims), t
-    tables = read_tables
-    table_names = " and ".join(map(str, tables)) if tables else None
-    if table_names:
-        notes.append(f"voxel spacing from {table_names}")
+                spacing[case] = (sp, dims, t)
+    return spacing, read_tables, notes
 
+
+def _landmark_files(root: Path, files: list[Path]):
+    """``(found, ignored, case_notes, unnumbered)`` among ``files`` under ``root``: ``found`` is
+    case → ``{"extreme": {phase: path}, "sampled": {phase: path}}``; ``ignored`` case → files of
+    phases not used here; ``case_notes`` case → remarks (a name that disagrees with its folder, a
+    repeated file); ``unnumbered`` the landmark files with no case number. Two different files for
+    one phase raise :class:`ReadError`."""
     found: dict[int, dict[str, dict[str, Path]]] = {}
     ignored: dict[int, list[Path]] = {}
     case_notes: dict[int, list[str]] = {}
@@ -438,66 +485,59 @@ def discover(root, published_fallback: bool = True) -> Discovery:
             case_notes.setdefault(case, []).append(f"case {case}: {p} repeats {slot[phase]} (same numbers): ignored")
             continue
         slot[phase] = p
-    if unnumbered:
-        notes.append(f"ignored {len(unnumbered)} landmark file(s) with no case number in their name or folder, "
-                     f"e.g. {unnumbered[0]}")
-    if not found:
-        archives = [p for p in files if p.name.lower().endswith(_ARCHIVE_SUFFIXES)]
-        hint = f"; extract the archive(s) first, e.g. {archives[0]}" if archives else ""
-        raise ReadError(f"{root}: no DIR-Lab landmark files (caseN_…300_T00_xyz.txt, caseN_4D-75_T00.txt){hint}")
+    return found, ignored, case_notes, unnumbered
 
-    cases: dict[int, CaseFiles] = {}
-    skipped: dict[int, str] = {}
-    for case, kinds in sorted(found.items()):
-        ext, smp = kinds["extreme"], kinds["sampled"]
-        first = next(iter({**ext, **smp}.values()))
-        if case in spacing:
-            (sp, dims), src = spacing[case], str(source[case])
-            geo = geometry_notes(case, sp, dims)
-        else:
-            where = f"no row in {table_names}" if table_names else \
-                f"no voxel_spacing.csv found in {root} or the folders above it"
-            if not published_fallback:
-                raise ReadError(f"case {case}: {where} for its landmark files (e.g. {first})")
-            if case not in PUBLISHED_GEOMETRY:
-                skipped[case] = (f"case {case}: skipped: {where} for its landmark files (e.g. {first}), and it is not "
-                                 "one of DIR-Lab's cases 1–10 with a published spacing")
-                continue
-            pub_dims, pub_sp = PUBLISHED_GEOMETRY[case]
-            sp, dims, src, geo = np.array(pub_sp, dtype=float), np.array(pub_dims), PUBLISHED_SOURCE, []
-            case_notes.setdefault(case, []).insert(
-                0, f"case {case}: {where}: used the published DIR-Lab spacing {list(pub_sp)} mm and size {list(pub_dims)}")
-        if ext and set(ext) != {"T00", "T50"}:
-            have = next(iter(ext.values()))
-            missing = sorted({"T00", "T50"} - set(ext))
-            raise ReadError(
-                f"case {case}: 300-pair file for {', '.join(missing)} missing beside {have} "
-                f"(need T00 and T50; found {', '.join(sorted(ext))})"
-            )
-        if smp and set(smp) != set(PHASES):
-            missing = sorted(set(PHASES) - set(smp))
-            have = next(iter(smp.values()))
-            raise ReadError(
-                f"case {case}: 75-point files missing phase(s) {', '.join(missing)} beside {have} "
-                f"(need {', '.join(PHASES)})"
-            )
-        cnotes = case_notes.get(case, [])
-        cnotes += [f"case {case}: ignored {p} (phase outside {'T00/T50' if _classify(p.name)[1] == 'extreme' else 'T00–T50'})"
-                   for p in ignored.get(case, [])]
-        if not smp:
-            cnotes.append(f"case {case}: no 75-point files (caseN_4D-75_T00…T50) beside {first}: motion models "
-                          "skipped, 300-pair displacement only")
-        if not ext:
-            cnotes.append(f"case {case}: no 300-pair files (caseN_…300_T00/T50_xyz) beside {first}: 300-pair "
-                          "displacement skipped")
-        cnotes += geo
-        cases[case] = CaseFiles(case, sp, dims, dict(ext), dict(smp), tuple(cnotes), src)
-    for case, paths in sorted(ignored.items()):
-        if case not in found:
-            skipped[case] = f"case {case}: skipped: only files of phases outside T00–T50, which this tool does not use, e.g. {paths[0]}"
-    if not cases:
-        raise ReadError(f"{root}: no usable DIR-Lab case: " + "; ".join(skipped.values()))
-    return Discovery(root, cases, skipped, tuple(tables), tuple(notes))
+
+def _case_files(case: int, kinds: dict[str, dict[str, Path]], table_row, where: str, published_fallback: bool,
+                found_notes: list[str], ignored: list[Path]) -> CaseFiles | str:
+    """One found case (``kinds`` from :func:`_landmark_files`) as :class:`CaseFiles`, or the reason
+    it is skipped (no spacing and not one of DIR-Lab's 1–10). ``table_row``: its ``(spacing, dims,
+    table)`` or None (``where`` says why); ``found_notes``, ``ignored``: what discovery noticed."""
+    ext, smp = kinds["extreme"], kinds["sampled"]
+    first = next(iter({**ext, **smp}.values()))
+    lead: list[str] = []
+    if table_row is not None:
+        sp, dims, table = table_row
+        src, geo = str(table), geometry_notes(case, sp, dims)
+    else:
+        if not published_fallback:
+            raise ReadError(f"case {case}: {where} for its landmark files (e.g. {first})")
+        if case not in PUBLISHED_GEOMETRY:
+            return (f"case {case}: skipped: {where} for its landmark files (e.g. {first}), and it is not "
+                    "one of DIR-Lab's cases 1–10 with a published spacing")
+        pub_dims, pub_sp = PUBLISHED_GEOMETRY[case]
+        sp, dims, src, geo = np.array(pub_sp, dtype=float), np.array(pub_dims), PUBLISHED_SOURCE, []
+        lead = [f"case {case}: {where}: used the published DIR-Lab spacing {list(pub_sp)} mm and size {list(pub_dims)}"]
+    _check_phase_sets(case, ext, smp)
+    cnotes = lead + list(found_notes)
+    for p in ignored:
+        outside = "T00/T50" if _classify(p.name)[1] == "extreme" else "T00–T50"
+        cnotes.append(f"case {case}: ignored {p} (phase outside {outside})")
+    if not smp:
+        cnotes.append(f"case {case}: no 75-point files (caseN_4D-75_T00…T50) beside {first}: motion models "
+                      "skipped, 300-pair displacement only")
+    if not ext:
+        cnotes.append(f"case {case}: no 300-pair files (caseN_…300_T00/T50_xyz) beside {first}: 300-pair "
+                      "displacement skipped")
+    return CaseFiles(case, sp, dims, dict(ext), dict(smp), tuple(cnotes + geo), src)
+
+
+def _check_phase_sets(case: int, ext: dict[str, Path], smp: dict[str, Path]) -> None:
+    """Refuse a partial set: 300-pair files need T00 and T50, 75-point files all of :data:`PHASES`."""
+    if ext and set(ext) != {"T00", "T50"}:
+        have = next(iter(ext.values()))
+        missing = sorted({"T00", "T50"} - set(ext))
+        raise ReadError(
+            f"case {case}: 300-pair file for {', '.join(missing)} missing beside {have} "
+            f"(need T00 and T50; found {', '.join(sorted(ext))})"
+        )
+    if smp and set(smp) != set(PHASES):
+        missing = sorted(set(PHASES) - set(smp))
+        have = next(iter(smp.values()))
+        raise ReadError(
+            f"case {case}: 75-point files missing phase(s) {', '.join(missing)} beside {have} "
+            f"(need {', '.join(PHASES)})"
+        )
 
 
 def find_cases(root, published_fallback: bool = True) -> dict[int, CaseFiles]:
