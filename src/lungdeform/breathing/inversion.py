@@ -1,4 +1,4 @@
-"""Inversion of the breathing driver: its control parameters from a measured trace (METHOD §9).
+"""Inversion of the breathing driver: its control parameters from a measured trace.
 
 The forward model is :mod:`lungdeform.breathing.pv`: the single-compartment equation of motion
 

@@ -1,6 +1,6 @@
-"""Breathing driver: the pressure–volume (PV) relation of the paper (Sec. III-A/B, METHOD §9).
+"""Breathing driver: the pressure–volume (PV) relation of the paper (Sec. III-A/B).
 
-The reading we implement (METHOD §9, "a standard reading") is the single-compartment equation of
+The reading we implement ("a standard reading") is the single-compartment equation of
 motion of the respiratory system,
 
     I·V''(t) + R·V'(t) + E·(V(t) − V_r) = P_mus(t),        P_mus(t) = Σ_{k=1..5} a_k·φ_k(θ(t)),
@@ -200,7 +200,7 @@ def interp_periodic(grid_values: np.ndarray, theta) -> np.ndarray:
 
 # --------------------------------------------------------------------------- curve
 def scale_from_volume(volume_ml, v_ee_ml: float, unit_ml: float):
-    """Playback scale s = (V − V_EE)/ΔV (METHOD §7): the surface is x = p + s·u.
+    """Playback scale s = (V − V_EE)/ΔV (paper eq. (1), Sec. V): the surface is x = p + s·u.
 
     volume_ml : float or (n,) float, mL; v_ee_ml : end-exhale volume, mL; unit_ml : ΔV, mL per unit
     displacement field u. Returns s with the shape of ``volume_ml``.
