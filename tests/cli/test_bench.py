@@ -25,3 +25,11 @@ def test_bench_solve_and_playback_json(tmp_path):
 def test_bench_refuses_tiny_sizes(tmp_path, capsys):
     assert main(["bench", "solve", "--vertices", "5"]) == 2
     assert "--vertices" in capsys.readouterr().err
+
+
+def test_bench_cohort_refuses_bad_counts(capsys):
+    # argument checks come before any cohort is built; the message names the flag
+    assert main(["bench", "cohort", "--subjects", "0"]) == 2
+    assert "--subjects must be at least 1, got 0" in capsys.readouterr().err
+    assert main(["bench", "cohort", "--workers", "0"]) == 2
+    assert "--workers must be at least 1, got 0" in capsys.readouterr().err

@@ -12,6 +12,7 @@ from lungdeform.cli.main import main
 from lungdeform.constants import STEPS_PER_S
 from lungdeform.geometry.mesh import signed_volume
 from lungdeform.io.modelfile import load_model
+from lungdeform.model.displacement import scale_for_volume
 
 
 def test_demo_plays_the_normal_preset_and_writes_everything(tmp_path, capsys):
@@ -67,8 +68,6 @@ def test_demo_plays_the_normal_preset_and_writes_everything(tmp_path, capsys):
     # the saved model reproduces a frame: the peak frame's mesh volume from model.npz alone
     peak = int(np.argmax(dv))
     for name, lung in model.lungs.items():
-        from lungdeform.model.displacement import scale_for_volume
-
         share = ee[name] / total_ee
         x = lung.positions_at(scale_for_volume(lung.volume_poly, share * dv[peak]))
         assert signed_volume(x, lung.surface.faces) / 1000 == pytest.approx(ee[name] + share * dv[peak], rel=1e-9)

@@ -1,17 +1,21 @@
 """VTK legacy (.vtk) and XML PolyData (.vtp) files through lungdeform.io.meshfile: hand-made files, meshio's
-unstructured grid and files written by VTK itself (the readers are in lungdeform.io.vtk)."""
+unstructured grid and files written by VTK itself (the readers are in lungdeform.io.vtk), and the one .vtp
+writer (lungdeform.io.vtk.vtp_bytes) in both its layouts."""
 
 from __future__ import annotations
 
 import base64
 import json
+import struct
+import xml.etree.ElementTree as ET
 import zlib
 
 import numpy as np
 import pytest
 
 from lungdeform.geometry.mesh import icosphere
-from lungdeform.io.meshfile import load_surface, read_mesh
+from lungdeform.io.meshfile import load_surface, read_mesh, write_mesh
+from lungdeform.io.vtk import read_vtp, vtp_bytes
 from tests.io.test_meshfile import CUBE_VOLUME, SPHERE, cube_quads
 
 
@@ -124,3 +128,44 @@ def test_files_written_by_vtk(tmp_path, name):
     # same triangles, same winding (strips come back in another order and rotation)
     canon = lambda f: {tuple(np.roll(t, -int(np.argmin(t)))) for t in f.tolist()}  # noqa: E731
     assert canon(f) == canon(ref.faces)
+
+
+# --------------------------------------------------------------------------- the one .vtp writer
+def _appended_array(data: bytes, name: str, dtype) -> np.ndarray:
+    """The named DataArray of an appended-raw .vtp, decoded by hand (UInt64 size header, little endian)."""
+    head, blob = data.split(b'<AppendedData encoding="raw">\n_', 1)
+    root = ET.fromstring(head + b"</VTKFile>")
+    el = next(e for e in root.iter("DataArray") if e.get("Name") == name)
+    off = int(el.get("offset"))
+    (nbytes,) = struct.unpack_from("<Q", blob, off)
+    return np.frombuffer(blob[off + 8:off + 8 + nbytes], dtype)
+
+
+@pytest.mark.parametrize("appended", [False, True])
+def test_vtp_writer_round_trip(tmp_path, rng, appended):
+    # truth: the arrays written; our reader (and a hand decoder for the appended fields) gives them back,
+    # Float64 points exactly, Float32 points to float32 rounding
+    s = icosphere(2, 30.0)
+    disp = rng.normal(size=s.vertices.shape).astype(np.float32)
+    stiff = rng.uniform(0.5, 2.0, s.n_vertices).astype(np.float32)
+    for points_dtype in (np.float64, np.float32):
+        data = vtp_bytes(s.vertices, s.faces, {"displacement_mm": disp, "stiffness": stiff}, time_s=1.25,
+                         appended=appended, points_dtype=points_dtype)
+        (tmp_path / "f.vtp").write_bytes(data)
+        v, f = read_vtp(tmp_path / "f.vtp")
+        np.testing.assert_array_equal(f, s.faces)
+        np.testing.assert_array_equal(v, s.vertices.astype(points_dtype))
+        assert (b'format="appended"' in data) == appended and (b'format="binary"' in data) != appended
+    if appended:
+        assert _appended_array(data, "TimeValue", "<f8").tolist() == [1.25]
+        np.testing.assert_array_equal(_appended_array(data, "displacement_mm", "<f4"), disp.ravel())
+        np.testing.assert_array_equal(_appended_array(data, "stiffness", "<f4"), stiff)
+
+
+def test_vtp_writer_plain_surface_is_what_write_mesh_writes(tmp_path):
+    # write_mesh's .vtp is the writer's inline layout without point data or time: no <PointData>,
+    # no <FieldData>, one element per line
+    write_mesh(tmp_path / "s.vtp", SPHERE.vertices, SPHERE.faces)
+    data = (tmp_path / "s.vtp").read_bytes()
+    assert data == vtp_bytes(SPHERE.vertices, SPHERE.faces)
+    assert b"<PointData>" not in data and b"<FieldData>" not in data and b"<Points><DataArray" in data

@@ -148,15 +148,10 @@ def shape_functions(fits: dict, cycles: CycleAnchors) -> dict:
 
 
 # --------------------------------------------------------------------------- evaluation
-def evaluate(trace: Trace, tidal_volume_ml: float = 500.0, train_fraction: float = 0.5,
-             fs_hz: float | None = None, elastance: float = 10.0, use_marks: bool = False,
-             drift: bool = True, anchors: CycleAnchors | None = None, progress=None) -> dict:
-    """Fit the PV driver and the baselines on early cycles, score them on later ones (see module doc).
+def _split_cycles(trace: Trace, train_fraction: float, fs_hz, use_marks: bool, anchors):
+    """Resample ``trace`` at ``fs`` Hz and split its cycles into training and held-out ones.
 
-    anchors : the cycles of the resampled trace, if known (else detected); ``use_marks`` takes them
-    from recorded RPM marks instead of the detector. ``drift`` : the headline calibration includes a
-    per-cycle linear drift (the fits then allow it too).
-    """
+    Returns ``(fs, resampled trace, all anchors, n_train, train anchors, held-out anchors)``."""
     if not (0.0 < train_fraction < 1.0):
         raise InputError(f"train_fraction must lie in (0, 1), got {train_fraction!r}")
     fs = fs_hz or float(np.round(1.0 / trace.sample_interval_s))
@@ -166,16 +161,15 @@ def evaluate(trace: Trace, tidal_volume_ml: float = 500.0, train_fraction: float
     if k < 3:
         raise InputError(f"{trace.source}: {k} complete breathing cycle(s); a held-out test needs >= 3")
     n_train = int(np.clip(np.floor(k * train_fraction), 2, k - 1))
-    train, test = anchors.subset(0, n_train), anchors.subset(n_train, k)
-    s_train, s_test = train.starts_s, test.starts_s
-    t = tr.t_s
-    vol, gain, offset = calibrate(tr, s_train, tidal_volume_ml)
-    in_train = (t >= s_train[0]) & (t < s_train[-1])
-    in_test = (t >= s_test[0]) & (t < s_test[-1])
-    tt, vt = t[in_test], vol[in_test]
+    return fs, tr, anchors, n_train, anchors.subset(0, n_train), anchors.subset(n_train, k)
 
-    if progress:
-        progress(f"{trace.source}: fits on {n_train} cycles")
+
+def _held_out_models(t, vol, in_train, tt, vt, train: CycleAnchors, test: CycleAnchors, level_fn,
+                     elastance: float, drift: bool) -> dict:
+    """The shared shapes fitted on the training samples and calibrated three ways on the held-out
+    samples ``tt, vt`` (s, mL): ``{"fits", "fits_no_drift", "shared", "no_drift", "anchored"}``, the
+    last three name -> model (mL) at ``tt``."""
+    s_test = test.starts_s
     fits = fit_shapes(t[in_train], vol[in_train], train, elastance, drift)
     shapes = shape_functions(fits, test)
     shared = {m: calibrate_lsq(f(tt), tt, vt, s_test, drift) for m, f in shapes.items()}
@@ -185,48 +179,89 @@ def evaluate(trace: Trace, tidal_volume_ml: float = 500.0, train_fraction: float
                     for m, f in shape_functions(fits_nd, test).items()}
     else:
         fits_nd, no_drift = fits, shared
-    level = smooth(vol, fs, ANCHOR_LEVEL_CUTOFF_HZ)
-
-    def level_fn(x):
-        return np.interp(x, t, level)
-
     anchored = {m: calibrate_anchored(f, tt, test, level_fn) for m, f in shapes.items()}
+    return {"fits": fits, "fits_no_drift": fits_nd, "shared": shared, "no_drift": no_drift, "anchored": anchored}
 
-    if progress:
-        progress(f"{trace.source}: per-cycle refits")
+
+def _per_cycle_refits(fits: dict, tt, vt, test: CycleAnchors) -> dict:
+    """Each held-out cycle fitted on its own (in-sample; see the module doc): name -> model (mL)."""
+    s_test = test.starts_s
     pv_refit, _ = inv.refit_control(fits["pv"], tt, vt, s_test, peaks_s=test.peaks_s)
     lj_refit = rb.predict_lujan(rb.fit_lujan(tt, vt, s_test, per_cycle=True), tt, vt, s_test)
     fo_refit, _ = rb.fit_fourier_per_cycle(tt, vt, s_test)
-    refit = {"model": pv_refit, "lujan": lj_refit, "fourier": fo_refit}
+    return {"model": pv_refit, "lujan": lj_refit, "fourier": fo_refit}
 
-    flags = cycle_flags(tr, anchors)
-    regular = np.array([not f for f in flags[n_train:]])
+
+def _flag_counts(flags) -> tuple[np.ndarray, dict]:
+    """``(regular (k,) bool, {reason: count})`` of the held-out cycles' flags."""
+    regular = np.array([not f for f in flags])
     reasons: dict = {}
-    for f in flags[n_train:]:
+    for f in flags:
         for r in f:
             reasons[r] = reasons.get(r, 0) + 1
+    return regular, reasons
 
-    def scores(curves, **kw):
-        return {m: rms_percent(curves[m], vt, s_test, tt, **kw) for m in MODELS}
 
-    idx_t, _ = rb.cycle_phase(tt, s_test)
-    p2p_cycle = float(np.median([np.ptp(vt[idx_t == c]) for c in np.unique(idx_t[idx_t >= 0])]))
-    sc = scores(shared)
-    ref = scores(refit)
-    fit = fits["pv"]
+def _scores(curves: dict, vt, s_test, tt, **kw) -> dict:
+    return {m: rms_percent(curves[m], vt, s_test, tt, **kw) for m in MODELS}
+
+
+def _score_table(models: dict, refit: dict, vt, tt, s_test, regular, reasons) -> dict:
+    """The error figures of the report (% of the breath amplitude unless named otherwise)."""
+    shared = models["shared"]
+    sc = _scores(shared, vt, s_test, tt)
+    ref = _scores(refit, vt, s_test, tt)
     return {
         "model_rms_percent": sc["model"],
         "lujan_rms_percent": sc["lujan"],
         "fourier_rms_percent": ref["fourier"],
         "shared_shape": sc,
-        "shared_shape_no_drift": scores(no_drift),
-        "anchored": scores(anchored),
+        "shared_shape_no_drift": _scores(models["no_drift"], vt, s_test, tt),
+        "anchored": _scores(models["anchored"], vt, s_test, tt),
         "per_cycle_refit": ref,
         "percent_of_trace_range": {"model": rms_percent(shared["model"], vt, s_test, tt, of="trace"),
                                    "lujan": rms_percent(shared["lujan"], vt, s_test, tt, of="trace"),
                                    "fourier": rms_percent(refit["fourier"], vt, s_test, tt, of="trace")},
-        "regular_cycles": {**scores(shared, keep=regular), "held_out_cycles": int(regular.size),
+        "regular_cycles": {**_scores(shared, vt, s_test, tt, keep=regular), "held_out_cycles": int(regular.size),
                            "flagged": int((~regular).sum()), "reasons": reasons},
+    }
+
+
+def evaluate(trace: Trace, tidal_volume_ml: float = 500.0, train_fraction: float = 0.5,
+             fs_hz: float | None = None, elastance: float = 10.0, use_marks: bool = False,
+             drift: bool = True, anchors: CycleAnchors | None = None, progress=None) -> dict:
+    """Fit the PV driver and the baselines on early cycles, score them on later ones (see module doc).
+
+    anchors : the cycles of the resampled trace, if known (else detected); ``use_marks`` takes them
+    from recorded RPM marks instead of the detector. ``drift`` : the headline calibration includes a
+    per-cycle linear drift (the fits then allow it too).
+    """
+    fs, tr, anchors, n_train, train, test = _split_cycles(trace, train_fraction, fs_hz, use_marks, anchors)
+    s_train, s_test = train.starts_s, test.starts_s
+    t = tr.t_s
+    vol, gain, offset = calibrate(tr, s_train, tidal_volume_ml)
+    in_train = (t >= s_train[0]) & (t < s_train[-1])
+    in_test = (t >= s_test[0]) & (t < s_test[-1])
+    tt, vt = t[in_test], vol[in_test]
+    level = smooth(vol, fs, ANCHOR_LEVEL_CUTOFF_HZ)
+
+    def level_fn(x):
+        return np.interp(x, t, level)
+
+    if progress:
+        progress(f"{trace.source}: fits on {n_train} cycles")
+    models = _held_out_models(t, vol, in_train, tt, vt, train, test, level_fn, elastance, drift)
+    if progress:
+        progress(f"{trace.source}: per-cycle refits")
+    fits = models["fits"]
+    refit = _per_cycle_refits(fits, tt, vt, test)
+    flags = cycle_flags(tr, anchors)
+    regular, reasons = _flag_counts(flags[n_train:])
+    idx_t, _ = rb.cycle_phase(tt, s_test)
+    p2p_cycle = float(np.median([np.ptp(vt[idx_t == c]) for c in np.unique(idx_t[idx_t >= 0])]))
+    fit = fits["pv"]
+    return {
+        **_score_table(models, refit, vt, tt, s_test, regular, reasons),
         "noise_floor_percent": float(noise_level(tr) * gain / p2p_cycle * 100.0),
         "p2p_median_cycle_ml": p2p_cycle,
         "p2p_trace_range_ml": float(np.ptp(vt[idx_t >= 0])),
@@ -238,7 +273,7 @@ def evaluate(trace: Trace, tidal_volume_ml: float = 500.0, train_fraction: float
         "peak_lag_s": fit.peak_lag_s,
         "lujan": {"n": fits["lujan"].n, "phi_rad": fits["lujan"].phi},
         "cycles_train": n_train,
-        "cycles_held_out": k - n_train,
+        "cycles_held_out": anchors.n_cycles - n_train,
         "cycle_source": anchors.source,
         "marks": mark_agreement(tr, anchors),
         "sample_rate_hz": fs,
@@ -246,6 +281,6 @@ def evaluate(trace: Trace, tidal_volume_ml: float = 500.0, train_fraction: float
         "amplitude_unit": trace.unit,
         "fixes": list(tr.fixes),
         "_curves": {"t_s": t, "volume_ml": vol, "train": in_train, "test": in_test,
-                    "pv_held_out_ml": shared["model"], "fit": fit, "fits": fits, "fits_no_drift": fits_nd,
-                    "anchors": anchors, "flags": flags},
+                    "pv_held_out_ml": models["shared"]["model"], "fit": fit, "fits": fits,
+                    "fits_no_drift": models["fits_no_drift"], "anchors": anchors, "flags": flags},
     }

@@ -1,4 +1,4 @@
-"""Inversion of the breathing driver: its control parameters from a measured trace (METHOD §9).
+"""Inversion of the breathing driver: its control parameters from a measured trace.
 
 The forward model is :mod:`lungdeform.breathing.pv`: the single-compartment equation of motion
 
@@ -164,6 +164,132 @@ def _solve_linear(idx, theta, y, v, per_cycle_calibration: bool, drift: bool = F
     return a, gains, offsets, model
 
 
+#: Default bounds of the shape search: τ = R/E (s), I/E (s²), ρ, δ (s), κ.
+SHAPE_BOUNDS = {"tau": (0.02, 4.0), "inert_ratio": (1e-4, 5e-3), "insp_fraction": (0.2, 0.75),
+                "peak_lag_s": (-0.3, 1.5), "decay": (0.03, 0.6)}
+
+
+def _samples_in_cycles(t_s, volume_ml, cycle_starts_s, peaks_s):
+    """Checked ``(t (n,) s, volume (n,) mL, starts (k+1,) s)``, the samples cut to the given cycles."""
+    t = np.asarray(t_s, dtype=float)
+    v_ml = np.asarray(volume_ml, dtype=float)
+    if t.ndim != 1 or t.shape != v_ml.shape:
+        raise InputError(f"t_s and volume_ml must be (n,) arrays of one length, got {t.shape} and {v_ml.shape}")
+    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(v_ml))):
+        raise InputError("t_s and volume_ml must be finite (no NaN)")
+    starts = np.asarray(cycle_starts_s, dtype=float)
+    if starts.ndim != 1 or starts.size < 2 or np.any(np.diff(starts) <= 0):
+        raise InputError("cycle_starts_s must hold at least 2 increasing end-exhale times (one cycle)")
+    if peaks_s is not None:
+        insp_fractions(starts, peaks_s, 0.0)  # validates the shape
+    inside = (t >= starts[0]) & (t < starts[-1])
+    if inside.sum() < 4 * N_CONTROL:
+        raise InputError(f"only {inside.sum()} samples lie inside the given cycles; need >= {4 * N_CONTROL}")
+    return t[inside], v_ml[inside], starts
+
+
+@dataclass(frozen=True, eq=False)
+class _ShapeProblem:
+    """The variable-projection objective of :func:`invert`.
+
+    The shape vector is ``x = (log τ, log I/E, ρ or δ, log κ)``; for each ``x`` the a_k (and the
+    per-cycle calibration) are the linear least-squares solution. t : (n,) s; starts : (k+1,) s;
+    theta : (n,) cycle phase; v_l : (n,) L above V_r.
+    """
+
+    t: np.ndarray
+    starts: np.ndarray
+    theta: np.ndarray
+    v_l: np.ndarray
+    elastance: float
+    peaks_s: object
+    per_cycle_calibration: bool
+    drift: bool
+
+    @property
+    def use_peaks(self) -> bool:
+        return self.peaks_s is not None
+
+    def unpack(self, x):
+        """(Mechanics, ρ float or (k,), κ) of the shape vector ``x``."""
+        e = self.elastance
+        mech = Mechanics(e, e * np.exp(x[0]), e * np.exp(x[1]))
+        rho = insp_fractions(self.starts, self.peaks_s, x[2]) if self.use_peaks else float(x[2])
+        return mech, rho, float(np.exp(x[3]))
+
+    def solve(self, x):
+        """(cycle index (n,), a (5,), gains, offsets (L), model (n,) L) at the shape ``x``."""
+        mech, rho, kappa = self.unpack(x)
+        idx, y, _ = cycle_design(self.t, self.starts, mech, rho, kappa)
+        a, g, o, model = _solve_linear(idx, self.theta, y, self.v_l, self.per_cycle_calibration, self.drift)
+        return idx, a, g, o, model
+
+    def cost(self, x) -> float:
+        """Mean squared misfit (L²) at the shape ``x``."""
+        *_, model = self.solve(x)
+        return float(np.mean((model - self.v_l) ** 2))
+
+
+def _search_box(init: BreathingParams, bounds: dict, use_peaks: bool):
+    """Start ``x0`` and bounds ``lo, hi`` (4,) of the shape vector (see :class:`_ShapeProblem`)."""
+    third = "peak_lag_s" if use_peaks else "insp_fraction"
+    b = bounds
+    x0 = np.array([np.log(init.mechanics.time_constant_s),
+                   np.log(max(init.mechanics.inertance / init.mechanics.elastance, b["inert_ratio"][0])),
+                   0.2 if use_peaks else init.insp_fraction, np.log(init.decay)])
+    lo = np.array([np.log(b["tau"][0]), np.log(b["inert_ratio"][0]), b[third][0], np.log(b["decay"][0])])
+    hi = np.array([np.log(b["tau"][1]), np.log(b["inert_ratio"][1]), b[third][1], np.log(b["decay"][1])])
+    return np.clip(x0, lo, hi), lo, hi
+
+
+def _search_shape(problem: _ShapeProblem, x0, lo, hi, n_polish: int, max_evals: int):
+    """Best shape vector: a coarse multi-start grid over τ, the timing constant and κ (the objective
+    has shallow local minima), then a bounded L-BFGS-B polish (numerical gradient) from the
+    ``n_polish`` best starts. The misfit is steep in ρ/δ: a 0.05 error in ρ costs ~4 % of the tidal
+    volume. Returns ``(x (4,), success, message)``."""
+    starts0 = []
+    thirds = np.linspace(lo[2], hi[2], 11)
+    for third0 in thirds:
+        for tau0 in (0.1, 0.3, 1.0):
+            for kappa0 in (0.1, 0.3):
+                xs = np.clip(np.array([np.log(tau0), x0[1], third0, np.log(kappa0)]), lo, hi)
+                starts0.append((problem.cost(xs), tuple(xs)))
+    starts0.sort()
+    res = None
+    for _, xs in starts0[:n_polish]:
+        r = minimize(problem.cost, np.array(xs), method="L-BFGS-B", bounds=list(zip(lo, hi)),
+                     options={"maxfun": max_evals, "ftol": 1e-10, "gtol": 1e-9, "eps": 1e-5})
+        if res is None or r.fun < res.fun:
+            res = r
+    return res.x, bool(res.success), str(res.message)
+
+
+def _fit_result(problem: _ShapeProblem, x, success: bool, message: str, v_ml, v_rel: float,
+                period: float) -> BreathingFit:
+    """The :class:`BreathingFit` at the shape ``x``, with the physical checks on the result."""
+    idx, a, g, o, model = problem.solve(x)
+    mech, rho, kappa = problem.unpack(x)
+    rho_mean = float(np.mean(rho))
+    p_peak = float(np.max(basis(np.linspace(0, 1, 200, endpoint=False), rho_mean, kappa) @ a))
+    if success and not np.all(np.isfinite(a)):
+        success, message = False, "non-finite control parameters"
+    params = BreathingParams(mech, tuple(a), period_s=period, insp_fraction=rho_mean, decay=kappa,
+                             relaxation_ml=v_rel)
+    model_ml = v_rel + 1000.0 * model
+    resid = v_ml - model_ml
+    rms = float(np.sqrt(np.mean(resid ** 2)) / _per_cycle_p2p(idx, v_ml) * 100.0)
+    if success and p_peak <= 0:
+        success, message = False, "fitted muscle pressure never becomes inspiratory (peak P_mus <= 0)"
+    use_peaks, cal = problem.use_peaks, problem.per_cycle_calibration
+    shared = ("tau", "inert_ratio", "peak_lag_s" if use_peaks else "insp_fraction", "decay", "a_1..a_5")
+    return BreathingFit(params, success, message, problem.t, v_ml, model_ml, resid, rms, g, 1000.0 * o,
+                        problem.starts, shared=shared,
+                        per_cycle=(("gain", "offset") if cal else ())
+                        + (("drift",) if cal and problem.drift else ())
+                        + (("insp_fraction from the peak time",) if use_peaks else ()),
+                        peak_lag_s=float(x[2]) if use_peaks else None)
+
+
 def invert(t_s, volume_ml, cycle_starts_s, peaks_s=None, elastance: float = 10.0,
            per_cycle_calibration: bool = False, drift: bool = False, relaxation_ml: float | None = None,
            fit_shape: bool = True, init: BreathingParams | None = None, bounds: dict | None = None,
@@ -179,104 +305,26 @@ def invert(t_s, volume_ml, cycle_starts_s, peaks_s=None, elastance: float = 10.0
     external surrogate); the five a_k then describe the shape shared by all cycles. ``drift`` adds
     a per-cycle linear baseline drift to that calibration.
     fit_shape : False keeps τ, I/E, ρ (or δ), κ of ``init`` and solves only the linear a_k.
+    bounds : overrides of :data:`SHAPE_BOUNDS`.
     n_polish, max_evals : L-BFGS-B polishes from the best grid starts, and their evaluation budget.
     Returns a :class:`BreathingFit`; ``success`` is False (with the reason) when the outer search
     fails to converge or the fitted system is non-physical.
     """
 
-    t = np.asarray(t_s, dtype=float)
-    v_ml = np.asarray(volume_ml, dtype=float)
-    if t.ndim != 1 or t.shape != v_ml.shape:
-        raise InputError(f"t_s and volume_ml must be (n,) arrays of one length, got {t.shape} and {v_ml.shape}")
-    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(v_ml))):
-        raise InputError("t_s and volume_ml must be finite (no NaN)")
-    starts = np.asarray(cycle_starts_s, dtype=float)
-    if starts.ndim != 1 or starts.size < 2 or np.any(np.diff(starts) <= 0):
-        raise InputError("cycle_starts_s must hold at least 2 increasing end-exhale times (one cycle)")
-    if peaks_s is not None:
-        insp_fractions(starts, peaks_s, 0.0)  # validates the shape
-    inside = (t >= starts[0]) & (t < starts[-1])
-    if inside.sum() < 4 * N_CONTROL:
-        raise InputError(f"only {inside.sum()} samples lie inside the given cycles; need >= {4 * N_CONTROL}")
-    t, v_ml = t[inside], v_ml[inside]
+    t, v_ml, starts = _samples_in_cycles(t_s, volume_ml, cycle_starts_s, peaks_s)
     v_rel = relaxation_ml if relaxation_ml is not None else float(np.min(v_ml))
-    v_l = (v_ml - v_rel) / 1000.0
-    use_peaks = peaks_s is not None
     cidx = np.searchsorted(starts, t, side="right") - 1
     theta = (t - starts[cidx]) / (starts[cidx + 1] - starts[cidx])
-
-    b = {"tau": (0.02, 4.0), "inert_ratio": (1e-4, 5e-3), "insp_fraction": (0.2, 0.75),
-         "peak_lag_s": (-0.3, 1.5), "decay": (0.03, 0.6)}
-    if bounds:
-        b.update(bounds)
+    problem = _ShapeProblem(t, starts, theta, (v_ml - v_rel) / 1000.0, elastance, peaks_s,
+                            per_cycle_calibration, drift)
     period = float(np.mean(np.diff(starts)))
     init = init or BreathingParams(Mechanics(elastance, 0.25 * elastance, 0.001 * elastance), (0, 1, 0, 0, 0),
                                    period_s=period)
-    third = "peak_lag_s" if use_peaks else "insp_fraction"
-    x0 = np.array([np.log(init.mechanics.time_constant_s),
-                   np.log(max(init.mechanics.inertance / init.mechanics.elastance, b["inert_ratio"][0])),
-                   0.2 if use_peaks else init.insp_fraction, np.log(init.decay)])
-    lo = np.array([np.log(b["tau"][0]), np.log(b["inert_ratio"][0]), b[third][0], np.log(b["decay"][0])])
-    hi = np.array([np.log(b["tau"][1]), np.log(b["inert_ratio"][1]), b[third][1], np.log(b["decay"][1])])
-    x0 = np.clip(x0, lo, hi)
-
-    def unpack(x):
-        mech = Mechanics(elastance, elastance * np.exp(x[0]), elastance * np.exp(x[1]))
-        rho = insp_fractions(starts, peaks_s, x[2]) if use_peaks else float(x[2])
-        return mech, rho, float(np.exp(x[3]))
-
-    def solve(x):
-        mech, rho, kappa = unpack(x)
-        idx, y, _ = cycle_design(t, starts, mech, rho, kappa)
-        a, g, o, model = _solve_linear(idx, theta, y, v_l, per_cycle_calibration, drift)
-        return idx, a, g, o, model
-
-    def cost(x):
-        *_, model = solve(x)
-        return float(np.mean((model - v_l) ** 2))
-
+    x, lo, hi = _search_box(init, {**SHAPE_BOUNDS, **(bounds or {})}, problem.use_peaks)
     success, message = True, "converged"
-    x = x0
     if fit_shape:
-        # coarse multi-start grid over τ and the timing constant (the objective has shallow local
-        # minima), then a bounded L-BFGS-B polish (numerical gradient) from the best start(s).
-        # (the misfit is steep in ρ/δ: a 0.05 error in ρ costs ~4 % of the tidal volume)
-        starts0 = []
-        thirds = np.linspace(lo[2], hi[2], 11)
-        for third0 in thirds:
-            for tau0 in (0.1, 0.3, 1.0):
-                for kappa0 in (0.1, 0.3):
-                    xs = np.clip(np.array([np.log(tau0), x0[1], third0, np.log(kappa0)]), lo, hi)
-                    starts0.append((cost(xs), tuple(xs)))
-        starts0.sort()
-        res = None
-        for _, xs in starts0[:n_polish]:
-            r = minimize(cost, np.array(xs), method="L-BFGS-B", bounds=list(zip(lo, hi)),
-                         options={"maxfun": max_evals, "ftol": 1e-10, "gtol": 1e-9, "eps": 1e-5})
-            if res is None or r.fun < res.fun:
-                res = r
-        x = res.x
-        success = bool(res.success)
-        message = str(res.message)
-    idx, a, g, o, model = solve(x)
-    mech, rho, kappa = unpack(x)
-    rho_mean = float(np.mean(rho))
-    p_peak = float(np.max(basis(np.linspace(0, 1, 200, endpoint=False), rho_mean, kappa) @ a))
-    if success and not np.all(np.isfinite(a)):
-        success, message = False, "non-finite control parameters"
-    params = BreathingParams(mech, tuple(a), period_s=period, insp_fraction=rho_mean, decay=kappa,
-                             relaxation_ml=v_rel)
-    model_ml = v_rel + 1000.0 * model
-    resid = v_ml - model_ml
-    rms = float(np.sqrt(np.mean(resid ** 2)) / _per_cycle_p2p(idx, v_ml) * 100.0)
-    if success and p_peak <= 0:
-        success, message = False, "fitted muscle pressure never becomes inspiratory (peak P_mus <= 0)"
-    shared = ("tau", "inert_ratio", third, "decay", "a_1..a_5")
-    return BreathingFit(params, success, message, t, v_ml, model_ml, resid, rms, g, 1000.0 * o, starts,
-                        shared=shared, per_cycle=(("gain", "offset") if per_cycle_calibration else ())
-                        + (("drift",) if per_cycle_calibration and drift else ())
-                        + (("insp_fraction from the peak time",) if use_peaks else ()),
-                        peak_lag_s=float(x[2]) if use_peaks else None)
+        x, success, message = _search_shape(problem, x, lo, hi, n_polish, max_evals)
+    return _fit_result(problem, x, success, message, v_ml, v_rel, period)
 
 
 def _rho_for(fit_or_params, cycle_starts_s, peaks_s):

@@ -10,7 +10,7 @@ The values are *representative* choices inside published ranges, not measurement
   chest wall ≈ 0.2 L/cmH2O each) and airway resistance ≈ 1–3 cmH2O·s/L (West, *Respiratory
   Physiology: The Essentials*, ch. 7); inertance ≈ 0.01 cmH2O·s²/L (Mead, Physiol Rev 1961;41:281);
   rate ≈ 15/min, T_i/T_tot ≈ 0.42 (Tobin et al., Chest 1983;84:202 "Breathing patterns 1: normal
-  subjects"); tidal volume 500 mL (project convention, METHOD §7). FRC ≈ 2.4 L.
+  subjects"); tidal volume 500 mL (project convention, the paper's Sec. V). FRC ≈ 2.4 L.
 - Deep breathing / slow vital-capacity manoeuvre: from residual volume to total lung capacity,
   VC ≈ 4.5 L in an adult man (Quanjer et al., Eur Respir J 1993;6 Suppl 16:5; slow VC manoeuvre as in
   Miller et al., ATS/ERS standardisation, Eur Respir J 2005;26:319), ≈ 12 s per manoeuvre, with active

@@ -1,6 +1,6 @@
-"""Breathing driver: the pressure–volume (PV) relation of the paper (Sec. III-A/B, METHOD §9).
+"""Breathing driver: the pressure–volume (PV) relation of the paper (Sec. III-A/B).
 
-The reading we implement (METHOD §9, "a standard reading") is the single-compartment equation of
+The reading we implement ("a standard reading") is the single-compartment equation of
 motion of the respiratory system,
 
     I·V''(t) + R·V'(t) + E·(V(t) − V_r) = P_mus(t),        P_mus(t) = Σ_{k=1..5} a_k·φ_k(θ(t)),
@@ -200,7 +200,7 @@ def interp_periodic(grid_values: np.ndarray, theta) -> np.ndarray:
 
 # --------------------------------------------------------------------------- curve
 def scale_from_volume(volume_ml, v_ee_ml: float, unit_ml: float):
-    """Playback scale s = (V − V_EE)/ΔV (METHOD §7): the surface is x = p + s·u.
+    """Playback scale s = (V − V_EE)/ΔV (paper eq. (1), Sec. V): the surface is x = p + s·u.
 
     volume_ml : float or (n,) float, mL; v_ee_ml : end-exhale volume, mL; unit_ml : ΔV, mL per unit
     displacement field u. Returns s with the shape of ``volume_ml``.
@@ -268,6 +268,71 @@ def _cycle_starts(n_cycles: int | None, period_s: float, durations_s) -> np.ndar
     return np.concatenate([[0.0], np.cumsum(durations)])
 
 
+def _output_grid(starts: np.ndarray, fs_hz: float) -> np.ndarray:
+    """Output times (s): ``k/fs_hz`` up to the end of the last cycle, the last one clamped to it."""
+    t_out = np.arange(0.0, starts[-1] + 0.5 / fs_hz, 1.0 / fs_hz)
+    t_out = t_out[t_out <= starts[-1] + 1e-9]
+    t_out[-1] = min(t_out[-1], starts[-1])
+    return t_out
+
+
+def _cycle_ode(params: BreathingParams, t0: float, ti: float, te: float):
+    """``(pmus, rhs, jac)`` of one cycle starting at ``t0`` with inspiration ``ti`` and expiration
+    ``te`` (s): P_mus(t) (cmH2O), the right-hand side of the state ``(V L, V' L/s)`` and its Jacobian."""
+    mech = params.mechanics
+    e, r, inert = mech.elastance, mech.resistance, mech.inertance
+    a1, a2, a3, a4, a5 = (float(x) for x in params.a)
+    kappa = params.decay
+
+    def pmus(t):
+        # scalar P_mus, the same formulas as basis() (kept scalar for the integrator's speed)
+        x = t - t0
+        if x < ti:
+            u = x / ti
+            return a1 + a2 * u + a3 * u * u + a5 * math.sin(math.pi * u) ** 2
+        w = min((x - ti) / te, 1.0)
+        g = (1.0 - w) * math.exp(-w / kappa)
+        return a1 + (a2 + a3) * g + a4 * math.sin(math.pi * w) ** 2
+
+    if inert > 0:
+        jac = np.array([[0.0, 1.0], [-e / inert, -r / inert]])
+
+        def rhs(t, y):
+            return [y[1], (pmus(t) - e * y[0] - r * y[1]) / inert]
+    else:
+        jac = np.array([[-e / r, 0.0], [0.0, 0.0]])
+
+        def rhs(t, y):
+            return [(pmus(t) - e * y[0]) / r, 0.0]
+    return pmus, rhs, jac
+
+
+def _integrate_cycle(params: BreathingParams, starts: np.ndarray, c: int, y0, t_out, out, rtol: float,
+                     atol: float) -> np.ndarray:
+    """Integrate cycle ``c`` from state ``y0`` in two pieces (inspiration, expiration), so the
+    implicit solver never steps over a kink of P_mus; fills ``out = (v, f, p)`` at the output times
+    ``t_out`` inside the cycle (the very last one included) and returns the end state."""
+    t0, t1 = starts[c], starts[c + 1]
+    dur = t1 - t0
+    ti = params.insp_fraction * dur
+    pmus, rhs, jac = _cycle_ode(params, t0, ti, dur - ti)
+    v_out, f_out, p_out = out
+    for s0, s1 in ((t0, t0 + ti), (t0 + ti, t1)):
+        last = c == starts.size - 2 and s1 == t1
+        sel = (t_out >= s0) & ((t_out <= s1) if last else (t_out < s1))
+        t_eval = np.unique(np.concatenate([t_out[sel], [s1]]))
+        sol = solve_ivp(rhs, (s0, s1), y0, method="Radau", t_eval=t_eval, rtol=rtol, atol=atol,
+                        jac=jac, max_step=dur / 20.0)
+        if not sol.success:
+            raise ConvergenceError(f"breathing ODE integration failed in cycle {c}: {sol.message}")
+        keep = np.isin(sol.t, t_out[sel])
+        v_out[sel] = sol.y[0][keep]
+        f_out[sel] = sol.y[1][keep]
+        p_out[sel] = [pmus(tt) for tt in sol.t[keep]]
+        y0 = sol.y[:, -1].copy()
+    return y0
+
+
 def simulate(params: BreathingParams, n_cycles: int | None = 3, fs_hz: float = 50.0,
              durations_s=None, start: str = "periodic", rtol: float = 1e-7,
              atol: float = 1e-10) -> BreathingCurve:
@@ -286,66 +351,17 @@ def simulate(params: BreathingParams, n_cycles: int | None = 3, fs_hz: float = 5
         raise InputError(f"start must be 'periodic' or 'rest', got {start!r}")
     starts = _cycle_starts(n_cycles, params.period_s, durations_s)
     mech = params.mechanics
-    e, r, inert = mech.elastance, mech.resistance, mech.inertance
-    a = params.a
-    rho, kappa = params.insp_fraction, params.decay
-
     if start == "periodic":
-        vol, flo = periodic_response(starts[1] - starts[0], mech, rho, kappa)
-        y0 = np.array([vol[0] @ a, flo[0] @ a])
+        vol, flo = periodic_response(starts[1] - starts[0], mech, params.insp_fraction, params.decay)
+        y0 = np.array([vol[0] @ params.a, flo[0] @ params.a])
     else:
         y0 = np.zeros(2)
-
-    t_out = np.arange(0.0, starts[-1] + 0.5 / fs_hz, 1.0 / fs_hz)
-    t_out = t_out[t_out <= starts[-1] + 1e-9]
-    t_out[-1] = min(t_out[-1], starts[-1])
-    v_out = np.full_like(t_out, np.nan)
-    f_out = np.full_like(t_out, np.nan)
-    p_out = np.full_like(t_out, np.nan)
-    a1, a2, a3, a4, a5 = (float(x) for x in a)
-
+    t_out = _output_grid(starts, fs_hz)
+    v_out, f_out, p_out = (np.full_like(t_out, np.nan) for _ in range(3))
     for c in range(starts.size - 1):
-        t0, t1 = starts[c], starts[c + 1]
-        dur = t1 - t0
-        ti = rho * dur
-        te = dur - ti
-
-        def pmus(t, t0=t0, ti=ti, te=te):
-            # scalar P_mus, the same formulas as basis() (kept scalar for the integrator's speed)
-            x = t - t0
-            if x < ti:
-                u = x / ti
-                return a1 + a2 * u + a3 * u * u + a5 * math.sin(math.pi * u) ** 2
-            w = min((x - ti) / te, 1.0)
-            g = (1.0 - w) * math.exp(-w / kappa)
-            return a1 + (a2 + a3) * g + a4 * math.sin(math.pi * w) ** 2
-
-        if inert > 0:
-            jac = np.array([[0.0, 1.0], [-e / inert, -r / inert]])
-
-            def rhs(t, y, pmus=pmus):
-                return [y[1], (pmus(t) - e * y[0] - r * y[1]) / inert]
-        else:
-            jac = np.array([[-e / r, 0.0], [0.0, 0.0]])
-
-            def rhs(t, y, pmus=pmus):
-                return [(pmus(t) - e * y[0]) / r, 0.0]
-
-        for s0, s1 in ((t0, t0 + ti), (t0 + ti, t1)):
-            last = c == starts.size - 2 and s1 == t1
-            sel = (t_out >= s0) & ((t_out <= s1) if last else (t_out < s1))
-            t_eval = np.unique(np.concatenate([t_out[sel], [s1]]))
-            sol = solve_ivp(rhs, (s0, s1), y0, method="Radau", t_eval=t_eval, rtol=rtol, atol=atol,
-                            jac=jac, max_step=dur / 20.0)
-            if not sol.success:
-                raise ConvergenceError(f"breathing ODE integration failed in cycle {c}: {sol.message}")
-            keep = np.isin(sol.t, t_out[sel])
-            v_out[sel] = sol.y[0][keep]
-            f_out[sel] = sol.y[1][keep]
-            p_out[sel] = [pmus(tt) for tt in sol.t[keep]]
-            y0 = sol.y[:, -1].copy()
-    if inert == 0:
-        f_out = (p_out - e * v_out) / r
+        y0 = _integrate_cycle(params, starts, c, y0, t_out, (v_out, f_out, p_out), rtol, atol)
+    if mech.inertance == 0:
+        f_out = (p_out - mech.elastance * v_out) / mech.resistance
     return BreathingCurve(t_out, params.relaxation_ml + 1000.0 * v_out, 1000.0 * f_out, p_out,
                           meta={"params": params.as_dict(), "cycle_starts_s": starts.tolist()})
 

@@ -57,7 +57,7 @@ from lungdeform.fit.fitting import DIRECTION_HI, DIRECTION_LO
 from lungdeform.geometry.mesh import Surface, vertex_normals
 from lungdeform.io.landmarks import write_elastix_points
 from lungdeform.io.meshfile import write_mesh
-from lungdeform.model.displacement import scale_for_volume, volume_polynomial
+from lungdeform.model.displacement import scales_for_volumes, volume_polynomial
 from lungdeform.model.lung import build_lung
 
 TRUTH_SCHEMA = "lungdeform.synthetic.truth"
@@ -165,7 +165,7 @@ def volume_scales(surface: Surface, displacement: np.ndarray, delta_ml, unit_ml:
     if law == "linear":
         return dv / float(unit_ml)
     poly = volume_polynomial(surface.vertices, surface.faces, displacement)
-    return np.array([scale_for_volume(poly, float(d)) for d in dv])
+    return scales_for_volumes(poly, dv)
 
 
 def normal_noise(vertices: np.ndarray, faces: np.ndarray, sigma_mm: float,

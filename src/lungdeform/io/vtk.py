@@ -12,8 +12,10 @@ This is the format layer under :func:`lungdeform.io.meshfile.read_mesh` / :func:
   Written: POLYDATA, BINARY, double points, triangles.
 - XML PolyData (``<VTKFile type="PolyData">``): DataArray ``ascii``, inline ``binary`` (base64) and
   ``appended`` (raw or base64); UInt32 or UInt64 size headers; either byte order; uncompressed,
-  zlib or lzma block compression; several Pieces; Polys and Strips. Written: one Piece, inline
-  base64, little endian, UInt64 headers, Float64 points, Int64 connectivity and offsets.
+  zlib or lzma block compression; several Pieces; Polys and Strips. Written (:func:`vtp_bytes`, the
+  one writer): one Piece, little endian, UInt64 headers, Int64 connectivity and offsets; inline
+  base64 with Float64 points (a mesh file) or appended raw with Float32 points, point data and the
+  frame's ``TimeValue`` (the frames of a ParaView series, :mod:`lungdeform.playback.export`).
 
 Arrays: ``vertices : (n, 3) float64`` in the file's units and frame, ``faces : (m, 3) int64``.
 """
@@ -395,21 +397,59 @@ def _decode_binary(blob: bytes, dtype: np.dtype, ctx, *, base64_encoded: bool) -
     return np.frombuffer(b"".join(out), dtype=dtype).astype(dtype.newbyteorder("="))
 
 
-def vtp_bytes(v: np.ndarray, f: np.ndarray) -> bytes:
-    """VTK XML PolyData, inline base64, UInt64 headers: ``v : (n, 3) float`` (Float64), ``f : (m, 3) int`` (Int64)."""
-    def arr(name, a, vtype, ncomp=1):
-        raw = np.ascontiguousarray(a).tobytes()
-        enc = base64.b64encode(struct.pack("<Q", len(raw)) + raw).decode()
-        return (f'<DataArray type="{vtype}" Name="{name}" NumberOfComponents="{ncomp}" '
-                f'format="binary">{enc}</DataArray>')
+#: VTK XML type name of each numpy type code (kind and size), the inverse of ``_VTK_XML_TYPES``.
+_VTK_XML_NAMES = {code: name for name, code in _VTK_XML_TYPES.items()}
 
-    return (
+
+class _ArrayWriter:
+    """DataArray elements of one VTK XML file, little endian, UInt64 size headers: inline base64
+    (``format="binary"``) or raw blocks for the file's ``<AppendedData>`` (``format="appended"``)."""
+
+    def __init__(self, appended: bool):
+        self.appended, self.blocks, self.offset = appended, [], 0
+
+    def element(self, name: str, a: np.ndarray) -> str:
+        """The ``<DataArray>`` of ``a`` ((n,) one component or (n, c) c components), in its own type."""
+        a = np.ascontiguousarray(a)
+        raw = a.astype(a.dtype.newbyteorder("<"), copy=False).tobytes()
+        block = struct.pack("<Q", len(raw)) + raw
+        head = (f'<DataArray type="{_VTK_XML_NAMES[a.dtype.kind + str(a.dtype.itemsize)]}" Name="{name}" '
+                f'NumberOfComponents="{1 if a.ndim == 1 else a.shape[1]}" ')
+        if not self.appended:
+            return head + f'format="binary">{base64.b64encode(block).decode()}</DataArray>'
+        self.blocks.append(block)
+        self.offset += len(block)
+        return head + f'format="appended" offset="{self.offset - len(block)}"/>'
+
+
+def vtp_bytes(vertices: np.ndarray, faces: np.ndarray, point_data: dict[str, np.ndarray] | None = None, *,
+              time_s: float | None = None, appended: bool = False, points_dtype=np.float64) -> bytes:
+    """VTK XML PolyData of one triangle Piece, little endian, UInt64 size headers.
+
+    vertices : (n, 3) float, written as ``points_dtype`` (Float64 by default; Float32 halves the
+    bytes of a time-series frame); faces : (m, 3) int, written as Int64 connectivity and offsets;
+    point_data : name -> (n,) or (n, c) array, written in its own type (``<PointData>``);
+    time_s : float, s, written as the Float64 field ``TimeValue`` (``<FieldData>``) that ParaView
+    reads as the frame's time. ``appended``: the arrays go raw into one ``<AppendedData>`` block (the
+    frames of :func:`lungdeform.playback.export.export_pvd`) instead of inline base64, one element per
+    line (what :func:`lungdeform.io.meshfile.write_mesh` writes for ``.vtp``).
+    """
+    w = _ArrayWriter(appended)
+    sep = "" if appended else "\n"
+    field = ("" if time_s is None
+             else f"<FieldData>{w.element('TimeValue', np.array([time_s], np.float64))}</FieldData>")
+    pts = w.element("Points", np.asarray(vertices).astype(points_dtype))
+    pd = "".join(w.element(k, v) for k, v in (point_data or {}).items())
+    conn = w.element("connectivity", np.asarray(faces).astype(np.int64).reshape(-1))
+    offs = w.element("offsets", np.arange(3, 3 * len(faces) + 1, 3, dtype=np.int64))
+    body = (
         '<?xml version="1.0"?>\n'
         '<VTKFile type="PolyData" version="1.0" byte_order="LittleEndian" header_type="UInt64">\n'
-        f'<PolyData><Piece NumberOfPoints="{len(v)}" NumberOfVerts="0" NumberOfLines="0" '
-        f'NumberOfStrips="0" NumberOfPolys="{len(f)}">\n'
-        f"<Points>{arr('Points', v.astype('<f8'), 'Float64', 3)}</Points>\n"
-        f"<Polys>{arr('connectivity', f.astype('<i8'), 'Int64')}"
-        f"{arr('offsets', (3 * np.arange(1, len(f) + 1)).astype('<i8'), 'Int64')}</Polys>\n"
-        "</Piece></PolyData>\n</VTKFile>\n"
+        f'<PolyData>{field}<Piece NumberOfPoints="{len(vertices)}" NumberOfVerts="0" NumberOfLines="0" '
+        f'NumberOfStrips="0" NumberOfPolys="{len(faces)}">{sep}'
+        + (f"<PointData>{pd}</PointData>{sep}" if pd else "")
+        + f"<Points>{pts}</Points>{sep}<Polys>{conn}{offs}</Polys>{sep}</Piece></PolyData>\n"
     ).encode()
+    if not appended:
+        return body + b"</VTKFile>\n"
+    return body + b'<AppendedData encoding="raw">\n_' + b"".join(w.blocks) + b"\n</AppendedData>\n</VTKFile>\n"

@@ -1,17 +1,18 @@
 """The main job on the embedded default lungs: build both, play one breath, write the results.
 
-Steps (issue 2 item 7): build the left and right lungs of the embedded default (Coronacases 001,
-CC BY 4.0) with the Table I constants, supine; play one breath of the ``normal`` preset of the PV
-breathing model (:mod:`lungdeform.presets` → :func:`lungdeform.breathing.pv.simulate` → the volume above
-end-exhale; 15/min, 500 mL; :func:`lungdeform.playback.schedule.preset_trace`) at the paper's 66.66 frames/s; write the model, a mesh time series,
-``summary.json`` (volume per frame, per lung, and its error) and a PNG snapshot.
+Steps: build the left and right lungs of the embedded default (Coronacases 001, CC BY 4.0) with the
+Table I constants, supine; play one breath of the ``normal`` preset of the PV breathing model
+(:mod:`lungdeform.breathing.presets` → :func:`lungdeform.breathing.pv.simulate` → the volume above
+end-exhale; 15/min, 500 mL; :func:`lungdeform.playback.schedule.preset_trace`) at the paper's
+66.66 frames/s; write the model, a mesh time series, ``summary.json`` (volume per frame, per lung,
+and its error) and a PNG snapshot.
 
 The breathing curve drives each lung's share of the volume (in proportion to its end-exhale volume)
 through the exact inverse of its volume cubic: frame k shows ``x = p + s_k·u`` with ``s_k`` the root
-of ``V(p + s·u) = V_EE + share·ΔV(t_k)`` (:func:`lungdeform.model.displacement.scale_for_volume`). The
-volume of every played frame is then measured on the mesh (divergence theorem) and compared with the
-curve; ``summary.json`` also gives how far the paper's linear reading ``s = share·ΔV/unit_ml`` would
-be from the curve.
+of ``V(p + s·u) = V_EE + share·ΔV(t_k)`` (:func:`lungdeform.playback.trajectory.lung_scales`, by
+:func:`lungdeform.model.displacement.scale_for_volume`). The volume of every played frame is then
+measured on the mesh (divergence theorem) and compared with the curve; ``summary.json`` also gives
+how far the paper's linear reading ``s = share·ΔV/unit_ml`` would be from the curve.
 """
 
 from __future__ import annotations
@@ -26,14 +27,14 @@ from lungdeform.atomic import write_json
 from lungdeform.breathing.presets import get_preset
 from lungdeform.constants import STEPS_PER_S
 from lungdeform.data import default_lungs
-from lungdeform.geometry.mesh import signed_volume
 from lungdeform.io.modelfile import save_model
-from lungdeform.model.displacement import scale_for_volume
+from lungdeform.model.displacement import enclosed_volume_ml, volume_change_ml
 from lungdeform.model.lung import build_model
 
 from .export import export_pvd
 from .render import snapshot
 from .schedule import lung_shares, preset_trace
+from .trajectory import lung_scales
 
 DEFAULT_PRESET = "normal"
 
@@ -45,6 +46,64 @@ class DemoResult:
     summary: Path
     snapshot: Path
     summary_data: dict
+
+
+def _lung_summary(lung, delta_ml: np.ndarray, scales: np.ndarray) -> dict:
+    """One lung's record of ``summary.json``: the volume (mL) measured on each played frame
+    (``scales`` units) against the volume asked of it, ``V_EE + delta_ml`` (``delta_ml : (f,)`` mL,
+    its share of the curve), and the error of the paper's linear reading ``s = delta_ml/unit_ml``."""
+    target = lung.volume_ee_ml + delta_ml  # mL, what the curve asks of this lung
+    pb = lung.playback(np.float64)
+    measured = np.array([enclosed_volume_ml(pb.seek(sk), lung.surface.faces) for sk in scales])
+    # the paper's linear reading s = ΔV/unit_ml, its volume from the exact cubic
+    v_lin = lung.volume_ee_ml + volume_change_ml(lung.volume_poly, delta_ml / lung.unit_ml)
+    err = measured - target
+    return {
+        "vertices": lung.n_vertices,
+        "volume_ee_ml": lung.volume_ee_ml,
+        "tidal_share_ml": lung.calibration_ml,
+        "volume_ml": [round(float(x), 6) for x in measured],
+        "target_volume_ml": [round(float(x), 6) for x in target],
+        "volume_error_ml": [float(x) for x in err],
+        "max_volume_error_percent": float(np.max(np.abs(err) / target) * 100),
+        "linear_reading_max_error_percent": float(np.max(np.abs(v_lin - target) / target) * 100),
+    }
+
+
+def _summary(chosen, params, trace, tidal: float, orientation, per_lung: dict) -> dict:
+    """``summary.json``: the breath played and each lung's measured volumes."""
+    t, v_total = trace.t_s, trace.volume_ml
+    duration = float(t[-1])
+    summary = {
+        "frames_per_second": (len(t) - 1) / duration,
+        "duration_s": duration,
+        "tidal_ml": tidal,
+        "orientation": str(orientation),
+        "breathing": {
+            "preset": chosen.name, "description": chosen.description, "sources": list(chosen.sources),
+            "period_s": params.period_s, "preset_tidal_volume_ml": chosen.tidal_volume_ml,
+            "curve_tidal_ml": float(np.ptp(v_total)), "end_exhale_ml": trace.shifted_ml,
+            "params": params.as_dict(),
+            "meaning": "target_volume_above_ee_ml = V(t) - V_EE of the PV model; each lung takes its "
+                       "share (in proportion to its end-exhale volume), met through the exact volume cubic",
+        },
+        "t_s": t.round(6).tolist(),
+        "target_volume_above_ee_ml": v_total.round(6).tolist(),
+        "lungs": per_lung,
+    }
+    summary["total_volume_ml"] = [round(sum(per_lung[n]["volume_ml"][i] for n in per_lung), 6)
+                                  for i in range(len(t))]
+    return summary
+
+
+def _snapshot(out: Path, model, scales: dict, v_total: np.ndarray, chosen, orientation) -> Path:
+    """End-exhale (blue) and the peak of the breath (red) from the front and the right."""
+    peak = int(np.argmax(v_total))
+    layers = [(lung.surface, "#4a7ab5", 1.0) for lung in model.lungs.values()]
+    layers += [(lung.surface_at(scale=scales[name][peak]), "#d9534f", 0.35) for name, lung in model.lungs.items()]
+    return snapshot(out / "snapshot.png", layers, views=("anterior", "lateral-right"),
+                    title=f"end-exhale (blue) and end-inhale +{v_total[peak]:.0f} mL (red), "
+                          f"preset {chosen.name}, {orientation}")
 
 
 def run_demo(
@@ -67,69 +126,20 @@ def run_demo(
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     say("loading the embedded default lungs (Coronacases 001, CC BY 4.0)")
-    lungs = default_lungs()
-    model = build_model(lungs, tidal_ml=tidal, gravity=orientation, progress=say,
+    model = build_model(default_lungs(), tidal_ml=tidal, gravity=orientation, progress=say,
                         provenance={"command": "demo", "source": "embedded Coronacases 001 lungs",
                                     "orientation": str(orientation), "breathing": f"preset {chosen.name}"})
     model_path = save_model(out / "model.npz", model)
-    t, v_total = trace.t_s, trace.volume_ml
-    fps = (len(t) - 1) / duration
     say(f"playing the '{chosen.name}' preset ({tidal:g} mL, {params.period_s:g} s per breath) for "
-        f"{duration:g} s at {fps:.2f} frames/s")
+        f"{duration:g} s at {(len(trace.t_s) - 1) / duration:.2f} frames/s")
     shares = lung_shares(model)
-    per_lung: dict[str, dict] = {}
-    scales: dict[str, np.ndarray] = {}
-    for name, lung in model.lungs.items():
-        target = lung.volume_ee_ml + shares[name] * v_total  # mL, what the curve asks of this lung
-        s = np.array([scale_for_volume(lung.volume_poly, float(dv)) for dv in shares[name] * v_total])
-        scales[name] = s
-        pb = lung.playback(np.float64)
-        measured = np.array([signed_volume(pb.seek(sk), lung.surface.faces) / 1000.0 for sk in s])
-        # the paper's linear reading s = ΔV/unit_ml, its volume from the exact cubic (mm³ → mL)
-        s_lin = shares[name] * v_total / lung.unit_ml
-        c = lung.volume_poly
-        v_lin = lung.volume_ee_ml + (c[1] * s_lin + c[2] * s_lin ** 2 + c[3] * s_lin ** 3) / 1000.0
-        err = measured - target
-        per_lung[name] = {
-            "vertices": lung.n_vertices,
-            "volume_ee_ml": lung.volume_ee_ml,
-            "tidal_share_ml": lung.calibration_ml,
-            "volume_ml": [round(float(x), 6) for x in measured],
-            "target_volume_ml": [round(float(x), 6) for x in target],
-            "volume_error_ml": [float(x) for x in err],
-            "max_volume_error_percent": float(np.max(np.abs(err) / target) * 100),
-            "linear_reading_max_error_percent": float(np.max(np.abs(v_lin - target) / target) * 100),
-        }
-    summary = {
-        "frames_per_second": fps,
-        "duration_s": duration,
-        "tidal_ml": tidal,
-        "orientation": str(orientation),
-        "breathing": {
-            "preset": chosen.name, "description": chosen.description, "sources": list(chosen.sources),
-            "period_s": params.period_s, "preset_tidal_volume_ml": chosen.tidal_volume_ml,
-            "curve_tidal_ml": float(np.ptp(v_total)), "end_exhale_ml": trace.shifted_ml,
-            "params": params.as_dict(),
-            "meaning": "target_volume_above_ee_ml = V(t) - V_EE of the PV model; each lung takes its "
-                       "share (in proportion to its end-exhale volume), met through the exact volume cubic",
-        },
-        "t_s": t.round(6).tolist(),
-        "target_volume_above_ee_ml": v_total.round(6).tolist(),
-        "lungs": per_lung,
-    }
-    summary["total_volume_ml"] = [round(sum(per_lung[n]["volume_ml"][i] for n in per_lung), 6)
-                                  for i in range(len(t))]
+    scales = lung_scales(model, trace.volume_ml)
+    per_lung = {name: _lung_summary(lung, shares[name] * trace.volume_ml, scales[name])
+                for name, lung in model.lungs.items()}
+    summary = _summary(chosen, params, trace, tidal, orientation, per_lung)
     summary_path = write_json(out / "summary.json", summary)
     series_path = _write_series(out, model, trace, series_fps, say)
-    peak = int(np.argmax(v_total))
-    layers = []
-    for name, lung in model.lungs.items():
-        layers.append((lung.surface, "#4a7ab5", 1.0))
-    for name, lung in model.lungs.items():
-        layers.append((lung.surface_at(scale=scales[name][peak]), "#d9534f", 0.35))
-    png = snapshot(out / "snapshot.png", layers, views=("anterior", "lateral-right"),
-                   title=f"end-exhale (blue) and end-inhale +{v_total[peak]:.0f} mL (red), "
-                         f"preset {chosen.name}, {orientation}")
+    png = _snapshot(out, model, scales, trace.volume_ml, chosen, orientation)
     return DemoResult(model_path, series_path, summary_path, png, summary)
 
 

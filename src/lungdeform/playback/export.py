@@ -27,9 +27,10 @@ Topology is written once; positions move by morph targets (displacements), never
   So any gravity g is ``weights[1:5] = λ · w(g)``, ``w = force_weights(frame, g, constants)``
   (the frame box and c1…c9 are in extras), with ``λ`` the root of the exact volume cubic
   ``A1·w λ + (wᵀA2w) λ² + A3(w,w,w) λ³ = ΔV`` (mm³; tensors ``A1 (4,)``, ``A2 (4,4)``,
-  ``A3 (4,4,4)`` are in the mesh extras). For the model's own gravity, use target 0 alone with the
-  cubic ``tidal_volume_poly_mm3``. The mesh extras also list, for the five named orientations, the
-  basis weights ``λ·w`` that add exactly ``calibration_ml``.
+  ``A3 (4,4,4)`` are in the mesh extras; :func:`lungdeform.model.displacement.volume_tensors`). For
+  the model's own gravity, use target 0 alone with the cubic ``tidal_volume_poly_mm3``. The mesh
+  extras also list, for the five named orientations, the basis weights ``λ·w`` that add exactly
+  ``calibration_ml``.
 - Markers (``--markers``; asset ``extras.lungdeform.markers``, :func:`lungdeform.playback.markers.marker_anchors`;
   schema version 2): per marker ``label``, ``position_mm`` (end-exhale), ``lung``, ``inside``,
   ``distance_mm`` and ``tidal_mm``, its displacement per unit weight of its lung's target 0:
@@ -50,8 +51,12 @@ preset, or :func:`lungdeform.playback.schedule.plain_cycle` by default) and each
 :mod:`lungdeform.playback.schedule`.
 
 VTK time series: ParaView's ``.pvd`` lists one ``.vtp`` per (lung, time step); VTK XML has no way
-to share topology across files, so each frame file repeats it (binary, appended raw). Every frame
-carries ``displacement_mm`` (x − p) beside the positions. Use the ``.glb`` for compact storage.
+to share topology across files, so each frame file repeats it (binary, appended raw, written by
+:func:`lungdeform.io.vtk.vtp_bytes`). Every frame carries ``displacement_mm`` (x − p) beside the
+positions. Use the ``.glb`` for compact storage.
+
+The displacement and volume math (targets, volume tensors, exact weights for a volume) is
+:mod:`lungdeform.model.displacement`; this module lays it out in files.
 """
 
 from __future__ import annotations
@@ -70,7 +75,17 @@ from lungdeform.atomic import finite_json, write_bytes
 from lungdeform.constants import GRAVITY
 from lungdeform.errors import InputError, LungdeformError
 from lungdeform.geometry.mesh import vertex_normals
-from lungdeform.model.displacement import scale_for_volume, smallest_positive_root
+from lungdeform.io.vtk import vtp_bytes
+from lungdeform.model.displacement import (
+    calibration_units,
+    cubic_along,
+    cubic_in_weight,
+    morph_targets,
+    scale_for_volume,
+    scales_for_volumes,
+    tidal_displacement,
+    volume_tensors,
+)
 from lungdeform.model.force import force_weights
 from lungdeform.model.lung import LungModel, Model
 
@@ -89,85 +104,34 @@ MM_TO_M = 0.001
 
 
 # --------------------------------------------------------------------------- morph targets
-def volume_tensors(vertices: np.ndarray, faces: np.ndarray, targets: np.ndarray):
-    """Exact volume of ``vertices + Σ_k w_k · targets[k]`` as a cubic form in ``w``.
-
-    Parameters
-    ----------
-    vertices : (n, 3) float, mm; faces : (m, 3) int, outward; targets : (K, n, 3) float, mm.
-
-    Returns
-    -------
-    a0 : float, mm³; a1 : (K,); a2 : (K, K) symmetric; a3 : (K, K, K) symmetric, mm³, with
-    ``V(w) = a0 + a1·w + wᵀ a2 w + a3(w, w, w)`` (same face trilinearity as
-    :func:`lungdeform.model.displacement.volume_polynomial`).
-    """
-    p = vertices - vertices.mean(axis=0)
-    pa, pb, pc = (p[faces[:, c]] for c in range(3))
-    u = [[t[faces[:, c]] for c in range(3)] for t in targets]  # u[k][corner] : (m, 3)
-    kk = len(targets)
-    dot = lambda a, b: float(np.einsum("ij,ij->", a, b))  # noqa: E731
-    a0 = dot(pa, np.cross(pb, pc)) / 6.0
-    a1 = np.array([dot(u[k][0], np.cross(pb, pc)) + dot(pa, np.cross(u[k][1], pc))
-                   + dot(pa, np.cross(pb, u[k][2])) for k in range(kk)]) / 6.0
-    a2 = np.zeros((kk, kk))
-    a3 = np.zeros((kk, kk, kk))
-    for j in range(kk):
-        for k in range(kk):
-            bc = np.cross(u[j][1], u[k][2])
-            a2[j, k] = (dot(u[j][0], np.cross(u[k][1], pc)) + dot(u[j][0], np.cross(pb, u[k][2]))
-                        + dot(pa, bc)) / 6.0
-            for i in range(kk):
-                a3[i, j, k] = dot(u[i][0], bc) / 6.0
-    a2 = 0.5 * (a2 + a2.T)
-    a3 = sum(np.transpose(a3, perm) for perm in
-             ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0))) / 6.0
-    return a0, a1, a2, a3
+def lung_units(lung: LungModel) -> float:
+    """The lung's calibration volume in units (``calibration_ml / unit_ml``): target 0 is weight 1."""
+    return calibration_units(lung.calibration_ml, lung.unit_ml)
 
 
 def lung_targets(lung: LungModel) -> tuple[np.ndarray, float]:
-    """``targets : (5, n, 3) float`` mm (see the module table) and the basis factor κ."""
-    s_cal = lung.calibration_ml / lung.unit_ml
-    tidal = lung.displacement * s_cal
-    basis = lung.basis_displacement
-    raw = np.tensordot(lung.force_weights, basis, axes=1)
-    denom = float(np.einsum("ij,ij->", raw, raw))
-    kappa = float(np.einsum("ij,ij->", raw, tidal)) / denom if denom > 0 else 1.0
-    return np.concatenate([tidal[None], kappa * basis]), kappa
+    """``targets : (5, n, 3) float`` mm (see the module table) and the basis factor κ of ``lung``
+    (:func:`lungdeform.model.displacement.morph_targets`)."""
+    return morph_targets(lung.displacement, lung.basis_displacement, lung.force_weights, lung_units(lung))
 
 
 def tidal_weights(lung: LungModel, delta_ml) -> np.ndarray:
     """Weights ``λ (k,)`` of target 0 that make the lung's volume exactly ``V_EE + delta_ml`` (mL)."""
-    s_cal = lung.calibration_ml / lung.unit_ml
-    poly = lung.volume_poly
-    out = np.empty(len(delta_ml))
-    for i, dv in enumerate(np.asarray(delta_ml, float)):
-        out[i] = scale_for_volume(poly, float(dv)) / s_cal
-    return out
-
-
-def cubic_root(a1: float, a2: float, a3: float, target: float) -> float:
-    """``λ`` with ``a1 λ + a2 λ² + a3 λ³ = target``: the root nearest 0 on the side of ``target``."""
-    if target == 0:
-        return 0.0
-    poly = np.array([0.0, a1, a2, a3])
-    if target > 0:
-        return smallest_positive_root(poly, target)
-    return scale_for_volume(poly, target / 1000.0)
+    return scales_for_volumes(lung.volume_poly, delta_ml) / lung_units(lung)
 
 
 def orientation_table(lung: LungModel, a1, a2, a3) -> dict:
     """For each named orientation: gravity (LPS), force weights w, and basis weights ``λ·w`` that
-    add exactly ``calibration_ml`` to the lung's volume."""
+    add exactly ``calibration_ml`` to the lung's volume (``a1, a2, a3``: the basis targets' volume
+    tensors, mm³, :func:`lungdeform.model.displacement.volume_tensors`)."""
     out = {}
-    for name, g in GRAVITY.items():
-        w = force_weights(lung.frame, g, lung.constants)
+    for name, gravity in GRAVITY.items():
+        w = force_weights(lung.frame, gravity, lung.constants)
         try:
-            lam = cubic_root(float(a1 @ w), float(w @ a2 @ w),
-                             float(np.einsum("ijk,i,j,k->", a3, w, w, w)), lung.calibration_ml * 1000.0)
+            lam = scale_for_volume(cubic_along(a1, a2, a3, w), lung.calibration_ml)
         except LungdeformError:
             continue  # this gravity does not grow this lung (possible only for odd constants)
-        out[name] = {"gravity": list(map(float, g)), "force_weights": w.tolist(),
+        out[name] = {"gravity": list(map(float, gravity)), "force_weights": w.tolist(),
                      "basis_weights": (lam * w).tolist()}
     return out
 
@@ -180,7 +144,6 @@ class _Blob:
         self.gl, self.parts, self.size = gl, [], 0
 
     def add(self, array: np.ndarray, kind: str, target=None, minmax: bool = False) -> int:
-
         a = np.ascontiguousarray(array)
         ctype = {np.dtype(np.float32): g.FLOAT, np.dtype(np.uint32): g.UNSIGNED_INT}[a.dtype]
         data = a.tobytes()
@@ -198,75 +161,75 @@ class _Blob:
         return len(self.gl.accessors) - 1
 
 
-def glb_bytes(model: Model, trace: VolumeTrace | None = None, markers: list[dict] | None = None) -> bytes:
-    """The model as a glTF 2.0 binary (see the module docstring for the layout)."""
+def _primitive(blob: _Blob, name: str, lung: LungModel, targets: np.ndarray, material: int) -> g.Primitive:
+    """The lung's triangle primitive: vertex attributes, indices and morph targets in ``blob``."""
+    p, f = lung.surface.vertices, lung.surface.faces
+    nrm = vertex_normals(p, f)
+    if np.any(np.linalg.norm(nrm, axis=1) < 0.5):
+        raise LungdeformError(f"lung '{name}' has vertices with no faces (zero normals)")
+    attrs = g.Attributes(
+        POSITION=blob.add(p.astype(np.float32), g.VEC3, g.ARRAY_BUFFER, minmax=True),
+        NORMAL=blob.add(nrm.astype(np.float32), g.VEC3, g.ARRAY_BUFFER),
+    )
+    attrs._STIFFNESS = blob.add(lung.stiffness.astype(np.float32), g.SCALAR, g.ARRAY_BUFFER)
+    attrs._FORCE_BASIS = blob.add(lung.force_basis.T.astype(np.float32), g.VEC4, g.ARRAY_BUFFER)
+    tgt = [{"POSITION": blob.add(t.astype(np.float32), g.VEC3, g.ARRAY_BUFFER, minmax=True)}
+           for t in targets]
+    idx = blob.add(f.astype(np.uint32).reshape(-1), g.SCALAR, g.ELEMENT_ARRAY_BUFFER, minmax=True)
+    return g.Primitive(attributes=attrs, indices=idx, targets=tgt, material=material)
 
 
-    trace = trace or plain_cycle()
-    shares = lung_shares(model)
-    gl = g.GLTF2(asset=g.Asset(version="2.0", generator=f"lungdeform {__version__}"))
-    gl.buffers, gl.bufferViews, gl.accessors = [g.Buffer()], [], []
-    blob = _Blob(gl)
-    root = g.Node(name="patient", rotation=list(LPS_TO_GLTF_ROTATION), scale=[MM_TO_M] * 3, children=[])
-    gl.nodes = [root]
-    gl.meshes, gl.materials = [], []
-    times = blob.add(trace.t_s.astype(np.float32), g.SCALAR, minmax=True)
-    anim = g.Animation(name="breathing", samplers=[], channels=[])
-    lungs_meta = []
-    for name, lung in model.lungs.items():
-        p, f = lung.surface.vertices, lung.surface.faces
-        targets, kappa = lung_targets(lung)
-        a0, a1, a2, a3 = volume_tensors(p, f, targets[1:])
-        nrm = vertex_normals(p, f)
-        if np.any(np.linalg.norm(nrm, axis=1) < 0.5):
-            raise LungdeformError(f"lung '{name}' has vertices with no faces (zero normals)")
-        attrs = g.Attributes(
-            POSITION=blob.add(p.astype(np.float32), g.VEC3, g.ARRAY_BUFFER, minmax=True),
-            NORMAL=blob.add(nrm.astype(np.float32), g.VEC3, g.ARRAY_BUFFER),
-        )
-        attrs._STIFFNESS = blob.add(lung.stiffness.astype(np.float32), g.SCALAR, g.ARRAY_BUFFER)
-        attrs._FORCE_BASIS = blob.add(lung.force_basis.T.astype(np.float32), g.VEC4, g.ARRAY_BUFFER)
-        tgt = [{"POSITION": blob.add(t.astype(np.float32), g.VEC3, g.ARRAY_BUFFER, minmax=True)}
-               for t in targets]
-        idx = blob.add(f.astype(np.uint32).reshape(-1), g.SCALAR, g.ELEMENT_ARRAY_BUFFER, minmax=True)
-        color = [0.93, 0.55, 0.55, 1.0] if lung.side == "left" else [0.55, 0.7, 0.93, 1.0]
-        gl.materials.append(g.Material(name=f"{name} tissue", doubleSided=False,
-                                       pbrMetallicRoughness=g.PbrMetallicRoughness(
-                                           baseColorFactor=color, metallicFactor=0.0, roughnessFactor=0.6)))
-        s_cal = lung.calibration_ml / lung.unit_ml
-        meta = {
-            "lung": name, "side": lung.side, "n_vertices": int(lung.n_vertices),
-            "targets": list(TARGET_NAMES), "units": "mm", "frame": "LPS",
-            "calibration_ml": lung.calibration_ml, "unit_ml": lung.unit_ml, "share": shares[name],
-            "volume_ee_ml": lung.volume_ee_ml, "gravity": lung.gravity.tolist(),
-            "basis_factor": kappa,
-            "tidal_volume_poly_mm3": (lung.volume_poly * s_cal ** np.arange(4)).tolist(),
-            "basis_volume_tensors_mm3": {"a0": a0, "a1": a1.tolist(), "a2": a2.tolist(), "a3": a3.tolist()},
-            "lung_frame": {"axes": lung.frame.axes.tolist(), "lower": lung.frame.lower.tolist(),
-                           "upper": lung.frame.upper.tolist()},
-            "constants": lung.constants.tolist(),
-            "stiffness_range": [float(lung.stiffness.min()), float(lung.stiffness.max())],
-            "orientations": orientation_table(lung, a1, a2, a3),
-        }
-        lungs_meta.append(meta)
-        gl.meshes.append(g.Mesh(name=name, weights=[0.0] * len(targets),
-                                primitives=[g.Primitive(attributes=attrs, indices=idx, targets=tgt,
-                                                        material=len(gl.materials) - 1)],
-                                extras={"targetNames": list(TARGET_NAMES), "lungdeform": meta}))
-        gl.nodes.append(g.Node(name=name, mesh=len(gl.meshes) - 1))
-        root.children.append(len(gl.nodes) - 1)
-        lam = tidal_weights(lung, shares[name] * trace.volume_ml)
-        w = np.zeros((len(lam), len(targets)), np.float32)
-        w[:, 0] = lam
-        out = blob.add(w.reshape(-1), g.SCALAR)
-        anim.samplers.append(g.AnimationSampler(input=times, output=out, interpolation=g.ANIM_LINEAR))
-        anim.channels.append(g.AnimationChannel(sampler=len(anim.samplers) - 1,
-                                                target=g.AnimationChannelTarget(node=len(gl.nodes) - 1,
-                                                                                path="weights")))
-    gl.animations = [anim]
-    gl.scenes = [g.Scene(name="lungs", nodes=[0])]
-    gl.scene = 0
-    gl.extras = {"lungdeform": {
+def _material(name: str, lung: LungModel) -> g.Material:
+    color = [0.93, 0.55, 0.55, 1.0] if lung.side == "left" else [0.55, 0.7, 0.93, 1.0]
+    return g.Material(name=f"{name} tissue", doubleSided=False,
+                      pbrMetallicRoughness=g.PbrMetallicRoughness(
+                          baseColorFactor=color, metallicFactor=0.0, roughnessFactor=0.6))
+
+
+def _lung_extras(name: str, lung: LungModel, share: float, kappa: float, tensors) -> dict:
+    """The mesh extras ``lungdeform`` of one lung (see the module docstring)."""
+    a0, a1, a2, a3 = tensors
+    return {
+        "lung": name, "side": lung.side, "n_vertices": int(lung.n_vertices),
+        "targets": list(TARGET_NAMES), "units": "mm", "frame": "LPS",
+        "calibration_ml": lung.calibration_ml, "unit_ml": lung.unit_ml, "share": share,
+        "volume_ee_ml": lung.volume_ee_ml, "gravity": lung.gravity.tolist(),
+        "basis_factor": kappa,
+        "tidal_volume_poly_mm3": cubic_in_weight(lung.volume_poly, lung_units(lung)).tolist(),
+        "basis_volume_tensors_mm3": {"a0": a0, "a1": a1.tolist(), "a2": a2.tolist(), "a3": a3.tolist()},
+        "lung_frame": {"axes": lung.frame.axes.tolist(), "lower": lung.frame.lower.tolist(),
+                       "upper": lung.frame.upper.tolist()},
+        "constants": lung.constants.tolist(),
+        "stiffness_range": [float(lung.stiffness.min()), float(lung.stiffness.max())],
+        "orientations": orientation_table(lung, a1, a2, a3),
+    }
+
+
+def _add_lung(gl, blob: _Blob, anim, times: int, name: str, lung: LungModel, share: float,
+              trace: VolumeTrace) -> dict:
+    """Add one lung (material, mesh, node under the root, animation channel); return its extras."""
+    targets, kappa = lung_targets(lung)
+    tensors = volume_tensors(lung.surface.vertices, lung.surface.faces, targets[1:])
+    primitive = _primitive(blob, name, lung, targets, len(gl.materials))
+    gl.materials.append(_material(name, lung))
+    meta = _lung_extras(name, lung, share, kappa, tensors)
+    gl.meshes.append(g.Mesh(name=name, weights=[0.0] * len(targets), primitives=[primitive],
+                            extras={"targetNames": list(TARGET_NAMES), "lungdeform": meta}))
+    gl.nodes.append(g.Node(name=name, mesh=len(gl.meshes) - 1))
+    gl.nodes[0].children.append(len(gl.nodes) - 1)
+    lam = tidal_weights(lung, share * trace.volume_ml)
+    w = np.zeros((len(lam), len(targets)), np.float32)
+    w[:, 0] = lam
+    out = blob.add(w.reshape(-1), g.SCALAR)
+    anim.samplers.append(g.AnimationSampler(input=times, output=out, interpolation=g.ANIM_LINEAR))
+    anim.channels.append(g.AnimationChannel(sampler=len(anim.samplers) - 1,
+                                            target=g.AnimationChannelTarget(node=len(gl.nodes) - 1,
+                                                                            path="weights")))
+    return meta
+
+
+def _asset_extras(model: Model, trace: VolumeTrace, lungs_meta: list[dict], markers) -> dict:
+    return {"lungdeform": {
         "schema": GLB_SCHEMA, "schema_version": GLB_SCHEMA_VERSION,
         "frame": "vertex data in LPS mm; root node 'patient' maps to glTF Y-up metres: (x, z, -y)/1000",
         "curve": {"source": trace.source, "shifted_ml": trace.shifted_ml,
@@ -278,6 +241,25 @@ def glb_bytes(model: Model, trace: VolumeTrace | None = None, markers: list[dict
         # strict JSON: a fit's provenance holds NaN (e.g. no landmark error), which glTF's JSON refuses
         "provenance": finite_json(json.loads(json.dumps(model.provenance, default=str))),
     }}
+
+
+def glb_bytes(model: Model, trace: VolumeTrace | None = None, markers: list[dict] | None = None) -> bytes:
+    """The model as a glTF 2.0 binary (see the module docstring for the layout)."""
+    trace = trace or plain_cycle()
+    shares = lung_shares(model)
+    gl = g.GLTF2(asset=g.Asset(version="2.0", generator=f"lungdeform {__version__}"))
+    gl.buffers, gl.bufferViews, gl.accessors = [g.Buffer()], [], []
+    blob = _Blob(gl)
+    gl.nodes = [g.Node(name="patient", rotation=list(LPS_TO_GLTF_ROTATION), scale=[MM_TO_M] * 3, children=[])]
+    gl.meshes, gl.materials = [], []
+    times = blob.add(trace.t_s.astype(np.float32), g.SCALAR, minmax=True)
+    anim = g.Animation(name="breathing", samplers=[], channels=[])
+    lungs_meta = [_add_lung(gl, blob, anim, times, name, lung, shares[name], trace)
+                  for name, lung in model.lungs.items()]
+    gl.animations = [anim]
+    gl.scenes = [g.Scene(name="lungs", nodes=[0])]
+    gl.scene = 0
+    gl.extras = _asset_extras(model, trace, lungs_meta, markers)
     data = b"".join(blob.parts)
     gl.buffers[0].byteLength = len(data)
     gl.set_binary_blob(data)
@@ -292,44 +274,6 @@ def export_glb(model: Model, path, trace: VolumeTrace | None = None, markers: li
 
 
 # --------------------------------------------------------------------------- VTK time series
-def _vtp_bytes(points: np.ndarray, faces: np.ndarray, point_data: dict[str, np.ndarray], time_s: float) -> bytes:
-    """One VTK XML PolyData file, binary appended raw (UInt64 headers, little endian)."""
-    blocks: list[bytes] = []
-    offset = 0
-
-    def put(a: np.ndarray) -> int:
-        nonlocal offset
-        raw = np.ascontiguousarray(a).astype(a.dtype.newbyteorder("<"), copy=False).tobytes()
-        blocks.append(np.uint64(len(raw)).tobytes() + raw)
-        at = offset
-        offset += 8 + len(raw)
-        return at
-
-    vtk_type = {np.dtype(np.float32): "Float32", np.dtype(np.float64): "Float64", np.dtype(np.int32): "Int32",
-                np.dtype(np.int64): "Int64"}
-
-    def darray(name: str, a: np.ndarray) -> str:
-        comps = 1 if a.ndim == 1 else a.shape[1]
-        return (f'<DataArray type="{vtk_type[a.dtype]}" Name="{name}" NumberOfComponents="{comps}" '
-                f'format="appended" offset="{put(a)}"/>')
-
-    time = darray("TimeValue", np.array([time_s], np.float64))
-    pts = darray("Points", points.astype(np.float32))
-    pd = "".join(darray(k, v) for k, v in point_data.items())
-    conn = darray("connectivity", faces.astype(np.int64).reshape(-1))
-    offs = darray("offsets", np.arange(3, 3 * len(faces) + 1, 3, dtype=np.int64))
-    head = (
-        '<?xml version="1.0"?>\n'
-        '<VTKFile type="PolyData" version="1.0" byte_order="LittleEndian" header_type="UInt64">\n'
-        f"<PolyData><FieldData>{time}</FieldData>"
-        f'<Piece NumberOfPoints="{len(points)}" NumberOfVerts="0" NumberOfLines="0" NumberOfStrips="0" '
-        f'NumberOfPolys="{len(faces)}"><PointData>{pd}</PointData><Points>{pts}</Points>'
-        f"<Polys>{conn}{offs}</Polys></Piece></PolyData>\n"
-        '<AppendedData encoding="raw">\n_'
-    )
-    return head.encode() + b"".join(blocks) + b"\n</AppendedData>\n</VTKFile>\n"
-
-
 def export_pvd(model: Model, path, trace: VolumeTrace | None = None, fps: float = 10.0,
                progress=None) -> Path:
     """Write ``path`` (``.pvd``) and its frames ``<stem>_frames/<lung>_<k>.vtp`` (time series for
@@ -355,15 +299,16 @@ def export_pvd(model: Model, path, trace: VolumeTrace | None = None, fps: float 
     try:
         for part, (name, lung) in enumerate(model.lungs.items()):
             lam = tidal_weights(lung, shares[name] * dv)
-            tidal = lung.displacement * (lung.calibration_ml / lung.unit_ml)
+            tidal = tidal_displacement(lung.displacement, lung_units(lung))
             p, f = lung.surface.vertices, lung.surface.faces
             stiff = lung.stiffness.astype(np.float32)
             say(f"{name}: {n} frames")
-            for k, (t, l) in enumerate(zip(times, lam)):
-                disp = (l * tidal).astype(np.float32)
+            for k, (t, weight) in enumerate(zip(times, lam)):
+                disp = (weight * tidal).astype(np.float32)
                 fname = f"{name}_{k:04d}.vtp"
-                (tmp_dir / fname).write_bytes(_vtp_bytes(p + disp, f, {"displacement_mm": disp,
-                                                                       "stiffness": stiff}, float(t)))
+                frame = vtp_bytes(p + disp, f, {"displacement_mm": disp, "stiffness": stiff}, time_s=float(t),
+                                  appended=True, points_dtype=np.float32)
+                (tmp_dir / fname).write_bytes(frame)
                 entries.append(f'<DataSet timestep="{t:.6g}" part="{part}" name="{name}" '
                                f'file="{frames_name}/{fname}"/>')
         final_dir = path.parent / frames_name

@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from lungdeform.errors import InputError
+from lungdeform.model.displacement import calibration_units, tidal_displacement
 from lungdeform.model.lung import Model
 
 from .trajectory import place_points, unit_displacements
@@ -54,8 +55,9 @@ def marker_anchors(model: Model, points: np.ndarray, labels=None, *, source: str
         raise InputError(f"{source}: {len(labels)} labels for {len(pts)} markers")
     placement = place_points(model, pts, source=source)
     per_unit = unit_displacements(model, pts, placement)
-    cal = np.array([model.lungs[str(n)].calibration_ml / model.lungs[str(n)].unit_ml for n in placement.lungs])
-    tidal = cal[:, None] * per_unit
+    units = np.array([calibration_units(model.lungs[str(n)].calibration_ml, model.lungs[str(n)].unit_ml)
+                      for n in placement.lungs])
+    tidal = tidal_displacement(per_unit, units[:, None])
     out = []
     for j, (label, q) in enumerate(zip(labels, pts)):
         lung = model.lungs[str(placement.lungs[j])]

@@ -24,7 +24,7 @@ from lungdeform.geometry.distance import point_to_surface
 from lungdeform.geometry.mesh import as_vertices, winding_numbers
 from lungdeform.interior.field import KIND_TEXT
 from lungdeform.io.landmarks import read_elastix_points
-from lungdeform.model.displacement import scale_for_volume
+from lungdeform.model.displacement import positions_at, scales_for_volumes
 
 from .schedule import lung_shares
 
@@ -76,15 +76,16 @@ def place_points(model, points, lung: str | None = None, *, limit_mm: float = OU
 
 def lung_scales(model, delta_ml) -> dict[str, np.ndarray]:
     """Per lung, ``s : (f,) float`` units at which its volume is exactly ``V_EE + share·ΔV``, for
-    ``delta_ml : (f,)`` mL of both lungs above end-exhale: the playback of ``lungdeform export``
-    (whose tidal weights :func:`lungdeform.playback.export.tidal_weights` are these over the calibration's units)."""
+    ``delta_ml : (f,)`` mL of both lungs above end-exhale
+    (:func:`lungdeform.model.displacement.scales_for_volumes` of each lung's share): the playback of
+    ``lungdeform export`` (whose tidal weights :func:`lungdeform.playback.export.tidal_weights` are
+    these over the calibration's units) and of ``lungdeform demo``."""
 
     dv = np.asarray(delta_ml, float).ravel()
     if not np.all(np.isfinite(dv)):
         raise InputError("volumes must be finite mL")
     shares = lung_shares(model)
-    return {name: np.array([scale_for_volume(lung.volume_poly, float(shares[name] * v)) for v in dv])
-            for name, lung in model.lungs.items()}
+    return {name: scales_for_volumes(lung.volume_poly, shares[name] * dv) for name, lung in model.lungs.items()}
 
 
 def unit_displacements(model, points, placement: PointPlacement) -> np.ndarray:
@@ -106,7 +107,7 @@ def point_trajectories(model, points, placement: PointPlacement, delta_ml) -> np
     scales = lung_scales(model, delta_ml)
     v = unit_displacements(model, q, placement)
     s = np.stack([scales[str(name)] for name in placement.lungs], axis=1)  # (f, q) units
-    return q[None] + s[:, :, None] * v[None]
+    return positions_at(q[None], v[None], s)
 
 
 @dataclass(frozen=True, eq=False)
