@@ -179,9 +179,8 @@ def test_input_digest_tracks_files_and_options(tmp_path, cohort, monkeypatch):
     assert input_digest(job, FitOptions(max_evaluations=60, baselines=False, side_check=False)) != d
     with pytest.raises(InputError, match="side_check must be True or False"):
         FitOptions(side_check="no")
-    import lungdeform
-
-    monkeypatch.setattr(lungdeform, "__version__", "99.0.0")  # an upgrade re-fits
+    # an upgrade re-fits (the job module's own name: it imported the version at its top)
+    monkeypatch.setattr("lungdeform.cohort.job.__version__", "99.0.0")
     assert input_digest(job, FAST) != d
     monkeypatch.undo()
     st = job.inputs[1].stat()
