@@ -137,7 +137,7 @@ def test_refuses_bad_options_and_a_busy_output(tmp_path, cohort):
     with C._exclusive(busy):
         with pytest.raises(InputError, match="in use by another cohort run"):
             run_cohort(cohort, busy, processes=False)
-    with pytest.raises(InputError, match=r"max_evaluations \(--evaluations\) must be a whole number >= 1"):
+    with pytest.raises(InputError, match="max_evaluations must be a whole number >= 1"):
         FitOptions(max_evaluations=0)
     # no silent coercion: fractions and strings are refused, numpy integers accepted
     for bad, match in (({"folds": 2.9}, "folds"), ({"direction_degree": "3"}, "direction_degree"),

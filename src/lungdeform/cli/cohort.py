@@ -24,7 +24,7 @@ from lungdeform.cohort.job import STAGES, FitOptions
 from lungdeform.cohort.manifest import read_manifest
 from lungdeform.cohort.runner import run_cohort
 
-from .common import DIRECTION_DEGREE_HELP, SIDE_CHECK_HELP, output_dir, progress_enabled
+from .common import DIRECTION_DEGREE_HELP, FIT_OPTIONS, SIDE_CHECK_HELP, option_names, output_dir, progress_enabled
 
 #: Bar labels of the stages (lungdeform.cohort.job.STAGES).
 STAGE_LABELS = {"read": "read / segment", "align": "align", "fit": "fit + measure", "write": "write"}
@@ -144,9 +144,10 @@ def register(apps) -> None:
         manifest, 130 when interrupted (re-run the same command to resume)."""
 
         m = read_manifest(manifest)  # every problem reported before any work starts (exit 2)
-        options = FitOptions(max_evaluations=evaluations, baselines=baselines, align=align,
-                             landmark_fit=landmark_fit, folds=folds,
-                             direction_degree=direction_degree, stiffness=stiffness, side_check=side_check)
+        with option_names(FIT_OPTIONS):
+            options = FitOptions(max_evaluations=evaluations, baselines=baselines, align=align,
+                                 landmark_fit=landmark_fit, folds=folds,
+                                 direction_degree=direction_degree, stiffness=stiffness, side_check=side_check)
         if align == "apex" and (Path(manifest).parent / "truth.json").is_file():
             typer.echo("note: this manifest's folder holds a synthetic truth.json: its surfaces are already in one "
                        "frame, and the apex alignment shifts them (the model moves the apex); use --align none "

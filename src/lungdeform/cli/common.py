@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import re
 import sys
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -102,3 +104,49 @@ SIDE_CHECK_HELP = ("Check each lung's side against its shape (the concave medial
 #: Help of ``--direction-degree`` (fit, validate itk-pair, cohort).
 DIRECTION_DEGREE_HELP = ("Degree of the smooth correction of the paper's directions fitted to the surfaces "
                          "(lungdeform.fit.direction_correction; 0: the paper's directions only).")
+
+
+#: Library parameters of a fit (:class:`lungdeform.fit.config.FitInputs`, :class:`~lungdeform.fit.config.FitConfig`)
+#: → the options that set them (fit, validate itk-pair, cohort).
+FIT_OPTIONS = {"side": "--side", "volumes_ml": "--volumes", "landmarks": "--landmarks", "folds": "--folds",
+               "align": "--align", "direction_degree": "--direction-degree", "max_evaluations": "--evaluations"}
+
+
+@contextmanager
+def option_names(options: dict[str, str]):
+    """Say the command's option where a library error names the parameter it sets: an
+    :class:`InputError` whose message begins with a key of ``options`` (``"folds must be …"``) is
+    raised again with that key replaced by its option (``"--folds must be …"``)."""
+
+    try:
+        yield
+    except InputError as exc:
+        text = str(exc)
+        for name, option in options.items():
+            if re.match(rf"{re.escape(name)}\b", text):
+                raise type(exc)(option + text[len(name):]) from exc
+        raise
+
+
+def print_fit_table(m: dict) -> None:
+    """The fit metrics (``metrics.json`` of :func:`lungdeform.fit.pipeline.run_fit`): one table per
+    target, one row per method, on stdout."""
+    for tname, per in m["targets"].items():
+        typer.echo(f"target {tname}: surface mean/rms/p95 mm, landmark mean/median/max mm")
+        for name, v in per.items():
+            typer.echo(f"  {name:<26} {v['surface_mean_mm']:6.2f} {v['surface_rms_mm']:6.2f} {v['surface_p95_mm']:6.2f}"
+                       f"   {v['landmark_mean_mm']:6.2f} {v.get('landmark_median_mm', float('nan')):6.2f}"
+                       f" {v['landmark_max_mm']:6.2f}")
+
+
+def print_fit_warnings(m: dict) -> None:
+    """One line on stderr per input warning of a fit's metrics ``m`` and per fit that stopped
+    before converging (metrics.json holds them too)."""
+    for text in m.get("warnings") or []:
+        typer.echo(f"warning: {text}", err=True)
+    for name, fit in (m.get("fit") or {}).items():
+        if isinstance(fit, dict) and fit.get("success") is False:
+            advice = ("it is the paper's comparison search, not the saved model" if name == "grid"
+                      else "the model is its best point so far: raise --evaluations")
+            typer.echo(f"warning: the {name} fit did not converge ({fit.get('message', 'no message')}); {advice}",
+                       err=True)

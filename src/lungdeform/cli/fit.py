@@ -1,7 +1,8 @@
 """``lungdeform fit``: fit a lung model to surfaces, masks or CTs at two or more volumes.
 
 The pipeline itself (reading, alignment, fits, baselines, outputs) is
-:func:`lungdeform.fit.pipeline.run_fit`; this module parses the options and prints the table.
+:func:`lungdeform.fit.pipeline.run_fit`; this module parses the options into its
+:class:`~lungdeform.fit.config.FitInputs` and :class:`~lungdeform.fit.config.FitConfig` and prints the table.
 """
 
 from __future__ import annotations
@@ -11,9 +12,19 @@ from pathlib import Path
 import typer
 
 from lungdeform.errors import InputError
+from lungdeform.fit.config import FitConfig, FitInputs
 from lungdeform.fit.pipeline import run_fit
 
-from .common import DIRECTION_DEGREE_HELP, SIDE_CHECK_HELP, output_dir, say
+from .common import (
+    DIRECTION_DEGREE_HELP,
+    FIT_OPTIONS,
+    SIDE_CHECK_HELP,
+    option_names,
+    output_dir,
+    print_fit_table,
+    print_fit_warnings,
+    say,
+)
 
 
 def register(apps) -> None:
@@ -40,42 +51,19 @@ def register(apps) -> None:
     ) -> None:
         """Fit c1…c9 of one lung to two or more volumes; write the model, metrics and an HTML report."""
 
-        if evaluations < 1:
-            raise InputError(f"--evaluations must be ≥ 1, got {evaluations}")
         vols = None
         if volumes:
             try:
                 vols = [float(v) for v in volumes.split(",")]
             except ValueError:
                 raise InputError(f"--volumes must be numbers in mL separated by commas, got {volumes!r}") from None
-        folder = output_dir(out)
-        m = run_fit(list(inputs), side=side, out=folder, volumes=vols, landmarks=list(landmarks) if landmarks else None,
-                    grid=grid, stiffness=stiffness, baselines=baselines, max_evaluations=evaluations, progress=say,
-                    landmark_fit=landmark_fit, folds=folds, align=align,
-                    direction_degree=direction_degree, landmark_comparisons=landmark_comparisons,
-                    side_check=side_check)
-        _print_table(m)
+        with option_names(FIT_OPTIONS):
+            fit_inputs = FitInputs(inputs, side, vols, landmarks)
+            config = FitConfig(grid=grid, stiffness=stiffness, baselines=baselines, max_evaluations=evaluations,
+                               landmark_fit=landmark_fit, folds=folds, align=align, direction_degree=direction_degree,
+                               landmark_comparisons=landmark_comparisons, side_check=side_check)
+            folder = output_dir(out)
+            m = run_fit(fit_inputs, folder, config, progress=say)
+        print_fit_table(m)
         typer.echo(f"wrote {folder / 'model.npz'}, {folder / 'metrics.json'}, {folder / 'report.html'}")
-        warn(m)
-
-
-def warn(m: dict) -> None:
-    """One line on stderr per input warning of the pipeline and per fit that stopped before
-    converging (metrics.json holds them too)."""
-    for text in m.get("warnings") or []:
-        typer.echo(f"warning: {text}", err=True)
-    for name, fit in (m.get("fit") or {}).items():
-        if isinstance(fit, dict) and fit.get("success") is False:
-            advice = ("it is the paper's comparison search, not the saved model" if name == "grid"
-                      else "the model is its best point so far: raise --evaluations")
-            typer.echo(f"warning: the {name} fit did not converge ({fit.get('message', 'no message')}); {advice}",
-                       err=True)
-
-
-def _print_table(m: dict) -> None:
-    for tname, per in m["targets"].items():
-        typer.echo(f"target {tname}: surface mean/rms/p95 mm, landmark mean/median/max mm")
-        for name, v in per.items():
-            typer.echo(f"  {name:<26} {v['surface_mean_mm']:6.2f} {v['surface_rms_mm']:6.2f} {v['surface_p95_mm']:6.2f}"
-                       f"   {v['landmark_mean_mm']:6.2f} {v.get('landmark_median_mm', float('nan')):6.2f}"
-                       f" {v['landmark_max_mm']:6.2f}")
+        print_fit_warnings(m)

@@ -37,13 +37,10 @@ from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
-
 from lungdeform import __version__
 from lungdeform.atomic import jsonable, write_json
-from lungdeform.errors import InputError
-from lungdeform.fit.direction_correction import MAX_DEGREE
-from lungdeform.fit.pipeline import ALIGN_MODES, run_fit
+from lungdeform.fit.config import FitConfig, FitInputs
+from lungdeform.fit.pipeline import run_fit
 
 from .manifest import Job
 
@@ -56,13 +53,14 @@ _PARTIAL, _OLD, _MARK = ".partial-", ".old-", ".lungdeform-partial"
 
 @dataclass(frozen=True)
 class FitOptions:
-    """Fit settings shared by every job (part of the input digest)."""
+    """Fit settings shared by every job (part of the input digest); validated as the
+    :class:`lungdeform.fit.config.FitConfig` they become (:meth:`config`), whose errors name the field."""
 
     max_evaluations: int = 300
     baselines: bool = True
     grid: bool = False
     stiffness: bool = False
-    #: how targets reach the end-exhale frame: "apex", "joint" or "none" (lungdeform.fit.pipeline.ALIGN_MODES);
+    #: how targets reach the end-exhale frame: "apex", "joint" or "none" (lungdeform.fit.config.ALIGN_MODES);
     #: synthetic cohorts (already in one frame) want "none" or "joint"
     align: str = "apex"
     #: with landmarks: the interior landmark correction, cross-validated over ``folds`` folds
@@ -74,27 +72,13 @@ class FitOptions:
     side_check: bool = True
 
     def __post_init__(self):
+        config = self.config()  # validates every field (errors name it)
+        for f in fields(self):  # plain Python numbers and booleans: the digest is JSON
+            object.__setattr__(self, f.name, getattr(config, f.name))
 
-        def whole(x) -> bool:
-            return isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_))
-
-        switches = [f.name for f in fields(self) if f.type == "bool"]
-        for name in switches:
-            if not isinstance(getattr(self, name), (bool, np.bool_)):
-                raise InputError(f"{name} must be True or False, got {getattr(self, name)!r}")
-        if not (whole(self.max_evaluations) and self.max_evaluations >= 1):
-            raise InputError(f"max_evaluations (--evaluations) must be a whole number >= 1, got {self.max_evaluations!r}")
-        if self.align not in ALIGN_MODES:
-            raise InputError(f"align (--align) must be one of {', '.join(ALIGN_MODES)}, got {self.align!r}")
-        if not (whole(self.folds) and self.folds >= 2):
-            raise InputError(f"folds (--folds) must be a whole number >= 2, got {self.folds!r}")
-        if not (whole(self.direction_degree) and 0 <= self.direction_degree <= MAX_DEGREE):
-            raise InputError(f"direction_degree (--direction-degree) must be a whole number 0…{MAX_DEGREE}, "
-                             f"got {self.direction_degree!r}")
-        for name in ("max_evaluations", "folds", "direction_degree"):  # plain ints: the digest is JSON
-            object.__setattr__(self, name, int(getattr(self, name)))
-        for name in switches:
-            object.__setattr__(self, name, bool(getattr(self, name)))
+    def config(self, command: str = "cohort") -> FitConfig:
+        """These options as the :class:`lungdeform.fit.config.FitConfig` of a job's fit."""
+        return FitConfig(command=command, **{f.name: getattr(self, f.name) for f in fields(self)})
 
 
 def job_folder(out: Path, job: Job) -> Path:
@@ -157,12 +141,8 @@ def fit_job(job: Job, out_dir, options: FitOptions = FitOptions(), *, progress: 
     with _partial_folder(job_folder(out_dir, job)) as tmp:
         metrics, error = None, None
         try:
-            metrics = run_fit(list(job.inputs), side=job.side, out=tmp, volumes=job.volumes_ml,
-                              landmarks=job.landmarks, grid=options.grid, stiffness=options.stiffness,
-                              baselines=options.baselines, max_evaluations=options.max_evaluations,
-                              command="cohort", progress=say, align=options.align,
-                              landmark_fit=options.landmark_fit, folds=options.folds,
-                              direction_degree=options.direction_degree, side_check=options.side_check)
+            inputs = FitInputs(job.inputs, job.side, job.volumes_ml, job.landmarks)
+            metrics = run_fit(inputs, tmp, options.config(), progress=say)
         except Exception as exc:  # isolate: any failure of this job becomes its result
             error = exc
         enter("write")

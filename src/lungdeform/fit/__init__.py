@@ -6,8 +6,11 @@ correspondence), :mod:`~lungdeform.fit.objective` (one lung's objective), :mod:`
 (c1…c9, stiffness and direction correction), :mod:`~lungdeform.fit.search` (optimiser and the paper's
 grid), :mod:`~lungdeform.fit.crossval` (landmark cross-validation), :mod:`~lungdeform.fit.expandability`
 (the fitted stiffness field), :mod:`~lungdeform.fit.direction_correction`, :mod:`~lungdeform.fit.baselines`
-(comparison methods), :mod:`~lungdeform.fit.pipeline` (inputs to a saved model and its metrics) and
-:mod:`~lungdeform.fit.report` (the HTML report).
+(comparison methods), :mod:`~lungdeform.fit.pipeline` (inputs to a saved model and its metrics, in
+steps: :mod:`~lungdeform.fit.config` what a fit is given, :mod:`~lungdeform.fit.inputs` reading and
+checking, :mod:`~lungdeform.fit.placement` the model mesh and the targets in its frame,
+:mod:`~lungdeform.fit.heldout` what landmarks give, held out, :mod:`~lungdeform.fit.scoring` every
+method measured) and :mod:`~lungdeform.fit.report` (the HTML report).
 
 May import: :mod:`lungdeform.data`, :mod:`lungdeform.io`, :mod:`lungdeform.breathing`,
 :mod:`lungdeform.model`, :mod:`lungdeform.interior`, :mod:`lungdeform.geometry` and the core modules;

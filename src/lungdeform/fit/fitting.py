@@ -201,13 +201,14 @@ def fit_lung(
     mode keeps the start's c3 as the gauge and takes c7…c9 from ``initial`` when given, else from
     the rays at the start). ``grid_span``: half-width around the start that the grid scans per
     constant (step 0.01). ``landmarks_rest`` / ``landmarks_targets`` / ``landmark_weight`` /
-    ``landmark_matrix``: optional landmark term of the objective (see :class:`lungdeform.fit.objective.LungFitter`); the landmark error of the result is
-    in-sample, use :func:`lungdeform.fit.crossval.cross_validate_landmarks` for a held-out figure.
+    ``landmark_matrix``: optional landmark term of the objective (see
+    :class:`lungdeform.fit.objective.LungFitter`); the landmark error of the result is in-sample, use
+    :func:`lungdeform.fit.crossval.cross_validate_landmarks` for a held-out figure.
     ``translate`` (least squares only): fit a translation of each target in ``fit_on`` jointly
     with the constants (:attr:`FitResult.translations`). ``direction_degree`` > 0: after the
     constants (and stiffness), fit a smooth correction of that polynomial degree to the directions
-    (:mod:`lungdeform.fit.direction_correction`), kept only if it lowers the objective. ``max_evaluations``: budget of forward
-    model evaluations (the least-squares mode counts those of its finite-difference Jacobians).
+    (:mod:`lungdeform.fit.direction_correction`), kept only if it lowers the objective.
+    ``max_evaluations``: budget of forward model evaluations (the least-squares mode counts those of its finite-difference Jacobians).
     Raises :class:`InputError` for bad input; a fit whose objective is not finite raises
     :class:`ConvergenceError`; a search that stops on its evaluation budget returns
     ``success=False`` with the reason in ``message``.
@@ -226,9 +227,33 @@ def fit_lung(
     start_c = table_constants(side) if initial is None else np.asarray(initial, float)
     if start_c.shape not in ((6,), (9,)) or not np.all(np.isfinite(start_c)):
         raise InputError(f"initial must be 6 or 9 finite constants (c1…c6 or c1…c9), got shape {start_c.shape}")
-    x0 = start_c[:6]
     history: list[float] = []
+    found = _search(fitter, side, method, start_c, history, translate=translate, max_evaluations=max_evaluations,
+                    grid_span=grid_span, say=say)
+    return _finish(fitter, side, found, method, history, t0, fit_stiffness=fit_stiffness,
+                   direction_degree=direction_degree, say=say)
 
+
+@dataclass(frozen=True, eq=False)
+class _Found:
+    """The best point of a search (:func:`_search`): c1…c6 ``x`` (clipped to the bounds), its
+    objective (mm), the least-squares mode's c7…c9 ``force`` and per-target ``shifts`` (else
+    None), and whether the search converged (``success``, ``message``)."""
+
+    x: np.ndarray
+    objective: float
+    force: np.ndarray | None
+    shifts: np.ndarray | None
+    success: bool
+    message: str
+
+
+def _search(fitter: LungFitter, side: str, method: str, start_c: np.ndarray, history: list, *, translate: bool,
+            max_evaluations: int, grid_span: float, say) -> _Found:
+    """Search c1…c6 from ``start_c`` with ``method`` (:mod:`lungdeform.fit.search`); ``history``
+    gets the best objective after each evaluation. Never returns a point worse than one evaluated."""
+
+    x0 = start_c[:6]
     lo, hi = DIRECTION_LO, DIRECTION_HI
     seen = {"x": None, "f": np.inf}  # the best point evaluated (Powell may return a worse last point)
     force, shifts = None, None
@@ -266,6 +291,15 @@ def fit_lung(
     best_x = np.clip(x, lo, hi)
     if force is None and seen["f"] < best:  # never return a point worse than one already evaluated
         best_x, best = seen["x"], seen["f"]
+    return _Found(best_x, best, force, shifts, success, message)
+
+
+def _finish(fitter: LungFitter, side: str, found: _Found, method: str, history: list, t0: float, *, fit_stiffness: bool,
+            direction_degree: int, say) -> FitResult:
+    """The :class:`FitResult` of the search's best point: the stiffness field (optional), the
+    direction correction (optional) and the inverse force of the final evaluation."""
+
+    best_x, best, force, shifts = found.x, found.objective, found.force, found.shifts
     log_e = None
     uniform_u, uniform_obj = None, float(best)
     if fit_stiffness:
@@ -292,7 +326,7 @@ def fit_lung(
         unit_ml=fitter.delta_ml, volume_ee_ml=fitter.v_ee, calibration_ml=fitter.delta_ml,
         directions=parts["directions"], force=parts["force"], inverse_force=f_inv,
         force_constants_inverse=c_inv, rays=parts["hits"], residuals=parts["residuals"],
-        objective_mm=obj, success=success, message=message, mode=method,
+        objective_mm=obj, success=found.success, message=found.message, mode=method,
         evaluations=fitter.evaluations, seconds=time.perf_counter() - t0, history=np.asarray(history),
         stiffness_fitted=log_e is not None, uniform_displacement=uniform_u,
         uniform_objective_mm=uniform_obj, surface_rms_mm=parts["surface_rms"],

@@ -3,7 +3,9 @@
 Owns: :mod:`~lungdeform.validate.paper` and :mod:`~lungdeform.validate.msd` (the transfer model against
 a mass–spring–damper run to rest, Figs. 7–9), :mod:`~lungdeform.validate.dirlab`,
 :mod:`~lungdeform.validate.dirlab_files` and :mod:`~lungdeform.validate.dirlab_experiment` (DIR-Lab 4-D
-CT landmarks: the models, finding the files, the experiment of ``lungdeform validate dirlab``).
+CT landmarks: the models, finding the files, the experiment of ``lungdeform validate dirlab``),
+:mod:`~lungdeform.validate.itk_pair` (the model fitted to the ITK right lung at two volumes and measured
+against baselines).
 
 May import: everything below it (:mod:`lungdeform.cohort`, :mod:`lungdeform.fit`, …); never the CLI.
 """

@@ -1,0 +1,108 @@
+"""What a fit's landmarks give, scored on held-out landmarks (step 5 of :func:`lungdeform.fit.pipeline.run_fit`).
+
+With landmarks and ``landmark_fit``: the interior landmark correction of the surface fit
+(:mod:`lungdeform.interior.field`), its landmark errors held out per fold; with
+``landmark_comparisons`` also the landmark-informed fits of c1…c9
+(:func:`lungdeform.fit.crossval.cross_validate_landmarks`, and again with a stiffness field). All
+share one sliding interpolation from the kept model vertices to the landmarks
+(:func:`lungdeform.fit.baselines.landmark_matrix`), which the metrics of every method use too.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from lungdeform.interior.field import (
+    correction_per_unit,
+    correction_solvers,
+    held_out_sliding,
+    select_correction_smoothing,
+)
+
+from . import baselines as B
+from .config import FitConfig
+from .crossval import LandmarkCV, cross_validate_landmarks
+from .fitting import FitResult
+from .placement import Placement
+
+
+@dataclass(frozen=True, eq=False)
+class HeldOut:
+    """The landmark step's results (:func:`held_out_landmarks`); every field None without landmarks.
+
+    Attributes
+    ----------
+    matrix : (m, k) operator or None
+        Sliding interpolation from the kept model vertices to the end-exhale landmarks.
+    cv, cv_stiffness : LandmarkCV or None
+        The landmark-informed fits (with ``landmark_comparisons``; the second with ``stiffness``).
+    interior : dict or None
+        The interior correction (with ``landmark_fit``): ``held_out`` (per target, (m, 3) float mm),
+        ``correction`` ((m, 3) float mm per unit) and ``smoothing`` (mm).
+    """
+
+    matrix: object = None
+    cv: LandmarkCV | None = None
+    cv_stiffness: LandmarkCV | None = None
+    interior: dict | None = None
+
+
+def held_out_landmarks(placed: Placement, landmarks, fit: FitResult, side: str, config: FitConfig, folds,
+                       progress: Callable[[str], None] | None = None) -> HeldOut:
+    """The landmark step for the surface ``fit`` of the model mesh in ``placed``: ``landmarks : (m, 3)``
+    mm are the end-exhale ones (None: no landmarks), ``folds`` their k-fold split
+    (:func:`lungdeform.interior.field.landmark_folds`; None without ``landmark_fit``)."""
+
+    if landmarks is None:
+        return HeldOut()
+    say = progress or (lambda _m: None)
+    # the sliding interpolation from the kept model vertices to the landmarks: one dense solve,
+    # shared by every landmark-informed fit (rows per fold) and by the metrics of every method
+    weights = B.landmark_matrix(placed.rest, landmarks, placed.keep)
+    if not config.landmark_fit:
+        return HeldOut(weights)
+    cv, cv_stiff = None, None
+    if config.landmark_comparisons:
+        say(f"landmark-informed fit ({config.folds}-fold cross-validation over {len(landmarks)} landmarks)")
+        cv = _landmark_fit(placed, landmarks, fit, side, config, folds, weights, stiffness=False, progress=say)
+        if config.stiffness:
+            say("landmark-informed fit with a stiffness field (cross-validated)")
+            cv_stiff = _landmark_fit(placed, landmarks, fit, side, config, folds, weights, stiffness=True, progress=say)
+    say("interior landmark correction (cross-validated)")
+    interior = interior_correction(fit, landmarks, placed.landmarks, placed.targets, folds, placed.keep, weights,
+                                   placed.rest)
+    return HeldOut(weights, cv, cv_stiff, interior)
+
+
+def _landmark_fit(placed: Placement, landmarks, fit: FitResult, side: str, config: FitConfig, folds, weights, *,
+                  stiffness: bool, progress) -> LandmarkCV:
+    """The cross-validated landmark-informed fit of c1…c9 (optionally with a stiffness field),
+    started from the surface ``fit``."""
+
+    targets = {ti: placed.landmarks[ti] for ti in range(len(placed.targets))}
+    return cross_validate_landmarks(placed.rest, side, placed.targets, landmarks, targets, folds=folds,
+                                    keep=placed.keep, initial=fit.constants, fit_stiffness=stiffness, mode=config.mode,
+                                    max_evaluations=max(100, config.max_evaluations * 2 // 3),
+                                    landmark_weight=config.landmark_weight, landmark_matrix=weights,
+                                    progress=progress)
+
+
+def interior_correction(fit, landmarks, aligned, targets, folds, keep, weights, rest) -> dict:
+    """The interior field's landmark correction for ``fit`` (:mod:`lungdeform.interior.field`): held-out
+    landmark positions per target (k-fold), and the correction and its smoothing from all landmarks.
+    The surface-driven part is the one the saved model plays back: the sliding interpolation from
+    its kept vertices (``LungModel.interior_vertices``), here as the metrics' operator ``weights``
+    (:func:`lungdeform.fit.baselines.landmark_matrix`, the same interpolant); the correction is the
+    sliding correction through the same kept vertices of ``rest``."""
+
+    unit = weights @ fit.displacement[keep]  # mm per unit
+    observed = [np.asarray(a) - landmarks for a in aligned]
+    scales = [(tg.volume_ml - fit.volume_ee_ml) / fit.unit_ml for tg in targets]
+    correction = correction_per_unit(observed, scales, unit)
+    solvers = correction_solvers(rest.vertices[keep], rest.vertex_normals[keep], landmarks)
+    return {"held_out": held_out_sliding(observed, scales, unit, folds, solvers),
+            "correction": correction,
+            "smoothing": select_correction_smoothing(solvers, np.arange(len(landmarks)), correction)}

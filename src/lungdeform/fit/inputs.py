@@ -1,0 +1,206 @@
+"""Reading and checking a fit's inputs (step 1 of :func:`lungdeform.fit.pipeline.run_fit`).
+
+:func:`read_inputs` reads every input (mesh file, mask image, or CT in HU, segmented with
+:func:`lungdeform.fit.segment.segment_lungs`) into a full-resolution surface; for images it notes
+the border faces the mask touches (crop faces, :func:`lungdeform.fit.align.crop_planes`) and checks
+that all images share one voxel spacing. It then checks that the inputs are one lung of the given
+side with volumes strictly increasing, and reads the landmarks (refused outside their image,
+reported when they lie outside their own lung mask).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from lungdeform.errors import InputError, ReadError
+from lungdeform.geometry.distance import point_to_surface
+from lungdeform.geometry.frame import check_side
+from lungdeform.geometry.mesh import Surface, winding_numbers
+from lungdeform.io import mask as M
+from lungdeform.io import meshfile as lio
+from lungdeform.io.image import Image, is_image_path, read_image
+from lungdeform.io.landmarks import read_elastix_points
+
+from .align import CropPlane, crop_planes
+from .config import FitInputs
+from .ct import archive_in, is_archive, read_ct
+from .segment import segment_lungs
+
+#: Landmarks more than this outside their own image's lung mask count as outside (mm).
+LANDMARK_OUTSIDE_MM = 3.0
+
+
+@dataclass(frozen=True, eq=False)
+class ReadInputs:
+    """Every input of one lung, read and checked (:func:`read_inputs`); lists in input order.
+
+    Attributes
+    ----------
+    surfaces : list of Surface
+        Full-resolution surfaces, mm, each in its own scan's frame.
+    planes : list of list of CropPlane
+        Each input's crop faces (image border faces its mask touches; none for a mesh).
+    images : list of Image or None
+        Each input's lung mask (None for a mesh file).
+    volumes_ml : list of float
+        Measured volumes, or the given ones (mL).
+    given_ml : list of float or None
+        The given volumes (mL), None when measured.
+    landmarks : list of (m, 3) float or None
+        Each input's landmarks, mm, in its own scan's frame.
+    warnings : list of str
+        Suspicious but usable input (landmarks outside their own lung mask).
+    """
+
+    surfaces: list[Surface]
+    planes: list[list[CropPlane]]
+    images: list[Image | None]
+    volumes_ml: list[float]
+    given_ml: list[float] | None
+    landmarks: list[np.ndarray] | None
+    warnings: list[str]
+
+
+def read_inputs(inputs: FitInputs, side_check: bool = True,
+                progress: Callable[[str], None] | None = None) -> ReadInputs:
+    """Read and check every input of ``inputs`` (module docstring); ``side_check``: refuse an input
+    whose shape says the other side (:func:`lungdeform.geometry.frame.check_side`)."""
+
+    say = progress or (lambda _m: None)
+    read, first_image = [], None  # every image is checked against the first one's spacing as soon as it is read
+    for p in inputs.paths:
+        say(f"reading {p}")
+        read.append(read_input(Path(p), inputs.side, progress=say, spacing_like=first_image))
+        if first_image is None and read[-1][2] is not None:
+            first_image = (p, read[-1][2])
+    surfaces, images = [r[0] for r in read], [r[3] for r in read]
+    check_sides(inputs.paths, surfaces, inputs.side if side_check else None)
+    given = None if inputs.volumes_ml is None else list(inputs.volumes_ml)
+    volumes = [s.volume_ml for s in surfaces] if given is None else list(given)
+    check_increasing(inputs.paths, volumes)
+    landmarks, warnings = None, []
+    if inputs.landmarks:
+        landmarks = read_landmark_files(inputs.landmarks, images)
+        for p, pts, image, surface in zip(inputs.landmarks, landmarks, images, surfaces):
+            check_landmarks(pts, image, p)
+            warnings += landmark_mask_warnings(pts, image, surface, p)
+    return ReadInputs(surfaces, [r[1] for r in read], images, volumes, given, landmarks, warnings)
+
+
+def read_input(path: Path, side: str, *, progress=None, spacing_like=None):
+    """``(dense Surface, crop planes, spacing or None, image or None)`` for one input path.
+
+    ``spacing_like``: ``(path, spacing (3,) mm)`` of an image read before; an image of another
+    spacing is refused as soon as it is read, before the (slow) segmentation and surface."""
+
+    path = Path(path)
+    if not path.exists():
+
+        raise ReadError(f"{path}: no such file or directory")
+
+    path = archive_in(path)  # a dataset folder holding one archive: that archive
+    if is_archive(path):  # a zipped or tarred DICOM series (or image): a CT
+        image = read_ct(path)
+    elif not is_image_path(path):
+        surface, _ = lio.load_surface(path, name=path.name)
+        return surface, [], None, None
+    else:
+        image = read_image(path)
+    if spacing_like is not None and not np.allclose(image.spacing, spacing_like[1], rtol=1e-3):
+
+        raise InputError(f"{path}: voxel spacing {np.asarray(image.spacing, float).tolist()} mm differs from "
+                         f"{spacing_like[0]} ({np.asarray(spacing_like[1], float).tolist()} mm); inconsistent spacing")
+    a = np.asarray(image.array)
+    if a.size and a.min() < -100:  # a CT in HU: segment the lungs first
+
+        seg = segment_lungs(image, progress=progress)
+        image = Image(getattr(seg, side).astype(np.uint8), image.spacing, image.origin, image.direction,
+                      f"{image.source} ({side} lung)")
+    else:  # a lobe label map holds both lungs: keep this side's lobes (binary masks pass unchanged)
+        image = M.side_mask(image, side)
+    surface = M.extract_surface(image, name=path.name).surface
+    return surface, crop_planes(image), np.asarray(image.spacing, float), image
+
+
+def check_sides(paths, surfaces, side: str | None) -> None:
+    """Refuse inputs that are not one lung: every centroid on the same side of the end-exhale lung
+    (within 0.75 of the widest lung's width along x, mm); with ``side``, each surface must be that
+    side's lung (its medial face, :func:`lungdeform.geometry.frame.check_side`)."""
+
+    widths = [np.ptp(s.vertices[:, 0]) for s in surfaces]
+    cx = [s.vertices[:, 0].mean() for s in surfaces]
+    for p, c in zip(paths[1:], cx[1:]):
+        if abs(c - cx[0]) > 0.75 * max(widths):
+            raise InputError(f"{p}: this lung lies {c - cx[0]:+.0f} mm from the end-exhale lung along x; "
+                             "the sides do not match (left and right lungs mixed)")
+    for p, s in zip(paths, surfaces) if side is not None else ():
+        check_side(s.vertices, s.faces, side, str(p))
+
+
+def check_increasing(paths, volumes_ml) -> None:
+    """Refuse volumes (mL, one per input path) that do not strictly increase."""
+
+    for i in range(1, len(volumes_ml)):
+        if not volumes_ml[i] > volumes_ml[i - 1]:
+            raise InputError(f"{paths[i]}: volume {volumes_ml[i]:.1f} mL is not larger than that of "
+                             f"{paths[i - 1]} ({volumes_ml[i - 1]:.1f} mL); volumes must increase (end-exhale first)")
+
+
+def read_landmark_files(paths, images) -> list[np.ndarray]:
+    """Each elastix point file in ``paths`` as ``(m, 3) float`` mm ('index' files are voxel indices
+    of the image of the same input, ``images``); every file must hold as many points as the first."""
+
+    lms = [read_elastix_points(p, *(() if im is None else (im.spacing, im.origin, im.direction)))
+           for p, im in zip(paths, images)]
+    for p, pts in zip(paths[1:], lms[1:]):
+        if pts.shape != lms[0].shape:
+            raise InputError(f"{p}: {len(pts)} landmarks, the end-exhale file has {len(lms[0])}")
+    return lms
+
+
+def landmark_mask_warnings(points, image, surface, path, limit: float = 0.05) -> list[str]:
+    """A warning when more than ``limit`` of the landmarks ``points : (m, 3)`` mm lie more than
+    :data:`LANDMARK_OUTSIDE_MM` outside the lung mask of their own ``image`` (files swapped, or in
+    another frame; on the ITK pair every landmark is inside its own mask, 8–12 % are not inside
+    the other's). Points off the mask are measured to the mask's ``surface`` (mm)."""
+
+    if image is None or len(points) == 0:
+        return []
+    mask = np.asarray(image.array) > 0
+    pts = np.asarray(points, float)
+    ijk = np.rint((pts - image.origin) @ np.asarray(image.direction) / image.spacing).astype(np.int64)
+    shape = np.array(mask.shape[::-1])
+    inside = np.all((ijk >= 0) & (ijk < shape), axis=1)
+    i, j, k = ijk[inside].T
+    on = np.zeros(len(pts), bool)
+    on[np.flatnonzero(inside)] = mask[k, j, i]
+    far = np.zeros(len(pts), bool)
+    off = np.flatnonzero(~on)
+    if len(off):  # off the mask's voxels: outside only if also outside its closed surface (holes count as in)
+        q = pts[off]
+        far[off] = ((winding_numbers(q, surface.vertices, surface.faces) < 0.5)
+                    & (point_to_surface(q, surface.vertices, surface.faces) > LANDMARK_OUTSIDE_MM))
+    if far.mean() <= limit:
+        return []
+    return [f"{path}: {int(far.sum())} of {len(far)} landmarks lie more than {LANDMARK_OUTSIDE_MM:g} mm outside "
+            f"the lung mask of {image.source} (first: row {int(np.flatnonzero(far)[0]) + 1}); are the landmark files "
+            f"in the inputs' order and frame?"]
+
+
+def check_landmarks(points, image, path, margin_mm: float = 0.0) -> None:
+    """Refuse landmarks outside the image's world bounding box (mm)."""
+
+    if image is None:
+        return
+    n = np.array(image.array.shape[::-1])
+    corners = np.array([[i, j, k] for i in (-0.5, n[0] - 0.5) for j in (-0.5, n[1] - 0.5) for k in (-0.5, n[2] - 0.5)])
+    w = image.index_to_world(corners)
+    lo, hi = w.min(axis=0) - margin_mm, w.max(axis=0) + margin_mm
+    bad = np.nonzero(np.any((points < lo) | (points > hi), axis=1))[0]
+    if len(bad):
+        raise InputError(f"{path}: {len(bad)} landmarks lie outside the image {image.source} "
+                         f"(first: row {bad[0] + 1}, {np.round(points[bad[0]], 2).tolist()} mm)")

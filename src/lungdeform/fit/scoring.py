@@ -1,0 +1,165 @@
+"""Every method's prediction of each target and its metrics (step 6 of :func:`lungdeform.fit.pipeline.run_fit`).
+
+The methods: the fitted model (with landmarks and ``landmark_fit``, the headline ``model`` is the
+surface fit with the interior landmark correction and ``model_surface_only`` the surface-driven
+field alone), its variants (paper directions, uniform stiffness, the paper's grid search, the
+landmark-informed fits) and the baselines and landmark-informed references
+(:mod:`lungdeform.fit.baselines`), all measured with the same metrics
+(:func:`lungdeform.fit.baselines.measure`), crop faces left out. :func:`protocols` says, per method,
+what it saw and how its landmark error was measured.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+from lungdeform.geometry.distance import SurfaceDistance
+
+from . import baselines as B
+from .config import FitConfig
+from .fitting import FitResult
+from .heldout import HeldOut
+from .objective import Target
+from .placement import Placement
+
+#: The baselines from the surfaces only, in the order they are reported.
+SURFACE_BASELINES = ("no_motion", "affine", "apex_scaling", "cpd")
+
+
+def protocols(fit: FitResult, held: HeldOut, config: FitConfig, grid: bool) -> dict[str, str]:
+    """Per method reported, what it saw and how its landmark error was measured (``metrics["protocols"]``);
+    ``fit`` is the surface fit, ``held`` the landmark step, ``grid``: a grid fit is reported."""
+
+    use_lm, folds = held.interior is not None, config.folds
+    corrected = fit.paper_displacement is not None
+    kind = ", ".join(["c1…c9"] + (["stiffness field"] if fit.stiffness_fitted else [])
+                     + ([f"direction correction of degree {config.direction_degree}"] if corrected else []))
+    out = {surface_name(held): f"surface fit ({kind}; no landmark used); landmarks moved by the sliding "
+                               "interpolation of its surface displacement"}
+    if use_lm:
+        out["model"] = (f"surface fit ({kind}; no landmark used) with the interior landmark correction "
+                        f"(lungdeform.interior.field): landmarks moved by the surface-driven sliding field "
+                        f"plus the sliding correction through the training landmarks' residual motion (it keeps the "
+                        f"surface's normal motion; smoothing chosen by inner cross-validation); "
+                        f"held-out landmark errors ({folds}-fold)")
+    if held.cv is not None:
+        out["model_landmark_fit"] = (f"landmark-informed fit: c1…c9 (paper directions) on the surfaces and the "
+                                     f"training landmarks, landmarks moved by the surface-driven field only; "
+                                     f"held-out landmark errors ({folds}-fold), surface from the fit on all "
+                                     f"landmarks")
+        if held.cv_stiffness is not None:
+            out["model_landmarks_stiffness"] = out["model_landmark_fit"] + ", with a fitted stiffness field"
+    if corrected:
+        out["model_paper_directions"] = (f"the same fit with the paper's directions (15)–(17), no direction "
+                                         f"correction{' (stiffness field kept)' if fit.stiffness_fitted else ''}; "
+                                         f"landmarks moved by the sliding interpolation of its surface")
+    if fit.uniform_displacement is not None:
+        out["model_uniform_stiffness"] = ("the paper's model: c1…c9 fitted to the surfaces, uniform stiffness, "
+                                          "the paper's directions; landmarks moved by the sliding "
+                                          "interpolation of its surface")
+    if grid:
+        out["model_grid"] = ("the paper's grid search of c1…c6 (uniform stiffness, paper directions); "
+                             "landmarks moved by the sliding interpolation of its surface")
+    if config.baselines:
+        for name in SURFACE_BASELINES:
+            out[name] = "baseline from the surfaces only; landmarks moved by the same sliding interpolation"
+        if use_lm:
+            out["affine_landmarks"] = ("reference: affine fitted on the surfaces and the training landmarks "
+                                       "(same weighting and folds as the model); held-out landmark errors")
+            out["landmarks_tps"] = ("reference without surfaces: thin-plate spline through the training "
+                                    "landmarks; held-out landmark errors; its surface is that spline applied "
+                                    "to the end-exhale surface")
+    return out
+
+
+def surface_name(held: HeldOut) -> str:
+    """The name of the surface-only fit's row: ``model`` unless the interior correction is the headline."""
+    return "model_surface_only" if held.interior is not None else "model"
+
+
+def model_methods(ti: int, target: Target, fits: dict, held: HeldOut, rest) -> dict:
+    """The fitted models' predictions of target ``ti``: name → ``(predicted vertices (n, 3) mm,
+    held-out landmark predictions (m, 3) mm or None)``; ``fits``: name → FitResult."""
+
+    fit = fits["optimizer"]
+    s = (target.volume_ml - fit.volume_ee_ml) / fit.unit_ml
+    methods = {}
+    if held.interior is not None:
+        methods["model"] = (fit.positions_at(rest, target.volume_ml), held.interior["held_out"][ti])
+    if held.cv is not None:
+        methods["model_landmark_fit"] = (held.cv.final.positions_at(rest, target.volume_ml), held.cv.predicted[ti])
+        if held.cv_stiffness is not None:
+            methods["model_landmarks_stiffness"] = (held.cv_stiffness.final.positions_at(rest, target.volume_ml),
+                                                    held.cv_stiffness.predicted[ti])
+    methods[surface_name(held)] = (fit.positions_at(rest, target.volume_ml), None)
+    if fit.paper_displacement is not None:
+        methods["model_paper_directions"] = (rest.vertices + s * fit.paper_displacement, None)
+    if fit.uniform_displacement is not None:
+        methods["model_uniform_stiffness"] = (rest.vertices + s * fit.uniform_displacement, None)
+    if "grid" in fits:
+        methods["model_grid"] = (fits["grid"].positions_at(rest, target.volume_ml), None)
+    return methods
+
+
+def baseline_methods(target: Target, placed: Placement, landmarks, landmarks_target, held: HeldOut, folds,
+                     landmark_weight: float, skipped: dict) -> dict:
+    """The baselines' predictions of ``target`` (and with the interior correction, the
+    landmark-informed references on the same ``folds``), as in :func:`model_methods`; a baseline
+    whose optional package is missing is left out, the reason in ``skipped``."""
+
+    rest, keep = placed.rest, placed.keep
+    methods = {"no_motion": (B.no_motion(rest), None),
+               "affine": (B.affine_fit(rest, target.surface, keep=keep, keep_target=target.keep)[0], None),
+               "apex_scaling": (B.apex_scaling(rest, target.volume_ml), None)}
+    try:
+        methods["cpd"] = (B.cpd_deformable(rest, target.surface, keep=keep, keep_target=target.keep), None)
+    except ImportError as exc:  # pycpd missing: reported, not fatal
+        skipped["cpd"] = str(exc)
+    if held.interior is not None:
+        methods["affine_landmarks"] = B.affine_landmarks_cv(rest, target.surface, landmarks, landmarks_target, folds,
+                                                            keep=keep, keep_target=target.keep,
+                                                            landmark_weight=landmark_weight)
+        methods["landmarks_tps"] = B.landmark_tps_cv(rest, landmarks, landmarks_target, folds)
+    return methods
+
+
+def score_targets(placed: Placement, landmarks, fits: dict, held: HeldOut, config: FitConfig, folds,
+                  progress: Callable[[str], None] | None = None):
+    """Every method measured on every target: ``(metrics per target name → method name → metrics
+    dict, predictions (target name, method name) → (vertices, per-vertex error, landmark errors),
+    skipped baselines name → reason)``. ``landmarks : (m, 3)`` mm: the end-exhale ones, or None."""
+
+    say = progress or (lambda _m: None)
+    rest, keep = placed.rest, placed.keep
+    per_target, predictions, skipped = {}, {}, {}
+    for ti, tg in enumerate(placed.targets):
+        td = SurfaceDistance(tg.surface.vertices, tg.surface.faces)
+        lmt = placed.landmarks[ti] if landmarks is not None else None
+        methods = model_methods(ti, tg, fits, held, rest)
+        if config.baselines:
+            say("baselines")
+            methods.update(baseline_methods(tg, placed, landmarks, lmt, held, folds, config.landmark_weight, skipped))
+        per = {}
+        for name, (x, held_out) in methods.items():
+            m, per_vertex, lm_err = B.measure(rest, x, tg.surface, keep=keep, keep_target=tg.keep,
+                                              landmarks=landmarks, landmarks_target=lmt, target_distance=td,
+                                              landmark_weights=held.matrix, landmarks_predicted=held_out)
+            per[name] = m.as_dict()
+            predictions[(tg.name, name)] = (x, per_vertex, lm_err)
+        per_target[tg.name] = per
+    return per_target, predictions, skipped
+
+
+def bounding_boxes(rest, fit, surfaces, vols):
+    """Bounding-box dimensions (mm) and volume / box-volume ratio against volume: observed surfaces
+    and the model's prediction over the same volume range (paper Fig. 4)."""
+    obs = [{"volume_ml": v, "dims_mm": np.ptp(s.vertices, axis=0).tolist(),
+            "ratio": v * 1000.0 / float(np.prod(np.ptp(s.vertices, axis=0)))} for s, v in zip(surfaces, vols)]
+    model = []
+    for v in np.linspace(vols[0], vols[-1], 6):
+        x = fit.positions_at(rest, v)
+        dims = np.ptp(x, axis=0)
+        model.append({"volume_ml": float(v), "dims_mm": dims.tolist(), "ratio": float(v * 1000.0 / np.prod(dims))})
+    return {"observed": obs, "model": model}
