@@ -30,9 +30,9 @@ from lungdeform.geometry.mesh import signed_volume
 from lungdeform.io.modelfile import save_model
 from lungdeform.model.displacement import scale_for_volume
 from lungdeform.model.lung import build_model
+from lungdeform.plot import save_png, snapshot
 
 from .export import export_pvd
-from .render import snapshot
 from .schedule import lung_shares, preset_trace
 
 DEFAULT_PRESET = "normal"
@@ -122,14 +122,14 @@ def run_demo(
     summary_path = write_json(out / "summary.json", summary)
     series_path = _write_series(out, model, trace, series_fps, say)
     peak = int(np.argmax(v_total))
-    layers = []
-    for name, lung in model.lungs.items():
-        layers.append((lung.surface, "#4a7ab5", 1.0))
-    for name, lung in model.lungs.items():
-        layers.append((lung.surface_at(scale=scales[name][peak]), "#d9534f", 0.35))
-    png = snapshot(out / "snapshot.png", layers, views=("anterior", "lateral-right"),
-                   title=f"end-exhale (blue) and end-inhale +{v_total[peak]:.0f} mL (red), "
-                         f"preset {chosen.name}, {orientation}")
+    # end-inhale first, end-exhale over it: the red rim is how far the surface moved out
+    inhale = [(lung.surface_at(scale=scales[name][peak]).vertices, lung.surface.faces)
+              for name, lung in model.lungs.items()]
+    exhale = [(lung.surface.vertices, lung.surface.faces) for lung in model.lungs.values()]
+    layers = [(inhale, "#d9534f", 1.0), (exhale, "#4a7ab5", 1.0)]
+    png = save_png(snapshot(layers, views=("anterior", "lateral-right"),
+                            title=f"end-exhale (blue) inside end-inhale +{v_total[peak]:.0f} mL (red rim), "
+                                  f"preset {chosen.name}, {orientation}"), out / "snapshot.png")
     return DemoResult(model_path, series_path, summary_path, png, summary)
 
 
