@@ -472,7 +472,7 @@ def run_fit(inputs, *, side: str, out: Path, volumes=None, landmarks=None, grid:
     save_model(out / "model.npz", model)
     write_json(out / "metrics.json", metrics, strict=True, default=_json)
     write_report(out / "report.html", rest=rest, targets=targets, fits=fits, predictions=predictions,
-                 metrics=metrics, headline=metrics["headline_fit"])
+                 metrics=metrics, headline=metrics["headline_fit"], keep=keep)
     return metrics
 
 

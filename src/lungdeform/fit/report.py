@@ -42,9 +42,14 @@ def _table(per: dict) -> str:
     return f"<table><tr><th>method</th>{head}</tr>{rows}</table>"
 
 
-def write_report(path, *, rest, targets, fits, predictions, metrics, headline: str = "optimizer") -> Path:
+def write_report(path, *, rest, targets, fits, predictions, metrics, headline: str = "optimizer",
+                 keep=None) -> Path:
     """Write the HTML report atomically; returns the path. ``headline``: the key of ``fits`` whose
-    model is the headline ``model`` (rays and direction field are drawn for it)."""
+    model is the headline ``model`` (rays and direction field are drawn for it). ``keep : (n,) bool``
+    the model vertices measured (False: near a crop face; grey in the error map, left out of the
+    distributions, as they are of the metrics); default all."""
+    measured = np.ones(rest.n_vertices, bool) if keep is None else np.asarray(keep, bool)
+    grey = "" if measured.all() else "; grey: near a crop face, not measured"
 
     parts = ["<!doctype html><html><head><meta charset='utf-8'><title>lungdeform fit report</title>",
              "<style>body{font-family:sans-serif;max-width:1100px;margin:auto}table{border-collapse:collapse}"
@@ -61,13 +66,14 @@ def write_report(path, *, rest, targets, fits, predictions, metrics, headline: s
             f"<li><b>{html.escape(k)}</b>: {html.escape(v)}</li>" for k, v in protocols.items()) + "</ul>")
     for tname, per in metrics["targets"].items():
         parts.append(f"<h2>Target {html.escape(tname)}</h2>{_table(per)}")
-        errs = {name: predictions[(tname, name)][1] for name in per}
-        name0 = "model"
-        x, e, _ = predictions[(tname, name0)]
-        parts.append(_img(_png(P.error_map(x, rest.faces, e, views=error_views(metrics["side"]),
-                                           title=f"model: distance of each vertex to {tname}")),
+        errs = {name: predictions[(tname, name)][1][measured] for name in per}
+        x, e, _ = predictions[(tname, "model")]
+        parts.append(_img(_png(P.error_map(x, rest.faces, np.where(measured, e, np.nan),
+                                           views=error_views(metrics["side"]),
+                                           title=f"model: distance of each vertex to {tname}{grey}")),
                           "Error colour map (model)"))
-        parts.append(_img(_png(P.cumulative_errors(errs, title=f"distance of each predicted vertex to {tname}")),
+        parts.append(_img(_png(P.cumulative_errors(errs, ylabel="fraction of measured vertices",
+                                                   title=f"distance of each predicted vertex to {tname}")),
                           "Error distributions (cumulative)"))
     fit = fits.get(headline, fits["optimizer"])
     parts.append(_img(_png(P.ray_histogram(*fit.rays.histogram())), "Ray hit distances (fitted directions)"))
