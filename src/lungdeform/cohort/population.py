@@ -32,7 +32,8 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from lungdeform.atomic import atomic_path, write_json, write_text
+from lungdeform import plot as P
+from lungdeform.atomic import write_json, write_text
 from lungdeform.constants import TABLE_I, table_constants
 from lungdeform.errors import InputError
 
@@ -247,39 +248,6 @@ def write_population(results: list[dict], out: Path, manifest_dir: Path,
 SIDE_COLOURS = {"left": "tab:blue", "right": "tab:orange"}
 
 
-def figure(rows: int, cols: int, size=(3.2, 2.6)):
-    """A matplotlib Figure on the Agg canvas (no pyplot state, safe in workers)."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    height = size[1] * rows
-    fig = Figure(figsize=(size[0] * cols, height))
-    # fixed margins in inches (constrained layout costs a second per figure): title, axis labels
-    fig.subplots_adjust(left=0.07, right=0.98, bottom=0.6 / height, top=1 - 0.75 / height, hspace=0.75, wspace=0.35)
-    FigureCanvasAgg(fig)
-    return fig, fig.subplots(rows, cols, squeeze=False)
-
-
-def save_png(fig, path: Path) -> str:
-    """Write ``fig`` as PNG to ``path`` atomically; return the path as a string."""
-
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=110)
-    return str(path)
-
-
-def _strip_box(ax, groups: list[np.ndarray], rng: np.random.Generator, colours: list[str]) -> None:
-    """Box (median, quartiles) and jittered points per group at x = 0, 1, …"""
-    for x, (vals, col) in enumerate(zip(groups, colours)):
-        vals = vals[np.isfinite(vals)]
-        if len(vals) == 0:
-            continue
-        if len(vals) > 1:
-            ax.boxplot([vals], positions=[x], widths=0.5, showfliers=False, manage_ticks=False,
-                       medianprops={"color": "black"})
-        ax.scatter(x + rng.uniform(-0.12, 0.12, len(vals)), vals, s=14, color=col, alpha=0.8, zorder=3)
-
-
 def population_plots(ok: Sequence[dict], folder: Path) -> dict[str, str]:
     """Per-constant distributions per side with Table I marked, constants against end-exhale
     volume, and the fit errors per side (PNG, atomically). ``ok``: validated ok records."""
@@ -287,45 +255,32 @@ def population_plots(ok: Sequence[dict], folder: Path) -> dict[str, str]:
     rows = [(r["side"], result_values(r)) for r in ok]
     sides = [s for s in SIDES if any(side == s for side, _ in rows)] or list(SIDES)
     col = [SIDE_COLOURS[s] for s in sides]
+
+    def groups(name: str) -> list[np.ndarray]:
+        return [np.array([v[name] for s, v in rows if s == side]) for side in sides]
+
     files = {}
-
-    fig, axes = figure(3, 3)
+    panels = []
     for k, name in enumerate(CONSTANTS):
-        ax = axes.flat[k]
-        groups = [np.array([v[name] for s, v in rows if s == side]) for side in sides]
-        _strip_box(ax, groups, rng, col)
-        for x, side in enumerate(sides):
-            ax.hlines(table_i(side)[k], x - 0.35, x + 0.35, colors="red", linewidth=2,
-                      label="Table I" if x == 0 else None, zorder=4)
-        ax.set_xticks(range(len(sides)), [f"{s}\n(n={len(g[np.isfinite(g)])})" for s, g in zip(sides, groups)])
-        ax.set_xlim(-0.6, len(sides) - 0.4)
-        ax.set_title(name)
-        if k == 0:
-            ax.legend(fontsize=7, loc="best")
-    fig.suptitle("Fitted constants per side (boxes: quartiles; red: Santhanam et al. Table I, c7…c9 normalised)")
-    files["plots/constants_by_side.png"] = save_png(fig, folder / "constants_by_side.png")
+        g = groups(name)
+        panels.append(P.StripPanel(name, g, [f"{s}\n(n={len(x[np.isfinite(x)])})" for s, x in zip(sides, g)],
+                                   reference=[table_i(side)[k] for side in sides]))
+    fig = P.strip_boxes(panels, col, rows=3, cols=3, rng=rng, reference_label="Table I",
+                        title="Fitted constants per side (boxes: quartiles; red: Santhanam et al. Table I, "
+                              "c7…c9 normalised)")
+    files["plots/constants_by_side.png"] = str(P.save_png(fig, folder / "constants_by_side.png"))
 
-    fig, axes = figure(3, 3)
-    for k, name in enumerate(CONSTANTS):
-        ax = axes.flat[k]
-        for side in sides:
-            pts = np.array([(v["volume_ee_ml"], v[name]) for s, v in rows if s == side]).reshape(-1, 2)
-            ax.scatter(pts[:, 0], pts[:, 1], s=14, color=SIDE_COLOURS[side], label=side)
-            ax.axhline(table_i(side)[k], color=SIDE_COLOURS[side], linestyle="--", linewidth=1)
-        ax.set_title(name)
-        ax.set_xlabel("end-exhale volume (mL)")
-        if k == 0 and rows:
-            ax.legend(fontsize=7)
-    fig.suptitle("Constants against end-exhale lung volume (dashed: Table I per side)")
-    files["plots/constants_vs_volume.png"] = save_png(fig, folder / "constants_vs_volume.png")
+    panels = [P.ScatterPanel(name, {side: np.array([(v["volume_ee_ml"], v[name]) for s, v in rows if s == side])
+                                    for side in sides},
+                             levels={side: table_i(side)[k] for side in sides}, xlabel="end-exhale volume (mL)",
+                             legend=k == 0)
+              for k, name in enumerate(CONSTANTS)]
+    fig = P.scatter_grid(panels, SIDE_COLOURS, rows=3, cols=3,
+                         title="Constants against end-exhale lung volume (dashed: Table I per side)")
+    files["plots/constants_vs_volume.png"] = str(P.save_png(fig, folder / "constants_vs_volume.png"))
 
-    fig, axes = figure(1, len(METRICS))
-    for k, name in enumerate(METRICS):
-        ax = axes.flat[k]
-        _strip_box(ax, [np.array([v[name] for s, v in rows if s == side]) for side in sides], rng, col)
-        ax.set_xticks(range(len(sides)), sides)
-        ax.set_xlim(-0.6, len(sides) - 0.4)
-        ax.set_title(name.replace("_mm", " (mm)"), fontsize=9)
-    fig.suptitle("Fit errors per side (largest-volume target)")
-    files["plots/fit_errors.png"] = save_png(fig, folder / "fit_errors.png")
+    panels = [P.StripPanel(name.replace("_mm", " (mm)"), groups(name), sides, title_size=9) for name in METRICS]
+    fig = P.strip_boxes(panels, col, rows=1, cols=len(METRICS), rng=rng,
+                        title="Fit errors per side (largest-volume target)")
+    files["plots/fit_errors.png"] = str(P.save_png(fig, folder / "fit_errors.png"))
     return files

@@ -26,6 +26,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from lungdeform import plot as P
 from lungdeform.atomic import finite_json, write_json, write_text
 from lungdeform.errors import LungdeformError
 from lungdeform.fit.search import GAUGE
@@ -34,7 +35,7 @@ from lungdeform.geometry.mesh import Surface, vertex_normals
 from lungdeform.io.modelfile import load_model
 
 from .job import finite_or_none
-from .population import CONSTANTS, METRICS, SIDE_COLOURS, SIDES, csv_text, describe, figure, save_png, split_results
+from .population import CONSTANTS, METRICS, SIDE_COLOURS, SIDES, csv_text, describe, split_results
 from .synthetic import read_truth
 
 #: The scale-free ratios compared besides c1…c9: name → (numerator, denominator) index.
@@ -260,36 +261,21 @@ def write_recovery(results: Sequence[dict], truth_path: Path, out: Path) -> tupl
 def recovery_plot(rec: dict, folder: Path) -> dict[str, str]:
     """Fitted against true value per constant and ratio (identity line), and the per-lung
     normal and tangential displacement error (PNG, atomically)."""
-    names = list(CONSTANTS) + list(RATIOS)
-    fig, axes = figure(3, 4)
     lungs = rec["lungs"]
-    for k, name in enumerate(names):
-        ax = axes.flat[k]
-        for side in SIDES:
-            pts = np.array([(lu["true_in_fit_gauge"][name], lu["fitted"][name]) for lu in lungs
-                            if lu["side"] == side]).reshape(-1, 2)
-            ax.scatter(pts[:, 0], pts[:, 1], s=14, color=SIDE_COLOURS[side], label=side)
-        vals = np.array([[lu["true_in_fit_gauge"][name], lu["fitted"][name]] for lu in lungs]).ravel()
-        vals = vals[np.isfinite(vals)]
-        if len(vals):
-            lo, hi = vals.min(), vals.max()
-            pad = 0.05 * (hi - lo) or 0.05 * abs(hi) or 0.05
-            ax.plot([lo - pad, hi + pad], [lo - pad, hi + pad], color="grey", linewidth=1)
-        ax.set_title(name)
-        ax.set_xlabel("true · fitted c3/true c3" if name in SCALE_CONSTANTS else "true", fontsize=8)
-        ax.set_ylabel("fitted")
-        if k == 0 and lungs:
-            ax.legend(fontsize=7)
-    ax = axes.flat[len(names)]
-    for side in SIDES:
-        pts = np.array([(lu["field"][-1].get("normal_rms_mm", np.nan), lu["field"][-1].get("tangential_rms_mm", np.nan))
-                        for lu in lungs if lu["side"] == side and lu["field"]]).reshape(-1, 2)
-        ax.scatter(pts[:, 0], pts[:, 1], s=14, color=SIDE_COLOURS[side])
-    ax.set_xlabel("normal RMS error (mm)")
-    ax.set_ylabel("tangential RMS error (mm)")
-    ax.set_title("displacement error, largest volume", fontsize=9)
-    fig.suptitle("Recovery of the synthetic truth (grey: fitted = true)")
-    return {"plots/recovery.png": save_png(fig, folder / "recovery.png")}
+    panels = [P.ScatterPanel(name, {side: np.array([(lu["true_in_fit_gauge"][name], lu["fitted"][name])
+                                                    for lu in lungs if lu["side"] == side]) for side in SIDES},
+                             identity=True, ylabel="fitted", xlabel_size=8, legend=k == 0,
+                             xlabel="true · fitted c3/true c3" if name in SCALE_CONSTANTS else "true")
+              for k, name in enumerate(list(CONSTANTS) + list(RATIOS))]
+    last = {side: [lu["field"][-1] for lu in lungs if lu["side"] == side and lu["field"]] for side in SIDES}
+    panels.append(P.ScatterPanel(
+        "displacement error, largest volume",
+        {side: np.array([(f.get("normal_rms_mm", np.nan), f.get("tangential_rms_mm", np.nan)) for f in fields])
+         for side, fields in last.items()},
+        xlabel="normal RMS error (mm)", ylabel="tangential RMS error (mm)", title_size=9))
+    fig = P.scatter_grid(panels, SIDE_COLOURS, rows=3, cols=4,
+                         title="Recovery of the synthetic truth (grey: fitted = true)")
+    return {"plots/recovery.png": str(P.save_png(fig, folder / "recovery.png"))}
 
 
 def add_recovery(summary: dict, results: list[dict], out: Path, manifest_dir: Path,

@@ -157,7 +157,7 @@ def write_outputs(out: Path, inputs: FitInputs, config: FitConfig, placed: Place
     save_model(out / "model.npz", model)
     write_json(out / "metrics.json", metrics, strict=True, default=_json)
     write_report(out / "report.html", rest=placed.rest, targets=placed.targets, fits=fits, predictions=predictions,
-                 metrics=metrics, headline=metrics["headline_fit"])
+                 metrics=metrics, headline=metrics["headline_fit"], keep=keep)
 
 
 def _json(o):

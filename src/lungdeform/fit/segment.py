@@ -35,7 +35,6 @@ in :mod:`lungdeform.fit.ct`.
 
 from __future__ import annotations
 
-import io as _io
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -44,9 +43,9 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage as ndi
 
-from lungdeform.atomic import write_bytes
 from lungdeform.errors import InputError, MaskError
 from lungdeform.io.image import Image
+from lungdeform.plot import label_overlay, save_png
 
 from .ct import axial_axes, check_ct, to_axial
 
@@ -490,13 +489,6 @@ def overlay_png(seg: LungSegmentation, path, n_axial: int = 3) -> Path:
     coronal slice; left lung blue, right lung red, removed airways yellow. Radiological display
     (patient right on the image's left, anterior up, head up). Written atomically."""
 
-    import matplotlib
-
-    matplotlib.use("Agg")
-    from matplotlib import pyplot as plt
-    from matplotlib.colors import ListedColormap
-
-
     perm = axial_axes(seg.image)  # draw in axial (z, y, x) order whatever the file's axis order
     axial = to_axial(seg.image, perm)
     ct = np.asarray(axial.array)
@@ -511,7 +503,6 @@ def overlay_png(seg: LungSegmentation, path, n_axial: int = 3) -> Path:
         raise MaskError(f"{seg.image.source}: empty lung masks, nothing to draw")
     picks = [int(zs[int(round(q * (len(zs) - 1)))]) for q in np.linspace(0.2, 0.8, n_axial)]
     ycen = int(round(np.nonzero(lung.any(axis=(0, 2)))[0].mean()))
-    cmap = ListedColormap([(0, 0, 0, 0), (0.1, 0.4, 1.0, 0.4), (1.0, 0.15, 0.1, 0.4), (1.0, 0.9, 0.0, 0.7)])
 
     def orient_axial(a):
         a = a[:, ::-1] if d[0, 0] < 0 else a  # patient right on the image's left
@@ -521,24 +512,9 @@ def overlay_png(seg: LungSegmentation, path, n_axial: int = 3) -> Path:
         a = a[:, ::-1] if d[0, 0] < 0 else a
         return a[::-1] if d[2, 2] > 0 else a  # head up
 
-    fig, axes = plt.subplots(1, n_axial + 1, figsize=(4.2 * (n_axial + 1), 4.6))
     views = [(orient_axial(ct[z]), orient_axial(lab[z]), sp[1] / sp[0], f"axial slice {z}") for z in picks]
     views.append((orient_coronal(ct[:, ycen]), orient_coronal(lab[:, ycen]), sp[2] / sp[0], f"coronal row {ycen}"))
-    for ax, (img, lb, aspect, title) in zip(axes, views):
-        ax.imshow(img, cmap="gray", vmin=-1000, vmax=400, aspect=aspect, interpolation="nearest")
-        ax.imshow(lb, cmap=cmap, vmin=0, vmax=3, aspect=aspect, interpolation="nearest")
-        ax.set_title(title, fontsize=9)
-        ax.set_xticks([])
-        ax.set_yticks([])
-        ax.text(0.02, 0.5, "R", color="w", transform=ax.transAxes, fontsize=10)
-        ax.text(0.95, 0.5, "L", color="w", transform=ax.transAxes, fontsize=10)
     v = seg.volumes_ml
-    fig.suptitle(f"{Path(seg.image.source).name}: left (blue) {v['left']:.0f} mL, right (red) {v['right']:.0f} mL, "
-                 f"airways removed (yellow) {v['airway']:.0f} mL", fontsize=10)
-    fig.tight_layout()
-    buf = _io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90)
-    plt.close(fig)
-    path = Path(path)
-    write_bytes(path, buf.getvalue())
-    return path
+    title = (f"{Path(seg.image.source).name}: left (blue) {v['left']:.0f} mL, right (red) {v['right']:.0f} mL, "
+             f"airways removed (yellow) {v['airway']:.0f} mL")
+    return save_png(label_overlay(views, title), path)

@@ -4,8 +4,8 @@ Owns: :mod:`~lungdeform.playback.schedule` (the volume over time an export plays
 simulated preset, a plain cycle), :mod:`~lungdeform.playback.export` (glTF 2.0 with morph targets,
 ParaView series), :mod:`~lungdeform.playback.markers` (markers carried in a glb),
 :mod:`~lungdeform.playback.trajectory` (where interior points go as the model breathes),
-:mod:`~lungdeform.playback.server` (the three.js viewer on 127.0.0.1), :mod:`~lungdeform.playback.render`
-(off-screen snapshots) and :mod:`~lungdeform.playback.demo` (the demo run).
+:mod:`~lungdeform.playback.server` (the three.js viewer on 127.0.0.1) and :mod:`~lungdeform.playback.demo`
+(the demo run; its off-screen snapshot is drawn by :mod:`lungdeform.plot`).
 
 May import: :mod:`lungdeform.data`, :mod:`lungdeform.io`, :mod:`lungdeform.breathing`,
 :mod:`lungdeform.model`, :mod:`lungdeform.interior`, :mod:`lungdeform.geometry` and the core modules;

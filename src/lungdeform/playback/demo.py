@@ -30,9 +30,9 @@ from lungdeform.data import default_lungs
 from lungdeform.io.modelfile import save_model
 from lungdeform.model.displacement import enclosed_volume_ml, volume_change_ml
 from lungdeform.model.lung import build_model
+from lungdeform.plot import save_png, snapshot
 
 from .export import export_pvd
-from .render import snapshot
 from .schedule import lung_shares, preset_trace
 from .trajectory import lung_scales
 
@@ -97,13 +97,16 @@ def _summary(chosen, params, trace, tidal: float, orientation, per_lung: dict) -
 
 
 def _snapshot(out: Path, model, scales: dict, v_total: np.ndarray, chosen, orientation) -> Path:
-    """End-exhale (blue) and the peak of the breath (red) from the front and the right."""
+    """End-inhale drawn first, end-exhale over it, from the front and the right: the red rim is how
+    far the surface moved out at the peak of the breath."""
     peak = int(np.argmax(v_total))
-    layers = [(lung.surface, "#4a7ab5", 1.0) for lung in model.lungs.values()]
-    layers += [(lung.surface_at(scale=scales[name][peak]), "#d9534f", 0.35) for name, lung in model.lungs.items()]
-    return snapshot(out / "snapshot.png", layers, views=("anterior", "lateral-right"),
-                    title=f"end-exhale (blue) and end-inhale +{v_total[peak]:.0f} mL (red), "
-                          f"preset {chosen.name}, {orientation}")
+    inhale = [(lung.surface_at(scale=scales[name][peak]).vertices, lung.surface.faces)
+              for name, lung in model.lungs.items()]
+    exhale = [(lung.surface.vertices, lung.surface.faces) for lung in model.lungs.values()]
+    layers = [(inhale, "#d9534f", 1.0), (exhale, "#4a7ab5", 1.0)]
+    return Path(save_png(snapshot(layers, views=("anterior", "lateral-right"),
+                                  title=f"end-exhale (blue) inside end-inhale +{v_total[peak]:.0f} mL (red rim), "
+                                        f"preset {chosen.name}, {orientation}"), out / "snapshot.png"))
 
 
 def run_demo(

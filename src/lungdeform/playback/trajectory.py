@@ -25,6 +25,7 @@ from lungdeform.geometry.mesh import as_vertices, winding_numbers
 from lungdeform.interior.field import KIND_TEXT
 from lungdeform.io.landmarks import read_elastix_points
 from lungdeform.model.displacement import positions_at, scales_for_volumes
+from lungdeform.plot import motion, save_png
 
 from .schedule import lung_shares
 
@@ -212,34 +213,9 @@ def write_trajectories(out: Path, points, labels, placement: PointPlacement, pos
                         "max_excursion_mm": summary["max_excursion_mm"][j]} for j in range(len(q))],
             **(meta or {})}
     paths["json"] = write_bytes(Path(out) / "points.json", json.dumps(info, indent=2).encode())
-    paths["png"] = _plot(Path(out) / "motion.png", disp, dv if t_s is None else np.asarray(t_s, float),
-                         "time (s)" if t_s is not None else "volume above end-exhale (mL)", labels)
+    x, xlabel = (dv, "volume above end-exhale (mL)") if t_s is None else (np.asarray(t_s, float), "time (s)")
+    paths["png"] = save_png(motion(disp, x, xlabel, labels, sort_x=t_s is None), Path(out) / "motion.png")
     return paths
-
-
-def _plot(path: Path, disp: np.ndarray, x: np.ndarray, xlabel: str, labels, max_points: int = 12) -> Path:
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(11, 3.4))
-    FigureCanvasAgg(fig)
-    axes = fig.subplots(1, 3, sharey=True)
-    order = np.argsort(x) if xlabel.startswith("volume") else np.arange(len(x))
-    for k, (ax, name) in enumerate(zip(axes, AXES)):
-        for j in range(min(disp.shape[1], max_points)):
-            ax.plot(x[order], disp[order, j, k], marker="." if len(x) < 20 else None, label=str(labels[j]))
-        ax.set_title(f"{name} displacement (LPS {'xyz'[k]})")
-        ax.set_xlabel(xlabel)
-        ax.grid(alpha=0.3)
-    axes[0].set_ylabel("mm")
-    if disp.shape[1] <= max_points:
-        axes[-1].legend(fontsize=7, loc="best")
-    else:
-        axes[-1].set_title(f"SI displacement (first {max_points} of {disp.shape[1]} points)")
-    fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110)
-    return write_bytes(path, buf.getvalue())
 
 
 def read_points(path) -> tuple[np.ndarray, list[str]]:

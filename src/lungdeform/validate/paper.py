@@ -45,7 +45,7 @@
    (node updates / number of graph nodes). "Converged" means the relative residual is at most
    ``tol`` (default 1e-6); the MSD must in addition be at rest (kinetic ≤ tol² · strain energy).
 
-Figure writers use matplotlib's Agg canvas directly (no pyplot state) and write atomically.
+Figure writers draw with :mod:`lungdeform.plot` and write atomically.
 """
 
 from __future__ import annotations
@@ -58,12 +58,12 @@ import numpy as np
 from scipy.spatial import Delaunay
 from scipy.stats import spearmanr
 
-from lungdeform.atomic import atomic_path
 from lungdeform.errors import InputError
 from lungdeform.geometry.mesh import unique_edges
 from lungdeform.model.graph import SpringGraph, spring_graph
 from lungdeform.model.solve import ForceSolver, push
 from lungdeform.model.transfer import local_transfer
+from lungdeform.plot import circular_figure, convergence_figure, planar_figure, save_png
 
 from .msd import MSDIntegrator, MSDResult, transfer_network
 
@@ -484,92 +484,22 @@ def convergence_experiment(nx: int = 41, ny: int = 41, spacing: float = 3.0, *, 
 # --------------------------------------------------------------------------- figures
 def write_planar_figure(result: PlanarResult, path) -> Path:
     """Fig. 8 as a PNG: (a) the planar mesh, (b) deformed by the transfer model, (c) MSD − transfer."""
-    fig, canvas = _figure((15, 4.8))
-    v, f, n = result.vertices, result.faces, len(result.vertices)
-    u = result.transfer_displacement[:n]
-    span = float(np.ptp(v[:, :2], axis=0).max())
-    exaggerate = 0.25 * span / max(float(np.abs(u).max()), 1e-300)
-    ax = fig.add_subplot(1, 3, 1, projection="3d")
-    ax.plot_trisurf(v[:, 0], v[:, 1], v[:, 2], triangles=f, color="0.85", edgecolor="0.4", linewidth=0.2)
-    ax.set_zlim(0, 0.3 * span)
-    ax.set_title("(a) regular planar mesh, uniform E")
-    ax = fig.add_subplot(1, 3, 2, projection="3d")
-    ax.plot_trisurf(v[:, 0], v[:, 1], exaggerate * u, triangles=f, cmap="viridis", edgecolor="0.3", linewidth=0.1)
-    ax.set_zlim(0, 0.3 * span)
-    ax.set_title(f"(b) deformed by the transfer model (×{exaggerate:.3g})")
-    for a in fig.axes:
-        a.set_xlabel("x (mm)")
-        a.set_ylabel("y (mm)")
-    ax = fig.add_subplot(1, 3, 3)
-    diff = 100.0 * (result.msd_displacement[:n] - u) / float(np.abs(result.msd_displacement[:n]).max())
-    im = ax.tripcolor(v[:, 0], v[:, 1], f, diff, shading="gouraud", cmap="coolwarm")
-    ax.set_aspect("equal")
-    ax.set_xlabel("x (mm)")
-    ax.set_ylabel("y (mm)")
-    ax.set_title(f"(c) MSD − transfer, % of max (RMS {result.rms_percent:.2g} %)")
-    fig.colorbar(im, ax=ax, shrink=0.8)
-    fig.subplots_adjust(left=0.02, right=0.97, wspace=0.15)
-    return _save(fig, canvas, path)
+    n = len(result.vertices)
+    return save_png(planar_figure(result.vertices, result.faces, result.transfer_displacement[:n],
+                                  result.msd_displacement[:n], result.rms_percent), path)
 
 
 def write_circular_figure(result: CircularResult, path) -> Path:
     """Fig. 9 as a PNG: (a) the disc mesh, node size ∝ E; (b) deformed (displacement exaggerated)."""
-    fig, canvas = _figure((12, 5.4))
-    v, f, e = result.vertices, result.faces, result.moduli
-    radius = float(np.linalg.norm(v[:, :2], axis=1).max())
-    exaggerate = 0.25 * radius / max(float(np.abs(result.radial_displacement).max()), 1e-300)
-    w = v + exaggerate * result.displacement
-    sizes = 4 + 60 * (e - e.min()) / max(float(np.ptp(e)), 1e-300)
-    lim = 1.3 * radius
-    for k, (pts, title) in enumerate([(v, "(a) 2-D circular mesh, node size ∝ E"),
-                                      (w, f"(b) deformed, unit radial force (×{exaggerate:.3g})")]):
-        ax = fig.add_subplot(1, 2, k + 1)
-        if k == 1:
-            ax.triplot(v[:, 0], v[:, 1], f, color="0.8", linewidth=0.4)
-        ax.triplot(pts[:, 0], pts[:, 1], f, color="0.35", linewidth=0.5)
-        sc = ax.scatter(pts[:, 0], pts[:, 1], s=sizes, c=np.log10(e), cmap="plasma", zorder=3)
-        ax.set_aspect("equal")
-        ax.set_xlim(-lim, lim)
-        ax.set_ylim(-lim, lim)
-        ax.set_xlabel("x (mm)")
-        ax.set_ylabel("y (mm)")
-        ax.set_title(title)
-    fig.subplots_adjust(left=0.06, right=0.86, bottom=0.14, top=0.93, wspace=0.25)
-    fig.colorbar(sc, cax=fig.add_axes((0.89, 0.2, 0.015, 0.65)), label="log10 E")
-    fig.text(0.06, 0.03, f"stiff/soft mean radial displacement ratio {result.stiff_to_soft_displacement_ratio:.3f}"
-             f" (position-controlled {result.position_controlled_ratio:.3f}); grey = original")
-    return _save(fig, canvas, path)
+    return save_png(circular_figure(result.vertices, result.faces, result.moduli, result.displacement,
+                                    result.radial_displacement, result.stiff_to_soft_displacement_ratio,
+                                    result.position_controlled_ratio), path)
 
 
 def write_convergence_figure(result: ConvergenceResult, path) -> Path:
     """Fig. 7 as a PNG: relative residual vs sweeps (node updates / N) for both methods, log scale."""
-    fig, canvas = _figure((8, 5.5))
-    ax = fig.add_subplot(1, 1, 1)
-    n = result.n_nodes
-    ax.semilogy(result.push_history_sweeps, np.maximum(result.push_history, 1e-300), label="push loop: max|Pitcher| / max|f|")
-    steps = np.arange(len(result.msd_residual_history))
-    ax.semilogy(steps, np.maximum(result.msd_residual_history, 1e-300), label="MSD: max|f − K u| / max|f|")
-    ax.semilogy(steps, np.maximum(result.msd_error_history, 1e-300), "--", label="MSD: max|u − C| / max|C|")
-    ax.axhline(result.tol, color="0.5", linewidth=0.8, linestyle=":")
-    ax.set_xlabel(f"sweeps (node updates / {n} graph nodes); 1 MSD step = 1 sweep")
-    ax.set_ylabel("relative residual")
-    ax.set_title(f"Convergence to {result.tol:g}: push {result.push_sweeps:.1f} sweeps "
-                 f"({result.push_iterations} pushes), MSD {result.msd_iterations} steps")
-    ax.legend()
-    ax.grid(True, which="both", alpha=0.3)
-    return _save(fig, canvas, path)
-
-
-def _figure(size):
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=size, dpi=100)
-    return fig, FigureCanvasAgg(fig)
-
-
-def _save(fig, canvas, path) -> Path:
-
-    with atomic_path(path, ".png") as tmp:
-        canvas.print_png(str(tmp))
-    return Path(path)
+    title = (f"Convergence to {result.tol:g}: push {result.push_sweeps:.1f} sweeps "
+             f"({result.push_iterations} pushes), MSD {result.msd_iterations} steps")
+    return save_png(convergence_figure(result.push_history_sweeps, result.push_history, result.msd_residual_history,
+                                       result.msd_error_history, tol=result.tol, n_nodes=result.n_nodes,
+                                       title=title), path)
