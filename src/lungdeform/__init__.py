@@ -1,7 +1,7 @@
 """lungdeform: real-time, physics-based 3-D breathing lung models (Santhanam et al. 2008).
 
-The method is described equation by equation in the project's METHOD notes; every module names the
-equations it implements. Heavy optional libraries are imported lazily where they are used.
+The method is described equation by equation in docs/METHOD_NOTES.md, the package's layers in docs/ARCHITECTURE.md;
+every module names the equations it implements. Heavy optional libraries are imported lazily where they are used.
 """
 
 from lungdeform._compat import install as _install_compat

@@ -48,7 +48,7 @@ MOVED: dict[str, str] = {
     "respiration_baselines": "breathing.baselines",
     # playback
     "export": "playback.export", "schedule": "playback.schedule", "markers": "playback.markers",
-    "server": "playback.server", "render": "playback.render", "demo": "playback.demo",
+    "server": "playback.server", "demo": "playback.demo",
     "trajectory": "playback.trajectory",
     # fit
     "ct": "fit.ct", "segment": "fit.segment", "align": "fit.align", "correspond": "fit.correspond",

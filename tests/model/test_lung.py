@@ -18,7 +18,7 @@ def model(left_lung):
 
 
 def test_volume_linear_over_tidal_range(model):
-    # Issue 2 item 4: across 500 mL, V(s) matches V_EE + s·ΔV within 1 % (end point exact).
+    # docs/METHOD_NOTES.md §7 (linear in volume): across 500 mL, V(s) matches V_EE + s·ΔV within 1 % (end point exact).
     v0 = model.volume_ee_ml
     for s in np.linspace(0, 500, 11):
         v = model.surface_at(scale=s).volume_ml

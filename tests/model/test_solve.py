@@ -31,7 +31,7 @@ def test_push_conserves_force_and_converges(system):
 
 @pytest.mark.parametrize("method", ["bicgstab", "gmres", "direct"])
 def test_sparse_solve_agrees_with_push(system, method):
-    # The requirement: sparse solve and push loop agree to ≤ 1e-6 relative.
+    # docs/METHOD_NOTES.md §4: sparse solve and push loop agree to ≤ 1e-6 relative.
     g, t, f = system
     ref = push(t, f, tol=1e-13).kept
     c = ForceSolver(t, method).solve(f)

@@ -29,7 +29,7 @@ Protocol (one trace):
    Plus the **per-cycle refit**: each held-out cycle fitted on its own (PV: the five a_k with the
    training mechanics; Lujan: n, φ, c0, b; Fourier K = 2: five coefficients). This is an in-sample
    fit of unseen cycles — a measure of expressiveness, not of prediction; ``fourier_rms_percent`` is
-   this figure (the issue's "per-cycle Fourier fit").
+   this figure (the "per-cycle Fourier fit" of ``lungdeform validate breathing``).
 
 The error is the RMS over all held-out samples as a percentage of the median per-cycle peak-to-peak
 of the held-out cycles (``of="cycle"``; the breath amplitude — smaller than the whole trace's range

@@ -23,7 +23,6 @@ def _write_json(path: Path, results: list[dict], kind: str) -> None:
 
 
 def _surfaces(vertices: list[int]):
-
     for n in vertices:
         if n < 100:
             raise InputError(f"--vertices must be at least 100, got {n}")

@@ -72,7 +72,6 @@ class Display:
                  else f"a local Dask cluster of {ev['workers']} worker{'s' if ev['workers'] != 1 else ''}")
         self._line(f"fitting {ev['to_run']} job{'s' if ev['to_run'] != 1 else ''} on {where}")
         if self.live:
-
             self.progress = Progress(TextColumn("{task.description:<15}"), BarColumn(), MofNCompleteColumn(),
                                      TimeElapsedColumn(), console=Console(stderr=True), redirect_stdout=False,
                                      redirect_stderr=False)
@@ -98,7 +97,6 @@ class Display:
 
     @staticmethod
     def _stages():
-
         return STAGES
 
     def stop(self) -> None:

@@ -48,7 +48,6 @@ def register(apps) -> None:
         check_cycles(cycles, preset)
         check_tidal_ml(tidal_ml)
         if preset is not None:
-
             chosen = get_preset(preset)  # an unknown name: InputError listing the names
         m = load_model(model)
         if curve is not None:

@@ -75,7 +75,6 @@ def make_app() -> typer.Typer:
                                      callback=_print_version),
         verbose: bool = typer.Option(False, "--verbose", "-v", help="Show progress even when stderr is not a terminal."),
     ):
-
         VERBOSE["on"] = True if verbose else None
 
     apps = Apps(root, validate, bench)

@@ -60,7 +60,6 @@ def register(apps) -> None:
             written.append(C.write_mask(seg.mask_image(side), out / f"{side}_lung.{fmt}"))
         written.append(S.overlay_png(seg, out / "overlay.png"))
         if meshes:
-
             for side, surf in meshes.items():
                 written.append(write_mesh(out / f"{side}_lung.stl", surf.vertices, surf.faces))
         elapsed = time.perf_counter() - t0

@@ -1,4 +1,4 @@
-"""``lungdeform synth-cohort``: a synthetic cohort with known truth (issue 6 item 3).
+"""``lungdeform synth-cohort``: a synthetic cohort with known truth.
 
 Writes lung surfaces deformed by the model itself from the shipped real lung shapes, a
 ``manifest.csv`` for ``lungdeform cohort`` and ``truth.json`` (see :mod:`lungdeform.cohort.synthetic`).
@@ -18,7 +18,6 @@ from .common import output_dir, say
 
 
 def _floats(text: str, option: str) -> list[float]:
-
     try:
         values = [float(v) for v in text.split(",") if v.strip()]
     except ValueError:

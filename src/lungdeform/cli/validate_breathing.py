@@ -8,7 +8,7 @@ driver, Lujan cos^{2n}, per-cycle Fourier) and writes ``OUT/metrics.json``::
                                 "fourier_rms_percent": …, …}},
      "median_model_rms_percent": …, …}
 
-Besides the issue's keys: the medians of every calibration variant (shared_shape with drift = the
+Besides those keys: the medians of every calibration variant (shared_shape with drift = the
 headline, shared_shape_no_drift, anchored, per_cycle_refit), the same error as a % of each held-out
 trace's whole range, the score on model-free "regular" held-out cycles, the white-noise floor, and a
 paired PV-vs-Lujan comparison (per trace; a comparison of two medians is not paired).

@@ -34,7 +34,6 @@ def register(apps) -> None:
             typer.echo(f"warning: serving on {host}, reachable from other machines", err=True)
         typer.echo(f"viewer for {model} at {server.url}  (Ctrl-C to stop)")
         if open_browser:
-
             webbrowser.open(server.url)
         try:
             server.serve_forever()

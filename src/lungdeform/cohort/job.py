@@ -225,7 +225,6 @@ def _one_line(exc: BaseException) -> str:
 
 
 def _json_default(o):
-
     if isinstance(o, Path):
         return str(o)
     return jsonable(o)

@@ -1,6 +1,6 @@
-"""Population statistics of fitted constants over a cohort (issue 6 item 2). For a synthetic cohort
-(a ``truth.json`` in the manifest folder) :func:`write_population` also writes the recovery of the
-known truth (item 3), :mod:`lungdeform.recovery`.
+"""Population statistics of fitted constants over a cohort: the constants' range across a
+population (paper Sec. IV-B.3). For a synthetic cohort (a ``truth.json`` in the manifest folder) the
+runner adds the recovery of the known truth (:func:`lungdeform.cohort.recovery.add_recovery`).
 
 Input: the per-job result records the cohort runner writes (``OUT/subjects/<subject>/<side>/result.json``,
 schema ``lungdeform.cohort.result`` version 1; see :func:`check_result`). Failed records are counted

@@ -1,6 +1,6 @@
-"""Recovery of the known truth by the fits of a synthetic cohort (issue 6 item 3): a ``truth.json``
+"""Recovery of the known truth by the fits of a synthetic cohort: a ``truth.json``
 from :mod:`lungdeform.cohort.synthetic` in the manifest folder, against the cohort runner's result records
-(:mod:`lungdeform.population` for their schema and the population statistics).
+(:mod:`lungdeform.cohort.population` for their schema and the population statistics).
 
 Readings chosen:
 

@@ -166,7 +166,6 @@ def run_cohort(manifest, out, *, scheduler: str | None = None, workers: int | No
         ordered = tuple(results[j.key] for j in m.jobs)
         pop = None
         if population and any(r["status"] == "ok" for r in ordered):
-
             emit({"event": "population", "ok": sum(r["status"] == "ok" for r in ordered)})
             pop = add_recovery(write_population(list(ordered), out, m.folder), list(ordered), out, m.folder)
             write_json(out / "cohort.json", summary(False, pop), default=_json_default)

@@ -1,4 +1,4 @@
-"""A synthetic cohort with known truth: lungs deformed by the model itself (issue 6 item 3).
+"""A synthetic cohort with known truth: lungs deformed by the model itself.
 
 Every subject is made from a real lung shape shipped with lungdeform (Coronacases 001 left and
 right, CC BY 4.0; the ITKElastix right lung, Apache-2.0), optionally varied by a random anisotropic
@@ -76,7 +76,6 @@ class SourceShape:
     attribution: str
 
     def load(self) -> Surface:
-
         if self.name == "itk_right_lung":
             return data.itk_right_lung()
         return data.default_lungs()[self.side]

@@ -21,7 +21,6 @@ FILES = {
 
 @lru_cache(maxsize=None)
 def _load(filename: str, name: str) -> Surface:
-
     with resources.as_file(resources.files(__name__).joinpath(filename)) as path:
         vertices, faces = read_mesh(path)
     v, f, _ = check_surface(vertices, faces, source=f"lungdeform/data/{filename}")

@@ -1,4 +1,4 @@
-"""Baselines the fitted model is compared with, and the shared metrics (issue 3, item 6).
+"""Baselines the fitted model is compared with, and the shared metrics (the rows of ``metrics.json``).
 
 Every method here, like the model, maps the end-exhale mesh vertices ``p (n, 3)`` mm to predicted
 vertices at the larger volume (same faces), all in the end-exhale scan's frame after the rigid

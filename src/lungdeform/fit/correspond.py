@@ -1,8 +1,8 @@
-"""Ray correspondence between end-exhale vertices and a larger-volume surface (METHOD §8).
+"""Ray correspondence between end-exhale vertices and a larger-volume surface (Sec. IV-B.1; docs/METHOD_NOTES.md §8).
 
 From each end-exhale vertex ``p_i`` a ray is cast along its displacement direction ``d_i`` and
 intersected with the target surface; the hit distance ``t_i`` (mm) is the observed displacement
-magnitude. The pitfall of METHOD §8 (rays running almost tangent to the surface or pointing inward
+magnitude. The pitfall of docs/METHOD_NOTES.md §8 (rays running almost tangent to the surface or pointing inward
 cross the lung and hit the far side) is handled explicitly:
 
 - the search is **bounded** (``max_distance`` mm); no hit within it is a *miss*;
@@ -118,7 +118,7 @@ class RayHits:
 
     def histogram(self, bins: int = 40) -> tuple[np.ndarray, np.ndarray]:
         """``(counts (bins,), edges (bins + 1,) mm)`` of the valid signed hit distances, over
-        ``[-max_distance, max_distance]``; look at it before trusting a fit (METHOD §8)."""
+        ``[-max_distance, max_distance]``; look at it before trusting a fit (docs/METHOD_NOTES.md §8)."""
         lim = self.max_distance if np.isfinite(self.max_distance) else max(
             1.0, float(np.nanmax(np.abs(self.distance), initial=1.0)))
         return np.histogram(self.distance[self.valid], bins=bins, range=(-lim, lim))

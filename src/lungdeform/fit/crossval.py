@@ -1,4 +1,4 @@
-"""Held-out landmark errors of the landmark-informed fit: the k-fold protocol (METHOD §8).
+"""Held-out landmark errors of the landmark-informed fit: the k-fold protocol (docs/FITTING.md).
 
 Surfaces constrain the constants only through the shape they predict, so a fit may add
 corresponding interior landmarks to its objective (moved by the sliding interpolation of the

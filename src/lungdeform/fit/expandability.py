@@ -50,7 +50,7 @@ def fit_stiffness_field(fitter: LungFitter, c_dir, *, iterations: int = 20, smoo
     :mod:`lungdeform.fit.direction_correction`) — (ray hits of kept vertices, smoothed by
     ``target_smoothing`` normalised-convolution steps, misses filled by neighbours).
 
-    Softer nodes keep and attract more force (METHOD §3), so ``log E`` is updated by the damped
+    Softer nodes keep and attract more force ((8)–(9), docs/METHOD_NOTES.md §3), so ``log E`` is updated by the damped
     log-ratio of the predicted to the observed magnitude, then smoothed (``smoothing`` umbrella
     steps) and bounded to ``|log E| ≤ log_range``, for ``iterations`` fixed-point steps. The
     smoothing and the bound are the regularisation: without them (2 steps, ±4) the field was rough,

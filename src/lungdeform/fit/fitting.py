@@ -1,4 +1,4 @@
-"""Fitting the model's constants to surfaces at two or more lung volumes (paper Sec. IV-B; METHOD §8).
+"""Fitting the model's constants to surfaces at two or more lung volumes (paper Sec. IV-B; docs/FITTING.md).
 
 :func:`fit_lung` searches the constants c1…c9 of one lung that minimise the fit objective of
 :class:`lungdeform.fit.objective.LungFitter`: the area-weighted RMS forward symmetric surface distance

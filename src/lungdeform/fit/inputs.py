@@ -99,7 +99,6 @@ def read_input(path: Path, side: str, *, progress=None, spacing_like=None):
 
     path = Path(path)
     if not path.exists():
-
         raise ReadError(f"{path}: no such file or directory")
 
     path = archive_in(path)  # a dataset folder holding one archive: that archive
@@ -111,7 +110,6 @@ def read_input(path: Path, side: str, *, progress=None, spacing_like=None):
     else:
         image = read_image(path)
     if spacing_like is not None and not np.allclose(image.spacing, spacing_like[1], rtol=1e-3):
-
         raise InputError(f"{path}: voxel spacing {np.asarray(image.spacing, float).tolist()} mm differs from "
                          f"{spacing_like[0]} ({np.asarray(spacing_like[1], float).tolist()} mm); inconsistent spacing")
     a = np.asarray(image.array)

@@ -1,5 +1,5 @@
 """The fit's objective for one lung: candidate constants judged against the observed surfaces
-(paper Sec. IV-B; METHOD §8). :class:`LungFitter` precomputes once per end-exhale surface and
+(paper Sec. IV-B; docs/METHOD_NOTES.md §8). :class:`LungFitter` precomputes once per end-exhale surface and
 evaluates many candidates; :func:`lungdeform.fit.fitting.fit_lung` searches over them.
 
 The model keeps the paper's form: per vertex ``u_i = k·F_i·d_i`` with ``d_i`` from c1…c6 (15)–(17),
@@ -14,7 +14,7 @@ Pipeline for one candidate c1…c6 (:meth:`LungFitter.evaluate`):
    (:func:`lungdeform.fit.correspond.correspond`: bounded, both directions, grazing rejected, misses
    explicit) → observed magnitudes ``t`` (mm);
 3. observed force ``F_obs ∝ t``; **inverse force** ``f = (I − Qᵀ)(F_obs / T_e[i→i])`` (one sparse
-   product; spring nodes take the mean of their two mass nodes' F, METHOD §4);
+   product; spring nodes take the mean of their two mass nodes' F, docs/METHOD_NOTES.md §4);
 4. c7…c9 by weighted linear least squares (weights: vertex area; misses 0; one robust pass drops
    rays more than 3 robust standard deviations, at least 1 mm, from the first fit). Reading chosen: the fit is done on the forward side,
    ``F_obs ≈ c7·F_x + c8·F_y + c9·F_z`` (``F_x`` = precomputed response to the field x̂, …), which
@@ -129,7 +129,7 @@ class Evaluation:
 
 # --------------------------------------------------------------------------- free functions
 def inverse_force(transfer, kept_mass: np.ndarray, spring_ends: np.ndarray) -> np.ndarray:
-    """Applied force on all graph nodes from the kept force on mass nodes (METHOD §8).
+    """Applied force on all graph nodes from the kept force on mass nodes (paper Sec. IV-B.3; docs/METHOD_NOTES.md §8).
 
     ``f = (I − Qᵀ)(F / T_e[i→i])`` with spring-node F the mean of its two mass nodes.
     ``kept_mass : (n,) float``; ``spring_ends : (e, 2) int``; returns ``f : (n + e,) float``.

@@ -161,7 +161,6 @@ def write_outputs(out: Path, inputs: FitInputs, config: FitConfig, placed: Place
 
 
 def _json(o):
-
     try:
         return jsonable(o)
     except TypeError:

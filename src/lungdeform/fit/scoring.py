@@ -40,7 +40,7 @@ def protocols(fit: FitResult, held: HeldOut, config: FitConfig, grid: bool) -> d
                                "interpolation of its surface displacement"}
     if use_lm:
         out["model"] = (f"surface fit ({kind}; no landmark used) with the interior landmark correction "
-                        f"(lungdeform.interior.field): landmarks moved by the surface-driven sliding field "
+                        f"(lungdeform.interior): landmarks moved by the surface-driven sliding field "
                         f"plus the sliding correction through the training landmarks' residual motion (it keeps the "
                         f"surface's normal motion; smoothing chosen by inner cross-validation); "
                         f"held-out landmark errors ({folds}-fold)")

@@ -1,4 +1,4 @@
-"""Search strategies over the model's constants for :func:`lungdeform.fit.fitting.fit_lung` (METHOD §8).
+"""Search strategies over the model's constants for :func:`lungdeform.fit.fitting.fit_lung` (docs/FITTING.md).
 
 ``least_squares`` (the default optimiser): a trust-region least-squares solver
 (``scipy.optimize.least_squares``, finite differences) on the per-point residual vector of

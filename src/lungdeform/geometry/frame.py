@@ -1,4 +1,4 @@
-"""The per-lung frame of the paper (Sec. IV-B.1; METHOD §1).
+"""The per-lung frame of the paper (Sec. IV-B.1; docs/METHOD_NOTES.md §1).
 
 Axes, as unit vectors in LPS (x → patient left, y → posterior, z → head):
 

@@ -1,6 +1,6 @@
 """Interior motion: where points inside a lung (a tumour, a fiducial, landmarks) go at any volume.
 
-The model moves surface vertices, ``x = p + s·u`` (METHOD §7). A point ``q`` inside the lung moves
+The model moves surface vertices, ``x = p + s·u`` (docs/METHOD_NOTES.md §7). A point ``q`` inside the lung moves
 by the same law, ``q + s·v(q)``, with ``v : R³ → R³`` (mm per unit ``s``) built from two parts:
 
 1. **surface-driven**: the sliding interpolation of the surface's displacement per unit

@@ -286,7 +286,6 @@ def checked_operator(matrix, shape: tuple[int, int], name: str = "landmark_matri
 
 
 def _check_anchors(anchors, values=None):
-
     q = as_vertices(anchors, "anchors")
     if len(q) < 1 or not np.all(np.isfinite(q)):
         raise InputError(f"anchors must be finite (a, 3) mm with a >= 1, got {q.shape}")

@@ -70,7 +70,6 @@ def side_mask(image: Image, side: str) -> Image:
         raise MaskError(f"{image.source}: lobe labels {sorted(int(v) for v in values)}: none of the {side} lobes "
                         f"{list(LOBE_LABELS[side])}")
     if other.any():
-
         cw = image.index_to_world(np.array([ndimage.center_of_mass(want)[::-1]]))[0]
         co = image.index_to_world(np.array([ndimage.center_of_mass(other)[::-1]]))[0]
         if (cw[0] - co[0]) * (1 if side == "left" else -1) <= 0:

@@ -376,7 +376,6 @@ def _write_off(v: np.ndarray, f: np.ndarray) -> bytes:
 
 # =========================================================================== PLY
 def _read_ply(p: Path):
-
     with open(p, "rb") as fh:
         if fh.read(3) != b"ply":
             raise FormatError("not a PLY file (no 'ply' magic)")
@@ -401,7 +400,6 @@ def _write_ply(v: np.ndarray, f: np.ndarray) -> bytes:
 
 # =========================================================================== glTF / GLB
 def _read_gltf(p: Path):
-
     suffix = p.suffix.lower()
     if suffix == ".glb":
         with open(p, "rb") as fh:

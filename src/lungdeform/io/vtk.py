@@ -208,8 +208,6 @@ def _split_classic_cells(flat: np.ndarray, n_cells: int) -> tuple[np.ndarray, np
 
 
 def _read_unstructured(p: Path):
-
-
     sink = _io.StringIO()
     with contextlib.redirect_stdout(sink), contextlib.redirect_stderr(sink):
         m = meshio.vtk.read(str(p))  # the format reader itself: meshio.read() calls sys.exit
@@ -371,7 +369,6 @@ def _decode_binary(blob: bytes, dtype: np.dtype, ctx, *, base64_encoded: bool) -
     if comp == "vtkZLibDataCompressor":
         decompress = zlib.decompress
     elif comp == "vtkLZMADataCompressor":
-
         decompress = lzma.decompress
     else:
         raise FormatError(f"unsupported compressor {comp} (zlib and lzma are supported)")

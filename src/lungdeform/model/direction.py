@@ -1,4 +1,4 @@
-"""Displacement directions (15)–(17) (METHOD §6).
+"""Displacement directions (15)–(17) (paper Sec. IV-B.1; docs/METHOD_NOTES.md §6).
 
 ``d_i = (c1·x̂_i^c2, c3·ŷ_i^c4, c5·ẑ_i^c6)`` in the lung frame, mapped to LPS with the lung's
 axes and normalised. The direction of each node is constant over the breathing cycle. Normalised

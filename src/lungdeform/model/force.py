@@ -1,4 +1,4 @@
-"""The applied force (18) and its four-field orientation basis (METHOD §5).
+"""The applied force (18) and its four-field orientation basis (docs/METHOD_NOTES.md §5).
 
 Equation (18): ``f_i = c7·x̂_i + c8·ŷ_i + c9·ẑ_i`` (Table I, supine: c8 dominates, gravity acts along
 the anterior–posterior axis). Reading chosen for other orientations: the c8 term is the normalised

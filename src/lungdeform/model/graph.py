@@ -1,4 +1,4 @@
-"""The spring-node graph of the model (paper Sec. III-E; METHOD §2).
+"""The spring-node graph of the model (paper Sec. III-E; docs/METHOD_NOTES.md §2).
 
 Mass node = mesh vertex. Spring node = one per mesh edge, at the edge midpoint. Graph links join
 each spring node to its two mass nodes; mass nodes meet only through spring nodes.

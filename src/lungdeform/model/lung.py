@@ -1,4 +1,4 @@
-"""A lung model: everything playback needs, precomputed once (METHOD §2–7).
+"""A lung model: everything playback needs, precomputed once (docs/METHOD_NOTES.md §2–7).
 
 :func:`build_lung` runs the pipeline on one closed surface:
 
@@ -101,7 +101,6 @@ class LungModel:
     interior_kind: str = "sliding"
 
     def __post_init__(self):
-
         if self.interior_kind not in KINDS:
             raise InputError(f"interior_kind must be one of {', '.join(KINDS)}, got {self.interior_kind!r}")
         iv = self.interior_vertices

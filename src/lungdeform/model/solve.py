@@ -1,6 +1,6 @@
 """Force distribution: the Pitcher/Catcher push iteration (12)–(14) and its sparse fixed point.
 
-Push iteration (paper Sec. III-G; METHOD §4). Pitcher ``P`` (force still to hand on) starts at the
+Push iteration (paper Sec. III-G; docs/METHOD_NOTES.md §4). Pitcher ``P`` (force still to hand on) starts at the
 applied force on mass nodes and 0 on spring nodes; Catcher ``C`` (force kept) starts at 0. Repeat:
 take the node ``i`` with the largest ``|P|``; ``C[i] += P[i]·T_e[i→i]``; ``P[j] += P[i]·T_e[i→j]``
 for each neighbour; ``P[i] = 0``; stop when ``max |P| ≤ tol · max |f|``. Invariant:

@@ -1,4 +1,4 @@
-"""Stiffness (Young's modulus) fields over the mass nodes (METHOD §2).
+"""Stiffness (Young's modulus) fields over the mass nodes (paper Sec. III-E; docs/METHOD_NOTES.md §2).
 
 The model only uses ratios of moduli, so units are relative (1 = the reference tissue). Every field
 here returns ``E : (n,) float`` per mass node (mesh vertex), strictly positive. Spring nodes take

@@ -1,6 +1,6 @@
 """Force transfer between graph nodes: the local estimate (8)–(9) and the Green's matrix (7), (10)–(11).
 
-Reading chosen (METHOD §3): ``S_i = 1/E_i`` for a mass node and ``S_i = E_i`` for a spring node;
+Reading chosen (docs/METHOD_NOTES.md §3): ``S_i = 1/E_i`` for a mass node and ``S_i = E_i`` for a spring node;
 ``clique(j)`` is j's graph neighbours plus j itself; ``d(l, j) = max(|x_l − x_j|, d_min)`` with
 ``d_min = 1`` mm, and the self distance is ``d_min``. Then
 
@@ -77,7 +77,7 @@ def split_transfer(t: sparse.csr_matrix) -> tuple[np.ndarray, sparse.csr_matrix]
 def green_matrix(t: sparse.csr_matrix) -> np.ndarray:
     """Dense Green's matrix ``G : (N, N)``, ``G[i, j]`` = force kept at i for a unit force at j.
 
-    The fixed point of the push iteration (METHOD §4): ``C = diag(keep) (I − Qᵀ)⁻¹ f``, so
+    The fixed point of the push iteration (12)–(14) (docs/METHOD_NOTES.md §4): ``C = diag(keep) (I − Qᵀ)⁻¹ f``, so
     ``G = diag(keep) (I − Qᵀ)⁻¹``. Column sums are 1 (force is conserved). Small graphs only.
     """
     n = t.shape[0]

@@ -95,7 +95,7 @@ GLB_SCHEMA = "lungdeform.glb"
 #: 2: markers carry ``tidal_mm`` (interior field) instead of anchor vertices and weights.
 GLB_SCHEMA_VERSION = 2
 MARKER_MOTION = ("a marker of lung L at morph weight λ of L's target 0 ('tidal') is at position_mm + λ·tidal_mm "
-                 "(mm, LPS; interior field of lungdeform.interior.field); re-oriented playback (targets 1-4) has "
+                 "(mm, LPS; interior field of lungdeform.interior); re-oriented playback (targets 1-4) has "
                  "no exact marker motion")
 TARGET_NAMES = ("tidal", "basis_1", "basis_x", "basis_y", "basis_z")
 #: Root-node rotation (x, y, z, w) taking LPS to glTF: (x, y, z) → (x, z, −y); a −90° turn about x.

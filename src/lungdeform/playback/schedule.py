@@ -12,7 +12,7 @@ its minimum lies above its own peak-to-peak range (an absolute volume), when the
 subtracted (reported in :attr:`VolumeTrace.shifted_ml`). Without a curve: :func:`plain_cycle`.
 A simulated :class:`lungdeform.breathing.pv.BreathingCurve` (a preset, a fit) becomes a trace through
 :meth:`VolumeTrace.from_breathing`; :func:`preset_trace` simulates a preset of
-:mod:`lungdeform.presets` on an exact frame grid and does both (``export --preset``, ``demo``, the
+:mod:`lungdeform.breathing.presets` on an exact frame grid and does both (``export --preset``, ``demo``, the
 viewer server's ``/presets.json``).
 """
 
@@ -61,7 +61,7 @@ class VolumeTrace:
         t = np.asarray(curve.t_s, float)
         v_ee = float(curve.v_ee_ml)
         if source is None:
-            source = str(curve.meta.get("source", "breathing curve (lungdeform.breathing.pv)"))
+            source = str(curve.meta.get("source", "breathing curve (lungdeform.breathing)"))
         return cls(t - t[0], np.asarray(curve.volume_ml, float) - v_ee, source, v_ee)
 
 
@@ -128,7 +128,7 @@ def preset_trace(preset, cycles: int = 1, tidal_ml: float | None = None, rate_hz
                               f"{curve.t_s[-1]} s, expected {n + 1} ending at {duration} s")
     rescaled = "" if tidal_ml is None else f", rescaled to {float(tidal_ml):g} mL"
     trace = VolumeTrace.from_breathing(
-        curve, f"lungdeform.breathing.presets:{preset.name} ({preset.description}{rescaled}), PV model simulated "
+        curve, f"lungdeform.presets:{preset.name} ({preset.description}{rescaled}), PV model simulated "
                f"over {duration:g} s")
     return params, curve, trace
 

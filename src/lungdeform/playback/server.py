@@ -5,7 +5,7 @@ What it serves, and nothing else:
 - the built viewer bundle shipped in ``lungdeform/data/viewer`` (``/``, ``/index.html`` and the
   files directly under ``/assets/``), read once at start;
 - the model it was given, as ``/model.glb``;
-- ``/presets.json``: the breathing presets of :mod:`lungdeform.presets`, simulated once by the PV
+- ``/presets.json``: the breathing presets of :mod:`lungdeform.breathing.presets`, simulated once by the PV
   model (:func:`lungdeform.breathing.pv.simulate`) at start: per preset its name, description, period,
   tidal volume, sources and one cycle of the normalised curve ``s(t) = (V(t) − V_EE)/ΔV``
   (:func:`presets_payload`). The viewer's preset menu is built from it.
@@ -249,7 +249,7 @@ PRESETS_SCHEMA_VERSION = 1
 
 
 def presets_payload(rate_hz: float = PRESET_RATE_HZ) -> dict:
-    """What ``/presets.json`` holds: every preset of :mod:`lungdeform.presets`, one cycle each.
+    """What ``/presets.json`` holds: every preset of :mod:`lungdeform.breathing.presets`, one cycle each.
 
     Per preset: ``name``, ``description``, ``period_s``, ``rate_bpm``, ``tidal_volume_ml`` (the
     preset's target), ``curve_tidal_ml`` and ``end_exhale_ml`` (peak-to-peak and minimum of the

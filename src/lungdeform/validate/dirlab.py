@@ -11,7 +11,7 @@ from these files; the richer models below describe the shape of the exhale path 
 Frames: landmark positions are mm in the image's index-aligned frame,
 ``mm = (index - 1) * spacing`` (see :mod:`lungdeform.io.landmarks`); arrays are ``(n, 3) float``.
 
-Hypotheses of the paper tested here (METHOD §6–§7):
+Hypotheses of the paper tested here (Sec. IV-B; docs/METHOD_NOTES.md §6–§7):
 
 - *direction constant*: each point moves along one fixed direction ``d_i`` through the cycle;
 - *magnitude linear in volume*: the displacement is ``s · u_i`` with one scalar ``s`` per volume.

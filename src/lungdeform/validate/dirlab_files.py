@@ -344,7 +344,6 @@ def _is_spacing_table(path: Path) -> bool:
 
 
 def _same_file_content(a: Path, b: Path) -> bool:
-
     x, y = read_dirlab_indices(a), read_dirlab_indices(b)
     return x.shape == y.shape and bool(np.array_equal(x, y))
 

@@ -23,7 +23,7 @@ The run stops at rest: relative residual force ``max|f − K u| / max|f| ≤ tol
 ``½ vᵀM v ≤ tol² · ½ uᵀK u`` (the strain energy). Otherwise :class:`ConvergenceError`.
 
 How the MSD parameters are chosen (so that it is the *same* physics as the transfer model). Write
-the push iteration's fixed point (METHOD §4) as ``C = diag(t) x`` with ``(I − Qᵀ) x = f``,
+the push iteration's fixed point (docs/METHOD_NOTES.md §4) as ``C = diag(t) x`` with ``(I − Qᵀ) x = f``,
 ``t = diag(T_e)``. Eliminating ``x`` gives ``K C = f`` with ``K_ii = 1/t_i`` and
 ``K_ij = −T_e[j→i] / t_j``. With ``d(l, j) = max(dist, d_min)`` and the compliance ``S`` (1/E on mass
 nodes, E on spring nodes), ``T_e[j→i] / t_j = (d_min / d_ij) · S_i / S_j``. When ``S`` is the same on

@@ -19,7 +19,7 @@
    - Bending force (:func:`bending_force`): out of plane on mass nodes,
      ``f = sin(π·(x − x0)/L) · sin(π·(y − y0)/W)`` over the mesh's bounding box (L × W): zero on
      the border, 1 at the centre — the sheet bulges like an expanding lung surface. Spring nodes get
-     no applied force (METHOD §4).
+     no applied force (Sec. III-G; docs/METHOD_NOTES.md §4).
    - The MSD: :func:`lungdeform.validate.msd.transfer_network` — the parameters are *derived* from the
      transfer model, see :mod:`lungdeform.validate.msd`: every node has unit mass and a unit ground spring,
      every graph link a spring ``d_min / d_ij``, damping critical for the lowest mode (``c = 2 ω_min``),
