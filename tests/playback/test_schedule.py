@@ -95,7 +95,7 @@ def test_preset_trace_is_the_pv_simulation_on_an_exact_grid():
     ref = simulate(p.params, n_cycles=2, fs_hz=188 / 3.75)
     np.testing.assert_allclose(tr.t_s, ref.t_s, atol=1e-12)
     np.testing.assert_allclose(tr.volume_ml, ref.volume_ml - ref.volume_ml.min(), atol=1e-12)
-    assert tr.shifted_ml == pytest.approx(ref.volume_ml.min()) and "lungdeform.breathing.presets:dyspnoea" in tr.source
+    assert tr.shifted_ml == pytest.approx(ref.volume_ml.min()) and "lungdeform.presets:dyspnoea" in tr.source
     np.testing.assert_allclose(curve.volume_ml, ref.volume_ml, atol=1e-12)
     # any duration: 3 s is cut from two whole cycles, 150 intervals, volume above the cut's minimum
     _, _, cut = S.preset_trace(p, duration_s=3.0, rate_hz=50.0)
