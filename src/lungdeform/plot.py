@@ -14,8 +14,8 @@ the image right), ``posterior`` at the back, ``lateral-left`` / ``lateral-right`
 
 Owns: figures of lung surfaces (:func:`snapshot`, :func:`error_map`), error distributions
 (:func:`cumulative_errors`), the fit report's plots, the segmentation overlay, point motion, breathing
-curves, cohort statistics and the paper's Figs. 7–9. May import: :mod:`lungdeform.atomic` only (and
-numpy, matplotlib): every layer above may draw.
+curves and their prediction, cohort statistics and the paper's Figs. 7–9. May import:
+:mod:`lungdeform.atomic` only (and numpy, matplotlib): every layer above may draw.
 """
 
 from __future__ import annotations
@@ -394,6 +394,47 @@ def residuals(t_s: np.ndarray, resid: np.ndarray, title: str, ylabel: str = "res
     ax.set_xlabel("t (s)")
     ax.set_ylabel(ylabel)
     ax.set_title(title)
+    return fig
+
+
+def prediction_errors(horizons_ms: np.ndarray, model_over_linear: dict[str, Sequence[float]],
+                      model_over_none: dict[str, Sequence[float]]) -> Figure:
+    """Prediction error against horizon: per trace (thin lines) and their median (thick), as the
+    model's RMS over the linear baseline's (left) and over no prediction (right); 1 = no better."""
+    fig = new_figure(10.0, 3.8, layout="constrained")
+    axes = fig.subplots(1, 2, sharex=True)
+    for ax, curves, title in ((axes[0], model_over_linear, "model / linear autoregression"),
+                              (axes[1], model_over_none, "model / no prediction (last sample)")):
+        rows = np.array([c for c in curves.values()], float)
+        for c in rows:
+            ax.plot(horizons_ms, c, color="0.7", lw=0.7)
+        ax.plot(horizons_ms, np.nanmedian(rows, axis=0), "o-", color="C0", lw=2.0, label="median over traces")
+        ax.axhline(1.0, color="0.3", lw=0.8, ls="--")
+        ax.set_title(title, fontsize=10)
+        ax.set_xlabel("prediction horizon (ms)")
+        ax.set_ylabel("RMS ratio")
+        ax.legend(loc="upper left", fontsize=8)
+    return fig
+
+
+def prediction_excerpt(t_s: np.ndarray, signal: np.ndarray, predictions: dict[str, np.ndarray],
+                       horizon_s: float, *, start_s: float, title: str, unit: str = "",
+                       length_s: float = 30.0) -> Figure:
+    """``length_s`` of a trace from ``start_s`` with each predictor's predictions drawn at the time
+    they predict (``t + horizon_s``), so a good prediction lies on the signal."""
+    fig = new_figure(10.0, 3.6, layout="constrained")
+    ax = fig.subplots()
+    keep = (t_s >= start_s) & (t_s <= start_s + length_s)
+    ax.plot(t_s[keep], signal[keep], color="black", lw=1.6, label="signal")
+    styles = {"model": ("C0", "-"), "linear": ("C1", "--"), "none": ("0.55", ":")}
+    for name, p in predictions.items():
+        shown = keep & (t_s + horizon_s <= start_s + length_s)
+        colour, ls = styles.get(name, (None, "-"))
+        ax.plot(t_s[shown] + horizon_s, p[shown], color=colour, ls=ls, lw=1.0, label=f"{name} (made {horizon_s * 1000:.0f} ms earlier)")
+    ax.set_xlabel("t (s)")
+    ax.set_ylabel(f"signal ({unit})" if unit else "signal")
+    ax.set_title(title, fontsize=10)
+    ax.legend(loc="upper right", fontsize=8, ncols=2)
     return fig
 
 

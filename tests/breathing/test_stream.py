@@ -77,3 +77,23 @@ def test_noncausal_twin_matches_stream_on_a_steady_sinusoid():
     warm = t > 20.0
     assert ref[warm].min() == pytest.approx(2400.0, abs=3.0) and ref[warm].max() == pytest.approx(2900.0, abs=3.0)
     assert np.sqrt(np.mean((vol[warm] - ref[warm]) ** 2)) < 0.05 * 500.0
+
+
+def test_prediction_moves_the_stream_ahead_by_the_horizon():
+    # with predict_ms = 400 the estimate is for t + 0.4 s: against the signal 0.4 s in the future it lags
+    # only by the smoother (2 × 0.05 s), the plain estimate by 0.4 s more (truth: signal_delay_s)
+    from lungdeform.breathing.stream import StreamingVolumeEstimator, signal_delay_s
+
+    t = np.arange(0, 90, 0.05)
+    x = np.sin(2 * np.pi * t / 4.0)
+    future = np.sin(2 * np.pi * (t + 0.4) / 4.0)
+    plain = StreamingVolumeEstimator()
+    ahead = StreamingVolumeEstimator(predict_ms=400)
+    vp = np.array([plain.update(a, b).volume_ml for a, b in zip(t, x)])
+    samples = [ahead.update(a, b) for a, b in zip(t, x)]
+    va = np.array([s.volume_ml for s in samples])
+    late = t > 40
+    d_plain = signal_delay_s(t[late], future[late], vp[late])
+    d_ahead = signal_delay_s(t[late], future[late], va[late])
+    assert d_plain == pytest.approx(0.5, abs=0.06) and d_ahead == pytest.approx(0.1, abs=0.06)
+    assert samples[-1].ahead_s == 0.4 and plain.update(91.0, 0.0).ahead_s == 0.0

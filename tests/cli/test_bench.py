@@ -33,3 +33,15 @@ def test_bench_cohort_refuses_bad_counts(capsys):
     assert "--subjects must be at least 1, got 0" in capsys.readouterr().err
     assert main(["bench", "cohort", "--workers", "0"]) == 2
     assert "--workers must be at least 1, got 0" in capsys.readouterr().err
+
+
+def test_bench_predict_reports_the_ratio_to_the_linear_baseline(tmp_path, capsys):
+    # one short stream: each predictor's line, and the JSON records with the same-run yardstick
+    import json
+
+    path = tmp_path / "p.json"
+    assert main(["bench", "predict", "--seconds", "45", "--rate-hz", "10", "--json", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "the linear baseline" in out and "model:" in out
+    doc = json.loads(path.read_text())
+    assert doc["benchmark"] == "predict" and [r["method"] for r in doc["results"]] == ["model", "linear", "none"]

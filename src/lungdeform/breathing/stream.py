@@ -10,6 +10,11 @@ The estimator is causal and O(1) per sample (amortised):
    spans two or more breaths, so baseline drift of the surrogate is followed.
 3. volume = V_EE + V_T·(filtered − min)/(max − min), mL; scale s = (V − V_EE)/ΔV for playback.
 
+With ``predict_ms`` > 0, each raw sample is first replaced by the causal prediction of the signal
+``predict_ms`` later (:class:`lungdeform.breathing.predict.BlendPredictor`), so the volume shown when a
+frame reaches the eye (or a beam) is the one the patient then has; ``StreamSample.ahead_s`` says how far
+ahead it is.
+
 Before one full window has been seen, the calibration uses what has been seen (``warm`` is False).
 Samples must come in increasing time; NaN samples are refused (InputError) — drop them upstream.
 """
@@ -27,25 +32,28 @@ from scipy.ndimage import maximum_filter1d, minimum_filter1d
 from lungdeform.errors import InputError
 
 from .cycles import smooth
+from .predict import BlendPredictor
 
 
 @dataclass(frozen=True)
 class StreamSample:
     """t_s : s; amplitude : the filtered surrogate (trace unit); volume_ml : mL; scale : (V − V_EE)/ΔV
-    (NaN without ``unit_ml``); warm : True once a full calibration window has been seen."""
+    (NaN without ``unit_ml``); warm : True once a full calibration window has been seen; ahead_s : s,
+    the time after ``t_s`` the estimate is for (the prediction horizon; 0 without prediction)."""
 
     t_s: float
     amplitude: float
     volume_ml: float
     scale: float
     warm: bool
+    ahead_s: float = 0.0
 
 
 class StreamingVolumeEstimator:
     """Causal amplitude → volume estimator (see module doc). Call :meth:`update` once per sample."""
 
     def __init__(self, tidal_volume_ml: float = 500.0, v_ee_ml: float = 2400.0, window_s: float = 10.0,
-                 smoothing_s: float = 0.05, unit_ml: float | None = None):
+                 smoothing_s: float = 0.05, unit_ml: float | None = None, predict_ms: float = 0.0):
         if not (tidal_volume_ml > 0 and window_s > 0 and smoothing_s >= 0):
             raise InputError("tidal_volume_ml and window_s must be > 0 and smoothing_s >= 0")
         if unit_ml is not None and not (np.isfinite(unit_ml) and unit_ml != 0):
@@ -55,6 +63,9 @@ class StreamingVolumeEstimator:
         self.window_s = float(window_s)
         self.smoothing_s = float(smoothing_s)
         self.unit_ml = unit_ml
+        if not (math.isfinite(float(predict_ms)) and 0.0 <= float(predict_ms) <= 5000.0):
+            raise InputError(f"predict_ms must be in [0, 5000] ms, got {predict_ms!r}")
+        self.predict_ms = float(predict_ms)
         self.reset()
 
     def reset(self) -> None:
@@ -63,6 +74,7 @@ class StreamingVolumeEstimator:
         self._s1 = self._s2 = 0.0
         self._min: deque = deque()
         self._max: deque = deque()
+        self._predictor = BlendPredictor(self.predict_ms / 1000.0) if self.predict_ms > 0 else None
 
     def update(self, t_s: float, amplitude: float) -> StreamSample:
         """Feed one sample (time s, amplitude in the trace unit); returns the estimate for it."""
@@ -70,6 +82,10 @@ class StreamingVolumeEstimator:
         x = float(amplitude)
         if not (math.isfinite(t) and math.isfinite(x)):
             raise InputError(f"stream sample at t={t_s!r} is not finite (amplitude {amplitude!r})")
+        if self._predictor is not None:
+            if self._t is not None and t <= self._t:
+                raise InputError(f"stream time must increase: got t={t:.6g} s after t={self._t:.6g} s")
+            x = self._predictor.update(t, x)
         if self._t is None:
             self._t0 = t
             self._s1 = self._s2 = x
@@ -94,7 +110,7 @@ class StreamingVolumeEstimator:
         frac = (y - lo) / span if span > 0 else 0.0
         volume = self.v_ee_ml + self.tidal_volume_ml * frac
         scale = (volume - self.v_ee_ml) / self.unit_ml if self.unit_ml else float("nan")
-        return StreamSample(t, y, volume, scale, t - self._t0 >= self.window_s)
+        return StreamSample(t, y, volume, scale, t - self._t0 >= self.window_s, self.predict_ms / 1000.0)
 
 
 def replay(t_s, amplitude, estimator: StreamingVolumeEstimator, clock=time.perf_counter):

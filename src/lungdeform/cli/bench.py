@@ -1,4 +1,4 @@
-"""``lungdeform bench solve|playback --vertices N [--vertices N …] --json FILE``."""
+"""``lungdeform bench solve|playback --vertices N [--vertices N …] --json FILE`` and ``bench predict``."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ import typer
 
 from lungdeform.atomic import write_json
 from lungdeform.bench.kernels import bench_playback, bench_solve, lung_with_vertices
+from lungdeform.bench.prediction import bench_predict
 from lungdeform.errors import InputError
 
 from .common import say
@@ -74,4 +75,23 @@ def register(apps) -> None:
                        f"ratio {p['ratio_to_memcpy']:.2f}")
         if json_path:
             _write_json(json_path, results, "playback")
+            typer.echo(f"results written to {json_path}")
+
+    @apps.bench.command("predict")
+    def predict(
+        seconds: float = typer.Option(300.0, "--seconds", help="Length of the synthetic stream (s)."),
+        rate_hz: float = typer.Option(100.0, "--rate-hz", help="Samples per second."),
+        horizon_ms: float = typer.Option(400.0, "--horizon-ms", help="Prediction horizon (ms)."),
+        json_path: Optional[Path] = typer.Option(None, "--json", help="Write results here."),
+    ):
+        """Cost per sample of the breathing predictor against the linear baseline and the 100 Hz budget."""
+
+        say(f"streaming {seconds:g} s of a synthetic breath at {rate_hz:g} Hz through each predictor")
+        rows = bench_predict(seconds, rate_hz, horizon_ms)
+        for r in rows:
+            typer.echo(f"{r['method']:>7}: {r['seconds'] * 1e6:8.1f} µs/sample median (p99 "
+                       f"{r['p99_seconds'] * 1e6:.1f} µs), ×{r['ratio_to_linear']:.2f} the linear baseline, "
+                       f"{100 * r['budget_fraction']:.2f} % of the {1000 / r['rate_hz']:g} ms between samples")
+        if json_path:
+            _write_json(json_path, rows, "predict")
             typer.echo(f"results written to {json_path}")

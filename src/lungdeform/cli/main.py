@@ -34,6 +34,7 @@ COMMAND_MODULES = [
     "lungdeform.cli.bench_viewer",
     "lungdeform.cli.breathe",
     "lungdeform.cli.validate_breathing",
+    "lungdeform.cli.validate_prediction",
     "lungdeform.cli.fit",
     "lungdeform.cli.validate_itk",
     "lungdeform.cli.cohort",

@@ -1,0 +1,57 @@
+"""``lungdeform validate prediction``: live breathing prediction scored on every trace under a folder.
+
+The work is :mod:`lungdeform.validate.prediction` (protocol, metrics.json layout and targets there).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from lungdeform.errors import InputError
+from lungdeform.validate.prediction import HORIZONS_MS, TARGET_QUIET_HORIZON_MS, validate_prediction
+
+from .common import STRICT_EXIT, say
+
+
+def _horizons(text: str) -> list[float]:
+    try:
+        return [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise InputError(f"--horizons must be comma-separated milliseconds, got {text!r}") from None
+
+
+def _fmt(x) -> str:
+    return "n/a" if x is None else f"{x:.3f}"
+
+
+def register(apps) -> None:
+    @apps.validate.command("prediction")
+    def prediction(
+        data: Path = typer.Option(..., "--data", help="Folder searched for .vxp / .csv breathing traces."),
+        out: Path = typer.Option(..., "--out", help="Output folder: metrics.json and plots/."),
+        horizons: str = typer.Option(",".join(str(h) for h in HORIZONS_MS), "--horizons",
+                                     help="Prediction horizons in ms, comma-separated."),
+        strict: bool = typer.Option(False, "--strict", help="Exit with code 3 when a target is not met (for CI)."),
+    ):
+        """Predict each trace 100–500 ms ahead, causally; RMS against no prediction and a linear autoregression."""
+
+        m = validate_prediction(data, out, _horizons(horizons), progress=say)
+        for name, err in m["errors"].items():
+            typer.echo(f"skipped {name}: {err}", err=True)
+        typer.echo(f"{m['n_traces']} traces ({m['n_quiet']} quiet); medians of per-trace RMS ratios:")
+        typer.echo("  horizon   model/linear   model/none   linear/none   quiet model/none")
+        for h in m["horizons_ms"]:
+            a, q = m["medians"][str(h)], m["quiet_medians"][str(h)]
+            typer.echo(f"  {h:>5} ms   {_fmt(a['model_over_linear']):>12}   {_fmt(a['model_over_none']):>10}   "
+                       f"{_fmt(a['linear_over_none']):>11}   {_fmt(q['model_over_none']):>16}")
+        t = m["targets"]
+        lin, quiet = t["model_over_linear_every_horizon"], t["quiet_model_over_none"]
+        typer.echo(f"target model/linear <= {lin['threshold']} at every horizon: "
+                   f"{'met' if lin['met'] else 'not met'} (worst {_fmt(lin['worst'])})")
+        typer.echo(f"target quiet model/none <= {quiet['threshold']} at {TARGET_QUIET_HORIZON_MS} ms: "
+                   f"{'met' if quiet['met'] else 'not met'} ({_fmt(quiet['value'])})")
+        typer.echo(f"wrote {Path(out) / 'metrics.json'} and {len(m['plots'])} plots in {Path(out) / 'plots'}")
+        if strict and not (lin["met"] and quiet["met"]):
+            raise typer.Exit(STRICT_EXIT)
