@@ -128,9 +128,9 @@ def test_killed_job_leaves_only_a_stale_temp_folder_cleaned_next_run(tmp_path, c
 
 
 def test_refuses_bad_options_and_a_busy_output(tmp_path, cohort):
-    with pytest.raises(InputError, match="--workers sets the size of the local cluster"):
+    with pytest.raises(InputError, match="^workers sets the size of the local cluster"):
         run_cohort(cohort, tmp_path / "o", scheduler="tcp://127.0.0.1:1", workers=2)
-    with pytest.raises(InputError, match=r"--scheduler tcp://127\.0\.0\.1:1: cannot connect"):
+    with pytest.raises(InputError, match=r"^scheduler tcp://127\.0\.0\.1:1: cannot connect"):
         run_cohort(cohort, tmp_path / "o", scheduler="tcp://127.0.0.1:1", connect_timeout_s=0.5, population=False)
     busy = tmp_path / "busy"
     busy.mkdir()

@@ -28,6 +28,7 @@ from .common import DIRECTION_DEGREE_HELP, FIT_OPTIONS, SIDE_CHECK_HELP, option_
 
 #: Bar labels of the stages (lungdeform.cohort.job.STAGES).
 STAGE_LABELS = {"read": "read / segment", "align": "align", "fit": "fit + measure", "write": "write"}
+COHORT_OPTIONS = {"out": "--out", "workers": "--workers", "scheduler": "--scheduler"}
 MAX_NOTES = 5
 
 
@@ -157,8 +158,9 @@ def register(apps) -> None:
         folder = output_dir(out)
         display = Display(progress_enabled())
         try:
-            result = run_cohort(m, folder, scheduler=scheduler, workers=workers, options=options,
-                                skip_failed=skip_failed, processes=processes, progress=display)
+            with option_names(COHORT_OPTIONS):
+                result = run_cohort(m, folder, scheduler=scheduler, workers=workers, options=options,
+                                    skip_failed=skip_failed, processes=processes, progress=display)
         except KeyboardInterrupt:
             display.stop()
             typer.echo(f"interrupted: {_tally(folder, display)}; results are in {folder / 'subjects'}, summary in "

@@ -135,7 +135,7 @@ def run_cohort(manifest, out, *, scheduler: str | None = None, workers: int | No
     m = manifest if isinstance(manifest, Manifest) else read_manifest(manifest)
     out = Path(out)
     if out.exists() and not out.is_dir():
-        raise InputError(f"--out {out}: exists and is not a folder")
+        raise InputError(f"out {out}: exists and is not a folder")
     out.mkdir(parents=True, exist_ok=True)
     with _exclusive(out):
         clean_stale(out)
@@ -176,10 +176,10 @@ def run_cohort(manifest, out, *, scheduler: str | None = None, workers: int | No
 def _check_cluster(scheduler: str | None, workers: int | None) -> None:
     """Refuse ``workers`` with a ``scheduler`` (the cluster's own workers run the jobs) or below 1."""
     if scheduler and workers is not None:
-        raise InputError("--workers sets the size of the local cluster; with --scheduler the cluster's own "
-                         "workers run the jobs (leave --workers out)")
+        raise InputError("workers sets the size of the local cluster; with a scheduler the cluster's own "
+                         "workers run the jobs (leave workers out)")
     if workers is not None and int(workers) < 1:
-        raise InputError(f"--workers must be at least 1, got {workers}")
+        raise InputError(f"workers must be at least 1, got {workers}")
 
 
 def _stored_results(m: Manifest, out: Path, options: FitOptions,
@@ -227,7 +227,7 @@ def _run_on_dask(jobs: list[Job], out: Path, options: FitOptions, scheduler, n_w
             try:
                 client = Client(scheduler, timeout=connect_timeout_s, set_as_default=False)
             except (OSError, TimeoutError) as exc:
-                raise InputError(f"--scheduler {scheduler}: cannot connect ({_one_line(exc)})") from None
+                raise InputError(f"scheduler {scheduler}: cannot connect ({_one_line(exc)})") from None
         else:
             # one thread per worker (the fit is CPU-bound and holds the GIL at times). Every HTTP
             # endpoint (the dashboard, if bokeh is installed) on a free port of 127.0.0.1: the
@@ -381,7 +381,7 @@ def _exclusive(out: Path):
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             holder = os.pread(fd, 200, 0).decode(errors="replace").strip() or "another process"
-            raise InputError(f"--out {out}: in use by another cohort run ({holder}); wait for it to finish") from None
+            raise InputError(f"out {out}: in use by another cohort run ({holder}); wait for it to finish") from None
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"pid {os.getpid()} on {socket.gethostname()} since {_now()}".encode(), 0)
         yield

@@ -101,7 +101,7 @@ def lung_frame(vertices: np.ndarray, side: str) -> LungFrame:
 def guess_sides(centroids_x: list[float]) -> list[str]:
     """Sides for two lungs from their LPS x centroids: the larger x (patient left) is 'left'."""
     if len(centroids_x) != 2:
-        raise InputError("sides can be guessed only for exactly two lungs; pass --side")
+        raise InputError("sides can be guessed only for exactly two lungs; give each lung's side")
     return ["left", "right"] if centroids_x[0] > centroids_x[1] else ["right", "left"]
 
 

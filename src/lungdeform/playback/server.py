@@ -230,7 +230,7 @@ def model_glb(path, curve=None, markers=None) -> bytes:
         raise ReadError(f"{p}: no such file")
     if p.suffix.lower() == ".glb":
         if curve is not None or markers is not None:
-            raise InputError(f"{p}: --curve and --markers apply to a model file, not to a .glb")
+            raise InputError(f"{p}: a curve and markers apply to a model file, not to a .glb")
         return check_glb(p.read_bytes(), str(p))
 
     model = load_model(p)
