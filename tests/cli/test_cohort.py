@@ -77,7 +77,7 @@ def test_wrong_columns_and_option_conflicts_exit_2(tmp_path, capsys):
     manifest = make_cohort(tmp_path / "c")
     assert main(["cohort", str(manifest), "--out", str(tmp_path / "o"), "--scheduler", "tcp://127.0.0.1:1",
                  "--workers", "2"]) == 2
-    assert "leave --workers out" in _one_error_line(capsys)
+    assert "--workers sets the size of the local cluster" in _one_error_line(capsys)
 
 
 @pytest.mark.slow
