@@ -72,3 +72,21 @@ def test_side_from_shape_on_real_lobe_maps(data_dir):
         s = read_input(path, side)[0]
         got, score = side_from_shape(s.vertices, s.faces)
         assert got == side and abs(score) > SIDE_SCORE_MIN
+
+
+def test_resolve_sides_refuses_swapped_sides_by_parameter_name():
+    # in LPS the left lung lies at larger x: given sides the other way round are refused (truth: the
+    # centroids), and a wrong count names the parameter, not a command-line flag
+    from types import SimpleNamespace
+
+    from lungdeform.errors import InputError
+    from lungdeform.geometry.frame import resolve_sides
+
+    a = SimpleNamespace(name="a", vertices=np.array([[100.0, 0, 0], [120, 0, 0]]), faces=None)
+    b = SimpleNamespace(name="b", vertices=np.array([[-100.0, 0, 0], [-120, 0, 0]]), faces=None)
+    assert resolve_sides([a, b], ["left", "right"], check=False) == ["left", "right"]
+    assert resolve_sides([a, b], None, check=False) == ["left", "right"]  # from position
+    with pytest.raises(InputError, match="lies to the patient's right"):
+        resolve_sides([a, b], ["right", "left"], check=False)
+    with pytest.raises(InputError, match="^sides: 1 given for 2 surfaces"):
+        resolve_sides([a, b], ["left"], check=False)

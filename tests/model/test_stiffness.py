@@ -68,3 +68,19 @@ def test_spring_nodes_take_the_mean_of_their_ends():
     # after the mass nodes (graph numbering).
     e = node_moduli(np.array([1.0, 3.0, 5.0]), np.array([[0, 1], [1, 2]]))
     assert np.array_equal(e, [1.0, 3.0, 5.0, 2.0, 4.0])
+
+
+def test_parse_stiffness_reads_the_three_forms_and_names_the_parameter():
+    # "uniform" is no field (None); "sphere:X,Y,Z,R,E" puts E inside the sphere and 1 outside (truth:
+    # sphere_override on a uniform field); a bad spec names the parameter, not a command-line flag
+    from lungdeform.errors import InputError
+    from lungdeform.model.stiffness import parse_stiffness
+
+    v = np.array([[0.0, 0, 0], [50.0, 0, 0], [0, 0, 100.0]])
+    assert parse_stiffness("uniform", v, np.array([0.0, 1, 0])) is None
+    e = parse_stiffness("sphere:0,0,0,10,3", v, np.array([0.0, 1, 0]))
+    assert e[0] == 3.0 and e[1] == 1.0 and e[2] == 1.0
+    g = parse_stiffness("gradient:0.5,1.5", v, np.array([0.0, 0, -1]))  # gravity toward the feet
+    assert g.shape == (3,) and g[2] > g[0]  # the top (non-dependent) is stiffer than the bottom
+    with pytest.raises(InputError, match="^stiffness must be"):
+        parse_stiffness("soft", v, np.array([0.0, 1, 0]))

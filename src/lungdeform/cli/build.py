@@ -9,13 +9,13 @@ import typer
 
 from lungdeform.constants import gravity_vector
 from lungdeform.errors import InputError
-from lungdeform.geometry.frame import SIDES, check_side, clear_side, guess_sides
+from lungdeform.geometry.frame import resolve_sides
 from lungdeform.io import meshfile as io
 from lungdeform.io.modelfile import provenance, save_model
-from lungdeform.model import stiffness as st
 from lungdeform.model.lung import build_model
+from lungdeform.model.stiffness import parse_stiffness
 
-from .common import SIDE_CHECK_HELP, check_tidal_ml, parse_orientation, say
+from .common import SIDE_CHECK_HELP, check_tidal_ml, option_names, parse_orientation, say
 
 
 def register(apps) -> None:
@@ -51,12 +51,14 @@ def register(apps) -> None:
                 for line in report.repairs:
                     say(f"{surface.name}: {line}")
                 loaded.append((src, surface))
-        sides = resolve_sides([s for _, s in loaded], side, check=side_check)
+        with option_names({"sides": "--side"}):
+            sides = resolve_sides([s for _, s in loaded], side, check=side_check)
         if len(set(sides)) != len(sides):
             raise InputError(f"two surfaces for the same side: {', '.join(sides)}")
         surfaces = {sd: s for sd, (_, s) in zip(sides, loaded)}
         gravity = parse_orientation(orientation)
-        stiff = {sd: stiffness_field(stiffness, s, gravity) for sd, s in surfaces.items()}
+        with option_names({"stiffness": "--stiffness"}):
+            stiff = {sd: parse_stiffness(stiffness, s.vertices, gravity_vector(gravity)) for sd, s in surfaces.items()}
         prov = provenance(
             "build", sources=[str(p) for p, _ in loaded], sides=sides, orientation=orientation,
             stiffness=stiffness, solver=solver, units=units,
@@ -71,74 +73,3 @@ def register(apps) -> None:
 
 
 SOLVERS = ("bicgstab", "gmres", "direct")
-
-
-def resolve_sides(surfaces, given: list[str] | None, check: bool = True) -> list[str]:
-    """Sides from --side, from names ending in -left/-right, from position (two lungs) or from the
-    shape (one lung: :func:`lungdeform.geometry.frame.side_from_shape`). Each lung's side is checked
-    against its shape (:func:`lungdeform.geometry.frame.check_side`) unless ``check`` is False.
-
-    Given or named sides of a left and a right surface are checked against their positions: in
-    LPS the left lung lies at larger x. A pair the other way round (sides or labels swapped, or
-    meshes in RAS) is refused rather than built with the wrong sides and the wrong gravity frame.
-    """
-
-    by_position = False
-    if given:
-        if len(given) != len(surfaces):
-            raise InputError(f"--side given {len(given)} times for {len(surfaces)} surfaces")
-        bad = [s for s in given if s not in SIDES]
-        if bad:
-            raise InputError(f"--side must be left or right, got {bad[0]!r}")
-        sides = list(given)
-    else:
-        named = [next((sd for sd in SIDES if s.name.lower().endswith(sd)), None) for s in surfaces]
-        if all(named):
-            sides = named
-        elif len(surfaces) == 2:  # from position (so the position check below has nothing to add)
-            sides, by_position = guess_sides([float(s.vertices[:, 0].mean()) for s in surfaces]), True
-        elif len(surfaces) == 1:  # one lung: its shape (the concave medial face) tells, when it is clear
-            shape_side, _ = clear_side(surfaces[0].vertices, surfaces[0].faces)
-            if shape_side is None:
-                raise InputError(f"cannot tell the side of {surfaces[0].name} (its shape is not clear enough): "
-                                 "pass --side left or --side right")
-            return [shape_side]
-        else:
-            raise InputError(f"cannot tell the sides of {len(surfaces)} surfaces: pass --side for each")
-    for sd, s in zip(sides, surfaces) if check else ():  # each lung is the side its shape says, when that is clear
-        check_side(s.vertices, s.faces, sd, s.name)
-    if sorted(sides) == ["left", "right"] and not by_position:
-        x = {sd: float(s.vertices[:, 0].mean()) for sd, s in zip(sides, surfaces)}
-        if x["left"] <= x["right"]:
-            name = {sd: s.name for sd, s in zip(sides, surfaces)}
-            raise InputError(f"the surface taken as left ({name['left']}, mean x {x['left']:.0f} mm) lies to the "
-                             f"patient's right of the one taken as right ({name['right']}, {x['right']:.0f} mm); in "
-                             "LPS the left lung has the larger x: sides or labels swapped, or the meshes are in RAS")
-    return sides
-
-
-def stiffness_field(spec: str, surface, gravity):
-    """Per-vertex moduli from the --stiffness option (None = uniform)."""
-
-    kind, _, args = spec.partition(":")
-    kind = kind.strip().lower()
-    if kind == "uniform" and not args:
-        return None
-    if kind == "gradient":
-        vals = _floats(args)
-        if vals is None or len(vals) != 2:
-            raise InputError("--stiffness gradient needs DEPENDENT,NONDEPENDENT moduli, e.g. gradient:0.5,1.5")
-        return st.gravity_gradient(surface.vertices, gravity_vector(gravity), *vals)
-    if kind == "sphere":
-        nums = _floats(args)
-        if nums is None or len(nums) != 5:
-            raise InputError("--stiffness sphere needs X,Y,Z,RADIUS,E (mm, LPS; relative modulus)")
-        return st.sphere_override(st.uniform(surface.n_vertices), surface.vertices, nums[:3], nums[3], nums[4])
-    raise InputError(f"--stiffness must be uniform, gradient:D,N or sphere:X,Y,Z,R,E, got {spec!r}")
-
-
-def _floats(text: str):
-    try:
-        return [float(x) for x in text.split(",")] if text else []
-    except ValueError:
-        return None

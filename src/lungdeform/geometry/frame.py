@@ -158,3 +158,48 @@ def check_side(vertices: np.ndarray, faces: np.ndarray, side: str, source: str) 
         raise InputError(f"{source}: the lung's shape says {shape_side}, not {side} (its concave medial face lies "
                          f"toward {'+' if score > 0 else '-'}x in LPS, score {score:+.2f}): is the side wrong, or the "
                          "surface in RAS (x flipped)? (--no-side-check skips this check)")
+
+
+def resolve_sides(surfaces, given: list[str] | None, check: bool = True) -> list[str]:
+    """Sides of ``surfaces`` (objects with ``name``, ``vertices : (n, 3)`` mm LPS, ``faces``): ``given``
+    (one per surface), else from names ending in -left/-right, from position (two lungs) or from the
+    shape (one lung: :func:`lungdeform.geometry.frame.side_from_shape`). Each lung's side is checked
+    against its shape (:func:`lungdeform.geometry.frame.check_side`) unless ``check`` is False.
+
+    Given or named sides of a left and a right surface are checked against their positions: in
+    LPS the left lung lies at larger x. A pair the other way round (sides or labels swapped, or
+    meshes in RAS) is refused rather than built with the wrong sides and the wrong gravity frame.
+    """
+
+    by_position = False
+    if given:
+        if len(given) != len(surfaces):
+            raise InputError(f"sides: {len(given)} given for {len(surfaces)} surfaces")
+        bad = [s for s in given if s not in SIDES]
+        if bad:
+            raise InputError(f"sides must be left or right, got {bad[0]!r}")
+        sides = list(given)
+    else:
+        named = [next((sd for sd in SIDES if s.name.lower().endswith(sd)), None) for s in surfaces]
+        if all(named):
+            sides = named
+        elif len(surfaces) == 2:  # from position (so the position check below has nothing to add)
+            sides, by_position = guess_sides([float(s.vertices[:, 0].mean()) for s in surfaces]), True
+        elif len(surfaces) == 1:  # one lung: its shape (the concave medial face) tells, when it is clear
+            shape_side, _ = clear_side(surfaces[0].vertices, surfaces[0].faces)
+            if shape_side is None:
+                raise InputError(f"cannot tell the side of {surfaces[0].name} (its shape is not clear enough): "
+                                 "give its side (left or right)")
+            return [shape_side]
+        else:
+            raise InputError(f"cannot tell the sides of {len(surfaces)} surfaces: give each one's side")
+    for sd, s in zip(sides, surfaces) if check else ():  # each lung is the side its shape says, when that is clear
+        check_side(s.vertices, s.faces, sd, s.name)
+    if sorted(sides) == ["left", "right"] and not by_position:
+        x = {sd: float(s.vertices[:, 0].mean()) for sd, s in zip(sides, surfaces)}
+        if x["left"] <= x["right"]:
+            name = {sd: s.name for sd, s in zip(sides, surfaces)}
+            raise InputError(f"the surface taken as left ({name['left']}, mean x {x['left']:.0f} mm) lies to the "
+                             f"patient's right of the one taken as right ({name['right']}, {x['right']:.0f} mm); in "
+                             "LPS the left lung has the larger x: sides or labels swapped, or the meshes are in RAS")
+    return sides

@@ -81,3 +81,32 @@ def node_moduli(mass_moduli: np.ndarray, spring_ends: np.ndarray) -> np.ndarray:
 def _check_positive(value: float, name: str) -> None:
     if not (np.isfinite(value) and value > 0):
         raise InputError(f"{name} must be a finite modulus > 0, got {value!r}")
+
+
+def parse_stiffness(spec: str, vertices, gravity) -> np.ndarray | None:
+    """Per-vertex moduli ``(n,) float`` of a lung with ``vertices : (n, 3)`` mm LPS from a text ``spec``:
+    ``uniform`` (None), ``gradient:DEPENDENT,NONDEPENDENT`` (:func:`gravity_gradient` along the unit
+    ``gravity`` vector) or ``sphere:X,Y,Z,RADIUS,E`` (mm, LPS; :func:`sphere_override`)."""
+
+    kind, _, args = spec.partition(":")
+    kind = kind.strip().lower()
+    if kind == "uniform" and not args:
+        return None
+    if kind == "gradient":
+        vals = _floats(args)
+        if vals is None or len(vals) != 2:
+            raise InputError("stiffness gradient needs DEPENDENT,NONDEPENDENT moduli, e.g. gradient:0.5,1.5")
+        return gravity_gradient(vertices, gravity, *vals)
+    if kind == "sphere":
+        nums = _floats(args)
+        if nums is None or len(nums) != 5:
+            raise InputError("stiffness sphere needs X,Y,Z,RADIUS,E (mm, LPS; relative modulus)")
+        return sphere_override(uniform(len(vertices)), vertices, nums[:3], nums[3], nums[4])
+    raise InputError(f"stiffness must be uniform, gradient:D,N or sphere:X,Y,Z,R,E, got {spec!r}")
+
+
+def _floats(text: str):
+    try:
+        return [float(x) for x in text.split(",")] if text else []
+    except ValueError:
+        return None
