@@ -40,21 +40,26 @@ def find_traces(data: Path) -> list[Path]:
     return sorted(files, key=lambda p: str(p))
 
 
-def score_traces(data: Path, tidal_volume_ml: float = 500.0, train_fraction: float = 0.5,
-                 progress=None) -> tuple[dict, dict]:
-    """:func:`lungdeform.breathing.holdout.evaluate` on every trace under ``data``. Returns
-    ``(scores, errors)``, both keyed by file name (by the path under ``data`` when two sub-folders
-    hold the same name); ``errors`` holds the one-line reason a trace could not be scored."""
+def trace_files(data: Path) -> dict[str, Path]:
+    """The traces under the folder ``data`` (:func:`find_traces`) keyed by file name (by the path under
+    ``data`` when two sub-folders hold the same name); InputError when ``data`` is not a folder or holds none."""
     data = Path(data)
     if not data.is_dir():
         raise InputError(f"data {data}: not a folder")
     files = find_traces(data)
     if not files:
         raise InputError(f"data {data}: no .vxp or .csv trace found")
-    traces, errors = {}, {}
     names = [f.name for f in files]
-    for f in files:
-        key = f.name if names.count(f.name) == 1 else f.relative_to(data).as_posix()
+    return {(f.name if names.count(f.name) == 1 else f.relative_to(data).as_posix()): f for f in files}
+
+
+def score_traces(data: Path, tidal_volume_ml: float = 500.0, train_fraction: float = 0.5,
+                 progress=None) -> tuple[dict, dict]:
+    """:func:`lungdeform.breathing.holdout.evaluate` on every trace under ``data``. Returns
+    ``(scores, errors)``, both keyed as :func:`trace_files`; ``errors`` holds the one-line reason a
+    trace could not be scored."""
+    traces, errors = {}, {}
+    for key, f in trace_files(data).items():
         if progress:
             progress(f"fitting {key}")
         try:

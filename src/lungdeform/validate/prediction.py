@@ -37,7 +37,7 @@ from lungdeform.breathing.trace import read_trace
 from lungdeform.errors import InputError, LungdeformError
 from lungdeform.plot import prediction_errors, prediction_excerpt, save_png
 
-from .breathing import find_traces
+from .breathing import trace_files
 
 #: the horizons of the validation (ms)
 HORIZONS_MS = (100, 200, 300, 400, 500)
@@ -138,17 +138,10 @@ def protocol(horizons_ms, warm_s: float) -> str:
 
 
 def score_folder(data: Path, horizons_ms, warm_s: float, plot_ms: int, progress=None) -> tuple[dict, dict]:
-    """:func:`score_trace` on every trace under ``data``: ``(scores, errors)`` keyed by file name."""
-    data = Path(data)
-    if not data.is_dir():
-        raise InputError(f"data {data}: not a folder")
-    files = find_traces(data)
-    if not files:
-        raise InputError(f"data {data}: no .vxp or .csv trace found")
-    names = [f.name for f in files]
+    """:func:`score_trace` on every trace under ``data``: ``(scores, errors)`` keyed as
+    :func:`lungdeform.validate.breathing.trace_files`."""
     scores, errors = {}, {}
-    for f in files:
-        key = f.name if names.count(f.name) == 1 else f.relative_to(data).as_posix()
+    for key, f in trace_files(data).items():
         if progress:
             progress(f"predicting {key}")
         try:
