@@ -3,11 +3,10 @@
 import numpy as np
 import pytest
 
-from lungdeform.errors import InputError, ModelFileError
-from lungdeform.io.modelfile import SCHEMA_VERSION, load_model, save_model
+from lungdeform.errors import InputError
 from lungdeform.model.force import field_basis
 from lungdeform.model.graph import spring_graph
-from lungdeform.model.lung import Model, build_lung
+from lungdeform.model.lung import build_lung
 from lungdeform.model.solve import push
 from lungdeform.model.transfer import local_transfer
 
@@ -70,163 +69,6 @@ def test_bad_constants_and_stiffness(left_lung):
         build_lung(left_lung, "left", constants=[1, 2, 3])
     with pytest.raises(InputError, match="stiffness"):
         build_lung(left_lung, "left", stiffness=np.zeros(left_lung.n_vertices))
-
-
-def test_model_file_round_trip(tmp_path, model, right_lung):
-    m = Model({"left": model, "right": build_lung(right_lung, "right")}, {"source": "test"})
-    path = save_model(tmp_path / "lungs", m)
-    assert path.name == "lungs.npz" and not list(tmp_path.glob(".*tmp"))
-    back = load_model(path)
-    assert back.names == ["left", "right"] and back.provenance == {"source": "test"}
-    for name in m.names:
-        a, b = m.lungs[name], back.lungs[name]
-        assert np.array_equal(a.displacement, b.displacement)
-        assert np.array_equal(a.surface.faces, b.surface.faces)
-        assert b.volume_ee_ml == pytest.approx(a.volume_ee_ml)
-
-
-def test_schema_1_files_keep_their_thin_plate_interior(tmp_path, model, rng):
-    # schema 2 changed only how interior points move: a version-1 file is read, and its interior
-    # field is the thin-plate spline of the whole displacement it was made with (truth: that
-    # spline, fitted here directly); a version-2 or 3 file uses the sliding field
-    from lungdeform.interior.interpolate import displacement_field
-
-    path = save_model(tmp_path / "m.npz", Model({"left": model}))
-    with np.load(path) as z:
-        data = {k: z[k] for k in z.files}
-    assert int(data["schema_version"]) == SCHEMA_VERSION == 3
-    np.savez(tmp_path / "v1.npz", **dict(data, schema_version=np.array(1)))
-    old, new = load_model(tmp_path / "v1.npz").lungs["left"], load_model(path).lungs["left"]
-    assert (old.interior_kind, new.interior_kind) == ("thin_plate", "sliding")
-    v = model.surface.vertices
-    q = v.mean(axis=0) + rng.uniform(-5, 5, size=(10, 3))
-    ref = displacement_field(v, model.displacement, max_points=4000)(q)
-    assert old.interior.displacement(q) == pytest.approx(ref, abs=1e-9)
-    assert not np.allclose(new.interior.displacement(q), ref, atol=1e-3)
-    # saved again (as schema 3), the old lung keeps its thin-plate field
-    again = load_model(save_model(tmp_path / "again.npz", Model({"left": old}))).lungs["left"]
-    assert again.interior_kind == "thin_plate"
-    assert again.interior.displacement(q) == pytest.approx(ref, abs=1e-9)
-    np.savez(tmp_path / "k.npz", **dict(data, **{"lung/left/interior_kind": np.array("spline")}))
-    with pytest.raises(ModelFileError, match="interior_kind"):
-        load_model(tmp_path / "k.npz")
-
-
-def test_schema_2_files_keep_their_thin_plate_correction(tmp_path, model, rng):
-    # schema 3 changed only the landmark correction: a version-2 file's correction is read as the
-    # thin-plate spline it was fitted as (truth: the surface's sliding field plus that spline,
-    # built here directly), also when saved again; the same data as schema 3 is the sliding
-    # correction, which keeps the surface's normal motion (a different field)
-    from dataclasses import replace
-
-    from lungdeform.interior.interpolate import displacement_field
-    from lungdeform.interior.sliding import sliding_field
-
-    v, n = model.surface.vertices, model.surface.vertex_normals
-    lm = v.mean(axis=0) + rng.uniform(-15, 15, size=(12, 3))
-    lung = replace(model, landmarks=lm, landmark_correction=rng.normal(size=(12, 3)), landmark_smoothing=10.0)
-    path = save_model(tmp_path / "m.npz", Model({"left": lung}))
-    with np.load(path) as z:
-        data = {k: z[k] for k in z.files}
-    np.savez(tmp_path / "v2.npz", **dict(data, schema_version=np.array(2)))
-    old, new = load_model(tmp_path / "v2.npz").lungs["left"], load_model(path).lungs["left"]
-    assert (old.interior_kind, new.interior_kind) == ("sliding_thin_plate", "sliding")
-    q = v.mean(axis=0) + rng.uniform(-20, 20, size=(10, 3))
-    ref = (sliding_field(v, n, model.displacement)(q)
-           + displacement_field(lm, lung.landmark_correction, smoothing=10.0, max_points=12)(q))
-    assert old.interior.displacement(q) == pytest.approx(ref, abs=1e-9)
-    assert not np.allclose(new.interior.displacement(q), ref, atol=1e-3)
-    # schema 3: the same surface part plus the sliding correction with smoothing 10 mm
-    from lungdeform.interior.sliding import sliding_correction
-
-    ref3 = sliding_field(v, n, model.displacement)(q) + sliding_correction(v, n, lm, lung.landmark_correction,
-                                                                           smoothing=10.0)(q)
-    assert new.interior.displacement(q) == pytest.approx(ref3, abs=1e-9)
-    again = load_model(save_model(tmp_path / "again.npz", Model({"left": old}))).lungs["left"]
-    assert again.interior_kind == "sliding_thin_plate"
-    assert again.interior.displacement(q) == pytest.approx(ref, abs=1e-9)
-    # a schema-2 lung without landmarks is simply sliding (the two kinds differ only in the correction)
-    np.savez(tmp_path / "bare.npz", **dict({k: x for k, x in data.items() if "landmark" not in k},
-                                            schema_version=np.array(2)))
-    assert load_model(tmp_path / "bare.npz").lungs["left"].interior_kind == "sliding"
-
-
-def test_interior_vertices_are_saved_and_leave_the_others_out(tmp_path, model, rng):
-    # truth: vertices outside interior_vertices (a scan's crop face) carry no data for the interior
-    # field, so garbage displacement there changes no interior motion; the mask survives the model
-    # file and a re-orientation, and a bad mask is refused naming the key
-    from dataclasses import replace
-
-    from lungdeform.errors import ModelFileError
-
-    keep = model.surface.vertices[:, 0] < np.percentile(model.surface.vertices[:, 0], 85)
-    lung = replace(model, interior_vertices=keep)
-    spoiled = replace(lung, displacement=np.where(keep[:, None], model.displacement, 1e3))
-    q = model.surface.vertices.mean(axis=0) + rng.uniform(-5, 5, size=(10, 3))
-    assert spoiled.interior.displacement(q) == pytest.approx(lung.interior.displacement(q), abs=1e-9)
-    assert not np.allclose(lung.interior.displacement(q), model.interior.displacement(q), atol=1e-6)
-    loaded = load_model(save_model(tmp_path / "k.npz", Model({"left": lung}))).lungs["left"]
-    assert np.array_equal(loaded.interior_vertices, keep)
-    assert loaded.interior.displacement(q) == pytest.approx(lung.interior.displacement(q), abs=1e-12)
-    assert np.array_equal(lung.oriented("prone").interior_vertices, keep)
-    assert load_model(save_model(tmp_path / "a.npz", Model({"left": model}))).lungs["left"].interior_vertices is None
-    with np.load(tmp_path / "k.npz") as z:
-        data = {k: z[k] for k in z.files}
-    np.savez(tmp_path / "bad.npz", **dict(data, **{"lung/left/interior_vertices": keep[:-1]}))
-    with pytest.raises(ModelFileError, match="interior_vertices"):
-        load_model(tmp_path / "bad.npz")
-    # and the model itself refuses a mask that is not one bool per vertex, or an unknown kind
-    from lungdeform.errors import InputError
-
-    with pytest.raises(InputError, match="interior_vertices"):
-        replace(model, interior_vertices=np.flatnonzero(keep))
-    with pytest.raises(InputError, match="interior_kind"):
-        replace(model, interior_kind="spline")
-
-
-def test_model_file_refuses_wrong_version_and_shapes(tmp_path, model):
-    path = save_model(tmp_path / "m.npz", Model({"left": model}))
-    with np.load(path) as z:
-        data = {k: z[k] for k in z.files}
-    bad = dict(data, schema_version=np.array(SCHEMA_VERSION + 1))
-    np.savez(tmp_path / "v.npz", **bad)
-    with pytest.raises(ModelFileError, match="version"):
-        load_model(tmp_path / "v.npz")
-    bad = dict(data)
-    bad["lung/left/displacement"] = bad["lung/left/displacement"][:-1]
-    np.savez(tmp_path / "s.npz", **bad)
-    with pytest.raises(ModelFileError, match="displacement has shape"):
-        load_model(tmp_path / "s.npz")
-    np.save(tmp_path / "objects.npy", np.array([{"a": 1}], dtype=object), allow_pickle=True)
-    (tmp_path / "objects.npy").rename(tmp_path / "objects.npz")  # pickled objects: named as such
-    with pytest.raises(ModelFileError, match="objects.npz: not a lungdeform model file \\(it holds Python objects"):
-        load_model(tmp_path / "objects.npz")
-    (tmp_path / "junk.npz").write_bytes(b"not a zip")
-    with pytest.raises(ModelFileError, match="junk.npz"):
-        load_model(tmp_path / "junk.npz")
-
-
-def test_model_file_keeps_the_landmark_correction(tmp_path, model, rng):
-    # the interior correction of a fit with landmarks survives the file (same interior motion),
-    # a file with only part of it is refused, and re-orienting drops it (observed in one posture)
-    from dataclasses import replace
-
-    lo, hi = model.surface.bounds
-    lm = lo + (hi - lo) * rng.uniform(0.3, 0.7, size=(8, 3))
-    lung = replace(model, landmarks=lm, landmark_correction=rng.normal(size=(8, 3)), landmark_smoothing=10.0)
-    path = save_model(tmp_path / "c.npz", Model({"left": lung}))
-    back = load_model(path).lungs["left"]
-    assert back.landmark_smoothing == 10.0 and back.interior.corrected
-    q = lm + 1.0
-    assert back.points_at(q, scale=2.0) == pytest.approx(lung.points_at(q, scale=2.0), abs=1e-9)
-    assert not np.allclose(back.points_at(q, scale=2.0), model.points_at(q, scale=2.0))
-    assert load_model(save_model(tmp_path / "plain.npz", Model({"left": model}))).lungs["left"].landmarks is None
-    with np.load(path) as z:
-        data = {k: z[k] for k in z.files if k != "lung/left/landmark_smoothing"}
-    np.savez(tmp_path / "part.npz", **data)
-    with pytest.raises(ModelFileError, match="only part of the landmark correction"):
-        load_model(tmp_path / "part.npz")
-    assert lung.oriented("prone").landmarks is None
 
 
 def _check_tidal_linearity(lung_model):
