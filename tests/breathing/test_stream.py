@@ -97,3 +97,16 @@ def test_prediction_moves_the_stream_ahead_by_the_horizon():
     d_ahead = signal_delay_s(t[late], future[late], va[late])
     assert d_plain == pytest.approx(0.5, abs=0.06) and d_ahead == pytest.approx(0.1, abs=0.06)
     assert samples[-1].ahead_s == 0.4 and plain.update(91.0, 0.0).ahead_s == 0.0
+
+
+def test_parse_sample_reads_live_lines_and_names_bad_ones():
+    # blank lines, comments and a first-line header are skipped; separators , ; tab space all work
+    from lungdeform.breathing.stream import parse_sample
+
+    assert parse_sample("t_s,amplitude", 1) is None and parse_sample("  ", 5) is None
+    assert parse_sample("# note", 3) is None
+    assert parse_sample("1.5;2", 2) == (1.5, 2.0) and parse_sample("1.5\t2", 2) == (1.5, 2.0)
+    with pytest.raises(InputError, match="feed line 7"):
+        parse_sample("1.5,nan", 7, "feed")
+    with pytest.raises(InputError, match="stdin line 2"):
+        parse_sample("1.5", 2)

@@ -131,6 +131,37 @@ def replay(t_s, amplitude, estimator: StreamingVolumeEstimator, clock=time.perf_
     return vol, secs
 
 
+def parse_sample(line: str, lineno: int, source: str = "stdin") -> tuple[float, float] | None:
+    """One live sample from a text line ``t_s,amplitude`` (comma, semicolon, tab or space separated);
+    None for a blank line, a ``#`` comment or a header; InputError naming ``source`` and the line
+    number for anything else that is not two finite numbers."""
+    text = line.strip()
+    if not text or text.startswith("#"):
+        return None
+    parts = [p for p in text.replace(";", ",").replace("\t", ",").replace(" ", ",").split(",") if p]
+    try:
+        t, x = (float(v) for v in parts[:2]) if len(parts) >= 2 else (None, None)
+    except ValueError:
+        if lineno == 1:  # a header line
+            return None
+        raise InputError(f"{source} line {lineno}: expected 't_s,amplitude', got {text[:60]!r}") from None
+    if t is None or not (math.isfinite(t) and math.isfinite(x)):
+        raise InputError(f"{source} line {lineno}: expected two finite numbers 't_s,amplitude', got {text[:60]!r}")
+    return t, x
+
+
+def stream_lines(lines, estimator: StreamingVolumeEstimator, source: str = "stdin"):
+    """Drive ``estimator`` with text lines as they arrive (:func:`parse_sample`); yields one
+    :class:`StreamSample` per sample, at once (no look-ahead, no buffering)."""
+    for lineno, line in enumerate(lines, 1):
+        sample = parse_sample(line, lineno, source)
+        if sample is not None:
+            try:
+                yield estimator.update(*sample)
+            except InputError as exc:
+                raise InputError(f"{source} line {lineno}: {exc}") from None
+
+
 def signal_delay_s(t_s, reference, estimate, max_lag_s: float = 1.0) -> float:
     """Lag (s) of ``estimate`` behind ``reference`` maximising their correlation (uniform t_s)."""
     t = np.asarray(t_s, float)

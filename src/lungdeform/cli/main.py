@@ -35,6 +35,7 @@ COMMAND_MODULES = [
     "lungdeform.cli.breathe",
     "lungdeform.cli.validate_breathing",
     "lungdeform.cli.validate_prediction",
+    "lungdeform.cli.stream",
     "lungdeform.cli.fit",
     "lungdeform.cli.validate_itk",
     "lungdeform.cli.cohort",

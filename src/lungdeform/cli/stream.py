@@ -1,0 +1,42 @@
+"""``lungdeform stream [TRACE | -] [--predict-ms H]``: the streaming volume estimate, one line per sample.
+
+Reads samples ``t_s,amplitude`` from standard input as they arrive (``-``, the default) or replays a
+recorded trace (any file ``lungdeform breathe`` reads), and writes ``t_s,volume_ml,ahead_s`` per sample
+to standard output at once, for a renderer or a beam controller downstream. With ``--predict-ms H`` each
+volume is the one predicted for ``t_s + H`` ms (:mod:`lungdeform.breathing.predict`), cancelling that
+much display or beam latency (docs/PREDICTION.md).
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import typer
+
+from lungdeform.breathing.stream import StreamingVolumeEstimator, stream_lines
+from lungdeform.breathing.trace import read_trace
+
+
+def register(apps) -> None:
+    @apps.root.command("stream")
+    def stream(
+        source: str = typer.Argument("-", help="A trace file to replay, or - to read 't_s,amplitude' lines from stdin."),
+        predict_ms: float = typer.Option(0.0, "--predict-ms", help="Play the volume predicted this many ms ahead."),
+        tidal_volume_ml: float = typer.Option(500.0, "--tidal-volume-ml", help="Volume of one breath (mL)."),
+        v_ee_ml: float = typer.Option(2400.0, "--v-ee-ml", help="End-exhale lung volume (mL)."),
+        window_s: float = typer.Option(10.0, "--window-s", help="Calibration window (s): two or more breaths."),
+    ):
+        """Volume per sample from a live breathing signal (stdin) or a recorded trace, optionally predicted ahead."""
+
+        est = StreamingVolumeEstimator(tidal_volume_ml=tidal_volume_ml, v_ee_ml=v_ee_ml, window_s=window_s,
+                                       predict_ms=predict_ms)
+        if source == "-":
+            samples = stream_lines(sys.stdin, est)
+        else:
+            tr = read_trace(Path(source))
+            samples = (est.update(t, x) for t, x in zip(tr.t_s, tr.amplitude))
+        typer.echo("t_s,volume_ml,ahead_s")
+        for s in samples:
+            typer.echo(f"{s.t_s:.6g},{s.volume_ml:.3f},{s.ahead_s:g}")
+            sys.stdout.flush()
