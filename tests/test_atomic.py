@@ -2,7 +2,7 @@
 
 import pytest
 
-from lungdeform.atomic import atomic_path, write_json, write_text
+from lungdeform.atomic import atomic_dir, atomic_path, write_json, write_text
 
 
 def test_success_replaces_and_cleans_up(tmp_path):
@@ -58,3 +58,21 @@ def test_finite_json_makes_strict_json():
     back = json.loads(text, parse_constant=lambda c: (_ for _ in ()).throw(ValueError(c)))
     assert back == {"a": None, "b": [1.0, None, 2.5], "c": [None, 3.0], "d": "x", "e": 4}
     assert not math.isnan(back["b"][2])
+
+
+def test_atomic_dir_publishes_whole_or_nothing(tmp_path):
+    # a folder written through atomic_dir appears only complete; a failure inside leaves the previous
+    # folder as it was and no temporary folder beside it
+    out = tmp_path / "set"
+    with atomic_dir(out) as tmp:
+        (tmp / "a.txt").write_text("1")
+        assert not out.exists()
+    assert [p.name for p in out.iterdir()] == ["a.txt"]
+    with pytest.raises(RuntimeError):
+        with atomic_dir(out) as tmp:
+            (tmp / "b.txt").write_text("2")
+            raise RuntimeError("stopped")
+    assert [p.name for p in out.iterdir()] == ["a.txt"] and [p.name for p in tmp_path.iterdir()] == ["set"]
+    with atomic_dir(out) as tmp:
+        (tmp / "c.txt").write_text("3")
+    assert [p.name for p in out.iterdir()] == ["c.txt"] and [p.name for p in tmp_path.iterdir()] == ["set"]

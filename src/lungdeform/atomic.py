@@ -1,7 +1,8 @@
-"""Atomic file writes: write to a temporary file beside the target, then rename.
+"""Atomic file and folder writes: write to a temporary file (folder) beside the target, then rename.
 
-A failure (an exception, Ctrl-C) leaves no half-written output: the temporary file is removed and
-any previous file at the target is untouched.
+A failure (an exception, Ctrl-C) leaves no half-written output: the temporary file or folder is
+removed and any previous file or folder at the target is untouched. Files and folders get the
+ordinary permissions of the umask (not the 0600/0700 of :mod:`tempfile`).
 """
 
 from __future__ import annotations
@@ -9,7 +10,9 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 import tempfile
+import uuid
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
@@ -33,13 +36,56 @@ def atomic_path(path, suffix: str | None = None) -> Iterator[Path]:
     os.close(fd)
     try:
         yield Path(tmp)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the file ordinary permissions
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp creates 0600; give the file ordinary permissions
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def _umask() -> int:
+    """The process umask (read by setting and restoring it)."""
+    umask = os.umask(0)
+    os.umask(umask)
+    return umask
+
+
+@contextmanager
+def atomic_dir(path) -> Iterator[Path]:
+    """Yield a fresh hidden folder beside ``path`` (mode ``0o777 & ~umask``, like ``mkdir``); on
+    success it is renamed to ``path`` (:func:`replace_dir`), so that ``path`` holds the whole set or
+    its previous content; on failure (an exception, Ctrl-C) it is removed."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent))
+    except OSError as exc:  # name the output the user asked for, not the hidden temporary folder
+        raise OSError(exc.errno, exc.strerror, str(path)) from exc
+    try:
+        os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp creates 0700
+        yield tmp
+        replace_dir(tmp, path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def replace_dir(src, dst) -> None:
+    """Rename the complete folder ``src`` to ``dst``; a previous ``dst`` is moved aside first (and
+    put back if the rename fails) and removed after, so ``dst`` never holds a mix of the two."""
+    src, dst = Path(src), Path(dst)
+    old = None
+    if dst.exists() or dst.is_symlink():
+        old = dst.parent / f".{dst.name}.old.{uuid.uuid4().hex[:12]}"
+        os.rename(dst, old)
+    try:
+        os.rename(src, dst)
+    except BaseException:
+        if old is not None:
+            os.rename(old, dst)
+        raise
+    if old is not None:
+        old.unlink() if old.is_symlink() or not old.is_dir() else shutil.rmtree(old, ignore_errors=True)
 
 
 def write_bytes(path, data: bytes) -> Path:

@@ -160,3 +160,36 @@ def test_build_refuses_sides_it_cannot_tell(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "cannot tell the sides of 3 surfaces" in err[0]
     assert not (tmp_path / "a.npz").exists() and not (tmp_path / "b.npz").exists()
+
+
+def _mask_file(path, a, spacing=(4.0, 4.0, 4.0)):
+    import SimpleITK as sitk
+
+    img = sitk.GetImageFromArray(a.astype(np.uint8))
+    img.SetSpacing(spacing)
+    sitk.WriteImage(img, str(path))
+    return path
+
+
+def test_build_warns_when_the_mask_fills_the_image(tmp_path, capsys):
+    # a mask that is the whole image (touching all six faces) used to build without a word; the
+    # lung is cut by the border, so build still works but says so on stderr, naming the file
+    a = np.ones((20, 25, 15), np.uint8)  # 60 x 100 x 80 mm: lung-sized
+    path = _mask_file(tmp_path / "full.nii.gz", a)
+    out = tmp_path / "m.npz"
+    assert main(["build", str(path), "--side", "right", "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert f"warning: {path}: the mask touches the image border on faces i-low, i-high, j-low" in err
+    assert "the lung may be cropped" in err and out.exists()
+
+
+def test_build_refuses_two_equal_blobs(tmp_path, capsys):
+    # two equal 12-voxel cubes of 4 mm (110.6 mL each): one used to be dropped silently
+    a = np.zeros((16, 16, 34), np.uint8)
+    a[2:14, 2:14, 2:14] = 1
+    a[2:14, 2:14, 20:32] = 1
+    path = _mask_file(tmp_path / "pair.nii.gz", a)
+    out = tmp_path / "m.npz"
+    _fails(["build", str(path), "--side", "right", "--out", str(out)], capsys,
+           "pair.nii.gz", "kept 111 mL; would drop 111 mL", "two lungs in one label?", "--labels")
+    assert not out.exists() and list(tmp_path.iterdir()) == [path]  # nothing half-written

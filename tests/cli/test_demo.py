@@ -13,6 +13,7 @@ from lungdeform.constants import STEPS_PER_S
 from lungdeform.geometry.mesh import signed_volume
 from lungdeform.io.modelfile import load_model
 from lungdeform.model.displacement import scale_for_volume
+from lungdeform.playback import demo as demo_module
 
 
 def test_demo_plays_the_normal_preset_and_writes_everything(tmp_path, capsys):
@@ -126,3 +127,46 @@ def test_demo_refuses_absurd_settings_before_writing(tmp_path, capsys, args, mes
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0]
     assert not out.exists()
+
+
+def _boom(*_a, **_k):
+    raise RuntimeError("killed midway")
+
+
+def test_demo_killed_midway_leaves_no_folder(tmp_path, capsys, monkeypatch):
+    # the snapshot is the last step: model.npz, summary.json and the series are written by then.
+    # A run stopped there used to leave D with part of the set and nothing marking it incomplete;
+    # now the set is built in a hidden sibling folder that is removed, and D never appears
+    monkeypatch.setattr(demo_module, "_snapshot", _boom)
+    out = tmp_path / "D"
+    with pytest.raises(RuntimeError, match="killed midway"):
+        main(["demo", "--out", str(out)])
+    assert list(tmp_path.iterdir()) == []  # no D, no temporary folder
+
+
+def test_demo_replaces_a_previous_demo_only_at_the_end(tmp_path, capsys, monkeypatch):
+    out = tmp_path / "D"
+    assert main(["demo", "--out", str(out), "--duration", "1"]) == 0
+    before = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    # a second run (another preset) that fails at its last step leaves the first set as it was
+    monkeypatch.setattr(demo_module, "_snapshot", _boom)
+    with pytest.raises(RuntimeError):
+        main(["demo", "--out", str(out), "--preset", "dyspnoea", "--duration", "1"])
+    after = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    assert after == before and [p.name for p in tmp_path.iterdir()] == ["D"]
+    # and one that finishes replaces it as a whole
+    monkeypatch.undo()
+    assert main(["demo", "--out", str(out), "--preset", "dyspnoea", "--duration", "1"]) == 0
+    assert json.loads((out / "summary.json").read_text())["breathing"]["preset"] == "dyspnoea"
+    assert [p.name for p in tmp_path.iterdir()] == ["D"]
+
+
+def test_demo_refuses_a_folder_with_other_files(tmp_path, capsys):
+    # the demo replaces its folder as a whole: a folder holding the user's own files is not its to replace
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "notes.txt").write_text("keep me")
+    assert main(["demo", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(out) in err[0] and "notes.txt" in err[0]
+    assert [p.name for p in out.iterdir()] == ["notes.txt"] and [p.name for p in tmp_path.iterdir()] == ["mine"]

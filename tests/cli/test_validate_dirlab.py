@@ -31,7 +31,10 @@ def test_validate_dirlab_writes_metrics(tmp_path, rng, run, capsys):
         assert c["one_scalar_mean_mm"] < c["no_motion_mean_mm"]
         assert c["heldout_mean_mm"]["lag_landmark"] < c["heldout_mean_mm"]["one_scalar"]
         assert c["best_model_heldout_mean_mm"] == min(c["heldout_mean_mm"].values())
+        # the default model is chosen on the other case (two cases: its best), the best is a diagnostic
+        assert c["default_model"] in c["heldout_mean_mm"] and c["best_model_diagnostic"] == c["best_model"]
     text = capsys.readouterr().out
+    assert "default (other cases)" in text and "best (diagnostic)" in text
     assert "one_scalar" in text and "metrics.json" in text and "direction constant" in text
     assert [p.name for p in out.iterdir()] == ["metrics.json"]  # written atomically, no temp file
 

@@ -290,3 +290,42 @@ def test_full_resolution_surface_is_cleaned_when_needed():
     ball = ((((k - 9.5) / 8) ** 2 + ((j - 9.5) / 6) ** 2 + ((i - 9.5) / 7) ** 2) <= 1).astype(np.uint8)
     res = extract_surface(Image(ball, (10.0, 10.0, 10.0), (0, 0, 0), np.eye(3), "ball.nii.gz"))
     assert not any(n.startswith("cleanup") for n in res.notes)
+
+
+# --------------------------------------------------------------------------- components and border
+def test_two_equal_blobs_refused_naming_file_and_volumes():
+    # two 10-voxel cubes of 2 mm (8 mL each) 4 voxels apart: keeping the "largest" would silently
+    # drop a whole lung-sized half of the mask (two lungs in one label)
+    a = np.zeros((14, 14, 28), np.uint8)
+    a[2:12, 2:12, 2:12] = 1
+    a[2:12, 2:12, 16:26] = 1
+    image = Image(a, (2.0, 2.0, 2.0), (0, 0, 0), np.eye(3), "pair.mha")
+    with pytest.raises(MaskError, match=r"pair\.mha: .*kept 8 mL; would drop 8 mL.*two lungs in one label"):
+        extract_surface(image, smooth_iterations=0)
+
+
+def test_small_speck_dropped_with_its_volume_in_a_note():
+    # a 2-voxel speck of 8 mm³ each = 0.016 mL next to an 8 mL cube: far under 20 %, dropped and noted
+    a = np.zeros((14, 14, 20), np.uint8)
+    a[2:12, 2:12, 2:12] = 1
+    a[5, 5, 16:18] = 1
+    image = Image(a, (2.0, 2.0, 2.0), (0, 0, 0), np.eye(3), "speck.mha")
+    result = extract_surface(image, smooth_iterations=0)
+    assert result.components_dropped == 1
+    assert any("dropped 1 (2 voxels, 0.016 mL in all)" in n for n in result.notes)
+    assert result.warnings == ()  # inside the image: no border warning
+
+
+def test_mask_on_the_border_warns_naming_the_faces():
+    # the corner block of test_mask_touching_the_border... touches i-low, j-low and both k faces
+    # (it spans all 8 slices); a whole-image mask touches all six and is named as such
+    a = np.zeros((8, 14, 20), np.uint8)
+    a[:, :10, :12] = 1
+    image = Image(a, (2.0, 2.0, 2.0), (0, 0, 0), np.eye(3), "block.mha")
+    result = extract_surface(image, smooth_iterations=0)
+    assert result.warnings == ("the mask touches the image border on faces i-low, j-low, k-low, k-high; "
+                               "the lung may be cropped",)
+    assert result.report.warnings == result.warnings
+    full = extract_surface(Image(np.ones((8, 14, 20), np.uint8), (2.0, 2.0, 2.0), (0, 0, 0), np.eye(3), "all.mha"))
+    assert "faces i-low, i-high, j-low, j-high, k-low, k-high" in full.warnings[0]
+    assert "whole image is foreground" in full.warnings[0]

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import os
+import stat
 import struct
 import xml.etree.ElementTree as ET
 
@@ -213,6 +215,18 @@ def test_pvd_time_series(model, tmp_path):
     E.export_pvd(model, path, S.plain_cycle(500, 2.0), fps=5)
     assert len(list((tmp_path / "series_frames").iterdir())) == 2 * 11
     assert sorted(p.name for p in tmp_path.iterdir()) == ["series.pvd", "series_frames"]
+
+
+def test_pvd_frames_folder_follows_the_umask(model, tmp_path):
+    # every other output is created with the umask's permissions; the frames folder was a
+    # tempfile.mkdtemp renamed into place and kept its 0700 (others could read the .pvd, not its frames)
+    old = os.umask(0o022)
+    try:
+        path = E.export_pvd(model, tmp_path / "s.pvd", S.plain_cycle(500, 1.0), fps=2)
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE((tmp_path / "s_frames").stat().st_mode) == 0o755  # 0o777 & ~0o022, as mkdir
+    assert stat.S_IMODE(path.stat().st_mode) == 0o644
 
 
 def test_pvd_frames_readable_by_lungdeform_io(model, tmp_path):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import http.client
 import json
+import socket
 
 import numpy as np
 import pytest
@@ -153,3 +154,14 @@ def test_missing_bundle_and_bad_port(glb, tmp_path):
         ViewerServer(glb, bundle=tmp_path)
     with pytest.raises(InputError, match="port"):
         ViewerServer(glb, port=70000)
+
+
+def test_port_in_use_names_the_address_and_the_option(glb):
+    # a listening socket holds the port: binding again fails with EADDRINUSE, which used to reach
+    # the user as a bare "Address already in use" without saying which address or what to do
+    with socket.socket() as held:
+        held.bind(("127.0.0.1", 0))
+        held.listen()
+        port = held.getsockname()[1]
+        with pytest.raises(InputError, match=rf"cannot serve on 127\.0\.0\.1:{port}: .*--port"):
+            ViewerServer(glb, port=port)

@@ -304,3 +304,27 @@ def make_archive_1_10(root: Path, rng, spacing_rows=(1, 2, 3, 4, 5)) -> dict[int
                    for c in spacing_rows)
     (root / "voxel_spacing.csv").write_text("case,dim_x,dim_y,dim_z,spacing_x_mm,spacing_y_mm,spacing_z_mm\n" + rows)
     return truth
+
+
+def _result(case: int, held: dict) -> "D.CaseResult":
+    """A CaseResult with only the held-out means that model choice reads."""
+    best = min(held, key=held.get) if held else None
+    return D.CaseResult(case, 300, None, None, 75, {}, None, None, {}, held, best,
+                        held.get(best) if held else None, best, None)
+
+
+def test_default_model_is_chosen_on_the_other_cases():
+    # hand-made held-out means (mm). Leave-one-case-out, by hand:
+    #   case 1: others 2, 3 -> a 3.0, b 1.55 -> b (2.5 on case 1; its own best a 0.5 is the diagnostic)
+    #   case 2: others 1, 3 -> a 1.75, b 2.05 -> a (3.0 on case 2)
+    #   case 3: others 1, 2 -> a 1.75, b 2.0 -> a (3.0 on case 3)
+    # case 4 has no 75-point phases: no default, and no say in the others' choice
+    results = [_result(1, {"a": 0.5, "b": 2.5}), _result(2, {"a": 3.0, "b": 1.5}),
+               _result(3, {"a": 3.0, "b": 1.6}), _result(4, {})]
+    assert D.default_models(results) == {1: ("b", 2.5), 2: ("a", 3.0), 3: ("a", 3.0), 4: (None, None)}
+    # pooled over all three: a 6.5/3 = 2.167, b 5.6/3 = 1.867 -> b
+    pooled = D.pooled_choice(results)
+    assert pooled["model"] == "b" and pooled["cases"] == [1, 2, 3]
+    assert pooled["mean_of_case_means_mm"] == pytest.approx({"a": 6.5 / 3, "b": 5.6 / 3})
+    # one case alone: no other case to choose on
+    assert D.default_models(results[:1]) == {1: (None, None)}

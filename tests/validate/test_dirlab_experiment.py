@@ -21,7 +21,16 @@ def test_run_evaluates_every_case_and_records_metrics(tmp_path, rng):
         files = run.discovery.cases[r.case]
         assert r.to_dict() == D.evaluate_case(D.load_case(files), files.dims, folds=3).to_dict()
     m = run.metrics()
-    assert list(m) == ["cases", "skipped", "hypotheses", "notes", "conventions", "source", "elapsed_s"]
+    assert list(m) == ["cases", "skipped", "model_selection", "hypotheses", "notes", "conventions", "source",
+                       "elapsed_s"]
+    # two cases: each one's default model is the best held-out model of the other case
+    for case, other in (("1", "2"), ("2", "1")):
+        c, o = m["cases"][case], m["cases"][other]
+        assert c["default_model"] == min(o["heldout_mean_mm"], key=o["heldout_mean_mm"].get)
+        assert c["default_model_heldout_mean_mm"] == c["heldout_mean_mm"][c["default_model"]]
+        assert c["best_model_diagnostic"] == c["best_model"]
+    assert m["model_selection"]["pooled"]["cases"] == [1, 2]
+    assert "leave-one-case-out" in m["conventions"]["default_model"]
     # one-scalar motion without noise: the one-scalar model is exact in every case
     assert all(c["one_scalar_mean_mm"] < 1e-5 for c in m["cases"].values())
     assert m["cases"]["2"]["spacing_mm"] == [1.16, 1.16, 2.5]  # case 2's row of voxel_spacing.csv

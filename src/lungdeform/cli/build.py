@@ -50,6 +50,8 @@ def register(apps) -> None:
                                            target_vertices=target_vertices, progress=say):
                 for line in report.repairs:
                     say(f"{surface.name}: {line}")
+                for line in report.warnings:  # suspicious but usable: printed also without --verbose
+                    typer.echo(f"warning: {src}: {line}", err=True)
                 loaded.append((src, surface))
         with option_names({"sides": "--side"}):
             sides = resolve_sides([s for _, s in loaded], side, check=side_check)

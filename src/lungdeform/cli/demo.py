@@ -9,7 +9,7 @@ import typer
 from lungdeform.errors import InputError
 from lungdeform.playback.demo import run_demo
 
-from .common import check_tidal_ml, output_dir, parse_orientation, say
+from .common import check_tidal_ml, parse_orientation, say
 
 #: Longest playback the demo writes (s): its ParaView series is 20 files (~2.7 MB) per second.
 MAX_DURATION_S = 300.0
@@ -32,8 +32,7 @@ def register(apps) -> None:
                              "20 mesh files per second of playback; for long playback use 'lungdeform export "
                              "--format glb --preset NAME --cycles N' (one file)")
         gravity = parse_orientation(orientation)
-        folder = output_dir(out)
-        r = run_demo(folder, preset=preset, duration_s=duration_s, tidal_ml=tidal_ml,
+        r = run_demo(out, preset=preset, duration_s=duration_s, tidal_ml=tidal_ml,
                      orientation=gravity, progress=say)
         b = r.summary_data["breathing"]
         typer.echo(f"breathing: preset '{b['preset']}' ({b['description']}), {r.summary_data['duration_s']:g} s "

@@ -7,7 +7,7 @@ from pathlib import Path
 import typer
 
 from lungdeform.errors import InputError
-from lungdeform.validate.dirlab import MODELS
+from lungdeform.validate.dirlab import MODELS, default_models
 from lungdeform.validate.dirlab_experiment import DirlabRun, run_dirlab, write_metrics
 
 from .common import output_dir
@@ -46,11 +46,13 @@ def _print_table(run: DirlabRun) -> None:
     names = list(MODELS)
     short = {m: m.replace("_landmark", "_lm").replace("_region", "_rg").replace("two_component", "two_comp") for m in names}
     typer.echo("DIR-Lab, mean errors in mm over T10–T40 (75 landmarks). T00 = end-inhale, T50 = end-exhale:")
-    typer.echo("T10–T40 are exhale phases; the held-out columns leave one phase out.")
+    typer.echo("T10–T40 are exhale phases; the held-out columns leave one phase out. default: the model chosen on the")
+    typer.echo("other cases (leave one case out); best: chosen on the case's own held-out errors (optimistic).")
     head = f"{'case':>4} {'300 mean':>8} {'publ.':>6} {'none':>6} {'1 scal':>6} {'floor':>6} | " + " ".join(
         f"{short[m]:>9}" for m in names
-    ) + " | best"
+    ) + " | default (other cases) | best (diagnostic)"
     typer.echo(head)
+    defaults = default_models(list(run.results))
     for r in run.results:
         disp = "-" if r.mean_displacement_300_mm is None else f"{r.mean_displacement_300_mm:.2f}"
         pub = "-" if r.published_300_mm is None else f"{r.published_300_mm:.2f}"
@@ -61,7 +63,11 @@ def _print_table(run: DirlabRun) -> None:
             f"{r.case:>4} {disp:>8} {pub:>6} {r.no_motion_mean_mm:>6.2f} {r.one_scalar_mean_mm:>6.2f} "
             f"{r.rounding_floor_mm:>6.2f} | "
             + " ".join(f"{r.heldout_mean_mm[m]:>9.3f}" for m in names)
-            + f" | {r.best_model} ({r.best_model_heldout_mean_mm:.3f})"
+            + f" | {_named(*defaults[r.case])} | {_named(r.best_model, r.best_model_heldout_mean_mm)}"
         )
     for case, why in sorted(run.discovery.skipped.items()):
         typer.echo(f"{case:>4}   (skipped: {why.split(': skipped: ', 1)[-1]})")
+
+
+def _named(model: str | None, mm: float | None) -> str:
+    return "-" if model is None else f"{model} ({mm:.3f})"

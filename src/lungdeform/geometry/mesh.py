@@ -211,13 +211,15 @@ def non_manifold_vertices(faces: np.ndarray, n_vertices: int) -> np.ndarray:
 # --------------------------------------------------------------------------- checks
 @dataclass(frozen=True)
 class SurfaceReport:
-    """What :func:`check_surface` found and, with ``repair=True``, what it changed."""
+    """What :func:`check_surface` found and, with ``repair=True``, what it changed; ``warnings``:
+    suspicious but usable input found by the caller (e.g. a mask cropped by the image border)."""
 
     n_vertices: int
     n_faces: int
     volume_mm3: float
     area_mm2: float
     repairs: tuple[str, ...] = field(default_factory=tuple)
+    warnings: tuple[str, ...] = field(default_factory=tuple)
 
     @property
     def volume_ml(self) -> float:

@@ -4,11 +4,15 @@ Pipeline of :func:`extract_surface` (each step says what it fixes):
 
 1. select the voxels of the requested labels (None = any non-zero);
 2. crop to their bounding box (speed only);
-3. keep the largest 6-connected component (stray islands would become extra surface pieces);
+3. keep the largest 6-connected component (stray islands would become extra surface pieces); a
+   dropped component larger than :data:`MAX_DROPPED_FRACTION` of the kept one is refused
+   (:class:`MaskError`: two lungs in one label, say), smaller specks are reported in a note with
+   their total volume;
 4. fill internal cavities (vessels or airways left out of a lung mask would become inner
    surfaces; the model needs the outer lung surface only);
 5. pad by one background voxel, so that the surface is closed where the mask touches the volume
-   border (the ITK example masks touch the cropped medial face);
+   border (the ITK example masks touch the cropped medial face); the faces it touches are named
+   in a warning (the lung may be cropped there);
 6. marching cubes (scikit-image, Lewiner, level 0.5) in voxel index space, then index → world mm
    LPS through spacing, direction and origin (:func:`lungdeform.io.image.index_to_world`); faces are
    flipped if needed so that the signed volume is positive (outward), which also covers
@@ -46,6 +50,10 @@ from .image import Image, index_to_world
 #: Lobe label maps (coronacases convention): 1 left upper, 2 left lower, 3 right upper,
 #: 4 right middle, 5 right lower lobe.
 LOBE_LABELS: dict[str, tuple[int, ...]] = {"left": (1, 2), "right": (3, 4, 5)}
+
+#: A dropped mask component larger than this fraction of the kept (largest) one is refused rather
+#: than dropped: it is lung, not a speck (two lungs in one label, or a lung split by the mask).
+MAX_DROPPED_FRACTION = 0.2
 
 
 # =========================================================================== labels
@@ -146,8 +154,9 @@ class MaskSurface:
     """Result of :func:`extract_surface`.
 
     ``surface`` passed :func:`check_surface`; ``report`` is that check's report with ``notes``
-    (what the pipeline changed) as its repairs; ``timings`` are seconds per stage (mask,
-    marching_cubes, smooth, decimate, check).
+    (what the pipeline changed) as its repairs and ``warnings`` (suspicious but usable input: the
+    mask touches the image border) as its warnings; ``timings`` are
+    seconds per stage (mask, marching_cubes, smooth, decimate, check).
     """
 
     surface: Surface
@@ -156,6 +165,7 @@ class MaskSurface:
     components_dropped: int
     voxels_filled: int
     timings: dict[str, float] = field(default_factory=dict)
+    warnings: tuple[str, ...] = ()
 
 
 def mask_to_surface(
@@ -202,7 +212,8 @@ def extract_surface(
     t0 = time.perf_counter()
     fg = _foreground(image.array, labels, source, what)
     notes: list[str] = []
-    fg, lo, dropped, n_filled = _prepared_mask(fg, notes)
+    warnings = border_warnings(fg)
+    fg, lo, dropped, n_filled = _prepared_mask(fg, notes, _Context(source, what, _voxel_ml(image)))
     t["mask"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -229,8 +240,38 @@ def extract_surface(
     t0 = time.perf_counter()
     v, f, report = _checked_surface(v, f, source, what, notes)
     t["check"] = time.perf_counter() - t0
-    report = dataclasses.replace(report, repairs=tuple(notes))
-    return MaskSurface(Surface(v, f, name), report, tuple(notes), dropped, n_filled, t)
+    report = dataclasses.replace(report, repairs=tuple(notes), warnings=tuple(warnings))
+    return MaskSurface(Surface(v, f, name), report, tuple(notes), dropped, n_filled, t, tuple(warnings))
+
+
+@dataclass(frozen=True)
+class _Context:
+    """What :func:`_prepared_mask` needs to word its errors and notes."""
+
+    source: str
+    what: str
+    voxel_ml: float
+
+
+def _voxel_ml(image: Image) -> float:
+    """Volume of one voxel of ``image`` (mL; spacing in mm, a rotation direction keeps volume)."""
+    return float(np.prod(np.asarray(image.spacing, dtype=float))) / 1000.0
+
+
+def border_warnings(fg: np.ndarray) -> list[str]:
+    """A one-item list naming the image border faces that ``fg : (z, y, x) bool`` touches (voxel
+    index axes i, j, k = x, y, z; low = index 0), or ``[]``: a lung cut by the border is cropped
+    there, and its model would have a flat face that does not move like lung."""
+    faces = []
+    for name, np_axis in (("i", 2), ("j", 1), ("k", 0)):
+        n = fg.shape[np_axis]
+        for side, idx in (("low", 0), ("high", n - 1)):
+            if np.take(fg, idx, axis=np_axis).any():
+                faces.append(f"{name}-{side}")
+    if not faces:
+        return []
+    whole = " (the whole image is foreground: is this a lung mask?)" if fg.all() else ""
+    return [f"the mask touches the image border on faces {', '.join(faces)}; the lung may be cropped{whole}"]
 
 
 def _foreground(a: np.ndarray, labels, source: str, what: str) -> np.ndarray:
@@ -252,10 +293,10 @@ def _foreground(a: np.ndarray, labels, source: str, what: str) -> np.ndarray:
     return fg
 
 
-def _prepared_mask(fg: np.ndarray, notes: list[str]) -> tuple[np.ndarray, np.ndarray, int, int]:
+def _prepared_mask(fg: np.ndarray, notes: list[str], ctx: _Context) -> tuple[np.ndarray, np.ndarray, int, int]:
     """Steps 2–5 on ``fg : (z, y, x) bool``: ``(padded mask, lo (3,) int, components dropped, voxels
     filled)``; ``lo`` is the (z, y, x) index of the crop's first voxel (before the one-voxel pad).
-    What was changed is appended to ``notes``."""
+    What was changed (dropped specks with their volume, filled cavities) is appended to ``notes``."""
     idx = np.nonzero(fg.any(axis=(1, 2)))[0], np.nonzero(fg.any(axis=(0, 2)))[0], np.nonzero(fg.any(axis=(0, 1)))[0]
     lo = np.array([x[0] for x in idx])
     hi = np.array([x[-1] for x in idx]) + 1
@@ -266,18 +307,32 @@ def _prepared_mask(fg: np.ndarray, notes: list[str]) -> tuple[np.ndarray, np.nda
     if n > 1:
         sizes = np.bincount(lab.ravel())[1:]
         keep = int(np.argmax(sizes)) + 1
+        _check_dropped(np.delete(sizes, keep - 1), int(sizes[keep - 1]), ctx)
         fg = lab == keep
         dropped = n - 1
-        notes.append(
-            f"kept the largest of {n} mask components; dropped {dropped} "
-            f"({int(sizes.sum() - sizes[keep - 1])} voxels)"
-        )
+        n_vox = int(sizes.sum() - sizes[keep - 1])
+        notes.append(f"kept the largest of {n} mask components ({sizes[keep - 1] * ctx.voxel_ml:.0f} mL); dropped "
+                     f"{dropped} ({n_vox} voxels, {n_vox * ctx.voxel_ml:.3g} mL in all)")
     del lab
     filled = ndimage.binary_fill_holes(fg)
     n_filled = int(filled.sum() - fg.sum())
     if n_filled:
         notes.append(f"filled {n_filled} voxels of internal cavities")
     return np.pad(filled, 1), lo, dropped, n_filled
+
+
+def _check_dropped(others: np.ndarray, kept: int, ctx: _Context) -> None:
+    """:class:`MaskError` when a component other than the kept one (``others``, voxel counts) is
+    larger than :data:`MAX_DROPPED_FRACTION` of the ``kept`` one: dropping it would lose lung."""
+    big = np.sort(others[others > MAX_DROPPED_FRACTION * kept])[::-1]
+    if big.size == 0:
+        return
+    ml = ", ".join(f"{x * ctx.voxel_ml:.0f}" for x in big[:3]) + (", …" if big.size > 3 else "")
+    raise MaskError(
+        f"{ctx.source}: {ctx.what} has {big.size + 1} large separate components (kept {kept * ctx.voxel_ml:.0f} mL; "
+        f"would drop {ml} mL, over {MAX_DROPPED_FRACTION:.0%} of it): two lungs in one label? "
+        "select one lung per surface (--labels) or split the mask"
+    )
 
 
 def _marching_cubes_world(fg: np.ndarray, lo: np.ndarray, image: Image, what: str,

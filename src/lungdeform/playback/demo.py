@@ -17,16 +17,18 @@ how far the paper's linear reading ``s = share·ΔV/unit_ml`` would be from the 
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
-from lungdeform.atomic import write_json
+from lungdeform.atomic import atomic_dir, write_json
 from lungdeform.breathing.presets import get_preset
 from lungdeform.constants import STEPS_PER_S
 from lungdeform.data import default_lungs
+from lungdeform.errors import InputError
 from lungdeform.io.modelfile import save_model
 from lungdeform.model.displacement import enclosed_volume_ml, volume_change_ml
 from lungdeform.model.lung import build_model
@@ -119,15 +121,45 @@ def run_demo(
     series_fps: float = 10.0,
     progress: Callable[[str], None] | None = None,
 ) -> DemoResult:
-    """Build the default lungs and play ``preset`` (one period unless ``duration_s``) into ``out``."""
+    """Build the default lungs and play ``preset`` (one period unless ``duration_s``) into ``out``.
+
+    The set is written atomically (:func:`lungdeform.atomic.atomic_dir`): into a hidden temporary
+    folder beside ``out``, renamed to ``out`` at the end, so that ``out`` holds the whole set or does
+    not exist; a previous demo there is replaced only at the end. An ``out`` holding anything but
+    a demo's files (:data:`DEMO_FILES`) is refused (:class:`InputError`) rather than replaced.
+    """
 
     say = progress or (lambda _m: None)
     chosen = get_preset(preset)
     params, _curve, trace = preset_trace(chosen, 1, tidal_ml, STEPS_PER_S, duration_s=duration_s)
+    out = Path(out)
+    check_replaceable(out)
+    with atomic_dir(out) as tmp:
+        result = _run_into(tmp, chosen, params, trace, tidal_ml, orientation, series_fps, say)
+    final = {k: out / getattr(result, k).relative_to(tmp) for k in ("model", "series", "summary", "snapshot")}
+    return dataclasses.replace(result, **final)
+
+
+#: What a demo folder holds (and all that :func:`run_demo` replaces).
+DEMO_FILES = ("model.npz", "summary.json", "series.pvd", "series_frames", "snapshot.png")
+
+
+def check_replaceable(out: Path) -> None:
+    """:class:`InputError` unless ``out`` is absent, an empty folder or a previous demo's folder."""
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: exists and is not a folder")
+    if out.is_symlink() or (out.exists() and out.resolve() == Path.cwd().resolve()):
+        raise InputError(f"{out}: the demo replaces its output folder as a whole; name a new folder")
+    other = sorted(p.name for p in out.iterdir() if p.name not in DEMO_FILES) if out.is_dir() else []
+    if other:
+        raise InputError(f"{out}: holds other files ({', '.join(other[:3])}{', …' if len(other) > 3 else ''}); "
+                         "the demo replaces its output folder as a whole: name a new or empty folder")
+
+
+def _run_into(out: Path, chosen, params, trace, tidal_ml, orientation, series_fps, say) -> DemoResult:
+    """The demo's steps, writing into the (temporary) folder ``out``."""
     tidal = float(chosen.tidal_volume_ml if tidal_ml is None else tidal_ml)
     duration = float(trace.t_s[-1])
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     say("loading the embedded default lungs (Coronacases 001, CC BY 4.0)")
     model = build_model(default_lungs(), tidal_ml=tidal, gravity=orientation, progress=say,
                         provenance={"command": "demo", "source": "embedded Coronacases 001 lungs",

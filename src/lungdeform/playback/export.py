@@ -62,16 +62,13 @@ The displacement and volume math (targets, volume tensors, exact weights for a v
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import pygltflib as g
 
 from lungdeform import __version__
-from lungdeform.atomic import finite_json, write_bytes
+from lungdeform.atomic import atomic_dir, finite_json, write_bytes
 from lungdeform.constants import GRAVITY
 from lungdeform.errors import InputError, LungdeformError
 from lungdeform.geometry.mesh import vertex_normals
@@ -290,13 +287,8 @@ def export_pvd(model: Model, path, trace: VolumeTrace | None = None, fps: float 
     times = np.linspace(trace.t_s[0], trace.t_s[-1], n)
     dv = trace.sample(times)
     frames_name = f"{path.stem}_frames"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        tmp_dir = Path(tempfile.mkdtemp(prefix=f".{frames_name}.", dir=path.parent))
-    except OSError as exc:  # name the output asked for, not the hidden temporary folder
-        raise OSError(exc.errno, exc.strerror, str(path)) from exc
     entries = []
-    try:
+    with atomic_dir(path.parent / frames_name) as tmp_dir:  # folder mode follows the umask
         for part, (name, lung) in enumerate(model.lungs.items()):
             lam = tidal_weights(lung, shares[name] * dv)
             tidal = tidal_displacement(lung.displacement, lung_units(lung))
@@ -311,17 +303,6 @@ def export_pvd(model: Model, path, trace: VolumeTrace | None = None, fps: float 
                 (tmp_dir / fname).write_bytes(frame)
                 entries.append(f'<DataSet timestep="{t:.6g}" part="{part}" name="{name}" '
                                f'file="{frames_name}/{fname}"/>')
-        final_dir = path.parent / frames_name
-        old = None
-        if final_dir.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{frames_name}.old.", dir=path.parent))
-            os.replace(final_dir, old / "x")
-        os.replace(tmp_dir, final_dir)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
-    except BaseException:
-        shutil.rmtree(tmp_dir, ignore_errors=True)
-        raise
     pvd = ('<?xml version="1.0"?>\n<VTKFile type="Collection" version="1.0" byte_order="LittleEndian">\n'
            "<Collection>\n" + "\n".join(entries) + "\n</Collection>\n</VTKFile>\n")
     write_bytes(path, pvd.encode())

@@ -174,7 +174,12 @@ class ViewerServer:
         body = presets_json() if presets is None else bytes(presets)
         self.routes["/presets.json"] = Resource(body, CONTENT_TYPES[".json"])
         self.log = log
-        self._httpd = ThreadingHTTPServer((host, int(port)), _Handler)
+        try:
+            self._httpd = ThreadingHTTPServer((host, int(port)), _Handler)
+        except OSError as exc:  # port in use, address not on this machine, …: name the address
+            where = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+            raise InputError(f"cannot serve on {where}: {exc.strerror or exc}; pass another --port "
+                             "(0 picks a free one)") from exc
         self._httpd.daemon_threads = True
         self._httpd.owner = self  # type: ignore[attr-defined]
         self.host = host

@@ -35,6 +35,13 @@ Held-out protocol: leave one of T10–T40 out; fit the per-landmark/per-region p
 other three; on the held-out phase fit the global driver(s) on the landmarks of the *other* folds
 (landmark cross-fitting, default 5 folds) and measure each landmark's error. No number that shapes
 a landmark's prediction has seen that landmark at that phase.
+
+Model choice: a case's ``best_model`` (also ``best_model_diagnostic``) is chosen on that case's own
+held-out errors, so its error is optimistic: a diagnostic, not a result. The model a user would run
+on a new case is the *default model* (:func:`default_models`), chosen by leave-one-case-out: for
+each case, the model with the lowest mean over the OTHER cases of their held-out means; that case's
+``default_model_heldout_mean_mm`` is then an honest error. :func:`pooled_choice` gives the model
+chosen on all cases of the run (the default for a case outside it).
 """
 
 from __future__ import annotations
@@ -298,6 +305,7 @@ class CaseResult:
             "heldout_mean_mm": self.heldout_mean_mm,
             "best_model": self.best_model,
             "best_model_heldout_mean_mm": self.best_model_heldout_mean_mm,
+            "best_model_diagnostic": self.best_model,
             "best_single_driver_model": self.best_single_driver_model,
             "rounding_floor_mm": self.rounding_floor_mm,
         }
@@ -342,6 +350,43 @@ def evaluate_case(data: CaseData, dims=None, folds: int = 5, models=MODELS) -> C
         heldout_landmark_mm=per_lm,
         rounding_floor_mm=rounding_floor_mm(data.spacing, list(scal.values())),
     )
+
+
+def _case_means(results, exclude=None) -> dict[str, float]:
+    """``{model: mean over the cases of their held-out means (mm)}`` over ``results`` with models
+    (all but case ``exclude``), for the models every one of them has."""
+    usable = [r for r in results if r.heldout_mean_mm and r.case != exclude]
+    if not usable:
+        return {}
+    models = [m for m in usable[0].heldout_mean_mm if all(m in r.heldout_mean_mm for r in usable)]
+    return {m: float(np.mean([r.heldout_mean_mm[m] for r in usable])) for m in models}
+
+
+def default_models(results: list[CaseResult]) -> dict[int, tuple[str | None, float | None]]:
+    """``{case: (default model, its held-out mean on that case, mm)}`` by leave-one-case-out: the
+    model with the lowest mean of the per-case held-out means over the OTHER cases of ``results``
+    (so the case's own errors play no part in its choice). ``(None, None)`` for a case without
+    models, or when no other case has them (a run of one case)."""
+    out: dict[int, tuple[str | None, float | None]] = {}
+    for r in results:
+        score = {m: v for m, v in _case_means(results, exclude=r.case).items() if m in r.heldout_mean_mm}
+        if not r.heldout_mean_mm or not score:
+            out[r.case] = (None, None)
+            continue
+        choice = min(score, key=score.get)
+        out[r.case] = (choice, r.heldout_mean_mm[choice])
+    return out
+
+
+def pooled_choice(results: list[CaseResult]) -> dict:
+    """The model chosen on all cases of ``results``: ``{"model", "mean_of_case_means_mm": {model:
+    mm}, "cases"}``, the lowest mean of the per-case held-out means (None without models)."""
+    means = _case_means(results)
+    return {
+        "model": min(means, key=means.get) if means else None,
+        "mean_of_case_means_mm": means,
+        "cases": [r.case for r in results if r.heldout_mean_mm],
+    }
 
 
 def _gain(a: np.ndarray, b: np.ndarray, n_boot: int, seed: int) -> dict:

@@ -17,7 +17,17 @@ from pathlib import Path
 from lungdeform.atomic import write_bytes
 from lungdeform.errors import InputError
 
-from .dirlab import PUBLISHED_SOURCE, CaseResult, Discovery, discover, evaluate_case, hypothesis_summary, load_case
+from .dirlab import (
+    PUBLISHED_SOURCE,
+    CaseResult,
+    Discovery,
+    default_models,
+    discover,
+    evaluate_case,
+    hypothesis_summary,
+    load_case,
+    pooled_choice,
+)
 
 #: A case's 300-pair mean farther than this from the published one (mm) gets a note.
 PUBLISHED_TOLERANCE_MM = 0.05
@@ -28,6 +38,10 @@ CONVENTIONS = {
     "one_scalar": "x_p = x_T50 + s_p (x_T00 - x_T50), s_p least squares per phase, in-sample",
     "heldout": "leave one of T10-T40 out; drivers fitted on other landmark folds ({folds})",
     "rounding_floor": "mean error of a perfect model given whole-voxel landmark positions",
+    "best_model": "diagnostic (also best_model_diagnostic): chosen on the case's own held-out phases, optimistic",
+    "default_model": "leave-one-case-out: the model with the lowest mean of the per-case held-out means over "
+                     "the OTHER cases of the run; default_model_heldout_mean_mm is its held-out mean on this case "
+                     "(null for a run of one case); model_selection.pooled is the choice on all cases",
 }
 
 
@@ -51,16 +65,21 @@ class DirlabRun:
     elapsed_s: float
 
     def metrics(self) -> dict:
-        """The content of ``metrics.json``: per case its results, spacing and spacing source; the
-        skipped cases; the hypotheses; the notes; the conventions; the data folder; the time (s)."""
+        """The content of ``metrics.json``: per case its results, its default model (leave-one-case-out,
+        :func:`~lungdeform.validate.dirlab.default_models`), spacing and spacing source; the skipped
+        cases; the model chosen on all cases; the hypotheses; the notes; the conventions; the data folder; the time (s)."""
         cases = self.discovery.cases
+        defaults = default_models(list(self.results))
         return {
             "cases": {
-                str(r.case): {**r.to_dict(), "spacing_mm": cases[r.case].spacing.tolist(),
+                str(r.case): {**r.to_dict(), "default_model": defaults[r.case][0],
+                              "default_model_heldout_mean_mm": defaults[r.case][1],
+                              "spacing_mm": cases[r.case].spacing.tolist(),
                               "spacing_source": cases[r.case].spacing_source}
                 for r in self.results
             },
             "skipped": {str(c): why for c, why in sorted(self.discovery.skipped.items())},
+            "model_selection": {"protocol": CONVENTIONS["default_model"], "pooled": pooled_choice(list(self.results))},
             "hypotheses": self.summary,
             "notes": list(self.notes),
             "conventions": {k: v.format(folds=self.folds) for k, v in CONVENTIONS.items()},
