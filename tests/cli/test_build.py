@@ -2,11 +2,13 @@
 
 import numpy as np
 import pytest
+import SimpleITK as sitk
 
 from lungdeform.cli.main import main
 from lungdeform.io.meshfile import write_mesh
 from lungdeform.io.modelfile import load_model
 from tests.conftest import ellipsoid_lung
+from tests.fit.test_lungsplit import two_lungs
 
 
 @pytest.fixture
@@ -160,3 +162,29 @@ def test_build_refuses_sides_it_cannot_tell(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "cannot tell the sides of 3 surfaces" in err[0]
     assert not (tmp_path / "a.npz").exists() and not (tmp_path / "b.npz").exists()
+
+
+def _write_mask(image, path):
+    im = sitk.GetImageFromArray(np.asarray(image.array))
+    im.SetSpacing(image.spacing.tolist())
+    im.SetOrigin(image.origin.tolist())
+    sitk.WriteImage(im, str(path))
+    return path
+
+
+def test_build_mask_holding_both_lungs(tmp_path, capsys):
+    # truth: the mask holds two touching ellipsoids in one label (tests/fit/test_lungsplit.py);
+    # --side left takes the left one (at +x, the smaller) of the split, not the fused component,
+    # and says so; without --side the mask gives both lungs
+    image, left, right = two_lungs()
+    path = _write_mask(image, tmp_path / "both.nii.gz")
+    voxel_ml = float(np.prod(image.spacing)) / 1000
+    assert main(["build", str(path), "--side", "left", "--target-vertices", "1500",
+                 "--out", str(tmp_path / "left.npz")]) == 0
+    out = capsys.readouterr().out
+    assert "a mask holding both lungs in one label" in out and "took the left lung" in out
+    model = load_model(tmp_path / "left.npz")
+    assert model.names == ["left"]
+    assert model.lungs["left"].volume_ee_ml == pytest.approx(left.sum() * voxel_ml, rel=0.05)
+    assert main(["build", str(path), "--target-vertices", "1500", "--out", str(tmp_path / "both.npz")]) == 0
+    assert sorted(load_model(tmp_path / "both.npz").names) == ["left", "right"]
