@@ -2,11 +2,13 @@
 
 import numpy as np
 import pytest
+import SimpleITK as sitk
 
 from lungdeform.cli.main import main
 from lungdeform.io.meshfile import write_mesh
 from lungdeform.io.modelfile import load_model
 from tests.conftest import ellipsoid_lung
+from tests.fit.test_lungsplit import two_lungs
 
 
 @pytest.fixture
@@ -184,12 +186,39 @@ def test_build_warns_when_the_mask_fills_the_image(tmp_path, capsys):
 
 
 def test_build_refuses_two_equal_blobs(tmp_path, capsys):
-    # two equal 12-voxel cubes of 4 mm (110.6 mL each): one used to be dropped silently
-    a = np.zeros((16, 16, 34), np.uint8)
+    # two equal 12-voxel cubes of 4 mm (110.6 mL each), one above the other (not a left and a right
+    # lung, which the split would take apart): one used to be dropped silently
+    a = np.zeros((34, 16, 16), np.uint8)  # numpy (z, y, x): stacked head to foot
     a[2:14, 2:14, 2:14] = 1
-    a[2:14, 2:14, 20:32] = 1
+    a[20:32, 2:14, 2:14] = 1
     path = _mask_file(tmp_path / "pair.nii.gz", a)
     out = tmp_path / "m.npz"
     _fails(["build", str(path), "--side", "right", "--out", str(out)], capsys,
            "pair.nii.gz", "kept 111 mL; would drop 111 mL", "two lungs in one label?", "--labels")
     assert not out.exists() and list(tmp_path.iterdir()) == [path]  # nothing half-written
+
+
+def _write_mask(image, path):
+    im = sitk.GetImageFromArray(np.asarray(image.array))
+    im.SetSpacing(image.spacing.tolist())
+    im.SetOrigin(image.origin.tolist())
+    sitk.WriteImage(im, str(path))
+    return path
+
+
+def test_build_mask_holding_both_lungs(tmp_path, capsys):
+    # truth: the mask holds two touching ellipsoids in one label (tests/fit/test_lungsplit.py);
+    # --side left takes the left one (at +x, the smaller) of the split, not the fused component,
+    # and says so; without --side the mask gives both lungs
+    image, left, right = two_lungs()
+    path = _write_mask(image, tmp_path / "both.nii.gz")
+    voxel_ml = float(np.prod(image.spacing)) / 1000
+    assert main(["build", str(path), "--side", "left", "--target-vertices", "1500",
+                 "--out", str(tmp_path / "left.npz")]) == 0
+    out = capsys.readouterr().out
+    assert "a mask holding both lungs in one label" in out and "took the left lung" in out
+    model = load_model(tmp_path / "left.npz")
+    assert model.names == ["left"]
+    assert model.lungs["left"].volume_ee_ml == pytest.approx(left.sum() * voxel_ml, rel=0.05)
+    assert main(["build", str(path), "--target-vertices", "1500", "--out", str(tmp_path / "both.npz")]) == 0
+    assert sorted(load_model(tmp_path / "both.npz").names) == ["left", "right"]

@@ -4,12 +4,15 @@ import json
 
 import numpy as np
 import pytest
+import SimpleITK as sitk
 
 from lungdeform.cli.main import main
 from lungdeform.io.meshfile import write_mesh
 from lungdeform.io.modelfile import load_model
 from lungdeform.model.lung import build_lung
+from lungdeform.io.landmarks import write_elastix_points
 from tests.conftest import ellipsoid_lung
+from tests.fit.test_lungsplit import two_lungs
 
 TRUE = np.array([0.2, 1.5, 0.4, 0.8, 0.9, 1.8, 0.3, 1.0, 0.5])
 
@@ -224,3 +227,34 @@ def test_unconverged_fit_is_said_and_zero_evaluations_refused(tmp_path, pair, ca
     # the library names the parameter (max_evaluations); the command says its option
     assert "--evaluations must be a whole number >= 1, got 0" in _one_error_line(capsys)
     assert not (tmp_path / "z").exists()
+
+
+def test_fit_masks_holding_both_lungs_keeps_that_lungs_landmarks(tmp_path, capsys):
+    # truth: two binary masks of both lungs in one label (touching ellipsoids, the second larger:
+    # tests/fit/test_lungsplit.py); --side left fits the left ellipsoid of each split, and of 10
+    # landmark rows (6 in the left lung, 4 in the right) only the 6 left ones are used, said in a note
+    ee, left_ee, _ = two_lungs(source="ee.nii.gz")
+    ei, left_ei, _ = two_lungs(source="ei.nii.gz", scale=(1.05, 1.05, 1.1))
+    paths = []
+    for image, name in ((ee, "ee.nii.gz"), (ei, "ei.nii.gz")):
+        im = sitk.GetImageFromArray(np.asarray(image.array))
+        im.SetSpacing(image.spacing.tolist())
+        im.SetOrigin(image.origin.tolist())
+        sitk.WriteImage(im, str(tmp_path / name))
+        paths.append(str(tmp_path / name))
+    rng = np.random.default_rng(3)
+    lm = np.concatenate([[42.0, 0, 0] + rng.uniform(-1, 1, (6, 3)) * [12, 10, 20],
+                         [-42.0, 0, 0] + rng.uniform(-1, 1, (4, 3)) * [12, 10, 20]])
+    la = write_elastix_points(tmp_path / "ee.txt", lm)
+    lb = write_elastix_points(tmp_path / "ei.txt", lm * [1.0, 1.0, 1.1])
+    out = tmp_path / "out"
+    assert main(["fit", *paths, "--side", "left", "--out", str(out), "--evaluations", "40", "--no-baselines",
+                 "--no-stiffness", "--align", "none", "--landmarks", str(la), "--landmarks", str(lb),
+                 "--folds", "3"]) == 0
+    text = capsys.readouterr().out
+    assert "note: " in text and "a mask holding both lungs in one label" in text
+    assert "kept the 6 landmarks in the left lung; dropped 4 of 10 in the other lung" in text
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["landmark_cv"]["landmarks"] == 6
+    voxel_ml = float(np.prod(ee.spacing)) / 1000
+    assert m["volumes_ml"][0] == pytest.approx(left_ee.sum() * voxel_ml, rel=0.05)

@@ -11,6 +11,7 @@ import SimpleITK as sitk
 from lungdeform.cli import main as cli_main
 from lungdeform.io.image import read_image
 from tests.conftest import require_path
+from tests.fit.test_lungsplit import two_lungs
 from tests.fit.test_segment import phantom
 
 
@@ -157,3 +158,20 @@ def test_dicom_ambiguous_or_missing_series_one_error_line(tmp_path, rng, run, ca
         err = capfd.readouterr().err.strip().splitlines()  # capfd: ITK writes to fd 2 itself
         assert len(err) == 1 and err[0].startswith(f"error: {path}") and message in err[0], err
         assert not out.exists()
+
+
+def test_binary_mask_of_both_lungs_gives_left_and_right(tmp_path, run, capsys):
+    # truth: a binary mask of two touching ellipsoids (tests/fit/test_lungsplit.py) is split, not
+    # segmented as a CT: left_lung holds the +x ellipsoid, right_lung the other, volumes said
+    image, left, right = two_lungs()
+    path = tmp_path / "both.nii.gz"
+    _write_ct(image, path)
+    out = tmp_path / "o"
+    assert run(["segment", str(path), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "a mask holding both lungs in one label" in text and "no airway removal" in text
+    for side, truth in (("left", left), ("right", right)):
+        got = sitk.GetArrayFromImage(sitk.ReadImage(str(out / f"{side}_lung.nii.gz"))) > 0
+        assert (got & truth).sum() / truth.sum() > 0.99 and abs(int(got.sum()) - int(truth.sum())) < 0.03 * truth.sum()
+    report = json.loads((out / "volumes.json").read_text())
+    assert report["details"]["split"]["touching"] is True

@@ -9,8 +9,8 @@ import typer
 
 from lungdeform.constants import gravity_vector
 from lungdeform.errors import InputError
+from lungdeform.fit.lungsplit import load_lungs
 from lungdeform.geometry.frame import resolve_sides
-from lungdeform.io import meshfile as io
 from lungdeform.io.modelfile import provenance, save_model
 from lungdeform.model.lung import build_model
 from lungdeform.model.stiffness import parse_stiffness
@@ -23,7 +23,7 @@ def register(apps) -> None:
     def build(
         sources: list[Path] = typer.Argument(..., help="Mesh files (STL, OBJ, PLY, VTK, VTP, OFF, glTF/GLB) or masks (NIfTI, MHA/MHD, NRRD, DICOM folder)."),
         out: Path = typer.Option(..., "--out", "-o", help="Model file to write (.npz)."),
-        side: Optional[list[str]] = typer.Option(None, "--side", help="Side of each surface in order: left|right. Default: from label names, from position for two surfaces, or from the shape (the concave medial face) for one."),
+        side: Optional[list[str]] = typer.Option(None, "--side", help="Side of each surface in order: left|right (given once per input, it picks that lung of a mask holding both lungs in one label; without it such a mask gives both lungs). Default: from label names, from position for two surfaces, or from the shape (the concave medial face) for one."),
         labels: Optional[str] = typer.Option(None, "--labels", help="Mask labels: 'lungs' (lobe map → left, right), 'left=1,2;right=3,4,5', or '1,2'."),
         units: str = typer.Option("mm", "--units", help="Units of mesh files: mm, cm or m (converted to mm)."),
         repair: bool = typer.Option(False, "--repair", help="Repair fixable surface defects and report them."),
@@ -45,9 +45,14 @@ def register(apps) -> None:
         if target_vertices is not None and target_vertices < 100:
             raise InputError(f"--target-vertices must be at least 100, got {target_vertices}")
         loaded = []
-        for src in sources:
-            for surface, report in io.load(src, labels=labels, units=units, repair=repair,
-                                           target_vertices=target_vertices, progress=say):
+        # --side once per source also picks that lung of a mask holding both lungs in one label
+        per_source = side if side and len(side) == len(sources) else [None] * len(sources)
+        for src, src_side in zip(sources, per_source):
+            got, notes = load_lungs(src, src_side, labels=labels, units=units, repair=repair,
+                                    target_vertices=target_vertices, progress=say)
+            for text in notes:
+                typer.echo(f"note: {text}")
+            for surface, report in got:
                 for line in report.repairs:
                     say(f"{surface.name}: {line}")
                 for line in report.warnings:  # suspicious but usable: printed also without --verbose

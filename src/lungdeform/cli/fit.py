@@ -64,6 +64,8 @@ def register(apps) -> None:
                                landmark_comparisons=landmark_comparisons, side_check=side_check)
             folder = output_dir(out)
             m = run_fit(fit_inputs, folder, config, progress=say)
+        for text in m.get("notes") or []:
+            typer.echo(f"note: {text}")
         print_fit_table(m)
         typer.echo(f"wrote {folder / 'model.npz'}, {folder / 'metrics.json'}, {folder / 'report.html'}")
         print_fit_warnings(m)

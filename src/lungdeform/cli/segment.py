@@ -11,6 +11,7 @@ import typer
 from lungdeform.atomic import jsonable, write_bytes
 from lungdeform.errors import InputError
 from lungdeform.fit import ct as C
+from lungdeform.fit import lungsplit as L
 from lungdeform.fit import segment as S
 from lungdeform.io.mask import extract_surface
 from lungdeform.io.meshfile import write_mesh
@@ -23,14 +24,14 @@ MASK_FORMATS = ("nii.gz", "mha")
 def register(apps) -> None:
     @apps.root.command("segment")
     def segment_command(
-        ct: Path = typer.Argument(..., help="CT in HU: NIfTI/MHA/NRRD, a DICOM folder (or one of its files, or a parent folder of one series), or a .tar.gz/.zip of one, or a dataset folder holding only such an archive."),
+        ct: Path = typer.Argument(..., help="CT in HU (or a binary mask holding both lungs in one label: split into left and right): NIfTI/MHA/NRRD, a DICOM folder (or one of its files, or a parent folder of one series), or a .tar.gz/.zip of one, or a dataset folder holding only such an archive."),
         out: Path = typer.Option(..., "--out", help="Output folder."),
         fmt: str = typer.Option("nii.gz", "--format", help="Mask format: nii.gz or mha."),
         surfaces: bool = typer.Option(False, "--surfaces/--no-surfaces", help="Also build left/right lung surfaces (STL) with lungdeform.io.mask."),
         target_vertices: int = typer.Option(20000, "--target-vertices", help="Vertex budget per surface."),
         downsample: int = typer.Option(1, "--downsample", help="In-plane block-mean factor before segmenting (speed)."),
     ) -> None:
-        """Segment the lungs (no learned weights): masks, volumes.json, overlay.png, surfaces."""
+        """Segment the lungs (no learned weights), or split a both-lung mask: masks, volumes.json, overlay.png, surfaces."""
 
 
         fmt = fmt.lower().lstrip(".")
@@ -39,11 +40,9 @@ def register(apps) -> None:
         if downsample < 1:
             raise InputError(f"--downsample must be ≥ 1, got {downsample}")
         t0 = time.perf_counter()
-        image = C.read_ct(ct)
-        if downsample > 1:  # in-plane: along world x and y whatever the file's axis order
-            image = C.downsample(C.to_axial(image), (1, downsample, downsample))
+        image = L.read_ct_or_mask(ct)  # a binary mask holding both lungs is split, not segmented
         t_read = time.perf_counter() - t0
-        seg = S.segment_lungs(image, progress=say)
+        image, seg = L.segment_ct_or_mask(image, downsample, progress=say)
         t_seg = time.perf_counter() - t0 - t_read
         surf_info, meshes = {}, {}
         if surfaces:  # built before anything is written: a failure leaves no partial output

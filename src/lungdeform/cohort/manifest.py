@@ -10,8 +10,9 @@ Format (UTF-8, comma-separated, header row required; column order free)::
     P02,both,,P02/ct_inhale.nii.gz
 
 - one row per scan; ``subject`` names the output folder (letters, digits, ``.``, ``_``, ``-``);
-- ``side`` is ``left``, ``right`` or ``both`` (a CT holding both lungs: it gives a left and a
-  right job). A subject uses ``both`` on all its rows or ``left``/``right`` on all its rows;
+- ``side`` is ``left``, ``right`` or ``both`` (a CT, or a mask holding both lungs in one label: it
+  gives a left and a right job; such a mask is split, :mod:`lungdeform.fit.lungsplit`, also on
+  ``left``/``right`` rows). A subject uses ``both`` on all its rows or ``left``/``right`` on all its rows;
 - ``volume_ml`` is the lung volume in mL, or empty to measure it from the data. Within one job
   volumes are all given or all empty;
 - ``path`` (a surface, a mask or a CT; a DICOM series folder) and ``landmarks`` (an elastix point

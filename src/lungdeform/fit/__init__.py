@@ -1,7 +1,8 @@
 """Fitting the model to a patient: CT to lungs, alignment, correspondence, the objective, the search.
 
 Owns: :mod:`~lungdeform.fit.ct` and :mod:`~lungdeform.fit.segment` (CT input, lungs without learned
-weights), :mod:`~lungdeform.fit.align` (rigid alignment), :mod:`~lungdeform.fit.correspond` (ray
+weights), :mod:`~lungdeform.fit.lungsplit` (a mask holding both lungs in one label → left and right),
+:mod:`~lungdeform.fit.align` (rigid alignment), :mod:`~lungdeform.fit.correspond` (ray
 correspondence), :mod:`~lungdeform.fit.objective` (one lung's objective), :mod:`~lungdeform.fit.fitting`
 (c1…c9, stiffness and direction correction), :mod:`~lungdeform.fit.search` (optimiser and the paper's
 grid), :mod:`~lungdeform.fit.crossval` (landmark cross-validation), :mod:`~lungdeform.fit.expandability`

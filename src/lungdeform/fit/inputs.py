@@ -5,12 +5,14 @@
 the border faces the mask touches (crop faces, :func:`lungdeform.fit.align.crop_planes`) and checks
 that all images share one voxel spacing. It then checks that the inputs are one lung of the given
 side with volumes strictly increasing, and reads the landmarks (refused outside their image,
-reported when they lie outside their own lung mask).
+reported when they lie outside their own lung mask). A mask holding both lungs in one label gives the
+side's lung of its split (:mod:`lungdeform.fit.lungsplit`); with landmarks, only the rows in that
+lung are kept (noted, with how many were dropped).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -27,6 +29,7 @@ from lungdeform.io.landmarks import read_elastix_points
 
 from .align import CropPlane, crop_planes
 from .config import FitInputs
+from .lungsplit import landmarks_of_side, one_lung
 from .ct import archive_in, is_archive, read_ct
 from .segment import segment_lungs
 
@@ -54,6 +57,8 @@ class ReadInputs:
         Each input's landmarks, mm, in its own scan's frame.
     warnings : list of str
         Suspicious but usable input (landmarks outside their own lung mask).
+    notes : list of str
+        What was done to the inputs (masks holding both lungs split, landmarks of the other lung dropped).
     """
 
     surfaces: list[Surface]
@@ -63,6 +68,7 @@ class ReadInputs:
     given_ml: list[float] | None
     landmarks: list[np.ndarray] | None
     warnings: list[str]
+    notes: list[str] = field(default_factory=list)
 
 
 def read_inputs(inputs: FitInputs, side_check: bool = True,
@@ -83,16 +89,24 @@ def read_inputs(inputs: FitInputs, side_check: bool = True,
     volumes = [s.volume_ml for s in surfaces] if given is None else list(given)
     check_increasing(inputs.paths, volumes)
     landmarks, warnings = None, []
+    splits = [r[4] for r in read]
+    notes = [n for sp in splits if sp is not None for n in sp.notes + (f"{sp.image.source}: took the {inputs.side} "
+                                                                         "lung of the split",)]
     if inputs.landmarks:
         landmarks = read_landmark_files(inputs.landmarks, images)
+        if any(sp is not None for sp in splits):  # landmarks of both lungs: this side's rows only
+            rows, dropped = landmarks_of_side(landmarks, splits, inputs.side, [str(p) for p in inputs.landmarks])
+            landmarks, notes = [pts[rows] for pts in landmarks], notes + list(dropped)
         for p, pts, image, surface in zip(inputs.landmarks, landmarks, images, surfaces):
             check_landmarks(pts, image, p)
             warnings += landmark_mask_warnings(pts, image, surface, p)
-    return ReadInputs(surfaces, [r[1] for r in read], images, volumes, given, landmarks, warnings)
+    return ReadInputs(surfaces, [r[1] for r in read], images, volumes, given, landmarks, warnings, notes)
 
 
 def read_input(path: Path, side: str, *, progress=None, spacing_like=None):
-    """``(dense Surface, crop planes, spacing or None, image or None)`` for one input path.
+    """``(dense Surface, crop planes, spacing or None, image or None, split or None)`` for one input
+    path; ``split`` (:class:`~lungdeform.fit.lungsplit.LungSplit`) when the input was a mask holding
+    both lungs in one label, ``image`` then its ``side`` lung.
 
     ``spacing_like``: ``(path, spacing (3,) mm)`` of an image read before; an image of another
     spacing is refused as soon as it is read, before the (slow) segmentation and surface."""
@@ -106,7 +120,7 @@ def read_input(path: Path, side: str, *, progress=None, spacing_like=None):
         image = read_ct(path)
     elif not is_image_path(path):
         surface, _ = lio.load_surface(path, name=path.name)
-        return surface, [], None, None
+        return surface, [], None, None, None
     else:
         image = read_image(path)
     if spacing_like is not None and not np.allclose(image.spacing, spacing_like[1], rtol=1e-3):
@@ -118,10 +132,10 @@ def read_input(path: Path, side: str, *, progress=None, spacing_like=None):
         seg = segment_lungs(image, progress=progress)
         image = Image(getattr(seg, side).astype(np.uint8), image.spacing, image.origin, image.direction,
                       f"{image.source} ({side} lung)")
-    else:  # a lobe label map holds both lungs: keep this side's lobes (binary masks pass unchanged)
-        image = M.side_mask(image, side)
+    else:  # a lobe map or a binary mask holding both lungs: this side's lung (one lung passes unchanged)
+        image, _notes, split = one_lung(image, side)
     surface = M.extract_surface(image, name=path.name).surface
-    return surface, crop_planes(image), np.asarray(image.spacing, float), image
+    return surface, crop_planes(image), np.asarray(image.spacing, float), image, split
 
 
 def check_sides(paths, surfaces, side: str | None) -> None:

@@ -116,7 +116,7 @@ def fit_metrics(inputs: FitInputs, read: ReadInputs, placed: Placement, fits: di
 
     fit = fits["optimizer"]
     metrics = {"inputs": [str(p) for p in inputs.paths], "side": inputs.side, "volumes_ml": placed.volumes_ml,
-               "volumes_given_ml": read.given_ml, "warnings": warnings,
+               "volumes_given_ml": read.given_ml, "warnings": warnings, "notes": read.notes,
                "model_mesh_vertices": placed.rest.n_vertices, "alignment": placed.alignments,
                "targets": per_target}
     if skipped:

@@ -234,6 +234,35 @@ def _grow_back(mask: np.ndarray, seeds: np.ndarray) -> np.ndarray:
     return out
 
 
+def _padded_box(mask: np.ndarray) -> tuple[slice, slice, slice]:
+    """The bounding box of ``mask`` (z, y, x) with one voxel to spare on each side (within the array)."""
+    nz = [np.nonzero(mask.any(axis=ax))[0] for ax in ((1, 2), (0, 2), (0, 1))]
+    return tuple(slice(max(v.min() - 1, 0), v.max() + 2) for v in nz)
+
+
+def erode_apart(mask: np.ndarray, max_erosions: int = 10, min_fraction: float = 0.1):
+    """Cut one component at its narrowest neck: ``(labels (z, y, x) int32 with parts 1 and 2, erosions)``
+    or None.
+
+    ``mask`` is eroded in-plane (4-connected, per axial slice) one voxel at a time until its two
+    largest pieces are each at least ``min_fraction`` of the two together; they are then grown back
+    geodesically over ``mask`` (:func:`_grow_back`), so the cut falls where the pieces met: at the
+    narrowest neck. None when ``max_erosions`` steps do not give two such pieces. Voxels of ``mask``
+    not connected to either piece stay 0.
+    """
+    box = _padded_box(mask)
+    m = mask[box]
+    eroded = m
+    for k in range(1, max_erosions + 1):
+        eroded = ndi.binary_erosion(eroded, structure=_INPLANE)
+        if not eroded.any():
+            return None
+        out = _two_seeds_grown(eroded, m, mask.shape, box, min_fraction)
+        if out is not None:
+            return out, k
+    return None
+
+
 def split_touching(mask: np.ndarray, spacing, midline_x: float, max_erosions: int = 10,
                    min_fraction: float = 0.1, cut_window_mm: float = 25.0):
     """Split one component holding both lungs into two labels (1, 2). Returns ``(labels, info)``.
@@ -243,15 +272,11 @@ def split_touching(mask: np.ndarray, spacing, midline_x: float, max_erosions: in
     a per-slice cut along the column (x) with the fewest lung voxels within ``cut_window_mm`` of
     ``midline_x`` (voxel x). Raises :class:`MaskError` if neither separates the lungs.
     """
-    nz = [np.nonzero(mask.any(axis=ax))[0] for ax in ((1, 2), (0, 2), (0, 1))]
-    box = tuple(slice(max(v.min() - 1, 0), v.max() + 2) for v in nz)
+    apart = erode_apart(mask, max_erosions, min_fraction)
+    if apart is not None:
+        return apart[0], {"method": "in-plane erosion", "erosions": apart[1]}
+    box = _padded_box(mask)
     m = mask[box]
-    eroded = m
-    for k in range(1, max_erosions + 1):
-        eroded = ndi.binary_erosion(eroded, structure=_INPLANE)
-        out = _two_seeds_grown(eroded, m, mask.shape, box, min_fraction)
-        if out is not None:
-            return out, {"method": "in-plane erosion", "erosions": k}
     # minimal-cost cut per slice near the midline
     x0 = box[2].start
     half = int(round(cut_window_mm / spacing[0]))
