@@ -52,7 +52,7 @@ def register(apps) -> None:
                 raise InputError(f"--volume-ml must be > 0 mL, got {volume_ml}")
             frames = T.volume_frames(m, volume_ml)
         else:
-            frames = T.trace_frames(_trace(curve, preset, cycles, tidal_ml), fps)
+            frames = T.trace_frames(_trace(m, curve, preset, cycles, tidal_ml), fps)
         note = T.extrapolation_note(m, frames.delta_ml)
         if note:
             typer.echo(f"note: {note}")
@@ -65,10 +65,10 @@ def register(apps) -> None:
         typer.echo(f"wrote {paths['csv']}, {paths['json']}, {paths['png']}")
 
 
-def _trace(curve: Path | None, preset: str | None, cycles: int | None, tidal_ml: float | None):
+def _trace(m, curve: Path | None, preset: str | None, cycles: int | None, tidal_ml: float | None):
     """The volume trace the options name: ``--curve``, ``--preset`` or the plain cycle."""
     if curve is not None:
-        return read_curve(curve)
+        return read_curve(curve, m)
     if preset is not None:
         _params, _curve, trace = S.preset_trace(get_preset(preset), cycles or 1, tidal_ml)
         return trace
