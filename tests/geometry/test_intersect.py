@@ -40,6 +40,18 @@ def test_cap_pushed_through_is_found():
         assert any(moved)
 
 
+def test_local_wrinkle_is_not_a_self_intersection():
+    # A vertex dragged past its neighbour folds its fan over the next ring of faces: those faces
+    # cross (found with local_rings=0) but within LOCAL_RINGS edges of each other, a wrinkle that
+    # leaves inside and outside as they were (as the model's own deformed synthetic lungs have).
+    s = icosphere(3, 60.0)
+    v = s.vertices.copy()
+    fan = np.unique(s.faces[(s.faces == 100).any(axis=1)])
+    v[100] += 2.0 * (v[fan[fan != 100][0]] - v[100])
+    assert self_intersections(v, s.faces, local_rings=0)[0] > 0
+    assert self_intersections(v, s.faces)[0] == 0
+
+
 def test_crossing_found_in_every_grid_cell_layout():
     # Two separate triangles, one piercing the other: found once, wherever the grid puts them.
     v = np.array([[0, 0, 0], [10, 0, 0], [0, 10, 0], [2, 2, -5], [3, 2, 5], [2, 3, 5]], float)
