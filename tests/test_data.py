@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from lungdeform.data import default_lungs, itk_right_lung
+from lungdeform.geometry.intersect import self_intersections
 from lungdeform.geometry.mesh import check_surface
 from lungdeform.io.image import read_image
 from lungdeform.io.mask import LOBE_LABELS, extract_surface
@@ -19,6 +20,9 @@ def test_default_lungs_are_valid_lungs():
     for side, surf in lungs.items():
         _, _, report = check_surface(surf.vertices, surf.faces, source=side)  # closed, manifold, outward, mm
         assert report.repairs == ()
+        # marching-cubes lungs have many coplanar neighbours and small folds within a vertex fan:
+        # none of them is a crossing of non-adjacent faces
+        assert self_intersections(surf.vertices, surf.faces)[0] == 0
         assert 2000 <= surf.n_vertices <= 4000
         assert 1000 < surf.volume_ml < 3000  # an adult lung at one breathing state
         # the paper's lung / bounding-box volume ratio is 0.32–0.40; a lung-like shape, not a blob
@@ -32,6 +36,7 @@ def test_default_lungs_are_valid_lungs():
 def test_itk_right_lung_is_valid():
     surf = itk_right_lung()
     check_surface(surf.vertices, surf.faces, source="itk_right_lung")
+    assert self_intersections(surf.vertices, surf.faces)[0] == 0
     assert 2000 <= surf.n_vertices <= 4000
     assert 2500 < surf.volume_ml < 4000
 
@@ -48,6 +53,7 @@ def test_shipped_lungs_match_full_resolution_surfaces(data_dir):
     image = read_image(require_path(data_dir, "coronacases-lung-lobes", "Coronacases_001_lobes.nii.gz"))
     for side, surf in default_lungs().items():
         full = extract_surface(image, LOBE_LABELS[side]).surface
+        assert self_intersections(full.vertices, full.faces)[0] == 0  # 400k faces, no false positive
         assert surf.volume == pytest.approx(full.volume, rel=0.05), side
         np.testing.assert_allclose(surf.vertices.mean(axis=0), full.vertices.mean(axis=0), atol=3.0)
     itk = read_image(require_path(data_dir, "itk-right-lung-two-volumes", "CT_3D_lung_fixed_mask.mha"))

@@ -5,6 +5,7 @@ import pytest
 import SimpleITK as sitk
 
 from lungdeform.cli.main import main
+from lungdeform.geometry.mesh import icosphere
 from lungdeform.io.meshfile import write_mesh
 from lungdeform.io.modelfile import load_model
 from tests.conftest import ellipsoid_lung
@@ -73,6 +74,26 @@ def test_bad_inputs_exit_2_with_one_line(tmp_path, capsys):
     metres = write_mesh(tmp_path / "metres.stl", s.vertices / 1000, s.faces)
     _fails(["build", str(metres), "--side", "left", "--out", str(out)], capsys, "metres.stl", "--units")
     _fails(["build", str(metres), "--out", str(out)], capsys)  # no side for a single surface
+    assert not out.exists() and not list(tmp_path.glob(".m.npz*"))  # no partial output
+
+
+@pytest.mark.parametrize("repair", [[], ["--repair"]])
+def test_absurd_coordinate_and_self_intersection_exit_2(tmp_path, capsys, repair):
+    # A vertex at 1e30 mm is named (not 1280 "degenerate" faces, not a traceback under --repair); a
+    # sphere whose cap is pushed through its lower wall is refused as self-intersecting, not
+    # "inward" (and not flipped into a small model by --repair).
+    out = tmp_path / "m.npz"
+    s = icosphere(3, 60.0)
+    v = s.vertices.copy()
+    v[5] = [1e30, 0.0, 0.0]
+    far = write_mesh(tmp_path / "far.stl", v, s.faces)
+    _fails(["build", str(far), "--side", "right", "--out", str(out), *repair], capsys, "far.stl", "1e+30")
+    v = s.vertices.copy()
+    cap = v[:, 2] > 40
+    v[cap, 2] = -60.0 - v[cap, 2]
+    through = write_mesh(tmp_path / "through.ply", v, s.faces)
+    _fails(["build", str(through), "--side", "right", "--out", str(out), *repair], capsys, "through.ply",
+           "intersects itself")
     assert not out.exists() and not list(tmp_path.glob(".m.npz*"))  # no partial output
 
 

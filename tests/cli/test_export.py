@@ -208,6 +208,19 @@ def test_export_bad_model_and_curve(model_file, tmp_path, capsys):
     assert not (tmp_path / "x.glb").exists()
 
 
+@pytest.mark.parametrize("kind", ["glb", "pvd"])
+def test_export_refuses_a_curve_the_lungs_cannot_reach(model_file, tmp_path, capsys, kind):
+    # ΔV -2900 mL on these lungs (V_EE about 2 × 1.3 L) would empty them: the CSV line is named, exit 2,
+    # nothing written (it used to export a lung of negative volume)
+    curve = tmp_path / "neg.csv"
+    curve.write_text("t_s,volume_ml\n0,0\n1,-2900\n2,0\n")
+    out = tmp_path / f"x.{kind}"
+    assert main(["export", str(model_file), "--format", kind, "--out", str(out), "--curve", str(curve)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"error: {curve} line 3: volume_ml -2900 mL")
+    assert not out.exists() and list(tmp_path.iterdir()) == [curve]
+
+
 def test_view_refuses_curve_for_glb(model_file, tmp_path, capsys):
     out = tmp_path / "m.glb"
     assert main(["export", str(model_file), "--format", "glb", "--out", str(out)]) == 0

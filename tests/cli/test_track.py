@@ -116,3 +116,20 @@ def test_track_refuses_points_far_outside(model_file, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "metres.csv: 1 point(s) lie more than 30 mm outside every lung" in err[0]
     assert not (tmp_path / "x").exists()
+
+
+def test_track_names_invalid_point_rows_or_skips_them(model_file, tmp_path, capsys):
+    # One NaN row (line 3) among valid ones: refused naming its line (not "no finite marker rows");
+    # with --skip-invalid the two valid points are tracked and line 3 is listed as skipped.
+    pts = tmp_path / "p.csv"
+    pts.write_text("x_mm,y_mm,z_mm,label\n90,0,-40,tumour\nnan,0,0,bad\n-90,10,20,clip\n")
+    out = tmp_path / "x"
+    assert main(["track", str(model_file), "--points", str(pts), "--out", str(out), "--volume-ml", "5000"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{pts}: 1 row(s) without finite numbers in x_mm,y_mm,z_mm, at line(s) 3 " in err[0]
+    assert not out.exists()
+    assert main(["track", str(model_file), "--points", str(pts), "--out", str(out), "--volume-ml", "5000",
+                 "--skip-invalid"]) == 0
+    printed = capsys.readouterr().out
+    assert f"{pts}: skipped 1 row(s) without finite x_mm,y_mm,z_mm, at line(s) 3" in printed
+    assert [p["label"] for p in json.loads((out / "points.json").read_text())["points"]] == ["tumour", "clip"]

@@ -161,3 +161,27 @@ def test_thinned_is_all_or_a_seeded_sorted_subset():
     a = thinned(1000, 40, seed=3)
     assert len(a) == len(set(a.tolist())) == 40 and np.all(np.diff(a) > 0) and a.max() < 1000
     assert np.array_equal(a, thinned(1000, 40, seed=3)) and not np.array_equal(a, thinned(1000, 40, seed=4))
+
+
+def test_check_refuses_non_physical_coordinates_first():
+    # One vertex at 1e30 mm (100 m is beyond any lung in a scanner frame) is named, before its
+    # neighbouring faces would be called degenerate; repair does not get to hide it.
+    s = icosphere(3, 60.0)
+    v = s.vertices.copy()
+    v[5] = [1e30, 0.0, 0.0]
+    for repair in (False, True):
+        with pytest.raises(MeshError, match=r"lung.ply: vertex 5 has coordinate 1e\+30 mm, beyond"):
+            check_surface(v, s.faces, source="lung.ply", repair=repair)
+
+
+def test_check_refuses_self_intersection_before_orientation():
+    # The cap z > 40 reflected through z = -30 passes through the lower wall: the signed volume
+    # is negative but "faces point inward" would be wrong, and flipping them (repair) builds nonsense.
+    s = icosphere(3, 60.0)
+    v = s.vertices.copy()
+    cap = v[:, 2] > 40
+    v[cap, 2] = -60.0 - v[cap, 2]
+    assert signed_volume(v, s.faces) < 0
+    for repair in (False, True):
+        with pytest.raises(MeshError, match=r"lung.ply: surface intersects itself \(\d+ pairs .*faces \d+ and \d+"):
+            check_surface(v, s.faces, source="lung.ply", repair=repair)

@@ -131,3 +131,24 @@ def test_bad_curve_names_file_and_problem(tmp_path, text, message):
     with pytest.raises(ReadError, match=message) as info:
         S.read_volume_csv(path)
     assert str(path) in str(info.value)
+
+
+def test_curve_below_what_the_lungs_can_reach_names_its_line(tmp_path):
+    # Each lung plays V_EE + share·ΔV; a ΔV (both lungs) of -0.6·(V_EE total) takes each lung to 40 %
+    # of its end-exhale volume, below MIN_VOLUME_FRACTION (50 %): refused at the first such row, line 4
+    # of the file (line 1 is the header, line 3 is blank). -0.4·V_EE (60 %) is reachable.
+    from tests.browser.support import two_lungs
+
+    model = two_lungs(2)
+    vee = sum(lung.volume_ee_ml for lung in model.lungs.values())
+    path = tmp_path / "deep.csv"
+    path.write_text(f"t_s,volume_ml\n0,0\n\n1,{-0.6 * vee:.1f}\n2,{-0.7 * vee:.1f}\n3,0\n")
+    trace = S.read_volume_csv(path)
+    assert trace.lines.tolist() == [2, 4, 5, 6]
+    with pytest.raises(InputError, match=rf"^{path} line 4: volume_ml .* below 50% of its end-exhale .*2 such rows"):
+        S.check_reachable(trace, model)
+    path.write_text(f"t_s,volume_ml\n0,0\n1,{-0.4 * vee:.1f}\n2,0\n")
+    S.check_reachable(S.read_volume_csv(path), model)
+    # a trace not read from a file names its sample and time instead
+    with pytest.raises(InputError, match=r"sample 2 \(t 1 s\)"):
+        S.check_reachable(S.VolumeTrace(np.array([0.0, 1.0]), np.array([0.0, -0.6 * vee]), "made"), model)

@@ -137,3 +137,25 @@ def test_interior_meta_names_each_lungs_field():
     # a built model has no landmark correction: each field is its kind's surface part alone
     assert meta["landmark_correction"] == {"left": False, "right": False}
     assert meta["interior_field"] == {name: KIND_TEXT[lung.interior_kind][0] for name, lung in m.lungs.items()}
+
+
+def test_markers_csv_names_invalid_rows_by_file_line(tmp_path):
+    from lungdeform.errors import ReadError
+    from lungdeform.playback.trajectory import read_markers_csv
+
+    # lines 3 (NaN), 5 (text) and 7 (inf) are bad; line 4 is blank and still counted as a file line
+    path = tmp_path / "m.csv"
+    path.write_text("x_mm,y_mm,z_mm\n1,2,3\nnan,0,0\n\nabc,0,0\n4,5,6\n0,inf,0\n")
+    with pytest.raises(ReadError, match=r"m.csv: 3 row\(s\) without finite numbers .* at line\(s\) 3, 5, 7 \("):
+        read_markers_csv(path)
+    skipped = []
+    pts, labels = read_markers_csv(path, skip_invalid=True, skipped=skipped)
+    assert pts.tolist() == [[1, 2, 3], [4, 5, 6]] and skipped == [3, 5, 7]
+    assert labels == ["marker 1", "marker 4"]  # numbered by data row, as before
+    # more than five bad rows: the first five and how many
+    path.write_text("x_mm,y_mm,z_mm\n" + "nan,0,0\n" * 7 + "1,2,3\n")
+    with pytest.raises(ReadError, match=r"7 row\(s\) .* at line\(s\) 2, 3, 4, 5, 6, …"):
+        read_markers_csv(path)
+    path.write_text("x_mm,y_mm,z_mm\nnan,0,0\n")  # nothing valid left
+    with pytest.raises(ReadError, match="no marker rows with finite"):
+        read_markers_csv(path, skip_invalid=True)

@@ -12,7 +12,7 @@ import typer
 
 from lungdeform.constants import GRAVITY
 from lungdeform.errors import InputError
-from lungdeform.playback.schedule import read_volume_csv
+from lungdeform.playback.schedule import check_reachable, read_volume_csv
 
 #: Progress lines go to stderr when it is a terminal, or always after ``lungdeform --verbose``;
 #: so that in pipes and CI an error is the only line on stderr.
@@ -86,11 +86,13 @@ def check_cycles(cycles: int | None, preset: str | None) -> None:
         raise InputError(f"--cycles must be >= 1, got {cycles}")
 
 
-def read_curve(curve: Path):
-    """A ``--curve`` volume CSV (:func:`lungdeform.playback.schedule.read_volume_csv`), saying when its
-    volumes read as absolute and were shifted (export, track)."""
+def read_curve(curve: Path, model):
+    """A ``--curve`` volume CSV (:func:`lungdeform.playback.schedule.read_volume_csv`) that ``model``'s
+    lungs can follow (:func:`lungdeform.playback.schedule.check_reachable`), saying when its volumes
+    read as absolute and were shifted (export, track)."""
 
     trace = read_volume_csv(curve)
+    check_reachable(trace, model)
     if trace.shifted_ml:
         typer.echo(f"{curve}: volume_ml reads as absolute; subtracted its minimum {trace.shifted_ml:.1f} mL")
     return trace

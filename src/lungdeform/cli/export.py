@@ -51,7 +51,7 @@ def register(apps) -> None:
             chosen = get_preset(preset)  # an unknown name: InputError listing the names
         m = load_model(model)
         if curve is not None:
-            trace = read_curve(curve)
+            trace = read_curve(curve, m)
         elif preset is not None:
             params, _curve, trace = S.preset_trace(chosen, cycles or 1, tidal_ml)
             typer.echo(f"preset {chosen.name}: {cycles or 1} × {params.period_s:g} s, PV model end-exhale "

@@ -29,6 +29,7 @@ def register(apps) -> None:
         tidal_ml: float | None = typer.Option(None, "--tidal-ml", help="Tidal volume, both lungs (mL): of the plain cycle (default 500) or the --preset rescaled to it."),
         fps: float = typer.Option(25.0, "--fps", help="Frames per second sampled from a curve, preset or plain cycle."),
         lung: str | None = typer.Option(None, "--lung", help="Put every point in this lung (default: the lung containing it, else the nearest)."),
+        skip_invalid: bool = typer.Option(False, "--skip-invalid", help="Track the valid rows of a points CSV, leaving out (and listing) rows without finite x_mm,y_mm,z_mm; by default such a row is an error."),
     ) -> None:
         """Move interior points with the model: positions at given volumes or over a breathing curve.
 
@@ -45,14 +46,18 @@ def register(apps) -> None:
         if not (np.isfinite(fps) and fps > 0):
             raise InputError(f"--fps must be > 0, got {fps}")
         m = load_model(model)
-        pts, labels = T.read_points(points)
+        skipped: list[int] = []
+        pts, labels = T.read_points(points, skip_invalid=skip_invalid, skipped=skipped)
+        if skipped:
+            shown = ", ".join(map(str, skipped[:10])) + (", …" if len(skipped) > 10 else "")
+            typer.echo(f"{points}: skipped {len(skipped)} row(s) without finite x_mm,y_mm,z_mm, at line(s) {shown}")
         placement = T.place_points(m, pts, lung, source=str(points))
         if volume_ml:
             if not all(np.isfinite(v) and v > 0 for v in volume_ml):
                 raise InputError(f"--volume-ml must be > 0 mL, got {volume_ml}")
             frames = T.volume_frames(m, volume_ml)
         else:
-            frames = T.trace_frames(_trace(curve, preset, cycles, tidal_ml), fps)
+            frames = T.trace_frames(_trace(m, curve, preset, cycles, tidal_ml), fps)
         note = T.extrapolation_note(m, frames.delta_ml)
         if note:
             typer.echo(f"note: {note}")
@@ -65,10 +70,10 @@ def register(apps) -> None:
         typer.echo(f"wrote {paths['csv']}, {paths['json']}, {paths['png']}")
 
 
-def _trace(curve: Path | None, preset: str | None, cycles: int | None, tidal_ml: float | None):
+def _trace(m, curve: Path | None, preset: str | None, cycles: int | None, tidal_ml: float | None):
     """The volume trace the options name: ``--curve``, ``--preset`` or the plain cycle."""
     if curve is not None:
-        return read_curve(curve)
+        return read_curve(curve, m)
     if preset is not None:
         _params, _curve, trace = S.preset_trace(get_preset(preset), cycles or 1, tidal_ml)
         return trace

@@ -23,8 +23,14 @@ from scipy.sparse.csgraph import connected_components
 
 from lungdeform.errors import InputError, MeshError, UnitsError
 
+from .intersect import self_intersections
+
 #: A lung's bounding-box diagonal is 150–400 mm; anything outside this range is not in millimetres.
 PLAUSIBLE_DIAGONAL_MM = (20.0, 2000.0)
+#: No coordinate of a lung surface in mm (LPS world frame, scanner origin within a few metres) can be
+#: beyond 100 m: a larger one is a corrupt value (1e30 written for a missing point), not a lung, and
+#: left in, it makes every face around it look degenerate and every mm-scale tolerance meaningless.
+PHYSICAL_BOUND_MM = 1e5
 
 
 # --------------------------------------------------------------------------- normalisation
@@ -235,14 +241,15 @@ def check_surface(
 ) -> tuple[np.ndarray, np.ndarray, SurfaceReport]:
     """Check that a surface can be a lung model; optionally repair what can be repaired.
 
-    Checks, in order: finite coordinates; no degenerate faces; closed (every edge in exactly two
+    Checks, in order: finite coordinates within :data:`PHYSICAL_BOUND_MM`; no degenerate faces; closed (every edge in exactly two
     faces); 2-manifold (no pinched vertices); consistently oriented; a single component; outward
     orientation (positive signed volume); millimetre units (bounding-box diagonal within
     :data:`PLAUSIBLE_DIAGONAL_MM`).
 
     With ``repair=True`` these are fixed and reported: unreferenced vertices are dropped,
     degenerate and duplicate faces removed, all but the largest component dropped, and inward
-    orientation flipped. Open, non-manifold or NaN surfaces and wrong units are never repaired.
+    orientation flipped. Open, non-manifold, self-intersecting or non-physical surfaces and wrong
+    units are never repaired.
 
     Returns ``(vertices (n, 3) float mm, faces (m, 3) int, report)``. Raises :class:`MeshError`
     (or :class:`UnitsError`) whose message starts with ``source``.
@@ -250,10 +257,9 @@ def check_surface(
     v = as_vertices(vertices, f"{source}: vertices")
     f = as_faces(faces, len(v), f"{source}: faces")
     repairs: list[str] = []
+    _check_physical(v, f, source)
     if len(f) < 4:
         raise MeshError(f"{source}: a closed surface needs at least 4 faces, got {len(f)}")
-    if not np.isfinite(v[np.unique(f)]).all():
-        raise MeshError(f"{source}: vertex coordinates contain NaN or infinity")
     # unreferenced vertices are harmless for checks; drop them quietly only on repair
     if repair and len(np.unique(f)) < len(v):
         n_before = len(v)
@@ -268,6 +274,7 @@ def check_surface(
             raise MeshError(f"{source}: faces are not consistently oriented")
         f = _orient_consistently(f)
         repairs.append("re-oriented faces consistently")
+    _check_no_self_intersection(v, f, source)
     vol = signed_volume(v, f)
     if vol < 0:
         if not repair:
@@ -278,6 +285,36 @@ def check_surface(
     _check_millimetres(v, source)
     report = SurfaceReport(len(v), len(f), vol, surface_area(v, f), tuple(repairs))
     return v, f, report
+
+
+def _check_physical(v, f, source: str) -> None:
+    """Refuse NaN, infinite or non-physical coordinates (beyond :data:`PHYSICAL_BOUND_MM`) of the
+    vertices the faces use, naming the first such vertex: before any other check, which they
+    would confuse."""
+    used = np.unique(f)
+    if not np.isfinite(v[used]).all():
+        raise MeshError(f"{source}: vertex coordinates contain NaN or infinity")
+    beyond = np.abs(v[used]) > PHYSICAL_BOUND_MM
+    if beyond.any():
+        rows = np.nonzero(beyond.any(axis=1))[0]
+        i = int(used[rows[0]])
+        value = float(v[i][np.argmax(np.abs(v[i]))])
+        raise MeshError(
+            f"{source}: vertex {i} has coordinate {value:.6g} mm, beyond the physical bound of "
+            f"±{PHYSICAL_BOUND_MM:g} mm ({len(rows)} such vertices): not a lung surface"
+        )
+
+
+def _check_no_self_intersection(v, f, source: str) -> None:
+    """Refuse a surface that passes through itself (never repaired: its inside is undefined, so
+    its volume and orientation mean nothing)."""
+    count, pairs = self_intersections(v, f, limit=1)
+    if count:
+        a, b = (int(x) for x in pairs[0])
+        raise MeshError(
+            f"{source}: surface intersects itself ({count} pairs of faces cross, e.g. faces {a} and {b}); "
+            "a lung surface must not: fix the segmentation or the mesh"
+        )
 
 
 def _without_degenerate_faces(v, f, source: str, repair: bool, repairs: list[str]):

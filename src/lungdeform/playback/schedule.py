@@ -37,13 +37,15 @@ class VolumeTrace:
     """Volume of both lungs above end-exhale over time.
 
     t_s : (k,) float, s, strictly increasing; volume_ml : (k,) float, mL above end-exhale;
-    source : str; shifted_ml : float, the minimum subtracted from an absolute-volume curve (0 if none).
+    source : str; shifted_ml : float, the minimum subtracted from an absolute-volume curve (0 if none);
+    lines : (k,) int or None, the 1-based line of each sample in the curve file it was read from.
     """
 
     t_s: np.ndarray
     volume_ml: np.ndarray
     source: str = "plain cycle"
     shifted_ml: float = 0.0
+    lines: np.ndarray | None = None
 
     def sample(self, t_s) -> np.ndarray:
         """Linear interpolation of the volume (mL) at times ``t_s`` (clamped to the ends)."""
@@ -156,13 +158,14 @@ def read_volume_csv(path) -> VolumeTrace:
         if col not in header:
             raise ReadError(f"{path}: curve needs a '{col}' column, header is {','.join(header)}")
     it, iv = header.index("t_s"), header.index("volume_ml")
-    t, v = [], []
+    t, v, lines = [], [], []
     for lineno, row in enumerate(rows[1:], start=2):
         if not row or all(not c.strip() for c in row):
             continue
         try:
             t.append(float(row[it]))
             v.append(float(row[iv]))
+            lines.append(lineno)
         except (IndexError, ValueError) as exc:
             raise ReadError(f"{path}: line {lineno}: expected numbers in t_s and volume_ml") from exc
     t_arr, v_arr = np.array(t), np.array(v)
@@ -176,7 +179,38 @@ def read_volume_csv(path) -> VolumeTrace:
     if v_arr.min() > np.ptp(v_arr):  # an absolute volume, far above 0: use the volume above its minimum
         shift = float(v_arr.min())
         v_arr = v_arr - shift
-    return VolumeTrace(t_arr - t_arr[0], v_arr, str(path), shift)
+    return VolumeTrace(t_arr - t_arr[0], v_arr, str(path), shift, np.array(lines, dtype=np.int64))
+
+
+#: The least volume a lung can breathe down to, as a fraction of its end-exhale volume: the residual
+#: volume (left after a maximal exhalation) is about half the functional residual capacity at end of a
+#: quiet exhalation (adult RV ≈ 1.2 L, FRC ≈ 2.4 L), so a curve below it is not one a lung can follow
+#: (and the model's volume cubic need not have a root there, docs/METHOD_NOTES.md).
+MIN_VOLUME_FRACTION = 0.5
+
+
+def check_reachable(trace: VolumeTrace, model: Model) -> None:
+    """Refuse a trace whose volume takes a lung below :data:`MIN_VOLUME_FRACTION` of its end-exhale
+    volume (each lung plays ``V_EE + share · ΔV``, :func:`lung_shares`), naming the first such sample:
+    its line in the curve file when the trace was read from one. Raises :class:`InputError`."""
+    shares = lung_shares(model)
+    # the ΔV (both lungs) that takes each lung to the bound; the least negative is reached first
+    bounds = {side: -(1.0 - MIN_VOLUME_FRACTION) * lung.volume_ee_ml / shares[side]
+              for side, lung in model.lungs.items()}
+    worst = max(bounds, key=bounds.get)
+    below = np.nonzero(np.asarray(trace.volume_ml) < bounds[worst])[0]
+    if not len(below):
+        return
+    i = int(below[0])
+    where = f"line {int(trace.lines[i])}" if trace.lines is not None else f"sample {i + 1} (t {trace.t_s[i]:g} s)"
+    lung = model.lungs[worst]
+    dv = float(trace.volume_ml[i])
+    raise InputError(
+        f"{trace.source} {where}: volume_ml {dv + trace.shifted_ml:g} mL (ΔV {dv:.0f} mL above end-exhale, "
+        f"both lungs) takes the {worst} lung to {lung.volume_ee_ml + shares[worst] * dv:.0f} mL, below "
+        f"{MIN_VOLUME_FRACTION:.0%} of its end-exhale {lung.volume_ee_ml:.0f} mL: no lung reaches that "
+        f"({len(below)} such rows; volume_ml is the volume of both lungs above end-exhale)"
+    )
 
 
 def lung_shares(model: Model) -> dict[str, float]:

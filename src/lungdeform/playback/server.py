@@ -38,7 +38,7 @@ from lungdeform.io.modelfile import load_model
 
 from .export import glb_bytes
 from .markers import marker_anchors
-from .schedule import preset_trace, read_volume_csv
+from .schedule import check_reachable, preset_trace, read_volume_csv
 from .trajectory import read_markers_csv
 
 DEFAULT_HOST = "127.0.0.1"
@@ -240,6 +240,8 @@ def model_glb(path, curve=None, markers=None) -> bytes:
 
     model = load_model(p)
     trace = read_volume_csv(curve) if curve is not None else None
+    if trace is not None:
+        check_reachable(trace, model)
     anchors = None
     if markers is not None:
         pts, labels = read_markers_csv(markers)

@@ -218,9 +218,10 @@ def write_trajectories(out: Path, points, labels, placement: PointPlacement, pos
     return paths
 
 
-def read_points(path) -> tuple[np.ndarray, list[str]]:
+def read_points(path, *, skip_invalid: bool = False, skipped: list[int] | None = None) -> tuple[np.ndarray, list[str]]:
     """Points to track: a CSV with ``x_mm,y_mm,z_mm[,label]`` (LPS mm) or an elastix point set
-    (``point`` header, world mm). Returns ``(points (q, 3) float mm, labels)``."""
+    (``point`` header, world mm). Returns ``(points (q, 3) float mm, labels)``. ``skip_invalid`` and
+    ``skipped`` apply to a CSV as in :func:`read_markers_csv`."""
 
     path = Path(path)
     if not path.is_file():
@@ -235,29 +236,53 @@ def read_points(path) -> tuple[np.ndarray, list[str]]:
     if first == "point":
         pts = read_elastix_points(path)
         return pts, [f"point {i + 1}" for i in range(len(pts))]
-    return read_markers_csv(path)
+    return read_markers_csv(path, skip_invalid=skip_invalid, skipped=skipped)
 
 
-def read_markers_csv(path) -> tuple[np.ndarray, list[str]]:
-    """Markers CSV: header ``x_mm,y_mm,z_mm[,label]`` (LPS mm, end-exhale)."""
+def read_markers_csv(path, *, skip_invalid: bool = False,
+                     skipped: list[int] | None = None) -> tuple[np.ndarray, list[str]]:
+    """Markers CSV: header ``x_mm,y_mm,z_mm[,label]`` (LPS mm, end-exhale).
+
+    A row whose coordinates are not finite numbers (NaN, inf, text, missing) is refused with
+    :class:`ReadError` naming its 1-based line in the file (the first few, and how many), unless
+    ``skip_invalid``: then the valid rows are kept and the lines left out are appended to
+    ``skipped`` (when given) for the caller to report. Returns ``(points (q, 3) float mm, labels)``.
+    """
     path = Path(path)
     try:
         with open(path, newline="", encoding="utf-8-sig") as fh:  # -sig: a spreadsheet's byte-order mark
-            rows = [r for r in csv.reader(fh) if r and any(c.strip() for c in r)]
-    except (OSError, UnicodeDecodeError) as exc:
+            reader = csv.reader(fh)
+            rows = [(reader.line_num, r) for r in reader if r and any(c.strip() for c in r)]
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
         raise ReadError(f"{path}: cannot read markers ({exc})") from exc
-    header = [h.strip() for h in rows[0]] if rows else []
+    header = [h.strip() for h in rows[0][1]] if rows else []
     if not {"x_mm", "y_mm", "z_mm"} <= set(header):
         raise ReadError(f"{path}: markers need a header with x_mm,y_mm,z_mm[,label]")
-    ix, iy, iz = (header.index(c) for c in ("x_mm", "y_mm", "z_mm"))
+    cols = [header.index(c) for c in ("x_mm", "y_mm", "z_mm")]
     il = header.index("label") if "label" in header else None
-    pts, labels = [], []
-    for lineno, r in enumerate(rows[1:], start=2):
-        try:
-            pts.append([float(r[ix]), float(r[iy]), float(r[iz])])
-        except (IndexError, ValueError) as exc:
-            raise ReadError(f"{path}: line {lineno}: expected numbers in x_mm,y_mm,z_mm") from exc
-        labels.append(r[il].strip() if il is not None and il < len(r) else f"marker {lineno - 1}")
-    if not pts or not np.all(np.isfinite(pts)):
-        raise ReadError(f"{path}: no finite marker rows")
+    pts, labels, bad = [], [], []
+    for k, (lineno, r) in enumerate(rows[1:], start=1):
+        xyz = _finite_row(r, cols)
+        if xyz is None:
+            bad.append(lineno)
+            continue
+        pts.append(xyz)
+        labels.append(r[il].strip() if il is not None and il < len(r) else f"marker {k}")
+    if bad and not skip_invalid:
+        shown = ", ".join(map(str, bad[:5])) + (", …" if len(bad) > 5 else "")
+        raise ReadError(f"{path}: {len(bad)} row(s) without finite numbers in x_mm,y_mm,z_mm, at line(s) "
+                        f"{shown} (skip_invalid, track --skip-invalid, keeps the other rows)")
+    if not pts:
+        raise ReadError(f"{path}: no marker rows with finite x_mm,y_mm,z_mm")
+    if skipped is not None:
+        skipped.extend(bad)
     return np.array(pts), labels
+
+
+def _finite_row(row: list[str], cols: list[int]) -> list[float] | None:
+    """The three coordinates of a CSV row, or None when one is missing, not a number or not finite."""
+    try:
+        xyz = [float(row[i]) for i in cols]
+    except (IndexError, ValueError):
+        return None
+    return xyz if all(np.isfinite(xyz)) else None
