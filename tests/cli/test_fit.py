@@ -7,10 +7,10 @@ import pytest
 import SimpleITK as sitk
 
 from lungdeform.cli.main import main
+from lungdeform.io.landmarks import write_elastix_points
 from lungdeform.io.meshfile import write_mesh
 from lungdeform.io.modelfile import load_model
 from lungdeform.model.lung import build_lung
-from lungdeform.io.landmarks import write_elastix_points
 from tests.conftest import ellipsoid_lung
 from tests.fit.test_lungsplit import two_lungs
 

@@ -29,8 +29,8 @@ from lungdeform.io.landmarks import read_elastix_points
 
 from .align import CropPlane, crop_planes
 from .config import FitInputs
-from .lungsplit import landmarks_of_side, one_lung
 from .ct import archive_in, is_archive, read_ct
+from .lungsplit import landmarks_of_side, one_lung
 from .segment import segment_lungs
 
 #: Landmarks more than this outside their own image's lung mask count as outside (mm).
