@@ -23,8 +23,8 @@ GARBAGE = bytes(random.Random(7).randrange(256) for _ in range(300))  # seeded: 
 def _zip(entries: dict[str, bytes], method=zipfile.ZIP_DEFLATED) -> bytes:
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w", method) as z:
-        for name, data in entries.items():
-            z.writestr(name, data)
+        for name, data in entries.items():  # a fixed date: the same bytes on every run
+            z.writestr(zipfile.ZipInfo(name, date_time=(1980, 1, 1, 0, 0, 0)), data, compress_type=method)
     return buf.getvalue()
 
 
