@@ -147,10 +147,11 @@ def test_missing_or_unreadable_manifest(tmp_path):
 
 @pytest.mark.parametrize("column", ["path", "landmarks"])
 def test_unusable_file_names_are_problems(tmp_path, column):
-    # why: a NUL byte (found by tests/fuzz/fuzz_manifest.py) or a 300-character name makes the file
-    # system calls raise ValueError / OSError; each must become a problem of its row, not a crash
+    # why: a NUL byte or "~nosuchuser" (found by tests/fuzz/fuzz_manifest.py) or a 300-character name
+    # make the file system calls raise ValueError / RuntimeError / OSError; each must become a problem
+    # of its row, not a crash
     (tmp_path / "a.ply").write_bytes(b"x")
-    for bad in ("a\x00.ply", "x" * 300 + ".ply"):
+    for bad in ("a\x00.ply", "~nosuchuser9f3/a.ply", "x" * 300 + ".ply"):
         path, landmarks = (bad, "") if column == "path" else ("a.ply", bad)
         rows = f"P01,left,2300,{path},{landmarks}\nP01,left,2900,a.ply,\n"
         (tmp_path / "m.csv").write_text("subject,side,volume_ml,path,landmarks\n" + rows)

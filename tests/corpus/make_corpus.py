@@ -82,6 +82,8 @@ def _text_files() -> dict[str, dict[str, bytes]]:
         "points": {"garbage.csv": GARBAGE, "wrong_header.csv": b"x,y,z\n1,2,3\n",
                    "huge_count.txt": b"point\n99999999999999999999\n1 2 3\n"},
         "manifest": {"nul_byte.csv": b"subject,side,volume_ml,path\nP01,left,2300,ee\x00.ply\nP01,left,2900,ei.ply\n",
+                     "no_such_user.csv": b"subject,side,volume_ml,path\nP01,left,2300,~nosuchuser9f3/ee.ply\n"
+                                         b"P01,left,2900,ei.ply\n",
                      "garbage.csv": GARBAGE, "wrong_header.csv": b"name,lung,path\nP01,left,a.ply\n"},
     }
 

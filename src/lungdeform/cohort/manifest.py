@@ -252,10 +252,10 @@ def _parse_row(line: int, cell: dict[str, str], folder: Path) -> tuple[_Row | No
         problems.append(Problem((line,), "path is empty"))
         ok = False
     else:
-        try:  # a NUL byte or an over-long name makes the file system calls raise
+        try:  # a NUL byte, an over-long name or an unknown ~user makes the file system calls raise
             scan = _resolve(folder, cell["path"])
             path_problem = _scan_problem(scan, cell["path"], side)
-        except (ValueError, OSError) as exc:
+        except (ValueError, OSError, RuntimeError) as exc:  # RuntimeError: "~nosuchuser"
             scan, path_problem, ok = None, f"path {cell['path']!r}: not a usable file name ({exc})", False
         if path_problem:
             problems.append(Problem((line,), path_problem))
@@ -265,7 +265,7 @@ def _parse_row(line: int, cell: dict[str, str], folder: Path) -> tuple[_Row | No
             landmarks = _resolve(folder, cell["landmarks"])
             landmarks_problem = None if landmarks.is_file() else \
                 f"landmarks {cell['landmarks']}: no such file ({landmarks})"
-        except (ValueError, OSError) as exc:
+        except (ValueError, OSError, RuntimeError) as exc:  # RuntimeError: "~nosuchuser"
             landmarks_problem, ok = f"landmarks {cell['landmarks']!r}: not a usable file name ({exc})", False
         if landmarks_problem:
             problems.append(Problem((line,), landmarks_problem))
