@@ -20,6 +20,7 @@ import importlib
 import json
 import os
 import random
+import shutil
 import sys
 import tempfile
 import time
@@ -248,6 +249,7 @@ class Recorder:
         self.name, self.suffix, self.reader = name, READERS[name][0], READERS[name][1]
         self.out = out
         self.work = Path(tempfile.mkdtemp(prefix=f"ldfuzz-{name}-", dir="/dev/shm" if os.path.isdir("/dev/shm") else None))
+        atexit.register(shutil.rmtree, self.work, True)  # libFuzzer's exit skips this: then the OS's tmp cleaning
         if name == "manifest":
             _manifest_files(self.work)
         self.path = self.work / f"input{self.suffix}"
@@ -366,6 +368,7 @@ def mutate_loop(name: str, seeds: list[bytes], runs: int, seconds: float, seed: 
     while rec.executions < runs and time.monotonic() < end:
         rec.run(mutate(rnd.choice(corpus), rnd, corpus))
     rec.flush()
+    shutil.rmtree(rec.work, ignore_errors=True)
     return rec
 
 

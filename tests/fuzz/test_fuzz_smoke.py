@@ -2,6 +2,9 @@
 needed) from seeds written by the package's own writers, and must raise nothing but the package's
 documented errors (tests/fuzz/common.py states the rule). ``make fuzz`` runs the long version."""
 
+import importlib
+from pathlib import Path
+
 import pytest
 
 from tests.fuzz import common
@@ -29,3 +32,14 @@ def test_the_harness_sees_a_crash(tmp_path, monkeypatch):
     rec = common.mutate_loop("curve", [b"t_s,volume_ml\n"], 5, 1.0, out=tmp_path)
     assert list(rec.crashes) == ["ValueError @ " + next(iter(rec.crashes)).split(" @ ")[1]]
     assert (tmp_path / "curve").is_dir()
+
+
+@pytest.mark.parametrize("reader", list(common.READERS))
+def test_each_reader_has_a_harness(reader, tmp_path, monkeypatch):
+    # why: make fuzz runs tests/fuzz/fuzz_<reader>.py for every reader; its TestOneInput must take a
+    # seed through the reader (a valid file: no crash recorded)
+    harness = importlib.import_module(f"tests.fuzz.fuzz_{reader}")
+    assert harness.READER == reader and Path(harness.__file__).name == f"fuzz_{reader}.py"
+    monkeypatch.setattr(common, "_RECORDERS", {})
+    harness.TestOneInput(common.make_seeds(reader, tmp_path)[0].read_bytes())
+    assert common._RECORDERS[reader].executions == 1 and not common._RECORDERS[reader].crashes
