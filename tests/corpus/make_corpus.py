@@ -65,6 +65,14 @@ def _mesh_files() -> dict[str, bytes]:
         "nan.obj": tet.format(z="nan").encode(),
         "huge_counts.off": b"OFF\n2000000000 2000000000 0\n0 0 0\n",
         "huge_counts.vtk": b"# vtk DataFile Version 3.0\nx\nBINARY\nDATASET POLYDATA\nPOINTS 2000000000 float\n\x00\x00",
+        # offsets far outside the connectivity array (segfault_offsets.vtp, committed as found by
+        # fuzz_mesh_vtp, is the input that crashed the process: differences wrapping around int64)
+        "huge_offsets.vtp": (
+            b'<VTKFile type="PolyData" version="1.0"><PolyData><Piece NumberOfPoints="3" NumberOfPolys="2">'
+            b'<Points><DataArray type="Float64" NumberOfComponents="3" format="ascii">0 0 0 1 0 0 0 1 0</DataArray>'
+            b'</Points><Polys><DataArray type="Int64" Name="connectivity" format="ascii">0 1 2</DataArray>'
+            b'<DataArray type="Int64" Name="offsets" format="ascii">5000000000000000000 -8000000000000000000'
+            b'</DataArray></Polys></Piece></PolyData></VTKFile>\n'),
         "truncated.glb": b"glTF" + struct.pack("<II", 2, 100000) + b"\x00" * 20,
     }
 
