@@ -79,7 +79,12 @@ def _mesh_files() -> dict[str, bytes]:
 
 def _text_files() -> dict[str, dict[str, bytes]]:
     return {
-        "image": {"garbage.nii.gz": GARBAGE, "huge_header.nii.gz": HUGE_NII, "empty.mha": b"",
+        "image": {"garbage.nii.gz": GARBAGE, "huge_header.nii.gz": HUGE_NII,
+                  # found by fuzz_image_mha (libFuzzer timeout): ITK spins on a huge NDims
+                  "huge_ndims.mha": b"ObjectType = Image\nNDims = 300000000000004 2.5\nDimSize = 6 5 4\n"
+                                    b"ElementType = MET_UCHAR\nElementDataFile = LOCAL\n" + bytes(120),
+                  "huge_ndims.nrrd": b"NRRD0004\ntype: uchar\ndimension: 300000000000004\nsizes: 6 5 4\n"
+                                     b"encoding: raw\n\n" + bytes(120), "empty.mha": b"",
                   "truncated.mha": b"ObjectType = Image\nNDims = 3\nDimSize = 64 64 64\nElementType = MET_UCHAR\n"
                                    b"ElementDataFile = LOCAL\n\x00\x01",
                   "huge_dims.nrrd": b"NRRD0004\ntype: uchar\ndimension: 3\nsizes: 100000 100000 100000\n"

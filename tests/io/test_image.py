@@ -187,3 +187,12 @@ def test_header_claiming_more_voxels_than_the_file_holds(tmp_path):
     bad = Path(__file__).resolve().parents[1] / "corpus" / "image" / "huge_header.nii.gz"
     with pytest.raises(ReadError, match=r"huge_header\.nii\.gz: header claims 2566x1280x1024 voxels"):
         read_image(bad)
+
+
+@pytest.mark.parametrize("name", ["huge_ndims.mha", "huge_ndims.nrrd"])
+def test_text_header_with_a_huge_dimension_count(name):
+    # why: found by tests/fuzz/fuzz_image_mha.py (libFuzzer timeout): ITK spins for minutes on
+    # "NDims = 300000000000004"; the header's dimension count is checked (it must be 3) before ITK reads
+    bad = Path(__file__).resolve().parents[1] / "corpus" / "image" / name
+    with pytest.raises(ReadError, match=rf"{name}: expected a 3-D image, the header gives '300000000000004'"):
+        read_image(bad)

@@ -170,16 +170,24 @@ def dicom_series_files(path) -> list[str]:
     return list(series[0][1])
 
 
-def _check_claimed_size(p: Path) -> None:
-    """Refuse a single-file image whose header claims more voxel bytes than the file can hold,
-    even deflated at the most (:data:`MAX_INFLATE`): ITK would try to allocate them (a damaged header
-    claiming 10^12 voxels). Files whose voxels live in another file (.mhd, .nhdr, a .mha or .nrrd
+def _check_header(p: Path) -> None:
+    """Refuse, before ITK reads it, a text header (MetaImage, NRRD) whose dimension count is absurd (over 10), and
+    a single-file image whose header claims more voxel bytes than the file can hold even deflated at
+    the most (:data:`MAX_INFLATE`): ITK would try to allocate them (a damaged header claiming 10^12
+    voxels). The sizes of files whose voxels live in another file (.mhd, .nhdr, a .mha or .nrrd
     naming a data file) are not judged."""
     name = p.name.lower()
-    if not name.endswith((".nii", ".nii.gz", ".mha", ".nrrd")):
-        return
     with open(p, "rb") as fh:
         head = fh.read(65536)
+    # an absurd dimension count in a text header: refused here, as ITK spins on NDims = 3e14
+    # (2-D or 4-D images are refused after reading, with the usual message)
+    key = rb"^\s*NDims\s*=[ \t]*(\S*)" if name.endswith((".mha", ".mhd")) else rb"^dimension:[ \t]*(\S*)"
+    ndims = re.search(key, head, re.M) if name.endswith((".mha", ".mhd", ".nrrd", ".nhdr")) else None
+    if ndims and not (ndims.group(1).isdigit() and 1 <= int(ndims.group(1)) <= 10):
+        raise ReadError(f"{p}: expected a 3-D image, the header gives {ndims.group(1).decode(errors='replace')!r} "
+                        "dimensions")
+    if not name.endswith((".nii", ".nii.gz", ".mha", ".nrrd")):
+        return
     if name.endswith(".mha") and not re.search(rb"ElementDataFile\s*=\s*LOCAL", head):
         return
     if name.endswith(".nrrd") and re.search(rb"^data ?file:", head, re.M | re.I):
@@ -225,7 +233,7 @@ def read_image(path) -> Image:
             if not p.name.lower().endswith(IMAGE_SUFFIXES):
                 raise ReadError(f"{p}: unknown image format (supported: {', '.join(IMAGE_SUFFIXES)}, "
                                 "a DICOM file or folder)")
-            _check_claimed_size(p)
+            _check_header(p)
             img = sitk.ReadImage(str(p))
     except ReadError:
         raise
