@@ -36,7 +36,7 @@ FUZZ_OUT ?= fuzz-out
 FUZZ_STAMP := $(VENV)/.fuzz-installed
 
 $(FUZZ_STAMP): $(STAMP)
-	$(BIN)/python -m pip install -q "atheris>=2.3" || echo "atheris did not install: fuzzing with the random-mutation fallback"
+	$(BIN)/python -m pip install -q "atheris==3.0.0" || echo "atheris did not install: fuzzing with the random-mutation fallback"
 	@touch $(FUZZ_STAMP)
 
 fuzz: $(FUZZ_STAMP)
