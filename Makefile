@@ -9,7 +9,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 DEMO_OUT ?= demo-out
 
-.PHONY: demo test install clean
+.PHONY: demo test install clean fuzz
 
 install: $(STAMP)
 
@@ -26,6 +26,21 @@ demo: $(STAMP)
 
 test: $(STAMP) viewer-deps $(VIEWER_BUNDLE)
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
+
+# --- fuzzing: every file reader under atheris (coverage guided; a seeded random-mutation fuzzer when
+# atheris is missing), FUZZ_RUNS executions or FUZZ_SECONDS seconds per reader, whichever comes
+# first; executions and unique crashes per reader, with a reproducer each, in fuzz-out/fuzz.json.
+FUZZ_RUNS ?= 1000000
+FUZZ_SECONDS ?= 60
+FUZZ_OUT ?= fuzz-out
+FUZZ_STAMP := $(VENV)/.fuzz-installed
+
+$(FUZZ_STAMP): $(STAMP)
+	$(BIN)/python -m pip install -q "atheris==3.0.0" || echo "atheris did not install: fuzzing with the random-mutation fallback"
+	@touch $(FUZZ_STAMP)
+
+fuzz: $(FUZZ_STAMP)
+	$(BIN)/python tests/fuzz/run.py --runs $(FUZZ_RUNS) --seconds $(FUZZ_SECONDS) --out $(FUZZ_OUT) $(FUZZ_READERS)
 
 # --- browser viewer (issue 5), for `make test`: the viewer's node packages (npm ci, once: stamp),
 # Debian's Chromium for the Playwright test (installed as root when /usr/bin/chromium is missing),
@@ -54,4 +69,4 @@ $(VIEWER_BUNDLE): $(VIEWER_SRC) | $(VIEWER_STAMP)
 	else echo "viewer/node_modules missing: keeping the committed viewer bundle"; fi
 
 clean:
-	rm -rf $(VENV) $(DEMO_OUT) build src/*.egg-info .pytest_cache
+	rm -rf $(VENV) $(DEMO_OUT) $(FUZZ_OUT) build src/*.egg-info .pytest_cache

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lungdeform.breathing.cycles import cycle_anchors, cycle_flags, dominant_period, noise_level, turning_points
+from lungdeform.breathing.cycles import _breaths, cycle_anchors, cycle_flags, dominant_period, noise_level, turning_points
 from lungdeform.breathing.trace import Trace, read_trace, resample
 from lungdeform.errors import InputError
 from tests.breathing.test_trace import breath, write_marker_csv
@@ -112,3 +112,16 @@ def test_noise_level_finds_injected_white_noise(rng):
         a = 12.0 * breath(t) + rng.normal(0, sigma, t.size)
         est = noise_level(Trace(t, a, "mm", np.full(t.size, ""), source="n"))
         assert est == pytest.approx(sigma, rel=0.2)
+
+
+def test_onset_of_a_rise_too_small_to_place_a_level_in():
+    # why: found by tests/fuzz/fuzz_trace_csv.py (read_trace -> orient_inhale_positive): a rise of one
+    # ulp above the trough puts the onset level (5 % of it) back on the trough itself, so no sample
+    # lay strictly below it and indexing the empty set raised IndexError. The onset is now the last
+    # trough sample, one 0.1 s step before each peak.
+    t = np.arange(0.0, 40.0, 0.1)
+    fine = np.ones_like(t)
+    fine[np.isclose(np.mod(t, 4.0), 1.0)] = np.nextafter(1.0, 2.0)
+    peaks, onsets = _breaths(t, np.sin(2 * np.pi * t / 4.0), fine, 4.0, 0.05)
+    assert peaks.tolist() == list(range(10, 400, 40))
+    assert np.allclose(onsets, t[peaks[1:]] - 0.1)

@@ -143,3 +143,17 @@ def test_missing_or_unreadable_manifest(tmp_path):
     bad.write_bytes("subject,side,volume_ml,path\nJos\xe9,left,1,a.ply\n".encode("latin-1"))
     with pytest.raises(InputError, match="not UTF-8"):
         read_manifest(bad)
+
+
+@pytest.mark.parametrize("column", ["path", "landmarks"])
+def test_unusable_file_names_are_problems(tmp_path, column):
+    # why: a NUL byte or "~nosuchuser" (found by tests/fuzz/fuzz_manifest.py) or a 300-character name
+    # make the file system calls raise ValueError / RuntimeError / OSError; each must become a problem
+    # of its row, not a crash
+    (tmp_path / "a.ply").write_bytes(b"x")
+    for bad in ("a\x00.ply", "~nosuchuser9f3/a.ply", "x" * 300 + ".ply"):
+        path, landmarks = (bad, "") if column == "path" else ("a.ply", bad)
+        rows = f"P01,left,2300,{path},{landmarks}\nP01,left,2900,a.ply,\n"
+        (tmp_path / "m.csv").write_text("subject,side,volume_ml,path,landmarks\n" + rows)
+        with pytest.raises(InputError, match=rf"row 2: {column} .*not a usable file name"):
+            read_manifest(tmp_path / "m.csv")

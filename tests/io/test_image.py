@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -176,3 +178,21 @@ def test_dicom_series_files_choices(tmp_path):
     _tiny_series(tmp_path / "4d", "1.2.826.0.1.3680043.2.1125.7.22", 3)
     with pytest.raises(ReadError, match=r"4d: holds 2 DICOM series, 2 of them with 3 files .*ambiguous"):
         dicom_series_files(tmp_path / "4d")
+
+
+def test_header_claiming_more_voxels_than_the_file_holds(tmp_path):
+    # why: found by tests/fuzz/fuzz_image_nii.py (libFuzzer out-of-memory): a 94-byte gzipped NIfTI
+    # whose header claims 2566 x 1280 x 1024 voxels; deflate cannot expand 94 bytes to 6.7 GB, so
+    # the header is damaged and must be refused before ITK allocates the voxels
+    bad = Path(__file__).resolve().parents[1] / "corpus" / "image" / "huge_header.nii.gz"
+    with pytest.raises(ReadError, match=r"huge_header\.nii\.gz: header claims 2566x1280x1024 voxels"):
+        read_image(bad)
+
+
+@pytest.mark.parametrize("name", ["huge_ndims.mha", "huge_ndims.nrrd"])
+def test_text_header_with_a_huge_dimension_count(name):
+    # why: found by tests/fuzz/fuzz_image_mha.py (libFuzzer timeout): ITK spins for minutes on
+    # "NDims = 300000000000004"; the header's dimension count is checked (it must be 3) before ITK reads
+    bad = Path(__file__).resolve().parents[1] / "corpus" / "image" / name
+    with pytest.raises(ReadError, match=rf"{name}: expected a 3-D image, the header gives '300000000000004'"):
+        read_image(bad)

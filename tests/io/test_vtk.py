@@ -7,8 +7,11 @@ from __future__ import annotations
 import base64
 import json
 import struct
+import subprocess
+import sys
 import xml.etree.ElementTree as ET
 import zlib
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -169,3 +172,16 @@ def test_vtp_writer_plain_surface_is_what_write_mesh_writes(tmp_path):
     data = (tmp_path / "s.vtp").read_bytes()
     assert data == vtp_bytes(SPHERE.vertices, SPHERE.faces)
     assert b"<PointData>" not in data and b"<FieldData>" not in data and b"<Points><DataArray" in data
+
+
+def test_offsets_wrapping_around_int64_are_refused():
+    # why: found by tests/fuzz/fuzz_mesh_vtp.py: offsets near +-2**63 whose differences wrap around
+    # passed the size check, and np.repeat on the wrapped counts crashed the process (segmentation
+    # fault); offsets outside 0..len(connectivity) are now refused first. Run in a child process so
+    # that a regression fails this test instead of killing the test run.
+    bad = Path(__file__).resolve().parents[1] / "corpus" / "mesh" / "segfault_offsets.vtp"
+    code = ("import sys; from lungdeform.io.meshfile import read_mesh; from lungdeform.errors import ReadError\n"
+            "try:\n    read_mesh(sys.argv[1])\nexcept ReadError as e:\n    print(e)")
+    done = subprocess.run([sys.executable, "-c", code, str(bad)], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-500:]
+    assert "segfault_offsets.vtp: polygon offsets are inconsistent" in done.stdout

@@ -329,3 +329,13 @@ def test_real_cases_relabelled_as_cases_6_to_10(data_dir, tmp_path):
     one = F.discover(tmp_path / "Case10Pack")
     assert list(one.cases) == [10]
     assert D.evaluate_case(D.load_case(one.cases[10])).mean_displacement_300_mm == pytest.approx(7.48, abs=0.01)
+
+
+@pytest.mark.parametrize("dims", ["inf,256,94", "256,-inf,94", "nan,256,94"])
+def test_voxel_spacing_refuses_non_finite_image_size(tmp_path, dims):
+    # why: found by tests/fuzz/fuzz_dirlab_spacing.py: int(round(inf)) raises OverflowError (and
+    # int(round(nan)) ValueError); both must come out as ReadError naming the file and line
+    f = tmp_path / "voxel_spacing.csv"
+    f.write_text(f"case,dim_x,dim_y,dim_z,spacing_x_mm,spacing_y_mm,spacing_z_mm\n1,{dims},0.97,0.97,2.5\n")
+    with pytest.raises(ReadError, match=r"voxel_spacing\.csv, line 2: not a number"):
+        F.read_voxel_spacing(f)

@@ -158,7 +158,7 @@ def _breaths(t, s, fine, period: float, onset_level: float, threshold: float = 0
         seg = fine[ipk[j - 1]: ipk[j] + 1]
         imin = int(np.argmin(seg))
         level = seg[imin] + onset_level * (seg[-1] - seg[imin])
-        k = imin + int(np.flatnonzero(seg[imin:] < level)[-1]) if seg[-1] > seg[imin] else imin
+        k = imin + int(np.flatnonzero(seg[imin:] <= level)[-1]) if seg[-1] > seg[imin] else imin
         k = min(k, seg.size - 2)
         x0, x1 = seg[k], seg[k + 1]
         frac = float(np.clip((level - x0) / (x1 - x0), 0.0, 1.0)) if x1 != x0 else 0.0

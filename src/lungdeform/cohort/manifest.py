@@ -253,15 +253,23 @@ def _parse_row(line: int, cell: dict[str, str], folder: Path) -> tuple[_Row | No
         problems.append(Problem((line,), "path is empty"))
         ok = False
     else:
-        scan = _resolve(folder, cell["path"])
-        path_problem = _scan_problem(scan, cell["path"], side)
+        try:  # a NUL byte, an over-long name or an unknown ~user makes the file system calls raise
+            scan = _resolve(folder, cell["path"])
+            path_problem = _scan_problem(scan, cell["path"], side)
+        except (ValueError, OSError, RuntimeError) as exc:  # RuntimeError: "~nosuchuser"
+            scan, path_problem, ok = None, f"path {cell['path']!r}: not a usable file name ({exc})", False
         if path_problem:
             problems.append(Problem((line,), path_problem))
     landmarks = None
     if cell.get("landmarks"):
-        landmarks = _resolve(folder, cell["landmarks"])
-        if not landmarks.is_file():
-            problems.append(Problem((line,), f"landmarks {cell['landmarks']}: no such file ({landmarks})"))
+        try:
+            landmarks = _resolve(folder, cell["landmarks"])
+            landmarks_problem = None if landmarks.is_file() else \
+                f"landmarks {cell['landmarks']}: no such file ({landmarks})"
+        except (ValueError, OSError, RuntimeError) as exc:  # RuntimeError: "~nosuchuser"
+            landmarks_problem, ok = f"landmarks {cell['landmarks']!r}: not a usable file name ({exc})", False
+        if landmarks_problem:
+            problems.append(Problem((line,), landmarks_problem))
     return (_Row(line, subject, side, volume, scan, landmarks) if ok else None), problems
 
 

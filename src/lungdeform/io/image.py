@@ -13,6 +13,7 @@ float`` to world points ``(n, 3) float`` mm LPS.
 from __future__ import annotations
 
 import os
+import re
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,6 +24,8 @@ import SimpleITK as sitk
 from lungdeform.errors import InputError, ReadError
 
 IMAGE_SUFFIXES = (".nii", ".nii.gz", ".mha", ".mhd", ".nrrd", ".nhdr")
+#: deflate (gzip, zlib) never expands data more than about 1032 times
+MAX_INFLATE = 1032
 
 
 @dataclass(frozen=True, eq=False)
@@ -167,6 +170,40 @@ def dicom_series_files(path) -> list[str]:
     return list(series[0][1])
 
 
+def _check_header(p: Path) -> None:
+    """Refuse, before ITK reads it, a text header (MetaImage, NRRD) whose dimension count is absurd (over 10), and
+    a single-file image whose header claims more voxel bytes than the file can hold even deflated at
+    the most (:data:`MAX_INFLATE`): ITK would try to allocate them (a damaged header claiming 10^12
+    voxels). The sizes of files whose voxels live in another file (.mhd, .nhdr, a .mha or .nrrd
+    naming a data file) are not judged."""
+    name = p.name.lower()
+    with open(p, "rb") as fh:
+        head = fh.read(65536)
+    # an absurd dimension count in a text header: refused here, as ITK spins on NDims = 3e14
+    # (2-D or 4-D images are refused after reading, with the usual message)
+    key = rb"^\s*NDims\s*=[ \t]*(\S*)" if name.endswith((".mha", ".mhd")) else rb"^dimension:[ \t]*(\S*)"
+    ndims = re.search(key, head, re.M) if name.endswith((".mha", ".mhd", ".nrrd", ".nhdr")) else None
+    if ndims and not (ndims.group(1).isdigit() and 1 <= int(ndims.group(1)) <= 10):
+        raise ReadError(f"{p}: expected a 3-D image, the header gives {ndims.group(1).decode(errors='replace')!r} "
+                        "dimensions")
+    if not name.endswith((".nii", ".nii.gz", ".mha", ".nrrd")):
+        return
+    if name.endswith(".mha") and not re.search(rb"ElementDataFile\s*=\s*LOCAL", head):
+        return
+    if name.endswith(".nrrd") and re.search(rb"^data ?file:", head, re.M | re.I):
+        return
+    reader = sitk.ImageFileReader()
+    reader.SetFileName(str(p))
+    with _quiet_itk():
+        reader.ReadImageInformation()
+    bits = re.search(r"(\d+)-bit", sitk.GetPixelIDValueAsString(reader.GetPixelID()))
+    claimed = float(np.prod(reader.GetSize(), dtype=np.float64)) * reader.GetNumberOfComponents() * (
+        int(bits.group(1)) // 8 if bits else 1)
+    if claimed > MAX_INFLATE * p.stat().st_size:
+        raise ReadError(f"{p}: header claims {'x'.join(map(str, reader.GetSize()))} voxels "
+                        f"({claimed:.3g} bytes), more than the {p.stat().st_size}-byte file can hold: damaged header")
+
+
 def read_image(path) -> Image:
     """Read a 3-D image with SimpleITK: NIfTI, MetaImage (.mha/.mhd), NRRD, or a DICOM directory.
 
@@ -196,6 +233,7 @@ def read_image(path) -> Image:
             if not p.name.lower().endswith(IMAGE_SUFFIXES):
                 raise ReadError(f"{p}: unknown image format (supported: {', '.join(IMAGE_SUFFIXES)}, "
                                 "a DICOM file or folder)")
+            _check_header(p)
             img = sitk.ReadImage(str(p))
     except ReadError:
         raise

@@ -41,6 +41,7 @@ import datetime as _dt
 import json
 import sys
 import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -120,17 +121,26 @@ def load_model(path) -> Model:
     path = Path(path)
     if not path.is_file():
         raise ModelFileError(f"{path}: no such model file")
+    if path.stat().st_size == 0:
+        raise ModelFileError(f"{path}: file is empty")
     try:
-        with np.load(path, allow_pickle=False) as z:
+        with open(path, "rb") as fh:  # our handle: numpy leaks its own when the zip is unreadable
+            z = np.load(fh, allow_pickle=False)
+            if not hasattr(z, "files"):  # a lone .npy array: np.load returns it, not an archive
+                raise ModelFileError(f"{path}: not a lungdeform model file (one NumPy array, not an .npz archive)")
             data = {k: z[k] for k in z.files}
     except ValueError as exc:  # numpy's advice on pickled objects is not for our users
         why = "it holds Python objects, not arrays" if "pickle" in str(exc) else str(exc)
         raise ModelFileError(f"{path}: not a lungdeform model file ({why})") from exc
-    except (OSError, zipfile.BadZipFile, EOFError) as exc:
-        raise ModelFileError(f"{path}: not a lungdeform model file ({exc})") from exc
+    except (OSError, zipfile.BadZipFile, EOFError, zlib.error, RuntimeError, NotImplementedError,
+            MemoryError) as exc:  # a damaged archive: bad deflate data, "encrypted", odd zip versions, huge shapes
+        raise ModelFileError(f"{path}: not a lungdeform model file (damaged archive: {exc})") from exc
     if str(data.get("schema", "")) != SCHEMA:
         raise ModelFileError(f"{path}: not a lungdeform model file (schema {data.get('schema')!r})")
-    version = int(data.get("schema_version", -1))
+    try:
+        version = int(data.get("schema_version", -1))
+    except (TypeError, ValueError) as exc:
+        raise ModelFileError(f"{path}: damaged header (schema_version {data['schema_version'].tolist()!r})") from exc
     if version not in READABLE_VERSIONS:
         raise ModelFileError(
             f"{path}: model schema version {version} is not supported (this lungdeform reads "
@@ -141,7 +151,10 @@ def load_model(path) -> Model:
         names = [str(x) for x in data["lungs"]]
     except (KeyError, ValueError) as exc:
         raise ModelFileError(f"{path}: damaged header ({exc})") from exc
-    lungs = {name: _lung(path, name, data, version) for name in names}
+    try:
+        lungs = {name: _lung(path, name, data, version) for name in names}
+    except (TypeError, ValueError, IndexError) as exc:  # arrays of the wrong dtype (text, objects) or size
+        raise ModelFileError(f"{path}: damaged lung arrays ({exc})") from exc
     return Model(lungs, provenance)
 
 

@@ -46,9 +46,13 @@ def _fan_offsets(connectivity: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     """Fan triangulation of polygons stored as flat connectivity and *end* offsets (VTK layout)."""
     connectivity = np.asarray(connectivity, dtype=np.int64)
     ends = np.asarray(offsets, dtype=np.int64)
+    # bounds first: with offsets near +-2**63 the differences below wrap around, and np.repeat on
+    # the wrapped counts corrupts memory (a segmentation fault found by tests/fuzz/fuzz_mesh_vtp.py)
+    if len(ends) and (ends.min() < 0 or ends.max() > len(connectivity)):
+        raise FormatError("polygon offsets are inconsistent with the connectivity array")
     starts = np.concatenate([[0], ends[:-1]])
     sizes = ends - starts
-    if (sizes < 0).any() or (len(ends) and ends[-1] > len(connectivity)):
+    if (sizes < 0).any():
         raise FormatError("polygon offsets are inconsistent with the connectivity array")
     n_tri = np.maximum(sizes - 2, 0)
     poly = np.repeat(np.arange(len(sizes)), n_tri)

@@ -228,7 +228,7 @@ def read_voxel_spacing(path) -> dict[int, tuple[np.ndarray, np.ndarray | None]]:
                 dcells = [cell(f"dim_{a}") for a in "xyz"] if "dim_x" in cols else []
                 dvals = [float(c) for c in dcells] if dcells and all(dcells) else None
             dims = None if dvals is None else np.array([int(round(v)) for v in dvals])
-        except (TypeError, ValueError) as exc:
+        except (TypeError, ValueError, OverflowError) as exc:  # OverflowError: an image size of inf
             raise ReadError(f"{path}, line {lineno}: not a number ({exc})") from exc
         try:
             spacing = as_spacing(sp)

@@ -1,0 +1,113 @@
+"""Write the bad-input corpus (``tests/corpus/<kind>/<defect>.<suffix>``): small files, one per class
+of defect the fuzzers (tests/fuzz/) found plus classic ones (empty, truncated, binary garbage, wrong
+header, NaN, huge counts). The files are committed; this script says how each was made.
+Run: ``PYTHONPATH=src python tests/corpus/make_corpus.py``."""
+
+from __future__ import annotations
+
+import base64
+import io
+import random
+import struct
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+#: found by fuzz_image_nii (libFuzzer out-of-memory): a gzipped NIfTI header claiming 2566 x 1280 x 1024 voxels
+HUGE_NII = base64.b64decode("H4sIAAAAAAAAA4thZCACFDEwM7BxMbAysDAwQiEqYGLgANMN9mfP+IAxA4OCA6Y5G5xBaqAcXi6GAQaMKP4AueuEEwPDBycGBo/DZ8/47EfIgcQZGBBiIDAwvCwOAA==")
+GARBAGE = bytes(random.Random(7).randrange(256) for _ in range(300))  # seeded: the same bytes every time
+
+
+def _zip(entries: dict[str, bytes], method=zipfile.ZIP_DEFLATED) -> bytes:
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", method) as z:
+        for name, data in entries.items():  # a fixed date: the same bytes on every run
+            z.writestr(zipfile.ZipInfo(name, date_time=(1980, 1, 1, 0, 0, 0)), data, compress_type=method)
+    return buf.getvalue()
+
+
+def _npy(value) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, np.asarray(value), allow_pickle=False)
+    return buf.getvalue()
+
+
+def _model_files() -> dict[str, bytes]:
+    header = {"schema.npy": _npy("lungdeform.model"), "schema_version.npy": _npy(3)}
+    blob = _zip({"schema.npy": _npy("x" * 400)})
+    # deflate data damaged, CRC kept: zlib.error from the decompressor (fuzzer class 1)
+    at = blob.index(b"schema.npy") + len(b"schema.npy") + 40
+    damaged = blob[:at] + bytes(b ^ 0xA5 for b in blob[at:at + 8]) + blob[at + 8:]
+    # the central directory's "encrypted" flag set: RuntimeError "password required" (fuzzer class 2)
+    cd = blob.index(b"PK\x01\x02")
+    encrypted = blob[:cd + 8] + struct.pack("<H", 1) + blob[cd + 10:]
+    # "version needed to extract" 17.3: NotImplementedError (fuzzer class 3)
+    version = blob[:cd + 6] + struct.pack("<H", 173) + blob[cd + 8:]
+    return {
+        "empty.npz": b"", "garbage.npz": GARBAGE, "truncated.npz": blob[: len(blob) // 2],
+        "damaged_deflate.npz": damaged, "encrypted_flag.npz": encrypted, "zip_version.npz": version,
+        # a readable archive whose header holds text where a number belongs: ValueError in int()
+        "text_version.npz": _zip({**header, "schema_version.npy": _npy("three")}),
+        # a lone .npy array: np.load returns an ndarray, not an archive (no context manager)
+        "lone_array.npz": _npy(np.zeros(3)),
+    }
+
+
+def _mesh_files() -> dict[str, bytes]:
+    tet = "v 0 0 0\nv 10 0 0\nv 0 10 0\nv 0 0 {z}\nf 1 3 2\nf 1 2 4\nf 2 3 4\nf 1 4 3\n"
+    return {
+        "empty.stl": b"",
+        "truncated.stl": b"solid-less binary".ljust(80, b" ") + struct.pack("<I", 1000) + bytes(50),
+        "garbage.obj": GARBAGE,
+        "wrong_header.ply": b"plx\nformat ascii 1.0\nelement vertex 3\nend_header\n0 0 0\n",
+        "nan.obj": tet.format(z="nan").encode(),
+        "huge_counts.off": b"OFF\n2000000000 2000000000 0\n0 0 0\n",
+        "huge_counts.vtk": b"# vtk DataFile Version 3.0\nx\nBINARY\nDATASET POLYDATA\nPOINTS 2000000000 float\n\x00\x00",
+        # offsets far outside the connectivity array (segfault_offsets.vtp, committed as found by
+        # fuzz_mesh_vtp, is the input that crashed the process: differences wrapping around int64)
+        "huge_offsets.vtp": (
+            b'<VTKFile type="PolyData" version="1.0"><PolyData><Piece NumberOfPoints="3" NumberOfPolys="2">'
+            b'<Points><DataArray type="Float64" NumberOfComponents="3" format="ascii">0 0 0 1 0 0 0 1 0</DataArray>'
+            b'</Points><Polys><DataArray type="Int64" Name="connectivity" format="ascii">0 1 2</DataArray>'
+            b'<DataArray type="Int64" Name="offsets" format="ascii">5000000000000000000 -8000000000000000000'
+            b'</DataArray></Polys></Piece></PolyData></VTKFile>\n'),
+        "truncated.glb": b"glTF" + struct.pack("<II", 2, 100000) + b"\x00" * 20,
+    }
+
+
+def _text_files() -> dict[str, dict[str, bytes]]:
+    return {
+        "image": {"garbage.nii.gz": GARBAGE, "huge_header.nii.gz": HUGE_NII,
+                  # found by fuzz_image_mha (libFuzzer timeout): ITK spins on a huge NDims
+                  "huge_ndims.mha": b"ObjectType = Image\nNDims = 300000000000004 2.5\nDimSize = 6 5 4\n"
+                                    b"ElementType = MET_UCHAR\nElementDataFile = LOCAL\n" + bytes(120),
+                  "huge_ndims.nrrd": b"NRRD0004\ntype: uchar\ndimension: 300000000000004\nsizes: 6 5 4\n"
+                                     b"encoding: raw\n\n" + bytes(120), "empty.mha": b"",
+                  "truncated.mha": b"ObjectType = Image\nNDims = 3\nDimSize = 64 64 64\nElementType = MET_UCHAR\n"
+                                   b"ElementDataFile = LOCAL\n\x00\x01",
+                  "huge_dims.nrrd": b"NRRD0004\ntype: uchar\ndimension: 3\nsizes: 100000 100000 100000\n"
+                                    b"encoding: raw\n\n\x00"},
+        "curve": {"empty.csv": b"", "garbage.csv": GARBAGE, "nan.csv": b"t_s,volume_ml\n0,0\n1,nan\n2,100\n",
+                  "wrong_header.csv": b"time,volume\n0,0\n1,100\n"},
+        "trace": {"empty.vxp": b"", "garbage.vxp": GARBAGE, "header_only.vxp": b"[Header]\r\nVersion=1.6\r\n"},
+        "points": {"garbage.csv": GARBAGE, "wrong_header.csv": b"x,y,z\n1,2,3\n",
+                   "huge_count.txt": b"point\n99999999999999999999\n1 2 3\n"},
+        "manifest": {"nul_byte.csv": b"subject,side,volume_ml,path\nP01,left,2300,ee\x00.ply\nP01,left,2900,ei.ply\n",
+                     "no_such_user.csv": b"subject,side,volume_ml,path\nP01,left,2300,~nosuchuser9f3/ee.ply\n"
+                                         b"P01,left,2900,ei.ply\n",
+                     "garbage.csv": GARBAGE, "wrong_header.csv": b"name,lung,path\nP01,left,a.ply\n"},
+    }
+
+
+def main() -> None:
+    kinds = {"model": _model_files(), "mesh": _mesh_files(), **_text_files()}
+    for kind, files in kinds.items():
+        (HERE / kind).mkdir(exist_ok=True)
+        for name, data in files.items():
+            (HERE / kind / name).write_bytes(data)
+
+
+if __name__ == "__main__":
+    main()

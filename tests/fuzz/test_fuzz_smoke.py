@@ -1,0 +1,45 @@
+"""CI smoke of the fuzz harnesses: every reader gets a short, seeded random-mutation run (no atheris
+needed) from seeds written by the package's own writers, and must raise nothing but the package's
+documented errors (tests/fuzz/common.py states the rule). ``make fuzz`` runs the long version."""
+
+import importlib
+from pathlib import Path
+
+import pytest
+
+from tests.fuzz import common
+
+RUNS = 400  # per reader; with the 2 s cap the whole smoke stays well under a minute
+SECONDS = 2.0
+
+
+@pytest.mark.parametrize("reader", list(common.READERS))
+def test_reader_raises_only_package_errors(reader, tmp_path):
+    # why: a reader handed mutated bytes of a valid file must refuse them with a LungdeformError;
+    # any other exception escaping it is a crash (recorded with the input that caused it).
+    seeds = [p.read_bytes() for p in common.make_seeds(reader, tmp_path / "seeds")]
+    rec = common.mutate_loop(reader, seeds, RUNS, SECONDS, seed=1, out=tmp_path / "out")
+    assert rec.executions >= 50, rec.stats()
+    assert not rec.crashes, "\n".join(f"{c['key']}: {c['message']} ({c['reproducer']})" for c in rec.crashes.values())
+
+
+def test_the_harness_sees_a_crash(tmp_path, monkeypatch):
+    # why: a reader that leaks a ValueError must be recorded as a crash, or the smoke proves nothing.
+    def leaky(path):
+        raise ValueError("boom")
+
+    monkeypatch.setitem(common.READERS, "curve", (".csv", leaky))
+    rec = common.mutate_loop("curve", [b"t_s,volume_ml\n"], 5, 1.0, out=tmp_path)
+    assert list(rec.crashes) == ["ValueError @ " + next(iter(rec.crashes)).split(" @ ")[1]]
+    assert (tmp_path / "curve").is_dir()
+
+
+@pytest.mark.parametrize("reader", list(common.READERS))
+def test_each_reader_has_a_harness(reader, tmp_path, monkeypatch):
+    # why: make fuzz runs tests/fuzz/fuzz_<reader>.py for every reader; its TestOneInput must take a
+    # seed through the reader (a valid file: no crash recorded)
+    harness = importlib.import_module(f"tests.fuzz.fuzz_{reader}")
+    assert harness.READER == reader and Path(harness.__file__).name == f"fuzz_{reader}.py"
+    monkeypatch.setattr(common, "_RECORDERS", {})
+    harness.TestOneInput(common.make_seeds(reader, tmp_path)[0].read_bytes())
+    assert common._RECORDERS[reader].executions == 1 and not common._RECORDERS[reader].crashes
