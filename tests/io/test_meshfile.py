@@ -7,7 +7,7 @@ import os
 import numpy as np
 import pytest
 
-from lungdeform.errors import InputError, MeshError, ReadError, UnitsError
+from lungdeform.errors import InputError, MaskError, MeshError, ReadError, UnitsError
 from lungdeform.geometry.mesh import check_surface, icosphere, signed_volume
 from lungdeform.io import meshfile as lio
 from lungdeform.io.meshfile import WRITE_SUFFIXES, load, load_surface, read_mesh, write_mesh
@@ -265,9 +265,10 @@ def test_load_label_image_gives_one_surface_per_group(tmp_path):
     assert left.volume == pytest.approx(12 * 12 * 12 * 8, rel=0.05)
     assert right.volume == pytest.approx(12 * 12 * 10 * 8, rel=0.05)
     assert left.vertices[:, 0].mean() > right.vertices[:, 0].mean()
-    [(whole, report)] = load(tmp_path / "lobes.nii.gz", smooth_iterations=0)  # all labels
-    assert whole.volume == pytest.approx(left.volume, rel=0.01)  # the largest piece: labels 1+2
-    assert any("kept the largest of 2 mask components" in r for r in report.repairs)
+    # all labels as one mask: two large separate pieces (the right one 83 % of the left) are not
+    # one lung, so the smaller is not dropped silently: refused, naming the file and the volumes
+    with pytest.raises(MaskError, match="lobes.nii.gz: any non-zero label has 2 large separate components"):
+        load(tmp_path / "lobes.nii.gz", smooth_iterations=0)
     with pytest.raises(InputError, match="units"):
         load(tmp_path / "lobes.nii.gz", units="m")
 
