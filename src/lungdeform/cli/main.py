@@ -41,6 +41,8 @@ COMMAND_MODULES = [
     "lungdeform.cli.bench_cohort",
     "lungdeform.cli.synth_cohort",
     "lungdeform.cli.track",
+    "lungdeform.cli.dvf",
+    "lungdeform.cli.warp",
 ]
 
 
