@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+import SimpleITK as sitk
 
 from lungdeform.cli.main import main
 from lungdeform.io.image import read_image, write_image
@@ -30,8 +31,6 @@ def test_dvf_writes_a_vector_field_on_the_reference_grid(files, tmp_path, capsys
                  "--out", str(out)]) == 0
     text = capsys.readouterr().out
     assert "Jacobian determinant: min" in text and "forward field" in text
-    import SimpleITK as sitk
-
     img = sitk.ReadImage(str(out))
     ref = read_image(d / "ref.nii.gz")
     # a 3-component float32 vector image on the reference's grid (what ITK/Slicer read as a DVF)

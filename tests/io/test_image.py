@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from lungdeform.errors import InputError, ReadError
-from lungdeform.io.image import index_to_world, read_image
+from lungdeform.io.image import Image, index_to_world, read_image, resample_image, write_image
 from lungdeform.io.mask import mask_to_surface
 
 from .test_mask import MIRRORED, rotation
@@ -180,8 +180,6 @@ def test_dicom_series_files_choices(tmp_path):
 
 def test_write_image_keeps_grid_and_pixel_type(tmp_path):
     # what is written reads back voxel for voxel with its origin, spacing, direction and dtype
-    from lungdeform.io.image import write_image
-
     c, s = np.cos(0.2), np.sin(0.2)
     d = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
     a = np.arange(24, dtype=np.int16).reshape(2, 3, 4)
@@ -196,8 +194,6 @@ def test_write_image_keeps_grid_and_pixel_type(tmp_path):
 
 def test_resample_with_nearest_neighbour_keeps_labels():
     # a shift of exactly one voxel along x moves labels by one voxel, values only from the input
-    from lungdeform.io.image import Image, resample_image
-
     a = np.zeros((4, 5, 6), np.uint8)
     a[1:3, 1:4, 2:4] = 7
     a[2, 2, 3] = 3

@@ -9,6 +9,7 @@ from lungdeform.geometry.mesh import winding_numbers
 from lungdeform.io.image import to_sitk
 from lungdeform.model.lung import Model
 from lungdeform.playback import dvf as D
+from lungdeform.playback.schedule import VolumeTrace
 from tests.browser.support import two_lungs
 
 # the test ellipsoids: lungs at x = ±90 mm, 120 × 160 × 220 mm; this grid covers both with room
@@ -140,8 +141,6 @@ def test_aligned_field_lands_in_the_scan_frame(model, forward):
 
 def test_phase_states_span_one_cycle():
     # a 4 s cosine breath repeated three times: N phases over one 4 s period, end-exhale first
-    from lungdeform.playback.schedule import VolumeTrace
-
     t = np.linspace(0, 12, 601)
     trace = VolumeTrace(t, 250 * (1 - np.cos(2 * np.pi * t / 4.0)))
     states, period = D.phase_states(trace, 4)

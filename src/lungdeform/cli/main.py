@@ -43,6 +43,7 @@ COMMAND_MODULES = [
     "lungdeform.cli.track",
     "lungdeform.cli.dvf",
     "lungdeform.cli.warp",
+    "lungdeform.cli.bench_dvf",
 ]
 
 
