@@ -59,4 +59,4 @@ def bench_dvf(shape=(150, 512, 512), repeats: int = 3, node_mm: float = D.NODE_S
             "resample_seconds": resample, "ratio": field / resample, "jacobian_min": r.jacobian_min,
             "jacobian_max": r.jacobian_max, "margin_mm": r.info["margin_mm"], "nodes": r.info["nodes"],
             "nodes_evaluated": r.info["nodes_evaluated"], "lattice_error_mm": r.info["lattice_error_mm"],
-            "threads": sitk.ProcessObject.GetGlobalDefaultNumberOfThreads()}
+            "node_mm": float(node_mm), "threads": sitk.ProcessObject.GetGlobalDefaultNumberOfThreads()}
