@@ -37,6 +37,10 @@ class ConvergenceError(LungdeformError):
     """An iterative solver did not reach its tolerance."""
 
 
+class FoldError(LungdeformError):
+    """A displacement field folds: its Jacobian determinant is zero or negative somewhere."""
+
+
 class ModelFileError(ReadError):
     """A model file has the wrong schema version, missing keys or inconsistent shapes."""
 

@@ -45,3 +45,12 @@ def test_bench_predict_reports_the_ratio_to_the_linear_baseline(tmp_path, capsys
     assert "the linear baseline" in out and "model:" in out
     doc = json.loads(path.read_text())
     assert doc["benchmark"] == "predict" and [r["method"] for r in doc["results"]] == ["model", "linear", "none"]
+
+
+def test_bench_dvf_small_grid(tmp_path, capsys):
+    # a small grid: the command times both and reports their ratio and the field's Jacobian
+    out = tmp_path / "b.json"
+    assert main(["bench", "dvf", "--shape", "40,64,64", "--repeats", "1", "--json", str(out)]) == 0
+    r = json.loads(out.read_text())["results"][0]
+    assert r["shape_zyx"] == [40, 64, 64] and r["ratio"] > 0 and r["jacobian_min"] > 0
+    assert "ratio" in capsys.readouterr().out

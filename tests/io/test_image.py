@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lungdeform.errors import ReadError
-from lungdeform.io.image import index_to_world, read_image
+from lungdeform.errors import InputError, ReadError
+from lungdeform.io.image import Image, index_to_world, read_image, resample_image, write_image
 from lungdeform.io.mask import mask_to_surface
 
 from .test_mask import MIRRORED, rotation
@@ -196,3 +196,30 @@ def test_text_header_with_a_huge_dimension_count(name):
     bad = Path(__file__).resolve().parents[1] / "corpus" / "image" / name
     with pytest.raises(ReadError, match=rf"{name}: expected a 3-D image, the header gives '300000000000004'"):
         read_image(bad)
+
+
+def test_write_image_keeps_grid_and_pixel_type(tmp_path):
+    # what is written reads back voxel for voxel with its origin, spacing, direction and dtype
+    c, s = np.cos(0.2), np.sin(0.2)
+    d = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+    a = np.arange(24, dtype=np.int16).reshape(2, 3, 4)
+    for name in ("a.mha", "a.nii.gz", "a.nrrd"):
+        img = read_image(write_image(tmp_path / name, a, [0.5, 0.7, 2.0], [1.0, -2.0, 3.0], d))
+        assert img.array.dtype == np.int16 and np.array_equal(img.array, a)
+        assert np.allclose(img.spacing, [0.5, 0.7, 2.0]) and np.allclose(img.origin, [1, -2, 3])
+        assert np.allclose(img.direction, d, atol=1e-6)
+    with pytest.raises(InputError, match="unknown output image format"):
+        write_image(tmp_path / "a.png", a, [1, 1, 1], [0, 0, 0], np.eye(3))
+
+
+def test_resample_with_nearest_neighbour_keeps_labels():
+    # a shift of exactly one voxel along x moves labels by one voxel, values only from the input
+    a = np.zeros((4, 5, 6), np.uint8)
+    a[1:3, 1:4, 2:4] = 7
+    a[2, 2, 3] = 3
+    img = Image(a, [2.0, 1.0, 1.0], [0.0, 0.0, 0.0], np.eye(3))
+    field = np.zeros(a.shape + (3,))
+    field[..., 0] = 2.0  # output voxel y takes the input at y + 2 mm = one voxel along x
+    out = resample_image(img, field, label=True)
+    assert out.array.dtype == np.uint8 and set(np.unique(out.array)) == {0, 3, 7}
+    assert np.array_equal(out.array[:, :, :-1], a[:, :, 1:])

@@ -42,6 +42,9 @@ COMMAND_MODULES = [
     "lungdeform.cli.bench_cohort",
     "lungdeform.cli.synth_cohort",
     "lungdeform.cli.track",
+    "lungdeform.cli.dvf",
+    "lungdeform.cli.warp",
+    "lungdeform.cli.bench_dvf",
 ]
 
 

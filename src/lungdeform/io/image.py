@@ -21,11 +21,14 @@ from pathlib import Path
 import numpy as np
 import SimpleITK as sitk
 
+from lungdeform.atomic import atomic_path
 from lungdeform.errors import InputError, ReadError
 
 IMAGE_SUFFIXES = (".nii", ".nii.gz", ".mha", ".mhd", ".nrrd", ".nhdr")
 #: deflate (gzip, zlib) never expands data more than about 1032 times
 MAX_INFLATE = 1032
+#: Suffixes :func:`write_image` writes (single-file formats, so that a write is atomic).
+WRITE_SUFFIXES = (".mha", ".nii.gz", ".nii", ".nrrd")
 
 
 @dataclass(frozen=True, eq=False)
@@ -253,3 +256,54 @@ def read_image(path) -> Image:
         direction=np.array(img.GetDirection()).reshape(3, 3),
         source=str(p),
     )
+
+
+def write_suffix(path) -> str:
+    """The format suffix (:data:`WRITE_SUFFIXES`) of an output path, or :class:`InputError` naming it."""
+    path = Path(path)
+    name = path.name.lower()
+    for suffix in WRITE_SUFFIXES:
+        if name.endswith(suffix):
+            return suffix
+    raise InputError(f"{path}: unknown output image format (use {', '.join(WRITE_SUFFIXES)})")
+
+
+def to_sitk(array, spacing, origin, direction) -> sitk.Image:
+    """A SimpleITK image of ``array`` (``(z, y, x)`` scalar or ``(z, y, x, c)`` vector voxels) with the
+    grid ``spacing``, ``origin`` (mm, LPS) and ``direction`` (3, 3) of :class:`Image`."""
+    a = np.asarray(array)
+    img = sitk.GetImageFromArray(a, isVector=a.ndim == 4)
+    img.SetSpacing([float(x) for x in np.asarray(spacing, float)])
+    img.SetOrigin([float(x) for x in np.asarray(origin, float)])
+    img.SetDirection([float(x) for x in np.asarray(direction, float).ravel()])
+    return img
+
+
+def write_image(path, array, spacing, origin, direction) -> Path:
+    """Write ``array`` (scalar ``(z, y, x)`` or vector ``(z, y, x, c)``, its dtype kept) on the given grid
+    to ``path`` (.mha, .nii.gz, .nii or .nrrd by its name), atomically. A vector image of 3 float
+    components is what ITK, elastix, plastimatch and 3D Slicer read as a displacement field (LPS mm
+    in .mha/.nrrd; ITK writes NIfTI vector images as intent "vector")."""
+    p = Path(path)
+    suffix = write_suffix(p)
+    img = to_sitk(array, spacing, origin, direction)
+    with atomic_path(p, suffix=suffix) as tmp:
+        sitk.WriteImage(img, str(tmp), True)
+    return p
+
+
+def resample_image(image: Image, field, *, label: bool = False, default: float | None = None) -> Image:
+    """``image`` resampled on its own grid through the displacement field ``field : (z, y, x, 3)`` mm
+    LPS on that grid (the ITK resampling convention: output voxel ``y`` takes the input at
+    ``y + field(y)``): linear interpolation, or nearest neighbour with ``label`` (labels kept as they
+    are); pixel type and grid kept. Outside the image: ``default`` (0 for labels, else the image's
+    minimum, e.g. air in a CT)."""
+    img = to_sitk(image.array, image.spacing, image.origin, image.direction)
+    f = np.asarray(field, np.float64)
+    if f.shape != image.array.shape + (3,):
+        raise InputError(f"{image.source}: the field has shape {f.shape}, the image {image.array.shape} (+ 3 components)")
+    transform = sitk.DisplacementFieldTransform(to_sitk(f, image.spacing, image.origin, image.direction))
+    fill = (0.0 if label else float(np.min(image.array))) if default is None else float(default)
+    out = sitk.Resample(img, img, transform, sitk.sitkNearestNeighbor if label else sitk.sitkLinear, fill,
+                        img.GetPixelID())
+    return Image(sitk.GetArrayFromImage(out), image.spacing, image.origin, image.direction, image.source)

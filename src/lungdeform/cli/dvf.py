@@ -1,0 +1,69 @@
+"""``lungdeform dvf``: the model's motion as a displacement-field image on a reference image's grid."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from lungdeform.errors import InputError
+from lungdeform.io.image import read_image, write_image, write_suffix
+from lungdeform.io.modelfile import load_model
+from lungdeform.playback import dvf as D
+from lungdeform.playback.trajectory import extrapolation_note
+
+from .common import say
+
+
+def pick_state(model, volume_ml: float | None, scan: int | None) -> D.State:
+    """The state ``--volume-ml`` or ``--scan`` names (exactly one)."""
+    if (volume_ml is None) == (scan is None):
+        raise InputError("give exactly one of --volume-ml or --scan")
+    return D.volume_state(model, volume_ml) if scan is None else D.scan_state(model, scan)
+
+
+def field_lines(result: D.FieldResult) -> list[str]:
+    """What a field is, in lines for the terminal: margin, lattice, Jacobian, inversion residual."""
+    i = result.info
+    lines = [f"interior field on {i['nodes_evaluated']} of {i['nodes']} lattice nodes "
+             f"({' x '.join(f'{x:.2g}' for x in i['node_spacing_mm'])} mm; largest lattice error inside the lungs "
+             f"{i['lattice_error_mm']:.3f} mm), faded to zero {i['margin_mm']:.0f} mm outside the lungs",
+             f"Jacobian determinant: min {result.jacobian_min:.3f}, max {result.jacobian_max:.3f} (no folding)"]
+    if result.inverse:
+        lines.append(f"inverse by fixed-point iteration: residual {i['inversion_residual_mm']:.3f} mm (largest)")
+    return lines
+
+
+def register(apps) -> None:
+    @apps.root.command("dvf")
+    def dvf_command(
+        model: Path = typer.Argument(..., help="Model file (.npz) written by fit, build or demo."),
+        reference: Path = typer.Option(..., "--reference", help="Image whose grid (origin, spacing, direction) the field takes: the end-exhale scan."),
+        out: Path = typer.Option(..., "--out", help="Field image: .mha, .nii.gz, .nii or .nrrd (3 float32 components, mm LPS)."),
+        volume_ml: float | None = typer.Option(None, "--volume-ml", help="Absolute volume of the model's lungs together (mL)."),
+        scan: int | None = typer.Option(None, "--scan", help="Input scan K of the fit (0 = rest): its volume, in its own frame."),
+        inverse: bool = typer.Option(False, "--inverse", help="Write the resampling field (ITK/elastix convention) instead of the forward one."),
+        node_mm: float = typer.Option(D.NODE_SPACING_MM, "--node-mm", help="Lattice spacing (mm) at which the interior field is evaluated."),
+    ) -> None:
+        """Displacement field of the model at a breathing state (docs/RADIOTHERAPY.md).
+
+        Forward (default): a point at x in the reference is at x + u(x) at that state, as 'lungdeform
+        track' moves it. --inverse: for each point y at that state, y + w(y) in the reference."""
+
+        write_suffix(out)
+        if not node_mm > 0:
+            raise InputError(f"--node-mm must be > 0, got {node_mm}")
+        m = load_model(model)
+        state = pick_state(m, volume_ml, scan)
+        image = read_image(reference)
+        note = extrapolation_note(m, [state.delta_ml])
+        if note:
+            typer.echo(f"note: {note}")
+        say("evaluating the field")
+        result = D.displacement_field(m, D.Grid.of(image), state.delta_ml, alignment=state.alignment,
+                                      inverse=inverse, spacing_mm=node_mm)
+        write_image(out, result.field, image.spacing, image.origin, image.direction)
+        typer.echo(f"{'inverse' if inverse else 'forward'} field at {state.source}")
+        for line in field_lines(result):
+            typer.echo(line)
+        typer.echo(f"wrote {out}")

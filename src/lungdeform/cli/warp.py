@@ -1,0 +1,67 @@
+"""``lungdeform warp``: an end-exhale image resampled at a breathing state of the model (synthetic 4-D CT)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from lungdeform.errors import InputError
+from lungdeform.io.image import read_image, resample_image, write_image, write_suffix
+from lungdeform.io.modelfile import load_model
+from lungdeform.playback import dvf as D
+from lungdeform.playback.trajectory import extrapolation_note
+
+from .common import read_curve, say
+from .dvf import field_lines, pick_state
+
+
+def phase_path(out: Path, index: int) -> Path:
+    """``OUT_phaseNN`` with OUT's own suffix: ``ct.mha`` → ``ct_phase03.mha``."""
+    suffix = write_suffix(out)
+    return out.with_name(f"{out.name[:-len(suffix)]}_phase{index:02d}{suffix}")
+
+
+def register(apps) -> None:
+    @apps.root.command("warp")
+    def warp_command(
+        image: Path = typer.Argument(..., help="Image in the model's frame (the end-exhale scan or its mask)."),
+        model: Path = typer.Argument(..., help="Model file (.npz) written by fit, build or demo."),
+        out: Path = typer.Option(..., "--out", help="Output image (.mha, .nii.gz, .nii, .nrrd); with --phases: OUT_phase00 …"),
+        volume_ml: float | None = typer.Option(None, "--volume-ml", help="Absolute volume of the model's lungs together (mL)."),
+        scan: int | None = typer.Option(None, "--scan", help="Input scan K of the fit (0 = rest): its volume, in its own frame."),
+        curve: Path | None = typer.Option(None, "--curve", help="Breathing curve CSV (t_s, volume_ml, …); with --phases."),
+        phases: int | None = typer.Option(None, "--phases", help="With --curve: this many images evenly over one breathing cycle."),
+        label: bool = typer.Option(False, "--label", help="A label image: nearest-neighbour, values kept."),
+        node_mm: float = typer.Option(D.NODE_SPACING_MM, "--node-mm", help="Lattice spacing (mm) of the interior field."),
+    ) -> None:
+        """Resample IMAGE at a breathing state of MODEL on IMAGE's own grid (docs/RADIOTHERAPY.md)."""
+
+        write_suffix(out)
+        if (curve is None) != (phases is None):
+            raise InputError("--curve and --phases go together")
+        if curve is not None and (volume_ml is not None or scan is not None):
+            raise InputError("--curve with --volume-ml or --scan: give one breathing state or one curve")
+        if not node_mm > 0:
+            raise InputError(f"--node-mm must be > 0, got {node_mm}")
+        m = load_model(model)
+        if curve is not None:
+            states, period = D.phase_states(read_curve(curve), phases)
+            typer.echo(f"{len(states)} phase(s) over a cycle of {period:.2f} s of {curve}")
+            paths = [phase_path(out, i) for i in range(len(states))]
+        else:
+            states, paths = [pick_state(m, volume_ml, scan)], [out]
+        img = read_image(image)
+        note = extrapolation_note(m, [s.delta_ml for s in states])
+        if note:
+            typer.echo(f"note: {note}")
+        for state, path in zip(states, paths):
+            say(f"resampling at {state.source}")
+            result = D.displacement_field(m, D.Grid.of(img), state.delta_ml, alignment=state.alignment,
+                                          inverse=True, spacing_mm=node_mm)
+            warped = resample_image(img, result.field, label=label)
+            write_image(path, warped.array, img.spacing, img.origin, img.direction)
+            typer.echo(f"{state.source}:")
+            for line in field_lines(result):
+                typer.echo(f"  {line}")
+            typer.echo(f"wrote {path}")

@@ -1,0 +1,504 @@
+"""The model's motion as a displacement-field image (DVF) on a reference image's grid.
+
+Frames and units: every displacement is mm in the LPS world of the reference image; arrays of a
+field are ``(z, y, x, 3) float32`` indexed like SimpleITK's ``[k, j, i]`` (the components stay
+``(x, y, z)`` LPS); the grid is :class:`Grid` (spacing, origin and direction as
+:class:`lungdeform.io.image.Image`).
+
+Forward field ``u``: a point at ``x`` in the reference (the model's rest state, end-exhale) is at
+``x + u(x)`` at the breathing state: inside lung ``i`` the lung's interior field at its scale,
+``s_i · v_i(x)`` (:attr:`lungdeform.model.lung.LungModel.interior`, exactly what
+:meth:`~lungdeform.model.lung.LungModel.points_at` and ``lungdeform track`` move points by);
+outside every lung the same interpolant continued outward and faded by a smoothstep weight
+:func:`fade` from 1 on the surface to 0 at the margin :func:`extension_margin` (the lungs slide
+inside the chest wall, so the motion outside decays over a few centimetres; the margin grows with
+the largest surface displacement so that the fade can never fold tissue). With two lungs the outside
+motion of each is weighted by inverse squared distance, so each lung's surface sees only its own
+lung. An optional rigid map (the fit's alignment of scan K, :func:`scan_state`) is composed after:
+``x → A⁻¹(x + u(x))``.
+
+Inverse field ``w`` (ITK/elastix resampling convention): for each output point ``y`` the reference
+point ``y + w(y)`` it comes from, by fixed-point iteration ``w ← −u(y + w)`` (:func:`invert`).
+
+Speed: the interior field is evaluated only on a coarse lattice of the grid's own voxels (every
+``stride`` voxels, about :data:`NODE_SPACING_MM`) inside the lungs' bounding box plus the margin,
+then interpolated trilinearly to every voxel (:func:`upsample`), zero beyond. The lattice error is
+measured by :func:`lattice_error` (reported by ``lungdeform dvf``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from lungdeform.breathing.cycles import dominant_period
+from lungdeform.errors import FoldError, InputError, LungdeformError
+from lungdeform.geometry.distance import SurfaceDistance
+from lungdeform.geometry.mesh import winding_numbers
+
+from .trajectory import lung_scales
+
+#: Lattice spacing (mm) at which the interior field is evaluated before trilinear interpolation.
+NODE_SPACING_MM = 4.0
+#: Smallest fade margin outside the lungs (mm).
+BASE_MARGIN_MM = 25.0
+#: The margin is at least this many times the largest surface displacement: the smoothstep's
+#: steepest slope is 1.5 / margin, so the normal stretch ``1 − 1.5·|u| / margin`` stays ≥ 0.4.
+MARGIN_PER_MM = 2.5
+#: Radius (mm) about each landmark within which the forward field is evaluated exactly (:func:`refine`).
+REFINE_RADIUS_MM = 8.0
+#: Fixed-point iterations of :func:`invert`.
+INVERSE_ITERATIONS = 8
+
+
+@dataclass(frozen=True, eq=False)
+class Grid:
+    """A voxel grid: ``shape`` (z, y, x) voxels, ``spacing`` (3,) mm along (i, j, k), ``origin``
+    (3,) mm LPS of voxel (0, 0, 0), ``direction`` (3, 3) columns the index axes in LPS."""
+
+    shape: tuple
+    spacing: np.ndarray
+    origin: np.ndarray
+    direction: np.ndarray
+
+    @staticmethod
+    def of(image) -> "Grid":
+        """The grid of an :class:`lungdeform.io.image.Image` (or anything with its attributes)."""
+        shape = tuple(int(n) for n in (image.shape if hasattr(image, "shape") else image.array.shape))
+        return Grid(shape, np.asarray(image.spacing, float), np.asarray(image.origin, float),
+                    np.asarray(image.direction, float).reshape(3, 3))
+
+    def world(self, ijk) -> np.ndarray:
+        """``ijk : (n, 3)`` (i, j, k) index → ``(n, 3) float`` mm LPS."""
+        return (np.asarray(ijk, float) * self.spacing) @ self.direction.T + self.origin
+
+    def index(self, points) -> np.ndarray:
+        """``points : (n, 3)`` mm LPS → ``(n, 3) float`` continuous (i, j, k) index."""
+        return ((np.asarray(points, float) - self.origin) @ self.direction) / self.spacing
+
+
+@dataclass(frozen=True, eq=False)
+class Lattice:
+    """Coarse nodes of a grid: voxel index ``lo`` (i, j, k) of node 0, ``stride`` (3,) voxels,
+    ``dims`` (3,) nodes along (i, j, k); ``box`` the voxel range ``((i0, j0, k0), (i1, j1, k1))`` it
+    covers within the grid."""
+
+    lo: np.ndarray
+    stride: np.ndarray
+    dims: np.ndarray
+    box: tuple
+
+    def ijk(self) -> np.ndarray:
+        """``(n, 3) float`` voxel indices of the nodes, ordered [k][j][i] (C order of (z, y, x))."""
+        axes = [self.lo[a] + self.stride[a] * np.arange(self.dims[a]) for a in range(3)]
+        k, j, i = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
+        return np.stack([i.ravel(), j.ravel(), k.ravel()], axis=1).astype(float)
+
+
+def lattice(grid: Grid, lo_mm, hi_mm, spacing_mm: float = NODE_SPACING_MM) -> Lattice | None:
+    """The :class:`Lattice` over the world box ``[lo_mm, hi_mm]`` (3,) mm LPS; its nodes may lie
+    beyond the grid (the field is evaluated there too, so that the inverse is right at the image's
+    border), its ``box`` is clipped to the grid; None when the box misses the grid."""
+    corners = np.array([[x, y, z] for x in (lo_mm[0], hi_mm[0]) for y in (lo_mm[1], hi_mm[1])
+                        for z in (lo_mm[2], hi_mm[2])])
+    idx = grid.index(corners)
+    size = np.array(grid.shape[::-1])
+    lo = np.floor(idx.min(axis=0)).astype(int)
+    hi = np.ceil(idx.max(axis=0)).astype(int) + 1
+    box_lo, box_hi = np.clip(lo, 0, size), np.clip(hi, 0, size)
+    if np.any(box_hi <= box_lo):
+        return None
+    stride = np.maximum(np.round(spacing_mm / grid.spacing).astype(int), 1)
+    dims = (hi - 1 - lo + stride - 1) // stride + 1  # the last node at or past hi - 1
+    return Lattice(lo, stride, dims, (tuple(int(x) for x in box_lo), tuple(int(x) for x in box_hi)))
+
+
+def fade(d, margin: float) -> np.ndarray:
+    """Smoothstep weight ``(n,) float``: 1 at distance ``d`` = 0 mm, 0 from ``margin`` mm on, C¹."""
+    t = np.clip(np.asarray(d, float) / margin, 0.0, 1.0)
+    return 1.0 - t * t * (3.0 - 2.0 * t)
+
+
+def extension_margin(peak_mm: float, base_mm: float = BASE_MARGIN_MM) -> float:
+    """The fade margin (mm): ``max(base_mm, 2.5 × peak_mm)`` for a largest surface motion ``peak_mm``."""
+    return max(float(base_mm), MARGIN_PER_MM * float(peak_mm))
+
+
+def inside_lattice(surface, grid: Grid, lat: Lattice) -> np.ndarray:
+    """``(nz, ny, nx) bool``: lattice nodes inside a closed ``surface`` (mm LPS), by the parity of a
+    ray along each lattice row (index axis i) crossing the triangles; the rays are shifted by
+    10⁻⁵ node so that none runs exactly through a vertex or an edge."""
+    nx, ny, nz = (int(n) for n in lat.dims)
+    c = (grid.index(surface.vertices) - lat.lo) / lat.stride  # (n, 3) lattice (i, j, k)
+    c[:, 1] += 1.0e-5 * np.pi
+    c[:, 2] += 1.0e-5 * np.e
+    t = c[surface.faces]  # (m, 3 corners, 3)
+    jlo = np.maximum(np.ceil(t[:, :, 1].min(axis=1)), 0).astype(int)
+    jhi = np.minimum(np.floor(t[:, :, 1].max(axis=1)), ny - 1).astype(int)
+    klo = np.maximum(np.ceil(t[:, :, 2].min(axis=1)), 0).astype(int)
+    khi = np.minimum(np.floor(t[:, :, 2].max(axis=1)), nz - 1).astype(int)
+    nj, nk = np.maximum(jhi - jlo + 1, 0), np.maximum(khi - klo + 1, 0)
+    tri = np.repeat(np.arange(len(t)), nj * nk)
+    r = np.arange(len(tri)) - np.repeat(np.cumsum(nj * nk) - nj * nk, nj * nk)  # rank within a triangle
+    j = jlo[tri] + r % nj[tri]
+    k = klo[tri] + r // np.maximum(nj[tri], 1)
+    a, b, cc = t[tri, 0], t[tri, 1], t[tri, 2]
+    # barycentric coordinates of the row (j, k) in the triangle's (j, k) projection
+    det = (b[:, 1] - a[:, 1]) * (cc[:, 2] - a[:, 2]) - (cc[:, 1] - a[:, 1]) * (b[:, 2] - a[:, 2])
+    ok = det != 0
+    det = np.where(ok, det, 1.0)
+    l1 = ((j - a[:, 1]) * (cc[:, 2] - a[:, 2]) - (cc[:, 1] - a[:, 1]) * (k - a[:, 2])) / det
+    l2 = ((b[:, 1] - a[:, 1]) * (k - a[:, 2]) - (j - a[:, 1]) * (b[:, 2] - a[:, 2])) / det
+    hit = ok & (l1 > 0) & (l2 > 0) & (l1 + l2 < 1)
+    x = (a[:, 0] + l1 * (b[:, 0] - a[:, 0]) + l2 * (cc[:, 0] - a[:, 0]))[hit]
+    first = np.clip(np.floor(x).astype(int) + 1, 0, nx)  # the first node past the crossing
+    counts = np.zeros((nz, ny, nx + 1), np.int32)
+    np.add.at(counts, (k[hit], j[hit], first), 1)
+    return (np.cumsum(counts, axis=2)[:, :, :nx] % 2).astype(bool)
+
+
+def outside_distance(surface, points, inside: np.ndarray, node_mm, reach_mm: float) -> np.ndarray:
+    """``(n,) float`` mm: 0 inside, the exact distance to ``surface`` for outside lattice ``points :
+    (n, 3)`` within about ``reach_mm`` of it (``inside : (nz, ny, nx) bool``, nodes ``node_mm`` (3,) mm
+    apart along (i, j, k)), inf farther (found from the distance to the nearest inside node)."""
+    if not inside.any():
+        return np.full(len(points), np.inf)
+    near = ndimage.distance_transform_edt(~inside, sampling=np.asarray(node_mm, float)[::-1]).ravel()
+    band = (near > 0) & (near < reach_mm + float(np.max(node_mm)))
+    d = np.where(inside.ravel(), 0.0, np.inf)
+    if band.any():
+        d[band] = SurfaceDistance(surface.vertices, surface.faces).distance(points[band])
+    return d
+
+
+def blended_field(fields, inside, distance, margin: float) -> np.ndarray:
+    """``u : (n, 3) float`` mm from per-lung displacements ``fields : list of (n, 3)`` mm, ``inside``
+    and ``distance`` (list of (n,)): a lung's own field inside it; outside every lung each faded
+    (:func:`fade`) and weighted by inverse squared distance, so the field is continuous at each surface."""
+    d = np.stack(distance)  # (L, n)
+    a = np.where(np.stack(inside), 1.0, fade(d, margin))
+    d = np.where(np.stack(inside), 0.0, np.minimum(d, 1e6))  # inf: beyond every margin, a = 0
+    phi = 1.0 / (d + 1e-6) ** 2
+    phi /= phi.sum(axis=0, keepdims=True)
+    return np.einsum("ln,lnc->nc", a * phi, np.stack(fields))
+
+
+def state_scales(model, delta_ml: float) -> dict[str, float]:
+    """Per lung the scale ``s`` (units) of a state ``delta_ml`` mL of both lungs above end-exhale:
+    each lung's exact share (:func:`lungdeform.playback.trajectory.lung_scales`, as ``track``)."""
+    return {name: float(s[0]) for name, s in lung_scales(model, [float(delta_ml)]).items()}
+
+
+def surface_peak(model, scales: dict) -> float:
+    """The largest interior-field displacement (mm) on any lung's end-exhale surface at ``scales``."""
+    return max(float(np.linalg.norm(scales[n] * lung.interior.displacement(lung.surface.vertices), axis=1).max())
+               for n, lung in model.lungs.items())
+
+
+def lattice_field(model, grid: Grid, scales: dict, *, spacing_mm: float = NODE_SPACING_MM,
+                  base_margin_mm: float = BASE_MARGIN_MM, reach_mm: float = 0.0):
+    """The forward deformation on the lattice: ``(Lattice, u (z, y, x, 3) float mm, info)`` over the
+    lungs' bounding box plus the fade margin plus ``reach_mm`` (room for a rigid shift), the interior
+    field evaluated only on nodes inside a lung or within the margin of it (module docstring)."""
+    margin = extension_margin(surface_peak(model, scales), base_margin_mm)
+    v = np.concatenate([lung.surface.vertices for lung in model.lungs.values()])
+    pad = margin + reach_mm + 2.0 * spacing_mm
+    lat = lattice(grid, v.min(axis=0) - pad, v.max(axis=0) + pad, spacing_mm)
+    if lat is None:
+        raise InputError("the reference image does not overlap the model's lungs: are they in the same frame "
+                         "(mm, LPS of the end-exhale scan)?")
+    pts = grid.world(lat.ijk())
+    shape3 = tuple(int(n) for n in lat.dims[::-1])
+    node_mm = grid.spacing * lat.stride
+    fields, inside, dist, evaluated = [], [], [], 0
+    for name, lung in model.lungs.items():
+        ins3 = inside_lattice(lung.surface, grid, lat)
+        d = outside_distance(lung.surface, pts, ins3, node_mm, margin)
+        ins = ins3.ravel()
+        active = ins | (d < margin)
+        f = np.zeros_like(pts)
+        if active.any():
+            f[active] = scales[name] * lung.interior.displacement(pts[active])
+        fields.append(f)
+        inside.append(ins)
+        dist.append(d)
+        evaluated += int(active.sum())
+    u = blended_field(fields, inside, dist, margin).reshape(*shape3, 3)
+    info = {"margin_mm": margin, "nodes": int(len(pts)), "nodes_evaluated": evaluated,
+            "node_spacing_mm": (grid.spacing * lat.stride).tolist()}
+    return lat, u, info
+
+
+def _interp_axis(c: np.ndarray, axis: int, first: int, n_out: int, stride: int) -> np.ndarray:
+    """Linear interpolation of ``c`` along ``axis`` from nodes ``stride`` voxels apart to ``n_out``
+    voxels, the first ``first`` voxels past node 0."""
+    n = c.shape[axis]
+    if n == 1:
+        return np.repeat(c, n_out, axis=axis)
+    t = (first + np.arange(n_out)) / stride
+    m0 = np.minimum(np.floor(t).astype(int), n - 2)
+    shape = [1] * c.ndim
+    shape[axis] = n_out
+    f = (t - m0).astype(c.dtype).reshape(shape)
+    return np.take(c, m0, axis=axis) * (1 - f) + np.take(c, m0 + 1, axis=axis) * f
+
+
+def upsample(lat: Lattice, values: np.ndarray, grid: Grid) -> np.ndarray:
+    """``(z, y, x, 3) float32`` on the whole ``grid``: lattice ``values : (nz, ny, nx, 3)`` interpolated
+    trilinearly (separably, x then y then z) over the lattice's box, zero beyond."""
+    (i0, j0, k0), (i1, j1, k1) = lat.box
+    c = np.asarray(values, np.float32)
+    off = np.array([i0, j0, k0]) - lat.lo
+    c = _interp_axis(c, 2, int(off[0]), i1 - i0, int(lat.stride[0]))
+    c = _interp_axis(c, 1, int(off[1]), j1 - j0, int(lat.stride[1]))
+    c = _interp_axis(c, 0, int(off[2]), k1 - k0, int(lat.stride[2]))
+    out = np.zeros(tuple(grid.shape) + (3,), np.float32)
+    out[k0:k1, j0:j1, i0:i1] = c
+    return out
+
+
+def sample(lat: Lattice, values: np.ndarray, grid: Grid, points) -> np.ndarray:
+    """Lattice ``values : (nz, ny, nx, 3)`` interpolated trilinearly at ``points : (n, 3)`` mm LPS,
+    ``(n, 3) float``; zero outside the lattice."""
+    idx = (grid.index(points) - lat.lo) / lat.stride  # (n, 3) lattice (i, j, k)
+    coords = idx[:, ::-1].T  # (k, j, i) rows, the array's axis order
+    return np.stack([ndimage.map_coordinates(values[..., c], coords, order=1, mode="constant", cval=0.0)
+                     for c in range(3)], axis=1)
+
+
+def invert(lat: Lattice, u: np.ndarray, grid: Grid, iterations: int = INVERSE_ITERATIONS):
+    """The inverse deformation on the lattice, ``(w (z, y, x, 3) float mm, residual_mm)``: ``w(y) =
+    −u(y + w(y))`` by fixed-point iteration, ``u`` interpolated trilinearly between nodes;
+    ``residual_mm`` the largest ``|w(y) + u(y + w(y))|`` left at any node."""
+    y = grid.world(lat.ijk())
+    w = np.zeros_like(y)
+    for _ in range(int(iterations)):
+        w = -sample(lat, u, grid, y + w)
+    residual = float(np.linalg.norm(w + sample(lat, u, grid, y + w), axis=1).max()) if len(y) else 0.0
+    return w.reshape(u.shape), residual
+
+
+def add_affine(field: np.ndarray, grid: Grid, matrix) -> np.ndarray:
+    """Add, in place, the displacement ``x → M x − x`` of a 4×4 ``matrix`` (mm, LPS) at every voxel of
+    ``field : (z, y, x, 3) float32`` on ``grid``; a z-slice at a time. Returns ``field``."""
+    m = np.asarray(matrix, float)
+    b = m[:3, :3] - np.eye(3)
+    const = b @ grid.origin + m[:3, 3]
+    steps = (b @ grid.direction) * grid.spacing  # column a: change per voxel along index axis a
+    nz, ny, nx = grid.shape
+    plane = (const + np.arange(nx)[None, :, None] * steps[:, 0] + np.arange(ny)[:, None, None] * steps[:, 1])
+    for k in range(nz):
+        field[k] += (plane + k * steps[:, 2]).astype(np.float32)
+    return field
+
+
+def jacobian_determinant(field: np.ndarray, spacing, direction) -> np.ndarray:
+    """``(z, y, x) float32``: ``det(I + ∇u)`` of ``x → x + u(x)`` for ``field : (z, y, x, 3)`` mm,
+    central differences in physical units (one-sided at the array's edges; each axis needs ≥ 2 voxels)."""
+    f = np.asarray(field, np.float32)
+    # d[a][..., c] = ∂u_c / ∂(index a) for a = i, j, k (array axes 2, 1, 0)
+    d = [np.gradient(f, axis=ax) for ax in (2, 1, 0)]
+    inv = (np.asarray(direction, float) / np.asarray(spacing, float)).astype(np.float32)  # ∂index_a/∂x = D[:, a] / s_a
+    g = [[sum(d[a][..., c] * inv[r, a] for a in range(3)) for r in range(3)] for c in range(3)]  # g[c][r] = ∂u_c/∂x_r
+    a11, a12, a13 = 1 + g[0][0], g[0][1], g[0][2]
+    a21, a22, a23 = g[1][0], 1 + g[1][1], g[1][2]
+    a31, a32, a33 = g[2][0], g[2][1], 1 + g[2][2]
+    return a11 * (a22 * a33 - a23 * a32) - a12 * (a21 * a33 - a23 * a31) + a13 * (a21 * a32 - a22 * a31)
+
+
+def jacobian_range(field: np.ndarray, grid: Grid, box=None, slab: int = 16) -> tuple[float, float, int]:
+    """``(min, max, folded voxels)`` of :func:`jacobian_determinant` over ``field`` on ``grid`` (only the
+    voxel ``box`` ``((i0, j0, k0), (i1, j1, k1))`` when given: a rigid field elsewhere), ``slab`` z-slices
+    at a time."""
+    (i0, j0, k0), (i1, j1, k1) = box if box is not None else ((0, 0, 0), tuple(grid.shape[::-1]))
+    nz = grid.shape[0]
+    lo, hi, folded = np.inf, -np.inf, 0
+    for z0 in range(k0, k1, slab):
+        z1 = min(z0 + slab, k1)
+        a, b = max(z0 - 1, 0), min(z1 + 1, nz)
+        det = jacobian_determinant(field[a:b, max(j0 - 1, 0):j1 + 1, max(i0 - 1, 0):i1 + 1], grid.spacing,
+                                   grid.direction)[z0 - a:z0 - a + (z1 - z0)]
+        lo, hi = min(lo, float(det.min())), max(hi, float(det.max()))
+        folded += int((det <= 0).sum())
+    return lo, hi, folded
+
+
+def lattice_error(model, lat: Lattice, u: np.ndarray, grid: Grid, scales: dict, rng_seed: int = 0,
+                  n: int = 2000) -> float:
+    """Largest difference (mm) between the trilinear lattice field and the exact interior field
+    (:meth:`~lungdeform.model.lung.LungModel.points_at`) at up to ``n`` seeded random points inside the lungs."""
+    rng = np.random.default_rng(rng_seed)
+    worst = 0.0
+    for name, lung in model.lungs.items():
+        v = lung.surface.vertices
+        q = rng.uniform(v.min(axis=0), v.max(axis=0), size=(n, 3))
+        q = q[winding_numbers(q, v, lung.surface.faces) > 0.5]
+        if len(q):
+            exact = lung.points_at(q, scale=scales[name]) - q
+            worst = max(worst, float(np.linalg.norm(sample(lat, u, grid, q) - exact, axis=1).max()))
+    return worst
+
+
+def near_landmarks(model, grid: Grid, radius_mm: float = REFINE_RADIUS_MM):
+    """Voxels near each lung's landmarks (the anchors of its landmark correction, whose biharmonic
+    kernel has a kink there that a lattice cannot follow): per lung ``(flat voxel index (p,), world
+    (p, 3) mm, weight (p,))``, weight 1 within half the radius of a landmark, a smoothstep to 0 at the
+    radius; the radius shrinks to the landmark's depth so that every voxel lies inside its lung."""
+    out = {}
+    size = np.array(grid.shape[::-1])
+    for name, lung in model.lungs.items():
+        if lung.landmarks is None or not lung.interior.corrected:
+            continue
+        lmk = np.asarray(lung.landmarks, float)
+        depth = SurfaceDistance(lung.surface.vertices, lung.surface.faces).distance(lmk)
+        flat, weight = [], []
+        for p, r_max in zip(lmk, np.minimum(radius_mm, depth)):
+            corners = grid.index(np.array([[p[0] + a, p[1] + b, p[2] + c] for a in (-r_max, r_max)
+                                           for b in (-r_max, r_max) for c in (-r_max, r_max)]))
+            lo = np.clip(np.floor(corners.min(axis=0)), 0, size - 1).astype(int)
+            hi = np.clip(np.ceil(corners.max(axis=0)), 0, size - 1).astype(int)
+            i, j, k = (g.ravel() for g in np.meshgrid(*[np.arange(lo[a], hi[a] + 1) for a in range(3)], indexing="ij"))
+            r = np.linalg.norm(grid.world(np.stack([i, j, k], axis=1)) - p, axis=1)
+            keep = r < r_max
+            flat.append(np.ravel_multi_index((k[keep], j[keep], i[keep]), grid.shape))
+            weight.append(fade(np.maximum(2.0 * r[keep] / max(r_max, 1e-9) - 1.0, 0.0), 1.0))
+        if flat:
+            f, w = np.concatenate(flat), np.concatenate(weight)
+            order = np.argsort(-w, kind="stable")
+            f, first = np.unique(f[order], return_index=True)
+            w = w[order][first]
+            ijk = np.stack(np.unravel_index(f, grid.shape)[::-1], axis=1)
+            out[name] = (f, grid.world(ijk), w)
+    return out
+
+
+def refine(field: np.ndarray, model, grid: Grid, lat: Lattice, u: np.ndarray, scales: dict, rotation) -> None:
+    """Replace, in place, the lattice field near the landmarks (:func:`near_landmarks`) by the exact
+    interior field (blended by the weight), rotated by ``rotation`` (3, 3) as the rest of ``field``."""
+    flat_field = field.reshape(-1, 3)
+    for name, (flat, pts, w) in near_landmarks(model, grid).items():
+        exact = scales[name] * model.lungs[name].interior.displacement(pts)
+        delta = (exact - sample(lat, u, grid, pts)) * w[:, None]
+        flat_field[flat] += (delta @ np.asarray(rotation, float).T).astype(np.float32)
+
+
+@dataclass(frozen=True, eq=False)
+class FieldResult:
+    """A displacement-field image: ``field : (z, y, x, 3) float32`` mm LPS on the grid; ``inverse``
+    whether it is the resampling field; ``jacobian_min``/``jacobian_max`` of ``x → x + field(x)``;
+    ``info`` the margin, lattice, lattice error and (inverse) the inversion residual (mm)."""
+
+    field: np.ndarray
+    inverse: bool
+    jacobian_min: float
+    jacobian_max: float
+    info: dict
+
+
+def _reach(model, matrix) -> float:
+    """How far (mm) the rigid ``matrix`` moves any corner of the lungs' bounding box."""
+    if matrix is None:
+        return 0.0
+    v = np.concatenate([lung.surface.vertices for lung in model.lungs.values()])
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    c = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    m = np.asarray(matrix, float)
+    return float(np.linalg.norm(c @ m[:3, :3].T + m[:3, 3] - c, axis=1).max())
+
+
+def displacement_field(model, grid: Grid, delta_ml: float, *, alignment=None, inverse: bool = False,
+                       spacing_mm: float = NODE_SPACING_MM, base_margin_mm: float = BASE_MARGIN_MM) -> FieldResult:
+    """The model's motion at ``delta_ml`` mL (both lungs, above end-exhale) as a field on ``grid``
+    (module docstring): forward ``x → A⁻¹(x + u(x))`` or, with ``inverse``, its resampling inverse.
+    ``alignment`` : 4×4 rigid map, mm LPS, from the scan's frame to the model's (the fit's ``applied``
+    alignment), or None. Raises :class:`FoldError` when the field folds (Jacobian ≤ 0)."""
+    scales = state_scales(model, delta_ml)
+    a = None if alignment is None else np.asarray(alignment, float).reshape(4, 4)
+    lat, u, info = lattice_field(model, grid, scales, spacing_mm=spacing_mm, base_margin_mm=base_margin_mm,
+                                 reach_mm=_reach(model, None if a is None else np.linalg.inv(a)))
+    info["lattice_error_mm"] = lattice_error(model, lat, u, grid, scales)
+    info["scales"] = scales
+    if inverse:
+        w, info["inversion_residual_mm"] = invert(lat, u, grid)
+        nodes = grid.world(lat.ijk())
+        rigid = np.eye(4) if a is None else a
+        part = sample(lat, w, grid, nodes @ rigid[:3, :3].T + rigid[:3, 3]).reshape(u.shape)
+        field = upsample(lat, part, grid)
+        if a is not None:
+            add_affine(field, grid, a)
+    else:
+        rot = np.eye(3) if a is None else np.linalg.inv(a)[:3, :3]
+        field = upsample(lat, u @ rot.T, grid)
+        refine(field, model, grid, lat, u, scales, rot)
+        if a is not None:
+            add_affine(field, grid, np.linalg.inv(a))
+    lo, hi, folded = jacobian_range(field, grid, lat.box)
+    if folded:
+        raise FoldError(f"the displacement field folds at {folded} voxel(s) (Jacobian determinant down to "
+                        f"{lo:.3g}); not written")
+    return FieldResult(field, inverse, lo, hi, info)
+
+
+@dataclass(frozen=True, eq=False)
+class State:
+    """A breathing state: ``delta_ml`` mL of both lungs above end-exhale; ``alignment`` the 4×4 rigid
+    map (mm, LPS) from that scan's frame to the model's, or None; ``source`` in words."""
+
+    delta_ml: float
+    alignment: np.ndarray | None
+    source: str
+
+
+def volume_state(model, volume_ml: float) -> State:
+    """The state at an absolute volume ``volume_ml`` (mL, both lungs together), in the model's frame."""
+    if not (np.isfinite(volume_ml) and volume_ml > 0):
+        raise InputError(f"--volume-ml must be > 0 mL, got {volume_ml}")
+    v_ee = sum(lung.volume_ee_ml for lung in model.lungs.values())
+    return State(float(volume_ml) - v_ee, None, f"volume {volume_ml:g} mL (end-exhale {v_ee:.0f} mL)")
+
+
+def scan_state(model, scan: int) -> State:
+    """Input scan ``scan`` of the fit that wrote ``model`` (0 = the rest scan): its volume change from
+    the rest scan (the provenance's ``volumes_ml``) and, where the fit aligned it (apex or joint
+    translation), the alignment's ``applied`` matrix (scan → model frame), so the state lies in that
+    scan's frame. :class:`InputError` for a model without that provenance or a scan it does not have."""
+    prov = model.provenance or {}
+    vols = prov.get("volumes_ml")
+    if not vols:
+        raise InputError("--scan: the model records no fitted scans (volumes_ml); it was not written by "
+                         "'lungdeform fit'; give --volume-ml")
+    if not 0 <= int(scan) < len(vols):
+        raise InputError(f"--scan must be 0 to {len(vols) - 1} (the model was fitted to {len(vols)} scans), got {scan}")
+    k = int(scan)
+    matrix = None
+    if k > 0:
+        applied = (prov.get("alignment") or [{}] * k)[k - 1].get("applied") or {}
+        if "matrix" in applied:
+            matrix = np.asarray(applied["matrix"], float).reshape(4, 4)
+            matrix = None if np.allclose(matrix, np.eye(4), atol=1e-12) else matrix
+    delta = float(vols[k]) - float(vols[0])
+    moved = "" if matrix is None else f", its alignment {np.round(matrix[:3, 3], 2).tolist()} mm undone"
+    return State(delta, matrix, f"scan {k} of the fit ({vols[k]:.0f} mL, {delta:+.0f} mL from scan 0{moved})")
+
+
+def phase_states(trace, phases: int) -> tuple[list[State], float]:
+    """``phases`` states evenly over one breathing cycle of a volume ``trace``
+    (:class:`~lungdeform.playback.schedule.VolumeTrace`, mL above end-exhale): from its first sample
+    over one period (:func:`lungdeform.breathing.cycles.dominant_period`; the whole trace when it is
+    shorter than two periods or has no clear one). Returns ``(states, period_s)``."""
+    if int(phases) < 1:
+        raise InputError(f"--phases must be >= 1, got {phases}")
+    t = np.asarray(trace.t_s, float)
+    span = float(t[-1] - t[0])
+    try:
+        period = float(dominant_period(t, trace.volume_ml))
+    except LungdeformError:
+        period = span
+    if not (np.isfinite(period) and 0 < period <= span / 2):
+        period = span
+    times = t[0] + period * np.arange(int(phases)) / int(phases)
+    states = [State(float(v), None, f"phase {i} of {phases} at t = {ti:.3g} s ({v:+.0f} mL)")
+              for i, (ti, v) in enumerate(zip(times, trace.sample(times)))]
+    return states, period

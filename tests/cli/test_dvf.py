@@ -1,0 +1,53 @@
+"""``lungdeform dvf`` on a small synthetic model and image (the fixture is shared with test_warp)."""
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from lungdeform.cli.main import main
+from lungdeform.io.image import read_image, write_image
+from lungdeform.io.modelfile import save_model
+from tests.browser.support import two_lungs
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    """A two-lung model file and a label image of its lungs' boxes on a coarse grid."""
+    d = tmp_path_factory.mktemp("dvf")
+    m = two_lungs(2)
+    save_model(d / "model.npz", m)
+    a = np.zeros((42, 45, 75), np.uint8)
+    a[12:30, 10:35, 8:30] = 1
+    a[12:30, 10:35, 45:67] = 2
+    write_image(d / "ref.nii.gz", a, [4.8, 4.8, 8.0], [-180.0, -108.0, -166.0], np.eye(3))
+    return d, m
+
+
+def test_dvf_writes_a_vector_field_on_the_reference_grid(files, tmp_path, capsys):
+    d, m = files
+    ee = sum(lung.volume_ee_ml for lung in m.lungs.values())
+    out = tmp_path / "u.mha"
+    assert main(["dvf", str(d / "model.npz"), "--reference", str(d / "ref.nii.gz"), "--volume-ml", str(ee + 300),
+                 "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "Jacobian determinant: min" in text and "forward field" in text
+    img = sitk.ReadImage(str(out))
+    ref = read_image(d / "ref.nii.gz")
+    # a 3-component float32 vector image on the reference's grid (what ITK/Slicer read as a DVF)
+    assert img.GetNumberOfComponentsPerPixel() == 3 and img.GetPixelIDTypeAsString() == "vector of 32-bit float"
+    assert np.allclose(img.GetOrigin(), ref.origin) and np.allclose(img.GetSpacing(), ref.spacing)
+    assert main(["dvf", str(d / "model.npz"), "--reference", str(d / "ref.nii.gz"), "--volume-ml", str(ee + 300),
+                 "--inverse", "--out", str(tmp_path / "w.nrrd")]) == 0
+    assert "residual" in capsys.readouterr().out
+
+
+def test_dvf_bad_input_is_one_line(files, tmp_path, capsys):
+    d, _ = files
+    # a format it cannot write, before any work; and --scan on a model no fit wrote
+    assert main(["dvf", str(d / "model.npz"), "--reference", str(d / "ref.nii.gz"), "--volume-ml", "3000",
+                 "--out", str(tmp_path / "u.png")]) == 2
+    assert main(["dvf", str(d / "model.npz"), "--reference", str(d / "ref.nii.gz"), "--scan", "1",
+                 "--out", str(tmp_path / "u.mha")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and "unknown output image format" in err[0] and "volumes_ml" in err[1]
+    assert not list(tmp_path.iterdir())

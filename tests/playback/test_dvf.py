@@ -1,0 +1,148 @@
+"""Displacement-field images of a model: convention, inverse, Jacobian, fade, scan states."""
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from lungdeform.errors import InputError
+from lungdeform.geometry.mesh import winding_numbers
+from lungdeform.io.image import to_sitk
+from lungdeform.model.lung import Model
+from lungdeform.playback import dvf as D
+from lungdeform.playback.schedule import VolumeTrace
+from tests.browser.support import two_lungs
+
+# the test ellipsoids: lungs at x = ±90 mm, 120 × 160 × 220 mm; this grid covers both with room
+GRID = D.Grid((84, 90, 150), np.array([2.4, 2.4, 4.0]), np.array([-180.0, -108.0, -166.0]), np.eye(3))
+
+
+@pytest.fixture(scope="module")
+def model():
+    return two_lungs(2)
+
+
+@pytest.fixture(scope="module")
+def forward(model):
+    return D.displacement_field(model, GRID, 300.0)
+
+
+@pytest.fixture(scope="module")
+def inverse(model):
+    return D.displacement_field(model, GRID, 300.0, inverse=True)
+
+
+def _inside(model, rng, n=300):
+    """Random points inside the lungs (mm LPS, end-exhale) and the lung of each."""
+    out, names = [], []
+    for name, lung in model.lungs.items():
+        v = lung.surface.vertices
+        q = rng.uniform(v.min(axis=0), v.max(axis=0), size=(n, 3))
+        q = q[winding_numbers(q, v, lung.surface.faces) > 0.5]
+        out.append(q)
+        names += [name] * len(q)
+    return np.concatenate(out), np.array(names)
+
+
+def _transform(field, grid):
+    return sitk.DisplacementFieldTransform(to_sitk(field.astype(np.float64), grid.spacing, grid.origin, grid.direction))
+
+
+def test_forward_field_moves_points_as_points_at(model, forward, rng):
+    # the convention: a point at x goes to x + u(x), exactly LungModel.points_at at the lung's scale
+    # (track's), up to the lattice and the voxel interpolation (measured ≈ 0.05 mm here)
+    q, names = _inside(model, rng)
+    scales = D.state_scales(model, 300.0)
+    expected = np.concatenate([model.lungs[n].points_at(q[names == n], scale=scales[n]) for n in model.lungs])
+    t = _transform(forward.field, GRID)
+    got = np.array([t.TransformPoint(tuple(map(float, p))) for p in q])
+    moved = np.linalg.norm(expected - q, axis=1)
+    assert moved.mean() > 3.0  # the state moves points by millimetres: the test means something
+    assert np.abs(got - expected).max() < 0.2
+
+
+def test_inverse_composed_with_forward_is_identity(model, forward, inverse, rng):
+    # y → y + w(y) → that + u(that) must come back to y (fixed-point inverse; residual reported)
+    assert inverse.inverse and inverse.info["inversion_residual_mm"] < 0.2
+    y, _ = _inside(model, rng)
+    fw, iw = _transform(forward.field, GRID), _transform(inverse.field, GRID)
+    back = np.array([fw.TransformPoint(iw.TransformPoint(tuple(map(float, p)))) for p in y])
+    assert np.linalg.norm(back - y, axis=1).max() < 0.3
+
+
+def test_no_folding_and_zero_far_outside(model, forward, inverse):
+    # the fade keeps x → x + u(x) one-to-one (margin ≥ 2.5 × the largest surface motion)
+    assert 0.2 < forward.jacobian_min < 1.0 < forward.jacobian_max
+    assert inverse.jacobian_min > 0.2
+    # beyond the margin (plus a lattice step) the field is exactly zero: the grid's corner voxels
+    assert np.all(forward.field[0, 0, :5] == 0) and np.all(forward.field[-1, -1, -5:] == 0)
+    assert forward.info["margin_mm"] >= D.BASE_MARGIN_MM
+
+
+def test_fade_is_continuous_across_the_surface():
+    # a lung's own field inside; outside faded from 1 (C¹ smoothstep) to 0 at the margin
+    assert D.fade([0.0, 12.5, 25.0, 40.0], 25.0).tolist() == [1.0, 0.5, 0.0, 0.0]
+    f = [np.ones((3, 3)), 2 * np.ones((3, 3))]
+    u = D.blended_field(f, [np.array([True, False, False]), np.zeros(3, bool)],
+                        [np.array([0.0, 1e-9, 10.0]), np.array([50.0, 60.0, 10.0])], 25.0)
+    assert np.allclose(u[0], 1.0) and np.allclose(u[1], 1.0, atol=1e-6)  # at the surface: lung 1's own
+    # equidistant from both lungs: the mean of the two faded fields
+    assert np.allclose(u[2], 1.5 * D.fade(10.0, 25.0))
+
+
+def test_jacobian_of_a_linear_field_in_physical_units(rng):
+    # u(x) = B x on an anisotropic, rotated grid: det(I + B) at every voxel, whatever the voxel size
+    c, s = np.cos(0.3), np.sin(0.3)
+    grid = D.Grid((6, 7, 8), np.array([0.7, 1.3, 2.5]), np.array([5.0, -3.0, 2.0]),
+                  np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]]))
+    b = rng.uniform(-0.2, 0.2, (3, 3))
+    m = np.eye(4)
+    m[:3, :3] += b
+    field = D.add_affine(np.zeros(grid.shape + (3,), np.float32), grid, m)
+    det = D.jacobian_determinant(field, grid.spacing, grid.direction)
+    assert np.allclose(det, np.linalg.det(np.eye(3) + b), atol=1e-4)
+
+
+def test_lattice_is_exact_for_affine_values():
+    # trilinear interpolation reproduces an affine function of the index exactly
+    lat = D.lattice(GRID, np.array([-100.0, -50, -100]), np.array([100.0, 50, 100]), 10.0)
+    ijk = lat.ijk()
+    vals = np.stack([ijk[:, 0], 2 * ijk[:, 1], ijk[:, 2] - ijk[:, 0]], axis=1).reshape(*lat.dims[::-1], 3)
+    full = D.upsample(lat, vals, GRID)
+    (i0, j0, k0), (i1, j1, k1) = lat.box
+    k, j, i = np.meshgrid(np.arange(k0, k1), np.arange(j0, j1), np.arange(i0, i1), indexing="ij")
+    assert np.allclose(full[k0:k1, j0:j1, i0:i1], np.stack([i, 2 * j, k - i], axis=-1), atol=1e-3)
+    assert np.all(full[:k0] == 0)
+
+
+def test_scan_state_reads_the_fit_provenance(model):
+    # volumes_ml and the applied alignment (scan → model frame) as fit/pipeline.write_outputs stores them
+    a = np.eye(4)
+    a[:3, 3] = [1.0, 2.0, -30.0]
+    fitted = Model(model.lungs, {"volumes_ml": [3000.0, 3500.0], "alignment": [{"applied": {"matrix": a.tolist()}}]})
+    st = D.scan_state(fitted, 1)
+    assert st.delta_ml == 500.0 and np.array_equal(st.alignment, a)
+    rest = D.scan_state(fitted, 0)
+    assert rest.delta_ml == 0.0 and rest.alignment is None
+    with pytest.raises(InputError, match="--scan must be 0 to 1"):
+        D.scan_state(fitted, 2)
+    with pytest.raises(InputError, match="not written by 'lungdeform fit'"):
+        D.scan_state(model, 1)
+
+
+def test_aligned_field_lands_in_the_scan_frame(model, forward):
+    # with an alignment A (scan → model frame), x goes to A⁻¹(x + u(x)): here a pure translation t,
+    # so the field is the unaligned one minus t everywhere (far outside: exactly −t)
+    a = np.eye(4)
+    a[:3, 3] = [2.0, -1.0, 5.0]
+    r = D.displacement_field(model, GRID, 300.0, alignment=a)
+    assert np.allclose(r.field, forward.field - a[:3, 3], atol=1e-4)
+    assert np.allclose(r.field[0, 0, 0], -a[:3, 3])
+
+
+def test_phase_states_span_one_cycle():
+    # a 4 s cosine breath repeated three times: N phases over one 4 s period, end-exhale first
+    t = np.linspace(0, 12, 601)
+    trace = VolumeTrace(t, 250 * (1 - np.cos(2 * np.pi * t / 4.0)))
+    states, period = D.phase_states(trace, 4)
+    assert period == pytest.approx(4.0, rel=0.02)
+    assert [round(s.delta_ml) for s in states] == pytest.approx([0, 250, 500, 250], abs=6)
