@@ -36,8 +36,10 @@ def print_table(result: dict) -> None:
 def register(apps) -> None:
     @apps.validate.command("copd")
     def copd_command(
-        data: Path = typer.Option(..., "--data", help="Folder with copdN_{exp,insp}_mask.nii.gz and copdN_{exp,insp}_landmarks.txt."),
-        out: Path = typer.Option(..., "--out", help="Output folder: copdN/<side>/ per lung, metrics.json, report.html."),
+        data: Path = typer.Option(..., "--data", help="Folder with copdN_{exp,insp}_mask.nii.gz and "
+                                                        "copdN_{exp,insp}_landmarks.txt."),
+        out: Path = typer.Option(..., "--out", help="Output folder: copdN/<side>/ per lung, metrics.json, "
+                                                      "report.html."),
         cases: str = typer.Option(None, "--cases", help="Case numbers to run, e.g. 1,3 (default: every case found)."),
         evaluations: int = typer.Option(300, "--evaluations", help="Optimiser budget per lung."),
     ) -> None:

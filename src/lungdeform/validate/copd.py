@@ -56,7 +56,8 @@ def find_cases(data: Path, cases=None) -> dict[str, tuple[Path, ...]]:
     data = Path(data)
     if not data.is_dir():
         raise ReadError(f"{data}: not a folder")
-    found = sorted(int(m.group(1)) for p in data.iterdir() if (m := re.fullmatch(r"copd(\d+)_exp_mask\.nii\.gz", p.name)))
+    names = (re.fullmatch(r"copd(\d+)_exp_mask\.nii\.gz", p.name) for p in data.iterdir())
+    found = sorted(int(m.group(1)) for m in names if m)
     wanted = found if cases is None else [int(c) for c in cases]
     out = {}
     for n in wanted:
@@ -230,7 +231,8 @@ def write_report(path: Path, result: dict) -> Path:
              "<h1>DIR-Lab COPDgene: expiration → inspiration, per lung (mm)</h1>",
              "<p>Landmark errors are held out from what they score; cpd, affine and the calibrated rows "
              f"use the masks only (calibration, medians over 10 lungs: {html.escape(str(MASK_ROWS))}).</p>",
-             "<h2>Medians over the lungs</h2>", _table({f"median of {result['summary']['n_lungs']}": result["summary"]})]
+             "<h2>Medians over the lungs</h2>",
+             _table({f"median of {result['summary']['n_lungs']}": result["summary"]})]
     for name, case in result["cases"].items():
         values = {side: {m: row[m]["landmark_mean_mm"] for m in row if isinstance(row[m], dict)
                          and "landmark_mean_mm" in row[m]} for side, row in case.items()}
