@@ -113,9 +113,10 @@ def test_run_copd_structure_and_resume(tmp_path):
 @pytest.mark.realdata
 def test_real_case_model_surface_below_no_motion(data_dir, tmp_path):
     # truth: the fitted surface (with its fitted translation) is closer to the inspiration surface
-    # than the expiration surface left where it is; measured, DIR-Lab COPDgene case 1, small budget
+    # than the expiration surface left where it is; DIR-Lab COPDgene case 1, a reduced budget (40
+    # evaluations was not enough: 11.0 against 10.7 mm; 300 gives 3.0 and 2.6 against 12.4 and 12.6 mm)
     folder = require_path(data_dir, "dirlab-copd-lung-masks")
-    res = C.run_copd(folder, tmp_path / "out", C.copd_config(40), [1])
+    res = C.run_copd(folder, tmp_path / "out", C.copd_config(120), [1])
     assert list(res["cases"]) == ["copd1"] and res["summary"]["n_lungs"] == 2
     for side in ("left", "right"):
         row = res["cases"]["copd1"][side]
