@@ -72,6 +72,8 @@ def _figures(rng):
         "convergence_figure": (lambda: P.convergence_figure(np.arange(5.0), 10.0 ** -np.arange(5.0),
                                                             10.0 ** -np.arange(8.0), 10.0 ** -np.arange(8.0),
                                                             tol=1e-6, n_nodes=100, title="t"), (800, 550)),
+        "grouped_bars": (lambda: P.grouped_bars({"left": {"a": 1.0, "b": 2.0, "c": np.nan},
+                                                 "right": {"a": 1.5, "b": 3.0}}, title="t", ylabel="mm"), (550, 352)),
     }
 
 

@@ -617,3 +617,23 @@ def convergence_figure(push_sweeps: np.ndarray, push_residual: np.ndarray, msd_r
     ax.legend()
     ax.grid(True, which="both", alpha=0.3)
     return fig
+
+
+# =========================================================================== grouped bars
+def grouped_bars(values: dict[str, dict[str, float]], *, title: str, ylabel: str) -> Figure:
+    """Bars of ``values[group][series]`` (e.g. lung → method → mean landmark error, mm): one
+    cluster per series, one bar per group in it; missing or non-finite values are left out."""
+    groups = list(values)
+    series = list(dict.fromkeys(s for g in groups for s in values[g]))
+    fig = new_figure(max(5.0, 0.75 * len(series) + 2.0), 3.2, layout="constrained")
+    ax = fig.add_subplot()
+    width = 0.8 / max(len(groups), 1)
+    x = np.arange(len(series))
+    for k, g in enumerate(groups):
+        y = np.array([values[g].get(s, np.nan) for s in series], float)
+        ax.bar(x + (k - (len(groups) - 1) / 2) * width, np.where(np.isfinite(y), y, 0.0), width, label=g)
+    ax.set_xticks(x, series, rotation=30, ha="right", fontsize=8)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=8)
+    return fig

@@ -38,6 +38,7 @@ COMMAND_MODULES = [
     "lungdeform.cli.stream",
     "lungdeform.cli.fit",
     "lungdeform.cli.validate_itk",
+    "lungdeform.cli.validate_copd",
     "lungdeform.cli.cohort",
     "lungdeform.cli.bench_cohort",
     "lungdeform.cli.synth_cohort",

@@ -5,7 +5,8 @@ a mass–spring–damper run to rest, Figs. 7–9), :mod:`~lungdeform.validate.d
 :mod:`~lungdeform.validate.dirlab_files` and :mod:`~lungdeform.validate.dirlab_experiment` (DIR-Lab 4-D
 CT landmarks: the models, finding the files, the experiment of ``lungdeform validate dirlab``),
 :mod:`~lungdeform.validate.itk_pair` (the model fitted to the ITK right lung at two volumes and measured
-against baselines) and :mod:`~lungdeform.validate.breathing` (the PV breathing driver scored on held-out
+against baselines), :mod:`~lungdeform.validate.copd` (both lungs of the DIR-Lab COPDgene lung masks, fitted per
+lung, with calibrated mask-only baselines) and :mod:`~lungdeform.validate.breathing` (the PV breathing driver scored on held-out
 cycles of a folder of recorded traces).
 
 May import: everything below it (:mod:`lungdeform.cohort`, :mod:`lungdeform.fit`, …); never the CLI.

@@ -1,0 +1,56 @@
+"""``lungdeform validate copd``: the model fitted per lung on the DIR-Lab COPDgene lung masks.
+
+The experiment is :mod:`lungdeform.validate.copd`; this module parses the options, prints the
+per-lung table and the medians, and picks the exit code.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from lungdeform.validate.copd import MASK_ROWS, ROWS, copd_config, parse_cases, run_copd
+
+from .common import FIT_OPTIONS, option_names, output_dir, say
+
+
+def _fmt(v) -> str:
+    return "     -" if v is None else f"{v:6.2f}"
+
+
+def print_table(result: dict) -> None:
+    """One line per lung and the medians: landmark mean error (mm) per method, the model's surface
+    mean error and the seconds."""
+    names = list(ROWS) + list(MASK_ROWS)
+    typer.echo("landmark mean error (mm), expiration → inspiration; model_surface = the model's surface mean (mm)")
+    typer.echo(f"{'lung':14s} " + " ".join(f"{n[:20]:>20s}" for n in names) + f" {'model_surface':>13s} {'s':>6s}")
+    rows = [(f"{c} {s}", r) for c, case in result["cases"].items() for s, r in case.items()]
+    rows.append((f"median ({result['summary']['n_lungs']})", result["summary"]))
+    for label, r in rows:
+        cells = " ".join(f"{_fmt(r.get(n, {}).get('landmark_mean_mm')):>20s}" for n in names)
+        typer.echo(f"{label:14s} {cells} {_fmt(r.get('model', {}).get('surface_mean_mm')):>13s} "
+                   f"{_fmt(r.get('seconds')):>6s}")
+
+
+def register(apps) -> None:
+    @apps.validate.command("copd")
+    def copd_command(
+        data: Path = typer.Option(..., "--data", help="Folder with copdN_{exp,insp}_mask.nii.gz and "
+                                                        "copdN_{exp,insp}_landmarks.txt."),
+        out: Path = typer.Option(..., "--out", help="Output folder: copdN/<side>/ per lung, metrics.json, "
+                                                      "report.html."),
+        cases: str = typer.Option(None, "--cases", help="Case numbers to run, e.g. 1,3 (default: every case found)."),
+        evaluations: int = typer.Option(300, "--evaluations", help="Optimiser budget per lung."),
+    ) -> None:
+        """Fit both lungs of every DIR-Lab COPDgene case (expiration → inspiration, translation fitted)
+        and compare with mask-only baselines; a lung already fitted with the same settings is kept."""
+        with option_names({**FIT_OPTIONS, "cases": "--cases"}):
+            config = copd_config(evaluations)
+            wanted = parse_cases(cases)
+            folder = output_dir(out)
+            result = run_copd(data, folder, config, wanted, progress=say)
+        print_table(result)
+        done = result["refitted"]
+        typer.echo(f"fitted {len(done)} lung(s) this run" + (f" ({', '.join(done)})" if done else " (all resumed)"))
+        typer.echo(f"wrote {folder / 'metrics.json'}, {folder / 'report.html'}")

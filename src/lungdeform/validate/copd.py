@@ -1,0 +1,257 @@
+"""DIR-Lab COPDgene lung masks (cases 1–5): the model fitted per lung, expiration → inspiration.
+
+The experiment behind ``lungdeform validate copd`` (docs/FITTING.md "DIR-Lab COPDgene, five subjects").
+
+Data: a folder holding, per case N, ``copdN_exp_mask.nii.gz``, ``copdN_insp_mask.nii.gz`` (both lungs
+in one label) and ``copdN_exp_landmarks.txt``, ``copdN_insp_landmarks.txt`` (elastix point files,
+world mm, row i ↔ row i). Each phase was re-centred on its lungs, so the fit estimates a translation
+(``align="joint"``). For every case and lung (the split of :mod:`lungdeform.fit.lungsplit`, that
+lung's landmarks) :func:`run_lung` runs :func:`lungdeform.fit.pipeline.run_fit` into
+``OUT/copdN/<side>/`` (model.npz, metrics.json, report.html) and adds the calibrated mask-only
+baselines (:func:`mask_baselines`); :func:`run_copd` collects ``OUT/metrics.json`` (:func:`lung_row`
+per lung, :func:`summarise`: medians over the lungs) and ``OUT/report.html``.
+
+A lung whose ``metrics.json`` records the same settings digest (:func:`settings_digest`: the input
+files' contents, the fit settings, the calibrated baselines' constants) is not fitted again.
+"""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import html
+import json
+import re
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from lungdeform import plot as P
+from lungdeform.atomic import write_json, write_text
+from lungdeform.errors import InputError, ReadError
+from lungdeform.fit import baselines as B
+from lungdeform.fit.config import FitConfig, FitInputs
+from lungdeform.fit.lungsplit import SIDES, landmarks_of_side, require_split
+from lungdeform.fit.pipeline import run_fit
+from lungdeform.io.image import read_image
+from lungdeform.io.landmarks import read_elastix_points
+
+COMMAND = "validate copd"
+FILES = ("copd{n}_exp_mask.nii.gz", "copd{n}_insp_mask.nii.gz", "copd{n}_exp_landmarks.txt",
+         "copd{n}_insp_landmarks.txt")
+#: Rows of the pipeline's metrics collected per lung, and their figures.
+ROWS = {"model": ("surface_mean_mm", "landmark_mean_mm"), "model_surface_only": ("landmark_mean_mm",),
+        "no_motion": ("surface_mean_mm", "landmark_mean_mm"), "affine": ("surface_mean_mm", "landmark_mean_mm"),
+        "cpd": ("surface_mean_mm", "landmark_mean_mm"), "landmarks_tps": ("landmark_mean_mm",)}
+#: The calibrated mask-only baselines (landmark error only; docs/FITTING.md), with the calibration (mm).
+MASK_ROWS = {"no_motion_centroids": 16.2, "affine_moments": 11.9, "cpd_moments": 8.5}
+
+
+def find_cases(data: Path, cases=None) -> dict[str, tuple[Path, ...]]:
+    """``{"copdN": (exp mask, insp mask, exp landmarks, insp landmarks)}`` for every case in ``data``
+    with all four files (or the cases numbered in ``cases``, which must all be there)."""
+    data = Path(data)
+    if not data.is_dir():
+        raise ReadError(f"{data}: not a folder")
+    names = (re.fullmatch(r"copd(\d+)_exp_mask\.nii\.gz", p.name) for p in data.iterdir())
+    found = sorted(int(m.group(1)) for m in names if m)
+    wanted = found if cases is None else [int(c) for c in cases]
+    out = {}
+    for n in wanted:
+        files = tuple(data / f.format(n=n) for f in FILES)
+        missing = [p.name for p in files if not p.is_file()]
+        if missing and cases is not None:
+            raise ReadError(f"{data}: case {n} is missing {', '.join(missing)}")
+        if not missing:
+            out[f"copd{n}"] = files
+    if not out:
+        raise ReadError(f"{data}: no DIR-Lab COPDgene case (copdN_exp_mask.nii.gz with its insp mask and landmarks)")
+    return out
+
+
+def copd_config(max_evaluations: int = 300) -> FitConfig:
+    """The experiment's fit: a translation fitted with c1…c9 (``align="joint"``), the stiffness field,
+    the interior landmark correction scored held out (5-fold), the baselines."""
+    return FitConfig(stiffness=True, max_evaluations=max_evaluations, align="joint", landmark_fit=True,
+                     command=COMMAND)
+
+
+def settings_digest(files, side: str, config: FitConfig) -> str:
+    """SHA-256 (hex, 16 digits) of the input files' bytes, the side, the fit settings and the
+    calibrated baselines' constants: equal digests mean an equal fit."""
+    h = hashlib.sha256()
+    for p in files:
+        h.update(Path(p).read_bytes())
+    mask = [B.MASK_CPD_POINTS, B.MASK_CPD_SIGMA, B.MASK_CPD_ALPHA, B.MASK_CPD_BETA_MM]
+    h.update(json.dumps({"side": side, "config": asdict(config), "mask_baselines": mask}, sort_keys=True).encode())
+    return h.hexdigest()[:16]
+
+
+def mask_baselines(files) -> dict[str, dict[str, dict[str, float]]]:
+    """``{side: {row: {"landmark_mean_mm": …}}}``: the calibrated mask-only baselines of a case
+    (:data:`MASK_ROWS`; :func:`lungdeform.fit.baselines.centroid_map`, ``moment_affine_map``,
+    ``mask_cpd_map``), each lung's expiration points mapped to inspiration, on that lung's landmarks."""
+    exp_mask, insp_mask, exp_lm, insp_lm = files
+    images = [read_image(exp_mask), read_image(insp_mask)]
+    splits = [require_split(im) for im in images]
+    points = [read_elastix_points(exp_lm), read_elastix_points(insp_lm)]
+    out = {}
+    for k, side in enumerate(SIDES, start=1):
+        rows, _ = landmarks_of_side(points, splits, side, [str(exp_lm), str(insp_lm)])
+        a, b = points[0][rows], points[1][rows]
+        masks = [sp.labels == k for sp in splits]
+        voxels = [im.index_to_world(np.argwhere(m)[:, ::-1]) for im, m in zip(images, masks)]
+        moment = B.moment_affine_map(*voxels)
+        surfaces = [B.mask_surface_points(im, m) for im, m in zip(images, masks)]
+        maps = {"no_motion_centroids": _affine_fn(B.centroid_map(*voxels)), "affine_moments": _affine_fn(moment),
+                "cpd_moments": B.mask_cpd_map(moment, *surfaces)}
+        out[side] = {name: {"landmark_mean_mm": float(np.linalg.norm(f(a) - b, axis=1).mean())}
+                     for name, f in maps.items()}
+    return out
+
+
+def _affine_fn(affine):
+    mat, t = affine
+    return lambda x: np.asarray(x, float) @ mat.T + t
+
+
+def _done(folder: Path, digest: str) -> dict | None:
+    path = folder / "metrics.json"
+    if not path.is_file():
+        return None
+    try:
+        metrics = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return metrics if metrics.get("settings_digest") == digest and "mask_baselines" in metrics else None
+
+
+def run_lung(files, side: str, out: Path, config: FitConfig, mask_rows: dict | None = None, *,
+             progress: Callable[[str], None] | None = None) -> tuple[dict, bool]:
+    """``(metrics, fitted)``: one lung of a case (``files`` from :func:`find_cases`) fitted into the
+    folder ``out`` with ``config``, unless its ``metrics.json`` already records the same
+    :func:`settings_digest` (then read back, ``fitted`` False). ``mask_rows``: that lung's
+    :func:`mask_baselines` (computed when None)."""
+    out = Path(out)
+    digest = settings_digest(files, side, config)
+    done = _done(out, digest)
+    if done is not None:
+        return done, False
+    t0 = time.perf_counter()
+    exp_mask, insp_mask, exp_lm, insp_lm = files
+    metrics = run_fit(FitInputs([exp_mask, insp_mask], side, landmarks=[exp_lm, insp_lm]), out, config,
+                      progress=progress)
+    metrics["mask_baselines"] = mask_rows if mask_rows is not None else mask_baselines(files)[side]
+    metrics["seconds"] = time.perf_counter() - t0
+    metrics["settings_digest"] = digest
+    write_json(out / "metrics.json", metrics, strict=True, default=str)
+    return metrics, True
+
+
+def lung_row(metrics: dict) -> dict:
+    """One lung's figures (:data:`ROWS` from the fit's metrics, :data:`MASK_ROWS` from its
+    ``mask_baselines``) and ``seconds``."""
+    row = {name: {k: metrics[name][k] for k in keys} for name, keys in ROWS.items() if name in metrics}
+    row.update({name: dict(metrics["mask_baselines"][name]) for name in MASK_ROWS})
+    row["seconds"] = metrics["seconds"]
+    return row
+
+
+def summarise(cases: dict) -> dict:
+    """Medians over the lungs of every figure of :func:`lung_row`, and ``n_lungs``."""
+    lungs = [row for case in cases.values() for row in case.values()]
+    out: dict = {"n_lungs": len(lungs)}
+    for row in lungs:
+        for name, figs in row.items():
+            if isinstance(figs, dict):
+                out.setdefault(name, {k: None for k in figs})
+    for name, figs in list(out.items()):
+        if name == "n_lungs":
+            continue
+        for k in figs:
+            vals = [r[name][k] for r in lungs if name in r and r[name].get(k) is not None]
+            figs[k] = float(np.median(vals)) if vals else None
+    out["seconds"] = float(np.median([r["seconds"] for r in lungs])) if lungs else None
+    return out
+
+
+def run_copd(data: Path, out: Path, config: FitConfig | None = None, cases=None, *,
+             progress: Callable[[str], None] | None = None) -> dict:
+    """Every case in ``data`` (:func:`find_cases`, ``cases`` a subset by number), both lungs, fitted
+    (:func:`run_lung`) into ``out/copdN/<side>``; writes ``out/metrics.json`` (``cases``, ``summary``,
+    ``refitted``: the lungs fitted this run) and ``out/report.html``; returns the metrics."""
+    say = progress or (lambda _m: None)
+    config = copd_config() if config is None else config
+    out = Path(out)
+    found = find_cases(data, cases)
+    result: dict = {"cases": {}, "refitted": [], "settings": asdict(config)}
+    for name, files in found.items():
+        masks = None
+        for side in SIDES:
+            folder = out / name / side
+            if masks is None and _done(folder, settings_digest(files, side, config)) is None:
+                say(f"{name}: mask-only baselines (both lungs)")
+                masks = mask_baselines(files)
+            say(f"{name} {side}: fitting (or reading the finished fit)")
+            metrics, fitted = run_lung(files, side, folder, config, None if masks is None else masks[side],
+                                       progress=lambda m, n=name, s=side: say(f"{n} {s}: {m}"))
+            result["cases"].setdefault(name, {})[side] = lung_row(metrics)
+            if fitted:
+                result["refitted"].append(f"{name}/{side}")
+    result["summary"] = summarise(result["cases"])
+    result["calibration_mm"] = dict(MASK_ROWS)
+    write_json(out / "metrics.json", result, strict=True, default=str)
+    write_report(out / "report.html", result)
+    return result
+
+
+def _cell(v) -> str:
+    return "–" if v is None or not np.isfinite(v) else f"{v:.2f}"
+
+
+def _table(rows: dict) -> str:
+    """HTML table: one line per lung (or the summary), surface and landmark mean per method."""
+    names = list(ROWS) + list(MASK_ROWS)
+    head = "".join(f"<th>{html.escape(n)}<br>surface / landmark</th>" for n in names)
+    lines = [f"<tr><th>lung</th>{head}<th>s</th></tr>"]
+    for lung, row in rows.items():
+        cells = "".join(f"<td>{_cell(row.get(n, {}).get('surface_mean_mm'))} / "
+                        f"{_cell(row.get(n, {}).get('landmark_mean_mm'))}</td>" for n in names)
+        lines.append(f"<tr><td>{html.escape(lung)}</td>{cells}<td>{_cell(row.get('seconds'))}</td></tr>")
+    return "<table border=1 cellspacing=0 cellpadding=3>" + "".join(lines) + "</table>"
+
+
+def write_report(path: Path, result: dict) -> Path:
+    """``report.html``: the summary table, and per case its table and a bar plot of the mean
+    landmark error per method and lung (:func:`lungdeform.plot.grouped_bars`)."""
+    parts = ["<html><head><meta charset='utf-8'><title>DIR-Lab COPDgene</title></head><body>",
+             "<h1>DIR-Lab COPDgene: expiration → inspiration, per lung (mm)</h1>",
+             "<p>Landmark errors are held out from what they score; cpd, affine and the calibrated rows "
+             f"use the masks only (calibration, medians over 10 lungs: {html.escape(str(MASK_ROWS))}).</p>",
+             "<h2>Medians over the lungs</h2>",
+             _table({f"median of {result['summary']['n_lungs']}": result["summary"]})]
+    for name, case in result["cases"].items():
+        values = {side: {m: row[m]["landmark_mean_mm"] for m in row if isinstance(row[m], dict)
+                         and "landmark_mean_mm" in row[m]} for side, row in case.items()}
+        fig = P.grouped_bars(values, title=f"{name}: mean landmark error", ylabel="mm")
+        b64 = base64.b64encode(P.png_bytes(fig)).decode("ascii")
+        parts += [f"<h2>{html.escape(name)}</h2>", _table(case), f'<img alt="{html.escape(name)}" '
+                  f'src="data:image/png;base64,{b64}">']
+    parts.append("</body></html>")
+    return write_text(path, "\n".join(parts))
+
+
+def parse_cases(text: str | None) -> list[int] | None:
+    """``"1,3"`` → ``[1, 3]``; None or empty → None (every case)."""
+    if not text:
+        return None
+    try:
+        nums = [int(t) for t in text.split(",") if t.strip()]
+    except ValueError:
+        raise InputError(f"cases must be case numbers separated by commas, e.g. 1,3; got {text!r}") from None
+    if not nums or any(n < 1 for n in nums):
+        raise InputError(f"cases must be case numbers ≥ 1 separated by commas, got {text!r}")
+    return sorted(set(nums))

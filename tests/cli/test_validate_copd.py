@@ -1,0 +1,42 @@
+"""``lungdeform validate copd``: the per-lung table on a two-lung phantom; bad input exits 2."""
+
+import json
+
+import pytest
+
+from lungdeform.cli.main import main
+from tests.validate.test_copd import phantom_case
+
+
+def _one_error_line(capsys):
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: ")
+    return err[0]
+
+
+def test_bad_cases_and_missing_case_exit_2(tmp_path, capsys):
+    # truth: --cases must be numbers; a case asked for must have its four files; nothing is written
+    (tmp_path / "data").mkdir()
+    out = tmp_path / "out"
+    assert main(["validate", "copd", "--data", str(tmp_path / "data"), "--out", str(out), "--cases", "x"]) == 2
+    assert "cases must be case numbers" in _one_error_line(capsys)
+    assert main(["validate", "copd", "--data", str(tmp_path / "data"), "--out", str(out), "--cases", "2"]) == 2
+    assert "case 2 is missing copd2_exp_mask.nii.gz" in _one_error_line(capsys)
+    assert not (out / "metrics.json").exists()
+
+
+@pytest.mark.slow
+def test_validate_copd_prints_table_and_resumes(tmp_path, capsys):
+    # truth: both lungs of the phantom case fitted (a tiny budget), one table line per lung and the
+    # medians; a second run fits nothing (the settings digest matches)
+    (tmp_path / "data").mkdir()
+    data = phantom_case(tmp_path / "data", n=3)
+    args = ["validate", "copd", "--data", str(data), "--out", str(tmp_path / "out"), "--evaluations", "2"]
+    assert main(args) == 0
+    text = capsys.readouterr().out
+    assert "copd3 left" in text and "copd3 right" in text and "median (2)" in text
+    assert "fitted 2 lung(s) this run" in text
+    m = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert set(m["cases"]["copd3"]) == {"left", "right"} and m["summary"]["n_lungs"] == 2
+    assert main(args) == 0
+    assert "fitted 0 lung(s) this run (all resumed)" in capsys.readouterr().out
