@@ -2,25 +2,16 @@
 
 from __future__ import annotations
 
-import os
-import platform
 from pathlib import Path
 from typing import Optional
 
 import typer
 
-from lungdeform.atomic import write_json
 from lungdeform.bench.kernels import bench_playback, bench_solve, lung_with_vertices
 from lungdeform.bench.prediction import bench_predict
 from lungdeform.errors import InputError
 
-from .common import say
-
-
-def _write_json(path: Path, results: list[dict], kind: str) -> None:
-    doc = {"benchmark": kind, "machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
-                                          "platform": platform.platform()}, "results": results}
-    write_json(path, doc)
+from .common import say, write_bench_json
 
 
 def _surfaces(vertices: list[int]):
@@ -54,7 +45,7 @@ def register(apps) -> None:
                          f"{p['seconds'] / sparse['seconds']:.1f}×, max diff {p['max_relative_difference_to_sparse']:.1e}")
             typer.echo(line)
         if json_path:
-            _write_json(json_path, results, "solve")
+            write_bench_json(json_path, results, "solve")
             typer.echo(f"results written to {json_path}")
 
     @apps.bench.command("playback")
@@ -74,7 +65,7 @@ def register(apps) -> None:
                        f"({p['frames_per_second']:.0f} fps), memcpy {m['seconds'] * 1e3:.3f} ms, "
                        f"ratio {p['ratio_to_memcpy']:.2f}")
         if json_path:
-            _write_json(json_path, results, "playback")
+            write_bench_json(json_path, results, "playback")
             typer.echo(f"results written to {json_path}")
 
     @apps.bench.command("predict")
@@ -93,5 +84,5 @@ def register(apps) -> None:
                        f"{r['p99_seconds'] * 1e6:.1f} µs), ×{r['ratio_to_linear']:.2f} the linear baseline, "
                        f"{100 * r['budget_fraction']:.2f} % of the {1000 / r['rate_hz']:g} ms between samples")
         if json_path:
-            _write_json(json_path, rows, "predict")
+            write_bench_json(json_path, rows, "predict")
             typer.echo(f"results written to {json_path}")

@@ -17,8 +17,7 @@ from lungdeform.bench.cohort import bench_cohort, make_bench_cohort
 from lungdeform.cohort.job import FitOptions
 from lungdeform.errors import InputError
 
-from .bench import _write_json
-from .common import say
+from .common import say, write_bench_json
 
 
 def register(apps) -> None:
@@ -54,5 +53,5 @@ def register(apps) -> None:
             for e in r["errors"]:
                 typer.echo(f"failed in the {r['method']} run ({r['workers']} workers): {e}")
         if json_path:
-            _write_json(json_path, rows, "cohort")
+            write_bench_json(json_path, rows, "cohort")
             typer.echo(f"results written to {json_path}")

@@ -10,8 +10,7 @@ import typer
 from lungdeform.bench.dvf import bench_dvf
 from lungdeform.errors import InputError
 
-from .bench import _write_json
-from .common import say
+from .common import say, write_bench_json
 
 
 def register(apps) -> None:
@@ -38,5 +37,5 @@ def register(apps) -> None:
         typer.echo(f"Jacobian determinant {r['jacobian_min']:.3f} to {r['jacobian_max']:.3f}, margin "
                    f"{r['margin_mm']:.0f} mm, lattice {node_mm:g} mm, its error {r['lattice_error_mm']:.3f} mm")
         if json_path:
-            _write_json(json_path, [r], "dvf")
+            write_bench_json(json_path, [r], "dvf")
             typer.echo(f"results written to {json_path}")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import platform
 import re
 import sys
 from contextlib import contextmanager
@@ -10,8 +12,10 @@ from pathlib import Path
 import numpy as np
 import typer
 
+from lungdeform.atomic import write_json
 from lungdeform.constants import GRAVITY
 from lungdeform.errors import InputError
+from lungdeform.playback.dvf import FieldResult, State, scan_state, volume_state
 from lungdeform.playback.schedule import check_reachable, read_volume_csv
 
 #: Progress lines go to stderr when it is a terminal, or always after ``lungdeform --verbose``;
@@ -152,3 +156,29 @@ def print_fit_warnings(m: dict) -> None:
                       else "the model is its best point so far: raise --evaluations")
             typer.echo(f"warning: the {name} fit did not converge ({fit.get('message', 'no message')}); {advice}",
                        err=True)
+
+
+def pick_state(model, volume_ml: float | None, scan: int | None) -> State:
+    """The state ``--volume-ml`` or ``--scan`` names (exactly one)."""
+    if (volume_ml is None) == (scan is None):
+        raise InputError("give exactly one of --volume-ml or --scan")
+    return volume_state(model, volume_ml) if scan is None else scan_state(model, scan)
+
+
+def field_lines(result: FieldResult) -> list[str]:
+    """What a field is, in lines for the terminal: margin, lattice, Jacobian, inversion residual."""
+    i = result.info
+    lines = [f"interior field on {i['nodes_evaluated']} of {i['nodes']} lattice nodes "
+             f"({' x '.join(f'{x:.2g}' for x in i['node_spacing_mm'])} mm; largest lattice error inside the lungs "
+             f"{i['lattice_error_mm']:.3f} mm), faded to zero {i['margin_mm']:.0f} mm outside the lungs",
+             f"Jacobian determinant: min {result.jacobian_min:.3f}, max {result.jacobian_max:.3f} (no folding)"]
+    if result.inverse:
+        lines.append(f"inverse by fixed-point iteration: residual {i['inversion_residual_mm']:.3f} mm (largest)")
+    return lines
+
+
+def write_bench_json(path: Path, results: list[dict], kind: str) -> None:
+    """A benchmark's records with the machine they ran on (``--json`` of ``lungdeform bench …``)."""
+    doc = {"benchmark": kind, "machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
+                                          "platform": platform.platform()}, "results": results}
+    write_json(path, doc)

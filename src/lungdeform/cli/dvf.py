@@ -12,26 +12,7 @@ from lungdeform.io.modelfile import load_model
 from lungdeform.playback import dvf as D
 from lungdeform.playback.trajectory import extrapolation_note
 
-from .common import say
-
-
-def pick_state(model, volume_ml: float | None, scan: int | None) -> D.State:
-    """The state ``--volume-ml`` or ``--scan`` names (exactly one)."""
-    if (volume_ml is None) == (scan is None):
-        raise InputError("give exactly one of --volume-ml or --scan")
-    return D.volume_state(model, volume_ml) if scan is None else D.scan_state(model, scan)
-
-
-def field_lines(result: D.FieldResult) -> list[str]:
-    """What a field is, in lines for the terminal: margin, lattice, Jacobian, inversion residual."""
-    i = result.info
-    lines = [f"interior field on {i['nodes_evaluated']} of {i['nodes']} lattice nodes "
-             f"({' x '.join(f'{x:.2g}' for x in i['node_spacing_mm'])} mm; largest lattice error inside the lungs "
-             f"{i['lattice_error_mm']:.3f} mm), faded to zero {i['margin_mm']:.0f} mm outside the lungs",
-             f"Jacobian determinant: min {result.jacobian_min:.3f}, max {result.jacobian_max:.3f} (no folding)"]
-    if result.inverse:
-        lines.append(f"inverse by fixed-point iteration: residual {i['inversion_residual_mm']:.3f} mm (largest)")
-    return lines
+from .common import field_lines, pick_state, say
 
 
 def register(apps) -> None:

@@ -12,8 +12,7 @@ from lungdeform.io.modelfile import load_model
 from lungdeform.playback import dvf as D
 from lungdeform.playback.trajectory import extrapolation_note
 
-from .common import read_curve, say
-from .dvf import field_lines, pick_state
+from .common import field_lines, pick_state, read_curve, say
 
 
 def phase_path(out: Path, index: int) -> Path:
@@ -46,7 +45,7 @@ def register(apps) -> None:
             raise InputError(f"--node-mm must be > 0, got {node_mm}")
         m = load_model(model)
         if curve is not None:
-            states, period = D.phase_states(read_curve(curve), phases)
+            states, period = D.phase_states(read_curve(curve, m), phases)
             typer.echo(f"{len(states)} phase(s) over a cycle of {period:.2f} s of {curve}")
             paths = [phase_path(out, i) for i in range(len(states))]
         else:
