@@ -182,3 +182,8 @@ def write_bench_json(path: Path, results: list[dict], kind: str) -> None:
     doc = {"benchmark": kind, "machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
                                           "platform": platform.platform()}, "results": results}
     write_json(path, doc)
+
+
+def figure_or_na(value, digits: int = 2) -> str:
+    """A summary figure for the terminal: ``n/a`` where it is undefined (None: no finite score)."""
+    return "n/a" if value is None else f"{value:.{digits}f}"

@@ -12,7 +12,7 @@ import typer
 from lungdeform.errors import InputError
 from lungdeform.validate.prediction import HORIZONS_MS, TARGET_QUIET_HORIZON_MS, validate_prediction
 
-from .common import STRICT_EXIT, say
+from .common import STRICT_EXIT, figure_or_na, say
 
 
 def _horizons(text: str) -> list[float]:
@@ -20,10 +20,6 @@ def _horizons(text: str) -> list[float]:
         return [float(v) for v in text.split(",") if v.strip()]
     except ValueError:
         raise InputError(f"--horizons must be comma-separated milliseconds, got {text!r}") from None
-
-
-def _fmt(x) -> str:
-    return "n/a" if x is None else f"{x:.3f}"
 
 
 def register(apps) -> None:
@@ -44,14 +40,15 @@ def register(apps) -> None:
         typer.echo("  horizon   model/linear   model/none   linear/none   quiet model/none")
         for h in m["horizons_ms"]:
             a, q = m["medians"][str(h)], m["quiet_medians"][str(h)]
-            typer.echo(f"  {h:>5} ms   {_fmt(a['model_over_linear']):>12}   {_fmt(a['model_over_none']):>10}   "
-                       f"{_fmt(a['linear_over_none']):>11}   {_fmt(q['model_over_none']):>16}")
+            cells = [figure_or_na(v, 3) for v in (a["model_over_linear"], a["model_over_none"],
+                                                    a["linear_over_none"], q["model_over_none"])]
+            typer.echo(f"  {h:>5} ms   {cells[0]:>12}   {cells[1]:>10}   {cells[2]:>11}   {cells[3]:>16}")
         t = m["targets"]
         lin, quiet = t["model_over_linear_every_horizon"], t["quiet_model_over_none"]
         typer.echo(f"target model/linear <= {lin['threshold']} at every horizon: "
-                   f"{'met' if lin['met'] else 'not met'} (worst {_fmt(lin['worst'])})")
+                   f"{'met' if lin['met'] else 'not met'} (worst {figure_or_na(lin['worst'], 3)})")
         typer.echo(f"target quiet model/none <= {quiet['threshold']} at {TARGET_QUIET_HORIZON_MS} ms: "
-                   f"{'met' if quiet['met'] else 'not met'} ({_fmt(quiet['value'])})")
+                   f"{'met' if quiet['met'] else 'not met'} ({figure_or_na(quiet['value'], 3)})")
         typer.echo(f"wrote {Path(out) / 'metrics.json'} and {len(m['plots'])} plots in {Path(out) / 'plots'}")
         if strict and not (lin["met"] and quiet["met"]):
             raise typer.Exit(STRICT_EXIT)
