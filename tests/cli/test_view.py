@@ -1,9 +1,15 @@
 """``lungdeform view``: bad input exits 2 with one line on stderr."""
 
+import json
 import socket
 
+import numpy as np
+import pytest
+
 from lungdeform.cli.main import main
+from lungdeform.io.modelfile import save_model
 from lungdeform.playback.export import glb_bytes
+from tests.breathing.test_trace import breath, write_marker_csv
 from tests.browser.support import two_lungs
 
 
@@ -22,3 +28,75 @@ def test_view_port_in_use_exits_2_naming_the_address(tmp_path, capsys):
     assert len(err) == 1 and f"127.0.0.1:{port}" in err[0] and "--port" in err[0]
     assert "viewer for" not in captured.out
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m.glb"]  # nothing written
+
+
+class _Captured:
+    """Stands in for ViewerServer: keeps what would be served, serves nothing."""
+
+    served: dict = {}
+
+    def __init__(self, glb, *, host, port, trace):
+        _Captured.served = {"glb": glb, "trace": trace}
+        self.url = "http://127.0.0.1:0/"
+
+    def serve_forever(self):
+        pass
+
+    def close(self):
+        pass
+
+
+def test_view_trace_serves_what_stream_prints(tmp_path, capsys, monkeypatch):
+    # one estimator: /trace.json's predicted volume per sample is what `stream --predict-ms 400` prints
+    # for the same file, and its measured volume what plain `stream` prints (same rounding, %.3f)
+    import lungdeform.cli.view as view
+
+    t = np.arange(0.0, 40.0, 0.1)
+    trace = write_marker_csv(tmp_path / "b.csv", t * 1000, 8 * breath(t))
+    model = save_model(tmp_path / "m.npz", two_lungs(2))
+    monkeypatch.setattr(view, "ViewerServer", _Captured)
+    assert main(["view", str(model), "--trace", str(trace), "--predict-ms", "400"]) == 0
+    served = json.loads(_Captured.served["trace"])["trace"]
+    capsys.readouterr()
+    printed = {}
+    for h in ("0", "400"):
+        assert main(["stream", str(trace), "--predict-ms", h]) == 0
+        printed[h] = [line.split(",") for line in capsys.readouterr().out.split()[1:]]
+    assert [f"{v:.3f}" for v in served["predicted_ml"]] == [row[1] for row in printed["400"]]
+    assert [f"{v:.3f}" for v in served["measured_ml"]] == [row[1] for row in printed["0"]]
+    assert [f"{v:.6g}" for v in served["t_s"]] == [row[0] for row in printed["400"]]
+    assert {f"{v:g}" for v in served["ahead_s"]} == {row[2] for row in printed["400"]} == {"0.4"}
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["--predict-ms", "-1"], "--predict-ms must be in [0, 2000] ms"),
+    (["--predict-ms", "2500"], "--predict-ms must be in [0, 2000] ms"),
+    (["--curve", "CURVE"], "--trace and --curve"),
+])
+def test_view_trace_bad_options_exit_2_with_one_line(tmp_path, capsys, args, needle):
+    # refused by option name before anything is served or written
+    t = np.arange(0.0, 20.0, 0.1)
+    trace = write_marker_csv(tmp_path / "b.csv", t * 1000, 8 * breath(t))
+    model = save_model(tmp_path / "m.npz", two_lungs(2))
+    args = [str(tmp_path / "c.csv") if a == "CURVE" else a for a in args]
+    before = sorted(p.name for p in tmp_path.iterdir())
+    assert main(["view", str(model), "--trace", str(trace), "--port", "0", *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and needle in err[0], err
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+def test_view_trace_with_glb_or_bad_trace_exits_2_naming_the_file(tmp_path, capsys):
+    # a .glb cannot take a trace (refused naming it); a trace that does not parse: the reader's error,
+    # naming the trace file, one line, no traceback
+    glb = tmp_path / "m.glb"
+    glb.write_bytes(glb_bytes(two_lungs(2)))
+    model = save_model(tmp_path / "m.npz", two_lungs(2))
+    bad = tmp_path / "bad.csv"
+    bad.write_text("Frame;Timestamp;x;y;z\n1;0;abc;0;0\n")
+    assert main(["view", str(glb), "--trace", str(bad)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(glb) in err[0] and "--trace" in err[0], err
+    assert main(["view", str(model), "--trace", str(bad), "--port", "0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(bad) in err[0] and "Traceback" not in err[0], err

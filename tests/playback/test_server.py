@@ -104,6 +104,16 @@ def test_presets_bytes_can_be_replaced(glb):
         assert res.status == 405
 
 
+def test_trace_json_is_null_by_default_and_served_as_given(server, glb):
+    # without a trace the page must still find /trace.json (a 404 would be a console error in the
+    # browser): "trace": null, so the viewer plays the presets; given bytes are served as they are
+    res, body = request(server, "GET", "/trace.json")
+    assert res.status == 200 and res.getheader("Content-Type") == "application/json"
+    assert json.loads(body)["trace"] is None and json.loads(body)["schema"] == "lungdeform.trace-prediction"
+    with ViewerServer(glb, trace=b'{"trace": 1}') as srv:
+        assert request(srv, "GET", "/trace.json")[1] == b'{"trace": 1}'
+
+
 def test_head_sends_headers_only(server, glb):
     res, body = request(server, "HEAD", "/model.glb")
     assert res.status == 200 and body == b"" and int(res.getheader("Content-Length")) == len(glb)

@@ -1,4 +1,6 @@
-"""``lungdeform view``: serve the browser viewer for a model or a .glb on a loopback address."""
+"""``lungdeform view``: serve the browser viewer for a model or a .glb on a loopback address; with
+``--trace TRACE [--predict-ms H]`` the viewer plays a recorded breathing trace in trace time, showing
+the volume the streaming estimator predicts H ms ahead (docs/PREDICTION.md)."""
 
 from __future__ import annotations
 
@@ -9,6 +11,7 @@ from pathlib import Path
 import typer
 
 from lungdeform.playback.server import ViewerServer, model_glb
+from lungdeform.playback.tracefeed import view_trace_json
 
 
 def register(apps) -> None:
@@ -19,13 +22,18 @@ def register(apps) -> None:
         port: int = typer.Option(8765, "--port", help="Port (0 picks a free one)."),
         curve: Path | None = typer.Option(None, "--curve", help="Breathing curve CSV for a model file."),
         markers: Path | None = typer.Option(None, "--markers", help="Markers CSV (x_mm,y_mm,z_mm[,label]) for a model file."),
+        trace: Path | None = typer.Option(None, "--trace", help="Breathing trace to play (.vxp or marker .csv), "
+                                          "through the streaming volume estimator."),
+        predict_ms: float = typer.Option(0.0, "--predict-ms", help="With --trace: show the volume predicted "
+                                         "this many ms ahead (0-2000), compensating that display latency."),
         open_browser: bool = typer.Option(False, "--open", help="Open the default web browser."),
     ) -> None:
         """Show both lungs breathing in the browser (three.js, deformation on the GPU, WebXR)."""
 
 
+        feed = view_trace_json(model, trace, curve, predict_ms)  # checked before the model is exported
         glb = model_glb(model, curve, markers)
-        server = ViewerServer(glb, host=host, port=port)  # /presets.json: lungdeform.breathing.presets
+        server = ViewerServer(glb, host=host, port=port, trace=feed)  # /presets.json: lungdeform.breathing.presets
         try:
             exposed = not ipaddress.ip_address(host).is_loopback
         except ValueError:

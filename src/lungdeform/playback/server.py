@@ -8,7 +8,9 @@ What it serves, and nothing else:
 - ``/presets.json``: the breathing presets of :mod:`lungdeform.breathing.presets`, simulated once by the PV
   model (:func:`lungdeform.breathing.pv.simulate`) at start: per preset its name, description, period,
   tidal volume, sources and one cycle of the normalised curve ``s(t) = (V(t) − V_EE)/ΔV``
-  (:func:`presets_payload`). The viewer's preset menu is built from it.
+  (:func:`presets_payload`). The viewer's preset menu is built from it;
+- ``/trace.json``: a recorded trace with its measured and predicted volume per sample
+  (:mod:`lungdeform.playback.tracefeed`; ``"trace": null`` when none was given), played in trace time.
 
 Security: binds to 127.0.0.1 by default; every path is looked up in a fixed table built at start
 (no file-system path is ever formed from a request, so no traversal and no directory listing);
@@ -39,6 +41,7 @@ from lungdeform.io.modelfile import load_model
 from .export import glb_bytes
 from .markers import marker_anchors
 from .schedule import check_reachable, preset_trace, read_volume_csv
+from .tracefeed import trace_json
 from .trajectory import read_markers_csv
 
 DEFAULT_HOST = "127.0.0.1"
@@ -157,13 +160,14 @@ class _Handler(BaseHTTPRequestHandler):
 
 class ViewerServer:
     """Serve the viewer and one model. ``port=0`` picks a free port; :attr:`url` says where.
-    ``presets``: the bytes of ``/presets.json`` (default :func:`presets_json`).
+    ``presets``: the bytes of ``/presets.json`` (default :func:`presets_json`); ``trace``: the bytes of
+    ``/trace.json`` (default: no trace, :func:`lungdeform.playback.tracefeed.trace_json`).
 
     Use as a context manager (serves from a background thread) or call :meth:`serve_forever`.
     """
 
     def __init__(self, glb: bytes, *, host: str = DEFAULT_HOST, port: int = 0,
-                 presets: bytes | None = None, bundle: Path | None = None,
+                 presets: bytes | None = None, bundle: Path | None = None, trace: bytes | None = None,
                  log: Callable[[str], None] | None = None):
         if not 0 <= int(port) <= 65535:
             raise InputError(f"port must be 0..65535, got {port}")
@@ -173,6 +177,7 @@ class ViewerServer:
         # served as given (tests use them to exercise the viewer's fallback)
         body = presets_json() if presets is None else bytes(presets)
         self.routes["/presets.json"] = Resource(body, CONTENT_TYPES[".json"])
+        self.routes["/trace.json"] = Resource(trace_json() if trace is None else bytes(trace), CONTENT_TYPES[".json"])
         self.log = log
         try:
             self._httpd = ThreadingHTTPServer((host, int(port)), _Handler)

@@ -1,0 +1,100 @@
+"""A recorded breathing trace played in the viewer, with the latency it compensates (docs/PREDICTION.md).
+
+The viewer never estimates or predicts anything itself: the one causal estimator,
+:class:`lungdeform.breathing.stream.StreamingVolumeEstimator`, is run here over the trace one sample
+at a time, exactly as ``lungdeform stream TRACE [--predict-ms H]`` runs it, twice: without prediction
+(the *measured* volume) and with ``predict_ms`` (the *predicted* volume, for ``t_s + ahead_s``). The
+viewer plays the samples by their time: at trace time ``t`` it shows the volume of the newest sample
+with ``t_s <= t`` (:func:`trace_payload`, served as ``/trace.json`` by
+:class:`lungdeform.playback.server.ViewerServer`).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from lungdeform.breathing.stream import StreamingVolumeEstimator
+from lungdeform.breathing.trace import read_trace
+from lungdeform.errors import InputError
+
+#: The longest latency the viewer compensates (ms): past 2 s the prediction error nears a half breath.
+VIEW_MAX_PREDICT_MS = 2000.0
+TRACE_SCHEMA = "lungdeform.trace-prediction"
+TRACE_SCHEMA_VERSION = 1
+
+
+def check_view_predict_ms(predict_ms: float) -> float:
+    """``predict_ms`` as a float in [0, :data:`VIEW_MAX_PREDICT_MS`], or InputError naming ``--predict-ms``."""
+    h = float(predict_ms)
+    if not (math.isfinite(h) and 0.0 <= h <= VIEW_MAX_PREDICT_MS):
+        raise InputError(f"--predict-ms must be in [0, {VIEW_MAX_PREDICT_MS:g}] ms, got {predict_ms!r}")
+    return h
+
+
+def prediction_series(t_s, amplitude, predict_ms: float = 0.0, **estimator) -> dict:
+    """The measured and predicted volume per sample, each from a causal estimator fed in order.
+
+    t_s : (n,) float, s, increasing; amplitude : (n,) float, trace unit (inhalation positive);
+    ``estimator``: the other :class:`StreamingVolumeEstimator` settings (tidal volume, V_EE, window).
+    Returns ``t_s``, ``measured_ml`` (``predict_ms = 0``), ``predicted_ml`` (``predict_ms``) and
+    ``ahead_s`` (each (n,) lists; mL, s) and the scalars ``predict_ms``, ``tidal_volume_ml``,
+    ``v_ee_ml``. Sample i uses samples 0…i only, so a prefix of the trace gives a prefix of the series.
+    """
+    t = np.asarray(t_s, dtype=float)
+    a = np.asarray(amplitude, dtype=float)
+    if t.ndim != 1 or t.shape != a.shape or t.size < 2:
+        raise InputError(f"t_s and amplitude must be (n,) of one length >= 2, got {t.shape} and {a.shape}")
+    plain = StreamingVolumeEstimator(predict_ms=0.0, **estimator)
+    ahead = StreamingVolumeEstimator(predict_ms=predict_ms, **estimator)
+    measured, predicted, ahead_s = [], [], []
+    for ti, xi in zip(t.tolist(), a.tolist()):
+        measured.append(plain.update(ti, xi).volume_ml)
+        s = ahead.update(ti, xi)
+        predicted.append(s.volume_ml)
+        ahead_s.append(s.ahead_s)
+    return {"t_s": t.tolist(), "measured_ml": measured, "predicted_ml": predicted, "ahead_s": ahead_s,
+            "predict_ms": ahead.predict_ms, "tidal_volume_ml": ahead.tidal_volume_ml, "v_ee_ml": ahead.v_ee_ml}
+
+
+def trace_payload(path=None, predict_ms: float = 0.0) -> dict:
+    """What ``/trace.json`` holds: the trace at ``path`` (any file ``lungdeform stream`` reads) with
+    :func:`prediction_series` under ``"trace"``, or ``"trace": null`` without a path."""
+    check_view_predict_ms(predict_ms)
+    body = None
+    if path is not None:
+        tr = read_trace(Path(path))
+        try:
+            series = prediction_series(tr.t_s, tr.amplitude, predict_ms)
+        except InputError as exc:
+            raise InputError(f"{path}: {exc}") from None
+        body = {"source": str(path), "unit": tr.unit, "fixes": list(tr.fixes), **series}
+    return {"schema": TRACE_SCHEMA, "schema_version": TRACE_SCHEMA_VERSION,
+            "meaning": "per sample, in time order: measured_ml = the causal streaming volume estimate "
+                       "(lungdeform stream), predicted_ml = the same with the signal predicted ahead_s "
+                       "later; sample i uses samples 0..i only",
+            "trace": body}
+
+
+def view_trace_json(model, trace=None, curve=None, predict_ms: float = 0.0) -> bytes:
+    """``/trace.json`` for ``lungdeform view MODEL [--trace TRACE] [--curve CSV] [--predict-ms H]``:
+    refuses a trace with a ``.glb`` (play it from the model file) or with a curve (one source of the
+    volume), and ``--predict-ms`` without a trace, naming the options."""
+    check_view_predict_ms(predict_ms)
+    if trace is None:
+        if predict_ms:
+            raise InputError("--predict-ms applies to a --trace; give the trace to predict")
+        return trace_json()
+    if Path(model).suffix.lower() == ".glb":
+        raise InputError(f"{model}: --trace plays through a model file (.npz), not an exported .glb")
+    if curve is not None:
+        raise InputError(f"--trace and --curve both give the breathing volume; pass one ({trace}, {curve})")
+    return trace_json(trace, predict_ms)
+
+
+def trace_json(path=None, predict_ms: float = 0.0) -> bytes:
+    """:func:`trace_payload` as UTF-8 JSON."""
+    return json.dumps(trace_payload(path, predict_ms), ensure_ascii=False).encode("utf-8")

@@ -1,0 +1,91 @@
+"""lungdeform.playback.tracefeed: the trace the viewer plays, measured and predicted per sample."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from lungdeform.breathing.stream import StreamingVolumeEstimator
+from lungdeform.errors import InputError, ReadError
+from lungdeform.playback.tracefeed import (
+    check_view_predict_ms,
+    prediction_series,
+    trace_payload,
+    view_trace_json,
+)
+from tests.breathing.test_trace import breath, write_marker_csv
+
+
+def noisy_breaths(rng, seconds=60.0, dt=0.1):
+    t = np.arange(0.0, seconds, dt)
+    return t, 8 * breath(t) + rng.normal(0.0, 0.05, t.size)
+
+
+def test_series_is_causal_a_prefix_gives_a_prefix(rng):
+    # predictions never use later samples: run on the first 350 of 600 samples, every value equals
+    # the one the full run gave for that sample (exactly: the same float operations in the same order)
+    t, x = noisy_breaths(rng)
+    full = prediction_series(t, x, predict_ms=400)
+    part = prediction_series(t[:350], x[:350], predict_ms=400)
+    for key in ("t_s", "measured_ml", "predicted_ml", "ahead_s"):
+        assert part[key] == full[key][:350], key
+
+
+def test_series_is_the_streaming_estimator_sample_by_sample(rng):
+    # one implementation: measured = StreamingVolumeEstimator() and predicted = (predict_ms=300) fed in
+    # order, so both equal a fresh estimator's outputs; ahead_s is the horizon, 0.3 s
+    t, x = noisy_breaths(rng, seconds=30)
+    got = prediction_series(t, x, predict_ms=300)
+    plain, ahead = StreamingVolumeEstimator(), StreamingVolumeEstimator(predict_ms=300)
+    assert got["measured_ml"] == [plain.update(a, b).volume_ml for a, b in zip(t, x)]
+    assert got["predicted_ml"] == [ahead.update(a, b).volume_ml for a, b in zip(t, x)]
+    assert set(got["ahead_s"]) == {0.3} and got["predict_ms"] == 300.0
+    # with prediction the curve differs (else the viewer would show no compensation at all)
+    assert np.max(np.abs(np.subtract(got["predicted_ml"], got["measured_ml"]))) > 10
+
+
+def test_without_predict_ms_measured_and_predicted_agree(rng):
+    # predict_ms = 0: both runs are the same estimator, so the two series are identical, ahead 0
+    t, x = noisy_breaths(rng, seconds=20)
+    got = prediction_series(t, x)
+    assert got["predicted_ml"] == got["measured_ml"] and set(got["ahead_s"]) == {0.0}
+
+
+@pytest.mark.parametrize("bad", [-1, 2000.5, float("nan"), 5000])
+def test_predict_ms_out_of_range_is_refused_by_name(bad):
+    # the viewer compensates 0..2000 ms; the message names the option
+    with pytest.raises(InputError, match=r"--predict-ms must be in \[0, 2000\] ms"):
+        check_view_predict_ms(bad)
+
+
+def test_payload_reads_the_trace_file(tmp_path, rng):
+    # a marker CSV as `stream` reads it: one sample per row (terminator dropped), source named
+    t = np.arange(0.0, 20.0, 0.1)
+    path = write_marker_csv(tmp_path / "b.csv", t * 1000, 8 * breath(t))
+    doc = json.loads(json.dumps(trace_payload(path, 400)))
+    assert doc["schema"] == "lungdeform.trace-prediction" and doc["trace"]["source"] == str(path)
+    assert len(doc["trace"]["t_s"]) == t.size and doc["trace"]["unit"] == "mm"
+    assert trace_payload()["trace"] is None  # no trace: the viewer plays presets
+
+
+def test_view_options_are_checked_before_anything_is_read(tmp_path):
+    # a trace with a .glb or with a curve, or --predict-ms without a trace: refused by option name,
+    # even though none of the files exists (nothing is read first)
+    with pytest.raises(InputError, match=r"--trace .*not an exported \.glb"):
+        view_trace_json(tmp_path / "m.glb", tmp_path / "t.csv")
+    with pytest.raises(InputError, match=r"--trace and --curve"):
+        view_trace_json(tmp_path / "m.npz", tmp_path / "t.csv", curve=tmp_path / "c.csv")
+    with pytest.raises(InputError, match=r"--predict-ms applies to a --trace"):
+        view_trace_json(tmp_path / "m.npz", None, predict_ms=400)
+    with pytest.raises(InputError, match=r"--predict-ms must be"):
+        view_trace_json(tmp_path / "m.npz", tmp_path / "t.csv", predict_ms=-5)
+
+
+def test_bad_trace_file_names_the_file(tmp_path):
+    # the trace readers' own errors, naming the file
+    bad = tmp_path / "t.csv"
+    bad.write_text("Frame;Timestamp;x;y;z\n1;0;abc;0;0\n")
+    with pytest.raises((ReadError, InputError), match=str(bad)):
+        view_trace_json(tmp_path / "m.npz", bad)
