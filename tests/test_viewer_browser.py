@@ -22,10 +22,12 @@ import pytest
 from lungdeform.playback.export import glb_bytes
 from lungdeform.playback.markers import marker_anchors
 from lungdeform.playback.server import ViewerServer, presets_json
+from lungdeform.playback.tracefeed import trace_json
+from tests.breathing.test_trace import breath, write_marker_csv
 from tests.browser.support import CHROMIUM, REPO, node_modules_or_skip, run_node, two_lungs
 
 
-def test_viewer_in_headless_chromium():
+def test_viewer_in_headless_chromium(tmp_path):
     viewer = node_modules_or_skip("playwright-core")
     if not Path(CHROMIUM).exists():
         pytest.skip(f"{CHROMIUM} missing: apt-get install chromium (make test does, as root)")
@@ -39,12 +41,21 @@ def test_viewer_in_headless_chromium():
     expect = {"names": [p["name"] for p in served],
               "volume_at_1s": {p["name"]: p["tidal_volume_ml"] * float(np.interp(1.0, p["t_s"], p["s"]))
                                for p in served}}
+    # `view --trace b.csv --predict-ms 400`: at playback time 12.05 s (trace time 12.05 s) the newest
+    # sample is number 120 (t = 12.0 s, samples every 0.1 s), and the volume shown is its predicted one
+    t = np.arange(0.0, 30.0, 0.1)
+    feed = trace_json(write_marker_csv(tmp_path / "b.csv", t * 1000, 8 * breath(t)), 400)
+    series = json.loads(feed)["trace"]
+    expect_trace = {"time": 12.05, "index": 120, "dv": series["predicted_ml"][120] - series["v_ee_ml"],
+                    "latency": "predicting 400 ms ahead"}
     bundle = os.environ.get("LUNGDEFORM_VIEWER_BUNDLE") or None
     with ViewerServer(glb, bundle=bundle) as server, \
-            ViewerServer(glb, presets=b"<html>not json</html>", bundle=bundle) as broken:
+            ViewerServer(glb, presets=b"<html>not json</html>", bundle=bundle) as broken, \
+            ViewerServer(glb, trace=feed, bundle=bundle) as traced:
         res = run_node([str(REPO / "tests" / "browser" / "viewer.test.mjs"), server.url, str(artifacts),
-                        broken.url], cwd=REPO,
-                       env={"VIEWER_DIR": str(viewer), "CHROMIUM": CHROMIUM, "EXPECT_PRESETS": json.dumps(expect)},
+                        broken.url, traced.url], cwd=REPO,
+                       env={"VIEWER_DIR": str(viewer), "CHROMIUM": CHROMIUM, "EXPECT_PRESETS": json.dumps(expect),
+                            "EXPECT_TRACE": json.dumps(expect_trace)},
                        timeout=300)
     print(f"browser screenshots in {artifacts}")
     lines = [ln for ln in res.stdout.splitlines() if ln.startswith("{")]
@@ -53,16 +64,18 @@ def test_viewer_in_headless_chromium():
     assert res.returncode == 0 and report["ok"], report["failures"]
     shots = {p.name for p in artifacts.glob("*.png")}
     assert {"end-exhale.png", "end-inhale.png", "end-inhale-upright.png", "preset-normal-t1.png",
-            "preset-copd-t1.png", "presets-server.png", "presets-fallback.png"} <= shots
+            "preset-copd-t1.png", "presets-server.png", "presets-fallback.png", "trace-predict-400.png"} <= shots
     r = report["results"]
     # every check ran (a check missing from the report would otherwise pass silently)
     assert {"preset list from the server", "presets play the served curves", "preset changes picture",
-            "fallback to built-in presets with a note", "fallback shapes play"} <= set(r)
+            "fallback to built-in presets with a note", "fallback shapes play", "no trace panel without a trace",
+            "trace plays the predicted volume", "trace HUD shows the latency"} <= set(r)
     print(f"silhouette pixels end-exhale {r['silhouette differs ee/ei']['ee']}, end-inhale "
           f"{r['silhouette differs ee/ei']['ei']}; changed by orientation {r['orientation changes picture']['colour']}, "
           f"by preset normal→copd {r['preset changes picture']['silhouette']} (colour {r['preset changes picture']['colour']}); "
           f"presets {r['preset list from the server']['presets']}; fallback note: {r['fallback to built-in presets with a note']['note']!r}; "
-          f"{r['fps readout']['stats']['fps']:.1f} fps")
+          f"{r['fps readout']['stats']['fps']:.1f} fps; trace HUD: {r['trace HUD shows the latency']['latency']!r}, "
+          f"{r['trace HUD shows the latency']['values']!r}")
 
 
 def test_viewer_unit_tests_in_node(tmp_path):
@@ -71,9 +84,14 @@ def test_viewer_unit_tests_in_node(tmp_path):
     viewer = node_modules_or_skip("three", "vitest")
     presets = tmp_path / "presets.json"
     presets.write_bytes(presets_json())
+    # and the served /trace.json of `view --trace --predict-ms 400` (trace.test.ts plays it)
+    t = np.arange(0.0, 30.0, 0.1)
+    trace = tmp_path / "trace.json"
+    trace.write_bytes(trace_json(write_marker_csv(tmp_path / "b.csv", t * 1000, 8 * breath(t)), 400))
     res = run_node([str(viewer / "node_modules/vitest/vitest.mjs"), "run", "tests/physics.test.ts",
-                    "tests/curves.test.ts"], cwd=viewer,
-                   env={"LUNGDEFORM_PRESETS": str(presets), "NO_COLOR": "1", "FORCE_COLOR": "0"}, timeout=240)
+                    "tests/curves.test.ts", "tests/trace.test.ts"], cwd=viewer,
+                   env={"LUNGDEFORM_PRESETS": str(presets), "LUNGDEFORM_TRACE": str(trace), "NO_COLOR": "1",
+                        "FORCE_COLOR": "0"}, timeout=240)
     out = res.stdout + res.stderr
     assert res.returncode == 0, out[-4000:]
     assert "skipped" not in out.split("Tests")[-1], out[-2000:]  # the presets.json part must run

@@ -1,11 +1,12 @@
 // Browser test of the lungdeform viewer: Playwright (playwright-core) drives Debian's Chromium,
 // headless, software GL. Run by tests/test_viewer_browser.py, which starts `lungdeform.server` on a
 // free loopback port. Usage:
-//   node tests/browser/viewer.test.mjs URL ARTIFACT_DIR [FALLBACK_URL]
+//   node tests/browser/viewer.test.mjs URL ARTIFACT_DIR [FALLBACK_URL] [TRACE_URL]
 // Env: VIEWER_DIR (folder whose node_modules holds playwright-core), CHROMIUM (executable),
 // EXPECT_PRESETS (JSON from lungdeform.presets: {"names": [...], "volume_at_1s": {name: mL}}).
 // FALLBACK_URL: a server whose /presets.json is broken; the viewer must fall back to its built-in
-// shapes and say so.
+// shapes and say so. TRACE_URL: a server of `view --trace --predict-ms 400`; EXPECT_TRACE (JSON from
+// lungdeform.playback.tracefeed): {"time": s, "index": sample, "dv": mL, "latency": text} shown then.
 // Exit 0 when every check passes; prints one JSON line of results on stdout.
 import { createRequire } from 'node:module';
 import { mkdirSync } from 'node:fs';
@@ -17,12 +18,13 @@ const viewerDir = process.env.VIEWER_DIR ?? path.resolve(here, '../../viewer');
 const require = createRequire(path.join(viewerDir, 'package.json'));
 const { chromium } = require('playwright-core');
 
-const [url, artifacts, fallbackUrl] = process.argv.slice(2);
+const [url, artifacts, fallbackUrl, traceUrl] = process.argv.slice(2);
 if (!url || !artifacts) {
   console.error('usage: node viewer.test.mjs URL ARTIFACT_DIR [FALLBACK_URL]');
   process.exit(2);
 }
 const expected = JSON.parse(process.env.EXPECT_PRESETS ?? 'null');
+const expectTrace = JSON.parse(process.env.EXPECT_TRACE ?? 'null');
 mkdirSync(artifacts, { recursive: true });
 
 const failures = [];
@@ -58,6 +60,7 @@ try {
     && /lungdeform\.presets/.test(noteText) && !(await note.evaluate((e) => e.classList.contains('warning'))),
   { presets: info.presets, menu, note: noteText, expected: expected?.names });
   await page.screenshot({ path: path.join(artifacts, 'presets-server.png') });
+  check('no trace panel without a trace', await page.locator('#trace-panel').isHidden(), {});
   // each preset plays the PV model's curve: ΔV(1 s) = tidal · s(1 s) as computed in Python
   const played = await page.evaluate((names) => names.map((n) => {
     window.lungdeform.setPreset(n); window.lungdeform.setTime(1.0); window.lungdeform.renderOnce();
@@ -165,6 +168,30 @@ try {
     });
     check('fallback shapes play', Math.abs(dv - 500) < 1e-6, { dvMl: dv });
     await fb.close();
+  }
+
+  // 8. `view --trace --predict-ms 400`: the trace plays the served predicted volume by sample time,
+  //    and the HUD says which latency it compensates
+  if (traceUrl && expectTrace) {
+    const tp = await browser.newPage({ viewport: { width: 960, height: 640 } });
+    const tpErrors = [];
+    tp.on('console', (m) => { if (m.type() === 'error') tpErrors.push(m.text()); });
+    tp.on('pageerror', (e) => tpErrors.push(String(e)));
+    await tp.goto(`${traceUrl}?clock=manual`, { waitUntil: 'load' });
+    const tInfo = await tp.evaluate(() => window.lungdeform.ready);
+    const st = await tp.evaluate((time) => {
+      window.lungdeform.setTime(time); window.lungdeform.renderOnce(); return window.lungdeform.state();
+    }, expectTrace.time);
+    check('trace plays the predicted volume', tInfo.presets[0] === 'trace' && st.trace?.index === expectTrace.index
+      && Math.abs(st.dvMl - expectTrace.dv) < 1e-6 && tpErrors.length === 0,
+    { presets: tInfo.presets, state: st.trace, dvMl: st.dvMl, expected: expectTrace, tpErrors });
+    const latency = (await tp.locator('#latency').textContent()) ?? '';
+    const values = (await tp.locator('#trace-values').textContent()) ?? '';
+    check('trace HUD shows the latency', (await tp.locator('#latency').isVisible())
+      && latency.startsWith(expectTrace.latency) && /measured \d+ mL {3}predicted \d+ mL/.test(values),
+    { latency, values });
+    await tp.screenshot({ path: path.join(artifacts, 'trace-predict-400.png') });
+    await tp.close();
   }
 } catch (e) {
   failures.push(`exception: ${e instanceof Error ? e.message : String(e)}`);

@@ -3,7 +3,9 @@
 // The model is /model.glb written by lungdeform.export: end-exhale mesh + 5 morph targets per lung
 // (target 0 = the model's own tidal displacement, 1-4 = the orientation basis). Every frame the CPU
 // computes 5 weights per lung (a constant cost, whatever the vertex count) and three.js blends the
-// targets in its vertex shader. URL options: ?clock=manual (time moves only through the test API),
+// targets in its vertex shader. With `lungdeform view MODEL --trace TRACE [--predict-ms H]` the
+// server's /trace.json holds a recorded trace with the streaming estimator's measured and predicted
+// volume per sample (trace.ts); the preset 'trace' plays it in trace time. URL options: ?clock=manual (time moves only through the test API),
 // ?deform=cpu (blend on the CPU and re-upload positions each frame: the path the GPU one replaces).
 import * as THREE from 'three';
 import { GLTFLoader } from 'three/examples/jsm/loaders/GLTFLoader.js';
@@ -13,6 +15,7 @@ import { GRAVITY, isMovable, LungWeights, MarkerMotion, normalize, type LungMeta
 import { loadPresets, loopDuration, sampledCurve, volumeAt, type Curve, type PresetSet } from './curves';
 import { colourise, legendGradient } from './overlay';
 import { FrameStats } from './stats';
+import { latencyText, loadTrace, sampleIndex, StripChart, traceTime, traceVolumeAt, valuesText, type TraceSeries } from './trace';
 import { setupXR } from './xr';
 
 const params = new URLSearchParams(location.search);
@@ -40,6 +43,8 @@ const state = {
   t: 0,
   playing: true,
   curve: null as Curve | null,
+  /** Playing the server's trace (preset 'trace'): state.curve is null then. */
+  trace: null as TraceSeries | null,
   tidalMl: 500,
   rateBpm: 15,
   gain: 1,
@@ -64,6 +69,8 @@ scene.add(sun);
 const lungs: Lung[] = [];
 let curves: Curve[] = [];
 let presetSet: PresetSet | null = null;
+let served: TraceSeries | null = null; // /trace.json, null when the server plays no trace
+let strip: StripChart | null = null;
 let root: THREE.Object3D | null = null;
 let arrow: THREE.ArrowHelper | null = null;
 const stats = new FrameStats();
@@ -78,11 +85,15 @@ function resize(): void {
 window.addEventListener('resize', resize);
 
 // ------------------------------------------------------------------ per-frame work (O(1) on the GPU path)
-function loop(): number { return state.curve ? loopDuration(state.curve, state.rateBpm) : 4; }
+function loop(): number {
+  if (state.trace) return state.trace.durationS;
+  return state.curve ? loopDuration(state.curve, state.rateBpm) : 4;
+}
 
 function update(): void {
   const curve = state.curve;
-  state.dvMl = curve ? volumeAt(curve, state.t, state.tidalMl, state.rateBpm) : 0;
+  state.dvMl = state.trace ? traceVolumeAt(state.trace, state.t, state.tidalMl)
+    : curve ? volumeAt(curve, state.t, state.tidalMl, state.rateBpm) : 0;
   for (const lung of lungs) {
     lung.weights.weights(lung.meta.share * state.dvMl, state.gain, lung.influences);
     if (deformMode === 'gpu') {
@@ -135,6 +146,13 @@ function frame(now: number): void {
   if (stats.due(now)) showReadout();
 }
 
+/** The trace HUD: the sample shown now (measured vs predicted) and the strip chart around it. */
+function showTrace(): void {
+  if (!state.trace) return;
+  $('trace-values').textContent = valuesText(state.trace, state.t);
+  strip?.draw(state.trace, state.t);
+}
+
 // ------------------------------------------------------------------ model loading
 async function loadModel(): Promise<void> {
   const gltf = await new GLTFLoader().loadAsync('model.glb');
@@ -171,6 +189,13 @@ async function loadModel(): Promise<void> {
                              extras.curve.source));
   }
   curves.push(...presetSet.curves);
+  served = await loadTrace((url) => fetch(url));
+  if (served) {
+    $('trace-panel').hidden = false;
+    $('trace-source').textContent = `${served.source} (${served.t.length} samples, ${served.durationS.toFixed(1)} s)`;
+    $('latency').textContent = latencyText(served);
+    strip = new StripChart($('strip') as HTMLCanvasElement);
+  }
   const note = $('presets-note');
   note.textContent = presetSet.note;
   note.classList.toggle('warning', presetSet.origin !== 'server');
@@ -230,14 +255,27 @@ function refreshArrow(): void {
 
 // ------------------------------------------------------------------ settings (shared by UI and API)
 function setPreset(name: string): void {
+  if (name === 'trace' && served) {
+    state.curve = null;
+    state.trace = served;
+    state.tidalMl = served.tidalMl; // the estimator's own volumes; the control rescales them
+    $('preset-source').textContent = `trace ${served.source}, played in trace time`;
+    syncUI();
+    showTrace();
+    return;
+  }
   const c = curves.find((x) => x.name === name);
-  if (!c) throw new Error(`unknown preset '${name}' (have ${curves.map((x) => x.name).join(', ')})`);
+  if (!c) throw new Error(`unknown preset '${name}' (have ${presetNames().join(', ')})`);
   state.curve = c;
+  state.trace = null;
   state.tidalMl = c.tidalMl;
   state.rateBpm = c.rateBpm;
   $('preset-source').textContent = c.source;
   syncUI();
 }
+
+/** The preset menu: the served trace first (when there is one), then the curves. */
+function presetNames(): string[] { return [...(served ? ['trace'] : []), ...curves.map((c) => c.name)]; }
 
 function setOrientation(o: string | Vec3): void {
   if (Array.isArray(o)) {
@@ -284,7 +322,8 @@ function setMarkers(on: boolean): void {
 
 // ------------------------------------------------------------------ UI
 function syncUI(): void {
-  ($('preset') as HTMLSelectElement).value = state.curve?.name ?? '';
+  ($('preset') as HTMLSelectElement).value = state.trace ? 'trace' : state.curve?.name ?? '';
+  ($('rate') as HTMLInputElement).disabled = state.trace !== null; // a trace plays in its own time
   ($('tidal') as HTMLInputElement).value = String(state.tidalMl);
   $('tidal-out').textContent = state.tidalMl.toFixed(0);
   ($('rate') as HTMLInputElement).value = String(state.rateBpm);
@@ -300,7 +339,8 @@ function syncUI(): void {
 
 function bindUI(): void {
   const sel = $('preset') as HTMLSelectElement;
-  sel.replaceChildren(...curves.map((c) => new Option(c.label, c.name)));
+  const traceOption = served ? [new Option(`Trace (${served.predictMs > 0 ? `${served.predictMs} ms ahead` : 'measured'})`, 'trace')] : [];
+  sel.replaceChildren(...traceOption, ...curves.map((c) => new Option(c.label, c.name)));
   sel.onchange = () => setPreset(sel.value);
   const tidal = $('tidal') as HTMLInputElement;
   tidal.oninput = () => { state.tidalMl = Number(tidal.value); syncUI(); };
@@ -342,6 +382,7 @@ function showReadout(): void {
   const scrub = $('scrub') as HTMLInputElement;
   if (state.playing) scrub.value = String(Math.round(((state.t / loop()) % 1) * 1000));
   $('clock').textContent = manualClock ? 'clock: manual (test)' : '';
+  showTrace();
 }
 
 function loadedText(): string {
@@ -354,7 +395,7 @@ function showError(e: unknown): void {
 }
 
 // ------------------------------------------------------------------ test and benchmark API
-function renderOnce(): void { update(); renderer.render(scene, camera); }
+function renderOnce(): void { update(); renderer.render(scene, camera); showTrace(); }
 
 const snapshots = new Map<string, { rgb: Uint8Array; mask: Uint8Array }>();
 
@@ -440,10 +481,12 @@ const api = {
   ready: null as unknown as Promise<object>,
   info: () => ({ lungs: lungs.map((l) => ({ name: l.name, vertices: l.meta.n_vertices, share: l.meta.share })),
                  markers: lungs.reduce((n, l) => n + l.spheres.length, 0),
-                 presets: curves.map((c) => c.name), presetOrigin: presetSet?.origin, presetNote: presetSet?.note,
+                 presets: presetNames(), presetOrigin: presetSet?.origin, presetNote: presetSet?.note,
                  deform: deformMode, manualClock, renderer: rendererName() }),
   state: () => ({ t: state.t, dvMl: state.dvMl, playing: state.playing, preset: state.curve?.name, tidalMl: state.tidalMl,
                   rateBpm: state.rateBpm, orientation: state.orientation, overlay: state.overlay, loopS: loop(),
+                  trace: state.trace ? { index: sampleIndex(state.trace.t, traceTime(state.trace, state.t)),
+                                         latency: $('latency').textContent, values: $('trace-values').textContent } : null,
                   weights: Object.fromEntries(lungs.map((l) => [l.name, [...l.influences]])) }),
   setTime: (t: number) => { state.t = t; state.playing = false; syncUI(); },
   setPhase: (phase: number) => { state.t = phase * loop(); state.playing = false; syncUI(); },
@@ -465,7 +508,7 @@ api.ready = (async () => {
   resize();
   await loadModel();
   bindUI();
-  setPreset(curves[0].name);
+  setPreset(presetNames()[0]);
   setOrientation('model');
   setOverlay('none');
   if (manualClock) state.playing = false;

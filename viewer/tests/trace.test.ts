@@ -1,0 +1,74 @@
+// The viewer's trace playback (trace.ts): sample lookup by time, the volume shown, the HUD text. With
+// LUNGDEFORM_TRACE (a trace.json written by tests/test_viewer_browser.py from
+// lungdeform.playback.tracefeed) the real served document is checked too; skipped without it.
+import { readFileSync } from 'node:fs';
+import { describe, expect, it } from 'vitest';
+import { latencyText, loadTrace, parseTrace, sampleIndex, traceTime, traceVolumeAt, valuesText } from '../src/trace';
+
+/** A served document: n samples dt apart from t0, measured = 2400 + i, predicted = 2400 + 2i. */
+function doc(n: number, dt = 0.1, t0 = 0.5, predictMs = 400) {
+  const idx = Array.from({ length: n }, (_, i) => i);
+  return { schema: 'lungdeform.trace-prediction', trace: {
+    source: 'b.csv', unit: 'mm', predict_ms: predictMs, tidal_volume_ml: 500, v_ee_ml: 2400,
+    t_s: idx.map((i) => t0 + i * dt), measured_ml: idx.map((i) => 2400 + i), predicted_ml: idx.map((i) => 2400 + 2 * i),
+    ahead_s: idx.map(() => predictMs / 1000) } };
+}
+
+describe('sampleIndex', () => {
+  it('finds the newest sample at or before the time (a live feed shows nothing newer)', () => {
+    const t = [0, 0.1, 0.25, 0.4];
+    // exactly at a sample: that sample; between samples: the earlier one (causal hold, no interpolation)
+    expect([0, 0.1, 0.2499, 0.25, 0.39, 0.4, 9].map((x) => sampleIndex(t, x))).toEqual([0, 1, 1, 2, 2, 3, 3]);
+    expect(sampleIndex(t, -1)).toBe(0); // before the first sample: the first
+  });
+});
+
+describe('trace playback', () => {
+  const series = parseTrace(doc(50))!;
+  it('plays the predicted volume of the newest sample, above end-exhale', () => {
+    // t = 1.03 s of playback = trace time 0.5 + 1.03 = 1.53 s: sample 10 (t 1.5 s), predicted 2400 + 20
+    expect(traceVolumeAt(series, 1.03, 500)).toBeCloseTo(20, 12);
+    // the tidal control scales the estimator's volumes (500 mL -> 1000 mL doubles them)
+    expect(traceVolumeAt(series, 1.03, 1000)).toBeCloseTo(40, 12);
+  });
+  it('loops over the trace duration from its first sample', () => {
+    // duration 4.9 s: playback 4.9 + 0.2 s is trace time 0.5 + 0.2, sample 2
+    expect(series.durationS).toBeCloseTo(4.9, 12);
+    expect(traceTime(series, 4.9 + 0.2)).toBeCloseTo(0.7, 9);
+    expect(traceVolumeAt(series, 5.1 + 1e-9, 500)).toBeCloseTo(4, 12);
+  });
+  it('says the latency it compensates, or that it compensates none', () => {
+    expect(latencyText(series)).toBe('predicting 400 ms ahead (compensates 400 ms of display latency)');
+    expect(latencyText(parseTrace(doc(5, 0.1, 0, 0))!)).toMatch(/^no latency compensation/);
+    expect(valuesText(series, 1.03)).toBe('t 1.50 s   measured 2410 mL   predicted 2420 mL');
+  });
+  it('refuses bad documents naming the field, and reads "trace": null as no trace', () => {
+    expect(parseTrace({ trace: null })).toBeNull();
+    const bad = doc(5);
+    bad.trace.predicted_ml[3] = Number.NaN;
+    expect(() => parseTrace(bad)).toThrow(/"predicted_ml"\[3\] is not a finite number/);
+    const back = doc(5);
+    back.trace.t_s[2] = 0;
+    expect(() => parseTrace(back)).toThrow(/"t_s" must increase/);
+  });
+  it('loads through fetch and reports HTTP failures', async () => {
+    const ok = async () => ({ ok: true, status: 200, json: async () => doc(3) });
+    expect((await loadTrace(ok))!.t.length).toBe(3);
+    const missing = async () => ({ ok: false, status: 404, json: async () => ({}) });
+    await expect(loadTrace(missing)).rejects.toThrow('trace.json: HTTP 404');
+  });
+});
+
+const served = process.env.LUNGDEFORM_TRACE;
+describe.skipIf(!served)('the served /trace.json', () => {
+  it('plays predicted - V_EE at each sample time and says its horizon', () => {
+    const raw = JSON.parse(readFileSync(served!, 'utf-8'));
+    const s = parseTrace(raw)!;
+    const tr = raw.trace;
+    // midway to the next sample the shown volume is this sample's predicted volume above end-exhale
+    for (let i = 0; i < s.t.length - 1; i += 13) {
+      expect(traceVolumeAt(s, 0.5 * (s.t[i] + s.t[i + 1]) - s.t[0], tr.tidal_volume_ml)).toBeCloseTo(tr.predicted_ml[i] - tr.v_ee_ml, 9);
+    }
+    expect(latencyText(s)).toBe(`predicting ${tr.predict_ms} ms ahead (compensates ${tr.predict_ms} ms of display latency)`);
+  });
+});
