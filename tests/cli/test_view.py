@@ -35,7 +35,7 @@ class _Captured:
 
     served: dict = {}
 
-    def __init__(self, glb, *, host, port, trace):
+    def __init__(self, glb, *, host, port, trace, live):
         _Captured.served = {"glb": glb, "trace": trace}
         self.url = "http://127.0.0.1:0/"
 
@@ -100,3 +100,15 @@ def test_view_trace_with_glb_or_bad_trace_exits_2_naming_the_file(tmp_path, caps
     assert main(["view", str(model), "--trace", str(bad), "--port", "0"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and str(bad) in err[0] and "Traceback" not in err[0], err
+
+
+def test_view_live_bad_stdin_line_exits_2_naming_it(tmp_path, capsys, monkeypatch):
+    # `view MODEL --trace -`: samples from stdin; a bad line stops it with one line naming the line,
+    # and the server it started is closed (no traceback)
+    import io
+
+    model = save_model(tmp_path / "m.npz", two_lungs(2))
+    monkeypatch.setattr("sys.stdin", io.StringIO("t_s,amplitude\n0,1\n0.1,2\n0.2,oops\n"))
+    assert main(["view", str(model), "--trace", "-", "--predict-ms", "300", "--port", "0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "stdin line 4" in err[0], err

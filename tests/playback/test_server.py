@@ -14,6 +14,7 @@ from lungdeform.breathing.pv import simulate
 from lungdeform.errors import InputError, ReadError
 from lungdeform.playback.export import glb_bytes
 from lungdeform.playback.server import PRESET_RATE_HZ, ViewerServer, check_glb, model_glb, presets_json, viewer_dir
+from lungdeform.playback.tracefeed import LiveFeed
 from tests.browser.support import two_lungs
 
 
@@ -112,6 +113,23 @@ def test_trace_json_is_null_by_default_and_served_as_given(server, glb):
     assert json.loads(body)["trace"] is None and json.loads(body)["schema"] == "lungdeform.trace-prediction"
     with ViewerServer(glb, trace=b'{"trace": 1}') as srv:
         assert request(srv, "GET", "/trace.json")[1] == b'{"trace": 1}'
+
+
+def test_live_is_server_sent_events_of_the_feed(glb):
+    # /live streams the feed's events (text/event-stream, no length: the connection closes at the end);
+    # without a feed it is not a route (404)
+    feed = LiveFeed(predict_ms=300)
+    feed.push(0.0, 1.0)
+    feed.push(0.1, 2.0)
+    feed.end()
+    with ViewerServer(glb, live=feed) as srv:
+        res, body = request(srv, "GET", "/live")
+        assert res.status == 200 and res.getheader("Content-Type") == "text/event-stream"
+        events = [json.loads(c[6:]) for c in body.decode().split("\n\n") if c.startswith("data: {\"")]
+        assert [e["t_s"] for e in events] == [0.0, 0.1] and events[0]["ahead_s"] == 0.3
+        assert body.endswith(b"event: end\ndata: {}\n\n")
+    with ViewerServer(glb) as srv:
+        assert request(srv, "GET", "/live")[0].status == 404
 
 
 def test_head_sends_headers_only(server, glb):

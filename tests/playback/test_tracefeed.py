@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import threading
 
 import numpy as np
 import pytest
@@ -10,7 +11,9 @@ import pytest
 from lungdeform.breathing.stream import StreamingVolumeEstimator
 from lungdeform.errors import InputError, ReadError
 from lungdeform.playback.tracefeed import (
+    LiveFeed,
     check_view_predict_ms,
+    live_json,
     prediction_series,
     trace_payload,
     view_trace_json,
@@ -89,3 +92,47 @@ def test_bad_trace_file_names_the_file(tmp_path):
     bad.write_text("Frame;Timestamp;x;y;z\n1;0;abc;0;0\n")
     with pytest.raises((ReadError, InputError), match=str(bad)):
         view_trace_json(tmp_path / "m.npz", bad)
+
+
+def test_live_feed_events_are_the_recorded_series(rng):
+    # one implementation: lines pushed live give, per sample, the same measured and predicted volume as
+    # prediction_series on the same samples (both run the two estimators in the same order)
+    t, x = noisy_breaths(rng, seconds=20)
+    feed = LiveFeed(predict_ms=400)
+    lines = ["t_s,amplitude", "# a comment", *(f"{float(a)!r},{float(b)!r}" for a, b in zip(t, x))]
+    assert feed.push_lines(lines) == t.size and feed.ended
+    chunks = b"".join(feed.events()).decode().split("\n\n")
+    events = [json.loads(c[len("data: "):]) for c in chunks if c.startswith("data: ")]
+    ref = prediction_series(t, x, predict_ms=400)
+    assert [e["predicted_ml"] for e in events] == ref["predicted_ml"]
+    assert [e["measured_ml"] for e in events] == ref["measured_ml"]
+    assert chunks[-2] == "event: end\ndata: {}"  # the page learns the input ended
+    assert json.loads(live_json(feed))["live"]["predict_ms"] == 400.0
+
+
+def test_live_feed_bad_line_names_it_and_ends_the_feed():
+    # a line that is not two numbers: InputError naming stdin and the line number (header is line 1)
+    feed = LiveFeed()
+    with pytest.raises(InputError, match="stdin line 3"):
+        feed.push_lines(["t_s,amplitude", "0,1", "0.1,abc"])
+    assert feed.ended
+    with pytest.raises(InputError, match="stdin line 3: stream time must increase"):
+        LiveFeed().push_lines(["0,1", "0.1,2", "0.1,3"])
+
+
+def test_live_feed_reader_waits_for_new_samples():
+    # a page connected before the samples arrive gets each as it comes, then the end
+    feed = LiveFeed()
+    got = []
+
+    def read():
+        got.extend(feed.events(poll_s=0.05))
+
+    reader = threading.Thread(target=read)
+    reader.start()
+    feed.push(0.0, 1.0)
+    feed.push(0.1, 2.0)
+    feed.end()
+    reader.join(5)
+    text = b"".join(got).decode()
+    assert not reader.is_alive() and text.count("data: {\"t_s\"") == 2 and text.endswith("event: end\ndata: {}\n\n")

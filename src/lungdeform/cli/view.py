@@ -1,17 +1,19 @@
 """``lungdeform view``: serve the browser viewer for a model or a .glb on a loopback address; with
 ``--trace TRACE [--predict-ms H]`` the viewer plays a recorded breathing trace in trace time, showing
-the volume the streaming estimator predicts H ms ahead (docs/PREDICTION.md)."""
+the volume the streaming estimator predicts H ms ahead (docs/PREDICTION.md); ``--trace -`` reads
+``t_s,amplitude`` lines from stdin and pushes each estimate to the page as it arrives."""
 
 from __future__ import annotations
 
 import ipaddress
+import sys
 import webbrowser
 from pathlib import Path
 
 import typer
 
 from lungdeform.playback.server import ViewerServer, model_glb
-from lungdeform.playback.tracefeed import view_trace_json
+from lungdeform.playback.tracefeed import LiveFeed, check_view_options, live_json, view_trace_json
 
 
 def register(apps) -> None:
@@ -22,8 +24,8 @@ def register(apps) -> None:
         port: int = typer.Option(8765, "--port", help="Port (0 picks a free one)."),
         curve: Path | None = typer.Option(None, "--curve", help="Breathing curve CSV for a model file."),
         markers: Path | None = typer.Option(None, "--markers", help="Markers CSV (x_mm,y_mm,z_mm[,label]) for a model file."),
-        trace: Path | None = typer.Option(None, "--trace", help="Breathing trace to play (.vxp or marker .csv), "
-                                          "through the streaming volume estimator."),
+        trace: Path | None = typer.Option(None, "--trace", help="Breathing trace to play (.vxp or marker .csv) "
+                                          "through the streaming volume estimator, or - for live 't_s,amplitude' lines on stdin."),
         predict_ms: float = typer.Option(0.0, "--predict-ms", help="With --trace: show the volume predicted "
                                          "this many ms ahead (0-2000), compensating that display latency."),
         open_browser: bool = typer.Option(False, "--open", help="Open the default web browser."),
@@ -31,9 +33,12 @@ def register(apps) -> None:
         """Show both lungs breathing in the browser (three.js, deformation on the GPU, WebXR)."""
 
 
-        feed = view_trace_json(model, trace, curve, predict_ms)  # checked before the model is exported
+        live = LiveFeed(predict_ms) if str(trace) == "-" else None
+        check_view_options(model, trace, curve, predict_ms)  # before the model is exported
+        feed = live_json(live) if live is not None else view_trace_json(model, trace, curve, predict_ms)
         glb = model_glb(model, curve, markers)
-        server = ViewerServer(glb, host=host, port=port, trace=feed)  # /presets.json: lungdeform.breathing.presets
+        # /presets.json: lungdeform.breathing.presets; /trace.json: the trace; /live: the live feed
+        server = ViewerServer(glb, host=host, port=port, trace=feed, live=live)
         try:
             exposed = not ipaddress.ip_address(host).is_loopback
         except ValueError:
@@ -44,6 +49,12 @@ def register(apps) -> None:
         if open_browser:
             webbrowser.open(server.url)
         try:
-            server.serve_forever()
+            if live is None:
+                server.serve_forever()
+            else:
+                server.start()
+                live.push_lines(sys.stdin)  # a bad line: InputError naming it (exit 2)
+                typer.echo("stdin ended: the page keeps the last sample  (Ctrl-C to stop)")
+                server.join()
         finally:
             server.close()

@@ -10,7 +10,9 @@ What it serves, and nothing else:
   tidal volume, sources and one cycle of the normalised curve ``s(t) = (V(t) − V_EE)/ΔV``
   (:func:`presets_payload`). The viewer's preset menu is built from it;
 - ``/trace.json``: a recorded trace with its measured and predicted volume per sample
-  (:mod:`lungdeform.playback.tracefeed`; ``"trace": null`` when none was given), played in trace time.
+  (:mod:`lungdeform.playback.tracefeed`; ``"trace": null`` when none was given), played in trace time;
+- ``/live`` (only with a :class:`~lungdeform.playback.tracefeed.LiveFeed`): its samples as
+  Server-Sent Events, as they arrive.
 
 Security: binds to 127.0.0.1 by default; every path is looked up in a fixed table built at start
 (no file-system path is ever formed from a request, so no traversal and no directory listing);
@@ -41,7 +43,7 @@ from lungdeform.io.modelfile import load_model
 from .export import glb_bytes
 from .markers import marker_anchors
 from .schedule import check_reachable, preset_trace, read_volume_csv
-from .tracefeed import trace_json
+from .tracefeed import LiveFeed, trace_json
 from .trajectory import read_markers_csv
 
 DEFAULT_HOST = "127.0.0.1"
@@ -122,6 +124,9 @@ class _Handler(BaseHTTPRequestHandler):
             self._send_plain(HTTPStatus.FORBIDDEN, head=head)
             return
         path = self.path.split("?", 1)[0].split("#", 1)[0]
+        if path == "/live" and srv.live is not None:
+            self._stream(srv.live, head)
+            return
         res = srv.routes.get(path)
         if res is None:
             self._send_plain(HTTPStatus.NOT_FOUND, head=head)
@@ -132,9 +137,26 @@ class _Handler(BaseHTTPRequestHandler):
         if not head:
             self.wfile.write(res.body)
 
-    def _common_headers(self, content_type: str, length: int) -> None:
+    def _stream(self, feed: LiveFeed, head: bool) -> None:
+        """Server-Sent Events until the feed ends or the page goes (no length: the connection closes)."""
+        self.send_response(HTTPStatus.OK)
+        self._common_headers("text/event-stream", None)
+        self.send_header("Connection", "close")
+        self.end_headers()
+        self.close_connection = True
+        if head:
+            return
+        try:
+            for chunk in feed.events():
+                self.wfile.write(chunk)
+                self.wfile.flush()
+        except (BrokenPipeError, ConnectionResetError):
+            pass
+
+    def _common_headers(self, content_type: str, length: int | None) -> None:
         self.send_header("Content-Type", content_type)
-        self.send_header("Content-Length", str(length))
+        if length is not None:
+            self.send_header("Content-Length", str(length))
         self.send_header("Cache-Control", "no-store")
         self.send_header("X-Content-Type-Options", "nosniff")
         self.send_header("Content-Security-Policy", CSP)
@@ -161,14 +183,15 @@ class _Handler(BaseHTTPRequestHandler):
 class ViewerServer:
     """Serve the viewer and one model. ``port=0`` picks a free port; :attr:`url` says where.
     ``presets``: the bytes of ``/presets.json`` (default :func:`presets_json`); ``trace``: the bytes of
-    ``/trace.json`` (default: no trace, :func:`lungdeform.playback.tracefeed.trace_json`).
+    ``/trace.json`` (default: no trace, :func:`lungdeform.playback.tracefeed.trace_json`); ``live``: a
+    :class:`~lungdeform.playback.tracefeed.LiveFeed` served as ``/live``.
 
     Use as a context manager (serves from a background thread) or call :meth:`serve_forever`.
     """
 
     def __init__(self, glb: bytes, *, host: str = DEFAULT_HOST, port: int = 0,
                  presets: bytes | None = None, bundle: Path | None = None, trace: bytes | None = None,
-                 log: Callable[[str], None] | None = None):
+                 live: LiveFeed | None = None, log: Callable[[str], None] | None = None):
         if not 0 <= int(port) <= 65535:
             raise InputError(f"port must be 0..65535, got {port}")
         self.routes = bundle_routes(bundle)
@@ -178,6 +201,7 @@ class ViewerServer:
         body = presets_json() if presets is None else bytes(presets)
         self.routes["/presets.json"] = Resource(body, CONTENT_TYPES[".json"])
         self.routes["/trace.json"] = Resource(trace_json() if trace is None else bytes(trace), CONTENT_TYPES[".json"])
+        self.live = live
         self.log = log
         try:
             self._httpd = ThreadingHTTPServer((host, int(port)), _Handler)
@@ -213,12 +237,19 @@ class ViewerServer:
     def serve_forever(self) -> None:
         self._httpd.serve_forever(poll_interval=0.2)
 
+    def join(self) -> None:
+        """Wait for the background server (started by :meth:`start`) until it is closed or interrupted."""
+        while self._thread is not None and self._thread.is_alive():
+            self._thread.join(0.5)
+
     def start(self) -> "ViewerServer":
         self._thread = threading.Thread(target=self.serve_forever, name="lungdeform-viewer", daemon=True)
         self._thread.start()
         return self
 
     def close(self) -> None:
+        if self.live is not None:
+            self.live.stop()
         if self._thread is not None:
             self._httpd.shutdown()
             self._thread.join()

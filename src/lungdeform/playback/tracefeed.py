@@ -13,11 +13,12 @@ from __future__ import annotations
 
 import json
 import math
+import threading
 from pathlib import Path
 
 import numpy as np
 
-from lungdeform.breathing.stream import StreamingVolumeEstimator
+from lungdeform.breathing.stream import StreamingVolumeEstimator, parse_sample
 from lungdeform.breathing.trace import read_trace
 from lungdeform.errors import InputError
 
@@ -79,22 +80,116 @@ def trace_payload(path=None, predict_ms: float = 0.0) -> dict:
             "trace": body}
 
 
-def view_trace_json(model, trace=None, curve=None, predict_ms: float = 0.0) -> bytes:
-    """``/trace.json`` for ``lungdeform view MODEL [--trace TRACE] [--curve CSV] [--predict-ms H]``:
-    refuses a trace with a ``.glb`` (play it from the model file) or with a curve (one source of the
-    volume), and ``--predict-ms`` without a trace, naming the options."""
+def check_view_options(model, trace=None, curve=None, predict_ms: float = 0.0) -> None:
+    """Refuse, naming the options, a ``--trace`` (file or ``-``) with a ``.glb`` (play it from the model
+    file) or with ``--curve`` (one source of the volume), and ``--predict-ms`` without a trace or out
+    of [0, 2000] ms."""
     check_view_predict_ms(predict_ms)
     if trace is None:
         if predict_ms:
             raise InputError("--predict-ms applies to a --trace; give the trace to predict")
-        return trace_json()
+        return
     if Path(model).suffix.lower() == ".glb":
         raise InputError(f"{model}: --trace plays through a model file (.npz), not an exported .glb")
     if curve is not None:
         raise InputError(f"--trace and --curve both give the breathing volume; pass one ({trace}, {curve})")
+
+
+def view_trace_json(model, trace=None, curve=None, predict_ms: float = 0.0) -> bytes:
+    """``/trace.json`` for ``lungdeform view MODEL [--trace TRACE] [--curve CSV] [--predict-ms H]``
+    (:func:`check_view_options` first, so nothing is read on a bad combination)."""
+    check_view_options(model, trace, curve, predict_ms)
     return trace_json(trace, predict_ms)
 
 
 def trace_json(path=None, predict_ms: float = 0.0) -> bytes:
     """:func:`trace_payload` as UTF-8 JSON."""
     return json.dumps(trace_payload(path, predict_ms), ensure_ascii=False).encode("utf-8")
+
+
+class LiveFeed:
+    """A live signal for the viewer (``lungdeform view MODEL --trace -``): ``t_s,amplitude`` lines in
+    (:meth:`push_lines`, in the caller's thread, as they arrive), one Server-Sent Event per sample out
+    (:meth:`events`, for ``/live``): ``{"t_s", "measured_ml", "predicted_ml", "ahead_s"}`` from the same
+    two causal estimators as :func:`prediction_series`; ``event: end`` once the input ends.
+
+    Every event is kept (about 100 bytes a sample: 36 MB for a 10 Hz day), so a page that connects
+    late still draws the history.
+    """
+
+    def __init__(self, predict_ms: float = 0.0, **estimator):
+        check_view_predict_ms(predict_ms)
+        self._plain = StreamingVolumeEstimator(predict_ms=0.0, **estimator)
+        self._ahead = StreamingVolumeEstimator(predict_ms=predict_ms, **estimator)
+        self._events: list[bytes] = []
+        self._cond = threading.Condition()
+        self.ended = False
+        self.stopped = False
+
+    def meta(self) -> dict:
+        """What ``/trace.json`` says of a live feed (under ``"live"``)."""
+        return {"source": "stdin", "url": "live", "predict_ms": self._ahead.predict_ms,
+                "ahead_s": self._ahead.predict_ms / 1000.0, "tidal_volume_ml": self._ahead.tidal_volume_ml,
+                "v_ee_ml": self._ahead.v_ee_ml}
+
+    def push(self, t_s: float, amplitude: float) -> dict:
+        """One sample in; returns (and queues) its event."""
+        m = self._plain.update(t_s, amplitude)
+        p = self._ahead.update(t_s, amplitude)
+        ev = {"t_s": p.t_s, "measured_ml": m.volume_ml, "predicted_ml": p.volume_ml, "ahead_s": p.ahead_s}
+        with self._cond:
+            self._events.append(f"data: {json.dumps(ev)}\n\n".encode())
+            self._cond.notify_all()
+        return ev
+
+    def push_lines(self, lines, source: str = "stdin") -> int:
+        """Feed text lines (:func:`lungdeform.breathing.stream.parse_sample`) until they end; returns the
+        number of samples. InputError names ``source`` and the line; the feed ends either way."""
+        n = 0
+        try:
+            for lineno, line in enumerate(lines, 1):
+                sample = parse_sample(line, lineno, source)
+                if sample is None:
+                    continue
+                try:
+                    self.push(*sample)
+                except InputError as exc:
+                    raise InputError(f"{source} line {lineno}: {exc}") from None
+                n += 1
+        finally:
+            self.end()
+        return n
+
+    def end(self) -> None:
+        with self._cond:
+            self.ended = True
+            self._cond.notify_all()
+
+    def stop(self) -> None:
+        """Release every :meth:`events` reader (the server is closing)."""
+        with self._cond:
+            self.stopped = True
+            self._cond.notify_all()
+
+    def events(self, poll_s: float = 0.5):
+        """The SSE byte chunks: every event so far, then each new one as it comes; ``event: end`` last."""
+        i = 0
+        while True:
+            with self._cond:
+                while i >= len(self._events) and not (self.ended or self.stopped):
+                    self._cond.wait(poll_s)
+                chunk, i = self._events[i:], len(self._events)
+                done = (self.ended and not chunk) or self.stopped
+            if chunk:
+                yield b"".join(chunk)
+            if done:
+                if not self.stopped:
+                    yield b"event: end\ndata: {}\n\n"
+                return
+
+
+def live_json(feed: LiveFeed) -> bytes:
+    """``/trace.json`` for a live feed: no recorded trace, and where the samples come from."""
+    doc = trace_payload()
+    doc["live"] = feed.meta()
+    return json.dumps(doc).encode("utf-8")
