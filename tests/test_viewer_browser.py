@@ -22,7 +22,7 @@ import pytest
 from lungdeform.playback.export import glb_bytes
 from lungdeform.playback.markers import marker_anchors
 from lungdeform.playback.server import ViewerServer, presets_json
-from lungdeform.playback.tracefeed import trace_json
+from lungdeform.playback.tracefeed import LiveFeed, live_json, trace_json
 from tests.breathing.test_trace import breath, write_marker_csv
 from tests.browser.support import CHROMIUM, REPO, node_modules_or_skip, run_node, two_lungs
 
@@ -48,12 +48,19 @@ def test_viewer_in_headless_chromium(tmp_path):
     series = json.loads(feed)["trace"]
     expect_trace = {"time": 12.05, "index": 120, "dv": series["predicted_ml"][120] - series["v_ee_ml"],
                     "latency": "predicting 400 ms ahead"}
+    # `view --trace - --predict-ms 400`: 100 live samples, then the end of input; the page must show the
+    # newest one's predicted volume
+    live = LiveFeed(400)
+    events = [live.push(ti, xi) for ti, xi in zip(t[:100], 8 * breath(t[:100]))]
+    live.end()
+    expect_trace["live"] = {"n": 100, "dv": events[-1]["predicted_ml"] - 2400.0}
     bundle = os.environ.get("LUNGDEFORM_VIEWER_BUNDLE") or None
     with ViewerServer(glb, bundle=bundle) as server, \
             ViewerServer(glb, presets=b"<html>not json</html>", bundle=bundle) as broken, \
-            ViewerServer(glb, trace=feed, bundle=bundle) as traced:
+            ViewerServer(glb, trace=feed, bundle=bundle) as traced, \
+            ViewerServer(glb, trace=live_json(live), live=live, bundle=bundle) as streamed:
         res = run_node([str(REPO / "tests" / "browser" / "viewer.test.mjs"), server.url, str(artifacts),
-                        broken.url, traced.url], cwd=REPO,
+                        broken.url, traced.url, streamed.url], cwd=REPO,
                        env={"VIEWER_DIR": str(viewer), "CHROMIUM": CHROMIUM, "EXPECT_PRESETS": json.dumps(expect),
                             "EXPECT_TRACE": json.dumps(expect_trace)},
                        timeout=300)
@@ -69,7 +76,8 @@ def test_viewer_in_headless_chromium(tmp_path):
     # every check ran (a check missing from the report would otherwise pass silently)
     assert {"preset list from the server", "presets play the served curves", "preset changes picture",
             "fallback to built-in presets with a note", "fallback shapes play", "no trace panel without a trace",
-            "trace plays the predicted volume", "trace HUD shows the latency"} <= set(r)
+            "trace plays the predicted volume", "trace HUD shows the latency",
+            "live samples play as they arrive"} <= set(r)
     print(f"silhouette pixels end-exhale {r['silhouette differs ee/ei']['ee']}, end-inhale "
           f"{r['silhouette differs ee/ei']['ei']}; changed by orientation {r['orientation changes picture']['colour']}, "
           f"by preset normal→copd {r['preset changes picture']['silhouette']} (colour {r['preset changes picture']['colour']}); "

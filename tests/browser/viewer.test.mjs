@@ -1,12 +1,13 @@
 // Browser test of the lungdeform viewer: Playwright (playwright-core) drives Debian's Chromium,
 // headless, software GL. Run by tests/test_viewer_browser.py, which starts `lungdeform.server` on a
 // free loopback port. Usage:
-//   node tests/browser/viewer.test.mjs URL ARTIFACT_DIR [FALLBACK_URL] [TRACE_URL]
+//   node tests/browser/viewer.test.mjs URL ARTIFACT_DIR [FALLBACK_URL] [TRACE_URL] [LIVE_URL]
 // Env: VIEWER_DIR (folder whose node_modules holds playwright-core), CHROMIUM (executable),
 // EXPECT_PRESETS (JSON from lungdeform.presets: {"names": [...], "volume_at_1s": {name: mL}}).
 // FALLBACK_URL: a server whose /presets.json is broken; the viewer must fall back to its built-in
 // shapes and say so. TRACE_URL: a server of `view --trace --predict-ms 400`; EXPECT_TRACE (JSON from
 // lungdeform.playback.tracefeed): {"time": s, "index": sample, "dv": mL, "latency": text} shown then.
+// LIVE_URL: a server of `view --trace -` whose feed holds EXPECT_TRACE.live.n samples (newest: dv mL).
 // Exit 0 when every check passes; prints one JSON line of results on stdout.
 import { createRequire } from 'node:module';
 import { mkdirSync } from 'node:fs';
@@ -18,7 +19,7 @@ const viewerDir = process.env.VIEWER_DIR ?? path.resolve(here, '../../viewer');
 const require = createRequire(path.join(viewerDir, 'package.json'));
 const { chromium } = require('playwright-core');
 
-const [url, artifacts, fallbackUrl, traceUrl] = process.argv.slice(2);
+const [url, artifacts, fallbackUrl, traceUrl, liveUrl] = process.argv.slice(2);
 if (!url || !artifacts) {
   console.error('usage: node viewer.test.mjs URL ARTIFACT_DIR [FALLBACK_URL]');
   process.exit(2);
@@ -192,6 +193,22 @@ try {
     { latency, values });
     await tp.screenshot({ path: path.join(artifacts, 'trace-predict-400.png') });
     await tp.close();
+  }
+  // 9. `view --trace -`: samples pushed as Server-Sent Events; the newest one's predicted volume is shown
+  if (liveUrl && expectTrace?.live) {
+    const lp = await browser.newPage({ viewport: { width: 960, height: 640 } });
+    const lpErrors = [];
+    lp.on('pageerror', (e) => lpErrors.push(String(e)));
+    await lp.goto(`${liveUrl}?clock=manual`, { waitUntil: 'load' });
+    await lp.evaluate(() => window.lungdeform.ready);
+    await lp.waitForFunction((n) => window.lungdeform.state().trace?.n === n, expectTrace.live.n, { timeout: 20000 });
+    const ls = await lp.evaluate(() => { window.lungdeform.renderOnce(); return window.lungdeform.state(); });
+    const latency = (await lp.locator('#latency').textContent()) ?? '';
+    check('live samples play as they arrive', ls.trace.index === expectTrace.live.n - 1
+      && Math.abs(ls.dvMl - expectTrace.live.dv) < 1e-6 && latency.startsWith(expectTrace.latency) && lpErrors.length === 0,
+    { trace: ls.trace, dvMl: ls.dvMl, expected: expectTrace.live, lpErrors });
+    await lp.screenshot({ path: path.join(artifacts, 'live-predict-400.png') });
+    await lp.close();
   }
 } catch (e) {
   failures.push(`exception: ${e instanceof Error ? e.message : String(e)}`);

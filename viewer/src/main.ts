@@ -15,7 +15,7 @@ import { GRAVITY, isMovable, LungWeights, MarkerMotion, normalize, type LungMeta
 import { loadPresets, loopDuration, sampledCurve, volumeAt, type Curve, type PresetSet } from './curves';
 import { colourise, legendGradient } from './overlay';
 import { FrameStats } from './stats';
-import { latencyText, loadTrace, sampleIndex, StripChart, traceTime, traceVolumeAt, valuesText, type TraceSeries } from './trace';
+import { latencyText, loadTrace, pushEvent, sampleIndex, StripChart, traceTime, traceVolumeAt, valuesText, type TraceSeries } from './trace';
 import { setupXR } from './xr';
 
 const params = new URLSearchParams(location.search);
@@ -86,7 +86,7 @@ window.addEventListener('resize', resize);
 
 // ------------------------------------------------------------------ per-frame work (O(1) on the GPU path)
 function loop(): number {
-  if (state.trace) return state.trace.durationS;
+  if (state.trace) return state.trace.durationS || 1;
   return state.curve ? loopDuration(state.curve, state.rateBpm) : 4;
 }
 
@@ -189,10 +189,13 @@ async function loadModel(): Promise<void> {
                              extras.curve.source));
   }
   curves.push(...presetSet.curves);
-  served = await loadTrace((url) => fetch(url));
-  if (served) {
+  const feed = await loadTrace((url) => fetch(url));
+  served = feed?.series ?? null;
+  if (feed && served) {
     $('trace-panel').hidden = false;
-    $('trace-source').textContent = `${served.source} (${served.t.length} samples, ${served.durationS.toFixed(1)} s)`;
+    $('trace-source').textContent = feed.liveUrl ? `live from ${served.source}`
+      : `${served.source} (${served.n} samples, ${served.durationS.toFixed(1)} s)`;
+    if (feed.liveUrl) listen(served, feed.liveUrl);
     $('latency').textContent = latencyText(served);
     strip = new StripChart($('strip') as HTMLCanvasElement);
   }
@@ -201,6 +204,13 @@ async function loadModel(): Promise<void> {
   note.classList.toggle('warning', presetSet.origin !== 'server');
   fitCamera();
   addGravityArrow();
+}
+
+/** Live: each Server-Sent Event is one sample (pushed into the series' buffers); 'end' when input ends. */
+function listen(series: TraceSeries, url: string): void {
+  const source = new EventSource(url);
+  source.onmessage = (e) => { try { pushEvent(series, e.data); } catch (err) { showError(err); } };
+  source.addEventListener('end', () => { source.close(); $('trace-source').textContent = `live from ${series.source}: input ended`; });
 }
 
 function addMarkers(markers: Partial<Marker>[]): void {
@@ -259,7 +269,8 @@ function setPreset(name: string): void {
     state.curve = null;
     state.trace = served;
     state.tidalMl = served.tidalMl; // the estimator's own volumes; the control rescales them
-    $('preset-source').textContent = `trace ${served.source}, played in trace time`;
+    $('preset-source').textContent = served.live ? `live feed from ${served.source}: the newest sample is shown`
+      : `trace ${served.source}, played in trace time`;
     syncUI();
     showTrace();
     return;
@@ -485,7 +496,7 @@ const api = {
                  deform: deformMode, manualClock, renderer: rendererName() }),
   state: () => ({ t: state.t, dvMl: state.dvMl, playing: state.playing, preset: state.curve?.name, tidalMl: state.tidalMl,
                   rateBpm: state.rateBpm, orientation: state.orientation, overlay: state.overlay, loopS: loop(),
-                  trace: state.trace ? { index: sampleIndex(state.trace.t, traceTime(state.trace, state.t)),
+                  trace: state.trace ? { index: sampleIndex(state.trace.t, traceTime(state.trace, state.t), state.trace.n), n: state.trace.n,
                                          latency: $('latency').textContent, values: $('trace-values').textContent } : null,
                   weights: Object.fromEntries(lungs.map((l) => [l.name, [...l.influences]])) }),
   setTime: (t: number) => { state.t = t; state.playing = false; syncUI(); },

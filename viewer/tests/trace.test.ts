@@ -3,7 +3,7 @@
 // lungdeform.playback.tracefeed) the real served document is checked too; skipped without it.
 import { readFileSync } from 'node:fs';
 import { describe, expect, it } from 'vitest';
-import { latencyText, loadTrace, parseTrace, sampleIndex, traceTime, traceVolumeAt, valuesText } from '../src/trace';
+import { latencyText, liveSeries, loadTrace, parseTrace, pushEvent, pushSample, sampleIndex, traceTime, traceVolumeAt, valuesText } from '../src/trace';
 
 /** A served document: n samples dt apart from t0, measured = 2400 + i, predicted = 2400 + 2i. */
 function doc(n: number, dt = 0.1, t0 = 0.5, predictMs = 400) {
@@ -53,9 +53,45 @@ describe('trace playback', () => {
   });
   it('loads through fetch and reports HTTP failures', async () => {
     const ok = async () => ({ ok: true, status: 200, json: async () => doc(3) });
-    expect((await loadTrace(ok))!.t.length).toBe(3);
+    const got = (await loadTrace(ok))!;
+    expect(got.series.n).toBe(3);
+    expect(got.liveUrl).toBeNull();
     const missing = async () => ({ ok: false, status: 404, json: async () => ({}) });
     await expect(loadTrace(missing)).rejects.toThrow('trace.json: HTTP 404');
+  });
+});
+
+describe('live feed', () => {
+  const meta = { url: 'live', predict_ms: 300, ahead_s: 0.3, tidal_volume_ml: 500, v_ee_ml: 2400, source: 'stdin' };
+  it('shows the newest sample as it arrives, whatever the clock', () => {
+    const s = liveSeries(meta, 8);
+    // nothing yet: end-exhale (0 mL above it) and a waiting note
+    expect(traceVolumeAt(s, 3, 500)).toBe(0);
+    expect(valuesText(s, 3)).toBe('waiting for samples…');
+    pushEvent(s, JSON.stringify({ t_s: 0.5, measured_ml: 2500, predicted_ml: 2550, ahead_s: 0.3 }));
+    pushEvent(s, JSON.stringify({ t_s: 0.6, measured_ml: 2510, predicted_ml: 2600, ahead_s: 0.3 }));
+    // the newest sample (t 0.6 s, predicted 2600 mL) is shown at any playback time
+    expect(traceVolumeAt(s, 0, 500)).toBe(200);
+    expect(traceVolumeAt(s, 99, 500)).toBe(200);
+    expect(latencyText(s)).toBe('predicting 300 ms ahead (compensates 300 ms of display latency)');
+    expect(() => pushEvent(s, '{"t_s": null}')).toThrow(/live: bad sample/);
+  });
+  it('keeps the newest samples in the buffers it was given (half dropped when full)', () => {
+    const s = liveSeries(meta, 4);
+    const buf = s.t;
+    for (let i = 0; i < 5; i++) pushSample(s, i, 2400 + i, 2400 + 10 * i);
+    // capacity 4: after the 5th sample the oldest two went; samples 2, 3, 4 remain, same buffer
+    expect(s.n).toBe(3);
+    expect(Array.from(s.t.subarray(0, 3))).toEqual([2, 3, 4]);
+    expect(s.t).toBe(buf);
+    expect(s.durationS).toBe(2);
+    expect(traceVolumeAt(s, 0, 500)).toBe(40);
+  });
+  it('loads as live when /trace.json says so', async () => {
+    const ok = async () => ({ ok: true, status: 200, json: async () => ({ trace: null, live: meta }) });
+    const got = (await loadTrace(ok))!;
+    expect(got.liveUrl).toBe('live');
+    expect(got.series.live && got.series.n === 0).toBe(true);
   });
 });
 
