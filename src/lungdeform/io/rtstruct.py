@@ -18,6 +18,7 @@ of the referenced series, as planning systems expect. See docs/RADIOTHERAPY.md.
 from __future__ import annotations
 
 import datetime as _dt
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -77,17 +78,27 @@ def read_rtstruct(path) -> dict[str, Structure]:
     p = Path(path)
     if not p.is_file():
         raise ReadError(f"{p}: no such file")
-    try:
-        ds = pydicom.dcmread(p)
-    except (InvalidDicomError, OSError, EOFError, ValueError, TypeError) as exc:
-        raise ReadError(f"{p}: not a DICOM file ({exc})") from exc
-    if ds.get("SOPClassUID") != RTSTRUCT_SOP_CLASS and ds.get("Modality") != "RTSTRUCT":
-        raise ReadError(f"{p}: not an RTSTRUCT (Modality {ds.get('Modality', 'missing')}, "
-                        f"SOP class {ds.get('SOPClassUID', 'missing')})")
-    try:
-        return _structures(ds)
-    except (AttributeError, KeyError, ValueError, TypeError) as exc:
-        raise ReadError(f"{p}: malformed structure set ({exc})") from exc
+    # pydicom parses lazily and warns about values it can still read (a VR mismatch, a malformed
+    # UID): the structures are checked below, so its warnings are not the user's; a file it
+    # cannot parse raises anything from ValueError to NotImplementedError (an unknown VR)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            ds = pydicom.dcmread(p)
+            modality, sop_class = ds.get("Modality"), ds.get("SOPClassUID")
+        except Exception as exc:  # any parse failure becomes one clear line
+            raise ReadError(f"{p}: not a DICOM file ({type(exc).__name__}: {_first_line(exc)})") from exc
+        if sop_class != RTSTRUCT_SOP_CLASS and modality != "RTSTRUCT":
+            raise ReadError(f"{p}: not an RTSTRUCT (Modality {modality or 'missing'}, SOP class {sop_class or 'missing'})")
+        try:
+            return _structures(ds)
+        except Exception as exc:  # a damaged sequence or value, found while reading it
+            raise ReadError(f"{p}: malformed structure set ({type(exc).__name__}: {_first_line(exc)})") from exc
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0][:200] if text else "no detail"
 
 
 def _structures(ds: Dataset) -> dict[str, Structure]:
