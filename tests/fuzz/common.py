@@ -219,8 +219,8 @@ def _rtstruct_seed(folder: Path) -> list[Path]:
 
     ct = read_ct_series(write_ct_series(folder / "ct", shape=(6, 8, 8), origin=(-7.0, -7.0, -5.0)))
     s = trimesh.creation.icosphere(1, radius=4.0)
-    return [write_rtstruct(folder / "seed.dcm", ct, [("GTV", s.vertices, s.faces, "GTV"),
-                                                     ("ITV", s.vertices * 1.5, s.faces)]) and folder / "seed.dcm"]
+    write_rtstruct(folder / "seed.dcm", ct, [("GTV", s.vertices, s.faces, "GTV"), ("ITV", s.vertices * 1.5, s.faces)])
+    return [folder / "seed.dcm"]
 
 
 def make_seeds(name: str, folder: Path) -> list[Path]:
