@@ -7,11 +7,14 @@ import json
 
 import numpy as np
 import pytest
+import trimesh
 
 from lungdeform.cli.main import main
+from lungdeform.io.rtstruct import read_ct_series, read_rtstruct, write_rtstruct
 from lungdeform.io.modelfile import save_model
 from lungdeform.playback.trajectory import lung_scales
 from tests.browser.support import two_lungs
+from tests.io.dicom_support import write_ct_series
 
 
 @pytest.fixture(scope="module")
@@ -133,3 +136,78 @@ def test_track_names_invalid_point_rows_or_skips_them(model_file, tmp_path, caps
     printed = capsys.readouterr().out
     assert f"{pts}: skipped 1 row(s) without finite x_mm,y_mm,z_mm, at line(s) 3" in printed
     assert [p["label"] for p in json.loads((out / "points.json").read_text())["points"]] == ["tumour", "clip"]
+
+
+# --- RTSTRUCT in and out (docs/RADIOTHERAPY.md) ------------------------------------------------
+
+GTV_CENTRE = np.array([90.0, 0.0, -40.0])  # inside the left lung of two_lungs(2), as the tumour above
+
+
+@pytest.fixture
+def gtv_files(tmp_path):
+    """A CT series (32 x 32 x 20, 2 mm) around the tumour point and a 10 mm spherical GTV on it."""
+    folder = write_ct_series(tmp_path / "ct", origin=tuple(GTV_CENTRE + [-31.0, -31.0, -19.0]))
+    s = trimesh.creation.icosphere(4, radius=10.0)
+    write_rtstruct(tmp_path / "gtv.dcm", read_ct_series(folder), [("GTV", s.vertices + GTV_CENTRE, s.faces, "GTV")])
+    return folder, tmp_path / "gtv.dcm"
+
+
+def test_track_rtstruct_writes_one_roi_per_volume(model_file, gtv_files, tmp_path, capsys):
+    # at the end-exhale volume the structure stays where it was drawn (within half a 2 mm voxel);
+    # 500 mL more moves its contour points by the interior field, as --points moves points; every
+    # written contour lies on a slice of the reference series
+    ct_dir, gtv = gtv_files
+    v_ee = sum(lung.volume_ee_ml for lung in two_lungs(2).lungs.values())
+    out, rs = tmp_path / "o", tmp_path / "moved.dcm"
+    assert main(["track", str(model_file), "--rtstruct", str(gtv), "--structure", "GTV", "--out", str(out),
+                 "--volume-ml", f"{v_ee}", "--volume-ml", f"{v_ee + 500}",
+                 "--out-rtstruct", str(rs), "--reference-ct", str(ct_dir)]) == 0
+    printed = capsys.readouterr().out
+    assert "GTV: " in printed and "left lung" in printed and f"wrote {rs}" in printed
+    moved = read_rtstruct(rs)
+    names = list(moved)
+    assert names == [f"GTV@{v_ee:g}mL", f"GTV@{v_ee + 500:g}mL"]
+    rest = np.concatenate(moved[names[0]].contours)
+    assert np.abs(np.linalg.norm(rest - GTV_CENTRE, axis=1) - 10.0).max() < 1.0
+    z = read_ct_series(ct_dir).origins[:, 2]
+    for c in moved[names[1]].contours:
+        assert np.ptp(c[:, 2]) == 0 and np.abs(z - c[0, 2]).min() < 1e-6
+    rows = _rows(out / "trajectories.csv")
+    shift = np.array([[float(r[k]) for k in ("dx_mm", "dy_mm", "dz_mm")] for r in rows if float(r["delta_ml"]) > 0])
+    assert np.linalg.norm(shift, axis=1).min() > 1.0
+
+
+def test_track_rtstruct_phases(model_file, gtv_files, tmp_path):
+    # --phases 3 over the plain cycle: three ROIs GTV@phase00 … 02 (phase 0 at end-exhale: where drawn)
+    ct_dir, gtv = gtv_files
+    rs = tmp_path / "p.dcm"
+    assert main(["track", str(model_file), "--rtstruct", str(gtv), "--structure", "GTV", "--out", str(tmp_path / "o"),
+                 "--phases", "3", "--out-rtstruct", str(rs), "--reference-ct", str(ct_dir)]) == 0
+    moved = read_rtstruct(rs)
+    assert list(moved) == ["GTV@phase00", "GTV@phase01", "GTV@phase02"]
+    rest = np.concatenate(moved["GTV@phase00"].contours)
+    assert np.abs(np.linalg.norm(rest - GTV_CENTRE, axis=1) - 10.0).max() < 1.0
+
+
+@pytest.mark.parametrize("structure, message", [
+    ("CTV", "gtv.dcm: no structure 'CTV' (structures: 'GTV')"),
+])
+def test_track_rtstruct_bad_structure(model_file, gtv_files, tmp_path, capsys, structure, message):
+    # a name not in the file: exit 2, one line naming the file and the names there are, nothing written
+    ct_dir, gtv = gtv_files
+    out, rs = tmp_path / "o", tmp_path / "moved.dcm"
+    assert main(["track", str(model_file), "--rtstruct", str(gtv), "--structure", structure, "--out", str(out),
+                 "--volume-ml", "3000", "--out-rtstruct", str(rs), "--reference-ct", str(ct_dir)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0]
+    assert not out.exists() and not rs.exists()
+
+
+def test_track_not_an_rtstruct(model_file, gtv_files, tmp_path, capsys):
+    # a CT slice given as --rtstruct: exit 2, one line naming the file, nothing written
+    ct_dir, _gtv = gtv_files
+    out = tmp_path / "o"
+    assert main(["track", str(model_file), "--rtstruct", str(ct_dir / "slice000.dcm"), "--structure", "GTV",
+                 "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "slice000.dcm: not an RTSTRUCT" in err[0] and not out.exists()

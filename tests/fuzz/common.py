@@ -98,6 +98,12 @@ def _dirlab_points(path):
     return read_dirlab_points(path, (0.97, 0.97, 2.5), shape=(256, 256, 94))
 
 
+def _rtstruct(path):
+    from lungdeform.io.rtstruct import read_rtstruct
+
+    return read_rtstruct(path)
+
+
 #: reader name -> (file suffix, function of the path)
 READERS: dict[str, tuple[str, Callable]] = {
     "mesh_stl": (".stl", _mesh), "mesh_obj": (".obj", _mesh), "mesh_ply": (".ply", _mesh),
@@ -109,12 +115,14 @@ READERS: dict[str, tuple[str, Callable]] = {
     "points_elastix": (".txt", _elastix), "points_track": (".csv", _track_points),
     "manifest": (".csv", _manifest),
     "dirlab_spacing": (".csv", _spacing), "dirlab_points": (".txt", _dirlab_points),
+    "rtstruct": (".dcm", _rtstruct),
 }
 
 
 READER_MODULES = ("lungdeform.io.meshfile", "lungdeform.io.vtk", "lungdeform.io.image", "lungdeform.io.modelfile",
                   "lungdeform.playback.schedule", "lungdeform.breathing.trace", "lungdeform.io.landmarks",
-                  "lungdeform.playback.trajectory", "lungdeform.cohort.manifest", "lungdeform.validate.dirlab_files")
+                  "lungdeform.playback.trajectory", "lungdeform.cohort.manifest", "lungdeform.validate.dirlab_files",
+                  "lungdeform.io.rtstruct")
 
 
 # =========================================================================== seeds
@@ -202,6 +210,19 @@ def _manifest_files(folder: Path) -> None:
         (folder / rel).write_bytes(b"x")
 
 
+def _rtstruct_seed(folder: Path) -> list[Path]:
+    """A two-ROI structure set on a 6-slice synthetic CT series (tests/io/dicom_support.py)."""
+    import trimesh
+
+    from lungdeform.io.rtstruct import read_ct_series, write_rtstruct
+    from tests.io.dicom_support import write_ct_series
+
+    ct = read_ct_series(write_ct_series(folder / "ct", shape=(6, 8, 8), origin=(-7.0, -7.0, -5.0)))
+    s = trimesh.creation.icosphere(1, radius=4.0)
+    write_rtstruct(folder / "seed.dcm", ct, [("GTV", s.vertices, s.faces, "GTV"), ("ITV", s.vertices * 1.5, s.faces)])
+    return [folder / "seed.dcm"]
+
+
 def make_seeds(name: str, folder: Path) -> list[Path]:
     """Small real files for ``name`` written by the package's own writers (plus shipped data)."""
     folder.mkdir(parents=True, exist_ok=True)
@@ -212,6 +233,8 @@ def make_seeds(name: str, folder: Path) -> list[Path]:
         return _image_seed(folder, suffix)
     if name == "model":
         return _model_seed(folder)
+    if name == "rtstruct":
+        return _rtstruct_seed(folder)
     path = folder / f"seed{suffix}"
     path.write_text(_text_seeds(name))
     return [path]

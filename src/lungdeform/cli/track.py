@@ -10,7 +10,9 @@ import typer
 from lungdeform.breathing.presets import get_preset
 from lungdeform.errors import InputError
 from lungdeform.io.modelfile import load_model
+from lungdeform.io.rtstruct import read_ct_series, write_rtstruct
 from lungdeform.playback import schedule as S
+from lungdeform.playback import structures as R
 from lungdeform.playback import trajectory as T
 
 from .common import check_cycles, check_tidal_ml, output_dir, read_curve
@@ -20,7 +22,7 @@ def register(apps) -> None:
     @apps.root.command("track")
     def track_command(
         model: Path = typer.Argument(..., help="Model file (.npz) written by fit, build or demo."),
-        points: Path = typer.Option(..., "--points", help="Points to track, mm LPS of the end-exhale scan: CSV x_mm,y_mm,z_mm[,label] or an elastix 'point' file."),
+        points: Path | None = typer.Option(None, "--points", help="Points to track, mm LPS of the end-exhale scan: CSV x_mm,y_mm,z_mm[,label] or an elastix 'point' file."),
         out: Path = typer.Option(..., "--out", help="Output folder: trajectories.csv, points.json, motion.png."),
         volume_ml: list[float] = typer.Option([], "--volume-ml", help="Absolute volume of the model's lungs together (mL); repeat for several."),
         curve: Path | None = typer.Option(None, "--curve", help="Breathing curve CSV (t_s, volume_ml, …) from 'lungdeform breathe'."),
@@ -30,44 +32,100 @@ def register(apps) -> None:
         fps: float = typer.Option(25.0, "--fps", help="Frames per second sampled from a curve, preset or plain cycle."),
         lung: str | None = typer.Option(None, "--lung", help="Put every point in this lung (default: the lung containing it, else the nearest)."),
         skip_invalid: bool = typer.Option(False, "--skip-invalid", help="Track the valid rows of a points CSV, leaving out (and listing) rows without finite x_mm,y_mm,z_mm; by default such a row is an error."),
+        rtstruct: Path | None = typer.Option(None, "--rtstruct", help="DICOM RTSTRUCT file (instead of --points): track the contour points of --structure."),
+        structure: str | None = typer.Option(None, "--structure", help="With --rtstruct: the ROI name (e.g. GTV)."),
+        phases: int | None = typer.Option(None, "--phases", help="With --curve, --preset or the plain cycle: this many states evenly over one breath instead of frames at --fps."),
+        out_rtstruct: Path | None = typer.Option(None, "--out-rtstruct", help="Write the moved structure, one ROI per volume or phase (NAME@TAG), as an RTSTRUCT on --reference-ct."),
+        reference_ct: Path | None = typer.Option(None, "--reference-ct", help="With --out-rtstruct: the DICOM CT series (folder) the structure was drawn on."),
     ) -> None:
         """Move interior points with the model: positions at given volumes or over a breathing curve.
 
         Without --volume-ml, --curve or --preset: one plain 500 mL, 4 s cosine breath."""
 
 
-        given = [name for name, v in (("--volume-ml", volume_ml or None), ("--curve", curve), ("--preset", preset)) if v]
-        if len(given) > 1:
-            raise InputError(f"{' and '.join(given)} are mutually exclusive: give one volume schedule")
-        check_cycles(cycles, preset)
-        check_tidal_ml(tidal_ml)
-        if tidal_ml is not None and (volume_ml or curve is not None):
-            raise InputError("--tidal-ml applies to --preset or the plain cycle")
-        if not (np.isfinite(fps) and fps > 0):
-            raise InputError(f"--fps must be > 0, got {fps}")
+        _check_schedule(volume_ml, curve, preset, cycles, tidal_ml, fps)
+        _check_structure_options(points, rtstruct, structure, out_rtstruct, reference_ct, phases, volume_ml)
         m = load_model(model)
-        skipped: list[int] = []
-        pts, labels = T.read_points(points, skip_invalid=skip_invalid, skipped=skipped)
-        if skipped:
-            shown = ", ".join(map(str, skipped[:10])) + (", …" if len(skipped) > 10 else "")
-            typer.echo(f"{points}: skipped {len(skipped)} row(s) without finite x_mm,y_mm,z_mm, at line(s) {shown}")
-        placement = T.place_points(m, pts, lung, source=str(points))
+        tracked = R.read_structure(rtstruct, structure) if rtstruct is not None else None
+        ct = read_ct_series(reference_ct) if out_rtstruct is not None else None  # before anything is written
+        if tracked is not None:
+            pts, labels, source = tracked.points, tracked.labels, str(rtstruct)
+        else:
+            (pts, labels), source = _read_points(points, skip_invalid), str(points)
+        placement = T.place_points(m, pts, lung, source=source)
         if volume_ml:
             if not all(np.isfinite(v) and v > 0 for v in volume_ml):
                 raise InputError(f"--volume-ml must be > 0 mL, got {volume_ml}")
-            frames = T.volume_frames(m, volume_ml)
+            frames, tags = T.volume_frames(m, volume_ml), R.volume_tags(volume_ml)
+        elif phases is not None:
+            frames, tags = R.phase_frames(_trace(m, curve, preset, cycles, tidal_ml), phases)
         else:
-            frames = T.trace_frames(_trace(m, curve, preset, cycles, tidal_ml), fps)
+            frames, tags = T.trace_frames(_trace(m, curve, preset, cycles, tidal_ml), fps), []
         note = T.extrapolation_note(m, frames.delta_ml)
         if note:
             typer.echo(f"note: {note}")
         positions = T.point_trajectories(m, pts, placement, frames.delta_ml)
         folder = output_dir(out)
+        if out_rtstruct is not None:
+            surfaces = R.moved_surfaces(m, tracked, frames.delta_ml, tags, lung, source=f"{rtstruct} {structure}")
+            counts = write_rtstruct(out_rtstruct, ct, surfaces, label=f"{structure} moved")
+            typer.echo(f"wrote {out_rtstruct}: " + ", ".join(f"{k} ({n} contours)" for k, n in counts.items()))
         meta = {"model": str(model), "schedule": frames.source, "end_exhale_ml": T.end_exhale_ml(m), **T.interior_meta(m)}
         paths = T.write_trajectories(folder, pts, labels, placement, positions, frames.delta_ml, frames.t_s, meta=meta)
         typer.echo(f"{len(pts)} point(s), {len(frames.delta_ml)} frame(s): {frames.source}")
-        _print_points(labels, placement, T.motion_summary(positions, pts), paths)
+        if tracked is None:
+            _print_points(labels, placement, T.motion_summary(positions, pts), paths)
+        else:
+            _print_structure(structure, placement, T.motion_summary(positions, pts))
         typer.echo(f"wrote {paths['csv']}, {paths['json']}, {paths['png']}")
+
+
+def _check_schedule(volume_ml, curve, preset, cycles, tidal_ml, fps) -> None:
+    """One volume schedule at most, and its options in range."""
+    given = [name for name, v in (("--volume-ml", volume_ml or None), ("--curve", curve), ("--preset", preset)) if v]
+    if len(given) > 1:
+        raise InputError(f"{' and '.join(given)} are mutually exclusive: give one volume schedule")
+    check_cycles(cycles, preset)
+    check_tidal_ml(tidal_ml)
+    if tidal_ml is not None and (volume_ml or curve is not None):
+        raise InputError("--tidal-ml applies to --preset or the plain cycle")
+    if not (np.isfinite(fps) and fps > 0):
+        raise InputError(f"--fps must be > 0, got {fps}")
+
+
+def _check_structure_options(points, rtstruct, structure, out_rtstruct, reference_ct, phases, volume_ml) -> None:
+    """--points or --rtstruct with --structure; --out-rtstruct with --reference-ct, --rtstruct and
+    a few states (--volume-ml or --phases)."""
+    if (points is None) == (rtstruct is None):
+        raise InputError("give either --points or --rtstruct (with --structure)")
+    if (rtstruct is None) != (structure is None):
+        raise InputError("--rtstruct and --structure go together")
+    if (out_rtstruct is None) != (reference_ct is None):
+        raise InputError("--out-rtstruct and --reference-ct go together")
+    if out_rtstruct is not None and rtstruct is None:
+        raise InputError("--out-rtstruct writes the structure of --rtstruct: give --rtstruct and --structure")
+    if out_rtstruct is not None and not volume_ml and phases is None:
+        raise InputError("--out-rtstruct needs --volume-ml or --phases (one ROI per state)")
+    if phases is not None and volume_ml:
+        raise InputError("--phases applies to --curve, --preset or the plain cycle, not --volume-ml")
+
+
+def _read_points(points: Path, skip_invalid: bool):
+    """The points of a CSV or elastix file, saying which rows were skipped."""
+    skipped: list[int] = []
+    pts, labels = T.read_points(points, skip_invalid=skip_invalid, skipped=skipped)
+    if skipped:
+        shown = ", ".join(map(str, skipped[:10])) + (", …" if len(skipped) > 10 else "")
+        typer.echo(f"{points}: skipped {len(skipped)} row(s) without finite x_mm,y_mm,z_mm, at line(s) {shown}")
+    return pts, labels
+
+
+def _print_structure(name: str, placement, summary: dict) -> None:
+    """One line for a tracked structure: its points, lungs, how many inside, its largest motion."""
+    lungs = ", ".join(sorted(set(placement.lungs.tolist())))
+    typer.echo(f"  {name}: {len(placement.lungs)} contour point(s) in the {lungs} lung(s), "
+               f"{int(placement.inside.sum())} inside; largest excursion from end-exhale "
+               f"{max(summary['max_excursion_mm']):.1f} mm")
 
 
 def _trace(m, curve: Path | None, preset: str | None, cycles: int | None, tidal_ml: float | None):

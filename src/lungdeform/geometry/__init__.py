@@ -4,7 +4,8 @@ Owns: :mod:`~lungdeform.geometry.mesh` (the :class:`Surface` bundle, checks and 
 divergence theorem, subdivision, thinning), :mod:`~lungdeform.geometry.intersect` (self-intersection:
 face pairs that cross), :mod:`~lungdeform.geometry.remesh` (Taubin smoothing,
 decimation, clean-up), :mod:`~lungdeform.geometry.distance` (exact point-to-triangle distance, surface
-distance statistics) and :mod:`~lungdeform.geometry.frame` (the per-side lung frame of Sec. IV-B, the
+distance statistics), :mod:`~lungdeform.geometry.contours` (a surface through planar contours,
+mesh–plane sections) and :mod:`~lungdeform.geometry.frame` (the per-side lung frame of Sec. IV-B, the
 side check).
 
 May import: the package root's core modules (``errors``, ``constants``, ``atomic``) only.

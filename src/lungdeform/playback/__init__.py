@@ -5,6 +5,7 @@ simulated preset, a plain cycle), :mod:`~lungdeform.playback.export` (glTF 2.0 w
 ParaView series), :mod:`~lungdeform.playback.markers` (markers carried in a glb),
 :mod:`~lungdeform.playback.trajectory` (where interior points go as the model breathes),
 :mod:`~lungdeform.playback.dvf` (the motion as a displacement-field image on a reference grid, docs/RADIOTHERAPY.md),
+:mod:`~lungdeform.playback.structures` (RTSTRUCT structures moved per breathing state),
 :mod:`~lungdeform.playback.server` (the three.js viewer on 127.0.0.1), :mod:`~lungdeform.playback.tracefeed` (a recorded trace
 with its measured and predicted volume, as the viewer plays it) and :mod:`~lungdeform.playback.demo`
 (the demo run; its off-screen snapshot is drawn by :mod:`lungdeform.plot`).
