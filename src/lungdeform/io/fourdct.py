@@ -32,7 +32,7 @@ import SimpleITK as sitk
 
 from lungdeform.errors import ReadError
 
-from .image import Image, _quiet_itk, is_dicom_file
+from .image import Image, _quiet_itk, check_dicom_file, is_dicom_file
 
 #: The tags that may tell phases apart, in order of preference after the SeriesDescription percentage.
 PHASE_TAGS = (("0020|9128", "TemporalPositionIndex"), ("0020|0100", "TemporalPositionIdentifier"),
@@ -66,7 +66,9 @@ class Phase:
 
 
 def _slice_info(path: str) -> dict[str, str] | None:
-    """The tags of :data:`_READ_TAGS` of one DICOM file (stripped strings), or None if it is not a DICOM image."""
+    """The tags of :data:`_READ_TAGS` of one DICOM file (stripped strings), or None if it is not a DICOM image;
+    :class:`ReadError` for a damaged one (:func:`~lungdeform.io.image.check_dicom_file`)."""
+    check_dicom_file(path)
     reader = sitk.ImageFileReader()
     reader.SetFileName(path)
     reader.SetImageIO("GDCMImageIO")
