@@ -235,7 +235,7 @@ class SurfaceDistance:
             return np.zeros(0), np.zeros((0, 3)), np.zeros(0, np.int64)
         if not np.all(np.isfinite(pts)):
             raise InputError("points contain NaN or infinity")
-        bound, _ = self._tree.query(pts)
+        bound, _ = self._tree.query(pts, workers=-1)
         return _closest_kernel(pts, bound, self.vertices, self.faces, self._boxes, self._lo, self._h,
                                self._dims, self._ptr, self._items)
 

@@ -83,15 +83,21 @@ def _diff(f, k, j, i, axis, c):
 
 
 @numba.njit(cache=True, inline="always")
+def _grad_row(f, k, j, i, inv, c):
+    """Row ``c`` of ``I + ∇u`` at voxel (k, j, i): ``(∂u_c/∂x_r + δ_cr for r = 0, 1, 2)``."""
+    di, dj, dk = _diff(f, k, j, i, 2, c), _diff(f, k, j, i, 1, c), _diff(f, k, j, i, 0, c)
+    return (di * inv[0, 0] + dj * inv[0, 1] + dk * inv[0, 2] + (c == 0),
+            di * inv[1, 0] + dj * inv[1, 1] + dk * inv[1, 2] + (c == 1),
+            di * inv[2, 0] + dj * inv[2, 1] + dk * inv[2, 2] + (c == 2))
+
+
+@numba.njit(cache=True, inline="always")
 def _det_at(f, k, j, i, inv):
     """``det(I + ∇u)`` at voxel (k, j, i); ``inv[r, a] = ∂index_a / ∂x_r`` (a = i, j, k)."""
-    g = np.empty((3, 3))
-    for c in range(3):
-        di, dj, dk = _diff(f, k, j, i, 2, c), _diff(f, k, j, i, 1, c), _diff(f, k, j, i, 0, c)
-        for r in range(3):
-            g[c, r] = di * inv[r, 0] + dj * inv[r, 1] + dk * inv[r, 2] + (1.0 if c == r else 0.0)
-    return (g[0, 0] * (g[1, 1] * g[2, 2] - g[1, 2] * g[2, 1]) - g[0, 1] * (g[1, 0] * g[2, 2] - g[1, 2] * g[2, 0])
-            + g[0, 2] * (g[1, 0] * g[2, 1] - g[1, 1] * g[2, 0]))
+    a11, a12, a13 = _grad_row(f, k, j, i, inv, 0)
+    a21, a22, a23 = _grad_row(f, k, j, i, inv, 1)
+    a31, a32, a33 = _grad_row(f, k, j, i, inv, 2)
+    return a11 * (a22 * a33 - a23 * a32) - a12 * (a21 * a33 - a23 * a31) + a13 * (a21 * a32 - a22 * a31)
 
 
 @numba.njit(cache=True, parallel=True)
