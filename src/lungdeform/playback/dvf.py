@@ -21,9 +21,12 @@ Inverse field ``w`` (ITK/elastix resampling convention): for each output point `
 point ``y + w(y)`` it comes from, by fixed-point iteration ``w ← −u(y + w)`` (:func:`invert`).
 
 Speed: the interior field is evaluated only on a coarse lattice of the grid's own voxels (every
-``stride`` voxels, about :data:`NODE_SPACING_MM`) inside the lungs' bounding box plus the margin,
-then interpolated trilinearly to every voxel (:func:`upsample`), zero beyond. The lattice error is
-measured by :func:`lattice_error` (reported by ``lungdeform dvf``).
+``stride`` voxels, about :data:`NODE_SPACING_MM`) inside the lungs' bounding box plus the margin, by
+one fused kernel sum per node (:class:`lungdeform.interior.sliding.RadialSum`), then interpolated
+trilinearly to every voxel, plus any rigid part, in one fused pass (:func:`upsample`, zero beyond the
+box); the Jacobian's range is a second fused pass over the box (:func:`jacobian_range`;
+:mod:`lungdeform.playback.voxel`). The lattice error (at most ``Σ_a h_a²/8 · max|∂²u/∂x_a²|`` for node
+steps ``h_a``) is measured by :func:`lattice_error` (reported by ``lungdeform dvf``).
 """
 
 from __future__ import annotations
