@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.signal import butter, sosfiltfilt
 
+from lungdeform.breathing import cycles
 from lungdeform.breathing.cycles import _breaths, cycle_anchors, cycle_flags, dominant_period, noise_level, turning_points
 from lungdeform.breathing.trace import Trace, read_trace, resample
 from lungdeform.errors import InputError
@@ -125,3 +127,16 @@ def test_onset_of_a_rise_too_small_to_place_a_level_in():
     peaks, onsets = _breaths(t, np.sin(2 * np.pi * t / 4.0), fine, 4.0, 0.05)
     assert peaks.tolist() == list(range(10, 400, 40))
     assert np.allclose(onsets, t[peaks[1:]] - 0.1)
+
+
+def test_smoothing_filter_is_designed_once_per_cutoff(rng):
+    # why: the trace readers orient every trace they read (inspiratory_shares), and designing the
+    # Butterworth sections cost more than filtering; a second smooth at the same rate and cutoff must
+    # reuse the cached design and give what a fresh scipy design gives (the same filter, bit for bit).
+    a = rng.normal(0.0, 1.0, 200)
+    cycles._butter_design.cache_clear()
+    first = cycles.smooth(a, 25.0, 0.7)
+    second = cycles.smooth(a, 25.0, 0.7)
+    assert cycles._butter_design.cache_info().misses == 1 and cycles._butter_design.cache_info().hits == 1
+    np.testing.assert_array_equal(first, sosfiltfilt(butter(2, 0.7 / 12.5, output="sos"), a))
+    np.testing.assert_array_equal(second, first)

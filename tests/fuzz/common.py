@@ -331,13 +331,16 @@ class Recorder:
         if name == "image_dicom":
             _dicom_companions(self.work)
         self.path = self.work / f"input{self.suffix}"
+        # one descriptor kept open: an input is written by truncate + pwrite (no open/close per execution)
+        self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
         self.executions, self.start, self.last_flush = 0, time.monotonic(), 0.0
         self.crashes: dict[str, dict] = {}
 
     def run(self, data: bytes) -> str | None:
         """Feed ``data``; return the crash key when the reader broke the rule, else None."""
         self.executions += 1
-        self.path.write_bytes(data)
+        os.ftruncate(self._fd, len(data))
+        os.pwrite(self._fd, data, 0)
         key = None
         try:
             self.reader(self.path)
@@ -352,6 +355,11 @@ class Recorder:
         if self.executions % 256 == 0 and time.monotonic() - self.last_flush > 1.0:
             self.flush()
         return key
+
+    def close(self) -> None:
+        """Close the input file and remove the working folder."""
+        os.close(self._fd)
+        shutil.rmtree(self.work, ignore_errors=True)
 
     def _keep(self, key: str, exc: BaseException, data: bytes) -> None:
         entry = {"key": key, "type": type(exc).__name__, "message": str(exc)[:300], "reproducer": None}
@@ -446,7 +454,7 @@ def mutate_loop(name: str, seeds: list[bytes], runs: int, seconds: float, seed: 
     while rec.executions < runs and time.monotonic() < end:
         rec.run(mutate(rnd.choice(corpus), rnd, corpus))
     rec.flush()
-    shutil.rmtree(rec.work, ignore_errors=True)
+    rec.close()
     return rec
 
 

@@ -43,3 +43,16 @@ def test_each_reader_has_a_harness(reader, tmp_path, monkeypatch):
     monkeypatch.setattr(common, "_RECORDERS", {})
     harness.TestOneInput(common.make_seeds(reader, tmp_path)[0].read_bytes())
     assert common._RECORDERS[reader].executions == 1 and not common._RECORDERS[reader].crashes
+
+
+def test_each_input_replaces_the_last_whole(monkeypatch):
+    # why: the recorder writes every input into one file it keeps open (truncate, then write at 0);
+    # the reader must see exactly that input: a short one after a long one without the long one's tail
+    seen = []
+    monkeypatch.setitem(common.READERS, "curve", (".csv", lambda path: seen.append(Path(path).read_bytes())))
+    rec = common.Recorder("curve", None)
+    for data in (b"t_s,volume_ml\n0,2500\n1,2600\n", b"short", b""):
+        rec.run(data)
+    rec.close()
+    assert seen == [b"t_s,volume_ml\n0,2500\n1,2600\n", b"short", b""]
+    assert not rec.work.exists() and not rec.crashes

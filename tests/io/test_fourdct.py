@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import SimpleITK as sitk
 
 from lungdeform.errors import ReadError
 from lungdeform.io.fourdct import _number, _percent, read_phases
@@ -61,3 +62,25 @@ def test_percent_and_time_parsing():
     assert [_percent(s) for s in ("CT 30%", "Gated 40.0%", "T=50%", "phase 20", "4D CT")] == [30, 40, 50, 20, None]
     assert _number("0008|0032", "101502.5") == 10 * 3600 + 15 * 60 + 2.5
     assert _number("0018|1060", "nan") is None and _number("0020|9128", "") is None
+
+
+def test_damaged_or_unreadable_file_stops_the_reading_early(tmp_path, rng, monkeypatch):
+    # why: the element headers of every file are checked (cheap) before GDCM reads any header, and
+    # the reading stops at the first file GDCM cannot read; the error is the one the file-by-file
+    # reading gave (the first damaged file, else the first unreadable one), only sooner.
+    made = []
+    real = sitk.ImageFileReader
+    monkeypatch.setattr(sitk, "ImageFileReader", lambda: made.append(1) or real())
+    write_4dct(tmp_path / "ct", rng, 2, "index")
+    files = sorted((tmp_path / "ct").rglob("*.dcm"))
+    last = files[-1]
+    last.write_bytes(last.read_bytes()[:-10])  # the pixel data now claims 10 bytes more than are left
+    with pytest.raises(ReadError, match=f"{last.name}: damaged DICOM file: element \\(7FE0,0010\\)"):
+        read_phases(tmp_path / "ct")
+    assert made == []  # GDCM read none of the intact files before the damaged last one
+    last.unlink()
+    bad = files[0].with_name("0000.dcm")  # first in order, and no DICOM at all (no preamble: not checked)
+    bad.write_bytes(b"\0" * 200)
+    with pytest.raises(ReadError, match="0000.dcm is not a readable DICOM image"):
+        read_phases(tmp_path / "ct")
+    assert len(made) == 1  # GDCM read that file's header only

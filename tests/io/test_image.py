@@ -247,3 +247,19 @@ def test_damaged_dicom_element_headers_are_refused(tmp_path):
     victim.write_bytes(data[:at + 6] + b"\xff\x7f" + data[at + 8:])
     with pytest.raises(ReadError, match=r"element \(0002,0002\) at byte \d+ claims 32767 bytes"):
         read_image(tmp_path / "ct" / "11_000.dcm")
+
+
+def test_damaged_dicom_file_without_preamble_is_refused(tmp_path):
+    # found by tests/fuzz/fuzz_image_dicom.py: a slice cut before its preamble (it starts with an
+    # explicit-VR element, which GDCM reads too) whose pixel data claims more bytes than are left took
+    # GDCM 1.5 s and 1 GB; its element headers are now walked from byte 0 and the damage named
+    from lungdeform.io.image import check_dicom_file
+
+    _tiny_series(tmp_path / "ct", "1.2.826.0.1.3680043.2.1125.7.12", 4)
+    victim = tmp_path / "ct" / "12_002.dcm"
+    data = victim.read_bytes()[132:]  # no preamble, no "DICM": the file meta group first
+    victim.write_bytes(data)
+    check_dicom_file(victim)  # intact without its preamble: passes
+    victim.write_bytes(data[:-10])  # the pixel data now claims 10 bytes more than are left
+    with pytest.raises(ReadError, match=r"12_002.dcm: damaged DICOM file: element \(7FE0,0010\) at byte \d+ claims"):
+        read_image(tmp_path / "ct")

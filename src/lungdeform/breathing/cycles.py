@@ -16,6 +16,7 @@ signed it inhalation-positive, with :func:`inspiratory_share` from here).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Protocol
 
 import numpy as np
@@ -74,7 +75,7 @@ def dominant_period(t_s, amplitude) -> float:
     if hi <= lo + 1:
         raise InputError(f"trace of {t[-1] - t[0]:.1f} s is too short to hold one breathing cycle")
     wn = (1.0 / CYCLE_RANGE_S[1]) / (0.5 / dt)
-    x = sosfiltfilt(butter(2, wn, "highpass", output="sos"), a) if n > 12 else a - a.mean()
+    x = sosfiltfilt(_butter_sos(float(wn), "highpass"), a) if n > 12 else a - a.mean()
     x = x - x.mean()
     f = np.fft.rfft(x, 2 * n)
     ac = np.fft.irfft(f * np.conj(f))[:n]
@@ -96,8 +97,18 @@ def smooth(amplitude, fs_hz: float, cutoff_hz: float = 1.0) -> np.ndarray:
     """Zero-phase low-pass (offline only): 2nd-order Butterworth, forward-backward."""
 
     wn = min(cutoff_hz / (0.5 * fs_hz), 0.99)
-    sos = butter(2, wn, output="sos")
-    return sosfiltfilt(sos, np.asarray(amplitude, float))
+    return sosfiltfilt(_butter_sos(float(wn), "lowpass"), np.asarray(amplitude, float))
+
+
+def _butter_sos(wn: float, btype: str) -> np.ndarray:
+    """2nd-order Butterworth second-order sections at normalised cutoff ``wn`` (a copy of the cached
+    design: designing costs more than filtering a trace, and the trace readers orient every trace with it)."""
+    return _butter_design(wn, btype).copy()
+
+
+@lru_cache(maxsize=512)
+def _butter_design(wn: float, btype: str) -> np.ndarray:
+    return butter(2, wn, btype, output="sos")
 
 
 def turning_points(signal, threshold: float) -> tuple[np.ndarray, np.ndarray]:

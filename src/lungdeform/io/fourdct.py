@@ -69,6 +69,11 @@ def _slice_info(path: str) -> dict[str, str] | None:
     """The tags of :data:`_READ_TAGS` of one DICOM file (stripped strings), or None if it is not a DICOM image;
     :class:`ReadError` for a damaged one (:func:`~lungdeform.io.image.check_dicom_file`)."""
     check_dicom_file(path)
+    return _slice_tags(path)
+
+
+def _slice_tags(path: str) -> dict[str, str] | None:
+    """:func:`_slice_info` of a file already checked (GDCM reads its header only)."""
     reader = sitk.ImageFileReader()
     reader.SetFileName(path)
     reader.SetImageIO("GDCMImageIO")
@@ -202,10 +207,15 @@ def read_phases(folder) -> list[Phase]:
     folder = Path(folder)
     if not folder.is_dir():
         raise ReadError(f"{folder}: not a folder (a 4-D CT is one DICOM folder holding all phases)")
-    infos = [(f, _slice_info(f)) for f in _dicom_files(folder)]
-    bad = next((f for f, info in infos if info is None), None)
-    if bad is not None:
-        raise ReadError(f"{folder}: {bad} is not a readable DICOM image")
+    files = _dicom_files(folder)
+    for f in files:  # every file's element headers first (cheap): GDCM reads none of a folder with a damaged one
+        check_dicom_file(f)
+    infos = []
+    for f in files:
+        info = _slice_tags(f)
+        if info is None:
+            raise ReadError(f"{folder}: {f} is not a readable DICOM image")
+        infos.append((f, info))
     if not infos:
         raise ReadError(f"{folder}: no DICOM files in this folder or its subfolders")
     series: dict[str, list] = {}
