@@ -67,6 +67,10 @@ class FitInputs:
         object.__setattr__(self, "landmarks", landmarks)
 
 
+#: The surface parts of the interior field a fit can give its model (:class:`FitConfig`).
+INTERIORS = ("correspondence", "sliding")
+
+
 @dataclass(frozen=True)
 class FitConfig:
     """How :func:`lungdeform.fit.pipeline.run_fit` fits (the module docstring there gives the steps).
@@ -104,6 +108,10 @@ class FitConfig:
     side_check : bool
         Refuse inputs whose shape clearly says the other side
         (:func:`lungdeform.geometry.frame.check_side`).
+    interior : str
+        The surface part of the interior field (:data:`INTERIORS`): ``"correspondence"``, the smooth
+        surface-to-surface map of :mod:`lungdeform.fit.registration`, or ``"sliding"``, the sliding
+        interpolation of the fitted surface displacement (:mod:`lungdeform.interior.sliding`).
     command : str
         What ran the fit, recorded in the model file's provenance.
     """
@@ -120,6 +128,7 @@ class FitConfig:
     direction_degree: int = DEFAULT_DEGREE
     landmark_comparisons: bool = False
     side_check: bool = True
+    interior: str = "correspondence"
     command: str = "fit"
 
     def __post_init__(self):
@@ -141,6 +150,8 @@ class FitConfig:
             raise InputError(f"mode must be one of {', '.join(m for m in MODES if m != 'grid')}, got {self.mode!r}")
         if self.align == "joint" and self.mode not in JOINT_MODES:
             raise InputError(f"align 'joint' needs the least-squares optimiser, not mode {self.mode!r}")
+        if self.interior not in INTERIORS:
+            raise InputError(f"interior must be one of {', '.join(INTERIORS)}, got {self.interior!r}")
         if not isinstance(self.command, str):
             raise InputError(f"command must be a string, got {self.command!r}")
         for name in ("max_evaluations", "folds", "direction_degree"):  # plain Python numbers
