@@ -14,7 +14,7 @@ import typer
 from lungdeform.errors import InputError
 from lungdeform.fit.config import FitConfig, FitInputs
 from lungdeform.fit.motion_prior import load_prior
-from lungdeform.fit.pipeline import run_fit
+from lungdeform.fit.pipeline import check_prior, run_fit
 
 from .common import (
     DIRECTION_DEGREE_HELP,
@@ -71,6 +71,7 @@ def register(apps) -> None:
                                landmark_fit=landmark_fit, folds=folds, align=align, direction_degree=direction_degree,
                                landmark_comparisons=landmark_comparisons, side_check=side_check, interior=interior)
             prior = None if motion_prior is None else load_prior(motion_prior)
+            check_prior(config, prior)
             folder = output_dir(out)
             m = run_fit(fit_inputs, folder, config, progress=say, prior=prior)
         for text in m.get("notes") or []:
