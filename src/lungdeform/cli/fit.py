@@ -49,10 +49,11 @@ def register(apps) -> None:
         align: str = typer.Option("apex", "--align", help="apex: rigid alignment on the apex cap (scans with a table shift); "
                                   "joint: a translation per target fitted with the constants, started from apex; "
                                   "none: inputs already in one frame (e.g. synthetic)."),
-        interior: str = typer.Option("correspondence", "--interior",
+        interior: str = typer.Option("auto", "--interior",
                                      help="Surface part of the interior field: correspondence (a smooth map of the "
-                                          "end-exhale surface onto the largest volume's) or sliding (the sliding "
-                                          "interpolation of the fitted surface's normal motion)."),
+                                          "end-exhale lung onto the largest volume's), sliding (the sliding "
+                                          "interpolation of the fitted surface's normal motion) or auto "
+                                          "(correspondence unless the scans are cropped)."),
         motion_prior: Path | None = typer.Option(None, "--motion-prior",
                                                  help="A population motion prior (JSON, e.g. the motion_prior.json "
                                                       "of validate copd) folded into the correspondence field."),

@@ -38,7 +38,7 @@ from lungdeform.interior.field import landmark_folds
 from lungdeform.io.modelfile import provenance, save_model
 from lungdeform.model.lung import Model
 
-from .config import FitConfig, FitInputs
+from .config import CROP_LIMIT, FitConfig, FitInputs
 from .fitting import DIRECTION_HI, DIRECTION_LO, fit_lung, to_lung_model
 from .heldout import HeldOut, held_out_landmarks
 from .inputs import ReadInputs, read_inputs
@@ -81,15 +81,25 @@ def run_fit(inputs: FitInputs, out: Path, config: FitConfig = FitConfig(), *,
     per_target, predictions, skipped = score_targets(placed, landmarks, fits, held, config, folds, say)
     metrics = fit_metrics(inputs, read, placed, fits, held, config, per_target, skipped,
                           read.warnings + placed.warnings + warnings)
-    metrics["interior"] = {"surface_part": config.interior, "prior": None if prior is None else prior.as_dict()}
+    metrics["interior"] = {"surface_part": "sliding" if surface_field is None else "correspondence",
+                           "asked": config.interior, "prior": None if prior is None else prior.as_dict()}
     metrics["seconds"] = time.perf_counter() - t_start
     write_outputs(Path(out), inputs, config, placed, fits, held, landmarks, metrics, predictions, surface_field)
     return metrics
 
 
+def interior_kind(placed: Placement, config: FitConfig) -> str:
+    """``"correspondence"`` or ``"sliding"``: ``config.interior``, with ``"auto"`` resolved on the
+    crop faces of ``placed`` (:data:`lungdeform.fit.config.CROP_LIMIT`)."""
+    if config.interior != "auto":
+        return config.interior
+    cropped = max([1.0 - float(np.mean(placed.keep))] + [1.0 - float(np.mean(tg.keep)) for tg in placed.targets])
+    return "sliding" if cropped > CROP_LIMIT else "correspondence"
+
+
 def check_prior(config: FitConfig, prior: MotionPrior | None) -> None:
-    """InputError unless ``prior`` is None or goes with ``config`` (a correspondence interior)."""
-    if prior is not None and config.interior != "correspondence":
+    """InputError when ``prior`` cannot go with ``config`` (a sliding interior)."""
+    if prior is not None and config.interior == "sliding":
         raise InputError(f"prior needs the correspondence interior, not {config.interior!r}")
 
 
@@ -97,12 +107,18 @@ def interior_surface(placed: Placement, fit, side: str, config: FitConfig, prior
                      progress: Callable[[str], None] | None = None):
     """The correspondence field (mm per unit) of the model's end-exhale surface onto its
     largest-volume target (:func:`lungdeform.fit.registration.correspondence_field`), with ``prior``
-    folded in; None when ``config.interior`` is ``"sliding"``."""
-    if config.interior == "sliding":
+    folded in; None for the sliding interior (:func:`interior_kind`)."""
+    say = progress or (lambda _m: None)
+    if interior_kind(placed, config) == "sliding":
+        if prior is not None:
+            raise InputError("prior needs the correspondence interior, and these scans are cropped: the interior "
+                             "is the sliding field (interior 'auto')")
+        if config.interior == "auto":
+            say("interior: the sliding field (cropped scans)")
         return None
     scales = [(tg.volume_ml - fit.volume_ee_ml) / fit.unit_ml for tg in placed.targets]
     i = int(np.argmax(np.abs(scales)))
-    (progress or (lambda _m: None))(f"interior: surface correspondence onto {placed.targets[i].name}")
+    say(f"interior: surface correspondence onto {placed.targets[i].name}")
     # whole closed surfaces, crop faces included: the map is between the two solids (their moments
     # include the cropped region too); leaving a crop face out of one side only pulls the other
     # side's points elsewhere (DIR-Lab COPDgene case 1 left: 9.3 mm with, 6.6 mm without)
