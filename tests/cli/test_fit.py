@@ -297,3 +297,35 @@ def test_correspondence_interior_and_motion_prior(tmp_path, capsys):
                  *common]) == 2
     assert "bad.json: not a readable motion prior" in _one_error_line(capsys)
     assert not (tmp_path / "o3").exists() and not (tmp_path / "o4").exists()
+
+
+@pytest.mark.parametrize("mode", ["description", "index"])
+def test_one_4dct_folder_is_fitted_on_all_phases(tmp_path, rng, capsys, mode):
+    # truth: a 4-D CT of 4 phases (tests/fourdct_phantom.py) whose lungs grow by 6 % per axis and phase,
+    # written last phase first: the fit must segment every phase, measure volumes rising ~19-20 % a
+    # phase (1.06^3), and fit the 3 larger phases as targets in volume order
+    from tests.fourdct_phantom import write_4dct
+
+    write_4dct(tmp_path / "ct4d", rng, 4, mode)
+    out = tmp_path / "out"
+    assert main(["fit", str(tmp_path / "ct4d"), "--out", str(out), "--side", "right", "--no-baselines",
+                 "--evaluations", "20", "--direction-degree", "0", "--no-stiffness", "--align", "none"]) == 0
+    text = capsys.readouterr().out
+    assert "4-D CT of 4 phases; right lung by phase:" in text
+    m = json.loads((out / "metrics.json").read_text())
+    assert len(m["inputs"]) == 4 and all(str(tmp_path / "ct4d") in p for p in m["inputs"])
+    ratios = np.diff(np.log(m["volumes_ml"]))
+    assert np.allclose(ratios, 3 * np.log(1.06), atol=0.03)
+    assert len(m["targets"]) == 3
+
+
+def test_4dct_whose_phases_cannot_be_told_apart_exits_2(tmp_path, rng, capsys):
+    # four series, same description, no temporal tags: one line naming the folder, no output written
+    from tests.fourdct_phantom import write_4dct
+
+    write_4dct(tmp_path / "ct4d", rng, 4, "same")
+    out = tmp_path / "out"
+    assert main(["fit", str(tmp_path / "ct4d"), "--out", str(out), "--side", "right"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and str(tmp_path / "ct4d") in err and "cannot be told apart" in err
+    assert not (out / "model.npz").exists()

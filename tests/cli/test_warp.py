@@ -1,9 +1,18 @@
 """``lungdeform warp`` on a small synthetic model and image."""
 
+import tarfile
+
 import numpy as np
+import pydicom
+import pytest
+import SimpleITK as sitk
 
 from lungdeform.cli.main import main
+from lungdeform.geometry.mesh import icosphere
+from lungdeform.io import dicomseries as DS
 from lungdeform.io.image import read_image
+from lungdeform.io.rtstruct import read_ct_series, write_rtstruct
+from tests.conftest import require_path
 from tests.cli.test_dvf import files  # noqa: F401  (the shared module fixture)
 
 
@@ -30,3 +39,127 @@ def test_warp_phases_over_a_curve(files, tmp_path):
                  "--out", str(out)]) == 0
     names = sorted(p.name for p in tmp_path.iterdir() if p.suffix == ".mha")
     assert names == ["ct_phase00.mha", "ct_phase01.mha"]
+
+
+def _curve(path):
+    t = np.linspace(0, 8, 161)
+    path.write_text("t_s,volume_ml\n" + "".join(f"{a:.3f},{250 * (1 - np.cos(np.pi * a / 2)):.3f}\n" for a in t))
+    return path
+
+
+def test_warp_phases_to_dicom_series(files, tmp_path):
+    # a source given as a DICOM series: each phase a series of its own in OUT/phaseNN (NN the
+    # percentage) that SimpleITK reads on the source's grid, the source's study and frame of
+    # reference kept, a new series each, the phase in the description and the temporal tags
+    d, _ = files
+    ref = read_image(d / "ref.nii.gz")
+    head = DS.study_header()
+    DS.write_ct_series(tmp_path / "src", ref.array, ref.spacing, ref.origin, ref.direction, head, description="4D")
+    out = tmp_path / "4dct"
+    args = ["--curve", str(_curve(tmp_path / "c.csv")), "--phases", "2"]
+    assert main(["warp", str(tmp_path / "src"), str(d / "model.npz"), *args, "--out", str(out)]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["phase00", "phase50"]
+    assert main(["warp", str(d / "ref.nii.gz"), str(d / "model.npz"), *args, "--out", str(tmp_path / "ct.mha")]) == 0
+    series = set()
+    for i, name in enumerate(["phase00", "phase50"]):
+        got, mha = read_image(out / name), read_image(tmp_path / f"ct_phase{i:02d}.mha")
+        assert np.allclose(got.origin, ref.origin) and np.allclose(got.spacing, ref.spacing)
+        # the same resampling as the .mha output; HU stored as whole numbers (≤ 0.5 apart)
+        assert np.abs(got.array - mha.array.astype(float)).max() <= 0.5
+        ds = pydicom.dcmread(out / name / "CT0001.dcm")
+        assert ds.StudyInstanceUID == head.StudyInstanceUID and ds.FrameOfReferenceUID == head.FrameOfReferenceUID
+        assert ds.SeriesDescription == f"4D phase {50 * i}%" and ds.TemporalPositionIndex == i + 1
+        assert ds.NumberOfTemporalPositions == 2
+        series.add(ds.SeriesInstanceUID)
+    assert len(series) == 2
+
+
+def test_warp_one_state_to_a_dicom_folder_of_a_nifti_source(files, tmp_path, capsys):
+    # a NIfTI source has no study: a new Study and Frame of Reference UID; the one series fills OUT
+    d, m = files
+    ee = sum(lung.volume_ee_ml for lung in m.lungs.values())
+    out = tmp_path / "ct"
+    assert main(["warp", str(d / "ref.nii.gz"), str(d / "model.npz"), "--volume-ml", str(ee + 300),
+                 "--out", str(out)]) == 0
+    assert f"wrote {out}" in capsys.readouterr().out
+    ds = pydicom.dcmread(out / "CT0001.dcm")
+    assert ds.SeriesDescription == "ref lungdeform warp" and "TemporalPositionIndex" not in ds
+    assert read_image(out).array.shape == read_image(d / "ref.nii.gz").array.shape
+
+
+def test_warp_dicom_refusals_write_nothing(files, tmp_path, capsys):
+    # a label map is not a CT series; a folder holding something else would be replaced: both
+    # exit 2 with one line before any work, and leave the folder as it was
+    d, m = files
+    ee = sum(lung.volume_ee_ml for lung in m.lungs.values())
+    base = ["warp", str(d / "ref.nii.gz"), str(d / "model.npz"), "--volume-ml", str(ee + 300)]
+    assert main([*base, "--label", "--out", str(tmp_path / "lab")]) == 2
+    assert "not written as a DICOM CT series" in capsys.readouterr().err
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "plan.txt").write_text("keep")
+    assert main([*base, "--out", str(tmp_path / "mine")]) == 2
+    assert "plan.txt" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mine"]
+    assert [p.name for p in (tmp_path / "mine").iterdir()] == ["plan.txt"]
+
+
+@pytest.mark.realdata
+def test_popi_ten_phase_dicom_4dct_and_its_rtstruct(data_dir, tmp_path, capsys):
+    # the POPI phase-00 CT → lung masks → a model; the CT (downsampled 4 × 4 × 2 and a 12 mm field
+    # lattice, to keep this near 35 s; a DICOM series keeping POPI's UIDs) warped to 10 phases as DICOM: SimpleITK's
+    # series reader opens each phase; a 12 mm "GTV" sphere in the right lung (-857 HU at
+    # (-90, 80, -50) mm LPS, docs/RADIOTHERAPY.md) tracked to the 10 phases is written as one
+    # RTSTRUCT on phase00 that pydicom reads, every referenced SOP Instance UID a slice of phase00
+    archive = require_path(data_dir, "popi-ct-phase00", "popi_phase00_dicom_141slices.tar.gz")
+    with tarfile.open(archive) as tar:
+        tar.extractall(tmp_path, filter="data")
+    popi = tmp_path / "popi00"
+    assert main(["segment", str(popi), "--out", str(tmp_path / "seg"), "--downsample", "4"]) == 0
+    model = tmp_path / "model.npz"
+    assert main(["build", str(tmp_path / "seg" / "left_lung.nii.gz"), str(tmp_path / "seg" / "right_lung.nii.gz"),
+                 "--target-vertices", "1000", "--out", str(model)]) == 0
+    ct, head = read_image(popi), DS.study_header(popi)
+    DS.write_ct_series(tmp_path / "ct", ct.array[::2, ::4, ::4], ct.spacing * [4, 4, 2], ct.origin, ct.direction,
+                       head, description=head.SeriesDescription)
+    curve = _curve(tmp_path / "c.csv")
+    assert main(["warp", str(tmp_path / "ct"), str(model), "--curve", str(curve), "--phases", "10",
+                 "--node-mm", "12", "--out", str(tmp_path / "4dct")]) == 0
+    for i in range(10):
+        folder = str(tmp_path / "4dct" / DS.phase_folder(i, 10))
+        reader = sitk.ImageSeriesReader()
+        reader.SetFileNames(reader.GetGDCMSeriesFileNames(folder))
+        assert reader.Execute().GetSize() == (128, 128, 71)
+        assert pydicom.dcmread(f"{folder}/CT0001.dcm").StudyInstanceUID == head.StudyInstanceUID
+    sphere = icosphere(3, 12.0, center=(-90.0, 80.0, -50.0))
+    write_rtstruct(tmp_path / "gtv.dcm", read_ct_series(tmp_path / "ct"), [("GTV", sphere.vertices, sphere.faces, "GTV")])
+    assert main(["track", str(model), "--rtstruct", str(tmp_path / "gtv.dcm"), "--structure", "GTV",
+                 "--curve", str(curve), "--phases", "10", "--out", str(tmp_path / "track"),
+                 "--out-rtstruct", str(tmp_path / "gtv_phases.dcm"),
+                 "--reference-ct", str(tmp_path / "4dct" / "phase00")]) == 0
+    ds = pydicom.dcmread(tmp_path / "gtv_phases.dcm")
+    assert [r.ROIName for r in ds.StructureSetROISequence] == [f"GTV@phase{i:02d}" for i in range(10)]
+    refs = {c.ContourImageSequence[0].ReferencedSOPInstanceUID for r in ds.ROIContourSequence
+            for c in r.ContourSequence}
+    slices = {pydicom.dcmread(p, stop_before_pixels=True).SOPInstanceUID
+              for p in (tmp_path / "4dct" / "phase00").iterdir()}
+    assert refs and refs <= slices and ds.FrameOfReferenceUID == head.FrameOfReferenceUID
+
+
+def test_warp_failure_in_a_later_phase_leaves_no_folder(files, tmp_path, monkeypatch, capsys):
+    # phases are written into a hidden folder renamed at the end: a failure while writing phase 2
+    # of 2 (a full disk, here an OSError) leaves neither OUT nor the hidden folder
+    d, _ = files
+    calls = []
+
+    def failing(folder, *args, **kwargs):
+        calls.append(folder)
+        if len(calls) == 2:
+            raise OSError(28, "No space left on device", str(folder))
+        return write(folder, *args, **kwargs)
+
+    write = DS.write_ct_series
+    monkeypatch.setattr(DS, "write_ct_series", failing)
+    assert main(["warp", str(d / "ref.nii.gz"), str(d / "model.npz"), "--curve", str(_curve(tmp_path / "c.csv")),
+                 "--phases", "2", "--out", str(tmp_path / "4dct")]) == 2
+    assert "No space left on device" in capsys.readouterr().err
+    assert len(calls) == 2 and sorted(p.name for p in tmp_path.iterdir()) == ["c.csv"]

@@ -185,3 +185,18 @@ def test_input_digest_tracks_files_and_options(tmp_path, cohort, monkeypatch):
     st = job.inputs[1].stat()
     os.utime(job.inputs[1], ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000_000))
     assert input_digest(job, FAST) != d
+
+
+def test_a_4dct_folder_row_is_one_job_fitted_on_its_phases(tmp_path, rng):
+    # one manifest row naming a 4-D CT folder (tests/fourdct_phantom.py: 4 phases, lungs 6 % larger per
+    # axis and phase) gives a left and a right job; each fits all 4 phases, volumes measured and rising
+    from tests.fourdct_phantom import write_4dct
+
+    write_4dct(tmp_path / "P01" / "ct4d", rng, 4, "description")
+    (tmp_path / "cohort.csv").write_text("subject,side,volume_ml,path\nP01,both,,P01/ct4d\n")
+    jobs = read_manifest(tmp_path / "cohort.csv").jobs
+    assert [j.side for j in jobs] == ["left", "right"]
+    result = fit_job(jobs[1], tmp_path / "out", FitOptions(max_evaluations=20, baselines=False, align="none",
+                                                           direction_degree=0))
+    assert result["status"] == "ok", result["error"]
+    assert len(result["volumes_ml"]) == 4 and np.all(np.diff(result["volumes_ml"]) > 0)

@@ -157,3 +157,17 @@ def test_unusable_file_names_are_problems(tmp_path, column):
         (tmp_path / "m.csv").write_text("subject,side,volume_ml,path,landmarks\n" + rows)
         with pytest.raises(InputError, match=rf"row 2: {column} .*not a usable file name"):
             read_manifest(tmp_path / "m.csv")
+
+
+def test_one_row_naming_a_4dct_folder_is_a_job(tmp_path):
+    # a folder on its own row is a 4-D CT: one job per side, its phases read by the fit; with a volume
+    # (its volumes are measured per phase) it is refused, naming the row; a lone file still is
+    (tmp_path / "P01" / "ct4d").mkdir(parents=True)
+    _files(tmp_path, "P02/a.ply")
+    m = read_manifest(_manifest(tmp_path, "subject,side,volume_ml,path\nP01,both,,P01/ct4d"))
+    assert [(j.subject, j.side, j.inputs) for j in m.jobs] == [
+        ("P01", side, [tmp_path / "P01" / "ct4d"]) for side in ("left", "right")]
+    with pytest.raises(InputError) as e:
+        read_manifest(_manifest(tmp_path, "subject,side,volume_ml,path\nP01,right,2000,P01/ct4d\nP02,left,,P02/a.ply"))
+    assert "row 2" in str(e.value) and "leave volume_ml and landmarks empty" in str(e.value)
+    assert "row 3" in str(e.value) and "1 scan" in str(e.value)

@@ -50,6 +50,19 @@ def _image(path):
     return read_image(path)
 
 
+def _dicom(path):
+    """One slice of a small 4-D CT (:func:`_dicom_series`, the fuzzed bytes) read as its series by
+    :func:`read_image`, then the whole folder by the 4-D CT phase sorter."""
+    from lungdeform.io.fourdct import read_phases
+    from lungdeform.io.image import read_image
+
+    try:
+        read_image(path)
+    except LungdeformError:
+        pass
+    return read_phases(Path(path).parent)
+
+
 def _model(path):
     from lungdeform.io.modelfile import load_model
 
@@ -110,6 +123,7 @@ READERS: dict[str, tuple[str, Callable]] = {
     "mesh_vtk": (".vtk", _mesh), "mesh_vtp": (".vtp", _mesh), "mesh_off": (".off", _mesh),
     "mesh_glb": (".glb", _mesh),
     "image_nii": (".nii.gz", _image), "image_mha": (".mha", _image), "image_nrrd": (".nrrd", _image),
+    "image_dicom": (".dcm", _dicom),
     "model": (".npz", _model), "curve": (".csv", _curve),
     "trace_vxp": (".vxp", _trace), "trace_csv": (".csv", _trace),
     "points_elastix": (".txt", _elastix), "points_track": (".csv", _track_points),
@@ -119,7 +133,8 @@ READERS: dict[str, tuple[str, Callable]] = {
 }
 
 
-READER_MODULES = ("lungdeform.io.meshfile", "lungdeform.io.vtk", "lungdeform.io.image", "lungdeform.io.modelfile",
+READER_MODULES = ("lungdeform.io.meshfile", "lungdeform.io.vtk", "lungdeform.io.image", "lungdeform.io.fourdct",
+                  "lungdeform.io.modelfile",
                   "lungdeform.playback.schedule", "lungdeform.breathing.trace", "lungdeform.io.landmarks",
                   "lungdeform.playback.trajectory", "lungdeform.cohort.manifest", "lungdeform.validate.dirlab_files",
                   "lungdeform.io.rtstruct")
@@ -166,6 +181,42 @@ def _image_seed(folder: Path, suffix: str) -> list[Path]:
     path = folder / f"mask{suffix}"
     sitk.WriteImage(img, str(path), False)  # uncompressed: the header is what is fuzzed
     return [path]
+
+
+#: The fuzzed slice of :func:`_dicom_series`: the last slice of its second phase.
+DICOM_INPUT = "p1_2.dcm"
+
+
+def _dicom_series(folder: Path) -> list[Path]:
+    """A tiny 4-D CT of two phases (series "CT 0%" and "CT 10%", 3 slices of 6 × 5 int16 voxels each,
+    with TemporalPositionIndex too) written by SimpleITK into ``folder``; its files."""
+    import SimpleITK as sitk
+
+    folder.mkdir(parents=True, exist_ok=True)
+    w = sitk.ImageFileWriter()
+    w.KeepOriginalImageUIDOn()
+    files = []
+    for phase in range(2):
+        uid = f"1.2.826.0.1.3680043.2.1125.9.{phase + 1}"
+        for n in range(3):
+            arr = (np.arange(30, dtype=np.int16).reshape(1, 5, 6) * 10 - 1000 + 100 * phase)
+            im = sitk.GetImageFromArray(arr)
+            for tag, value in {"0008|0060": "CT", "0020|000e": uid, "0020|000d": "1.2.826.0.1.3680043.2.1125.9",
+                               "0008|0018": f"{uid}.{n + 1}", "0020|0013": str(n + 1), "0008|103e": f"CT {10 * phase}%",
+                               "0020|9128": str(phase + 1), "0020|0032": f"-10\\-8\\{2.5 * n}",
+                               "0020|0037": "1\\0\\0\\0\\1\\0", "0028|0030": "0.8\\0.8",
+                               "0018|0050": "2.5"}.items():
+                im.SetMetaData(tag, value)
+            files.append(folder / f"p{phase}_{n}.dcm")
+            w.SetFileName(str(files[-1]))
+            w.Execute(im)
+    return files
+
+
+def _dicom_companions(folder: Path) -> None:
+    """The slices of :func:`_dicom_series` beside the fuzzed one (which the input file replaces)."""
+    _dicom_series(folder)
+    (folder / DICOM_INPUT).unlink()
 
 
 def _model_seed(folder: Path) -> list[Path]:
@@ -229,6 +280,8 @@ def make_seeds(name: str, folder: Path) -> list[Path]:
     suffix = READERS[name][0]
     if name.startswith("mesh_"):
         return _mesh_seed(folder, suffix)
+    if name == "image_dicom":  # the valid slice the harness mutates (the rest of its series is fixed)
+        return [p for p in _dicom_series(folder / "series") if p.name == DICOM_INPUT]
     if name.startswith("image_"):
         return _image_seed(folder, suffix)
     if name == "model":
@@ -275,6 +328,8 @@ class Recorder:
         atexit.register(shutil.rmtree, self.work, True)  # libFuzzer's exit skips this: then the OS's tmp cleaning
         if name == "manifest":
             _manifest_files(self.work)
+        if name == "image_dicom":
+            _dicom_companions(self.work)
         self.path = self.work / f"input{self.suffix}"
         self.executions, self.start, self.last_flush = 0, time.monotonic(), 0.0
         self.crashes: dict[str, dict] = {}

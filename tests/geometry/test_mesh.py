@@ -146,7 +146,7 @@ def test_winding_numbers_of_a_sphere(rng):
     d = rng.normal(size=(200, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     r = np.concatenate([rng.uniform(0, 48.5, 100), rng.uniform(51, 200, 100)])
-    w = winding_numbers(d * r[:, None], s.vertices, s.faces, chunk=37)
+    w = winding_numbers(d * r[:, None], s.vertices, s.faces)
     assert w[:100] == pytest.approx(np.ones(100), abs=1e-9)
     assert w[100:] == pytest.approx(np.zeros(100), abs=1e-9)
     assert winding_numbers(np.zeros((1, 3)), s.vertices, s.faces[:, ::-1])[0] == pytest.approx(-1.0)

@@ -220,3 +220,23 @@ def test_correction_matches_the_documented_formula(rng):
     rxq = np.linalg.norm(x[:, None] - q[None], axis=2)
     ref = (-rxp * gamma) @ n + (-rxq) @ beta + xhat(x) @ aff.T
     assert sliding_correction(p, n, q, cval, smoothing=lam)(x) == pytest.approx(ref, abs=1e-8)
+
+
+def test_fused_kernel_sum_equals_the_design_matrix(rng):
+    # reference: the design matrix (3, q, k + 3a + r) @ coefficients, the field's definition; the
+    # kernel sum regroups the same terms per centre, so they agree to rounding. A surface field plus
+    # its correction (InteriorField.radial) shares the surface points: their merged sum is the sum
+    from lungdeform.interior.field import InteriorField
+    from lungdeform.interior.sliding import _design, sliding_correction
+
+    s = _blob()
+    n = s.vertex_normals
+    surface = sliding_field(s.vertices, n, rng.normal(size=(s.n_vertices, 3)), smoothing=30.0)
+    corr = sliding_correction(s.vertices, n, rng.uniform(-20, 20, (6, 3)), rng.normal(size=(6, 3)), smoothing=50.0)
+    x = rng.uniform(-40, 40, size=(300, 3))
+    for f in (surface, corr):
+        ref = (_design(f.points, f.normals, x, f.center, f.scale, f.basis, f.anchors) @ f.coefficients).T
+        assert f(x) == pytest.approx(ref, abs=1e-9)
+    both = InteriorField(surface, corr)
+    assert both.radial.centres.shape[1] == s.n_vertices + 6  # the shared surface points merged
+    assert both.displacement(x) == pytest.approx(surface(x) + corr(x), abs=1e-9)

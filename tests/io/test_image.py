@@ -223,3 +223,27 @@ def test_resample_with_nearest_neighbour_keeps_labels():
     out = resample_image(img, field, label=True)
     assert out.array.dtype == np.uint8 and set(np.unique(out.array)) == {0, 3, 7}
     assert np.array_equal(out.array[:, :, :-1], a[:, :, 1:])
+
+
+def test_damaged_dicom_element_headers_are_refused(tmp_path):
+    # found by tests/fuzz/fuzz_image_dicom.py: a slice whose TransferSyntaxUID's VR reads "UK" (one byte
+    # off "UI") was parsed by GDCM with lengths read from the wrong bytes (2.4 GB allocated, 2 s for a
+    # 910-byte file) and then silently left out of its series. Each damaged header is refused, naming the
+    # file: an unknown VR, and a value length larger than the file (MediaStorageSOPClassUID claiming 32767 bytes)
+    from lungdeform.io.fourdct import read_phases
+    from lungdeform.io.image import check_dicom_file
+
+    _tiny_series(tmp_path / "ct", "1.2.826.0.1.3680043.2.1125.7.11", 4)
+    check_dicom_file(tmp_path / "ct" / "11_000.dcm")  # an intact slice passes
+    victim = tmp_path / "ct" / "11_002.dcm"
+    data = victim.read_bytes()
+    at = data.index(b"\x02\x00\x10\x00UI")  # (0002,0010) TransferSyntaxUID, explicit VR "UI"
+    victim.write_bytes(data[:at + 4] + b"UK" + data[at + 6:])
+    with pytest.raises(ReadError, match=r"11_002.dcm: damaged DICOM file: element \(0002,0010\) .* \(b'UK'\)"):
+        read_image(tmp_path / "ct")
+    with pytest.raises(ReadError, match="11_002.dcm: damaged DICOM file"):
+        read_phases(tmp_path / "ct")
+    at = data.index(b"\x02\x00\x02\x00UI")  # (0002,0002) MediaStorageSOPClassUID: its 2-byte length
+    victim.write_bytes(data[:at + 6] + b"\xff\x7f" + data[at + 8:])
+    with pytest.raises(ReadError, match=r"element \(0002,0002\) at byte \d+ claims 32767 bytes"):
+        read_image(tmp_path / "ct" / "11_000.dcm")

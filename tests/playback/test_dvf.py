@@ -5,6 +5,7 @@ import pytest
 import SimpleITK as sitk
 
 from lungdeform.errors import InputError
+from lungdeform.geometry.distance import SurfaceDistance
 from lungdeform.geometry.mesh import winding_numbers
 from lungdeform.io.image import to_sitk
 from lungdeform.model.lung import Model
@@ -146,3 +147,49 @@ def test_phase_states_span_one_cycle():
     states, period = D.phase_states(trace, 4)
     assert period == pytest.approx(4.0, rel=0.02)
     assert [round(s.delta_ml) for s in states] == pytest.approx([0, 250, 500, 250], abs=6)
+
+
+def test_lattice_field_against_the_dense_exact_field(model, forward, rng):
+    # dense reference: the exact interior field (LungModel.points_at, track's) at every voxel at least a
+    # lattice cell inside a lung. Trilinear interpolation of a smooth field errs by at most
+    # Σ_a h_a²/8 · max|∂²u/∂x_a²| (docs/RADIOTHERAPY.md), the second derivatives estimated by second
+    # differences of the exact field with the lattice's own steps h_a about each voxel
+    scales = D.state_scales(model, 300.0)
+    h = np.array(forward.info["node_spacing_mm"])
+    k, j, i = (a.ravel() for a in np.meshgrid(*[np.arange(0, n, 3) for n in GRID.shape], indexing="ij"))
+    x = GRID.world(np.stack([i, j, k], axis=1))
+    worst, checked = 0.0, 0
+    for name, lung in model.lungs.items():
+        s = lung.surface
+        deep = (winding_numbers(x, s.vertices, s.faces) > 0.5)
+        deep &= SurfaceDistance(s.vertices, s.faces).distance(x) > np.linalg.norm(h)
+        q = x[deep]
+        exact = lung.points_at(q, scale=scales[name]) - q
+        # h_a²/8 · |∂²u/∂x_a²| by second differences along each axis a, per voxel and component
+        terms = [np.abs(lung.points_at(q + e, scale=scales[name]) - 2 * (exact + q)
+                        + lung.points_at(q - e, scale=scales[name])) / 8 for e in np.diag(h)]
+        bound = sum(t.max() for t in terms) + 1e-3  # max|u''| over the deep voxels; 1e-3: float32 rounding
+        got = forward.field[k[np.flatnonzero(deep)], j[np.flatnonzero(deep)], i[np.flatnonzero(deep)]]
+        err = np.abs(got - exact).max()
+        assert err <= bound, (name, err, bound)
+        worst, checked = max(worst, err), checked + len(q)
+    assert checked > 1000 and worst > 0  # the test means something: many voxels, not trivially exact
+
+
+def test_fused_jacobian_equals_numpy_gradient(rng):
+    # reference: det(I + ∇u) from numpy.gradient (central differences, one-sided at the edges) in
+    # physical units on a rotated anisotropic grid, for a random smooth field; the fused pass's
+    # minimum, maximum and folded count are those of the reference over the box
+    c, s = np.cos(0.4), np.sin(0.4)
+    grid = D.Grid((9, 10, 11), np.array([0.9, 1.4, 2.5]), np.zeros(3), np.array([[c, 0, -s], [0, 1.0, 0], [s, 0, c]]))
+    z, y, x = np.meshgrid(*[np.linspace(0, 3, n) for n in grid.shape], indexing="ij")
+    field = np.stack([np.sin(x + y), np.cos(z) * x, np.sin(y * z)], axis=-1).astype(np.float32) * 3.0
+    d = [np.gradient(field.astype(float), axis=ax) for ax in (2, 1, 0)]
+    inv = grid.direction / grid.spacing
+    g = np.eye(3) + np.einsum("azyxc,ra->zyxcr", np.stack(d), inv)
+    ref = np.linalg.det(g)
+    assert D.jacobian_determinant(field, grid.spacing, grid.direction) == pytest.approx(ref, abs=1e-4)
+    box = ((2, 1, 3), (9, 8, 7))
+    sub = ref[3:7, 1:8, 2:9]
+    lo, hi, folded = D.jacobian_range(field, grid, box)
+    assert (lo, hi) == pytest.approx((sub.min(), sub.max()), abs=1e-4) and folded == int((sub <= 0).sum()) > 0

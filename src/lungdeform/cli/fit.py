@@ -31,7 +31,7 @@ from .common import (
 def register(apps) -> None:
     @apps.root.command("fit")
     def fit_command(
-        inputs: list[Path] = typer.Argument(..., help="Surfaces, masks or CTs of one lung, end-exhale first, volumes increasing."),
+        inputs: list[Path] = typer.Argument(..., help="Surfaces, masks or CTs of one lung, end-exhale first, volumes increasing; or one folder holding a 4-D CT (all phases, docs/FITTING.md)."),
         out: Path = typer.Option(..., "--out", help="Output folder: model.npz, metrics.json, report.html."),
         side: str = typer.Option(..., "--side", help="'left' or 'right'."),
         side_check: bool = typer.Option(True, "--side-check/--no-side-check", help=SIDE_CHECK_HELP),

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+from contextlib import nullcontext
 from pathlib import Path
 
 import typer
 
+from lungdeform.atomic import atomic_dir
 from lungdeform.errors import InputError
+from lungdeform.io import dicomseries as DS
 from lungdeform.io.image import read_image, resample_image, write_image, write_suffix
 from lungdeform.io.modelfile import load_model
 from lungdeform.playback import dvf as D
@@ -26,7 +29,7 @@ def register(apps) -> None:
     def warp_command(
         image: Path = typer.Argument(..., help="Image in the model's frame (the end-exhale scan or its mask)."),
         model: Path = typer.Argument(..., help="Model file (.npz) written by fit, build or demo."),
-        out: Path = typer.Option(..., "--out", help="Output image (.mha, .nii.gz, .nii, .nrrd); with --phases: OUT_phase00 …"),
+        out: Path = typer.Option(..., "--out", help="Output image (.mha, .nii.gz, .nii, .nrrd); with --phases: OUT_phase00 …. A folder (a name without suffix): DICOM CT series, with --phases one per phase in OUT/phase00 … OUT/phase90."),
         volume_ml: float | None = typer.Option(None, "--volume-ml", help="Absolute volume of the model's lungs together (mL)."),
         scan: int | None = typer.Option(None, "--scan", help="Input scan K of the fit (0 = rest): its volume, in its own frame."),
         curve: Path | None = typer.Option(None, "--curve", help="Breathing curve CSV (t_s, volume_ml, …); with --phases."),
@@ -36,7 +39,10 @@ def register(apps) -> None:
     ) -> None:
         """Resample IMAGE at a breathing state of MODEL on IMAGE's own grid (docs/RADIOTHERAPY.md)."""
 
-        write_suffix(out)
+        dicom = DS.is_series_output(out)
+        DS.check_series_output(out) if dicom else write_suffix(out)
+        if dicom and label:
+            raise InputError(f"--out {out}: a label image is not written as a DICOM CT series; use .mha, .nii.gz or .nrrd")
         if (curve is None) != (phases is None):
             raise InputError("--curve and --phases go together")
         if curve is not None and (volume_ml is not None or scan is not None):
@@ -47,20 +53,37 @@ def register(apps) -> None:
         if curve is not None:
             states, period = D.phase_states(read_curve(curve, m), phases)
             typer.echo(f"{len(states)} phase(s) over a cycle of {period:.2f} s of {curve}")
-            paths = [phase_path(out, i) for i in range(len(states))]
+            paths = [Path(DS.phase_folder(i, len(states))) if dicom else phase_path(out, i) for i in range(len(states))]
         else:
-            states, paths = [pick_state(m, volume_ml, scan)], [out]
+            states, paths = [pick_state(m, volume_ml, scan)], [Path() if dicom else out]
         img = read_image(image)
+        header = DS.study_header(image) if dicom else None
         note = extrapolation_note(m, [s.delta_ml for s in states])
         if note:
             typer.echo(f"note: {note}")
-        for state, path in zip(states, paths):
-            say(f"resampling at {state.source}")
-            result = D.displacement_field(m, D.Grid.of(img), state.delta_ml, alignment=state.alignment,
-                                          inverse=True, spacing_mm=node_mm)
-            warped = resample_image(img, result.field, label=label)
-            write_image(path, warped.array, img.spacing, img.origin, img.direction)
-            typer.echo(f"{state.source}:")
-            for line in field_lines(result):
-                typer.echo(f"  {line}")
-            typer.echo(f"wrote {path}")
+        with atomic_dir(out) if dicom else nullcontext() as tmp:
+            for i, (state, path) in enumerate(zip(states, paths)):
+                say(f"resampling at {state.source}")
+                result = D.displacement_field(m, D.Grid.of(img), state.delta_ml, alignment=state.alignment,
+                                              inverse=True, spacing_mm=node_mm)
+                warped = resample_image(img, result.field, label=label)
+                if dicom:
+                    temporal = (i, len(states)) if curve is not None else None
+                    _write_series(tmp / path, warped, header, temporal)
+                else:
+                    write_image(path, warped.array, img.spacing, img.origin, img.direction)
+                typer.echo(f"{state.source}:")
+                for line in field_lines(result):
+                    typer.echo(f"  {line}")
+                typer.echo(f"wrote {out / path if dicom else path}")
+
+
+def _write_series(folder: Path, image, header, temporal) -> None:
+    """One DICOM CT series: a phase ``"<source description> phase 30%"`` of a 4-D CT, or one state."""
+    base = header.get("SeriesDescription", "")
+    if temporal is None:
+        description, number = f"{base} lungdeform warp".strip(), 100
+    else:
+        description, number = DS.phase_description(base, *temporal), 100 + temporal[0]
+    DS.write_ct_series(folder, image.array, image.spacing, image.origin, image.direction, header,
+                       description=description, series_number=number, temporal=temporal)

@@ -20,6 +20,9 @@ Format (UTF-8, comma-separated, header row required; column order free)::
 
 Rows are numbered as a spreadsheet shows them: the header is row 1.
 
+A job may also be one row naming a folder that holds a 4-D CT (every phase, :mod:`lungdeform.io.fourdct`;
+``volume_ml`` and ``landmarks`` empty): its phases are the scans, measured and ordered by the fit.
+
 One job is one (subject, side) with two or more scans, end-exhale first: ordered by volume, or,
 when the volumes are empty, in row order (said in :attr:`Manifest.notes`; the fit then refuses the
 job if the measured volumes do not increase).
@@ -350,8 +353,9 @@ def _group(rows: list[_Row], tainted: set[str]) -> tuple[list[Job], list[str], l
             continue
         rows_ = tuple(r.row for r in rs)
         label = f"subject {subject} {side}"
-        if len(rs) < 2:
-            problems.append(Problem(rows_, f"{label}: {len(rs)} scan; a fit needs two or more volumes"))
+        few = _count_problem(label, rs)
+        if few:
+            problems.append(Problem(rows_, few))
             continue
         given = [r for r in rs if r.volume_ml is not None]
         if given and len(given) != len(rs):
@@ -384,6 +388,19 @@ def _group(rows: list[_Row], tainted: set[str]) -> tuple[list[Job], list[str], l
                      "scans are taken in row order, end-exhale first, and a fit refuses a job whose measured "
                      "volumes do not increase")
     return jobs, notes, problems
+
+
+def _count_problem(label: str, rs: list[_Row]) -> str | None:
+    """What is wrong with a job of one row: a file (a fit needs two or more volumes), or a folder (a 4-D
+    CT) with a volume or landmarks (measured per phase); None for two or more rows."""
+    if len(rs) > 1:
+        return None
+    if not rs[0].path.is_dir():
+        return f"{label}: {len(rs)} scan; a fit needs two or more volumes, or one folder holding a 4-D CT"
+    if rs[0].volume_ml is not None or rs[0].landmarks is not None:
+        return (f"{label}: one scan, a folder (a 4-D CT): its volumes are measured per phase; leave volume_ml "
+                "and landmarks empty")
+    return None
 
 
 def _rows(rows) -> str:

@@ -32,7 +32,8 @@ class FitInputs:
     Attributes
     ----------
     paths : tuple of path
-        Surface meshes, masks or CTs (a DICOM folder or archive), volumes increasing.
+        Surface meshes, masks or CTs (a DICOM folder or archive), volumes increasing; or one folder
+        holding a 4-D CT (every phase, :mod:`lungdeform.io.fourdct`), whose phases are the inputs.
     side : str
         ``"left"`` or ``"right"``.
     volumes_ml : tuple of float, or None
@@ -49,9 +50,15 @@ class FitInputs:
 
     def __post_init__(self):
         object.__setattr__(self, "paths", tuple(self.paths))
-        if len(self.paths) < 2:
-            raise InputError(f"paths: a fit needs inputs at two or more volumes (end-exhale first), "
-                             f"got {len(self.paths)}")
+        if not self.paths:
+            raise InputError("paths: a fit needs inputs at two or more volumes (end-exhale first), or one 4-D CT "
+                             "folder, got none")
+        if len(self.paths) == 1 and not Path(self.paths[0]).is_dir():
+            raise InputError(f"paths: a fit needs inputs at two or more volumes (end-exhale first), or one 4-D CT "
+                             f"folder; {self.paths[0]} is not a folder")
+        if len(self.paths) == 1 and (self.volumes_ml is not None or self.landmarks):
+            raise InputError(f"paths: {self.paths[0]} is one 4-D CT: its volumes are measured per phase, and "
+                             "volumes_ml and landmarks cannot be given with it")
         if self.side not in SIDES:
             raise InputError(f"side must be 'left' or 'right', got {self.side!r}")
         if self.volumes_ml is not None:

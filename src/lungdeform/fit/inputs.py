@@ -24,6 +24,7 @@ from lungdeform.geometry.frame import check_side
 from lungdeform.geometry.mesh import Surface, winding_numbers
 from lungdeform.io import mask as M
 from lungdeform.io import meshfile as lio
+from lungdeform.io.fourdct import read_phases
 from lungdeform.io.image import Image, is_image_path, read_image
 from lungdeform.io.landmarks import read_elastix_points
 
@@ -58,7 +59,10 @@ class ReadInputs:
     warnings : list of str
         Suspicious but usable input (landmarks outside their own lung mask).
     notes : list of str
-        What was done to the inputs (masks holding both lungs split, landmarks of the other lung dropped).
+        What was done to the inputs (masks holding both lungs split, landmarks of the other lung dropped;
+        a 4-D CT's phase order and volumes).
+    paths : list of str
+        What each input is, in fit order (its path; a 4-D CT's phases as ``"<folder> [<label>]"``).
     """
 
     surfaces: list[Surface]
@@ -69,6 +73,7 @@ class ReadInputs:
     landmarks: list[np.ndarray] | None
     warnings: list[str]
     notes: list[str] = field(default_factory=list)
+    paths: list[str] = field(default_factory=list)
 
 
 def read_inputs(inputs: FitInputs, side_check: bool = True,
@@ -77,20 +82,24 @@ def read_inputs(inputs: FitInputs, side_check: bool = True,
     whose shape says the other side (:func:`lungdeform.geometry.frame.check_side`)."""
 
     say = progress or (lambda _m: None)
-    read, first_image = [], None  # every image is checked against the first one's spacing as soon as it is read
-    for p in inputs.paths:
-        say(f"reading {p}")
-        read.append(read_input(Path(p), inputs.side, progress=say, spacing_like=first_image))
-        if first_image is None and read[-1][2] is not None:
-            first_image = (p, read[-1][2])
+    if len(inputs.paths) == 1:  # one 4-D CT folder: its phases, in the order of their volumes
+        paths, read, notes4d = read_fourdct(Path(inputs.paths[0]), inputs.side, say)
+    else:
+        paths, read, notes4d = list(inputs.paths), [], []
+        first_image = None  # every image is checked against the first one's spacing as soon as it is read
+        for p in inputs.paths:
+            say(f"reading {p}")
+            read.append(read_input(Path(p), inputs.side, progress=say, spacing_like=first_image))
+            if first_image is None and read[-1][2] is not None:
+                first_image = (p, read[-1][2])
     surfaces, images = [r[0] for r in read], [r[3] for r in read]
-    check_sides(inputs.paths, surfaces, inputs.side if side_check else None)
+    check_sides(paths, surfaces, inputs.side if side_check else None)
     given = None if inputs.volumes_ml is None else list(inputs.volumes_ml)
     volumes = [s.volume_ml for s in surfaces] if given is None else list(given)
-    check_increasing(inputs.paths, volumes)
+    check_increasing(paths, volumes)
     landmarks, warnings = None, []
     splits = [r[4] for r in read]
-    notes = [n for sp in splits if sp is not None for n in sp.notes + (f"{sp.image.source}: took the {inputs.side} "
+    notes = notes4d + [n for sp in splits if sp is not None for n in sp.notes + (f"{sp.image.source}: took the {inputs.side} "
                                                                          "lung of the split",)]
     if inputs.landmarks:
         landmarks = read_landmark_files(inputs.landmarks, images)
@@ -100,7 +109,29 @@ def read_inputs(inputs: FitInputs, side_check: bool = True,
         for p, pts, image, surface in zip(inputs.landmarks, landmarks, images, surfaces):
             check_landmarks(pts, image, p)
             warnings += landmark_mask_warnings(pts, image, surface, p)
-    return ReadInputs(surfaces, [r[1] for r in read], images, volumes, given, landmarks, warnings, notes)
+    return ReadInputs(surfaces, [r[1] for r in read], images, volumes, given, landmarks, warnings, notes,
+                      [str(p) for p in paths])
+
+
+def read_fourdct(folder: Path, side: str, progress) -> tuple[list[str], list[tuple], list[str]]:
+    """The phases of the 4-D CT in ``folder`` (:func:`lungdeform.io.fourdct.read_phases`) as inputs:
+    ``(names, read_input results, notes)``, each phase's ``side`` lung segmented, the phases ordered
+    by their lung's volume (end-exhale, the smallest, first: the model is a function of volume). The
+    notes give the phase order and each phase's volume (mL)."""
+
+    progress(f"reading the 4-D CT {folder}")
+    phases = read_phases(folder)
+    read, first = [], None
+    for ph in phases:
+        progress(f"segmenting phase {ph.label}")
+        read.append(image_input(ph.image, ph.image.source, side, progress=progress, spacing_like=first))
+        first = first or (ph.image.source, read[-1][2])
+    volumes = [r[0].volume_ml for r in read]
+    order = sorted(range(len(phases)), key=lambda i: volumes[i])
+    by_phase = ", ".join(f"{ph.label} {v:.1f} mL" for ph, v in zip(phases, volumes))
+    notes = [f"{folder}: 4-D CT of {len(phases)} phases; {side} lung by phase: {by_phase}",
+             f"{folder}: phases fitted in the order of their volume: {', '.join(phases[i].label for i in order)}"]
+    return [phases[i].image.source for i in order], [read[i] for i in order], notes
 
 
 def read_input(path: Path, side: str, *, progress=None, spacing_like=None):
@@ -123,18 +154,25 @@ def read_input(path: Path, side: str, *, progress=None, spacing_like=None):
         return surface, [], None, None, None
     else:
         image = read_image(path)
+    return image_input(image, path, side, progress=progress, spacing_like=spacing_like)
+
+
+def image_input(image: Image, path: Path, side: str, *, progress=None, spacing_like=None):
+    """What :func:`read_input` returns for an ``image`` read from ``path`` (a CT is segmented, a mask
+    split, both checked against ``spacing_like``)."""
+
     if spacing_like is not None and not np.allclose(image.spacing, spacing_like[1], rtol=1e-3):
         raise InputError(f"{path}: voxel spacing {np.asarray(image.spacing, float).tolist()} mm differs from "
                          f"{spacing_like[0]} ({np.asarray(spacing_like[1], float).tolist()} mm); inconsistent spacing")
     a = np.asarray(image.array)
+    split = None
     if a.size and a.min() < -100:  # a CT in HU: segment the lungs first
-
         seg = segment_lungs(image, progress=progress)
         image = Image(getattr(seg, side).astype(np.uint8), image.spacing, image.origin, image.direction,
                       f"{image.source} ({side} lung)")
     else:  # a lobe map or a binary mask holding both lungs: this side's lung (one lung passes unchanged)
         image, _notes, split = one_lung(image, side)
-    surface = M.extract_surface(image, name=path.name).surface
+    surface = M.extract_surface(image, name=Path(path).name).surface
     return surface, crop_planes(image), np.asarray(image.spacing, float), image, split
 
 

@@ -71,7 +71,7 @@ def run_fit(inputs: FitInputs, out: Path, config: FitConfig = FitConfig(), *,
     # the landmark folds, split (and folds checked) once, before any fitting
     folds = (landmark_folds(len(read.landmarks[0]), config.folds)
              if read.landmarks is not None and config.landmark_fit else None)
-    placed = place_targets(read, inputs.paths, inputs.landmarks, config.align, say)
+    placed = place_targets(read, read.paths, inputs.landmarks, config.align, say)
     fits, placed, warnings = fit_surfaces(placed, read, inputs.side, config, say)
     landmarks = read.landmarks[0] if read.landmarks is not None else None
     surface_field = interior_surface(placed, fits["optimizer"], inputs.side, config, prior, say)
@@ -163,7 +163,7 @@ def fit_metrics(inputs: FitInputs, read: ReadInputs, placed: Placement, fits: di
     top level), the protocols, the fits and the landmark cross-validation."""
 
     fit = fits["optimizer"]
-    metrics = {"inputs": [str(p) for p in inputs.paths], "side": inputs.side, "volumes_ml": placed.volumes_ml,
+    metrics = {"inputs": list(read.paths), "side": inputs.side, "volumes_ml": placed.volumes_ml,
                "volumes_given_ml": read.given_ml, "warnings": warnings, "notes": read.notes,
                "model_mesh_vertices": placed.rest.n_vertices, "alignment": placed.alignments,
                "targets": per_target}
@@ -200,7 +200,7 @@ def write_outputs(out: Path, inputs: FitInputs, config: FitConfig, placed: Place
     if held.interior is not None:
         lung = replace(lung, landmarks=landmarks, landmark_correction=held.interior["correction"],
                        landmark_smoothing=held.interior["smoothing"])
-    model = Model({inputs.side: lung}, provenance(config.command, inputs=[str(p) for p in inputs.paths],
+    model = Model({inputs.side: lung}, provenance(config.command, inputs=metrics["inputs"],
                                                   volumes_ml=placed.volumes_ml, fit=fit.as_dict(),
                                                   alignment=placed.alignments, fit_kind=metrics["headline_fit"],
                                                   interior_correction=held.interior is not None))

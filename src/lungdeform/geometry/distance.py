@@ -7,7 +7,9 @@ a real lung). Here the distance from a point to a triangle surface is exact:
 2. a triangle closer than ``r`` overlaps the cube of half-side ``r`` around the point, so only
    triangles binned (by bounding box, in a uniform grid) in the cells of that cube are candidates;
 3. the exact closest point on each candidate triangle (Ericson, *Real-Time Collision Detection*
-   5.1.5, written afresh here) in a numba kernel; the smallest wins.
+   5.1.5, written afresh here) in a numba kernel, parallel over the points; the smallest wins. Cells
+   and triangles whose bounding box lies farther than the best distance found so far are skipped
+   (they cannot hold a nearer point).
 
 Symmetric surface distance between surfaces A and B: distances of A's sample points to B and of
 B's sample points to A, pooled. Statistics are *area-weighted* (each vertex carries a third of the
@@ -133,29 +135,46 @@ def _grid_fill(vertices, faces, lo, h, dims):
     return ptr, items
 
 
-@numba.njit(cache=True)
-def _closest_kernel(points, bound, vertices, faces, lo, h, dims, ptr, items):
+@numba.njit(cache=True, inline="always")
+def _gap2(p, lo, h, a):
+    """Squared distance along one axis from coordinate ``p`` to grid cell ``a`` (``[lo + a·h, lo + (a+1)·h]``)."""
+    g = max(lo + a * h - p, p - (lo + (a + 1) * h), 0.0)
+    return g * g
+
+
+@numba.njit(cache=True, parallel=True)
+def _closest_kernel(points, bound, vertices, faces, boxes, lo, h, dims, ptr, items):
     n = points.shape[0]
     dist2 = np.empty(n)
     closest = np.zeros((n, 3))
     face = np.full(n, -1, np.int64)
-    for i in range(n):
+    for i in numba.prange(n):
         px, py, pz = points[i, 0], points[i, 1], points[i, 2]
-        p = points[i]
         r = bound[i]
         best = r * r * (1.0 + 1e-12) + 1e-12
-        i0 = min(max(int((p[0] - r - lo[0]) / h), 0), dims[0] - 1)
-        i1 = min(max(int((p[0] + r - lo[0]) / h), 0), dims[0] - 1)
-        j0 = min(max(int((p[1] - r - lo[1]) / h), 0), dims[1] - 1)
-        j1 = min(max(int((p[1] + r - lo[1]) / h), 0), dims[1] - 1)
-        k0 = min(max(int((p[2] - r - lo[2]) / h), 0), dims[2] - 1)
-        k1 = min(max(int((p[2] + r - lo[2]) / h), 0), dims[2] - 1)
+        i0 = min(max(int((px - r - lo[0]) / h), 0), dims[0] - 1)
+        i1 = min(max(int((px + r - lo[0]) / h), 0), dims[0] - 1)
+        j0 = min(max(int((py - r - lo[1]) / h), 0), dims[1] - 1)
+        j1 = min(max(int((py + r - lo[1]) / h), 0), dims[1] - 1)
+        k0 = min(max(int((pz - r - lo[2]) / h), 0), dims[2] - 1)
+        k1 = min(max(int((pz + r - lo[2]) / h), 0), dims[2] - 1)
         for a in range(i0, i1 + 1):
+            ga = _gap2(px, lo[0], h, a)
             for b in range(j0, j1 + 1):
+                gb = ga + _gap2(py, lo[1], h, b)
+                if gb > best:  # the cells no nearer than the best so far hold no nearer triangle
+                    continue
                 for c in range(k0, k1 + 1):
+                    if gb + _gap2(pz, lo[2], h, c) > best:
+                        continue
                     cell = (a * dims[1] + b) * dims[2] + c
                     for m in range(ptr[cell], ptr[cell + 1]):
                         f = items[m]
+                        gx = max(boxes[f, 0] - px, px - boxes[f, 3], 0.0)
+                        gy = max(boxes[f, 1] - py, py - boxes[f, 4], 0.0)
+                        gz = max(boxes[f, 2] - pz, pz - boxes[f, 5], 0.0)
+                        if gx * gx + gy * gy + gz * gz > best:  # its bounding box is farther
+                            continue
                         a_, b_, c_ = faces[f, 0], faces[f, 1], faces[f, 2]
                         qx, qy, qz = _closest_on_triangle(
                             px, py, pz, vertices[a_, 0], vertices[a_, 1], vertices[a_, 2],
@@ -207,6 +226,7 @@ class SurfaceDistance:
         self._h = h
         self._dims = np.maximum(np.ceil(span / h).astype(np.int64), 1)
         self._ptr, self._items = _grid_fill(self.vertices, self.faces, lo, h, self._dims)
+        self._boxes = np.hstack([e.min(axis=1), e.max(axis=1)])  # (m, 6) each face's bounding box
 
     def query(self, points) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(distance (k,) mm, closest (k, 3) mm, face (k,) int)`` for ``points : (k, 3)``."""
@@ -215,8 +235,8 @@ class SurfaceDistance:
             return np.zeros(0), np.zeros((0, 3)), np.zeros(0, np.int64)
         if not np.all(np.isfinite(pts)):
             raise InputError("points contain NaN or infinity")
-        bound, _ = self._tree.query(pts)
-        return _closest_kernel(pts, bound, self.vertices, self.faces, self._lo, self._h,
+        bound, _ = self._tree.query(pts, workers=-1)
+        return _closest_kernel(pts, bound, self.vertices, self.faces, self._boxes, self._lo, self._h,
                                self._dims, self._ptr, self._items)
 
     def distance(self, points) -> np.ndarray:

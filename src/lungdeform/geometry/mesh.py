@@ -17,6 +17,7 @@ from collections import deque
 from dataclasses import dataclass, field
 from functools import cached_property
 
+import numba
 import numpy as np
 from scipy import sparse
 from scipy.sparse.csgraph import connected_components
@@ -105,20 +106,35 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return n / np.where(length > 0, length, 1.0)
 
 
-def winding_numbers(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, chunk: int = 64) -> np.ndarray:
+@numba.njit(cache=True, parallel=True)
+def _winding_kernel(points, vertices, faces):
+    """Σ over faces of the solid angle's half-angle (Van Oosterom–Strackee), per point, over 2π."""
+    out = np.empty(points.shape[0])
+    for p in numba.prange(points.shape[0]):
+        x, y, z = points[p, 0], points[p, 1], points[p, 2]
+        total = 0.0
+        for f in range(faces.shape[0]):
+            u, v, w = faces[f, 0], faces[f, 1], faces[f, 2]
+            ax, ay, az = vertices[u, 0] - x, vertices[u, 1] - y, vertices[u, 2] - z
+            bx, by, bz = vertices[v, 0] - x, vertices[v, 1] - y, vertices[v, 2] - z
+            cx, cy, cz = vertices[w, 0] - x, vertices[w, 1] - y, vertices[w, 2] - z
+            la = np.sqrt(ax * ax + ay * ay + az * az)
+            lb = np.sqrt(bx * bx + by * by + bz * bz)
+            lc = np.sqrt(cx * cx + cy * cy + cz * cz)
+            det = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
+            den = (la * lb * lc + (ax * bx + ay * by + az * bz) * lc + (bx * cx + by * cy + bz * cz) * la
+                   + (cx * ax + cy * ay + cz * az) * lb)
+            total += np.arctan2(det, den)
+        out[p] = total / (2.0 * np.pi)
+    return out
+
+
+def winding_numbers(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Generalised winding number ``(q,) float`` of ``points : (q, 3)`` mm about a closed, outward
     surface: 1 inside, 0 outside (the solid angles of the faces seen from each point, over 4π;
-    Van Oosterom–Strackee). O(q·m); ``chunk`` points at a time bound the memory."""
-    out = np.empty(len(points))
-    for start in range(0, len(points), chunk):
-        q = points[start:start + chunk]
-        a, b, c = (vertices[faces[:, k]][None] - q[:, None] for k in range(3))  # (q, m, 3)
-        la, lb, lc = (np.linalg.norm(x, axis=2) for x in (a, b, c))
-        det = np.einsum("qmi,qmi->qm", a, np.cross(b, c))
-        den = (la * lb * lc + np.einsum("qmi,qmi->qm", a, b) * lc + np.einsum("qmi,qmi->qm", b, c) * la
-               + np.einsum("qmi,qmi->qm", c, a) * lb)
-        out[start:start + chunk] = np.arctan2(det, den).sum(axis=1) / (2.0 * np.pi)
-    return out
+    Van Oosterom–Strackee). O(q·m), a numba kernel parallel over the points (no ``(q, m)`` temporaries)."""
+    q = np.ascontiguousarray(np.asarray(points, float).reshape(-1, 3))
+    return _winding_kernel(q, np.ascontiguousarray(vertices, dtype=float), np.ascontiguousarray(faces, dtype=np.int64))
 
 
 def bounding_box(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

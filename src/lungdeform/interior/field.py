@@ -33,6 +33,7 @@ with the landmark correction.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -41,7 +42,7 @@ from lungdeform.geometry.mesh import as_vertices
 
 from .correspondence import CorrespondenceField
 from .interpolate import DisplacementField, displacement_field, interpolation_weights
-from .sliding import MAX_POINTS, CorrectionSolver, SlidingField, sliding_correction, sliding_field
+from .sliding import MAX_POINTS, CorrectionSolver, RadialSum, SlidingField, sliding_correction, sliding_field
 
 #: Candidate smoothings (mm², thin-plate regularisation) of the thin-plate landmark correction.
 SMOOTHING_MM2 = (0.0, 10.0, 100.0, 1000.0)
@@ -218,9 +219,21 @@ class InteriorField:
         return self.landmark is not None
 
     def displacement(self, points) -> np.ndarray:
-        """``v : (q, 3) float`` mm per unit at ``points : (q, 3)`` mm LPS."""
+        """``v : (q, 3) float`` mm per unit at ``points : (q, 3)`` mm LPS (sliding fields: one fused
+        kernel sum, :attr:`radial`)."""
+        if self.radial is not None:
+            return self.radial(points)
         v = self.surface(points)
         return v if self.landmark is None else np.ascontiguousarray(v + self.landmark(points))
+
+    @cached_property
+    def radial(self) -> RadialSum | None:
+        """Surface field plus correction as one :class:`~lungdeform.interior.sliding.RadialSum` when
+        both are sliding fields (they share the surface points); None for the thin-plate kinds."""
+        parts = [f for f in (self.surface, self.landmark) if f is not None]
+        if not all(isinstance(f, SlidingField) for f in parts):
+            return None
+        return parts[0].radial if len(parts) == 1 else parts[0].radial + parts[1].radial
 
     def positions(self, points, scale: float) -> np.ndarray:
         """``q + s·v(q) : (q, 3) float`` mm LPS."""

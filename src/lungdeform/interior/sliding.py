@@ -41,7 +41,9 @@ The interpolant is linear in the displacement, so :func:`sliding_weights` return
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
+import numba
 import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
@@ -57,6 +59,27 @@ MAX_POINTS = 4000
 #: below this fraction of the whole polynomial block's largest are left out (a sphere's rotations:
 #: 0.004; the ITK right lung's weakest direction: about 0.1).
 POLY_TOLERANCE = 1e-2
+
+
+@numba.njit(cache=True, parallel=True, fastmath=True)
+def _radial_sum(query, centres, weights):
+    """``(q, 3) float``: ``Σ_j −|query_i − c_j| · w_j`` for ``query : (q, 3)`` mm, ``centres : (3, c)``
+    mm and ``weights : (3, c)`` (rows x, y, z: contiguous, so the inner loop vectorises), in float64,
+    one query per parallel iteration (no ``(q, c)`` temporaries)."""
+    out = np.empty((query.shape[0], 3))
+    cx, cy, cz = centres[0], centres[1], centres[2]
+    wx, wy, wz = weights[0], weights[1], weights[2]
+    for i in numba.prange(query.shape[0]):
+        x, y, z = query[i, 0], query[i, 1], query[i, 2]
+        sx = sy = sz = 0.0
+        for j in range(cx.shape[0]):
+            dx, dy, dz = x - cx[j], y - cy[j], z - cz[j]
+            r = np.sqrt(dx * dx + dy * dy + dz * dz)
+            sx -= r * wx[j]
+            sy -= r * wy[j]
+            sz -= r * wz[j]
+        out[i, 0], out[i, 1], out[i, 2] = sx, sy, sz
+    return out
 
 
 def _check(points, normals):
@@ -213,6 +236,42 @@ def sliding_weights(points, normals, query, *, smoothing: float = SMOOTHING_MM, 
 
 
 @dataclass(frozen=True, eq=False)
+class RadialSum:
+    """A field ``v(x) = Σ_j −|x − c_j| w_j + [1, x] @ affine`` (mm): the form of every sliding field.
+
+    Attributes
+    ----------
+    centres : (3, c) float
+        Kernel centres, mm, rows x, y, z.
+    weights : (3, c) float
+        Their vector weights, rows x, y, z.
+    affine : (4, 3) float
+        The polynomial part on ``[1, x, y, z]`` (world mm).
+    """
+
+    centres: np.ndarray
+    weights: np.ndarray
+    affine: np.ndarray
+
+    def __call__(self, query) -> np.ndarray:
+        """``(m, 3) float`` at ``query : (m, 3)`` mm (:func:`_radial_sum`, parallel)."""
+        q = as_vertices(query, "query")
+        if not np.all(np.isfinite(q)):
+            raise InputError("query points contain NaN or infinity")
+        q = np.ascontiguousarray(q, dtype=float)
+        return _radial_sum(q, self.centres, self.weights) + q @ self.affine[1:] + self.affine[0]
+
+    def __add__(self, other: "RadialSum") -> "RadialSum":
+        """The sum of two fields, centres they share merged (a surface field and its landmark
+        correction share every surface point: one kernel sum instead of two)."""
+        c = np.concatenate([self.centres, other.centres], axis=1)
+        unique, inverse = np.unique(c.T, axis=0, return_inverse=True)
+        w = np.zeros((len(unique), 3))
+        np.add.at(w, inverse.ravel(), np.concatenate([self.weights, other.weights], axis=1).T)
+        return RadialSum(unique.T.copy(), w.T.copy(), self.affine + other.affine)
+
+
+@dataclass(frozen=True, eq=False)
 class SlidingField:
     """The sliding interpolant of one surface displacement, as a field ``R³ → R³``.
 
@@ -236,16 +295,25 @@ class SlidingField:
     anchors: np.ndarray | None = None
 
     def __call__(self, query) -> np.ndarray:
-        """Displacement ``(m, 3) float`` mm at ``query : (m, 3)`` mm."""
-        q = as_vertices(query, "query")
-        if not np.all(np.isfinite(q)):
-            raise InputError("query points contain NaN or infinity")
-        out = np.empty((len(q), 3))
-        for start in range(0, len(q), 512):  # bounded memory: 3 × 512 × k floats per chunk
-            part = _design(self.points, self.normals, q[start:start + 512], self.center, self.scale, self.basis,
-                           self.anchors)
-            out[start:start + 512] = (part @ self.coefficients).T
-        return out
+        """Displacement ``(m, 3) float`` mm at ``query : (m, 3)`` mm (:attr:`radial`)."""
+        return self.radial(query)
+
+    @cached_property
+    def radial(self) -> "RadialSum":
+        """This field as a :class:`RadialSum`: the coefficients regrouped per centre (surface points,
+        then anchors), the polynomial part in world coordinates; equal to :func:`_design` ``@
+        coefficients`` up to rounding, without its ``(3, m, k)`` matrix."""
+        k, a = len(self.points), 0 if self.anchors is None else len(self.anchors)
+        coef = np.asarray(self.coefficients, float)
+        weights, centres = [coef[:k, None] * self.normals], [self.points]
+        if a:
+            weights.append(coef[k:k + 3 * a].reshape(3, a).T)
+            centres.append(self.anchors)
+        tail = coef[k + 3 * a:]
+        poly = np.stack([self.basis[4 * c:4 * c + 4] @ tail for c in range(3)], axis=1)  # on [1, x̂]
+        linear = poly[1:] / self.scale  # x̂ = (x − center) / scale
+        affine = np.vstack([poly[:1] - self.center @ linear, linear])
+        return RadialSum(np.concatenate(centres).T.copy(), np.concatenate(weights).T.copy(), affine)
 
     def move(self, query) -> np.ndarray:
         """``query + displacement(query)`` (mm)."""

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 import re
+import struct
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,6 +30,12 @@ IMAGE_SUFFIXES = (".nii", ".nii.gz", ".mha", ".mhd", ".nrrd", ".nhdr")
 MAX_INFLATE = 1032
 #: Suffixes :func:`write_image` writes (single-file formats, so that a write is atomic).
 WRITE_SUFFIXES = (".mha", ".nii.gz", ".nii", ".nrrd")
+#: DICOM value representations whose explicit-VR element header holds a 4-byte length (PS3.5 7.1.2)
+_LONG_VRS = frozenset((b"OB", b"OW", b"OF", b"OD", b"OL", b"OV", b"SQ", b"UC", b"UR", b"UT", b"UN", b"SV", b"UV"))
+#: every value representation of PS3.5 Table 6.2-1
+_VRS = _LONG_VRS | frozenset(v.encode() for v in (
+    "AE AS AT CS DA DS DT FL FD IS LO LT PN SH SL SS ST TM UI UL US").split())
+_IMPLICIT_LE, _BIG_ENDIAN, _DEFLATED = b"1.2.840.10008.1.2", b"1.2.840.10008.1.2.2", b"1.2.840.10008.1.2.1.99"
 
 
 @dataclass(frozen=True, eq=False)
@@ -119,9 +126,62 @@ def _quiet_itk():
         sitk.ProcessObject.SetGlobalWarningDisplay(before)
 
 
-def _series_in(folder: Path) -> list[tuple[str, tuple[str, ...]]]:
-    """``[(series UID, file names)]`` of the DICOM series directly in ``folder``, largest first."""
+def _element_header(h: bytes, explicit: bool) -> tuple[int, int, bytes, int, int]:
+    """``(group, element, VR, value length, header bytes)`` of the little-endian element header ``h``
+    (12 bytes, fewer at the end of a file); VR ``b""`` when implicit or an item/delimiter tag."""
+    group, elem = struct.unpack("<HH", h[:4])
+    if group == 0xFFFE or not (explicit or group == 2):  # items and delimiters; implicit VR
+        return group, elem, b"", struct.unpack("<I", h[4:8])[0], 8
+    vr = h[4:6]
+    if vr in _LONG_VRS:
+        return group, elem, vr, (struct.unpack("<I", h[8:12])[0] if len(h) == 12 else 0xFFFFFFFE), 12
+    return group, elem, vr, struct.unpack("<H", h[6:8])[0], 8
 
+
+def check_dicom_file(path) -> None:
+    """Refuse, before GDCM parses it, a DICOM file (``DICM`` preamble) whose element headers are damaged:
+    an explicit value representation that is none of the standard's (PS3.5 Table 6.2-1), or a value length larger than what is left of the file.
+    GDCM tries to make sense of such a file, taking seconds and allocating up to gigabytes for a length
+    it read from the wrong bytes (found by tests/fuzz/fuzz_image_dicom.py). Walks the element headers only
+    (sequences and items flatly, PS3.5 7.5), up to the pixel data; files without the preamble, big-endian
+    or deflated ones, and sequences of unknown content (UN, undefined length) are left to GDCM."""
+    p = Path(path)
+    size = p.stat().st_size
+    with open(p, "rb") as fh:
+        if fh.read(132)[128:132] != b"DICM":
+            return
+        pos, syntax, explicit = 132, None, True
+        while pos + 8 <= size:
+            fh.seek(pos)
+            h = fh.read(12)
+            group, elem, vr, length, hdr = _element_header(h, explicit)
+            where = f"{p}: damaged DICOM file: element ({group:04X},{elem:04X}) at byte {pos}"
+            if vr and vr not in _VRS:
+                raise ReadError(f"{where} has no valid value representation ({vr!r})")
+            if length == 0xFFFFFFFF:  # undefined length: a sequence or encapsulated pixels, walked into
+                if vr == b"UN" or (group, elem) == (0x7FE0, 0x0010):
+                    return
+                pos += hdr
+                continue
+            if pos + hdr + length > size:
+                raise ReadError(f"{where} claims {length} bytes, {size - pos - hdr} are left")
+            if (group, elem) == (0x0002, 0x0010):
+                fh.seek(pos + hdr)
+                syntax = fh.read(length).rstrip(b"\0 ")
+            if (group, elem) == (0x7FE0, 0x0010) or (group != 2 and syntax in (_BIG_ENDIAN, _DEFLATED)):
+                return
+            explicit = syntax != _IMPLICIT_LE
+            pos += hdr if vr == b"SQ" or group == 0xFFFE else hdr + length  # into sequences and items
+
+
+def _series_in(folder: Path) -> list[tuple[str, tuple[str, ...]]]:
+    """``[(series UID, file names)]`` of the DICOM series directly in ``folder``, largest first
+    (every DICOM file of the folder checked first, :func:`check_dicom_file`)."""
+
+    with os.scandir(folder) as entries:
+        for entry in sorted(entries, key=lambda e: e.name):
+            if entry.is_file() and is_dicom_file(entry.path):
+                check_dicom_file(entry.path)
     reader = sitk.ImageSeriesReader
     with _quiet_itk():
         ids = reader.GetGDCMSeriesIDs(str(folder))

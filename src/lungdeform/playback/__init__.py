@@ -4,7 +4,8 @@ Owns: :mod:`~lungdeform.playback.schedule` (the volume over time an export plays
 simulated preset, a plain cycle), :mod:`~lungdeform.playback.export` (glTF 2.0 with morph targets,
 ParaView series), :mod:`~lungdeform.playback.markers` (markers carried in a glb),
 :mod:`~lungdeform.playback.trajectory` (where interior points go as the model breathes),
-:mod:`~lungdeform.playback.dvf` (the motion as a displacement-field image on a reference grid, docs/RADIOTHERAPY.md),
+:mod:`~lungdeform.playback.dvf` (the motion as a displacement-field image on a reference grid, docs/RADIOTHERAPY.md;
+its per-voxel numba passes in :mod:`~lungdeform.playback.voxel`),
 :mod:`~lungdeform.playback.structures` (RTSTRUCT structures moved per breathing state),
 :mod:`~lungdeform.playback.server` (the three.js viewer on 127.0.0.1), :mod:`~lungdeform.playback.tracefeed` (a recorded trace
 with its measured and predicted volume, as the viewer plays it) and :mod:`~lungdeform.playback.demo`

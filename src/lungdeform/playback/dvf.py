@@ -21,9 +21,12 @@ Inverse field ``w`` (ITK/elastix resampling convention): for each output point `
 point ``y + w(y)`` it comes from, by fixed-point iteration ``w ← −u(y + w)`` (:func:`invert`).
 
 Speed: the interior field is evaluated only on a coarse lattice of the grid's own voxels (every
-``stride`` voxels, about :data:`NODE_SPACING_MM`) inside the lungs' bounding box plus the margin,
-then interpolated trilinearly to every voxel (:func:`upsample`), zero beyond. The lattice error is
-measured by :func:`lattice_error` (reported by ``lungdeform dvf``).
+``stride`` voxels, about :data:`NODE_SPACING_MM`) inside the lungs' bounding box plus the margin, by
+one fused kernel sum per node (:class:`lungdeform.interior.sliding.RadialSum`), then interpolated
+trilinearly to every voxel, plus any rigid part, in one fused pass (:func:`upsample`, zero beyond the
+box); the Jacobian's range is a second fused pass over the box (:func:`jacobian_range`;
+:mod:`lungdeform.playback.voxel`). The lattice error (at most ``Σ_a h_a²/8 · max|∂²u/∂x_a²|`` for node
+steps ``h_a``) is measured by :func:`lattice_error` (reported by ``lungdeform dvf``).
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ from lungdeform.errors import FoldError, InputError, LungdeformError
 from lungdeform.geometry.distance import SurfaceDistance
 from lungdeform.geometry.mesh import winding_numbers
 
+from . import voxel as V
 from .trajectory import lung_scales
 
 #: Lattice spacing (mm) at which the interior field is evaluated before trilinear interpolation.
@@ -231,32 +235,29 @@ def lattice_field(model, grid: Grid, scales: dict, *, spacing_mm: float = NODE_S
     return lat, u, info
 
 
-def _interp_axis(c: np.ndarray, axis: int, first: int, n_out: int, stride: int) -> np.ndarray:
-    """Linear interpolation of ``c`` along ``axis`` from nodes ``stride`` voxels apart to ``n_out``
-    voxels, the first ``first`` voxels past node 0."""
-    n = c.shape[axis]
-    if n == 1:
-        return np.repeat(c, n_out, axis=axis)
-    t = (first + np.arange(n_out)) / stride
-    m0 = np.minimum(np.floor(t).astype(int), n - 2)
-    shape = [1] * c.ndim
-    shape[axis] = n_out
-    f = (t - m0).astype(c.dtype).reshape(shape)
-    return np.take(c, m0, axis=axis) * (1 - f) + np.take(c, m0 + 1, axis=axis) * f
+def _affine_steps(grid: Grid, matrix) -> tuple[np.ndarray, np.ndarray]:
+    """The displacement ``x → M x − x`` of a 4×4 ``matrix`` (mm, LPS) on ``grid`` as ``const + steps @
+    (i, j, k)``: ``(const (3,) mm, steps (3, 3) mm per voxel)``; zero for None."""
+    if matrix is None:
+        return np.zeros(3), np.zeros((3, 3))
+    m = np.asarray(matrix, float)
+    b = m[:3, :3] - np.eye(3)
+    return b @ grid.origin + m[:3, 3], (b @ grid.direction) * grid.spacing
 
 
-def upsample(lat: Lattice, values: np.ndarray, grid: Grid) -> np.ndarray:
+def upsample(lat: Lattice, values: np.ndarray, grid: Grid, matrix=None) -> np.ndarray:
     """``(z, y, x, 3) float32`` on the whole ``grid``: lattice ``values : (nz, ny, nx, 3)`` interpolated
-    trilinearly (separably, x then y then z) over the lattice's box, zero beyond."""
+    trilinearly over the lattice's box, zero beyond, plus (``matrix``, 4×4 mm LPS) the displacement
+    ``x → M x − x`` at every voxel; one fused pass (:func:`lungdeform.playback.voxel.fill_field`)."""
     (i0, j0, k0), (i1, j1, k1) = lat.box
-    c = np.asarray(values, np.float32)
-    off = np.array([i0, j0, k0]) - lat.lo
-    c = _interp_axis(c, 2, int(off[0]), i1 - i0, int(lat.stride[0]))
-    c = _interp_axis(c, 1, int(off[1]), j1 - j0, int(lat.stride[1]))
-    c = _interp_axis(c, 0, int(off[2]), k1 - k0, int(lat.stride[2]))
+    c = np.ascontiguousarray(values, np.float32)
+    axes = [V.axis_weights(grid.shape[2 - a], int(lat.lo[a]), int(lat.stride[a]), int(lat.dims[a]),
+                           lat.box[0][a], lat.box[1][a]) for a in (2, 1, 0)]  # k, j, i
+    const, steps = _affine_steps(grid, matrix)
     out = np.zeros(tuple(grid.shape) + (3,), np.float32)
-    out[k0:k1, j0:j1, i0:i1] = c
-    return out
+    nz, ny, nx = grid.shape
+    ranges = np.array([k0, k1, j0, j1, i0, i1] if matrix is None else [0, nz, 0, ny, 0, nx], np.int64)
+    return V.fill_field(out, c, *axes[0], *axes[1], *axes[2], const, steps, False, ranges)
 
 
 def sample(lat: Lattice, values: np.ndarray, grid: Grid, points) -> np.ndarray:
@@ -282,47 +283,39 @@ def invert(lat: Lattice, u: np.ndarray, grid: Grid, iterations: int = INVERSE_IT
 
 def add_affine(field: np.ndarray, grid: Grid, matrix) -> np.ndarray:
     """Add, in place, the displacement ``x → M x − x`` of a 4×4 ``matrix`` (mm, LPS) at every voxel of
-    ``field : (z, y, x, 3) float32`` on ``grid``; a z-slice at a time. Returns ``field``."""
-    m = np.asarray(matrix, float)
-    b = m[:3, :3] - np.eye(3)
-    const = b @ grid.origin + m[:3, 3]
-    steps = (b @ grid.direction) * grid.spacing  # column a: change per voxel along index axis a
+    ``field : (z, y, x, 3) float32`` on ``grid`` (the pass of :func:`upsample`, no lattice). Returns ``field``."""
     nz, ny, nx = grid.shape
-    plane = (const + np.arange(nx)[None, :, None] * steps[:, 0] + np.arange(ny)[:, None, None] * steps[:, 1])
-    for k in range(nz):
-        field[k] += (plane + k * steps[:, 2]).astype(np.float32)
-    return field
+    none = [(np.full(n, -1, np.int64), np.zeros(n, np.float32)) for n in (nz, ny, nx)]
+    const, steps = _affine_steps(grid, matrix)
+    return V.fill_field(field, np.zeros((1, 1, 1, 3), np.float32), *none[0], *none[1], *none[2], const, steps,
+                        True, np.array([0, nz, 0, ny, 0, nx], np.int64))
+
+
+def _inverse_axes(spacing, direction) -> np.ndarray:
+    """``(3, 3)``: ``[r, a] = ∂index_a / ∂x_r = D[r, a] / s_a`` (a = i, j, k)."""
+    return np.ascontiguousarray(np.asarray(direction, float).reshape(3, 3) / np.asarray(spacing, float))
 
 
 def jacobian_determinant(field: np.ndarray, spacing, direction) -> np.ndarray:
     """``(z, y, x) float32``: ``det(I + ∇u)`` of ``x → x + u(x)`` for ``field : (z, y, x, 3)`` mm,
     central differences in physical units (one-sided at the array's edges; each axis needs ≥ 2 voxels)."""
-    f = np.asarray(field, np.float32)
-    # d[a][..., c] = ∂u_c / ∂(index a) for a = i, j, k (array axes 2, 1, 0)
-    d = [np.gradient(f, axis=ax) for ax in (2, 1, 0)]
-    inv = (np.asarray(direction, float) / np.asarray(spacing, float)).astype(np.float32)  # ∂index_a/∂x = D[:, a] / s_a
-    g = [[sum(d[a][..., c] * inv[r, a] for a in range(3)) for r in range(3)] for c in range(3)]  # g[c][r] = ∂u_c/∂x_r
-    a11, a12, a13 = 1 + g[0][0], g[0][1], g[0][2]
-    a21, a22, a23 = g[1][0], 1 + g[1][1], g[1][2]
-    a31, a32, a33 = g[2][0], g[2][1], 1 + g[2][2]
-    return a11 * (a22 * a33 - a23 * a32) - a12 * (a21 * a33 - a23 * a31) + a13 * (a21 * a32 - a22 * a31)
+    f = np.ascontiguousarray(field, np.float32)
+    nz, ny, nx = f.shape[:3]
+    out = np.empty((nz, ny, nx), np.float32)
+    V.jacobian_pass(f, _inverse_axes(spacing, direction), np.array([0, nz, 0, ny, 0, nx], np.int64), out)
+    return out
 
 
-def jacobian_range(field: np.ndarray, grid: Grid, box=None, slab: int = 16) -> tuple[float, float, int]:
+def jacobian_range(field: np.ndarray, grid: Grid, box=None) -> tuple[float, float, int]:
     """``(min, max, folded voxels)`` of :func:`jacobian_determinant` over ``field`` on ``grid`` (only the
-    voxel ``box`` ``((i0, j0, k0), (i1, j1, k1))`` when given: a rigid field elsewhere), ``slab`` z-slices
-    at a time."""
+    voxel ``box`` ``((i0, j0, k0), (i1, j1, k1))`` when given: a rigid field elsewhere), in one fused
+    pass without the determinant image."""
     (i0, j0, k0), (i1, j1, k1) = box if box is not None else ((0, 0, 0), tuple(grid.shape[::-1]))
-    nz = grid.shape[0]
-    lo, hi, folded = np.inf, -np.inf, 0
-    for z0 in range(k0, k1, slab):
-        z1 = min(z0 + slab, k1)
-        a, b = max(z0 - 1, 0), min(z1 + 1, nz)
-        det = jacobian_determinant(field[a:b, max(j0 - 1, 0):j1 + 1, max(i0 - 1, 0):i1 + 1], grid.spacing,
-                                   grid.direction)[z0 - a:z0 - a + (z1 - z0)]
-        lo, hi = min(lo, float(det.min())), max(hi, float(det.max()))
-        folded += int((det <= 0).sum())
-    return lo, hi, folded
+    rows = V.jacobian_pass(np.ascontiguousarray(field, np.float32), _inverse_axes(grid.spacing, grid.direction),
+                           np.array([k0, k1, j0, j1, i0, i1], np.int64), np.empty((0, 0, 0), np.float32))
+    if not len(rows):
+        return 1.0, 1.0, 0
+    return float(rows[:, 0].min()), float(rows[:, 1].max()), int(rows[:, 2].sum())
 
 
 def lattice_error(model, lat: Lattice, u: np.ndarray, grid: Grid, scales: dict, rng_seed: int = 0,
@@ -425,15 +418,11 @@ def displacement_field(model, grid: Grid, delta_ml: float, *, alignment=None, in
         nodes = grid.world(lat.ijk())
         rigid = np.eye(4) if a is None else a
         part = sample(lat, w, grid, nodes @ rigid[:3, :3].T + rigid[:3, 3]).reshape(u.shape)
-        field = upsample(lat, part, grid)
-        if a is not None:
-            add_affine(field, grid, a)
+        field = upsample(lat, part, grid, a)
     else:
         rot = np.eye(3) if a is None else np.linalg.inv(a)[:3, :3]
-        field = upsample(lat, u @ rot.T, grid)
+        field = upsample(lat, u @ rot.T, grid, None if a is None else np.linalg.inv(a))
         refine(field, model, grid, lat, u, scales, rot)
-        if a is not None:
-            add_affine(field, grid, np.linalg.inv(a))
     lo, hi, folded = jacobian_range(field, grid, lat.box)
     if folded:
         raise FoldError(f"the displacement field folds at {folded} voxel(s) (Jacobian determinant down to "

@@ -1,0 +1,184 @@
+"""Writing a 3-D CT image as a DICOM series (CT Image Storage, one file per slice), with pydicom.
+
+Behind ``lungdeform warp … --out FOLDER`` (docs/RADIOTHERAPY.md, "From a 4-D CT to tumour motion
+and DVFs"): each breathing phase of a synthetic 4-D CT becomes its own series in ``FOLDER/phaseNN``
+(NN the phase's percentage of the cycle: ``phase00`` … ``phase90`` for 10 phases).
+
+Conventions, so that 4-D CT readers sort the phases: every phase keeps the Study Instance UID and
+Frame of Reference UID of the source CT (new ones, shared by all phases, when the source is not
+DICOM), has a new Series Instance UID, a SeriesDescription ending ``phase 30%``, and the temporal
+position as TemporalPositionIndex (0020,9128) and TemporalPositionIdentifier (0020,0100), both
+1-based, with NumberOfTemporalPositions (0020,0105).
+
+Frames and units: the arrays of :class:`lungdeform.io.image.Image`: ``array`` ``(z, y, x)`` in HU,
+``spacing`` (x, y, z) mm, ``origin`` mm LPS of voxel (0, 0, 0), ``direction`` (3, 3) whose
+columns are the index axes in LPS; DICOM patient coordinates are LPS too, so
+ImagePositionPatient of slice ``k`` is ``origin + k * spacing_z * direction[:, 2]`` as it stands.
+Voxels are stored as int16 with RescaleSlope/RescaleIntercept (:func:`rescale`).
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import re
+from pathlib import Path
+
+import numpy as np
+import pydicom
+from pydicom.dataset import Dataset, FileDataset, FileMetaDataset
+from pydicom.errors import InvalidDicomError
+from pydicom.uid import ExplicitVRLittleEndian, PYDICOM_IMPLEMENTATION_UID, generate_uid
+
+from lungdeform.errors import InputError, ReadError
+
+from .image import dicom_series_files, is_dicom_file
+
+#: CT Image Storage
+CT_SOP_CLASS = "1.2.840.10008.5.1.4.1.1.2"
+#: Patient, study and frame-of-reference attributes a derived series keeps from its source
+STUDY_KEYS = ("PatientName", "PatientID", "PatientBirthDate", "PatientSex", "PatientPosition", "StudyInstanceUID",
+              "StudyDate", "StudyTime", "StudyID", "AccessionNumber", "ReferringPhysicianName", "StudyDescription",
+              "FrameOfReferenceUID")
+#: Most phases written as DICOM folders: the folder names are whole percentages of the cycle
+MAX_PHASES = 100
+
+
+def study_header(source=None) -> Dataset:
+    """The patient, study and frame-of-reference attributes (:data:`STUDY_KEYS`) and the
+    SeriesDescription of the DICOM series ``source`` names (a folder or one of its files), or
+    new Study and Frame of Reference UIDs when ``source`` is None or not DICOM. Call it once for
+    all the phases of a 4-D CT, so that they share one study and one frame of reference."""
+    head = Dataset()
+    p = None if source is None else Path(source)
+    if p is not None and (p.is_dir() or is_dicom_file(p)):
+        first = dicom_series_files(p)[0]
+        try:
+            src = pydicom.dcmread(first, stop_before_pixels=True)
+        except (InvalidDicomError, OSError, EOFError, ValueError) as exc:
+            raise ReadError(f"{first}: not a readable DICOM slice ({exc})") from exc
+        for key in STUDY_KEYS + ("SeriesDescription",):
+            if key in src:
+                setattr(head, key, src.get(key))
+    head.StudyInstanceUID = head.get("StudyInstanceUID") or generate_uid()
+    head.FrameOfReferenceUID = head.get("FrameOfReferenceUID") or generate_uid()
+    if not head.get("SeriesDescription"):
+        head.SeriesDescription = "" if p is None else re.sub(r"(\.nii)?\.[^.]+$", "", p.name)
+    return head
+
+
+def is_series_output(path) -> bool:
+    """Whether ``--out path`` names a DICOM series folder: an existing folder, or a name without
+    a suffix (``4dct``, ``out/ct``); a name with a suffix is an image file (``ct.mha``)."""
+    p = Path(path)
+    return p.is_dir() or (p.suffix == "" and not p.exists())
+
+
+def check_series_output(path) -> None:
+    """Refuse, before any work, a series folder that exists and holds anything but an earlier
+    series or 4-D CT written here (``phaseNN`` folders, ``CTnnnn.dcm`` files): it is replaced whole."""
+    p = Path(path)
+    if p.is_dir():
+        other = [c.name for c in p.iterdir() if not re.fullmatch(r"phase\d\d|CT\d{4}\.dcm", c.name)]
+        if other:
+            raise InputError(f"--out {p}: folder exists and holds {other[0]!r}, not a DICOM series written by "
+                             "lungdeform: it would be replaced; give a new folder")
+
+
+def phase_folder(index: int, count: int) -> str:
+    """``phaseNN``, NN the whole percentage of phase ``index`` (0-based) of ``count``: ``phase30``."""
+    if not 1 <= count <= MAX_PHASES:
+        raise InputError(f"--phases: at most {MAX_PHASES} phases as DICOM series folders, got {count}")
+    return f"phase{round(100 * index / count):02d}"
+
+
+def phase_description(base: str, index: int, count: int) -> str:
+    """``"<base> phase 30%"`` (the percentage a 4-D CT reader sorts by), at most 64 characters."""
+    tag = f"phase {100 * index / count:.4g}%"
+    return f"{str(base)[:63 - len(tag)]} {tag}".strip()
+
+
+def rescale(array) -> tuple[np.ndarray, float, float]:
+    """``(stored int16, slope, intercept)`` with ``array ≈ stored * slope + intercept``.
+
+    Values within the int16 range are rounded to whole units (slope 1, intercept 0: HU as CT
+    scanners store them, error ≤ 0.5); a wider range is spread over the 65 536 int16 steps (error ≤
+    slope / 2). Non-finite values are refused."""
+    a = np.asarray(array, dtype=np.float64)
+    if not np.isfinite(a).all():
+        raise InputError("image to write as DICOM holds non-finite values")
+    lo, hi = (float(a.min()), float(a.max())) if a.size else (0.0, 0.0)
+    if lo >= -32768 and hi <= 32767:
+        return np.rint(a).astype(np.int16), 1.0, 0.0
+    slope = (hi - lo) / 65535.0
+    intercept = lo + 32768.0 * slope
+    stored = np.clip(np.rint((a - intercept) / slope), -32768, 32767).astype(np.int16)
+    return stored, slope, intercept
+
+
+def write_ct_series(folder, array, spacing, origin, direction, header: Dataset, *, description: str,
+                    series_number: int = 1, temporal: tuple[int, int] | None = None) -> list[str]:
+    """Write ``array : (z, y, x)`` HU on the grid ``spacing`` (x, y, z) mm, ``origin`` mm LPS,
+    ``direction`` (3, 3) as a new CT series in ``folder`` (created; it must not hold files yet), one
+    file ``CT0001.dcm`` … per slice. ``header`` (:func:`study_header`) gives the patient, study and
+    frame of reference; ``temporal`` = ``(index, count)`` (0-based index) sets the temporal tags.
+    Not atomic by itself: write into :func:`lungdeform.atomic.atomic_dir`. Returns the SOP Instance
+    UIDs in slice order."""
+    a = np.asarray(array)
+    if a.ndim != 3 or 0 in a.shape:
+        raise InputError(f"{folder}: a DICOM series needs a non-empty 3-D (z, y, x) array, got shape {a.shape}")
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    if any(folder.iterdir()):
+        raise InputError(f"{folder}: not empty; a DICOM series is written into a new folder")
+    stored, slope, intercept = rescale(a)
+    series = _series_dataset(a.shape, spacing, direction, header, description, series_number, temporal)
+    series.RescaleSlope, series.RescaleIntercept = f"{slope:.10g}", f"{intercept:.10g}"
+    d = np.asarray(direction, float).reshape(3, 3)
+    uids = []
+    for k in range(a.shape[0]):
+        position = np.asarray(origin, float) + k * float(spacing[2]) * d[:, 2]
+        series.SliceLocation = f"{float(position @ d[:, 2]):.6f}"  # along the slice normal
+        uids.append(_write_slice(folder / f"CT{k + 1:04d}.dcm", series, stored[k], k, position))
+    return uids
+
+
+def _series_dataset(shape, spacing, direction, header: Dataset, description: str, series_number: int,
+                    temporal) -> Dataset:
+    """The attributes every slice of the series shares: study (``header``), series, geometry, pixels."""
+    ds = Dataset()
+    for key in STUDY_KEYS:
+        if key in header:
+            setattr(ds, key, header.get(key))
+    now = _dt.datetime.now()
+    ds.SOPClassUID, ds.Modality, ds.SeriesInstanceUID = CT_SOP_CLASS, "CT", generate_uid()
+    ds.SeriesNumber, ds.SeriesDescription = int(series_number), description[:64]
+    ds.SeriesDate, ds.SeriesTime, ds.ContentDate = now.strftime("%Y%m%d"), now.strftime("%H%M%S"), now.strftime("%Y%m%d")
+    ds.ImageType, ds.Manufacturer = ["DERIVED", "SECONDARY"], "lungdeform"
+    ds.DerivationDescription = "resampled through a lungdeform breathing-model displacement field"
+    d = np.asarray(direction, float).reshape(3, 3)
+    ds.ImageOrientationPatient = [f"{x:.6f}" for x in np.concatenate([d[:, 0], d[:, 1]])]
+    ds.PixelSpacing = [f"{float(spacing[1]):.6g}", f"{float(spacing[0]):.6g}"]  # row (y), column (x)
+    ds.SliceThickness = ds.SpacingBetweenSlices = f"{float(spacing[2]):.6g}"
+    ds.Rows, ds.Columns = int(shape[1]), int(shape[2])
+    ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, "MONOCHROME2"
+    ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 16, 15, 1
+    ds.RescaleType = "HU"
+    if temporal is not None:
+        index, count = temporal
+        ds.TemporalPositionIndex = ds.TemporalPositionIdentifier = int(index) + 1
+        ds.NumberOfTemporalPositions = int(count)
+    return ds
+
+
+def _write_slice(path: Path, series: Dataset, pixels: np.ndarray, k: int, position) -> str:
+    """One slice file: the series attributes, its position and its int16 pixels."""
+    meta = FileMetaDataset()
+    meta.MediaStorageSOPClassUID, meta.MediaStorageSOPInstanceUID = CT_SOP_CLASS, generate_uid()
+    meta.TransferSyntaxUID, meta.ImplementationClassUID = ExplicitVRLittleEndian, PYDICOM_IMPLEMENTATION_UID
+    ds = FileDataset("", Dataset(), file_meta=meta, preamble=b"\0" * 128)
+    ds.update(series)
+    ds.SOPInstanceUID, ds.InstanceNumber = meta.MediaStorageSOPInstanceUID, k + 1
+    ds.ImagePositionPatient = [f"{x:.6f}" for x in position]
+    ds.PixelData = np.ascontiguousarray(pixels, dtype="<i2").tobytes()
+    ds.save_as(path, enforce_file_format=True)
+    return str(ds.SOPInstanceUID)

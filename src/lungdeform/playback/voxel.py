@@ -1,0 +1,122 @@
+"""Fused per-voxel passes over a displacement-field image (numba, parallel over z-slices).
+
+Arrays: a field is ``(z, y, x, 3) float32`` mm LPS indexed ``[k, j, i]`` (components x, y, z), as in
+:mod:`lungdeform.playback.dvf`, which owns the grid, the lattice and the meaning of the field; this
+module only holds the loops that touch every voxel, so that no full-grid temporary is made:
+
+- :func:`fill_field`: trilinear interpolation of lattice nodes to every voxel of a box plus an
+  affine displacement at every voxel, in one pass (the lattice weights per index are precomputed
+  along each axis, :func:`axis_weights`; per voxel row one bilinear row of nodes, then one lerp a
+  voxel);
+- :func:`jacobian_pass`: ``det(I + ∇u)`` by central differences in physical units (one-sided at the
+  array's edges, as ``numpy.gradient``), written out or reduced to min, max and folded count.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+
+def axis_weights(n_out: int, lo: int, stride: int, nodes: int, box_lo: int, box_hi: int):
+    """Per voxel index ``0 … n_out − 1`` along one axis: ``(node (n_out,) int64, frac (n_out,) float32)``,
+    the lattice node at or before the voxel and the voxel's fraction of the way to the next (nodes
+    ``stride`` voxels apart, node 0 at voxel ``lo``); node −1 outside ``[box_lo, box_hi)``."""
+    idx = np.arange(n_out)
+    t = (idx - lo) / float(stride)
+    node = np.clip(np.floor(t), 0, max(nodes - 2, 0)).astype(np.int64)
+    frac = np.clip(t - node, 0.0, 1.0).astype(np.float32) if nodes > 1 else np.zeros(n_out, np.float32)
+    node[(idx < box_lo) | (idx >= box_hi)] = -1
+    return node, frac
+
+
+@numba.njit(cache=True)
+def _row(values, k0, fz, j0, fy):
+    """``(nx, 3) float32``: the lattice row at (z, y) fractions ``fz``, ``fy`` past nodes ``k0``, ``j0``
+    (bilinear in z and y, every x node)."""
+    k1, j1 = min(k0 + 1, values.shape[0] - 1), min(j0 + 1, values.shape[1] - 1)
+    gy, gz = np.float32(1.0) - fy, np.float32(1.0) - fz
+    return (values[k0, j0] * gy + values[k0, j1] * fy) * gz + (values[k1, j0] * gy + values[k1, j1] * fy) * fz
+
+
+@numba.njit(cache=True, parallel=True)
+def fill_field(out, values, nodes_k, frac_k, nodes_j, frac_j, nodes_i, frac_i, const, steps, add, ranges):
+    """Write (or, with ``add``, add) into ``out : (z, y, x, 3) float32`` at voxels ``ranges`` (k0, k1,
+    j0, j1, i0, i1): the lattice ``values : (nz, ny, nx, 3) float32`` interpolated trilinearly where
+    all three axes' nodes (:func:`axis_weights`) are ≥ 0 (else 0), plus ``const + steps @ (i, j, k)``
+    (``const`` (3,) mm, ``steps`` (3, 3) mm per voxel, column a along index axis a). Separable: per
+    voxel row one bilinear lattice row (:func:`_row`), then one lerp per voxel."""
+    last = values.shape[2] - 1
+    affine = np.any(const != 0) or np.any(steps != 0)
+    for k in numba.prange(ranges[0], ranges[1]):
+        for j in range(ranges[2], ranges[3]):
+            lattice = nodes_k[k] >= 0 and nodes_j[j] >= 0
+            row = _row(values, nodes_k[k], frac_k[k], nodes_j[j], frac_j[j]) if lattice else values[0, 0]
+            for i in range(ranges[4], ranges[5]):
+                n0 = nodes_i[i]
+                for c in range(3):
+                    x = 0.0
+                    if lattice and n0 >= 0:
+                        x = row[n0, c] * (1 - frac_i[i]) + row[min(n0 + 1, last), c] * frac_i[i]
+                    if affine:
+                        x += const[c] + steps[c, 0] * i + steps[c, 1] * j + steps[c, 2] * k
+                    if add:
+                        out[k, j, i, c] += x
+                    else:
+                        out[k, j, i, c] = x
+    return out
+
+
+@numba.njit(cache=True, inline="always")
+def _diff(f, k, j, i, axis, c):
+    """∂f_c/∂(index ``axis``) (0 = k, 1 = j, 2 = i) at a voxel: central, one-sided at the edges."""
+    n = f.shape[axis]
+    p = (k, j, i)[axis]
+    lo, hi = max(p - 1, 0), min(p + 1, n - 1)
+    if axis == 0:
+        a, b = f[lo, j, i, c], f[hi, j, i, c]
+    elif axis == 1:
+        a, b = f[k, lo, i, c], f[k, hi, i, c]
+    else:
+        a, b = f[k, j, lo, c], f[k, j, hi, c]
+    return (np.float64(b) - np.float64(a)) / max(hi - lo, 1)
+
+
+@numba.njit(cache=True, inline="always")
+def _grad_row(f, k, j, i, inv, c):
+    """Row ``c`` of ``I + ∇u`` at voxel (k, j, i): ``(∂u_c/∂x_r + δ_cr for r = 0, 1, 2)``."""
+    di, dj, dk = _diff(f, k, j, i, 2, c), _diff(f, k, j, i, 1, c), _diff(f, k, j, i, 0, c)
+    return (di * inv[0, 0] + dj * inv[0, 1] + dk * inv[0, 2] + (c == 0),
+            di * inv[1, 0] + dj * inv[1, 1] + dk * inv[1, 2] + (c == 1),
+            di * inv[2, 0] + dj * inv[2, 1] + dk * inv[2, 2] + (c == 2))
+
+
+@numba.njit(cache=True, inline="always")
+def _det_at(f, k, j, i, inv):
+    """``det(I + ∇u)`` at voxel (k, j, i); ``inv[r, a] = ∂index_a / ∂x_r`` (a = i, j, k)."""
+    a11, a12, a13 = _grad_row(f, k, j, i, inv, 0)
+    a21, a22, a23 = _grad_row(f, k, j, i, inv, 1)
+    a31, a32, a33 = _grad_row(f, k, j, i, inv, 2)
+    return a11 * (a22 * a33 - a23 * a32) - a12 * (a21 * a33 - a23 * a31) + a13 * (a21 * a32 - a22 * a31)
+
+
+@numba.njit(cache=True, parallel=True)
+def jacobian_pass(f, inv, ranges, out):
+    """Per z-slice ``(min, max, folded count)`` of :func:`_det_at` over the voxels ``ranges`` (k0, k1,
+    j0, j1, i0, i1) of ``f : (z, y, x, 3)``; each determinant also written to ``out`` (same z, y, x
+    shape) unless ``out`` is empty. Returns ``(n, 3) float`` rows, one per slice."""
+    nk = ranges[1] - ranges[0]
+    rows = np.empty((max(nk, 0), 3))
+    write = out.size > 0
+    for s in numba.prange(nk):
+        k = ranges[0] + s
+        lo, hi, folded = np.inf, -np.inf, 0
+        for j in range(ranges[2], ranges[3]):
+            for i in range(ranges[4], ranges[5]):
+                d = _det_at(f, k, j, i, inv)
+                lo, hi = min(lo, d), max(hi, d)
+                folded += d <= 0.0
+                if write:
+                    out[k, j, i] = d
+        rows[s, 0], rows[s, 1], rows[s, 2] = lo, hi, folded
+    return rows
