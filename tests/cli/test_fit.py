@@ -260,6 +260,45 @@ def test_fit_masks_holding_both_lungs_keeps_that_lungs_landmarks(tmp_path, capsy
     assert m["volumes_ml"][0] == pytest.approx(left_ee.sum() * voxel_ml, rel=0.05)
 
 
+def test_correspondence_interior_and_motion_prior(tmp_path, capsys):
+    # truth: the end-inhale lung is the end-exhale one expanded 15 % about its centroid, and so are
+    # its interior landmarks; the correspondence interior (moment affine + smooth map) carries them
+    # within a small fraction of their motion, the model file keeps the map, and a motion prior of a
+    # pure offset moves every surface-only prediction by exactly that offset (it is affine and folds
+    # into the field's affine part)
+    from lungdeform.fit.motion_prior import MotionPrior, save_prior
+
+    lung = ellipsoid_lung("right")
+    c = lung.vertices.mean(axis=0)
+    a = write_mesh(tmp_path / "ee.ply", lung.vertices, lung.faces)
+    b = write_mesh(tmp_path / "ei.ply", c + 1.15 * (lung.vertices - c), lung.faces)
+    lm = c + np.random.default_rng(3).uniform(-1, 1, size=(12, 3)) * np.array([20.0, 35.0, 55.0])
+    la = write_elastix_points(tmp_path / "ee.txt", lm)
+    lb = write_elastix_points(tmp_path / "ei.txt", c + 1.15 * (lm - c))
+    common = ["--side", "right", "--evaluations", "40", "--no-baselines", "--no-stiffness", "--landmarks", str(la),
+              "--landmarks", str(lb), "--folds", "3", "--align", "none"]
+    assert main(["fit", str(a), str(b), "--out", str(tmp_path / "plain"), *common]) == 0
+    m = json.loads((tmp_path / "plain" / "metrics.json").read_text())
+    motion = np.linalg.norm(0.15 * (lm - c), axis=1).mean()
+    assert m["interior"]["surface_part"] == "correspondence" and "model_surface_sliding" in m
+    assert m["model_surface_only"]["landmark_mean_mm"] < 0.1 * motion
+    assert load_model(tmp_path / "plain" / "model.npz").lungs["right"].interior_map is not None
+    prior = save_prior(tmp_path / "prior.json", MotionPrior(np.r_[[[0.0, -3.0, 1.0]], np.zeros((3, 3))], ("x", "y")))
+    assert main(["fit", str(a), str(b), "--out", str(tmp_path / "prior"), "--motion-prior", str(prior), *common]) == 0
+    with np.load(tmp_path / "plain" / "landmarks.npz") as p0, np.load(tmp_path / "prior" / "landmarks.npz") as p1:
+        np.testing.assert_allclose(p1["surface_only"] - p0["surface_only"], np.broadcast_to([0.0, -3.0, 1.0], (1, 12, 3)),
+                                   atol=1e-6)
+    capsys.readouterr()
+    assert main(["fit", str(a), str(b), "--out", str(tmp_path / "o3"), "--motion-prior", str(prior),
+                 "--interior", "sliding", *common]) == 2
+    assert "--motion-prior needs the correspondence interior, not 'sliding'" in _one_error_line(capsys)
+    (tmp_path / "bad.json").write_text("{")
+    assert main(["fit", str(a), str(b), "--out", str(tmp_path / "o4"), "--motion-prior", str(tmp_path / "bad.json"),
+                 *common]) == 2
+    assert "bad.json: not a readable motion prior" in _one_error_line(capsys)
+    assert not (tmp_path / "o3").exists() and not (tmp_path / "o4").exists()
+
+
 @pytest.mark.parametrize("mode", ["description", "index"])
 def test_one_4dct_folder_is_fitted_on_all_phases(tmp_path, rng, capsys, mode):
     # truth: a 4-D CT of 4 phases (tests/fourdct_phantom.py) whose lungs grow by 6 % per axis and phase,

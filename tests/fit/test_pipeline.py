@@ -24,3 +24,27 @@ def test_pipeline_and_cohort_import_nothing_from_the_cli():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "", f"CLI modules imported by library code: {out.stdout.strip()}"
+
+
+def test_auto_interior_is_sliding_only_for_cropped_scans():
+    # "auto": the correspondence map is between two solids, which a field of view cutting the lung at
+    # different tissue breaks; up to CROP_LIMIT of crop-face vertices (DIR-Lab COPDgene: ≤ 0.6 %) the
+    # correspondence stays, beyond it (the ITK pair: 6 % and 5 %) the sliding field
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from lungdeform.fit.config import CROP_LIMIT, FitConfig
+    from lungdeform.fit.pipeline import interior_kind
+
+    def placed(rest_cropped, target_cropped):
+        keep = lambda f: np.arange(1000) >= int(round(1000 * f))  # noqa: E731
+        return SimpleNamespace(keep=keep(rest_cropped), targets=[SimpleNamespace(keep=keep(target_cropped))])
+
+    auto = FitConfig()
+    assert auto.interior == "auto"
+    assert interior_kind(placed(0.0, 0.006), auto) == "correspondence"
+    assert interior_kind(placed(0.0, CROP_LIMIT + 0.01), auto) == "sliding"
+    assert interior_kind(placed(0.064, 0.048), auto) == "sliding"
+    assert interior_kind(placed(0.064, 0.048), FitConfig(interior="correspondence")) == "correspondence"
+    assert interior_kind(placed(0.0, 0.0), FitConfig(interior="sliding")) == "sliding"

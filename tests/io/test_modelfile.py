@@ -40,7 +40,7 @@ def test_schema_1_files_keep_their_thin_plate_interior(tmp_path, model, rng):
     path = save_model(tmp_path / "m.npz", Model({"left": model}))
     with np.load(path) as z:
         data = {k: z[k] for k in z.files}
-    assert int(data["schema_version"]) == SCHEMA_VERSION == 3
+    assert int(data["schema_version"]) == SCHEMA_VERSION == 4
     np.savez(tmp_path / "v1.npz", **dict(data, schema_version=np.array(1)))
     old, new = load_model(tmp_path / "v1.npz").lungs["left"], load_model(path).lungs["left"]
     assert (old.interior_kind, new.interior_kind) == ("thin_plate", "sliding")
@@ -127,6 +127,38 @@ def test_interior_vertices_are_saved_and_leave_the_others_out(tmp_path, model, r
         replace(model, interior_vertices=np.flatnonzero(keep))
     with pytest.raises(InputError, match="interior_kind"):
         replace(model, interior_kind="spline")
+
+
+def _interior_map(rng, model):
+    from lungdeform.interior.correspondence import CorrespondenceField
+
+    c = model.surface.vertices[:40]
+    return CorrespondenceField(0.01 * rng.normal(size=(3, 4)), np.c_[np.eye(3), rng.normal(size=3)], c,
+                               rng.normal(size=(40, 3)), 80.0)
+
+
+def test_interior_map_is_saved_and_plays_back_the_same(tmp_path, model, rng):
+    # schema 4: a lung whose interior follows a surface-to-surface map keeps it through a file,
+    # so its interior points move exactly as before saving (truth: the map evaluated directly)
+    from dataclasses import replace
+
+    lung = replace(model, interior_map=_interior_map(rng, model))
+    back = load_model(save_model(tmp_path / "m.npz", Model({"left": lung}))).lungs["left"]
+    q = model.surface.vertices.mean(axis=0) + rng.uniform(-10, 10, size=(12, 3))
+    np.testing.assert_array_equal(back.interior.displacement(q), lung.interior_map(q))
+    assert not np.allclose(back.interior.displacement(q), model.interior.displacement(q))
+
+
+def test_partial_interior_map_is_refused(tmp_path, model, rng):
+    # all five map arrays or none: a file with only some of them names the lung and what it has
+    from dataclasses import replace
+
+    path = save_model(tmp_path / "m.npz", Model({"left": replace(model, interior_map=_interior_map(rng, model))}))
+    with np.load(path) as z:
+        data = {k: z[k] for k in z.files if not k.endswith("interior_map_weights")}
+    np.savez(tmp_path / "part.npz", **data)
+    with pytest.raises(ModelFileError, match=r"part.npz: lung 'left' has only part of the interior map"):
+        load_model(tmp_path / "part.npz")
 
 
 def test_model_file_refuses_wrong_version_and_shapes(tmp_path, model):

@@ -136,3 +136,20 @@ def test_prone_directions_mirror_supine(left_lung):
     assert np.allclose(frame.axes[1], -supine.frame.axes[1]) and np.allclose(frame.axes[[0, 2]], supine.frame.axes[[0, 2]])
     assert np.all(prone.directions[:, 1] >= 0)  # now posterior (+y LPS) or zero
     assert np.allclose(prone.directions[:, [0, 2]] != 0, supine.directions[:, [0, 2]] != 0)
+
+
+def test_a_reoriented_model_drops_its_interior_map(model):
+    # the surface-to-surface map was observed in the scans' posture, like the landmark correction:
+    # another gravity falls back to the sliding field of the recombined displacement
+    from dataclasses import replace
+
+    from lungdeform.interior.correspondence import CorrespondenceField
+
+    c = model.surface.vertices[:10]
+    mapped = replace(model, interior_map=CorrespondenceField(np.full((3, 4), 0.01), np.c_[np.eye(3), np.zeros(3)], c,
+                                                             np.zeros((10, 3)), 50.0))
+    q = model.surface.vertices.mean(axis=0)[None, :]
+    np.testing.assert_allclose(mapped.interior.displacement(q), mapped.interior_map(q))
+    turned = mapped.oriented("prone")
+    assert turned.interior_map is None
+    assert not np.allclose(turned.interior.displacement(q), mapped.interior_map(q))

@@ -122,3 +122,50 @@ def test_real_case_model_surface_below_no_motion(data_dir, tmp_path):
         row = res["cases"]["copd1"][side]
         assert np.isfinite(row["model"]["surface_mean_mm"])
         assert row["model"]["surface_mean_mm"] < row["no_motion"]["surface_mean_mm"]
+
+
+def _landmark_file(folder, rng, offset, own):
+    # what a correspondence fit writes (lungdeform.fit.pipeline.write_landmark_motion): residual =
+    # a shared offset plus the subject's own part
+    folder.mkdir(parents=True)
+    pts = rng.normal(scale=30.0, size=(20, 3))
+    pts -= pts.mean(axis=0)  # centred on the lung: a constant residual leaves the prior's linear part at 0
+    surface_only = pts + rng.normal(size=(20, 3))
+    np.savez(folder / "landmarks.npz", landmarks=pts, observed=(surface_only + offset + own)[None],
+             surface_only=surface_only[None], volumes_ml=np.array([3000.0]), centroid=np.zeros(3),
+             scale=np.array([30.0, 30.0, 30.0]))
+
+
+def test_motion_prior_is_scored_leave_one_subject_out(tmp_path, rng):
+    # truth: every lung's residual is a shared offset (0, -5, 2) mm plus a subject's own offset; a case
+    # is scored by the prior of the other cases only, so its own offset is never learned from it:
+    # the error left on case A is |own_A - mean(own of the others)| exactly, and priors/A.json names
+    # only the others
+    shared = np.array([0.0, -5.0, 2.0])
+    own = {"copdA": np.array([3.0, 0.0, 0.0]), "copdB": np.array([0.0, 1.0, 0.0]), "copdC": np.array([0.0, -1.0, 0.0])}
+    cases = {}
+    for name, o in own.items():
+        for side in ("left", "right"):
+            mirrored = o * ([-1.0, 1.0, 1.0] if side == "left" else 1.0)
+            _landmark_file(tmp_path / name / side, rng, shared * ([-1.0, 1.0, 1.0] if side == "left" else 1.0), mirrored)
+            cases.setdefault(name, {})[side] = {"model_surface_only": {"landmark_mean_mm": -1.0}}
+    done = C.apply_loso_priors(tmp_path, cases)
+    assert done["applied"]
+    for name, o in own.items():
+        others = np.mean([v for k, v in own.items() if k != name], axis=0)
+        for side in ("left", "right"):
+            row = cases[name][side]
+            assert row["model_surface_noprior"] == {"landmark_mean_mm": -1.0}
+            assert row["model_surface_only"]["landmark_mean_mm"] == pytest.approx(np.linalg.norm(o - others), abs=1e-6)
+        saved = json.loads((tmp_path / "priors" / f"{name}.json").read_text())
+        assert name not in saved["subjects"] and len(saved["subjects"]) == 2
+    assert json.loads((tmp_path / "motion_prior.json").read_text())["subjects"] == sorted(own)
+
+
+def test_motion_prior_needs_two_cases(tmp_path, rng):
+    # one case has no other subject to learn from: nothing is scored, and the rows stay as they were
+    _landmark_file(tmp_path / "copd1" / "left", rng, np.zeros(3), np.zeros(3))
+    cases = {"copd1": {"left": {"model_surface_only": {"landmark_mean_mm": 4.0}}}}
+    done = C.apply_loso_priors(tmp_path, cases)
+    assert not done["applied"] and "at least 2 cases" in done["reason"]
+    assert cases["copd1"]["left"] == {"model_surface_only": {"landmark_mean_mm": 4.0}}

@@ -115,7 +115,8 @@ DIRECTION_DEGREE_HELP = ("Degree of the smooth correction of the paper's directi
 #: Library parameters of a fit (:class:`lungdeform.fit.config.FitInputs`, :class:`~lungdeform.fit.config.FitConfig`)
 #: → the options that set them (fit, validate itk-pair, cohort).
 FIT_OPTIONS = {"side": "--side", "volumes_ml": "--volumes", "landmarks": "--landmarks", "folds": "--folds",
-               "align": "--align", "direction_degree": "--direction-degree", "max_evaluations": "--evaluations"}
+               "align": "--align", "direction_degree": "--direction-degree", "max_evaluations": "--evaluations",
+               "interior": "--interior", "prior": "--motion-prior"}
 
 
 @contextmanager

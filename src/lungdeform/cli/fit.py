@@ -13,7 +13,8 @@ import typer
 
 from lungdeform.errors import InputError
 from lungdeform.fit.config import FitConfig, FitInputs
-from lungdeform.fit.pipeline import run_fit
+from lungdeform.fit.motion_prior import load_prior
+from lungdeform.fit.pipeline import check_prior, run_fit
 
 from .common import (
     DIRECTION_DEGREE_HELP,
@@ -48,6 +49,14 @@ def register(apps) -> None:
         align: str = typer.Option("apex", "--align", help="apex: rigid alignment on the apex cap (scans with a table shift); "
                                   "joint: a translation per target fitted with the constants, started from apex; "
                                   "none: inputs already in one frame (e.g. synthetic)."),
+        interior: str = typer.Option("auto", "--interior",
+                                     help="Surface part of the interior field: correspondence (a smooth map of the "
+                                          "end-exhale lung onto the largest volume's), sliding (the sliding "
+                                          "interpolation of the fitted surface's normal motion) or auto "
+                                          "(correspondence unless the scans are cropped)."),
+        motion_prior: Path | None = typer.Option(None, "--motion-prior",
+                                                 help="A population motion prior (JSON, e.g. the motion_prior.json "
+                                                      "of validate copd) folded into the correspondence field."),
     ) -> None:
         """Fit c1…c9 of one lung to two or more volumes; write the model, metrics and an HTML report."""
 
@@ -61,9 +70,11 @@ def register(apps) -> None:
             fit_inputs = FitInputs(inputs, side, vols, landmarks)
             config = FitConfig(grid=grid, stiffness=stiffness, baselines=baselines, max_evaluations=evaluations,
                                landmark_fit=landmark_fit, folds=folds, align=align, direction_degree=direction_degree,
-                               landmark_comparisons=landmark_comparisons, side_check=side_check)
+                               landmark_comparisons=landmark_comparisons, side_check=side_check, interior=interior)
+            prior = None if motion_prior is None else load_prior(motion_prior)
+            check_prior(config, prior)
             folder = output_dir(out)
-            m = run_fit(fit_inputs, folder, config, progress=say)
+            m = run_fit(fit_inputs, folder, config, progress=say, prior=prior)
         for text in m.get("notes") or []:
             typer.echo(f"note: {text}")
         print_fit_table(m)

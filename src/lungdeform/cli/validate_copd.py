@@ -10,7 +10,7 @@ from pathlib import Path
 
 import typer
 
-from lungdeform.validate.copd import MASK_ROWS, ROWS, copd_config, parse_cases, run_copd
+from lungdeform.validate.copd import TABLE_ROWS, copd_config, parse_cases, run_copd
 
 from .common import FIT_OPTIONS, option_names, output_dir, say
 
@@ -22,7 +22,7 @@ def _fmt(v) -> str:
 def print_table(result: dict) -> None:
     """One line per lung and the medians: landmark mean error (mm) per method, the model's surface
     mean error and the seconds."""
-    names = list(ROWS) + list(MASK_ROWS)
+    names = list(TABLE_ROWS)
     typer.echo("landmark mean error (mm), expiration → inspiration; model_surface = the model's surface mean (mm)")
     typer.echo(f"{'lung':14s} " + " ".join(f"{n[:20]:>20s}" for n in names) + f" {'model_surface':>13s} {'s':>6s}")
     rows = [(f"{c} {s}", r) for c, case in result["cases"].items() for s, r in case.items()]

@@ -6,7 +6,9 @@ weights), :mod:`~lungdeform.fit.lungsplit` (a mask holding both lungs in one lab
 correspondence), :mod:`~lungdeform.fit.objective` (one lung's objective), :mod:`~lungdeform.fit.fitting`
 (c1…c9, stiffness and direction correction), :mod:`~lungdeform.fit.search` (optimiser and the paper's
 grid), :mod:`~lungdeform.fit.crossval` (landmark cross-validation), :mod:`~lungdeform.fit.expandability`
-(the fitted stiffness field), :mod:`~lungdeform.fit.direction_correction`, :mod:`~lungdeform.fit.baselines`
+(the fitted stiffness field), :mod:`~lungdeform.fit.direction_correction`, :mod:`~lungdeform.fit.registration` (the smooth
+surface-to-surface map behind the correspondence interior field), :mod:`~lungdeform.fit.motion_prior`
+(the population prior of interior motion, learned across subjects), :mod:`~lungdeform.fit.baselines`
 (comparison methods), :mod:`~lungdeform.fit.pipeline` (inputs to a saved model and its metrics, in
 steps: :mod:`~lungdeform.fit.config` what a fit is given, :mod:`~lungdeform.fit.inputs` reading and
 checking, :mod:`~lungdeform.fit.placement` the model mesh and the targets in its frame,

@@ -42,6 +42,8 @@ from lungdeform.geometry.mesh import Surface, as_vertices, thinned
 from lungdeform.interior.interpolate import interpolation_weights
 from lungdeform.interior.sliding import surface_weights
 
+from . import registration
+
 
 def no_motion(surface: Surface) -> np.ndarray:
     """``(n, 3)`` mm: the end-exhale vertices unchanged."""
@@ -298,16 +300,9 @@ def measure(rest: Surface, predicted, target: Surface, *, keep=None, keep_target
 #: Surface points per phase of :func:`mask_cpd_map`, Gaussian smoothing (voxels) before marching cubes.
 MASK_CPD_POINTS = 1500
 MASK_CPD_SIGMA = 0.7
-#: CPD's smoothness weight and kernel width (mm, divided by the RMS radius of the larger surface).
-MASK_CPD_ALPHA = 1000.0
-MASK_CPD_BETA_MM = 80.0
-
-
-def _sym_power(c: np.ndarray, power: float) -> np.ndarray:
-    val, vec = np.linalg.eigh(c)
-    if not np.all(val > 0):
-        raise InputError("mask moments: the covariance of the voxel positions is not positive definite")
-    return (vec * val**power) @ vec.T
+#: CPD's smoothness weight and kernel width (mm): those of :mod:`lungdeform.fit.registration`.
+MASK_CPD_ALPHA = registration.ALPHA
+MASK_CPD_BETA_MM = registration.BETA_MM
 
 
 def centroid_map(points_small, points_large) -> tuple[np.ndarray, np.ndarray]:
@@ -319,11 +314,10 @@ def centroid_map(points_small, points_large) -> tuple[np.ndarray, np.ndarray]:
 
 def moment_affine_map(points_small, points_large) -> tuple[np.ndarray, np.ndarray]:
     """``(A, t)``: the affine of the mask moments, ``x' = mu_l + C_l^1/2 C_s^-1/2 (x - mu_s)`` with
-    ``mu``, ``C`` the mean and covariance of each point set (``(n, 3)`` mm voxel centres)."""
+    ``mu``, ``C`` the mean and covariance of each point set (``(n, 3)`` mm voxel centres;
+    :func:`lungdeform.fit.registration.moment_affine`)."""
     a, b = as_vertices(points_small, "points_small"), as_vertices(points_large, "points_large")
-    mu_s, mu_l = a.mean(axis=0), b.mean(axis=0)
-    m = _sym_power(np.cov(b.T), 0.5) @ _sym_power(np.cov(a.T), -0.5)
-    return m, mu_l - m @ mu_s
+    return registration.moment_affine(a.mean(axis=0), np.cov(a.T), b.mean(axis=0), np.cov(b.T))
 
 
 def mask_surface_points(image, mask: np.ndarray, n: int = MASK_CPD_POINTS, *, sigma: float = MASK_CPD_SIGMA,
@@ -338,28 +332,8 @@ def mask_surface_points(image, mask: np.ndarray, n: int = MASK_CPD_POINTS, *, si
 
 
 def mask_cpd_map(affine: tuple[np.ndarray, np.ndarray], surface_small, surface_large, *,
-                 alpha: float = MASK_CPD_ALPHA, beta_mm: float = MASK_CPD_BETA_MM, max_iterations: int = 150,
-                 tolerance: float = 1e-5):
-    """A function ``(k, 3) mm → (k, 3) mm``: the ``affine`` ``(A, t)`` then CPD's Gaussian field
-    (Myronenko & Song 2010, ``pycpd``, no outlier weight) fitted from the affine image of
-    ``surface_small`` to ``surface_large`` (``(n, 3)`` mm points), evaluated at the point's affine
-    image. Coordinates centred on ``surface_large`` and scaled by its RMS radius ``s``; kernel width
-    ``beta_mm / s``, smoothness ``alpha``."""
-    pycpd = require("pycpd", "the CPD baseline", "pycpd")
-    mat, t = affine
-    big = as_vertices(surface_large, "surface_large")
-    c = big.mean(axis=0)
-    s = float(np.sqrt(np.mean(np.sum((big - c) ** 2, axis=1))))
-    y = (as_vertices(surface_small, "surface_small") @ mat.T + t - c) / s
-    beta = beta_mm / s
-    reg = pycpd.DeformableRegistration(X=(big - c) / s, Y=y, alpha=alpha, beta=beta, w=0.0,
-                                       max_iterations=max_iterations, tolerance=tolerance)
-    reg.register()
-    w = np.array(reg.W)
-
-    def move(points) -> np.ndarray:
-        q = (as_vertices(points, "points") @ mat.T + t - c) / s
-        g = np.exp(-cdist(q, y, "sqeuclidean") / (2.0 * beta**2))
-        return c + s * (q + g @ w)
-
-    return move
+                 alpha: float = MASK_CPD_ALPHA, beta_mm: float = MASK_CPD_BETA_MM):
+    """A function ``(k, 3) mm → (k, 3) mm``: the ``affine`` ``(A, t)`` then CPD's Gaussian field fitted
+    from the affine image of ``surface_small`` to ``surface_large`` (``(n, 3)`` mm points): the map
+    of :func:`lungdeform.fit.registration.register_points`, the one the model's correspondence field uses."""
+    return registration.register_points(affine, surface_small, surface_large, alpha=alpha, beta_mm=beta_mm)

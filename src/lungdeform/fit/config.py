@@ -74,6 +74,13 @@ class FitInputs:
         object.__setattr__(self, "landmarks", landmarks)
 
 
+#: The surface parts of the interior field a fit can give its model (:class:`FitConfig`).
+INTERIORS = ("auto", "correspondence", "sliding")
+#: ``interior="auto"`` takes the sliding field when crop faces hold more than this fraction of the
+#: vertices of the model mesh or of a target (the ITK pair: 6 % and 5 %; DIR-Lab COPDgene: at most 0.6 %).
+CROP_LIMIT = 0.02
+
+
 @dataclass(frozen=True)
 class FitConfig:
     """How :func:`lungdeform.fit.pipeline.run_fit` fits (the module docstring there gives the steps).
@@ -111,6 +118,13 @@ class FitConfig:
     side_check : bool
         Refuse inputs whose shape clearly says the other side
         (:func:`lungdeform.geometry.frame.check_side`).
+    interior : str
+        The surface part of the interior field (:data:`INTERIORS`): ``"correspondence"``, the smooth
+        map of the end-exhale solid onto the largest volume's (:mod:`lungdeform.fit.registration`),
+        ``"sliding"``, the sliding interpolation of the fitted surface displacement
+        (:mod:`lungdeform.interior.sliding`), or ``"auto"``: the correspondence unless the scans are
+        cropped (crop faces on more than :data:`CROP_LIMIT` of a surface's vertices: the field of view
+        cuts the lung at different tissue in each scan, so the two solids are not the same tissue).
     command : str
         What ran the fit, recorded in the model file's provenance.
     """
@@ -127,6 +141,7 @@ class FitConfig:
     direction_degree: int = DEFAULT_DEGREE
     landmark_comparisons: bool = False
     side_check: bool = True
+    interior: str = "auto"
     command: str = "fit"
 
     def __post_init__(self):
@@ -148,6 +163,8 @@ class FitConfig:
             raise InputError(f"mode must be one of {', '.join(m for m in MODES if m != 'grid')}, got {self.mode!r}")
         if self.align == "joint" and self.mode not in JOINT_MODES:
             raise InputError(f"align 'joint' needs the least-squares optimiser, not mode {self.mode!r}")
+        if self.interior not in INTERIORS:
+            raise InputError(f"interior must be one of {', '.join(INTERIORS)}, got {self.interior!r}")
         if not isinstance(self.command, str):
             raise InputError(f"command must be a string, got {self.command!r}")
         for name in ("max_evaluations", "folds", "direction_degree"):  # plain Python numbers

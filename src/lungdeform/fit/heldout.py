@@ -42,19 +42,24 @@ class HeldOut:
     interior : dict or None
         The interior correction (with ``landmark_fit``): ``held_out`` (per target, (m, 3) float mm),
         ``correction`` ((m, 3) float mm per unit) and ``smoothing`` (mm).
+    surface_unit : (m, 3) float or None
+        The surface part of the interior field at the landmarks, mm per unit, when it is a
+        correspondence field (None: the sliding interpolation, ``matrix @`` the kept displacement).
     """
 
     matrix: object = None
     cv: LandmarkCV | None = None
     cv_stiffness: LandmarkCV | None = None
     interior: dict | None = None
+    surface_unit: np.ndarray | None = None
 
 
 def held_out_landmarks(placed: Placement, landmarks, fit: FitResult, side: str, config: FitConfig, folds,
-                       progress: Callable[[str], None] | None = None) -> HeldOut:
+                       progress: Callable[[str], None] | None = None, surface_field=None) -> HeldOut:
     """The landmark step for the surface ``fit`` of the model mesh in ``placed``: ``landmarks : (m, 3)``
     mm are the end-exhale ones (None: no landmarks), ``folds`` their k-fold split
-    (:func:`lungdeform.interior.field.landmark_folds`; None without ``landmark_fit``)."""
+    (:func:`lungdeform.interior.field.landmark_folds`; None without ``landmark_fit``).
+    ``surface_field``: the interior field's surface part when it is a correspondence field (None: sliding)."""
 
     if landmarks is None:
         return HeldOut()
@@ -62,8 +67,10 @@ def held_out_landmarks(placed: Placement, landmarks, fit: FitResult, side: str, 
     # the sliding interpolation from the kept model vertices to the landmarks: one dense solve,
     # shared by every landmark-informed fit (rows per fold) and by the metrics of every method
     weights = B.landmark_matrix(placed.rest, landmarks, placed.keep)
+    unit = weights @ fit.displacement[placed.keep] if surface_field is None else surface_field(landmarks)
+    surface_unit = None if surface_field is None else unit
     if not config.landmark_fit:
-        return HeldOut(weights)
+        return HeldOut(weights, surface_unit=surface_unit)
     cv, cv_stiff = None, None
     if config.landmark_comparisons:
         say(f"landmark-informed fit ({config.folds}-fold cross-validation over {len(landmarks)} landmarks)")
@@ -72,9 +79,9 @@ def held_out_landmarks(placed: Placement, landmarks, fit: FitResult, side: str, 
             say("landmark-informed fit with a stiffness field (cross-validated)")
             cv_stiff = _landmark_fit(placed, landmarks, fit, side, config, folds, weights, stiffness=True, progress=say)
     say("interior landmark correction (cross-validated)")
-    interior = interior_correction(fit, landmarks, placed.landmarks, placed.targets, folds, placed.keep, weights,
+    interior = interior_correction(fit, landmarks, placed.landmarks, placed.targets, folds, placed.keep, unit,
                                    placed.rest)
-    return HeldOut(weights, cv, cv_stiff, interior)
+    return HeldOut(weights, cv, cv_stiff, interior, surface_unit)
 
 
 def _landmark_fit(placed: Placement, landmarks, fit: FitResult, side: str, config: FitConfig, folds, weights, *,
@@ -90,15 +97,14 @@ def _landmark_fit(placed: Placement, landmarks, fit: FitResult, side: str, confi
                                     progress=progress)
 
 
-def interior_correction(fit, landmarks, aligned, targets, folds, keep, weights, rest) -> dict:
+def interior_correction(fit, landmarks, aligned, targets, folds, keep, unit, rest) -> dict:
     """The interior field's landmark correction for ``fit`` (:mod:`lungdeform.interior.field`): held-out
     landmark positions per target (k-fold), and the correction and its smoothing from all landmarks.
-    The surface-driven part is the one the saved model plays back: the sliding interpolation from
-    its kept vertices (``LungModel.interior_vertices``), here as the metrics' operator ``weights``
-    (:func:`lungdeform.fit.baselines.landmark_matrix`, the same interpolant); the correction is the
-    sliding correction through the same kept vertices of ``rest``."""
+    ``unit : (m, 3)`` mm per unit is the surface-driven part at the landmarks, the one the saved
+    model plays back (the correspondence field, or the sliding interpolation from the kept vertices
+    as the metrics' operator, :func:`lungdeform.fit.baselines.landmark_matrix`); the correction is
+    the sliding correction through the kept vertices of ``rest``."""
 
-    unit = weights @ fit.displacement[keep]  # mm per unit
     observed = [np.asarray(a) - landmarks for a in aligned]
     scales = [(tg.volume_ml - fit.volume_ee_ml) / fit.unit_ml for tg in targets]
     correction = correction_per_unit(observed, scales, unit)

@@ -32,22 +32,25 @@ from typing import Callable
 
 import numpy as np
 
-from lungdeform.atomic import jsonable, write_json
+from lungdeform.atomic import atomic_path, jsonable, write_json
+from lungdeform.errors import InputError
 from lungdeform.interior.field import landmark_folds
 from lungdeform.io.modelfile import provenance, save_model
 from lungdeform.model.lung import Model
 
-from .config import FitConfig, FitInputs
+from .config import CROP_LIMIT, FitConfig, FitInputs
 from .fitting import DIRECTION_HI, DIRECTION_LO, fit_lung, to_lung_model
 from .heldout import HeldOut, held_out_landmarks
 from .inputs import ReadInputs, read_inputs
+from .motion_prior import MotionPrior, lung_normaliser
 from .placement import Placement, place_targets, shift_targets
+from .registration import correspondence_field
 from .report import write_report
 from .scoring import bounding_boxes, protocols, score_targets
 
 
 def run_fit(inputs: FitInputs, out: Path, config: FitConfig = FitConfig(), *,
-            progress: Callable[[str], None] | None = None) -> dict:
+            progress: Callable[[str], None] | None = None, prior: MotionPrior | None = None) -> dict:
     """Run the whole pipeline (module docstring) on ``inputs``; write model.npz, metrics.json and
     report.html in the folder ``out`` (created if missing); return the metrics dictionary.
 
@@ -58,9 +61,11 @@ def run_fit(inputs: FitInputs, out: Path, config: FitConfig = FitConfig(), *,
     reported as ``model_surface_only``. ``metrics["protocols"]`` says, per method, what it saw and
     how its landmark error was measured; ``metrics["alignment"][i]["applied"]`` is the rigid
     transform (moving → end-exhale) the fitted target went through. ``progress``: called with one
-    line of text per step."""
+    line of text per step. ``prior``: a population motion prior (:mod:`lungdeform.fit.motion_prior`)
+    folded into the correspondence field (``config.interior == "correspondence"`` only)."""
 
     say = progress or (lambda _m: None)
+    check_prior(config, prior)
     t_start = time.perf_counter()
     read = read_inputs(inputs, config.side_check, say)
     # the landmark folds, split (and folds checked) once, before any fitting
@@ -69,15 +74,58 @@ def run_fit(inputs: FitInputs, out: Path, config: FitConfig = FitConfig(), *,
     placed = place_targets(read, read.paths, inputs.landmarks, config.align, say)
     fits, placed, warnings = fit_surfaces(placed, read, inputs.side, config, say)
     landmarks = read.landmarks[0] if read.landmarks is not None else None
-    held = held_out_landmarks(placed, landmarks, fits["optimizer"], inputs.side, config, folds, say)
+    surface_field = interior_surface(placed, fits["optimizer"], inputs.side, config, prior, say)
+    held = held_out_landmarks(placed, landmarks, fits["optimizer"], inputs.side, config, folds, say, surface_field)
     if held.cv is not None:
         fits["landmarks"] = held.cv.final
     per_target, predictions, skipped = score_targets(placed, landmarks, fits, held, config, folds, say)
     metrics = fit_metrics(inputs, read, placed, fits, held, config, per_target, skipped,
                           read.warnings + placed.warnings + warnings)
+    metrics["interior"] = {"surface_part": "sliding" if surface_field is None else "correspondence",
+                           "asked": config.interior, "prior": None if prior is None else prior.as_dict()}
     metrics["seconds"] = time.perf_counter() - t_start
-    write_outputs(Path(out), inputs, config, placed, fits, held, landmarks, metrics, predictions)
+    write_outputs(Path(out), inputs, config, placed, fits, held, landmarks, metrics, predictions, surface_field)
     return metrics
+
+
+def interior_kind(placed: Placement, config: FitConfig) -> str:
+    """``"correspondence"`` or ``"sliding"``: ``config.interior``, with ``"auto"`` resolved on the
+    crop faces of ``placed`` (:data:`lungdeform.fit.config.CROP_LIMIT`)."""
+    if config.interior != "auto":
+        return config.interior
+    cropped = max([1.0 - float(np.mean(placed.keep))] + [1.0 - float(np.mean(tg.keep)) for tg in placed.targets])
+    return "sliding" if cropped > CROP_LIMIT else "correspondence"
+
+
+def check_prior(config: FitConfig, prior: MotionPrior | None) -> None:
+    """InputError when ``prior`` cannot go with ``config`` (a sliding interior)."""
+    if prior is not None and config.interior == "sliding":
+        raise InputError(f"prior needs the correspondence interior, not {config.interior!r}")
+
+
+def interior_surface(placed: Placement, fit, side: str, config: FitConfig, prior: MotionPrior | None,
+                     progress: Callable[[str], None] | None = None):
+    """The correspondence field (mm per unit) of the model's end-exhale surface onto its
+    largest-volume target (:func:`lungdeform.fit.registration.correspondence_field`), with ``prior``
+    folded in; None for the sliding interior (:func:`interior_kind`)."""
+    say = progress or (lambda _m: None)
+    if interior_kind(placed, config) == "sliding":
+        if prior is not None:
+            raise InputError("prior needs the correspondence interior, and these scans are cropped: the interior "
+                             "is the sliding field (interior 'auto')")
+        if config.interior == "auto":
+            say("interior: the sliding field (cropped scans)")
+        return None
+    scales = [(tg.volume_ml - fit.volume_ee_ml) / fit.unit_ml for tg in placed.targets]
+    i = int(np.argmax(np.abs(scales)))
+    say(f"interior: surface correspondence onto {placed.targets[i].name}")
+    # whole closed surfaces, crop faces included: the map is between the two solids (their moments
+    # include the cropped region too); leaving a crop face out of one side only pulls the other
+    # side's points elsewhere (DIR-Lab COPDgene case 1 left: 9.3 mm with, 6.6 mm without)
+    field = correspondence_field(placed.rest, placed.targets[i].surface, scales[i])
+    if prior is None:
+        return field
+    return field.with_linear(prior.affine(*lung_normaliser(placed.rest), side) / scales[i])
 
 
 def fit_surfaces(placed: Placement, read: ReadInputs, side: str, config: FitConfig,
@@ -139,14 +187,16 @@ def fit_metrics(inputs: FitInputs, read: ReadInputs, placed: Placement, fits: di
 
 
 def write_outputs(out: Path, inputs: FitInputs, config: FitConfig, placed: Placement, fits: dict, held: HeldOut,
-                  landmarks, metrics: dict, predictions: dict) -> None:
+                  landmarks, metrics: dict, predictions: dict, surface_field=None) -> None:
     """Write ``model.npz`` (the headline fit, with the interior correction when there is one, at the
-    end-exhale ``landmarks : (m, 3)`` mm), ``metrics.json`` and ``report.html`` in ``out``."""
+    end-exhale ``landmarks : (m, 3)`` mm, and the correspondence ``surface_field`` when there is
+    one), ``metrics.json`` and ``report.html`` in ``out``."""
 
     out.mkdir(parents=True, exist_ok=True)
     fit, keep = fits["optimizer"], placed.keep
     # the crop faces (image boundary, motion never fitted) do not drive the interior field
-    lung = replace(to_lung_model(placed.rest, inputs.side, fit), interior_vertices=None if keep.all() else keep.copy())
+    lung = replace(to_lung_model(placed.rest, inputs.side, fit), interior_vertices=None if keep.all() else keep.copy(),
+                   interior_map=surface_field)
     if held.interior is not None:
         lung = replace(lung, landmarks=landmarks, landmark_correction=held.interior["correction"],
                        landmark_smoothing=held.interior["smoothing"])
@@ -155,9 +205,27 @@ def write_outputs(out: Path, inputs: FitInputs, config: FitConfig, placed: Place
                                                   alignment=placed.alignments, fit_kind=metrics["headline_fit"],
                                                   interior_correction=held.interior is not None))
     save_model(out / "model.npz", model)
+    if landmarks is not None and held.surface_unit is not None:
+        write_landmark_motion(out / "landmarks.npz", placed, fit, landmarks, held.surface_unit)
     write_json(out / "metrics.json", metrics, strict=True, default=_json)
     write_report(out / "report.html", rest=placed.rest, targets=placed.targets, fits=fits, predictions=predictions,
                  metrics=metrics, headline=metrics["headline_fit"], keep=keep)
+
+
+def write_landmark_motion(path: Path, placed: Placement, fit, landmarks, surface_unit) -> Path:
+    """``landmarks.npz``: the end-exhale ``landmarks (m, 3)`` mm, per target the ``observed (t, m, 3)``
+    mm positions (aligned to the end-exhale frame) and the correspondence field's ``surface_only
+    (t, m, 3)`` mm, ``volumes_ml (t,)``, and the lung's solid ``centroid (3,)`` and ``scale (3,)`` mm
+    (:func:`lungdeform.fit.motion_prior.lung_normaliser`): what a motion prior learns from."""
+    scales = [(tg.volume_ml - fit.volume_ee_ml) / fit.unit_ml for tg in placed.targets]
+    centroid, scale = lung_normaliser(placed.rest)
+    arrays = {"landmarks": np.asarray(landmarks, float), "observed": np.stack([np.asarray(a, float) for a in placed.landmarks]),
+              "surface_only": np.stack([landmarks + s * surface_unit for s in scales]),
+              "volumes_ml": np.array([tg.volume_ml for tg in placed.targets]), "centroid": centroid, "scale": scale}
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **arrays)
+    return path
 
 
 def _json(o):

@@ -36,11 +36,18 @@ def protocols(fit: FitResult, held: HeldOut, config: FitConfig, grid: bool) -> d
     corrected = fit.paper_displacement is not None
     kind = ", ".join(["c1…c9"] + (["stiffness field"] if fit.stiffness_fitted else [])
                      + ([f"direction correction of degree {config.direction_degree}"] if corrected else []))
-    out = {surface_name(held): f"surface fit ({kind}; no landmark used); landmarks moved by the sliding "
-                               "interpolation of its surface displacement"}
+    if held.surface_unit is not None:
+        out = {surface_name(held): f"surface fit ({kind}; no landmark used); landmarks moved by the correspondence "
+                                   "field (lungdeform.fit.registration: the smooth map of the end-exhale surface "
+                                   "onto the largest-volume target, with any motion prior folded in)",
+               "model_surface_sliding": f"surface fit ({kind}; no landmark used); landmarks moved by the sliding "
+                                        "interpolation of its surface displacement (the other interior field)"}
+    else:
+        out = {surface_name(held): f"surface fit ({kind}; no landmark used); landmarks moved by the sliding "
+                                   "interpolation of its surface displacement"}
     if use_lm:
         out["model"] = (f"surface fit ({kind}; no landmark used) with the interior landmark correction "
-                        f"(lungdeform.interior): landmarks moved by the surface-driven sliding field "
+                        f"(lungdeform.interior): landmarks moved by the surface-driven field "
                         f"plus the sliding correction through the training landmarks' residual motion (it keeps the "
                         f"surface's normal motion; smoothing chosen by inner cross-validation); "
                         f"held-out landmark errors ({folds}-fold)")
@@ -79,9 +86,10 @@ def surface_name(held: HeldOut) -> str:
     return "model_surface_only" if held.interior is not None else "model"
 
 
-def model_methods(ti: int, target: Target, fits: dict, held: HeldOut, rest) -> dict:
+def model_methods(ti: int, target: Target, fits: dict, held: HeldOut, rest, landmarks=None) -> dict:
     """The fitted models' predictions of target ``ti``: name → ``(predicted vertices (n, 3) mm,
-    held-out landmark predictions (m, 3) mm or None)``; ``fits``: name → FitResult."""
+    landmark predictions (m, 3) mm or None: moved by the sliding operator)``; ``fits``: name →
+    FitResult; ``landmarks : (m, 3)`` mm the end-exhale ones."""
 
     fit = fits["optimizer"]
     s = (target.volume_ml - fit.volume_ee_ml) / fit.unit_ml
@@ -93,7 +101,11 @@ def model_methods(ti: int, target: Target, fits: dict, held: HeldOut, rest) -> d
         if held.cv_stiffness is not None:
             methods["model_landmarks_stiffness"] = (held.cv_stiffness.final.positions_at(rest, target.volume_ml),
                                                     held.cv_stiffness.predicted[ti])
-    methods[surface_name(held)] = (fit.positions_at(rest, target.volume_ml), None)
+    surface_only = None
+    if held.surface_unit is not None:  # the correspondence field moves the landmarks; the sliding one for comparison
+        surface_only = landmarks + s * held.surface_unit
+        methods["model_surface_sliding"] = (fit.positions_at(rest, target.volume_ml), None)
+    methods[surface_name(held)] = (fit.positions_at(rest, target.volume_ml), surface_only)
     if fit.paper_displacement is not None:
         methods["model_paper_directions"] = (rest.vertices + s * fit.paper_displacement, None)
     if fit.uniform_displacement is not None:
@@ -137,7 +149,7 @@ def score_targets(placed: Placement, landmarks, fits: dict, held: HeldOut, confi
     for ti, tg in enumerate(placed.targets):
         td = SurfaceDistance(tg.surface.vertices, tg.surface.faces)
         lmt = placed.landmarks[ti] if landmarks is not None else None
-        methods = model_methods(ti, tg, fits, held, rest)
+        methods = model_methods(ti, tg, fits, held, rest, landmarks)
         if config.baselines:
             say("baselines")
             methods.update(baseline_methods(tg, placed, landmarks, lmt, held, folds, config.landmark_weight, skipped))

@@ -1,7 +1,8 @@
 """Closed lung surfaces and the geometry on them: no physics, no files.
 
 Owns: :mod:`~lungdeform.geometry.mesh` (the :class:`Surface` bundle, checks and repairs, volume by the
-divergence theorem, subdivision, thinning), :mod:`~lungdeform.geometry.intersect` (self-intersection:
+divergence theorem, subdivision, thinning), :mod:`~lungdeform.geometry.moments` (volume, centroid and covariance of the enclosed solid),
+:mod:`~lungdeform.geometry.intersect` (self-intersection:
 face pairs that cross), :mod:`~lungdeform.geometry.remesh` (Taubin smoothing,
 decimation, clean-up), :mod:`~lungdeform.geometry.distance` (exact point-to-triangle distance, surface
 distance statistics), :mod:`~lungdeform.geometry.contours` (a surface through planar contours,

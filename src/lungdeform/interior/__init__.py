@@ -1,14 +1,17 @@
 """Motion inside the lung, interpolated from the surface's motion.
 
 Owns: :mod:`~lungdeform.interior.interpolate` (thin-plate splines), :mod:`~lungdeform.interior.sliding`
-(the sliding interpolation of the surface's normal motion, and the landmark correction that keeps it)
-and :mod:`~lungdeform.interior.field` (the interior field a lung model plays back, its landmark
+(the sliding interpolation of the surface's normal motion, and the landmark correction that keeps it),
+:mod:`~lungdeform.interior.correspondence` (the field of a smooth surface-to-surface map: affine plus
+Gaussian radial part, with any population prior folded into its affine part) and
+:mod:`~lungdeform.interior.field` (the interior field a lung model plays back, its landmark
 correction's held-out selection, the landmark folds).
 
 May import: :mod:`lungdeform.geometry` and the core modules. It works on plain arrays (surface
 points, unit displacements, landmarks), so the run-time model can carry a field without any fitting code.
 """
 
+from .correspondence import CorrespondenceField
 from .field import (
     CORRECTION_SMOOTHING_MM,
     KIND_TEXT,
@@ -28,6 +31,7 @@ from .field import (
 
 __all__ = [
     "CORRECTION_SMOOTHING_MM",
+    "CorrespondenceField",
     "InteriorField",
     "KINDS",
     "KIND_TEXT",

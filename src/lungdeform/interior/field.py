@@ -40,6 +40,7 @@ import numpy as np
 from lungdeform.errors import InputError
 from lungdeform.geometry.mesh import as_vertices
 
+from .correspondence import CorrespondenceField
 from .interpolate import DisplacementField, displacement_field, interpolation_weights
 from .sliding import MAX_POINTS, CorrectionSolver, RadialSum, SlidingField, sliding_correction, sliding_field
 
@@ -200,16 +201,17 @@ class InteriorField:
 
     Attributes
     ----------
-    surface : SlidingField
+    surface : SlidingField, CorrespondenceField or DisplacementField
         The sliding interpolation of the surface displacement (mm per unit) through the end-exhale
-        vertices and their outward normals (all, or a seeded subset of :data:`MAX_SURFACE_POINTS`).
+        vertices and their outward normals (all, or a seeded subset of :data:`MAX_SURFACE_POINTS`),
+        or a surface-to-surface map (:mod:`lungdeform.interior.correspondence`).
     landmark : SlidingField, DisplacementField or None
         The landmark correction (:func:`correction_per_unit`, mm per unit) through the end-exhale
         landmarks: the sliding correction (kind ``"sliding"``) or a thin-plate spline (older kinds),
         with its smoothing; None without landmarks.
     """
 
-    surface: SlidingField | DisplacementField
+    surface: SlidingField | CorrespondenceField | DisplacementField
     landmark: SlidingField | DisplacementField | None = None
 
     @property
@@ -240,15 +242,22 @@ class InteriorField:
 
 
 def interior_field(vertices, displacement, landmarks=None, correction=None, smoothing: float = 0.0,
-                   *, normals, kind: str = "sliding", seed: int = 0) -> InteriorField:
+                   *, normals, kind: str = "sliding", seed: int = 0,
+                   correspondence: CorrespondenceField | None = None) -> InteriorField:
     """An :class:`InteriorField` from a lung's ``vertices : (n, 3)`` mm, their unit outward
     ``normals : (n, 3)`` and ``displacement : (n, 3)`` mm per unit, with an optional landmark
     ``correction : (m, 3)`` mm per unit at ``landmarks : (m, 3)`` mm. ``kind``: one of
     :data:`KINDS`; ``smoothing``: the correction's, in mm (``"sliding"``: the surface smoothing of
-    :func:`lungdeform.interior.sliding.sliding_correction`) or mm² (the thin-plate kinds)."""
+    :func:`lungdeform.interior.sliding.sliding_correction`) or mm² (the thin-plate kinds).
+    ``correspondence``: the surface part is this map (:mod:`lungdeform.interior.correspondence`)
+    instead of the sliding interpolation of ``displacement`` (kind ``"sliding"`` only)."""
     if not (np.isfinite(smoothing) and smoothing >= 0):
         raise InputError(f"smoothing must be >= 0, got {smoothing!r}")
-    if kind in ("sliding", "sliding_thin_plate"):
+    if correspondence is not None and kind != "sliding":
+        raise InputError(f"a correspondence field goes with interior kind 'sliding', got {kind!r}")
+    if correspondence is not None:
+        surface = correspondence
+    elif kind in ("sliding", "sliding_thin_plate"):
         surface = sliding_field(vertices, normals, displacement, max_points=MAX_SURFACE_POINTS, seed=seed)
     elif kind == "thin_plate":
         surface = displacement_field(vertices, displacement, max_points=MAX_SURFACE_POINTS, seed=seed)

@@ -1,12 +1,12 @@
 """The model file: a versioned ``.npz`` (numpy zip) holding everything playback needs.
 
-Schema ``lungdeform.model``, version 3 (documented in docs/MODEL_FORMAT.md). Top-level keys:
+Schema ``lungdeform.model``, version 4 (documented in docs/MODEL_FORMAT.md). Top-level keys:
 
 =================  ==================  =====================================================
 key                type                meaning
 =================  ==================  =====================================================
 schema             str                 ``"lungdeform.model"``
-schema_version     int                 3 (1 and 2 are read too)
+schema_version     int                 4 (1 to 3 are read too)
 lungs              (k,) str            lung names (``"left"``, ``"right"``)
 provenance         str (JSON)          sources, settings, software version, creation time
 =================  ==================  =====================================================
@@ -23,10 +23,15 @@ with interior landmarks): ``landmarks (m, 3)`` mm LPS, ``landmark_correction (m,
 (a fit of cropped scans): ``interior_vertices (n,) bool`` (at least 13 set), the vertices whose
 motion drives the interior field (the crop faces left out). Optional (an older lung saved again):
 ``interior_kind`` str, ``"sliding_thin_plate"`` or ``"thin_plate"`` (it keeps the interior field it
-was made with; absent: ``"sliding"``).
+was made with; absent: ``"sliding"``). Optional (a fit whose interior follows a surface-to-surface
+map, :mod:`lungdeform.interior.correspondence`): ``interior_map_linear (3, 4)`` mm per unit,
+``interior_map_warp (3, 4)``, ``interior_map_centers (k, 3)`` mm LPS, ``interior_map_weights (k, 3)``
+mm per unit and ``interior_map_width_mm``; all five or none.
 
 Loading checks the schema name and version, that every key is present, and every shape.
-Each version changed only how interior points move (:attr:`LungModel.interior_kind`). Version 3:
+Each version changed only how interior points move (:attr:`LungModel.interior_kind`). Version 4 adds
+the optional surface-to-surface map (an older reader would play such a lung's interior differently,
+so it refuses the file instead). Version 3:
 the landmark correction is the sliding correction (:func:`lungdeform.interior.sliding.sliding_correction`,
 which keeps the surface's normal motion), where version 2 used a thin-plate spline through the same
 per-unit residuals (``interior_kind = "sliding_thin_plate"``). Version 2 made the surface part the
@@ -51,14 +56,17 @@ from lungdeform.atomic import atomic_path, finite_json
 from lungdeform.errors import InputError, ModelFileError
 from lungdeform.geometry.frame import LungFrame
 from lungdeform.geometry.mesh import Surface
+from lungdeform.interior.correspondence import CorrespondenceField
 from lungdeform.model.lung import LungModel, Model
 
 SCHEMA = "lungdeform.model"
-SCHEMA_VERSION = 3
-#: Schema versions this lungdeform reads: 1 and 2 differ only in their interior field (module docstring).
-READABLE_VERSIONS = (1, 2, 3)
+SCHEMA_VERSION = 4
+#: Schema versions this lungdeform reads: they differ only in their interior field (module docstring).
+READABLE_VERSIONS = (1, 2, 3, 4)
 
 _OPTIONAL = ("landmarks", "landmark_correction", "landmark_smoothing")
+#: The surface-to-surface map's arrays (:class:`~lungdeform.interior.correspondence.CorrespondenceField`).
+_MAP = ("linear", "warp", "centers", "weights", "width_mm")
 _PER_LUNG = ("side", "vertices", "faces", "constants", "stiffness", "frame_axes", "frame_lower",
              "frame_upper", "directions", "force_basis", "gravity", "force_weights",
              "displacement", "unit_ml", "calibration_ml", "d_min", "volume_ee_ml", "volume_poly")
@@ -93,6 +101,8 @@ def lung_arrays(lung: LungModel) -> dict[str, np.ndarray]:
         out["interior_vertices"] = np.asarray(lung.interior_vertices, bool)
     if lung.interior_kind != "sliding":  # an older lung saved again keeps its interior field
         out["interior_kind"] = np.array(lung.interior_kind)
+    if lung.interior_map is not None:
+        out.update({f"interior_map_{k}": np.asarray(getattr(lung.interior_map, k)) for k in _MAP})
     return out
 
 
@@ -206,9 +216,22 @@ def _lung(path: Path, name: str, data: dict, version: int = SCHEMA_VERSION) -> L
             landmarks=opt.get("landmarks"), landmark_correction=opt.get("landmark_correction"),
             landmark_smoothing=float(opt.get("landmark_smoothing", 0.0)),
             interior_vertices=data.get(prefix + "interior_vertices"), interior_kind=kind,
+            interior_map=_interior_map(data, prefix),
         )
     except InputError as exc:
         raise ModelFileError(f"{path}: lung '{name}' {exc}") from exc
+
+
+def _interior_map(data: dict, prefix: str) -> CorrespondenceField | None:
+    """The lung's surface-to-surface map, or None; InputError (named by the caller) when partial or malformed."""
+    keys = [prefix + "interior_map_" + k for k in _MAP]
+    present = [k for k in keys if k in data]
+    if not present:
+        return None
+    if len(present) != len(keys):
+        raise InputError(f"has only part of the interior map ({', '.join(k[len(prefix):] for k in present)})")
+    linear, warp, centers, weights, width = (np.asarray(data[k]) for k in keys)
+    return CorrespondenceField(linear, warp, centers, weights, float(width))
 
 
 def provenance(command: str, **extra) -> dict:

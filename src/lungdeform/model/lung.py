@@ -24,6 +24,7 @@ from lungdeform.constants import TIDAL_VOLUME_ML, gravity_vector, table_constant
 from lungdeform.errors import InputError, LungdeformError
 from lungdeform.geometry.frame import LungFrame, lung_frame
 from lungdeform.geometry.mesh import Surface
+from lungdeform.interior.correspondence import CorrespondenceField
 from lungdeform.interior.field import KINDS, interior_field
 
 from .direction import directions as direction_field
@@ -80,6 +81,10 @@ class LungModel:
         ``"sliding_thin_plate"`` (the same surface part, a thin-plate correction; schema-2 files) or
         ``"thin_plate"`` (the thin-plate spline of the whole displacement; schema-1 files). Older
         files play back as they were made.
+    interior_map : CorrespondenceField or None
+        When set, the surface part of the interior field is this surface-to-surface map
+        (:mod:`lungdeform.interior.correspondence`, fitted by :mod:`lungdeform.fit.registration`)
+        instead of the sliding interpolation of :attr:`displacement`; kind ``"sliding"`` only.
     """
 
     side: str
@@ -99,10 +104,13 @@ class LungModel:
     landmark_smoothing: float = 0.0
     interior_vertices: np.ndarray | None = None
     interior_kind: str = "sliding"
+    interior_map: CorrespondenceField | None = None
 
     def __post_init__(self):
         if self.interior_kind not in KINDS:
             raise InputError(f"interior_kind must be one of {', '.join(KINDS)}, got {self.interior_kind!r}")
+        if self.interior_map is not None and self.interior_kind != "sliding":
+            raise InputError(f"an interior_map goes with interior_kind 'sliding', got {self.interior_kind!r}")
         iv = self.interior_vertices
         if iv is not None:
             iv = np.asarray(iv)
@@ -172,7 +180,8 @@ class LungModel:
         on = slice(None) if self.interior_vertices is None else np.asarray(self.interior_vertices, bool)
         return interior_field(self.surface.vertices[on], self.displacement[on], self.landmarks,
                               self.landmark_correction, self.landmark_smoothing,
-                              normals=self.surface.vertex_normals[on], kind=self.interior_kind)
+                              normals=self.surface.vertex_normals[on], kind=self.interior_kind,
+                              correspondence=self.interior_map)
 
     def points_at(self, points, volume_ml: float | None = None, *, scale: float | None = None,
                   exact: bool = False) -> np.ndarray:
@@ -193,7 +202,7 @@ class LungModel:
         (:meth:`LungFrame.supported`), then exact volume calibration. No new solve. A fitted
         direction correction (:mod:`lungdeform.fit.direction_correction`) and landmark correction
         belong to the scans' posture: the new directions are the paper's (15)–(17) and the
-        landmark correction is dropped."""
+        landmark correction and the interior map are dropped."""
         g = gravity_vector(gravity)
         w = force_weights(self.frame, g, self.constants)
         d = direction_field(self.frame.supported(g), self.surface.vertices, self.constants)
@@ -201,7 +210,7 @@ class LungModel:
         u = _calibrated(self.surface, raw, self.calibration_ml, self.unit_ml, gravity)
         # the landmark correction was observed in the scan's posture: it does not carry over
         return replace(self, gravity=g, directions=d, displacement=u, landmarks=None,
-                       landmark_correction=None, landmark_smoothing=0.0)
+                       landmark_correction=None, landmark_smoothing=0.0, interior_map=None)
 
 
 def build_lung(

@@ -35,6 +35,7 @@ from lungdeform.errors import InputError, ReadError
 from lungdeform.fit import baselines as B
 from lungdeform.fit.config import FitConfig, FitInputs
 from lungdeform.fit.lungsplit import SIDES, landmarks_of_side, require_split
+from lungdeform.fit.motion_prior import RIDGE, PriorSample, learn_motion_prior, save_prior
 from lungdeform.fit.pipeline import run_fit
 from lungdeform.io.image import read_image
 from lungdeform.io.landmarks import read_elastix_points
@@ -44,10 +45,14 @@ FILES = ("copd{n}_exp_mask.nii.gz", "copd{n}_insp_mask.nii.gz", "copd{n}_exp_lan
          "copd{n}_insp_landmarks.txt")
 #: Rows of the pipeline's metrics collected per lung, and their figures.
 ROWS = {"model": ("surface_mean_mm", "landmark_mean_mm"), "model_surface_only": ("landmark_mean_mm",),
+        "model_surface_sliding": ("landmark_mean_mm",),
         "no_motion": ("surface_mean_mm", "landmark_mean_mm"), "affine": ("surface_mean_mm", "landmark_mean_mm"),
         "cpd": ("surface_mean_mm", "landmark_mean_mm"), "landmarks_tps": ("landmark_mean_mm",)}
 #: The calibrated mask-only baselines (landmark error only; docs/FITTING.md), with the calibration (mm).
 MASK_ROWS = {"no_motion_centroids": 16.2, "affine_moments": 11.9, "cpd_moments": 8.5}
+#: Every row of the tables, in order: the fit's rows, the correspondence field without the prior
+#: (:func:`apply_loso_priors`), the calibrated mask-only rows.
+TABLE_ROWS = (*ROWS, "model_surface_noprior", *MASK_ROWS)
 
 
 def find_cases(data: Path, cases=None) -> dict[str, tuple[Path, ...]]:
@@ -201,11 +206,47 @@ def run_copd(data: Path, out: Path, config: FitConfig | None = None, cases=None,
             result["cases"].setdefault(name, {})[side] = lung_row(metrics)
             if fitted:
                 result["refitted"].append(f"{name}/{side}")
+    result["prior"] = apply_loso_priors(out, result["cases"])
     result["summary"] = summarise(result["cases"])
     result["calibration_mm"] = dict(MASK_ROWS)
     write_json(out / "metrics.json", result, strict=True, default=str)
     write_report(out / "report.html", result)
     return result
+
+
+def prior_sample(folder: Path, subject: str, side: str) -> PriorSample | None:
+    """A lung's :class:`~lungdeform.fit.motion_prior.PriorSample` from its fit's ``landmarks.npz``
+    (the largest-volume target), or None when the fit wrote none (a sliding interior)."""
+    path = folder / "landmarks.npz"
+    if not path.is_file():
+        return None
+    with np.load(path) as z:
+        i = int(np.argmax(z["volumes_ml"]))
+        return PriorSample(subject, side, z["centroid"], z["scale"], z["landmarks"], z["observed"][i] - z["surface_only"][i])
+
+
+def apply_loso_priors(out: Path, cases: dict) -> dict:
+    """The population motion prior scored leave-one-subject-out: for each case, a prior learned on
+    the other cases' lungs (:func:`lungdeform.fit.motion_prior.learn_motion_prior`) added to its
+    correspondence field; in each lung's row ``model_surface_only`` becomes that (the field alone
+    moves to ``model_surface_noprior``). Writes ``out/priors/<case>.json`` (what scored each case) and
+    ``out/motion_prior.json`` (learned on every case, for new subjects). Returns what was done."""
+    samples = {(name, side): prior_sample(out / name / side, name, side) for name in cases for side in cases[name]}
+    if len({k[0] for k, v in samples.items() if v is not None}) < 2:
+        return {"applied": False, "reason": "a leave-one-subject-out prior needs landmark fits of at least 2 cases"}
+    for name, case in cases.items():
+        train = [v for (n, _), v in samples.items() if n != name and v is not None]
+        prior = learn_motion_prior(train)
+        save_prior(out / "priors" / f"{name}.json", prior)
+        for side, row in case.items():
+            smp = samples[(name, side)]
+            if smp is None:
+                continue
+            moved = smp.residual - prior.displacement(smp.points, smp.centroid, smp.scale, side)
+            row["model_surface_noprior"] = row.pop("model_surface_only")
+            row["model_surface_only"] = {"landmark_mean_mm": float(np.linalg.norm(moved, axis=1).mean())}
+    save_prior(out / "motion_prior.json", learn_motion_prior([v for v in samples.values() if v is not None]))
+    return {"applied": True, "ridge": RIDGE, "scored": "leave one subject out", "all_cases": "motion_prior.json"}
 
 
 def _cell(v) -> str:
@@ -214,7 +255,7 @@ def _cell(v) -> str:
 
 def _table(rows: dict) -> str:
     """HTML table: one line per lung (or the summary), surface and landmark mean per method."""
-    names = list(ROWS) + list(MASK_ROWS)
+    names = list(TABLE_ROWS)
     head = "".join(f"<th>{html.escape(n)}<br>surface / landmark</th>" for n in names)
     lines = [f"<tr><th>lung</th>{head}<th>s</th></tr>"]
     for lung, row in rows.items():

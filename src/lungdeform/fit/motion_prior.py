@@ -1,0 +1,147 @@
+"""A population prior of interior motion: what other subjects' landmarks say the surfaces miss.
+
+From the surfaces alone a new patient's interior motion is the correspondence field
+(:mod:`lungdeform.interior.correspondence`). On the DIR-Lab COPDgene masks its landmark residuals are
+mostly affine and shared across subjects (the predictions sit 2–8 mm too far posterior; docs/FITTING.md,
+"Interior from the surfaces alone"). The prior is that shared part: a least-squares affine map of
+residual displacement (mm, at each training subject's largest volume) over the lung-normalised
+position ``q̂ = (q − μ) / σ`` (``μ`` the solid's centroid, ``σ (3,)`` the standard deviations of its
+solid along x, y, z; the x axis mirrored for a left lung, so lateral means the same on both sides),
+
+    r(q) = β₀ + B q̂,        β = argmin Σ_lungs (1/m_l) Σ_j |r_j − β₀ − B q̂_j|² + λ |B|²,
+
+each training lung weighted equally whatever its landmark count. Applied to a new lung it is an
+affine displacement in world mm (:meth:`MotionPrior.affine`), so it folds into the correspondence
+field's affine part and playback costs nothing more. Scored only leave-one-subject-out
+(``lungdeform validate copd``): a prior never scores the subject it was learned from.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from lungdeform.atomic import write_json
+from lungdeform.errors import InputError, ReadError
+from lungdeform.geometry.mesh import Surface, as_vertices
+from lungdeform.geometry.moments import solid_moments
+
+SCHEMA = "lungdeform.motion_prior"
+SCHEMA_VERSION = 1
+#: Ridge weight ``λ`` on the linear part (chosen leave-one-subject-out on the shared cases).
+RIDGE = 1.0
+SIDES = ("left", "right")
+
+
+def lung_normaliser(surface: Surface) -> tuple[np.ndarray, np.ndarray]:
+    """``(μ (3,) mm, σ (3,) mm)``: centroid and per-axis standard deviation of the solid ``surface`` encloses."""
+    _, mu, cov = solid_moments(surface.vertices, surface.faces)
+    return mu, np.sqrt(np.diag(cov))
+
+
+def _normalised(points, centroid, scale, side: str) -> np.ndarray:
+    if side not in SIDES:
+        raise InputError(f"side must be 'left' or 'right', got {side!r}")
+    sd = np.asarray(scale, float).reshape(3)
+    if not np.all(sd > 0):
+        raise InputError(f"scale must be (3,) positive mm, got {sd.tolist()}")
+    q = (as_vertices(points, "points") - np.asarray(centroid, float).reshape(3)) / sd
+    return q * _mirror(side)
+
+
+def _mirror(side: str) -> np.ndarray:
+    return np.array([-1.0, 1.0, 1.0]) if side == "left" else np.ones(3)
+
+
+@dataclass(frozen=True)
+class PriorSample:
+    """One training lung: ``points (m, 3)`` mm (end-exhale landmarks), ``residual (m, 3)`` mm (observed
+    position at the largest volume minus the correspondence field's), its ``side``, ``centroid (3,)``
+    and ``scale (3,)`` mm (:func:`lung_normaliser`) and the ``subject`` it belongs to."""
+
+    subject: str
+    side: str
+    centroid: np.ndarray
+    scale: np.ndarray
+    points: np.ndarray
+    residual: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class MotionPrior:
+    """The learned prior (module docstring): ``coefficients (4, 3)`` mm (rows β₀, then B's rows for
+    x̂, ŷ, ẑ; mirrored frame), the ``subjects`` it was learned from and its ``ridge``."""
+
+    coefficients: np.ndarray
+    subjects: tuple[str, ...]
+    ridge: float = RIDGE
+
+    def __post_init__(self):
+        c = np.asarray(self.coefficients, float)
+        if c.shape != (4, 3) or not np.all(np.isfinite(c)):
+            raise InputError(f"coefficients must be a finite (4, 3) array, got shape {c.shape}")
+        object.__setattr__(self, "coefficients", c)
+        object.__setattr__(self, "subjects", tuple(str(s) for s in self.subjects))
+
+    def displacement(self, points, centroid, scale, side: str) -> np.ndarray:
+        """``(m, 3)`` mm: the prior's residual displacement at ``points : (m, 3)`` mm of a lung."""
+        q = _normalised(points, centroid, scale, side)
+        return (self.coefficients[0] + q @ self.coefficients[1:]) * _mirror(side)
+
+    def affine(self, centroid, scale, side: str) -> np.ndarray:
+        """``(3, 4)``: the same displacement as ``[M | b]`` in world mm, ``M q + b``."""
+        mir, sd, mu = _mirror(side), np.asarray(scale, float), np.asarray(centroid, float)
+        m = (self.coefficients[1:] * (mir / sd)[:, None]).T * mir[:, None]  # (3, 3): out × in
+        b = self.coefficients[0] * mir - m @ mu
+        return np.c_[m, b]
+
+    def as_dict(self) -> dict:
+        return {"schema": SCHEMA, "schema_version": SCHEMA_VERSION, "coefficients_mm": self.coefficients.tolist(),
+                "subjects": list(self.subjects), "ridge": self.ridge,
+                "frame": "lung-normalised position (x mirrored for a left lung) -> residual displacement, mm"}
+
+
+def learn_motion_prior(samples, ridge: float = RIDGE) -> MotionPrior:
+    """:class:`MotionPrior` from ``samples`` (:class:`PriorSample`, one per training lung)."""
+    samples = list(samples)
+    if len(samples) < 2:
+        raise InputError(f"a motion prior needs at least 2 training lungs, got {len(samples)}")
+    if not (np.isfinite(ridge) and ridge >= 0):
+        raise InputError(f"ridge must be >= 0, got {ridge!r}")
+    xs, ys, ws = [], [], []
+    for smp in samples:
+        q = _normalised(smp.points, smp.centroid, smp.scale, smp.side)
+        r = as_vertices(smp.residual, "residual")
+        if len(r) != len(q) or len(q) == 0:
+            raise InputError(f"{smp.subject} {smp.side}: need one residual per point ({len(q)}), got {len(r)}")
+        xs.append(np.c_[np.ones(len(q)), q])
+        ys.append(r * _mirror(smp.side))
+        ws.append(np.full(len(q), 1.0 / len(q)))
+    x, y, w = np.vstack(xs), np.vstack(ys), np.concatenate(ws)
+    reg = float(ridge) * np.diag([0.0, 1.0, 1.0, 1.0]) * w.sum() / len(samples)
+    beta = np.linalg.solve((x * w[:, None]).T @ x + reg, (x * w[:, None]).T @ y)
+    return MotionPrior(beta, tuple(sorted({s.subject for s in samples})), float(ridge))
+
+
+def save_prior(path, prior: MotionPrior) -> Path:
+    """Write ``prior`` as JSON to ``path``, atomically."""
+    return write_json(Path(path), prior.as_dict(), strict=True)
+
+
+def load_prior(path) -> MotionPrior:
+    """Read a prior written by :func:`save_prior`; :class:`ReadError` naming the file otherwise."""
+    p = Path(path)
+    try:
+        data = json.loads(p.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise ReadError(f"{p}: not a readable motion prior ({exc.__class__.__name__}: {exc})") from exc
+    if not isinstance(data, dict) or data.get("schema") != SCHEMA or data.get("schema_version") != SCHEMA_VERSION:
+        raise ReadError(f"{p}: not a {SCHEMA} file of version {SCHEMA_VERSION}")
+    try:
+        return MotionPrior(np.asarray(data["coefficients_mm"], float), tuple(data.get("subjects", ())),
+                           float(data.get("ridge", RIDGE)))
+    except (KeyError, TypeError, ValueError, InputError) as exc:
+        raise ReadError(f"{p}: malformed motion prior ({exc})") from exc

@@ -1,0 +1,57 @@
+"""The correspondence field: its affine and Gaussian parts against a dense evaluation."""
+
+import numpy as np
+import pytest
+
+from lungdeform.errors import InputError
+from lungdeform.interior import correspondence as C
+from lungdeform.interior.correspondence import CorrespondenceField
+
+
+def _field(rng, k=50):
+    warp = np.c_[np.eye(3) + 0.05 * rng.normal(size=(3, 3)), rng.normal(size=3)]
+    return CorrespondenceField(0.01 * rng.normal(size=(3, 4)), warp, rng.normal(scale=40.0, size=(k, 3)),
+                               rng.normal(size=(k, 3)), 30.0)
+
+
+def _dense(f, q):
+    y = q @ f.warp[:, :3].T + f.warp[:, 3]
+    d2 = ((y[:, None, :] - f.centers[None, :, :]) ** 2).sum(axis=2)
+    return q @ f.linear[:, :3].T + f.linear[:, 3] + np.exp(-d2 / (2 * f.width_mm**2)) @ f.weights
+
+
+def test_blocked_evaluation_equals_the_dense_formula(rng, monkeypatch):
+    # the field is evaluated in blocks to bound memory; a block edge must not change any value
+    f = _field(rng)
+    q = rng.normal(scale=50.0, size=(37, 3))
+    monkeypatch.setattr(C, "BLOCK", 8)
+    np.testing.assert_allclose(f(q), _dense(f, q), rtol=1e-12, atol=1e-12)
+
+
+def test_zero_weights_leave_the_affine_part(rng):
+    # with no Gaussian weight the displacement is exactly L [q; 1]
+    f = _field(rng)
+    g = CorrespondenceField(f.linear, f.warp, f.centers, np.zeros_like(f.weights), f.width_mm)
+    q = rng.normal(scale=50.0, size=(10, 3))
+    np.testing.assert_allclose(g(q), q @ f.linear[:, :3].T + f.linear[:, 3], atol=1e-12)
+
+
+def test_with_linear_adds_an_affine_displacement(rng):
+    # a prior folded in adds M q + b and leaves the original field unchanged (a new object)
+    f = _field(rng)
+    extra = rng.normal(size=(3, 4))
+    q = rng.normal(scale=50.0, size=(10, 3))
+    g = f.with_linear(extra)
+    np.testing.assert_allclose(g(q) - f(q), q @ extra[:, :3].T + extra[:, 3], atol=1e-10)
+    assert g is not f and np.allclose(f(q), _dense(f, q))
+
+
+@pytest.mark.parametrize("change, match", [({"linear": np.zeros((3, 3))}, "linear"),
+                                           ({"warp": np.full((3, 4), np.nan)}, "warp"),
+                                           ({"weights": np.zeros((4, 3))}, "weights"),
+                                           ({"width_mm": 0.0}, "width_mm")])
+def test_malformed_fields_are_refused_by_name(rng, change, match):
+    f = _field(rng, k=5)
+    args = {"linear": f.linear, "warp": f.warp, "centers": f.centers, "weights": f.weights, "width_mm": 30.0}
+    with pytest.raises(InputError, match=match):
+        CorrespondenceField(**{**args, **change})
