@@ -7,7 +7,14 @@ import pytest
 from scipy.signal import butter, sosfiltfilt
 
 from lungdeform.breathing import cycles
-from lungdeform.breathing.cycles import _breaths, cycle_anchors, cycle_flags, dominant_period, noise_level, turning_points
+from lungdeform.breathing.cycles import (
+    _breaths,
+    cycle_anchors,
+    cycle_flags,
+    dominant_period,
+    noise_level,
+    turning_points,
+)
 from lungdeform.breathing.trace import Trace, read_trace, resample
 from lungdeform.errors import InputError
 from tests.breathing.test_trace import breath, write_marker_csv

@@ -12,8 +12,8 @@ from lungdeform.geometry.mesh import icosphere
 from lungdeform.io import dicomseries as DS
 from lungdeform.io.image import read_image
 from lungdeform.io.rtstruct import read_ct_series, write_rtstruct
-from tests.conftest import require_path
 from tests.cli.test_dvf import files  # noqa: F401  (the shared module fixture)
+from tests.conftest import require_path
 
 
 def test_warp_keeps_labels_and_metadata(files, tmp_path):

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
+from lungdeform.fit import registration as R
 from lungdeform.geometry.mesh import Surface, icosphere
 from lungdeform.geometry.moments import solid_moments
-from lungdeform.fit import registration as R
 
 pytest.importorskip("pycpd")
 
