@@ -236,3 +236,20 @@ def test_lung_arrays_of_text_raise_model_file_error(tmp_path):
     np.savez(tmp_path / "text.npz", **arrays)
     with pytest.raises(ModelFileError, match=r"text\.npz: damaged lung arrays"):
         load_model(tmp_path / "text.npz")
+
+
+def test_raw_zip_members_raise_model_file_error(tmp_path, model):
+    # found by the fuzzer: a zip member without the .npy suffix comes back from numpy as raw bytes,
+    # which ended in an AttributeError; it is a damaged model file, named as such
+    import zipfile
+
+    path = save_model(tmp_path / "m.npz", Model({"left": model}))
+    bad = tmp_path / "raw.npz"
+    with zipfile.ZipFile(path) as src, zipfile.ZipFile(bad, "w") as dst:
+        for item in src.infolist():
+            if item.filename == "schema_version.npy":  # the version as plain text, not an .npy array
+                dst.writestr("schema_version", b"4")
+            else:
+                dst.writestr(item.filename, src.read(item.filename))
+    with pytest.raises(ModelFileError, match=r"raw.npz: not a lungdeform model file \(member 'schema_version'"):
+        load_model(bad)

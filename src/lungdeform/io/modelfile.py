@@ -139,6 +139,9 @@ def load_model(path) -> Model:
             if not hasattr(z, "files"):  # a lone .npy array: np.load returns it, not an archive
                 raise ModelFileError(f"{path}: not a lungdeform model file (one NumPy array, not an .npz archive)")
             data = {k: z[k] for k in z.files}
+        raw = [k for k, v in data.items() if not isinstance(v, np.ndarray)]  # a zip member without .npy
+        if raw:
+            raise ModelFileError(f"{path}: not a lungdeform model file (member {raw[0]!r} is not a NumPy array)")
     except ValueError as exc:  # numpy's advice on pickled objects is not for our users
         why = "it holds Python objects, not arrays" if "pickle" in str(exc) else str(exc)
         raise ModelFileError(f"{path}: not a lungdeform model file ({why})") from exc
