@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import locale as _locale
 import os
 from pathlib import Path
 
@@ -66,13 +67,17 @@ def right_lung():
     return ellipsoid_lung("right")
 
 
+#: The process locale when the tests started (before any GDCM call could change it).
+_START_LOCALE = _locale.setlocale(_locale.LC_ALL)
+
+
 @pytest.fixture(autouse=True)
 def _process_locale_restored():
-    # GDCM's DICOM writer (used to build test series) leaves the process locale at "C", which turns
-    # every later open() without an explicit encoding ASCII: each test ends with the locale it began with
-    import locale
-
-    saved = locale.setlocale(locale.LC_ALL)
+    # GDCM's DICOM writer (used to build test series, also in module-scoped fixtures) leaves the
+    # process locale at "C", which turns every later open() without an explicit encoding ASCII:
+    # every test starts and ends with the locale the session started with
+    if _locale.setlocale(_locale.LC_ALL) != _START_LOCALE:
+        _locale.setlocale(_locale.LC_ALL, _START_LOCALE)
     yield
-    if locale.setlocale(locale.LC_ALL) != saved:
-        locale.setlocale(locale.LC_ALL, saved)
+    if _locale.setlocale(_locale.LC_ALL) != _START_LOCALE:
+        _locale.setlocale(_locale.LC_ALL, _START_LOCALE)

@@ -114,7 +114,7 @@ def test_layers_contract_passes_lint_imports():
     if exe is None:
         pytest.skip("lint-imports is not installed (make test installs it into .venv)")
     res = subprocess.run([str(exe), "--config", str(REPO / "pyproject.toml")], cwd=REPO, capture_output=True,
-                         text=True, timeout=300)
+                         encoding="utf-8", errors="replace", timeout=300)
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-2000:]
     assert "BROKEN" not in res.stdout and "KEPT" in res.stdout
 

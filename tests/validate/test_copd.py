@@ -99,8 +99,8 @@ def test_run_copd_structure_and_resume(tmp_path):
     assert res["summary"]["n_lungs"] == 2
     assert res["summary"]["model"]["surface_mean_mm"] == pytest.approx(
         np.median([res["cases"]["copd1"][s]["model"]["surface_mean_mm"] for s in ("left", "right")]))
-    assert json.loads((out / "metrics.json").read_text())["cases"] == res["cases"]
-    assert (out / "report.html").read_text().count("data:image/png;base64") == 1
+    assert json.loads((out / "metrics.json").read_text(encoding="utf-8"))["cases"] == res["cases"]
+    assert (out / "report.html").read_text(encoding="utf-8").count("data:image/png;base64") == 1
     stamp = (out / "copd1" / "left" / "model.npz").stat().st_mtime_ns
     again = C.run_copd(data, out, config)
     assert again["refitted"] == [] and again["cases"] == res["cases"]

@@ -135,7 +135,7 @@ def load_prior(path) -> MotionPrior:
     """Read a prior written by :func:`save_prior`; :class:`ReadError` naming the file otherwise."""
     p = Path(path)
     try:
-        data = json.loads(p.read_text())
+        data = json.loads(p.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, ValueError) as exc:
         raise ReadError(f"{p}: not a readable motion prior ({exc.__class__.__name__}: {exc})") from exc
     if not isinstance(data, dict) or data.get("schema") != SCHEMA or data.get("schema_version") != SCHEMA_VERSION:
