@@ -404,3 +404,20 @@ def test_real_trace_variants_keep_their_cycles(data_dir, tmp_path):
         np.testing.assert_allclose(tr.amplitude, orig[kind].amplitude, atol=1e-9)
         n = [cycle_anchors(resample(x, 10.0, max_gap_s=5.0)).n_cycles for x in (tr, orig[kind])]
         assert n[0] == n[1] >= 15, name  # ≈ 25 (RPM) and ≈ 19 (markers) breaths
+
+
+def test_a_timestamp_far_off_is_refused_by_row(tmp_path):
+    # found by the fuzzer: one timestamp 78 000 000 s late in a 25 Hz trace made every uniform-grid
+    # step (orientation, cycles) build billions of samples (a ValueError from numpy, or minutes and
+    # gigabytes); the trace is refused, naming the row after the jump. A real gap of a few minutes,
+    # within GAP_FACTOR × the samples, is kept (truth: its rows are all read)
+    t = np.arange(0, 60_000, 40.0)
+    amp = breath(t / 1000.0)
+    t_bad = t.copy()
+    t_bad[900:] += 7.8e10
+    path = write_vxp(tmp_path / "jump.vxp", t_bad, amp, [""] * len(t))
+    with pytest.raises(InputError, match=r"jump.vxp, line 908: timestamps span .* a timestamp is wrong"):
+        read_trace(path)
+    t_gap = t.copy()
+    t_gap[900:] += 300_000.0  # a 5-minute pause in the recording
+    assert read_trace(write_vxp(tmp_path / "gap.vxp", t_gap, amp, [""] * len(t))).n == len(t)

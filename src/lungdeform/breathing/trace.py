@@ -336,8 +336,28 @@ def _finish(path: Path, t_s, amp, marks, line_no, unit, repair, max_fix_fraction
     if t.size < 2:
         raise InputError(f"{path}: fewer than 2 usable samples")
     t = t - t[0]
+    _check_span(path, t, line_no[keep])
     return Trace(t, amp[keep], unit, marks[keep], source=path.name, fixes=tuple(fixes),
                  positions=None if positions is None else positions[keep])
+
+
+#: A trace spanning more than this many of its median sample intervals (beyond ``GAP_FACTOR`` times
+#: its sample count) holds a timestamp that cannot be right: every step on a uniform grid would cost
+#: time and memory in proportion (a 25 Hz trace of 2·10⁶ intervals is 22 hours).
+MAX_INTERVALS = 2_000_000
+GAP_FACTOR = 10
+
+
+def _check_span(path: Path, t, lines) -> None:
+    """InputError naming the file and the row when the times ``t (n,)`` s (from 0, increasing) span
+    more median intervals than :data:`MAX_INTERVALS` and :data:`GAP_FACTOR` × n allow."""
+    dt = float(np.median(np.diff(t)))
+    span = float(t[-1])
+    if dt > 0 and span / dt > max(MAX_INTERVALS, GAP_FACTOR * t.size):
+        jump = int(np.argmax(np.diff(t))) + 1
+        raise InputError(f"{path}, line {int(lines[jump])}: timestamps span {span:.4g} s at a median sample interval of "
+                         f"{dt:.3g} s ({span / dt:.3g} intervals for {t.size} samples): a timestamp is wrong "
+                         f"(largest jump, {np.max(np.diff(t)):.4g} s, before this row)")
 
 
 # --------------------------------------------------------------------------- resampling
