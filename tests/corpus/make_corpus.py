@@ -52,7 +52,23 @@ def _model_files() -> dict[str, bytes]:
         "text_version.npz": _zip({**header, "schema_version.npy": _npy("three")}),
         # a lone .npy array: np.load returns an ndarray, not an archive (no context manager)
         "lone_array.npz": _npy(np.zeros(3)),
+        # found by fuzz_model: a member that is not an .npy comes back from numpy as raw bytes
+        "raw_member.npz": _zip({**header, "provenance": b"{}"}),
     }
+
+
+def _jump_traces() -> dict[str, bytes]:
+    """Found by fuzz_trace_vxp and fuzz_trace_csv: one timestamp about 2.5 years late in a 25 Hz
+    breath, which made every uniform-grid step build billions of samples."""
+    t_ms = np.arange(0, 8000, 40.0)
+    t_ms[150:] += 7.8e10
+    amp = np.sin(2 * np.pi * np.arange(200) / 100.0)
+    vxp = ["[Header]", "CRC=1", "Version=1.6", "Data_layout=amplitude,phase,timestamp,validflag,ttlin,mark,ttlout",
+           "Samples_per_second=25", "Scale_factor=10.0", "[Data]"]
+    vxp += [f"{a:.4f},0,{t:.0f},0,1,,0" for t, a in zip(t_ms, amp)]
+    csv = ['"Frame";"Timestamp";"x";"y";"z"'] + [f"{i};{t:.0f};0;{a:.4f};0" for i, (t, a) in enumerate(zip(t_ms, amp))]
+    return {"timestamp_jump.vxp": ("\r\n".join(vxp) + "\r\n").encode(),
+            "timestamp_jump.csv": ("\n".join(csv) + "\n").encode()}
 
 
 def _mesh_files() -> dict[str, bytes]:
@@ -91,7 +107,8 @@ def _text_files() -> dict[str, dict[str, bytes]]:
                                     b"encoding: raw\n\n\x00"},
         "curve": {"empty.csv": b"", "garbage.csv": GARBAGE, "nan.csv": b"t_s,volume_ml\n0,0\n1,nan\n2,100\n",
                   "wrong_header.csv": b"time,volume\n0,0\n1,100\n"},
-        "trace": {"empty.vxp": b"", "garbage.vxp": GARBAGE, "header_only.vxp": b"[Header]\r\nVersion=1.6\r\n"},
+        "trace": {"empty.vxp": b"", "garbage.vxp": GARBAGE, "header_only.vxp": b"[Header]\r\nVersion=1.6\r\n",
+                  **_jump_traces()},
         "points": {"garbage.csv": GARBAGE, "wrong_header.csv": b"x,y,z\n1,2,3\n",
                    "huge_count.txt": b"point\n99999999999999999999\n1 2 3\n"},
         "manifest": {"nul_byte.csv": b"subject,side,volume_ml,path\nP01,left,2300,ee\x00.ply\nP01,left,2900,ei.ply\n",

@@ -355,8 +355,8 @@ def _check_span(path: Path, t, lines) -> None:
     span = float(t[-1])
     if dt > 0 and span / dt > max(MAX_INTERVALS, GAP_FACTOR * t.size):
         jump = int(np.argmax(np.diff(t))) + 1
-        raise InputError(f"{path}, line {int(lines[jump])}: timestamps span {span:.4g} s at a median sample interval of "
-                         f"{dt:.3g} s ({span / dt:.3g} intervals for {t.size} samples): a timestamp is wrong "
+        raise InputError(f"{path}, line {int(lines[jump])}: timestamps span {span:.4g} s at a median sample "
+                         f"interval of {dt:.3g} s ({span / dt:.3g} intervals for {t.size} samples): a timestamp is wrong "
                          f"(largest jump, {np.max(np.diff(t)):.4g} s, before this row)")
 
 
