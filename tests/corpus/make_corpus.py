@@ -103,6 +103,10 @@ def _text_files() -> dict[str, dict[str, bytes]]:
                                      b"encoding: raw\n\n" + bytes(120), "empty.mha": b"",
                   "truncated.mha": b"ObjectType = Image\nNDims = 3\nDimSize = 64 64 64\nElementType = MET_UCHAR\n"
                                    b"ElementDataFile = LOCAL\n\x00\x01",
+                  # found by fuzz_image_mha: a malformed file pattern as the data file kills the process
+                  # inside ITK (SIGFPE, a division by zero)
+                  "file_pattern.mha": b"ObjectType = Image\nNDims = 3\nDimSize = 6 5 4\nElementType = MET_UCHAR\n"
+                                      b"ElementDataFile = LOCA%LType = MET_UCHAR\n",
                   "huge_dims.nrrd": b"NRRD0004\ntype: uchar\ndimension: 3\nsizes: 100000 100000 100000\n"
                                     b"encoding: raw\n\n\x00"},
         "curve": {"empty.csv": b"", "garbage.csv": GARBAGE, "nan.csv": b"t_s,volume_ml\n0,0\n1,nan\n2,100\n",

@@ -256,6 +256,11 @@ def _check_header(p: Path) -> None:
     if ndims and not (ndims.group(1).isdigit() and 1 <= int(ndims.group(1)) <= 10):
         raise ReadError(f"{p}: expected a 3-D image, the header gives {ndims.group(1).decode(errors='replace')!r} "
                         "dimensions")
+    datafile = re.search(rb"^\s*ElementDataFile\s*=[ \t]*([^\r\n]*)", head, re.M)
+    if name.endswith((".mha", ".mhd")) and datafile and b"%" in datafile.group(1):
+        # a printf-style file pattern: ITK divides by zero on a malformed one and the process dies (SIGFPE)
+        raise ReadError(f"{p}: ElementDataFile {datafile.group(1).decode(errors='replace').strip()!r} is a file "
+                        "pattern; lungdeform reads LOCAL data, LIST or one data file")
     if not name.endswith((".nii", ".nii.gz", ".mha", ".nrrd")):
         return
     if name.endswith(".mha") and not re.search(rb"ElementDataFile\s*=\s*LOCAL", head):
