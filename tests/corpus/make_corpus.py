@@ -107,6 +107,9 @@ def _text_files() -> dict[str, dict[str, bytes]]:
                   # inside ITK (SIGFPE, a division by zero)
                   "file_pattern.mha": b"ObjectType = Image\nNDims = 3\nDimSize = 6 5 4\nElementType = MET_UCHAR\n"
                                       b"ElementDataFile = LOCA%LType = MET_UCHAR\n",
+                  # found by fuzz_image_mha (libFuzzer timeout): a second NDims line, absurd, after a sane one
+                  "repeated_ndims.mha": b"ObjectType = Image\nNDims = 3\nNDims = 800000000004 2.5\nDimSize = 6 5 4\n"
+                                        b"ElementType = MET_UCHAR\nElementDataFile = LOCAL\n" + bytes(120),
                   "huge_dims.nrrd": b"NRRD0004\ntype: uchar\ndimension: 3\nsizes: 100000 100000 100000\n"
                                     b"encoding: raw\n\n\x00"},
         "curve": {"empty.csv": b"", "garbage.csv": GARBAGE, "nan.csv": b"t_s,volume_ml\n0,0\n1,nan\n2,100\n",

@@ -252,10 +252,12 @@ def _check_header(p: Path) -> None:
     # an absurd dimension count in a text header: refused here, as ITK spins on NDims = 3e14
     # (2-D or 4-D images are refused after reading, with the usual message)
     key = rb"^\s*NDims\s*=[ \t]*(\S*)" if name.endswith((".mha", ".mhd")) else rb"^dimension:[ \t]*(\S*)"
-    ndims = re.search(key, head, re.M) if name.endswith((".mha", ".mhd", ".nrrd", ".nhdr")) else None
-    if ndims and not (ndims.group(1).isdigit() and 1 <= int(ndims.group(1)) <= 10):
-        raise ReadError(f"{p}: expected a 3-D image, the header gives {ndims.group(1).decode(errors='replace')!r} "
-                        "dimensions")
+    # every occurrence: a header may repeat the key, and ITK does not read the first one only
+    counts = re.findall(key, head, re.M) if name.endswith((".mha", ".mhd", ".nrrd", ".nhdr")) else []
+    for ndims in counts:
+        if not (ndims.isdigit() and 1 <= int(ndims) <= 10):
+            raise ReadError(f"{p}: expected a 3-D image, the header gives {ndims.decode(errors='replace')!r} "
+                            "dimensions")
     datafile = re.search(rb"^\s*ElementDataFile\s*=[ \t]*([^\r\n]*)", head, re.M)
     if name.endswith((".mha", ".mhd")) and datafile and b"%" in datafile.group(1):
         # a printf-style file pattern: ITK divides by zero on a malformed one and the process dies (SIGFPE)
