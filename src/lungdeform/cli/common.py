@@ -116,7 +116,7 @@ DIRECTION_DEGREE_HELP = ("Degree of the smooth correction of the paper's directi
 #: → the options that set them (fit, validate itk-pair, cohort).
 FIT_OPTIONS = {"side": "--side", "volumes_ml": "--volumes", "landmarks": "--landmarks", "folds": "--folds",
                "align": "--align", "direction_degree": "--direction-degree", "max_evaluations": "--evaluations",
-               "interior": "--interior", "prior": "--motion-prior"}
+               "interior": "--interior", "prior": "--motion-prior", "refine_mm": "--refine-mm"}
 
 
 @contextmanager

@@ -57,6 +57,10 @@ def register(apps) -> None:
         motion_prior: Path | None = typer.Option(None, "--motion-prior",
                                                  help="A population motion prior (JSON, e.g. the motion_prior.json "
                                                       "of validate copd) folded into the correspondence field."),
+        refine_mm: float = typer.Option(5.0, "--refine-mm",
+                                        help="Finest smoothing width (mm) of the surface refinement, which brings "
+                                             "the fitted displacement onto the target surfaces (docs/FITTING.md); "
+                                             "0: none (the fitted k·F·d only)."),
     ) -> None:
         """Fit c1…c9 of one lung to two or more volumes; write the model, metrics and an HTML report."""
 
@@ -70,7 +74,8 @@ def register(apps) -> None:
             fit_inputs = FitInputs(inputs, side, vols, landmarks)
             config = FitConfig(grid=grid, stiffness=stiffness, baselines=baselines, max_evaluations=evaluations,
                                landmark_fit=landmark_fit, folds=folds, align=align, direction_degree=direction_degree,
-                               landmark_comparisons=landmark_comparisons, side_check=side_check, interior=interior)
+                               landmark_comparisons=landmark_comparisons, side_check=side_check, interior=interior,
+                               refine_mm=refine_mm)
             prior = None if motion_prior is None else load_prior(motion_prior)
             check_prior(config, prior)
             folder = output_dir(out)

@@ -6,7 +6,8 @@ weights), :mod:`~lungdeform.fit.lungsplit` (a mask holding both lungs in one lab
 correspondence), :mod:`~lungdeform.fit.objective` (one lung's objective), :mod:`~lungdeform.fit.fitting`
 (c1…c9, stiffness and direction correction), :mod:`~lungdeform.fit.search` (optimiser and the paper's
 grid), :mod:`~lungdeform.fit.crossval` (landmark cross-validation), :mod:`~lungdeform.fit.expandability`
-(the fitted stiffness field), :mod:`~lungdeform.fit.direction_correction`, :mod:`~lungdeform.fit.registration` (the smooth
+(the fitted stiffness field), :mod:`~lungdeform.fit.direction_correction`, :mod:`~lungdeform.fit.refinement`
+(the smooth residual that brings the fitted surface onto the targets), :mod:`~lungdeform.fit.registration` (the smooth
 surface-to-surface map behind the correspondence interior field), :mod:`~lungdeform.fit.motion_prior`
 (the population prior of interior motion, learned across subjects), :mod:`~lungdeform.fit.baselines`
 (comparison methods), :mod:`~lungdeform.fit.pipeline` (inputs to a saved model and its metrics, in

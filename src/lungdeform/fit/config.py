@@ -18,6 +18,7 @@ from lungdeform.geometry.frame import SIDES
 
 from .direction_correction import DEFAULT_DEGREE, MAX_DEGREE
 from .fitting import MODES
+from .refinement import FINEST_MM
 
 #: Ways of bringing the larger-volume inputs into the end-exhale frame (:mod:`lungdeform.fit.placement`).
 ALIGN_MODES = ("apex", "joint", "none")
@@ -125,6 +126,9 @@ class FitConfig:
         (:mod:`lungdeform.interior.sliding`), or ``"auto"``: the correspondence unless the scans are
         cropped (crop faces on more than :data:`CROP_LIMIT` of a surface's vertices: the field of view
         cuts the lung at different tissue in each scan, so the two solids are not the same tissue).
+    refine_mm : float
+        Finest Gaussian width (mm) of the surface refinement (:mod:`lungdeform.fit.refinement`), ≥ 1;
+        0: no refinement (the displacement is the fitted ``k·F·d``).
     command : str
         What ran the fit, recorded in the model file's provenance.
     """
@@ -142,6 +146,7 @@ class FitConfig:
     landmark_comparisons: bool = False
     side_check: bool = True
     interior: str = "auto"
+    refine_mm: float = FINEST_MM
     command: str = "fit"
 
     def __post_init__(self):
@@ -165,11 +170,14 @@ class FitConfig:
             raise InputError(f"align 'joint' needs the least-squares optimiser, not mode {self.mode!r}")
         if self.interior not in INTERIORS:
             raise InputError(f"interior must be one of {', '.join(INTERIORS)}, got {self.interior!r}")
+        if not (_real(self.refine_mm) and (self.refine_mm == 0 or 1 <= self.refine_mm <= 50)):
+            raise InputError(f"refine_mm must be 0 (no surface refinement) or 1…50 mm, got {self.refine_mm!r}")
         if not isinstance(self.command, str):
             raise InputError(f"command must be a string, got {self.command!r}")
         for name in ("max_evaluations", "folds", "direction_degree"):  # plain Python numbers
             object.__setattr__(self, name, int(getattr(self, name)))
         object.__setattr__(self, "landmark_weight", float(self.landmark_weight))
+        object.__setattr__(self, "refine_mm", float(self.refine_mm))
         for name in switches:
             object.__setattr__(self, name, bool(getattr(self, name)))
 

@@ -43,6 +43,7 @@ from .correspond import RayHits
 from .direction_correction import DirectionCorrection, fit_direction_correction
 from .expandability import fit_stiffness_if_better
 from .objective import LungFitter, Target
+from .refinement import Refinement
 from .search import grid_search, least_squares_search, powell_search
 
 #: Bounds of c1…c6 searched (scales c1, c3, c5; exponents c2, c4, c6).
@@ -106,6 +107,9 @@ class FitResult:
         error of the landmarks used in the fit (NaN without landmarks; an in-sample figure).
     landmarks_used : int
         Number of landmark pairs in the objective (0: surfaces only).
+    refinement : Refinement or None
+        With the surface refinement (:mod:`lungdeform.fit.refinement`): what it did;
+        :attr:`displacement` is then the refined one and ``refinement.before`` the fitted ``k·F·d``.
     translations : (k, 3) float or None
         With ``translate=True``: the translation (mm) fitted jointly for each target; the model was
         fitted to ``target + translations[i]`` (zeros for targets outside ``fit_on``).
@@ -151,6 +155,7 @@ class FitResult:
     landmark_rms_mm: float = float("nan")
     landmarks_used: int = 0
     translations: np.ndarray | None = None
+    refinement: Refinement | None = None
 
     def positions_at(self, surface: Surface, volume_ml: float) -> np.ndarray:
         """Predicted vertices ``p + s·u`` (mm) at lung volume ``volume_ml`` (linear in volume)."""
@@ -167,7 +172,8 @@ class FitResult:
                 "surface_rms_mm": self.surface_rms_mm, "landmarks_used": self.landmarks_used,
                 "landmark_rms_in_fit_mm": self.landmark_rms_mm,
                 "translations_mm": None if self.translations is None else np.asarray(self.translations).tolist(),
-                "direction_correction": None if self.direction_correction is None else self.direction_correction.as_dict()}
+                "direction_correction": None if self.direction_correction is None else self.direction_correction.as_dict(),
+                "refinement": None if self.refinement is None else self.refinement.as_dict()}
 
 
 def fit_lung(

@@ -13,7 +13,8 @@ and runs these steps, each a function of its own:
    (``align``; :func:`lungdeform.fit.placement.place_targets`);
 4. the surface fit of c1…c9 (:func:`fit_surfaces`: :func:`lungdeform.fit.fitting.fit_lung`, and
    optionally the paper's grid search); with ``align="joint"`` its fitted translations move the
-   targets (and their landmarks) before everything after it;
+   targets (and their landmarks) before everything after it; then the surface refinement of the
+   headline fit (:func:`refine_surface`, :mod:`lungdeform.fit.refinement`);
 5. with landmarks, what they give scored on held-out landmarks (k-fold;
    :func:`lungdeform.fit.heldout.held_out_landmarks`): the interior landmark correction
    (:mod:`lungdeform.interior.field`) of the headline ``model`` and, with ``landmark_comparisons``,
@@ -44,6 +45,7 @@ from .heldout import HeldOut, held_out_landmarks
 from .inputs import ReadInputs, read_inputs
 from .motion_prior import MotionPrior, lung_normaliser
 from .placement import Placement, place_targets, shift_targets
+from .refinement import refine_displacement
 from .registration import correspondence_field
 from .report import write_report
 from .scoring import bounding_boxes, protocols, score_targets
@@ -73,6 +75,7 @@ def run_fit(inputs: FitInputs, out: Path, config: FitConfig = FitConfig(), *,
              if read.landmarks is not None and config.landmark_fit else None)
     placed = place_targets(read, read.paths, inputs.landmarks, config.align, say)
     fits, placed, warnings = fit_surfaces(placed, read, inputs.side, config, say)
+    fits["optimizer"] = refine_surface(placed, fits["optimizer"], config, say)
     landmarks = read.landmarks[0] if read.landmarks is not None else None
     surface_field = interior_surface(placed, fits["optimizer"], inputs.side, config, prior, say)
     held = held_out_landmarks(placed, landmarks, fits["optimizer"], inputs.side, config, folds, say, surface_field)
@@ -154,6 +157,21 @@ def fit_surfaces(placed: Placement, read: ReadInputs, side: str, config: FitConf
         fits["grid"] = fit_lung(placed.rest, side, placed.targets, mode="grid", keep=placed.keep, grid_span=0.1,
                                 progress=say)
     return fits, placed, warnings
+
+
+def refine_surface(placed: Placement, fit, config: FitConfig, progress: Callable[[str], None] | None = None):
+    """``fit`` with its displacement brought onto the placed targets by the surface refinement
+    (:func:`lungdeform.fit.refinement.refine_displacement`, finest width ``config.refine_mm``);
+    ``fit`` unchanged when ``config.refine_mm`` is 0."""
+    if not config.refine_mm:
+        return fit
+    say = progress or (lambda _m: None)
+    scales = [(tg.volume_ml - fit.volume_ee_ml) / fit.unit_ml for tg in placed.targets]
+    ref = refine_displacement(placed.rest.vertices, fit.displacement, [tg.surface for tg in placed.targets], scales,
+                              placed.keep, finest_mm=config.refine_mm)
+    say(f"surface refinement (down to {config.refine_mm:g} mm): mean change {ref.mean_change_mm:.2f} mm, "
+        f"largest {ref.max_change_mm:.1f} mm")
+    return replace(fit, displacement=ref.displacement, refinement=ref)
 
 
 def fit_metrics(inputs: FitInputs, read: ReadInputs, placed: Placement, fits: dict, held: HeldOut,

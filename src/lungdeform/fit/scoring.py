@@ -34,8 +34,9 @@ def protocols(fit: FitResult, held: HeldOut, config: FitConfig, grid: bool) -> d
 
     use_lm, folds = held.interior is not None, config.folds
     corrected = fit.paper_displacement is not None
-    kind = ", ".join(["c1…c9"] + (["stiffness field"] if fit.stiffness_fitted else [])
+    fitted = ", ".join(["c1…c9"] + (["stiffness field"] if fit.stiffness_fitted else [])
                      + ([f"direction correction of degree {config.direction_degree}"] if corrected else []))
+    kind = fitted + (f", surface refinement down to {config.refine_mm:g} mm" if fit.refinement is not None else "")
     if held.surface_unit is not None:
         out = {surface_name(held): f"surface fit ({kind}; no landmark used); landmarks moved by the correspondence "
                                    "field (lungdeform.fit.registration: the smooth map of the end-exhale surface "
@@ -58,6 +59,10 @@ def protocols(fit: FitResult, held: HeldOut, config: FitConfig, grid: bool) -> d
                                      f"landmarks")
         if held.cv_stiffness is not None:
             out["model_landmarks_stiffness"] = out["model_landmark_fit"] + ", with a fitted stiffness field"
+    if fit.refinement is not None:
+        out["model_unrefined"] = ("the same fit without the surface refinement (lungdeform.fit.refinement): "
+                                  f"the fitted k·F·d ({fitted}); landmarks moved by the sliding interpolation of "
+                                  "its surface")
     if corrected:
         out["model_paper_directions"] = (f"the same fit with the paper's directions (15)–(17), no direction "
                                          f"correction{' (stiffness field kept)' if fit.stiffness_fitted else ''}; "
@@ -106,6 +111,8 @@ def model_methods(ti: int, target: Target, fits: dict, held: HeldOut, rest, land
         surface_only = landmarks + s * held.surface_unit
         methods["model_surface_sliding"] = (fit.positions_at(rest, target.volume_ml), None)
     methods[surface_name(held)] = (fit.positions_at(rest, target.volume_ml), surface_only)
+    if fit.refinement is not None:
+        methods["model_unrefined"] = (rest.vertices + s * fit.refinement.before, None)
     if fit.paper_displacement is not None:
         methods["model_paper_directions"] = (rest.vertices + s * fit.paper_displacement, None)
     if fit.uniform_displacement is not None:
