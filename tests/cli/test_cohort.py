@@ -186,3 +186,44 @@ def test_cohort_options_reach_every_job(tmp_path, monkeypatch):
     assert main(["cohort", str(manifest), "--out", str(tmp_path / "o"), "--stiffness", "--no-side-check"]) == 130
     assert (seen[0].stiffness, seen[0].side_check) == (False, True)
     assert (seen[1].stiffness, seen[1].side_check) == (True, False)
+
+
+@pytest.mark.slow
+@pytest.mark.realdata
+def test_cohort_on_one_dirlab_copd_case(data_dir, tmp_path, capsys):
+    # One real COPDgene subject (case 1, both lungs in one mask per phase, each phase re-centred) through
+    # the documented two commands: `validate copd --manifest-only`, then `cohort` with the experiment's
+    # fit (--align joint --stiffness) at a small budget. Truth: the data README's volumes (both lungs:
+    # expiration 2.0–4.0 L, inspiration 3.9–6.5 L, rounded: 5 % slack; case 1 measures 4.02 L at
+    # expiration from the surfaces) from the measured volumes of the two jobs; every lung
+    # fitted; one value per side for each of c1…c9 and Table I's value beside it; a time per lung.
+    from lungdeform.cohort.population import CONSTANTS, table_i
+
+    folder = data_dir / "dirlab-copd-lung-masks"
+    if not folder.is_dir():
+        pytest.skip(f"real data missing: {folder}")
+    out = tmp_path / "out"
+    assert main(["validate", "copd", "--data", str(folder), "--out", str(out), "--cases", "1", "--manifest-only"]) == 0
+    capsys.readouterr()
+    assert main(["cohort", str(out / "manifest.csv"), "--out", str(out / "cohort"), "--align", "joint", "--stiffness",
+                 "--evaluations", "10", "--folds", "2", "--no-baselines", "--workers", "1", "--threads"]) == 0
+    text = capsys.readouterr().out
+    assert "cohort: 2 jobs: 2 ok, 0 failed" in text and "time per lung: median" in text
+    results = {s: json.loads((out / "cohort" / "subjects" / "copd1" / s / "result.json").read_text())
+               for s in ("left", "right")}
+    assert all(r["status"] == "ok" for r in results.values()), [r["error"] for r in results.values()]
+    exp_ml, insp_ml = (sum(r["volumes_ml"][k] for r in results.values()) for k in (0, -1))
+    assert 0.95 * 2000 <= exp_ml <= 1.05 * 4000 and 0.95 * 3900 <= insp_ml <= 1.05 * 6500
+    assert insp_ml > 1.2 * exp_ml
+    pop = json.loads((out / "cohort" / "population.json").read_text())
+    assert pop["n_ok"] == 2 and all(pop["overall"][c]["n"] == 2 for c in CONSTANTS)
+    for side in ("left", "right"):
+        rows = pop["table_i"][side]
+        assert list(rows) == list(CONSTANTS)
+        assert [rows[c]["paper"] for c in CONSTANTS] == pytest.approx(list(table_i(side)))
+        assert all(rows[c]["n"] == 1 and rows[c]["in_range"] is not None for c in CONSTANTS)
+    times = pop["time_per_lung"]
+    assert times["n"] == 2 and all(p["seconds"] > 0 for p in times["per_lung"])
+    assert times["median_s"] == pytest.approx(sum(r["seconds"] for r in results.values()) / 2)
+    for name in ("constants_by_side", "constants_vs_volume", "fit_errors"):
+        assert (out / "cohort" / "plots" / f"{name}.png").stat().st_size > 1000

@@ -40,3 +40,22 @@ def test_validate_copd_prints_table_and_resumes(tmp_path, capsys):
     assert set(m["cases"]["copd3"]) == {"left", "right"} and m["summary"]["n_lungs"] == 2
     assert main(args) == 0
     assert "fitted 0 lung(s) this run (all resumed)" in capsys.readouterr().out
+
+
+def test_manifest_only_writes_the_cohort_manifest_and_fits_nothing(tmp_path, capsys):
+    # truth: OUT/manifest.csv lists the two phases of each case asked for (header + 2 rows), the printed
+    # command is the cohort run with the experiment's fit (joint translation, stiffness); no fit runs, so
+    # no metrics.json; a data folder without the case exits 2 and leaves no output folder
+    (tmp_path / "data").mkdir()
+    data = phantom_case(tmp_path / "data", n=2)
+    out = tmp_path / "out"
+    assert main(["validate", "copd", "--data", str(data), "--out", str(out), "--manifest-only", "--cases", "2"]) == 0
+    text = capsys.readouterr().out
+    rows = (out / "manifest.csv").read_text(encoding="utf-8").splitlines()
+    assert rows[0] == "subject,side,volume_ml,path,landmarks" and len(rows) == 3
+    assert rows[1].startswith("copd2,both,,") and "copd2_exp_mask.nii.gz" in rows[1] and "copd2_insp" in rows[2]
+    assert f"fit with: lungdeform cohort {out / 'manifest.csv'} --out {out / 'cohort'} --align joint --stiffness" in text
+    assert not (out / "metrics.json").exists()
+    assert main(["validate", "copd", "--data", str(data), "--out", str(tmp_path / "o2"), "--manifest-only",
+                 "--cases", "5"]) == 2
+    assert "case 5 is missing" in _one_error_line(capsys) and not (tmp_path / "o2").exists()

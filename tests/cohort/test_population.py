@@ -144,3 +144,25 @@ def test_all_failed_still_reports(tmp_path):
     doc = _strict(tmp_path / "population.json")
     assert doc["overall"]["c1"] == {"mean": None, "sd": None, "min": None, "max": None, "n": 0}
     assert [f["subject"] for f in doc["failed"]] == ["s1", "s2"] and doc["by_side"] == {}
+
+
+def test_time_per_lung_and_departures(cohort, tmp_path):
+    # truth: the ok records' seconds are 5…9 s (the failed one is left out), so the median is numpy's
+    # median of them; the departures are exactly the Table I rows flagged outside the observed range,
+    # and a constant set ten times the paper's on every left lung is one of them
+    recs, _ = cohort
+    for r in recs[:3]:  # every left lung far above the paper's c2: Table I lies below the range
+        r["constants"][1] = 10.0 * TABLE_I["left"][1] * (1 + 0.01 * len(r["subject"]))
+    s = write_population(recs, tmp_path, tmp_path)
+    ok_seconds = [r["seconds"] for r in recs if r["status"] == "ok"]
+    t = s["time_per_lung"]
+    assert t["median_s"] == pytest.approx(np.median(ok_seconds)) and t["n"] == 5
+    assert (t["min_s"], t["max_s"], t["total_s"]) == pytest.approx((5.0, 9.0, sum(ok_seconds)))
+    doc = _strict(tmp_path / "population.json")
+    assert [p["subject"] for p in doc["time_per_lung"]["per_lung"]] == ["s0", "s1", "s2", "s3", "s4"]
+    outside = {(d["side"], d["constant"]) for d in s["table_i_departures"]}
+    assert ("left", "c2") in outside
+    assert outside == {(side, c) for side, rows in s["table_i"].items() for c, v in rows.items() if not v["in_range"]}
+    with open(tmp_path / "times.csv", encoding="utf-8", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [float(r["seconds"]) for r in rows] == pytest.approx(ok_seconds)

@@ -169,3 +169,25 @@ def test_motion_prior_needs_two_cases(tmp_path, rng):
     done = C.apply_loso_priors(tmp_path, cases)
     assert not done["applied"] and "at least 2 cases" in done["reason"]
     assert cases["copd1"]["left"] == {"model_surface_only": {"landmark_mean_mm": 4.0}}
+
+
+def test_cohort_manifest_reads_back_as_the_cases(tmp_path):
+    # truth: read by the cohort's own manifest reader, the manifest gives one left and one right job per
+    # case, expiration then inspiration (row order: volumes are measured), each phase with its own
+    # landmark file; a data folder whose path holds a comma still reads back (the cells are quoted)
+    from lungdeform.cohort.manifest import read_manifest
+
+    data = tmp_path / "dir-lab, copd"
+    data.mkdir()
+    for n in (1, 3):
+        for name in C.FILES:
+            (data / name.format(n=n)).write_bytes(b"")  # only existence is read by the manifest check
+    (tmp_path / "elsewhere").mkdir()
+    path = C.write_cohort_manifest(C.find_cases(data), tmp_path / "elsewhere" / "manifest.csv")
+    m = read_manifest(path)
+    assert [j.key for j in m.jobs] == ["copd1/left", "copd1/right", "copd3/left", "copd3/right"]
+    for job in m.jobs:
+        n = job.subject[-1]
+        assert job.ordered_by == "row" and job.volumes_ml is None
+        assert job.inputs == [data / f"copd{n}_exp_mask.nii.gz", data / f"copd{n}_insp_mask.nii.gz"]
+        assert job.landmarks == [data / f"copd{n}_exp_landmarks.txt", data / f"copd{n}_insp_landmarks.txt"]

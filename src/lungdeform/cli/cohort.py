@@ -201,9 +201,32 @@ def _report(result, folder: Path) -> None:
             typer.echo(f"  {r['subject']}/{r['side']}: {r['error_type']}: {r['error']}")
     typer.echo(f"wrote {folder / 'cohort.json'} and {folder / 'subjects'}/<subject>/<side>/")
     if result.population:
+        for line in _population_lines(result.population):
+            typer.echo(line)
         files = result.population.get("files") or {}
         if files:
             typer.echo(f"population statistics in {folder}: {', '.join(sorted(_relative(p, folder) for p in files.values()))}")
+
+
+def _g(v) -> str:
+    return "-" if v is None else f"{v:.3g}"
+
+
+def _population_lines(pop: dict) -> list[str]:
+    """The Table I comparison per side (mean ± SD [min, max] against the paper, flagged when outside
+    the range) and the time per lung, from write_population's summary (parts missing: not printed)."""
+    lines = []
+    for side, rows in (pop.get("table_i") or {}).items():
+        lines.append(f"{side}: c1…c9, mean ± SD [min, max] over the lungs against Table I (c7…c9 normalised):")
+        for c, v in rows.items():
+            flag = {True: "", False: "  outside the range", None: ""}[v["in_range"]]
+            lines.append(f"  {c}  {_g(v['mean']):>8} ± {_g(v['sd']):<8} [{_g(v['min'])}, {_g(v['max'])}]  "
+                         f"paper {_g(v['paper'])}  n={v['n']}{flag}")
+    t = pop.get("time_per_lung") or {}
+    if t.get("n"):
+        lines.append(f"time per lung: median {t['median_s']:.1f} s (min {t['min_s']:.1f}, max {t['max_s']:.1f}; "
+                     f"{t['n']} lung{'s' if t['n'] != 1 else ''}, {t['total_s']:.0f} s in all)")
+    return lines
 
 
 def _relative(path, folder: Path) -> str:

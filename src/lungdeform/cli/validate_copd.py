@@ -6,11 +6,20 @@ per-lung table and the medians, and picks the exit code.
 
 from __future__ import annotations
 
+import shlex
 from pathlib import Path
 
 import typer
 
-from lungdeform.validate.copd import TABLE_ROWS, copd_config, parse_cases, run_copd
+from lungdeform.validate.copd import (
+    COHORT_OPTIONS,
+    TABLE_ROWS,
+    copd_config,
+    find_cases,
+    parse_cases,
+    run_copd,
+    write_cohort_manifest,
+)
 
 from .common import FIT_OPTIONS, option_names, output_dir, say
 
@@ -42,15 +51,32 @@ def register(apps) -> None:
                                                       "report.html."),
         cases: str = typer.Option(None, "--cases", help="Case numbers to run, e.g. 1,3 (default: every case found)."),
         evaluations: int = typer.Option(300, "--evaluations", help="Optimiser budget per lung."),
+        manifest_only: bool = typer.Option(False, "--manifest-only",
+                                           help="Fit nothing: write OUT/manifest.csv, these cases as a manifest for "
+                                                "'lungdeform cohort' (population statistics against Table I), and "
+                                                "print the cohort command."),
     ) -> None:
         """Fit both lungs of every DIR-Lab COPDgene case (expiration → inspiration, translation fitted)
         and compare with mask-only baselines; a lung already fitted with the same settings is kept."""
         with option_names({**FIT_OPTIONS, "cases": "--cases"}):
             config = copd_config(evaluations)
             wanted = parse_cases(cases)
+            if manifest_only:
+                _write_manifest(data, out, wanted, evaluations)
+                return
             folder = output_dir(out)
             result = run_copd(data, folder, config, wanted, progress=say)
         print_table(result)
         done = result["refitted"]
         typer.echo(f"fitted {len(done)} lung(s) this run" + (f" ({', '.join(done)})" if done else " (all resumed)"))
         typer.echo(f"wrote {folder / 'metrics.json'}, {folder / 'report.html'}")
+
+
+def _write_manifest(data: Path, out: Path, wanted, evaluations: int) -> None:
+    """``--manifest-only``: OUT/manifest.csv for ``lungdeform cohort``, and the command that fits it."""
+    found = find_cases(data, wanted)  # a bad data folder leaves no output folder
+    path = write_cohort_manifest(found, output_dir(out) / "manifest.csv")
+    budget = [] if evaluations == 300 else ["--evaluations", str(evaluations)]
+    command = ["lungdeform", "cohort", str(path), "--out", str(Path(out) / "cohort"), *COHORT_OPTIONS, *budget]
+    typer.echo(f"wrote {path}")
+    typer.echo(f"fit with: {shlex.join(command)}")

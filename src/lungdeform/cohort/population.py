@@ -17,7 +17,10 @@ Readings chosen:
   and ``delta_volume_ml`` (largest minus end-exhale volume), and the fit time ``seconds``.
 - Table I comparison per side and constant: the population mean ± SD against the paper's value
   (c7…c9 normalised like the fit's, so that c8 = 0.95 of the paper reads 1), whether it lies in
-  the observed range [min, max], and its distance from the mean in SDs. Note: directions are normalised (15)–(17), so c1, c3, c5 are defined only up to a
+  the observed range [min, max], and its distance from the mean in SDs; the constants whose paper
+  value lies outside the observed range per side are listed (``table_i_departures``).
+- Time per lung (:func:`fit_times`): each ok job's wall time (reading, alignment, fit, writing; s),
+  their median, min, max and total. Note: directions are normalised (15)–(17), so c1, c3, c5 are defined only up to a
   common factor; their raw values compare with Table I only in the gauge the fit starts from.
 """
 
@@ -176,6 +179,24 @@ def table_comparison(by_side: dict[str, dict[str, Summary]]) -> dict:
     return out
 
 
+def table_departures(table: dict) -> list[dict]:
+    """The rows of :func:`table_comparison` whose paper value lies outside the population's observed
+    range: ``[{"side", "constant", "paper", "mean", "min", "max", "sd_from_mean"}]``, in table order."""
+    return [{"side": side, "constant": c, **{k: v[k] for k in ("paper", "mean", "min", "max", "sd_from_mean")}}
+            for side, rows in table.items() for c, v in rows.items() if v["in_range"] is False]
+
+
+def fit_times(ok: Sequence[dict]) -> dict:
+    """Time per lung of the validated ok records ``ok``: ``{"median_s", "min_s", "max_s", "total_s",
+    "n", "per_lung": [{"subject", "side", "seconds"}]}`` (s; a job's wall time on its worker, from
+    reading its inputs to writing its folder; statistics null without any time)."""
+    per = [{"subject": r["subject"], "side": r["side"], "seconds": finite_or_none(r.get("seconds"))} for r in ok]
+    t = np.array([p["seconds"] for p in per if p["seconds"] is not None], float)
+    stats = ({"median_s": float(np.median(t)), "min_s": float(t.min()), "max_s": float(t.max()),
+              "total_s": float(t.sum())} if len(t) else dict.fromkeys(("median_s", "min_s", "max_s", "total_s")))
+    return {**stats, "n": int(len(t)), "per_lung": per}
+
+
 # --------------------------------------------------------------------------- tables and files
 def csv_text(header: list[str], rows: list[list]) -> str:
     """CSV text of ``header`` and ``rows``: floats as ``%.6g``, None and non-finite floats as empty cells."""
@@ -200,15 +221,19 @@ def write_population(results: list[dict], out: Path, manifest_dir: Path,
     ``results``: the runner's result records (ok and failed). ``out``: the cohort output folder
     (the one holding ``subjects/``); written there, atomically: ``population.json``,
     ``population.csv`` (overall), ``population_by_side.csv``, ``table1.csv`` (Table I comparison),
+    ``times.csv`` (time per lung, :func:`fit_times`),
     ``plots/constants_by_side.png``, ``plots/constants_vs_volume.png``, ``plots/fit_errors.png``;
     the recovery of a synthetic cohort's truth is :func:`lungdeform.cohort.recovery.add_recovery`.
-    Returns a summary dict (counts, the file paths, the Table I flags, ``"recovery": None``).
+    Returns a summary dict (counts, the file paths, the Table I comparison and its flags, the
+    departures from Table I, the time per lung without its per-lung list, ``"recovery": None``).
     """
 
     say = progress or (lambda _m: None)
     out = Path(out)
     stats = population_statistics(results)
     table = table_comparison(stats["by_side"])
+    ok, _ = split_results(results)
+    times = fit_times(ok)
     files: dict[str, str] = {}
     doc = {
         "schema": "lungdeform.population", "version": 1,
@@ -219,6 +244,8 @@ def write_population(results: list[dict], out: Path, manifest_dir: Path,
         "overall": {q: s.as_dict() for q, s in stats["overall"].items()},
         "by_side": {side: {q: s.as_dict() for q, s in st.items()} for side, st in stats["by_side"].items()},
         "table_i": table,
+        "table_i_departures": table_departures(table),
+        "time_per_lung": times,
         "notes": "c7…c9 normalised so that the largest |c| among them is 1; c1, c3, c5 are defined only "
                  "up to a common factor (directions are normalised).",
     }
@@ -234,12 +261,16 @@ def write_population(results: list[dict], out: Path, manifest_dir: Path,
         ["side", "constant", "paper", "paper_as_printed", "mean", "sd", "min", "max", "n", "paper_in_range",
          "paper_sd_from_mean"],
         [[x if x is not None else math.nan for x in row] for row in t_rows])))
-    ok, _ = split_results(results)
+    files["times.csv"] = str(write_text(out / "times.csv", csv_text(
+        ["subject", "side", "seconds"], [[p["subject"], p["side"], math.nan if p["seconds"] is None else p["seconds"]]
+                                         for p in times["per_lung"]])))
     say("population plots")
     files.update(population_plots(ok, out / "plots"))
     summary = {"n_results": stats["n_results"], "n_ok": stats["n_ok"], "n_failed": stats["n_failed"],
                "failed": stats["failed"],
                "table_i_in_range": {side: {c: v["in_range"] for c, v in rows.items()} for side, rows in table.items()},
+               "table_i": table, "table_i_departures": table_departures(table),
+               "time_per_lung": {k: v for k, v in times.items() if k != "per_lung"},
                "recovery": None, "files": files}
     return summary
 
@@ -280,7 +311,8 @@ def population_plots(ok: Sequence[dict], folder: Path) -> dict[str, str]:
     files["plots/constants_vs_volume.png"] = str(P.save_png(fig, folder / "constants_vs_volume.png"))
 
     panels = [P.StripPanel(name.replace("_mm", " (mm)"), groups(name), sides, title_size=9) for name in METRICS]
-    fig = P.strip_boxes(panels, col, rows=1, cols=len(METRICS), rng=rng,
-                        title="Fit errors per side (largest-volume target)")
+    panels.append(P.StripPanel("time per lung (s)", groups("seconds"), sides, title_size=9))
+    fig = P.strip_boxes(panels, col, rows=1, cols=len(panels), rng=rng,
+                        title="Fit errors per side (largest-volume target) and time per lung")
     files["plots/fit_errors.png"] = str(P.save_png(fig, folder / "fit_errors.png"))
     return files

@@ -11,6 +11,10 @@ lung's landmarks) :func:`run_lung` runs :func:`lungdeform.fit.pipeline.run_fit` 
 baselines (:func:`mask_baselines`); :func:`run_copd` collects ``OUT/metrics.json`` (:func:`lung_row`
 per lung, :func:`summarise`: medians over the lungs) and ``OUT/report.html``.
 
+:func:`write_cohort_manifest` writes the same cases as a manifest for ``lungdeform cohort`` (population
+statistics of c1…c9 against Table I; :data:`COHORT_OPTIONS` are the cohort options that match
+:func:`copd_config`): ``lungdeform validate copd --data DIR --out OUT --manifest-only``.
+
 A lung whose ``metrics.json`` records the same settings digest (:func:`settings_digest`: the input
 files' contents, the fit settings, the calibrated baselines' constants) is not fitted again.
 """
@@ -18,8 +22,10 @@ files' contents, the fit settings, the calibrated baselines' constants) is not f
 from __future__ import annotations
 
 import base64
+import csv
 import hashlib
 import html
+import io
 import json
 import re
 import time
@@ -82,6 +88,30 @@ def copd_config(max_evaluations: int = 300) -> FitConfig:
     the interior landmark correction scored held out (5-fold), the baselines."""
     return FitConfig(stiffness=True, max_evaluations=max_evaluations, align="joint", landmark_fit=True,
                      command=COMMAND)
+
+
+#: ``lungdeform cohort`` options giving the fit of :func:`copd_config` (the landmark fit is on by default).
+COHORT_OPTIONS = ("--align", "joint", "--stiffness")
+
+
+def cohort_manifest(found: dict[str, tuple[Path, ...]]) -> str:
+    """The text of a cohort manifest (:mod:`lungdeform.cohort.manifest`) for the cases ``found``
+    (:func:`find_cases`): per case two rows, expiration then inspiration, side ``both`` (each mask
+    is split into its lungs), ``volume_ml`` empty (measured; row order = end-exhale first), the
+    phase's landmarks; absolute paths, so the manifest may be written anywhere."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")  # quotes a path holding a comma, as the manifest reader expects
+    w.writerow(["subject", "side", "volume_ml", "path", "landmarks"])
+    for name, (exp_mask, insp_mask, exp_lm, insp_lm) in found.items():
+        for mask, lm in ((exp_mask, exp_lm), (insp_mask, insp_lm)):
+            w.writerow([name, "both", "", str(Path(mask).resolve()), str(Path(lm).resolve())])
+    return buf.getvalue()
+
+
+def write_cohort_manifest(found: dict[str, tuple[Path, ...]], path: Path) -> Path:
+    """Write (atomically) :func:`cohort_manifest` of the cases ``found`` (:func:`find_cases`) to
+    ``path``; return it."""
+    return write_text(Path(path), cohort_manifest(found))
 
 
 def settings_digest(files, side: str, config: FitConfig) -> str:
