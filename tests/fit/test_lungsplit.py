@@ -147,3 +147,20 @@ def test_copd1_touching_lungs_split(data_dir):
     assert cx[0] > cx[1]
     a = L.assign_landmarks(read_elastix_points(folder / "copd1_exp_landmarks.txt"), split)
     assert a.counts()["outside"] <= 0.02 * len(a.side)
+
+
+def test_shared_splits_split_a_mask_once_and_only_inside_the_block(monkeypatch):
+    # truth: inside shared_splits the same mask read twice (a new Image, equal voxels) is split once
+    # and gives the very same split; another source name, or outside the block, splits again
+    calls = []
+    real = L._find_lungs
+    monkeypatch.setattr(L, "_find_lungs", lambda *a: calls.append(1) or real(*a))
+    image, _, _ = two_lungs(bridge=False)
+    again = Image(np.array(image.array), image.spacing, image.origin, image.direction, image.source)
+    with L.shared_splits():
+        first = L.find_lungs(image)
+        assert L.find_lungs(again) is first and len(calls) == 1
+        other = Image(image.array, image.spacing, image.origin, image.direction, "other.nii.gz")
+        assert L.find_lungs(other) is not first and len(calls) == 2
+    assert L.find_lungs(image) is not first and len(calls) == 3
+    np.testing.assert_array_equal(L.find_lungs(image).labels, first.labels)

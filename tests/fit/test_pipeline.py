@@ -48,3 +48,37 @@ def test_auto_interior_is_sliding_only_for_cropped_scans():
     assert interior_kind(placed(0.064, 0.048), auto) == "sliding"
     assert interior_kind(placed(0.064, 0.048), FitConfig(interior="correspondence")) == "correspondence"
     assert interior_kind(placed(0.0, 0.0), FitConfig(interior="sliding")) == "sliding"
+
+
+def test_prior_refused_with_a_sliding_interior_asked_or_resolved():
+    # truth: a motion prior adds to the correspondence field, so it cannot go with the sliding one,
+    # whether asked for (refused before reading: kind None) or resolved from "auto" on cropped scans
+    import pytest
+
+    from lungdeform.errors import InputError
+    from lungdeform.fit.config import FitConfig
+    from lungdeform.fit.pipeline import check_prior
+
+    prior = object()
+    with pytest.raises(InputError, match="not 'sliding'"):
+        check_prior(FitConfig(interior="sliding"), prior)
+    check_prior(FitConfig(), prior)  # "auto": not known before the scans are read
+    with pytest.raises(InputError, match="these scans are cropped"):
+        check_prior(FitConfig(), prior, "sliding")
+    check_prior(FitConfig(), prior, "correspondence")
+    check_prior(FitConfig(interior="sliding"), None, "sliding")  # no prior: nothing to refuse
+
+
+def test_fit_result_scale_at_is_the_volume_in_units():
+    # truth: s = (V - V_EE) / unit_ml, and positions_at moves by s times the displacement
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from lungdeform.fit.fitting import FitResult
+
+    fit = SimpleNamespace(volume_ee_ml=2000.0, unit_ml=400.0, displacement=np.ones((2, 3)))
+    assert FitResult.scale_at(fit, 2600.0) == 1.5 and FitResult.scale_at(fit, 2000.0) == 0.0
+    fit.scale_at = lambda v: FitResult.scale_at(fit, v)
+    surface = SimpleNamespace(vertices=np.zeros((2, 3)))
+    np.testing.assert_array_equal(FitResult.positions_at(fit, surface, 2200.0), np.full((2, 3), 0.5))

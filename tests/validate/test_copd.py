@@ -78,6 +78,18 @@ def test_mask_baselines_on_scaled_ellipsoids(tmp_path):
         assert r["no_motion_centroids"]["landmark_mean_mm"] > 1.2
 
 
+def test_case_seconds_and_their_medians():
+    # truth: a case's fit is the sum of its lungs' fits; its mask-only baselines were computed once
+    # for both lungs (each lung records that one time); medians over the cases; None when not recorded
+    lung = lambda s, m: {"seconds": s, "mask_baselines_seconds": m}  # noqa: E731
+    cases = {"copd1": {"left": lung(10.0, 4.0), "right": lung(12.0, 4.0)},
+             "copd2": {"left": lung(20.0, None), "right": lung(30.0, None)}}
+    assert C.case_seconds(cases["copd1"]) == {"fit_seconds": 22.0, "mask_baselines_seconds": 4.0}
+    assert C.case_seconds(cases["copd2"]) == {"fit_seconds": 50.0, "mask_baselines_seconds": None}
+    summary = C.summarise(cases)
+    assert summary["fit_seconds"] == 36.0 and summary["mask_baselines_seconds"] == 4.0 and summary["seconds"] == 16.0
+
+
 @pytest.mark.slow
 def test_run_copd_structure_and_resume(tmp_path):
     # truth: one fit per lung into copd1/<side>/, the figures of fit's metrics collected per lung,
@@ -97,6 +109,11 @@ def test_run_copd_structure_and_resume(tmp_path):
         assert np.isfinite(row["model"]["surface_mean_mm"]) and row["seconds"] > 0
         assert (out / "copd1" / side / "model.npz").is_file() and (out / "copd1" / side / "report.html").is_file()
     assert res["summary"]["n_lungs"] == 2
+    # the case's fit time is its two lungs' fits; the mask-only baselines are timed apart, once
+    timing = res["timing"]["copd1"]
+    assert timing["fit_seconds"] == pytest.approx(sum(res["cases"]["copd1"][s]["seconds"] for s in ("left", "right")))
+    assert timing["mask_baselines_seconds"] > 0 and res["summary"]["fit_seconds"] == timing["fit_seconds"]
+    assert "Time per case" in (out / "report.html").read_text(encoding="utf-8")
     assert res["summary"]["model"]["surface_mean_mm"] == pytest.approx(
         np.median([res["cases"]["copd1"][s]["model"]["surface_mean_mm"] for s in ("left", "right")]))
     assert json.loads((out / "metrics.json").read_text(encoding="utf-8"))["cases"] == res["cases"]

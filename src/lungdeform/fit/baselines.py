@@ -43,6 +43,7 @@ from lungdeform.interior.interpolate import interpolation_weights
 from lungdeform.interior.sliding import surface_weights
 
 from . import registration
+from .cpd import deformable_cpd
 
 
 def no_motion(surface: Surface) -> np.ndarray:
@@ -149,8 +150,7 @@ def cpd_deformable(surface: Surface, target: Surface, *, samples: int = 1500, al
     is relative to the lung size (2 = twice the RMS radius, the usual CPD setting on unit-variance data); ``alpha`` is the smoothness
     weight and ``w`` the outlier weight (pycpd's meanings). Returns ``(n, 3)`` mm.
     """
-    pycpd = require("pycpd", "the CPD baseline", "pycpd")
-
+    require("pycpd", "the CPD baseline", "pycpd")
     rng = np.random.default_rng(seed)
     p = surface.vertices
     c = p.mean(axis=0)
@@ -163,11 +163,9 @@ def cpd_deformable(surface: Surface, target: Surface, *, samples: int = 1500, al
     xs = np.sort(rng.choice(dst, min(samples, len(dst)), replace=False))
     x = (target.vertices[xs] - c) / scale
     y = (p[ys] - c) / scale
-    reg = pycpd.DeformableRegistration(X=x, Y=y, alpha=alpha, beta=beta, w=w,
-                                       max_iterations=max_iterations, tolerance=tolerance)
-    reg.register()
+    weights = deformable_cpd(x, y, alpha=alpha, beta=beta, w=w, max_iterations=max_iterations, tolerance=tolerance)
     g = np.exp(-cdist((p - c) / scale, y, "sqeuclidean") / (2.0 * beta**2))
-    moved = c + scale * ((p - c) / scale + g @ reg.W)
+    moved = c + scale * ((p - c) / scale + g @ weights)
     if not np.all(np.isfinite(moved)):
         raise ConvergenceError("CPD produced non-finite points")
     return moved

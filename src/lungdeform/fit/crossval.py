@@ -93,7 +93,7 @@ def cross_validate_landmarks(surface: Surface, side: str, targets: Sequence[Targ
         consts.append(r.constants)
         w = w_all[test]
         for i in predicted:
-            s = (targets[i].volume_ml - r.volume_ee_ml) / r.unit_ml
+            s = r.scale_at(targets[i].volume_ml)
             predicted[i][test] = rest[test] + s * (w @ r.displacement[kept])
         say(f"landmark fold {k + 1}/{len(parts)}: surface RMS {r.surface_rms_mm:.2f} mm, "
             f"training landmarks RMS {r.landmark_rms_mm:.2f} mm")

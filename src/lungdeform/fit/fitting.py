@@ -157,10 +157,13 @@ class FitResult:
     translations: np.ndarray | None = None
     refinement: Refinement | None = None
 
+    def scale_at(self, volume_ml: float) -> float:
+        """The model's scale ``s = (V − V_EE) / unit_ml`` (units) at lung volume ``volume_ml`` (mL)."""
+        return (float(volume_ml) - self.volume_ee_ml) / self.unit_ml
+
     def positions_at(self, surface: Surface, volume_ml: float) -> np.ndarray:
-        """Predicted vertices ``p + s·u`` (mm) at lung volume ``volume_ml`` (linear in volume)."""
-        s = (float(volume_ml) - self.volume_ee_ml) / self.unit_ml
-        return surface.vertices + s * self.displacement
+        """Predicted vertices ``p + s·u`` (mm) at lung volume ``volume_ml`` (linear in volume, :meth:`scale_at`)."""
+        return surface.vertices + self.scale_at(volume_ml) * self.displacement
 
     def as_dict(self) -> dict:
         return {"constants": [float(c) for c in self.constants], "objective_rms_mm": self.objective_mm,

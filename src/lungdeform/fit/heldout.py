@@ -106,7 +106,7 @@ def interior_correction(fit, landmarks, aligned, targets, folds, keep, unit, res
     the sliding correction through the kept vertices of ``rest``."""
 
     observed = [np.asarray(a) - landmarks for a in aligned]
-    scales = [(tg.volume_ml - fit.volume_ee_ml) / fit.unit_ml for tg in targets]
+    scales = [fit.scale_at(tg.volume_ml) for tg in targets]
     correction = correction_per_unit(observed, scales, unit)
     solvers = correction_solvers(rest.vertices[keep], rest.vertex_normals[keep], landmarks)
     return {"held_out": held_out_sliding(observed, scales, unit, folds, solvers),

@@ -30,6 +30,8 @@ Arrays are ``(z, y, x)`` on the mask's grid (SimpleITK order); geometry follows
 
 from __future__ import annotations
 
+import hashlib
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -133,9 +135,44 @@ def require_split(image: Image, *, max_erosions: int = MAX_EROSIONS, min_part: f
     return split
 
 
+#: The splits kept while :func:`shared_splits` is open (None: closed, nothing kept).
+_SHARED: dict | None = None
+
+
+@contextmanager
+def shared_splits():
+    """Within this block, :func:`find_lungs` computes the split of a mask once: the same mask (same
+    voxels, geometry and source) read again, e.g. once per lung and once for the mask-only baselines
+    of one DIR-Lab COPDgene case, gets the split already found. Nothing is kept after the block."""
+    global _SHARED
+    outer = _SHARED
+    _SHARED = {} if outer is None else outer
+    try:
+        yield
+    finally:
+        _SHARED = outer
+
+
+def _split_key(image: Image, max_erosions: int, min_part: float) -> tuple:
+    a = np.ascontiguousarray(image.array)
+    digest = hashlib.blake2b(a.view(np.uint8).ravel(), digest_size=16).hexdigest()
+    geometry = np.concatenate([np.ravel(image.spacing), np.ravel(image.origin), np.ravel(image.direction)])
+    return digest, a.shape, a.dtype.str, geometry.tobytes(), str(image.source), int(max_erosions), float(min_part)
+
+
 def find_lungs(image: Image, *, max_erosions: int = MAX_EROSIONS, min_part: float = MIN_PART) -> LungSplit | None:
     """The :class:`LungSplit` of a binary mask holding both lungs, or None when it is not that (not
-    binary, or no two large side-by-side parts: steps 1–3 of the module docstring)."""
+    binary, or no two large side-by-side parts: steps 1–3 of the module docstring). Inside
+    :func:`shared_splits`, a mask already split gives the same split again."""
+    if _SHARED is None:
+        return _find_lungs(image, max_erosions, min_part)
+    key = _split_key(image, max_erosions, min_part)
+    if key not in _SHARED:
+        _SHARED[key] = _find_lungs(image, max_erosions, min_part)
+    return _SHARED[key]
+
+
+def _find_lungs(image: Image, max_erosions: int, min_part: float) -> LungSplit | None:
     if not is_binary_mask(image):
         return None
     m = np.asarray(image.array) != 0

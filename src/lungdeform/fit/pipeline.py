@@ -67,17 +67,21 @@ def run_fit(inputs: FitInputs, out: Path, config: FitConfig = FitConfig(), *,
     folded into the correspondence field (``config.interior == "correspondence"`` only)."""
 
     say = progress or (lambda _m: None)
-    check_prior(config, prior)
+    check_prior(config, prior)  # an explicit sliding interior: refused before any reading
     t_start = time.perf_counter()
     read = read_inputs(inputs, config.side_check, say)
     # the landmark folds, split (and folds checked) once, before any fitting
     folds = (landmark_folds(len(read.landmarks[0]), config.folds)
              if read.landmarks is not None and config.landmark_fit else None)
     placed = place_targets(read, read.paths, inputs.landmarks, config.align, say)
+    kind = interior_kind(placed, config)  # resolved once ("auto": on the crop faces), then passed on
+    check_prior(config, prior, kind)
+    if kind == "sliding" and config.interior == "auto":
+        say("interior: the sliding field (cropped scans)")
     fits, placed, warnings = fit_surfaces(placed, read, inputs.side, config, say)
     fits["optimizer"] = refine_surface(placed, fits["optimizer"], config, say)
     landmarks = read.landmarks[0] if read.landmarks is not None else None
-    surface_field = interior_surface(placed, fits["optimizer"], inputs.side, config, prior, say)
+    surface_field = interior_surface(placed, fits["optimizer"], inputs.side, kind, prior, say)
     held = held_out_landmarks(placed, landmarks, fits["optimizer"], inputs.side, config, folds, say, surface_field)
     if held.cv is not None:
         fits["landmarks"] = held.cv.final
@@ -100,26 +104,27 @@ def interior_kind(placed: Placement, config: FitConfig) -> str:
     return "sliding" if cropped > CROP_LIMIT else "correspondence"
 
 
-def check_prior(config: FitConfig, prior: MotionPrior | None) -> None:
-    """InputError when ``prior`` cannot go with ``config`` (a sliding interior)."""
-    if prior is not None and config.interior == "sliding":
-        raise InputError(f"prior needs the correspondence interior, not {config.interior!r}")
+def check_prior(config: FitConfig, prior: MotionPrior | None, kind: str | None = None) -> None:
+    """InputError when ``prior`` cannot go with the interior: ``kind`` as resolved by
+    :func:`interior_kind` (None: ``config.interior`` as asked, before any input is read)."""
+    if prior is None or (config.interior if kind is None else kind) != "sliding":
+        return
+    if config.interior == "auto":
+        raise InputError("prior needs the correspondence interior, and these scans are cropped: the interior "
+                         "is the sliding field (interior 'auto')")
+    raise InputError(f"prior needs the correspondence interior, not {config.interior!r}")
 
 
-def interior_surface(placed: Placement, fit, side: str, config: FitConfig, prior: MotionPrior | None,
+def interior_surface(placed: Placement, fit, side: str, kind: str, prior: MotionPrior | None,
                      progress: Callable[[str], None] | None = None):
     """The correspondence field (mm per unit) of the model's end-exhale surface onto its
     largest-volume target (:func:`lungdeform.fit.registration.correspondence_field`), with ``prior``
-    folded in; None for the sliding interior (:func:`interior_kind`)."""
+    folded in; None for the sliding interior (``kind``, :func:`interior_kind`; a prior with it is
+    refused by :func:`check_prior`)."""
     say = progress or (lambda _m: None)
-    if interior_kind(placed, config) == "sliding":
-        if prior is not None:
-            raise InputError("prior needs the correspondence interior, and these scans are cropped: the interior "
-                             "is the sliding field (interior 'auto')")
-        if config.interior == "auto":
-            say("interior: the sliding field (cropped scans)")
+    if kind == "sliding":
         return None
-    scales = [(tg.volume_ml - fit.volume_ee_ml) / fit.unit_ml for tg in placed.targets]
+    scales = [fit.scale_at(tg.volume_ml) for tg in placed.targets]
     i = int(np.argmax(np.abs(scales)))
     say(f"interior: surface correspondence onto {placed.targets[i].name}")
     # whole closed surfaces, crop faces included: the map is between the two solids (their moments
@@ -235,7 +240,7 @@ def write_landmark_motion(path: Path, placed: Placement, fit, landmarks, surface
     mm positions (aligned to the end-exhale frame) and the correspondence field's ``surface_only
     (t, m, 3)`` mm, ``volumes_ml (t,)``, and the lung's solid ``centroid (3,)`` and ``scale (3,)`` mm
     (:func:`lungdeform.fit.motion_prior.lung_normaliser`): what a motion prior learns from."""
-    scales = [(tg.volume_ml - fit.volume_ee_ml) / fit.unit_ml for tg in placed.targets]
+    scales = [fit.scale_at(tg.volume_ml) for tg in placed.targets]
     centroid, scale = lung_normaliser(placed.rest)
     arrays = {"landmarks": np.asarray(landmarks, float), "observed": np.stack([np.asarray(a, float) for a in placed.landmarks]),
               "surface_only": np.stack([landmarks + s * surface_unit for s in scales]),

@@ -28,6 +28,8 @@ from lungdeform.geometry.mesh import Surface, as_vertices, thinned
 from lungdeform.geometry.moments import solid_moments
 from lungdeform.interior.correspondence import CorrespondenceField
 
+from .cpd import deformable_cpd
+
 #: CPD's smoothness weight and kernel width (mm; divided by the RMS radius of the larger surface).
 ALPHA = 1000.0
 BETA_MM = 80.0
@@ -87,16 +89,15 @@ def register_points(affine: tuple[np.ndarray, np.ndarray], points_small, points_
                     beta_mm: float = BETA_MM, max_iterations: int = 150, tolerance: float = 1e-5) -> SurfaceMap:
     """The map from ``affine`` ``(A, t)`` then CPD's Gaussian field fitted from the affine image of
     ``points_small : (n, 3)`` mm to ``points_large : (k, 3)`` mm (module docstring)."""
-    pycpd = require("pycpd", "the surface registration", "pycpd")
+    require("pycpd", "the surface registration", "pycpd")
     mat, t = (np.asarray(a, float) for a in affine)
     big = as_vertices(points_large, "points_large")
     c = big.mean(axis=0)
     s = float(np.sqrt(np.mean(np.sum((big - c) ** 2, axis=1))))
     moved = as_vertices(points_small, "points_small") @ mat.T + t
-    reg = pycpd.DeformableRegistration(X=(big - c) / s, Y=(moved - c) / s, alpha=alpha, beta=beta_mm / s, w=0.0,
-                                       max_iterations=max_iterations, tolerance=tolerance)
-    reg.register()
-    return SurfaceMap(np.c_[mat, t], moved, s * np.asarray(reg.W, float), float(beta_mm))
+    weights = deformable_cpd((big - c) / s, (moved - c) / s, alpha=alpha, beta=beta_mm / s, w=0.0,
+                             max_iterations=max_iterations, tolerance=tolerance)
+    return SurfaceMap(np.c_[mat, t], moved, s * weights, float(beta_mm))
 
 
 def surface_map(small: Surface, large: Surface, *, keep_small=None, keep_large=None, points: int = POINTS,

@@ -97,7 +97,7 @@ def model_methods(ti: int, target: Target, fits: dict, held: HeldOut, rest, land
     FitResult; ``landmarks : (m, 3)`` mm the end-exhale ones."""
 
     fit = fits["optimizer"]
-    s = (target.volume_ml - fit.volume_ee_ml) / fit.unit_ml
+    s = fit.scale_at(target.volume_ml)
     methods = {}
     if held.interior is not None:
         methods["model"] = (fit.positions_at(rest, target.volume_ml), held.interior["held_out"][ti])

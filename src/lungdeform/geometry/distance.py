@@ -214,7 +214,7 @@ class SurfaceDistance:
             raise InputError("faces: a surface distance needs at least one triangle")
         if not np.all(np.isfinite(self.vertices)):
             raise InputError("vertices contain NaN or infinity")
-        used = np.unique(self.faces)
+        used = np.flatnonzero(np.bincount(self.faces.ravel(), minlength=len(self.vertices)))  # = np.unique, O(n)
         self._tree = cKDTree(self.vertices[used])
         e = self.vertices[self.faces]
         edge = np.linalg.norm(e - np.roll(e, 1, axis=1), axis=2)

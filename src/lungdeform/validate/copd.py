@@ -8,8 +8,11 @@ world mm, row i ↔ row i). Each phase was re-centred on its lungs, so the fit e
 (``align="joint"``). For every case and lung (the split of :mod:`lungdeform.fit.lungsplit`, that
 lung's landmarks) :func:`run_lung` runs :func:`lungdeform.fit.pipeline.run_fit` into
 ``OUT/copdN/<side>/`` (model.npz, metrics.json, report.html) and adds the calibrated mask-only
-baselines (:func:`mask_baselines`); :func:`run_copd` collects ``OUT/metrics.json`` (:func:`lung_row`
-per lung, :func:`summarise`: medians over the lungs) and ``OUT/report.html``.
+baselines (:func:`mask_baselines`, once per case: :class:`CaseBaselines`); :func:`run_copd` collects
+``OUT/metrics.json`` (:func:`lung_row` per lung, :func:`summarise`: medians over the lungs) and
+``OUT/report.html``. Each mask is split once per case (:func:`lungdeform.fit.lungsplit.shared_splits`).
+Times: per lung ``seconds`` (the fit), per case ``fit_seconds`` (its two lungs) and
+``mask_baselines_seconds`` (the mask-only baselines, timed apart; :func:`case_seconds`).
 
 :func:`write_cohort_manifest` writes the same cases as a manifest for ``lungdeform cohort`` (population
 statistics of c1…c9 against Table I; :data:`COHORT_OPTIONS` are the cohort options that match
@@ -40,7 +43,7 @@ from lungdeform.atomic import write_json, write_text
 from lungdeform.errors import InputError, ReadError
 from lungdeform.fit import baselines as B
 from lungdeform.fit.config import FitConfig, FitInputs
-from lungdeform.fit.lungsplit import SIDES, landmarks_of_side, require_split
+from lungdeform.fit.lungsplit import SIDES, landmarks_of_side, require_split, shared_splits
 from lungdeform.fit.motion_prior import RIDGE, PriorSample, learn_motion_prior, save_prior
 from lungdeform.fit.pipeline import run_fit
 from lungdeform.io.image import read_image
@@ -148,6 +151,21 @@ def mask_baselines(files) -> dict[str, dict[str, dict[str, float]]]:
     return out
 
 
+class CaseBaselines:
+    """One case's :func:`mask_baselines` (``files`` from :func:`find_cases`), computed on the first
+    call and kept: ``(rows of side, seconds)``, ``seconds`` the time of computing both lungs' once."""
+
+    def __init__(self, files):
+        self.files, self.rows, self.seconds = files, None, None
+
+    def __call__(self, side: str) -> tuple[dict, float]:
+        if self.rows is None:
+            t0 = time.perf_counter()
+            self.rows = mask_baselines(self.files)
+            self.seconds = time.perf_counter() - t0
+        return self.rows[side], self.seconds
+
+
 def _affine_fn(affine):
     mat, t = affine
     return lambda x: np.asarray(x, float) @ mat.T + t
@@ -164,12 +182,14 @@ def _done(folder: Path, digest: str) -> dict | None:
     return metrics if metrics.get("settings_digest") == digest and "mask_baselines" in metrics else None
 
 
-def run_lung(files, side: str, out: Path, config: FitConfig, mask_rows: dict | None = None, *,
+def run_lung(files, side: str, out: Path, config: FitConfig, mask_rows=None, *,
              progress: Callable[[str], None] | None = None) -> tuple[dict, bool]:
     """``(metrics, fitted)``: one lung of a case (``files`` from :func:`find_cases`) fitted into the
     folder ``out`` with ``config``, unless its ``metrics.json`` already records the same
     :func:`settings_digest` (then read back, ``fitted`` False). ``mask_rows``: that lung's
-    :func:`mask_baselines` (computed when None)."""
+    :func:`mask_baselines` (a dict), or a :class:`CaseBaselines` of the case (called after the fit),
+    or None (computed). ``metrics["seconds"]`` is the fit's time, ``metrics["mask_baselines_seconds"]`` the
+    mask-only baselines' (both lungs of the case, computed once; absent when given as a dict)."""
     out = Path(out)
     digest = settings_digest(files, side, config)
     done = _done(out, digest)
@@ -179,8 +199,12 @@ def run_lung(files, side: str, out: Path, config: FitConfig, mask_rows: dict | N
     exp_mask, insp_mask, exp_lm, insp_lm = files
     metrics = run_fit(FitInputs([exp_mask, insp_mask], side, landmarks=[exp_lm, insp_lm]), out, config,
                       progress=progress)
-    metrics["mask_baselines"] = mask_rows if mask_rows is not None else mask_baselines(files)[side]
     metrics["seconds"] = time.perf_counter() - t0
+    if isinstance(mask_rows, dict):
+        metrics["mask_baselines"] = mask_rows
+    else:  # computed after the fit (which split the masks first: shared_splits), timed apart
+        get = mask_rows if mask_rows is not None else CaseBaselines(files)
+        metrics["mask_baselines"], metrics["mask_baselines_seconds"] = get(side)
     metrics["settings_digest"] = digest
     write_json(out / "metrics.json", metrics, strict=True, default=str)
     return metrics, True
@@ -188,11 +212,21 @@ def run_lung(files, side: str, out: Path, config: FitConfig, mask_rows: dict | N
 
 def lung_row(metrics: dict) -> dict:
     """One lung's figures (:data:`ROWS` from the fit's metrics, :data:`MASK_ROWS` from its
-    ``mask_baselines``) and ``seconds``."""
+    ``mask_baselines``), ``seconds`` (the fit) and ``mask_baselines_seconds`` (the case's mask-only
+    baselines, both lungs; None when not recorded)."""
     row = {name: {k: metrics[name][k] for k in keys} for name, keys in ROWS.items() if name in metrics}
     row.update({name: dict(metrics["mask_baselines"][name]) for name in MASK_ROWS})
     row["seconds"] = metrics["seconds"]
+    row["mask_baselines_seconds"] = metrics.get("mask_baselines_seconds")
     return row
+
+
+def case_seconds(case: dict) -> dict:
+    """A case's times (s): ``fit_seconds``, the sum of its lungs' fits, and ``mask_baselines_seconds``,
+    its mask-only baselines (both lungs, once; None when not recorded)."""
+    masks = [r.get("mask_baselines_seconds") for r in case.values() if r.get("mask_baselines_seconds") is not None]
+    return {"fit_seconds": float(sum(r["seconds"] for r in case.values())),
+            "mask_baselines_seconds": float(max(masks)) if masks else None}
 
 
 def summarise(cases: dict) -> dict:
@@ -210,6 +244,10 @@ def summarise(cases: dict) -> dict:
             vals = [r[name][k] for r in lungs if name in r and r[name].get(k) is not None]
             figs[k] = float(np.median(vals)) if vals else None
     out["seconds"] = float(np.median([r["seconds"] for r in lungs])) if lungs else None
+    per_case = [case_seconds(c) for c in cases.values() if c]
+    for key in ("fit_seconds", "mask_baselines_seconds"):
+        vals = [t[key] for t in per_case if t[key] is not None]
+        out[key] = float(np.median(vals)) if vals else None
     return out
 
 
@@ -217,25 +255,24 @@ def run_copd(data: Path, out: Path, config: FitConfig | None = None, cases=None,
              progress: Callable[[str], None] | None = None) -> dict:
     """Every case in ``data`` (:func:`find_cases`, ``cases`` a subset by number), both lungs, fitted
     (:func:`run_lung`) into ``out/copdN/<side>``; writes ``out/metrics.json`` (``cases``, ``summary``,
-    ``refitted``: the lungs fitted this run) and ``out/report.html``; returns the metrics."""
+    ``refitted``: the lungs fitted this run, ``timing``: per case :func:`case_seconds`) and
+    ``out/report.html``; returns the metrics."""
     say = progress or (lambda _m: None)
     config = copd_config() if config is None else config
     out = Path(out)
     found = find_cases(data, cases)
-    result: dict = {"cases": {}, "refitted": [], "settings": asdict(config)}
+    result: dict = {"cases": {}, "refitted": [], "timing": {}, "settings": asdict(config)}
     for name, files in found.items():
-        masks = None
-        for side in SIDES:
-            folder = out / name / side
-            if masks is None and _done(folder, settings_digest(files, side, config)) is None:
-                say(f"{name}: mask-only baselines (both lungs)")
-                masks = mask_baselines(files)
-            say(f"{name} {side}: fitting (or reading the finished fit)")
-            metrics, fitted = run_lung(files, side, folder, config, None if masks is None else masks[side],
-                                       progress=lambda m, n=name, s=side: say(f"{n} {s}: {m}"))
-            result["cases"].setdefault(name, {})[side] = lung_row(metrics)
-            if fitted:
-                result["refitted"].append(f"{name}/{side}")
+        masks = CaseBaselines(files)  # both lungs' mask-only baselines, once, after the first fit
+        with shared_splits():  # each mask split once per case (by the first fit), not once per use
+            for side in SIDES:
+                say(f"{name} {side}: fitting (or reading the finished fit)")
+                metrics, fitted = run_lung(files, side, out / name / side, config, masks,
+                                           progress=lambda m, n=name, s=side: say(f"{n} {s}: {m}"))
+                result["cases"].setdefault(name, {})[side] = lung_row(metrics)
+                if fitted:
+                    result["refitted"].append(f"{name}/{side}")
+        result["timing"][name] = case_seconds(result["cases"][name])
     result["prior"] = apply_loso_priors(out, result["cases"])
     result["summary"] = summarise(result["cases"])
     result["calibration_mm"] = dict(MASK_ROWS)
@@ -295,6 +332,15 @@ def _table(rows: dict) -> str:
     return "<table border=1 cellspacing=0 cellpadding=3>" + "".join(lines) + "</table>"
 
 
+def _timing_table(timing: dict) -> str:
+    """HTML table: per case, the model's fit (both lungs) and the mask-only baselines, seconds."""
+    lines = ["<tr><th>case</th><th>fit, both lungs (s)</th><th>mask-only baselines (s)</th></tr>"]
+    for name, t in timing.items():
+        lines.append(f"<tr><td>{html.escape(name)}</td><td>{_cell(t.get('fit_seconds'))}</td>"
+                     f"<td>{_cell(t.get('mask_baselines_seconds'))}</td></tr>")
+    return "<h2>Time per case</h2><table border=1 cellspacing=0 cellpadding=3>" + "".join(lines) + "</table>"
+
+
 def write_report(path: Path, result: dict) -> Path:
     """``report.html``: the summary table, and per case its table and a bar plot of the mean
     landmark error per method and lung (:func:`lungdeform.plot.grouped_bars`)."""
@@ -303,7 +349,8 @@ def write_report(path: Path, result: dict) -> Path:
              "<p>Landmark errors are held out from what they score; cpd, affine and the calibrated rows "
              f"use the masks only (calibration, medians over 10 lungs: {html.escape(str(MASK_ROWS))}).</p>",
              "<h2>Medians over the lungs</h2>",
-             _table({f"median of {result['summary']['n_lungs']}": result["summary"]})]
+             _table({f"median of {result['summary']['n_lungs']}": result["summary"]}),
+             _timing_table(result.get("timing", {}))]
     for name, case in result["cases"].items():
         values = {side: {m: row[m]["landmark_mean_mm"] for m in row if isinstance(row[m], dict)
                          and "landmark_mean_mm" in row[m]} for side, row in case.items()}
