@@ -171,7 +171,7 @@ def refine_surface(placed: Placement, fit, config: FitConfig, progress: Callable
     if not config.refine_mm:
         return fit
     say = progress or (lambda _m: None)
-    scales = [(tg.volume_ml - fit.volume_ee_ml) / fit.unit_ml for tg in placed.targets]
+    scales = [fit.scale_at(tg.volume_ml) for tg in placed.targets]
     ref = refine_displacement(placed.rest.vertices, fit.displacement, [tg.surface for tg in placed.targets], scales,
                               placed.keep, finest_mm=config.refine_mm)
     say(f"surface refinement (down to {config.refine_mm:g} mm): mean change {ref.mean_change_mm:.2f} mm, "
