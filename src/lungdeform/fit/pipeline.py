@@ -85,12 +85,15 @@ def run_fit(inputs: FitInputs, out: Path, config: FitConfig = FitConfig(), *,
     held = held_out_landmarks(placed, landmarks, fits["optimizer"], inputs.side, config, folds, say, surface_field)
     if held.cv is not None:
         fits["landmarks"] = held.cv.final
-    per_target, predictions, skipped = score_targets(placed, landmarks, fits, held, config, folds, say)
+    per_target, predictions, skipped, baseline_seconds = score_targets(placed, landmarks, fits, held, config, folds, say)
     metrics = fit_metrics(inputs, read, placed, fits, held, config, per_target, skipped,
                           read.warnings + placed.warnings + warnings)
     metrics["interior"] = {"surface_part": "sliding" if surface_field is None else "correspondence",
                            "asked": config.interior, "prior": None if prior is None else prior.as_dict()}
     metrics["seconds"] = time.perf_counter() - t_start
+    # the model's own fit, the baselines and landmark-informed references (timed apart) left out
+    metrics["baseline_seconds"] = baseline_seconds
+    metrics["model_seconds"] = metrics["seconds"] - baseline_seconds
     write_outputs(Path(out), inputs, config, placed, fits, held, landmarks, metrics, predictions, surface_field)
     return metrics
 

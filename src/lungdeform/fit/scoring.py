@@ -11,6 +11,8 @@ what it saw and how its landmark error was measured.
 
 from __future__ import annotations
 
+import time
+
 from typing import Callable
 
 import numpy as np
@@ -148,18 +150,21 @@ def score_targets(placed: Placement, landmarks, fits: dict, held: HeldOut, confi
                   progress: Callable[[str], None] | None = None):
     """Every method measured on every target: ``(metrics per target name → method name → metrics
     dict, predictions (target name, method name) → (vertices, per-vertex error, landmark errors),
-    skipped baselines name → reason)``. ``landmarks : (m, 3)`` mm: the end-exhale ones, or None."""
+    skipped baselines name → reason, seconds spent computing the baselines and references)``.
+    ``landmarks : (m, 3)`` mm: the end-exhale ones, or None."""
 
     say = progress or (lambda _m: None)
     rest, keep = placed.rest, placed.keep
-    per_target, predictions, skipped = {}, {}, {}
+    per_target, predictions, skipped, baseline_seconds = {}, {}, {}, 0.0
     for ti, tg in enumerate(placed.targets):
         td = SurfaceDistance(tg.surface.vertices, tg.surface.faces)
         lmt = placed.landmarks[ti] if landmarks is not None else None
         methods = model_methods(ti, tg, fits, held, rest, landmarks)
         if config.baselines:
             say("baselines")
+            t0 = time.perf_counter()
             methods.update(baseline_methods(tg, placed, landmarks, lmt, held, folds, config.landmark_weight, skipped))
+            baseline_seconds += time.perf_counter() - t0
         per = {}
         for name, (x, held_out) in methods.items():
             m, per_vertex, lm_err = B.measure(rest, x, tg.surface, keep=keep, keep_target=tg.keep,
@@ -168,7 +173,7 @@ def score_targets(placed: Placement, landmarks, fits: dict, held: HeldOut, confi
             per[name] = m.as_dict()
             predictions[(tg.name, name)] = (x, per_vertex, lm_err)
         per_target[tg.name] = per
-    return per_target, predictions, skipped
+    return per_target, predictions, skipped, baseline_seconds
 
 
 def bounding_boxes(rest, fit, surfaces, vols):
