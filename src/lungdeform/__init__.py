@@ -17,7 +17,7 @@ from lungdeform.errors import (
 )
 from lungdeform.geometry.mesh import Surface, check_surface
 
-__version__ = "0.6.0"
+__version__ = "0.7.0"
 
 _install_compat()  # the module names of 0.4 (lungdeform.mesh, …) still import, with a warning
 
