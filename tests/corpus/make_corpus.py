@@ -110,6 +110,9 @@ def _text_files() -> dict[str, dict[str, bytes]]:
                   # found by fuzz_image_mha (libFuzzer timeout): a second NDims line, absurd, after a sane one
                   "repeated_ndims.mha": b"ObjectType = Image\nNDims = 3\nNDims = 800000000004 2.5\nDimSize = 6 5 4\n"
                                         b"ElementType = MET_UCHAR\nElementDataFile = LOCAL\n" + bytes(120),
+                  # found by fuzz_image_dicom (libFuzzer out-of-memory): no preamble, no explicit VR first, the
+                  # first element's length read as 3.3 GB; GDCM took 4 s and 3.3 GB on these 65 bytes
+                  "implicit_huge_length.dcm": b"\x02\x00\x00UI\x12" + b"\xc6" * 57 + b"<\x00",
                   "huge_dims.nrrd": b"NRRD0004\ntype: uchar\ndimension: 3\nsizes: 100000 100000 100000\n"
                                     b"encoding: raw\n\n\x00"},
         "curve": {"empty.csv": b"", "garbage.csv": GARBAGE, "nan.csv": b"t_s,volume_ml\n0,0\n1,nan\n2,100\n",

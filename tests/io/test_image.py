@@ -263,3 +263,40 @@ def test_damaged_dicom_file_without_preamble_is_refused(tmp_path):
     victim.write_bytes(data[:-10])  # the pixel data now claims 10 bytes more than are left
     with pytest.raises(ReadError, match=r"12_002.dcm: damaged DICOM file: element \(7FE0,0010\) at byte \d+ claims"):
         read_image(tmp_path / "ct")
+
+
+def test_dicom_without_preamble_walked_as_implicit_vr(tmp_path):
+    # found by tests/fuzz/fuzz_image_dicom.py (libFuzzer out-of-memory): 65 bytes with no preamble and
+    # no explicit VR at bytes 4-5 were left to GDCM, which read a 3.3 GB value length and took 4 s and
+    # 3.3 GB before failing. Such a file is now walked as implicit VR little endian (the default
+    # transfer syntax): a meta-group element without a VR, or a length past the end, is named
+    from lungdeform.io.image import check_dicom_file
+
+    bad = tmp_path / "implicit.dcm"
+    bad.write_bytes(b"\x02\x00\x00UI\x12" + b"\xc6" * 57 + b"<\x00")
+    with pytest.raises(ReadError, match=r"implicit.dcm: damaged DICOM file: element \(0002,5500\) at byte 0 "
+                                        r"has no valid value representation"):
+        check_dicom_file(bad)
+    # an implicit-VR data set element (group 0008) claiming 3.3 GB of a 20-byte file
+    bad.write_bytes(b"\x08\x00\x16\x00" + b"\xc6\xc6\xc6\xc6" + bytes(12))
+    with pytest.raises(ReadError, match=r"element \(0008,0016\) at byte 0 claims 3334915782 bytes, 12 are left"):
+        check_dicom_file(bad)
+    # a sound implicit-VR element passes (its length fits)
+    bad.write_bytes(b"\x08\x00\x16\x00\x04\x00\x00\x001.2\x00")
+    check_dicom_file(bad)
+
+
+def test_dicom_meta_group_must_follow_the_preamble(tmp_path):
+    # found by tests/fuzz/fuzz_image_dicom.py (libFuzzer out-of-memory): a slice whose first element
+    # after "DICM" was (000A,0000) instead of the file meta group made GDCM take 600 MB for 912 bytes;
+    # PS3.10 7.1 puts the file meta information right after the preamble
+    from lungdeform.io.image import check_dicom_file
+
+    _tiny_series(tmp_path / "ct", "1.2.826.0.1.3680043.2.1125.7.13", 2)
+    victim = tmp_path / "ct" / "13_001.dcm"
+    data = victim.read_bytes()
+    assert data[132:134] == b"\x02\x00"
+    victim.write_bytes(data[:132] + b"\x0a\x00" + data[134:])
+    with pytest.raises(ReadError, match=r"13_001.dcm: damaged DICOM file: element \(000A,0000\) at byte 132: "
+                                        r"the file meta information \(group 0002\) must follow the preamble"):
+        read_image(tmp_path / "ct")
