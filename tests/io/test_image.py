@@ -296,7 +296,10 @@ def test_dicom_meta_group_must_follow_the_preamble(tmp_path):
     victim = tmp_path / "ct" / "13_001.dcm"
     data = victim.read_bytes()
     assert data[132:134] == b"\x02\x00"
+    check_dicom_file(victim)  # intact: passes
     victim.write_bytes(data[:132] + b"\x0a\x00" + data[134:])
+    with pytest.raises(ReadError, match="must follow the preamble"):
+        check_dicom_file(victim)
     with pytest.raises(ReadError, match=r"13_001.dcm: damaged DICOM file: element \(000A,0000\) at byte 132: "
                                         r"the file meta information \(group 0002\) must follow the preamble"):
         read_image(tmp_path / "ct")
