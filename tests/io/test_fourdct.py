@@ -79,8 +79,8 @@ def test_damaged_or_unreadable_file_stops_the_reading_early(tmp_path, rng, monke
         read_phases(tmp_path / "ct")
     assert made == []  # GDCM read none of the intact files before the damaged last one
     last.unlink()
-    bad = files[0].with_name("0000.dcm")  # first in order, and no DICOM at all (no preamble: not checked)
+    bad = files[0].with_name("0000.dcm")  # first in order, and no DICOM at all (no preamble)
     bad.write_bytes(b"\0" * 200)
     with pytest.raises(ReadError, match="0000.dcm is not a readable DICOM image"):
         read_phases(tmp_path / "ct")
-    assert len(made) == 1  # GDCM read that file's header only
+    assert made == []  # refused by its first element, (0000,0000), before GDCM read any file

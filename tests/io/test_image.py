@@ -281,6 +281,11 @@ def test_dicom_without_preamble_walked_as_implicit_vr(tmp_path):
     bad.write_bytes(b"\x08\x00\x16\x00" + b"\xc6\xc6\xc6\xc6" + bytes(12))
     with pytest.raises(ReadError, match=r"element \(0008,0016\) at byte 0 claims 3334915782 bytes, 12 are left"):
         check_dicom_file(bad)
+    # found by the same fuzzer: (0000,0000), a network command group, first in a file made GDCM take
+    # 4 GB for 828 bytes; no file starts with groups 0000-0007
+    bad.write_bytes(b"\x00\x00\x00\x00OB\x00\x00\x02\x00\x00\x00\x00\x01" + bytes(12))
+    with pytest.raises(ReadError, match=r"implicit.dcm is not a readable DICOM image: no preamble, and its first element \(0000,0000\)"):
+        check_dicom_file(bad)
     # a sound implicit-VR element passes (its length fits)
     bad.write_bytes(b"\x08\x00\x16\x00\x04\x00\x00\x001.2\x00")
     check_dicom_file(bad)

@@ -148,7 +148,9 @@ def check_dicom_file(path) -> None:
     and 1 GB on a 700-byte one); any other file without it is walked from byte 0 as implicit VR little
     endian, the default transfer syntax (GDCM spent 4 s and 3.3 GB on a 65-byte one whose first element
     claimed 3.3 GB). After the preamble the file meta information (group 0002) must come first (PS3.10
-    7.1; GDCM took 600 MB for a 912-byte file with another group there); big-endian or deflated data sets and sequences of unknown content (UN, undefined
+    7.1; GDCM took 600 MB for a 912-byte file with another group there), and a file without the preamble
+    starts with group 0002 or a data set group (0008 or above; GDCM took 4 GB for an 828-byte file
+    starting with (0000,0000)); big-endian or deflated data sets and sequences of unknown content (UN, undefined
     length) are left to GDCM."""
     p = Path(path)
     size = p.stat().st_size
@@ -168,6 +170,10 @@ def check_dicom_file(path) -> None:
             where = f"{p}: damaged DICOM file: element ({group:04X},{elem:04X}) at byte {pos}"
             if pos == 132 and group != 0x0002:  # PS3.10 7.1: the file meta information follows "DICM"
                 raise ReadError(f"{where}: the file meta information (group 0002) must follow the preamble")
+            if pos == 0 and group != 0x0002 and group < 0x0008:  # groups 0000-0007 are no file's first
+                raise ReadError(f"{p} is not a readable DICOM image: no preamble, and its first element "
+                                f"({group:04X},{elem:04X}) is neither file meta information (group 0002) nor a "
+                                "data set element (group 0008 or above)")
             if vr and vr not in _VRS:
                 raise ReadError(f"{where} has no valid value representation ({vr!r})")
             if length == 0xFFFFFFFF:  # undefined length: a sequence or encapsulated pixels, walked into
