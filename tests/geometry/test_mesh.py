@@ -185,3 +185,23 @@ def test_check_refuses_self_intersection_before_orientation():
     for repair in (False, True):
         with pytest.raises(MeshError, match=r"lung.ply: surface intersects itself \(\d+ pairs .*faces \d+ and \d+"):
             check_surface(v, s.faces, source="lung.ply", repair=repair)
+
+
+def test_farthest_points_even_deterministic_and_equivariant():
+    # truth: points on a 100 x 100 mm square, 90 % of them crowded in its left half: a farthest-point
+    # subset takes about as many from each half (a random one: 90 % from the left); the subset of a
+    # scaled, moved copy is the same indices (similarity-equivariant); all points when n <= count
+    from lungdeform.geometry.mesh import farthest_points
+
+    rng = np.random.default_rng(4)
+    pts = np.vstack([rng.uniform([0, 0, 0], [50, 100, 0], (9000, 3)), rng.uniform([50, 0, 0], [100, 100, 0], (1000, 3))])
+    idx = farthest_points(pts, 400)
+    assert len(idx) == 400 and np.all(np.diff(idx) > 0)
+    assert 0.4 < np.mean(pts[idx, 0] < 50.0) < 0.6
+    np.testing.assert_array_equal(farthest_points(pts * 1.3 + [5.0, -7.0, 2.0], 400), idx)
+    # the subset is spread: every point lies within the subset's covering radius, which is small
+    from scipy.spatial import cKDTree
+    assert cKDTree(pts[idx]).query(pts)[0].max() < 6.0
+    np.testing.assert_array_equal(farthest_points(pts[:50], 400), np.arange(50))
+    with pytest.raises(InputError, match="count"):
+        farthest_points(pts, 0)

@@ -274,8 +274,8 @@ def test_dicom_without_preamble_walked_as_implicit_vr(tmp_path):
 
     bad = tmp_path / "implicit.dcm"
     bad.write_bytes(b"\x02\x00\x00UI\x12" + b"\xc6" * 57 + b"<\x00")
-    with pytest.raises(ReadError, match=r"implicit.dcm: damaged DICOM file: element \(0002,5500\) at byte 0 "
-                                        r"has no valid value representation"):
+    with pytest.raises(ReadError, match=r"implicit.dcm is not a readable DICOM image slice: no preamble, and read as "
+                                        r"implicit VR its element \(0002,5500\) at byte 0 has no valid value representation"):
         check_dicom_file(bad)
     # an implicit-VR data set element (group 0008) claiming 3.3 GB of a 20-byte file
     bad.write_bytes(b"\x08\x00\x16\x00" + b"\xc6\xc6\xc6\xc6" + bytes(12))
@@ -284,7 +284,7 @@ def test_dicom_without_preamble_walked_as_implicit_vr(tmp_path):
     # found by the same fuzzer: (0000,0000), a network command group, first in a file made GDCM take
     # 4 GB for 828 bytes; no file starts with groups 0000-0007
     bad.write_bytes(b"\x00\x00\x00\x00OB\x00\x00\x02\x00\x00\x00\x00\x01" + bytes(12))
-    with pytest.raises(ReadError, match=r"implicit.dcm is not a readable DICOM image: no preamble, and its first element \(0000,0000\)"):
+    with pytest.raises(ReadError, match=r"implicit.dcm is not a readable DICOM image slice: no preamble, and its first element \(0000,0000\)"):
         check_dicom_file(bad)
     # a sound implicit-VR element passes (its length fits)
     bad.write_bytes(b"\x08\x00\x16\x00\x04\x00\x00\x001.2\x00")

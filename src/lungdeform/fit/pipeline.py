@@ -35,6 +35,7 @@ import numpy as np
 
 from lungdeform.atomic import atomic_path, jsonable, write_json
 from lungdeform.errors import InputError
+from lungdeform.geometry.mesh import Surface
 from lungdeform.interior.field import landmark_folds
 from lungdeform.io.modelfile import provenance, save_model
 from lungdeform.model.lung import Model
@@ -81,7 +82,8 @@ def run_fit(inputs: FitInputs, out: Path, config: FitConfig = FitConfig(), *,
     fits, placed, warnings = fit_surfaces(placed, read, inputs.side, config, say)
     fits["optimizer"] = refine_surface(placed, fits["optimizer"], config, say)
     landmarks = read.landmarks[0] if read.landmarks is not None else None
-    surface_field = interior_surface(placed, fits["optimizer"], inputs.side, kind, prior, say)
+    surface_field = interior_surface(placed, fits["optimizer"], inputs.side, kind, prior, say,
+                                     whole=read.surfaces[0])
     held = held_out_landmarks(placed, landmarks, fits["optimizer"], inputs.side, config, folds, say, surface_field)
     if held.cv is not None:
         fits["landmarks"] = held.cv.final
@@ -119,11 +121,12 @@ def check_prior(config: FitConfig, prior: MotionPrior | None, kind: str | None =
 
 
 def interior_surface(placed: Placement, fit, side: str, kind: str, prior: MotionPrior | None,
-                     progress: Callable[[str], None] | None = None):
-    """The correspondence field (mm per unit) of the model's end-exhale surface onto its
+                     progress: Callable[[str], None] | None = None, *, whole: Surface | None = None):
+    """The correspondence field (mm per unit) of the end-exhale surface onto the model's
     largest-volume target (:func:`lungdeform.fit.registration.correspondence_field`), with ``prior``
     folded in; None for the sliding interior (``kind``, :func:`interior_kind`; a prior with it is
-    refused by :func:`check_prior`)."""
+    refused by :func:`check_prior`). ``whole``: the end-exhale surface at full resolution, in the
+    model's frame (the model mesh is its decimation); default the model mesh."""
     say = progress or (lambda _m: None)
     if kind == "sliding":
         return None
@@ -133,7 +136,7 @@ def interior_surface(placed: Placement, fit, side: str, kind: str, prior: Motion
     # whole closed surfaces, crop faces included: the map is between the two solids (their moments
     # include the cropped region too); leaving a crop face out of one side only pulls the other
     # side's points elsewhere (DIR-Lab COPDgene case 1 left: 9.3 mm with, 6.6 mm without)
-    field = correspondence_field(placed.rest, placed.targets[i].surface, scales[i])
+    field = correspondence_field(placed.rest if whole is None else whole, placed.targets[i].surface, scales[i])
     if prior is None:
         return field
     return field.with_linear(prior.affine(*lung_normaliser(placed.rest), side) / scales[i])

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lungdeform.errors import InputError, require
-from lungdeform.geometry.mesh import Surface, as_vertices, thinned
+from lungdeform.geometry.mesh import Surface, as_vertices, farthest_points
 from lungdeform.geometry.moments import solid_moments
 from lungdeform.interior.correspondence import CorrespondenceField
 
@@ -33,7 +33,7 @@ from .cpd import deformable_cpd
 #: CPD's smoothness weight and kernel width (mm; divided by the RMS radius of the larger surface).
 ALPHA = 1000.0
 BETA_MM = 80.0
-#: Surface points per surface (seeded subset).
+#: Surface points per surface (a farthest-point subset, :func:`lungdeform.geometry.mesh.farthest_points`).
 POINTS = 1500
 
 
@@ -100,17 +100,18 @@ def register_points(affine: tuple[np.ndarray, np.ndarray], points_small, points_
     return SurfaceMap(np.c_[mat, t], moved, s * weights, float(beta_mm))
 
 
-def surface_map(small: Surface, large: Surface, *, keep_small=None, keep_large=None, points: int = POINTS,
-                seed: int = 0) -> SurfaceMap:
+def surface_map(small: Surface, large: Surface, *, keep_small=None, keep_large=None,
+                points: int = POINTS) -> SurfaceMap:
     """:func:`register_points` between two closed surfaces (mm, one frame): the affine of their
-    solids' moments, the points a seeded subset of ``points`` kept vertices of each (``keep_* : (n,)
-    bool`` leaves crop faces out; None: all)."""
+    solids' moments, the points a farthest-point subset of ``points`` kept vertices of each
+    (:func:`lungdeform.geometry.mesh.farthest_points`: deterministic and even, so a region dense in
+    vertices does not weigh more; ``keep_* : (n,) bool`` leaves crop faces out; None: all)."""
     _, mu_s, cov_s = solid_moments(small.vertices, small.faces)
     _, mu_l, cov_l = solid_moments(large.vertices, large.faces)
     pts = []
     for surf, keep in ((small, keep_small), (large, keep_large)):
         v = surf.vertices if keep is None else surf.vertices[np.asarray(keep, bool)]
-        pts.append(v[thinned(len(v), points, seed)])
+        pts.append(v[farthest_points(v, points)])
     return register_points(moment_affine(mu_s, cov_s, mu_l, cov_l), *pts)
 
 

@@ -51,6 +51,42 @@ def thinned(n: int, count: int, seed: int = 0) -> np.ndarray:
     return np.sort(np.random.default_rng(seed).choice(n, count, replace=False))
 
 
+def farthest_points(points, count: int) -> np.ndarray:
+    """Indices ``(min(n, count),) int`` (sorted) of a farthest-point subset of ``points : (n, 3)`` mm:
+    the point farthest from their mean first, then each next the one farthest from those taken. The
+    subset is deterministic (no seed), spreads evenly over the shape whatever the points' density
+    (a decimated mesh packs vertices where the surface bends), and is equivariant under similarity:
+    the subset of a scaled, moved copy is the copy of the subset."""
+    p = as_vertices(points, "points")
+    if int(count) < 1:
+        raise InputError(f"count must be >= 1, got {count!r}")
+    if len(p) <= count:
+        return np.arange(len(p))
+    start = int(np.argmax(np.sum((p - p.mean(axis=0)) ** 2, axis=1)))
+    return np.sort(_farthest_kernel(p, int(count), start))
+
+
+@numba.njit(cache=True)
+def _farthest_kernel(p, count, start):  # pragma: no cover - compiled
+    n = p.shape[0]
+    out = np.empty(count, np.int64)
+    d = np.empty(n)
+    for i in range(n):
+        d[i] = (p[i, 0] - p[start, 0]) ** 2 + (p[i, 1] - p[start, 1]) ** 2 + (p[i, 2] - p[start, 2]) ** 2
+    out[0] = start
+    for k in range(1, count):
+        j = 0
+        for i in range(1, n):
+            if d[i] > d[j]:
+                j = i
+        out[k] = j
+        for i in range(n):
+            e = (p[i, 0] - p[j, 0]) ** 2 + (p[i, 1] - p[j, 1]) ** 2 + (p[i, 2] - p[j, 2]) ** 2
+            if e < d[i]:
+                d[i] = e
+    return out
+
+
 def as_faces(faces, n_vertices: int | None = None, name: str = "faces") -> np.ndarray:
     """Return ``faces`` as a C-contiguous ``(m, 3) int64`` array, or raise :class:`InputError`."""
     arr = np.asarray(faces)

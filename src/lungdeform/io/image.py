@@ -162,16 +162,18 @@ def check_dicom_file(path) -> None:
             pos, explicit = 132, True
         else:  # no preamble: an explicit-VR element first, else implicit VR (GDCM reads both)
             pos, explicit = 0, head[4:6] in _VRS
-        syntax = None
+        syntax, guessed = None, not explicit and pos == 0  # implicit without preamble: maybe no DICOM at all
         while pos + 8 <= size:
             fh.seek(pos)
             h = fh.read(12)
             group, elem, vr, length, hdr = _element_header(h, explicit)
-            where = f"{p}: damaged DICOM file: element ({group:04X},{elem:04X}) at byte {pos}"
+            where = (f"{p} is not a readable DICOM image slice: no preamble, and read as implicit VR its element "
+                     f"({group:04X},{elem:04X}) at byte {pos}" if guessed else
+                     f"{p}: damaged DICOM file: element ({group:04X},{elem:04X}) at byte {pos}")
             if pos == 132 and group != 0x0002:  # PS3.10 7.1: the file meta information follows "DICM"
                 raise ReadError(f"{where}: the file meta information (group 0002) must follow the preamble")
             if pos == 0 and group != 0x0002 and group < 0x0008:  # groups 0000-0007 are no file's first
-                raise ReadError(f"{p} is not a readable DICOM image: no preamble, and its first element "
+                raise ReadError(f"{p} is not a readable DICOM image slice: no preamble, and its first element "
                                 f"({group:04X},{elem:04X}) is neither file meta information (group 0002) nor a "
                                 "data set element (group 0008 or above)")
             if vr and vr not in _VRS:

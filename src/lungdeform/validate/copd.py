@@ -126,7 +126,8 @@ def settings_digest(files, side: str, config: FitConfig) -> str:
     h = hashlib.sha256()
     for p in files:
         h.update(Path(p).read_bytes())
-    mask = [B.MASK_CPD_POINTS, B.MASK_CPD_SIGMA, B.MASK_CPD_ALPHA, B.MASK_CPD_BETA_MM]
+    mask = [B.MASK_CPD_POINTS, B.MASK_CPD_SIGMA, B.MASK_CPD_ALPHA, B.MASK_CPD_BETA_MM, B.MASK_CPD_SAMPLING,
+            "correspondence: full-resolution surface, farthest points"]
     h.update(json.dumps({"side": side, "config": asdict(config), "mask_baselines": mask}, sort_keys=True).encode())
     return h.hexdigest()[:16]
 
