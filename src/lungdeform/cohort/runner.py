@@ -233,11 +233,14 @@ def _run_on_dask(jobs: list[Job], out: Path, options: FitOptions, scheduler, n_w
             # endpoint (the dashboard, if bokeh is installed) on a free port of 127.0.0.1: the
             # scheduler's default, port 8787 on all interfaces, collides with any other Dask on the
             # machine, and distributed then leaks the socket it failed to bind (a ResourceWarning).
+            # Workers' own log lines are silenced below CRITICAL: a failed job is reported from its
+            # future, and on Ctrl-C a worker whose heartbeat met the closing scheduler printed an
+            # ERROR and a traceback, breaking the one-line interruption message (seen under load).
             kw = {"host": "127.0.0.1"} if processes else {}
             with _sigint_ignored():  # inherited by the worker processes: Ctrl-C reaches this one only
                 cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=processes,
                                        dashboard_address="127.0.0.1:0", worker_dashboard_address="127.0.0.1:0",
-                                       silence_logs=logging.ERROR, **kw)
+                                       silence_logs=logging.CRITICAL, **kw)
             client = Client(cluster, set_as_default=False)
         address = client.scheduler.address
         client.subscribe_topic(TOPIC, events.put)
