@@ -308,3 +308,30 @@ def test_dicom_meta_group_must_follow_the_preamble(tmp_path):
     with pytest.raises(ReadError, match=r"13_001.dcm: damaged DICOM file: element \(000A,0000\) at byte 132: "
                                         r"the file meta information \(group 0002\) must follow the preamble"):
         read_image(tmp_path / "ct")
+
+
+def test_dicom_pixel_module_that_overflows_is_refused(tmp_path):
+    # found by tests/fuzz/fuzz_image_dicom.py (libFuzzer deadly signal): BitsAllocated 24 and
+    # BitsStored 2064 over 16-bit pixel data made GDCM write past its buffer ("corrupted size vs.
+    # prev_size": the process died). The pixel module's numbers are checked against each other and
+    # against the pixel data's length before GDCM reads the file
+    from lungdeform.io.image import check_dicom_file
+
+    _tiny_series(tmp_path / "ct", "1.2.826.0.1.3680043.2.1125.7.14", 2)
+    victim = tmp_path / "ct" / "14_001.dcm"
+    data = victim.read_bytes()
+    check_dicom_file(victim)  # intact: passes
+    # (0028,0100) BitsAllocated and (0028,0101) BitsStored: an 8-byte header (explicit VR US, or
+    # implicit VR), then the 2-byte value
+    ba = data.index(b"\x28\x00\x00\x01", 132)
+    bs = data.index(b"\x28\x00\x01\x01", 132)
+    victim.write_bytes(data[:ba + 8] + b"\x18\x00" + data[ba + 10:])  # 24 bits allocated, 16 stored
+    with pytest.raises(ReadError, match=r"14_001.dcm: damaged DICOM file: element \(7FE0,0010\) .* holds \d+ bytes of "
+                                        r"pixel data, and one frame of \d+ × \d+ at 24 bits needs \d+"):
+        check_dicom_file(victim)
+    victim.write_bytes(data[:bs + 8] + b"\x10\x08" + data[bs + 10:])  # 2064 bits stored of 16
+    with pytest.raises(ReadError, match=r"element \(0028,0101\) at byte \d+: BitsStored is 2064, not 1…16"):
+        read_image(tmp_path / "ct")
+    victim.write_bytes(data[:ba + 8] + b"\x0c\x00" + data[ba + 10:])  # 12 bits allocated: no standard size
+    with pytest.raises(ReadError, match="BitsAllocated is 12, not 1 or a multiple of 8"):
+        check_dicom_file(victim)

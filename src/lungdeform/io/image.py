@@ -163,6 +163,7 @@ def check_dicom_file(path) -> None:
         else:  # no preamble: an explicit-VR element first, else implicit VR (GDCM reads both)
             pos, explicit = 0, head[4:6] in _VRS
         syntax, guessed = None, not explicit and pos == 0  # implicit without preamble: maybe no DICOM at all
+        pixel, nested = {}, False  # the image pixel module's numbers (0028,xxxx); inside a sequence yet?
         while pos + 8 <= size:
             fh.seek(pos)
             h = fh.read(12)
@@ -188,11 +189,49 @@ def check_dicom_file(path) -> None:
             if (group, elem) == (0x0002, 0x0010):
                 fh.seek(pos + hdr)
                 syntax = fh.read(length).rstrip(b"\0 ")
-            if (group, elem) == (0x7FE0, 0x0010) or (group != 2 and syntax in (_BIG_ENDIAN, _DEFLATED)):
+            if group != 2 and syntax in (_BIG_ENDIAN, _DEFLATED):
                 return
+            if group == 0x0028 and elem in _PIXEL_TAGS and length == 2 and (group, elem) not in pixel:
+                fh.seek(pos + hdr)
+                pixel[(group, elem)] = struct.unpack("<H", fh.read(2))[0]
+                _check_pixel_module(pixel, where)
+            if (group, elem) == (0x7FE0, 0x0010):
+                if not nested:
+                    _check_pixel_length(pixel, length, where)
+                return
+            nested = nested or vr == b"SQ" or group == 0xFFFE
             if syntax is not None:
                 explicit = syntax != _IMPLICIT_LE
             pos += hdr if vr == b"SQ" or group == 0xFFFE else hdr + length  # into sequences and items
+
+
+#: (0028,0002) SamplesPerPixel, (0028,0010) Rows, (0028,0011) Columns, (0028,0100) BitsAllocated,
+#: (0028,0101) BitsStored: the numbers that size the pixel data (PS3.3 C.7.6.3).
+_PIXEL_TAGS = (0x0002, 0x0010, 0x0011, 0x0100, 0x0101)
+
+
+def _check_pixel_module(pixel: dict, where: str) -> None:
+    """ReadError (``where`` names the file and element) for BitsAllocated other than 1 or a multiple
+    of 8 up to 64 (PS3.5 8.1.1), or BitsStored outside 1…BitsAllocated: GDCM sizes its buffers from
+    them (found by tests/fuzz/fuzz_image_dicom.py: BitsAllocated 24 and BitsStored 2064 over 16-bit
+    pixel data corrupted the heap and killed the process)."""
+    ba, bs = pixel.get((0x0028, 0x0100)), pixel.get((0x0028, 0x0101))
+    if ba is not None and not (ba == 1 or (ba % 8 == 0 and 8 <= ba <= 64)):
+        raise ReadError(f"{where}: BitsAllocated is {ba}, not 1 or a multiple of 8 up to 64")
+    if ba is not None and bs is not None and not 1 <= bs <= ba:
+        raise ReadError(f"{where}: BitsStored is {bs}, not 1…{ba} (BitsAllocated)")
+
+
+def _check_pixel_length(pixel: dict, length: int, where: str) -> None:
+    """ReadError when native pixel data of ``length`` bytes is shorter than one frame of Rows ×
+    Columns × SamplesPerPixel × BitsAllocated (when all of them were read)."""
+    rows, cols, ba = (pixel.get((0x0028, e)) for e in (0x0010, 0x0011, 0x0100))
+    if rows is None or cols is None or ba is None:
+        return
+    need = (rows * cols * pixel.get((0x0028, 0x0002), 1) * ba + 7) // 8
+    if length < need:
+        raise ReadError(f"{where} holds {length} bytes of pixel data, and one frame of {rows} × {cols} "
+                        f"at {ba} bits needs {need}")
 
 
 def _series_in(folder: Path) -> list[tuple[str, tuple[str, ...]]]:
