@@ -35,6 +35,8 @@ ALPHA = 1000.0
 BETA_MM = 80.0
 #: Surface points per surface (a farthest-point subset, :func:`lungdeform.geometry.mesh.farthest_points`).
 POINTS = 1500
+#: How those points are chosen (recorded where a fit's settings are digested).
+SAMPLING = "farthest points of the full-resolution surfaces"
 
 
 @dataclass(frozen=True, eq=False)

@@ -44,6 +44,7 @@ from lungdeform import plot as P
 from lungdeform.atomic import write_json, write_text
 from lungdeform.errors import InputError, ReadError
 from lungdeform.fit import baselines as B
+from lungdeform.fit import registration
 from lungdeform.fit.config import FitConfig, FitInputs
 from lungdeform.fit.lungsplit import SIDES, landmarks_of_side, require_split, shared_splits
 from lungdeform.fit.motion_prior import RIDGE, PriorSample, learn_motion_prior, save_prior
@@ -127,7 +128,7 @@ def settings_digest(files, side: str, config: FitConfig) -> str:
     for p in files:
         h.update(Path(p).read_bytes())
     mask = [B.MASK_CPD_POINTS, B.MASK_CPD_SIGMA, B.MASK_CPD_ALPHA, B.MASK_CPD_BETA_MM, B.MASK_CPD_SAMPLING,
-            "correspondence: full-resolution surface, farthest points"]
+            registration.SAMPLING]
     h.update(json.dumps({"side": side, "config": asdict(config), "mask_baselines": mask}, sort_keys=True).encode())
     return h.hexdigest()[:16]
 
