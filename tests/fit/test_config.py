@@ -8,7 +8,7 @@ import pytest
 
 from lungdeform.errors import InputError
 from lungdeform.fit.config import FitConfig, FitInputs
-from lungdeform.fit.direction_correction import MAX_DEGREE
+from lungdeform.model.direction import MAX_DEGREE
 
 
 def test_fit_inputs_are_checked_and_normalised():

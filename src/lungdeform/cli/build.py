@@ -13,9 +13,10 @@ from lungdeform.fit.lungsplit import load_lungs
 from lungdeform.geometry.frame import resolve_sides
 from lungdeform.io.modelfile import provenance, save_model
 from lungdeform.model.lung import build_model
+from lungdeform.model.population import resolve_default
 from lungdeform.model.stiffness import parse_stiffness
 
-from .common import SIDE_CHECK_HELP, check_tidal_ml, option_names, parse_orientation, say
+from .common import CONSTANTS_HELP, SIDE_CHECK_HELP, check_tidal_ml, option_names, parse_orientation, say
 
 
 def register(apps) -> None:
@@ -34,6 +35,7 @@ def register(apps) -> None:
         stiffness: str = typer.Option("uniform", "--stiffness", help="uniform | gradient:DEPENDENT,NONDEPENDENT | sphere:X,Y,Z,RADIUS,E (mm, LPS)."),
         solver: str = typer.Option("bicgstab", "--solver", help="Linear solver: bicgstab, gmres or direct."),
         d_min: float = typer.Option(1.0, "--d-min", help="Minimum transfer distance (mm)."),
+        constants: str = typer.Option("population", "--constants", help=CONSTANTS_HELP),
     ):
         """Build a breathing lung model from one or two lung surfaces."""
 
@@ -42,6 +44,8 @@ def register(apps) -> None:
             raise InputError(f"--solver must be one of {', '.join(SOLVERS)}, got {solver!r}")
         if not d_min > 0:
             raise InputError(f"--d-min must be > 0 mm, got {d_min:g}")
+        with option_names({"constants": "--constants"}):
+            chosen = resolve_default(constants)
         if target_vertices is not None and target_vertices < 100:
             raise InputError(f"--target-vertices must be at least 100, got {target_vertices}")
         loaded = []
@@ -71,11 +75,12 @@ def register(apps) -> None:
             stiffness=stiffness, solver=solver, units=units,
         )
         model = build_model(surfaces, tidal_ml=tidal_ml, stiffness=stiff, gravity=gravity,
-                            solver=solver, d_min=d_min, provenance=prov, progress=say)
+                            solver=solver, d_min=d_min, provenance=prov, default=chosen, progress=say)
         path = save_model(out, model)
         for sd, lung in model.lungs.items():
             typer.echo(f"{sd}: {lung.n_vertices} vertices, V_EE {lung.volume_ee_ml:.0f} mL, "
                        f"calibrated at +{lung.calibration_ml:.0f} mL")
+        typer.echo(f"constants: {chosen.name} ({chosen.provenance.get('source', chosen.name)})")
         typer.echo(f"model written to {path}")
 
 

@@ -104,6 +104,10 @@ def read_curve(curve: Path, model):
 
 #: Exit code of a validation command run with ``--strict`` when a target is not met.
 STRICT_EXIT = 3
+
+CONSTANTS_HELP = ("Where c1…c9 and the directions come from: 'population' (the default learned from real "
+                  "subjects at two volumes, docs/DEFAULTS.md), 'paper' (Table I of Santhanam et al. 2008) or a "
+                  "file written by 'lungdeform learn-default'.")
 #: Help of ``--side-check/--no-side-check`` (fit, build, cohort).
 SIDE_CHECK_HELP = ("Check each lung's side against its shape (the concave medial face); --no-side-check for a "
                    "lung whose shape misleads the check.")

@@ -9,7 +9,7 @@ import typer
 from lungdeform.errors import InputError
 from lungdeform.playback.demo import run_demo
 
-from .common import check_tidal_ml, parse_orientation, say
+from .common import CONSTANTS_HELP, check_tidal_ml, parse_orientation, say
 
 #: Longest playback the demo writes (s): its ParaView series is 20 files (~2.7 MB) per second.
 MAX_DURATION_S = 300.0
@@ -23,8 +23,9 @@ def register(apps) -> None:
         duration_s: float | None = typer.Option(None, "--duration", help="Length played (s); default one breath of the preset."),
         tidal_ml: float | None = typer.Option(None, "--tidal-ml", help="Tidal volume, both lungs (mL); default the preset's."),
         orientation: str = typer.Option("supine", "--orientation", help="supine, prone, upright, left-decubitus, right-decubitus or 'x,y,z'."),
+        constants: str = typer.Option("population", "--constants", help=CONSTANTS_HELP),
     ):
-        """Build both embedded lungs (Table I, supine) and play one breath of a PV-model preset."""
+        """Build both embedded lungs (population default, supine) and play one breath of a PV-model preset."""
 
         check_tidal_ml(tidal_ml)
         if duration_s is not None and not duration_s <= MAX_DURATION_S:  # also NaN
@@ -33,7 +34,7 @@ def register(apps) -> None:
                              "--format glb --preset NAME --cycles N' (one file)")
         gravity = parse_orientation(orientation)
         r = run_demo(out, preset=preset, duration_s=duration_s, tidal_ml=tidal_ml,
-                     orientation=gravity, progress=say)
+                     orientation=gravity, constants=constants, progress=say)
         b = r.summary_data["breathing"]
         typer.echo(f"breathing: preset '{b['preset']}' ({b['description']}), {r.summary_data['duration_s']:g} s "
                    f"at {r.summary_data['frames_per_second']:.2f} frames/s, {r.summary_data['tidal_ml']:g} mL")

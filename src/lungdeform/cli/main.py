@@ -39,6 +39,7 @@ COMMAND_MODULES = [
     "lungdeform.cli.fit",
     "lungdeform.cli.validate_itk",
     "lungdeform.cli.validate_copd",
+    "lungdeform.cli.validate_single_scan",
     "lungdeform.cli.cohort",
     "lungdeform.cli.bench_cohort",
     "lungdeform.cli.synth_cohort",

@@ -15,8 +15,9 @@ import numpy as np
 
 from lungdeform.errors import InputError
 from lungdeform.geometry.frame import SIDES
+from lungdeform.model.direction import MAX_DEGREE
 
-from .direction_correction import DEFAULT_DEGREE, MAX_DEGREE
+from .direction_correction import DEFAULT_DEGREE
 from .fitting import MODES
 from .refinement import FINEST_MM
 
@@ -112,7 +113,7 @@ class FitConfig:
         ``align="joint"`` needs one of :data:`JOINT_MODES`.
     direction_degree : int
         Degree of the direction correction (:mod:`lungdeform.fit.direction_correction`), 0…
-        :data:`~lungdeform.fit.direction_correction.MAX_DEGREE`; 0: the paper's directions only.
+        :data:`~lungdeform.model.direction.MAX_DEGREE`; 0: the paper's directions only.
     landmark_comparisons : bool
         With landmarks: also the landmark-informed fits of c1…c9
         (:func:`lungdeform.fit.crossval.cross_validate_landmarks`; slow) as comparison rows.

@@ -24,7 +24,6 @@ the paper's directions for another gravity and so drops it.
 
 from __future__ import annotations
 
-import itertools
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable
 
@@ -32,34 +31,13 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from lungdeform.errors import InputError
+from lungdeform.model.direction import corrected_directions, polynomial_basis
 
 if TYPE_CHECKING:  # annotations only
     from .objective import LungFitter
 
 #: Default polynomial degree of the correction (0: the paper's directions only).
 DEFAULT_DEGREE = 3
-MAX_DEGREE = 4
-
-
-def polynomial_basis(xyz_hat, degree: int) -> np.ndarray:
-    """``φ : (n, K) float``: monomials of degree ≤ ``degree`` in ``2·x̂ − 1`` for lung-frame
-    normalised coordinates ``xyz_hat : (n, 3)`` (unitless, [0, 1] inside the end-exhale box);
-    ``K = C(degree + 3, 3)``; column 0 is the constant."""
-    if not 0 <= int(degree) <= MAX_DEGREE:
-        raise InputError(f"direction correction degree must be 0…{MAX_DEGREE}, got {degree!r}")
-    q = 2.0 * np.asarray(xyz_hat, float) - 1.0
-    cols = [np.ones(len(q))]
-    for dg in range(1, int(degree) + 1):
-        for combo in itertools.combinations_with_replacement(range(3), dg):
-            cols.append(np.prod(q[:, list(combo)], axis=1))
-    return np.ascontiguousarray(np.stack(cols, axis=1))
-
-
-def corrected_directions(d0, basis, coefficients) -> np.ndarray:
-    """Unit ``d : (n, 3)`` = normalise(``d0 (n, 3)`` + ``basis (n, K)`` @ ``coefficients (K, 3)``)."""
-    raw = np.asarray(d0, float) + np.asarray(basis, float) @ np.asarray(coefficients, float)
-    norm = np.linalg.norm(raw, axis=1, keepdims=True)
-    return np.ascontiguousarray(np.divide(raw, norm, out=np.zeros_like(raw), where=norm > 0))
 
 
 @dataclass(frozen=True, eq=False)

@@ -26,34 +26,14 @@ import numpy as np
 
 from lungdeform.atomic import write_json
 from lungdeform.errors import InputError, ReadError
-from lungdeform.geometry.mesh import Surface, as_vertices
-from lungdeform.geometry.moments import solid_moments
+from lungdeform.geometry.mesh import as_vertices
+from lungdeform.interior.prior import lung_normaliser, mirror, normalised, prior_affine, prior_displacement
 
 SCHEMA = "lungdeform.motion_prior"
 SCHEMA_VERSION = 1
 #: Ridge weight ``λ`` on the linear part (chosen leave-one-subject-out on the shared cases).
 RIDGE = 1.0
-SIDES = ("left", "right")
-
-
-def lung_normaliser(surface: Surface) -> tuple[np.ndarray, np.ndarray]:
-    """``(μ (3,) mm, σ (3,) mm)``: centroid and per-axis standard deviation of the solid ``surface`` encloses."""
-    _, mu, cov = solid_moments(surface.vertices, surface.faces)
-    return mu, np.sqrt(np.diag(cov))
-
-
-def _normalised(points, centroid, scale, side: str) -> np.ndarray:
-    if side not in SIDES:
-        raise InputError(f"side must be 'left' or 'right', got {side!r}")
-    sd = np.asarray(scale, float).reshape(3)
-    if not np.all(sd > 0):
-        raise InputError(f"scale must be (3,) positive mm, got {sd.tolist()}")
-    q = (as_vertices(points, "points") - np.asarray(centroid, float).reshape(3)) / sd
-    return q * _mirror(side)
-
-
-def _mirror(side: str) -> np.ndarray:
-    return np.array([-1.0, 1.0, 1.0]) if side == "left" else np.ones(3)
+__all__ = ["MotionPrior", "PriorSample", "learn_motion_prior", "load_prior", "lung_normaliser", "save_prior"]
 
 
 @dataclass(frozen=True)
@@ -88,15 +68,11 @@ class MotionPrior:
 
     def displacement(self, points, centroid, scale, side: str) -> np.ndarray:
         """``(m, 3)`` mm: the prior's residual displacement at ``points : (m, 3)`` mm of a lung."""
-        q = _normalised(points, centroid, scale, side)
-        return (self.coefficients[0] + q @ self.coefficients[1:]) * _mirror(side)
+        return prior_displacement(self.coefficients, points, centroid, scale, side)
 
     def affine(self, centroid, scale, side: str) -> np.ndarray:
         """``(3, 4)``: the same displacement as ``[M | b]`` in world mm, ``M q + b``."""
-        mir, sd, mu = _mirror(side), np.asarray(scale, float), np.asarray(centroid, float)
-        m = (self.coefficients[1:] * (mir / sd)[:, None]).T * mir[:, None]  # (3, 3): out × in
-        b = self.coefficients[0] * mir - m @ mu
-        return np.c_[m, b]
+        return prior_affine(self.coefficients, centroid, scale, side)
 
     def as_dict(self) -> dict:
         return {"schema": SCHEMA, "schema_version": SCHEMA_VERSION, "coefficients_mm": self.coefficients.tolist(),
@@ -113,12 +89,12 @@ def learn_motion_prior(samples, ridge: float = RIDGE) -> MotionPrior:
         raise InputError(f"ridge must be >= 0, got {ridge!r}")
     xs, ys, ws = [], [], []
     for smp in samples:
-        q = _normalised(smp.points, smp.centroid, smp.scale, smp.side)
+        q = normalised(smp.points, smp.centroid, smp.scale, smp.side)
         r = as_vertices(smp.residual, "residual")
         if len(r) != len(q) or len(q) == 0:
             raise InputError(f"{smp.subject} {smp.side}: need one residual per point ({len(q)}), got {len(r)}")
         xs.append(np.c_[np.ones(len(q)), q])
-        ys.append(r * _mirror(smp.side))
+        ys.append(r * mirror(smp.side))
         ws.append(np.full(len(q), 1.0 / len(q)))
     x, y, w = np.vstack(xs), np.vstack(ys), np.concatenate(ws)
     reg = float(ridge) * np.diag([0.0, 1.0, 1.0, 1.0]) * w.sum() / len(samples)

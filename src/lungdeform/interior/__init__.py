@@ -3,7 +3,8 @@
 Owns: :mod:`~lungdeform.interior.interpolate` (thin-plate splines), :mod:`~lungdeform.interior.sliding`
 (the sliding interpolation of the surface's normal motion, and the landmark correction that keeps it),
 :mod:`~lungdeform.interior.correspondence` (the field of a smooth surface-to-surface map: affine plus
-Gaussian radial part, with any population prior folded into its affine part) and
+Gaussian radial part, with any population prior folded into its affine part; the surface extension
+of a built model), :mod:`~lungdeform.interior.prior` (an affine prior in the lung-normalised frame) and
 :mod:`~lungdeform.interior.field` (the interior field a lung model plays back, its landmark
 correction's held-out selection, the landmark folds).
 

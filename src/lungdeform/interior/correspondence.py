@@ -86,3 +86,29 @@ class CorrespondenceField:
     def with_linear(self, extra) -> "CorrespondenceField":
         """A new field whose affine part per unit has ``extra : (3, 4)`` (mm per unit) added."""
         return replace(self, linear=self.linear + _affine(extra, "extra"))
+
+
+#: Gaussian width (mm) and number of centres of :func:`surface_extension`.
+EXTENSION_WIDTH_MM = 30.0
+EXTENSION_CENTRES = 300
+
+
+def surface_extension(vertices, displacement, *, width_mm: float = EXTENSION_WIDTH_MM,
+                      centres: int = EXTENSION_CENTRES, ridge: float = 1e-3) -> CorrespondenceField:
+    """A :class:`CorrespondenceField` that carries a surface displacement inside the lung: the
+    least-squares affine part of ``displacement : (n, 3)`` (mm per unit) over ``vertices : (n, 3)``
+    (mm LPS), plus Gaussians of width ``width_mm`` centred on ``centres`` evenly spread vertices
+    (every ``n // centres``-th), their weights the ridge-regularised least squares of the rest.
+    ``warp`` is the identity: the field is evaluated in the end-exhale frame."""
+    p = as_vertices(vertices)
+    u = as_vertices(displacement, "displacement")
+    if len(u) != len(p) or len(p) < 4:
+        raise InputError(f"displacement must have one row per vertex ({len(p)}, at least 4), got {len(u)}")
+    x = np.c_[p, np.ones(len(p))]
+    lin = np.linalg.lstsq(x, u, rcond=None)[0].T  # (3, 4)
+    rest = u - x @ lin.T
+    c = p[:: max(1, len(p) // int(centres))]
+    k = np.exp(-cdist(p, c, "sqeuclidean") / (2.0 * width_mm**2))
+    normal = k.T @ k
+    g = np.linalg.solve(normal + ridge * np.trace(normal) / len(c) * np.eye(len(c)), k.T @ rest)
+    return CorrespondenceField(lin, np.c_[np.eye(3), np.zeros(3)], c, g, float(width_mm))

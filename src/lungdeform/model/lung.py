@@ -20,16 +20,19 @@ from typing import Callable
 
 import numpy as np
 
-from lungdeform.constants import TIDAL_VOLUME_ML, gravity_vector, table_constants
+from lungdeform.constants import TIDAL_VOLUME_ML, gravity_vector
 from lungdeform.errors import InputError, LungdeformError
 from lungdeform.geometry.frame import LungFrame, lung_frame
 from lungdeform.geometry.mesh import Surface
-from lungdeform.interior.correspondence import CorrespondenceField
+from lungdeform.interior.correspondence import CorrespondenceField, surface_extension
 from lungdeform.interior.field import KINDS, interior_field
+from lungdeform.interior.prior import lung_normaliser, prior_affine
 
+from .direction import corrected_directions, polynomial_basis
 from .direction import directions as direction_field
 from .displacement import Playback, calibrate, scale_for_volume, volume_polynomial
 from .force import field_basis, force_weights
+from .population import PopulationDefault, resolve_default
 from .response import ResponseSolver
 from .solve import LinearSolver
 from .stiffness import as_moduli, uniform
@@ -224,6 +227,7 @@ def build_lung(
     d_min: float = 1.0,
     calibration_ml: float = TIDAL_VOLUME_ML,
     unit_ml: float = 1.0,
+    default: PopulationDefault | str | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> LungModel:
     """Precompute a lung model from its end-exhale surface.
@@ -234,7 +238,8 @@ def build_lung(
         Closed, outward, mm LPS (check it first with :meth:`Surface.checked`).
     side : 'left' | 'right'
     constants : (9,) float, optional
-        c1…c9; default Table I for ``side``.
+        c1…c9; default those of ``default`` for ``side``. Given constants take the paper's
+        directions (no direction correction).
     stiffness : (n,) float, optional
         Young's modulus per vertex; default uniform 1.
     gravity : str or (3,) float
@@ -245,9 +250,13 @@ def build_lung(
         Volume change (mL) at which the displacement's volume is exact.
     unit_ml : float
         ΔV: the displacement is mm per this many mL.
+    default : PopulationDefault, 'population', 'paper', path or None
+        Where c1…c9 and the direction correction come from when ``constants`` is not given
+        (:mod:`lungdeform.model.population`; None: the shipped population default).
     """
     say = progress or (lambda _msg: None)
-    c = table_constants(side) if constants is None else np.asarray(constants, dtype=float)
+    chosen = resolve_default(default) if constants is None else None
+    c = chosen.constants_for(side) if chosen is not None else np.asarray(constants, dtype=float)
     if c.shape != (9,) or not np.all(np.isfinite(c)):
         raise InputError(f"constants must be 9 finite values c1…c9, got shape {c.shape}")
     n = surface.n_vertices
@@ -261,10 +270,27 @@ def build_lung(
     say(f"{side}: force responses ({responses.graph.n_nodes} graph nodes, 4 fields)")
     basis = responses.responses(field_basis(xyz))
     d = direction_field(frame.supported(g), p, c)  # origins on the supported side (frame.py)
+    corr = None if chosen is None else chosen.correction_for(side, g)
+    if corr is not None:  # the default's smooth correction of the paper's directions (population.py)
+        d = corrected_directions(d, polynomial_basis(xyz, chosen.direction_degree), corr)
     raw = (force_weights(frame, g, c) @ basis)[:, None] * d
     u = _calibrated(surface, raw, calibration_ml, unit_ml, gravity)
+    inner = None if chosen is None else default_interior(surface, side, u, chosen, unit_ml, g)
     return LungModel(side, surface, c, e, frame, d, basis, g, u, float(unit_ml),
-                     float(calibration_ml), float(d_min))
+                     float(calibration_ml), float(d_min), interior_map=inner)
+
+
+def default_interior(surface: Surface, side: str, displacement: np.ndarray, default: PopulationDefault,
+                     unit_ml: float, gravity) -> CorrespondenceField | None:
+    """The interior of a lung built with ``default``: its ``displacement (n, 3)`` (mm per unit) carried
+    inside (:func:`lungdeform.interior.correspondence.surface_extension`) plus the default's interior
+    prior (mm per mL × ``unit_ml``); None (the sliding interior) when the default has no prior or
+    ``gravity`` is not the posture it was learned in."""
+    prior = default.prior_for(gravity)
+    if prior is None:
+        return None
+    inner = surface_extension(surface.vertices, displacement)
+    return inner.with_linear(prior_affine(prior, *lung_normaliser(surface), side) * float(unit_ml))
 
 
 def _calibrated(surface: Surface, raw: np.ndarray, calibration_ml: float, unit_ml: float, gravity):
@@ -316,10 +342,12 @@ def build_model(
 
     The tidal volume (mL, both lungs together) is split between the lungs in proportion to their
     end-exhale volumes; each lung is calibrated exactly at its share. Other keyword arguments go to
-    :func:`build_lung` (``gravity``, ``solver``, ``d_min``, ``unit_ml``).
+    :func:`build_lung` (``gravity``, ``solver``, ``d_min``, ``unit_ml``, ``default``). The
+    provenance records the default the lungs were built with (``"default"``: name and digest).
     """
     if not tidal_ml > 0:
         raise InputError(f"tidal_ml must be > 0 mL, got {tidal_ml!r}")
+    chosen = resolve_default(kwargs.pop("default", None))
     total = sum(s.volume_ml for s in surfaces.values())
     lungs = {}
     for side, surface in surfaces.items():
@@ -328,8 +356,10 @@ def build_model(
             surface, side,
             constants=None if constants is None else constants.get(side),
             stiffness=None if stiffness is None else stiffness.get(side),
-            calibration_ml=share, progress=progress, **kwargs,
+            calibration_ml=share, default=chosen, progress=progress, **kwargs,
         )
     prov = dict(provenance or {})
     prov.setdefault("tidal_ml", tidal_ml)
+    if constants is None or len(constants) < len(surfaces):
+        prov.setdefault("default", chosen.record())
     return Model(lungs, prov)

@@ -1,7 +1,7 @@
 """The main job on the embedded default lungs: build both, play one breath, write the results.
 
 Steps: build the left and right lungs of the embedded default (Coronacases 001, CC BY 4.0) with the
-Table I constants, supine; play one breath of the ``normal`` preset of the PV breathing model
+population default (:mod:`lungdeform.model.population`; ``constants="paper"``: Table I), supine; play one breath of the ``normal`` preset of the PV breathing model
 (:mod:`lungdeform.breathing.presets` → :func:`lungdeform.breathing.pv.simulate` → the volume above
 end-exhale; 15/min, 500 mL; :func:`lungdeform.playback.schedule.preset_trace`) at the paper's
 66.66 frames/s; write the model, a mesh time series, ``summary.json`` (volume per frame, per lung,
@@ -32,6 +32,7 @@ from lungdeform.errors import InputError
 from lungdeform.io.modelfile import save_model
 from lungdeform.model.displacement import enclosed_volume_ml, volume_change_ml
 from lungdeform.model.lung import build_model
+from lungdeform.model.population import PopulationDefault, resolve_default
 from lungdeform.plot import save_png, snapshot
 
 from .export import export_pvd
@@ -119,6 +120,7 @@ def run_demo(
     tidal_ml: float | None = None,
     orientation="supine",
     series_fps: float = 10.0,
+    constants=None,
     progress: Callable[[str], None] | None = None,
 ) -> DemoResult:
     """Build the default lungs and play ``preset`` (one period unless ``duration_s``) into ``out``.
@@ -127,15 +129,18 @@ def run_demo(
     folder beside ``out``, renamed to ``out`` at the end, so that ``out`` holds the whole set or does
     not exist; a previous demo there is replaced only at the end. An ``out`` holding anything but
     a demo's files (:data:`DEMO_FILES`) is refused (:class:`InputError`) rather than replaced.
+    ``constants``: the default the lungs are built with (:func:`lungdeform.model.population.resolve_default`:
+    None or ``"population"``, ``"paper"``, a file).
     """
 
     say = progress or (lambda _m: None)
     chosen = get_preset(preset)
+    posture = Posture(orientation, resolve_default(constants))
     params, _curve, trace = preset_trace(chosen, 1, tidal_ml, STEPS_PER_S, duration_s=duration_s)
     out = Path(out)
     check_replaceable(out)
     with atomic_dir(out) as tmp:
-        result = _run_into(tmp, chosen, params, trace, tidal_ml, orientation, series_fps, say)
+        result = _run_into(tmp, chosen, params, trace, tidal_ml, posture, series_fps, say)
     final = {k: out / getattr(result, k).relative_to(tmp) for k in ("model", "series", "summary", "snapshot")}
     return dataclasses.replace(result, **final)
 
@@ -156,12 +161,21 @@ def check_replaceable(out: Path) -> None:
                          "the demo replaces its output folder as a whole: name a new or empty folder")
 
 
-def _run_into(out: Path, chosen, params, trace, tidal_ml, orientation, series_fps, say) -> DemoResult:
+@dataclass(frozen=True)
+class Posture:
+    """How the demo's lungs are built: the ``orientation`` (gravity) and the ``default`` (c1…c9, directions)."""
+
+    orientation: object
+    default: PopulationDefault
+
+
+def _run_into(out: Path, chosen, params, trace, tidal_ml, posture: Posture, series_fps, say) -> DemoResult:
     """The demo's steps, writing into the (temporary) folder ``out``."""
     tidal = float(chosen.tidal_volume_ml if tidal_ml is None else tidal_ml)
     duration = float(trace.t_s[-1])
     say("loading the embedded default lungs (Coronacases 001, CC BY 4.0)")
-    model = build_model(default_lungs(), tidal_ml=tidal, gravity=orientation, progress=say,
+    orientation = posture.orientation
+    model = build_model(default_lungs(), tidal_ml=tidal, gravity=orientation, default=posture.default, progress=say,
                         provenance={"command": "demo", "source": "embedded Coronacases 001 lungs",
                                     "orientation": str(orientation), "breathing": f"preset {chosen.name}"})
     model_path = save_model(out / "model.npz", model)

@@ -6,8 +6,10 @@ a mass–spring–damper run to rest, Figs. 7–9), :mod:`~lungdeform.validate.d
 CT landmarks: the models, finding the files, the experiment of ``lungdeform validate dirlab``),
 :mod:`~lungdeform.validate.itk_pair` (the model fitted to the ITK right lung at two volumes and measured
 against baselines), :mod:`~lungdeform.validate.copd` (both lungs of the DIR-Lab COPDgene lung masks, fitted per
-lung, with calibrated mask-only baselines) and :mod:`~lungdeform.validate.breathing` (the PV breathing driver scored on held-out
-cycles of a folder of recorded traces).
+lung, with calibrated mask-only baselines), :mod:`~lungdeform.validate.breathing` (the PV breathing driver scored on held-out
+cycles of a folder of recorded traces), :mod:`~lungdeform.validate.single_scan` (the defaults scored
+from one scan, leave one subject out; learning a default from data folders) and
+:mod:`~lungdeform.validate.physiology` (a tidal breath's motion: base SI against AP, diaphragm per litre).
 
 May import: everything below it (:mod:`lungdeform.cohort`, :mod:`lungdeform.fit`, …); never the CLI.
 """
