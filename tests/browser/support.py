@@ -30,7 +30,7 @@ def two_lungs(subdivisions: int = 3):
     """A built two-lung model (Table I constants, supine), cached for the session."""
     from lungdeform.model.lung import Model, build_lung
 
-    lungs = {side: build_lung(ellipsoid(side, subdivisions), side) for side in ("left", "right")}
+    lungs = {side: build_lung(ellipsoid(side, subdivisions), side, default="paper") for side in ("left", "right")}
     return Model(lungs, {"source": "test ellipsoids", "subdivisions": subdivisions})
 
 

@@ -13,11 +13,13 @@ mirror image of a right one (:mod:`lungdeform.model.population`):
    vertex weighted by its share of the lung's motion (``|F|·area``, normalised per lung, so every
    lung counts once), with a ridge of :data:`RIDGE` × the mean diagonal. Scored leave one subject
    out it did not generalise (docs/DEFAULTS.md), so :data:`DEGREE` is 0;
-3. the interior prior (:mod:`lungdeform.interior.prior`): each training lung built with 1.–2.
-   (:func:`lungdeform.model.lung.build_lung`) and its landmarks moved to the larger volume; the
-   residual (observed, in the frame of that lung's own two-scan fit, minus predicted) per mL of
-   volume change, fitted by :func:`lungdeform.fit.motion_prior.learn_motion_prior` (ridge
-   :data:`lungdeform.fit.motion_prior.RIDGE`).
+3. the interior prior (:mod:`lungdeform.interior.prior`), mm per mL: each training lung built with
+   1.–2. (:func:`lungdeform.model.lung.build_lung`) and its landmarks moved to the larger volume; the
+   residuals (observed, in the frame of that lung's own two-scan fit, minus predicted), in mm, fitted
+   by ``ΔV·(β₀ + B q̂)`` in weighted least squares (every lung weighted once, whatever its landmark
+   count; ``ΔV`` its volume change, mL), with a ridge on ``B`` of :data:`PRIOR_RIDGE` × the mean
+   diagonal. Fitting in mm, not in mm per mL, keeps a lung with a small volume change from
+   dominating the fit with its noise (scored leave one subject out: docs/DEFAULTS.md).
 
 Every choice here was scored leave one subject out (``lungdeform validate single-scan``).
 """
@@ -30,11 +32,10 @@ from typing import Sequence
 import numpy as np
 
 from lungdeform.errors import InputError
-from lungdeform.fit.motion_prior import PriorSample, learn_motion_prior
 from lungdeform.geometry.distance import vertex_areas
 from lungdeform.geometry.frame import frame_axes, lung_frame
 from lungdeform.geometry.mesh import Surface
-from lungdeform.interior.prior import lung_normaliser
+from lungdeform.interior.prior import lung_normaliser, mirror, normalised
 from lungdeform.model.direction import directions as paper_directions
 from lungdeform.model.direction import polynomial_basis
 from lungdeform.model.lung import build_lung
@@ -44,6 +45,8 @@ from lungdeform.model.population import PopulationDefault
 DEGREE = 0
 #: Ridge of the pooled correction, relative to the mean diagonal of its normal matrix.
 RIDGE = 1e-3
+#: Ridge of the interior prior's linear part, relative to the mean diagonal (docs/DEFAULTS.md).
+PRIOR_RIDGE = 0.01
 
 
 @dataclass(frozen=True, eq=False)
@@ -129,13 +132,18 @@ def learn_default(samples: Sequence[DefaultSample], name: str = "population", pr
     return replace(partial, interior_prior=prior, provenance=prov)
 
 
-def pooled_prior(samples: Sequence[DefaultSample], default: PopulationDefault) -> np.ndarray:
+def pooled_prior(samples: Sequence[DefaultSample], default: PopulationDefault,
+                 ridge: float = PRIOR_RIDGE) -> np.ndarray:
     """``(4, 3)`` mm per mL: the interior prior of ``default`` (module docstring, step 3)."""
-    rows = []
+    xs, ys, ws = [], [], []
     for smp in samples:
         lung = build_lung(smp.surface, smp.side, default=default, calibration_ml=smp.delta_ml)
         moved = lung.points_at(smp.landmarks, lung.volume_ee_ml + smp.delta_ml, exact=True)
-        mu, sd = lung_normaliser(smp.surface)
-        rows.append(PriorSample(smp.subject, smp.side, mu, sd, smp.landmarks,
-                                (np.asarray(smp.landmarks_target, float) - moved) / smp.delta_ml))
-    return learn_motion_prior(rows).coefficients
+        q = normalised(smp.landmarks, *lung_normaliser(smp.surface), smp.side)
+        xs.append(smp.delta_ml * np.c_[np.ones(len(q)), q])  # the prior per mL, times this lung's change
+        ys.append((np.asarray(smp.landmarks_target, float) - moved) * mirror(smp.side))
+        ws.append(np.full(len(q), 1.0 / len(q)))  # every lung counts once
+    x, y, w = np.vstack(xs), np.vstack(ys), np.concatenate(ws)
+    normal = (x * w[:, None]).T @ x
+    reg = ridge * np.trace(normal) / 4.0 * np.diag([0.0, 1.0, 1.0, 1.0])
+    return np.linalg.solve(normal + reg, (x * w[:, None]).T @ y)

@@ -35,6 +35,7 @@ from __future__ import annotations
 import base64
 import hashlib
 import html
+import io
 import json
 import time
 from dataclasses import dataclass
@@ -44,11 +45,11 @@ from typing import Callable
 import numpy as np
 
 from lungdeform import plot as P
-from lungdeform.atomic import write_json, write_text
+from lungdeform.atomic import write_bytes, write_json, write_text
 from lungdeform.cohort.default import DefaultSample, learn_default
 from lungdeform.errors import ReadError
 from lungdeform.fit.config import FitInputs
-from lungdeform.fit.fitting import FitResult, fit_lung, to_lung_model
+from lungdeform.fit.fitting import fit_lung, to_lung_model
 from lungdeform.fit.inputs import read_inputs
 from lungdeform.fit.lungsplit import SIDES, shared_splits
 from lungdeform.fit.objective import Target
@@ -188,17 +189,61 @@ def modelled(pair: LungPair, lung: LungModel) -> tuple[np.ndarray, np.ndarray]:
             lung.points_at(pair.landmarks_rest, pair.volume_ml, exact=True))
 
 
-def fit_pair(pair: LungPair) -> FitResult:
+@dataclass(frozen=True, eq=False)
+class FittedLung:
+    """What the experiment keeps of a lung's two-scan fit (:func:`fit_pair`): ``constants (9,)``,
+    ``stiffness (n,)``, ``directions (n, 3)``, ``displacement (n, 3)`` (mm per ``unit_ml``),
+    ``force (n,)``, ``translation (3,)`` mm (of the larger-volume scan), ``unit_ml``, ``calibration_ml``."""
+
+    constants: np.ndarray
+    stiffness: np.ndarray
+    directions: np.ndarray
+    displacement: np.ndarray
+    force: np.ndarray
+    translation: np.ndarray
+    unit_ml: float
+    calibration_ml: float
+
+
+def fit_pair(pair: LungPair) -> FittedLung:
     """The two-scan fit of ``pair`` (c1…c9, a translation, the direction correction; uniform stiffness)."""
-    return fit_lung(pair.rest, pair.side, [pair.target], keep=pair.keep, translate=True, direction_degree=3,
-                    max_evaluations=FIT_EVALUATIONS)
+    fit = fit_lung(pair.rest, pair.side, [pair.target], keep=pair.keep, translate=True, direction_degree=3,
+                   max_evaluations=FIT_EVALUATIONS)
+    return FittedLung(fit.constants, fit.stiffness, fit.directions, fit.displacement, fit.force,
+                      np.asarray(fit.translations[0], float), float(fit.unit_ml), float(fit.calibration_ml))
 
 
-def sample_of(pair: LungPair, fit: FitResult) -> DefaultSample:
+def cached_fit(pair: LungPair, subject: Subject, folder: Path) -> FittedLung:
+    """:func:`fit_pair`, kept in ``folder/<subject>_<side>.npz`` under a digest of both scans, the side
+    and the fit settings, and read back from there when the digest matches (a rerun resumes)."""
+    h = hashlib.sha256(f"{subject.digest}/{Path(subject.scans[1]).stat().st_size}/{pair.side}/"
+                       f"{FIT_EVALUATIONS}/{pair.rest.n_vertices}".encode()).hexdigest()[:16]
+    path = Path(folder) / f"{subject.name}_{pair.side}.npz"
+    if path.is_file():
+        try:
+            with np.load(path) as z:
+                if str(z["digest"]) == h:
+                    return FittedLung(*(z[k] for k in ("constants", "stiffness", "directions", "displacement", "force",
+                                                         "translation")), float(z["unit_ml"]), float(z["calibration_ml"]))
+        except (OSError, ValueError, KeyError):
+            pass  # a damaged cache file is fitted again
+    fit = fit_pair(pair)
+    buf = io.BytesIO()
+    np.savez(buf, digest=np.array(h), **{k: np.asarray(getattr(fit, k)) for k in FittedLung.__dataclass_fields__})
+    write_bytes(path, buf.getvalue())
+    return fit
+
+
+def fitted_model(pair: LungPair, fit: FittedLung) -> LungModel:
+    """The two-scan fit as a :class:`LungModel` on ``pair.rest`` (the ``fitted`` row)."""
+    return to_lung_model(pair.rest, pair.side, fit)
+
+
+def sample_of(pair: LungPair, fit: FittedLung) -> DefaultSample:
     """What :func:`lungdeform.cohort.default.learn_default` takes from one fitted lung."""
-    t = np.asarray(fit.translations[0], float)  # the fit's translation of the larger-volume scan
     return DefaultSample(pair.subject, pair.side, pair.rest, fit.constants, fit.directions, fit.force,
-                         pair.landmarks_rest, pair.landmarks_target + t, pair.volume_ml - pair.rest.volume_ml)
+                         pair.landmarks_rest, pair.landmarks_target + fit.translation,
+                         pair.volume_ml - pair.rest.volume_ml)
 
 
 @dataclass(frozen=True)
@@ -236,18 +281,19 @@ def _defaults_for(subjects, pairs, fits, config: SingleScanConfig, say) -> dict[
     return out
 
 
-def _training_pairs(folders, scored: set[str], say) -> dict[tuple[str, str], LungPair]:
-    """Every lung of the subjects in ``folders`` (not scored; only learned from)."""
-    out = {}
+def _training_pairs(folders, scored: set[str], say) -> tuple[dict[tuple[str, str], LungPair], list[Subject]]:
+    """Every lung of the subjects in ``folders`` (not scored; only learned from), and those subjects."""
+    out, subjects = {}, []
     for folder in folders:
         for s in find_subjects(folder):
+            subjects.append(s)
             if s.name in scored:
                 raise ReadError(f"{folder}: subject {s.name!r} is also in the data folder")
             with shared_splits():
                 for side in s.sides:
                     say(f"{s.name} {side}: reading both scans (training only)")
                     out[(s.name, side)] = read_pair(s, side)
-    return out
+    return out, subjects
 
 
 def _check_leave_one_out(subjects, names: set[str], config: SingleScanConfig) -> None:
@@ -285,12 +331,13 @@ def run_single_scan(data: Path, out: Path, config: SingleScanConfig = SingleScan
                 pairs[(s.name, side)] = read_pair(s, side, lambda m, n=s.name, sd=side: say(f"{n} {sd}: {m}"))
     fits, fit_seconds, extra = {}, {}, {}
     if _needs_fits(subjects, config):
-        extra = _training_pairs(config.train, {s.name for s in subjects}, say)
+        extra, more = _training_pairs(config.train, {s.name for s in subjects}, say)
+        by_name = {s.name: s for s in [*subjects, *more]}
         _check_leave_one_out(subjects, {k[0] for k in {**pairs, **extra}}, config)
         for key, pair in {**pairs, **extra}.items():
             say(f"{key[0]} {key[1]}: two-scan fit (for leave-one-subject-out learning and the fitted row)")
             t0 = time.perf_counter()
-            fits[key] = fit_pair(pair)
+            fits[key] = cached_fit(pair, by_name[key[0]], Path(out) / "fits")
             fit_seconds[key] = time.perf_counter() - t0
     chosen = _defaults_for(subjects, {**pairs, **extra}, fits, config, say)
     lungs, build_seconds = {}, {}
@@ -308,7 +355,7 @@ def run_single_scan(data: Path, out: Path, config: SingleScanConfig = SingleScan
     return result
 
 
-def _score_lung(pair: LungPair, default: PopulationDefault, fit: FitResult | None) -> tuple[dict, float]:
+def _score_lung(pair: LungPair, default: PopulationDefault, fit: FittedLung | None) -> tuple[dict, float]:
     """One lung's rows, and the time of building its default model (s)."""
     t0 = time.perf_counter()
     lung = build_lung(pair.rest, pair.side, default=default)
@@ -317,7 +364,7 @@ def _score_lung(pair: LungPair, default: PopulationDefault, fit: FitResult | Non
             "paper": score(pair, *modelled(pair, build_lung(pair.rest, pair.side, default=paper_default()))),
             "isotropic": score(pair, *isotropic(pair))}
     if fit is not None:
-        rows["fitted"] = score(pair, *modelled(pair, to_lung_model(pair.rest, pair.side, fit)))
+        rows["fitted"] = score(pair, *modelled(pair, fitted_model(pair, fit)))
     return rows, seconds
 
 
