@@ -1,4 +1,4 @@
-"""Hostile-input probe of the ``lungdeform`` commands on the radiotherapy path (issue 26).
+"""Hostile-input probe of the ``lungdeform`` commands on the radiotherapy path.
 
 Builds small synthetic inputs in a temporary folder (seeded: a two-lung model, a CT series with a
 GTV RTSTRUCT, a 4-D CT phantom, images, traces, a fake DIR-Lab COPDgene folder), damages them one
@@ -117,16 +117,17 @@ def ct_dataset(pixels, spacing, position, uids: dict, k: int, iop=(1, 0, 0, 0, 1
     return ds
 
 
-def write_ct(folder: Path, volume, spacing, origin, uids: dict, *, z=None, iop=(1, 0, 0, 0, 1, 0),
-             shift=None, edit: Callable | None = None, name: str = "ct") -> Path:
-    """``volume`` (z, y, x) as one DICOM file per slice; ``z`` the slice positions (default regular),
-    ``shift(k)`` an extra (3,) offset of slice k's position, ``edit(ds, k)`` a last change per slice."""
+def write_ct(folder: Path, volume, spacing, origin, uids: dict, name: str = "ct", **hooks) -> Path:
+    """``volume`` (z, y, x) as one DICOM file per slice. ``hooks``: ``z`` the slice positions (default
+    regular), ``iop`` the orientation, ``shift(k)`` an extra (3,) offset of slice k's position,
+    ``edit(ds, k)`` a last change per slice."""
     folder.mkdir(parents=True, exist_ok=True)
     nz = len(volume)
+    z, shift, edit = hooks.get("z"), hooks.get("shift"), hooks.get("edit")
     zs = [origin[2] + k * spacing[2] for k in range(nz)] if z is None else list(z)
     for k in range(nz):
         pos = np.array([origin[0], origin[1], zs[k]]) + (0 if shift is None else shift(k))
-        ds = ct_dataset(volume[k], spacing, pos, uids, k, iop)
+        ds = ct_dataset(volume[k], spacing, pos, uids, k, hooks.get("iop") or (1, 0, 0, 0, 1, 0))
         if edit is not None:
             edit(ds, k)
         ds.save_as(folder / f"{name}{k:04d}.dcm", enforce_file_format=False)
@@ -150,30 +151,27 @@ def phase_ct(shape, spacing, scale: float, rng):
 FOURD_SHAPE, FOURD_SPACING = (24, 48, 48), (4.0, 4.0, 6.0)
 
 
-def write_4dct(fx, folder: Path, *, phases: int = 4, uids_of=None, z_of=None, iop_of=None, shift_of=None,
-               edit_of=None, drop_of=None, description_of=None) -> Path:
+def write_4dct(fx, folder: Path, phases: int = 4, **hooks) -> Path:
     """A 4-D CT: phase p a series in ``folder/phaseP`` (SeriesDescription ``Gated 10p%``), lungs
-    inflated by 1 + 0.06 p per axis. Each ``*_of(p)`` hook may change phase p: its UIDs (a dict
-    merged in), slice positions ``z``, orientation, per-slice shift, per-slice ``edit(ds, k)``,
-    slices dropped (indices), description."""
+    inflated by 1 + 0.06 p per axis. Each hook ``NAME_of(p)`` may change phase p: ``uids_of`` its UIDs
+    (a dict merged in), ``z_of`` its slice positions, ``iop_of`` its orientation, ``shift_of`` and
+    ``edit_of`` the per-slice hooks of :func:`write_ct`, ``drop_of`` slices left out (indices),
+    ``description_of`` its SeriesDescription."""
     nz, ny, nx = FOURD_SHAPE
     sx, sy, sz = FOURD_SPACING
     origin = (-(nx - 1) / 2 * sx, -(ny - 1) / 2 * sy, -(nz - 1) / 2 * sz)
     rng = np.random.default_rng(fx.seed)
+    hook = {k: hooks.get(f"{k}_of") or (lambda _p: None) for k in ("uids", "z", "iop", "shift", "edit", "drop",
+                                                                   "description")}
     for p in range(phases):
         uids = {"study": _uid(fx, 7, 1), "series": _uid(fx, 7, 2, p), "frame": _uid(fx, 7, 3),
-                "description": f"Gated {10 * p}%"}
-        uids.update((uids_of or (lambda _p: {}))(p))
-        if description_of is not None:
-            uids["description"] = description_of(p)
+                "description": hook["description"](p) or f"Gated {10 * p}%", **(hook["uids"](p) or {})}
         vol = phase_ct(FOURD_SHAPE, FOURD_SPACING, 1.0 + 0.06 * p, rng)
-        z = None if z_of is None else z_of(p)
-        keep = [k for k in range(nz) if k not in set((drop_of or (lambda _p: ()))(p))]
+        z = hook["z"](p)
+        keep = [k for k in range(nz) if k not in set(hook["drop"](p) or ())]
         zs = [origin[2] + k * sz for k in range(nz)] if z is None else list(z)
         write_ct(folder / f"phase{p}", vol[keep], FOURD_SPACING, origin, uids, z=[zs[k] for k in keep],
-                 iop=(iop_of or (lambda _p: (1, 0, 0, 0, 1, 0)))(p),
-                 shift=None if shift_of is None else shift_of(p),
-                 edit=None if edit_of is None else edit_of(p))
+                 iop=hook["iop"](p), shift=hook["shift"](p), edit=hook["edit"](p))
     return folder
 
 
@@ -404,8 +402,31 @@ class Case:
     signal: tuple | None = None
     #: for an exit 0: a reason the output is wrong, or None
     verify: Callable | None = None
+    #: ``runner(d, argv, limit, env) -> Run`` instead of a plain run
     runner: Callable | None = None
     timeout: float | None = None
+
+
+@dataclass
+class Settings:
+    """How the cases run: per-case time-out (s), address-space cap per run (GiB), seed, parallel runs."""
+
+    timeout: float = 60.0
+    memory_gib: float = 6.0
+    seed: int = 0
+    workers: int = 1
+
+
+@dataclass
+class Run:
+    """What one run gave: exit code (None after a time-out), its output, whether it was killed for
+    running past the time-out, whether the case's signal was sent."""
+
+    rc: int | None
+    stdout: str
+    stderr: str
+    timed_out: bool = False
+    signalled: bool = False
 
 
 @dataclass
@@ -519,17 +540,27 @@ def verify_field_nonzero(d: Path, _stdout: str):
     return None if np.abs(a).max() > 0.01 else "the displacement field is zero everywhere"
 
 
-def track_cases() -> list[Case]:
-    z_gtv = GTV_CENTRE[2] - 9 + 2 * np.arange(10)  # the CT's slices through the GTV
+Z_GTV = GTV_CENTRE[2] - 9 + 2 * np.arange(10)  # the reference CT's slices through the GTV
+
+
+def rt_case(name, expect, rois=None, edit=None, why="", ct=None, extra=(), **kw) -> Case:
+    """A ``track`` case: the probe's GTV RTSTRUCT changed by ``edit(ds)`` (or with the ROIs ``rois``
+    instead, :func:`rtstruct_with`) onto the reference CT ``ct(fx, d)`` (default: the probe's)."""
+    def build(fx, d):
+        path = rtstruct_with(fx, d / "rs.dcm", rois, edit) if rois is not None else edited_gtv(fx, d / "rs.dcm", edit)
+        return track_rt(fx, d, path, ct(fx, d) if ct else None, extra)
+    return Case(name, "track", expect, build, why, **kw)
+
+
+def track_structure_cases() -> list[Case]:
+    """Structures that disagree with the CT, or whose contours are damaged, odd or named badly."""
     C = []
 
-    def rt(name, expect, rois=None, edit=None, why="", verify=None, ct=None, extra=(), **kw):
-        def build(fx, d):
-            path = rtstruct_with(fx, d / "rs.dcm", rois, edit) if rois is not None else edited_gtv(fx, d / "rs.dcm", edit)
-            return track_rt(fx, d, path, ct(fx, d) if ct else None, extra)
-        C.append(Case(name, "track", expect, build, why, verify=verify, **kw))
+    def rt(*args, **kw):
+        C.append(rt_case(*args, **kw))
 
-    rt("track_frame_and_study_mismatch", "refuse", edit=lambda ds: (_set_frame("1.2.3.4.5")(ds), _set(StudyInstanceUID="1.2.3.4.6")(ds)),
+    rt("track_frame_and_study_mismatch", "refuse",
+       edit=lambda ds: (_set_frame("1.2.3.4.5")(ds), _set(StudyInstanceUID="1.2.3.4.6")(ds)),
        why="RTSTRUCT drawn in another frame of reference and study than --reference-ct")
     rt("track_frame_mismatch", "refuse", edit=_set_frame("1.2.3.4.5"), why="RTSTRUCT frame of reference differs")
     rt("track_study_mismatch_only", "warn", edit=_set(StudyInstanceUID="1.2.3.4.6"), why="same frame, other study")
@@ -538,37 +569,37 @@ def track_cases() -> list[Case]:
     rt("track_frame_uid_missing", "warn", edit=lambda ds: (delattr(ds, "FrameOfReferenceUID"),
                                                            delattr(ds, "ReferencedFrameOfReferenceSequence")),
        why="RTSTRUCT without any frame of reference")
-    rt("track_contour_gap_6mm", "warn", rois=[("GTV", sphere_contours(np.delete(z_gtv, [4, 5])), "GTV")],
+    rt("track_contour_gap_6mm", "warn", rois=[("GTV", sphere_contours(np.delete(Z_GTV, [4, 5])), "GTV")],
        why="two contours missing: a 6 mm gap in 2 mm contours")
-    rt("track_contour_every_6mm", "warn", rois=[("GTV", sphere_contours(z_gtv[::3]), "GTV")],
+    rt("track_contour_every_6mm", "warn", rois=[("GTV", sphere_contours(Z_GTV[::3]), "GTV")],
        why="contours every 6 mm (every third 2 mm slice of the CT)")
-    rt("track_contour_gap_18mm", "warn", rois=[("GTV", sphere_contours(np.r_[z_gtv[:1], z_gtv[-1:]]), "GTV")],
+    rt("track_contour_gap_18mm", "warn", rois=[("GTV", sphere_contours(np.r_[Z_GTV[:1], Z_GTV[-1:]]), "GTV")],
        why="only the first and last contour: 18 mm apart")
-    rt("track_contour_nan", "warn", rois=[("GTV", sphere_contours(z_gtv)[:5] + [circle(z_gtv[5]) * np.nan]
-                                            + sphere_contours(z_gtv)[6:], "GTV")],
+    rt("track_contour_nan", "warn", rois=[("GTV", sphere_contours(Z_GTV)[:5] + [circle(Z_GTV[5]) * np.nan]
+                                            + sphere_contours(Z_GTV)[6:], "GTV")],
        why="one contour of NaN among ten")
     rt("track_contour_one_nan_point", "warn", rois=[("GTV", [c if i != 4 else np.where(np.arange(24)[:, None] == 3, np.nan, c)
-                                                             for i, c in enumerate(sphere_contours(z_gtv))], "GTV")],
+                                                             for i, c in enumerate(sphere_contours(Z_GTV))], "GTV")],
        why="one NaN coordinate in one contour")
-    rt("track_contour_all_nan", "refuse", rois=[("GTV", [circle(z) * np.nan for z in z_gtv], "GTV")],
+    rt("track_contour_all_nan", "refuse", rois=[("GTV", [circle(z) * np.nan for z in Z_GTV], "GTV")],
        why="every contour NaN")
-    rt("track_contour_inf", "warn", rois=[("GTV", sphere_contours(z_gtv)[:9] + [np.c_[np.full((24, 2), np.inf), circle(z_gtv[9])[:, 2]]], "GTV")],
+    rt("track_contour_inf", "warn", rois=[("GTV", sphere_contours(Z_GTV)[:9] + [np.c_[np.full((24, 2), np.inf), circle(Z_GTV[9])[:, 2]]], "GTV")],
        why="one contour of infinities")
-    rt("track_contour_1e308", "refuse", rois=[("GTV", sphere_contours(z_gtv)[:9] + [circle(z_gtv[9]) * 0 + 1e308], "GTV")],
+    rt("track_contour_1e308", "refuse", rois=[("GTV", sphere_contours(Z_GTV)[:9] + [circle(Z_GTV[9]) * 0 + 1e308], "GTV")],
        why="one contour at 1e308 mm")
-    rt("track_contour_degenerate", "warn", rois=[("GTV", sphere_contours(z_gtv)[:9] + [circle(z_gtv[9])[:2]], "GTV")],
+    rt("track_contour_degenerate", "warn", rois=[("GTV", sphere_contours(Z_GTV)[:9] + [circle(Z_GTV[9])[:2]], "GTV")],
        why="a two-point contour")
-    rt("track_contour_single_point_all", "refuse", rois=[("GTV", [circle(z)[:1] for z in z_gtv], "GTV")],
+    rt("track_contour_single_point_all", "refuse", rois=[("GTV", [circle(z)[:1] for z in Z_GTV], "GTV")],
        why="every contour a single point")
     rt("track_contour_nonplanar", "warn", rois=[("GTV", [c + [0, 0, 0] if i != 3 else c + np.c_[0 * c[:, :2], np.linspace(0, 5, 24)]
-                                                        for i, c in enumerate(sphere_contours(z_gtv))], "GTV")],
+                                                        for i, c in enumerate(sphere_contours(Z_GTV))], "GTV")],
        why="one contour not in one plane (z 0-5 mm)")
-    rt("track_contour_off_slice", "warn", rois=[("GTV", sphere_contours(z_gtv + 0.7), "GTV")],
+    rt("track_contour_off_slice", "warn", rois=[("GTV", sphere_contours(Z_GTV + 0.7), "GTV")],
        why="contours 0.7 mm off the CT's slice planes")
     rt("track_contour_self_intersecting", "warn",
-       rois=[("GTV", [c[[0, 12, 6, 18, 3, 15, 9, 21]] for c in sphere_contours(z_gtv)], "GTV")],
+       rois=[("GTV", [c[[0, 12, 6, 18, 3, 15, 9, 21]] for c in sphere_contours(Z_GTV)], "GTV")],
        why="bow-tie (self-intersecting) polygons")
-    rt("track_contour_outside_ct", "warn", rois=[("GTV", sphere_contours(z_gtv + 60, zc=GTV_CENTRE[2] + 60), "GTV")],
+    rt("track_contour_outside_ct", "warn", rois=[("GTV", sphere_contours(Z_GTV + 60, zc=GTV_CENTRE[2] + 60), "GTV")],
        why="structure above the reference CT's last slice")
     rt("track_contours_dense_4000", "refuse",
        rois=[("GTV", [circle(GTV_CENTRE[2] - 20 + 0.01 * k) for k in range(4000)], "GTV")],
@@ -576,24 +607,34 @@ def track_cases() -> list[Case]:
     rt("track_contours_dense_400", "any",
        rois=[("GTV", [circle(GTV_CENTRE[2] - 10 + 0.05 * k) for k in range(400)], "GTV")],
        why="400 contours 0.05 mm apart")
-    rt("track_contour_huge_polygon", "any", rois=[("GTV", [circle(z, n=2000) for z in z_gtv], "GTV")],
+    rt("track_contour_huge_polygon", "any", rois=[("GTV", [circle(z, n=2000) for z in Z_GTV], "GTV")],
        why="10 contours of 2000 points each (fine but valid)")
-    rt("track_roi_non_ascii", "ok", rois=[("GTV-é肿瘤", sphere_contours(z_gtv), "GTV")],
+    rt("track_roi_non_ascii", "ok", rois=[("GTV-é肿瘤", sphere_contours(Z_GTV), "GTV")],
        edit=lambda ds: setattr(ds, "SpecificCharacterSet", "ISO_IR 192"), verify=verify_non_ascii,
        extra=["--structure", "GTV-é肿瘤"], why="UTF-8 ROI name: written back with SpecificCharacterSet")
-    rt("track_roi_name_near_limit", "refuse", rois=[("G" * 60, sphere_contours(z_gtv), "GTV")], extra=["--structure", "G" * 60],
+    rt("track_roi_name_near_limit", "refuse", rois=[("G" * 60, sphere_contours(Z_GTV), "GTV")], extra=["--structure", "G" * 60],
        why="60-character ROI name: NAME@volume exceeds DICOM's 64")
-    rt("track_roi_name_over_limit", "warn", rois=[("X" * 80, sphere_contours(z_gtv), "GTV")], extra=["--structure", "X" * 80],
+    rt("track_roi_name_over_limit", "warn", rois=[("X" * 80, sphere_contours(Z_GTV), "GTV")], extra=["--structure", "X" * 80],
        why="80-character ROI name in the input (over the DICOM limit)")
-    rt("track_roi_duplicate", "refuse", rois=[("GTV", sphere_contours(z_gtv), "GTV"),
-                                              ("GTV", sphere_contours(z_gtv[:4]), "GTV")],
+    rt("track_roi_duplicate", "refuse", rois=[("GTV", sphere_contours(Z_GTV), "GTV"),
+                                              ("GTV", sphere_contours(Z_GTV[:4]), "GTV")],
        why="two ROIs named GTV")
-    rt("track_roi_duplicate_case", "any", rois=[("GTV", sphere_contours(z_gtv), "GTV"), ("gtv", sphere_contours(z_gtv[:4]), "GTV")],
+    rt("track_roi_duplicate_case", "any", rois=[("GTV", sphere_contours(Z_GTV), "GTV"), ("gtv", sphere_contours(Z_GTV[:4]), "GTV")],
        why="ROIs GTV and gtv")
     rt("track_roi_no_contour_sequence", "refuse", rois=[("GTV", [], "GTV")], why="the ROI has no contours")
-    rt("track_roi_nan_and_frame_mismatch", "refuse", rois=[("GTV", sphere_contours(z_gtv)[:9] + [circle(z_gtv[9]) * np.nan], "GTV")],
+    rt("track_roi_nan_and_frame_mismatch", "refuse", rois=[("GTV", sphere_contours(Z_GTV)[:9] + [circle(Z_GTV[9]) * np.nan], "GTV")],
        edit=_set_frame("1.2.3.4.9"), why="a NaN contour and another frame of reference")
     rt("track_structure_empty_name", "refuse", extra=["--structure", ""], edit=lambda ds: None, why="--structure ''")
+
+    return C
+
+
+def track_ct_cases() -> list[Case]:
+    """Reference CT series whose geometry or identity is wrong."""
+    C = []
+
+    def rt(*args, **kw):
+        C.append(rt_case(*args, **kw))
 
     def ct_case(name, expect, why, **kw):
         rt(name, expect, edit=lambda ds: None, ct=lambda fx, d: ct_variant(fx, d, **kw), why=why,
@@ -637,6 +678,13 @@ def track_cases() -> list[Case]:
 
     rt("track_ct_two_series", "warn", edit=lambda ds: None, ct=two_series,
        why="reference CT folder holding two series (two frames of reference)")
+
+    return C
+
+
+def track_output_cases() -> list[Case]:
+    """Missing inputs, outputs onto inputs or under files, and out-of-range options."""
+    C = []
 
     def simple(name, expect, build, why):
         C.append(Case(name, "track", expect, build, why))
@@ -685,6 +733,10 @@ def track_cases() -> list[Case]:
            "--points row at ±1e308")
     simple("track_valid_control", "ok", lambda fx, d: track_rt(fx, d), "the probe's GTV onto its own CT (control)")
     return C
+
+
+def track_cases() -> list[Case]:
+    return track_structure_cases() + track_ct_cases() + track_output_cases()
 
 
 def fit_args(folder, d, *extra):
@@ -789,6 +841,22 @@ def dvf_cases() -> list[Case]:
     mha("dvf_ref_huge_grid_tiny_spacing", "a 1000 x 1000 x 1000 grid of 0.1 mm (the field would be 12 GB)",
         expect="refuse", data=None, DimSize="1000 1000 1", ElementSpacing="0.1 0.1 0.1")
 
+    C.append(Case("dvf_out_is_folder", "dvf", "refuse", lambda fx, d: (d / "u.mha").mkdir() or dvf_args(fx, d),
+                  "--out u.mha an existing folder"))
+    C.append(Case("dvf_out_is_reference", "dvf", "refuse",
+                  lambda fx, d: dvf_args(fx, d, ref=_copy(fx.ref, d / "ref.nii.gz"), out=d / "ref.nii.gz"),
+                  "--out is --reference"))
+    C.append(Case("dvf_out_under_file", "dvf", "refuse",
+                  lambda fx, d: _w(d / "f", "x") or dvf_args(fx, d, out=d / "f" / "u.mha"), "--out under a regular file"))
+    C.append(Case("dvf_valid_control", "dvf", "ok", lambda fx, d: dvf_args(fx, d), "the probe's model on its label image (control)",
+                  verify=verify_field_nonzero))
+    return C
+
+
+def model_cases() -> list[Case]:
+    """Damaged model files (complex, NaN, out-of-range arrays; a bad provenance), read by ``dvf``."""
+    C = []
+
     def bad_model(name, why, edit, expect="refuse", extra=()):
         C.append(Case(name, "model", expect, lambda fx, d: dvf_args(fx, d, *extra, model=model_variant(fx, d / "m.npz", edit)), why))
 
@@ -823,15 +891,6 @@ def dvf_cases() -> list[Case]:
         if c.name.startswith("model_provenance_m") or c.name.startswith("model_provenance_volumes"):
             build = c.build
             c.build = lambda fx, d, b=build: [*[x for x in b(fx, d) if x not in ("--volume-ml", fx.v1)], "--scan", "1"]
-    C.append(Case("dvf_out_is_folder", "dvf", "refuse", lambda fx, d: (d / "u.mha").mkdir() or dvf_args(fx, d),
-                  "--out u.mha an existing folder"))
-    C.append(Case("dvf_out_is_reference", "dvf", "refuse",
-                  lambda fx, d: dvf_args(fx, d, ref=_copy(fx.ref, d / "ref.nii.gz"), out=d / "ref.nii.gz"),
-                  "--out is --reference"))
-    C.append(Case("dvf_out_under_file", "dvf", "refuse",
-                  lambda fx, d: _w(d / "f", "x") or dvf_args(fx, d, out=d / "f" / "u.mha"), "--out under a regular file"))
-    C.append(Case("dvf_valid_control", "dvf", "ok", lambda fx, d: dvf_args(fx, d), "the probe's model on its label image (control)",
-                  verify=verify_field_nonzero))
     return C
 
 
@@ -943,7 +1002,7 @@ def stream_cases() -> list[Case]:
     return C
 
 
-def view_reset_runner(case, fx, d, argv, timeout, env):
+def view_reset_runner(d: Path, argv: list, timeout: float, env: dict) -> Run:
     """Start the viewer on 127.0.0.1 (port 0), reset 20 connections (RST), stop it with SIGINT."""
     proc = subprocess.Popen(argv, cwd=d, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, start_new_session=True)
@@ -963,11 +1022,11 @@ def view_reset_runner(case, fx, d, argv, timeout, env):
             time.sleep(1.0)
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=timeout)
-        return proc.returncode, line + out.decode("utf-8", "replace"), err.decode("utf-8", "replace"), False, True
+        return Run(proc.returncode, line + _text(out), _text(err))
     except subprocess.TimeoutExpired:
         _kill(proc)
         out, err = proc.communicate()
-        return None, out.decode("utf-8", "replace"), err.decode("utf-8", "replace"), True, True
+        return Run(None, _text(out), _text(err), True)
     finally:
         if proc.poll() is None:
             _kill(proc)
@@ -1073,7 +1132,7 @@ def copd_cases() -> list[Case]:
 
 
 def all_cases() -> list[Case]:
-    return track_cases() + fit_cases() + dvf_cases() + warp_cases() + stream_cases() + view_cases() + copd_cases()
+    return track_cases() + fit_cases() + dvf_cases() + model_cases() + warp_cases() + stream_cases() + view_cases() + copd_cases()
 
 
 #: Variants of a class another case already covers (other values of the same option, near-duplicate
@@ -1156,34 +1215,43 @@ def cap_memory(pid: int, memory_gib: float) -> None:
         pass
 
 
-def run_process(case: Case, d: Path, argv: list, stdin: bytes | None, timeout: float, env: dict, memory_gib: float):
-    """(rc or None on a timeout, stdout, stderr, timed_out, signalled)."""
+def _text(b: bytes) -> str:
+    return b.decode("utf-8", "replace")
+
+
+def _send(proc, sig) -> None:
+    """SIGINT as Ctrl-C sends it (to the whole process group); SIGTERM as ``kill PID`` does."""
+    if sig == signal.SIGINT:
+        os.killpg(proc.pid, sig)
+    else:
+        proc.send_signal(sig)
+
+
+def run_process(case: Case, d: Path, argv: list, stdin: bytes | None, limit: float, env: dict,
+                settings: Settings) -> Run:
+    """Run ``argv`` in ``d``; for a signal case, send the signal once its trigger file appears."""
     proc = subprocess.Popen(argv, cwd=d, env=env, stdin=subprocess.PIPE if stdin is not None else subprocess.DEVNULL,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
-    cap_memory(proc.pid, memory_gib)
-    signalled = False
+    cap_memory(proc.pid, settings.memory_gib)
+    signalled, t0 = False, time.monotonic()
     try:
         if case.signal is None:
-            out, err = proc.communicate(stdin, timeout=timeout)
-            return proc.returncode, out.decode("utf-8", "replace"), err.decode("utf-8", "replace"), False, False
+            out, err = proc.communicate(stdin, timeout=limit)
+            return Run(proc.returncode, _text(out), _text(err))
         sig, pattern, _allowed = case.signal
-        t0 = time.monotonic()
-        while proc.poll() is None and time.monotonic() - t0 < timeout:
+        while proc.poll() is None and time.monotonic() - t0 < limit:
             if _matches(d, pattern):
                 time.sleep(0.1)
-                if sig == signal.SIGINT:  # Ctrl-C reaches the terminal's whole process group
-                    os.killpg(proc.pid, sig)
-                else:  # kill PID
-                    proc.send_signal(sig)
+                _send(proc, sig)
                 signalled = True
                 break
             time.sleep(0.05)
-        out, err = proc.communicate(timeout=max(5.0, timeout - (time.monotonic() - t0)))
-        return proc.returncode, out.decode("utf-8", "replace"), err.decode("utf-8", "replace"), False, signalled
+        out, err = proc.communicate(timeout=max(5.0, limit - (time.monotonic() - t0)))
+        return Run(proc.returncode, _text(out), _text(err), False, signalled)
     except subprocess.TimeoutExpired:
         _kill(proc)
         out, err = proc.communicate()
-        return None, out.decode("utf-8", "replace"), err.decode("utf-8", "replace"), True, signalled
+        return Run(None, _text(out), _text(err), True, signalled)
     finally:
         if proc.poll() is None:
             _kill(proc)
@@ -1194,100 +1262,111 @@ def _names_something(text: str, argv: list) -> bool:
     tokens = [a for a in argv[1:] if a.startswith("--")]
     paths = [a for a in argv[1:] if os.sep in a]
     names = [Path(a).name for a in paths if Path(a).name]
-    low = text.lower()
     return (any(t in text for t in tokens) or any(p in text for p in paths) or any(n in text for n in names)
-            or "stdin" in low)
+            or "stdin" in text.lower())
 
 
 def _warned(stderr: str) -> bool:
     return any(ln.strip().lower().startswith(("warning", "note")) for ln in stderr.splitlines())
 
 
-def classify(case: Case, rc, stdout: str, stderr: str, timed_out: bool, signalled: bool,
-             before: dict, after: dict, d: Path, argv: list) -> tuple[str, str]:
-    """(outcome, reason) of one run (see the module docstring)."""
-    new = sorted(set(after) - set(before))
-    changed = sorted(k for k in before if k in after and before[k] != after[k] and before[k] != "dir")
-    gone = sorted(set(before) - set(after))
-    if timed_out:
-        return "hang", f"killed after {case.timeout or 'the timeout'} s"
-    if "Traceback" in stderr:
-        last = [ln for ln in stderr.splitlines() if ln.strip()][-1:] or [""]
+def _after_signal(case: Case, run: Run, diff: dict, d: Path) -> tuple[str, str]:
+    allowed = case.signal[2]
+    left = [k for k in diff["new"] if not allowed(k, d)] + diff["changed"] + diff["gone"]
+    if left:
+        return "partial", f"after the signal: {left[:4]}"
+    if run.rc in REFUSAL_CODES or run.rc in (-signal.SIGTERM, 128 + signal.SIGTERM):
+        return "clean", f"exit {run.rc}, nothing half-written"
+    return "traceback", f"exit {run.rc} after the signal"
+
+
+def _success(case: Case, run: Run, diff: dict, d: Path) -> tuple[str, str]:
+    note = " (finished before the signal)" if case.signal is not None else ""
+    warned = _warned(run.stderr)
+    if diff["changed"] or diff["gone"]:
+        return "silent", f"exit 0 but an input changed: {(diff['changed'] + diff['gone'])[:3]}{note}"
+    if case.expect == "refuse":
+        return "silent", f"exit 0 on an input that should be refused{' (with a warning)' if warned else ''}{note}"
+    if case.expect == "warn" and not warned:
+        return "silent", f"exit 0 without a warning on stderr{note}"
+    if case.verify is not None:
+        try:
+            why = case.verify(d, run.stdout)
+        except Exception as exc:  # noqa: BLE001 - an output that cannot even be read back is the finding
+            why = f"output not readable: {type(exc).__name__}: {str(exc)[:200]}"
+        if why:
+            return "silent", why
+    return "clean", f"exit 0{' with a warning' if warned else ''}{note}"
+
+
+def _refusal(case: Case, run: Run, diff: dict, argv: list) -> tuple[str, str]:
+    left = diff["new"] + diff["changed"] + diff["gone"]
+    if left:
+        return "partial", f"exit {run.rc} but left {left[:4]}"
+    if case.expect == "ok":
+        return "refused", f"a valid input refused (exit {run.rc})"
+    if "Usage:" in run.stderr:  # click's own usage error: several lines, naming the option
+        ok = _names_something(run.stderr, argv) or "Invalid value" in run.stderr
+        return ("clean", "usage error") if ok else ("unclear", "usage error naming no option")
+    lines = [ln for ln in run.stderr.splitlines() if ln.strip()]
+    if len(lines) != 1:
+        return "unclear", f"{len(lines)} stderr lines"
+    if not _names_something(lines[0], argv):
+        return "unclear", "the error names no file or option"
+    return "clean", f"exit {run.rc}"
+
+
+def classify(case: Case, run: Run, before: dict, after: dict, d: Path, argv: list) -> tuple[str, str]:
+    """(outcome, reason) of one run, from the case folder's snapshots before and after (see the
+    module docstring for the outcomes)."""
+    diff = {"new": sorted(set(after) - set(before)), "gone": sorted(set(before) - set(after)),
+            "changed": sorted(k for k in before if k in after and before[k] != after[k] and before[k] != "dir")}
+    if run.timed_out:
+        return "hang", f"killed after {case.timeout or 'the time-out'} s"
+    if "Traceback" in run.stderr:
+        last = [ln for ln in run.stderr.splitlines() if ln.strip()][-1:] or [""]
         return "traceback", last[0][:300]
-    if case.signal is not None and signalled:
-        allowed = case.signal[2]
-        left = [k for k in new if not allowed(k, d)]
-        if left or changed or gone:
-            return "partial", f"after the signal: {(left + changed + gone)[:4]}"
-        if rc in REFUSAL_CODES or rc in (-signal.SIGTERM, 143):
-            return "clean", f"exit {rc}, nothing half-written"
-        return "traceback", f"exit {rc} after the signal"
-    if rc == 0:
-        note = " (finished before the signal)" if case.signal is not None else ""
-        if changed or gone:
-            return "silent", f"exit 0 but an input changed: {(changed + gone)[:3]}{note}"
-        if case.expect == "refuse":
-            return "silent", f"exit 0 on an input that should be refused{' (with a warning)' if _warned(stderr) else ''}{note}"
-        if case.expect == "warn" and not _warned(stderr):
-            return "silent", f"exit 0 without a warning on stderr{note}"
-        if case.verify is not None:
-            try:
-                why = case.verify(d, stdout)
-            except Exception as exc:  # the output cannot even be read back
-                why = f"output not readable: {type(exc).__name__}: {str(exc)[:200]}"
-            if why:
-                return "silent", why
-        return "clean", f"exit 0{' with a warning' if _warned(stderr) else ''}{note}"
-    if rc in REFUSAL_CODES:
-        if new or changed or gone:
-            return "partial", f"exit {rc} but left {(new + changed + gone)[:4]}"
-        if case.expect == "ok":
-            return "refused", f"a valid input refused (exit {rc})"
-        lines = [ln for ln in stderr.splitlines() if ln.strip()]
-        if "Usage:" in stderr:  # click's own usage error: several lines, names the option
-            ok = _names_something(stderr, argv) or "Invalid value" in stderr
-            return ("clean", "usage error") if ok else ("unclear", "usage error naming no option")
-        if len(lines) != 1:
-            return "unclear", f"{len(lines)} stderr lines"
-        if not _names_something(lines[0], argv):
-            return "unclear", "the error names no file or option"
-        return "clean", f"exit {rc}"
-    return "traceback", f"undocumented exit code {rc}"
+    if case.signal is not None and run.signalled:
+        return _after_signal(case, run, diff, d)
+    if run.rc == 0:
+        return _success(case, run, diff, d)
+    if run.rc in REFUSAL_CODES:
+        return _refusal(case, run, diff, argv)
+    return "traceback", f"undocumented exit code {run.rc}"
 
 
-def run_case(case: Case, fx: Fixtures, root: Path, timeout: float, memory_gib: float) -> Result:
+def _probe_error(case: Case, text: str) -> Result:
+    return Result(case.name, case.command, case.expect, "probe-error", None, text[:400], 0.0, why=case.why)
+
+
+def run_case(case: Case, fx: Fixtures, root: Path, settings: Settings) -> Result:
+    """Build the case's inputs in its own folder, run it, classify it."""
     d = root / "cases" / case.name
     d.mkdir(parents=True)
-    t0 = time.monotonic()
     try:
         built = case.build(fx, d)
-    except Exception as exc:  # a probe bug: reported, never hidden
-        return Result(case.name, case.command, case.expect, "probe-error", None, f"{type(exc).__name__}: {exc}", 0.0,
-                      why=case.why)
+    except Exception as exc:  # noqa: BLE001 - a probe bug: reported, never hidden
+        return _probe_error(case, f"{type(exc).__name__}: {exc}")
     args, stdin = built if isinstance(built, tuple) else (built, None)
     if not (isinstance(args, list) and all(isinstance(a, str) for a in args)):
-        return Result(case.name, case.command, case.expect, "probe-error", None, f"bad arguments {args!r}"[:400], 0.0,
-                      why=case.why)
+        return _probe_error(case, f"bad arguments {args!r}")
     argv = [sys.executable, "-m", "lungdeform", *args]
-    env = child_env(root)
-    limit = case.timeout or timeout
-    before = snapshot(d)
-    t0 = time.monotonic()
+    env, limit = child_env(root), case.timeout or settings.timeout
+    before, t0 = snapshot(d), time.monotonic()
     if case.runner is not None:
-        rc, out, err, timed_out, signalled = case.runner(case, fx, d, argv, limit, env)
+        run = case.runner(d, argv, limit, env)
     else:
-        rc, out, err, timed_out, signalled = run_process(case, d, argv, stdin, limit, env, memory_gib)
+        run = run_process(case, d, argv, stdin, limit, env, settings)
     seconds = time.monotonic() - t0
-    outcome, reason = classify(case, rc, out, err, timed_out, signalled, before, snapshot(d), d, argv)
-    first = next((ln.strip() for ln in err.splitlines() if ln.strip()), "")
+    outcome, reason = classify(case, run, before, snapshot(d), d, argv)
+    first = next((ln.strip() for ln in run.stderr.splitlines() if ln.strip()), "")
     shown = shlex.join(["lungdeform", *args]).replace(str(root), "$PROBE")
-    return Result(case.name, case.command, case.expect, outcome, rc, first.replace(str(root), "$PROBE")[:400],
-                  round(seconds, 2), shown[:600], reason.replace(str(root), "$PROBE"), case.why, err)
+    return Result(case.name, case.command, case.expect, outcome, run.rc, first.replace(str(root), "$PROBE")[:400],
+                  round(seconds, 2), shown[:600], reason.replace(str(root), "$PROBE"), case.why, run.stderr)
 
 
 def select(cases: list[Case], only: list[str] | None, everything: bool = False) -> list[Case]:
-    """The cases named by ``only`` (substrings; every case when None), leaving out :data:`EXTRA` unless
-    ``everything`` or ``only`` is given."""
+    """The cases named by ``only`` (substrings), else every case but :data:`EXTRA` (all with ``everything``)."""
     if only:
         return [c for c in cases if any(s in c.name for s in only)]
     return [c for c in cases if everything or c.name not in EXTRA]
@@ -1304,23 +1383,24 @@ def stage_package(root: Path) -> Path:
     return dst
 
 
-def run_probe(root: Path, *, only=None, everything: bool = False, workers: int = 1, timeout: float = 60.0,
-              memory_gib: float = 6.0, seed: int = 0, progress: Callable[[Result], None] | None = None) -> list[Result]:
+def run_probe(root: Path, settings: Settings | None = None, only=None, everything: bool = False,
+              progress: Callable[[Result], None] | None = None) -> list[Result]:
     """Build the fixtures under ``root`` and run the selected cases; the results in case order."""
+    settings = settings or Settings()
     cases = select(all_cases(), only, everything)
     names = [c.name for c in cases]
     assert len(names) == len(set(names)), "case names must be unique"
     stage_package(root)
-    fx = build_fixtures(root / "shared", seed)
+    fx = build_fixtures(root / "shared", settings.seed)
     shared_before = snapshot(fx.root)
 
     def one(case):
-        r = run_case(case, fx, root, timeout, memory_gib)
+        r = run_case(case, fx, root, settings)
         if progress is not None:
             progress(r)
         return r
 
-    with ThreadPoolExecutor(max(1, workers)) as pool:
+    with ThreadPoolExecutor(max(1, settings.workers)) as pool:
         results = list(pool.map(one, cases))
     if snapshot(fx.root) != shared_before:
         raise RuntimeError(f"a case changed the shared inputs under {fx.root}: a probe bug")
@@ -1328,13 +1408,15 @@ def run_probe(root: Path, *, only=None, everything: bool = False, workers: int =
 
 
 def summary_table(results: list[Result]) -> str:
-    outcomes = [o for o in OUTCOMES if o != "probe-error"] + (["probe-error"] if any(r.outcome == "probe-error" for r in results) else [])
+    """Counts per outcome, per command and in all."""
+    outcomes = list(OUTCOMES) + (["probe-error"] if any(r.outcome == "probe-error" for r in results) else [])
     commands = sorted({r.command for r in results})
     width = max(len(c) for c in commands + ["command", "all"])
     lines = [f"{'command':<{width}} " + " ".join(f"{o:>9}" for o in outcomes) + f" {'total':>6}"]
     for c in commands + ["all"]:
         rs = [r for r in results if c in ("all", r.command)]
-        lines.append(f"{c:<{width}} " + " ".join(f"{sum(r.outcome == o for r in rs):>9}" for o in outcomes) + f" {len(rs):>6}")
+        counts = " ".join(f"{sum(r.outcome == o for r in rs):>9}" for o in outcomes)
+        lines.append(f"{c:<{width}} {counts} {len(rs):>6}")
     return "\n".join(lines)
 
 
@@ -1354,6 +1436,7 @@ def main(argv=None) -> int:
         for c in select(all_cases(), a.only, a.all):
             print(f"{c.name:42s} {c.command:14s} {c.expect:7s} {c.why}")
         return 0
+    settings = Settings(a.timeout, a.memory_gib, a.seed, a.workers)
     root = Path(tempfile.mkdtemp(prefix="lungdeform-probe-"))
     t0 = time.monotonic()
 
@@ -1362,8 +1445,7 @@ def main(argv=None) -> int:
         print(f"{r.outcome:10s} {r.seconds:6.1f}s {r.name}{mark}", flush=True)
 
     try:
-        results = run_probe(root, only=a.only, everything=a.all, workers=a.workers, timeout=a.timeout, memory_gib=a.memory_gib,
-                            seed=a.seed, progress=progress)
+        results = run_probe(root, settings, a.only, a.all, progress)
     finally:
         if a.keep:
             print(f"kept {root}")

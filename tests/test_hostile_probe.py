@@ -1,5 +1,5 @@
 """scripts/hostile_probe.py: its classification of outcomes, and two of its cases run end to end
-(so the probe the issue-26 runs rely on does not rot as the commands change)."""
+(so that the hostile-input probe does not rot as the commands change)."""
 
 from __future__ import annotations
 
@@ -54,8 +54,8 @@ ARGV = ["python", "track", "/tmp/p/model.npz", "--out", "/tmp/p/out"]
     ("ok", 2, "error: --out: x\n", {}, {}, False, "refused"),
 ])
 def test_classify(probe, tmp_path, expect, rc, stderr, before, after, timed_out, want):
-    outcome, reason = probe.classify(_case(probe, expect), rc, "", stderr, timed_out, False, before, after,
-                                     tmp_path, ARGV)
+    run = probe.Run(rc, "", stderr, timed_out)
+    outcome, reason = probe.classify(_case(probe, expect), run, before, after, tmp_path, ARGV)
     assert outcome == want, reason
 
 
@@ -63,10 +63,14 @@ def test_classify_signal_cases(probe, tmp_path):
     # after SIGTERM: a file left is half-written whatever the exit code; nothing left is clean, even
     # when Python's default action killed the process (there was nothing to clean)
     case = _case(probe, signal=(signal.SIGTERM, "x", probe._no_leftovers))
-    assert probe.classify(case, 130, "", "interrupted\n", False, True, {}, {"ct_phase00.mha": (1, 1)},
-                          tmp_path, ARGV)[0] == "partial"
-    assert probe.classify(case, -signal.SIGTERM, "", "", False, True, {}, {}, tmp_path, ARGV)[0] == "clean"
-    assert probe.classify(case, 130, "", "interrupted\n", False, True, {}, {}, tmp_path, ARGV)[0] == "clean"
+    interrupted = probe.Run(130, "", "interrupted\n", signalled=True)
+    left = {"ct_phase00.mha": (1, 1)}
+    assert probe.classify(case, interrupted, {}, left, tmp_path, ARGV)[0] == "partial"
+    assert probe.classify(case, interrupted, {}, {}, tmp_path, ARGV)[0] == "clean"
+    killed = probe.Run(-signal.SIGTERM, "", "", signalled=True)
+    assert probe.classify(case, killed, {}, {}, tmp_path, ARGV)[0] == "clean"
+    # a signal case that finished before its trigger appeared is judged as an ordinary run
+    assert probe.classify(case, probe.Run(0, "", ""), {}, {}, tmp_path, ARGV)[0] == "silent"
 
 
 def test_every_case_is_named_once_and_declares_an_expectation(probe):
@@ -81,9 +85,10 @@ def test_every_case_is_named_once_and_declares_an_expectation(probe):
 def test_two_cases_end_to_end(probe, tmp_path):
     # a valid stream (control) exits 0 with finite volumes; a line of text on stdin is refused with
     # one line naming stdin: both clean, each with its record filled in
-    results = probe.run_probe(tmp_path, only=["stream_valid_control", "stream_garbage_line"], timeout=120)
-    assert [r.name for r in results] == ["stream_valid_control", "stream_garbage_line"]
-    assert [(r.outcome, r.rc) for r in results] == [("clean", 0), ("clean", 2)], [r.reason for r in results]
-    assert "stdin line" in results[1].stderr_first_line and results[1].argv.startswith("lungdeform stream")
+    only = ["stream_valid_control", "stream_garbage_line"]
+    results = sorted(probe.run_probe(tmp_path, probe.Settings(timeout=120), only=only), key=lambda r: r.name)
+    assert [r.name for r in results] == ["stream_garbage_line", "stream_valid_control"]
+    assert [(r.outcome, r.rc) for r in results] == [("clean", 2), ("clean", 0)], [r.reason for r in results]
+    assert "stdin line" in results[0].stderr_first_line and results[0].argv.startswith("lungdeform stream")
     # nothing but the probe's own folders under its root
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cache", "cases", "mpl", "shared", "src", "tmp"]
