@@ -2,8 +2,10 @@
 
 Builds small synthetic inputs in a temporary folder (seeded: a two-lung model, a CT series with a
 GTV RTSTRUCT, a 4-D CT phantom, images, traces, a fake DIR-Lab COPDgene folder), damages them one
-way each, runs ``python -m lungdeform …`` on every case as a subprocess (this checkout's ``src``
-first on ``PYTHONPATH``) with a per-case timeout and a memory cap, and classifies what happened:
+way each (or several at once), runs ``python -m lungdeform …`` on every case as a subprocess (a
+compiled copy of this checkout's ``src/lungdeform`` first on ``PYTHONPATH``) with a per-case time-out
+and a memory cap, sends SIGTERM or SIGINT mid-run in the signal cases (``warp --phases``,
+``validate copd``), and classifies what happened:
 
 ``clean``      refused with a documented exit code (2, 3, 130) and one stderr line naming a file or
                an option (or a click usage error naming the option), nothing left behind; or exit 0
@@ -18,19 +20,26 @@ first on ``PYTHONPATH``) with a per-case timeout and a memory cap, and classifie
 ``hang``       the case ran past ``--timeout`` (killed)
 ``unclear``    refused cleanly but the stderr is not one line naming a file or an option
 ``refused``    a valid input (``expect="ok"``) refused
+``probe-error``  the probe could not build the case (a bug of the probe, never of lungdeform)
 
 Each case declares ``expect``: ``refuse`` (must exit non-zero), ``warn`` (refuse, or exit 0 with a
 warning on stderr), ``ok`` (must exit 0) or ``any`` (a clean refusal or exit 0).
 
-Run, from the repository root (about 5–10 minutes on two cores)::
+Run, from the repository root::
 
-    PYTHONPATH=src .venv/bin/python scripts/hostile_probe.py --json probe.json
-    PYTHONPATH=src .venv/bin/python scripts/hostile_probe.py --only track_ --workers 2 --timeout 60
+    .venv/bin/python scripts/hostile_probe.py --workers 2 --json probe.json
+    .venv/bin/python scripts/hostile_probe.py --only track_ct --only warp_phases_sig --keep
+
+The default set (about 150 cases; :data:`EXTRA` holds further values of the same classes, run with
+``--all``) takes 10–15 minutes with ``--workers 2`` on an idle two-core machine, most of it the
+start-up of each run (imports); much longer when the cores are shared. It prints one line per case
+as it ends, then the counts per command and outcome and every case that is not ``clean``.
 
 Options: ``--json FILE`` (per case: name, command, argv, expect, outcome, rc, stderr_first_line,
-seconds, reason), ``--only SUBSTR`` (cases whose name holds it; repeatable), ``--workers N``,
+seconds, reason, why), ``--all``, ``--only SUBSTR`` (cases whose name holds it; repeatable), ``--workers N``,
 ``--timeout S`` (per case), ``--memory-gib G`` (address-space cap of each run), ``--seed N``,
-``--keep`` (keep the temporary folder and print it), ``--list`` (print the case names and exit).
+``--keep`` (keep the temporary folder and print it: each case's inputs and outputs under
+``cases/NAME``, its stdout and stderr under ``logs/``), ``--list`` (print the case names and exit).
 Nothing outside the temporary folder is written (the runs get ``TMPDIR``, ``MPLCONFIGDIR`` and
 ``XDG_CACHE_HOME`` inside it, and no bytecode). The exit code is 0 when every case is ``clean``,
 else 1.
@@ -1006,6 +1015,7 @@ def view_reset_runner(d: Path, argv: list, timeout: float, env: dict) -> Run:
     """Start the viewer on 127.0.0.1 (port 0), reset 20 connections (RST), stop it with SIGINT."""
     proc = subprocess.Popen(argv, cwd=d, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, start_new_session=True)
+    LIVE.add(proc)
     url = None
     try:
         line = proc.stdout.readline().decode("utf-8", "replace")
@@ -1030,6 +1040,7 @@ def view_reset_runner(d: Path, argv: list, timeout: float, env: dict) -> Run:
     finally:
         if proc.poll() is None:
             _kill(proc)
+        LIVE.discard(proc)
 
 
 def view_cases() -> list[Case]:
@@ -1162,6 +1173,10 @@ copd_manifest_out_is_data copd_manifest_cases_1_1 fit4d_rescale_nan fit4d_option
 
 # --- running ---------------------------------------------------------------------------------------
 
+#: Runs under way (killed with their process groups when the probe itself is stopped)
+LIVE: set = set()
+
+
 def _kill(proc) -> None:
     try:
         os.killpg(proc.pid, signal.SIGKILL)
@@ -1233,6 +1248,7 @@ def run_process(case: Case, d: Path, argv: list, stdin: bytes | None, limit: flo
     proc = subprocess.Popen(argv, cwd=d, env=env, stdin=subprocess.PIPE if stdin is not None else subprocess.DEVNULL,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
     cap_memory(proc.pid, settings.memory_gib)
+    LIVE.add(proc)
     signalled, t0 = False, time.monotonic()
     try:
         if case.signal is None:
@@ -1255,6 +1271,7 @@ def run_process(case: Case, d: Path, argv: list, stdin: bytes | None, limit: flo
     finally:
         if proc.poll() is None:
             _kill(proc)
+        LIVE.discard(proc)
 
 
 def _names_something(text: str, argv: list) -> bool:
@@ -1266,8 +1283,14 @@ def _names_something(text: str, argv: list) -> bool:
             or "stdin" in text.lower())
 
 
+#: Warnings that say nothing about the input (the probe's fits run on a small evaluation budget)
+UNRELATED_WARNINGS = ("did not converge",)
+
+
 def _warned(stderr: str) -> bool:
-    return any(ln.strip().lower().startswith(("warning", "note")) for ln in stderr.splitlines())
+    """Whether stderr holds a ``warning``/``note`` line about the input."""
+    return any(ln.strip().lower().startswith(("warning", "note")) and not any(u in ln for u in UNRELATED_WARNINGS)
+               for ln in stderr.splitlines())
 
 
 def _after_signal(case: Case, run: Run, diff: dict, d: Path) -> tuple[str, str]:
@@ -1359,6 +1382,10 @@ def run_case(case: Case, fx: Fixtures, root: Path, settings: Settings) -> Result
         run = run_process(case, d, argv, stdin, limit, env, settings)
     seconds = time.monotonic() - t0
     outcome, reason = classify(case, run, before, snapshot(d), d, argv)
+    logs = root / "logs"  # beside the case folders, so that the snapshots do not see them (kept with --keep)
+    logs.mkdir(exist_ok=True)
+    (logs / f"{case.name}.out").write_text(run.stdout, encoding="utf-8")
+    (logs / f"{case.name}.err").write_text(run.stderr, encoding="utf-8")
     first = next((ln.strip() for ln in run.stderr.splitlines() if ln.strip()), "")
     shown = shlex.join(["lungdeform", *args]).replace(str(root), "$PROBE")
     return Result(case.name, case.command, case.expect, outcome, run.rc, first.replace(str(root), "$PROBE")[:400],
@@ -1400,8 +1427,16 @@ def run_probe(root: Path, settings: Settings | None = None, only=None, everythin
             progress(r)
         return r
 
-    with ThreadPoolExecutor(max(1, settings.workers)) as pool:
+    pool = ThreadPoolExecutor(max(1, settings.workers))
+    try:
         results = list(pool.map(one, cases))
+    except BaseException:  # Ctrl-C or SIGTERM of the probe: no run outlives it
+        pool.shutdown(wait=False, cancel_futures=True)
+        for proc in list(LIVE):
+            _kill(proc)
+        pool.shutdown(wait=True)  # the cases under way end at once, their runs killed
+        raise
+    pool.shutdown()
     if snapshot(fx.root) != shared_before:
         raise RuntimeError(f"a case changed the shared inputs under {fx.root}: a probe bug")
     return results
@@ -1444,8 +1479,12 @@ def main(argv=None) -> int:
         mark = "" if r.outcome == "clean" else "  <--"
         print(f"{r.outcome:10s} {r.seconds:6.1f}s {r.name}{mark}", flush=True)
 
+    signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM stops the probe as Ctrl-C does
     try:
         results = run_probe(root, settings, a.only, a.all, progress)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
     finally:
         if a.keep:
             print(f"kept {root}")
@@ -1460,7 +1499,11 @@ def main(argv=None) -> int:
             print(f"  {r.name} [{r.outcome}] {r.reason} | {r.stderr_first_line[:160]}")
     print(f"\n{len(results)} case(s) in {time.monotonic() - t0:.0f} s")
     if a.json:
-        doc = {"seed": a.seed, "timeout_s": a.timeout, "counts": {o: sum(r.outcome == o for r in results) for o in OUTCOMES},
+        outcomes = sorted({r.outcome for r in results} | set(OUTCOMES), key=lambda o: (o not in OUTCOMES, o))
+        per = {c: {o: sum(r.outcome == o for r in results if r.command == c) for o in outcomes}
+               for c in sorted({r.command for r in results})}
+        doc = {"seed": a.seed, "timeout_s": a.timeout, "seconds": round(time.monotonic() - t0),
+               "counts": {o: sum(r.outcome == o for r in results) for o in outcomes}, "per_command": per,
                "cases": [{k: v for k, v in r.__dict__.items() if k != "stderr"} for r in results]}
         a.json.write_text(json.dumps(doc, indent=1, ensure_ascii=False) + "\n", encoding="utf-8")
     return 0 if not bad else 1

@@ -91,4 +91,4 @@ def test_two_cases_end_to_end(probe, tmp_path):
     assert [(r.outcome, r.rc) for r in results] == [("clean", 2), ("clean", 0)], [r.reason for r in results]
     assert "stdin line" in results[0].stderr_first_line and results[0].argv.startswith("lungdeform stream")
     # nothing but the probe's own folders under its root
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["cache", "cases", "mpl", "shared", "src", "tmp"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cache", "cases", "logs", "mpl", "shared", "src", "tmp"]
