@@ -296,6 +296,13 @@ def samples_text(n: int = 300, rate: float = 25.0, amp=None) -> str:
     return "".join(f"{x:.4f},{y:.6g}\n" for x, y in zip(t, a))
 
 
+def marker_csv(amp=None) -> str:
+    """A marker trace (``Frame;Timestamp(ms);x;y;z``, what ``view --trace`` reads): 12 s at 25 Hz."""
+    t = np.arange(300) / 25.0
+    a = 10 * np.sin(2 * np.pi * t / 4.0) if amp is None else amp(t)
+    return "Frame;Timestamp(ms);x;y;z\n" + "".join(f"{i};{1000 * x:.0f};0;{y:.6g};0\n" for i, (x, y) in enumerate(zip(t, a)))
+
+
 def ellipsoid_mask(shape, spacing, origin, centres, axes):
     nz, ny, nx = shape
     k, j, i = np.meshgrid(np.arange(nz), np.arange(ny), np.arange(nx), indexing="ij")
@@ -387,7 +394,7 @@ def build_fixtures(root: Path, seed: int) -> Fixtures:
     fx.curve = root / "curve.csv"
     fx.curve.write_text(curve_text())
     fx.trace = root / "trace.csv"
-    fx.trace.write_text("t_s,amplitude\n" + samples_text())
+    fx.trace.write_text(marker_csv())
     fx.copd = root / "copd"
     fx.copd.mkdir()
     copd_case(fx.copd, 1)
@@ -1076,7 +1083,7 @@ def view_cases() -> list[Case]:
     big = C[-2]
     base = big.build
     big.build = lambda fx, d, b=base: (d / "big.csv").write_text(
-        "t_s,amplitude\n" + samples_text(amp=lambda t: 1e308 * np.sign(np.sin(t) + 1e-9))) and b(fx, d)
+        marker_csv(amp=lambda t: 1e308 * np.sign(np.sin(t) + 1e-9))) and b(fx, d)
     C.append(Case("view_connection_resets", "view", "ok", lambda fx, d: ["view", _p(fx.model), "--port", "0"],
                   "20 connections reset by the client, then Ctrl-C", runner=view_reset_runner, timeout=60))
     return C
@@ -1288,7 +1295,7 @@ def run_process(case: Case, d: Path, argv: list, stdin: bytes | None, limit: flo
 def _names_something(text: str, argv: list) -> bool:
     """Whether an error names a file or an option of the command line (or stdin)."""
     tokens = [a for a in argv[1:] if a.startswith("--")]
-    paths = [a for a in argv[1:] if os.sep in a]
+    paths = [a for a in argv[1:] if not a.startswith("-") and (os.sep in a or "." in a)]
     names = [Path(a).name for a in paths if Path(a).name]
     return (any(t in text for t in tokens) or any(p in text for p in paths) or any(n in text for n in names)
             or "stdin" in text.lower())
