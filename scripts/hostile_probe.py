@@ -755,6 +755,11 @@ def track_cases() -> list[Case]:
     return track_structure_cases() + track_ct_cases() + track_output_cases()
 
 
+#: Time-out (s) of a case that may run a whole (small) fit: about 20 s of work on an idle core, so that a
+#: fit accepted on loaded cores is told from a hang
+FIT_TIMEOUT = 180.0
+
+
 def fit_args(folder, d, *extra):
     return ["fit", _p(folder), "--side", "right", "--out", _p(d / "out"), "--no-baselines", "--evaluations", "10",
             "--direction-degree", "0", "--no-stiffness", "--align", "none", "--interior", "sliding", "--refine-mm", "0", *extra]
@@ -764,7 +769,8 @@ def fit_cases() -> list[Case]:
     C = []
 
     def f4(name, expect, why, extra=(), **hooks):
-        C.append(Case(name, "fit", expect, lambda fx, d: fit_args(write_4dct(fx, d / "ct4d", **hooks), d, *extra), why))
+        C.append(Case(name, "fit", expect, lambda fx, d: fit_args(write_4dct(fx, d / "ct4d", **hooks), d, *extra), why,
+                      timeout=FIT_TIMEOUT))
 
     other = {"patient": "PROBE02", "patient_name": "Other^Patient", "study": "1.2.3.4.77", "frame": "1.2.3.4.78"}
     f4("fit4d_two_patients", "refuse", "phases 2 and 3 of another patient (study, frame of reference)",
@@ -804,7 +810,7 @@ def fit_cases() -> list[Case]:
                       lambda fx, d, o=opt, v=value: fit_args(write_4dct(fx, d / "ct4d"), d, o, v), f"{opt} {value}"))
     C.append(Case("fit_missing_input", "fit", "refuse", lambda fx, d: fit_args(d / "nope", d), "input folder missing"))
     C.append(Case("fit4d_valid_control", "fit", "ok", lambda fx, d: fit_args(write_4dct(fx, d / "ct4d"), d),
-                  "a clean 4-phase 4-D CT (control)"))
+                  "a clean 4-phase 4-D CT (control)", timeout=FIT_TIMEOUT))
     return C
 
 
