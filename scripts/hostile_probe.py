@@ -59,6 +59,7 @@ import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import warnings
 import zlib
@@ -1054,7 +1055,7 @@ def view_reset_runner(d: Path, argv: list, timeout: float, env: dict) -> Run:
                 time.sleep(0.05)
                 s.close()
             time.sleep(1.0)
-        proc.send_signal(signal.SIGINT)
+        _send(proc, signal.SIGINT)
         out, err = proc.communicate(timeout=timeout)
         return Run(proc.returncode, line + _text(out), _text(err))
     except subprocess.TimeoutExpired:
@@ -1324,6 +1325,8 @@ def _after_signal(case: Case, run: Run, diff: dict, d: Path) -> tuple[str, str]:
         return "partial", f"after the signal: {left[:4]}"
     if run.rc in REFUSAL_CODES or run.rc in (-signal.SIGTERM, 128 + signal.SIGTERM):
         return "clean", f"exit {run.rc}, nothing half-written"
+    if run.rc == 0:  # it finished as the signal came, its outputs whole
+        return "clean", "exit 0: finished as the signal came, nothing half-written"
     return "traceback", f"exit {run.rc} after the signal"
 
 
@@ -1369,7 +1372,8 @@ def classify(case: Case, run: Run, before: dict, after: dict, d: Path, argv: lis
     diff = {"new": sorted(set(after) - set(before)), "gone": sorted(set(before) - set(after)),
             "changed": sorted(k for k in before if k in after and before[k] != after[k] and before[k] != "dir")}
     if run.timed_out:
-        return "hang", f"killed after {case.timeout or 'the time-out'} s"
+        also = " (stderr holds a Traceback)" if "Traceback" in run.stderr else ""
+        return "hang", f"killed after {case.timeout or 'the time-out'} s{also}"
     if "Traceback" in run.stderr:
         last = [ln for ln in run.stderr.splitlines() if ln.strip()][-1:] or [""]
         return "traceback", last[0][:300]
@@ -1438,6 +1442,10 @@ def run_probe(root: Path, settings: Settings | None = None, only=None, everythin
               progress: Callable[[Result], None] | None = None) -> list[Result]:
     """Build the fixtures under ``root`` and run the selected cases; the results in case order."""
     settings = settings or Settings()
+    # a probe started in the background of a shell ignores SIGINT, and so would every run it starts
+    # (an ignored signal stays ignored across exec): the runs must get Python's Ctrl-C handling
+    if threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     cases = select(all_cases(), only, everything)
     names = [c.name for c in cases]
     assert len(names) == len(set(names)), "case names must be unique"
