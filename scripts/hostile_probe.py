@@ -30,10 +30,12 @@ Run, from the repository root::
     .venv/bin/python scripts/hostile_probe.py --workers 2 --json probe.json
     .venv/bin/python scripts/hostile_probe.py --only track_ct --only warp_phases_sig --keep
 
-The default set (about 150 cases; :data:`EXTRA` holds further values of the same classes, run with
-``--all``) takes 10–15 minutes with ``--workers 2`` on an idle two-core machine, most of it the
-start-up of each run (imports); much longer when the cores are shared. It prints one line per case
-as it ends, then the counts per command and outcome and every case that is not ``clean``.
+The default set (about 150 cases; :data:`EXTRA` holds about 80 further values of the same classes,
+run with ``--all``) took 18 minutes with ``--workers 2`` on two cores shared at a load average of
+about 10, most of it the start-up (imports) of each run; ``--only`` picks a few cases. It prints one
+line per case as it ends, then the counts per command and outcome and every case that is not
+``clean`` (for a traceback its last line). The outcomes ``hang`` and, for the fit cases, ``silent``
+against ``hang`` depend on the cores' load: on busy cores raise ``--timeout``.
 
 Options: ``--json FILE`` (per case: name, command, argv, expect, outcome, rc, stderr_first_line,
 seconds, reason, why), ``--all``, ``--only SUBSTR`` (cases whose name holds it; repeatable), ``--workers N``,
@@ -1374,9 +1376,9 @@ def classify(case: Case, run: Run, before: dict, after: dict, d: Path, argv: lis
     if run.timed_out:
         also = " (stderr holds a Traceback)" if "Traceback" in run.stderr else ""
         return "hang", f"killed after {case.timeout or 'the time-out'} s{also}"
-    if "Traceback" in run.stderr:
-        last = [ln for ln in run.stderr.splitlines() if ln.strip()][-1:] or [""]
-        return "traceback", last[0][:300]
+    if "Traceback" in run.stderr:  # its last line that says something (socketserver ends with dashes)
+        last = [ln for ln in run.stderr.splitlines() if any(ch.isalnum() for ch in ln)][-1:] or [""]
+        return "traceback", last[0].strip()[:300]
     if case.signal is not None and run.signalled:
         return _after_signal(case, run, diff, d)
     if run.rc == 0:
@@ -1528,7 +1530,7 @@ def main(argv=None) -> int:
     if bad:
         print("\nnot clean:")
         for r in bad:
-            print(f"  {r.name} [{r.outcome}] {r.reason} | {r.stderr_first_line[:160]}")
+            print(f"  {r.name} [{r.outcome}] {r.reason[:160]} | {r.stderr_first_line[:160]}")
     print(f"\n{len(results)} case(s) in {time.monotonic() - t0:.0f} s")
     if a.json:
         outcomes = sorted({r.outcome for r in results} | set(OUTCOMES), key=lambda o: (o not in OUTCOMES, o))
