@@ -53,6 +53,7 @@ import argparse
 import fnmatch
 import json
 import os
+import re
 import resource
 import shlex
 import shutil
@@ -1302,12 +1303,13 @@ def run_process(case: Case, d: Path, argv: list, stdin: bytes | None, limit: flo
 
 
 def _names_something(text: str, argv: list) -> bool:
-    """Whether an error names a file or an option of the command line (or stdin)."""
+    """Whether an error names a file or an option of the command line (or stdin): an option as given,
+    a path as given, or a file's name as a whole word (``ct`` is not named by "structure")."""
     tokens = [a for a in argv[1:] if a.startswith("--")]
     paths = [a for a in argv[1:] if not a.startswith("-") and (os.sep in a or "." in a)]
-    names = [Path(a).name for a in paths if Path(a).name]
-    return (any(t in text for t in tokens) or any(p in text for p in paths) or any(n in text for n in names)
-            or "stdin" in text.lower())
+    names = {Path(a).name for a in paths if Path(a).name}
+    return (any(t in text for t in tokens) or any(p in text for p in paths) or "stdin" in text.lower()
+            or any(re.search(rf"(?<![\w.-]){re.escape(n)}(?![\w-])", text) for n in names))
 
 
 #: Warnings that say nothing about the input (the probe's fits run on a small evaluation budget)

@@ -27,7 +27,7 @@ def _case(probe, expect="refuse", **kw):
     return probe.Case("c", "track", expect, lambda fx, d: [], **kw)
 
 
-ARGV = ["python", "track", "/tmp/p/model.npz", "--out", "/tmp/p/out"]
+ARGV = ["python", "track", "/tmp/p/model.npz", "--out", "/tmp/p/out", "--reference-ct", "/tmp/p/ct"]
 
 
 @pytest.mark.parametrize("expect, rc, stderr, before, after, timed_out, want", [
@@ -38,6 +38,9 @@ ARGV = ["python", "track", "/tmp/p/model.npz", "--out", "/tmp/p/out"]
     ("refuse", 2, "error: --volume-ml must be > 0\n", {}, {"out": "dir"}, False, "partial"),
     # a refusal that names nothing the user gave, or spreads over lines
     ("refuse", 2, "error: degenerate polygon\n", {}, {}, False, "unclear"),
+    # a file's name counts as a whole word only: "structure" does not name the folder "ct"
+    ("refuse", 2, "error: structure 'GTV': slices are not evenly spaced\n", {}, {}, False, "unclear"),
+    ("refuse", 2, "error: ct: no DICOM series in this directory\n", {}, {}, False, "clean"),
     ("refuse", 2, "error: a\nerror: b\n", {}, {}, False, "unclear"),
     # exit 0 on an input known to be wrong; exit 0 on a "warn" case with and without a warning
     ("refuse", 0, "", {}, {"out": "dir"}, False, "silent"),
