@@ -15,7 +15,8 @@ from lungdeform.model.lung import Model, build_lung
 
 @pytest.fixture
 def model(left_lung):
-    return build_lung(left_lung, "left")
+    # Table I: the sliding interior these format tests (older schemas, landmark corrections) start from
+    return build_lung(left_lung, "left", default="paper")
 
 
 def test_model_file_round_trip(tmp_path, model, right_lung):
@@ -228,7 +229,8 @@ def test_lung_arrays_of_text_raise_model_file_error(tmp_path):
     # why: a readable archive whose faces are text passes the shape checks; max() on text raises a
     # TypeError, which must come out as the package's error naming the file
     s = icosphere(1, 1.0)
-    lung = build_lung(Surface(s.vertices * [45.0, 70.0, 110.0] + [90.0, 20.0, -150.0], s.faces, "left"), "left")
+    lung = build_lung(Surface(s.vertices * [45.0, 70.0, 110.0] + [90.0, 20.0, -150.0], s.faces, "left"), "left",
+                      default="paper")
     path = save_model(tmp_path / "m.npz", Model({"left": lung}))
     with np.load(path) as z:
         arrays = {k: z[k] for k in z.files}
@@ -253,3 +255,16 @@ def test_raw_zip_members_raise_model_file_error(tmp_path, model):
                 dst.writestr(item.filename, src.read(item.filename))
     with pytest.raises(ModelFileError, match=r"raw.npz: not a lungdeform model file \(member 'schema_version'"):
         load_model(bad)
+
+
+def test_population_default_model_round_trips(tmp_path, left_lung, right_lung):
+    # a model built with the population default carries its interior (extension + prior) as an
+    # interior map: saved and read back, a point inside moves the same, and the default is recorded
+    from lungdeform.model.lung import build_model
+
+    m = build_model({"left": left_lung, "right": right_lung})
+    back = load_model(save_model(tmp_path / "m.npz", m))
+    q = left_lung.vertices.mean(axis=0)[None]
+    assert back.lungs["left"].interior_map is not None
+    np.testing.assert_allclose(back.lungs["left"].interior.displacement(q), m.lungs["left"].interior.displacement(q))
+    assert back.provenance["default"] == m.provenance["default"]
