@@ -67,7 +67,7 @@ def _numbers(text: str, count: int, name: str, where: str, path: str) -> np.ndar
         values = None
     if values is None or values.shape != (count,) or not np.isfinite(values).all():
         shown = text if len(text) <= 80 else text[:77] + "..."
-        what = "missing" if not text.strip() else f"{shown!r}, not {count} finite numbers"
+        what = "missing" if not text.strip() else f"'{shown}', not {count} finite numbers"
         raise ReadError(f"{where}: {path}: {name} is {what}")
     return values
 
@@ -78,7 +78,7 @@ def orientation(text: str, where: str, path: str) -> np.ndarray:
     iop = _numbers(text, 6, "ImageOrientationPatient", where, path).reshape(2, 3)
     norms = np.linalg.norm(iop, axis=1)
     if np.abs(norms - 1).max() > ORTHO_TOL or abs(float(iop[0] @ iop[1])) > ORTHO_TOL:
-        raise ReadError(f"{where}: {path}: ImageOrientationPatient {text!r} is not two orthogonal unit vectors "
+        raise ReadError(f"{where}: {path}: ImageOrientationPatient '{text}' is not two orthogonal unit vectors "
                         f"(lengths {norms[0]:.4g} and {norms[1]:.4g}, dot product {float(iop[0] @ iop[1]):.4g})")
     return iop
 
@@ -137,10 +137,13 @@ def _check_gaps(files: tuple[str, ...], z: np.ndarray, where) -> None:
     med = float(np.median(gaps))
     off = np.abs(gaps - med)
     k = int(np.argmax(off))
-    if off[k] > max(GAP_TOL * med, GAP_TOL_MM):
-        missing = gaps[k] / med
-        cause = (f"about {round(missing) - 1} slice(s) missing" if missing > 1.5 and abs(missing - round(missing)) < 0.1
-                 else "uneven slice spacing")
+    tol = max(GAP_TOL * med, GAP_TOL_MM)
+    if off[k] > tol:
+        bad = gaps[off > tol] / med
+        whole = np.abs(bad - np.round(bad)) * med <= tol
+        # a few gaps of whole multiples of the others: slices missing; anything else: uneven spacing
+        cause = (f"{int(np.round(bad).sum() - len(bad))} slice(s) missing"
+                 if whole.all() and (bad > 1.5).all() and len(bad) <= len(gaps) / 4 else "uneven slice spacing")
         raise ReadError(f"{where}: {cause}: the gaps between slices run from {gaps.min():.4g} to {gaps.max():.4g} mm "
                         f"(median {med:.4g} mm); {gaps[k]:.4g} mm between {Path(files[k]).name} at {z[k]:.3f} mm and "
                         f"{Path(files[k + 1]).name} at {z[k + 1]:.3f} mm along the slice normal; lungdeform reads "
