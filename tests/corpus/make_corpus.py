@@ -104,8 +104,9 @@ def _nifti_nan_sform(header: bytes, data: bytes) -> bytes:
 
 def _geometry_images() -> dict[str, bytes]:
     """A valid lung mask (``build`` makes a model of it) whose header places it with numbers ITK
-    reads as 0 (NaN, infinity, a value missing) or turns into a NaN direction: it was placed wrongly
-    without a word. The MetaImage keys of the issue: Offset, ElementSpacing, TransformMatrix."""
+    reads as 0 (NaN, infinity, a value missing), as 1 mm (a NaN NRRD spacing) or turns into a NaN
+    direction: it was placed wrongly without a word. The MetaImage keys of the issue: Offset,
+    ElementSpacing, TransformMatrix."""
     header, data = _lung_mask()
     bad = {"nan_offset.mha": (b"Offset = 100 -20 -150", b"Offset = nan -20 -150"),
            "inf_offset.mha": (b"Offset = 100 -20 -150", b"Offset = 100 inf -150"),
@@ -114,6 +115,8 @@ def _geometry_images() -> dict[str, bytes]:
            "nan_matrix.mha": (b"TransformMatrix = 1 0 0 0 1 0 0 0 1", b"TransformMatrix = 1 0 0 0 NaN 0 0 0 1")}
     out = {name: header.replace(old, new) + data for name, (old, new) in bad.items()}
     out["nan_sform.nii.gz"] = _nifti_nan_sform(header, data)
+    out["nan_spacings.nrrd"] = (b"NRRD0004\ntype: uchar\ndimension: 3\nsizes: 32 40 36\nspacings: nan 4 6\n"
+                                b"encoding: gzip\n\n" + gzip.compress(zlib.decompress(data), mtime=0))
     return out
 
 

@@ -361,6 +361,24 @@ def _check_meta_numbers(p: Path, head: bytes) -> None:
             raise ReadError(f"{p}: header key {key} = {text[:80]!r} is not {want or 'NDims'} finite numbers")
 
 
+def _check_nrrd_numbers(p: Path, head: bytes) -> None:
+    """Refuse a NRRD header whose spacings, space origin or space directions hold NaN, infinity or
+    anything but numbers (``none`` aside): ITK reads a NaN spacing ("unknown" in NRRD) as 1 mm."""
+    header = head.split(b"\n\n", 1)[0]
+    for m in re.finditer(rb"^(spacings|space origin|space directions):[ \t]*([^\r\n]*)", header, re.M):
+        text = m.group(2).decode(errors="replace").strip()
+        for token in re.findall(r"[^\s(),]+", text):
+            if token.lower() == "none":
+                continue
+            try:
+                ok = np.isfinite(float(token))
+            except ValueError:
+                ok = False
+            if not ok:
+                raise ReadError(f"{p}: header field {m.group(1).decode()}: {text[:80]!r} holds {token[:20]!r}, "
+                                "not a finite number")
+
+
 def _check_nifti_numbers(p: Path) -> None:
     """Refuse a NIfTI-1 header whose voxel size (pixdim), qform (quatern, qoffset; when its code is
     set) or sform (srow; when its code is set) holds NaN or infinity, before ITK builds its grid."""
@@ -396,8 +414,8 @@ def _check_nifti_numbers(p: Path) -> None:
 def _check_header(p: Path, max_voxels=None) -> None:
     """Refuse, before ITK reads its voxels, an image file whose header is absurd: a dimension count
     over 10 (text headers), a file pattern as MetaImage data file, grid numbers that are not finite
-    (:func:`_check_meta_numbers`, :func:`_check_nifti_numbers`, then ITK's origin, spacing and
-    direction), a grid over the cap (:func:`check_grid`), or a single-file image whose header claims
+    (:func:`_check_meta_numbers`, :func:`_check_nrrd_numbers`, :func:`_check_nifti_numbers`, then
+    ITK's origin, spacing and direction), a grid over the cap (:func:`check_grid`), or a single-file image whose header claims
     more voxel bytes than the file can hold even deflated at the most (:data:`MAX_INFLATE`): ITK
     would try to allocate them. The sizes of files whose voxels live in another file (.mhd, .nhdr,
     a .mha or .nrrd naming a data file) are not judged against the file size."""
@@ -407,6 +425,8 @@ def _check_header(p: Path, max_voxels=None) -> None:
     _check_text_header(p, name, head)
     if name.endswith((".mha", ".mhd")):
         _check_meta_numbers(p, head)
+    if name.endswith((".nrrd", ".nhdr")):
+        _check_nrrd_numbers(p, head)
     if name.endswith((".nii", ".nii.gz")):
         _check_nifti_numbers(p)
     reader = sitk.ImageFileReader()
