@@ -9,6 +9,8 @@ misplace, with a :class:`~lungdeform.errors.ReadError` naming the folder, the fi
 - an ImageOrientationPatient (0020,0037) that is not six finite numbers making two orthogonal unit
   vectors (:data:`ORTHO_TOL`), or that differs between slices;
 - an ImagePositionPatient (0020,0032) that is not three finite numbers;
+- a PixelSpacing (0028,0030) that is not two positive finite numbers, or Rows, Columns or
+  PixelSpacing that differ between slices (ITK takes the first slice's);
 - two slices at one position, uneven gaps between slices or a missing slice (gaps differing from
   their median by more than :data:`GAP_TOL` of it and :data:`GAP_TOL_MM`);
 - a gantry tilt: slice positions that step away from the slice normal by more than
@@ -27,8 +29,9 @@ import numpy as np
 
 from lungdeform.errors import ReadError
 
-#: ImagePositionPatient, ImageOrientationPatient, GantryDetectorTilt: the tags :func:`check_slices` reads.
-GEOMETRY_TAGS = ("0020|0032", "0020|0037", "0018|1120")
+#: ImagePositionPatient, ImageOrientationPatient, GantryDetectorTilt, PixelSpacing, Rows, Columns:
+#: the tags :func:`check_slices` reads.
+GEOMETRY_TAGS = ("0020|0032", "0020|0037", "0018|1120", "0028|0030", "0028|0010", "0028|0011")
 #: Largest departure of an orientation's vectors from unit length and from orthogonality (DICOM
 #: stores them as decimal strings of up to 16 characters: 1e-6 is usual, 1e-3 is generous).
 ORTHO_TOL = 1e-3
@@ -112,6 +115,7 @@ def check_slices(slices: list[tuple[str, dict[str, str]]], where) -> SliceGeomet
         if np.abs(iop - first).max() > ORTHO_TOL:
             raise ReadError(f"{where}: {path}: ImageOrientationPatient differs from that of {slices[0][0]}; "
                             "the slices of one series must share one orientation")
+    _check_pixels(slices, where)
     ipp = np.array([_numbers(tags.get("0020|0032", ""), 3, "ImagePositionPatient", where, path)
                     for path, tags in slices])
     normal = np.cross(first[0], first[1])
@@ -124,6 +128,25 @@ def check_slices(slices: list[tuple[str, dict[str, str]]], where) -> SliceGeomet
     _check_gaps(files, z, where)
     _check_tilt(files, ipp, normal, where)
     return SliceGeometry(files, z, float(np.median(np.diff(z))))
+
+
+def _check_pixels(slices: list[tuple[str, dict[str, str]]], where) -> None:
+    """ReadError when a PixelSpacing is not two positive finite numbers, or PixelSpacing, Rows or
+    Columns differ between slices."""
+    first_path, first = slices[0]
+    spacing0 = None
+    for path, tags in slices:
+        spacing = _numbers(tags.get("0028|0030", ""), 2, "PixelSpacing", where, path)
+        if not (spacing > 0).all():
+            raise ReadError(f"{where}: {path}: PixelSpacing '{tags['0028|0030']}' is not two positive numbers")
+        spacing0 = spacing if spacing0 is None else spacing0
+        if np.abs(spacing - spacing0).max() > 1e-4 * spacing0.max():
+            raise ReadError(f"{where}: {path}: PixelSpacing '{tags['0028|0030']}' differs from that of {first_path} "
+                            f"('{first['0028|0030']}'); the slices of one series must share one pixel size")
+        for tag, name in (("0028|0010", "Rows"), ("0028|0011", "Columns")):
+            if tags.get(tag, "") != first.get(tag, ""):
+                raise ReadError(f"{where}: {path}: {name} {tags.get(tag, '')!r} differs from that of {first_path} "
+                                f"({first.get(tag, '')!r}); the slices of one series must share one grid")
 
 
 def _check_gaps(files: tuple[str, ...], z: np.ndarray, where) -> None:
