@@ -157,14 +157,15 @@ def _set_raw(path, tag: int, vr: str, value: bytes) -> None:
     (0x00200037, b"0\\0\\0\\0\\0\\0", r"ImageOrientationPatient '0\\0\\0\\0\\0\\0' is not two orthogonal unit vectors"),
     (0x00200037, b"1\\0\\0\\0\\1", r"ImageOrientationPatient is '1\\0\\0\\0\\1', not 6 finite numbers"),
     (0x00200037, b"1\\0\\0\\0.5\\0.5\\0", r"ImageOrientationPatient .* is not two orthogonal unit vectors"),
+    (0x00200037, b"0\\1\\0\\1\\0\\0", r"ImageOrientationPatient differs from that of .*s0001\.dcm"),
     (0x00200032, b"a\\b\\c", r"ImagePositionPatient is 'a\\b\\c', not 3 finite numbers"),
     (0x00280030, b"4\\2", r"PixelSpacing '4\\2' differs from that of .*s0001\.dcm \('4\\4'\)"),
     (0x00280030, b"0\\4", r"PixelSpacing '0\\4' is not two positive numbers"),
 ])
 def test_degenerate_orientation_or_position_refused(tmp_path, rng, tag, value, why):
-    # why: an all-zero, five-value or skewed orientation, or a position that is not numbers, gave no
-    # grid at all (a traceback) or a wrong one, and ITK gives every slice the first one's pixel
-    # size; the error names the file
+    # why: an all-zero, five-value, skewed or odd-one-out orientation, or a position that is not
+    # numbers, gave no grid at all (a traceback) or a wrong one, and ITK gives every slice the first
+    # one's pixel size; the error names the file
     write_4dct(tmp_path, rng, 2)
     bad = _phase_files(tmp_path, 0)[3]
     _set_raw(bad, tag, "DS", value)

@@ -37,7 +37,7 @@ import SimpleITK as sitk
 from lungdeform.errors import ReadError
 
 from .image import Image, _quiet_itk, check_dicom_file, check_grid, is_dicom_file
-from .slices import GEOMETRY_TAGS, SliceGeometry, check_slices, check_spacing
+from .slices import GEOMETRY_TAGS, SliceGeometry, check_orientations, check_slices, check_spacing
 
 #: The tags that may tell phases apart, in order of preference after the SeriesDescription percentage.
 PHASE_TAGS = (("0020|9128", "TemporalPositionIndex"), ("0020|0100", "TemporalPositionIdentifier"),
@@ -158,7 +158,9 @@ def _group_key(folder: Path, files: list[tuple[str, dict]], kind: str) -> tuple[
 
 def _split_series(folder: Path, files: list[tuple[str, dict]]) -> list[list[tuple[str, dict]]]:
     """One series split into phases by the first tag of :data:`PHASE_TAGS` present in all its slices
-    (it is returned whole when no slice position repeats)."""
+    (it is returned whole when no slice position repeats); its slices must share one orientation
+    (:func:`~lungdeform.io.slices.check_orientations`), or positions along their normals mean nothing."""
+    check_orientations(files, f"{folder}: series {files[0][1]['0020|000e'] or '(no SeriesInstanceUID)'}")
     positions = [_position(info) for _, info in files]
     if len(set(positions)) == len(positions):
         return [files]

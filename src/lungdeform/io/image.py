@@ -337,7 +337,7 @@ def check_grid(size, where, max_voxels=None, error: type[Exception] = ReadError)
     count = int(np.prod(size, dtype=object))
     if count > limit:
         raise error(f"{where}: the image grid {' x '.join(map(str, size))} is {count:,} voxels, over the limit of "
-                    f"{limit:,} (raise it with 'lungdeform --max-voxels N …' or ${MAX_VOXELS_ENV})")
+                    f"{limit:,} (raise it with 'lungdeform --max-voxels N' or ${MAX_VOXELS_ENV})")
 
 
 def _check_meta_numbers(p: Path, head: bytes) -> None:

@@ -100,21 +100,26 @@ def _gantry_tilt(tags: dict[str, str], where: str, path: str) -> None:
                         "regular grid: resample it to axial slices first")
 
 
+def check_orientations(slices: list[tuple[str, dict[str, str]]], where) -> np.ndarray:
+    """The one orientation (:func:`orientation`, (2, 3)) of the slices ``[(file, tags)]``;
+    ReadError naming the file whose ImageOrientationPatient is malformed or differs from the first's."""
+    if not slices:
+        raise ReadError(f"{where}: no slices")
+    first = orientation(slices[0][1].get("0020|0037", ""), where, slices[0][0])
+    for path, tags in slices[1:]:
+        if np.abs(orientation(tags.get("0020|0037", ""), where, path) - first).max() > ORTHO_TOL:
+            raise ReadError(f"{where}: {path}: ImageOrientationPatient differs from that of {slices[0][0]}; "
+                            "the slices of one series must share one orientation")
+    return first
+
+
 def check_slices(slices: list[tuple[str, dict[str, str]]], where) -> SliceGeometry:
     """The geometry of one series' slices ``[(file, tags)]`` (``tags``: DICOM tag ``"gggg|eeee"`` →
     stripped string, at least :data:`GEOMETRY_TAGS`), after the checks of the module docstring;
     ``where`` (the folder or series) begins every message."""
-    if not slices:
-        raise ReadError(f"{where}: no slices")
-    iops = []
+    first = check_orientations(slices, where)
     for path, tags in slices:
-        iops.append(orientation(tags.get("0020|0037", ""), where, path))
         _gantry_tilt(tags, where, path)
-    first = iops[0]
-    for (path, _), iop in zip(slices, iops):
-        if np.abs(iop - first).max() > ORTHO_TOL:
-            raise ReadError(f"{where}: {path}: ImageOrientationPatient differs from that of {slices[0][0]}; "
-                            "the slices of one series must share one orientation")
     _check_pixels(slices, where)
     ipp = np.array([_numbers(tags.get("0020|0032", ""), 3, "ImagePositionPatient", where, path)
                     for path, tags in slices])
