@@ -28,7 +28,10 @@ map, :mod:`lungdeform.interior.correspondence`): ``interior_map_linear (3, 4)`` 
 ``interior_map_warp (3, 4)``, ``interior_map_centers (k, 3)`` mm LPS, ``interior_map_weights (k, 3)``
 mm per unit and ``interior_map_width_mm``; all five or none.
 
-Loading checks the schema name and version, that every key is present, and every shape.
+Loading checks the schema name and version, that every key is present, and every shape;
+that every array holds values of its kind (real numbers, finite, where numbers belong: no complex,
+text or objects; integer faces; one value where one belongs), and that the provenance is a JSON
+object whose ``volumes_ml`` are finite numbers and whose alignment matrices are 4 × 4.
 Each version changed only how interior points move (:attr:`LungModel.interior_kind`). Version 4 adds
 the optional surface-to-surface map (an older reader would play such a lung's interior differently,
 so it refuses the file instead). Version 3:
