@@ -415,9 +415,9 @@ def _check_header(p: Path, max_voxels=None) -> None:
     """Refuse, before ITK reads its voxels, an image file whose header is absurd: a dimension count
     over 10 (text headers), a file pattern as MetaImage data file, grid numbers that are not finite
     (:func:`_check_meta_numbers`, :func:`_check_nrrd_numbers`, :func:`_check_nifti_numbers`, then
-    ITK's origin, spacing and direction), a grid over the cap (:func:`check_grid`), or a single-file image whose header claims
-    more voxel bytes than the file can hold even deflated at the most (:data:`MAX_INFLATE`): ITK
-    would try to allocate them. The sizes of files whose voxels live in another file (.mhd, .nhdr,
+    ITK's origin, spacing and direction), a grid over the cap (:func:`check_grid`), or a
+    single-file image whose header claims more voxel bytes than the file can hold even deflated at
+    the most (:data:`MAX_INFLATE`): ITK would try to allocate them. The sizes of files whose voxels live in another file (.mhd, .nhdr,
     a .mha or .nrrd naming a data file) are not judged against the file size."""
     name = p.name.lower()
     with open(p, "rb") as fh:
