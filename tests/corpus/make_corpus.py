@@ -6,10 +6,12 @@ Run: ``PYTHONPATH=src python tests/corpus/make_corpus.py``."""
 from __future__ import annotations
 
 import base64
+import gzip
 import io
 import random
 import struct
 import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -71,6 +73,53 @@ def _jump_traces() -> dict[str, bytes]:
             "timestamp_jump.csv": ("\n".join(csv) + "\n").encode()}
 
 
+def _lung_mask() -> tuple[bytes, bytes]:
+    """A left-lung-sized ellipsoid mask (semi-axes 45, 60, 90 mm on a 4 × 4 × 6 mm grid) as a
+    zlib-compressed MetaImage: ``(header, data)``; ``build`` makes a model of it."""
+    k, j, i = np.meshgrid(np.arange(36), np.arange(40), np.arange(32), indexing="ij")
+    p = np.stack([(i - 15.5) * 4.0, (j - 19.5) * 4.0, (k - 17.5) * 6.0], -1)
+    data = zlib.compress(((p / [45.0, 60.0, 90.0]) ** 2).sum(-1).__le__(1).astype(np.uint8).tobytes(), 9)
+    header = ("ObjectType = Image\nNDims = 3\nBinaryData = True\nBinaryDataByteOrderMSB = False\n"
+              f"CompressedData = True\nCompressedDataSize = {len(data)}\nTransformMatrix = 1 0 0 0 1 0 0 0 1\n"
+              "Offset = 100 -20 -150\nElementSpacing = 4 4 6\nDimSize = 32 40 36\nElementType = MET_UCHAR\n"
+              "ElementDataFile = LOCAL\n").encode()
+    return header, data
+
+
+def _nifti_nan_sform(header: bytes, data: bytes) -> bytes:
+    """The mask of :func:`_lung_mask` as gzipped NIfTI-1 with NaN as the sform's first coefficient."""
+    dims = struct.pack("<8h", 3, 32, 40, 36, 1, 1, 1, 1)
+    hdr = bytearray(348)
+    hdr[0:4] = struct.pack("<i", 348)
+    hdr[40:56] = dims
+    hdr[70:72], hdr[72:74] = struct.pack("<h", 2), struct.pack("<h", 8)  # uint8
+    hdr[76:108] = struct.pack("<8f", 1, 4, 4, 6, 1, 1, 1, 1)
+    hdr[108:112] = struct.pack("<f", 352.0)  # vox_offset
+    hdr[112:116] = struct.pack("<f", 1.0)  # scl_slope
+    hdr[254:256] = struct.pack("<h", 1)  # sform_code: scanner
+    hdr[280:328] = struct.pack("<12f", float("nan"), 0, 0, -100, 0, -4, 0, 20, 0, 0, 6, -150)  # RAS
+    hdr[344:348] = b"n+1\0"
+    return gzip.compress(bytes(hdr) + bytes(4) + zlib.decompress(data), mtime=0)
+
+
+def _geometry_images() -> dict[str, bytes]:
+    """A valid lung mask (``build`` makes a model of it) whose header places it with numbers ITK
+    reads as 0 (NaN, infinity, a value missing), as 1 mm (a NaN NRRD spacing) or turns into a NaN
+    direction: it was placed wrongly without a word. The MetaImage keys of the issue: Offset,
+    ElementSpacing, TransformMatrix."""
+    header, data = _lung_mask()
+    bad = {"nan_offset.mha": (b"Offset = 100 -20 -150", b"Offset = nan -20 -150"),
+           "inf_offset.mha": (b"Offset = 100 -20 -150", b"Offset = 100 inf -150"),
+           "short_offset.mha": (b"Offset = 100 -20 -150", b"Offset = 100 -20"),
+           "nan_spacing.mha": (b"ElementSpacing = 4 4 6", b"ElementSpacing = 4 4 nan"),
+           "nan_matrix.mha": (b"TransformMatrix = 1 0 0 0 1 0 0 0 1", b"TransformMatrix = 1 0 0 0 NaN 0 0 0 1")}
+    out = {name: header.replace(old, new) + data for name, (old, new) in bad.items()}
+    out["nan_sform.nii.gz"] = _nifti_nan_sform(header, data)
+    out["nan_spacings.nrrd"] = (b"NRRD0004\ntype: uchar\ndimension: 3\nsizes: 32 40 36\nspacings: nan 4 6\n"
+                                b"encoding: gzip\n\n" + gzip.compress(zlib.decompress(data), mtime=0))
+    return out
+
+
 def _mesh_files() -> dict[str, bytes]:
     tet = "v 0 0 0\nv 10 0 0\nv 0 10 0\nv 0 0 {z}\nf 1 3 2\nf 1 2 4\nf 2 3 4\nf 1 4 3\n"
     return {
@@ -130,6 +179,7 @@ def _text_files() -> dict[str, dict[str, bytes]]:
 
 def main() -> None:
     kinds = {"model": _model_files(), "mesh": _mesh_files(), **_text_files()}
+    kinds["image"].update(_geometry_images())
     for kind, files in kinds.items():
         (HERE / kind).mkdir(exist_ok=True)
         for name, data in files.items():

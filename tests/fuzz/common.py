@@ -65,6 +65,17 @@ def _dicom(path):
     return read_phases(Path(path).parent)
 
 
+def _fourdct_folder(path):
+    """The table of :mod:`tests.fuzz.fourdct_folder` (the fuzzed bytes) written as a 4-D CT folder
+    beside it, read by the 4-D CT phase sorter."""
+    from lungdeform.io.fourdct import read_phases
+    from tests.fuzz.fourdct_folder import write_folder
+
+    folder = Path(path).parent / "fourdct"
+    write_folder(Path(path).read_bytes(), folder)
+    return read_phases(folder)
+
+
 def _model(path):
     from lungdeform.io.modelfile import load_model
 
@@ -126,6 +137,7 @@ READERS: dict[str, tuple[str, Callable]] = {
     "mesh_glb": (".glb", _mesh),
     "image_nii": (".nii.gz", _image), "image_mha": (".mha", _image), "image_nrrd": (".nrrd", _image),
     "image_dicom": (".dcm", _dicom),
+    "fourdct_folder": (".txt", _fourdct_folder),
     "model": (".npz", _model), "curve": (".csv", _curve),
     "trace_vxp": (".vxp", _trace), "trace_csv": (".csv", _trace),
     "points_elastix": (".txt", _elastix), "points_track": (".csv", _track_points),
@@ -290,6 +302,13 @@ def make_seeds(name: str, folder: Path) -> list[Path]:
         return [seed, odd]
     if name.startswith("image_"):
         return _image_seed(folder, suffix)
+    if name == "fourdct_folder":  # tables of tags (tests/fuzz/fourdct_folder.py), not DICOM bytes
+        from tests.fuzz.fourdct_folder import seed_tables
+
+        paths = [folder / f"seed{k}.txt" for k in range(2)]
+        for path, table in zip(paths, seed_tables()):
+            path.write_bytes(table)
+        return paths
     if name == "model":
         return _model_seed(folder)
     if name == "rtstruct":

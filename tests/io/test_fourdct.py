@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
-from lungdeform.errors import ReadError
+from lungdeform.errors import InputError, ReadError
 from lungdeform.io.fourdct import _number, _percent, read_phases
-from tests.fourdct_phantom import SHAPE, phase_ct, write_4dct, write_slices
+from tests.fourdct_phantom import SHAPE, STUDY, phase_ct, write_4dct, write_slices
 
 
 @pytest.mark.parametrize("mode, labels", [
@@ -84,3 +84,104 @@ def test_damaged_or_unreadable_file_stops_the_reading_early(tmp_path, rng, monke
     with pytest.raises(ReadError, match="0000.dcm is not a readable DICOM image"):
         read_phases(tmp_path / "ct")
     assert made == []  # refused by its first element, (0000,0000), before GDCM read any file
+
+
+def _retag(files, **tags) -> None:
+    """Set DICOM attributes (pydicom keywords → value, or a function of the slice index) in ``files``."""
+    import pydicom
+
+    for n, f in enumerate(files):
+        ds = pydicom.dcmread(f)
+        for key, value in tags.items():
+            setattr(ds, key, value(n) if callable(value) else value)
+        ds.save_as(f)
+
+
+def _phase_files(folder, p):
+    return sorted((folder / f"phase{p}").glob("*.dcm"))
+
+
+@pytest.mark.parametrize("keyword, name", [("PatientID", "PatientID"), ("StudyInstanceUID", "StudyInstanceUID"),
+                                           ("FrameOfReferenceUID", "FrameOfReferenceUID")])
+def test_two_patients_studies_or_frames_in_one_folder_refused(tmp_path, rng, keyword, name):
+    # why: a folder holding the phases of two patients (or two studies, or two frames of reference)
+    # was fitted as one lung; the folder must hold one of each, and the error names both values
+    write_4dct(tmp_path, rng, 3)
+    _retag(_phase_files(tmp_path, 0) + _phase_files(tmp_path, 1), **{keyword: "1.2.3.4"})
+    _retag(_phase_files(tmp_path, 2), **{keyword: "1.2.3.5"})
+    with pytest.raises(ReadError, match=rf"{tmp_path}: holds more than one {name}: '1\.2\.3\.4' in .* and '1\.2\.3\.5' in "):
+        read_phases(tmp_path)
+
+
+def test_uneven_missing_or_tilted_slices_refused(tmp_path, rng):
+    # why: ITK reads any series onto an evenly spaced, untilted grid (spacing = extent / (n - 1)):
+    # slices 6 mm then 3 mm apart, a missing slice or a 20 degree gantry tilt gave lungs of the
+    # wrong volume without a word; each is refused naming the phase and the files
+    write_4dct(tmp_path, rng, 2)
+    files = _phase_files(tmp_path, 1)
+    z0 = -(SHAPE[0] - 1) / 2 * 6.0
+    _retag(files[12:], ImagePositionPatient=lambda n: [-94.0, -94.0, z0 + 11 * 6.0 + 3.0 * (n + 1)])
+    with pytest.raises(ReadError, match=r"phase 10%: uneven slice spacing: .* from 3 to 6 mm"):
+        read_phases(tmp_path)
+    _retag(files[12:], ImagePositionPatient=lambda n: [-94.0, -94.0, z0 + 6.0 * (n + 12)])  # even again
+    assert len(read_phases(tmp_path)) == 2
+    files[5].unlink()
+    with pytest.raises(ReadError, match=r"phase 10%: 1 slice\(s\) missing: .* 12 mm between s0005\.dcm"):
+        read_phases(tmp_path)
+    write_slices(tmp_path / "phase1", phase_ct(1.06, rng)[5:6], {"0008|103e": "Gated 10%"}, f"{STUDY}.2",
+                 first_instance=6)  # the slice back
+    import math
+
+    tilt = math.tan(math.radians(20))
+    _retag(files, ImagePositionPatient=lambda n: [-94.0, -94.0 + tilt * 6.0 * n, z0 + 6.0 * n])
+    with pytest.raises(ReadError, match=r"phase 10%: the slices are stacked 20 degrees off their normal \(gantry tilt\)"):
+        read_phases(tmp_path)
+    _retag(files, ImagePositionPatient=lambda n: [-94.0, -94.0, z0 + 6.0 * n], GantryDetectorTilt="20")
+    with pytest.raises(ReadError, match=r"phase 10%: .*s0001\.dcm: GantryDetectorTilt is 20 degrees"):
+        read_phases(tmp_path)
+
+
+def _set_raw(path, tag: int, vr: str, value: bytes) -> None:
+    """Set one element of a DICOM file to raw bytes (no conversion: values pydicom would refuse)."""
+    import pydicom
+    from pydicom.dataelem import RawDataElement
+    from pydicom.tag import Tag
+
+    ds = pydicom.dcmread(path)
+    value += b" " * (len(value) % 2)
+    ds[tag] = RawDataElement(Tag(tag), vr, len(value), value, 0, False, True)
+    ds.save_as(path)
+
+
+@pytest.mark.parametrize("tag, value, why", [
+    (0x00200037, b"0\\0\\0\\0\\0\\0", r"ImageOrientationPatient '0\\0\\0\\0\\0\\0' is not two orthogonal unit vectors"),
+    (0x00200037, b"1\\0\\0\\0\\1", r"ImageOrientationPatient is '1\\0\\0\\0\\1', not 6 finite numbers"),
+    (0x00200037, b"1\\0\\0\\0.5\\0.5\\0", r"ImageOrientationPatient .* is not two orthogonal unit vectors"),
+    (0x00200037, b"0\\1\\0\\1\\0\\0", r"ImageOrientationPatient differs from that of .*s0001\.dcm"),
+    (0x00200032, b"a\\b\\c", r"ImagePositionPatient is 'a\\b\\c', not 3 finite numbers"),
+    (0x00280030, b"4\\2", r"PixelSpacing '4\\2' differs from that of .*s0001\.dcm \('4\\4'\)"),
+    (0x00280030, b"0\\4", r"PixelSpacing '0\\4' is not two positive numbers"),
+])
+def test_degenerate_orientation_or_position_refused(tmp_path, rng, tag, value, why):
+    # why: an all-zero, five-value, skewed or odd-one-out orientation, or a position that is not
+    # numbers, gave no grid at all (a traceback) or a wrong one, and ITK gives every slice the first
+    # one's pixel size; the error names the file
+    write_4dct(tmp_path, rng, 2)
+    bad = _phase_files(tmp_path, 0)[3]
+    _set_raw(bad, tag, "DS", value)
+    with pytest.raises(ReadError, match=rf"{bad}: {why}"):
+        read_phases(tmp_path)
+
+
+def test_grid_cap_refuses_a_phase_before_reading_it(tmp_path, rng, monkeypatch):
+    # why: a grid over the cap is refused from the headers, before ITK allocates it; the cap comes
+    # from the argument, else $LUNGDEFORM_MAX_VOXELS
+    write_4dct(tmp_path, rng, 2)
+    with pytest.raises(ReadError, match=r"phase 0%: the image grid 48 x 48 x 24 is 55,296 voxels, over the limit of 50,000"):
+        read_phases(tmp_path, max_voxels=50_000)
+    monkeypatch.setenv("LUNGDEFORM_MAX_VOXELS", "5e4")
+    with pytest.raises(ReadError, match="over the limit of 50,000"):
+        read_phases(tmp_path)
+    monkeypatch.setenv("LUNGDEFORM_MAX_VOXELS", "many")
+    with pytest.raises(InputError, match="LUNGDEFORM_MAX_VOXELS must be a positive whole number of voxels, got 'many'"):
+        read_phases(tmp_path)

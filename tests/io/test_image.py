@@ -335,3 +335,100 @@ def test_dicom_pixel_module_that_overflows_is_refused(tmp_path):
     victim.write_bytes(data[:ba + 8] + b"\x0c\x00" + data[ba + 10:])  # 12 bits allocated: no standard size
     with pytest.raises(ReadError, match="BitsAllocated is 12, not 1 or a multiple of 8"):
         check_dicom_file(victim)
+
+
+def _ct_series(folder, z_mm, tags=None):
+    """A CT series of a 40 mm ball (0 HU in -1000 HU air, 2 mm pixels) with one slice per position
+    ``z_mm`` (ImagePositionPatient z; in-plane origin -31 mm), plus ``tags`` in every slice."""
+    import SimpleITK as sitk
+
+    folder.mkdir(parents=True, exist_ok=True)
+    j, i = np.mgrid[:32, :32] * 2.0 - 31.0
+    writer = sitk.ImageFileWriter()
+    writer.KeepOriginalImageUIDOn()
+    for k, z in enumerate(z_mm):
+        arr = np.where(i ** 2 + j ** 2 + z ** 2 <= 400, 0, -1000).astype(np.int16)[None]
+        img = sitk.GetImageFromArray(arr)
+        img.SetSpacing((2.0, 2.0, 1.0))
+        for key, value in {"0008|0060": "CT", "0020|000e": "1.2.826.0.1.3680043.8.498.5.1",
+                           "0008|0018": f"1.2.826.0.1.3680043.8.498.5.1.{k + 1}", "0020|0013": str(k + 1),
+                           "0020|0032": f"-31\\-31\\{z}", "0020|0037": "1\\0\\0\\0\\1\\0", "0028|0030": "2\\2",
+                           **(tags or {})}.items():
+            img.SetMetaData(key, value)
+        writer.SetFileName(str(folder / f"ct{k:03d}.dcm"))
+        writer.Execute(img)
+    return folder
+
+
+def test_dicom_series_of_uneven_or_tilted_slices_refused(tmp_path):
+    # why: ITK spaces a series by its extent / (n - 1) and ignores a gantry tilt: slices 6 mm then
+    # 3 mm apart were read 4.5 mm apart (the lungs' volumes 25 % wrong), and a tilted series as if
+    # untilted, without a word; read_image refuses both, naming the series and the files
+    even = read_image(_ct_series(tmp_path / "even", np.arange(-24.0, 25.0, 3.0)))
+    assert np.allclose(even.spacing, [2, 2, 3])
+    uneven = np.r_[np.arange(-24.0, 0.0, 6.0), np.arange(0.0, 25.0, 3.0)]
+    with pytest.raises(ReadError, match=r"uneven: uneven slice spacing: the gaps between slices run from 3 to 6 mm"):
+        read_image(_ct_series(tmp_path / "uneven", uneven))
+    gap = np.r_[np.arange(-24.0, 0.0, 3.0), np.arange(3.0, 25.0, 3.0)]
+    with pytest.raises(ReadError, match=r"gap: 1 slice\(s\) missing: .* 6 mm between ct007\.dcm at -3\.000 mm"):
+        read_image(_ct_series(tmp_path / "gap", gap))
+    with pytest.raises(ReadError, match=r"tilt: .*ct000\.dcm: GantryDetectorTilt is 20 degrees"):
+        read_image(_ct_series(tmp_path / "tilt", np.arange(-24.0, 25.0, 3.0), {"0018|1120": "20"}))
+    stacked = tmp_path / "stacked"
+    _ct_series(stacked, np.arange(-24.0, 25.0, 3.0))
+    import pydicom
+
+    for k, f in enumerate(sorted(stacked.glob("*.dcm"))):  # the 20 degree tilt as positions only
+        ds = pydicom.dcmread(f)
+        ds.ImagePositionPatient = [-31.0, -31.0 + np.tan(np.radians(20)) * 3.0 * k, -24.0 + 3.0 * k]
+        ds.save_as(f)
+    with pytest.raises(ReadError, match=r"stacked: the slices are stacked 20 degrees off their normal"):
+        read_image(stacked)
+
+
+def test_grid_cap_on_read_and_write(tmp_path, monkeypatch):
+    # why: a header declaring 1000^3 voxels made ITK allocate gigabytes (a MemoryError after 17 s);
+    # the grid is capped from the header before any voxel is read, and on write before any byte is
+    # written; the cap is raised by an argument or $LUNGDEFORM_MAX_VOXELS
+    import SimpleITK as sitk
+
+    from lungdeform.io.image import MAX_VOXELS
+
+    assert 512 * 512 * 2000 <= MAX_VOXELS < 1000 ** 3
+    huge = tmp_path / "huge.mhd"
+    huge.write_text("ObjectType = Image\nNDims = 3\nDimSize = 1000 1000 1000\nElementType = MET_UCHAR\n"
+                    "ElementSpacing = 1 1 1\nElementDataFile = huge.raw\n")
+    with open(tmp_path / "huge.raw", "wb") as fh:  # sparse: no disk used
+        fh.truncate(1000 ** 3)
+    monkeypatch.setattr(sitk, "ReadImage", lambda *a, **k: pytest.fail("the voxels were read"))
+    with pytest.raises(ReadError, match=r"huge\.mhd: the image grid 1000 x 1000 x 1000 is 1,000,000,000 voxels, "
+                                        r"over the limit of 536,870,912 \(raise it with 'lungdeform --max-voxels N"):
+        read_image(huge)
+    monkeypatch.undo()
+    a = np.zeros((10, 10, 10), np.int16)
+    write_image(tmp_path / "ok.mha", a, (1, 1, 1), (0, 0, 0), np.eye(3))
+    with pytest.raises(ReadError, match=r"ok\.mha: the image grid 10 x 10 x 10 is 1,000 voxels, over the limit of 999"):
+        read_image(tmp_path / "ok.mha", max_voxels=999)
+    with pytest.raises(InputError, match=r"big\.mha: the image grid 10 x 10 x 10 is 1,000 voxels, over the limit of 999"):
+        write_image(tmp_path / "big.mha", a, (1, 1, 1), (0, 0, 0), np.eye(3), max_voxels=999)
+    assert not (tmp_path / "big.mha").exists()
+    monkeypatch.setenv("LUNGDEFORM_MAX_VOXELS", "999")
+    with pytest.raises(ReadError, match="over the limit of 999"):
+        read_image(_ct_series(tmp_path / "dicom", [0.0, 2.0]))  # 32 x 32 x 2 = 2048 voxels
+    monkeypatch.setenv("LUNGDEFORM_MAX_VOXELS", "2048")
+    assert read_image(tmp_path / "dicom").array.shape == (2, 32, 32)
+
+
+def test_max_voxels_option(tmp_path, monkeypatch, capsys):
+    # why: the CLI raises (or lowers) the cap for every command with one option before the command
+    # name; a bad value is one error line, exit 2, before any work
+    from lungdeform.cli.main import main
+
+    monkeypatch.delenv("LUNGDEFORM_MAX_VOXELS", raising=False)
+    mask = tmp_path / "mask.mha"
+    write_image(mask, np.ones((10, 10, 10), np.uint8), (4, 4, 4), (0, 0, 0), np.eye(3))
+    assert main(["--max-voxels", "999", "build", str(mask), "--side", "left", "--out", str(tmp_path / "o" / "m.npz")]) == 2
+    assert "mask.mha: the image grid 10 x 10 x 10 is 1,000 voxels, over the limit of 999" in capsys.readouterr().err
+    assert main(["--max-voxels", "lots", "build", str(mask), "--side", "left", "--out", str(tmp_path / "o" / "m.npz")]) == 2
+    assert capsys.readouterr().err.strip() == "error: --max-voxels must be a positive whole number of voxels, got 'lots'"
+    assert not (tmp_path / "o").exists()

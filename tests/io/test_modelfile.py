@@ -226,8 +226,8 @@ def test_damaged_archives_raise_model_file_error(name, why):
 
 
 def test_lung_arrays_of_text_raise_model_file_error(tmp_path):
-    # why: a readable archive whose faces are text passes the shape checks; max() on text raises a
-    # TypeError, which must come out as the package's error naming the file
+    # why: a readable archive whose faces are text passes the shape checks; max() on text raised a
+    # TypeError; it must come out as the package's error naming the file, the member and the kind expected
     s = icosphere(1, 1.0)
     lung = build_lung(Surface(s.vertices * [45.0, 70.0, 110.0] + [90.0, 20.0, -150.0], s.faces, "left"), "left",
                       default="paper")
@@ -236,8 +236,52 @@ def test_lung_arrays_of_text_raise_model_file_error(tmp_path):
         arrays = {k: z[k] for k in z.files}
     arrays["lung/left/faces"] = arrays["lung/left/faces"].astype(str)
     np.savez(tmp_path / "text.npz", **arrays)
-    with pytest.raises(ModelFileError, match=r"text\.npz: damaged lung arrays"):
+    with pytest.raises(ModelFileError, match=r"text\.npz: member 'lung/left/faces' holds <U\d+ values, expected integer"):
         load_model(tmp_path / "text.npz")
+
+
+def _rewritten(tmp_path, lung, name: str, **changes):
+    """The model file of ``lung`` saved again with its members ``changes`` (key → array) replaced."""
+    path = save_model(tmp_path / "m.npz", Model({"left": lung}))
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays.update({k.replace("__", "/"): v for k, v in changes.items()})
+    np.savez(tmp_path / name, **arrays)
+    return tmp_path / name
+
+
+@pytest.mark.parametrize("member, value, why", [
+    ("lung__left__displacement", lambda a: a.astype(np.complex128) + 1e-3j, r"holds complex128 values, expected real"),
+    ("lung__left__vertices", lambda a: a.astype(np.complex64), r"holds complex64 values, expected real"),
+    ("lung__left__stiffness", lambda a: a.astype(object).astype(str), r"holds <U\d+ values, expected real"),
+    ("lung__left__unit_ml", lambda a: np.array([float(a), 1.0]), r"has shape \(2,\), expected one value"),
+    ("lung__left__gravity", lambda a: np.array([np.nan, 0.0, 1.0]), r"holds NaN or infinity"),
+    ("lung__left__faces", lambda a: a.astype(np.float64), r"holds float64 values, expected integer"),
+])
+def test_model_arrays_of_the_wrong_kind_refused(tmp_path, model, member, value, why):
+    # why: complex displacements were accepted (their imaginary part dropped without a word), and
+    # values of another kind or shape met numpy's errors or casts; the error names the member
+    with np.load(save_model(tmp_path / "src.npz", Model({"left": model}))) as z:
+        original = z[member.replace("__", "/")]
+    bad = _rewritten(tmp_path, model, "bad.npz", **{member: value(original)})
+    with pytest.raises(ModelFileError, match=rf"bad\.npz: member '{member.replace('__', '/')}' {why}"):
+        load_model(bad)
+
+
+@pytest.mark.parametrize("provenance, entry", [
+    ({"volumes_ml": [2000, 2500], "alignment": [{"applied": {"matrix": [1, 0, 0, 1]}}]}, r"alignment\[0\]\.applied\.matrix"),
+    ({"volumes_ml": [2000, "x"]}, "volumes_ml"),
+    ({"alignment": {"applied": 1}}, "alignment"),
+    (["not", "an", "object"], "is not a JSON object"),
+])
+def test_model_provenance_that_playback_reads_is_checked(tmp_path, model, provenance, entry):
+    # why: 'dvf --scan 1' reshaped a provenance matrix of 4 values to 4 x 4 and ended in a ValueError
+    # traceback; the entries playback reads are checked when the file is loaded, naming the entry
+    import json
+
+    bad = _rewritten(tmp_path, model, "prov.npz", provenance=np.array(json.dumps(provenance)))
+    with pytest.raises(ModelFileError, match=rf"prov\.npz: member 'provenance' .*{entry}"):
+        load_model(bad)
 
 
 def test_raw_zip_members_raise_model_file_error(tmp_path, model):

@@ -15,6 +15,7 @@ import typer
 from lungdeform.atomic import write_json
 from lungdeform.constants import GRAVITY
 from lungdeform.errors import InputError
+from lungdeform.io.image import MAX_VOXELS, MAX_VOXELS_ENV, voxel_limit
 from lungdeform.playback.dvf import FieldResult, State, scan_state, volume_state
 from lungdeform.playback.schedule import check_reachable, read_volume_csv
 
@@ -42,6 +43,24 @@ def output_dir(path: Path, option: str = "--out") -> Path:
         raise InputError(f"{option} {path}: exists and is not a folder")
     path.mkdir(parents=True, exist_ok=True)
     return path
+
+
+#: Help of ``lungdeform --max-voxels``.
+MAX_VOXELS_HELP = (f"Largest image grid read or written, in voxels (default {MAX_VOXELS:,}: 512 x 512 x 2000 fits; "
+                   f"also ${MAX_VOXELS_ENV}).")
+
+
+def set_max_voxels(value: str | None) -> None:
+    """``--max-voxels``: the grid-size cap of every image read or written
+    (:func:`lungdeform.io.image.voxel_limit`), passed on as :data:`~lungdeform.io.image.MAX_VOXELS_ENV`
+    so that worker processes (cohort) see it too. None leaves it as it is."""
+    if value is None:
+        return
+    try:
+        limit = voxel_limit(value)
+    except InputError:
+        raise InputError(f"--max-voxels must be a positive whole number of voxels, got {value!r}") from None
+    os.environ[MAX_VOXELS_ENV] = str(limit)
 
 
 def parse_vector(text: str, name: str) -> np.ndarray:

@@ -20,7 +20,7 @@ import typer
 from lungdeform import __version__
 from lungdeform.errors import LungdeformError
 
-from .common import VERBOSE
+from .common import MAX_VOXELS_HELP, VERBOSE, set_max_voxels
 
 COMMAND_MODULES = [
     "lungdeform.cli.build",
@@ -81,8 +81,10 @@ def make_app() -> typer.Typer:
         version: bool = typer.Option(False, "--version", help="Print the version and exit.", is_eager=True,
                                      callback=_print_version),
         verbose: bool = typer.Option(False, "--verbose", "-v", help="Show progress even when stderr is not a terminal."),
+        max_voxels: str = typer.Option(None, "--max-voxels", help=MAX_VOXELS_HELP),
     ):
         VERBOSE["on"] = True if verbose else None
+        set_max_voxels(max_voxels)
 
     apps = Apps(root, validate, bench)
     for name in COMMAND_MODULES:

@@ -31,7 +31,7 @@ from pydicom.uid import PYDICOM_IMPLEMENTATION_UID, ExplicitVRLittleEndian, gene
 
 from lungdeform.errors import InputError, ReadError
 
-from .image import dicom_series_files, is_dicom_file
+from .image import check_grid, dicom_series_files, is_dicom_file
 
 #: CT Image Storage
 CT_SOP_CLASS = "1.2.840.10008.5.1.4.1.1.2"
@@ -122,10 +122,11 @@ def write_ct_series(folder, array, spacing, origin, direction, header: Dataset, 
     file ``CT0001.dcm`` … per slice. ``header`` (:func:`study_header`) gives the patient, study and
     frame of reference; ``temporal`` = ``(index, count)`` (0-based index) sets the temporal tags.
     Not atomic by itself: write into :func:`lungdeform.atomic.atomic_dir`. Returns the SOP Instance
-    UIDs in slice order."""
+    UIDs in slice order. A grid over the cap (:func:`~lungdeform.io.image.check_grid`) is refused first."""
     a = np.asarray(array)
     if a.ndim != 3 or 0 in a.shape:
         raise InputError(f"{folder}: a DICOM series needs a non-empty 3-D (z, y, x) array, got shape {a.shape}")
+    check_grid(a.shape[::-1], folder, error=InputError)
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     if any(folder.iterdir()):

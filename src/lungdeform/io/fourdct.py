@@ -14,7 +14,11 @@ first of these that every phase has and no two phases share (docs/FITTING.md, "4
 
 One series holding repeated slice positions is split by the first of 2–5 present in all its slices.
 A :class:`~lungdeform.errors.ReadError` names the folder when it holds fewer than two phases, when
-no key tells the phases apart, or when a phase holds two slices at one position.
+no key tells the phases apart, when its slices name more than one patient, study or frame of
+reference (:data:`SAME_TAGS`), or when a phase's slices are no regular grid (two at one position,
+uneven gaps, a missing slice, a gantry tilt, a bad orientation or position:
+:func:`lungdeform.io.slices.check_slices`) or exceed the grid cap
+(:func:`lungdeform.io.image.voxel_limit`); every phase is checked before any is read.
 
 Frames: each phase is an :class:`~lungdeform.io.image.Image` (``array`` ``(z, y, x)``, spacing
 x y z mm, origin mm LPS, direction columns in LPS), read by SimpleITK from its files in slice order.
@@ -32,12 +36,16 @@ import SimpleITK as sitk
 
 from lungdeform.errors import ReadError
 
-from .image import Image, _quiet_itk, check_dicom_file, is_dicom_file
+from .image import Image, _quiet_itk, check_dicom_file, check_grid, is_dicom_file
+from .slices import GEOMETRY_TAGS, SliceGeometry, check_orientations, check_slices, check_spacing
 
 #: The tags that may tell phases apart, in order of preference after the SeriesDescription percentage.
 PHASE_TAGS = (("0020|9128", "TemporalPositionIndex"), ("0020|0100", "TemporalPositionIdentifier"),
               ("0018|1060", "TriggerTime"), ("0008|0032", "AcquisitionTime"))
-_READ_TAGS = ("0020|000e", "0008|103e", "0020|0032", "0020|0037") + tuple(t for t, _ in PHASE_TAGS)
+#: The tags that must agree across the whole folder: one patient, one study, one frame of reference.
+SAME_TAGS = (("0010|0020", "PatientID"), ("0020|000d", "StudyInstanceUID"), ("0020|0052", "FrameOfReferenceUID"))
+_READ_TAGS = (("0020|000e", "0008|103e") + GEOMETRY_TAGS + tuple(t for t, _ in PHASE_TAGS)
+              + tuple(t for t, _ in SAME_TAGS))
 _PERCENT = re.compile(r"(\d+(?:\.\d+)?)\s*%|\bphase[\s_:=-]*(\d+(?:\.\d+)?)", re.I)
 #: Files looked at at most (a 4-D CT of 10 phases × 200 slices is 2000): do not crawl a disk.
 MAX_FILES = 20000
@@ -82,7 +90,9 @@ def _slice_tags(path: str) -> dict[str, str] | None:
             reader.ReadImageInformation()
     except RuntimeError:
         return None
-    return {t: reader.GetMetaData(t).strip() if reader.HasMetaDataKey(t) else "" for t in _READ_TAGS}
+    info = {t: reader.GetMetaData(t).strip() if reader.HasMetaDataKey(t) else "" for t in _READ_TAGS}
+    info["size"] = " ".join(str(int(n)) for n in reader.GetSize())  # x y (frames): for the grid cap
+    return info
 
 
 def _dicom_files(folder: Path) -> list[str]:
@@ -148,7 +158,9 @@ def _group_key(folder: Path, files: list[tuple[str, dict]], kind: str) -> tuple[
 
 def _split_series(folder: Path, files: list[tuple[str, dict]]) -> list[list[tuple[str, dict]]]:
     """One series split into phases by the first tag of :data:`PHASE_TAGS` present in all its slices
-    (it is returned whole when no slice position repeats)."""
+    (it is returned whole when no slice position repeats); its slices must share one orientation
+    (:func:`~lungdeform.io.slices.check_orientations`), or positions along their normals mean nothing."""
+    check_orientations(files, f"{folder}: series {files[0][1]['0020|000e'] or '(no SeriesInstanceUID)'}")
     positions = [_position(info) for _, info in files]
     if len(set(positions)) == len(positions):
         return [files]
@@ -174,35 +186,57 @@ def _order(folder: Path, groups: list[list[tuple[str, dict]]]) -> list[tuple[flo
                     f"in SeriesDescription, nor {', '.join(n for _, n in PHASE_TAGS)} that differs between them")
 
 
-def _read_phase(folder: Path, label: str, files: list[tuple[str, dict]]) -> tuple[tuple[str, ...], Image]:
-    """One phase's files in slice order and its image; :class:`ReadError` for repeated or unreadable positions."""
-    positions = [_position(info) for _, info in files]
-    if None in positions:
-        bad = files[positions.index(None)][0]
-        raise ReadError(f"{folder}: phase {label}: {bad} has no readable ImagePositionPatient/ImageOrientationPatient")
-    if len(set(positions)) != len(positions):
-        raise ReadError(f"{folder}: phase {label} holds two slices at one position; the phases cannot be told apart")
-    names = tuple(f for _, f in sorted(zip(positions, (f for f, _ in files))))
+def _phase_geometry(folder: Path, label: str, files: list[tuple[str, dict]], max_voxels=None) -> SliceGeometry:
+    """One phase's slice geometry (its files in slice order); :class:`ReadError` for a grid over the
+    cap (:func:`~lungdeform.io.image.check_grid`) or slices that are no regular grid
+    (:func:`~lungdeform.io.slices.check_slices`: orientation, positions, gaps, gantry tilt)."""
+    where = f"{folder}: phase {label}"
+    sizes = [[int(n) for n in info["size"].split()] for _, info in files]
+    check_grid((max(s[0] for s in sizes), max(s[1] for s in sizes), sum(int(np.prod(s[2:])) for s in sizes)),
+               where, max_voxels)
+    return check_slices(files, where)
+
+
+def _read_phase(folder: Path, label: str, geometry: SliceGeometry) -> Image:
+    """One phase's image from its checked files (:func:`_phase_geometry`)."""
+    where = f"{folder}: phase {label}"
     reader = sitk.ImageSeriesReader()
-    reader.SetFileNames(list(names))
+    reader.SetFileNames(list(geometry.files))
     try:
         with _quiet_itk():
             img = reader.Execute()
     except RuntimeError as exc:
         detail = next((ln.strip() for ln in str(exc).splitlines() if "rror" in ln), "")
-        raise ReadError(f"{folder}: phase {label}: cannot read its series ({detail[:200]})") from exc
+        raise ReadError(f"{where}: cannot read its series ({detail[:200]})") from exc
     if img.GetDimension() != 3 or img.GetNumberOfComponentsPerPixel() != 1:
-        raise ReadError(f"{folder}: phase {label}: expected a 3-D scalar image")
-    image = Image(sitk.GetArrayFromImage(img), np.array(img.GetSpacing()), np.array(img.GetOrigin()),
-                  np.array(img.GetDirection()).reshape(3, 3), source=f"{folder} [{label}]")
-    return names, image
+        raise ReadError(f"{where}: expected a 3-D scalar image")
+    check_spacing(img.GetSpacing()[2], geometry, where)
+    return Image(sitk.GetArrayFromImage(img), np.array(img.GetSpacing()), np.array(img.GetOrigin()),
+                 np.array(img.GetDirection()).reshape(3, 3), source=f"{folder} [{label}]")
 
 
-def read_phases(folder) -> list[Phase]:
+def _check_one_study(folder: Path, infos: list[tuple[str, dict]]) -> None:
+    """ReadError naming the folder, the tag and two files when the slices of ``folder`` do not share
+    one patient, one study and one frame of reference (:data:`SAME_TAGS`; a tag absent from every
+    slice passes, absent from some only does not)."""
+    for tag, name in SAME_TAGS:
+        first: dict[str, str] = {}
+        for f, info in infos:
+            first.setdefault(info[tag], f)
+            if len(first) > 1:
+                (a, fa), (b, fb) = first.items()
+                raise ReadError(f"{folder}: holds more than one {name}: {a or '(none)'!r} in {fa} and "
+                                f"{b or '(none)'!r} in {fb}; a 4-D CT folder holds one patient, one study and one "
+                                "frame of reference")
+
+
+def read_phases(folder, *, max_voxels=None) -> list[Phase]:
     """Every phase of the 4-D CT in ``folder`` (module docstring), in phase order.
 
-    Raises :class:`ReadError` naming the folder when it is missing, holds no DICOM image, fewer than
-    two phases, or phases that cannot be told apart.
+    Raises :class:`ReadError` naming the folder when it is missing, holds no DICOM image, slices of
+    more than one patient, study or frame of reference, fewer than two phases, phases that cannot be
+    told apart, a phase whose slices are no regular grid (:func:`~lungdeform.io.slices.check_slices`)
+    or a phase over the grid cap (``max_voxels``, :func:`~lungdeform.io.image.voxel_limit`).
     """
     folder = Path(folder)
     if not folder.is_dir():
@@ -218,17 +252,17 @@ def read_phases(folder) -> list[Phase]:
         infos.append((f, info))
     if not infos:
         raise ReadError(f"{folder}: no DICOM files in this folder or its subfolders")
+    _check_one_study(folder, infos)
     series: dict[str, list] = {}
     for f, info in infos:
         series.setdefault(info["0020|000e"], []).append((f, info))
     groups = [g for s in series.values() for g in _split_series(folder, s)]
     if len(groups) < 2:
         raise ReadError(f"{folder}: holds one phase only ({len(infos)} slices of one series); a 4-D CT needs two or more")
-    phases = []
-    for key, label, files in _order(folder, groups):
-        names, image = _read_phase(folder, label, files)
-        phases.append(Phase(label, float(key), names, image))
-    return phases
+    ordered = [(key, label, _phase_geometry(folder, label, files, max_voxels))
+               for key, label, files in _order(folder, groups)]  # every phase checked before any is read
+    return [Phase(label, float(key), geometry.files, _read_phase(folder, label, geometry))
+            for key, label, geometry in ordered]
 
 
 def is_fourdct(path) -> bool:

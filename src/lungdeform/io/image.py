@@ -12,9 +12,11 @@ float`` to world points ``(n, 3) float`` mm LPS.
 
 from __future__ import annotations
 
+import gzip
 import os
 import re
 import struct
+import zlib
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,7 +25,9 @@ import numpy as np
 import SimpleITK as sitk
 
 from lungdeform.atomic import atomic_path
-from lungdeform.errors import InputError, ReadError
+from lungdeform.errors import InputError, LungdeformError, ReadError
+
+from .slices import GEOMETRY_TAGS, SliceGeometry, check_slices, check_spacing
 
 IMAGE_SUFFIXES = (".nii", ".nii.gz", ".mha", ".mhd", ".nrrd", ".nhdr")
 #: deflate (gzip, zlib) never expands data more than about 1032 times
@@ -36,6 +40,15 @@ _LONG_VRS = frozenset((b"OB", b"OW", b"OF", b"OD", b"OL", b"OV", b"SQ", b"UC", b
 _VRS = _LONG_VRS | frozenset(v.encode() for v in (
     "AE AS AT CS DA DS DT FL FD IS LO LT PN SH SL SS ST TM UI UL US").split())
 _IMPLICIT_LE, _BIG_ENDIAN, _DEFLATED = b"1.2.840.10008.1.2", b"1.2.840.10008.1.2.2", b"1.2.840.10008.1.2.1.99"
+#: Default largest grid read or written, in voxels: 2^29 ≈ 5.4e8 (a CT of 512 × 512 × 2000 slices
+#: fits; 1000^3 does not). Raised by :data:`MAX_VOXELS_ENV` or a ``max_voxels`` argument.
+MAX_VOXELS = 2 ** 29
+#: The environment variable that raises (or lowers) :data:`MAX_VOXELS` (``lungdeform --max-voxels`` sets it).
+MAX_VOXELS_ENV = "LUNGDEFORM_MAX_VOXELS"
+#: MetaImage header keys that hold numbers placing the grid (ITK reads "nan" or a missing value as 0),
+#: and how many: "n" NDims, "nn" NDims squared.
+_META_GEOMETRY = {"Offset": "n", "Origin": "n", "Position": "n", "ElementSpacing": "n", "ElementSize": "n",
+                  "CenterOfRotation": "n", "TransformMatrix": "nn", "Rotation": "nn", "Orientation": "nn"}
 
 
 @dataclass(frozen=True, eq=False)
@@ -69,6 +82,9 @@ class Image:
         sp = np.asarray(self.spacing, dtype=np.float64).reshape(3)
         org = np.asarray(self.origin, dtype=np.float64).reshape(3)
         d = np.asarray(self.direction, dtype=np.float64).reshape(3, 3)
+        for name, value in (("spacing", sp), ("origin", org), ("direction", d)):
+            if not np.isfinite(value).all():
+                raise InputError(f"{self.source}: {name} must be finite, got {value.tolist()}")
         if not (sp > 0).all():
             raise InputError(f"{self.source}: spacing must be positive, got {sp}")
         if abs(abs(np.linalg.det(d)) - 1.0) > 1e-3:
@@ -293,16 +309,158 @@ def dicom_series_files(path) -> list[str]:
     return list(series[0][1])
 
 
-def _check_header(p: Path) -> None:
-    """Refuse, before ITK reads it, a text header (MetaImage, NRRD) whose dimension count is absurd (over 10), and
-    a single-file image whose header claims more voxel bytes than the file can hold even deflated at
-    the most (:data:`MAX_INFLATE`): ITK would try to allocate them (a damaged header claiming 10^12
-    voxels). The sizes of files whose voxels live in another file (.mhd, .nhdr, a .mha or .nrrd
-    naming a data file) are not judged."""
+def voxel_limit(max_voxels=None) -> int:
+    """The grid-size cap in voxels: ``max_voxels`` when given, else the environment variable
+    :data:`MAX_VOXELS_ENV`, else :data:`MAX_VOXELS`; :class:`InputError` naming the one given when it
+    is not a positive whole number (``"2e9"`` is one)."""
+    source, value = "max_voxels", max_voxels
+    if value is None:
+        text = os.environ.get(MAX_VOXELS_ENV, "").strip()
+        if not text:
+            return MAX_VOXELS
+        source, value = MAX_VOXELS_ENV, text
+    try:
+        n = float(value)
+    except (TypeError, ValueError):
+        n = float("nan")
+    if not (np.isfinite(n) and n >= 1 and n == int(n)):
+        raise InputError(f"{source} must be a positive whole number of voxels, got {value!r}")
+    return int(n)
+
+
+def check_grid(size, where, max_voxels=None, error: type[Exception] = ReadError) -> None:
+    """Refuse a grid of ``size`` voxels per axis over the cap (:func:`voxel_limit`), with ``error``
+    (:class:`ReadError` for a read, :class:`InputError` for a write) naming ``where``: checked from
+    a header, before any voxel is read or allocated."""
+    limit = voxel_limit(max_voxels)
+    size = [int(s) for s in size]
+    count = int(np.prod(size, dtype=object))
+    if count > limit:
+        raise error(f"{where}: the image grid {' x '.join(map(str, size))} is {count:,} voxels, over the limit of "
+                    f"{limit:,} (raise it with 'lungdeform --max-voxels N' or ${MAX_VOXELS_ENV})")
+
+
+def _check_meta_numbers(p: Path, head: bytes) -> None:
+    """Refuse a MetaImage header whose grid numbers (:data:`_META_GEOMETRY`) are not NDims (or
+    NDims²) finite numbers: ITK reads ``Offset = nan``, ``inf`` or a missing value as 0."""
+    end = re.search(rb"^\s*ElementDataFile\s*=[^\r\n]*", head, re.M)
+    head = head[:end.end()] if end else head
+    ndims = re.search(rb"^\s*NDims\s*=[ \t]*(\d+)", head, re.M)
+    n = int(ndims.group(1)) if ndims else None
+    for m in re.finditer(rb"^[ \t]*(\w+)[ \t]*=[ \t]*([^\r\n]*)", head, re.M):
+        key = m.group(1).decode(errors="replace")
+        if key not in _META_GEOMETRY:
+            continue
+        text = m.group(2).decode(errors="replace").strip()
+        try:
+            values = np.array([float(t) for t in text.split()])
+        except ValueError:
+            values = np.array([np.nan])
+        want = None if n is None else (n if _META_GEOMETRY[key] == "n" else n * n)
+        if not np.isfinite(values).all() or (want is not None and len(values) != want):
+            raise ReadError(f"{p}: header key {key} = {text[:80]!r} is not {want or 'NDims'} finite numbers")
+
+
+def _check_nrrd_numbers(p: Path, head: bytes) -> None:
+    """Refuse a NRRD header whose spacings, space origin or space directions hold NaN, infinity or
+    anything but numbers (``none`` aside): ITK reads a NaN spacing ("unknown" in NRRD) as 1 mm."""
+    header = head.split(b"\n\n", 1)[0]
+    for m in re.finditer(rb"^(spacings|space origin|space directions):[ \t]*([^\r\n]*)", header, re.M):
+        text = m.group(2).decode(errors="replace").strip()
+        for token in re.findall(r"[^\s(),]+", text):
+            if token.lower() == "none":
+                continue
+            try:
+                ok = np.isfinite(float(token))
+            except ValueError:
+                ok = False
+            if not ok:
+                raise ReadError(f"{p}: header field {m.group(1).decode()}: {text[:80]!r} holds {token[:20]!r}, "
+                                "not a finite number")
+
+
+def _check_nifti_numbers(p: Path) -> None:
+    """Refuse a NIfTI-1 header whose voxel size (pixdim), qform (quatern, qoffset; when its code is
+    set) or sform (srow; when its code is set) holds NaN or infinity, before ITK builds its grid."""
+    try:
+        if p.name.lower().endswith(".gz"):
+            with gzip.open(p, "rb") as fh:
+                raw = fh.read(348)
+        else:
+            with open(p, "rb") as fh:
+                raw = fh.read(348)
+    except (OSError, EOFError, zlib.error):
+        return  # ITK says what is wrong with it
+    if len(raw) < 348:
+        return
+    endian = next((e for e in "<>" if struct.unpack(e + "i", raw[:4])[0] == 348), None)
+    if endian is None:
+        return  # NIfTI-2 or none at all: ITK's grid is checked after
+
+    def floats(offset, count):
+        return np.array(struct.unpack(f"{endian}{count}f", raw[offset:offset + 4 * count]))
+
+    qform, sform = struct.unpack(endian + "hh", raw[252:256])
+    fields = {"pixdim": floats(80, 3)}
+    if qform > 0:
+        fields.update(quatern=floats(256, 3), qoffset=floats(268, 3))
+    if sform > 0:
+        fields.update(srow_x=floats(280, 4), srow_y=floats(296, 4), srow_z=floats(312, 4))
+    for key, values in fields.items():
+        if not np.isfinite(values).all():
+            raise ReadError(f"{p}: NIfTI header field {key} holds {values.tolist()}: not finite")
+
+
+def _check_header(p: Path, max_voxels=None) -> None:
+    """Refuse, before ITK reads its voxels, an image file whose header is absurd: a dimension count
+    over 10 (text headers), a file pattern as MetaImage data file, grid numbers that are not finite
+    (:func:`_check_meta_numbers`, :func:`_check_nrrd_numbers`, :func:`_check_nifti_numbers`, then
+    ITK's origin, spacing and direction), a grid over the cap (:func:`check_grid`), or a
+    single-file image whose header claims more voxel bytes than the file can hold even deflated at
+    the most (:data:`MAX_INFLATE`): ITK would try to allocate them. The sizes of files whose voxels live in another file (.mhd, .nhdr,
+    a .mha or .nrrd naming a data file) are not judged against the file size."""
     name = p.name.lower()
     with open(p, "rb") as fh:
         head = fh.read(65536)
-    # an absurd dimension count in a text header: refused here, as ITK spins on NDims = 3e14
+    _check_text_header(p, name, head)
+    if name.endswith((".mha", ".mhd")):
+        _check_meta_numbers(p, head)
+    if name.endswith((".nrrd", ".nhdr")):
+        _check_nrrd_numbers(p, head)
+    if name.endswith((".nii", ".nii.gz")):
+        _check_nifti_numbers(p)
+    reader = sitk.ImageFileReader()
+    reader.SetFileName(str(p))
+    with _quiet_itk():
+        reader.ReadImageInformation()
+    _check_inflate(p, name, head, reader)
+    check_grid(reader.GetSize(), p, max_voxels)
+    for key, values in (("origin", reader.GetOrigin()), ("spacing", reader.GetSpacing()),
+                        ("direction", reader.GetDirection())):
+        if not np.isfinite(values).all():
+            raise ReadError(f"{p}: the header's {key} {list(values)} is not finite")
+
+
+def _check_inflate(p: Path, name: str, head: bytes, reader: sitk.ImageFileReader) -> None:
+    """Refuse a single-file image whose header (``reader``, information read) claims more voxel
+    bytes than the file can hold even deflated at the most (:data:`MAX_INFLATE`)."""
+    if not name.endswith((".nii", ".nii.gz", ".mha", ".nrrd")):
+        return
+    if name.endswith(".mha") and not re.search(rb"ElementDataFile\s*=\s*LOCAL", head):
+        return
+    if name.endswith(".nrrd") and re.search(rb"^data ?file:", head, re.M | re.I):
+        return
+    bits = re.search(r"(\d+)-bit", sitk.GetPixelIDValueAsString(reader.GetPixelID()))
+    claimed = float(np.prod(reader.GetSize(), dtype=np.float64)) * reader.GetNumberOfComponents() * (
+        int(bits.group(1)) // 8 if bits else 1)
+    if claimed > MAX_INFLATE * p.stat().st_size:
+        raise ReadError(f"{p}: header claims {'x'.join(map(str, reader.GetSize()))} voxels "
+                        f"({claimed:.3g} bytes), more than the {p.stat().st_size}-byte file can hold: damaged header")
+
+
+def _check_text_header(p: Path, name: str, head: bytes) -> None:
+    """Refuse a text header (MetaImage, NRRD) whose dimension count is absurd (over 10: ITK spins on
+    NDims = 3e14), and a MetaImage data file given as a file pattern."""
     # (2-D or 4-D images are refused after reading, with the usual message)
     key = rb"^\s*NDims\s*=[ \t]*(\S*)" if name.endswith((".mha", ".mhd")) else rb"^dimension:[ \t]*(\S*)"
     # every occurrence: a header may repeat the key, and ITK does not read the first one only
@@ -316,25 +474,35 @@ def _check_header(p: Path) -> None:
         # a printf-style file pattern: ITK divides by zero on a malformed one and the process dies (SIGFPE)
         raise ReadError(f"{p}: ElementDataFile {datafile.group(1).decode(errors='replace').strip()!r} is a file "
                         "pattern; lungdeform reads LOCAL data, LIST or one data file")
-    if not name.endswith((".nii", ".nii.gz", ".mha", ".nrrd")):
-        return
-    if name.endswith(".mha") and not re.search(rb"ElementDataFile\s*=\s*LOCAL", head):
-        return
-    if name.endswith(".nrrd") and re.search(rb"^data ?file:", head, re.M | re.I):
-        return
+
+
+def dicom_series_geometry(files, where, max_voxels=None) -> SliceGeometry:
+    """The geometry of one DICOM series (``files``, any order), its files in order along the slice
+    normal, after the grid cap (:func:`check_grid`, from the headers) and, for two or more files,
+    the checks of :func:`lungdeform.io.slices.check_slices`; :class:`ReadError` naming ``where``
+    and the file."""
     reader = sitk.ImageFileReader()
-    reader.SetFileName(str(p))
-    with _quiet_itk():
-        reader.ReadImageInformation()
-    bits = re.search(r"(\d+)-bit", sitk.GetPixelIDValueAsString(reader.GetPixelID()))
-    claimed = float(np.prod(reader.GetSize(), dtype=np.float64)) * reader.GetNumberOfComponents() * (
-        int(bits.group(1)) // 8 if bits else 1)
-    if claimed > MAX_INFLATE * p.stat().st_size:
-        raise ReadError(f"{p}: header claims {'x'.join(map(str, reader.GetSize()))} voxels "
-                        f"({claimed:.3g} bytes), more than the {p.stat().st_size}-byte file can hold: damaged header")
+    reader.SetImageIO("GDCMImageIO")
+    slices, size, depth = [], (0, 0), 0
+    for f in files:
+        reader.SetFileName(str(f))
+        try:
+            with _quiet_itk():
+                reader.ReadImageInformation()
+        except RuntimeError as exc:
+            raise ReadError(f"{where}: {f} is not a readable DICOM image slice") from exc
+        slices.append((str(f), {t: reader.GetMetaData(t).strip() if reader.HasMetaDataKey(t) else ""
+                                for t in GEOMETRY_TAGS}))
+        got = reader.GetSize()
+        size = (max(size[0], got[0]), max(size[1], got[1]))
+        depth += int(np.prod(got[2:], dtype=np.int64))
+        check_grid((*size, depth), where, max_voxels)
+    if len(slices) < 2:
+        return SliceGeometry(tuple(s for s, _ in slices), np.zeros(len(slices)), 0.0)
+    return check_slices(slices, where)
 
 
-def read_image(path) -> Image:
+def read_image(path, *, max_voxels=None) -> Image:
     """Read a 3-D image with SimpleITK: NIfTI, MetaImage (.mha/.mhd), NRRD, or a DICOM directory.
 
     Frame: ITK reports every format in LPS. For NIfTI this means ITK has already negated the
@@ -344,8 +512,11 @@ def read_image(path) -> Image:
     points), and tested in tests/io/test_image.py. So no conversion is done here.
 
     DICOM: a folder, a parent folder of one series, or one file of a series
-    (:func:`dicom_series_files`). Raises :class:`ReadError` naming the path when it is missing,
-    empty, unreadable, ambiguous (several series) or not 3-D scalar.
+    (:func:`dicom_series_files`), its slices checked (:func:`dicom_series_geometry`: one
+    orientation, evenly spaced, no gantry tilt). Every header is checked before any voxel is read:
+    a grid over ``max_voxels`` (:func:`voxel_limit`) and grid numbers that are not finite are
+    refused. Raises :class:`ReadError` naming the path when it is missing, empty, unreadable,
+    ambiguous (several series) or not 3-D scalar.
     """
 
     p = Path(path)
@@ -356,16 +527,18 @@ def read_image(path) -> Image:
             raise ReadError(f"{p}: file is empty")
         if p.is_dir() or (not p.name.lower().endswith(IMAGE_SUFFIXES) and is_dicom_file(p)):
             reader = sitk.ImageSeriesReader()
-            reader.SetFileNames(dicom_series_files(p))
+            geometry = dicom_series_geometry(dicom_series_files(p), p, max_voxels)
+            reader.SetFileNames(list(geometry.files))
             with _quiet_itk():
                 img = reader.Execute()
+            check_spacing(img.GetSpacing()[2], geometry, p)
         else:
             if not p.name.lower().endswith(IMAGE_SUFFIXES):
                 raise ReadError(f"{p}: unknown image format (supported: {', '.join(IMAGE_SUFFIXES)}, "
                                 "a DICOM file or folder)")
-            _check_header(p)
+            _check_header(p, max_voxels)
             img = sitk.ReadImage(str(p))
-    except ReadError:
+    except LungdeformError:
         raise
     except Exception as exc:  # SimpleITK raises RuntimeError with a long multi-line text
         lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
@@ -406,13 +579,15 @@ def to_sitk(array, spacing, origin, direction) -> sitk.Image:
     return img
 
 
-def write_image(path, array, spacing, origin, direction) -> Path:
+def write_image(path, array, spacing, origin, direction, *, max_voxels=None) -> Path:
     """Write ``array`` (scalar ``(z, y, x)`` or vector ``(z, y, x, c)``, its dtype kept) on the given grid
     to ``path`` (.mha, .nii.gz, .nii or .nrrd by its name), atomically. A vector image of 3 float
     components is what ITK, elastix, plastimatch and 3D Slicer read as a displacement field (LPS mm
-    in .mha/.nrrd; ITK writes NIfTI vector images as intent "vector")."""
+    in .mha/.nrrd; ITK writes NIfTI vector images as intent "vector"). A grid over the cap
+    (:func:`check_grid`) is refused with :class:`InputError` before anything is written."""
     p = Path(path)
     suffix = write_suffix(p)
+    check_grid(np.shape(array)[:3][::-1], p, max_voxels, InputError)
     img = to_sitk(array, spacing, origin, direction)
     with atomic_path(p, suffix=suffix) as tmp:
         sitk.WriteImage(img, str(tmp), True)

@@ -28,7 +28,10 @@ map, :mod:`lungdeform.interior.correspondence`): ``interior_map_linear (3, 4)`` 
 ``interior_map_warp (3, 4)``, ``interior_map_centers (k, 3)`` mm LPS, ``interior_map_weights (k, 3)``
 mm per unit and ``interior_map_width_mm``; all five or none.
 
-Loading checks the schema name and version, that every key is present, and every shape.
+Loading checks the schema name and version, that every key is present, and every shape;
+that every array holds values of its kind (real numbers, finite, where numbers belong: no complex,
+text or objects; integer faces; one value where one belongs), and that the provenance is a JSON
+object whose ``volumes_ml`` are finite numbers and whose alignment matrices are 4 × 4.
 Each version changed only how interior points move (:attr:`LungModel.interior_kind`). Version 4 adds
 the optional surface-to-surface map (an older reader would play such a lung's interior differently,
 so it refuses the file instead). Version 3:
@@ -70,6 +73,13 @@ _MAP = ("linear", "warp", "centers", "weights", "width_mm")
 _PER_LUNG = ("side", "vertices", "faces", "constants", "stiffness", "frame_axes", "frame_lower",
              "frame_upper", "directions", "force_basis", "gravity", "force_weights",
              "displacement", "unit_ml", "calibration_ml", "d_min", "volume_ee_ml", "volume_poly")
+#: The kind of each member's values (numpy dtype kinds): real floating point (finite) unless named here.
+_KINDS = {"schema": "U", "schema_version": "iu", "lungs": "U", "provenance": "U", "side": "U", "faces": "iu",
+          "interior_vertices": "b", "interior_kind": "U"}
+_KIND_NAMES = {"U": "text", "iu": "integer", "b": "bool", "f": "real floating point"}
+#: Members that hold one value (shape ``()``).
+_SCALARS = ("schema", "schema_version", "provenance", "side", "unit_ml", "calibration_ml", "d_min", "volume_ee_ml",
+            "landmark_smoothing", "interior_kind", "interior_map_width_mm")
 
 
 def lung_arrays(lung: LungModel) -> dict[str, np.ndarray]:
@@ -159,16 +169,65 @@ def load_model(path) -> Model:
             f"{path}: model schema version {version} is not supported (this lungdeform reads "
             f"{', '.join(map(str, READABLE_VERSIONS))})"
         )
+    _check_members(path, data)
     try:
         provenance = json.loads(str(data["provenance"]))
         names = [str(x) for x in data["lungs"]]
     except (KeyError, ValueError) as exc:
         raise ModelFileError(f"{path}: damaged header ({exc})") from exc
+    _check_provenance(path, provenance)
     try:
         lungs = {name: _lung(path, name, data, version) for name in names}
     except (TypeError, ValueError, IndexError) as exc:  # arrays of the wrong dtype (text, objects) or size
         raise ModelFileError(f"{path}: damaged lung arrays ({exc})") from exc
     return Model(lungs, provenance)
+
+
+def _check_members(path: Path, data: dict) -> None:
+    """ModelFileError naming the member when a known member's values are of the wrong kind (complex,
+    text or objects where real numbers belong: :data:`_KINDS`), are not one value where one belongs
+    (:data:`_SCALARS`), or are real numbers that are not finite."""
+    for member, value in data.items():
+        key = member.rsplit("/", 1)[-1] if member.startswith("lung/") else member
+        if key not in _KINDS and key not in _PER_LUNG + _OPTIONAL and not key.startswith("interior_map_"):
+            continue  # not of the schema: ignored
+        kind = _KINDS.get(key, "f")
+        if value.dtype.kind not in kind:
+            raise ModelFileError(f"{path}: member {member!r} holds {value.dtype} values, expected "
+                                 f"{_KIND_NAMES[kind]}")
+        if key in _SCALARS and value.shape != ():
+            raise ModelFileError(f"{path}: member {member!r} has shape {value.shape}, expected one value (shape ())")
+        if kind == "f" and not np.isfinite(value).all():
+            raise ModelFileError(f"{path}: member {member!r} holds NaN or infinity")
+
+
+def _check_provenance(path: Path, prov) -> None:
+    """ModelFileError naming the entry when the provenance is not a JSON object, or the entries that
+    playback reads (``volumes_ml``; ``alignment[i].applied/apex.matrix``, 4 × 4) are malformed."""
+    if not isinstance(prov, dict):
+        raise ModelFileError(f"{path}: member 'provenance' is not a JSON object")
+
+    def number(x) -> bool:
+        return isinstance(x, (int, float)) and not isinstance(x, bool) and np.isfinite(x)
+
+    vols = prov.get("volumes_ml")
+    if vols is not None and not (isinstance(vols, list) and all(number(v) for v in vols)):
+        raise ModelFileError(f"{path}: member 'provenance' entry volumes_ml is not a list of finite numbers")
+    alignment = prov.get("alignment")
+    if alignment is None:
+        return
+    if not (isinstance(alignment, list) and all(isinstance(a, dict) for a in alignment)):
+        raise ModelFileError(f"{path}: member 'provenance' entry alignment is not a list of objects")
+    for i, entry in enumerate(alignment):
+        for part in ("applied", "apex"):
+            matrix = (entry.get(part) or {}).get("matrix") if isinstance(entry.get(part) or {}, dict) else "?"
+            if matrix is None:
+                continue
+            ok = (isinstance(matrix, list) and len(matrix) == 4
+                  and all(isinstance(r, list) and len(r) == 4 and all(number(x) for x in r) for r in matrix))
+            if not ok:
+                raise ModelFileError(f"{path}: member 'provenance' entry alignment[{i}].{part}.matrix is not a "
+                                     "4 x 4 matrix of finite numbers")
 
 
 def _lung(path: Path, name: str, data: dict, version: int = SCHEMA_VERSION) -> LungModel:
