@@ -10,7 +10,7 @@ import typer
 from lungdeform.breathing.presets import get_preset
 from lungdeform.errors import InputError
 from lungdeform.io.modelfile import load_model
-from lungdeform.io.rtstruct import read_ct_series, write_rtstruct
+from lungdeform.io.rtstruct import build_rtstruct, check_structure_on_ct, read_ct_series, save_rtstruct
 from lungdeform.playback import schedule as S
 from lungdeform.playback import structures as R
 from lungdeform.playback import trajectory as T
@@ -45,9 +45,13 @@ def register(apps) -> None:
 
         _check_schedule(volume_ml, curve, preset, cycles, tidal_ml, fps)
         _check_structure_options(points, rtstruct, structure, out_rtstruct, reference_ct, phases, volume_ml)
+        _check_out_rtstruct(out_rtstruct, model, points, rtstruct, curve)
         m = load_model(model)
         tracked = R.read_structure(rtstruct, structure) if rtstruct is not None else None
-        ct = read_ct_series(reference_ct) if out_rtstruct is not None else None  # before anything is written
+        ct = None
+        if out_rtstruct is not None:  # before anything is written: the CT, and the structure on it
+            ct = read_ct_series(reference_ct)
+            check_structure_on_ct(tracked.roi, ct, str(rtstruct))
         if tracked is not None:
             pts, labels, source = tracked.points, tracked.labels, str(rtstruct)
         else:
@@ -65,19 +69,34 @@ def register(apps) -> None:
         if note:
             typer.echo(f"note: {note}")
         positions = T.point_trajectories(m, pts, placement, frames.delta_ml)
-        folder = output_dir(out)
-        if out_rtstruct is not None:
+        built = None
+        if out_rtstruct is not None:  # made and checked (names, extent on the CT) before any output
             surfaces = R.moved_surfaces(m, tracked, frames.delta_ml, tags, lung, source=f"{rtstruct} {structure}")
-            counts = write_rtstruct(out_rtstruct, ct, surfaces, label=f"{structure} moved")
-            typer.echo(f"wrote {out_rtstruct}: " + ", ".join(f"{k} ({n} contours)" for k, n in counts.items()))
+            built = build_rtstruct(ct, surfaces, label=f"{structure} moved")
+        folder = output_dir(out)
         meta = {"model": str(model), "schedule": frames.source, "end_exhale_ml": T.end_exhale_ml(m), **T.interior_meta(m)}
         paths = T.write_trajectories(folder, pts, labels, placement, positions, frames.delta_ml, frames.t_s, meta=meta)
+        if built is not None:
+            save_rtstruct(out_rtstruct, built[0])
+            typer.echo(f"wrote {out_rtstruct}: " + ", ".join(f"{k} ({n} contours)" for k, n in built[1].items()))
         typer.echo(f"{len(pts)} point(s), {len(frames.delta_ml)} frame(s): {frames.source}")
         if tracked is None:
             _print_points(labels, placement, T.motion_summary(positions, pts), paths)
         else:
             _print_structure(structure, placement, T.motion_summary(positions, pts))
         typer.echo(f"wrote {paths['csv']}, {paths['json']}, {paths['png']}")
+
+
+def _check_out_rtstruct(out_rtstruct: Path | None, *inputs: Path | None) -> None:
+    """--out-rtstruct must name a file that is none of the inputs (it would be overwritten) and
+    not an existing folder."""
+    if out_rtstruct is None:
+        return
+    if out_rtstruct.is_dir():
+        raise InputError(f"--out-rtstruct {out_rtstruct}: is a folder; give a file name (e.g. moved_rs.dcm)")
+    for given in inputs:
+        if given is not None and given.exists() and out_rtstruct.exists() and out_rtstruct.samefile(given):
+            raise InputError(f"--out-rtstruct {out_rtstruct}: is the input {given}, which it would overwrite")
 
 
 def _check_schedule(volume_ml, curve, preset, cycles, tidal_ml, fps) -> None:
