@@ -286,3 +286,22 @@ def test_track_out_rtstruct_must_not_overwrite_an_input(model_file, gtv_files, t
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "is the input" in err[0] and gtv.read_bytes() == before
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--phases", "1000000"], "--phases must be 1 to 100, got 1000000"),
+    (["--fps", "1e9"], "--fps must be > 0 and at most 1000"),
+    (["--preset", "normal", "--cycles", "1000000000"], "--cycles must be at most 100"),
+    (["--fps", "1000"], "2000 point(s) x 4001 frame(s), more than 5000000 rows of trajectories"),
+])
+def test_track_schedule_is_bounded(model_file, tmp_path, capsys, args, message):
+    # a million phases (a million ROIs), a billion frames per second or cycles (each simulated),
+    # millions of trajectory rows: refused at once, before any allocation, instead of a MemoryError
+    # traceback or a hang
+    pts = tmp_path / "many.csv"
+    pts.write_text("x_mm,y_mm,z_mm\n" + "90,0,-40\n" * 2000)
+    out = tmp_path / "x"
+    assert main(["track", str(model_file), "--points", str(pts), "--out", str(out), *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0], err
+    assert not out.exists()

@@ -268,3 +268,17 @@ def test_names_round_trip_or_are_refused(ct, tmp_path):
         with pytest.raises(InputError, match=message):
             write_rtstruct(tmp_path / "c.dcm", ct, [(name, v, f)])
     assert not (tmp_path / "c.dcm").exists()
+
+
+def test_a_latin1_patient_name_is_rewritten_as_utf8(tmp_path):
+    # the patient's name is copied from the CT: a Latin-1 (ISO_IR 100) name must not be written as
+    # bytes of no declared character set; the structure set declares UTF-8 and the name reads back
+    folder = write_ct_series(tmp_path / "ct", shape=(10, 8, 8))
+    for f in folder.iterdir():
+        ds = pydicom.dcmread(f)
+        ds.SpecificCharacterSet, ds.PatientName = "ISO_IR 100", "Müller^Jörg"
+        ds.save_as(f)
+    v, f = _sphere(np.array([0.0, 0.0, -10.0]), 4.0)
+    write_rtstruct(tmp_path / "rs.dcm", read_ct_series(folder), [("GTV", v, f)])
+    ds = pydicom.dcmread(tmp_path / "rs.dcm")
+    assert ds.SpecificCharacterSet == "ISO_IR 192" and str(ds.PatientName) == "Müller^Jörg"

@@ -9,6 +9,7 @@ import typer
 
 from lungdeform.breathing.presets import get_preset
 from lungdeform.errors import InputError
+from lungdeform.io.dicomseries import MAX_PHASES
 from lungdeform.io.modelfile import load_model
 from lungdeform.io.rtstruct import build_rtstruct, check_structure_on_ct, read_ct_series, save_rtstruct
 from lungdeform.playback import schedule as S
@@ -16,6 +17,12 @@ from lungdeform.playback import structures as R
 from lungdeform.playback import trajectory as T
 
 from .common import check_cycles, check_tidal_ml, output_dir, read_curve
+
+
+#: Bounds on the schedule: frames per second, preset cycles, and points × frames (rows of trajectories.csv)
+MAX_FPS = 1000.0
+MAX_CYCLES = 100
+MAX_POINT_FRAMES = 5_000_000
 
 
 def register(apps) -> None:
@@ -64,7 +71,10 @@ def register(apps) -> None:
         elif phases is not None:
             frames, tags = R.phase_frames(_trace(m, curve, preset, cycles, tidal_ml), phases)
         else:
-            frames, tags = T.trace_frames(_trace(m, curve, preset, cycles, tidal_ml), fps), []
+            trace = _trace(m, curve, preset, cycles, tidal_ml)
+            _check_rows(len(pts), (trace.t_s[-1] - trace.t_s[0]) * fps + 1, source)  # before the frames are made
+            frames, tags = T.trace_frames(trace, fps), []
+        _check_rows(len(pts), len(frames.delta_ml), source)
         note = T.extrapolation_note(m, frames.delta_ml)
         if note:
             typer.echo(f"note: {note}")
@@ -85,6 +95,13 @@ def register(apps) -> None:
         else:
             _print_structure(structure, placement, T.motion_summary(positions, pts))
         typer.echo(f"wrote {paths['csv']}, {paths['json']}, {paths['png']}")
+
+
+def _check_rows(points: int, frames: float, source: str) -> None:
+    """Refuse more than :data:`MAX_POINT_FRAMES` points × frames (rows of trajectories.csv)."""
+    if not points * frames <= MAX_POINT_FRAMES:
+        raise InputError(f"{source}: {points} point(s) x {frames:.0f} frame(s), more than {MAX_POINT_FRAMES} rows of "
+                         "trajectories; lower --fps, or give --phases or --volume-ml")
 
 
 def _check_out_rtstruct(out_rtstruct: Path | None, *inputs: Path | None) -> None:
@@ -108,8 +125,10 @@ def _check_schedule(volume_ml, curve, preset, cycles, tidal_ml, fps) -> None:
     check_tidal_ml(tidal_ml)
     if tidal_ml is not None and (volume_ml or curve is not None):
         raise InputError("--tidal-ml applies to --preset or the plain cycle")
-    if not (np.isfinite(fps) and fps > 0):
-        raise InputError(f"--fps must be > 0, got {fps}")
+    if not (np.isfinite(fps) and 0 < fps <= MAX_FPS):
+        raise InputError(f"--fps must be > 0 and at most {MAX_FPS}, got {fps}")
+    if cycles is not None and cycles > MAX_CYCLES:
+        raise InputError(f"--cycles must be at most {MAX_CYCLES}, got {cycles}")
 
 
 def _check_structure_options(points, rtstruct, structure, out_rtstruct, reference_ct, phases, volume_ml) -> None:
@@ -127,6 +146,8 @@ def _check_structure_options(points, rtstruct, structure, out_rtstruct, referenc
         raise InputError("--out-rtstruct needs --volume-ml or --phases (one ROI per state)")
     if phases is not None and volume_ml:
         raise InputError("--phases applies to --curve, --preset or the plain cycle, not --volume-ml")
+    if phases is not None and not 1 <= phases <= MAX_PHASES:
+        raise InputError(f"--phases must be 1 to {MAX_PHASES}, got {phases}")
 
 
 def _read_points(points: Path, skip_invalid: bool):
