@@ -273,7 +273,7 @@ def test_track_rtstruct_names(model_file, gtv_files, tmp_path, capsys):
     shutil.rmtree(out)
     code, out, rs = _run_rtstruct(model_file, tmp_path / "in.dcm", ct_dir, tmp_path, long_name)
     err = capsys.readouterr().err.strip().splitlines()
-    assert code == 2 and len(err) == 1 and f"ROI name '{long_name}@phase00': 68 characters, longer than" in err[0]
+    assert code == 2 and len(err) == 1 and f"in.dcm: ROI name '{long_name}@phase00': 68 characters, longer than" in err[0]
     assert not out.exists() and not rs.exists()
 
 

@@ -112,6 +112,7 @@ def _rtstruct_files() -> dict[str, bytes]:
     tilted = _gtv()
     tilted[1] = tilted[1] + np.column_stack([np.zeros((24, 2)), 0.5 * (tilted[1][:, 0] - GTV_CENTRE[0])])
     line = np.column_stack([np.linspace(80.0, 100.0, 6), np.full(6, 20.0), np.full(6, -151.0)])
+    whole = rtstruct_bytes([(1, "GTV", _gtv())])
     return {
         # the structure set of another CT: another Frame of Reference and study than the reference CT's
         "frame_mismatch.dcm": rtstruct_bytes([(1, "GTV", _gtv())], frame_uid="1.2.826.0.1.3680043.8.498.55.3",
@@ -129,6 +130,8 @@ def _rtstruct_files() -> dict[str, bytes]:
         "two_point_contour.dcm": rtstruct_bytes([(1, "GTV", _gtv()[:4] + [_gtv()[4][:2]])]),
         "open_contour.dcm": rtstruct_bytes([(1, "GTV", _gtv(), "OPEN_PLANAR")]),
         "huge_coordinate.dcm": rtstruct_bytes([(1, "GTV", _gtv()[:4] + [_gtv()[4] * 1e30])]),
+        # cut where the ROIs begin: read as a structure set without structures
+        "truncated.dcm": whole[:whole.index(b"\x06\x30\x20\x00")],
     }
 
 

@@ -282,3 +282,12 @@ def test_a_latin1_patient_name_is_rewritten_as_utf8(tmp_path):
     write_rtstruct(tmp_path / "rs.dcm", read_ct_series(folder), [("GTV", v, f)])
     ds = pydicom.dcmread(tmp_path / "rs.dcm")
     assert ds.SpecificCharacterSet == "ISO_IR 192" and str(ds.PatientName) == "Müller^Jörg"
+
+
+def test_a_truncated_structure_set_says_so(tmp_path):
+    # cut where the ROIs begin, pydicom reads the rest without complaint: the error said "no
+    # structure 'GTV' (structures: none)", a wrong cause; it names the missing sequence now
+    whole = rtstruct_bytes([(1, "GTV", [circle(0.0), circle(2.0)])])
+    (tmp_path / "cut.dcm").write_bytes(whole[:whole.index(b"\x06\x30\x20\x00")])
+    with pytest.raises(ReadError, match=r"cut.dcm: no StructureSetROISequence: not a complete structure set"):
+        read_rois(tmp_path / "cut.dcm")

@@ -11,7 +11,13 @@ from lungdeform.breathing.presets import get_preset
 from lungdeform.errors import InputError
 from lungdeform.io.dicomseries import MAX_PHASES
 from lungdeform.io.modelfile import load_model
-from lungdeform.io.rtstruct import build_rtstruct, check_structure_on_ct, read_ct_series, save_rtstruct
+from lungdeform.io.rtstruct import (
+    build_rtstruct,
+    check_roi_name,
+    check_structure_on_ct,
+    read_ct_series,
+    save_rtstruct,
+)
 from lungdeform.playback import schedule as S
 from lungdeform.playback import structures as R
 from lungdeform.playback import trajectory as T
@@ -75,6 +81,8 @@ def register(apps) -> None:
             _check_rows(len(pts), (trace.t_s[-1] - trace.t_s[0]) * fps + 1, source)  # before the frames are made
             frames, tags = T.trace_frames(trace, fps), []
         _check_rows(len(pts), len(frames.delta_ml), source)
+        for tag in tags if out_rtstruct is not None else []:  # the ROI names, before the surfaces are moved
+            check_roi_name(f"{structure}@{tag}", str(rtstruct))
         note = T.extrapolation_note(m, frames.delta_ml)
         if note:
             typer.echo(f"note: {note}")
@@ -82,7 +90,7 @@ def register(apps) -> None:
         built = None
         if out_rtstruct is not None:  # made and checked (names, extent on the CT) before any output
             surfaces = R.moved_surfaces(m, tracked, frames.delta_ml, tags, lung, source=f"{rtstruct} {structure}")
-            built = build_rtstruct(ct, surfaces, label=f"{structure} moved")
+            built = build_rtstruct(ct, surfaces, label=f"{structure} moved", source=str(rtstruct))
         folder = output_dir(out)
         meta = {"model": str(model), "schedule": frames.source, "end_exhale_ml": T.end_exhale_ml(m), **T.interior_meta(m)}
         paths = T.write_trajectories(folder, pts, labels, placement, positions, frames.delta_ml, frames.t_s, meta=meta)

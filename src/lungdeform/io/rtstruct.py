@@ -115,6 +115,8 @@ def read_rois(path) -> list[Structure]:
             raise ReadError(f"{p}: not a DICOM file ({type(exc).__name__}: {_first_line(exc)})") from exc
         if sop_class != RTSTRUCT_SOP_CLASS and modality != "RTSTRUCT":
             raise ReadError(f"{p}: not an RTSTRUCT (Modality {modality or 'missing'}, SOP class {sop_class or 'missing'})")
+        if "StructureSetROISequence" not in ds:
+            raise ReadError(f"{p}: no StructureSetROISequence: not a complete structure set (truncated?)")
         try:
             return _structures(ds, p)
         except ReadError:
@@ -322,22 +324,24 @@ def check_within_slices(ct: CTSeries, name: str, points) -> None:
                          f"{step:.2f} mm apart): its contours there would be lost")
 
 
-def check_roi_name(name: str) -> None:
+def check_roi_name(name: str, source: str | None = None) -> None:
     """Refuse a ROI name DICOM cannot hold (a Long String): more than 64 characters, a backslash
-    or a control character."""
+    or a control character; the message names ``source`` (the structure's file) if given."""
+    pre = f"{source}: " if source else ""
     if len(name) > 64:
-        raise InputError(f"ROI name {name!r}: {len(name)} characters, longer than DICOM's 64 (a Long String)")
+        raise InputError(f"{pre}ROI name {name!r}: {len(name)} characters, longer than DICOM's 64 (a Long String)")
     if "\\" in name or any(ord(ch) < 32 or ord(ch) == 127 for ch in name):
-        raise InputError(f"ROI name {name!r}: a backslash or control character, which DICOM names cannot hold")
+        raise InputError(f"{pre}ROI name {name!r}: a backslash or control character, which DICOM names cannot hold")
 
 
-def build_rtstruct(ct: CTSeries, surfaces: list, *, label: str = "lungdeform") -> tuple[FileDataset, dict]:
+def build_rtstruct(ct: CTSeries, surfaces: list, *, label: str = "lungdeform",
+                   source: str | None = None) -> tuple[FileDataset, dict]:
     """The RTSTRUCT dataset of ``surfaces`` (see :func:`write_rtstruct`) and ``{name: number of
     contours}``, every name and extent checked (:func:`check_roi_name`,
-    :func:`check_within_slices`) before anything is written."""
+    :func:`check_within_slices`) before anything is written; errors name ``source`` if given."""
     for surf in surfaces:
-        check_roi_name(surf[0])
-        check_within_slices(ct, f"ROI {surf[0]!r}", surf[1])
+        check_roi_name(surf[0], source)
+        check_within_slices(ct, f"{source}: ROI {surf[0]!r}" if source else f"ROI {surf[0]!r}", surf[1])
     ds = _base_dataset(ct, label)
     counts = {}
     for number, surf in enumerate(surfaces, start=1):
