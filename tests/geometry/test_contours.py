@@ -66,3 +66,16 @@ def test_contour_checks_name_the_contour():
 def _sphere_mesh():
     s = trimesh.creation.icosphere(3, radius=8.0)
     return s.vertices, s.faces
+
+
+def test_a_repeated_contour_is_refused_and_a_tiny_one_kept():
+    # a contour listed twice (from another start, or backwards) cancels itself by parity: the slice
+    # would be empty and the surface cut in two, so it is refused; a contour smaller than a pixel
+    # (a 0.3 mm sliver) would do the same: it counts as one pixel, and the surface stays one body
+    ring = [c for z in (0.0, 2.0, 4.0) for c in section_mesh(*_sphere_mesh(), [0, 0, z], [0, 0, 1])]
+    again = np.roll(ring[1][::-1], 5, axis=0)
+    with pytest.raises(InputError, match=r"contour 4 of structure 'GTV' repeats contour 2 \(on one slice they cancel\)"):
+        contours_to_mesh(ring + [again], "structure 'GTV'")
+    tiny = np.array([[0.0, 0.1234, 2.0], [0.3, 0.1234, 2.0], [0.15, 0.1236, 2.0]])  # a 0.3 mm sliver
+    v, f = contours_to_mesh([ring[0], tiny, ring[2]], "structure 'GTV'")
+    assert len(trimesh.Trimesh(v, f).split(only_watertight=False)) == 1

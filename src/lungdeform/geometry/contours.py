@@ -104,7 +104,22 @@ def _heights(local: list[np.ndarray], name: str, pre: str) -> np.ndarray:
         area = 0.5 * abs(float(np.sum(xy[:, 0] * np.roll(xy[:, 1], -1) - np.roll(xy[:, 0], -1) * xy[:, 1])))
         if not area > 0:
             raise InputError(f"{pre}contour {k} of {name} is degenerate (no area)")
+    seen: dict[bytes, int] = {}
+    for k, c in enumerate(local, start=1):  # on one slice, a repeated contour would cancel it by parity
+        key = np.round(np.asarray(contours_key(c)), 3).tobytes()
+        if key in seen:
+            raise InputError(f"{pre}contour {k} of {name} repeats contour {seen[key]} (on one slice they cancel)")
+        seen[key] = k
     return heights
+
+
+def contours_key(c: np.ndarray) -> np.ndarray:
+    """A contour's points from its lowest (x, y, z) on, in the direction of its lesser neighbour:
+    the same for one polygon listed from another start or backwards."""
+    i = int(np.lexsort(c.T[::-1])[0])
+    c = np.roll(c, -i, axis=0)
+    back = np.roll(c[::-1], 1, axis=0)
+    return min(c, back, key=lambda a: tuple(a[1]))
 
 
 def _slice_levels(heights: np.ndarray, name: str, pre: str = "") -> tuple[np.ndarray, float]:
@@ -132,7 +147,9 @@ def _slice_levels(heights: np.ndarray, name: str, pre: str = "") -> tuple[np.nda
 def contours_to_mesh(contours, name: str = "structure", source: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     """A closed surface ``(vertices (n, 3) float mm, faces (m, 3) int)`` through parallel planar
     ``contours`` (each ``(k, 3) float`` mm, k >= 3, on evenly spaced slices). Polygons on one slice
-    are combined by parity (a hole drawn inside an outline is a hole). Every bound and check of
+    are combined by parity (a hole drawn inside an outline is a hole); contours on a slice that
+    enclose no pixel centre (smaller than a pixel) count as the pixel at each one's centre. Every
+    bound and check of
     :func:`check_contours`, :func:`_heights` and :func:`_slice_levels` is an :class:`InputError`
     naming ``source`` (the file, if given), ``name`` and the contour."""
     pre = f"{source}: " if source else ""
@@ -150,9 +167,13 @@ def contours_to_mesh(contours, name: str = "structure", source: str | None = Non
     sdf = np.full((len(levels) + 2,) + shape, 4 * px, dtype=np.float32)  # one empty slice beyond each end
     at = np.clip(np.searchsorted(levels, np.round(heights, 2)), 0, len(levels) - 1)  # each contour's slice
     for k in range(len(levels)):
-        inside = parity_mask(shape, [(local[j][:, :2] - lo) / px for j in np.flatnonzero(at == k)])
-        if inside.any():
-            sdf[k + 1] = px * (ndimage.distance_transform_edt(~inside) - ndimage.distance_transform_edt(inside))
+        on = np.flatnonzero(at == k)
+        inside = parity_mask(shape, [(local[j][:, :2] - lo) / px for j in on])
+        if not inside.any():  # contours smaller than a pixel: one pixel each, or the surface is cut in two
+            for j in on:
+                i = np.clip(np.rint((local[j][:, :2].mean(axis=0) - lo) / px).astype(int), 0, np.array(shape) - 1)
+                inside[i[0], i[1]] = True
+        sdf[k + 1] = px * (ndimage.distance_transform_edt(~inside) - ndimage.distance_transform_edt(inside))
     v, f, _n, _vals = measure.marching_cubes(sdf, 0.0, spacing=(step, px, px))
     v = v.astype(np.float64)
     uvw = np.column_stack([lo[0] + v[:, 1], lo[1] + v[:, 2], levels[0] - step + v[:, 0]])
