@@ -246,8 +246,11 @@ def _ct_slice(f) -> dict:
         h = pydicom.dcmread(f, stop_before_pixels=True)
     except Exception as exc:  # any parse failure becomes one clear line
         raise ReadError(f"{f}: not a readable DICOM slice ({type(exc).__name__}: {_first_line(exc)})") from exc
-    missing = [k for k in ("ImageOrientationPatient", "ImagePositionPatient", "SOPInstanceUID", "SOPClassUID",
-                           "FrameOfReferenceUID", "StudyInstanceUID", "SeriesInstanceUID") if not h.get(k)]
+    try:  # a value pydicom cannot convert raises on first access
+        missing = [k for k in ("ImageOrientationPatient", "ImagePositionPatient", "SOPInstanceUID", "SOPClassUID",
+                               "FrameOfReferenceUID", "StudyInstanceUID", "SeriesInstanceUID") if not h.get(k)]
+    except Exception as exc:  # any conversion failure becomes one clear line
+        raise ReadError(f"{f}: unreadable DICOM attribute ({type(exc).__name__}: {_first_line(exc)})") from exc
     if missing:
         raise ReadError(f"{f}: DICOM slice lacks {', '.join(missing)}, which an RTSTRUCT needs")
     iop = _numbers(h, "ImageOrientationPatient", 6, f).reshape(2, 3)
