@@ -127,8 +127,8 @@ TRACK_CT_SLICE = "slice003.dcm"
 
 
 def _track_fixture() -> dict:
-    """A one-lung model (:func:`_model_seed`'s lung), a 16-slice reference CT of 2 mm slices around
-    its centre (tests/io/dicom_support.py, fixed UIDs) and a GTV drawn on it (a 4 mm sphere): made
+    """A one-lung model (:func:`_model_seed`'s lung), a 10-slice reference CT of 2 mm slices around
+    its centre (tests/io/dicom_support.py, fixed UIDs) and a GTV drawn on it (a 2.5 mm sphere): made
     once, in a folder removed at exit."""
     if not _TRACK:
         import trimesh
@@ -140,8 +140,8 @@ def _track_fixture() -> dict:
 
         folder = Path(tempfile.mkdtemp(prefix="ldfuzz-track-"))
         atexit.register(shutil.rmtree, folder, True)
-        ct = write_ct_series(folder / "ct", shape=(16, 8, 8), origin=(83.0, 13.0, -165.0))
-        s = trimesh.creation.icosphere(2, radius=4.0)
+        ct = write_ct_series(folder / "ct", shape=(10, 8, 8), origin=(83.0, 13.0, -160.0))
+        s = trimesh.creation.icosphere(1, radius=2.5)
         write_rtstruct(folder / "gtv.dcm", read_ct_series(ct), [("GTV", s.vertices + [90.0, 20.0, -150.0], s.faces, "GTV")])
         model = _model_seed(folder)[0]
         _TRACK.update(ct=ct, gtv=folder / "gtv.dcm", model=load_model(model),
