@@ -10,6 +10,7 @@ from lungdeform.cli.main import main
 from lungdeform.geometry.mesh import Surface, icosphere
 from lungdeform.io.modelfile import save_model
 from lungdeform.model.lung import Model, build_lung
+from tests.io.dicom_support import write_ct_series
 
 CORPUS = Path(__file__).resolve().parents[1] / "corpus"
 FILES = sorted(p for p in CORPUS.glob("*/*") if p.is_file())
@@ -22,7 +23,14 @@ def model_file(tmp_path_factory):
     return save_model(tmp_path_factory.mktemp("model") / "m.npz", Model({"left": lung}))
 
 
-def _command(kind: str, bad: Path, out: Path, model: Path) -> list[str]:
+@pytest.fixture(scope="module")
+def reference_ct(tmp_path_factory):
+    """The CT the corpus RTSTRUCTs' GTV lies on (tests/corpus/make_corpus.py): 2 mm axial slices,
+    z = -169 … -131 mm, around the model's lung at (90, 20, -150), with the default UIDs."""
+    return write_ct_series(tmp_path_factory.mktemp("ct") / "ct", shape=(20, 16, 16), origin=(75.0, 5.0, -169.0))
+
+
+def _command(kind: str, bad: Path, out: Path, model: Path, ct: Path) -> list[str]:
     return {
         "mesh": ["build", str(bad), "--side", "left", "--out", str(out / "m.npz")],
         "image": ["build", str(bad), "--side", "left", "--out", str(out / "m.npz")],
@@ -31,21 +39,23 @@ def _command(kind: str, bad: Path, out: Path, model: Path) -> list[str]:
         "trace": ["breathe", "--fit", str(bad), "--out", str(out)],
         "points": ["track", str(model), "--points", str(bad), "--volume-ml", "100", "--out", str(out)],
         "manifest": ["cohort", str(bad), "--out", str(out)],
+        "rtstruct": ["track", str(model), "--rtstruct", str(bad), "--structure", "GTV", "--volume-ml", "100",
+                     "--out", str(out), "--out-rtstruct", str(out / "moved.dcm"), "--reference-ct", str(ct)],
     }[kind]
 
 
 def test_the_corpus_is_there():
     # why: a glob that finds nothing would pass the test below vacuously
     assert len(FILES) >= 30 and {p.parent.name for p in FILES} >= {"mesh", "image", "model", "curve", "trace",
-                                                                    "points", "manifest"}
+                                                                    "points", "manifest", "rtstruct"}
 
 
 @pytest.mark.parametrize("bad", FILES, ids=[f"{p.parent.name}/{p.name}" for p in FILES])
-def test_bad_file_exits_2_with_one_line(bad, tmp_path, model_file, capsys):
+def test_bad_file_exits_2_with_one_line(bad, tmp_path, model_file, reference_ct, capsys):
     # why: each file is broken on purpose (its name says how); the reader must refuse it with the
     # package's error, which the CLI prints as one line naming the file, before writing anything.
     out = tmp_path / "out"
-    code = main(_command(bad.parent.name, bad, out, model_file))
+    code = main(_command(bad.parent.name, bad, out, model_file, reference_ct))
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2, err
     assert len(err) == 1 and "Traceback" not in err[0], err

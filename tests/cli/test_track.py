@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -14,7 +15,7 @@ from lungdeform.io.modelfile import save_model
 from lungdeform.io.rtstruct import read_ct_series, read_rtstruct, write_rtstruct
 from lungdeform.playback.trajectory import lung_scales
 from tests.browser.support import two_lungs
-from tests.io.dicom_support import write_ct_series
+from tests.io.dicom_support import patch_element, write_ct_series
 
 
 @pytest.fixture(scope="module")
@@ -211,3 +212,96 @@ def test_track_not_an_rtstruct(model_file, gtv_files, tmp_path, capsys):
                  "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "slice000.dcm: not an RTSTRUCT" in err[0] and not out.exists()
+
+
+def _run_rtstruct(model_file, gtv, ct_dir, tmp_path, structure="GTV", *extra):
+    out, rs = tmp_path / "o", tmp_path / "moved.dcm"
+    code = main(["track", str(model_file), "--rtstruct", str(gtv), "--structure", structure, "--out", str(out),
+                 "--phases", "2", "--out-rtstruct", str(rs), "--reference-ct", str(ct_dir), *extra])
+    return code, out, rs
+
+
+@pytest.mark.parametrize("damage, message", [
+    # 3 of the GTV's 10 slices gone: written before with the contours of the others only
+    ("drop", "slice positions not evenly spaced: 8.000 mm between the slices"),
+    # an all-zero orientation gave no contours and exit 0; 5 values, or a position in words, a traceback
+    ((0x0020, 0x0037, b"0\\0\\0\\0\\0\\0"), "slice010.dcm: ImageOrientationPatient [0.0, 0.0, 0.0, 0.0, 0.0, 0.0] is not"),
+    ((0x0020, 0x0037, b"1\\0\\0\\0\\1"), "slice010.dcm: ImageOrientationPatient must be 6 finite numbers"),
+    ((0x0020, 0x0032, b"a\\b\\c"), "slice010.dcm: ImagePositionPatient is not numeric"),
+])
+def test_track_refuses_a_damaged_reference_ct(model_file, gtv_files, tmp_path, capsys, damage, message):
+    # exit 2, one line naming the file and the cause, and neither output written
+    ct_dir, gtv = gtv_files
+    if damage == "drop":
+        for k in (9, 10, 11):
+            (ct_dir / f"slice{k:03d}.dcm").unlink()
+    else:
+        patch_element(ct_dir / "slice010.dcm", *damage)
+    code, out, rs = _run_rtstruct(model_file, gtv, ct_dir, tmp_path)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and message in err[0], err
+    assert not out.exists() and not rs.exists()
+
+
+def test_track_rtstruct_of_another_frame_of_reference(model_file, gtv_files, tmp_path, capsys):
+    # the GTV drawn on another CT (another study and frame of reference) was written onto this one
+    ct_dir, _gtv = gtv_files
+    other = write_ct_series(tmp_path / "other", origin=tuple(GTV_CENTRE + [-31.0, -31.0, -19.0]), uid_root="1.2.3.99")
+    s = trimesh.creation.icosphere(3, radius=10.0)
+    write_rtstruct(tmp_path / "other.dcm", read_ct_series(other), [("GTV", s.vertices + GTV_CENTRE, s.faces, "GTV")])
+    code, out, rs = _run_rtstruct(model_file, tmp_path / "other.dcm", ct_dir, tmp_path)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1, err
+    assert "other.dcm: structure 'GTV' is in Frame of Reference 1.2.3.99.3, --reference-ct" in err[0]
+    assert "study 1.2.3.99.1 against 1.2.826.0.1.3680043.8.498.77.1: not the CT it was drawn on" in err[0]
+    assert not out.exists() and not rs.exists()
+
+
+def test_track_rtstruct_names(model_file, gtv_files, tmp_path, capsys):
+    # a non-ASCII structure name is written as UTF-8 (SpecificCharacterSet ISO_IR 192) and reads back
+    # the same; a name whose NAME@TAG exceeds DICOM's 64 characters is refused before any output
+    ct_dir, _gtv = gtv_files
+    s = trimesh.creation.icosphere(3, radius=10.0)
+    ct = read_ct_series(ct_dir)
+    long_name = "GTV_" + "x" * 56
+    write_rtstruct(tmp_path / "in.dcm", ct, [("Tumör", s.vertices + GTV_CENTRE, s.faces, "GTV"),
+                                             (long_name, s.vertices + GTV_CENTRE, s.faces, "GTV")])
+    code, out, rs = _run_rtstruct(model_file, tmp_path / "in.dcm", ct_dir, tmp_path, "Tumör")
+    assert code == 0, capsys.readouterr().err
+    assert list(read_rtstruct(rs)) == ["Tumör@phase00", "Tumör@phase01"]
+    rs.unlink()
+    shutil.rmtree(out)
+    code, out, rs = _run_rtstruct(model_file, tmp_path / "in.dcm", ct_dir, tmp_path, long_name)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and f"in.dcm: ROI name '{long_name}@phase00': 68 characters, longer than" in err[0]
+    assert not out.exists() and not rs.exists()
+
+
+def test_track_out_rtstruct_must_not_overwrite_an_input(model_file, gtv_files, tmp_path, capsys):
+    # --out-rtstruct naming the input RTSTRUCT would replace the structure set it reads
+    ct_dir, gtv = gtv_files
+    before = gtv.read_bytes()
+    assert main(["track", str(model_file), "--rtstruct", str(gtv), "--structure", "GTV", "--out", str(tmp_path / "o"),
+                 "--phases", "2", "--out-rtstruct", str(gtv), "--reference-ct", str(ct_dir)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "is the input" in err[0] and gtv.read_bytes() == before
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--phases", "1000000"], "--phases must be 1 to 100, got 1000000"),
+    (["--fps", "1e9"], "--fps must be > 0 and at most 1000"),
+    (["--preset", "normal", "--cycles", "1000000000"], "--cycles must be at most 100"),
+    (["--fps", "1000"], "2000 point(s) x 4001 frame(s), more than 5000000 rows of trajectories"),
+])
+def test_track_schedule_is_bounded(model_file, tmp_path, capsys, args, message):
+    # a million phases (a million ROIs), a billion frames per second or cycles (each simulated),
+    # millions of trajectory rows: refused at once, before any allocation, instead of a MemoryError
+    # traceback or a hang
+    pts = tmp_path / "many.csv"
+    pts.write_text("x_mm,y_mm,z_mm\n" + "90,0,-40\n" * 2000)
+    out = tmp_path / "x"
+    assert main(["track", str(model_file), "--points", str(pts), "--out", str(out), *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0], err
+    assert not out.exists()

@@ -10,6 +10,7 @@ import gzip
 import io
 import random
 import struct
+import sys
 import zipfile
 import zlib
 from pathlib import Path
@@ -17,6 +18,12 @@ from pathlib import Path
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parents[1]))  # run as a script: the repository root, for tests.io.dicom_support
+from tests.io.dicom_support import circle, rtstruct_bytes  # noqa: E402
+
+#: The GTV of the RTSTRUCT files: axial circles (mm) on the 2 mm slices of the reference CT that
+#: tests/cli/test_bad_input_corpus.py writes (z = -169 … -131), inside its model's lung
+GTV_CENTRE, GTV_Z = (90.0, 20.0), (-155.0, -153.0, -151.0, -149.0, -147.0)
 #: found by fuzz_image_nii (libFuzzer out-of-memory): a gzipped NIfTI header claiming 2566 x 1280 x 1024 voxels
 HUGE_NII = base64.b64decode("H4sIAAAAAAAAA4thZCACFDEwM7BxMbAysDAwQiEqYGLgANMN9mfP+IAxA4OCA6Y5G5xBaqAcXi6GAQaMKP4AueuEEwPDBycGBo/DZ8/47EfIgcQZGBBiIDAwvCwOAA==")
 GARBAGE = bytes(random.Random(7).randrange(256) for _ in range(300))  # seeded: the same bytes every time
@@ -142,6 +149,41 @@ def _mesh_files() -> dict[str, bytes]:
     }
 
 
+def _gtv(z=GTV_Z, radius: float = 8.0) -> list[np.ndarray]:
+    return [circle(level, radius, GTV_CENTRE) for level in z]
+
+
+def _rtstruct_files() -> dict[str, bytes]:
+    """RTSTRUCTs whose structure GTV cannot be tracked onto the reference CT: each named by its defect."""
+    nan = _gtv()
+    nan[2] = nan[2].astype(object)
+    nan[2][5, 0] = "nan"
+    tilted = _gtv()
+    tilted[1] = tilted[1] + np.column_stack([np.zeros((24, 2)), 0.5 * (tilted[1][:, 0] - GTV_CENTRE[0])])
+    line = np.column_stack([np.linspace(80.0, 100.0, 6), np.full(6, 20.0), np.full(6, -151.0)])
+    whole = rtstruct_bytes([(1, "GTV", _gtv())])
+    return {
+        # the structure set of another CT: another Frame of Reference and study than the reference CT's
+        "frame_mismatch.dcm": rtstruct_bytes([(1, "GTV", _gtv())], frame_uid="1.2.826.0.1.3680043.8.498.55.3",
+                                             study_uid="1.2.826.0.1.3680043.8.498.55.1"),
+        "no_frame.dcm": rtstruct_bytes([(1, "GTV", _gtv())], frame_uid=""),
+        # contours 6 mm then 18 mm apart: slices without a contour in the stack
+        "contour_gaps.dcm": rtstruct_bytes([(1, "GTV", _gtv((-165.0, -159.0, -141.0)))]),
+        "nan_contour.dcm": rtstruct_bytes([(1, "GTV", nan)]),
+        "duplicate_roi.dcm": rtstruct_bytes([(1, "GTV", _gtv()), (2, "GTV", _gtv(radius=6.0))]),
+        # 150 contours 0.01 mm apart (a damaged export: 4000 of them took minutes and gigabytes)
+        "dense_contours.dcm": rtstruct_bytes([(1, "GTV", [circle(-151.0 + 0.01 * k, 8.0, GTV_CENTRE, 3)
+                                                          for k in range(150)])]),
+        "degenerate_contour.dcm": rtstruct_bytes([(1, "GTV", _gtv()[:2] + [line] + _gtv()[3:])]),
+        "tilted_contour.dcm": rtstruct_bytes([(1, "GTV", tilted)]),
+        "two_point_contour.dcm": rtstruct_bytes([(1, "GTV", _gtv()[:4] + [_gtv()[4][:2]])]),
+        "open_contour.dcm": rtstruct_bytes([(1, "GTV", _gtv(), "OPEN_PLANAR")]),
+        "huge_coordinate.dcm": rtstruct_bytes([(1, "GTV", _gtv()[:4] + [_gtv()[4] * 1e30])]),
+        # cut where the ROIs begin: read as a structure set without structures
+        "truncated.dcm": whole[:whole.index(b"\x06\x30\x20\x00")],
+    }
+
+
 def _text_files() -> dict[str, dict[str, bytes]]:
     return {
         "image": {"garbage.nii.gz": GARBAGE, "huge_header.nii.gz": HUGE_NII,
@@ -178,7 +220,7 @@ def _text_files() -> dict[str, dict[str, bytes]]:
 
 
 def main() -> None:
-    kinds = {"model": _model_files(), "mesh": _mesh_files(), **_text_files()}
+    kinds = {"model": _model_files(), "mesh": _mesh_files(), "rtstruct": _rtstruct_files(), **_text_files()}
     kinds["image"].update(_geometry_images())
     for kind, files in kinds.items():
         (HERE / kind).mkdir(exist_ok=True)

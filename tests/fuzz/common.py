@@ -1,7 +1,8 @@
 """What every fuzz harness shares: the readers, the rule, the seeds, the crash record.
 
 The rule checked: the only exceptions a reader may raise are the package's own documented errors
-(:class:`lungdeform.errors.LungdeformError` and subclasses). Anything else escaping a reader
+(:class:`lungdeform.errors.LungdeformError` and subclasses); a workflow harness (``track_rtstruct``)
+also asserts what it writes is right (an AssertionError is a crash too). Anything else escaping a reader
 (ValueError, IndexError, struct.error, UnicodeDecodeError, OverflowError, MemoryError, ...) is a
 crash, recorded once per (exception type, innermost ``lungdeform`` frame) with the input that
 caused it as a reproducer file.
@@ -130,6 +131,80 @@ def _rtstruct(path):
     return read_rtstruct(path)
 
 
+#: The fixed parts of the track_rtstruct workflow (:func:`_track_fixture`), made once per process
+_TRACK: dict = {}
+#: The slice of the reference CT an input with an odd first byte replaces (see :func:`_track_rtstruct`)
+TRACK_CT_SLICE = "slice003.dcm"
+
+
+def _track_fixture() -> dict:
+    """A one-lung model (:func:`_model_seed`'s lung), a 10-slice reference CT of 2 mm slices around
+    its centre (tests/io/dicom_support.py, fixed UIDs) and a GTV drawn on it (a 2.5 mm sphere): made
+    once, in a folder removed at exit."""
+    if not _TRACK:
+        import trimesh
+
+        from lungdeform.io.modelfile import load_model
+        from lungdeform.io.rtstruct import read_ct_series, write_rtstruct
+        from lungdeform.playback.structures import read_structure
+        from tests.io.dicom_support import write_ct_series
+
+        folder = Path(tempfile.mkdtemp(prefix="ldfuzz-track-"))
+        atexit.register(shutil.rmtree, folder, True)
+        ct = write_ct_series(folder / "ct", shape=(10, 8, 8), origin=(83.0, 13.0, -160.0))
+        s = trimesh.creation.icosphere(1, radius=2.5)
+        write_rtstruct(folder / "gtv.dcm", read_ct_series(ct), [("GTV", s.vertices + [90.0, 20.0, -150.0], s.faces, "GTV")])
+        model = _model_seed(folder)[0]
+        _TRACK.update(ct=ct, gtv=folder / "gtv.dcm", model=load_model(model),
+                      slice=(ct / TRACK_CT_SLICE).read_bytes())
+        read_structure(_TRACK["gtv"], "GTV")  # warm: the first call imports what the workflow needs
+    return _TRACK
+
+
+def _track_rtstruct(path):
+    """The library path of ``track --rtstruct … --out-rtstruct … --reference-ct`` on the fixed
+    model and CT of :func:`_track_fixture`, the input chosen by its first byte (a preamble byte no
+    reader uses): even, the input is the RTSTRUCT (structure GTV); odd, it replaces one slice of the
+    reference CT, and the fixture's GTV is tracked. What it writes is checked: the structure's frame
+    of reference is the CT's, every ROI has contours, every contour lies on a slice of the CT."""
+    import io
+
+    from lungdeform.io.rtstruct import build_rtstruct, check_structure_on_ct, read_ct_series
+    from lungdeform.playback.structures import moved_surfaces, read_structure
+    from lungdeform.playback.trajectory import place_points
+
+    fx = _track_fixture()
+    with open(path, "rb") as fh:
+        first = fh.read(1)
+    as_ct = bool(first and first[0] & 1)
+    if as_ct:
+        shutil.copyfile(path, fx["ct"] / TRACK_CT_SLICE)
+    try:
+        rs = fx["gtv"] if as_ct else path
+        tracked = read_structure(rs, "GTV")
+        ct = read_ct_series(fx["ct"])
+        check_structure_on_ct(tracked.roi, ct, str(rs))
+        place_points(fx["model"], tracked.points, source=str(rs))
+        surfaces = moved_surfaces(fx["model"], tracked, np.array([0.0, 40.0]), ["a", "b"], source=str(rs))
+        ds, counts = build_rtstruct(ct, surfaces, label="GTV moved")
+        ds.save_as(io.BytesIO(), enforce_file_format=True)
+    finally:
+        if as_ct:
+            (fx["ct"] / TRACK_CT_SLICE).write_bytes(fx["slice"])
+    _check_written(ds, counts, ct, tracked)
+
+
+def _check_written(ds, counts: dict, ct, tracked) -> None:
+    """The invariants of a written structure set (an AssertionError is a crash: a wrong answer)."""
+    assert tracked.roi.frame_uid == str(ct.header.FrameOfReferenceUID), "structure written on another frame"
+    assert all(counts.values()), f"an ROI without contours: {counts}"
+    levels = ct.levels
+    for rc in ds.ROIContourSequence:
+        for c in rc.ContourSequence:
+            h = np.asarray(c.ContourData, float).reshape(-1, 3) @ ct.normal
+            assert np.abs(levels - h.mean()).min() < 0.01 and np.ptp(h) < 0.01, "a contour off the CT's slices"
+
+
 #: reader name -> (file suffix, function of the path)
 READERS: dict[str, tuple[str, Callable]] = {
     "mesh_stl": (".stl", _mesh), "mesh_obj": (".obj", _mesh), "mesh_ply": (".ply", _mesh),
@@ -143,7 +218,7 @@ READERS: dict[str, tuple[str, Callable]] = {
     "points_elastix": (".txt", _elastix), "points_track": (".csv", _track_points),
     "manifest": (".csv", _manifest),
     "dirlab_spacing": (".csv", _spacing), "dirlab_points": (".txt", _dirlab_points),
-    "rtstruct": (".dcm", _rtstruct),
+    "rtstruct": (".dcm", _rtstruct), "track_rtstruct": (".dcm", _track_rtstruct),
 }
 
 
@@ -151,7 +226,7 @@ READER_MODULES = ("lungdeform.io.meshfile", "lungdeform.io.vtk", "lungdeform.io.
                   "lungdeform.io.modelfile",
                   "lungdeform.playback.schedule", "lungdeform.breathing.trace", "lungdeform.io.landmarks",
                   "lungdeform.playback.trajectory", "lungdeform.cohort.manifest", "lungdeform.validate.dirlab_files",
-                  "lungdeform.io.rtstruct")
+                  "lungdeform.io.rtstruct", "lungdeform.geometry.contours", "lungdeform.playback.structures")
 
 
 # =========================================================================== seeds
@@ -288,6 +363,15 @@ def _rtstruct_seed(folder: Path) -> list[Path]:
     return [folder / "seed.dcm"]
 
 
+def _track_rtstruct_seed(folder: Path) -> list[Path]:
+    """The fixture's GTV RTSTRUCT (first byte even: tracked) and one of its CT slices with the first
+    byte odd (replacing that slice: see :func:`_track_rtstruct`)."""
+    fx = _track_fixture()
+    (folder / "gtv.dcm").write_bytes(fx["gtv"].read_bytes())
+    (folder / "odd_slice.dcm").write_bytes(b"\x01" + fx["slice"][1:])
+    return [folder / "gtv.dcm", folder / "odd_slice.dcm"]
+
+
 def make_seeds(name: str, folder: Path) -> list[Path]:
     """Small real files for ``name`` written by the package's own writers (plus shipped data)."""
     folder.mkdir(parents=True, exist_ok=True)
@@ -313,6 +397,8 @@ def make_seeds(name: str, folder: Path) -> list[Path]:
         return _model_seed(folder)
     if name == "rtstruct":
         return _rtstruct_seed(folder)
+    if name == "track_rtstruct":
+        return _track_rtstruct_seed(folder)
     path = folder / f"seed{suffix}"
     path.write_text(_text_seeds(name))
     return [path]

@@ -1,11 +1,18 @@
-"""A small synthetic CT series written as DICOM with SimpleITK, for the RTSTRUCT tests."""
+"""A small synthetic CT series written as DICOM with SimpleITK, and minimal RTSTRUCTs of given contours,
+for the RTSTRUCT tests and the bad-input corpus."""
 
 from __future__ import annotations
 
+import io
+import warnings
 from pathlib import Path
 
 import numpy as np
 import SimpleITK as sitk
+from pydicom import config
+from pydicom.dataset import Dataset, FileDataset, FileMetaDataset
+from pydicom.sequence import Sequence
+from pydicom.uid import ExplicitVRLittleEndian
 
 CT_SOP_CLASS = "1.2.840.10008.5.1.4.1.1.2"
 
@@ -34,3 +41,70 @@ def write_ct_series(folder: Path, shape=(20, 32, 32), spacing=(2.0, 2.0, 2.0), o
         writer.SetFileName(str(folder / f"slice{k:03d}.dcm"))
         writer.Execute(img)
     return folder
+
+
+#: The UIDs :func:`write_ct_series` gives by default (uid_root ``…77``): study, series, frame of reference
+STUDY_UID, SERIES_UID, FRAME_UID = (f"1.2.826.0.1.3680043.8.498.77.{k}" for k in (1, 2, 3))
+
+
+def rtstruct_bytes(rois, *, frame_uid: str = FRAME_UID, study_uid: str = STUDY_UID) -> bytes:
+    """A minimal RTSTRUCT, byte for byte the same on every call: ``rois`` a list of ``(number,
+    name, contours)`` or ``(number, name, contours, geometric type)``, each contour ``(k, 3)``
+    mm or a list of strings (written as they stand, e.g. ``"nan"``). Values DICOM would refuse
+    (NaN, a 65-character name) are written too: the files are bad inputs on purpose."""
+    sop = "1.2.826.0.1.3680043.8.498.77.9.1"
+    meta = FileMetaDataset()
+    meta.MediaStorageSOPClassUID, meta.MediaStorageSOPInstanceUID = "1.2.840.10008.5.1.4.1.1.481.3", sop
+    meta.TransferSyntaxUID, meta.ImplementationClassUID = ExplicitVRLittleEndian, "1.2.826.0.1.3680043.8.498.1"
+    ds = FileDataset("", Dataset(), file_meta=meta, preamble=b"\0" * 128)
+    ds.SOPClassUID, ds.SOPInstanceUID, ds.Modality = meta.MediaStorageSOPClassUID, sop, "RTSTRUCT"
+    ds.StudyInstanceUID, ds.SeriesInstanceUID = study_uid, "1.2.826.0.1.3680043.8.498.77.9.2"
+    frame = Dataset()
+    frame.FrameOfReferenceUID = frame_uid
+    ds.ReferencedFrameOfReferenceSequence = Sequence([frame])
+    ds.StructureSetROISequence, ds.ROIContourSequence = Sequence(), Sequence()
+    mode = config.settings.writing_validation_mode
+    config.settings.writing_validation_mode = config.IGNORE
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # pydicom's on a NaN DS: written on purpose
+            for roi_spec in rois:
+                _add_contours(ds, frame_uid, *roi_spec)
+            buf = io.BytesIO()
+            ds.save_as(buf, enforce_file_format=True)
+    finally:
+        config.settings.writing_validation_mode = mode
+    return buf.getvalue()
+
+
+def _add_contours(ds: Dataset, frame_uid: str, number: int, name: str, contours, kind: str = "CLOSED_PLANAR") -> None:
+    roi = Dataset()
+    roi.ROINumber, roi.ROIName, roi.ReferencedFrameOfReferenceUID = number, name, frame_uid
+    ds.StructureSetROISequence.append(roi)
+    rc = Dataset()
+    rc.ReferencedROINumber, rc.ContourSequence = number, Sequence()
+    for c in contours:
+        item = Dataset()
+        item.ContourGeometricType = kind
+        item.ContourData = [v if isinstance(v, str) else f"{v:.3f}" for v in np.ravel(np.asarray(c, object))]
+        item.NumberOfContourPoints = len(item.ContourData) // 3
+        rc.ContourSequence.append(item)
+    ds.ROIContourSequence.append(rc)
+
+
+def circle(z: float, radius: float = 8.0, centre=(0.0, 0.0), n: int = 24) -> np.ndarray:
+    """A closed polygon ``(n, 3)`` mm: a circle on the axial plane at ``z``."""
+    t = 2 * np.pi * np.arange(n) / n
+    return np.column_stack([centre[0] + radius * np.cos(t), centre[1] + radius * np.sin(t), np.full(n, float(z))])
+
+
+def patch_element(path: Path, group: int, element: int, value: bytes) -> None:
+    """Replace the value of element (group, element) in the implicit-VR file ``path`` (as
+    :func:`write_ct_series` writes) by ``value`` as it stands (padded to an even length): a value
+    pydicom would refuse to write, such as a non-numeric ImagePositionPatient."""
+    data = path.read_bytes()
+    tag = group.to_bytes(2, "little") + element.to_bytes(2, "little")
+    at = data.index(tag, 132)
+    length = int.from_bytes(data[at + 4:at + 8], "little")
+    value = value + b" " * (len(value) % 2)
+    path.write_bytes(data[:at + 4] + len(value).to_bytes(4, "little") + value + data[at + 8 + length:])

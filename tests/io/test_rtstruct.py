@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import tarfile
+import time
 
 import numpy as np
 import pydicom
@@ -10,16 +11,20 @@ import pytest
 import trimesh
 
 from lungdeform.errors import InputError, ReadError
+from lungdeform.geometry.contours import MAX_CONTOURS, MAX_SLICES
 from lungdeform.io.rtstruct import (
     RTSTRUCT_SOP_CLASS,
+    Structure,
+    check_structure_on_ct,
     pick_structure,
     read_ct_series,
+    read_rois,
     read_rtstruct,
     structure_mesh,
     structure_points,
     write_rtstruct,
 )
-from tests.io.dicom_support import write_ct_series
+from tests.io.dicom_support import circle, patch_element, rtstruct_bytes, write_ct_series
 
 CENTRE = np.array([1.0, 0.5, 0.3])
 RADIUS = 12.0
@@ -125,3 +130,164 @@ def test_popi_gtv_rtstruct(data_dir, tmp_path):
     assert ds.FrameOfReferenceUID == ct.header.FrameOfReferenceUID
     pts = structure_points(read_rtstruct(tmp_path / "gtv.dcm")["GTV"])
     assert np.abs(np.linalg.norm(pts - [-90.0, 80.0, -50.0], axis=1) - 12.0).max() < 0.5
+
+
+# --- bad structures, bad reference CTs, names (issue: no silent wrong answers) --------------------
+
+def _rs(tmp_path, rois, **kw):
+    path = tmp_path / "rs.dcm"
+    path.write_bytes(rtstruct_bytes(rois, **kw))
+    return path
+
+
+def _mesh_of(path, name="GTV"):
+    return structure_mesh(pick_structure(read_rois(path), name, str(path)), str(path))
+
+
+def test_a_nan_contour_is_named_not_dropped(tmp_path):
+    # a NaN in contour 3 used to be dropped without a word (and the stack then called "not evenly
+    # spaced"): it is refused, naming the file, the contour and the structure
+    contours = [circle(z) for z in (-4.0, -2.0, 0.0, 2.0, 4.0)]
+    contours[2] = contours[2].astype(object)
+    contours[2][0, 1] = "nan"
+    path = _rs(tmp_path, [(1, "GTV", contours)])
+    assert len(read_rois(path)[0].contours) == 5
+    with pytest.raises(InputError, match=r"rs.dcm: contour 3 of structure 'GTV' has non-finite coordinates$"):
+        _mesh_of(path)
+
+
+@pytest.mark.parametrize("z, message", [
+    ((-12.0, -6.0, 12.0), r"not evenly spaced: gaps 6.00 to 18.00 mm"),  # passed the old median-based check
+    ((-4.0, -2.0, 0.0, 4.0, 6.0), r"not evenly spaced: gaps 2.00 to 4.00 mm \(4.00 mm between the slices at 0.00"),
+])
+def test_a_stack_with_gaps_is_refused(tmp_path, z, message):
+    # contours missing on a slice inside the structure: the surface would bridge the gap; refused,
+    # naming the structure and where the gap is
+    path = _rs(tmp_path, [(1, "GTV", [circle(level) for level in z])])
+    with pytest.raises(InputError, match=r"rs.dcm: structure 'GTV': contour slices " + message):
+        _mesh_of(path)
+
+
+def test_a_degenerate_contour_names_file_and_structure(tmp_path):
+    # "contour: degenerate polygon" named neither the file nor the structure
+    line = np.column_stack([np.linspace(-5, 5, 24), np.zeros(24), np.zeros(24)])
+    path = _rs(tmp_path, [(1, "GTV", [line, line + [0, 0, 2.0]])])
+    with pytest.raises(InputError, match=r"rs.dcm: contour 1 of structure 'GTV': degenerate polygon"):
+        _mesh_of(path)
+    path = _rs(tmp_path, [(1, "GTV", [circle(0.0), line + [0, 0, 2.0]])])
+    with pytest.raises(InputError, match=r"rs.dcm: contour 2 of structure 'GTV' is degenerate \(no area\)"):
+        _mesh_of(path)
+
+
+def test_duplicate_roi_names_are_ambiguous(tmp_path):
+    # two ROIs named GTV: the dict reader silently took the second; picking the name now fails,
+    # naming both ROI numbers; the other names stay usable
+    path = _rs(tmp_path, [(3, "GTV", [circle(0.0), circle(2.0)]), (7, "GTV", [circle(0.0, 4.0), circle(2.0, 4.0)]),
+                          (9, "ITV", [circle(0.0), circle(2.0)])])
+    with pytest.raises(InputError, match=r"rs.dcm: 2 ROIs are named 'GTV' \(ROI numbers 3 and 7\)"):
+        pick_structure(read_rois(path), "GTV", str(path))
+    assert pick_structure(read_rois(path), "ITV", str(path)).number == 9
+
+
+def test_contour_density_is_bounded(tmp_path):
+    # 4000 contours 0.01 mm apart took more than 120 s and 3.2 GB; such stacks (and stacks over the
+    # count bounds) are refused before any grid is allocated, in well under a few seconds each
+    tri = [circle(0.01 * k, 8.0, n=3) for k in range(4000)]
+    many = [circle(0.5 * k, 8.0, n=3) for k in range(MAX_CONTOURS + 1)]
+    tall = [circle(0.5 * k, 8.0, n=3) for k in range(MAX_SLICES + 1)]
+    for contours, message in ((tri, f"contours on 4000 slices, more than {MAX_SLICES}"),
+                              (tri[:1000], "contours 0.01 mm apart"), (many, f"more than {MAX_CONTOURS}"),
+                              (tall, f"more than {MAX_SLICES}")):
+        start = time.monotonic()
+        with pytest.raises(InputError, match=message):
+            structure_mesh(Structure("GTV", 1, contours), "rs.dcm")
+        assert time.monotonic() - start < 5.0
+
+
+def _ct_with(tmp_path, drop=(), patch=None, shape=(10, 8, 8)):
+    """The synthetic series of 2 mm slices, z = -19 … -1, without the slices ``drop``, slice 4 patched."""
+    folder = write_ct_series(tmp_path / "ct", shape=shape)
+    for k in drop:
+        (folder / f"slice{k:03d}.dcm").unlink()
+    if patch is not None:
+        patch_element(folder / "slice004.dcm", *patch)
+    return folder
+
+
+@pytest.mark.parametrize("drop, patch, message", [
+    ((4, 5, 6), None, r"ct: slice positions not evenly spaced: 8.000 mm between the slices at -13.000 and -5.000 mm, "
+                      r"2.000 mm elsewhere \(3 slice\(s\) missing there\?\)"),
+    ((), (0x0020, 0x0037, b"0\\0\\0\\0\\0\\0"), r"slice004.dcm: ImageOrientationPatient \[0.0, 0.0, 0.0, 0.0, 0.0, 0.0\] "
+                                              "is not two orthogonal unit vectors"),
+    ((), (0x0020, 0x0037, b"1\\0\\0\\0\\1"), r"slice004.dcm: ImageOrientationPatient must be 6 finite numbers"),
+    ((), (0x0020, 0x0032, b"left\\up\\-11"), r"slice004.dcm: ImagePositionPatient is not numeric"),
+    ((), (0x0020, 0x0032, b"-31\\nan\\-11"), r"slice004.dcm: ImagePositionPatient must be 3 finite numbers"),
+    ((), (0x0020, 0x0032, b"-31\\-31\\-13"), r"ct: two slices at the same position \(-13.000 mm"),
+    ((), (0x0020, 0x0037, b"0\\1\\0\\1\\0\\0"), r"slice004.dcm: ImageOrientationPatient differs from"),
+])
+def test_bad_reference_ct_geometry_is_refused(tmp_path, drop, patch, message):
+    # a CT missing slices got a structure written with contours lost; an all-zero orientation gave
+    # no contours and no error; a 5-value orientation or a non-numeric position raised a traceback
+    with pytest.raises(ReadError, match=message):
+        read_ct_series(_ct_with(tmp_path, drop, patch))
+
+
+def test_structure_against_the_reference_ct(tmp_path):
+    # the same series but for 3 slices the GTV is drawn on (the end of the series: still evenly
+    # spaced), or a structure of another frame of reference, or reaching beyond the slices: refused
+    ct = read_ct_series(write_ct_series(tmp_path / "ct", shape=(10, 8, 8)))
+    v, f = _sphere(np.array([0.0, 0.0, -6.0]), 4.0)  # z = -10 … -2: slices 5 … 8
+    write_rtstruct(tmp_path / "rs.dcm", ct, [("GTV", v, f)])
+    gtv = read_rois(tmp_path / "rs.dcm")[0]
+    check_structure_on_ct(gtv, ct, "rs.dcm")
+    for k in (7, 8, 9):
+        (tmp_path / "ct" / f"slice{k:03d}.dcm").unlink()
+    short = read_ct_series(tmp_path / "ct")
+    with pytest.raises(InputError, match=r"rs.dcm: structure 'GTV' is drawn on 2 slice\(s\) that --reference-ct .* lacks"):
+        check_structure_on_ct(gtv, short, "rs.dcm")
+    other = Structure("GTV", 1, gtv.contours, frame_uid="1.2.3.4", study_uid="1.2.3")
+    with pytest.raises(InputError, match=r"rs.dcm: structure 'GTV' is in Frame of Reference 1.2.3.4, --reference-ct .* "
+                                         r"in 1.2.826.0.1.3680043.8.498.77.3; study 1.2.3 against"):
+        check_structure_on_ct(other, ct, "rs.dcm")
+    with pytest.raises(InputError, match=r"ROI 'GTV' reaches .* beyond the slices of --reference-ct"):
+        write_rtstruct(tmp_path / "far.dcm", ct, [("GTV", v + [0, 0, 12.0], f)])
+    assert not (tmp_path / "far.dcm").exists()
+
+
+def test_names_round_trip_or_are_refused(ct, tmp_path):
+    # a non-ASCII ROI name was written without SpecificCharacterSet and read back mangled; it is
+    # written as UTF-8 (ISO_IR 192) now, and an ASCII file stays without the attribute; a name over
+    # DICOM's 64 characters, or with a backslash, is refused before anything is written
+    v, f = _sphere()
+    write_rtstruct(tmp_path / "a.dcm", ct, [("Tumör é 肺", v, f)])
+    assert pydicom.dcmread(tmp_path / "a.dcm").SpecificCharacterSet == "ISO_IR 192"
+    assert list(read_rtstruct(tmp_path / "a.dcm")) == ["Tumör é 肺"]
+    write_rtstruct(tmp_path / "b.dcm", ct, [("GTV", v, f)])
+    assert "SpecificCharacterSet" not in pydicom.dcmread(tmp_path / "b.dcm")
+    for name, message in (("G" * 65, "65 characters, longer than DICOM's 64"), ("GTV\\2", "a backslash")):
+        with pytest.raises(InputError, match=message):
+            write_rtstruct(tmp_path / "c.dcm", ct, [(name, v, f)])
+    assert not (tmp_path / "c.dcm").exists()
+
+
+def test_a_latin1_patient_name_is_rewritten_as_utf8(tmp_path):
+    # the patient's name is copied from the CT: a Latin-1 (ISO_IR 100) name must not be written as
+    # bytes of no declared character set; the structure set declares UTF-8 and the name reads back
+    folder = write_ct_series(tmp_path / "ct", shape=(10, 8, 8))
+    for f in folder.iterdir():
+        ds = pydicom.dcmread(f)
+        ds.SpecificCharacterSet, ds.PatientName = "ISO_IR 100", "Müller^Jörg"
+        ds.save_as(f)
+    v, f = _sphere(np.array([0.0, 0.0, -10.0]), 4.0)
+    write_rtstruct(tmp_path / "rs.dcm", read_ct_series(folder), [("GTV", v, f)])
+    ds = pydicom.dcmread(tmp_path / "rs.dcm")
+    assert ds.SpecificCharacterSet == "ISO_IR 192" and str(ds.PatientName) == "Müller^Jörg"
+
+
+def test_a_truncated_structure_set_says_so(tmp_path):
+    # cut where the ROIs begin, pydicom reads the rest without complaint: the error said "no
+    # structure 'GTV' (structures: none)", a wrong cause; it names the missing sequence now
+    whole = rtstruct_bytes([(1, "GTV", [circle(0.0), circle(2.0)])])
+    (tmp_path / "cut.dcm").write_bytes(whole[:whole.index(b"\x06\x30\x20\x00")])
+    with pytest.raises(ReadError, match=r"cut.dcm: no StructureSetROISequence: not a complete structure set"):
+        read_rois(tmp_path / "cut.dcm")

@@ -9,13 +9,26 @@ import typer
 
 from lungdeform.breathing.presets import get_preset
 from lungdeform.errors import InputError
+from lungdeform.io.dicomseries import MAX_PHASES
 from lungdeform.io.modelfile import load_model
-from lungdeform.io.rtstruct import read_ct_series, write_rtstruct
+from lungdeform.io.rtstruct import (
+    build_rtstruct,
+    check_roi_name,
+    check_structure_on_ct,
+    read_ct_series,
+    save_rtstruct,
+)
 from lungdeform.playback import schedule as S
 from lungdeform.playback import structures as R
 from lungdeform.playback import trajectory as T
 
 from .common import check_cycles, check_tidal_ml, output_dir, read_curve
+
+
+#: Bounds on the schedule: frames per second, preset cycles, and points × frames (rows of trajectories.csv)
+MAX_FPS = 1000.0
+MAX_CYCLES = 100
+MAX_POINT_FRAMES = 5_000_000
 
 
 def register(apps) -> None:
@@ -45,9 +58,13 @@ def register(apps) -> None:
 
         _check_schedule(volume_ml, curve, preset, cycles, tidal_ml, fps)
         _check_structure_options(points, rtstruct, structure, out_rtstruct, reference_ct, phases, volume_ml)
+        _check_out_rtstruct(out_rtstruct, model, points, rtstruct, curve)
         m = load_model(model)
         tracked = R.read_structure(rtstruct, structure) if rtstruct is not None else None
-        ct = read_ct_series(reference_ct) if out_rtstruct is not None else None  # before anything is written
+        ct = None
+        if out_rtstruct is not None:  # before anything is written: the CT, and the structure on it
+            ct = read_ct_series(reference_ct)
+            check_structure_on_ct(tracked.roi, ct, str(rtstruct))
         if tracked is not None:
             pts, labels, source = tracked.points, tracked.labels, str(rtstruct)
         else:
@@ -60,24 +77,51 @@ def register(apps) -> None:
         elif phases is not None:
             frames, tags = R.phase_frames(_trace(m, curve, preset, cycles, tidal_ml), phases)
         else:
-            frames, tags = T.trace_frames(_trace(m, curve, preset, cycles, tidal_ml), fps), []
+            trace = _trace(m, curve, preset, cycles, tidal_ml)
+            _check_rows(len(pts), (trace.t_s[-1] - trace.t_s[0]) * fps + 1, source)  # before the frames are made
+            frames, tags = T.trace_frames(trace, fps), []
+        _check_rows(len(pts), len(frames.delta_ml), source)
+        for tag in tags if out_rtstruct is not None else []:  # the ROI names, before the surfaces are moved
+            check_roi_name(f"{structure}@{tag}", str(rtstruct))
         note = T.extrapolation_note(m, frames.delta_ml)
         if note:
             typer.echo(f"note: {note}")
         positions = T.point_trajectories(m, pts, placement, frames.delta_ml)
-        folder = output_dir(out)
-        if out_rtstruct is not None:
+        built = None
+        if out_rtstruct is not None:  # made and checked (names, extent on the CT) before any output
             surfaces = R.moved_surfaces(m, tracked, frames.delta_ml, tags, lung, source=f"{rtstruct} {structure}")
-            counts = write_rtstruct(out_rtstruct, ct, surfaces, label=f"{structure} moved")
-            typer.echo(f"wrote {out_rtstruct}: " + ", ".join(f"{k} ({n} contours)" for k, n in counts.items()))
+            built = build_rtstruct(ct, surfaces, label=f"{structure} moved", source=str(rtstruct))
+        folder = output_dir(out)
         meta = {"model": str(model), "schedule": frames.source, "end_exhale_ml": T.end_exhale_ml(m), **T.interior_meta(m)}
         paths = T.write_trajectories(folder, pts, labels, placement, positions, frames.delta_ml, frames.t_s, meta=meta)
+        if built is not None:
+            save_rtstruct(out_rtstruct, built[0])
+            typer.echo(f"wrote {out_rtstruct}: " + ", ".join(f"{k} ({n} contours)" for k, n in built[1].items()))
         typer.echo(f"{len(pts)} point(s), {len(frames.delta_ml)} frame(s): {frames.source}")
         if tracked is None:
             _print_points(labels, placement, T.motion_summary(positions, pts), paths)
         else:
             _print_structure(structure, placement, T.motion_summary(positions, pts))
         typer.echo(f"wrote {paths['csv']}, {paths['json']}, {paths['png']}")
+
+
+def _check_rows(points: int, frames: float, source: str) -> None:
+    """Refuse more than :data:`MAX_POINT_FRAMES` points × frames (rows of trajectories.csv)."""
+    if not points * frames <= MAX_POINT_FRAMES:
+        raise InputError(f"{source}: {points} point(s) x {frames:.0f} frame(s), more than {MAX_POINT_FRAMES} rows of "
+                         "trajectories; lower --fps, or give --phases or --volume-ml")
+
+
+def _check_out_rtstruct(out_rtstruct: Path | None, *inputs: Path | None) -> None:
+    """--out-rtstruct must name a file that is none of the inputs (it would be overwritten) and
+    not an existing folder."""
+    if out_rtstruct is None:
+        return
+    if out_rtstruct.is_dir():
+        raise InputError(f"--out-rtstruct {out_rtstruct}: is a folder; give a file name (e.g. moved_rs.dcm)")
+    for given in inputs:
+        if given is not None and given.exists() and out_rtstruct.exists() and out_rtstruct.samefile(given):
+            raise InputError(f"--out-rtstruct {out_rtstruct}: is the input {given}, which it would overwrite")
 
 
 def _check_schedule(volume_ml, curve, preset, cycles, tidal_ml, fps) -> None:
@@ -89,8 +133,10 @@ def _check_schedule(volume_ml, curve, preset, cycles, tidal_ml, fps) -> None:
     check_tidal_ml(tidal_ml)
     if tidal_ml is not None and (volume_ml or curve is not None):
         raise InputError("--tidal-ml applies to --preset or the plain cycle")
-    if not (np.isfinite(fps) and fps > 0):
-        raise InputError(f"--fps must be > 0, got {fps}")
+    if not (np.isfinite(fps) and 0 < fps <= MAX_FPS):
+        raise InputError(f"--fps must be > 0 and at most {MAX_FPS}, got {fps}")
+    if cycles is not None and cycles > MAX_CYCLES:
+        raise InputError(f"--cycles must be at most {MAX_CYCLES}, got {cycles}")
 
 
 def _check_structure_options(points, rtstruct, structure, out_rtstruct, reference_ct, phases, volume_ml) -> None:
@@ -108,6 +154,8 @@ def _check_structure_options(points, rtstruct, structure, out_rtstruct, referenc
         raise InputError("--out-rtstruct needs --volume-ml or --phases (one ROI per state)")
     if phases is not None and volume_ml:
         raise InputError("--phases applies to --curve, --preset or the plain cycle, not --volume-ml")
+    if phases is not None and not 1 <= phases <= MAX_PHASES:
+        raise InputError(f"--phases must be 1 to {MAX_PHASES}, got {phases}")
 
 
 def _read_points(points: Path, skip_invalid: bool):

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import pydicom
 from pydicom.dataset import Dataset, FileDataset, FileMetaDataset
-from pydicom.errors import InvalidDicomError
+from pydicom.multival import MultiValue
 from pydicom.sequence import Sequence
 from pydicom.uid import PYDICOM_IMPLEMENTATION_UID, ExplicitVRLittleEndian, generate_uid
 
@@ -42,6 +42,8 @@ STUDY_SOP_CLASS = "1.2.840.10008.3.1.2.3.1"
 #: ROI colours (RGB) given in turn
 COLOURS = ((255, 0, 0), (0, 160, 255), (0, 200, 0), (255, 160, 0), (200, 0, 255), (255, 255, 0),
            (0, 255, 200), (255, 80, 160), (120, 120, 255), (160, 255, 80))
+#: Text value representations (checked for non-ASCII characters before writing)
+_TEXT_VRS = ("SH", "LO", "ST", "LT", "UT", "UC", "PN")
 #: Study and patient attributes copied from the CT into the structure set
 _COPIED = ("PatientName", "PatientID", "PatientBirthDate", "PatientSex", "StudyInstanceUID", "StudyDate",
            "StudyTime", "StudyID", "AccessionNumber", "ReferringPhysicianName", "StudyDescription")
@@ -49,13 +51,21 @@ _COPIED = ("PatientName", "PatientID", "PatientBirthDate", "PatientSex", "StudyI
 
 @dataclass(frozen=True, eq=False)
 class Structure:
-    """One ROI of a structure set: ``contours`` a list of ``(k, 3) float`` mm LPS polygons."""
+    """One ROI of a structure set: ``contours`` a list of ``(k, 3) float`` mm LPS polygons, every
+    contour of the ROI's ContourSequence in file order (none dropped: :func:`structure_mesh` checks
+    them); ``frame_uid`` the Frame of Reference UID it is drawn in, ``study_uid`` the structure
+    set's study, ``image_uids`` the SOP Instance UIDs of the slices its contours reference,
+    ``types`` each contour's ContourGeometricType ('' when absent)."""
 
     name: str
     number: int
     contours: list = field(default_factory=list, repr=False)
     colour: tuple = (255, 0, 0)
     kind: str = ""
+    frame_uid: str = ""
+    study_uid: str = ""
+    image_uids: frozenset = frozenset()
+    types: tuple = ()
 
 
 @dataclass(frozen=True, eq=False)
@@ -71,10 +81,25 @@ class CTSeries:
     normal: np.ndarray
     source: str
 
+    @property
+    def levels(self) -> np.ndarray:
+        """``(s,) float`` mm: each slice's position along ``normal``, increasing."""
+        return self.origins @ self.normal
+
 
 def read_rtstruct(path) -> dict[str, Structure]:
-    """Structures of the RTSTRUCT file ``path`` by ROI name, in file order. Raises
-    :class:`ReadError` naming the file when it is missing, not DICOM or not a structure set."""
+    """Structures of the RTSTRUCT file ``path`` by ROI name, in file order (a name given to two
+    ROIs: the first; :func:`read_rois` keeps both). Raises :class:`ReadError` naming the file when
+    it is missing, not DICOM or not a structure set."""
+    out: dict[str, Structure] = {}
+    for s in read_rois(path):
+        out.setdefault(s.name, s)
+    return out
+
+
+def read_rois(path) -> list[Structure]:
+    """Every ROI of the RTSTRUCT file ``path`` in file order, duplicate names included (see
+    :func:`read_rtstruct`)."""
     p = Path(path)
     if not p.is_file():
         raise ReadError(f"{p}: no such file")
@@ -90,8 +115,12 @@ def read_rtstruct(path) -> dict[str, Structure]:
             raise ReadError(f"{p}: not a DICOM file ({type(exc).__name__}: {_first_line(exc)})") from exc
         if sop_class != RTSTRUCT_SOP_CLASS and modality != "RTSTRUCT":
             raise ReadError(f"{p}: not an RTSTRUCT (Modality {modality or 'missing'}, SOP class {sop_class or 'missing'})")
+        if "StructureSetROISequence" not in ds:
+            raise ReadError(f"{p}: no StructureSetROISequence: not a complete structure set (truncated?)")
         try:
-            return _structures(ds)
+            return _structures(ds, p)
+        except ReadError:
+            raise
         except Exception as exc:  # a damaged sequence or value, found while reading it
             raise ReadError(f"{p}: malformed structure set ({type(exc).__name__}: {_first_line(exc)})") from exc
 
@@ -101,35 +130,60 @@ def _first_line(exc: BaseException) -> str:
     return text.splitlines()[0][:200] if text else "no detail"
 
 
-def _structures(ds: Dataset) -> dict[str, Structure]:
-    """ROIs of a structure set dataset: names from StructureSetROISequence, contours from
-    ROIContourSequence, the interpreted type from RTROIObservationsSequence."""
-    names = {int(r.ROINumber): str(r.ROIName) for r in ds.get("StructureSetROISequence", [])}
+def _rois(ds: Dataset, p: Path) -> dict[int, tuple[str, str]]:
+    """``{ROI number: (name, frame of reference UID)}`` of StructureSetROISequence; a number given
+    to two ROIs is refused (which one the contours belong to cannot be told)."""
+    frames = [str(f.get("FrameOfReferenceUID", "")) for f in ds.get("ReferencedFrameOfReferenceSequence", [])]
+    default = frames[0] if len(set(frames)) == 1 else str(ds.get("FrameOfReferenceUID", ""))
+    rois: dict[int, tuple[str, str]] = {}
+    for r in ds.get("StructureSetROISequence", []):
+        number, name = int(r.ROINumber), str(r.ROIName)
+        if number in rois:
+            raise ReadError(f"{p}: ROI number {number} is given to two ROIs ({rois[number][0]!r} and {name!r})")
+        rois[number] = (name, str(r.get("ReferencedFrameOfReferenceUID", "") or default))
+    return rois
+
+
+def _structures(ds: Dataset, p: Path) -> list[Structure]:
+    """ROIs of a structure set dataset: names and frames from StructureSetROISequence, contours
+    from ROIContourSequence, the interpreted type from RTROIObservationsSequence."""
+    rois = _rois(ds, p)
     kinds = {int(o.ReferencedROINumber): str(o.get("RTROIInterpretedType", ""))
              for o in ds.get("RTROIObservationsSequence", [])}
-    contours: dict[int, list] = {n: [] for n in names}
+    contours: dict[int, list] = {n: [] for n in rois}
+    types: dict[int, list] = {n: [] for n in rois}
+    images: dict[int, set] = {n: set() for n in rois}
     colours: dict[int, tuple] = {}
     for roi in ds.get("ROIContourSequence", []):
         number = int(roi.ReferencedROINumber)
-        if number not in names:
+        if number not in rois:
             continue
         if roi.get("ROIDisplayColor"):
             colours[number] = tuple(int(c) for c in roi.ROIDisplayColor)
         for c in roi.get("ContourSequence", []):
-            pts = np.asarray(c.get("ContourData", []), dtype=np.float64).reshape(-1, 3)
-            if len(pts) and np.all(np.isfinite(pts)):
-                contours[number].append(np.ascontiguousarray(pts))
-    return {name: Structure(name, n, contours[n], colours.get(n, (255, 0, 0)), kinds.get(n, ""))
-            for n, name in names.items()}
+            contours[number].append(np.ascontiguousarray(np.asarray(c.get("ContourData", []), np.float64).reshape(-1, 3)))
+            types[number].append(str(c.get("ContourGeometricType", "")))
+            images[number].update(str(i.get("ReferencedSOPInstanceUID", "")) for i in c.get("ContourImageSequence", []))
+    study = str(ds.get("StudyInstanceUID", ""))
+    return [Structure(name, n, contours[n], colours.get(n, (255, 0, 0)), kinds.get(n, ""), frame, study,
+                      frozenset(images[n] - {""}), tuple(types[n]))
+            for n, (name, frame) in rois.items()]
 
 
-def pick_structure(structures: dict[str, Structure], name: str, source: str) -> Structure:
-    """The structure called ``name``; :class:`InputError` listing the names there are, or when it
-    has no contour."""
-    if name not in structures:
-        listed = ", ".join(repr(n) for n in structures) or "none"
+def pick_structure(structures, name: str, source: str) -> Structure:
+    """The structure called ``name`` of ``structures`` (a list of :func:`read_rois`, or the dict of
+    :func:`read_rtstruct`); :class:`InputError` listing the names there are, when two ROIs carry
+    that name (naming their numbers), or when it has no contour."""
+    rois = list(structures.values()) if isinstance(structures, dict) else list(structures)
+    found = [s for s in rois if s.name == name]
+    if not found:
+        listed = ", ".join(dict.fromkeys(repr(s.name) for s in rois)) or "none"
         raise InputError(f"{source}: no structure {name!r} (structures: {listed})")
-    s = structures[name]
+    if len(found) > 1:
+        numbers = " and ".join(str(s.number) for s in found)
+        raise InputError(f"{source}: {len(found)} ROIs are named {name!r} (ROI numbers {numbers}): ambiguous; "
+                         "rename one in the planning system")
+    s = found[0]
     if not s.contours:
         raise InputError(f"{source}: structure {name!r} has no contours")
     return s
@@ -142,54 +196,188 @@ def structure_points(structure: Structure) -> np.ndarray:
     return np.ascontiguousarray(np.concatenate(structure.contours))
 
 
-def structure_mesh(structure: Structure) -> tuple[np.ndarray, np.ndarray]:
-    """A closed surface through the structure's contours: ``(vertices (n, 3) float mm, faces)``."""
-    return contours_to_mesh(structure.contours, name=f"structure {structure.name!r}")
+def structure_mesh(structure: Structure, source: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """A closed surface through the structure's contours: ``(vertices (n, 3) float mm, faces)``.
+    Every contour must be CLOSED_PLANAR (or untyped), and pass the checks of
+    :func:`lungdeform.geometry.contours.contours_to_mesh`; errors name ``source`` (the file), the
+    structure and the contour (1-based, in file order)."""
+    name, pre = f"structure {structure.name!r}", f"{source}: " if source else ""
+    for k, kind in enumerate(structure.types, start=1):
+        if kind not in ("", "CLOSED_PLANAR"):
+            raise InputError(f"{pre}contour {k} of {name} is {kind}, not CLOSED_PLANAR: it encloses no region")
+    return contours_to_mesh(structure.contours, name=name, source=source)
 
 
 def read_ct_series(path) -> CTSeries:
     """The slices of the DICOM CT series ``path`` names (a folder or one of its files, as
-    :func:`lungdeform.io.image.dicom_series_files`), sorted along their normal."""
+    :func:`lungdeform.io.image.dicom_series_files`), sorted along their normal.
+
+    Refused with :class:`ReadError` naming the file: a slice pydicom cannot read, an
+    ImageOrientationPatient that is not two unit, orthogonal vectors (or differs between slices), an
+    ImagePositionPatient that is not three finite numbers, a missing UID or one Frame of Reference
+    differing between slices; naming the folder: two slices at one position, or slice positions
+    not evenly spaced (a gap twice the others is a missing slice: contours there would be lost)."""
     files = dicom_series_files(path)
-    heads = []
-    for f in files:
-        try:
-            heads.append(pydicom.dcmread(f, stop_before_pixels=True))
-        except (InvalidDicomError, OSError, EOFError, ValueError) as exc:
-            raise ReadError(f"{f}: not a readable DICOM slice ({exc})") from exc
-    try:
-        iop = np.asarray(heads[0].ImageOrientationPatient, float).reshape(2, 3)
-        origins = np.array([np.asarray(h.ImagePositionPatient, float) for h in heads])
-        uids = [str(h.SOPInstanceUID) for h in heads]
-        for key in ("FrameOfReferenceUID", "StudyInstanceUID", "SeriesInstanceUID", "SOPClassUID"):
-            getattr(heads[0], key)
-    except AttributeError as exc:
-        raise ReadError(f"{path}: DICOM series lacks an attribute an RTSTRUCT needs ({exc})") from exc
+    with warnings.catch_warnings():  # pydicom's warnings on values it still reads: checked below
+        warnings.simplefilter("ignore")
+        slices = [_ct_slice(f) for f in files]
+    first = slices[0]
+    for f, sl in zip(files[1:], slices[1:]):
+        if np.abs(sl["iop"] - first["iop"]).max() > 1e-3:
+            raise ReadError(f"{f}: ImageOrientationPatient differs from {files[0]}'s: not one series of parallel slices")
+        if sl["frame"] != first["frame"]:
+            raise ReadError(f"{f}: Frame of Reference {sl['frame']} differs from {files[0]}'s ({first['frame']})")
+    iop = first["iop"]
     normal = np.cross(iop[0], iop[1])
     normal /= np.linalg.norm(normal)
-    order = np.argsort(origins @ normal)
-    return CTSeries(heads[order[0]], [uids[i] for i in order], str(heads[0].SOPClassUID), origins[order],
-                    normal, str(path))
+    origins = np.array([sl["ipp"] for sl in slices])
+    order = np.argsort(origins @ normal, kind="stable")
+    uids = [slices[i]["uid"] for i in order]
+    if len(set(uids)) < len(uids):
+        raise ReadError(f"{path}: two slices share one SOP Instance UID")
+    _check_slice_positions(origins[order] @ normal, path)
+    head = slices[order[0]]["header"]
+    return CTSeries(head, uids, str(head.SOPClassUID), origins[order], normal, str(path))
+
+
+def _ct_slice(f) -> dict:
+    """One slice's header and the geometry and UIDs an RTSTRUCT needs, checked."""
+    try:
+        h = pydicom.dcmread(f, stop_before_pixels=True)
+    except Exception as exc:  # any parse failure becomes one clear line
+        raise ReadError(f"{f}: not a readable DICOM slice ({type(exc).__name__}: {_first_line(exc)})") from exc
+    try:  # a value pydicom cannot convert raises on first access
+        missing = [k for k in ("ImageOrientationPatient", "ImagePositionPatient", "SOPInstanceUID", "SOPClassUID",
+                               "FrameOfReferenceUID", "StudyInstanceUID", "SeriesInstanceUID") if not h.get(k)]
+    except Exception as exc:  # any conversion failure becomes one clear line
+        raise ReadError(f"{f}: unreadable DICOM attribute ({type(exc).__name__}: {_first_line(exc)})") from exc
+    if missing:
+        raise ReadError(f"{f}: DICOM slice lacks {', '.join(missing)}, which an RTSTRUCT needs")
+    iop = _numbers(h, "ImageOrientationPatient", 6, f).reshape(2, 3)
+    if np.abs(np.linalg.norm(iop, axis=1) - 1).max() > 1e-2 or abs(float(iop[0] @ iop[1])) > 1e-2:
+        raise ReadError(f"{f}: ImageOrientationPatient {iop.ravel().tolist()} is not two orthogonal unit vectors")
+    iop = iop / np.linalg.norm(iop, axis=1, keepdims=True)
+    return {"header": h, "iop": iop, "ipp": _numbers(h, "ImagePositionPatient", 3, f),
+            "uid": str(h.SOPInstanceUID), "frame": str(h.FrameOfReferenceUID)}
+
+
+def _numbers(h: Dataset, key: str, count: int, f) -> np.ndarray:
+    """The attribute ``key`` as ``count`` finite floats, or :class:`ReadError` naming the file ``f``."""
+    try:
+        raw = h[key].value
+        values = np.asarray([float(v) for v in (raw if isinstance(raw, (list, tuple, MultiValue)) else [raw])])
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise ReadError(f"{f}: {key} is not numeric ({_first_line(exc)})") from exc
+    if values.shape != (count,) or not np.all(np.isfinite(values)):
+        raise ReadError(f"{f}: {key} must be {count} finite numbers, got {values.tolist()[:8]}")
+    return values
+
+
+def _check_slice_positions(levels: np.ndarray, path) -> None:
+    """Slices at distinct positions along their normal, evenly spaced (within 1 % and 0.01 mm)."""
+    if len(levels) < 2:
+        return
+    gaps = np.diff(levels)
+    if gaps.min() < 1e-3:
+        i = int(np.argmin(gaps))
+        raise ReadError(f"{path}: two slices at the same position ({levels[i]:.3f} mm along the slice normal)")
+    step = float(np.median(gaps))
+    bad = np.flatnonzero(np.abs(gaps - step) > 0.01 * step + 0.01)
+    if len(bad):
+        i = bad[np.argmax(np.abs(gaps[bad] - step))]
+        missing = max(round(gaps[i] / step) - 1, 0)
+        hint = f"{missing} slice(s) missing there?" if missing else "slices of uneven spacing"
+        raise ReadError(f"{path}: slice positions not evenly spaced: {gaps[i]:.3f} mm between the slices at "
+                        f"{levels[i]:.3f} and {levels[i + 1]:.3f} mm, {step:.3f} mm elsewhere ({hint}); "
+                        "contours on missing slices would be lost")
+
+
+def check_structure_on_ct(structure: Structure, ct: CTSeries, source: str) -> None:
+    """Refuse (:class:`InputError` naming ``source``, the structure and the cause) a structure that
+    cannot be written on ``ct``: another Frame of Reference than the CT's (its coordinates mean
+    nothing there), slices it is drawn on that the CT lacks (when it references slices of this
+    series), or contours beyond the CT's first or last slice."""
+    name = f"{source}: structure {structure.name!r}"
+    frame, study = str(ct.header.FrameOfReferenceUID), str(ct.header.StudyInstanceUID)
+    if not structure.frame_uid:
+        raise InputError(f"{name} has no Frame of Reference UID: cannot check it is drawn on --reference-ct {ct.source}")
+    if structure.frame_uid != frame:
+        also = f"; study {structure.study_uid} against {study}" if structure.study_uid and structure.study_uid != study else ""
+        raise InputError(f"{name} is in Frame of Reference {structure.frame_uid}, --reference-ct {ct.source} in "
+                         f"{frame}{also}: not the CT it was drawn on")
+    ours = structure.image_uids & set(ct.sop_uids)
+    lost = structure.image_uids - set(ct.sop_uids)
+    if ours and lost:
+        raise InputError(f"{name} is drawn on {len(lost)} slice(s) that --reference-ct {ct.source} lacks "
+                         f"(e.g. SOP Instance UID {min(lost)}): missing slices")
+    check_within_slices(ct, name, np.concatenate([c for c in structure.contours if len(c)]))
+
+
+def check_within_slices(ct: CTSeries, name: str, points) -> None:
+    """Refuse (:class:`InputError` naming ``name``) ``points : (n, 3)`` mm reaching a slice spacing
+    or more beyond the first or last slice of ``ct``: a slice there would cut it, and the CT has
+    none, so its contours there would be lost (a surface through contours on the end slice closes
+    less than a spacing beyond it)."""
+    h = np.asarray(points, float) @ ct.normal
+    levels = ct.levels
+    step = float(np.median(np.diff(levels))) if len(levels) > 1 else 0.0
+    if not (h.min() > levels[0] - step - 1e-6 and h.max() < levels[-1] + step + 1e-6):
+        raise InputError(f"{name} reaches {h.min():.1f} to {h.max():.1f} mm along the slice normal, beyond the "
+                         f"slices of --reference-ct {ct.source} ({levels[0]:.1f} to {levels[-1]:.1f} mm, "
+                         f"{step:.2f} mm apart): its contours there would be lost")
+
+
+def check_roi_name(name: str, source: str | None = None) -> None:
+    """Refuse a ROI name DICOM cannot hold (a Long String): more than 64 characters, a backslash
+    or a control character; the message names ``source`` (the structure's file) if given."""
+    pre = f"{source}: " if source else ""
+    if len(name) > 64:
+        raise InputError(f"{pre}ROI name {name!r}: {len(name)} characters, longer than DICOM's 64 (a Long String)")
+    if "\\" in name or any(ord(ch) < 32 or ord(ch) == 127 for ch in name):
+        raise InputError(f"{pre}ROI name {name!r}: a backslash or control character, which DICOM names cannot hold")
+
+
+def build_rtstruct(ct: CTSeries, surfaces: list, *, label: str = "lungdeform",
+                   source: str | None = None) -> tuple[FileDataset, dict]:
+    """The RTSTRUCT dataset of ``surfaces`` (see :func:`write_rtstruct`) and ``{name: number of
+    contours}``, every name and extent checked (:func:`check_roi_name`,
+    :func:`check_within_slices`) before anything is written; errors name ``source`` if given."""
+    for surf in surfaces:
+        check_roi_name(surf[0], source)
+        check_within_slices(ct, f"{source}: ROI {surf[0]!r}" if source else f"ROI {surf[0]!r}", surf[1])
+    ds = _base_dataset(ct, label)
+    counts = {}
+    for number, surf in enumerate(surfaces, start=1):
+        name, v, f = surf[:3]
+        kind = surf[3] if len(surf) > 3 else "ORGAN"
+        contours = _slice_contours(ct, v, f)
+        counts[name] = len(contours)
+        _add_roi(ds, number, name, kind, COLOURS[(number - 1) % len(COLOURS)], contours, ct)
+    if not all(_ascii(e.value) for e in ds.iterall() if e.VR in _TEXT_VRS):
+        ds.SpecificCharacterSet = "ISO_IR 192"  # UTF-8: a name that is not ASCII round-trips
+    return ds, counts
+
+
+def _ascii(value) -> bool:
+    values = value if isinstance(value, (list, tuple, MultiValue)) else [value]
+    return all(str(v).isascii() for v in values)
 
 
 def write_rtstruct(path, ct: CTSeries, surfaces: list, *, label: str = "lungdeform") -> dict:
     """Write ``surfaces`` — ``(name, vertices (n, 3) float mm LPS, faces (m, 3) int)`` each, or
     ``(name, vertices, faces, kind)`` with an RT ROI interpreted type (GTV, ITV, ORGAN …) — as an
     RTSTRUCT referencing ``ct``, every contour a section of the surface by one slice plane.
-    Atomic. Returns ``{name: number of contours}``; a surface outside every slice gets none."""
-    ds = _base_dataset(ct, label)
-    counts = {}
-    for number, surf in enumerate(surfaces, start=1):
-        name, v, f = surf[:3]
-        kind = surf[3] if len(surf) > 3 else "ORGAN"
-        if len(name) > 64:
-            raise InputError(f"ROI name {name!r}: longer than DICOM's 64 characters")
-        contours = _slice_contours(ct, v, f)
-        counts[name] = len(contours)
-        _add_roi(ds, number, name, kind, COLOURS[(number - 1) % len(COLOURS)], contours, ct)
+    Atomic. Returns ``{name: number of contours}``. A surface reaching beyond the slices, or a
+    name DICOM cannot hold, is refused before anything is written (:func:`build_rtstruct`)."""
+    ds, counts = build_rtstruct(ct, surfaces, label=label)
+    save_rtstruct(path, ds)
+    return counts
+
+
+def save_rtstruct(path, ds: FileDataset) -> None:
+    """Save the dataset of :func:`build_rtstruct` to ``path`` atomically."""
     with atomic_path(path) as tmp:
         ds.save_as(tmp, enforce_file_format=True)
-    return counts
 
 
 def _slice_contours(ct: CTSeries, vertices, faces) -> list[tuple[int, np.ndarray]]:

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lungdeform.io.rtstruct import pick_structure, read_rtstruct, structure_mesh, structure_points
+from lungdeform.io.rtstruct import Structure, pick_structure, read_rois, structure_mesh, structure_points
 
 from .dvf import phase_states
 from .trajectory import FrameSchedule, place_points, point_trajectories
@@ -22,7 +22,8 @@ from .trajectory import FrameSchedule, place_points, point_trajectories
 @dataclass(frozen=True, eq=False)
 class TrackedStructure:
     """A structure read for tracking: ``points : (q, 3) float`` mm LPS (its contour points) with
-    ``labels`` (``NAME:i``), and its closed surface ``vertices : (n, 3) float`` mm, ``faces``."""
+    ``labels`` (``NAME:i``), its closed surface ``vertices : (n, 3) float`` mm, ``faces``, and the
+    ROI as read (``roi``: frame of reference, referenced slices)."""
 
     name: str
     kind: str
@@ -30,14 +31,18 @@ class TrackedStructure:
     labels: list
     vertices: np.ndarray
     faces: np.ndarray
+    roi: Structure | None = None
 
 
 def read_structure(path, name: str) -> TrackedStructure:
-    """The structure ``name`` of the RTSTRUCT file ``path``, its points and closed surface."""
-    s = pick_structure(read_rtstruct(path), name, str(path))
+    """The structure ``name`` of the RTSTRUCT file ``path``, its points and closed surface. Refused
+    (:class:`lungdeform.errors.InputError` naming the file and the structure): a name no ROI or two
+    ROIs carry, a contour that is not finite, flat or closed, a stack with gaps or beyond the
+    bounds of :mod:`lungdeform.geometry.contours`."""
+    s = pick_structure(read_rois(path), name, str(path))
+    v, f = structure_mesh(s, str(path))  # every contour checked before its points are used
     pts = structure_points(s)
-    v, f = structure_mesh(s)
-    return TrackedStructure(name, s.kind or "ORGAN", pts, [f"{name}:{i + 1}" for i in range(len(pts))], v, f)
+    return TrackedStructure(name, s.kind or "ORGAN", pts, [f"{name}:{i + 1}" for i in range(len(pts))], v, f, s)
 
 
 def phase_frames(trace, phases: int) -> tuple[FrameSchedule, list[str]]:
