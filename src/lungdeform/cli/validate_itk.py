@@ -14,6 +14,7 @@ import typer
 from lungdeform.validate.itk_pair import find_pair, pair_config, run_itk_pair
 
 from .common import (
+    check_output,
     DIRECTION_DEGREE_HELP,
     FIT_OPTIONS,
     STRICT_EXIT,
@@ -40,6 +41,7 @@ def register(apps) -> None:
         strict: bool = typer.Option(False, "--strict", help="Exit with code 3 when a target is not met (for CI)."),
     ) -> None:
         """Fit the model to the ITK right lung (3.36 → 3.97 L) and compare with baselines."""
+        check_output(out, [data], folder=True)
 
         files = find_pair(data)
         with option_names(FIT_OPTIONS):
