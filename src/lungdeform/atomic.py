@@ -77,17 +77,30 @@ def _prefix(path: Path) -> str:
 
 def remove_stale(path) -> None:
     """Remove the temporary files and folders beside ``path`` that a writer left when it was killed
-    (SIGKILL, a power cut): named :func:`_prefix` + 8 random characters, by a process that is gone."""
+    (SIGKILL, a power cut): named :func:`_prefix` + 8 random characters, by a process that is gone.
+    Each folder is listed once per process (:data:`_HIDDEN`), so writing many files into one folder
+    stays linear."""
     path = Path(path)
     pattern = re.compile(rf"\.{re.escape(path.name)}\.(\d+)\.[a-z0-9_]{{8}}(?:\..+)?")
-    try:
-        siblings = list(path.parent.iterdir())
-    except OSError:
-        return
-    for p in siblings:
-        m = pattern.fullmatch(p.name)
-        if m and not _alive(int(m.group(1))):
-            shutil.rmtree(p, ignore_errors=True) if p.is_dir() and not p.is_symlink() else p.unlink(missing_ok=True)
+    hidden = _hidden(path.parent)
+    for name in [n for n in hidden if pattern.fullmatch(n) and not _alive(int(pattern.fullmatch(n).group(1)))]:
+        p = path.parent / name
+        shutil.rmtree(p, ignore_errors=True) if p.is_dir() and not p.is_symlink() else p.unlink(missing_ok=True)
+        hidden.discard(name)
+
+
+#: Per folder (its absolute path), the hidden names it held when this process first wrote there.
+_HIDDEN: dict[str, set[str]] = {}
+
+
+def _hidden(folder: Path) -> set[str]:
+    key = os.path.abspath(folder)
+    if key not in _HIDDEN:
+        try:
+            _HIDDEN[key] = {e.name for e in os.scandir(folder) if e.name.startswith(".")}
+        except OSError:
+            return set()
+    return _HIDDEN[key]
 
 
 def _alive(pid: int) -> bool:
