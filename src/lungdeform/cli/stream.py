@@ -49,11 +49,15 @@ def register(apps) -> None:
 
 
 def _replay(path: Path, est: StreamingVolumeEstimator):
-    """The estimates of a recorded trace, one per sample; a sample the estimator refuses is named by
-    its number in ``path``."""
+    """The estimates of a recorded trace, one per sample (the file is read at once, before any line
+    is printed); a sample the estimator refuses is named by its number in ``path``."""
     tr = read_trace(path)
-    for i, (t, x) in enumerate(zip(tr.t_s, tr.amplitude), 1):
-        try:
-            yield est.update(t, x)
-        except InputError as exc:
-            raise InputError(f"{path} sample {i}: {exc}") from None
+
+    def estimates():
+        for i, (t, x) in enumerate(zip(tr.t_s, tr.amplitude), 1):
+            try:
+                yield est.update(t, x)
+            except InputError as exc:
+                raise InputError(f"{path} sample {i}: {exc}") from None
+
+    return estimates()
