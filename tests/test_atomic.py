@@ -76,3 +76,49 @@ def test_atomic_dir_publishes_whole_or_nothing(tmp_path):
     with atomic_dir(out) as tmp:
         (tmp / "c.txt").write_text("3")
     assert [p.name for p in out.iterdir()] == ["c.txt"] and [p.name for p in tmp_path.iterdir()] == ["set"]
+
+
+def test_a_target_under_a_regular_file_is_named(tmp_path):
+    # why: mkdir said only "File exists" (naming neither the output nor the file in its way)
+    (tmp_path / "plain").write_text("x")
+    with pytest.raises(NotADirectoryError) as info:
+        write_text(tmp_path / "plain" / "sub" / "out.txt", "y")
+    assert info.value.filename == str(tmp_path / "plain" / "sub" / "out.txt")
+    assert f"{tmp_path / 'plain'} is a file, not a folder" in info.value.strerror
+
+
+def test_a_set_of_files_appears_whole_or_not_at_all(tmp_path):
+    # why: warp --phases wrote phase 0 before phase 1 was computed; atomic_paths renames the set at the end
+    from lungdeform.atomic import atomic_paths
+
+    paths = [tmp_path / f"p{i}.txt" for i in range(3)]
+    with pytest.raises(RuntimeError):
+        with atomic_paths(paths) as tmps:
+            tmps[0].write_text("0")
+            raise RuntimeError("stopped after the first")
+    assert list(tmp_path.iterdir()) == []
+    with atomic_paths(paths) as tmps:
+        for i, t in enumerate(tmps):
+            t.write_text(str(i))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["p0.txt", "p1.txt", "p2.txt"]
+
+
+def test_only_a_dead_writers_temporaries_are_removed(tmp_path):
+    # why: names carry the writer's process id: a dead writer's leftovers go, a live one's and
+    # the user's own hidden files (not of the temporary pattern) stay
+    import os
+    import subprocess
+    import sys
+
+    from lungdeform.atomic import remove_stale
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    gone = [tmp_path / f".a.mha.{dead.pid}.x1y2z3w4.mha", tmp_path / f".a.mha.{dead.pid}.q1w2e3r4.partial"]
+    kept = [tmp_path / f".a.mha.{os.getpid()}.x1y2z3w4.mha", tmp_path / ".a.mha.5.mha", tmp_path / ".b.mha.1.x1y2z3w4",
+            tmp_path / "a.mha"]
+    gone[1].mkdir()
+    for p in [gone[0], *kept]:
+        p.write_text("x")
+    remove_stale(tmp_path / "a.mha")
+    assert sorted(tmp_path.iterdir()) == sorted(kept)

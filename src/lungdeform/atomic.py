@@ -1,23 +1,39 @@
 """Atomic file and folder writes: write to a temporary file (folder) beside the target, then rename.
 
-A failure (an exception, Ctrl-C) leaves no half-written output: the temporary file or folder is
-removed and any previous file or folder at the target is untouched. Files and folders get the
-ordinary permissions of the umask (not the 0600/0700 of :mod:`tempfile`).
+A failure (an exception, Ctrl-C, SIGTERM: the CLI turns it into Ctrl-C) leaves no half-written
+output: the temporary file or folder is removed and any previous file or folder at the target is
+untouched. Temporary names carry the writer's process id, so what a killed run left (SIGKILL, a
+power cut) is recognised and removed by the next write to the same target (:func:`remove_stale`).
+Files and folders get the ordinary permissions of the umask (not the 0600/0700 of :mod:`tempfile`).
 """
 
 from __future__ import annotations
 
+import errno
 import json
 import math
 import os
+import re
 import shutil
 import tempfile
 import uuid
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import Iterator
 
 import numpy as np
+
+
+def make_parent(path) -> None:
+    """Create ``path``'s folder (and its parents). A path under a regular file is refused with an
+    :class:`OSError` naming ``path`` and the file in its way (``mkdir`` says only "File exists")."""
+    path = Path(path)
+    for above in path.parents:
+        if above.exists():
+            if not above.is_dir():
+                raise NotADirectoryError(errno.ENOTDIR, f"{above} is a file, not a folder", str(path))
+            break
+    path.parent.mkdir(parents=True, exist_ok=True)
 
 
 @contextmanager
@@ -27,9 +43,10 @@ def atomic_path(path, suffix: str | None = None) -> Iterator[Path]:
     ``suffix`` (default: the target's own) keeps writers that choose a format by file name happy.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    make_parent(path)
+    remove_stale(path)
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix if suffix is None else suffix,
+        fd, tmp = tempfile.mkstemp(prefix=_prefix(path), suffix=path.suffix if suffix is None else suffix,
                                    dir=path.parent)
     except OSError as exc:  # name the output the user asked for, not the hidden temporary file
         raise OSError(exc.errno, exc.strerror, str(path)) from exc
@@ -41,6 +58,62 @@ def atomic_path(path, suffix: str | None = None) -> Iterator[Path]:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+@contextmanager
+def atomic_paths(paths, suffixes=None) -> Iterator[list[Path]]:
+    """Yield a temporary path beside each of ``paths`` (:func:`atomic_path`, ``suffixes`` its
+    ``suffix`` per path); once the block has written them all each replaces its target, and on a
+    failure all are removed: a set of files (the phases of a 4-D CT) appears whole or not at all."""
+    suffixes = [None] * len(paths) if suffixes is None else list(suffixes)
+    with ExitStack() as stack:
+        yield [stack.enter_context(atomic_path(p, x)) for p, x in zip(paths, suffixes)]
+
+
+def _prefix(path: Path) -> str:
+    """The start of a temporary name beside ``path``: hidden, the target's name, this process's id."""
+    return f".{path.name}.{os.getpid()}."
+
+
+def remove_stale(path) -> None:
+    """Remove the temporary files and folders beside ``path`` that a writer left when it was killed
+    (SIGKILL, a power cut): named :func:`_prefix` + 8 random characters, by a process that is gone.
+    Each folder is listed once per process (:data:`_HIDDEN`), so writing many files into one folder
+    stays linear."""
+    path = Path(path)
+    pattern = re.compile(rf"\.{re.escape(path.name)}\.(\d+)\.[a-z0-9_]{{8}}(?:\..+)?")
+    hidden = _hidden(path.parent)
+    for name in [n for n in hidden if pattern.fullmatch(n) and not _alive(int(pattern.fullmatch(n).group(1)))]:
+        p = path.parent / name
+        shutil.rmtree(p, ignore_errors=True) if p.is_dir() and not p.is_symlink() else p.unlink(missing_ok=True)
+        hidden.discard(name)
+
+
+#: Per folder (its absolute path), the hidden names it held when this process first wrote there.
+_HIDDEN: dict[str, set[str]] = {}
+
+
+def _hidden(folder: Path) -> set[str]:
+    key = os.path.abspath(folder)
+    if key not in _HIDDEN:
+        try:
+            _HIDDEN[key] = {e.name for e in os.scandir(folder) if e.name.startswith(".")}
+        except OSError:
+            return set()
+    return _HIDDEN[key]
+
+
+def _alive(pid: int) -> bool:
+    """Whether a process ``pid`` exists (this one included)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's
+        return True
+    except (OverflowError, ValueError):
+        return False
+    return True
 
 
 def _umask() -> int:
@@ -56,9 +129,10 @@ def atomic_dir(path) -> Iterator[Path]:
     success it is renamed to ``path`` (:func:`replace_dir`), so that ``path`` holds the whole set or
     its previous content; on failure (an exception, Ctrl-C) it is removed."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    make_parent(path)
+    remove_stale(path)
     try:
-        tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent))
+        tmp = Path(tempfile.mkdtemp(prefix=_prefix(path), suffix=".partial", dir=path.parent))
     except OSError as exc:  # name the output the user asked for, not the hidden temporary folder
         raise OSError(exc.errno, exc.strerror, str(path)) from exc
     try:
@@ -76,7 +150,7 @@ def replace_dir(src, dst) -> None:
     src, dst = Path(src), Path(dst)
     old = None
     if dst.exists() or dst.is_symlink():
-        old = dst.parent / f".{dst.name}.old.{uuid.uuid4().hex[:12]}"
+        old = dst.parent / f"{_prefix(dst)}{uuid.uuid4().hex[:8]}.old"
         os.rename(dst, old)
     try:
         os.rename(src, dst)

@@ -145,7 +145,7 @@ def test_swapped_sides_refused(tmp_path, lung_files, capsys):
 
 @pytest.mark.parametrize("args, message", [
     (["--solver", "gauss"], "--solver must be one of bicgstab, gmres, direct, got 'gauss'"),
-    (["--d-min", "0"], "--d-min must be > 0 mm, got 0"),
+    (["--d-min", "0"], "--d-min must be a finite number in (0, 100] mm, got 0"),
     (["--target-vertices", "50"], "--target-vertices must be at least 100, got 50"),
 ])
 def test_options_named_in_errors(tmp_path, lung_files, capsys, args, message):

@@ -4,6 +4,7 @@ parameters said as options, and the rule that a command's module imports no othe
 from __future__ import annotations
 
 import ast
+import inspect
 import sys
 from pathlib import Path
 
@@ -75,3 +76,54 @@ def test_no_command_module_imports_another():
                         continue
                     assert not (leaf in commands and (node.level or name.startswith("lungdeform.cli."))), \
                         f"{path.name} imports the command module {name}"
+
+
+def _float_options():
+    """(command words, option name, callback) of every float option of the CLI, from the typer apps
+    (cli/track.py excepted: its options are checked by its own module)."""
+    import typer
+
+    from lungdeform.cli.main import make_app
+
+    found = []
+
+    def walk(app, words):
+        for cmd in app.registered_commands:
+            name = cmd.name or cmd.callback.__name__.replace("_", "-")
+            for p in inspect.signature(cmd.callback).parameters.values():
+                info = p.default
+                if isinstance(info, typer.models.OptionInfo) and "float" in str(p.annotation):
+                    opt = max(info.param_decls, key=len)
+                    found.append(((*words, name), opt, info.callback))
+        for group in app.registered_groups:
+            walk(group.typer_instance, (*words, group.name))
+
+    walk(make_app(), ())
+    return [f for f in found if f[0] != ("track",)]
+
+
+FLOAT_OPTIONS = _float_options()
+
+
+def test_every_float_option_has_a_range_check():
+    # why: a float option without a range check takes nan, inf or 1e308 silently (stream printed nan
+    # volumes for --v-ee-ml nan; dvf --node-mm 1e9 wrote a zero field); each carries a callback of
+    # common.bounded (or one with its .bounds), run as the command line is parsed
+    assert len(FLOAT_OPTIONS) >= 25
+    missing = [(" ".join(c), o) for c, o, cb in FLOAT_OPTIONS if not hasattr(cb, "bounds")]
+    assert not missing, missing
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-1e308", "1e308"])
+@pytest.mark.parametrize("words, option", [(c, o) for c, o, _ in FLOAT_OPTIONS],
+                         ids=[f"{' '.join(c)} {o}" for c, o, _ in FLOAT_OPTIONS])
+def test_a_non_finite_or_absurd_number_exits_2_naming_the_option(words, option, value, tmp_path, capsys):
+    # why: each float option refuses a non-finite or out-of-range value before any work, with one
+    # line naming the option and its range; the option comes first on the command line, so it is
+    # checked before the missing arguments are
+    from lungdeform.cli.main import main
+
+    assert main([*words, option, value]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"error: {option} must be"), err
+    assert not list(tmp_path.iterdir())

@@ -115,7 +115,7 @@ def test_demo_refuses_an_unknown_preset(tmp_path, capsys):
 @pytest.mark.parametrize("args, message", [
     # 1e5 s used to run for minutes and would have written millions of mesh files
     (["--duration", "1e5"], "--duration must be at most 300 s, got 100000"),
-    (["--duration", "nan"], "--duration must be at most 300 s, got nan"),
+    (["--duration", "nan"], "--duration must be a finite number in (0, 300] s, got nan"),
     # 1e6 mL used to give 458 L lungs without a word
     (["--tidal-ml", "1e6"], "--tidal-ml must be a tidal volume in mL in (0, 10000]"),
     (["--orientation", "sideways"], "--orientation must be one of supine, prone, upright"),

@@ -51,3 +51,35 @@ def test_dvf_bad_input_is_one_line(files, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2 and "unknown output image format" in err[0] and "volumes_ml" in err[1]
     assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["--volume-ml", "1e9"], "--volume-ml must be a finite number in (0, 20000] mL"),
+    (["--volume-ml", "15000"], "no lung reaches that"),
+    (["--volume-ml", "1000"], "no lung reaches that"),
+    (["--volume-ml", "5000", "--node-mm", "1e9"], "--node-mm must be a finite number in (0, 20] mm"),
+    (["--volume-ml", "5000", "--node-mm", "inf"], "--node-mm must be a finite number in (0, 20] mm"),
+])
+def test_dvf_unreachable_volume_or_absurd_node_spacing_is_refused(files, tmp_path, capsys, args, needle):
+    # why: --volume-ml 1e9 tried to allocate 926 TiB (a traceback); 15000 mL (3.5 × this model's
+    # end-exhale) took minutes and gigabytes for a state no lung reaches; --node-mm 1e9 wrote a zero
+    # field and --node-mm inf said "does not overlap"; each is refused before the image is read
+    d, _ = files
+    assert main(["dvf", str(d / "model.npz"), "--reference", str(d / "ref.nii.gz"), *args,
+                 "--out", str(tmp_path / "u.mha")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and needle in err[0], err
+    assert not list(tmp_path.iterdir())
+
+
+def test_a_field_beyond_the_lattice_cap_is_refused_before_it_is_allocated(files, monkeypatch):
+    # why: the fade margin grows with the motion, and with it the lattice; a state whose lattice
+    # would pass MAX_LATTICE_NODES is an InputError naming the margin, not a MemoryError
+    from lungdeform.errors import InputError
+    from lungdeform.playback import dvf as D
+
+    d, m = files
+    monkeypatch.setattr(D, "MAX_LATTICE_NODES", 1000)
+    grid = D.Grid.of(read_image(d / "ref.nii.gz"))
+    with pytest.raises(InputError, match="lattice nodes .* fade margin"):
+        D.displacement_field(m, grid, 300.0)

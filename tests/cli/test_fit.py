@@ -330,3 +330,17 @@ def test_4dct_whose_phases_cannot_be_told_apart_exits_2(tmp_path, rng, capsys):
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and str(tmp_path / "ct4d") in err and "cannot be told apart" in err
     assert not (out / "model.npz").exists()
+
+
+def test_a_bad_input_leaves_no_output_folder_and_out_may_not_be_an_input(tmp_path, pair, capsys):
+    # why: fit created --out before it read its inputs, so a refused input left an empty folder;
+    # and an --out whose model.npz / metrics.json is one of the inputs would overwrite it
+    a, b, _ = pair
+    out = tmp_path / "o"
+    assert main(["fit", str(a), str(b), "--side", "right", "--out", str(out), "--volumes", "1500,1400"]) == 2
+    assert "volumes must increase" in _one_error_line(capsys) and not out.exists()
+    metrics = tmp_path / "metrics.json"
+    metrics.write_text("{}")
+    assert main(["fit", str(a), str(b), "--side", "right", "--out", str(tmp_path), "--landmarks", str(metrics),
+                 "--landmarks", str(metrics)]) == 2
+    assert "would overwrite the input" in _one_error_line(capsys) and metrics.read_text() == "{}"

@@ -33,3 +33,33 @@ def test_replayed_trace_with_prediction_leads_the_plain_stream(tmp_path, capsys)
     lag = [np.argmax(np.correlate(rows["400"][late, 1] - rows["400"][late, 1].mean(),
                                   rows["0"][late, 1] - rows["0"][late, 1].mean(), "full")) - (late.sum() - 1)]
     assert -6 <= lag[0] <= -2  # the predicted stream leads by about 4 samples of 0.1 s
+
+
+def test_an_absurd_amplitude_is_refused_naming_its_line_or_sample(tmp_path, monkeypatch, capsys):
+    # why: amplitudes of ±1e308 overflow the calibration's span and printed nan/inf volumes with
+    # exit 0; a sample beyond ±MAX_SAMPLE is refused, naming the stdin line or the trace's sample
+    monkeypatch.setattr("sys.stdin", io.StringIO("0,1\n0.1,-1e308\n0.2,1e308\n"))
+    assert main(["stream"]) == 2
+    captured = capsys.readouterr()
+    assert "nan" not in captured.out and "inf" not in captured.out
+    err = captured.err.strip().splitlines()
+    assert len(err) == 1 and "stdin line 2" in err[0] and "-1e+308" in err[0], err
+    t = np.arange(0, 20, 0.1)
+    amplitude = 8 * breath(t)
+    amplitude[50] = 1e12
+    path = write_marker_csv(tmp_path / "b.csv", t * 1000, amplitude)
+    assert main(["stream", str(path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{path} sample " in err[0] and "beyond" in err[0], err
+
+
+def test_stream_and_view_share_the_predict_ms_bound(capsys):
+    # why: the viewer refused --predict-ms above 2000 while stream took up to 5000; one constant,
+    # one message for both
+    from lungdeform.breathing.stream import MAX_PREDICT_MS
+
+    lines = []
+    for words in (["stream"], ["view", "m.npz"]):
+        assert main([*words, "--predict-ms", f"{MAX_PREDICT_MS + 1:g}"]) == 2
+        lines += capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 2 and lines[0] == lines[1] and f"[0, {MAX_PREDICT_MS:g}] ms" in lines[0], lines

@@ -59,3 +59,21 @@ def test_manifest_only_writes_the_cohort_manifest_and_fits_nothing(tmp_path, cap
     assert main(["validate", "copd", "--data", str(data), "--out", str(tmp_path / "o2"), "--manifest-only",
                  "--cases", "5"]) == 2
     assert "case 5 is missing" in _one_error_line(capsys) and not (tmp_path / "o2").exists()
+
+
+def test_inputs_checked_before_out_and_a_skipped_case_is_said(tmp_path, capsys):
+    # why: validate copd created --out before it looked at --data (an empty folder left behind),
+    # and --manifest-only dropped a case missing one of its four files without a word
+    (tmp_path / "data").mkdir()
+    out = tmp_path / "out"
+    assert main(["validate", "copd", "--data", str(tmp_path / "data"), "--out", str(out)]) == 2
+    assert "no DIR-Lab COPDgene case" in _one_error_line(capsys) and not out.exists()
+    data = phantom_case(tmp_path / "data", n=2)
+    phantom_case(tmp_path / "data", n=4)
+    (data / "copd4_insp_landmarks.txt").unlink()
+    assert main(["validate", "copd", "--data", str(data), "--out", str(out), "--manifest-only"]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"warning: {data}: copd4 skipped: it lacks copd4_insp_landmarks.txt"], err
+    assert [r.split(",")[0] for r in (out / "manifest.csv").read_text().splitlines()[1:]] == ["copd2", "copd2"]
+    assert main(["validate", "copd", "--data", str(data), "--out", str(data), "--manifest-only"]) == 2
+    assert "would overwrite the input" in _one_error_line(capsys)

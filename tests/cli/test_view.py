@@ -35,7 +35,7 @@ class _Captured:
 
     served: dict = {}
 
-    def __init__(self, glb, *, host, port, trace, live):
+    def __init__(self, glb, *, host, port, trace, live, errors=None):
         _Captured.served = {"glb": glb, "trace": trace}
         self.url = "http://127.0.0.1:0/"
 
@@ -69,8 +69,8 @@ def test_view_trace_serves_what_stream_prints(tmp_path, capsys, monkeypatch):
 
 
 @pytest.mark.parametrize("args, needle", [
-    (["--predict-ms", "-1"], "--predict-ms must be in [0, 2000] ms"),
-    (["--predict-ms", "2500"], "--predict-ms must be in [0, 2000] ms"),
+    (["--predict-ms", "-1"], "--predict-ms must be a finite number in [0, 2000] ms"),
+    (["--predict-ms", "2500"], "--predict-ms must be a finite number in [0, 2000] ms"),
     (["--curve", "CURVE"], "--trace and --curve"),
 ])
 def test_view_trace_bad_options_exit_2_with_one_line(tmp_path, capsys, args, needle):

@@ -163,3 +163,52 @@ def test_warp_failure_in_a_later_phase_leaves_no_folder(files, tmp_path, monkeyp
                  "--phases", "2", "--out", str(tmp_path / "4dct")]) == 2
     assert "No space left on device" in capsys.readouterr().err
     assert len(calls) == 2 and sorted(p.name for p in tmp_path.iterdir()) == ["c.csv"]
+
+
+def test_warp_phases_has_an_upper_bound(files, tmp_path, capsys):
+    # why: --phases had no upper bound (10⁶ phases: hours of work and 10⁶ files); above
+    # MAX_PHASES it is refused before the model is read
+    d, _ = files
+    assert main(["warp", str(d / "ref.nii.gz"), str(d / "model.npz"), "--curve", str(_curve(tmp_path / "c.csv")),
+                 "--phases", "1000000", "--out", str(tmp_path / "ct.mha")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--phases must be 1 to 100" in err[0], err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.csv"]
+
+
+def test_warp_refuses_outputs_that_would_destroy_an_input_or_misplace_a_file(files, tmp_path, capsys):
+    # why: --out equal to the source image overwrote it; --out X.mha naming an existing folder
+    # wrote a DICOM series into that folder; --out under a regular file failed with a bare
+    # "File exists"; each is refused before any work, naming the path
+    d, m = files
+    ee = sum(lung.volume_ee_ml for lung in m.lungs.values())
+    source = tmp_path / "src.nii.gz"
+    source.write_bytes((d / "ref.nii.gz").read_bytes())
+    (tmp_path / "X.mha").mkdir()
+    (tmp_path / "plain").write_text("a file")
+    before = sorted(p.name for p in tmp_path.rglob("*"))
+    cases = [(source, "would overwrite the input"), (tmp_path / "X.mha", "an existing folder where a file is meant"),
+             (tmp_path / "plain" / "w.mha", f"{tmp_path / 'plain'} is a file, not a folder")]
+    for out, needle in cases:
+        assert main(["warp", str(source), str(d / "model.npz"), "--volume-ml", str(ee + 200), "--out", str(out)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and needle in err[0] and str(out) in err[0], err
+    # a phase file that is the source: OUT_phase00.nii.gz is refused too
+    phase0 = tmp_path / "ct_phase00.nii.gz"
+    phase0.write_bytes(source.read_bytes())
+    assert main(["warp", str(phase0), str(d / "model.npz"), "--curve", str(_curve(tmp_path / "c.csv")),
+                 "--phases", "2", "--out", str(tmp_path / "ct.nii.gz")]) == 2
+    assert "would overwrite the input" in capsys.readouterr().err
+    assert source.read_bytes() == (d / "ref.nii.gz").read_bytes() == phase0.read_bytes()
+    assert sorted(p.name for p in tmp_path.rglob("*")) == sorted([*before, "ct_phase00.nii.gz", "c.csv"])
+
+
+def test_dvf_refuses_an_output_that_is_an_input(files, tmp_path, capsys):
+    # why: --out equal to an input overwrote it (any command); refused before any work
+    d, _ = files
+    ref = tmp_path / "ref.nii.gz"
+    ref.write_bytes((d / "ref.nii.gz").read_bytes())
+    assert main(["dvf", str(d / "model.npz"), "--reference", str(ref), "--volume-ml", "4500", "--out", str(ref)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "would overwrite the input" in err[0], err
+    assert ref.read_bytes() == (d / "ref.nii.gz").read_bytes() and [p.name for p in tmp_path.iterdir()] == ["ref.nii.gz"]

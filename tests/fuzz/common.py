@@ -252,7 +252,7 @@ def _mesh_seed(folder: Path, suffix: str) -> list[Path]:
         out += sorted((ROOT / "src" / "lungdeform" / "data").glob("*.ply"))[:1]
     if suffix == ".stl":  # the ASCII variant too
         tri = v[f]
-        rows = ["solid t"] + [f"facet normal 0 0 0\nouter loop\n" + "".join(f"vertex {a} {b} {c}\n" for a, b, c in t)
+        rows = ["solid t"] + ["facet normal 0 0 0\nouter loop\n" + "".join(f"vertex {a} {b} {c}\n" for a, b, c in t)
                               + "endloop\nendfacet" for t in tri[:8]] + ["endsolid t"]
         (folder / "ascii.stl").write_text("\n".join(rows) + "\n")
         out.append(folder / "ascii.stl")

@@ -193,3 +193,25 @@ def test_port_in_use_names_the_address_and_the_option(glb):
         port = held.getsockname()[1]
         with pytest.raises(InputError, match=rf"cannot serve on 127\.0\.0\.1:{port}: .*--port"):
             ViewerServer(glb, port=port)
+
+
+def test_a_client_that_resets_the_connection_is_one_line_not_a_traceback(glb, capfd):
+    # why: socketserver printed a traceback on stderr for every connection a client reset (132 in
+    # one viewer session); a failed request is now one line to the server's ``errors``
+    import struct
+    import time
+
+    lines: list[str] = []
+    with ViewerServer(glb, port=0, errors=lines.append) as srv:
+        for _ in range(3):
+            s = socket.create_connection(("127.0.0.1", srv.port), timeout=5)
+            s.sendall(b"GET /model.glb HTTP/1.1\r\nHost: 127.0.0.1")  # the headers never end
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+            s.close()  # linger 0: an RST, not a FIN
+        deadline = time.monotonic() + 10
+        while len(lines) < 3 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert request(srv, "GET", "/model.glb")[0].status == 200  # still serving
+    err = capfd.readouterr().err
+    assert "Traceback" not in err and err == "", err
+    assert len(lines) == 3 and all("closed the connection" in line and "\n" not in line for line in lines), lines

@@ -4,6 +4,7 @@ mask-only baselines on a two-lung phantom, and the real cases (slow, LUNGDEFORM_
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -216,3 +217,21 @@ def test_cohort_manifest_reads_back_as_the_cases(tmp_path):
         assert job.ordered_by == "row" and job.volumes_ml is None
         assert job.inputs == [data / f"copd{n}_exp_mask.nii.gz", data / f"copd{n}_insp_mask.nii.gz"]
         assert job.landmarks == [data / f"copd{n}_exp_landmarks.txt", data / f"copd{n}_insp_landmarks.txt"]
+
+
+def test_an_interrupted_lung_fit_leaves_no_folder(tmp_path, monkeypatch):
+    # why: a fit stopped (SIGTERM, which the CLI turns into Ctrl-C) after run_fit wrote its files but
+    # before the settings digest was added left a lung folder that looked finished; the lung is now
+    # fitted into a hidden folder renamed at the end: complete with its digest, or absent
+    (tmp_path / "data").mkdir()
+    data = phantom_case(tmp_path / "data", n=1)
+    out = tmp_path / "out"
+
+    def stopped(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(C.CaseBaselines, "__call__", stopped)  # after run_fit, before the digest
+    config = FitConfig(max_evaluations=2, align="joint", folds=3, command=C.COMMAND)
+    with pytest.raises(KeyboardInterrupt):
+        C.run_copd(data, out, config)
+    assert [p.relative_to(out) for p in out.rglob("*")] == [Path("copd1")]

@@ -16,7 +16,8 @@ frame reaches the eye (or a beam) is the one the patient then has; ``StreamSampl
 ahead it is.
 
 Before one full window has been seen, the calibration uses what has been seen (``warm`` is False).
-Samples must come in increasing time; NaN samples are refused (InputError) — drop them upstream.
+Samples must come in increasing time; NaN samples, and times or amplitudes beyond ±:data:`MAX_SAMPLE`,
+are refused (InputError) — drop them upstream.
 """
 
 from __future__ import annotations
@@ -33,6 +34,15 @@ from lungdeform.errors import InputError
 
 from .cycles import smooth
 from .predict import BlendPredictor
+
+#: The longest prediction horizon (ms) the estimator, ``lungdeform stream`` and ``lungdeform view``
+#: accept: past 2 s the prediction error nears a half breath.
+MAX_PREDICT_MS = 2000.0
+#: Largest magnitude of a sample's time (s) and amplitude (the trace's unit): beyond it the
+#: calibration's differences overflow or lose every digit (a corrupt or mis-scaled feed).
+MAX_SAMPLE = 1e9
+#: Largest end-exhale or tidal volume (mL) the estimator accepts: above any total lung capacity.
+MAX_VOLUME_ML = 20000.0
 
 
 @dataclass(frozen=True)
@@ -54,8 +64,16 @@ class StreamingVolumeEstimator:
 
     def __init__(self, tidal_volume_ml: float = 500.0, v_ee_ml: float = 2400.0, window_s: float = 10.0,
                  smoothing_s: float = 0.05, unit_ml: float | None = None, predict_ms: float = 0.0):
-        if not (tidal_volume_ml > 0 and window_s > 0 and smoothing_s >= 0):
-            raise InputError("tidal_volume_ml and window_s must be > 0 and smoothing_s >= 0")
+        if not (math.isfinite(float(tidal_volume_ml)) and 0 < float(tidal_volume_ml) <= MAX_VOLUME_ML):
+            raise InputError(f"tidal_volume_ml must be a finite volume in (0, {MAX_VOLUME_ML:g}] mL, "
+                             f"got {tidal_volume_ml!r}")
+        if not (math.isfinite(float(v_ee_ml)) and 0 <= float(v_ee_ml) <= MAX_VOLUME_ML):
+            raise InputError(f"v_ee_ml must be a finite volume in [0, {MAX_VOLUME_ML:g}] mL (0: volumes above "
+                             f"end-exhale), got {v_ee_ml!r}")
+        if not (math.isfinite(float(window_s)) and window_s > 0
+                and math.isfinite(float(smoothing_s)) and smoothing_s >= 0):
+            raise InputError(f"window_s must be finite and > 0 and smoothing_s finite and >= 0, got "
+                             f"{window_s!r} and {smoothing_s!r}")
         if unit_ml is not None and not (np.isfinite(unit_ml) and unit_ml != 0):
             raise InputError(f"unit_ml must be a finite non-zero volume in mL, got {unit_ml!r}")
         self.tidal_volume_ml = float(tidal_volume_ml)
@@ -63,8 +81,8 @@ class StreamingVolumeEstimator:
         self.window_s = float(window_s)
         self.smoothing_s = float(smoothing_s)
         self.unit_ml = unit_ml
-        if not (math.isfinite(float(predict_ms)) and 0.0 <= float(predict_ms) <= 5000.0):
-            raise InputError(f"predict_ms must be in [0, 5000] ms, got {predict_ms!r}")
+        if not (math.isfinite(float(predict_ms)) and 0.0 <= float(predict_ms) <= MAX_PREDICT_MS):
+            raise InputError(f"predict_ms must be in [0, {MAX_PREDICT_MS:g}] ms, got {predict_ms!r}")
         self.predict_ms = float(predict_ms)
         self.reset()
 
@@ -82,6 +100,9 @@ class StreamingVolumeEstimator:
         x = float(amplitude)
         if not (math.isfinite(t) and math.isfinite(x)):
             raise InputError(f"stream sample at t={t_s!r} is not finite (amplitude {amplitude!r})")
+        if not (abs(t) <= MAX_SAMPLE and abs(x) <= MAX_SAMPLE):
+            raise InputError(f"stream sample at t={t:g} s, amplitude {x:g}: beyond ±{MAX_SAMPLE:g} (a corrupt "
+                             f"or mis-scaled feed)")
         if self._predictor is not None:
             if self._t is not None and t <= self._t:
                 raise InputError(f"stream time must increase: got t={t:.6g} s after t={self._t:.6g} s")

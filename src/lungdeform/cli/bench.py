@@ -9,9 +9,10 @@ import typer
 
 from lungdeform.bench.kernels import bench_playback, bench_solve, lung_with_vertices
 from lungdeform.bench.prediction import bench_predict
+from lungdeform.breathing.stream import MAX_PREDICT_MS
 from lungdeform.errors import InputError
 
-from .common import say, write_bench_json
+from .common import bounded, say, write_bench_json
 
 
 def _surfaces(vertices: list[int]):
@@ -28,7 +29,7 @@ def register(apps) -> None:
         vertices: list[int] = typer.Option([10_000], "--vertices", "-n", help="Vertex counts (repeat the option)."),
         json_path: Optional[Path] = typer.Option(None, "--json", help="Write results here."),
         push_max: int = typer.Option(200_000, "--push-max-vertices", help="Skip the push loop above this size."),
-        push_tol: float = typer.Option(1e-8, "--push-tol", help="Push loop stops at max|P| ≤ tol·max|f|."),
+        push_tol: float = typer.Option(1e-8, "--push-tol", callback=bounded(0, 1, low_open=True), help="Push loop stops at max|P| ≤ tol·max|f|."),
     ):
         """Push loop (the paper's algorithm) against the sparse solve of its fixed point."""
 
@@ -70,9 +71,9 @@ def register(apps) -> None:
 
     @apps.bench.command("predict")
     def predict(
-        seconds: float = typer.Option(300.0, "--seconds", help="Length of the synthetic stream (s)."),
-        rate_hz: float = typer.Option(100.0, "--rate-hz", help="Samples per second."),
-        horizon_ms: float = typer.Option(400.0, "--horizon-ms", help="Prediction horizon (ms)."),
+        seconds: float = typer.Option(300.0, "--seconds", callback=bounded(0, 86400, "s", low_open=True), help="Length of the synthetic stream (s)."),
+        rate_hz: float = typer.Option(100.0, "--rate-hz", callback=bounded(0, 10000, "Hz", low_open=True), help="Samples per second."),
+        horizon_ms: float = typer.Option(400.0, "--horizon-ms", callback=bounded(0, MAX_PREDICT_MS, "ms", low_open=True), help="Prediction horizon (ms)."),
         json_path: Optional[Path] = typer.Option(None, "--json", help="Write results here."),
     ):
         """Cost per sample of the breathing predictor against the linear baseline and the 100 Hz budget."""

@@ -9,8 +9,9 @@ import typer
 
 from lungdeform.bench.dvf import bench_dvf
 from lungdeform.errors import InputError
+from lungdeform.playback import dvf as D
 
-from .common import say, write_bench_json
+from .common import bounded, say, write_bench_json
 
 
 def register(apps) -> None:
@@ -18,7 +19,7 @@ def register(apps) -> None:
     def dvf(
         shape: str = typer.Option("150,512,512", "--shape", help="Grid size z,y,x (voxels)."),
         repeats: int = typer.Option(3, "--repeats", help="Timed runs of each (the median is reported)."),
-        node_mm: float = typer.Option(4.0, "--node-mm", help="Lattice spacing (mm) of the interior field."),
+        node_mm: float = typer.Option(4.0, "--node-mm", callback=bounded(0, D.MAX_NODE_MM, "mm", low_open=True), help="Lattice spacing (mm) of the interior field."),
         json_path: Optional[Path] = typer.Option(None, "--json", help="Write results here."),
     ):
         """A displacement-field image of the embedded lungs against a trilinear resampling of the same grid."""
@@ -28,8 +29,6 @@ def register(apps) -> None:
         except ValueError:
             raise InputError(f"--shape must be three whole numbers z,y,x, got {shape!r}") from None
         say(f"building the embedded lungs' model and a {'x'.join(map(str, zyx))} grid")
-        if not node_mm > 0:
-            raise InputError(f"--node-mm must be > 0, got {node_mm}")
         r = bench_dvf(zyx, repeats, node_mm)
         typer.echo(f"grid {' x '.join(map(str, r['shape_zyx']))} voxels: field {r['field_seconds']:.2f} s "
                    f"({r['nodes_evaluated']} of {r['nodes']} lattice nodes evaluated), trilinear resampling "

@@ -16,7 +16,10 @@ import typer
 from lungdeform.breathing.run import check_sample_rate, run_fit, run_preset
 from lungdeform.errors import InputError
 
-from .common import say
+from .common import bounded, check_output, say, tidal_option
+
+#: The files breathe writes in ``--out``.
+BREATHE_FILES = ("curve.csv", "metrics.json", "volume.png", "pv_loop.png", "residuals.png")
 
 
 def register(apps) -> None:
@@ -26,14 +29,15 @@ def register(apps) -> None:
         preset: str = typer.Option(None, "--preset", help="normal | deep | copd | restrictive | dyspnoea | pneumothorax"),
         fit: Path = typer.Option(None, "--fit", help="A trace to fit: RPM .vxp or marker .csv."),
         cycles: int = typer.Option(3, "--cycles", help="Preset: number of breathing cycles."),
-        fs: float = typer.Option(50.0, "--fs", help="Preset: output sample rate (Hz)."),
-        tidal_volume_ml: float = typer.Option(500.0, "--tidal-volume-ml", help="Fit: calibration tidal volume."),
-        train_fraction: float = typer.Option(0.5, "--train-fraction", help="Fit: share of cycles fitted."),
+        fs: float = typer.Option(50.0, "--fs", callback=bounded(0, 10000, "Hz", low_open=True), help="Preset: output sample rate (Hz)."),
+        tidal_volume_ml: float = typer.Option(500.0, "--tidal-volume-ml", callback=tidal_option, help="Fit: calibration tidal volume."),
+        train_fraction: float = typer.Option(0.5, "--train-fraction", callback=bounded(0, 1, low_open=True, high_open=True), help="Fit: share of cycles fitted."),
     ):
         """Breathing curve (volume, flow, pressure) from a preset or fitted to a trace."""
 
         if (preset is None) == (fit is None):
             raise InputError("breathe: give exactly one of --preset NAME or --fit TRACE")
+        check_output(out, [fit], folder=True, writes=BREATHE_FILES)
         if preset is not None:
             if cycles < 1:
                 raise InputError(f"--cycles must be >= 1, got {cycles}")

@@ -16,7 +16,17 @@ from lungdeform.model.lung import build_model
 from lungdeform.model.population import resolve_default
 from lungdeform.model.stiffness import parse_stiffness
 
-from .common import CONSTANTS_HELP, SIDE_CHECK_HELP, check_tidal_ml, option_names, parse_orientation, say
+from .common import (
+    CONSTANTS_HELP,
+    SIDE_CHECK_HELP,
+    bounded,
+    check_output,
+    check_tidal_ml,
+    option_names,
+    parse_orientation,
+    say,
+    tidal_option,
+)
 
 
 def register(apps) -> None:
@@ -31,19 +41,18 @@ def register(apps) -> None:
         target_vertices: Optional[int] = typer.Option(None, "--target-vertices", help="Decimate mask surfaces to about this many vertices."),
         side_check: bool = typer.Option(True, "--side-check/--no-side-check", help=SIDE_CHECK_HELP),
         orientation: str = typer.Option("supine", "--orientation", help="supine, prone, upright, left-decubitus, right-decubitus, or a gravity vector 'x,y,z' (LPS)."),
-        tidal_ml: float = typer.Option(500.0, "--tidal-ml", help="Tidal volume for both lungs together (mL); calibration is exact there."),
+        tidal_ml: float = typer.Option(500.0, "--tidal-ml", callback=tidal_option, help="Tidal volume for both lungs together (mL); calibration is exact there."),
         stiffness: str = typer.Option("uniform", "--stiffness", help="uniform | gradient:DEPENDENT,NONDEPENDENT | sphere:X,Y,Z,RADIUS,E (mm, LPS)."),
         solver: str = typer.Option("bicgstab", "--solver", help="Linear solver: bicgstab, gmres or direct."),
-        d_min: float = typer.Option(1.0, "--d-min", help="Minimum transfer distance (mm)."),
+        d_min: float = typer.Option(1.0, "--d-min", callback=bounded(0, 100, "mm", low_open=True), help="Minimum transfer distance (mm)."),
         constants: str = typer.Option("population", "--constants", help=CONSTANTS_HELP),
     ):
         """Build a breathing lung model from one or two lung surfaces."""
 
         check_tidal_ml(tidal_ml)  # before the (slow) reading, with the options' own names
+        check_output(out, sources)
         if solver not in SOLVERS:
             raise InputError(f"--solver must be one of {', '.join(SOLVERS)}, got {solver!r}")
-        if not d_min > 0:
-            raise InputError(f"--d-min must be > 0 mm, got {d_min:g}")
         with option_names({"constants": "--constants"}):
             chosen = resolve_default(constants)
         if target_vertices is not None and target_vertices < 100:

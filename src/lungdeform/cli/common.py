@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import platform
 import re
@@ -37,10 +38,8 @@ def say(message: str) -> None:
 
 
 def output_dir(path: Path, option: str = "--out") -> Path:
-    """Create the output folder, or refuse a path that is an existing file."""
-    path = Path(path)
-    if path.exists() and not path.is_dir():
-        raise InputError(f"{option} {path}: exists and is not a folder")
+    """Create the output folder, or refuse a path that is an existing file or lies under one."""
+    path = check_output(path, folder=True, option=option)
     path.mkdir(parents=True, exist_ok=True)
     return path
 
@@ -61,6 +60,38 @@ def set_max_voxels(value: str | None) -> None:
     except InputError:
         raise InputError(f"--max-voxels must be a positive whole number of voxels, got {value!r}") from None
     os.environ[MAX_VOXELS_ENV] = str(limit)
+
+
+def check_output(out: Path, inputs=(), *, folder: bool = False, writes=(), whole: bool = False,
+                 option: str = "--out") -> Path:
+    """Refuse, before any work, an output ``out`` that cannot be written or would destroy an input:
+    a path under a regular file; a file output (``folder`` False) that is an existing folder, or a
+    folder output that is an existing file; one of ``inputs`` (None entries skipped) itself, or, for
+    a folder, an input at a name the command writes in it (``writes``) or anywhere in it when the
+    folder is replaced as a whole (``whole``). Returns ``out`` as a :class:`Path`."""
+    out = Path(out)
+    for above in out.parents:
+        if above.exists():
+            if not above.is_dir():
+                raise InputError(f"{option} {out}: {above} is a file, not a folder")
+            break
+    if out.exists() and out.is_dir() != folder:
+        raise InputError(f"{option} {out}: an existing {'file' if folder else 'folder'} where a "
+                         f"{'folder' if folder else 'file'} is meant")
+    targets = [out, *(out / name for name in writes)] if folder else [out]
+    for given in (Path(p) for p in inputs if p is not None):
+        inside = whole and given.resolve().is_relative_to(out.resolve())
+        if inside or any(_same_path(given, t) for t in targets):
+            raise InputError(f"{option} {out} would overwrite the input {given}; give another output path")
+    return out
+
+
+def _same_path(a: Path, b: Path) -> bool:
+    """Whether ``a`` and ``b`` name one file or folder (links followed), existing or not."""
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return a.resolve() == b.resolve()
 
 
 def parse_vector(text: str, name: str) -> np.ndarray:
@@ -90,6 +121,48 @@ def parse_orientation(text: str):
 
 #: Largest tidal volume the commands accept, mL: above any vital capacity (a typo, e.g. a volume in µL).
 MAX_TIDAL_ML = 10000.0
+#: Largest volume of both lungs the commands accept, mL: above any total lung capacity.
+MAX_LUNGS_ML = 20000.0
+
+
+def check_number(value: float | None, option: str, lo: float, hi: float, unit: str = "", *,
+                 low_open: bool = False, high_open: bool = False) -> float | None:
+    """``value`` when it is a finite number in the range from ``lo`` to ``hi`` (open at an end with
+    ``low_open`` / ``high_open``); None passes. Otherwise :class:`InputError` naming ``option``, the
+    range and the value."""
+    if value is None:
+        return None
+    v = float(value)
+    inside = (lo < v if low_open else lo <= v) and (v < hi if high_open else v <= hi)
+    if not (math.isfinite(v) and inside):
+        span = f"{'(' if low_open else '['}{lo:g}, {hi:g}{')' if high_open else ']'}{' ' + unit if unit else ''}"
+        raise InputError(f"{option} must be a finite number in {span}, got {value:g}")
+    return value
+
+
+def bounded(lo: float, hi: float, unit: str = "", *, low_open: bool = False, high_open: bool = False):
+    """A typer ``callback=`` for a float option: :func:`check_number` with the option's own name, run
+    as the command line is parsed, before any work. Every float option of the CLI has one
+    (tests/cli/test_common.py checks)."""
+
+    def check(param: typer.CallbackParam, value: float | None) -> float | None:
+        return check_number(value, _long_name(param), lo, hi, unit, low_open=low_open, high_open=high_open)
+
+    check.bounds = (lo, hi)
+    return check
+
+
+def _long_name(param) -> str:
+    return max(param.opts, key=len)
+
+
+def tidal_option(param: typer.CallbackParam, value: float | None) -> float | None:
+    """The ``callback=`` of a tidal-volume option: :func:`check_tidal_ml` with the option's name."""
+    check_tidal_ml(value, _long_name(param))
+    return value
+
+
+tidal_option.bounds = (0.0, MAX_TIDAL_ML)
 
 
 def check_tidal_ml(value: float | None, option: str = "--tidal-ml") -> None:

@@ -9,7 +9,7 @@ import typer
 from lungdeform.errors import InputError
 from lungdeform.playback.demo import run_demo
 
-from .common import CONSTANTS_HELP, check_tidal_ml, parse_orientation, say
+from .common import CONSTANTS_HELP, check_number, check_tidal_ml, parse_orientation, say, tidal_option
 
 #: Longest playback the demo writes (s): its ParaView series is 20 files (~2.7 MB) per second.
 MAX_DURATION_S = 300.0
@@ -20,18 +20,14 @@ def register(apps) -> None:
     def demo(
         out: Path = typer.Option(Path("demo-out"), "--out", "-o", help="Output folder."),
         preset: str = typer.Option("normal", "--preset", help="Breathing preset of the PV model (lungdeform.breathing.presets, as in 'lungdeform breathe --preset'); an unknown name lists them."),
-        duration_s: float | None = typer.Option(None, "--duration", help="Length played (s); default one breath of the preset."),
-        tidal_ml: float | None = typer.Option(None, "--tidal-ml", help="Tidal volume, both lungs (mL); default the preset's."),
+        duration_s: float | None = typer.Option(None, "--duration", callback=_duration_option, help="Length played (s); default one breath of the preset."),
+        tidal_ml: float | None = typer.Option(None, "--tidal-ml", callback=tidal_option, help="Tidal volume, both lungs (mL); default the preset's."),
         orientation: str = typer.Option("supine", "--orientation", help="supine, prone, upright, left-decubitus, right-decubitus or 'x,y,z'."),
         constants: str = typer.Option("population", "--constants", help=CONSTANTS_HELP),
     ):
         """Build both embedded lungs (population default, supine) and play one breath of a PV-model preset."""
 
         check_tidal_ml(tidal_ml)
-        if duration_s is not None and not duration_s <= MAX_DURATION_S:  # also NaN
-            raise InputError(f"--duration must be at most {MAX_DURATION_S:g} s, got {duration_s:g}: the demo writes "
-                             "20 mesh files per second of playback; for long playback use 'lungdeform export "
-                             "--format glb --preset NAME --cycles N' (one file)")
         gravity = parse_orientation(orientation)
         r = run_demo(out, preset=preset, duration_s=duration_s, tidal_ml=tidal_ml,
                      orientation=gravity, constants=constants, progress=say)
@@ -48,3 +44,15 @@ def register(apps) -> None:
         typer.echo(f"time series: {r.series}")
         typer.echo(f"summary:     {r.summary}")
         typer.echo(f"snapshot:    {r.snapshot}")
+
+
+def _duration_option(value: float | None) -> float | None:
+    """The ``callback=`` of ``--duration``: a finite length in (0, :data:`MAX_DURATION_S`] s."""
+    if value is not None and value > MAX_DURATION_S:
+        raise InputError(f"--duration must be at most {MAX_DURATION_S:g} s, got {value:g}: the demo writes "
+                         "20 mesh files per second of playback; for long playback use 'lungdeform export "
+                         "--format glb --preset NAME --cycles N' (one file)")
+    return check_number(value, "--duration", 0, MAX_DURATION_S, "s", low_open=True)
+
+
+_duration_option.bounds = (0.0, MAX_DURATION_S)

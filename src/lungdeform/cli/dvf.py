@@ -6,13 +6,12 @@ from pathlib import Path
 
 import typer
 
-from lungdeform.errors import InputError
 from lungdeform.io.image import read_image, write_image, write_suffix
 from lungdeform.io.modelfile import load_model
 from lungdeform.playback import dvf as D
 from lungdeform.playback.trajectory import extrapolation_note
 
-from .common import field_lines, pick_state, say
+from .common import MAX_LUNGS_ML, bounded, check_output, field_lines, pick_state, say
 
 
 def register(apps) -> None:
@@ -21,10 +20,10 @@ def register(apps) -> None:
         model: Path = typer.Argument(..., help="Model file (.npz) written by fit, build or demo."),
         reference: Path = typer.Option(..., "--reference", help="Image whose grid (origin, spacing, direction) the field takes: the end-exhale scan."),
         out: Path = typer.Option(..., "--out", help="Field image: .mha, .nii.gz, .nii or .nrrd (3 float32 components, mm LPS)."),
-        volume_ml: float | None = typer.Option(None, "--volume-ml", help="Absolute volume of the model's lungs together (mL)."),
+        volume_ml: float | None = typer.Option(None, "--volume-ml", callback=bounded(0, MAX_LUNGS_ML, "mL", low_open=True), help="Absolute volume of the model's lungs together (mL)."),
         scan: int | None = typer.Option(None, "--scan", help="Input scan K of the fit (0 = rest): its volume, in its own frame."),
         inverse: bool = typer.Option(False, "--inverse", help="Write the resampling field (ITK/elastix convention) instead of the forward one."),
-        node_mm: float = typer.Option(D.NODE_SPACING_MM, "--node-mm", help="Lattice spacing (mm) at which the interior field is evaluated."),
+        node_mm: float = typer.Option(D.NODE_SPACING_MM, "--node-mm", callback=bounded(0, D.MAX_NODE_MM, "mm", low_open=True), help="Lattice spacing (mm) at which the interior field is evaluated."),
     ) -> None:
         """Displacement field of the model at a breathing state (docs/RADIOTHERAPY.md).
 
@@ -32,8 +31,7 @@ def register(apps) -> None:
         track' moves it. --inverse: for each point y at that state, y + w(y) in the reference."""
 
         write_suffix(out)
-        if not node_mm > 0:
-            raise InputError(f"--node-mm must be > 0, got {node_mm}")
+        check_output(out, [model, reference])
         m = load_model(model)
         state = pick_state(m, volume_ml, scan)
         image = read_image(reference)

@@ -14,7 +14,7 @@ from lungdeform.playback import markers as M
 from lungdeform.playback import schedule as S
 from lungdeform.playback.trajectory import read_markers_csv
 
-from .common import check_cycles, check_tidal_ml, read_curve
+from .common import bounded, check_cycles, check_output, check_tidal_ml, read_curve, tidal_option
 
 
 def register(apps) -> None:
@@ -27,9 +27,9 @@ def register(apps) -> None:
         preset: str | None = typer.Option(None, "--preset", help="Breathing preset of the PV model, simulated: normal, deep, copd, restrictive, dyspnoea or pneumothorax (not with --curve)."),
         cycles: int | None = typer.Option(None, "--cycles", help="With --preset: whole breaths played (default 1)."),
         markers: Path | None = typer.Option(None, "--markers", help="Markers CSV: x_mm,y_mm,z_mm[,label] (LPS, end-exhale); they move with the lung's interior field; glb only."),
-        tidal_ml: float | None = typer.Option(None, "--tidal-ml", help="Tidal volume, both lungs (mL): of the plain cycle (default 500), or the --preset rescaled to it (same shape; default the preset's)."),
-        period_s: float | None = typer.Option(None, "--period", help="Plain cycle only (no --curve, no --preset): period (s), default 4."),
-        fps: float = typer.Option(10.0, "--fps", help="pvd only: frames per second of the time series."),
+        tidal_ml: float | None = typer.Option(None, "--tidal-ml", callback=tidal_option, help="Tidal volume, both lungs (mL): of the plain cycle (default 500), or the --preset rescaled to it (same shape; default the preset's)."),
+        period_s: float | None = typer.Option(None, "--period", callback=bounded(0, 60, "s", low_open=True), help="Plain cycle only (no --curve, no --preset): period (s), default 4."),
+        fps: float = typer.Option(10.0, "--fps", callback=bounded(0, 1000, "Hz", low_open=True), help="pvd only: frames per second of the time series."),
     ) -> None:
         """Export MODEL for engines (glb: one mesh, morph targets, breathing animation) or ParaView (pvd)."""
 
@@ -38,6 +38,10 @@ def register(apps) -> None:
             raise InputError(f"--format must be glb or pvd, got {fmt!r}")
         if markers is not None and kind != "glb":
             raise InputError("--markers applies to --format glb only")
+        if out.is_dir():  # an existing folder: the file goes inside it, named after the model
+            out = out / f"{Path(model).stem}.{kind}"
+        out_path = out if out.suffix.lower() == f".{kind}" else out.with_name(f"{out.name}.{kind}")
+        check_output(out_path, [model, curve, markers])
         if curve is not None and preset is not None:
             raise InputError("--curve and --preset are mutually exclusive: give one breathing curve")
         if curve is not None and (tidal_ml, period_s, cycles) != (None, None, None):
@@ -63,10 +67,7 @@ def register(apps) -> None:
         typer.echo(f"curve: {trace.source}, {trace.t_s[-1]:.2f} s, {len(trace.t_s)} samples, "
                    f"ΔV {trace.volume_ml.min():.0f}…{trace.volume_ml.max():.0f} mL split "
                    + ", ".join(f"{k} {v:.2f}" for k, v in shares.items()))
-        if out.is_dir():  # an existing folder: the file goes inside it, named after the model
-            out = out / f"{Path(model).stem}.{kind}"
         if kind == "glb":
-            out_path = out if out.suffix.lower() == ".glb" else out.with_name(out.name + ".glb")
             anchors = None
             if markers is not None:
                 pts, labels = read_markers_csv(markers)
@@ -80,7 +81,6 @@ def register(apps) -> None:
                        f"{sum(l.n_vertices for l in m.lungs.values())} vertices, 5 morph targets per lung, "
                        "animation 'breathing')")
         else:
-            out_path = out if out.suffix.lower() == ".pvd" else out.with_name(out.name + ".pvd")
             E.export_pvd(m, out_path, trace, fps=fps)
             frames = out_path.parent / f"{out_path.stem}_frames"
             size = sum(f.stat().st_size for f in frames.iterdir())

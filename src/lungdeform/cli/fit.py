@@ -20,12 +20,16 @@ from .common import (
     DIRECTION_DEGREE_HELP,
     FIT_OPTIONS,
     SIDE_CHECK_HELP,
+    bounded,
+    check_output,
     option_names,
-    output_dir,
     print_fit_table,
     print_fit_warnings,
     say,
 )
+
+#: The files fit writes in ``--out``.
+FIT_FILES = ("model.npz", "metrics.json", "report.html", "landmarks.npz")
 
 
 def register(apps) -> None:
@@ -57,7 +61,7 @@ def register(apps) -> None:
         motion_prior: Path | None = typer.Option(None, "--motion-prior",
                                                  help="A population motion prior (JSON, e.g. the motion_prior.json "
                                                       "of validate copd) folded into the correspondence field."),
-        refine_mm: float = typer.Option(5.0, "--refine-mm",
+        refine_mm: float = typer.Option(5.0, "--refine-mm", callback=bounded(0, 100, "mm"),
                                         help="Finest smoothing width (mm) of the surface refinement, which brings "
                                              "the fitted displacement onto the target surfaces (docs/FITTING.md); "
                                              "0: none (the fitted k·F·d only)."),
@@ -78,7 +82,8 @@ def register(apps) -> None:
                                refine_mm=refine_mm)
             prior = None if motion_prior is None else load_prior(motion_prior)
             check_prior(config, prior)
-            folder = output_dir(out)
+            # created by run_fit once the inputs are read: a bad input leaves no folder
+            folder = check_output(out, [*inputs, *(landmarks or []), motion_prior], folder=True, writes=FIT_FILES)
             m = run_fit(fit_inputs, folder, config, progress=say, prior=prior)
         for text in m.get("notes") or []:
             typer.echo(f"note: {text}")

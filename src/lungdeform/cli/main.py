@@ -6,13 +6,17 @@ name to :data:`COMMAND_MODULES` to make its commands appear.
 
 Exit codes: 0 success; 1 an unexpected internal error (traceback shown); 2 bad input or a
 failed check (one line on stderr naming the file and the problem); 3 a validation target not met
-(``validate itk-pair`` / ``validate breathing`` with ``--strict``); 130 interrupted.
+(``validate itk-pair`` / ``validate breathing`` with ``--strict``); 130 interrupted (Ctrl-C);
+143 terminated (SIGTERM, which unwinds as Ctrl-C does: every writer removes its partial output).
 """
 
 from __future__ import annotations
 
 import importlib
+import signal
 import sys
+import threading
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import typer
@@ -101,11 +105,18 @@ def main(argv: list[str] | None = None) -> int:
     app = make_app()
     try:
         # standalone mode: typer itself reports usage errors (exit 2) and Ctrl-C
-        app(args=argv, prog_name="lungdeform")
+        with sigterm_interrupts() as signalled:
+            app(args=argv, prog_name="lungdeform")
     except SystemExit as exc:
         if exc.code is None:
             return 0
+        if signalled:  # typer turns the KeyboardInterrupt into exit 130 without a word
+            typer.echo("terminated", err=True)
+            return 143
         return exc.code if isinstance(exc.code, int) else 1
+    except Terminated:
+        typer.echo("terminated", err=True)
+        return 143
     except KeyboardInterrupt:
         typer.echo("interrupted", err=True)
         return 130
@@ -117,6 +128,32 @@ def main(argv: list[str] | None = None) -> int:
         typer.echo(f"error: {where}{exc.strerror or exc}", err=True)
         return 2
     return 0
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the process is, so that it unwinds as Ctrl-C does (partial outputs removed)."""
+
+
+@contextmanager
+def sigterm_interrupts():
+    """While the command runs, SIGTERM raises :class:`Terminated` (a KeyboardInterrupt) instead of
+    killing the process outright; the previous handler is put back after. Only in the main thread
+    (where Python delivers signals); elsewhere nothing changes."""
+    signalled: list[int] = []  # yielded: holds the signal once it came
+    if threading.current_thread() is not threading.main_thread():
+        yield signalled
+        return
+
+    def handler(signum, frame):
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a second SIGTERM does not cut the clean-up short
+        signalled.append(signum)
+        raise Terminated()
+
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield signalled
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def _one_line(exc: BaseException) -> str:

@@ -16,7 +16,7 @@ from lungdeform.fit import segment as S
 from lungdeform.io.mask import extract_surface
 from lungdeform.io.meshfile import write_mesh
 
-from .common import output_dir, say
+from .common import check_output, output_dir, say
 
 MASK_FORMATS = ("nii.gz", "mha")
 
@@ -39,6 +39,8 @@ def register(apps) -> None:
             raise InputError(f"--format must be one of {', '.join(MASK_FORMATS)}, got {fmt!r}")
         if downsample < 1:
             raise InputError(f"--downsample must be ≥ 1, got {downsample}")
+        check_output(out, [ct], folder=True, writes=[*(f"{s}_lung.{fmt}" for s in ("left", "right")),
+                                                      "left_lung.stl", "right_lung.stl", "overlay.png", "volumes.json"])
         t0 = time.perf_counter()
         image = L.read_ct_or_mask(ct)  # a binary mask holding both lungs is split, not segmented
         t_read = time.perf_counter() - t0

@@ -14,18 +14,25 @@ from pathlib import Path
 
 import typer
 
-from lungdeform.breathing.stream import StreamingVolumeEstimator, stream_lines
+from lungdeform.breathing.stream import MAX_PREDICT_MS, StreamingVolumeEstimator, stream_lines
 from lungdeform.breathing.trace import read_trace
+from lungdeform.errors import InputError
+
+from .common import MAX_LUNGS_ML, bounded, tidal_option
 
 
 def register(apps) -> None:
     @apps.root.command("stream")
     def stream(
         source: str = typer.Argument("-", help="A trace file to replay, or - to read 't_s,amplitude' lines from stdin."),
-        predict_ms: float = typer.Option(0.0, "--predict-ms", help="Play the volume predicted this many ms ahead."),
-        tidal_volume_ml: float = typer.Option(500.0, "--tidal-volume-ml", help="Volume of one breath (mL)."),
-        v_ee_ml: float = typer.Option(2400.0, "--v-ee-ml", help="End-exhale lung volume (mL)."),
-        window_s: float = typer.Option(10.0, "--window-s", help="Calibration window (s): two or more breaths."),
+        predict_ms: float = typer.Option(0.0, "--predict-ms", callback=bounded(0, MAX_PREDICT_MS, "ms"),
+                                         help=f"Play the volume predicted this many ms ahead (0-{MAX_PREDICT_MS:g})."),
+        tidal_volume_ml: float = typer.Option(500.0, "--tidal-volume-ml", callback=tidal_option,
+                                              help="Volume of one breath (mL)."),
+        v_ee_ml: float = typer.Option(2400.0, "--v-ee-ml", callback=bounded(0, MAX_LUNGS_ML, "mL"),
+                                      help="End-exhale lung volume (mL); 0: volumes above end-exhale."),
+        window_s: float = typer.Option(10.0, "--window-s", callback=bounded(0, 3600, "s", low_open=True),
+                                       help="Calibration window (s): two or more breaths."),
     ):
         """Volume per sample from a live breathing signal (stdin) or a recorded trace, optionally predicted ahead."""
 
@@ -34,9 +41,23 @@ def register(apps) -> None:
         if source == "-":
             samples = stream_lines(sys.stdin, est)
         else:
-            tr = read_trace(Path(source))
-            samples = (est.update(t, x) for t, x in zip(tr.t_s, tr.amplitude))
+            samples = _replay(Path(source), est)
         typer.echo("t_s,volume_ml,ahead_s")
         for s in samples:
             typer.echo(f"{s.t_s:.6g},{s.volume_ml:.3f},{s.ahead_s:g}")
             sys.stdout.flush()
+
+
+def _replay(path: Path, est: StreamingVolumeEstimator):
+    """The estimates of a recorded trace, one per sample (the file is read at once, before any line
+    is printed); a sample the estimator refuses is named by its number in ``path``."""
+    tr = read_trace(path)
+
+    def estimates():
+        for i, (t, x) in enumerate(zip(tr.t_s, tr.amplitude), 1):
+            try:
+                yield est.update(t, x)
+            except InputError as exc:
+                raise InputError(f"{path} sample {i}: {exc}") from None
+
+    return estimates()

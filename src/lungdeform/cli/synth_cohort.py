@@ -14,7 +14,7 @@ import typer
 from lungdeform.cohort.synthetic import synthetic_cohort, write_cohort
 from lungdeform.errors import InputError
 
-from .common import output_dir, say
+from .common import bounded, output_dir, say
 
 
 def _floats(text: str, option: str) -> list[float]:
@@ -32,14 +32,14 @@ def register(apps) -> None:
     def synth_cohort_command(
         out: Path = typer.Option(..., "--out", help="Output folder: surfaces/, landmarks/, truth/, manifest.csv, truth.json."),
         subjects: int = typer.Option(4, "--subjects", help="Number of subjects (one left and one right lung each)."),
-        noise_mm: float = typer.Option(0.0, "--noise-mm", help="SD of Gaussian noise along the vertex normal of the larger-volume surfaces, mm."),
+        noise_mm: float = typer.Option(0.0, "--noise-mm", callback=bounded(0, 50, "mm"), help="SD of Gaussian noise along the vertex normal of the larger-volume surfaces, mm."),
         seed: int = typer.Option(0, "--seed", help="Seed of every random draw (constants, shape scale, noise, landmarks)."),
         volumes: str = typer.Option("300,500", "--volumes", help="Volume changes above end-exhale, mL, increasing, comma-separated."),
         law: str = typer.Option("exact", "--law", help="'exact': each surface encloses exactly V_EE + ΔV; 'linear': p + (ΔV/ΔV1)·u, the fit's playback."),
-        spread: float = typer.Option(0.2, "--spread", help="Log-normal SD of c1…c6 around Table I."),
-        shape_spread: float = typer.Option(0.1, "--shape-spread", help="Anisotropic scale of each shape, uniform in 1 ± this, per axis."),
+        spread: float = typer.Option(0.2, "--spread", callback=bounded(0, 2), help="Log-normal SD of c1…c6 around Table I."),
+        shape_spread: float = typer.Option(0.1, "--shape-spread", callback=bounded(0, 0.9), help="Anisotropic scale of each shape, uniform in 1 ± this, per axis."),
         landmarks: int = typer.Option(50, "--landmarks", help="Surface landmarks per lung at their true positions (0: none)."),
-        table_shift_mm: float = typer.Option(0.0, "--table-shift-mm", help="SD per axis of a known random translation of each larger-volume scan, mm (tests --align joint)."),
+        table_shift_mm: float = typer.Option(0.0, "--table-shift-mm", callback=bounded(0, 200, "mm"), help="SD per axis of a known random translation of each larger-volume scan, mm (tests --align joint)."),
     ) -> None:
         """Generate a synthetic cohort with known constants, volumes and noise (truth.json)."""
 

@@ -24,7 +24,6 @@ from lungdeform.playback import trajectory as T
 
 from .common import check_cycles, check_tidal_ml, output_dir, read_curve
 
-
 #: Bounds on the schedule: frames per second, preset cycles, and points × frames (rows of trajectories.csv)
 MAX_FPS = 1000.0
 MAX_CYCLES = 100

@@ -16,12 +16,16 @@ from lungdeform.validate.copd import (
     TABLE_ROWS,
     copd_config,
     find_cases,
+    incomplete_cases,
     parse_cases,
     run_copd,
     write_cohort_manifest,
 )
 
-from .common import FIT_OPTIONS, option_names, output_dir, say
+from .common import FIT_OPTIONS, check_output, option_names, output_dir, say
+
+#: The files validate copd writes in ``--out`` (beside a folder per case).
+COPD_FILES = ("metrics.json", "report.html", "manifest.csv")
 
 
 def _fmt(v) -> str:
@@ -61,8 +65,12 @@ def register(apps) -> None:
         with option_names({**FIT_OPTIONS, "cases": "--cases"}):
             config = copd_config(evaluations)
             wanted = parse_cases(cases)
+            check_output(out, [data], folder=True, writes=COPD_FILES)
+            found = find_cases(data, wanted)  # a bad data folder leaves no output folder
+            for name, missing in incomplete_cases(data, wanted).items():
+                typer.echo(f"warning: {data}: {name} skipped: it lacks {', '.join(missing)}", err=True)
             if manifest_only:
-                _write_manifest(data, out, wanted, evaluations)
+                _write_manifest(found, out, evaluations)
                 return
             folder = output_dir(out)
             result = run_copd(data, folder, config, wanted, progress=say)
@@ -72,9 +80,9 @@ def register(apps) -> None:
         typer.echo(f"wrote {folder / 'metrics.json'}, {folder / 'report.html'}")
 
 
-def _write_manifest(data: Path, out: Path, wanted, evaluations: int) -> None:
-    """``--manifest-only``: OUT/manifest.csv for ``lungdeform cohort``, and the command that fits it."""
-    found = find_cases(data, wanted)  # a bad data folder leaves no output folder
+def _write_manifest(found, out: Path, evaluations: int) -> None:
+    """``--manifest-only``: OUT/manifest.csv for ``lungdeform cohort`` of the cases ``found``
+    (:func:`lungdeform.validate.copd.find_cases`), and the command that fits it."""
     path = write_cohort_manifest(found, output_dir(out) / "manifest.csv")
     budget = [] if evaluations == 300 else ["--evaluations", str(evaluations)]
     command = ["lungdeform", "cohort", str(path), "--out", str(Path(out) / "cohort"), *COHORT_OPTIONS, *budget]

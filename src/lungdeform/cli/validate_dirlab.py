@@ -10,7 +10,7 @@ from lungdeform.errors import InputError
 from lungdeform.validate.dirlab import MODELS, default_models
 from lungdeform.validate.dirlab_experiment import DirlabRun, run_dirlab, write_metrics
 
-from .common import output_dir
+from .common import check_output, output_dir
 
 
 def register(apps) -> None:
@@ -27,6 +27,7 @@ def register(apps) -> None:
         ),
     ) -> None:
         """Predict T10–T40 landmarks from T00/T50 with one scalar per phase, and richer real-time models."""
+        check_output(out, [data], folder=True)
 
 
         if folds < 2:

@@ -17,6 +17,7 @@ from .common import (
     DIRECTION_DEGREE_HELP,
     FIT_OPTIONS,
     STRICT_EXIT,
+    check_output,
     option_names,
     output_dir,
     print_fit_table,
@@ -40,6 +41,7 @@ def register(apps) -> None:
         strict: bool = typer.Option(False, "--strict", help="Exit with code 3 when a target is not met (for CI)."),
     ) -> None:
         """Fit the model to the ITK right lung (3.36 → 3.97 L) and compare with baselines."""
+        check_output(out, [data], folder=True)
 
         files = find_pair(data)
         with option_names(FIT_OPTIONS):

@@ -12,6 +12,8 @@ from lungdeform.atomic import write_text
 from lungdeform.errors import InputError
 from lungdeform.validate import paper as P
 
+from .common import bounded
+
 
 def register(apps) -> None:
     @apps.validate.command("paper")
@@ -19,8 +21,8 @@ def register(apps) -> None:
         out: Path = typer.Option(..., "--out", help="Output folder: metrics.json and the PNG figures go there."),
         grid: int = typer.Option(41, "--grid", help="Planar mesh vertices per side (Figs. 7–8)."),
         rings: int = typer.Option(12, "--rings", help="Rings of the circular mesh (Fig. 9)."),
-        spacing: float = typer.Option(3.0, "--spacing", help="Mesh spacing, mm."),
-        tol: float = typer.Option(1e-6, "--tol", help="Relative residual that counts as converged (Fig. 7)."),
+        spacing: float = typer.Option(3.0, "--spacing", callback=bounded(0, 100, "mm", low_open=True), help="Mesh spacing, mm."),
+        tol: float = typer.Option(1e-6, "--tol", callback=bounded(0, 1, low_open=True, high_open=True), help="Relative residual that counts as converged (Fig. 7)."),
     ) -> None:
         """Transfer model vs a mass–spring–damper run to rest; variable-E disc; convergence curves."""
 
@@ -32,10 +34,6 @@ def register(apps) -> None:
             raise InputError(f"--grid must be ≥ 3 vertices per side, got {grid}")
         if rings < 2:
             raise InputError(f"--rings must be ≥ 2, got {rings}")
-        if not (spacing > 0):
-            raise InputError(f"--spacing must be > 0 mm, got {spacing}")
-        if not (0 < tol < 1):
-            raise InputError(f"--tol must be in (0, 1), got {tol}")
         out.mkdir(parents=True, exist_ok=True)
 
         t0 = time.perf_counter()

@@ -12,7 +12,7 @@ import typer
 from lungdeform.errors import InputError
 from lungdeform.validate.prediction import HORIZONS_MS, TARGET_QUIET_HORIZON_MS, validate_prediction
 
-from .common import STRICT_EXIT, figure_or_na, say
+from .common import STRICT_EXIT, check_output, figure_or_na, say
 
 
 def _horizons(text: str) -> list[float]:
@@ -32,6 +32,7 @@ def register(apps) -> None:
         strict: bool = typer.Option(False, "--strict", help="Exit with code 3 when a target is not met (for CI)."),
     ):
         """Predict each trace 100–500 ms ahead, causally; RMS against no prediction and a linear autoregression."""
+        check_output(out, [data], folder=True)
 
         m = validate_prediction(data, out, _horizons(horizons), progress=say)
         for name, err in m["errors"].items():

@@ -12,8 +12,11 @@ from pathlib import Path
 
 import typer
 
+from lungdeform.breathing.stream import MAX_PREDICT_MS
 from lungdeform.playback.server import ViewerServer, model_glb
 from lungdeform.playback.tracefeed import LiveFeed, check_view_options, live_json, view_trace_json
+
+from .common import bounded
 
 
 def register(apps) -> None:
@@ -26,8 +29,9 @@ def register(apps) -> None:
         markers: Path | None = typer.Option(None, "--markers", help="Markers CSV (x_mm,y_mm,z_mm[,label]) for a model file."),
         trace: Path | None = typer.Option(None, "--trace", help="Breathing trace to play (.vxp or marker .csv) "
                                           "through the streaming volume estimator, or - for live 't_s,amplitude' lines on stdin."),
-        predict_ms: float = typer.Option(0.0, "--predict-ms", help="With --trace: show the volume predicted "
-                                         "this many ms ahead (0-2000), compensating that display latency."),
+        predict_ms: float = typer.Option(0.0, "--predict-ms", callback=bounded(0, MAX_PREDICT_MS, "ms"),
+                                         help="With --trace: show the volume predicted this many ms ahead "
+                                              f"(0-{MAX_PREDICT_MS:g}), compensating that display latency."),
         open_browser: bool = typer.Option(False, "--open", help="Open the default web browser."),
     ) -> None:
         """Show both lungs breathing in the browser (three.js, deformation on the GPU, WebXR)."""
@@ -38,7 +42,8 @@ def register(apps) -> None:
         feed = live_json(live) if live is not None else view_trace_json(model, trace, curve, predict_ms)
         glb = model_glb(model, curve, markers)
         # /presets.json: lungdeform.breathing.presets; /trace.json: the trace; /live: the live feed
-        server = ViewerServer(glb, host=host, port=port, trace=feed, live=live)
+        server = ViewerServer(glb, host=host, port=port, trace=feed, live=live,
+                              errors=lambda line: typer.echo(line, err=True))
         try:
             exposed = not ipaddress.ip_address(host).is_loopback
         except ValueError:

@@ -2,20 +2,19 @@
 
 from __future__ import annotations
 
-from contextlib import nullcontext
 from pathlib import Path
 
 import typer
 
-from lungdeform.atomic import atomic_dir
+from lungdeform.atomic import atomic_dir, atomic_paths
 from lungdeform.errors import InputError
 from lungdeform.io import dicomseries as DS
-from lungdeform.io.image import read_image, resample_image, write_image, write_suffix
+from lungdeform.io.image import WRITE_SUFFIXES, read_image, resample_image, write_image, write_suffix
 from lungdeform.io.modelfile import load_model
 from lungdeform.playback import dvf as D
 from lungdeform.playback.trajectory import extrapolation_note
 
-from .common import field_lines, pick_state, read_curve, say
+from .common import MAX_LUNGS_ML, bounded, check_output, field_lines, pick_state, read_curve, say
 
 
 def phase_path(out: Path, index: int) -> Path:
@@ -30,30 +29,36 @@ def register(apps) -> None:
         image: Path = typer.Argument(..., help="Image in the model's frame (the end-exhale scan or its mask)."),
         model: Path = typer.Argument(..., help="Model file (.npz) written by fit, build or demo."),
         out: Path = typer.Option(..., "--out", help="Output image (.mha, .nii.gz, .nii, .nrrd); with --phases: OUT_phase00 …. A folder (a name without suffix): DICOM CT series, with --phases one per phase in OUT/phase00 … OUT/phase90."),
-        volume_ml: float | None = typer.Option(None, "--volume-ml", help="Absolute volume of the model's lungs together (mL)."),
+        volume_ml: float | None = typer.Option(None, "--volume-ml", callback=bounded(0, MAX_LUNGS_ML, "mL", low_open=True), help="Absolute volume of the model's lungs together (mL)."),
         scan: int | None = typer.Option(None, "--scan", help="Input scan K of the fit (0 = rest): its volume, in its own frame."),
         curve: Path | None = typer.Option(None, "--curve", help="Breathing curve CSV (t_s, volume_ml, …); with --phases."),
         phases: int | None = typer.Option(None, "--phases", help="With --curve: this many images evenly over one breathing cycle."),
         label: bool = typer.Option(False, "--label", help="A label image: nearest-neighbour, values kept."),
-        node_mm: float = typer.Option(D.NODE_SPACING_MM, "--node-mm", help="Lattice spacing (mm) of the interior field."),
+        node_mm: float = typer.Option(D.NODE_SPACING_MM, "--node-mm", callback=bounded(0, D.MAX_NODE_MM, "mm", low_open=True), help="Lattice spacing (mm) of the interior field."),
     ) -> None:
         """Resample IMAGE at a breathing state of MODEL on IMAGE's own grid (docs/RADIOTHERAPY.md)."""
 
+        inputs = [image, model, curve]
+        if out.is_dir() and any(out.name.lower().endswith(x) for x in WRITE_SUFFIXES):
+            check_output(out)  # an existing folder named like an image file: refused
         dicom = DS.is_series_output(out)
         DS.check_series_output(out) if dicom else write_suffix(out)
+        check_output(out, inputs, folder=dicom, whole=dicom)
         if dicom and label:
             raise InputError(f"--out {out}: a label image is not written as a DICOM CT series; use .mha, .nii.gz or .nrrd")
         if (curve is None) != (phases is None):
             raise InputError("--curve and --phases go together")
+        if phases is not None:
+            D.check_phases(phases)
         if curve is not None and (volume_ml is not None or scan is not None):
             raise InputError("--curve with --volume-ml or --scan: give one breathing state or one curve")
-        if not node_mm > 0:
-            raise InputError(f"--node-mm must be > 0, got {node_mm}")
         m = load_model(model)
         if curve is not None:
             states, period = D.phase_states(read_curve(curve, m), phases)
             typer.echo(f"{len(states)} phase(s) over a cycle of {period:.2f} s of {curve}")
             paths = [Path(DS.phase_folder(i, len(states))) if dicom else phase_path(out, i) for i in range(len(states))]
+            for path in [] if dicom else paths:
+                check_output(path, inputs)
         else:
             states, paths = [pick_state(m, volume_ml, scan)], [Path() if dicom else out]
         img = read_image(image)
@@ -61,7 +66,8 @@ def register(apps) -> None:
         note = extrapolation_note(m, [s.delta_ml for s in states])
         if note:
             typer.echo(f"note: {note}")
-        with atomic_dir(out) if dicom else nullcontext() as tmp:
+        # the whole set or nothing: a DICOM folder renamed at the end, image files renamed together
+        with atomic_dir(out) if dicom else atomic_paths(paths, [write_suffix(p) for p in paths]) as tmp:
             for i, (state, path) in enumerate(zip(states, paths)):
                 say(f"resampling at {state.source}")
                 result = D.displacement_field(m, D.Grid.of(img), state.delta_ml, alignment=state.alignment,
@@ -71,7 +77,7 @@ def register(apps) -> None:
                     temporal = (i, len(states)) if curve is not None else None
                     _write_series(tmp / path, warped, header, temporal)
                 else:
-                    write_image(path, warped.array, img.spacing, img.origin, img.direction)
+                    write_image(tmp[i], warped.array, img.spacing, img.origin, img.direction)
                 typer.echo(f"{state.source}:")
                 for line in field_lines(result):
                     typer.echo(f"  {line}")

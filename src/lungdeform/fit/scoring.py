@@ -12,7 +12,6 @@ what it saw and how its landmark error was measured.
 from __future__ import annotations
 
 import time
-
 from typing import Callable
 
 import numpy as np

@@ -42,10 +42,21 @@ from lungdeform.geometry.distance import SurfaceDistance
 from lungdeform.geometry.mesh import winding_numbers
 
 from . import voxel as V
+from .schedule import MIN_VOLUME_FRACTION, lung_shares
 from .trajectory import lung_scales
 
 #: Lattice spacing (mm) at which the interior field is evaluated before trilinear interpolation.
 NODE_SPACING_MM = 4.0
+#: Largest lattice spacing (mm): wider than the smallest fade margin, the lattice misses the lungs' motion.
+MAX_NODE_MM = 20.0
+#: Most lattice nodes a field is evaluated on (about 3 GB of working memory); a state that moves the
+#: lungs so far that the fade margin needs more is refused before anything is allocated.
+MAX_LATTICE_NODES = 40_000_000
+#: Largest volume of a lung, as a multiple of its end-exhale volume (total lung capacity is about
+#: twice the functional residual capacity): a state beyond it is refused as unreachable.
+MAX_GROWTH = 3.0
+#: Most phases over one breathing cycle (``--phases`` of warp and track).
+MAX_PHASES = 100
 #: Smallest fade margin outside the lungs (mm).
 BASE_MARGIN_MM = 25.0
 #: The margin is at least this many times the largest surface displacement: the smoothstep's
@@ -213,6 +224,11 @@ def lattice_field(model, grid: Grid, scales: dict, *, spacing_mm: float = NODE_S
     if lat is None:
         raise InputError("the reference image does not overlap the model's lungs: are they in the same frame "
                          "(mm, LPS of the end-exhale scan)?")
+    nodes = int(np.prod(np.asarray(lat.dims, dtype=float)))
+    if nodes > MAX_LATTICE_NODES:
+        raise InputError(f"the field would take {nodes:.3g} lattice nodes (at most {MAX_LATTICE_NODES:.3g}): the "
+                         f"state moves the lungs so far that the fade margin is {margin:.0f} mm; give a volume "
+                         f"nearer the model's range or a coarser node spacing")
     pts = grid.world(lat.ijk())
     shape3 = tuple(int(n) for n in lat.dims[::-1])
     node_mm = grid.spacing * lat.stride
@@ -407,6 +423,8 @@ def displacement_field(model, grid: Grid, delta_ml: float, *, alignment=None, in
     (module docstring): forward ``x → A⁻¹(x + u(x))`` or, with ``inverse``, its resampling inverse.
     ``alignment`` : 4×4 rigid map, mm LPS, from the scan's frame to the model's (the fit's ``applied``
     alignment), or None. Raises :class:`FoldError` when the field folds (Jacobian ≤ 0)."""
+    if not (np.isfinite(spacing_mm) and 0 < spacing_mm <= MAX_NODE_MM):
+        raise InputError(f"node spacing must be a finite number in (0, {MAX_NODE_MM:g}] mm, got {spacing_mm:g}")
     scales = state_scales(model, delta_ml)
     a = None if alignment is None else np.asarray(alignment, float).reshape(4, 4)
     lat, u, info = lattice_field(model, grid, scales, spacing_mm=spacing_mm, base_margin_mm=base_margin_mm,
@@ -445,7 +463,15 @@ def volume_state(model, volume_ml: float) -> State:
     if not (np.isfinite(volume_ml) and volume_ml > 0):
         raise InputError(f"--volume-ml must be > 0 mL, got {volume_ml}")
     v_ee = sum(lung.volume_ee_ml for lung in model.lungs.values())
-    return State(float(volume_ml) - v_ee, None, f"volume {volume_ml:g} mL (end-exhale {v_ee:.0f} mL)")
+    delta = float(volume_ml) - v_ee
+    for side, share in lung_shares(model).items():
+        ee = model.lungs[side].volume_ee_ml
+        lung_ml = ee + share * delta
+        if not MIN_VOLUME_FRACTION * ee <= lung_ml <= MAX_GROWTH * ee:
+            raise InputError(f"--volume-ml {volume_ml:g} mL takes the {side} lung to {lung_ml:.0f} mL, outside "
+                             f"{MIN_VOLUME_FRACTION:g} to {MAX_GROWTH:g} times its end-exhale {ee:.0f} mL: no lung "
+                             f"reaches that (the model's lungs together: end-exhale {v_ee:.0f} mL)")
+    return State(delta, None, f"volume {volume_ml:g} mL (end-exhale {v_ee:.0f} mL)")
 
 
 def scan_state(model, scan: int) -> State:
@@ -472,13 +498,18 @@ def scan_state(model, scan: int) -> State:
     return State(delta, matrix, f"scan {k} of the fit ({vols[k]:.0f} mL, {delta:+.0f} mL from scan 0{moved})")
 
 
+def check_phases(phases: int) -> None:
+    """Refuse a number of phases outside 1 to :data:`MAX_PHASES` (``--phases``)."""
+    if not 1 <= int(phases) <= MAX_PHASES:
+        raise InputError(f"--phases must be 1 to {MAX_PHASES} (states over one breathing cycle), got {phases}")
+
+
 def phase_states(trace, phases: int) -> tuple[list[State], float]:
     """``phases`` states evenly over one breathing cycle of a volume ``trace``
     (:class:`~lungdeform.playback.schedule.VolumeTrace`, mL above end-exhale): from its first sample
     over one period (:func:`lungdeform.breathing.cycles.dominant_period`; the whole trace when it is
     shorter than two periods or has no clear one). Returns ``(states, period_s)``."""
-    if int(phases) < 1:
-        raise InputError(f"--phases must be >= 1, got {phases}")
+    check_phases(phases)
     t = np.asarray(trace.t_s, float)
     span = float(t[-1] - t[0])
     try:

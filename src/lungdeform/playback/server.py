@@ -27,6 +27,7 @@ import functools
 import ipaddress
 import json
 import struct
+import sys
 import threading
 from dataclasses import dataclass
 from http import HTTPStatus
@@ -180,18 +181,38 @@ class _Handler(BaseHTTPRequestHandler):
             log(f"{self.address_string()} {fmt % args}")
 
 
+class _Server(ThreadingHTTPServer):
+    """The HTTP server: a request that fails is one line to the owner's ``errors`` (a client that
+    went away mid-request, reset or broken pipe, is routine: a closed tab, a reload), never
+    socketserver's traceback on stderr."""
+
+    def handle_error(self, request, client_address) -> None:
+        exc = sys.exc_info()[1]
+        where = f"{client_address[0]}:{client_address[1]}" if isinstance(client_address, tuple) else str(client_address)
+        if isinstance(exc, (ConnectionError, TimeoutError)):
+            line = f"viewer: {where}: the client closed the connection ({exc.strerror or type(exc).__name__})"
+        else:
+            line = f"viewer: {where}: the request failed: {type(exc).__name__}: {exc}"
+        errors = self.owner.errors  # type: ignore[attr-defined]
+        if errors is not None:
+            errors(line)
+
+
 class ViewerServer:
     """Serve the viewer and one model. ``port=0`` picks a free port; :attr:`url` says where.
     ``presets``: the bytes of ``/presets.json`` (default :func:`presets_json`); ``trace``: the bytes of
     ``/trace.json`` (default: no trace, :func:`lungdeform.playback.tracefeed.trace_json`); ``live``: a
-    :class:`~lungdeform.playback.tracefeed.LiveFeed` served as ``/live``.
+    :class:`~lungdeform.playback.tracefeed.LiveFeed` served as ``/live``. ``log``: called with a line
+    per request; ``errors``: with a line per request that failed (a client that reset the
+    connection, …); None: not reported.
 
     Use as a context manager (serves from a background thread) or call :meth:`serve_forever`.
     """
 
     def __init__(self, glb: bytes, *, host: str = DEFAULT_HOST, port: int = 0,
                  presets: bytes | None = None, bundle: Path | None = None, trace: bytes | None = None,
-                 live: LiveFeed | None = None, log: Callable[[str], None] | None = None):
+                 live: LiveFeed | None = None, log: Callable[[str], None] | None = None,
+                 errors: Callable[[str], None] | None = None):
         if not 0 <= int(port) <= 65535:
             raise InputError(f"port must be 0..65535, got {port}")
         self.routes = bundle_routes(bundle)
@@ -203,8 +224,9 @@ class ViewerServer:
         self.routes["/trace.json"] = Resource(trace_json() if trace is None else bytes(trace), CONTENT_TYPES[".json"])
         self.live = live
         self.log = log
+        self.errors = errors
         try:
-            self._httpd = ThreadingHTTPServer((host, int(port)), _Handler)
+            self._httpd = _Server((host, int(port)), _Handler)
         except OSError as exc:  # port in use, address not on this machine, …: name the address
             where = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
             raise InputError(f"cannot serve on {where}: {exc.strerror or exc}; pass another --port "

@@ -18,12 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
-from lungdeform.breathing.stream import StreamingVolumeEstimator, parse_sample
+from lungdeform.breathing.stream import MAX_PREDICT_MS, StreamingVolumeEstimator, parse_sample
 from lungdeform.breathing.trace import read_trace
 from lungdeform.errors import InputError
 
-#: The longest latency the viewer compensates (ms): past 2 s the prediction error nears a half breath.
-VIEW_MAX_PREDICT_MS = 2000.0
+#: The longest latency the viewer compensates (ms): the estimator's, as for ``lungdeform stream``.
+VIEW_MAX_PREDICT_MS = MAX_PREDICT_MS
 TRACE_SCHEMA = "lungdeform.trace-prediction"
 TRACE_SCHEMA_VERSION = 1
 

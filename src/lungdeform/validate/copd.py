@@ -41,7 +41,7 @@ from typing import Callable
 import numpy as np
 
 from lungdeform import plot as P
-from lungdeform.atomic import write_json, write_text
+from lungdeform.atomic import atomic_dir, write_json, write_text
 from lungdeform.errors import InputError, ReadError
 from lungdeform.fit import baselines as B
 from lungdeform.fit import registration
@@ -87,6 +87,23 @@ def find_cases(data: Path, cases=None) -> dict[str, tuple[Path, ...]]:
             out[f"copd{n}"] = files
     if not out:
         raise ReadError(f"{data}: no DIR-Lab COPDgene case (copdN_exp_mask.nii.gz with its insp mask and landmarks)")
+    return out
+
+
+def incomplete_cases(data: Path, cases=None) -> dict[str, list[str]]:
+    """``{"copdN": [names of its missing files]}`` for every case with some but not all of its four
+    files in ``data`` (only those numbered in ``cases``, when given): :func:`find_cases` leaves them
+    out; the caller says so."""
+    data = Path(data)
+    if not data.is_dir():
+        return {}
+    names = (re.fullmatch(r"copd(\d+)_(exp|insp)_(mask\.nii\.gz|landmarks\.txt)", p.name) for p in data.iterdir())
+    seen = sorted({int(m.group(1)) for m in names if m})
+    out = {}
+    for n in seen if cases is None else [n for n in seen if n in {int(c) for c in cases}]:
+        missing = [f.format(n=n) for f in FILES if not (data / f.format(n=n)).is_file()]
+        if missing:
+            out[f"copd{n}"] = missing
     return out
 
 
@@ -202,16 +219,17 @@ def run_lung(files, side: str, out: Path, config: FitConfig, mask_rows=None, *,
         return done, False
     t0 = time.perf_counter()
     exp_mask, insp_mask, exp_lm, insp_lm = files
-    metrics = run_fit(FitInputs([exp_mask, insp_mask], side, landmarks=[exp_lm, insp_lm]), out, config,
-                      progress=progress)
-    metrics["seconds"] = time.perf_counter() - t0
-    if isinstance(mask_rows, dict):
-        metrics["mask_baselines"] = mask_rows
-    else:  # computed after the fit (which split the masks first: shared_splits), timed apart
-        get = mask_rows if mask_rows is not None else CaseBaselines(files)
-        metrics["mask_baselines"], metrics["mask_baselines_seconds"] = get(side)
-    metrics["settings_digest"] = digest
-    write_json(out / "metrics.json", metrics, strict=True, default=str)
+    with atomic_dir(out) as tmp:  # the lung's folder is complete, with its digest, or absent
+        metrics = run_fit(FitInputs([exp_mask, insp_mask], side, landmarks=[exp_lm, insp_lm]), tmp, config,
+                          progress=progress)
+        metrics["seconds"] = time.perf_counter() - t0
+        if isinstance(mask_rows, dict):
+            metrics["mask_baselines"] = mask_rows
+        else:  # computed after the fit (which split the masks first: shared_splits), timed apart
+            get = mask_rows if mask_rows is not None else CaseBaselines(files)
+            metrics["mask_baselines"], metrics["mask_baselines_seconds"] = get(side)
+        metrics["settings_digest"] = digest
+        write_json(tmp / "metrics.json", metrics, strict=True, default=str)
     return metrics, True
 
 
