@@ -16,7 +16,7 @@ from lungdeform.errors import InputError
 from lungdeform.model.population import resolve_default, save_default
 from lungdeform.validate.single_scan import ROWS, SingleScanConfig, find_subjects, learn_from_folders, run_single_scan
 
-from .common import option_names, output_dir, say
+from .common import check_output, option_names, output_dir, say
 
 
 def print_table(result: dict) -> None:
@@ -64,6 +64,7 @@ def register(apps) -> None:
             with option_names({"constants": "--default"}):
                 resolve_default(default)
         config = SingleScanConfig(default=default, with_fitted=with_fitted, train=tuple(train or ()))
+        check_output(out, [data, *(train or [])], folder=True, writes=("metrics.json", "report.html", "fits"))
         folder = output_dir(out)
         result = run_single_scan(data, folder, config, progress=say)
         print_table(result)
@@ -81,6 +82,7 @@ def register(apps) -> None:
         two-volume subject in the folders; use it with 'build --constants FILE'."""
         if out.exists() and out.is_dir():
             raise InputError(f"--out {out}: is a folder; name the JSON file to write")
+        check_output(out, data)
         for folder in data:
             find_subjects(folder)  # every folder checked before the (slow) fits
         learned = learn_from_folders(data, name, progress=say)
