@@ -312,3 +312,19 @@ def test_population_default_model_round_trips(tmp_path, left_lung, right_lung):
     assert back.lungs["left"].interior_map is not None
     np.testing.assert_allclose(back.lungs["left"].interior.displacement(q), m.lungs["left"].interior.displacement(q))
     assert back.provenance["default"] == m.provenance["default"]
+
+
+@pytest.mark.parametrize("key, value, what", [("side", "lefty", "side is 'lefty'"), ("unit_ml", 0.0, "unit_ml is 0.0"),
+                                              ("calibration_ml", -5.0, "calibration_ml is -5.0")])
+def test_side_and_units_are_checked(tmp_path, model, key, value, what):
+    # a model whose side is not a lung, or whose unit volume is zero (export divided by it: a
+    # ZeroDivisionError traceback), is refused naming the file, the lung and the member
+    path = save_model(tmp_path / "m.npz", Model({"left": model}, {"source": "test"}))
+    with np.load(path) as z:
+        data = dict(z)
+    data[f"lung/left/{key}"] = np.array(value)
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, **data)
+    with pytest.raises(ModelFileError) as err:
+        load_model(bad)
+    assert str(bad) in str(err.value) and what in str(err.value)

@@ -264,6 +264,11 @@ def _lung(path: Path, name: str, data: dict, version: int = SCHEMA_VERSION) -> L
         sm = float(opt["landmark_smoothing"])
         if not (np.all(np.isfinite(lm)) and np.all(np.isfinite(cor)) and np.isfinite(sm) and sm >= 0):
             raise ModelFileError(f"{path}: lung '{name}' landmark correction holds NaN, infinity or a negative smoothing")
+    if str(a["side"]) not in ("left", "right"):
+        raise ModelFileError(f"{path}: lung '{name}' side is {str(a['side'])!r}, expected 'left' or 'right'")
+    for key in ("unit_ml", "calibration_ml", "d_min"):  # volumes and distances the playback divides by
+        if not float(a[key]) > 0:
+            raise ModelFileError(f"{path}: lung '{name}' {key} is {float(a[key])!r}, expected a positive number")
     surface = Surface(v, a["faces"].astype(np.int64), name)
     frame = LungFrame(str(a["side"]), a["frame_axes"], a["frame_lower"], a["frame_upper"])
     kind = "thin_plate" if version == 1 else str(data.get(prefix + "interior_kind", "sliding"))
