@@ -305,3 +305,20 @@ def test_track_schedule_is_bounded(model_file, tmp_path, capsys, args, message):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0], err
     assert not out.exists()
+
+
+def test_track_unreachable_volume_and_out_rtstruct_under_a_file(model_file, gtv_files, tmp_path, capsys):
+    # --volume-ml 1e308 was a LinAlgError traceback; --out-rtstruct under a regular file left --out
+    # behind: both are refused with one line before any output
+    ct_dir, gtv = gtv_files
+    out = tmp_path / "o"
+    assert main(["track", str(model_file), "--rtstruct", str(gtv), "--structure", "GTV", "--out", str(out),
+                 "--volume-ml", "1e308"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--volume-ml 1e+308 mL" in err[0] and not out.exists()
+    plan = tmp_path / "plan.txt"
+    plan.write_text("x")
+    assert main(["track", str(model_file), "--rtstruct", str(gtv), "--structure", "GTV", "--out", str(out),
+                 "--phases", "2", "--out-rtstruct", str(plan / "moved.dcm"), "--reference-ct", str(ct_dir)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "is a file, not a folder" in err[0] and not out.exists()

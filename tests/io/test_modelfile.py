@@ -328,3 +328,15 @@ def test_side_and_units_are_checked(tmp_path, model, key, value, what):
     with pytest.raises(ModelFileError) as err:
         load_model(bad)
     assert str(bad) in str(err.value) and what in str(err.value)
+
+
+def test_absurd_displacement_is_refused(tmp_path, model):
+    # displacements of 1e300 mm played as a breath (overflow warnings, then exit 0) are refused at load
+    path = save_model(tmp_path / "m.npz", Model({"left": model}, {"source": "test"}))
+    with np.load(path) as z:
+        data = dict(z)
+    data["lung/left/displacement"] = data["lung/left/displacement"] * 1e300
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, **data)
+    with pytest.raises(ModelFileError, match="more than 1000 mm: not a breathing lung"):
+        load_model(bad)

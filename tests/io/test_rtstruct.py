@@ -291,3 +291,20 @@ def test_a_truncated_structure_set_says_so(tmp_path):
     (tmp_path / "cut.dcm").write_bytes(whole[:whole.index(b"\x06\x30\x20\x00")])
     with pytest.raises(ReadError, match=r"cut.dcm: no StructureSetROISequence: not a complete structure set"):
         read_rois(tmp_path / "cut.dcm")
+
+
+def test_another_patient_is_refused_and_another_study_said(tmp_path):
+    # a structure set of another patient (PatientID) is refused, naming both; the same frame of
+    # reference in another study is written, with a warning to check the CT (it was silent before)
+    from dataclasses import replace
+
+    ct = read_ct_series(write_ct_series(tmp_path / "ct", shape=(10, 8, 8)))
+    v, f = _sphere(np.array([0.0, 0.0, -6.0]), 4.0)
+    write_rtstruct(tmp_path / "rs.dcm", ct, [("GTV", v, f)])
+    gtv = read_rois(tmp_path / "rs.dcm")[0]
+    assert gtv.patient_id == str(ct.header.get("PatientID", "")).strip()
+    assert check_structure_on_ct(gtv, ct, "rs.dcm") == []
+    with pytest.raises(InputError, match=r"rs.dcm: structure 'GTV' belongs to patient 'SOMEONE-ELSE'.*not the same patient"):
+        check_structure_on_ct(replace(gtv, patient_id="SOMEONE-ELSE"), ct, "rs.dcm")
+    (warning,) = check_structure_on_ct(replace(gtv, study_uid="1.2.3"), ct, "rs.dcm")
+    assert "rs.dcm: structure 'GTV' is in study 1.2.3" in warning and "same Frame of Reference" in warning

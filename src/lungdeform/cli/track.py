@@ -22,7 +22,7 @@ from lungdeform.playback import schedule as S
 from lungdeform.playback import structures as R
 from lungdeform.playback import trajectory as T
 
-from .common import check_cycles, check_tidal_ml, output_dir, read_curve
+from .common import check_cycles, check_output, check_tidal_ml, output_dir, read_curve
 
 #: Bounds on the schedule: frames per second, preset cycles, and points × frames (rows of trajectories.csv)
 MAX_FPS = 1000.0
@@ -58,12 +58,15 @@ def register(apps) -> None:
         _check_schedule(volume_ml, curve, preset, cycles, tidal_ml, fps)
         _check_structure_options(points, rtstruct, structure, out_rtstruct, reference_ct, phases, volume_ml)
         _check_out_rtstruct(out_rtstruct, model, points, rtstruct, curve)
+        check_output(out, [model, points, rtstruct, curve, reference_ct], folder=True,
+                     writes=("trajectories.csv", "points.json", "motion.png"))
         m = load_model(model)
         tracked = R.read_structure(rtstruct, structure) if rtstruct is not None else None
         ct = None
         if out_rtstruct is not None:  # before anything is written: the CT, and the structure on it
             ct = read_ct_series(reference_ct)
-            check_structure_on_ct(tracked.roi, ct, str(rtstruct))
+            for line in check_structure_on_ct(tracked.roi, ct, str(rtstruct)):
+                typer.echo(f"warning: {line}", err=True)
         if tracked is not None:
             pts, labels, source = tracked.points, tracked.labels, str(rtstruct)
         else:
@@ -72,6 +75,11 @@ def register(apps) -> None:
         if volume_ml:
             if not all(np.isfinite(v) and v > 0 for v in volume_ml):
                 raise InputError(f"--volume-ml must be > 0 mL, got {volume_ml}")
+            v_ee = sum(lung.volume_ee_ml for lung in m.lungs.values())
+            far = [v for v in volume_ml if not 0.5 * v_ee <= v <= 3.0 * v_ee]
+            if far:  # no lung reaches it (and the volume cubic has no root there)
+                raise InputError(f"--volume-ml {far[0]:g} mL: the model's lungs hold {v_ee:.0f} mL at end-exhale; "
+                                 "give a volume of both lungs together within 0.5 to 3 times that")
             frames, tags = T.volume_frames(m, volume_ml), R.volume_tags(volume_ml)
         elif phases is not None:
             frames, tags = R.phase_frames(_trace(m, curve, preset, cycles, tidal_ml), phases)
@@ -121,6 +129,7 @@ def _check_out_rtstruct(out_rtstruct: Path | None, *inputs: Path | None) -> None
     for given in inputs:
         if given is not None and given.exists() and out_rtstruct.exists() and out_rtstruct.samefile(given):
             raise InputError(f"--out-rtstruct {out_rtstruct}: is the input {given}, which it would overwrite")
+    check_output(out_rtstruct, inputs, option="--out-rtstruct")  # also a path under a regular file
 
 
 def _check_schedule(volume_ml, curve, preset, cycles, tidal_ml, fps) -> None:

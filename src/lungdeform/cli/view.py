@@ -13,10 +13,18 @@ from pathlib import Path
 import typer
 
 from lungdeform.breathing.stream import MAX_PREDICT_MS
+from lungdeform.errors import InputError
 from lungdeform.playback.server import ViewerServer, model_glb
 from lungdeform.playback.tracefeed import LiveFeed, check_view_options, live_json, view_trace_json
 
 from .common import bounded
+
+
+def _port_option(value: int) -> int:
+    """``--port`` within 0…65535, refused as the command line is parsed."""
+    if not 0 <= value <= 65535:
+        raise InputError(f"--port must be 0..65535 (0 picks a free one), got {value}")
+    return value
 
 
 def register(apps) -> None:
@@ -24,7 +32,7 @@ def register(apps) -> None:
     def view_command(
         model: Path = typer.Argument(..., help="Model file (.npz) or an exported .glb."),
         host: str = typer.Option("127.0.0.1", "--host", help="Address to bind (loopback by default)."),
-        port: int = typer.Option(8765, "--port", help="Port (0 picks a free one)."),
+        port: int = typer.Option(8765, "--port", callback=_port_option, help="Port (0 picks a free one)."),
         curve: Path | None = typer.Option(None, "--curve", help="Breathing curve CSV for a model file."),
         markers: Path | None = typer.Option(None, "--markers", help="Markers CSV (x_mm,y_mm,z_mm[,label]) for a model file."),
         trace: Path | None = typer.Option(None, "--trace", help="Breathing trace to play (.vxp or marker .csv) "

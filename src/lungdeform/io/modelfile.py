@@ -63,6 +63,8 @@ from lungdeform.interior.correspondence import CorrespondenceField
 from lungdeform.model.lung import LungModel, Model
 
 SCHEMA = "lungdeform.model"
+#: Largest displacement (mm) a lung may have at its calibration volume: far beyond any breath.
+MAX_TIDAL_DISPLACEMENT_MM = 1000.0
 SCHEMA_VERSION = 4
 #: Schema versions this lungdeform reads: they differ only in their interior field (module docstring).
 READABLE_VERSIONS = (1, 2, 3, 4)
@@ -269,6 +271,11 @@ def _lung(path: Path, name: str, data: dict, version: int = SCHEMA_VERSION) -> L
     for key in ("unit_ml", "calibration_ml", "d_min"):  # volumes and distances the playback divides by
         if not float(a[key]) > 0:
             raise ModelFileError(f"{path}: lung '{name}' {key} is {float(a[key])!r}, expected a positive number")
+    peak = float(np.abs(a["displacement"]).max(initial=0.0)) * (float(a["calibration_ml"]) / float(a["unit_ml"]))
+    if not peak <= MAX_TIDAL_DISPLACEMENT_MM:
+        raise ModelFileError(f"{path}: lung '{name}' displacement reaches {peak:.3g} mm at its calibration volume "
+                             f"(+{float(a['calibration_ml']):g} mL), more than {MAX_TIDAL_DISPLACEMENT_MM:g} mm: "
+                             "not a breathing lung")
     surface = Surface(v, a["faces"].astype(np.int64), name)
     frame = LungFrame(str(a["side"]), a["frame_axes"], a["frame_lower"], a["frame_upper"])
     kind = "thin_plate" if version == 1 else str(data.get(prefix + "interior_kind", "sliding"))

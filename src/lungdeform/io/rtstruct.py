@@ -55,7 +55,8 @@ class Structure:
     contour of the ROI's ContourSequence in file order (none dropped: :func:`structure_mesh` checks
     them); ``frame_uid`` the Frame of Reference UID it is drawn in, ``study_uid`` the structure
     set's study, ``image_uids`` the SOP Instance UIDs of the slices its contours reference,
-    ``types`` each contour's ContourGeometricType ('' when absent)."""
+    ``types`` each contour's ContourGeometricType ('' when absent), ``patient_id`` the structure set's
+    PatientID ('' when absent)."""
 
     name: str
     number: int
@@ -66,6 +67,7 @@ class Structure:
     study_uid: str = ""
     image_uids: frozenset = frozenset()
     types: tuple = ()
+    patient_id: str = ""
 
 
 @dataclass(frozen=True, eq=False)
@@ -164,9 +166,9 @@ def _structures(ds: Dataset, p: Path) -> list[Structure]:
             contours[number].append(np.ascontiguousarray(np.asarray(c.get("ContourData", []), np.float64).reshape(-1, 3)))
             types[number].append(str(c.get("ContourGeometricType", "")))
             images[number].update(str(i.get("ReferencedSOPInstanceUID", "")) for i in c.get("ContourImageSequence", []))
-    study = str(ds.get("StudyInstanceUID", ""))
+    study, patient = str(ds.get("StudyInstanceUID", "")), str(ds.get("PatientID", "")).strip()
     return [Structure(name, n, contours[n], colours.get(n, (255, 0, 0)), kinds.get(n, ""), frame, study,
-                      frozenset(images[n] - {""}), tuple(types[n]))
+                      frozenset(images[n] - {""}), tuple(types[n]), patient)
             for n, (name, frame) in rois.items()]
 
 
@@ -292,13 +294,18 @@ def _check_slice_positions(levels: np.ndarray, path) -> None:
                         "contours on missing slices would be lost")
 
 
-def check_structure_on_ct(structure: Structure, ct: CTSeries, source: str) -> None:
+def check_structure_on_ct(structure: Structure, ct: CTSeries, source: str) -> list[str]:
     """Refuse (:class:`InputError` naming ``source``, the structure and the cause) a structure that
-    cannot be written on ``ct``: another Frame of Reference than the CT's (its coordinates mean
-    nothing there), slices it is drawn on that the CT lacks (when it references slices of this
-    series), or contours beyond the CT's first or last slice."""
+    cannot be written on ``ct``: another patient (PatientID, when both give one), another Frame of
+    Reference than the CT's (its coordinates mean nothing there), slices it is drawn on that the CT
+    lacks (when it references slices of this series), or contours beyond the CT's first or last
+    slice. Returns warnings: the same Frame of Reference in another study."""
     name = f"{source}: structure {structure.name!r}"
     frame, study = str(ct.header.FrameOfReferenceUID), str(ct.header.StudyInstanceUID)
+    patient = str(ct.header.get("PatientID", "")).strip()
+    if structure.patient_id and patient and structure.patient_id != patient:
+        raise InputError(f"{name} belongs to patient {structure.patient_id!r}, --reference-ct {ct.source} to "
+                         f"patient {patient!r}: not the same patient")
     if not structure.frame_uid:
         raise InputError(f"{name} has no Frame of Reference UID: cannot check it is drawn on --reference-ct {ct.source}")
     if structure.frame_uid != frame:
@@ -311,6 +318,10 @@ def check_structure_on_ct(structure: Structure, ct: CTSeries, source: str) -> No
         raise InputError(f"{name} is drawn on {len(lost)} slice(s) that --reference-ct {ct.source} lacks "
                          f"(e.g. SOP Instance UID {min(lost)}): missing slices")
     check_within_slices(ct, name, np.concatenate([c for c in structure.contours if len(c)]))
+    if structure.study_uid and structure.study_uid != study:
+        return [f"{name} is in study {structure.study_uid}, --reference-ct {ct.source} in study {study} "
+                "(the same Frame of Reference): check that this is the planning CT it was drawn on"]
+    return []
 
 
 def check_within_slices(ct: CTSeries, name: str, points) -> None:
