@@ -62,6 +62,9 @@ def register(apps) -> None:
                      writes=("trajectories.csv", "points.json", "motion.png"))
         m = load_model(model)
         tracked = R.read_structure(rtstruct, structure) if rtstruct is not None else None
+        if tracked is not None and not tracked.roi.frame_uid and out_rtstruct is None:
+            typer.echo(f"warning: {rtstruct}: structure {structure!r} has no Frame of Reference UID: nothing shows it "
+                       "was drawn in the frame of the model's end-exhale scan", err=True)
         ct = None
         if out_rtstruct is not None:  # before anything is written: the CT, and the structure on it
             ct = read_ct_series(reference_ct)
