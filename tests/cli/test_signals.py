@@ -19,8 +19,11 @@ from tests.cli.test_warp import _curve
 
 
 def _start(args: list[str]) -> subprocess.Popen:
+    # SIGINT back to its default in the child: a test run started in the background (CI) ignores it,
+    # the child would inherit that, and Python would then never raise KeyboardInterrupt
     return subprocess.Popen([sys.executable, "-m", "lungdeform", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+                            stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
 def _signal_when(proc: subprocess.Popen, folder: Path, marker: str, signum: int) -> tuple[int, str]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -432,3 +433,14 @@ def test_max_voxels_option(tmp_path, monkeypatch, capsys):
     assert main(["--max-voxels", "lots", "build", str(mask), "--side", "left", "--out", str(tmp_path / "o" / "m.npz")]) == 2
     assert capsys.readouterr().err.strip() == "error: --max-voxels must be a positive whole number of voxels, got 'lots'"
     assert not (tmp_path / "o").exists()
+
+
+def test_max_voxels_lasts_one_command(tmp_path, monkeypatch):
+    # --max-voxels sets the cap for its own command (and its workers), not for whatever the process
+    # runs next: an in-process main() left 999 behind and every later image read was refused
+    from lungdeform.cli.main import main
+    from lungdeform.io.image import MAX_VOXELS_ENV
+
+    monkeypatch.delenv(MAX_VOXELS_ENV, raising=False)
+    main(["--max-voxels", "999", "build", str(tmp_path / "none.nii.gz"), "--out", str(tmp_path / "m.npz")])
+    assert MAX_VOXELS_ENV not in os.environ

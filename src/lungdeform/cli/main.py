@@ -13,6 +13,7 @@ failed check (one line on stderr naming the file and the problem); 3 a validatio
 from __future__ import annotations
 
 import importlib
+import os
 import signal
 import sys
 import threading
@@ -23,6 +24,7 @@ import typer
 
 from lungdeform import __version__
 from lungdeform.errors import LungdeformError
+from lungdeform.io.image import MAX_VOXELS_ENV
 
 from .common import MAX_VOXELS_HELP, VERBOSE, set_max_voxels
 
@@ -103,6 +105,18 @@ def main(argv: list[str] | None = None) -> int:
         if hasattr(stream, "reconfigure") and (stream.encoding or "").lower().replace("-", "") != "utf8":
             stream.reconfigure(errors="replace")
     app = make_app()
+    before = os.environ.get(MAX_VOXELS_ENV)  # --max-voxels sets it for this command (and its workers) only
+    try:
+        return _run_app(app, argv)
+    finally:
+        if before is None:
+            os.environ.pop(MAX_VOXELS_ENV, None)
+        else:
+            os.environ[MAX_VOXELS_ENV] = before
+
+
+def _run_app(app, argv) -> int:
+    """Run ``app`` on ``argv``; the exit code of :func:`main`."""
     try:
         # standalone mode: typer itself reports usage errors (exit 2) and Ctrl-C
         with sigterm_interrupts() as signalled:
@@ -145,6 +159,9 @@ def sigterm_interrupts():
         return
 
     def handler(signum, frame):
+        if _in_c_callback(frame):  # an exception there is printed and dropped: ask again a little later
+            threading.Timer(0.05, os.kill, (os.getpid(), signum)).start()
+            return
         signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a second SIGTERM does not cut the clean-up short
         signalled.append(signum)
         raise Terminated()
@@ -154,6 +171,16 @@ def sigterm_interrupts():
         yield signalled
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+def _in_c_callback(frame) -> bool:
+    """Whether ``frame`` runs inside a Python callback called from compiled code (llvmlite's object
+    cache during a numba compilation), where an exception cannot propagate."""
+    while frame is not None:
+        if "llvmlite" in frame.f_code.co_filename:
+            return True
+        frame = frame.f_back
+    return False
 
 
 def _one_line(exc: BaseException) -> str:

@@ -18,6 +18,7 @@ of the referenced series, as planning systems expect. See docs/RADIOTHERAPY.md.
 from __future__ import annotations
 
 import datetime as _dt
+import re
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -242,6 +243,10 @@ def read_ct_series(path) -> CTSeries:
     return CTSeries(head, uids, str(head.SOPClassUID), origins[order], normal, str(path))
 
 
+#: A DICOM UID (PS3.5 9.1): dot-separated numbers without leading zeros, at most 64 characters.
+_UID = re.compile(r"(?=.{1,64}$)(0|[1-9][0-9]*)(\.(0|[1-9][0-9]*))*")
+
+
 def _ct_slice(f) -> dict:
     """One slice's header and the geometry and UIDs an RTSTRUCT needs, checked."""
     try:
@@ -255,6 +260,10 @@ def _ct_slice(f) -> dict:
         raise ReadError(f"{f}: unreadable DICOM attribute ({type(exc).__name__}: {_first_line(exc)})") from exc
     if missing:
         raise ReadError(f"{f}: DICOM slice lacks {', '.join(missing)}, which an RTSTRUCT needs")
+    for key in ("SOPInstanceUID", "SOPClassUID", "FrameOfReferenceUID", "StudyInstanceUID", "SeriesInstanceUID"):
+        uid = str(h.get(key, ""))
+        if not _UID.fullmatch(uid):  # copied into the RTSTRUCT, where an invalid UID cannot go
+            raise ReadError(f"{f}: {key} {uid[:70]!r} is not a DICOM UID (digits and dots, at most 64 characters)")
     iop = _numbers(h, "ImageOrientationPatient", 6, f).reshape(2, 3)
     if np.abs(np.linalg.norm(iop, axis=1) - 1).max() > 1e-2 or abs(float(iop[0] @ iop[1])) > 1e-2:
         raise ReadError(f"{f}: ImageOrientationPatient {iop.ravel().tolist()} is not two orthogonal unit vectors")
