@@ -62,27 +62,14 @@ def register(apps) -> None:
                      writes=("trajectories.csv", "points.json", "motion.png"))
         m = load_model(model)
         tracked = R.read_structure(rtstruct, structure) if rtstruct is not None else None
-        if tracked is not None and not tracked.roi.frame_uid and out_rtstruct is None:
-            typer.echo(f"warning: {rtstruct}: structure {structure!r} has no Frame of Reference UID: nothing shows it "
-                       "was drawn in the frame of the model's end-exhale scan", err=True)
-        ct = None
-        if out_rtstruct is not None:  # before anything is written: the CT, and the structure on it
-            ct = read_ct_series(reference_ct)
-            for line in check_structure_on_ct(tracked.roi, ct, str(rtstruct)):
-                typer.echo(f"warning: {line}", err=True)
+        ct = _reference_ct(tracked, rtstruct, out_rtstruct, reference_ct)
         if tracked is not None:
             pts, labels, source = tracked.points, tracked.labels, str(rtstruct)
         else:
             (pts, labels), source = _read_points(points, skip_invalid), str(points)
         placement = T.place_points(m, pts, lung, source=source)
         if volume_ml:
-            if not all(np.isfinite(v) and v > 0 for v in volume_ml):
-                raise InputError(f"--volume-ml must be > 0 mL, got {volume_ml}")
-            v_ee = sum(lung.volume_ee_ml for lung in m.lungs.values())
-            far = [v for v in volume_ml if not 0.5 * v_ee <= v <= 3.0 * v_ee]
-            if far:  # no lung reaches it (and the volume cubic has no root there)
-                raise InputError(f"--volume-ml {far[0]:g} mL: the model's lungs hold {v_ee:.0f} mL at end-exhale; "
-                                 "give a volume of both lungs together within 0.5 to 3 times that")
+            _check_volumes(m, volume_ml)
             frames, tags = T.volume_frames(m, volume_ml), R.volume_tags(volume_ml)
         elif phases is not None:
             frames, tags = R.phase_frames(_trace(m, curve, preset, cycles, tidal_ml), phases)
@@ -120,6 +107,32 @@ def _check_rows(points: int, frames: float, source: str) -> None:
     if not points * frames <= MAX_POINT_FRAMES:
         raise InputError(f"{source}: {points} point(s) x {frames:.0f} frame(s), more than {MAX_POINT_FRAMES} rows of "
                          "trajectories; lower --fps, or give --phases or --volume-ml")
+
+
+def _reference_ct(tracked, rtstruct, out_rtstruct, reference_ct):
+    """The reference CT (None without --out-rtstruct), read and the structure checked on it before
+    anything is written; warnings (another study; no frame of reference at all) on stderr."""
+    if tracked is not None and not tracked.roi.frame_uid and out_rtstruct is None:
+        typer.echo(f"warning: {rtstruct}: structure {tracked.roi.name!r} has no Frame of Reference UID: nothing shows "
+                   "it was drawn in the frame of the model's end-exhale scan", err=True)
+    if out_rtstruct is None:
+        return None
+    ct = read_ct_series(reference_ct)
+    for line in check_structure_on_ct(tracked.roi, ct, str(rtstruct)):
+        typer.echo(f"warning: {line}", err=True)
+    return ct
+
+
+def _check_volumes(m, volume_ml) -> None:
+    """--volume-ml: finite, positive, and within 0.5 to 3 times the lungs' end-exhale volume (no
+    lung reaches beyond, and the volume cubic has no root there)."""
+    if not all(np.isfinite(v) and v > 0 for v in volume_ml):
+        raise InputError(f"--volume-ml must be > 0 mL, got {volume_ml}")
+    v_ee = sum(lung.volume_ee_ml for lung in m.lungs.values())
+    far = [v for v in volume_ml if not 0.5 * v_ee <= v <= 3.0 * v_ee]
+    if far:
+        raise InputError(f"--volume-ml {far[0]:g} mL: the model's lungs hold {v_ee:.0f} mL at end-exhale; "
+                         "give a volume of both lungs together within 0.5 to 3 times that")
 
 
 def _check_out_rtstruct(out_rtstruct: Path | None, *inputs: Path | None) -> None:
