@@ -108,6 +108,7 @@ def test_read_dicom_series_directory(tmp_path):
             "0020|0032": "\\".join(map(str, (origin[0], origin[1], origin[2] + k * spacing[2]))),
             "0020|0037": "1\\0\\0\\0\\1\\0",
             "0018|0050": str(spacing[2]),
+            "0028|0030": f"{spacing[1]}\\{spacing[0]}",  # written whatever GDCM's state (run alone it omitted it)
         }.items():
             sl.SetMetaData(tag, value)
         writer.SetFileName(str(tmp_path / f"slice{k:03d}.dcm"))
