@@ -21,6 +21,7 @@ from lungdeform.io.rtstruct import (
 from lungdeform.playback import schedule as S
 from lungdeform.playback import structures as R
 from lungdeform.playback import trajectory as T
+from lungdeform.playback.dvf import volume_state
 
 from .common import check_cycles, check_output, check_tidal_ml, output_dir, read_curve
 
@@ -69,7 +70,8 @@ def register(apps) -> None:
             (pts, labels), source = _read_points(points, skip_invalid), str(points)
         placement = T.place_points(m, pts, lung, source=source)
         if volume_ml:
-            _check_volumes(m, volume_ml)
+            for v in volume_ml:  # finite, and a volume the lungs reach (as dvf and warp check it)
+                volume_state(m, v)
             frames, tags = T.volume_frames(m, volume_ml), R.volume_tags(volume_ml)
         elif phases is not None:
             frames, tags = R.phase_frames(_trace(m, curve, preset, cycles, tidal_ml), phases)
@@ -121,18 +123,6 @@ def _reference_ct(tracked, rtstruct, out_rtstruct, reference_ct):
     for line in check_structure_on_ct(tracked.roi, ct, str(rtstruct)):
         typer.echo(f"warning: {line}", err=True)
     return ct
-
-
-def _check_volumes(m, volume_ml) -> None:
-    """--volume-ml: finite, positive, and within 0.5 to 3 times the lungs' end-exhale volume (no
-    lung reaches beyond, and the volume cubic has no root there)."""
-    if not all(np.isfinite(v) and v > 0 for v in volume_ml):
-        raise InputError(f"--volume-ml must be > 0 mL, got {volume_ml}")
-    v_ee = sum(lung.volume_ee_ml for lung in m.lungs.values())
-    far = [v for v in volume_ml if not 0.5 * v_ee <= v <= 3.0 * v_ee]
-    if far:
-        raise InputError(f"--volume-ml {far[0]:g} mL: the model's lungs hold {v_ee:.0f} mL at end-exhale; "
-                         "give a volume of both lungs together within 0.5 to 3 times that")
 
 
 def _check_out_rtstruct(out_rtstruct: Path | None, *inputs: Path | None) -> None:
