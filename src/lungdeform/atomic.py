@@ -23,6 +23,8 @@ from typing import Iterator
 
 import numpy as np
 
+from lungdeform.errors import ReadError
+
 
 def make_parent(path) -> None:
     """Create ``path``'s folder (and its parents). A path under a regular file is refused with an
@@ -212,3 +214,16 @@ def write_json(path, data, *, strict: bool = False, **kwargs) -> Path:
         data = finite_json(data)
         kwargs["allow_nan"] = False
     return write_text(path, json.dumps(data, **kwargs) + "\n")
+
+
+def read_schema_json(path, schema: str, version: int, what: str) -> dict:
+    """The JSON object in ``path`` whose ``schema`` and ``schema_version`` are ``schema`` and
+    ``version``; :class:`~lungdeform.errors.ReadError` naming the file and ``what`` it should be otherwise."""
+    p = Path(path)
+    try:
+        data = json.loads(p.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise ReadError(f"{p}: not a readable {what} ({exc.__class__.__name__}: {exc})") from exc
+    if not isinstance(data, dict) or data.get("schema") != schema or data.get("schema_version") != version:
+        raise ReadError(f"{p}: not a {schema} file of version {version}")
+    return data

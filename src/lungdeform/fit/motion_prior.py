@@ -18,13 +18,12 @@ field's affine part and playback costs nothing more. Scored only leave-one-subje
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from lungdeform.atomic import write_json
+from lungdeform.atomic import read_schema_json, write_json
 from lungdeform.errors import InputError, ReadError
 from lungdeform.geometry.mesh import as_vertices
 from lungdeform.interior.prior import lung_normaliser, mirror, normalised, prior_affine, prior_displacement
@@ -110,12 +109,7 @@ def save_prior(path, prior: MotionPrior) -> Path:
 def load_prior(path) -> MotionPrior:
     """Read a prior written by :func:`save_prior`; :class:`ReadError` naming the file otherwise."""
     p = Path(path)
-    try:
-        data = json.loads(p.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, ValueError) as exc:
-        raise ReadError(f"{p}: not a readable motion prior ({exc.__class__.__name__}: {exc})") from exc
-    if not isinstance(data, dict) or data.get("schema") != SCHEMA or data.get("schema_version") != SCHEMA_VERSION:
-        raise ReadError(f"{p}: not a {SCHEMA} file of version {SCHEMA_VERSION}")
+    data = read_schema_json(p, SCHEMA, SCHEMA_VERSION, "motion prior")
     try:
         return MotionPrior(np.asarray(data["coefficients_mm"], float), tuple(data.get("subjects", ())),
                            float(data.get("ridge", RIDGE)))

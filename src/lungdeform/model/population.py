@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lungdeform.atomic import write_json
+from lungdeform.atomic import read_schema_json, write_json
 from lungdeform.constants import TABLE_I, gravity_vector
 from lungdeform.errors import InputError, ReadError
 from lungdeform.geometry.frame import SIDES, frame_axes
@@ -164,12 +164,7 @@ def save_default(path, default: PopulationDefault) -> Path:
 def read_default(path) -> PopulationDefault:
     """A default written by :func:`save_default`; :class:`ReadError` naming the file otherwise."""
     p = Path(path)
-    try:
-        data = json.loads(p.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, ValueError) as exc:
-        raise ReadError(f"{p}: not a readable population default ({exc.__class__.__name__}: {exc})") from exc
-    if not isinstance(data, dict) or data.get("schema") != SCHEMA or data.get("schema_version") != SCHEMA_VERSION:
-        raise ReadError(f"{p}: not a {SCHEMA} file of version {SCHEMA_VERSION}")
+    data = read_schema_json(p, SCHEMA, SCHEMA_VERSION, "population default")
     try:
         corr, prior = data.get("direction_correction"), data.get("interior_prior")
         return PopulationDefault(str(data["name"]), dict(data["constants"]), int(data.get("direction_degree", 0)),
