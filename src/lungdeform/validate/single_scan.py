@@ -39,6 +39,7 @@ import io
 import json
 import time
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import Callable
 
@@ -79,7 +80,7 @@ class Subject:
     scans: tuple[Path, Path]
     landmarks: tuple[Path, Path]
 
-    @property
+    @cached_property
     def digest(self) -> str:
         """SHA-256 (16 hex digits) of the smaller-volume scan's bytes: who the subject is."""
         return hashlib.sha256(Path(self.scans[0]).read_bytes()).hexdigest()[:16]
@@ -258,20 +259,16 @@ class SingleScanConfig:
     train: tuple = ()
 
 
-def _training_digests(default: PopulationDefault) -> set[str]:
-    return set(default.provenance.get("subject_digests", {}).values())
-
-
-def _defaults_for(subjects, pairs, fits, config: SingleScanConfig, say) -> dict[str, tuple[PopulationDefault, str]]:
-    """Per subject: ``(the default that scores it, how it was chosen)``."""
-    if config.default is not None:
-        chosen = resolve_default(config.default)
-        return {s.name: (chosen, f"given: {chosen.name}") for s in subjects}
+def _defaults_for(subjects, given: PopulationDefault | None, seen: set[str], pairs, fits,
+                  say) -> dict[str, tuple[PopulationDefault, str]]:
+    """Per subject: ``(the default that scores it, how it was chosen)``: ``given`` for all, else the
+    shipped default, learned anew without each subject in ``seen`` (those it was learned from)."""
+    if given is not None:
+        return {s.name: (given, f"given: {given.name}") for s in subjects}
     shipped = resolve_default(None)
-    seen = _training_digests(shipped)
     out = {}
     for s in subjects:
-        if s.digest not in seen:
+        if s.name not in seen:
             out[s.name] = (shipped, "shipped")
             continue
         train = [sample_of(pairs[k], fits[k]) for k in pairs if k[0] != s.name]
@@ -279,6 +276,14 @@ def _defaults_for(subjects, pairs, fits, config: SingleScanConfig, say) -> dict[
         out[s.name] = (learn_default(train, name=f"population without {s.name}"),
                        "leave one subject out (the shipped default saw this subject)")
     return out
+
+
+def _seen_by_shipped(subjects, given: PopulationDefault | None) -> set[str]:
+    """The subjects the shipped default was learned from (none when a default is given)."""
+    if given is not None:
+        return set()
+    digests = set(resolve_default(None).provenance.get("subject_digests", {}).values())
+    return {s.name for s in subjects if s.digest in digests}
 
 
 def _training_pairs(folders, scored: set[str], say) -> tuple[dict[tuple[str, str], LungPair], list[Subject]]:
@@ -296,24 +301,12 @@ def _training_pairs(folders, scored: set[str], say) -> tuple[dict[tuple[str, str
     return out, subjects
 
 
-def _check_leave_one_out(subjects, names: set[str], config: SingleScanConfig) -> None:
+def _check_leave_one_out(seen: set[str], names: set[str]) -> None:
     """ReadError, before any fit, when a subject the shipped default saw has fewer than two others to learn from."""
-    if config.default is not None:
-        return
-    seen = _training_digests(resolve_default(None))
-    for s in subjects:
-        if s.digest in seen and len(names - {s.name}) < 2:
-            raise ReadError(f"{s.name}: the shipped default was learned from this subject; leaving it out needs "
+    for name in sorted(seen):
+        if len(names - {name}) < 2:
+            raise ReadError(f"{name}: the shipped default was learned from this subject; leaving it out needs "
                             "at least two other subjects (add folders of them with --train, or give --default)")
-
-
-def _needs_fits(subjects, config: SingleScanConfig) -> bool:
-    if config.with_fitted:
-        return True
-    if config.default is not None:
-        return False
-    seen = _training_digests(resolve_default(None))
-    return any(s.digest in seen for s in subjects)
 
 
 def run_single_scan(data: Path, out: Path, config: SingleScanConfig = SingleScanConfig(), *,
@@ -322,24 +315,23 @@ def run_single_scan(data: Path, out: Path, config: SingleScanConfig = SingleScan
     ``out/report.html``; returns the metrics."""
     say = progress or (lambda _m: None)
     subjects = find_subjects(data)
-    resolve_default(config.default)  # a bad --default is refused before any reading
+    given = None if config.default is None else resolve_default(config.default)  # refused before any reading
     pairs: dict[tuple[str, str], LungPair] = {}
     for s in subjects:
         with shared_splits():
             for side in s.sides:
                 say(f"{s.name} {side}: reading both scans")
                 pairs[(s.name, side)] = read_pair(s, side, lambda m, n=s.name, sd=side: say(f"{n} {sd}: {m}"))
-    fits, fit_seconds, extra = {}, {}, {}
-    if _needs_fits(subjects, config):
+    seen = _seen_by_shipped(subjects, given)
+    fits, extra = {}, {}
+    if config.with_fitted or seen:
         extra, more = _training_pairs(config.train, {s.name for s in subjects}, say)
         by_name = {s.name: s for s in [*subjects, *more]}
-        _check_leave_one_out(subjects, {k[0] for k in {**pairs, **extra}}, config)
+        _check_leave_one_out(seen, {k[0] for k in {**pairs, **extra}})
         for key, pair in {**pairs, **extra}.items():
             say(f"{key[0]} {key[1]}: two-scan fit (for leave-one-subject-out learning and the fitted row)")
-            t0 = time.perf_counter()
             fits[key] = cached_fit(pair, by_name[key[0]], Path(out) / "fits")
-            fit_seconds[key] = time.perf_counter() - t0
-    chosen = _defaults_for(subjects, {**pairs, **extra}, fits, config, say)
+    chosen = _defaults_for(subjects, given, seen, {**pairs, **extra}, fits, say)
     lungs, build_seconds = {}, {}
     for key, pair in pairs.items():
         say(f"{key[0]} {key[1]}: predicting the larger volume from the smaller scan alone")
@@ -397,8 +389,6 @@ def write_report(path: Path, result: dict) -> Path:
     per = "".join(f"<tr><td>{html.escape(k)}</td>" + "".join(
         f"<td>{v[r]['surface_mean_mm']:.2f} / {v[r]['landmark_mean_mm']:.2f}</td>" if r in v else "<td>–</td>"
         for r in rows) + "</tr>" for k, v in result["lungs"].items())
-    motion = {f"{k} {r}": None for k in result["lungs"] for r in ()}
-    del motion
     axes = {}
     for k, v in result["lungs"].items():
         axes[f"{k} observed"] = dict(zip(AXES, v["default"]["landmark_motion_mm"]["observed"]))
