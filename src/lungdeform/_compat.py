@@ -45,16 +45,16 @@ MOVED: dict[str, str] = {
     # breathing
     "inversion": "breathing.inversion", "presets": "breathing.presets", "trace": "breathing.trace",
     "cycles": "breathing.cycles", "holdout": "breathing.holdout", "stream": "breathing.stream",
-    "respiration_baselines": "breathing.baselines",
+    "respiration_baselines": "breathing.curve_models",
     # playback
     "export": "playback.export", "schedule": "playback.schedule", "markers": "playback.markers",
     "server": "playback.server", "demo": "playback.demo",
     "trajectory": "playback.trajectory",
     # fit
-    "ct": "fit.ct", "segment": "fit.segment", "align": "fit.align", "correspond": "fit.correspond",
-    "objective": "fit.objective", "search": "fit.search", "crossval": "fit.crossval",
-    "expandability": "fit.expandability", "baselines": "fit.baselines",
-    "direction_correction": "fit.direction_correction", "pipeline": "fit.pipeline", "report": "fit.report",
+    "ct": "segment.ct", "align": "fit.align", "correspond": "fit.rays",
+    "objective": "fit.objective", "search": "fit.search", "crossval": "evaluate.crossval",
+    "expandability": "fit.expandability", "baselines": "evaluate.baselines",
+    "direction_correction": "fit.direction_correction", "pipeline": "evaluate.pipeline", "report": "evaluate.report",
     # cohort
     "manifest": "cohort.manifest", "job": "cohort.job", "population": "cohort.population",
     "recovery": "cohort.recovery", "synthetic": "cohort.synthetic",

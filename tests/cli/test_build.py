@@ -9,7 +9,7 @@ from lungdeform.geometry.mesh import icosphere
 from lungdeform.io.meshfile import write_mesh
 from lungdeform.io.modelfile import load_model
 from tests.conftest import ellipsoid_lung
-from tests.fit.test_lungsplit import two_lungs
+from tests.segment.test_split import two_lungs
 
 
 @pytest.fixture

@@ -12,7 +12,7 @@ from lungdeform.io.meshfile import write_mesh
 from lungdeform.io.modelfile import load_model
 from lungdeform.model.lung import build_lung
 from tests.conftest import ellipsoid_lung
-from tests.fit.test_lungsplit import two_lungs
+from tests.segment.test_split import two_lungs
 
 TRUE = np.array([0.2, 1.5, 0.4, 0.8, 0.9, 1.8, 0.3, 1.0, 0.5])
 
@@ -267,7 +267,7 @@ def test_correspondence_interior_and_motion_prior(tmp_path, capsys):
     # within a small fraction of their motion, the model file keeps the map, and a motion prior of a
     # pure offset moves every surface-only prediction by exactly that offset (it is affine and folds
     # into the field's affine part)
-    from lungdeform.fit.motion_prior import MotionPrior, save_prior
+    from lungdeform.interior.motion_prior import MotionPrior, save_prior
 
     lung = ellipsoid_lung("right")
     c = lung.vertices.mean(axis=0)

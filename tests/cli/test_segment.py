@@ -11,8 +11,8 @@ import SimpleITK as sitk
 from lungdeform.cli import main as cli_main
 from lungdeform.io.image import read_image
 from tests.conftest import require_path
-from tests.fit.test_lungsplit import two_lungs
-from tests.fit.test_segment import phantom
+from tests.segment.test_lungs import phantom
+from tests.segment.test_split import two_lungs
 
 
 @pytest.fixture
@@ -118,7 +118,7 @@ def _dicom_phantom(folder, rng):
     """The phantom CT as a DICOM series in ``folder`` (locale restored: GDCM's writer resets it)."""
     import locale
 
-    from tests.fit.test_ct import _write_dicom_series
+    from tests.segment.test_ct import _write_dicom_series
 
     saved = locale.setlocale(locale.LC_ALL)
     img, _ = phantom(rng, gap_mm=10.0)

@@ -78,7 +78,7 @@ def test_itk_pair_real_data(data_dir, tmp_path):
     # landmarks better than the thin-plate correction of schema 2, on every split tried (measured
     # 2026-11-21 with every default, ten 5-fold splits: 1.90-2.07 mm, mean 1.97, against 2.00-2.25,
     # mean 2.08; with this test's faster fit, seeds 0-2: 1.97/2.01/2.17 against 2.00/2.04/2.28)
-    from lungdeform.interior.field import correction_solvers, held_out_positions, held_out_sliding, landmark_folds
+    from lungdeform.evaluate.folds import correction_solvers, held_out_positions, held_out_sliding, landmark_folds
 
     on = lung.interior_vertices
     s = lung.scale_for(m["volumes_ml"][1])

@@ -73,7 +73,7 @@ def quick_report(monkeypatch):
     written in test_fit_job_result_schema_and_truth and tested in tests/cli/test_fit.py."""
     from lungdeform.atomic import write_text
 
-    monkeypatch.setattr("lungdeform.fit.pipeline.write_report",  # where run_fit looks it up
+    monkeypatch.setattr("lungdeform.evaluate.pipeline.write_report",  # where run_fit looks it up
                         lambda path, **_: write_text(path, "<html>report skipped in this test</html>"))
 
 

@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 
 from lungdeform.errors import InputError
+from lungdeform.evaluate.folds import held_out_positions, select_smoothing
 from lungdeform.geometry.mesh import icosphere
-from lungdeform.interior.field import correction_per_unit, held_out_positions, interior_field, select_smoothing
+from lungdeform.interior.field import correction_per_unit, interior_field
 
 
 def _inside(rng, n, radius):
@@ -107,7 +108,7 @@ def test_sliding_correction_is_cross_validated_without_leaks(rng):
     # the k-fold protocol of the sliding correction: a landmark's own held-out prediction does not
     # depend on its observation, and the correction helps over the surface-driven field alone
     # (truth: a smooth interior slide the surface does not show)
-    from lungdeform.interior.field import correction_solvers, held_out_sliding, select_correction_smoothing
+    from lungdeform.evaluate.folds import correction_solvers, held_out_sliding, select_correction_smoothing
     from lungdeform.interior.sliding import sliding_correction
 
     s = icosphere(3, 50.0)

@@ -2,8 +2,8 @@
 
 import numpy as np
 
-from lungdeform.interior.correspondence import surface_extension
 from lungdeform.interior.prior import lung_normaliser, normalised, prior_affine, prior_displacement
+from lungdeform.interior.surface_map import surface_extension
 
 
 def test_affine_form_equals_the_normalised_form(left_lung, rng):

@@ -131,10 +131,10 @@ def test_interior_vertices_are_saved_and_leave_the_others_out(tmp_path, model, r
 
 
 def _interior_map(rng, model):
-    from lungdeform.interior.correspondence import CorrespondenceField
+    from lungdeform.interior.surface_map import SurfaceMapField
 
     c = model.surface.vertices[:40]
-    return CorrespondenceField(0.01 * rng.normal(size=(3, 4)), np.c_[np.eye(3), rng.normal(size=3)], c,
+    return SurfaceMapField(0.01 * rng.normal(size=(3, 4)), np.c_[np.eye(3), rng.normal(size=3)], c,
                                rng.normal(size=(40, 3)), 80.0)
 
 

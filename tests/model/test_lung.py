@@ -143,10 +143,10 @@ def test_a_reoriented_model_drops_its_interior_map(model):
     # another gravity falls back to the sliding field of the recombined displacement
     from dataclasses import replace
 
-    from lungdeform.interior.correspondence import CorrespondenceField
+    from lungdeform.interior.surface_map import SurfaceMapField
 
     c = model.surface.vertices[:10]
-    mapped = replace(model, interior_map=CorrespondenceField(np.full((3, 4), 0.01), np.c_[np.eye(3), np.zeros(3)], c,
+    mapped = replace(model, interior_map=SurfaceMapField(np.full((3, 4), 0.01), np.c_[np.eye(3), np.zeros(3)], c,
                                                              np.zeros((10, 3)), 50.0))
     q = model.surface.vertices.mean(axis=0)[None, :]
     np.testing.assert_allclose(mapped.interior.displacement(q), mapped.interior_map(q))

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
+from lungdeform.evaluate.pipeline import run_fit
 from lungdeform.fit.config import FitConfig, FitInputs
-from lungdeform.fit.pipeline import run_fit
 from lungdeform.io.image import read_image, resample_image, to_sitk
 from lungdeform.io.landmarks import read_elastix_points
 from lungdeform.io.modelfile import load_model

@@ -15,7 +15,7 @@ from lungdeform.fit.config import FitConfig
 from lungdeform.io.landmarks import write_elastix_points
 from lungdeform.validate import copd as C
 from tests.conftest import require_path
-from tests.fit.test_lungsplit import LEFT, RIGHT, two_lungs
+from tests.segment.test_split import LEFT, RIGHT, two_lungs
 
 #: the inspiration phantom: both ellipsoids' semi-axes scaled by this (x, y, z)
 SCALE = np.array([1.06, 1.06, 1.12])
@@ -151,7 +151,7 @@ def test_real_case_model_surface_below_no_motion(data_dir, tmp_path):
 
 
 def _landmark_file(folder, rng, offset, own):
-    # what a correspondence fit writes (lungdeform.fit.pipeline.write_landmark_motion): residual =
+    # what a correspondence fit writes (lungdeform.evaluate.pipeline.write_landmark_motion): residual =
     # a shared offset plus the subject's own part
     folder.mkdir(parents=True)
     pts = rng.normal(scale=30.0, size=(20, 3))

@@ -5,7 +5,7 @@ Owns: :mod:`~lungdeform.breathing.pv` (the single-compartment PV model and its s
 (named breathing patterns with their sources), :mod:`~lungdeform.breathing.trace` (trace readers),
 :mod:`~lungdeform.breathing.cycles` (cycle detection), :mod:`~lungdeform.breathing.holdout` (held-out
 scoring), :mod:`~lungdeform.breathing.stream` (causal streaming),
-:mod:`~lungdeform.breathing.baselines` (Lujan and Fourier curves to compare against) and
+:mod:`~lungdeform.breathing.curve_models` (Lujan and Fourier curves to compare against) and
 :mod:`~lungdeform.breathing.run` (a preset run or a trace fit with its curve, metrics and plots).
 
 May import: the core modules only (errors, atomic, constants, and :mod:`lungdeform.plot` for figures).

@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from lungdeform.breathing import baselines as rb
+from lungdeform.breathing import curve_models as rb
 from lungdeform.breathing import inversion as inv
 from lungdeform.errors import InputError
 

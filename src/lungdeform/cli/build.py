@@ -9,12 +9,12 @@ import typer
 
 from lungdeform.constants import gravity_vector
 from lungdeform.errors import InputError
-from lungdeform.fit.lungsplit import load_lungs
 from lungdeform.geometry.frame import resolve_sides
 from lungdeform.io.modelfile import provenance, save_model
 from lungdeform.model.lung import build_model
 from lungdeform.model.population import resolve_default
 from lungdeform.model.stiffness import parse_stiffness
+from lungdeform.segment.split import load_lungs
 
 from .common import (
     CONSTANTS_HELP,

@@ -232,7 +232,7 @@ def option_names(options: dict[str, str]):
 
 
 def print_fit_table(m: dict) -> None:
-    """The fit metrics (``metrics.json`` of :func:`lungdeform.fit.pipeline.run_fit`): one table per
+    """The fit metrics (``metrics.json`` of :func:`lungdeform.evaluate.pipeline.run_fit`): one table per
     target, one row per method, on stdout."""
     for tname, per in m["targets"].items():
         typer.echo(f"target {tname}: surface mean/rms/p95 mm, landmark mean/median/max mm")

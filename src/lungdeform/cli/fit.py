@@ -1,7 +1,7 @@
 """``lungdeform fit``: fit a lung model to surfaces, masks or CTs at two or more volumes.
 
 The pipeline itself (reading, alignment, fits, baselines, outputs) is
-:func:`lungdeform.fit.pipeline.run_fit`; this module parses the options into its
+:func:`lungdeform.evaluate.pipeline.run_fit`; this module parses the options into its
 :class:`~lungdeform.fit.config.FitInputs` and :class:`~lungdeform.fit.config.FitConfig` and prints the table.
 """
 
@@ -12,9 +12,9 @@ from pathlib import Path
 import typer
 
 from lungdeform.errors import InputError
+from lungdeform.evaluate.pipeline import check_prior, run_fit
 from lungdeform.fit.config import FitConfig, FitInputs
-from lungdeform.fit.motion_prior import load_prior
-from lungdeform.fit.pipeline import check_prior, run_fit
+from lungdeform.interior.motion_prior import load_prior
 
 from .common import (
     DIRECTION_DEGREE_HELP,

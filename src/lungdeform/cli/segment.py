@@ -10,11 +10,11 @@ import typer
 
 from lungdeform.atomic import jsonable, write_bytes
 from lungdeform.errors import InputError
-from lungdeform.fit import ct as C
-from lungdeform.fit import lungsplit as L
-from lungdeform.fit import segment as S
 from lungdeform.io.mask import extract_surface
 from lungdeform.io.meshfile import write_mesh
+from lungdeform.segment import ct as C
+from lungdeform.segment import lungs as S
+from lungdeform.segment import split as L
 
 from .common import check_output, output_dir, say
 

@@ -1,6 +1,6 @@
 """One job of a cohort: fitting one lung (a subject's side) and its ``result.json`` record.
 
-A job (:class:`lungdeform.cohort.manifest.Job`) runs :func:`lungdeform.fit.pipeline.run_fit` into a hidden
+A job (:class:`lungdeform.cohort.manifest.Job`) runs :func:`lungdeform.evaluate.pipeline.run_fit` into a hidden
 temporary folder next to its final one (``.<side>.partial-<hex>``) and renames it into place when
 complete, so a folder under ``subjects/`` is always whole; one that existed before is moved aside
 (``.<side>.old-<hex>``) and removed. Both kinds of leftover (after a kill) are removed at the start
@@ -39,8 +39,8 @@ from typing import Callable
 
 from lungdeform import __version__
 from lungdeform.atomic import jsonable, write_json
+from lungdeform.evaluate.pipeline import run_fit
 from lungdeform.fit.config import FitConfig, FitInputs
-from lungdeform.fit.pipeline import run_fit
 
 from .manifest import Job
 

@@ -11,7 +11,7 @@ Format (UTF-8, comma-separated, header row required; column order free)::
 
 - one row per scan; ``subject`` names the output folder (letters, digits, ``.``, ``_``, ``-``);
 - ``side`` is ``left``, ``right`` or ``both`` (a CT, or a mask holding both lungs in one label: it
-  gives a left and a right job; such a mask is split, :mod:`lungdeform.fit.lungsplit`, also on
+  gives a left and a right job; such a mask is split, :mod:`lungdeform.segment.split`, also on
   ``left``/``right`` rows). A subject uses ``both`` on all its rows or ``left``/``right`` on all its rows;
 - ``volume_ml`` is the lung volume in mL, or empty to measure it from the data. Within one job
   volumes are all given or all empty;

@@ -1,24 +1,20 @@
-"""Fitting the model to a patient: CT to lungs, alignment, correspondence, the objective, the search.
+"""Fitting the model to a patient: alignment, ray correspondence, the objective, the search.
 
-Owns: :mod:`~lungdeform.fit.ct` and :mod:`~lungdeform.fit.segment` (CT input, lungs without learned
-weights), :mod:`~lungdeform.fit.lungsplit` (a mask holding both lungs in one label → left and right),
-:mod:`~lungdeform.fit.align` (rigid alignment), :mod:`~lungdeform.fit.correspond` (ray
-correspondence), :mod:`~lungdeform.fit.objective` (one lung's objective), :mod:`~lungdeform.fit.fitting`
-(c1…c9, stiffness and direction correction), :mod:`~lungdeform.fit.search` (optimiser and the paper's
-grid), :mod:`~lungdeform.fit.crossval` (landmark cross-validation), :mod:`~lungdeform.fit.expandability`
-(the fitted stiffness field), :mod:`~lungdeform.fit.direction_correction`, :mod:`~lungdeform.fit.refinement`
-(the smooth residual that brings the fitted surface onto the targets), :mod:`~lungdeform.fit.registration` (the smooth
-surface-to-surface map behind the correspondence interior field), :mod:`~lungdeform.fit.motion_prior`
-(the population prior of interior motion, learned across subjects), :mod:`~lungdeform.fit.baselines`
-(comparison methods), :mod:`~lungdeform.fit.pipeline` (inputs to a saved model and its metrics, in
-steps: :mod:`~lungdeform.fit.config` what a fit is given, :mod:`~lungdeform.fit.inputs` reading and
-checking, :mod:`~lungdeform.fit.placement` the model mesh and the targets in its frame,
-:mod:`~lungdeform.fit.heldout` what landmarks give, held out, :mod:`~lungdeform.fit.scoring` every
-method measured) and :mod:`~lungdeform.fit.report` (the HTML report).
+Owns: :mod:`~lungdeform.fit.config` (what a fit is given), :mod:`~lungdeform.fit.inputs` (reading and
+checking the inputs), :mod:`~lungdeform.fit.align` (rigid alignment), :mod:`~lungdeform.fit.placement`
+(the model mesh and the targets in its frame), :mod:`~lungdeform.fit.rays` (ray casting: where each
+vertex's ray meets a target), :mod:`~lungdeform.fit.objective` (one lung's objective),
+:mod:`~lungdeform.fit.fitting` (c1…c9, stiffness and direction correction), :mod:`~lungdeform.fit.search`
+(optimiser and the paper's grid), :mod:`~lungdeform.fit.expandability` (the fitted stiffness field),
+:mod:`~lungdeform.fit.direction_correction`, :mod:`~lungdeform.fit.refinement` (the smooth residual that
+brings the fitted surface onto the targets), :mod:`~lungdeform.fit.registration` and
+:mod:`~lungdeform.fit.cpd` (the smooth surface-to-surface map behind the surface-map interior field).
+Measuring a fit and the whole run (inputs to a saved model) are :mod:`lungdeform.evaluate`'s.
 
-May import: :mod:`lungdeform.data`, :mod:`lungdeform.io`, :mod:`lungdeform.breathing`,
-:mod:`lungdeform.model`, :mod:`lungdeform.interior`, :mod:`lungdeform.geometry` and the core modules;
-not :mod:`lungdeform.playback` (independent of it) and nothing above.
+May import: :mod:`lungdeform.segment`, :mod:`lungdeform.data`, :mod:`lungdeform.io`,
+:mod:`lungdeform.breathing`, :mod:`lungdeform.model`, :mod:`lungdeform.interior`,
+:mod:`lungdeform.geometry` and the core modules; not :mod:`lungdeform.playback` (independent of it)
+and nothing above.
 """
 
 from .fitting import (

@@ -2,7 +2,7 @@
 
 Both are frozen and validated once, on construction; an error names the field at fault
 (``folds``, ``align``), never a command-line option (the CLI maps field names to its options).
-:func:`lungdeform.fit.pipeline.run_fit` takes one of each.
+:func:`lungdeform.evaluate.pipeline.run_fit` takes one of each.
 """
 
 from __future__ import annotations
@@ -85,7 +85,7 @@ CROP_LIMIT = 0.02
 
 @dataclass(frozen=True)
 class FitConfig:
-    """How :func:`lungdeform.fit.pipeline.run_fit` fits (the module docstring there gives the steps).
+    """How :func:`lungdeform.evaluate.pipeline.run_fit` fits (the module docstring there gives the steps).
 
     Attributes
     ----------
@@ -95,7 +95,7 @@ class FitConfig:
         Fit a heterogeneous stiffness field (:mod:`lungdeform.fit.expandability`), kept only if it
         lowers the objective.
     baselines : bool
-        Measure the baselines (:mod:`lungdeform.fit.baselines`) and, with landmarks, the
+        Measure the baselines (:mod:`lungdeform.evaluate.baselines`) and, with landmarks, the
         landmark-informed references.
     max_evaluations : int
         Optimiser budget (objective evaluations), ≥ 1.
@@ -116,7 +116,7 @@ class FitConfig:
         :data:`~lungdeform.model.direction.MAX_DEGREE`; 0: the paper's directions only.
     landmark_comparisons : bool
         With landmarks: also the landmark-informed fits of c1…c9
-        (:func:`lungdeform.fit.crossval.cross_validate_landmarks`; slow) as comparison rows.
+        (:func:`lungdeform.evaluate.crossval.cross_validate_landmarks`; slow) as comparison rows.
     side_check : bool
         Refuse inputs whose shape clearly says the other side
         (:func:`lungdeform.geometry.frame.check_side`).

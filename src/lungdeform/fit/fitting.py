@@ -20,7 +20,7 @@ surfaces (:mod:`lungdeform.fit.direction_correction`), kept only when it lowers 
 Landmark-informed fitting (optional; paper Sec. IV-B fitted its constants on corresponding points
 of 4-D CT): the objective gains a landmark term (:mod:`lungdeform.fit.objective`). Landmark errors of
 such a fit are only meaningful on landmarks held out from it:
-:func:`lungdeform.fit.crossval.cross_validate_landmarks` runs the k-fold protocol.
+:func:`lungdeform.evaluate.crossval.cross_validate_landmarks` runs the k-fold protocol.
 """
 
 from __future__ import annotations
@@ -39,10 +39,10 @@ from lungdeform.model.force import field_basis
 from lungdeform.model.lung import LungModel
 from lungdeform.model.response import solve_response
 
-from .correspond import RayHits
 from .direction_correction import DirectionCorrection, fit_direction_correction
 from .expandability import fit_stiffness_if_better
 from .objective import LungFitter, Target
+from .rays import RayHits
 from .refinement import Refinement
 from .search import grid_search, least_squares_search, powell_search
 
@@ -212,7 +212,7 @@ def fit_lung(
     constant (step 0.01). ``landmarks_rest`` / ``landmarks_targets`` / ``landmark_weight`` /
     ``landmark_matrix``: optional landmark term of the objective (see
     :class:`lungdeform.fit.objective.LungFitter`); the landmark error of the result is in-sample, use
-    :func:`lungdeform.fit.crossval.cross_validate_landmarks` for a held-out figure.
+    :func:`lungdeform.evaluate.crossval.cross_validate_landmarks` for a held-out figure.
     ``translate`` (least squares only): fit a translation of each target in ``fit_on`` jointly
     with the constants (:attr:`FitResult.translations`). ``direction_degree`` > 0: after the
     constants (and stiffness), fit a smooth correction of that polynomial degree to the directions

@@ -1,12 +1,12 @@
-"""Reading and checking a fit's inputs (step 1 of :func:`lungdeform.fit.pipeline.run_fit`).
+"""Reading and checking a fit's inputs (step 1 of :func:`lungdeform.evaluate.pipeline.run_fit`).
 
 :func:`read_inputs` reads every input (mesh file, mask image, or CT in HU, segmented with
-:func:`lungdeform.fit.segment.segment_lungs`) into a full-resolution surface; for images it notes
+:func:`lungdeform.segment.lungs.segment_lungs`) into a full-resolution surface; for images it notes
 the border faces the mask touches (crop faces, :func:`lungdeform.fit.align.crop_planes`) and checks
 that all images share one voxel spacing. It then checks that the inputs are one lung of the given
 side with volumes strictly increasing, and reads the landmarks (refused outside their image,
 reported when they lie outside their own lung mask). A mask holding both lungs in one label gives the
-side's lung of its split (:mod:`lungdeform.fit.lungsplit`); with landmarks, only the rows in that
+side's lung of its split (:mod:`lungdeform.segment.split`); with landmarks, only the rows in that
 lung are kept (noted, with how many were dropped).
 """
 
@@ -27,12 +27,12 @@ from lungdeform.io import meshfile as lio
 from lungdeform.io.fourdct import read_phases
 from lungdeform.io.image import Image, is_image_path, read_image
 from lungdeform.io.landmarks import read_elastix_points
+from lungdeform.segment.ct import archive_in, is_archive, read_ct
+from lungdeform.segment.lungs import segment_lungs
+from lungdeform.segment.split import landmarks_of_side, one_lung
 
 from .align import CropPlane, crop_planes
 from .config import FitInputs
-from .ct import archive_in, is_archive, read_ct
-from .lungsplit import landmarks_of_side, one_lung
-from .segment import segment_lungs
 
 #: Landmarks more than this outside their own image's lung mask count as outside (mm).
 LANDMARK_OUTSIDE_MM = 3.0
@@ -136,7 +136,7 @@ def read_fourdct(folder: Path, side: str, progress) -> tuple[list[str], list[tup
 
 def read_input(path: Path, side: str, *, progress=None, spacing_like=None):
     """``(dense Surface, crop planes, spacing or None, image or None, split or None)`` for one input
-    path; ``split`` (:class:`~lungdeform.fit.lungsplit.LungSplit`) when the input was a mask holding
+    path; ``split`` (:class:`~lungdeform.segment.split.LungSplit`) when the input was a mask holding
     both lungs in one label, ``image`` then its ``side`` lung.
 
     ``spacing_like``: ``(path, spacing (3,) mm)`` of an image read before; an image of another

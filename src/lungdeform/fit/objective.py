@@ -11,7 +11,7 @@ Pipeline for one candidate c1…c6 (:meth:`LungFitter.evaluate`):
 
 1. directions ``d`` from c1…c6;
 2. rays from the end-exhale vertices along ``±d`` to the calibration target
-   (:func:`lungdeform.fit.correspond.correspond`: bounded, both directions, grazing rejected, misses
+   (:func:`lungdeform.fit.rays.correspond`: bounded, both directions, grazing rejected, misses
    explicit) → observed magnitudes ``t`` (mm);
 3. observed force ``F_obs ∝ t``; **inverse force** ``f = (I − Qᵀ)(F_obs / T_e[i→i])`` (one sparse
    product; spring nodes take the mean of their two mass nodes' F, docs/METHOD_NOTES.md §4);
@@ -61,7 +61,7 @@ from lungdeform.model.response import ResponseSolver
 from lungdeform.model.stiffness import as_moduli, uniform
 from lungdeform.model.transfer import split_transfer
 
-from .correspond import RayCaster, RayHits, correspond
+from .rays import RayCaster, RayHits, correspond
 
 
 @dataclass(frozen=True, eq=False)

@@ -1,4 +1,4 @@
-"""The model mesh and the targets in its frame (steps 2 and 3 of :func:`lungdeform.fit.pipeline.run_fit`).
+"""The model mesh and the targets in its frame (steps 2 and 3 of :func:`lungdeform.evaluate.pipeline.run_fit`).
 
 The first input is end-exhale: its surface, decimated to a few thousand vertices (:func:`model_mesh`),
 is the model mesh. Every other surface is brought into its frame (``align``,

@@ -13,8 +13,8 @@ distance cannot see but the interior does. Calibrated on the DIR-Lab COPDgene ma
 the model's correspondence field are this one map.
 
 :func:`register_points` fits the map on point sets; :func:`surface_map` on two closed surfaces
-(moments of the solids, points from the kept vertices); :func:`correspondence_field` turns a map
-into the per-unit :class:`~lungdeform.interior.correspondence.CorrespondenceField` a model plays back.
+(moments of the solids, points from the kept vertices); :func:`surface_map_field` turns a map
+into the per-unit :class:`~lungdeform.interior.surface_map.SurfaceMapField` a model plays back.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ import numpy as np
 from lungdeform.errors import InputError, require
 from lungdeform.geometry.mesh import Surface, as_vertices, farthest_points
 from lungdeform.geometry.moments import solid_moments
-from lungdeform.interior.correspondence import CorrespondenceField
+from lungdeform.interior.surface_map import SurfaceMapField
 
 from .cpd import deformable_cpd
 
@@ -60,12 +60,12 @@ class SurfaceMap:
     weights: np.ndarray
     width_mm: float
 
-    def field(self, scale: float = 1.0) -> CorrespondenceField:
+    def field(self, scale: float = 1.0) -> SurfaceMapField:
         """The map's displacement ``f(x) − x`` divided by ``scale`` (units), as a field."""
         if not (np.isfinite(scale) and scale != 0):
             raise InputError(f"scale must be finite and not 0, got {scale!r}")
         linear = self.warp - np.c_[np.eye(3), np.zeros(3)]
-        return CorrespondenceField(linear / scale, self.warp, self.centers, self.weights / scale, self.width_mm)
+        return SurfaceMapField(linear / scale, self.warp, self.centers, self.weights / scale, self.width_mm)
 
     def __call__(self, points) -> np.ndarray:
         """``f(x) : (q, 3)`` mm at ``points : (q, 3)`` mm."""
@@ -117,8 +117,8 @@ def surface_map(small: Surface, large: Surface, *, keep_small=None, keep_large=N
     return register_points(moment_affine(mu_s, cov_s, mu_l, cov_l), *pts)
 
 
-def correspondence_field(small: Surface, large: Surface, scale: float, *, keep_small=None,
-                         keep_large=None) -> CorrespondenceField:
+def surface_map_field(small: Surface, large: Surface, scale: float, *, keep_small=None,
+                      keep_large=None) -> SurfaceMapField:
     """The per-unit field of :func:`surface_map` from ``small`` (the model's end-exhale surface) to
     ``large`` (a target at ``scale`` units of the model)."""
     return surface_map(small, large, keep_small=keep_small, keep_large=keep_large).field(scale)

@@ -2,17 +2,17 @@
 
 Owns: :mod:`~lungdeform.interior.interpolate` (thin-plate splines), :mod:`~lungdeform.interior.sliding`
 (the sliding interpolation of the surface's normal motion, and the landmark correction that keeps it),
-:mod:`~lungdeform.interior.correspondence` (the field of a smooth surface-to-surface map: affine plus
+:mod:`~lungdeform.interior.surface_map` (the field of a smooth surface-to-surface map: affine plus
 Gaussian radial part, with any population prior folded into its affine part; the surface extension
-of a built model), :mod:`~lungdeform.interior.prior` (an affine prior in the lung-normalised frame) and
-:mod:`~lungdeform.interior.field` (the interior field a lung model plays back, its landmark
-correction's held-out selection, the landmark folds).
+of a built model; the interior kind ``"correspondence"``), :mod:`~lungdeform.interior.prior` (an affine
+prior in the lung-normalised frame), :mod:`~lungdeform.interior.motion_prior` (that prior learned
+across subjects, saved and read) and :mod:`~lungdeform.interior.field` (the interior field a lung
+model plays back).
 
-May import: :mod:`lungdeform.geometry` and the core modules. It works on plain arrays (surface
+May import: :mod:`lungdeform.geometry` and the core modules (:mod:`lungdeform.atomic` for the prior file). It works on plain arrays (surface
 points, unit displacements, landmarks), so the run-time model can carry a field without any fitting code.
 """
 
-from .correspondence import CorrespondenceField
 from .field import (
     CORRECTION_SMOOTHING_MM,
     KIND_TEXT,
@@ -21,29 +21,20 @@ from .field import (
     SMOOTHING_MM2,
     InteriorField,
     correction_per_unit,
-    correction_solvers,
-    held_out_positions,
-    held_out_sliding,
     interior_field,
-    select_correction_smoothing,
-    select_smoothing,
     spline_predict,
 )
+from .surface_map import SurfaceMapField
 
 __all__ = [
     "CORRECTION_SMOOTHING_MM",
-    "CorrespondenceField",
+    "SurfaceMapField",
     "InteriorField",
     "KINDS",
     "KIND_TEXT",
     "MAX_SURFACE_POINTS",
     "SMOOTHING_MM2",
     "correction_per_unit",
-    "correction_solvers",
-    "held_out_positions",
-    "held_out_sliding",
     "interior_field",
-    "select_correction_smoothing",
-    "select_smoothing",
     "spline_predict",
 ]

@@ -2,7 +2,7 @@
 
 Used where only points are known: the landmark correction of model files of schema 1 and 2
 (:mod:`lungdeform.interior.field`; newer ones use :func:`lungdeform.interior.sliding.sliding_correction`), the
-landmark-only reference (:func:`lungdeform.fit.baselines.landmark_tps_cv`), and the interior field
+landmark-only reference (:func:`lungdeform.evaluate.baselines.landmark_tps_cv`), and the interior field
 of model files of schema 1. The surface-driven interior field of every method is the sliding
 interpolation of :mod:`lungdeform.interior.sliding` (it uses the surface's normals, which scattered points
 do not have).

@@ -4,7 +4,7 @@ The lung-normalised position of a point ``q`` (mm LPS) is ``q̂ = (q − μ) / �
 centroid of the solid the lung's surface encloses and ``σ (3,)`` its standard deviations along x,
 y, z, the x axis mirrored for a left lung so that lateral means the same on both sides. A prior's
 ``coefficients (4, 3)`` are ``β₀`` then the rows of ``B`` (for x̂, ŷ, ẑ), in that mirrored frame.
-:mod:`lungdeform.fit.motion_prior` learns one for two-scan fits (mm at the largest volume);
+:mod:`lungdeform.interior.motion_prior` learns one for two-scan fits (mm at the largest volume);
 :mod:`lungdeform.cohort.default` one for the population default (mm per mL).
 """
 

@@ -24,7 +24,7 @@ with interior landmarks): ``landmarks (m, 3)`` mm LPS, ``landmark_correction (m,
 motion drives the interior field (the crop faces left out). Optional (an older lung saved again):
 ``interior_kind`` str, ``"sliding_thin_plate"`` or ``"thin_plate"`` (it keeps the interior field it
 was made with; absent: ``"sliding"``). Optional (a fit whose interior follows a surface-to-surface
-map, :mod:`lungdeform.interior.correspondence`): ``interior_map_linear (3, 4)`` mm per unit,
+map, :mod:`lungdeform.interior.surface_map`): ``interior_map_linear (3, 4)`` mm per unit,
 ``interior_map_warp (3, 4)``, ``interior_map_centers (k, 3)`` mm LPS, ``interior_map_weights (k, 3)``
 mm per unit and ``interior_map_width_mm``; all five or none.
 
@@ -59,7 +59,7 @@ from lungdeform.atomic import atomic_path, finite_json
 from lungdeform.errors import InputError, ModelFileError
 from lungdeform.geometry.frame import LungFrame
 from lungdeform.geometry.mesh import Surface
-from lungdeform.interior.correspondence import CorrespondenceField
+from lungdeform.interior.surface_map import SurfaceMapField
 from lungdeform.model.lung import LungModel, Model
 
 SCHEMA = "lungdeform.model"
@@ -70,7 +70,7 @@ SCHEMA_VERSION = 4
 READABLE_VERSIONS = (1, 2, 3, 4)
 
 _OPTIONAL = ("landmarks", "landmark_correction", "landmark_smoothing")
-#: The surface-to-surface map's arrays (:class:`~lungdeform.interior.correspondence.CorrespondenceField`).
+#: The surface-to-surface map's arrays (:class:`~lungdeform.interior.surface_map.SurfaceMapField`).
 _MAP = ("linear", "warp", "centers", "weights", "width_mm")
 _PER_LUNG = ("side", "vertices", "faces", "constants", "stiffness", "frame_axes", "frame_lower",
              "frame_upper", "directions", "force_basis", "gravity", "force_weights",
@@ -296,7 +296,7 @@ def _lung(path: Path, name: str, data: dict, version: int = SCHEMA_VERSION) -> L
         raise ModelFileError(f"{path}: lung '{name}' {exc}") from exc
 
 
-def _interior_map(data: dict, prefix: str) -> CorrespondenceField | None:
+def _interior_map(data: dict, prefix: str) -> SurfaceMapField | None:
     """The lung's surface-to-surface map, or None; InputError (named by the caller) when partial or malformed."""
     keys = [prefix + "interior_map_" + k for k in _MAP]
     present = [k for k in keys if k in data]
@@ -305,7 +305,7 @@ def _interior_map(data: dict, prefix: str) -> CorrespondenceField | None:
     if len(present) != len(keys):
         raise InputError(f"has only part of the interior map ({', '.join(k[len(prefix):] for k in present)})")
     linear, warp, centers, weights, width = (np.asarray(data[k]) for k in keys)
-    return CorrespondenceField(linear, warp, centers, weights, float(width))
+    return SurfaceMapField(linear, warp, centers, weights, float(width))
 
 
 def provenance(command: str, **extra) -> dict:

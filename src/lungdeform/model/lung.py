@@ -24,9 +24,9 @@ from lungdeform.constants import TIDAL_VOLUME_ML, gravity_vector
 from lungdeform.errors import InputError, LungdeformError
 from lungdeform.geometry.frame import LungFrame, lung_frame
 from lungdeform.geometry.mesh import Surface
-from lungdeform.interior.correspondence import CorrespondenceField, surface_extension
 from lungdeform.interior.field import KINDS, interior_field
 from lungdeform.interior.prior import lung_normaliser, prior_affine
+from lungdeform.interior.surface_map import SurfaceMapField, surface_extension
 
 from .direction import corrected_directions, polynomial_basis
 from .direction import directions as direction_field
@@ -84,9 +84,9 @@ class LungModel:
         ``"sliding_thin_plate"`` (the same surface part, a thin-plate correction; schema-2 files) or
         ``"thin_plate"`` (the thin-plate spline of the whole displacement; schema-1 files). Older
         files play back as they were made.
-    interior_map : CorrespondenceField or None
+    interior_map : SurfaceMapField or None
         When set, the surface part of the interior field is this surface-to-surface map
-        (:mod:`lungdeform.interior.correspondence`, fitted by :mod:`lungdeform.fit.registration`)
+        (:mod:`lungdeform.interior.surface_map`, fitted by :mod:`lungdeform.fit.registration`)
         instead of the sliding interpolation of :attr:`displacement`; kind ``"sliding"`` only.
     """
 
@@ -107,7 +107,7 @@ class LungModel:
     landmark_smoothing: float = 0.0
     interior_vertices: np.ndarray | None = None
     interior_kind: str = "sliding"
-    interior_map: CorrespondenceField | None = None
+    interior_map: SurfaceMapField | None = None
 
     def __post_init__(self):
         if self.interior_kind not in KINDS:
@@ -281,9 +281,9 @@ def build_lung(
 
 
 def default_interior(surface: Surface, side: str, displacement: np.ndarray, default: PopulationDefault,
-                     unit_ml: float, gravity) -> CorrespondenceField | None:
+                     unit_ml: float, gravity) -> SurfaceMapField | None:
     """The interior of a lung built with ``default``: its ``displacement (n, 3)`` (mm per unit) carried
-    inside (:func:`lungdeform.interior.correspondence.surface_extension`) plus the default's interior
+    inside (:func:`lungdeform.interior.surface_map.surface_extension`) plus the default's interior
     prior (mm per mL × ``unit_ml``); None (the sliding interior) when the default has no prior or
     ``gravity`` is not the posture it was learned in."""
     prior = default.prior_for(gravity)

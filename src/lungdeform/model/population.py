@@ -12,7 +12,7 @@ A model built from one scan (``lungdeform build``, ``demo``, ``segment`` → ``b
   subjects, the leave-one-subject-out scores and when to use which.
 
 Inside the lung a built model's interior is its surface displacement carried inside
-(:func:`lungdeform.interior.correspondence.surface_extension`), plus, with a learned default, an affine
+(:func:`lungdeform.interior.surface_map.surface_extension`), plus, with a learned default, an affine
 interior prior (:mod:`lungdeform.interior.prior`, mm per mL in the lung-normalised frame): the motion of
 real interior landmarks that the surface does not show, learned on the training subjects' landmarks.
 

@@ -5,12 +5,12 @@ The experiment behind ``lungdeform validate copd`` (docs/FITTING.md "DIR-Lab COP
 Data: a folder holding, per case N, ``copdN_exp_mask.nii.gz``, ``copdN_insp_mask.nii.gz`` (both lungs
 in one label) and ``copdN_exp_landmarks.txt``, ``copdN_insp_landmarks.txt`` (elastix point files,
 world mm, row i ↔ row i). Each phase was re-centred on its lungs, so the fit estimates a translation
-(``align="joint"``). For every case and lung (the split of :mod:`lungdeform.fit.lungsplit`, that
-lung's landmarks) :func:`run_lung` runs :func:`lungdeform.fit.pipeline.run_fit` into
+(``align="joint"``). For every case and lung (the split of :mod:`lungdeform.segment.split`, that
+lung's landmarks) :func:`run_lung` runs :func:`lungdeform.evaluate.pipeline.run_fit` into
 ``OUT/copdN/<side>/`` (model.npz, metrics.json, report.html) and adds the calibrated mask-only
 baselines (:func:`mask_baselines`, once per case: :class:`CaseBaselines`); :func:`run_copd` collects
 ``OUT/metrics.json`` (:func:`lung_row` per lung, :func:`summarise`: medians over the lungs) and
-``OUT/report.html``. Each mask is split once per case (:func:`lungdeform.fit.lungsplit.shared_splits`).
+``OUT/report.html``. Each mask is split once per case (:func:`lungdeform.segment.split.shared_splits`).
 Times: per lung ``seconds`` (the whole fit pipeline), ``model_seconds`` (the model's own fit: that
 less ``baseline_seconds``, the pipeline's baselines and landmark-informed references), per case
 ``fit_seconds`` and ``model_fit_seconds`` (its two lungs) and ``mask_baselines_seconds`` (the
@@ -43,14 +43,14 @@ import numpy as np
 from lungdeform import plot as P
 from lungdeform.atomic import atomic_dir, write_json, write_text
 from lungdeform.errors import InputError, ReadError
-from lungdeform.fit import baselines as B
+from lungdeform.evaluate import baselines as B
+from lungdeform.evaluate.pipeline import run_fit
 from lungdeform.fit import registration
 from lungdeform.fit.config import FitConfig, FitInputs
-from lungdeform.fit.lungsplit import SIDES, landmarks_of_side, require_split, shared_splits
-from lungdeform.fit.motion_prior import RIDGE, PriorSample, learn_motion_prior, save_prior
-from lungdeform.fit.pipeline import run_fit
+from lungdeform.interior.motion_prior import RIDGE, PriorSample, learn_motion_prior, save_prior
 from lungdeform.io.image import read_image
 from lungdeform.io.landmarks import read_elastix_points
+from lungdeform.segment.split import SIDES, landmarks_of_side, require_split, shared_splits
 
 COMMAND = "validate copd"
 FILES = ("copd{n}_exp_mask.nii.gz", "copd{n}_insp_mask.nii.gz", "copd{n}_exp_landmarks.txt",
@@ -152,7 +152,7 @@ def settings_digest(files, side: str, config: FitConfig) -> str:
 
 def mask_baselines(files) -> dict[str, dict[str, dict[str, float]]]:
     """``{side: {row: {"landmark_mean_mm": …}}}``: the calibrated mask-only baselines of a case
-    (:data:`MASK_ROWS`; :func:`lungdeform.fit.baselines.centroid_map`, ``moment_affine_map``,
+    (:data:`MASK_ROWS`; :func:`lungdeform.evaluate.baselines.centroid_map`, ``moment_affine_map``,
     ``mask_cpd_map``), each lung's expiration points mapped to inspiration, on that lung's landmarks."""
     exp_mask, insp_mask, exp_lm, insp_lm = files
     images = [read_image(exp_mask), read_image(insp_mask)]
@@ -310,7 +310,7 @@ def run_copd(data: Path, out: Path, config: FitConfig | None = None, cases=None,
 
 
 def prior_sample(folder: Path, subject: str, side: str) -> PriorSample | None:
-    """A lung's :class:`~lungdeform.fit.motion_prior.PriorSample` from its fit's ``landmarks.npz``
+    """A lung's :class:`~lungdeform.interior.motion_prior.PriorSample` from its fit's ``landmarks.npz``
     (the largest-volume target), or None when the fit wrote none (a sliding interior)."""
     path = folder / "landmarks.npz"
     if not path.is_file():
@@ -322,7 +322,7 @@ def prior_sample(folder: Path, subject: str, side: str) -> PriorSample | None:
 
 def apply_loso_priors(out: Path, cases: dict) -> dict:
     """The population motion prior scored leave-one-subject-out: for each case, a prior learned on
-    the other cases' lungs (:func:`lungdeform.fit.motion_prior.learn_motion_prior`) added to its
+    the other cases' lungs (:func:`lungdeform.interior.motion_prior.learn_motion_prior`) added to its
     correspondence field; in each lung's row ``model_surface_only`` becomes that (the field alone
     moves to ``model_surface_noprior``). Writes ``out/priors/<case>.json`` (what scored each case) and
     ``out/motion_prior.json`` (learned on every case, for new subjects). Returns what was done."""

@@ -5,7 +5,7 @@ The experiment behind ``lungdeform validate itk-pair``.
 Data (the folder itself or a parent holding ``itk-right-lung-two-volumes``):
 ``CT_3D_lung_fixed_mask.mha`` (smaller volume, end-exhale), ``CT_3D_lung_moving_mask.mha``
 (larger volume) and the 51 landmark pairs ``CT_3D_lung_{fixed,moving}_point_set_corrected.txt``.
-:func:`run_itk_pair` runs :func:`lungdeform.fit.pipeline.run_fit` on them (by default with the grid
+:func:`run_itk_pair` runs :func:`lungdeform.evaluate.pipeline.run_fit` on them (by default with the grid
 mode and the baselines) and writes ``OUT/metrics.json`` (``model`` and each baseline:
 ``surface_mean_mm``, ``surface_rms_mm``, ``surface_p95_mm``, ``landmark_mean_mm``,
 ``landmark_max_mm``; the ray-casting throughput; :func:`targets_met`), ``model.npz`` and
@@ -33,10 +33,10 @@ from typing import Callable
 from lungdeform.atomic import write_json
 from lungdeform.data import itk_right_lung
 from lungdeform.errors import ReadError
+from lungdeform.evaluate.pipeline import run_fit
 from lungdeform.fit.config import FitConfig, FitInputs
-from lungdeform.fit.correspond import rays_per_second
 from lungdeform.fit.direction_correction import DEFAULT_DEGREE
-from lungdeform.fit.pipeline import run_fit
+from lungdeform.fit.rays import rays_per_second
 
 FOLDER = "itk-right-lung-two-volumes"
 FILES = ("CT_3D_lung_fixed_mask.mha", "CT_3D_lung_moving_mask.mha",

@@ -52,7 +52,6 @@ from lungdeform.errors import ReadError
 from lungdeform.fit.config import FitInputs
 from lungdeform.fit.fitting import fit_lung, to_lung_model
 from lungdeform.fit.inputs import read_inputs
-from lungdeform.fit.lungsplit import SIDES, shared_splits
 from lungdeform.fit.objective import Target
 from lungdeform.fit.placement import place_targets
 from lungdeform.geometry.distance import SurfaceDistance, symmetric_distance
@@ -60,6 +59,7 @@ from lungdeform.geometry.mesh import Surface
 from lungdeform.geometry.moments import solid_moments
 from lungdeform.model.lung import LungModel, build_lung
 from lungdeform.model.population import PopulationDefault, paper_default, resolve_default
+from lungdeform.segment.split import SIDES, shared_splits
 
 from . import copd, itk_pair
 

@@ -9,7 +9,7 @@ surface onto a larger one with strong smoothness (:mod:`lungdeform.fit.registrat
     v(q) = L [q; 1] + Σ_j exp(−|W [q; 1] − c_j|² / (2 w²)) g_j,
 
 with ``L (3, 4)`` the affine part of the displacement per unit (``(A − I | t) / s_target``, plus any
-population prior folded in: :mod:`lungdeform.fit.motion_prior`), ``c_j (k, 3)`` mm the Gaussian
+population prior folded in: :mod:`lungdeform.interior.motion_prior`), ``c_j (k, 3)`` mm the Gaussian
 centres (the affine image of the end-exhale surface points), ``g_j (k, 3)`` mm per unit their
 weights and ``w`` mm the kernel width. The field is linear in ``s`` like every interior field, so a
 point's displacement per unit is computed once and playback costs three multiply-adds per point.
@@ -38,7 +38,7 @@ def _affine(matrix, name: str) -> np.ndarray:
 
 
 @dataclass(frozen=True, eq=False)
-class CorrespondenceField:
+class SurfaceMapField:
     """Displacement per unit of any point of a lung from a surface-to-surface map (module docstring).
 
     Attributes
@@ -83,7 +83,7 @@ class CorrespondenceField:
             out[start:start + BLOCK] += np.exp(-cdist(y, self.centers, "sqeuclidean") * inv) @ self.weights
         return np.ascontiguousarray(out)
 
-    def with_linear(self, extra) -> "CorrespondenceField":
+    def with_linear(self, extra) -> "SurfaceMapField":
         """A new field whose affine part per unit has ``extra : (3, 4)`` (mm per unit) added."""
         return replace(self, linear=self.linear + _affine(extra, "extra"))
 
@@ -94,8 +94,8 @@ EXTENSION_CENTRES = 300
 
 
 def surface_extension(vertices, displacement, *, width_mm: float = EXTENSION_WIDTH_MM,
-                      centres: int = EXTENSION_CENTRES, ridge: float = 1e-3) -> CorrespondenceField:
-    """A :class:`CorrespondenceField` that carries a surface displacement inside the lung: the
+                      centres: int = EXTENSION_CENTRES, ridge: float = 1e-3) -> SurfaceMapField:
+    """A :class:`SurfaceMapField` that carries a surface displacement inside the lung: the
     least-squares affine part of ``displacement : (n, 3)`` (mm per unit) over ``vertices : (n, 3)``
     (mm LPS), plus Gaussians of width ``width_mm`` centred on ``centres`` evenly spread vertices
     (every ``n // centres``-th), their weights the ridge-regularised least squares of the rest.
@@ -111,4 +111,4 @@ def surface_extension(vertices, displacement, *, width_mm: float = EXTENSION_WID
     k = np.exp(-cdist(p, c, "sqeuclidean") / (2.0 * width_mm**2))
     normal = k.T @ k
     g = np.linalg.solve(normal + ridge * np.trace(normal) / len(c) * np.eye(len(c)), k.T @ rest)
-    return CorrespondenceField(lin, np.c_[np.eye(3), np.zeros(3)], c, g, float(width_mm))
+    return SurfaceMapField(lin, np.c_[np.eye(3), np.zeros(3)], c, g, float(width_mm))

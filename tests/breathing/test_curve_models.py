@@ -1,4 +1,4 @@
-"""lungdeform.breathing.baselines: the Lujan and Fourier breathing curves, recovered from curves generated
+"""lungdeform.breathing.curve_models: the Lujan and Fourier breathing curves, recovered from curves generated
 with known parameters (Lujan et al. 1999's cos^{2n} shape; a K-harmonic Fourier series per cycle)."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lungdeform.breathing import baselines as rb
+from lungdeform.breathing import curve_models as rb
 from lungdeform.errors import InputError
 
 

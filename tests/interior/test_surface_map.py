@@ -4,13 +4,13 @@ import numpy as np
 import pytest
 
 from lungdeform.errors import InputError
-from lungdeform.interior import correspondence as C
-from lungdeform.interior.correspondence import CorrespondenceField
+from lungdeform.interior import surface_map as C
+from lungdeform.interior.surface_map import SurfaceMapField
 
 
 def _field(rng, k=50):
     warp = np.c_[np.eye(3) + 0.05 * rng.normal(size=(3, 3)), rng.normal(size=3)]
-    return CorrespondenceField(0.01 * rng.normal(size=(3, 4)), warp, rng.normal(scale=40.0, size=(k, 3)),
+    return SurfaceMapField(0.01 * rng.normal(size=(3, 4)), warp, rng.normal(scale=40.0, size=(k, 3)),
                                rng.normal(size=(k, 3)), 30.0)
 
 
@@ -31,7 +31,7 @@ def test_blocked_evaluation_equals_the_dense_formula(rng, monkeypatch):
 def test_zero_weights_leave_the_affine_part(rng):
     # with no Gaussian weight the displacement is exactly L [q; 1]
     f = _field(rng)
-    g = CorrespondenceField(f.linear, f.warp, f.centers, np.zeros_like(f.weights), f.width_mm)
+    g = SurfaceMapField(f.linear, f.warp, f.centers, np.zeros_like(f.weights), f.width_mm)
     q = rng.normal(scale=50.0, size=(10, 3))
     np.testing.assert_allclose(g(q), q @ f.linear[:, :3].T + f.linear[:, 3], atol=1e-12)
 
@@ -54,4 +54,4 @@ def test_malformed_fields_are_refused_by_name(rng, change, match):
     f = _field(rng, k=5)
     args = {"linear": f.linear, "warp": f.warp, "centers": f.centers, "weights": f.weights, "width_mm": 30.0}
     with pytest.raises(InputError, match=match):
-        CorrespondenceField(**{**args, **change})
+        SurfaceMapField(**{**args, **change})

@@ -1,11 +1,11 @@
-"""What a fit's landmarks give, scored on held-out landmarks (step 5 of :func:`lungdeform.fit.pipeline.run_fit`).
+"""What a fit's landmarks give, scored on held-out landmarks (step 5 of :func:`lungdeform.evaluate.pipeline.run_fit`).
 
 With landmarks and ``landmark_fit``: the interior landmark correction of the surface fit
 (:mod:`lungdeform.interior.field`), its landmark errors held out per fold; with
 ``landmark_comparisons`` also the landmark-informed fits of c1…c9
-(:func:`lungdeform.fit.crossval.cross_validate_landmarks`, and again with a stiffness field). All
+(:func:`lungdeform.evaluate.crossval.cross_validate_landmarks`, and again with a stiffness field). All
 share one sliding interpolation from the kept model vertices to the landmarks
-(:func:`lungdeform.fit.baselines.landmark_matrix`), which the metrics of every method use too.
+(:func:`lungdeform.evaluate.baselines.landmark_matrix`), which the metrics of every method use too.
 """
 
 from __future__ import annotations
@@ -15,18 +15,14 @@ from typing import Callable
 
 import numpy as np
 
-from lungdeform.interior.field import (
-    correction_per_unit,
-    correction_solvers,
-    held_out_sliding,
-    select_correction_smoothing,
-)
+from lungdeform.evaluate.folds import correction_solvers, held_out_sliding, select_correction_smoothing
+from lungdeform.fit.config import FitConfig
+from lungdeform.fit.fitting import FitResult
+from lungdeform.fit.placement import Placement
+from lungdeform.interior.field import correction_per_unit
 
 from . import baselines as B
-from .config import FitConfig
 from .crossval import LandmarkCV, cross_validate_landmarks
-from .fitting import FitResult
-from .placement import Placement
 
 
 @dataclass(frozen=True, eq=False)
@@ -102,7 +98,7 @@ def interior_correction(fit, landmarks, aligned, targets, folds, keep, unit, res
     landmark positions per target (k-fold), and the correction and its smoothing from all landmarks.
     ``unit : (m, 3)`` mm per unit is the surface-driven part at the landmarks, the one the saved
     model plays back (the correspondence field, or the sliding interpolation from the kept vertices
-    as the metrics' operator, :func:`lungdeform.fit.baselines.landmark_matrix`); the correction is
+    as the metrics' operator, :func:`lungdeform.evaluate.baselines.landmark_matrix`); the correction is
     the sliding correction through the kept vertices of ``rest``."""
 
     observed = [np.asarray(a) - landmarks for a in aligned]

@@ -1,7 +1,7 @@
 """A population prior of interior motion: what other subjects' landmarks say the surfaces miss.
 
 From the surfaces alone a new patient's interior motion is the correspondence field
-(:mod:`lungdeform.interior.correspondence`). On the DIR-Lab COPDgene masks its landmark residuals are
+(:mod:`lungdeform.interior.surface_map`). On the DIR-Lab COPDgene masks its landmark residuals are
 mostly affine and shared across subjects (the predictions sit 2–8 mm too far posterior; docs/FITTING.md,
 "Interior from the surfaces alone"). The prior is that shared part: a least-squares affine map of
 residual displacement (mm, at each training subject's largest volume) over the lung-normalised

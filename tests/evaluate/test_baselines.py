@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from lungdeform.fit.baselines import affine_fit, apex_scaling, cpd_deformable, measure, no_motion
+from lungdeform.evaluate.baselines import affine_fit, apex_scaling, cpd_deformable, measure, no_motion
 from lungdeform.geometry.mesh import Surface
 from tests.conftest import ellipsoid_lung
 
@@ -51,8 +51,8 @@ def test_cpd_recovers_a_smooth_deformation():
 def test_affine_with_landmarks_moves_toward_them():
     # the surfaces say "scale by a"; the landmarks say "translate by 3 mm in z": with no landmark
     # weight the surface affine comes back, with an overwhelming weight the landmarks' own affine
-    from lungdeform.fit.baselines import affine_landmarks_cv
-    from lungdeform.interior.field import landmark_folds
+    from lungdeform.evaluate.baselines import affine_landmarks_cv
+    from lungdeform.evaluate.folds import landmark_folds
 
     s = ellipsoid_lung("right", 3)
     c = s.vertices.mean(0)
@@ -73,8 +73,8 @@ def test_affine_with_landmarks_moves_toward_them():
 def test_landmark_tps_cv_held_out():
     # an affine landmark motion is reproduced exactly by the spline of the other folds (truth);
     # a landmark whose own target is wrong does not help predict itself
-    from lungdeform.fit.baselines import landmark_tps_cv
-    from lungdeform.interior.field import landmark_folds
+    from lungdeform.evaluate.baselines import landmark_tps_cv
+    from lungdeform.evaluate.folds import landmark_folds
 
     s = ellipsoid_lung("left", 2)
     rng = np.random.default_rng(5)

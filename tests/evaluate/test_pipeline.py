@@ -1,4 +1,4 @@
-"""lungdeform.fit.pipeline: the fit pipeline is library code (its behaviour is tested through
+"""lungdeform.evaluate.pipeline: the fit pipeline is library code (its behaviour is tested through
 ``lungdeform fit`` in tests/cli/test_fit.py and the cohort runner in tests/cohort/test_runner.py)."""
 
 import subprocess
@@ -11,13 +11,13 @@ def test_pipeline_and_cohort_import_nothing_from_the_cli():
     # module run_fit imports where used is imported too.
     code = (
         "import sys\n"
-        "import lungdeform.fit.pipeline, lungdeform.cohort.runner, lungdeform.cohort.job\n"
+        "import lungdeform.evaluate.pipeline, lungdeform.cohort.runner, lungdeform.cohort.job\n"
         "lungdeform.cohort.job.FitOptions()\n"
-        "import lungdeform.fit.baselines, lungdeform.fit.align, lungdeform.fit.crossval, lungdeform.geometry.distance, "
-        "lungdeform.fit.config, lungdeform.fit.inputs, lungdeform.fit.placement, lungdeform.fit.heldout, "
-        "lungdeform.fit.scoring, "
+        "import lungdeform.evaluate.baselines, lungdeform.fit.align, lungdeform.evaluate.crossval, lungdeform.geometry.distance, "
+        "lungdeform.fit.config, lungdeform.fit.inputs, lungdeform.fit.placement, lungdeform.evaluate.heldout, "
+        "lungdeform.evaluate.scoring, "
         "lungdeform.fit.fitting, lungdeform.geometry.frame, lungdeform.atomic, lungdeform.io.landmarks, lungdeform.model.lung, "
-        "lungdeform.io.modelfile, lungdeform.fit.report, lungdeform.io.meshfile, lungdeform.io.mask, lungdeform.fit.segment, "
+        "lungdeform.io.modelfile, lungdeform.evaluate.report, lungdeform.io.meshfile, lungdeform.io.mask, lungdeform.segment.lungs, "
         "lungdeform.geometry.mesh\n"
         "bad = sorted(m for m in sys.modules if m == 'typer' or m.startswith('lungdeform.cli'))\n"
         "print(','.join(bad))\n"
@@ -34,8 +34,8 @@ def test_auto_interior_is_sliding_only_for_cropped_scans():
 
     import numpy as np
 
+    from lungdeform.evaluate.pipeline import interior_kind
     from lungdeform.fit.config import CROP_LIMIT, FitConfig
-    from lungdeform.fit.pipeline import interior_kind
 
     def placed(rest_cropped, target_cropped):
         keep = lambda f: np.arange(1000) >= int(round(1000 * f))  # noqa: E731
@@ -56,8 +56,8 @@ def test_prior_refused_with_a_sliding_interior_asked_or_resolved():
     import pytest
 
     from lungdeform.errors import InputError
+    from lungdeform.evaluate.pipeline import check_prior
     from lungdeform.fit.config import FitConfig
-    from lungdeform.fit.pipeline import check_prior
 
     prior = object()
     with pytest.raises(InputError, match="not 'sliding'"):

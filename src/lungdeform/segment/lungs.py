@@ -30,7 +30,7 @@ Pipeline of :func:`segment_lungs` (each step names what it is for):
 Frames: masks are ``(z, y, x) bool`` arrays on the CT grid (SimpleITK order); geometry follows
 :class:`lungdeform.io.image.Image` (spacing x y z mm, origin mm LPS, direction columns in LPS).
 Volumes are mL (= voxel count × voxel volume / 1000). Reading the CT and reordering its grid are
-in :mod:`lungdeform.fit.ct`.
+in :mod:`lungdeform.segment.ct`.
 """
 
 from __future__ import annotations
@@ -390,7 +390,7 @@ def segment_lungs(
 
 def _segment_transposed(image: Image, perm: tuple[int, int, int], options: dict) -> LungSegmentation:
     """:func:`segment_lungs` of an image stored in another axis order: segment it in axial
-    (z, y, x) order, an exact transpose (``perm``, from :func:`~lungdeform.fit.ct.axial_axes`), and
+    (z, y, x) order, an exact transpose (``perm``, from :func:`~lungdeform.segment.ct.axial_axes`), and
     give the masks back on the image's own grid."""
     inv = tuple(int(a) for a in np.argsort(perm))
     seg = segment_lungs(to_axial(image, perm), **options)

@@ -1,4 +1,4 @@
-"""CT → left/right lung masks (lungdeform.fit.segment), on an analytic phantom and on the POPI CT."""
+"""CT → left/right lung masks (lungdeform.segment.lungs), on an analytic phantom and on the POPI CT."""
 
 from __future__ import annotations
 
@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from lungdeform.errors import InputError, MaskError
-from lungdeform.fit import ct as C
-from lungdeform.fit import segment as S
 from lungdeform.io.image import Image
+from lungdeform.segment import ct as C
+from lungdeform.segment import lungs as S
 from tests.conftest import require_path
 
 SPACING = np.array([2.0, 2.0, 3.0])  # mm, x y z

@@ -1,9 +1,9 @@
-"""lungdeform.fit.crossval: the k-fold protocol of the landmark-informed fit."""
+"""lungdeform.evaluate.crossval: the k-fold protocol of the landmark-informed fit."""
 
 import numpy as np
 import pytest
 
-from lungdeform.fit.crossval import cross_validate_landmarks
+from lungdeform.evaluate.crossval import cross_validate_landmarks
 from lungdeform.fit.objective import Target
 from tests.fit.test_objective import TRUE, _interior_landmarks, truth  # noqa: F401  (truth: a fixture)
 

@@ -16,11 +16,11 @@ and runs these steps, each a function of its own:
    targets (and their landmarks) before everything after it; then the surface refinement of the
    headline fit (:func:`refine_surface`, :mod:`lungdeform.fit.refinement`);
 5. with landmarks, what they give scored on held-out landmarks (k-fold;
-   :func:`lungdeform.fit.heldout.held_out_landmarks`): the interior landmark correction
+   :func:`lungdeform.evaluate.heldout.held_out_landmarks`): the interior landmark correction
    (:mod:`lungdeform.interior.field`) of the headline ``model`` and, with ``landmark_comparisons``,
    the landmark-informed fits of c1…c9;
 6. every method, the baselines and references measured on every target with the same metrics, crop
-   faces left out (:mod:`lungdeform.fit.scoring`), gathered in the metrics dictionary (:func:`fit_metrics`);
+   faces left out (:mod:`lungdeform.evaluate.scoring`), gathered in the metrics dictionary (:func:`fit_metrics`);
 7. ``model.npz`` (docs/MODEL_FORMAT.md), ``metrics.json`` and ``report.html`` written (:func:`write_outputs`).
 """
 
@@ -35,19 +35,19 @@ import numpy as np
 
 from lungdeform.atomic import atomic_path, jsonable, write_json
 from lungdeform.errors import InputError
+from lungdeform.evaluate.folds import landmark_folds
+from lungdeform.fit.config import CROP_LIMIT, FitConfig, FitInputs
+from lungdeform.fit.fitting import DIRECTION_HI, DIRECTION_LO, fit_lung, to_lung_model
+from lungdeform.fit.inputs import ReadInputs, read_inputs
+from lungdeform.fit.placement import Placement, place_targets, shift_targets
+from lungdeform.fit.refinement import refine_displacement
+from lungdeform.fit.registration import surface_map_field
 from lungdeform.geometry.mesh import Surface
-from lungdeform.interior.field import landmark_folds
+from lungdeform.interior.motion_prior import MotionPrior, lung_normaliser
 from lungdeform.io.modelfile import provenance, save_model
 from lungdeform.model.lung import Model
 
-from .config import CROP_LIMIT, FitConfig, FitInputs
-from .fitting import DIRECTION_HI, DIRECTION_LO, fit_lung, to_lung_model
 from .heldout import HeldOut, held_out_landmarks
-from .inputs import ReadInputs, read_inputs
-from .motion_prior import MotionPrior, lung_normaliser
-from .placement import Placement, place_targets, shift_targets
-from .refinement import refine_displacement
-from .registration import correspondence_field
 from .report import write_report
 from .scoring import bounding_boxes, protocols, score_targets
 
@@ -64,7 +64,7 @@ def run_fit(inputs: FitInputs, out: Path, config: FitConfig = FitConfig(), *,
     reported as ``model_surface_only``. ``metrics["protocols"]`` says, per method, what it saw and
     how its landmark error was measured; ``metrics["alignment"][i]["applied"]`` is the rigid
     transform (moving → end-exhale) the fitted target went through. ``progress``: called with one
-    line of text per step. ``prior``: a population motion prior (:mod:`lungdeform.fit.motion_prior`)
+    line of text per step. ``prior``: a population motion prior (:mod:`lungdeform.interior.motion_prior`)
     folded into the correspondence field (``config.interior == "correspondence"`` only)."""
 
     say = progress or (lambda _m: None)
@@ -123,7 +123,7 @@ def check_prior(config: FitConfig, prior: MotionPrior | None, kind: str | None =
 def interior_surface(placed: Placement, fit, side: str, kind: str, prior: MotionPrior | None,
                      progress: Callable[[str], None] | None = None, *, whole: Surface | None = None):
     """The correspondence field (mm per unit) of the end-exhale surface onto the model's
-    largest-volume target (:func:`lungdeform.fit.registration.correspondence_field`), with ``prior``
+    largest-volume target (:func:`lungdeform.fit.registration.surface_map_field`), with ``prior``
     folded in; None for the sliding interior (``kind``, :func:`interior_kind`; a prior with it is
     refused by :func:`check_prior`). ``whole``: the end-exhale surface at full resolution, in the
     model's frame (the model mesh is its decimation); default the model mesh."""
@@ -136,7 +136,7 @@ def interior_surface(placed: Placement, fit, side: str, kind: str, prior: Motion
     # whole closed surfaces, crop faces included: the map is between the two solids (their moments
     # include the cropped region too); leaving a crop face out of one side only pulls the other
     # side's points elsewhere (DIR-Lab COPDgene case 1 left: 9.3 mm with, 6.6 mm without)
-    field = correspondence_field(placed.rest if whole is None else whole, placed.targets[i].surface, scales[i])
+    field = surface_map_field(placed.rest if whole is None else whole, placed.targets[i].surface, scales[i])
     if prior is None:
         return field
     return field.with_linear(prior.affine(*lung_normaliser(placed.rest), side) / scales[i])
@@ -245,7 +245,7 @@ def write_landmark_motion(path: Path, placed: Placement, fit, landmarks, surface
     """``landmarks.npz``: the end-exhale ``landmarks (m, 3)`` mm, per target the ``observed (t, m, 3)``
     mm positions (aligned to the end-exhale frame) and the correspondence field's ``surface_only
     (t, m, 3)`` mm, ``volumes_ml (t,)``, and the lung's solid ``centroid (3,)`` and ``scale (3,)`` mm
-    (:func:`lungdeform.fit.motion_prior.lung_normaliser`): what a motion prior learns from."""
+    (:func:`lungdeform.interior.motion_prior.lung_normaliser`): what a motion prior learns from."""
     scales = [fit.scale_at(tg.volume_ml) for tg in placed.targets]
     centroid, scale = lung_normaliser(placed.rest)
     arrays = {"landmarks": np.asarray(landmarks, float), "observed": np.stack([np.asarray(a, float) for a in placed.landmarks]),

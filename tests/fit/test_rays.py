@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from lungdeform.errors import InputError
-from lungdeform.fit.correspond import BACKWARD, FORWARD, GRAZING, MISS, NO_DIRECTION, RayCaster, correspond
+from lungdeform.fit.rays import BACKWARD, FORWARD, GRAZING, MISS, NO_DIRECTION, RayCaster, correspond
 from lungdeform.geometry.mesh import icosphere
 
 R = 100.0

@@ -16,11 +16,10 @@ from typing import TYPE_CHECKING, Callable, Sequence
 import numpy as np
 
 from lungdeform.errors import InputError
+from lungdeform.evaluate.folds import landmark_folds
+from lungdeform.fit.fitting import fit_lung
 from lungdeform.geometry.mesh import as_vertices
-from lungdeform.interior.field import landmark_folds
 from lungdeform.interior.sliding import checked_operator, surface_weights
-
-from .fitting import fit_lung
 
 if TYPE_CHECKING:  # fit_lung is imported where used (fit.py's docstring refers to this module)
     from lungdeform.geometry.mesh import Surface
@@ -64,7 +63,7 @@ def cross_validate_landmarks(surface: Surface, side: str, targets: Sequence[Targ
     ``folds``: a number of folds (split by :func:`landmark_folds` with ``seed``) or the index
     arrays themselves. ``initial``: c1…c6 to start every fold from (e.g. the surface-only fit).
     ``landmark_matrix : (m, k) operator``, optional: the sliding interpolation from the kept
-    vertices to all of ``landmarks_rest`` (:func:`lungdeform.fit.baselines.landmark_matrix`),
+    vertices to all of ``landmarks_rest`` (:func:`lungdeform.evaluate.baselines.landmark_matrix`),
     computed once here when not given; each fold uses its rows. Other keywords go to :func:`fit_lung`. Landmark errors computed from
     :attr:`LandmarkCV.predicted` are held out.
     """

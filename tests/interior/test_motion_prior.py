@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from lungdeform.errors import InputError, ReadError
-from lungdeform.fit.motion_prior import MotionPrior, PriorSample, learn_motion_prior, load_prior, save_prior
+from lungdeform.interior.motion_prior import MotionPrior, PriorSample, learn_motion_prior, load_prior, save_prior
 
 
 def _samples(rng, truth: MotionPrior, n_subjects=4):

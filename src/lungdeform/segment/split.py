@@ -7,8 +7,8 @@ docs/FITTING.md "Masks with both lungs in one label"). :func:`find_lungs` splits
    they are the lungs (they do not touch);
 2. **narrowest neck**: otherwise the lungs touch and form one component; it is eroded in-plane
    until two large pieces appear and they are grown back geodesically over the mask
-   (:func:`lungdeform.fit.segment.erode_apart`, the same cut as for a CT's touching lungs in
-   :func:`lungdeform.fit.segment.segment_lungs`), so the cut falls at the narrowest neck;
+   (:func:`lungdeform.segment.lungs.erode_apart`, the same cut as for a CT's touching lungs in
+   :func:`lungdeform.segment.lungs.segment_lungs`), so the cut falls at the narrowest neck;
 3. **two lungs, side by side**: each part must be at least ``min_part`` of the mask, their
    centroids at least 0.4 of the wider part's width apart along x and their heights overlapping by
    half, or the mask is not two lungs (None; :func:`split_lungs` raises :class:`MaskError`);
@@ -47,7 +47,7 @@ from lungdeform.io.image import IMAGE_SUFFIXES, Image, is_image_path, read_image
 
 from .ct import check_ct, read_ct, to_axial
 from .ct import downsample as downsample_ct
-from .segment import LungSegmentation, _padded_box, erode_apart, largest_components, segment_lungs
+from .lungs import LungSegmentation, _padded_box, erode_apart, largest_components, segment_lungs
 
 #: Each lung must hold at least this fraction of a both-lung mask.
 MIN_PART = 0.15
@@ -369,7 +369,7 @@ def load_lungs(path, side: str | None = None, *, labels=None, units: str = "mm",
 
 
 def mask_segmentation(image: Image) -> LungSegmentation:
-    """:class:`~lungdeform.fit.segment.LungSegmentation` of a binary mask holding both lungs (no
+    """:class:`~lungdeform.segment.lungs.LungSegmentation` of a binary mask holding both lungs (no
     airways removed; ``details`` say how it was split). :class:`MaskError` when it is not that."""
     split = require_split(image)
     lm, rm = split.labels == 1, split.labels == 2
@@ -383,7 +383,7 @@ def mask_segmentation(image: Image) -> LungSegmentation:
 
 
 def read_ct_or_mask(path) -> Image:
-    """A CT (:func:`lungdeform.fit.ct.read_ct`) or, for an image file holding a binary mask, that
+    """A CT (:func:`lungdeform.segment.ct.read_ct`) or, for an image file holding a binary mask, that
     mask (``lungdeform segment`` then splits it: :func:`segment_ct_or_mask`)."""
     p = Path(path)
     if p.is_file() and p.name.lower().endswith(IMAGE_SUFFIXES):
@@ -400,7 +400,7 @@ def segment_ct_or_mask(image: Image, downsample: int = 1,
     """``(the image segmented, its LungSegmentation)``: a binary mask holding both lungs is split
     (:func:`mask_segmentation`, at full resolution); a CT is block-mean downsampled in-plane by
     ``downsample`` (along world x and y whatever the file's axis order) and segmented
-    (:func:`lungdeform.fit.segment.segment_lungs`)."""
+    (:func:`lungdeform.segment.lungs.segment_lungs`)."""
     if is_binary_mask(image):
         if progress:
             progress("a binary mask: splitting it into left and right lungs")

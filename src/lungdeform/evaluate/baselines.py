@@ -37,13 +37,12 @@ from scipy.spatial.distance import cdist
 from skimage.measure import marching_cubes
 
 from lungdeform.errors import ConvergenceError, InputError, require
+from lungdeform.fit import registration
+from lungdeform.fit.cpd import deformable_cpd
 from lungdeform.geometry.distance import SurfaceDistance, symmetric_distance
 from lungdeform.geometry.mesh import Surface, as_vertices, farthest_points, thinned
 from lungdeform.interior.interpolate import interpolation_weights
 from lungdeform.interior.sliding import surface_weights
-
-from . import registration
-from .cpd import deformable_cpd
 
 
 def no_motion(surface: Surface) -> np.ndarray:

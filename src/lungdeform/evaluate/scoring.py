@@ -1,11 +1,11 @@
-"""Every method's prediction of each target and its metrics (step 6 of :func:`lungdeform.fit.pipeline.run_fit`).
+"""Every method's prediction of each target and its metrics (step 6 of :func:`lungdeform.evaluate.pipeline.run_fit`).
 
 The methods: the fitted model (with landmarks and ``landmark_fit``, the headline ``model`` is the
 surface fit with the interior landmark correction and ``model_surface_only`` the surface-driven
 field alone), its variants (paper directions, uniform stiffness, the paper's grid search, the
 landmark-informed fits) and the baselines and landmark-informed references
-(:mod:`lungdeform.fit.baselines`), all measured with the same metrics
-(:func:`lungdeform.fit.baselines.measure`), crop faces left out. :func:`protocols` says, per method,
+(:mod:`lungdeform.evaluate.baselines`), all measured with the same metrics
+(:func:`lungdeform.evaluate.baselines.measure`), crop faces left out. :func:`protocols` says, per method,
 what it saw and how its landmark error was measured.
 """
 
@@ -16,14 +16,14 @@ from typing import Callable
 
 import numpy as np
 
+from lungdeform.fit.config import FitConfig
+from lungdeform.fit.fitting import FitResult
+from lungdeform.fit.objective import Target
+from lungdeform.fit.placement import Placement
 from lungdeform.geometry.distance import SurfaceDistance
 
 from . import baselines as B
-from .config import FitConfig
-from .fitting import FitResult
 from .heldout import HeldOut
-from .objective import Target
-from .placement import Placement
 
 #: The baselines from the surfaces only, in the order they are reported.
 SURFACE_BASELINES = ("no_motion", "affine", "apex_scaling", "cpd")

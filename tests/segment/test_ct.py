@@ -1,4 +1,4 @@
-"""CT input and grid geometry (lungdeform.fit.ct): DICOM archives, uneven slices, non-CT input, writing
+"""CT input and grid geometry (lungdeform.segment.ct): DICOM archives, uneven slices, non-CT input, writing
 masks, downsampling."""
 
 from __future__ import annotations
@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from lungdeform.errors import InputError, ReadError
-from lungdeform.fit import ct as C
-from lungdeform.fit import segment as S
 from lungdeform.io.image import Image, read_image
-from tests.fit.test_segment import phantom
+from lungdeform.segment import ct as C
+from lungdeform.segment import lungs as S
+from tests.segment.test_lungs import phantom
 
 
 def _write_dicom_series(folder, array, spacing, z_positions):

@@ -1,4 +1,4 @@
-"""Masks holding both lungs in one label → left and right (lungdeform.fit.lungsplit), on analytic
+"""Masks holding both lungs in one label → left and right (lungdeform.segment.split), on analytic
 ellipsoids and on the DIR-Lab COPDgene masks."""
 
 from __future__ import annotations
@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from lungdeform.errors import InputError, MaskError
-from lungdeform.fit import lungsplit as L
 from lungdeform.io.image import Image, read_image
 from lungdeform.io.landmarks import read_elastix_points
+from lungdeform.segment import split as L
 from tests.conftest import require_path
 
 SPACING = np.array([2.0, 2.0, 2.5])  # mm, x y z
