@@ -1,8 +1,9 @@
 """CT input and grid geometry: reading a CT in HU, checking it, reordering and coarsening its grid.
 
 - :func:`read_ct` reads a NIfTI/MHA/NRRD file, a DICOM series (a folder, a parent folder or one
-  file) or a .tar.gz/.zip of one (:func:`extracted`), checks that DICOM slices are evenly spaced
-  (:func:`check_slice_spacing`) and that the image is CT in Hounsfield units (:func:`check_ct`);
+  file) or a .tar.gz/.zip of one (:func:`extracted`; DICOM slices checked by the one slice check,
+  :func:`lungdeform.io.slices.check_slices`, inside :func:`~lungdeform.io.image.read_image`) and
+  checks that the image is CT in Hounsfield units (:func:`check_ct`);
 - :func:`axial_axes` and :func:`to_axial` give the array in (z, y, x) order along world z, y, x
   (an exact transpose); :func:`downsample` block-means by integer factors;
 - :func:`write_mask` writes a mask image atomically.
@@ -25,7 +26,7 @@ import SimpleITK as sitk
 
 from lungdeform.atomic import atomic_path
 from lungdeform.errors import InputError, ReadError
-from lungdeform.io.image import IMAGE_SUFFIXES, Image, dicom_series_files, is_dicom_file, read_image
+from lungdeform.io.image import IMAGE_SUFFIXES, Image, read_image
 
 ARCHIVE_SUFFIXES = (".tar.gz", ".tgz", ".tar", ".zip")
 
@@ -64,45 +65,6 @@ def extracted(path, workdir=None):
         yield max(counts, key=lambda d: (counts[d], -len(d.parts)))
 
 
-def check_slice_spacing(folder, tolerance: float = 0.01) -> None:
-    """Refuse a DICOM series whose slices are not evenly spaced (missing or duplicated slices).
-
-    Reads ImagePositionPatient and ImageOrientationPatient of every file of the series that
-    ``folder`` names (:func:`lungdeform.io.image.dicom_series_files`: a folder, a parent folder or one file); the gaps along the slice normal must agree within ``tolerance`` (relative) and be
-    non-zero. Raises :class:`ReadError` naming the folder, the gaps and the files around the worst one.
-    """
-
-    folder = Path(folder)
-    try:
-        files = dicom_series_files(folder)
-    except ReadError:
-        return  # no series to check: read_image says what is wrong
-    if len(files) < 3:
-        return
-    pos, normal = [], None
-    fr = sitk.ImageFileReader()
-    for f in files:
-        fr.SetFileName(f)
-        fr.ReadImageInformation()
-        try:
-            pos.append([float(v) for v in fr.GetMetaData("0020|0032").split("\\")])
-            if normal is None:
-                o = [float(v) for v in fr.GetMetaData("0020|0037").split("\\")]
-                normal = np.cross(o[:3], o[3:])
-        except (RuntimeError, ValueError):
-            return  # no position tags: nothing to check, SimpleITK's geometry stands
-    gaps = np.diff(np.asarray(pos) @ normal)
-    med = float(np.median(np.abs(gaps)))
-    bad = np.abs(np.abs(gaps) - med) > tolerance * max(med, 1e-6)
-    if med <= 0 or bad.any():
-        k = int(np.argmax(np.abs(np.abs(gaps) - med)))
-        raise ReadError(
-            f"{folder}: inconsistent slice spacing: gaps {np.abs(gaps).min():.3g}–{np.abs(gaps).max():.3g} mm "
-            f"(median {med:.3g} mm), worst between {Path(files[k]).name} and {Path(files[k + 1]).name}; "
-            "slices are missing or duplicated"
-        )
-
-
 def archive_in(path) -> Path:
     """``path``, or the archive inside the folder ``path`` when that folder holds nothing else: no
     subfolder and no other file, hidden files (``.DS_Store``, ``._name``) aside. That is a dataset
@@ -126,7 +88,8 @@ def read_ct(path, workdir=None) -> Image:
     one image file (or a folder that holds only such an archive, :func:`archive_in`: the archive is
     read, and named as the source).
 
-    DICOM series are checked for even slice spacing (:func:`check_slice_spacing`). The image must
+    DICOM series are checked for even slice spacing (by :func:`~lungdeform.io.image.read_image`:
+    :func:`lungdeform.io.slices.check_slices`). The image must
     look like HU (some voxels below −500): otherwise :class:`InputError`. Archives are extracted
     into a temporary folder (inside ``workdir`` if given) that is removed afterwards.
     """
@@ -141,14 +104,11 @@ def read_ct(path, workdir=None) -> Image:
                 if len(images) == 1:  # one NIfTI/MHA/NRRD file in the archive
                     img = read_image(images[0])
                 else:
-                    check_slice_spacing(folder)
                     img = read_image(folder)
             except ReadError as exc:  # name the archive, not the temporary folder (gone by now)
                 raise ReadError(f"{path}: {str(exc).replace(str(folder), 'in the archive')}") from exc
         img = Image(img.array, img.spacing, img.origin, img.direction, source=str(path))
     else:
-        if path.is_dir() or is_dicom_file(path):
-            check_slice_spacing(path)
         img = read_image(path)
     check_ct(img)
     return img
