@@ -14,7 +14,7 @@ def test_pipeline_and_cohort_import_nothing_from_the_cli():
         "import lungdeform.evaluate.pipeline, lungdeform.cohort.runner, lungdeform.cohort.job\n"
         "lungdeform.cohort.job.FitOptions()\n"
         "import lungdeform.evaluate.baselines, lungdeform.fit.align, lungdeform.evaluate.crossval, lungdeform.geometry.distance, "
-        "lungdeform.fit.config, lungdeform.fit.inputs, lungdeform.fit.placement, lungdeform.evaluate.heldout, "
+        "lungdeform.fit.config, lungdeform.evaluate.inputs, lungdeform.evaluate.placement, lungdeform.evaluate.heldout, "
         "lungdeform.evaluate.scoring, "
         "lungdeform.fit.fitting, lungdeform.geometry.frame, lungdeform.atomic, lungdeform.io.landmarks, lungdeform.model.lung, "
         "lungdeform.io.modelfile, lungdeform.evaluate.report, lungdeform.io.meshfile, lungdeform.io.mask, lungdeform.segment.lungs, "

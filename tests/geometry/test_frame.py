@@ -63,7 +63,7 @@ def test_side_from_shape_reads_the_medial_face():
 def test_side_from_shape_on_real_lobe_maps(data_dir):
     # real data: both lungs of a CT lobe map (Coronacases 002, full resolution; its right lung has
     # the weakest score measured, +0.053) read as the sides the lobe labels say
-    from lungdeform.fit.inputs import read_input
+    from lungdeform.evaluate.inputs import read_input
     from lungdeform.geometry.frame import SIDE_SCORE_MIN, side_from_shape
     from tests.conftest import require_path
 

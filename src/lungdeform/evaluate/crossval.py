@@ -16,10 +16,11 @@ from typing import TYPE_CHECKING, Callable, Sequence
 import numpy as np
 
 from lungdeform.errors import InputError
-from lungdeform.evaluate.folds import landmark_folds
 from lungdeform.fit.fitting import fit_lung
 from lungdeform.geometry.mesh import as_vertices
 from lungdeform.interior.sliding import checked_operator, surface_weights
+
+from .folds import landmark_folds
 
 if TYPE_CHECKING:  # fit_lung is imported where used (fit.py's docstring refers to this module)
     from lungdeform.geometry.mesh import Surface

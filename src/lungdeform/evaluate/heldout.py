@@ -15,14 +15,14 @@ from typing import Callable
 
 import numpy as np
 
-from lungdeform.evaluate.folds import correction_solvers, held_out_sliding, select_correction_smoothing
 from lungdeform.fit.config import FitConfig
 from lungdeform.fit.fitting import FitResult
-from lungdeform.fit.placement import Placement
 from lungdeform.interior.field import correction_per_unit
 
 from . import baselines as B
 from .crossval import LandmarkCV, cross_validate_landmarks
+from .folds import correction_solvers, held_out_sliding, select_correction_smoothing
+from .placement import Placement
 
 
 @dataclass(frozen=True, eq=False)

@@ -6,11 +6,11 @@ imports nothing from the CLI. :func:`run_fit` takes one lung's inputs
 (:class:`~lungdeform.fit.config.FitInputs`) and a validated :class:`~lungdeform.fit.config.FitConfig`,
 and runs these steps, each a function of its own:
 
-1. read and check every input (:func:`lungdeform.fit.inputs.read_inputs`): surfaces, crop faces,
+1. read and check every input (:func:`lungdeform.evaluate.inputs.read_inputs`): surfaces, crop faces,
    one side, volumes strictly increasing, landmarks inside their images; the landmark folds are
    split (and ``folds`` checked against the landmark count) before any fitting;
 2. and 3. the model mesh (the end-exhale surface decimated) and every other surface in its frame
-   (``align``; :func:`lungdeform.fit.placement.place_targets`);
+   (``align``; :func:`lungdeform.evaluate.placement.place_targets`);
 4. the surface fit of c1…c9 (:func:`fit_surfaces`: :func:`lungdeform.fit.fitting.fit_lung`, and
    optionally the paper's grid search); with ``align="joint"`` its fitted translations move the
    targets (and their landmarks) before everything after it; then the surface refinement of the
@@ -35,11 +35,8 @@ import numpy as np
 
 from lungdeform.atomic import atomic_path, jsonable, write_json
 from lungdeform.errors import InputError
-from lungdeform.evaluate.folds import landmark_folds
 from lungdeform.fit.config import CROP_LIMIT, FitConfig, FitInputs
 from lungdeform.fit.fitting import DIRECTION_HI, DIRECTION_LO, fit_lung, to_lung_model
-from lungdeform.fit.inputs import ReadInputs, read_inputs
-from lungdeform.fit.placement import Placement, place_targets, shift_targets
 from lungdeform.fit.refinement import refine_displacement
 from lungdeform.fit.registration import surface_map_field
 from lungdeform.geometry.mesh import Surface
@@ -47,7 +44,10 @@ from lungdeform.interior.motion_prior import MotionPrior, lung_normaliser
 from lungdeform.io.modelfile import provenance, save_model
 from lungdeform.model.lung import Model
 
+from .folds import landmark_folds
 from .heldout import HeldOut, held_out_landmarks
+from .inputs import ReadInputs, read_inputs
+from .placement import Placement, place_targets, shift_targets
 from .report import write_report
 from .scoring import bounding_boxes, protocols, score_targets
 

@@ -19,11 +19,11 @@ import numpy as np
 from lungdeform.fit.config import FitConfig
 from lungdeform.fit.fitting import FitResult
 from lungdeform.fit.objective import Target
-from lungdeform.fit.placement import Placement
 from lungdeform.geometry.distance import SurfaceDistance
 
 from . import baselines as B
 from .heldout import HeldOut
+from .placement import Placement
 
 #: The baselines from the surfaces only, in the order they are reported.
 SURFACE_BASELINES = ("no_motion", "affine", "apex_scaling", "cpd")

@@ -1,7 +1,7 @@
 """Fitting the model to a patient: alignment, ray correspondence, the objective, the search.
 
-Owns: :mod:`~lungdeform.fit.config` (what a fit is given), :mod:`~lungdeform.fit.inputs` (reading and
-checking the inputs), :mod:`~lungdeform.fit.align` (rigid alignment), :mod:`~lungdeform.fit.placement`
+Owns: :mod:`~lungdeform.fit.config` (what a fit is given), :mod:`~lungdeform.evaluate.inputs` (reading and
+checking the inputs), :mod:`~lungdeform.fit.align` (rigid alignment), :mod:`~lungdeform.evaluate.placement`
 (the model mesh and the targets in its frame), :mod:`~lungdeform.fit.rays` (ray casting: where each
 vertex's ray meets a target), :mod:`~lungdeform.fit.objective` (one lung's objective),
 :mod:`~lungdeform.fit.fitting` (c1…c9, stiffness and direction correction), :mod:`~lungdeform.fit.search`
@@ -9,9 +9,10 @@ vertex's ray meets a target), :mod:`~lungdeform.fit.objective` (one lung's objec
 :mod:`~lungdeform.fit.direction_correction`, :mod:`~lungdeform.fit.refinement` (the smooth residual that
 brings the fitted surface onto the targets), :mod:`~lungdeform.fit.registration` and
 :mod:`~lungdeform.fit.cpd` (the smooth surface-to-surface map behind the surface-map interior field).
-Measuring a fit and the whole run (inputs to a saved model) are :mod:`lungdeform.evaluate`'s.
+Reading the inputs, placing them, measuring a fit and the whole run (inputs to a saved model) are
+:mod:`lungdeform.evaluate`'s.
 
-May import: :mod:`lungdeform.segment`, :mod:`lungdeform.data`, :mod:`lungdeform.io`,
+May import: :mod:`lungdeform.data`, :mod:`lungdeform.io`,
 :mod:`lungdeform.breathing`, :mod:`lungdeform.model`, :mod:`lungdeform.interior`,
 :mod:`lungdeform.geometry` and the core modules; not :mod:`lungdeform.playback` (independent of it)
 and nothing above.

@@ -21,7 +21,7 @@ from .direction_correction import DEFAULT_DEGREE
 from .fitting import MODES
 from .refinement import FINEST_MM
 
-#: Ways of bringing the larger-volume inputs into the end-exhale frame (:mod:`lungdeform.fit.placement`).
+#: Ways of bringing the larger-volume inputs into the end-exhale frame (:mod:`lungdeform.evaluate.placement`).
 ALIGN_MODES = ("apex", "joint", "none")
 #: Search modes that can fit a translation per target (``align="joint"``).
 JOINT_MODES = ("optimizer", "least_squares")
@@ -107,7 +107,7 @@ class FitConfig:
     landmark_weight : float
         Weight of the landmark term in the landmark-informed fits and references, ≥ 0.
     align : str
-        One of :data:`ALIGN_MODES` (:mod:`lungdeform.fit.placement`).
+        One of :data:`ALIGN_MODES` (:mod:`lungdeform.evaluate.placement`).
     mode : str
         Search mode of the fits (:data:`lungdeform.fit.fitting.MODES`, ``"grid"`` excepted);
         ``align="joint"`` needs one of :data:`JOINT_MODES`.

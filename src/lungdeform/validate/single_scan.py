@@ -4,7 +4,7 @@ The experiment behind docs/DEFAULTS.md. For every two-volume subject in a data f
 COPDgene layout, :func:`lungdeform.validate.copd.find_cases`, both lungs; or the ITK right lung pair,
 :func:`lungdeform.validate.itk_pair.find_pair`), per lung:
 
-1. the model mesh of the smaller-volume scan alone (:func:`lungdeform.fit.placement.model_mesh`, as
+1. the model mesh of the smaller-volume scan alone (:func:`lungdeform.evaluate.placement.model_mesh`, as
    ``lungdeform fit`` and the COPDgene experiment use; the larger-volume scan is not looked at);
 2. a prediction at the larger volume, given only that volume (mL, the number a spirometer gives,
    anchored on the model mesh's own end-exhale volume), by each row:
@@ -49,11 +49,11 @@ from lungdeform import plot as P
 from lungdeform.atomic import write_bytes, write_json, write_text
 from lungdeform.cohort.default import DefaultSample, learn_default
 from lungdeform.errors import ReadError
+from lungdeform.evaluate.inputs import read_inputs
+from lungdeform.evaluate.placement import place_targets
 from lungdeform.fit.config import FitInputs
 from lungdeform.fit.fitting import fit_lung, to_lung_model
-from lungdeform.fit.inputs import read_inputs
 from lungdeform.fit.objective import Target
-from lungdeform.fit.placement import place_targets
 from lungdeform.geometry.distance import SurfaceDistance, symmetric_distance
 from lungdeform.geometry.mesh import Surface
 from lungdeform.geometry.moments import solid_moments

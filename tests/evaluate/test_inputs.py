@@ -1,11 +1,11 @@
-"""lungdeform.fit.inputs: reading and checking a fit's inputs (the whole step runs through
+"""lungdeform.evaluate.inputs: reading and checking a fit's inputs (the whole step runs through
 ``lungdeform fit`` in tests/cli/test_fit.py)."""
 
 import numpy as np
 import pytest
 
 from lungdeform.errors import InputError
-from lungdeform.fit.inputs import check_landmarks, landmark_mask_warnings, read_input
+from lungdeform.evaluate.inputs import check_landmarks, landmark_mask_warnings, read_input
 from lungdeform.io.image import Image, read_image
 from lungdeform.io.landmarks import read_elastix_points
 from lungdeform.io.mask import extract_surface

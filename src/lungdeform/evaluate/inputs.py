@@ -19,6 +19,8 @@ from typing import Callable
 import numpy as np
 
 from lungdeform.errors import InputError, ReadError
+from lungdeform.fit.align import CropPlane, crop_planes
+from lungdeform.fit.config import FitInputs
 from lungdeform.geometry.distance import point_to_surface
 from lungdeform.geometry.frame import check_side
 from lungdeform.geometry.mesh import Surface, winding_numbers
@@ -30,9 +32,6 @@ from lungdeform.io.landmarks import read_elastix_points
 from lungdeform.segment.ct import archive_in, is_archive, read_ct
 from lungdeform.segment.lungs import segment_lungs
 from lungdeform.segment.split import landmarks_of_side, one_lung
-
-from .align import CropPlane, crop_planes
-from .config import FitInputs
 
 #: Landmarks more than this outside their own image's lung mask count as outside (mm).
 LANDMARK_OUTSIDE_MM = 3.0

@@ -20,12 +20,12 @@ from typing import Callable
 import numpy as np
 
 from lungdeform.errors import InputError, LungdeformError
+from lungdeform.fit.align import CropPlane, RigidTransform, align_apex, align_landmarks, near_planes
+from lungdeform.fit.objective import Target
 from lungdeform.geometry.mesh import Surface, check_surface
 from lungdeform.geometry.remesh import decimate
 
-from .align import CropPlane, RigidTransform, align_apex, align_landmarks, near_planes
 from .inputs import ReadInputs
-from .objective import Target
 
 #: Model-mesh sizes tried in turn (mesh decimation can fail on a given budget; the next is tried).
 MODEL_MESH_BUDGETS = (3000, 3200, 2800, 3500, 4000, 2500, 5000)
