@@ -23,8 +23,8 @@ from lungdeform.cohort.synthetic import (
 )
 from lungdeform.constants import table_constants
 from lungdeform.errors import InputError, ReadError
-from lungdeform.fit.fitting import DIRECTION_BOUNDS, fit_lung
-from lungdeform.fit.objective import LungFitter, Target
+from lungdeform.fit.fitting import DIRECTION_BOUNDS, FitSettings, fit_lung
+from lungdeform.fit.objective import LungFitter, ObjectiveSettings, Target
 from lungdeform.geometry.mesh import Surface
 
 TRUE = np.array([0.1, 0.3, 0.45, 0.45, 0.12, 2.0, 0.05, 1.0, 0.1])
@@ -216,8 +216,9 @@ def test_tiny_end_to_end_fit_recovers_the_constants(linear_lung, left):
     lung = linear_lung
     targets = [Target(lung.target(j), lung.volumes_ml[j + 1], name=f"t{j}") for j in range(2)]
     start_c = np.array([0.1, 0.9, 0.45, 0.45, 0.12, 1.0])
-    start_obj = LungFitter(left, "left", targets, samples=2000).evaluate(start_c)
-    r = fit_lung(left, "left", targets, initial=start_c, max_evaluations=300, samples=2000)
+    start_obj = LungFitter(left, "left", targets, settings=ObjectiveSettings(samples=2000)).evaluate(start_c)
+    r = fit_lung(left, "left", targets, FitSettings(initial=start_c, max_evaluations=300,
+                                                   objective=ObjectiveSettings(samples=2000)))
     assert r.success and r.mode == "least_squares"
     assert r.objective_mm < 0.01 and start_obj > 0.5
     err = r.displacement - lung.displacement

@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from lungdeform.evaluate import baselines as B
 from lungdeform.evaluate.baselines import affine_fit, apex_scaling, cpd_deformable, measure, no_motion
 from lungdeform.geometry.mesh import Surface
 from tests.conftest import ellipsoid_lung
@@ -14,7 +15,7 @@ def test_affine_exact_on_affine_deformation():
     c = s.vertices.mean(0)
     target = Surface((s.vertices - c) @ a.T + c + np.array([1.0, -2.0, -3.0]), s.faces)
     # closest-point ICP converges to the exact map only asymptotically: run it long
-    pred, mat = affine_fit(s, target, iterations=500, tol_mm=0.0)
+    pred, mat = affine_fit(s, target, B.IcpSettings(iterations=500, tol_mm=0.0))
     m, per_vertex, _ = measure(s, pred, target)
     assert m.surface_mean_mm < 0.01
     assert per_vertex.max() < 0.05
@@ -42,7 +43,7 @@ def test_cpd_recovers_a_smooth_deformation():
     s = ellipsoid_lung("right", 3)
     c = s.vertices.mean(0)
     target = Surface(c + (s.vertices - c) * np.array([1.05, 1.08, 1.03]), s.faces)
-    pred = cpd_deformable(s, target, samples=600)
+    pred = cpd_deformable(s, target, B.CpdSettings(samples=600))
     m, _, _ = measure(s, pred, target)
     m0, _, _ = measure(s, no_motion(s), target)
     assert m.surface_mean_mm < 0.25 * m0.surface_mean_mm
@@ -60,13 +61,14 @@ def test_affine_with_landmarks_moves_toward_them():
     target = Surface((s.vertices - c) @ a.T + c, s.faces)
     lm = c + np.random.default_rng(3).uniform(-20, 20, size=(12, 3))
     lm_t = lm + np.array([0.0, 0.0, 3.0])
-    _, m0 = affine_fit(s, target, landmarks=lm, landmarks_target=lm_t, landmark_weight=0.0, iterations=300, tol_mm=0.0)
+    _, m0 = affine_fit(s, target, B.IcpSettings(iterations=300, tol_mm=0.0), landmarks=lm, landmarks_target=lm_t,
+                       landmark_weight=0.0)
     assert m0[:3, :3] == pytest.approx(a, abs=5e-3)
     _, m1 = affine_fit(s, target, landmarks=lm, landmarks_target=lm_t, landmark_weight=1e8)
     assert lm @ m1[:3, :3].T + m1[:3, 3] == pytest.approx(lm_t, abs=1e-3)
     # held out: with landmarks that agree with the surfaces, every held-out landmark is exact
     lm_a = (lm - c) @ a.T + c
-    _, held = affine_landmarks_cv(s, target, lm, lm_a, landmark_folds(len(lm), 3), iterations=300, tol_mm=0.0)
+    _, held = affine_landmarks_cv(s, target, lm, lm_a, landmark_folds(len(lm), 3), B.IcpSettings(iterations=300, tol_mm=0.0))
     assert held == pytest.approx(lm_a, abs=0.05)
 
 
@@ -118,6 +120,6 @@ def test_cpd_leaves_out_crop_faces():
     art[cap] += np.array([15.0, 0.0, 0.0])
     target = Surface(art, s.faces)
     clean = Surface(true, s.faces)
-    kept = measure(s, cpd_deformable(s, target, samples=600, keep=~cap, keep_target=~cap), clean, keep=~cap)[0]
-    chased = measure(s, cpd_deformable(s, target, samples=600), clean, keep=~cap)[0]
+    kept = measure(s, cpd_deformable(s, target, B.CpdSettings(samples=600), keep=~cap, keep_target=~cap), clean, keep=~cap)[0]
+    chased = measure(s, cpd_deformable(s, target, B.CpdSettings(samples=600)), clean, keep=~cap)[0]
     assert kept.surface_mean_mm < 0.7 * chased.surface_mean_mm

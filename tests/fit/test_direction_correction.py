@@ -5,7 +5,7 @@ import pytest
 
 from lungdeform.errors import InputError
 from lungdeform.fit.direction_correction import corrected_directions, fit_direction_correction, polynomial_basis
-from lungdeform.fit.fitting import fit_lung
+from lungdeform.fit.fitting import FitSettings, fit_lung
 from lungdeform.fit.objective import LungFitter, Target
 from lungdeform.geometry.mesh import Surface
 from lungdeform.model.displacement import calibrate
@@ -84,10 +84,11 @@ def test_fit_lung_reports_both_fields(rotated):
     # fit_lung with a correction: the result's displacement is the corrected one (lower objective),
     # the paper's field is kept beside it, and the correction is in the metrics dictionary
     lung, _, target = rotated
-    r = fit_lung(lung, "right", [Target(target, target.volume_ml)], direction_degree=1, max_evaluations=60)
+    r = fit_lung(lung, "right", [Target(target, target.volume_ml)],
+                 FitSettings(direction_degree=1, max_evaluations=60))
     assert r.direction_correction.accepted and r.paper_displacement is not None
     assert r.objective_mm < r.paper_objective_mm
     assert not np.allclose(r.displacement, r.paper_displacement)
     assert r.as_dict()["direction_correction"]["degree"] == 1
-    plain = fit_lung(lung, "right", [Target(target, target.volume_ml)], max_evaluations=60)
+    plain = fit_lung(lung, "right", [Target(target, target.volume_ml)], FitSettings(max_evaluations=60))
     assert plain.direction_correction is None and plain.paper_displacement is None

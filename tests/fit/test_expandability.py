@@ -10,7 +10,7 @@ from lungdeform.fit.expandability import (
     fit_stiffness_if_better,
     smooth_observations,
 )
-from lungdeform.fit.objective import LungFitter, Target
+from lungdeform.fit.objective import LungFitter, ObjectiveSettings, Target
 from lungdeform.model.lung import build_lung
 from tests.conftest import ellipsoid_lung
 
@@ -57,7 +57,7 @@ def test_stiffness_field_is_kept_only_when_it_lowers_the_objective():
     lung = ellipsoid_lung("right", 3)
     model = build_lung(lung, "right", constants=TRUE, calibration_ml=200.0, unit_ml=200.0)
     target = lung.deformed(model.displacement).with_name("target")
-    fitter = LungFitter(lung, "right", [Target(target, lung.volume_ml + 200.0, name="t")], samples=500)
+    fitter = LungFitter(lung, "right", [Target(target, lung.volume_ml + 200.0, name="t")], settings=ObjectiveSettings(samples=500))
     best = fitter.evaluate(TRUE[:6])
     said = []
     log_e, obj = fit_stiffness_if_better(fitter, TRUE[:6], best, said.append, iterations=3)

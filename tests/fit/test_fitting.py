@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from lungdeform.errors import InputError
-from lungdeform.fit.fitting import fit_lung, to_lung_model
-from lungdeform.fit.objective import LungFitter, Target
+from lungdeform.fit.fitting import FitSettings, fit_lung, to_lung_model
+from lungdeform.fit.objective import LungFitter, ObjectiveSettings, Target
 from tests.fit.test_objective import TRUE, _interior_landmarks, truth  # noqa: F401  (truth: a fixture)
 
 
@@ -14,7 +14,7 @@ def test_fit_reproduces_surface_from_table_start(truth):
     lung, _, target = truth
     tg = Target(target, lung.volume_ml + 200.0, name="t")
     start = LungFitter(lung, "right", [tg]).evaluate(np.array([0.09, 0.22, 0.39, 0.51, 0.11, 2.2]))
-    r = fit_lung(lung, "right", [tg], max_evaluations=250)
+    r = fit_lung(lung, "right", [tg], FitSettings(max_evaluations=250))
     assert r.objective_mm < 0.5 * start and r.objective_mm < 0.5
     # the result is the best candidate evaluated (the optimiser's last point can be worse)
     assert r.objective_mm == pytest.approx(min(r.history))
@@ -27,9 +27,9 @@ def test_fit_reproduces_surface_from_table_start(truth):
 def test_grid_mode_and_failure_state(truth):
     lung, _, target = truth
     tg = Target(target, lung.volume_ml + 200.0, name="t")
-    g = fit_lung(lung, "right", [tg], mode="grid", initial=TRUE + 0.02, grid_span=0.03)
+    g = fit_lung(lung, "right", [tg], FitSettings(mode="grid", initial=TRUE + 0.02, grid_span=0.03))
     assert g.success and g.objective_mm <= g.history[0]
-    short = fit_lung(lung, "right", [tg], max_evaluations=5)
+    short = fit_lung(lung, "right", [tg], FitSettings(max_evaluations=5))
     assert not short.success and "evaluations" in short.message
 
 
@@ -44,11 +44,13 @@ def test_least_squares_joint_translation_recovers_a_known_shift(truth):
     shift = np.array([2.0, -3.0, 1.5])
     moved = Target(Surface(target.vertices + shift, target.faces, "moved"), lung.volume_ml + 200.0, name="t")
     start = TRUE + np.array([0.0, 0.2, 0.0, -0.1, 0.0, 0.2, 0.0, 0.0, 0.0])
-    r = fit_lung(lung, "right", [moved], initial=start, translate=True, max_evaluations=400, samples=1500)
+    r = fit_lung(lung, "right", [moved], FitSettings(initial=start, translate=True, max_evaluations=400,
+                                                     objective=ObjectiveSettings(samples=1500)))
     assert r.translations[0] == pytest.approx(-shift, abs=0.05)
     assert r.objective_mm < 0.05
     assert np.sqrt(np.mean(np.sum((r.displacement - model.displacement) ** 2, axis=1))) < 0.1
-    fixed = fit_lung(lung, "right", [moved], initial=start, max_evaluations=400, samples=1500)
+    fixed = fit_lung(lung, "right", [moved], FitSettings(initial=start, max_evaluations=400,
+                                                         objective=ObjectiveSettings(samples=1500)))
     assert fixed.translations is None and fixed.objective_mm > 10 * r.objective_mm
     with pytest.raises(InputError, match="least-squares"):
-        fit_lung(lung, "right", [moved], mode="powell", translate=True)
+        fit_lung(lung, "right", [moved], FitSettings(mode="powell", translate=True))

@@ -6,7 +6,14 @@ import numpy as np
 import pytest
 
 from lungdeform.errors import InputError
-from lungdeform.fit.objective import LungFitter, Target, inverse_force, least_squares_constants
+from lungdeform.fit.objective import (
+    LandmarkTerm,
+    LungFitter,
+    ObjectiveSettings,
+    Target,
+    inverse_force,
+    least_squares_constants,
+)
 from lungdeform.model.graph import spring_graph
 from lungdeform.model.lung import build_lung
 from lungdeform.model.solve import ForceSolver
@@ -89,15 +96,14 @@ def test_landmark_term_of_the_objective(truth):
     lm, lm_t = _interior_landmarks(lung, model.displacement)
     tg = [Target(target, lung.volume_ml + 200.0, name="t")]
     plain = LungFitter(lung, "right", tg).evaluate(TRUE[:6])
-    obj, parts = LungFitter(lung, "right", tg, landmarks_rest=lm, landmarks_targets={0: lm_t}).evaluate(TRUE[:6], full=True)
+    obj, parts = LungFitter(lung, "right", tg, landmarks=LandmarkTerm(lm, {0: lm_t})).evaluate(TRUE[:6], full=True)
     assert parts["landmark_rms"] < 0.05 and obj == pytest.approx(plain, abs=0.01)
     shifted = lm_t + np.array([0.0, 3.0, 0.0])
-    obj, parts = LungFitter(lung, "right", tg, landmarks_rest=lm, landmarks_targets={0: shifted},
-                            landmark_weight=2.0).evaluate(TRUE[:6], full=True)
+    obj, parts = LungFitter(lung, "right", tg, landmarks=LandmarkTerm(lm, {0: shifted}, weight=2.0)).evaluate(TRUE[:6], full=True)
     assert parts["landmark_rms"] == pytest.approx(3.0, abs=0.05)
     assert obj == pytest.approx(np.sqrt(parts["surface_rms"] ** 2 + 2.0 * parts["landmark_rms"] ** 2))
     with pytest.raises(InputError, match="rows must correspond"):
-        LungFitter(lung, "right", tg, landmarks_rest=lm, landmarks_targets={0: lm_t[:-1]})
+        LungFitter(lung, "right", tg, landmarks=LandmarkTerm(lm, {0: lm_t[:-1]}))
 
 
 def test_crop_face_rays_do_not_enter_the_force_fit(truth):
@@ -123,7 +129,7 @@ def test_c1_c3_c5_share_a_free_factor_the_gauge(truth):
     # why the least-squares mode holds c3 fixed: directions are normalised, so scaling c1, c3, c5
     # together gives the identical model (a zero singular value of the fit)
     lung, _, target = truth
-    f = LungFitter(lung, "right", [Target(target, lung.volume_ml + 200.0, name="t")], samples=500)
+    f = LungFitter(lung, "right", [Target(target, lung.volume_ml + 200.0, name="t")], settings=ObjectiveSettings(samples=500))
     c = TRUE[:6].copy()
     c2 = c * np.array([2.5, 1, 2.5, 1, 2.5, 1])
     d1 = f.displacement(f.evaluate(c, full=True)[1]["directions"], TRUE[6:])

@@ -69,10 +69,34 @@ def _affine_lsq(src: np.ndarray, dst: np.ndarray, w: np.ndarray) -> np.ndarray:
     return m  # (4, 3): x' = [x 1] @ m
 
 
-def affine_fit(surface: Surface, target: Surface, *, keep=None, keep_target=None,
-               samples: int = 6000, iterations: int = 100, tol_mm: float = 1e-5, landmarks=None,
-               landmarks_target=None, landmark_weight: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
-    """Best affine map of ``surface`` onto ``target`` (symmetric ICP with exact closest points).
+@dataclass(frozen=True)
+class IcpSettings:
+    """The affine baseline's ICP (:func:`affine_fit`): ``samples`` target points, at most
+    ``iterations`` iterations, stopping when the objective improves by less than ``tol_mm``."""
+
+    samples: int = 6000
+    iterations: int = 100
+    tol_mm: float = 1e-5
+
+
+@dataclass(frozen=True)
+class CpdSettings:
+    """The CPD baseline (:func:`cpd_deformable`): ``samples`` vertices of each surface (drawn with
+    ``seed``); pycpd's ``alpha`` (smoothness), ``beta`` (kernel width, relative to the lung's RMS
+    radius), ``w`` (outlier weight), ``max_iterations`` and ``tolerance``."""
+
+    samples: int = 1500
+    alpha: float = 2.0
+    beta: float = 2.0
+    w: float = 0.05
+    max_iterations: int = 100
+    tolerance: float = 1e-5
+    seed: int = 0
+
+
+def affine_fit(surface: Surface, target: Surface, icp: IcpSettings = IcpSettings(), *, keep=None, keep_target=None,
+               landmarks=None, landmarks_target=None, landmark_weight: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Best affine map of ``surface`` onto ``target`` (symmetric ICP with exact closest points, ``icp``).
 
     Returns ``(predicted vertices (n, 3) mm, matrix (4, 4))``. Each iteration pairs the moved
     source vertices with their closest target points and target samples with their closest
@@ -81,6 +105,7 @@ def affine_fit(surface: Surface, target: Surface, *, keep=None, keep_target=None
     landmark pairs join the least squares: the objective is the mean of the two one-sided surface
     mean squares plus ``landmark_weight`` × the landmark mean square (the model's weighting).
     """
+    samples, iterations, tol_mm = icp.samples, icp.iterations, icp.tol_mm
     p = surface.vertices
     ks = np.ones(len(p), bool) if keep is None else np.asarray(keep, bool)
     kt = np.ones(target.n_vertices, bool) if keep_target is None else np.asarray(keep_target, bool)
@@ -137,12 +162,11 @@ def _barycentric_source(moved, rest, faces, face, points):
     return u[:, None] * ra + v[:, None] * rb + w[:, None] * rc
 
 
-def cpd_deformable(surface: Surface, target: Surface, *, samples: int = 1500, alpha: float = 2.0,
-                   beta: float = 2.0, w: float = 0.05, max_iterations: int = 100, tolerance: float = 1e-5,
-                   seed: int = 0, keep=None, keep_target=None) -> np.ndarray:
+def cpd_deformable(surface: Surface, target: Surface, settings: CpdSettings = CpdSettings(), *, keep=None,
+                   keep_target=None) -> np.ndarray:
     """Coherent Point Drift (deformable) of the end-exhale vertices onto the target surface.
 
-    ``samples`` random vertices of each surface are registered (CPD is O(N·M) per iteration), drawn
+    ``settings.samples`` random vertices of each surface are registered (CPD is O(N·M) per iteration), drawn
     from the kept ones (``keep``, ``keep_target``: e.g. crop faces left out, as for every method);
     the fitted Gaussian-kernel displacement ``G(y, Y_s) W`` is then evaluated at every vertex.
     Coordinates are centred on the source and scaled by its RMS radius, so ``beta`` (kernel width)
@@ -150,7 +174,8 @@ def cpd_deformable(surface: Surface, target: Surface, *, samples: int = 1500, al
     weight and ``w`` the outlier weight (pycpd's meanings). Returns ``(n, 3)`` mm.
     """
     require("pycpd", "the CPD baseline", "pycpd")
-    rng = np.random.default_rng(seed)
+    samples, beta = settings.samples, settings.beta
+    rng = np.random.default_rng(settings.seed)
     p = surface.vertices
     c = p.mean(axis=0)
     scale = float(np.sqrt(np.mean(np.sum((p - c) ** 2, axis=1))))
@@ -162,7 +187,8 @@ def cpd_deformable(surface: Surface, target: Surface, *, samples: int = 1500, al
     xs = np.sort(rng.choice(dst, min(samples, len(dst)), replace=False))
     x = (target.vertices[xs] - c) / scale
     y = (p[ys] - c) / scale
-    weights = deformable_cpd(x, y, alpha=alpha, beta=beta, w=w, max_iterations=max_iterations, tolerance=tolerance)
+    weights = deformable_cpd(x, y, alpha=settings.alpha, beta=beta, w=settings.w,
+                             max_iterations=settings.max_iterations, tolerance=settings.tolerance)
     g = np.exp(-cdist((p - c) / scale, y, "sqeuclidean") / (2.0 * beta**2))
     moved = c + scale * ((p - c) / scale + g @ weights)
     if not np.all(np.isfinite(moved)):
@@ -188,24 +214,25 @@ def landmark_tps_cv(surface: Surface, landmarks, landmarks_target, folds) -> tup
     return moved, held
 
 
-def affine_landmarks_cv(surface: Surface, target: Surface, landmarks, landmarks_target, folds, *, keep=None,
-                        keep_target=None, landmark_weight: float = 1.0, **kwargs) -> tuple[np.ndarray, np.ndarray]:
+def affine_landmarks_cv(surface: Surface, target: Surface, landmarks, landmarks_target, folds,
+                        icp: IcpSettings = IcpSettings(), *, keep=None, keep_target=None,
+                        landmark_weight: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """The affine baseline informed by landmarks, scored held out.
 
     Returns ``(vertices (n, 3) mm of the affine fitted with all landmarks, held-out predictions
     (m, 3) mm)``: each fold's landmarks are moved by the affine fitted on the surfaces and the other
-    folds' landmarks. Keywords as :func:`affine_fit`.
+    folds' landmarks. ``icp`` and the keywords as :func:`affine_fit`.
     """
     a = as_vertices(landmarks, "landmarks")
     b = as_vertices(landmarks_target, "landmarks_target")
     held = np.full_like(a, np.nan)
     for test in folds:
         train = np.setdiff1d(np.arange(len(a)), test)
-        _, mat = affine_fit(surface, target, keep=keep, keep_target=keep_target, landmarks=a[train],
-                            landmarks_target=b[train], landmark_weight=landmark_weight, **kwargs)
+        _, mat = affine_fit(surface, target, icp, keep=keep, keep_target=keep_target, landmarks=a[train],
+                            landmarks_target=b[train], landmark_weight=landmark_weight)
         held[test] = a[test] @ mat[:3, :3].T + mat[:3, 3]
-    moved, _ = affine_fit(surface, target, keep=keep, keep_target=keep_target, landmarks=a, landmarks_target=b,
-                          landmark_weight=landmark_weight, **kwargs)
+    moved, _ = affine_fit(surface, target, icp, keep=keep, keep_target=keep_target, landmarks=a, landmarks_target=b,
+                          landmark_weight=landmark_weight)
     return moved, held
 
 

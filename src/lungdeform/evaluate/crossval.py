@@ -16,17 +16,17 @@ from typing import TYPE_CHECKING, Callable, Sequence
 import numpy as np
 
 from lungdeform.errors import InputError
-from lungdeform.fit.fitting import fit_lung
+from lungdeform.fit.fitting import FitSettings, fit_lung
+from lungdeform.fit.objective import LandmarkTerm
 from lungdeform.geometry.mesh import as_vertices
 from lungdeform.interior.sliding import checked_operator, surface_weights
 
 from .folds import landmark_folds
 
-if TYPE_CHECKING:  # fit_lung is imported where used (fit.py's docstring refers to this module)
+if TYPE_CHECKING:
+    from lungdeform.fit.fitting import FitResult
+    from lungdeform.fit.objective import Target
     from lungdeform.geometry.mesh import Surface
-
-    from .fitting import FitResult
-    from .objective import Target
 
 
 @dataclass(frozen=True, eq=False)
@@ -52,27 +52,28 @@ class LandmarkCV:
     fold_constants: np.ndarray
 
 
-def cross_validate_landmarks(surface: Surface, side: str, targets: Sequence[Target], landmarks_rest,
-                             landmarks_targets: dict, *, folds=5, seed: int = 0, initial=None,
-                             max_evaluations: int = 200, progress: Callable[[str], None] | None = None,
-                             landmark_matrix=None, **fit_kwargs) -> LandmarkCV:
+def cross_validate_landmarks(surface: Surface, side: str, targets: Sequence[Target], landmarks: LandmarkTerm,
+                             settings: FitSettings = FitSettings(max_evaluations=200), *, folds=5, keep=None,
+                             progress: Callable[[str], None] | None = None) -> LandmarkCV:
     """k-fold protocol for the landmark-informed fit: for each fold, fit on the surfaces and the
     other folds' landmarks (:func:`fit_lung` with the landmark term), then move the fold's
     landmarks with that fit; finally fit on all landmarks.
 
-    ``landmarks_rest : (m, 3)`` mm and ``landmarks_targets : {target index: (m, 3)}`` mm, aligned.
-    ``folds``: a number of folds (split by :func:`landmark_folds` with ``seed``) or the index
-    arrays themselves. ``initial``: c1…c6 to start every fold from (e.g. the surface-only fit).
-    ``landmark_matrix : (m, k) operator``, optional: the sliding interpolation from the kept
-    vertices to all of ``landmarks_rest`` (:func:`lungdeform.evaluate.baselines.landmark_matrix`),
-    computed once here when not given; each fold uses its rows. Other keywords go to :func:`fit_lung`. Landmark errors computed from
-    :attr:`LandmarkCV.predicted` are held out.
+    ``landmarks``: the landmark term (:class:`~lungdeform.fit.objective.LandmarkTerm`: ``rest : (m, 3)``
+    mm and ``targets : {target index: (m, 3)}`` mm, aligned; its ``matrix``, the sliding
+    interpolation from the kept vertices to all of ``rest``
+    (:func:`lungdeform.evaluate.baselines.landmark_matrix`), is computed once here when not given;
+    each fold uses its rows). ``settings``: every fit's search (:class:`~lungdeform.fit.fitting.FitSettings`;
+    its ``initial``, e.g. the surface-only fit, starts every fold). ``folds``: a number of folds
+    (split by :func:`landmark_folds`, seed 0) or the index arrays themselves. ``keep``: the model
+    vertices measured. Landmark errors computed from :attr:`LandmarkCV.predicted` are held out.
     """
 
     say = progress or (lambda _m: None)
-    rest = as_vertices(landmarks_rest, "landmarks_rest")
+    rest = as_vertices(landmarks.rest, "landmarks_rest")
+    landmarks_targets, landmark_matrix = landmarks.targets, landmarks.matrix
     if isinstance(folds, (int, np.integer)):
-        parts = landmark_folds(len(rest), int(folds), seed)
+        parts = landmark_folds(len(rest), int(folds), 0)
     else:
         parts = [np.asarray(p, np.int64) for p in folds]
         if not np.array_equal(np.sort(np.concatenate(parts)), np.arange(len(rest))):
@@ -80,16 +81,16 @@ def cross_validate_landmarks(surface: Surface, side: str, targets: Sequence[Targ
     fold = np.zeros(len(rest), np.int64)
     predicted = {int(i): np.full_like(rest, np.nan) for i in landmarks_targets}
     consts = []
-    kept = np.ones(surface.n_vertices, bool) if fit_kwargs.get("keep") is None else np.asarray(fit_kwargs["keep"], bool)
+    kept = np.ones(surface.n_vertices, bool) if keep is None else np.asarray(keep, bool)
     # one interpolation operator for all landmarks: row j depends only on landmark j, so the folds take rows
     w_all = (surface_weights(surface, rest, kept) if landmark_matrix is None
              else checked_operator(landmark_matrix, (len(rest), int(kept.sum()))))
     for k, test in enumerate(parts):
         fold[test] = k
         train = np.setdiff1d(np.arange(len(rest)), test)
-        r = fit_lung(surface, side, targets, initial=initial, max_evaluations=max_evaluations,
-                     landmarks_rest=rest[train], landmarks_targets={i: np.asarray(v)[train] for i, v in landmarks_targets.items()},
-                     landmark_matrix=w_all[train], progress=progress, **fit_kwargs)
+        term = LandmarkTerm(rest[train], {i: np.asarray(v)[train] for i, v in landmarks_targets.items()},
+                            landmarks.weight, w_all[train])
+        r = fit_lung(surface, side, targets, settings, landmarks=term, keep=keep, progress=progress)
         consts.append(r.constants)
         w = w_all[test]
         for i in predicted:
@@ -97,7 +98,6 @@ def cross_validate_landmarks(surface: Surface, side: str, targets: Sequence[Targ
             predicted[i][test] = rest[test] + s * (w @ r.displacement[kept])
         say(f"landmark fold {k + 1}/{len(parts)}: surface RMS {r.surface_rms_mm:.2f} mm, "
             f"training landmarks RMS {r.landmark_rms_mm:.2f} mm")
-    final = fit_lung(surface, side, targets, initial=initial, max_evaluations=max_evaluations,
-                     landmarks_rest=rest, landmarks_targets=landmarks_targets, landmark_matrix=w_all,
-                     progress=progress, **fit_kwargs)
+    final = fit_lung(surface, side, targets, settings, landmarks=LandmarkTerm(rest, landmarks_targets, landmarks.weight,
+                                                                               w_all), keep=keep, progress=progress)
     return LandmarkCV(final, predicted, fold, np.asarray(consts))

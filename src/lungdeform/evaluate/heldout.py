@@ -16,7 +16,8 @@ from typing import Callable
 import numpy as np
 
 from lungdeform.fit.config import FitConfig
-from lungdeform.fit.fitting import FitResult
+from lungdeform.fit.fitting import FitResult, FitSettings
+from lungdeform.fit.objective import LandmarkTerm
 from lungdeform.interior.field import correction_per_unit
 
 from . import baselines as B
@@ -70,27 +71,27 @@ def held_out_landmarks(placed: Placement, landmarks, fit: FitResult, side: str, 
     cv, cv_stiff = None, None
     if config.landmark_comparisons:
         say(f"landmark-informed fit ({config.folds}-fold cross-validation over {len(landmarks)} landmarks)")
-        cv = _landmark_fit(placed, landmarks, fit, side, config, folds, weights, stiffness=False, progress=say)
+        term = LandmarkTerm(landmarks, {ti: placed.landmarks[ti] for ti in range(len(placed.targets))},
+                            config.landmark_weight, weights)
+        cv = _landmark_fit(placed, term, fit, side, config, folds, stiffness=False, progress=say)
         if config.stiffness:
             say("landmark-informed fit with a stiffness field (cross-validated)")
-            cv_stiff = _landmark_fit(placed, landmarks, fit, side, config, folds, weights, stiffness=True, progress=say)
+            cv_stiff = _landmark_fit(placed, term, fit, side, config, folds, stiffness=True, progress=say)
     say("interior landmark correction (cross-validated)")
     interior = interior_correction(fit, landmarks, placed.landmarks, placed.targets, folds, placed.keep, unit,
                                    placed.rest)
     return HeldOut(weights, cv, cv_stiff, interior, surface_unit)
 
 
-def _landmark_fit(placed: Placement, landmarks, fit: FitResult, side: str, config: FitConfig, folds, weights, *,
+def _landmark_fit(placed: Placement, landmarks: LandmarkTerm, fit: FitResult, side: str, config: FitConfig, folds, *,
                   stiffness: bool, progress) -> LandmarkCV:
     """The cross-validated landmark-informed fit of c1…c9 (optionally with a stiffness field),
     started from the surface ``fit``."""
 
-    targets = {ti: placed.landmarks[ti] for ti in range(len(placed.targets))}
-    return cross_validate_landmarks(placed.rest, side, placed.targets, landmarks, targets, folds=folds,
-                                    keep=placed.keep, initial=fit.constants, fit_stiffness=stiffness, mode=config.mode,
-                                    max_evaluations=max(100, config.max_evaluations * 2 // 3),
-                                    landmark_weight=config.landmark_weight, landmark_matrix=weights,
-                                    progress=progress)
+    settings = FitSettings(mode=config.mode, initial=fit.constants, fit_stiffness=stiffness,
+                           max_evaluations=max(100, config.max_evaluations * 2 // 3))
+    return cross_validate_landmarks(placed.rest, side, placed.targets, landmarks, settings, folds=folds,
+                                    keep=placed.keep, progress=progress)
 
 
 def interior_correction(fit, landmarks, aligned, targets, folds, keep, unit, rest) -> dict:

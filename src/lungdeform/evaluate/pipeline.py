@@ -27,7 +27,7 @@ and runs these steps, each a function of its own:
 from __future__ import annotations
 
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
 
@@ -36,7 +36,7 @@ import numpy as np
 from lungdeform.atomic import atomic_path, jsonable, write_json
 from lungdeform.errors import InputError
 from lungdeform.fit.config import CROP_LIMIT, FitConfig, FitInputs
-from lungdeform.fit.fitting import DIRECTION_HI, DIRECTION_LO, fit_lung, to_lung_model
+from lungdeform.fit.fitting import DIRECTION_HI, DIRECTION_LO, FitSettings, fit_lung, to_lung_model
 from lungdeform.fit.refinement import refine_displacement
 from lungdeform.fit.registration import surface_map_field
 from lungdeform.geometry.mesh import Surface
@@ -88,15 +88,15 @@ def run_fit(inputs: FitInputs, out: Path, config: FitConfig = FitConfig(), *,
     if held.cv is not None:
         fits["landmarks"] = held.cv.final
     per_target, predictions, skipped, baseline_seconds = score_targets(placed, landmarks, fits, held, config, folds, say)
-    metrics = fit_metrics(inputs, read, placed, fits, held, config, per_target, skipped,
-                          read.warnings + placed.warnings + warnings)
+    run = FitRun(inputs, read, placed, fits, held, surface_field)
+    metrics = fit_metrics(run, config, per_target, skipped, read.warnings + placed.warnings + warnings)
     metrics["interior"] = {"surface_part": "sliding" if surface_field is None else "correspondence",
                            "asked": config.interior, "prior": None if prior is None else prior.as_dict()}
     metrics["seconds"] = time.perf_counter() - t_start
     # the model's own fit, the baselines and landmark-informed references (timed apart) left out
     metrics["baseline_seconds"] = baseline_seconds
     metrics["model_seconds"] = metrics["seconds"] - baseline_seconds
-    write_outputs(Path(out), inputs, config, placed, fits, held, landmarks, metrics, predictions, surface_field)
+    write_outputs(Path(out), run, config, metrics, predictions)
     return metrics
 
 
@@ -151,9 +151,9 @@ def fit_surfaces(placed: Placement, read: ReadInputs, side: str, config: FitConf
 
     say = progress or (lambda _m: None)
     say(f"fitting ({len(placed.targets)} target(s), model mesh {placed.rest.n_vertices} vertices)")
-    fit = fit_lung(placed.rest, side, placed.targets, mode=config.mode, keep=placed.keep,
-                   fit_stiffness=config.stiffness, max_evaluations=config.max_evaluations,
-                   translate=config.align == "joint", direction_degree=config.direction_degree, progress=say)
+    settings = FitSettings(mode=config.mode, fit_stiffness=config.stiffness, max_evaluations=config.max_evaluations,
+                           translate=config.align == "joint", direction_degree=config.direction_degree)
+    fit = fit_lung(placed.rest, side, placed.targets, settings, keep=placed.keep, progress=say)
     if config.align == "joint":  # move every target (and its landmarks, crop faces) by its fitted translation
         placed = shift_targets(placed, read, fit.translations, say)
     warnings = []
@@ -165,8 +165,8 @@ def fit_surfaces(placed: Placement, read: ReadInputs, side: str, config: FitConf
                         "the surfaces may not be one lung at two volumes, or the alignment is off")
     fits = {"optimizer": fit}
     if config.grid:
-        fits["grid"] = fit_lung(placed.rest, side, placed.targets, mode="grid", keep=placed.keep, grid_span=0.1,
-                                progress=say)
+        fits["grid"] = fit_lung(placed.rest, side, placed.targets, FitSettings(mode="grid", grid_span=0.1),
+                                keep=placed.keep, progress=say)
     return fits, placed, warnings
 
 
@@ -185,12 +185,45 @@ def refine_surface(placed: Placement, fit, config: FitConfig, progress: Callable
     return replace(fit, displacement=ref.displacement, refinement=ref)
 
 
-def fit_metrics(inputs: FitInputs, read: ReadInputs, placed: Placement, fits: dict, held: HeldOut,
-                config: FitConfig, per_target: dict, skipped: dict, warnings: list[str]) -> dict:
+@dataclass(frozen=True, eq=False)
+class FitRun:
+    """What one run of :func:`run_fit` gave, before it is measured and written.
+
+    Attributes
+    ----------
+    inputs : FitInputs
+        What the run was given.
+    read : ReadInputs
+        The inputs read and checked (:func:`lungdeform.evaluate.inputs.read_inputs`).
+    placed : Placement
+        The model mesh and the targets in its frame (after a joint alignment, moved by it).
+    fits : dict[str, FitResult]
+        ``"optimizer"`` (the headline, refined), ``"grid"`` and ``"landmarks"`` when run.
+    held : HeldOut
+        What landmarks give, held out (:func:`lungdeform.evaluate.heldout.held_out_landmarks`).
+    surface_field : SurfaceMapField or None
+        The surface-map interior field (None: the sliding field).
+    """
+
+    inputs: FitInputs
+    read: ReadInputs
+    placed: Placement
+    fits: dict
+    held: HeldOut
+    surface_field: object = None
+
+    @property
+    def landmarks(self):
+        """The end-exhale landmarks ``(m, 3)`` mm, or None."""
+        return self.read.landmarks[0] if self.read.landmarks is not None else None
+
+
+def fit_metrics(run: FitRun, config: FitConfig, per_target: dict, skipped: dict, warnings: list[str]) -> dict:
     """The metrics dictionary (``metrics.json``, less ``seconds``): inputs, volumes, warnings,
     alignment, every method's metrics per target (the last, largest-volume target's also at the
     top level), the protocols, the fits and the landmark cross-validation."""
 
+    inputs, read, placed, fits, held = run.inputs, run.read, run.placed, run.fits, run.held
     fit = fits["optimizer"]
     metrics = {"inputs": list(read.paths), "side": inputs.side, "volumes_ml": placed.volumes_ml,
                "volumes_given_ml": read.given_ml, "warnings": warnings, "notes": read.notes,
@@ -215,12 +248,13 @@ def fit_metrics(inputs: FitInputs, read: ReadInputs, placed: Placement, fits: di
     return metrics
 
 
-def write_outputs(out: Path, inputs: FitInputs, config: FitConfig, placed: Placement, fits: dict, held: HeldOut,
-                  landmarks, metrics: dict, predictions: dict, surface_field=None) -> None:
+def write_outputs(out: Path, run: FitRun, config: FitConfig, metrics: dict, predictions: dict) -> None:
     """Write ``model.npz`` (the headline fit, with the interior correction when there is one, at the
-    end-exhale ``landmarks : (m, 3)`` mm, and the correspondence ``surface_field`` when there is
-    one), ``metrics.json`` and ``report.html`` in ``out``."""
+    end-exhale landmarks, and the surface-map field when there is one), ``metrics.json`` and
+    ``report.html`` in ``out``."""
 
+    inputs, placed, fits, held, landmarks = run.inputs, run.placed, run.fits, run.held, run.landmarks
+    surface_field = run.surface_field
     out.mkdir(parents=True, exist_ok=True)
     fit, keep = fits["optimizer"], placed.keep
     # the crop faces (image boundary, motion never fitted) do not drive the interior field

@@ -26,6 +26,7 @@ from .fitting import (
     MODES,
     UNUSABLE_MM,
     FitResult,
+    FitSettings,
     fit_lung,
     to_lung_model,
 )
@@ -36,6 +37,7 @@ __all__ = [
     "DIRECTION_HI",
     "DIRECTION_LO",
     "FitResult",
+    "FitSettings",
     "MODES",
     "UNUSABLE_MM",
     "fit_lung",

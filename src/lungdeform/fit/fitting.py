@@ -41,7 +41,7 @@ from lungdeform.model.response import solve_response
 
 from .direction_correction import DirectionCorrection, fit_direction_correction
 from .expandability import fit_stiffness_if_better
-from .objective import LungFitter, Target
+from .objective import LandmarkTerm, LungFitter, ObjectiveSettings, Target
 from .rays import RayHits
 from .refinement import Refinement
 from .search import grid_search, least_squares_search, powell_search
@@ -179,68 +179,77 @@ class FitResult:
                 "refinement": None if self.refinement is None else self.refinement.as_dict()}
 
 
-def fit_lung(
-    surface: Surface,
-    side: str,
-    targets: Sequence[Target],
-    *,
-    mode: str = "optimizer",
-    initial=None,
-    fit_on=None,
-    keep=None,
-    gravity="supine",
-    fit_stiffness: bool = False,
-    max_distance: float = 25.0,
-    min_cosine: float = 0.25,
-    samples: int = 6000,
-    max_evaluations: int = 600,
-    grid_span: float = 0.3,
-    landmarks_rest=None,
-    landmarks_targets=None,
-    landmark_weight: float = 1.0,
-    landmark_matrix=None,
-    translate: bool = False,
-    direction_degree: int = 0,
-    progress: Callable[[str], None] | None = None,
-) -> FitResult:
+@dataclass(frozen=True, eq=False)
+class FitSettings:
+    """How :func:`fit_lung` searches c1…c9 (the module docstring gives the steps).
+
+    Attributes
+    ----------
+    mode : str
+        ``"optimizer"`` (= :data:`DEFAULT_OPTIMIZER`), ``"least_squares"``, ``"powell"`` or ``"grid"``.
+    initial : (6,) or (9,) float, optional
+        c1…c6 (or c1…c9) to start from; default Table I (the least-squares mode keeps the start's
+        c3 as the gauge and takes c7…c9 from ``initial`` when given, else from the rays at the start).
+    fit_stiffness : bool
+        Also fit a stiffness field (:mod:`lungdeform.fit.expandability`), kept only if it lowers the objective.
+    max_evaluations : int
+        Budget of forward model evaluations (the least-squares mode counts those of its
+        finite-difference Jacobians).
+    grid_span : float
+        Half-width around the start that the grid scans per constant (step 0.01).
+    translate : bool
+        Least squares only: fit a translation of each target in ``fit_on`` jointly with the
+        constants (:attr:`FitResult.translations`).
+    direction_degree : int
+        > 0: after the constants (and stiffness), fit a smooth correction of that polynomial degree
+        to the directions (:mod:`lungdeform.fit.direction_correction`), kept only if it lowers the objective.
+    objective : ObjectiveSettings
+        How each candidate is measured (:class:`lungdeform.fit.objective.LungFitter`).
+    """
+
+    mode: str = "optimizer"
+    initial: np.ndarray | None = None
+    fit_stiffness: bool = False
+    max_evaluations: int = 600
+    grid_span: float = 0.3
+    translate: bool = False
+    direction_degree: int = 0
+    objective: ObjectiveSettings = ObjectiveSettings()
+
+    @property
+    def method(self) -> str:
+        """The search :data:`MODES` name that runs: ``"optimizer"`` is :data:`DEFAULT_OPTIMIZER`."""
+        return DEFAULT_OPTIMIZER if self.mode == "optimizer" else self.mode
+
+
+def fit_lung(surface: Surface, side: str, targets: Sequence[Target], settings: FitSettings = FitSettings(), *,
+             landmarks: LandmarkTerm | None = None, fit_on=None, keep=None,
+             progress: Callable[[str], None] | None = None) -> FitResult:
     """Fit c1…c9 (and optionally a stiffness field) of one lung; see the module docstring.
 
-    ``mode``: ``"optimizer"`` (= :data:`DEFAULT_OPTIMIZER`), ``"least_squares"``, ``"powell"`` or
-    ``"grid"``. ``initial``: c1…c6 (or c1…c9) to start from; default Table I (the least-squares
-    mode keeps the start's c3 as the gauge and takes c7…c9 from ``initial`` when given, else from
-    the rays at the start). ``grid_span``: half-width around the start that the grid scans per
-    constant (step 0.01). ``landmarks_rest`` / ``landmarks_targets`` / ``landmark_weight`` /
-    ``landmark_matrix``: optional landmark term of the objective (see
-    :class:`lungdeform.fit.objective.LungFitter`); the landmark error of the result is in-sample, use
-    :func:`lungdeform.evaluate.crossval.cross_validate_landmarks` for a held-out figure.
-    ``translate`` (least squares only): fit a translation of each target in ``fit_on`` jointly
-    with the constants (:attr:`FitResult.translations`). ``direction_degree`` > 0: after the
-    constants (and stiffness), fit a smooth correction of that polynomial degree to the directions
-    (:mod:`lungdeform.fit.direction_correction`), kept only if it lowers the objective.
-    ``max_evaluations``: budget of forward model evaluations (the least-squares mode counts those of its finite-difference Jacobians).
+    ``settings``: the search (:class:`FitSettings`). ``landmarks``: the optional landmark term of
+    the objective (:class:`~lungdeform.fit.objective.LandmarkTerm`); the landmark error of the result
+    is in-sample, use :func:`lungdeform.evaluate.crossval.cross_validate_landmarks` for a held-out
+    figure. ``fit_on`` and ``keep``: the targets in the objective and the model vertices measured
+    (:class:`~lungdeform.fit.objective.LungFitter`).
     Raises :class:`InputError` for bad input; a fit whose objective is not finite raises
     :class:`ConvergenceError`; a search that stops on its evaluation budget returns
     ``success=False`` with the reason in ``message``.
     """
-    if mode not in MODES:
-        raise InputError(f"mode must be one of {', '.join(MODES)}, got {mode!r}")
-    method = DEFAULT_OPTIMIZER if mode == "optimizer" else mode
-    if translate and method != "least_squares":
-        raise InputError(f"translate=True needs the least-squares mode, not {method!r}")
+    if settings.mode not in MODES:
+        raise InputError(f"mode must be one of {', '.join(MODES)}, got {settings.mode!r}")
+    if settings.translate and settings.method != "least_squares":
+        raise InputError(f"translate=True needs the least-squares mode, not {settings.method!r}")
     say = progress or (lambda _m: None)
     t0 = time.perf_counter()
-    fitter = LungFitter(surface, side, targets, fit_on=fit_on, keep=keep, gravity=gravity,
-                        max_distance=max_distance, min_cosine=min_cosine, samples=samples,
-                        landmarks_rest=landmarks_rest, landmarks_targets=landmarks_targets,
-                        landmark_weight=landmark_weight, landmark_matrix=landmark_matrix)
-    start_c = table_constants(side) if initial is None else np.asarray(initial, float)
+    fitter = LungFitter(surface, side, targets, fit_on=fit_on, keep=keep, settings=settings.objective,
+                        landmarks=landmarks)
+    start_c = table_constants(side) if settings.initial is None else np.asarray(settings.initial, float)
     if start_c.shape not in ((6,), (9,)) or not np.all(np.isfinite(start_c)):
         raise InputError(f"initial must be 6 or 9 finite constants (c1…c6 or c1…c9), got shape {start_c.shape}")
     history: list[float] = []
-    found = _search(fitter, side, method, start_c, history, translate=translate, max_evaluations=max_evaluations,
-                    grid_span=grid_span, say=say)
-    return _finish(fitter, side, found, method, history, t0, fit_stiffness=fit_stiffness,
-                   direction_degree=direction_degree, say=say)
+    found = _search(fitter, side, settings, start_c, history, say)
+    return _finish(fitter, side, found, settings, history, t0, say)
 
 
 @dataclass(frozen=True, eq=False)
@@ -257,11 +266,11 @@ class _Found:
     message: str
 
 
-def _search(fitter: LungFitter, side: str, method: str, start_c: np.ndarray, history: list, *, translate: bool,
-            max_evaluations: int, grid_span: float, say) -> _Found:
+def _search(fitter: LungFitter, side: str, settings: FitSettings, start_c: np.ndarray, history: list, say) -> _Found:
     """Search c1…c6 from ``start_c`` with ``method`` (:mod:`lungdeform.fit.search`); ``history``
     gets the best objective after each evaluation. Never returns a point worse than one evaluated."""
 
+    method, max_evaluations = settings.method, settings.max_evaluations
     x0 = start_c[:6]
     lo, hi = DIRECTION_LO, DIRECTION_HI
     seen = {"x": None, "f": np.inf}  # the best point evaluated (Powell may return a worse last point)
@@ -285,14 +294,14 @@ def _search(fitter: LungFitter, side: str, method: str, start_c: np.ndarray, his
     if method == "least_squares":
         force0 = start_c[6:] if len(start_c) == 9 else None
         x, force, shifts, best, success, message = least_squares_search(
-            fitter, np.clip(x0, lo, hi), force0, lo=lo, hi=hi, translate=translate,
+            fitter, np.clip(x0, lo, hi), force0, lo=lo, hi=hi, translate=settings.translate,
             max_evaluations=max_evaluations, history=history)
         say(f"{side}: least squares RMS {best:.3f} mm after {fitter.evaluations} evaluations")
     elif method == "powell":
         x, best, success, message = powell_search(fun, x0, lo, hi, max_evaluations)
         say(f"{side}: optimiser RMS {best:.3f} mm after {fitter.evaluations} evaluations")
     else:
-        x, best, cycles, converged = grid_search(fun, x0, DIRECTION_BOUNDS, 0.01, span=[grid_span] * 6, progress=say)
+        x, best, cycles, converged = grid_search(fun, x0, DIRECTION_BOUNDS, 0.01, span=[settings.grid_span] * 6, progress=say)
         if converged:
             message = f"grid converged after {cycles} cycles"
         else:
@@ -303,15 +312,15 @@ def _search(fitter: LungFitter, side: str, method: str, start_c: np.ndarray, his
     return _Found(best_x, best, force, shifts, success, message)
 
 
-def _finish(fitter: LungFitter, side: str, found: _Found, method: str, history: list, t0: float, *, fit_stiffness: bool,
-            direction_degree: int, say) -> FitResult:
+def _finish(fitter: LungFitter, side: str, found: _Found, settings: FitSettings, history: list, t0: float,
+            say) -> FitResult:
     """The :class:`FitResult` of the search's best point: the stiffness field (optional), the
     direction correction (optional) and the inverse force of the final evaluation."""
 
     best_x, best, force, shifts = found.x, found.objective, found.force, found.shifts
     log_e = None
     uniform_u, uniform_obj = None, float(best)
-    if fit_stiffness:
+    if settings.fit_stiffness:
         _, uparts = fitter.evaluate(best_x, full=True, force=force, shifts=shifts)
         uniform_u = uparts["u"] if uparts is not None else None
         log_e, best = fit_stiffness_if_better(fitter, best_x, best, say, force=force, shifts=shifts)
@@ -319,8 +328,8 @@ def _finish(fitter: LungFitter, side: str, found: _Found, method: str, history: 
     if parts is None or not np.isfinite(obj):
         raise ConvergenceError(f"{side}: the fitted constants give no usable model")
     correction, paper_u, paper_obj = None, None, float(obj)
-    if direction_degree:
-        correction, log_e = _correct_directions(fitter, parts, best_x, shifts, direction_degree, log_e, say)
+    if settings.direction_degree:
+        correction, log_e = _correct_directions(fitter, parts, best_x, shifts, settings.direction_degree, log_e, say)
         if correction.accepted:
             c_force = parts["constants"][6:]
             # the paper's directions with the final stiffness (the alternation may have refitted it)
@@ -335,7 +344,7 @@ def _finish(fitter: LungFitter, side: str, found: _Found, method: str, history: 
         unit_ml=fitter.delta_ml, volume_ee_ml=fitter.v_ee, calibration_ml=fitter.delta_ml,
         directions=parts["directions"], force=parts["force"], inverse_force=f_inv,
         force_constants_inverse=c_inv, rays=parts["hits"], residuals=parts["residuals"],
-        objective_mm=obj, success=found.success, message=found.message, mode=method,
+        objective_mm=obj, success=found.success, message=found.message, mode=settings.method,
         evaluations=fitter.evaluations, seconds=time.perf_counter() - t0, history=np.asarray(history),
         stiffness_fitted=log_e is not None, uniform_displacement=uniform_u,
         uniform_objective_mm=uniform_obj, surface_rms_mm=parts["surface_rms"],

@@ -164,6 +164,58 @@ def _sample(surface: Surface, keep: np.ndarray, count: int, seed: int = 0) -> tu
 
 
 # --------------------------------------------------------------------------- the fitter
+@dataclass(frozen=True)
+class ObjectiveSettings:
+    """How :class:`LungFitter` measures a candidate (the same for every candidate of one fit).
+
+    Attributes
+    ----------
+    gravity : str or (3,) float
+        Posture or gravity direction (:func:`lungdeform.constants.gravity_vector`).
+    max_distance : float
+        Ray search bound, mm.
+    min_cosine : float
+        Grazing threshold of a ray hit (cosine between the ray and the target's normal).
+    samples : int
+        Target points per target used by the objective.
+    d_min : float
+        Smallest spring rest length of the force solve, mm (:class:`lungdeform.model.response.ResponseSolver`).
+    """
+
+    gravity: object = "supine"
+    max_distance: float = 25.0
+    min_cosine: float = 0.25
+    samples: int = 6000
+    d_min: float = 1.0
+
+
+@dataclass(frozen=True, eq=False)
+class LandmarkTerm:
+    """The objective's optional landmark term (:class:`LungFitter`).
+
+    Attributes
+    ----------
+    rest : (m, 3) float
+        Landmarks at end-exhale, mm, same frame as the fitted surface.
+    targets : dict[int, (m, 3) float]
+        Observed positions of those landmarks at target ``i`` (aligned, mm), for the targets that
+        have them (only targets in ``fit_on`` enter the objective).
+    weight : float
+        Weight of the landmark mean square against the surface mean square (1: both in mm²).
+    matrix : (m, k) operator, optional
+        The sliding interpolation from the kept vertices to ``rest``
+        (:func:`lungdeform.interior.sliding.surface_weights` of the surface with ``keep`` at
+        ``rest``; an ``(m, k)`` array is also accepted), precomputed by the caller (one dense solve
+        of size ~k saved per fitter); computed by the fitter when not given. Row ``j`` depends only
+        on landmark ``j``, so rows of one matrix serve any subset of the landmarks.
+    """
+
+    rest: object
+    targets: dict
+    weight: float = 1.0
+    matrix: object = None
+
+
 class LungFitter:
     """Precompute once for one end-exhale surface, then evaluate many candidate constants.
 
@@ -179,29 +231,17 @@ class LungFitter:
         target (``k`` makes its volume exact) and the one rays are cast to.
     keep : (n,) bool, optional
         Model vertices measured by the objective (False: e.g. the crop face).
-    gravity : str or (3,)
-    max_distance, min_cosine : ray search bound (mm) and grazing threshold.
-    samples : int
-        Target points per target used by the objective.
-    landmarks_rest : (m, 3) float, optional
-        Landmarks at end-exhale, mm, same frame as ``surface``.
-    landmarks_targets : dict[int, (m, 3) float], optional
-        Observed positions of those landmarks at target ``i`` (aligned, mm), for the targets that
-        have them (only targets in ``fit_on`` enter the objective).
-    landmark_weight : float
-        Weight of the landmark mean square against the surface mean square (1: both in mm²).
-    landmark_matrix : (m, k) operator, optional
-        The sliding interpolation from the kept vertices to ``landmarks_rest``
-        (:func:`lungdeform.interior.sliding.surface_weights` of ``surface`` with ``keep`` at
-        ``landmarks_rest``; an ``(m, k)`` array is also accepted), precomputed by the caller (one dense solve of size ~k saved per
-        fitter); computed here when not given. Row ``j`` depends only on landmark ``j``, so rows of
-        one matrix serve any subset of the landmarks.
+    settings : ObjectiveSettings
+        Gravity, ray search bounds, target samples, the force solve's shortest spring.
+    stiffness : (n,) float, optional
+        Young's moduli to start from (default uniform).
+    landmarks : LandmarkTerm, optional
+        The landmark term of the objective (none without).
     """
 
-    def __init__(self, surface: Surface, side: str, targets: Sequence[Target], *, fit_on=None,
-                 keep=None, gravity="supine", max_distance: float = 25.0, min_cosine: float = 0.25,
-                 samples: int = 6000, d_min: float = 1.0, stiffness=None, landmarks_rest=None,
-                 landmarks_targets=None, landmark_weight: float = 1.0, landmark_matrix=None):
+    def __init__(self, surface: Surface, side: str, targets: Sequence[Target], *, fit_on=None, keep=None,
+                 settings: ObjectiveSettings = ObjectiveSettings(), stiffness=None,
+                 landmarks: LandmarkTerm | None = None):
         if not targets:
             raise InputError("targets: fitting needs at least one larger-volume surface")
         self.surface = surface
@@ -222,10 +262,10 @@ class LungFitter:
         if not self.fit_on or any(i < 0 or i >= len(targets) for i in self.fit_on):
             raise InputError(f"fit_on must index the {len(targets)} targets, got {fit_on!r}")
         self.keep = np.ones(self.n, bool) if keep is None else np.asarray(keep, bool)
-        self.gravity = gravity_vector(gravity)
-        self.max_distance = float(max_distance)
-        self.min_cosine = float(min_cosine)
-        self.d_min = float(d_min)
+        self.gravity = gravity_vector(settings.gravity)
+        self.max_distance = float(settings.max_distance)
+        self.min_cosine = float(settings.min_cosine)
+        self.d_min = float(settings.d_min)
         self.frame = lung_frame(self.p, side)
         self.xyz = self.frame.normalized(self.p)
         self.graph = spring_graph(self.p, surface.edges)
@@ -233,12 +273,15 @@ class LungFitter:
         self.prepared = []
         for i, t in enumerate(self.targets):
             k = np.ones(t.surface.n_vertices, bool) if t.keep is None else np.asarray(t.keep, bool)
-            pts, w = _sample(t.surface, k, samples, seed=i)
+            pts, w = _sample(t.surface, k, settings.samples, seed=i)
             self.prepared.append(_PreparedTarget(t, SurfaceDistance(t.surface.vertices, t.surface.faces),
                                                  RayCaster(t.surface.vertices, t.surface.faces), pts, w))
         self.calib = self.fit_on[0]
         self.delta_ml = vols[self.calib] - self.v_ee
-        self._set_landmarks(landmarks_rest, landmarks_targets, landmark_weight, landmark_matrix)
+        if landmarks is None:
+            self._set_landmarks(None, None, 1.0)
+        else:
+            self._set_landmarks(landmarks.rest, landmarks.targets, landmarks.weight, landmarks.matrix)
         self.set_stiffness(uniform(self.n) if stiffness is None else as_moduli(stiffness, self.n))
         self.evaluations = 0
 

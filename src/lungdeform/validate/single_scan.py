@@ -52,7 +52,7 @@ from lungdeform.errors import ReadError
 from lungdeform.evaluate.inputs import read_inputs
 from lungdeform.evaluate.placement import place_targets
 from lungdeform.fit.config import FitInputs
-from lungdeform.fit.fitting import fit_lung, to_lung_model
+from lungdeform.fit.fitting import FitSettings, fit_lung, to_lung_model
 from lungdeform.fit.objective import Target
 from lungdeform.geometry.distance import SurfaceDistance, symmetric_distance
 from lungdeform.geometry.mesh import Surface
@@ -208,8 +208,8 @@ class FittedLung:
 
 def fit_pair(pair: LungPair) -> FittedLung:
     """The two-scan fit of ``pair`` (c1…c9, a translation, the direction correction; uniform stiffness)."""
-    fit = fit_lung(pair.rest, pair.side, [pair.target], keep=pair.keep, translate=True, direction_degree=3,
-                   max_evaluations=FIT_EVALUATIONS)
+    fit = fit_lung(pair.rest, pair.side, [pair.target],
+                   FitSettings(translate=True, direction_degree=3, max_evaluations=FIT_EVALUATIONS), keep=pair.keep)
     return FittedLung(fit.constants, fit.stiffness, fit.directions, fit.displacement, fit.force,
                       np.asarray(fit.translations[0], float), float(fit.unit_ml), float(fit.calibration_ml))
 
