@@ -28,7 +28,8 @@ MAX_PARAMETERS = 8
 WIDE_FUNCTIONS = {
     "lungdeform.cli.fit:register.fit_command": 18, "lungdeform.cli.track:register.track_command": 16,
     "lungdeform.cli.cohort:register.cohort_command": 14, "lungdeform.cli.build:register.build": 14,
-    "lungdeform.cli.synth_cohort:register.synth_cohort_command": 10, "lungdeform.cli.export:register.export_command": 10,
+    "lungdeform.cli.synth_cohort:register.synth_cohort_command": 10,
+    "lungdeform.cli.export:register.export_command": 10,
     "lungdeform.cli.warp:register.warp_command": 9, "lungdeform.cli.validate_itk:register.itk_pair_command": 9,
     "lungdeform.geometry.distance:_closest_on_triangle": 12, "lungdeform.geometry.distance:_closest_on_degenerate": 12,
     "lungdeform.geometry.distance:_closest_kernel": 10, "lungdeform.geometry.distance:_closest_on_segment": 9,
@@ -42,7 +43,6 @@ WIDE_FUNCTIONS = {
     "lungdeform.playback.voxel:fill_field": 12, "lungdeform.playback.server:ViewerServer.__init__": 9,
     "lungdeform.model.lung:build_lung": 11, "lungdeform.io.dicomseries:write_ct_series": 9,
     "lungdeform.interior.field:interior_field": 9,
-    "lungdeform.segment.lungs:grow_airways": 10, "lungdeform.fit.direction_correction:fit_direction_correction": 10,
     "lungdeform.fit.align:align_apex": 9,
     "lungdeform.evaluate.baselines:measure": 10,
     "lungdeform.evaluate.baselines:affine_landmarks_cv": 9,

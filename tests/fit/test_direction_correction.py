@@ -4,7 +4,12 @@ import numpy as np
 import pytest
 
 from lungdeform.errors import InputError
-from lungdeform.fit.direction_correction import corrected_directions, fit_direction_correction, polynomial_basis
+from lungdeform.fit.direction_correction import (
+    CorrectionSearch,
+    corrected_directions,
+    fit_direction_correction,
+    polynomial_basis,
+)
 from lungdeform.fit.fitting import FitSettings, fit_lung
 from lungdeform.fit.objective import LungFitter, Target
 from lungdeform.geometry.mesh import Surface
@@ -58,11 +63,12 @@ def test_fit_recovers_a_rotated_field(rotated):
     lung, model, target = rotated
     fitter = LungFitter(lung, "right", [Target(target, target.volume_ml)])
     c_force = model.constants[6:]
-    r = fit_direction_correction(fitter, model.directions, c_force, degree=1, steps=12)
+    r = fit_direction_correction(fitter, model.directions, c_force, degree=1, search=CorrectionSearch(steps=12))
     assert r.accepted and r.objective_mm < 0.25 * r.start_objective_mm
     assert r.start_objective_mm > 0.5  # the target is really off the paper's form
     assert r.coefficients[3] == pytest.approx([0.35, 0.0, 0.0], abs=0.02)  # the known field itself
-    again = fit_direction_correction(fitter, model.directions, c_force, degree=1, initial=r.coefficients, steps=2)
+    again = fit_direction_correction(fitter, model.directions, c_force, degree=1, initial=r.coefficients,
+                                     search=CorrectionSearch(steps=2))
     assert again.objective_mm <= r.objective_mm + 1e-9
     with pytest.raises(InputError, match="expected \\(4, 3\\)"):
         fit_direction_correction(fitter, model.directions, c_force, degree=1, initial=np.zeros((10, 3)))
@@ -75,7 +81,8 @@ def test_paper_truth_needs_no_correction():
     model = build_lung(lung, "right", constants=TRUE, calibration_ml=200.0, unit_ml=200.0)
     target = lung.deformed(model.displacement)
     fitter = LungFitter(lung, "right", [Target(target, target.volume_ml)])
-    r = fit_direction_correction(fitter, model.directions, model.constants[6:], degree=2, steps=4)
+    r = fit_direction_correction(fitter, model.directions, model.constants[6:], degree=2,
+                                 search=CorrectionSearch(steps=4))
     assert r.objective_mm <= r.start_objective_mm
     assert r.start_objective_mm < 0.1
 

@@ -2,7 +2,8 @@
 
 Surfaces constrain the constants only through the shape they predict, so a fit may add
 corresponding interior landmarks to its objective (moved by the sliding interpolation of the
-model's surface motion, :mod:`lungdeform.interior.sliding`) (:func:`lungdeform.fit.fitting.fit_lung` with ``landmarks_rest`` / ``landmarks_targets``). The
+model's surface motion, :mod:`lungdeform.interior.sliding`) (:func:`lungdeform.fit.fitting.fit_lung` with a
+:class:`~lungdeform.fit.objective.LandmarkTerm`). The
 landmark error of such a fit is in-sample; :func:`cross_validate_landmarks` fits once per fold on
 the surfaces and the other folds' landmarks, moves the fold's landmarks with that fit, and finally
 fits on all landmarks (the model a user keeps).

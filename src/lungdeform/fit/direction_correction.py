@@ -103,14 +103,27 @@ def _correspondence(fitter: LungFitter, u, shifts):
     return np.concatenate(rows), np.concatenate(scales), np.concatenate(res)
 
 
+@dataclass(frozen=True)
+class CorrectionSearch:
+    """The Gauss–Newton search of :func:`fit_direction_correction`: at most ``steps`` steps, each
+    damped by ``ridge`` × the mean diagonal of the normal matrix, stopping after ``patience``
+    steps without improvement."""
+
+    steps: int = 10
+    ridge: float = 0.01
+    patience: int = 3
+
+
 def fit_direction_correction(fitter: LungFitter, d0, c_force, shifts=None, *, degree: int = DEFAULT_DEGREE,
-                             initial=None, steps: int = 10, ridge: float = 0.01, patience: int = 3,
+                             initial=None, search: CorrectionSearch = CorrectionSearch(),
                              progress: Callable[[str], None] | None = None) -> DirectionCorrection:
     """Fit ``C`` for the paper's directions ``d0 : (n, 3)`` and c7…c9 ``c_force (3,)`` (see the
     module docstring), starting from ``initial (K, 3)`` (default zeros); ``shifts : (k, 3)`` mm,
-    the targets' fitted translations. Stops after ``steps`` steps or ``patience`` steps without
-    improvement. ``accepted``: the result beats the start (the paper's field, or ``initial``)."""
+    the targets' fitted translations; ``search``: steps, damping and patience
+    (:class:`CorrectionSearch`). ``accepted``: the result beats the start (the paper's field, or
+    ``initial``)."""
     say = progress or (lambda _m: None)
+    steps, ridge, patience = search.steps, search.ridge, search.patience
     basis = polynomial_basis(fitter.xyz, degree)
     k = basis.shape[1]
     force = np.asarray(c_force, float) @ fitter.fields

@@ -1,5 +1,5 @@
 """Heterogeneous stiffness field: an inverse estimate of regional alveolar expandability (paper
-Sec. VI; optional beyond the paper, ``fit_lung(..., fit_stiffness=True)``).
+Sec. VI; optional beyond the paper, ``fit_lung`` with ``FitSettings(fit_stiffness=True)``).
 
 Given the fitted direction constants and applied force of :func:`lungdeform.fit.fitting.fit_lung`, the
 per-vertex Young's modulus ``E`` is adjusted so that the forward force of the fitted applied force

@@ -301,7 +301,8 @@ def _search(fitter: LungFitter, side: str, settings: FitSettings, start_c: np.nd
         x, best, success, message = powell_search(fun, x0, lo, hi, max_evaluations)
         say(f"{side}: optimiser RMS {best:.3f} mm after {fitter.evaluations} evaluations")
     else:
-        x, best, cycles, converged = grid_search(fun, x0, DIRECTION_BOUNDS, 0.01, span=[settings.grid_span] * 6, progress=say)
+        x, best, cycles, converged = grid_search(fun, x0, DIRECTION_BOUNDS, 0.01, span=[settings.grid_span] * 6,
+                                                 progress=say)
         if converged:
             message = f"grid converged after {cycles} cycles"
         else:
