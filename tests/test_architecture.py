@@ -43,7 +43,7 @@ WIDE_FUNCTIONS = {
     "lungdeform.playback.voxel:fill_field": 12, "lungdeform.playback.server:ViewerServer.__init__": 9,
     "lungdeform.model.lung:build_lung": 11, "lungdeform.io.dicomseries:write_ct_series": 9,
     "lungdeform.interior.field:interior_field": 9,
-    "lungdeform.fit.align:align_apex": 9,
+    "lungdeform.segment.lungs:grow_airways": 10, "lungdeform.fit.align:align_apex": 9,
     "lungdeform.evaluate.baselines:measure": 10,
     "lungdeform.evaluate.baselines:affine_landmarks_cv": 9,
 }
