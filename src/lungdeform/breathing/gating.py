@@ -13,6 +13,10 @@ Decisions at time ``t`` for the position at ``t + latency`` (:func:`gate_point`,
 :func:`gate_interval`, :func:`gate_probability`): a predicted value inside the window; a whole
 interval inside; or a predicted probability of being inside at least ``min_probability``.
 
+:class:`BeamGate` is the live gate: one sample in, the window, the model's prediction of the
+position ``latency`` later with its interval (:mod:`lungdeform.breathing.predict_interval`) and the
+beam decision out (``lungdeform stream --gate``, ``lungdeform validate gating``).
+
 Arrays: ``t_s : (n,) float`` s, values in the trace's units.
 """
 
@@ -20,9 +24,12 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from lungdeform.errors import InputError
+
+from .predict import BlendPredictor, check_horizon
+from .predict_interval import IntervalConfig, IntervalPredictor
 
 #: window kinds: the name and whether the window is the low end of the breath
 WINDOW_KINDS = {"end-exhale": True, "end-inhale": False}
@@ -126,3 +133,57 @@ def gate_probability(probability: float, min_probability: float) -> bool:
 def distance_outside(window: tuple[float, float], value: float) -> float:
     """How far ``value`` lies outside ``window`` (0 inside), in the trace's units."""
     return max(window[0] - value, value - window[1], 0.0)
+
+
+@dataclass(frozen=True)
+class GateRule:
+    """window : the gating window; confident : the whole interval must be inside; min_probability :
+    otherwise, the predicted probability of the window needed, in (0, 1); interval : the intervals'
+    settings (coverage 0.9)."""
+
+    window: WindowSpec = field(default_factory=WindowSpec)
+    confident: bool = False
+    min_probability: float = 0.5
+    interval: IntervalConfig = field(default_factory=IntervalConfig)
+
+    def __post_init__(self):
+        if not (math.isfinite(self.min_probability) and 0.0 < self.min_probability < 1.0):
+            raise InputError(f"min_probability must be in (0, 1), got {self.min_probability!r}")
+
+    @property
+    def text(self) -> str:
+        return (f"whole {self.interval.coverage:g} interval inside" if self.confident else
+                f"predicted window probability >= {self.min_probability:g}")
+
+
+@dataclass(frozen=True)
+class GateSample:
+    """t_s : s; predicted : the model's x(t + latency) (trace units); lo, hi : its interval (±inf before
+    it is learned); window : (low, high) bounds known at t_s; probability : the predicted probability
+    of the window (NaN before it is learned); beam_on : the decision for t_s + latency."""
+
+    t_s: float
+    predicted: float
+    lo: float
+    hi: float
+    window: tuple[float, float]
+    probability: float
+    beam_on: bool
+
+
+class BeamGate:
+    """The live gate (module doc): :meth:`update` takes a sample ``(t s, x)`` and returns a
+    :class:`GateSample` for the position ``latency_s`` later."""
+
+    def __init__(self, latency_s: float, rule: GateRule | None = None):
+        self.latency_s = check_horizon(latency_s)
+        self.rule = rule or GateRule()
+        self.window = GateWindow(self.rule.window)
+        self.predictor = IntervalPredictor(BlendPredictor(self.latency_s), self.rule.interval)
+
+    def update(self, t: float, x: float) -> GateSample:
+        w = self.window.update(t, x)
+        r = self.predictor.update(t, x)
+        prob = window_probability(w, self.predictor.probability_below)
+        on = gate_interval(w, r.lo, r.hi) if self.rule.confident else gate_probability(prob, self.rule.min_probability)
+        return GateSample(r.t_s, r.value, r.lo, r.hi, w, prob, on)

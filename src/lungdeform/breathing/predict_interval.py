@@ -114,15 +114,16 @@ class IntervalPredictor:
 
     def _quantiles(self, store: deque) -> tuple[float, float]:
         """(lower, upper) bound of the normalised signed error: the α_lo and 1 − α_hi empirical
-        quantiles, widened by the finite-sample (n + 1)/n; ∓inf while too few or α ≤ 0."""
+        quantiles, widened by the finite-sample (n + 1)/n (the extreme stored score where ACI has
+        pushed α to 0 or below: the interval stays finite); ∓inf while fewer than ``min_scores``."""
         n = len(store)
         if n < self.config.min_scores:
             return -math.inf, math.inf
         r = np.fromiter((s for _, s in store), float, n)
         out = []
         for alpha, sign in zip(self._alpha, (-1.0, 1.0)):
-            k = int(math.ceil((1.0 - alpha) * (n + 1))) - 1
-            out.append(math.inf if alpha <= 0.0 or k >= n else float(np.partition(sign * r, max(0, k))[max(0, k)]))
+            k = min(n - 1, max(0, int(math.ceil((1.0 - alpha) * (n + 1))) - 1))
+            out.append(float(np.partition(sign * r, k)[k]))
         return -out[0], out[1]
 
     def update(self, t: float, x: float) -> IntervalPrediction:

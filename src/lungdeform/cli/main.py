@@ -41,6 +41,7 @@ COMMAND_MODULES = [
     "lungdeform.cli.breathe",
     "lungdeform.cli.validate_breathing",
     "lungdeform.cli.validate_prediction",
+    "lungdeform.cli.validate_gating",
     "lungdeform.cli.stream",
     "lungdeform.cli.fit",
     "lungdeform.cli.validate_itk",

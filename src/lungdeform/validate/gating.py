@@ -40,17 +40,8 @@ from pathlib import Path
 import numpy as np
 
 from lungdeform.atomic import write_json
-from lungdeform.breathing.gating import (
-    GateWindow,
-    WindowSpec,
-    distance_outside,
-    gate_interval,
-    gate_point,
-    gate_probability,
-    window_probability,
-)
-from lungdeform.breathing.predict import BlendPredictor, baseline_linear, check_horizon
-from lungdeform.breathing.predict_interval import IntervalConfig, IntervalPredictor
+from lungdeform.breathing.gating import BeamGate, GateRule, distance_outside, gate_point
+from lungdeform.breathing.predict import baseline_linear, check_horizon
 from lungdeform.breathing.trace import read_trace
 from lungdeform.errors import InputError, LungdeformError
 from lungdeform.plot import new_figure, save_png
@@ -67,22 +58,16 @@ TARGET_DUTY_OVER_NONE = 0.9
 
 @dataclass(frozen=True)
 class GatingConfig:
-    """latency_ms : ms between decision and beam (0, 2000]; window : the gating window; confident :
-    model_intervals needs the whole interval inside; min_probability : otherwise, the predicted
-    probability of the window it needs; interval : the intervals' settings (coverage 0.9)."""
+    """latency_ms : ms between decision and beam (0, 2000]; rule : the window and the rule of
+    model_intervals (:class:`lungdeform.breathing.gating.GateRule`); warm_s : s not scored."""
 
     latency_ms: float = 300.0
-    window: WindowSpec = field(default_factory=WindowSpec)
-    confident: bool = False
-    min_probability: float = 0.5
-    interval: IntervalConfig = field(default_factory=IntervalConfig)
+    rule: GateRule = field(default_factory=GateRule)
     warm_s: float = WARM_S
 
     def __post_init__(self):
         if not (math.isfinite(self.latency_ms) and 0.0 < self.latency_ms <= 2000.0):
             raise InputError(f"--latency-ms must be in (0, 2000] ms, got {self.latency_ms!r}")
-        if not (math.isfinite(self.min_probability) and 0.0 < self.min_probability < 1.0):
-            raise InputError(f"min_probability must be in (0, 1), got {self.min_probability!r}")
 
 
 def gate_decisions(t_s, x, config: GatingConfig) -> dict:
@@ -91,23 +76,18 @@ def gate_decisions(t_s, x, config: GatingConfig) -> dict:
     bool, "probability": (n,) float (the model's predicted window probability)}``."""
     t, v = np.asarray(t_s, float), np.asarray(x, float)
     lat = check_horizon(config.latency_ms / 1000.0)
-    gw = GateWindow(config.window)
+    gate = BeamGate(lat, config.rule)
     lin = baseline_linear(lat, dt_s=float(np.median(np.diff(t))))
-    model = IntervalPredictor(BlendPredictor(lat), config.interval)
     n = t.size
     win, prob = np.empty((n, 2)), np.empty(n)
     dec = {k: np.zeros(n, bool) for k in STRATEGIES}
     for i in range(n):
-        w = gw.update(t[i], v[i])
-        win[i] = w
-        p_lin = lin.update(t[i], v[i])
-        r = model.update(t[i], v[i])
-        dec["none"][i] = gate_point(w, v[i])
-        dec["linear"][i] = gate_point(w, p_lin)
-        dec["model"][i] = gate_point(w, r.value)
-        prob[i] = window_probability(w, model.probability_below)
-        dec["model_intervals"][i] = (gate_interval(w, r.lo, r.hi) if config.confident
-                                     else gate_probability(prob[i], config.min_probability))
+        g = gate.update(t[i], v[i])
+        win[i], prob[i] = g.window, g.probability
+        dec["none"][i] = gate_point(g.window, v[i])
+        dec["linear"][i] = gate_point(g.window, lin.update(t[i], v[i]))
+        dec["model"][i] = gate_point(g.window, g.predicted)
+        dec["model_intervals"][i] = g.beam_on
     truth = np.interp(t + lat, t, v)
     truth[t + lat > t[-1]] = np.nan
     dec["oracle"] = (win[:, 0] <= truth) & (truth <= win[:, 1])
@@ -188,9 +168,8 @@ def targets(s: dict) -> dict:
 
 
 def protocol(config: GatingConfig) -> str:
-    rule = (f"whole {config.interval.coverage:g} interval inside" if config.confident else
-            f"predicted window probability >= {config.min_probability:g}")
-    return (f"window {config.window.text} of the breath, causal (extremes of the last {config.window.span_s:g} s); "
+    rule, window = config.rule.text, config.rule.window
+    return (f"window {window.text} of the breath, causal (extremes of the last {window.span_s:g} s); "
             f"decision at t_i for t_i + {config.latency_ms:g} ms; scored for t_i >= t_0 + {config.warm_s:g} s "
             f"against the window of t_i; model_intervals: {rule}; medians over traces")
 
@@ -209,7 +188,7 @@ def write_plots(scores: dict, config: GatingConfig, folder: Path) -> dict[str, s
             ax.scatter(*np.median(pts, axis=0), s=90, marker="*", color=f"C{j}", label=f"{k} (median)")
     ax.set_xlabel("duty cycle")
     ax.set_ylabel("beam-on error (share of beam-on time outside the window)")
-    ax.set_title(f"gating, {config.window.text}, latency {config.latency_ms:g} ms", fontsize=10)
+    ax.set_title(f"gating, {config.rule.window.text}, latency {config.latency_ms:g} ms", fontsize=10)
     ax.legend(fontsize=8)
     files = {"duty_vs_error.png": str(save_png(fig, folder / "duty_vs_error.png"))}
     name = next(iter(scores))
@@ -255,8 +234,8 @@ def validate_gating(data: Path, out: Path, config: GatingConfig | None = None, p
     traces = {n: {k: v for k, v in r.items() if not k.startswith("_")} for n, r in scores.items()}
     s = summary(traces)
     metrics = {"traces": traces, "summary": s, "targets": targets(s), "n_traces": len(traces),
-               "errors": errors, "latency_ms": config.latency_ms, "window": config.window.text,
-               "confident": config.confident, "min_probability": config.min_probability,
-               "coverage": config.interval.coverage, "plots": files, "protocol": protocol(config)}
+               "errors": errors, "latency_ms": config.latency_ms, "window": config.rule.window.text,
+               "confident": config.rule.confident, "min_probability": config.rule.min_probability,
+               "coverage": config.rule.interval.coverage, "plots": files, "protocol": protocol(config)}
     write_json(Path(out) / "metrics.json", metrics, strict=True)
     return metrics
