@@ -12,12 +12,19 @@ even when the error distribution drifts:
    change (the signal moves fast → the error is larger) plus ``m``, the exponentially weighted mean
    absolute error of the recent scored predictions (floor: a still signal still has noise).
 2. Once a sample at or after ``t_j + h`` has arrived, the prediction made at ``t_j`` is scored: the
-   normalised error ``r_j = |x(t_j + h) − x̂_j| / s_j`` joins a store of the last ``memory_s`` seconds
-   (at most one score per ``min_step_s``, so a 100 Hz stream keeps as many as a 20 Hz one). Only errors
+   normalised signed error ``r_j = (x(t_j + h) − x̂_j) / s_j`` joins a store of the last ``memory_s`` seconds
+   (at most one score per ``min_step_s``, so a 100 Hz stream keeps as many as a 20 Hz one), one store
+   per direction of the predicted change (rising, falling: Mondrian conformal prediction, Vovk et al.
+   2005, so that the interval is calibrated on each side of the breath; both stores together while
+   one has fewer than ``min_scores``), signed (the interval may be asymmetric). Only errors
    whose truth is known at ``t`` ever enter: the interval at ``t`` is causal.
 3. ACI: the working miscoverage ``α_t`` moves by ``γ·(α − miss_j)`` at each score, where ``miss_j`` says
    whether the interval given at ``t_j`` missed; ``q_t`` is the ``(1 − α_t)`` empirical quantile of the
-   stored scores (with the finite-sample ``(n + 1)/n`` correction); the interval is ``x̂ ± q_t·s``.
+   stored scores of the direction (with the finite-sample ``(n + 1)/n`` correction), one bound each
+   side at ``α/2``; the interval is ``[x̂ + q_lo·s, x̂ + q_hi·s]``.
+4. :meth:`IntervalPredictor.probability_below` reads the same stored scores as a predictive
+   distribution (the share that would put the truth at or below a level), for a gate that asks how
+   likely the window is.
 
 Before ``min_scores`` scores have been stored the interval is infinite (``±inf``: the predictor does
 not yet know how wrong it is; a gate must hold the beam).
@@ -110,16 +117,22 @@ class IntervalPredictor:
                 store.popleft()
                 changed = True
         if changed:
-            self._q = [self._quantiles(store) for store in self._scores]
+            self._q = [self._quantiles(self._stored(g)) for g in range(len(self._scores))]
 
-    def _quantiles(self, store: deque) -> tuple[float, float]:
-        """(lower, upper) bound of the normalised signed error: the α_lo and 1 − α_hi empirical
+    def _stored(self, group: int) -> np.ndarray:
+        """The stored scores of a direction, or of both while that one has fewer than ``min_scores``."""
+        store = self._scores[group]
+        if len(store) < self.config.min_scores:
+            return np.fromiter((s for st in self._scores for _, s in st), float)
+        return np.fromiter((s for _, s in store), float, len(store))
+
+    def _quantiles(self, r: np.ndarray) -> tuple[float, float]:
+        """(lower, upper) bound of the normalised signed errors ``r``: the α_lo and 1 − α_hi empirical
         quantiles, widened by the finite-sample (n + 1)/n (the extreme stored score where ACI has
         pushed α to 0 or below: the interval stays finite); ∓inf while fewer than ``min_scores``."""
-        n = len(store)
+        n = r.size
         if n < self.config.min_scores:
             return -math.inf, math.inf
-        r = np.fromiter((s for _, s in store), float, n)
         out = []
         for alpha, sign in zip(self._alpha, (-1.0, 1.0)):
             k = min(n - 1, max(0, int(math.ceil((1.0 - alpha) * (n + 1))) - 1))
@@ -149,11 +162,10 @@ class IntervalPredictor:
         if self._last is None:
             return math.nan
         p, s, g = self._last
-        store = self._scores[g]
-        n = len(store)
+        r = self._stored(g)
+        n = r.size
         if n < self.config.min_scores:
             return math.nan
-        r = np.fromiter((v for _, v in store), float, n)
         bound = (float(level) - p) / s if s > 0 else (math.inf if level >= p else -math.inf)
         return float(np.count_nonzero(r <= bound)) / (n + 1)
 
