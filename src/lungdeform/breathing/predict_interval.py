@@ -76,6 +76,39 @@ class IntervalPrediction:
     coverage: float
 
 
+class _Scores:
+    """Scores ``(t_j, r_j)`` in time order in a numpy buffer: append at the end, forget from the front,
+    read the kept values as one array view (no copy per sample)."""
+
+    def __init__(self):
+        self.t = np.zeros(256)
+        self.r = np.zeros(256)
+        self.start = self.end = 0
+
+    def __len__(self) -> int:
+        return self.end - self.start
+
+    def append(self, t: float, r: float) -> None:
+        if self.end == self.t.size:  # compact, and grow when more than half is in use
+            n = len(self)
+            size = self.t.size * (2 if 2 * n > self.t.size else 1)
+            t_new, r_new = np.zeros(size), np.zeros(size)
+            t_new[:n], r_new[:n] = self.t[self.start:self.end], self.r[self.start:self.end]
+            self.t, self.r, self.start, self.end = t_new, r_new, 0, n
+        self.t[self.end], self.r[self.end] = t, r
+        self.end += 1
+
+    def forget_before(self, t: float) -> bool:
+        """Drop the scores older than ``t``; whether any was dropped."""
+        k = self.start + int(np.searchsorted(self.t[self.start:self.end], t, side="left"))
+        dropped, self.start = k > self.start, k
+        return dropped
+
+    @property
+    def values(self) -> np.ndarray:
+        return self.r[self.start:self.end]
+
+
 class IntervalPredictor:
     """A point predictor with an online, causal conformal interval (module doc)."""
 
@@ -88,12 +121,13 @@ class IntervalPredictor:
         self._alpha = [half, half]  # working miscoverage of the lower and the upper bound (ACI)
         self._hist = History(keep_s=self.horizon_s + 2.0)
         self._queue: deque[tuple[float, float, float, int, tuple[float, float]]] = deque()
-        self._scores: tuple[deque, deque] = (deque(), deque())  # per direction: (t_j, signed r_j)
+        self._scores = (_Scores(), _Scores())  # per direction: (t_j, signed r_j)
         self._t_store = -math.inf
         self._mae = math.nan
         self._t_mae = None
         self._q = [(-math.inf, math.inf), (-math.inf, math.inf)]  # per direction: (lower, upper) quantile
         self._last: tuple[float, float, int] | None = None  # newest (x̂, s, direction)
+        self._r = [np.zeros(0), np.zeros(0)]  # per direction: the scores in use (see _stored)
 
     def _score(self, t: float) -> None:
         cfg, changed = self.config, False
@@ -110,21 +144,20 @@ class IntervalPredictor:
             if math.isfinite(qlo) and math.isfinite(qhi):
                 self._alpha[0] += cfg.gamma * (self._alpha_target - float(r < qlo))
                 self._alpha[1] += cfg.gamma * (self._alpha_target - float(r > qhi))
-            self._scores[gj].append((tj, r))
+            self._scores[gj].append(tj, r)
             changed = True
         for store in self._scores:
-            while store and store[0][0] < t - cfg.memory_s:
-                store.popleft()
-                changed = True
+            changed = store.forget_before(t - cfg.memory_s) or changed
         if changed:
-            self._q = [self._quantiles(self._stored(g)) for g in range(len(self._scores))]
+            self._r = [self._stored(g) for g in range(len(self._scores))]
+            self._q = [self._quantiles(r) for r in self._r]
 
     def _stored(self, group: int) -> np.ndarray:
         """The stored scores of a direction, or of both while that one has fewer than ``min_scores``."""
         store = self._scores[group]
         if len(store) < self.config.min_scores:
-            return np.fromiter((s for st in self._scores for _, s in st), float)
-        return np.fromiter((s for _, s in store), float, len(store))
+            return np.concatenate([st.values for st in self._scores])
+        return store.values
 
     def _quantiles(self, r: np.ndarray) -> tuple[float, float]:
         """(lower, upper) bound of the normalised signed errors ``r``: the α_lo and 1 − α_hi empirical
@@ -162,7 +195,7 @@ class IntervalPredictor:
         if self._last is None:
             return math.nan
         p, s, g = self._last
-        r = self._stored(g)
+        r = self._r[g]
         n = r.size
         if n < self.config.min_scores:
             return math.nan
