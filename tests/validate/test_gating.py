@@ -9,6 +9,7 @@ from lungdeform.breathing.gating import GateRule
 from lungdeform.errors import InputError
 from lungdeform.validate import gating as G
 from tests.breathing.test_trace import breath, write_marker_csv
+from tests.conftest import require_path
 
 
 def _breath(rng, seconds=120.0):
@@ -70,3 +71,15 @@ def test_validate_gating_writes_the_layout_of_the_spec(tmp_path, rng):
     assert m["window"] == "end-exhale:30" and (tmp_path / "out" / "plots" / "duty_vs_error.png").stat().st_size > 5000
     with pytest.raises(InputError, match="latency"):
         G.GatingConfig(latency_ms=0)
+
+
+@pytest.mark.realdata
+@pytest.mark.slow
+def test_shared_traces_meet_the_gating_targets(tmp_path, data_dir):
+    # issue 28, on the shared traces (medians, 300 ms, end-exhale 30 %): model with intervals has at most
+    # half the beam-on error of no compensation at 0.9 × its duty cycle or more, and less beam-on error
+    # than the linear baseline at the linear baseline's duty cycle
+    m = G.validate_gating(require_path(data_dir, "breathing-traces"), tmp_path / "out")
+    t = m["targets"]
+    assert m["n_traces"] == 16 and t["error_vs_none"]["met"] and t["duty_vs_none"]["met"]
+    assert t["better_than_linear_at_matched_duty"]["met"]
