@@ -168,7 +168,7 @@ class IntervalPredictor:
             return -math.inf, math.inf
         out = []
         for alpha, sign in zip(self._alpha, (-1.0, 1.0)):
-            k = min(n - 1, max(0, int(math.ceil((1.0 - alpha) * (n + 1))) - 1))
+            k = min(n - 1, max(0, math.ceil((1.0 - alpha) * (n + 1)) - 1))
             out.append(float(np.partition(sign * r, k)[k]))
         return -out[0], out[1]
 
