@@ -9,9 +9,9 @@ import SimpleITK as sitk
 
 from lungdeform.cli.main import main
 from lungdeform.geometry.mesh import icosphere
-from lungdeform.io import dicomseries as DS
+from lungdeform.io.dicom import series as DS
+from lungdeform.io.dicom.rtstruct import read_ct_series, write_rtstruct
 from lungdeform.io.image import read_image
-from lungdeform.io.rtstruct import read_ct_series, write_rtstruct
 from tests.cli.test_dvf import files  # noqa: F401  (the shared module fixture)
 from tests.conftest import require_path
 

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from lungdeform.errors import InputError, ReadError
-from lungdeform.io.image import Image, index_to_world, read_image, resample_image, write_image
+from lungdeform.io.grid import Image, index_to_world
+from lungdeform.io.image import read_image, resample_image, write_image
 from lungdeform.io.mask import mask_to_surface
 
 from .test_mask import MIRRORED, rotation
@@ -163,7 +164,8 @@ def _tiny_series(folder, series_uid, n=4):
 def test_dicom_series_files_choices(tmp_path):
     from pathlib import Path
 
-    from lungdeform.io.image import dicom_series_files, is_dicom_file
+    from lungdeform.io.dicom.guard import is_dicom_file
+    from lungdeform.io.dicom.series import dicom_series_files
 
     # one folder, a CT of 4 slices and a 2-slice scout: the CT is the series (largest)
     _tiny_series(tmp_path / "ct", "1.2.826.0.1.3680043.2.1125.7.11", 4)
@@ -232,8 +234,8 @@ def test_damaged_dicom_element_headers_are_refused(tmp_path):
     # off "UI") was parsed by GDCM with lengths read from the wrong bytes (2.4 GB allocated, 2 s for a
     # 910-byte file) and then silently left out of its series. Each damaged header is refused, naming the
     # file: an unknown VR, and a value length larger than the file (MediaStorageSOPClassUID claiming 32767 bytes)
-    from lungdeform.io.fourdct import read_phases
-    from lungdeform.io.image import check_dicom_file
+    from lungdeform.io.dicom.fourdct import read_phases
+    from lungdeform.io.dicom.guard import check_dicom_file
 
     _tiny_series(tmp_path / "ct", "1.2.826.0.1.3680043.2.1125.7.11", 4)
     check_dicom_file(tmp_path / "ct" / "11_000.dcm")  # an intact slice passes
@@ -255,7 +257,7 @@ def test_damaged_dicom_file_without_preamble_is_refused(tmp_path):
     # found by tests/fuzz/fuzz_image_dicom.py: a slice cut before its preamble (it starts with an
     # explicit-VR element, which GDCM reads too) whose pixel data claims more bytes than are left took
     # GDCM 1.5 s and 1 GB; its element headers are now walked from byte 0 and the damage named
-    from lungdeform.io.image import check_dicom_file
+    from lungdeform.io.dicom.guard import check_dicom_file
 
     _tiny_series(tmp_path / "ct", "1.2.826.0.1.3680043.2.1125.7.12", 4)
     victim = tmp_path / "ct" / "12_002.dcm"
@@ -272,7 +274,7 @@ def test_dicom_without_preamble_walked_as_implicit_vr(tmp_path):
     # no explicit VR at bytes 4-5 were left to GDCM, which read a 3.3 GB value length and took 4 s and
     # 3.3 GB before failing. Such a file is now walked as implicit VR little endian (the default
     # transfer syntax): a meta-group element without a VR, or a length past the end, is named
-    from lungdeform.io.image import check_dicom_file
+    from lungdeform.io.dicom.guard import check_dicom_file
 
     bad = tmp_path / "implicit.dcm"
     bad.write_bytes(b"\x02\x00\x00UI\x12" + b"\xc6" * 57 + b"<\x00")
@@ -297,7 +299,7 @@ def test_dicom_meta_group_must_follow_the_preamble(tmp_path):
     # found by tests/fuzz/fuzz_image_dicom.py (libFuzzer out-of-memory): a slice whose first element
     # after "DICM" was (000A,0000) instead of the file meta group made GDCM take 600 MB for 912 bytes;
     # PS3.10 7.1 puts the file meta information right after the preamble
-    from lungdeform.io.image import check_dicom_file
+    from lungdeform.io.dicom.guard import check_dicom_file
 
     _tiny_series(tmp_path / "ct", "1.2.826.0.1.3680043.2.1125.7.13", 2)
     victim = tmp_path / "ct" / "13_001.dcm"
@@ -317,7 +319,7 @@ def test_dicom_pixel_module_that_overflows_is_refused(tmp_path):
     # BitsStored 2064 over 16-bit pixel data made GDCM write past its buffer ("corrupted size vs.
     # prev_size": the process died). The pixel module's numbers are checked against each other and
     # against the pixel data's length before GDCM reads the file
-    from lungdeform.io.image import check_dicom_file
+    from lungdeform.io.dicom.guard import check_dicom_file
 
     _tiny_series(tmp_path / "ct", "1.2.826.0.1.3680043.2.1125.7.14", 2)
     victim = tmp_path / "ct" / "14_001.dcm"
@@ -394,7 +396,7 @@ def test_grid_cap_on_read_and_write(tmp_path, monkeypatch):
     # written; the cap is raised by an argument or $LUNGDEFORM_MAX_VOXELS
     import SimpleITK as sitk
 
-    from lungdeform.io.image import MAX_VOXELS
+    from lungdeform.io.grid import MAX_VOXELS
 
     assert 512 * 512 * 2000 <= MAX_VOXELS < 1000 ** 3
     huge = tmp_path / "huge.mhd"
@@ -440,7 +442,7 @@ def test_max_voxels_lasts_one_command(tmp_path, monkeypatch):
     # --max-voxels sets the cap for its own command (and its workers), not for whatever the process
     # runs next: an in-process main() left 999 behind and every later image read was refused
     from lungdeform.cli.main import main
-    from lungdeform.io.image import MAX_VOXELS_ENV
+    from lungdeform.io.grid import MAX_VOXELS_ENV
 
     monkeypatch.delenv(MAX_VOXELS_ENV, raising=False)
     main(["--max-voxels", "999", "build", str(tmp_path / "none.nii.gz"), "--out", str(tmp_path / "m.npz")])

@@ -1,4 +1,12 @@
-"""Writing a 3-D CT image as a DICOM series (CT Image Storage, one file per slice), with pydicom.
+"""A DICOM CT series: found in a folder, its slices checked and read; an image written as one.
+
+Reading: :func:`dicom_series_files` picks the series a path names (a folder, a parent folder of one
+series, or one file), every file checked by :func:`~lungdeform.io.dicom.guard.check_dicom_file`
+first; :func:`dicom_series_geometry` checks its slices
+(:func:`~lungdeform.io.dicom.slices.check_slices`) and :func:`read_series` reads it with SimpleITK
+(:func:`lungdeform.io.image.read_image` is the entry point for every format).
+
+Writing: with pydicom, CT Image Storage, one file per slice.
 
 Behind ``lungdeform warp … --out FOLDER`` (docs/RADIOTHERAPY.md, "From a 4-D CT to tumour motion
 and DVFs"): each breathing phase of a synthetic 4-D CT becomes its own series in ``FOLDER/phaseNN``
@@ -10,28 +18,33 @@ DICOM), has a new Series Instance UID, a SeriesDescription ending ``phase 30%``,
 position as TemporalPositionIndex (0020,9128) and TemporalPositionIdentifier (0020,0100), both
 1-based, with NumberOfTemporalPositions (0020,0105).
 
-Frames and units: the arrays of :class:`lungdeform.io.image.Image`: ``array`` ``(z, y, x)`` in HU,
+Frames and units: the arrays of :class:`lungdeform.io.grid.Image`: ``array`` ``(z, y, x)`` in HU,
 ``spacing`` (x, y, z) mm, ``origin`` mm LPS of voxel (0, 0, 0), ``direction`` (3, 3) whose
 columns are the index axes in LPS; DICOM patient coordinates are LPS too, so
 ImagePositionPatient of slice ``k`` is ``origin + k * spacing_z * direction[:, 2]`` as it stands.
 Voxels are stored as int16 with RescaleSlope/RescaleIntercept (:func:`rescale`).
 """
 
+
 from __future__ import annotations
 
 import datetime as _dt
+import os
 import re
 from pathlib import Path
 
 import numpy as np
 import pydicom
+import SimpleITK as sitk
 from pydicom.dataset import Dataset, FileDataset, FileMetaDataset
 from pydicom.errors import InvalidDicomError
 from pydicom.uid import PYDICOM_IMPLEMENTATION_UID, ExplicitVRLittleEndian, generate_uid
 
 from lungdeform.errors import InputError, ReadError
+from lungdeform.io.grid import check_grid, quiet_itk
 
-from .image import check_grid, dicom_series_files, is_dicom_file
+from .guard import check_dicom_file, is_dicom_file
+from .slices import GEOMETRY_TAGS, SliceGeometry, check_slices, check_spacing
 
 #: CT Image Storage
 CT_SOP_CLASS = "1.2.840.10008.5.1.4.1.1.2"
@@ -41,6 +54,107 @@ STUDY_KEYS = ("PatientName", "PatientID", "PatientBirthDate", "PatientSex", "Pat
               "FrameOfReferenceUID")
 #: Most phases written as DICOM folders: the folder names are whole percentages of the cycle
 MAX_PHASES = 100
+
+
+def _series_in(folder: Path) -> list[tuple[str, tuple[str, ...]]]:
+    """``[(series UID, file names)]`` of the DICOM series directly in ``folder``, largest first
+    (every DICOM file of the folder checked first, :func:`check_dicom_file`)."""
+
+    with os.scandir(folder) as entries:
+        for entry in sorted(entries, key=lambda e: e.name):
+            if entry.is_file() and is_dicom_file(entry.path):
+                check_dicom_file(entry.path)
+    reader = sitk.ImageSeriesReader
+    with quiet_itk():
+        ids = reader.GetGDCMSeriesIDs(str(folder))
+        series = [(sid, tuple(reader.GetGDCMSeriesFileNames(str(folder), sid))) for sid in ids]
+    return sorted(series, key=lambda s: -len(s[1]))
+
+
+def dicom_series_files(path) -> list[str]:
+    """The files of the DICOM series that ``path`` names, in slice order.
+
+    ``path`` may be a folder holding the series (the largest series in it is taken, but two or more
+    series of that size, e.g. the phases of a 4-D CT, are refused as ambiguous), a parent folder
+    whose subfolders hold exactly one series, or one file of the series (its series is read from
+    its folder). Raises :class:`ReadError` naming the path when there is no series, or more than
+    one to choose from.
+    """
+    p = Path(path)
+    if p.is_file():
+        folder = p.parent
+        target = p.resolve()
+        for sid, files in _series_in(folder):
+            if any(Path(f).resolve() == target for f in files):
+                return list(files)
+        raise ReadError(f"{p}: not a readable DICOM image slice (no DICOM series in {folder} contains it)")
+    series = _series_in(p)
+    where = p
+    if not series:  # a parent folder (patient/study/series exports): look one or more levels down
+        found, visited = [], 0
+        for root, dirs, _files in os.walk(p):
+            dirs.sort()
+            if Path(root) != p:
+                found += [(Path(root), sid, files) for sid, files in _series_in(Path(root))]
+            visited += 1
+            if len(found) > 20 or visited > 2000:  # enough to say it is ambiguous; do not crawl a disk
+                break
+        if not found:
+            raise ReadError(f"{p}: no DICOM series in this directory or its subfolders")
+        if len(found) > 1:
+            listed = "; ".join(f"{d.relative_to(p)} ({len(files)} files)" for d, _, files in found[:6])
+            raise ReadError(f"{p}: holds no DICOM series itself, and its subfolders hold {len(found)}"
+                            f"{'+' if len(found) > 20 else ''} series ({listed}); give the folder of one")
+        where, sid, files = found[0]
+        series = [(sid, files)]
+    if len(series) > 1 and len(series[1][1]) == len(series[0][1]):
+        n_same = sum(len(f) == len(series[0][1]) for _, f in series)
+        raise ReadError(f"{where}: holds {len(series)} DICOM series, {n_same} of them with {len(series[0][1])} "
+                        "files (e.g. the phases of a 4-D CT): ambiguous; put the series you want in a folder "
+                        "of its own")
+    return list(series[0][1])
+
+
+
+def dicom_series_geometry(files, where, max_voxels=None) -> SliceGeometry:
+    """The geometry of one DICOM series (``files``, any order), its files in order along the slice
+    normal, after the grid cap (:func:`check_grid`, from the headers) and, for two or more files,
+    the checks of :func:`lungdeform.io.dicom.slices.check_slices`; :class:`ReadError` naming ``where``
+    and the file."""
+    reader = sitk.ImageFileReader()
+    reader.SetImageIO("GDCMImageIO")
+    slices, size, depth = [], (0, 0), 0
+    for f in files:
+        reader.SetFileName(str(f))
+        try:
+            with quiet_itk():
+                reader.ReadImageInformation()
+        except RuntimeError as exc:
+            raise ReadError(f"{where}: {f} is not a readable DICOM image slice") from exc
+        slices.append((str(f), {t: reader.GetMetaData(t).strip() if reader.HasMetaDataKey(t) else ""
+                                for t in GEOMETRY_TAGS}))
+        got = reader.GetSize()
+        size = (max(size[0], got[0]), max(size[1], got[1]))
+        depth += int(np.prod(got[2:], dtype=np.int64))
+        check_grid((*size, depth), where, max_voxels)
+    if len(slices) < 2:
+        return SliceGeometry(tuple(s for s, _ in slices), np.zeros(len(slices)), 0.0)
+    return check_slices(slices, where)
+
+
+
+
+def read_series(path, max_voxels=None) -> sitk.Image:
+    """The DICOM series ``path`` names (:func:`dicom_series_files`) read by SimpleITK, after every
+    header is checked (:func:`dicom_series_geometry`) and ITK's slice spacing is compared with the
+    slices' own (:func:`~lungdeform.io.dicom.slices.check_spacing`)."""
+    geometry = dicom_series_geometry(dicom_series_files(path), path, max_voxels)
+    reader = sitk.ImageSeriesReader()
+    reader.SetFileNames(list(geometry.files))
+    with quiet_itk():
+        img = reader.Execute()
+    check_spacing(img.GetSpacing()[2], geometry, path)
+    return img
 
 
 def study_header(source=None) -> Dataset:
@@ -122,7 +236,7 @@ def write_ct_series(folder, array, spacing, origin, direction, header: Dataset, 
     file ``CT0001.dcm`` … per slice. ``header`` (:func:`study_header`) gives the patient, study and
     frame of reference; ``temporal`` = ``(index, count)`` (0-based index) sets the temporal tags.
     Not atomic by itself: write into :func:`lungdeform.atomic.atomic_dir`. Returns the SOP Instance
-    UIDs in slice order. A grid over the cap (:func:`~lungdeform.io.image.check_grid`) is refused first."""
+    UIDs in slice order. A grid over the cap (:func:`~lungdeform.io.grid.check_grid`) is refused first."""
     a = np.asarray(array)
     if a.ndim != 3 or 0 in a.shape:
         raise InputError(f"{folder}: a DICOM series needs a non-empty 3-D (z, y, x) array, got shape {a.shape}")

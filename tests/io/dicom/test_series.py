@@ -1,4 +1,4 @@
-"""A 3-D image written as a DICOM CT series (lungdeform.io.dicomseries), read back by SimpleITK and pydicom."""
+"""A 3-D image written as a DICOM CT series (lungdeform.io.dicom.series), read back by SimpleITK and pydicom."""
 
 import numpy as np
 import pydicom
@@ -7,9 +7,9 @@ import SimpleITK as sitk
 
 from lungdeform.atomic import atomic_dir
 from lungdeform.errors import InputError
-from lungdeform.io import dicomseries as DS
+from lungdeform.io.dicom import series as DS
+from lungdeform.io.dicom.rtstruct import read_ct_series
 from lungdeform.io.image import read_image
-from lungdeform.io.rtstruct import read_ct_series
 from tests.io.dicom_support import write_ct_series as write_source_series
 
 #: an oblique grid: index axes rotated 30° about z, so a swapped row/column or a wrong slice
