@@ -68,7 +68,7 @@ def test_warp_phases_to_dicom_series(files, tmp_path):
         assert np.abs(got.array - mha.array.astype(float)).max() <= 0.5
         ds = pydicom.dcmread(out / name / "CT0001.dcm")
         assert ds.StudyInstanceUID == head.StudyInstanceUID and ds.FrameOfReferenceUID == head.FrameOfReferenceUID
-        assert ds.SeriesDescription == f"4D phase {50 * i}%" and ds.TemporalPositionIndex == i + 1
+        assert ds.SeriesDescription == f"4D phase {50 * i}%" and ds.TemporalPositionIdentifier == i + 1
         assert ds.NumberOfTemporalPositions == 2
         series.add(ds.SeriesInstanceUID)
     assert len(series) == 2

@@ -50,7 +50,8 @@ def test_tags_of_a_phase(rng, tmp_path):
     assert ds.StudyInstanceUID == s.StudyInstanceUID and ds.FrameOfReferenceUID == s.FrameOfReferenceUID
     assert ds.SeriesInstanceUID != s.SeriesInstanceUID and ds.PatientID == "SYN001"
     assert ds.SeriesDescription == "CT phase 30%"
-    assert ds.TemporalPositionIndex == 4 and ds[0x0020, 0x0100].value == 4 and ds.NumberOfTemporalPositions == 10
+    # TemporalPositionIdentifier, not the multi-frame TemporalPositionIndex (not in the CT IOD, dciodvfy)
+    assert "TemporalPositionIndex" not in ds and ds[0x0020, 0x0100].value == 4 and ds.NumberOfTemporalPositions == 10
     assert ds.pixel_array.dtype == np.int16 and ds.RescaleType == "HU"
 
 

@@ -72,13 +72,27 @@ def decimal(value: float) -> str:
     raise InputError(f"{value!r} cannot be written as a DICOM decimal string of 16 bytes")
 
 
+def type2_defaults(ds: Dataset, keys) -> None:
+    """Add each of ``keys`` that ``ds`` lacks with an empty value: a Type 2 attribute must be present,
+    empty when unknown (PS3.5 7.4.3); a value is never invented."""
+    for key in keys:
+        if key not in ds:
+            setattr(ds, key, "")
+
+
 def check_dataset(ds: Dataset, where: str = "dataset") -> None:
     """Walk ``ds`` and its sequences: every value of a VR in :data:`MAX_BYTES` at most that many
     bytes, every UI value a UID (:data:`UID`); :class:`InputError` naming ``where`` and the attribute."""
+    with warnings.catch_warnings():  # pydicom's own warnings on such values: refused here instead
+        warnings.simplefilter("ignore")
+        _walk(ds, where)
+
+
+def _walk(ds: Dataset, where: str) -> None:
     for elem in ds:
         if elem.VR == "SQ":
             for i, item in enumerate(elem.value):
-                check_dataset(item, f"{where}: {elem.keyword}[{i}]")
+                _walk(item, f"{where}: {elem.keyword}[{i}]")
             continue
         limit = MAX_BYTES.get(elem.VR)
         if limit is None or elem.value is None:

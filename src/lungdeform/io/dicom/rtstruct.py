@@ -33,7 +33,7 @@ from lungdeform.atomic import atomic_path
 from lungdeform.errors import InputError, ReadError
 from lungdeform.geometry.contours import contours_to_mesh, section_mesh
 
-from .attributes import require
+from .attributes import check_dataset, require
 from .series import dicom_series_files
 
 #: RT Structure Set Storage
@@ -383,7 +383,9 @@ def write_rtstruct(path, ct: CTSeries, surfaces: list, *, label: str = "lungdefo
 
 
 def save_rtstruct(path, ds: FileDataset) -> None:
-    """Save the dataset of :func:`build_rtstruct` to ``path`` atomically."""
+    """Save the dataset of :func:`build_rtstruct` to ``path`` atomically, every value within its VR's
+    limits first (:func:`~lungdeform.io.dicom.attributes.check_dataset`)."""
+    check_dataset(ds, str(path))
     with atomic_path(path) as tmp:
         ds.save_as(tmp, enforce_file_format=True)
 
@@ -415,6 +417,8 @@ def _base_dataset(ct: CTSeries, label: str) -> FileDataset:
     ds.Modality, ds.SeriesInstanceUID, ds.SeriesNumber, ds.InstanceNumber = "RTSTRUCT", generate_uid(), 900, 1
     ds.Manufacturer, ds.SeriesDescription = "lungdeform", label[:64]
     ds.FrameOfReferenceUID = ct.header.FrameOfReferenceUID
+    ds.PositionReferenceIndicator = ct.header.get("PositionReferenceIndicator", "")
+    ds.OperatorsName = ""  # Type 2 (RT Series module): not known here
     ds.StructureSetLabel = label[:16]
     ds.StructureSetDate, ds.StructureSetTime = now.strftime("%Y%m%d"), now.strftime("%H%M%S")
     series = Dataset()

@@ -15,8 +15,19 @@ and DVFs"): each breathing phase of a synthetic 4-D CT becomes its own series in
 Conventions, so that 4-D CT readers sort the phases: every phase keeps the Study Instance UID and
 Frame of Reference UID of the source CT (new ones, shared by all phases, when the source is not
 DICOM), has a new Series Instance UID, a SeriesDescription ending ``phase 30%``, and the temporal
-position as TemporalPositionIndex (0020,9128) and TemporalPositionIdentifier (0020,0100), both
-1-based, with NumberOfTemporalPositions (0020,0105).
+position as TemporalPositionIdentifier (0020,0100), 1-based, with NumberOfTemporalPositions
+(0020,0105), as GE, Siemens and Philips 4-D CT exports have them.
+
+Conformance (dciodvfy, docs/RADIOTHERAPY.md "DICOM conformance"): every Type 2 attribute of the CT
+Image IOD is present, empty when the source does not give it (:data:`TYPE2_KEYS`); BodyPartExamined
+is the source's or ``CHEST`` (unpaired: Laterality, Type 2C, is written only when the source has it); ImageType is
+``DERIVED, SECONDARY, AXIAL``; decimal strings are at most 16 bytes
+(:func:`~lungdeform.io.dicom.attributes.decimal`) and every slice passes
+:func:`~lungdeform.io.dicom.attributes.check_dataset` before it is saved. The two temporal
+attributes are not in the CT Image IOD (they come from the MR Image module): dciodvfy warns that
+such a file is a Standard Extended SOP Class, which the standard allows (PS3.4 B.1.3). The
+TemporalPositionIndex (0020,9128) that 0.7 wrote as well is a multi-frame functional group
+attribute and is no longer written.
 
 Frames and units: the arrays of :class:`lungdeform.io.grid.Image`: ``array`` ``(z, y, x)`` in HU,
 ``spacing`` (x, y, z) mm, ``origin`` mm LPS of voxel (0, 0, 0), ``direction`` (3, 3) whose
@@ -43,6 +54,7 @@ from pydicom.uid import PYDICOM_IMPLEMENTATION_UID, ExplicitVRLittleEndian, gene
 from lungdeform.errors import InputError, ReadError
 from lungdeform.io.grid import check_grid, quiet_itk
 
+from .attributes import check_dataset, decimal, type2_defaults
 from .guard import check_dicom_file, is_dicom_file
 from .slices import GEOMETRY_TAGS, SliceGeometry, check_slices, check_spacing
 
@@ -51,7 +63,12 @@ CT_SOP_CLASS = "1.2.840.10008.5.1.4.1.1.2"
 #: Patient, study and frame-of-reference attributes a derived series keeps from its source
 STUDY_KEYS = ("PatientName", "PatientID", "PatientBirthDate", "PatientSex", "PatientPosition", "StudyInstanceUID",
               "StudyDate", "StudyTime", "StudyID", "AccessionNumber", "ReferringPhysicianName", "StudyDescription",
-              "FrameOfReferenceUID")
+              "FrameOfReferenceUID", "PositionReferenceIndicator", "KVP", "BodyPartExamined", "Laterality")
+#: Type 2 attributes of the CT Image IOD (Patient, General Study, General Series, Frame of Reference,
+#: General Image, CT Image modules) written empty when the source does not give them
+TYPE2_KEYS = ("PatientName", "PatientID", "PatientBirthDate", "PatientSex", "StudyDate", "StudyTime", "StudyID",
+              "AccessionNumber", "ReferringPhysicianName", "PatientPosition", "PositionReferenceIndicator",
+              "KVP", "AcquisitionNumber")
 #: Most phases written as DICOM folders: the folder names are whole percentages of the cycle
 MAX_PHASES = 100
 
@@ -247,12 +264,12 @@ def write_ct_series(folder, array, spacing, origin, direction, header: Dataset, 
         raise InputError(f"{folder}: not empty; a DICOM series is written into a new folder")
     stored, slope, intercept = rescale(a)
     series = _series_dataset(a.shape, spacing, direction, header, description, series_number, temporal)
-    series.RescaleSlope, series.RescaleIntercept = f"{slope:.10g}", f"{intercept:.10g}"
+    series.RescaleSlope, series.RescaleIntercept = decimal(slope), decimal(intercept)
     d = np.asarray(direction, float).reshape(3, 3)
     uids = []
     for k in range(a.shape[0]):
         position = np.asarray(origin, float) + k * float(spacing[2]) * d[:, 2]
-        series.SliceLocation = f"{float(position @ d[:, 2]):.6f}"  # along the slice normal
+        series.SliceLocation = decimal(position @ d[:, 2])  # along the slice normal
         uids.append(_write_slice(folder / f"CT{k + 1:04d}.dcm", series, stored[k], k, position))
     return uids
 
@@ -264,23 +281,26 @@ def _series_dataset(shape, spacing, direction, header: Dataset, description: str
     for key in STUDY_KEYS:
         if key in header:
             setattr(ds, key, header.get(key))
+    type2_defaults(ds, TYPE2_KEYS)
+    if not ds.get("BodyPartExamined"):  # lungs: an unpaired body part, so Laterality (2C) stays absent
+        ds.BodyPartExamined = "CHEST"
     now = _dt.datetime.now()
     ds.SOPClassUID, ds.Modality, ds.SeriesInstanceUID = CT_SOP_CLASS, "CT", generate_uid()
     ds.SeriesNumber, ds.SeriesDescription = int(series_number), description[:64]
     ds.SeriesDate, ds.SeriesTime, ds.ContentDate = now.strftime("%Y%m%d"), now.strftime("%H%M%S"), now.strftime("%Y%m%d")
-    ds.ImageType, ds.Manufacturer = ["DERIVED", "SECONDARY"], "lungdeform"
+    ds.ImageType, ds.Manufacturer = ["DERIVED", "SECONDARY", "AXIAL"], "lungdeform"
     ds.DerivationDescription = "resampled through a lungdeform breathing-model displacement field"
     d = np.asarray(direction, float).reshape(3, 3)
-    ds.ImageOrientationPatient = [f"{x:.6f}" for x in np.concatenate([d[:, 0], d[:, 1]])]
-    ds.PixelSpacing = [f"{float(spacing[1]):.6g}", f"{float(spacing[0]):.6g}"]  # row (y), column (x)
-    ds.SliceThickness = ds.SpacingBetweenSlices = f"{float(spacing[2]):.6g}"
+    ds.ImageOrientationPatient = [decimal(x) for x in np.concatenate([d[:, 0], d[:, 1]])]
+    ds.PixelSpacing = [decimal(spacing[1]), decimal(spacing[0])]  # row (y), column (x)
+    ds.SliceThickness = ds.SpacingBetweenSlices = decimal(spacing[2])
     ds.Rows, ds.Columns = int(shape[1]), int(shape[2])
     ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, "MONOCHROME2"
     ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 16, 15, 1
     ds.RescaleType = "HU"
     if temporal is not None:
         index, count = temporal
-        ds.TemporalPositionIndex = ds.TemporalPositionIdentifier = int(index) + 1
+        ds.TemporalPositionIdentifier = int(index) + 1
         ds.NumberOfTemporalPositions = int(count)
     return ds
 
@@ -293,7 +313,8 @@ def _write_slice(path: Path, series: Dataset, pixels: np.ndarray, k: int, positi
     ds = FileDataset("", Dataset(), file_meta=meta, preamble=b"\0" * 128)
     ds.update(series)
     ds.SOPInstanceUID, ds.InstanceNumber = meta.MediaStorageSOPInstanceUID, k + 1
-    ds.ImagePositionPatient = [f"{x:.6f}" for x in position]
+    ds.ImagePositionPatient = [decimal(x) for x in position]
     ds.PixelData = np.ascontiguousarray(pixels, dtype="<i2").tobytes()
+    check_dataset(ds, str(path))
     ds.save_as(path, enforce_file_format=True)
     return str(ds.SOPInstanceUID)
