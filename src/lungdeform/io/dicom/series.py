@@ -284,6 +284,8 @@ def _series_dataset(shape, spacing, direction, header: Dataset, description: str
     type2_defaults(ds, TYPE2_KEYS)
     if not ds.get("BodyPartExamined"):  # lungs: an unpaired body part, so Laterality (2C) stays absent
         ds.BodyPartExamined = "CHEST"
+    if not ds.get("Laterality"):  # 2C: present only with a value (a paired body part)
+        ds.pop("Laterality", None)
     now = _dt.datetime.now()
     ds.SOPClassUID, ds.Modality, ds.SeriesInstanceUID = CT_SOP_CLASS, "CT", generate_uid()
     ds.SeriesNumber, ds.SeriesDescription = int(series_number), description[:64]
