@@ -65,7 +65,8 @@ def _registration_series(reference: Path, moving: Path | None, inverse: bool, st
     REG holds the forward field (fixed → moving, docs/RADIOTHERAPY.md), so --inverse is refused; a
     state in a fitted scan's own frame (an alignment) needs that scan's series as --moving."""
     if inverse:
-        raise InputError("--out-reg holds the forward field (fixed → moving, DICOM's resampling direction); drop --inverse")
+        raise InputError("--out-reg holds the forward field (fixed → moving, DICOM's resampling direction); "
+                         "drop --inverse")
     if not (reference.is_dir() or is_dicom_file(reference)):
         raise InputError(f"--out-reg needs --reference to be a DICOM CT series (the fixed one), got {reference}")
     if moving is None and state.alignment is not None:

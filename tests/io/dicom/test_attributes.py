@@ -59,3 +59,10 @@ def test_require_names_what_is_missing_and_bad_uids():
         ds.FrameOfReferenceUID = "1.2.x"
     with pytest.raises(ReadError, match="FrameOfReferenceUID '1.2.x' is not a DICOM UID"):
         require(ds, ("SOPInstanceUID", "FrameOfReferenceUID"), "f.dcm", "which X needs")
+
+
+def test_decimal_keeps_the_places_asked_for_while_they_fit():
+    # positions are written with 6 decimals as before (the grid read back unchanged); a value too
+    # long for that falls back to significant digits within 16 bytes
+    assert decimal(-166.0, places=6) == "-166.000000" and decimal(4.800000190734863, 6) == "4.8"
+    assert decimal(-123456789.123456, places=6) == "-123456789.123"  # 12 significant digits

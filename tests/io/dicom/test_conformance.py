@@ -16,9 +16,10 @@ from tests.io.dicom_support import dciodvfy, write_ct_series
 #: The warnings explained in docs/RADIOTHERAPY.md: attributes a DICOMDIR would want that the source
 #: leaves empty (Type 2: empty when unknown), and the two temporal attributes 4-D CT readers sort by
 #: that the CT Image IOD lacks (a Standard Extended SOP Class).
-EXPLAINED = (r"Missing attribute or value that would be needed to build DICOMDIR - (Patient ID|Study ID|Study Date|Study Time)",
-             r"Attribute is not present in standard DICOM IOD - \(0x0020,0x010[05]\) IS (Temporal Position Identifier|Number of Temporal Positions)",
-             r"Dicom dataset contains attributes not present in standard DICOM IOD - this is a Standard Extended SOP Class")
+EXPLAINED = (r"needed to build DICOMDIR - (Patient ID|Study ID|Study Date|Study Time)",
+             r"not present in standard DICOM IOD - \(0x0020,0x010[05]\) IS (Temporal Position Identifier|Number of "
+             r"Temporal Positions)",
+             r"attributes not present in standard DICOM IOD - this is a Standard Extended SOP Class")
 
 
 def _check(path):

@@ -1,6 +1,11 @@
 """The field as a DICOM Deformable Spatial Registration (lungdeform.io.dicom.registration, ``dvf --out-reg``):
 read back raw by pydicom against the .mha field, checked by dciodvfy, refused across patients or frames."""
 
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pydicom
 import pytest
@@ -124,3 +129,32 @@ def _nifti(image):
     img.SetSpacing(tuple(image.spacing))
     img.SetOrigin(tuple(image.origin))
     return img
+
+
+def _plastimatch():
+    """plastimatch's command (PyPI wheel, Linux x86-64; requirements.lock), or skip naming it."""
+    exe = shutil.which("plastimatch") or str(Path(sys.executable).with_name("plastimatch"))
+    if not Path(exe).exists():
+        pytest.skip("plastimatch missing: pip install plastimatch (requirements.lock, Linux x86-64 only)")
+    return exe
+
+
+def test_plastimatch_writes_the_same_vectors_from_the_mha(case, tmp_path):
+    # an independent writer: plastimatch 1.10 turns the .mha field into its own REG (xf-convert
+    # --output-dicom); its grid and VectorGridData must equal ours bit for bit (the same layout and
+    # direction, fixed → moving). plastimatch 1.10 cannot read a deformable REG back (xf-convert
+    # --input REG.dcm: "Error reading from xf_in file"), so this is the check it allows.
+    exe = _plastimatch()
+    d, ee = case
+    assert main(["dvf", str(d / "model.npz"), "--reference", str(d / "ct"), "--volume-ml", str(ee + 300),
+                 "--out", str(tmp_path / "u.mha"), "--out-reg", str(tmp_path / "reg.dcm")]) == 0
+    out = subprocess.run([exe, "xf-convert", "--input", str(tmp_path / "u.mha"), "--output-dicom", str(tmp_path / "pm"),
+                          "--fixed-rcs", str(d / "ct"), "--moving-rcs", str(d / "ct")],
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-2000:]
+    (theirs,) = (tmp_path / "pm").glob("*.dcm")
+    _, ours_grid, ours = _raw_field(tmp_path / "reg.dcm")
+    _, their_grid, their = _raw_field(theirs)
+    assert np.array_equal(ours, their) and np.abs(ours).max() > 1.0
+    for key in ("GridDimensions", "GridResolution", "ImagePositionPatient", "ImageOrientationPatient"):
+        assert np.allclose([float(x) for x in ours_grid.get(key)], [float(x) for x in their_grid.get(key)]), key

@@ -58,15 +58,18 @@ def require(ds: Dataset, keys, where, purpose: str) -> None:
             raise ReadError(f"{where}: {key} {uid[:70]!r} is not a DICOM UID (digits and dots, at most 64 characters)")
 
 
-def decimal(value: float) -> str:
-    """``value`` as a DICOM Decimal String of at most 16 bytes, with as many significant digits as
-    fit (up to 12): ``-123.456789012`` for -123.45678901234, ``1.2345678901e-05``; a value that is not
-    finite is refused with :class:`InputError`."""
+def decimal(value: float, digits: int = 12, places: int | None = None) -> str:
+    """``value`` as a DICOM Decimal String of at most 16 bytes: with ``places`` decimals when that
+    fits (``f"{value:.6f}"``, how lungdeform has always written positions), else with as many
+    significant digits as fit, up to ``digits`` (``-123.456789012`` for -123.45678901234,
+    ``1.2345678901e-05``); a value that is not finite is refused with :class:`InputError`."""
     x = float(value)
     if not math.isfinite(x):
         raise InputError(f"a DICOM decimal string must be finite, got {value!r}")
-    for digits in range(12, 0, -1):
-        text = f"{x:.{digits}g}"
+    if places is not None and len(text := f"{x:.{places}f}") <= 16:
+        return text
+    for n in range(digits, 0, -1):
+        text = f"{x:.{n}g}"
         if len(text) <= 16:
             return text
     raise InputError(f"{value!r} cannot be written as a DICOM decimal string of 16 bytes")

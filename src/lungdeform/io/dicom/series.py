@@ -264,12 +264,12 @@ def write_ct_series(folder, array, spacing, origin, direction, header: Dataset, 
         raise InputError(f"{folder}: not empty; a DICOM series is written into a new folder")
     stored, slope, intercept = rescale(a)
     series = _series_dataset(a.shape, spacing, direction, header, description, series_number, temporal)
-    series.RescaleSlope, series.RescaleIntercept = decimal(slope), decimal(intercept)
+    series.RescaleSlope, series.RescaleIntercept = decimal(slope, 10), decimal(intercept, 10)
     d = np.asarray(direction, float).reshape(3, 3)
     uids = []
     for k in range(a.shape[0]):
         position = np.asarray(origin, float) + k * float(spacing[2]) * d[:, 2]
-        series.SliceLocation = decimal(position @ d[:, 2])  # along the slice normal
+        series.SliceLocation = decimal(position @ d[:, 2], places=6)  # along the slice normal
         uids.append(_write_slice(folder / f"CT{k + 1:04d}.dcm", series, stored[k], k, position))
     return uids
 
@@ -293,9 +293,9 @@ def _series_dataset(shape, spacing, direction, header: Dataset, description: str
     ds.ImageType, ds.Manufacturer = ["DERIVED", "SECONDARY", "AXIAL"], "lungdeform"
     ds.DerivationDescription = "resampled through a lungdeform breathing-model displacement field"
     d = np.asarray(direction, float).reshape(3, 3)
-    ds.ImageOrientationPatient = [decimal(x) for x in np.concatenate([d[:, 0], d[:, 1]])]
-    ds.PixelSpacing = [decimal(spacing[1]), decimal(spacing[0])]  # row (y), column (x)
-    ds.SliceThickness = ds.SpacingBetweenSlices = decimal(spacing[2])
+    ds.ImageOrientationPatient = [decimal(x, places=6) for x in np.concatenate([d[:, 0], d[:, 1]])]
+    ds.PixelSpacing = [decimal(spacing[1], 6), decimal(spacing[0], 6)]  # row (y), column (x)
+    ds.SliceThickness = ds.SpacingBetweenSlices = decimal(spacing[2], 6)
     ds.Rows, ds.Columns = int(shape[1]), int(shape[2])
     ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, "MONOCHROME2"
     ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 16, 15, 1
@@ -315,7 +315,7 @@ def _write_slice(path: Path, series: Dataset, pixels: np.ndarray, k: int, positi
     ds = FileDataset("", Dataset(), file_meta=meta, preamble=b"\0" * 128)
     ds.update(series)
     ds.SOPInstanceUID, ds.InstanceNumber = meta.MediaStorageSOPInstanceUID, k + 1
-    ds.ImagePositionPatient = [decimal(x) for x in position]
+    ds.ImagePositionPatient = [decimal(x, places=6) for x in position]
     ds.PixelData = np.ascontiguousarray(pixels, dtype="<i2").tobytes()
     check_dataset(ds, str(path))
     ds.save_as(path, enforce_file_format=True)
