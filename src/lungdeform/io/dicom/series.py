@@ -190,7 +190,9 @@ def study_header(source=None) -> Dataset:
         for key in STUDY_KEYS + ("SeriesDescription",):
             if key in src:
                 setattr(head, key, src.get(key))
-    head.StudyInstanceUID = head.get("StudyInstanceUID") or generate_uid()
+    if not head.get("StudyInstanceUID"):  # a new study, begun now
+        now = _dt.datetime.now()
+        head.StudyInstanceUID, head.StudyDate, head.StudyTime = generate_uid(), now.strftime("%Y%m%d"), now.strftime("%H%M%S")
     head.FrameOfReferenceUID = head.get("FrameOfReferenceUID") or generate_uid()
     if not head.get("SeriesDescription"):
         head.SeriesDescription = "" if p is None else re.sub(r"(\.nii)?\.[^.]+$", "", p.name)
