@@ -222,7 +222,8 @@ READERS: dict[str, tuple[str, Callable]] = {
 }
 
 
-READER_MODULES = ("lungdeform.io.meshfile", "lungdeform.io.vtk", "lungdeform.io.image", "lungdeform.io.dicom.fourdct",
+READER_MODULES = ("lungdeform.io.meshfile", "lungdeform.io.vtk", "lungdeform.io.image", "lungdeform.io.dicom.guard",
+                  "lungdeform.io.dicom.series", "lungdeform.io.dicom.fourdct",
                   "lungdeform.io.modelfile",
                   "lungdeform.playback.schedule", "lungdeform.breathing.trace", "lungdeform.io.landmarks",
                   "lungdeform.playback.trajectory", "lungdeform.cohort.manifest", "lungdeform.validate.dirlab_files",

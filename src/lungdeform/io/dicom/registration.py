@@ -159,8 +159,8 @@ def build_registration(field, grid, fixed: CTSeries, moving: CTSeries | None = N
     ds.DeviceSerialNumber, ds.SoftwareVersions = "none", __version__
     type2_defaults(ds, _TYPE2)
     grid_item = _grid_item(field, grid)
-    if not ds.get("BodyPartExamined"):  # lungs: unpaired, so Laterality (General Series, 2C) stays absent
-        ds.BodyPartExamined = fixed.header.get("BodyPartExamined") or "CHEST"
+    # lungs: an unpaired body part, so Laterality (General Series, 2C) stays absent
+    ds.BodyPartExamined = fixed.header.get("BodyPartExamined") or "CHEST"
     items = [_registration_item(fixed, str(ds.FrameOfReferenceUID), None)]
     source = ds.FrameOfReferenceUID if moving is None else moving.header.FrameOfReferenceUID
     items.append(_registration_item(moving, str(source), grid_item))

@@ -192,7 +192,8 @@ def study_header(source=None) -> Dataset:
                 setattr(head, key, src.get(key))
     if not head.get("StudyInstanceUID"):  # a new study, begun now
         now = _dt.datetime.now()
-        head.StudyInstanceUID, head.StudyDate, head.StudyTime = generate_uid(), now.strftime("%Y%m%d"), now.strftime("%H%M%S")
+        head.StudyInstanceUID = generate_uid()
+        head.StudyDate, head.StudyTime = now.strftime("%Y%m%d"), now.strftime("%H%M%S")
     head.FrameOfReferenceUID = head.get("FrameOfReferenceUID") or generate_uid()
     if not head.get("SeriesDescription"):
         head.SeriesDescription = "" if p is None else re.sub(r"(\.nii)?\.[^.]+$", "", p.name)
