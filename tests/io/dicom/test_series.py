@@ -6,7 +6,7 @@ import pytest
 import SimpleITK as sitk
 
 from lungdeform.atomic import atomic_dir
-from lungdeform.errors import InputError
+from lungdeform.errors import InputError, ReadError
 from lungdeform.io.dicom import series as DS
 from lungdeform.io.dicom.rtstruct import read_ct_series
 from lungdeform.io.image import read_image
@@ -102,3 +102,15 @@ def test_sitk_series_reader_sorts_the_slices(rng, tmp_path):
     DS.write_ct_series(tmp_path / "s", _image(rng), SPACING, ORIGIN, np.eye(3), DS.study_header(), description="s")
     ids = sitk.ImageSeriesReader.GetGDCMSeriesIDs(str(tmp_path / "s"))
     assert len(ids) == 1 and len(sitk.ImageSeriesReader.GetGDCMSeriesFileNames(str(tmp_path / "s"), ids[0])) == 6
+
+
+def test_study_header_refuses_a_source_without_a_valid_frame_of_reference(tmp_path):
+    # why: the phases keep the source's Frame of Reference; a source without one (or with a malformed
+    # UID) would give phases that a planning system places nowhere, or that fail validation on write
+    src = write_source_series(tmp_path / "src", shape=(2, 4, 4))
+    for f in src.iterdir():
+        ds = pydicom.dcmread(f)
+        del ds.FrameOfReferenceUID
+        ds.save_as(f)
+    with pytest.raises(ReadError, match="lacks FrameOfReferenceUID, which every series derived from it keeps"):
+        DS.study_header(src)

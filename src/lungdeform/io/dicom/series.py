@@ -54,7 +54,7 @@ from pydicom.uid import PYDICOM_IMPLEMENTATION_UID, ExplicitVRLittleEndian, gene
 from lungdeform.errors import InputError, ReadError
 from lungdeform.io.grid import check_grid, quiet_itk
 
-from .attributes import check_dataset, decimal, type2_defaults
+from .attributes import check_dataset, decimal, require, type2_defaults
 from .guard import check_dicom_file, is_dicom_file
 from .slices import GEOMETRY_TAGS, SliceGeometry, check_slices, check_spacing
 
@@ -178,7 +178,9 @@ def study_header(source=None) -> Dataset:
     """The patient, study and frame-of-reference attributes (:data:`STUDY_KEYS`) and the
     SeriesDescription of the DICOM series ``source`` names (a folder or one of its files), or
     new Study and Frame of Reference UIDs when ``source`` is None or not DICOM. Call it once for
-    all the phases of a 4-D CT, so that they share one study and one frame of reference."""
+    all the phases of a 4-D CT, so that they share one study and one frame of reference. A DICOM
+    source without a valid StudyInstanceUID or FrameOfReferenceUID is refused with
+    :class:`ReadError` (:func:`~lungdeform.io.dicom.attributes.require`): its phases keep them."""
     head = Dataset()
     p = None if source is None else Path(source)
     if p is not None and (p.is_dir() or is_dicom_file(p)):
@@ -187,6 +189,7 @@ def study_header(source=None) -> Dataset:
             src = pydicom.dcmread(first, stop_before_pixels=True)
         except (InvalidDicomError, OSError, EOFError, ValueError) as exc:
             raise ReadError(f"{first}: not a readable DICOM slice ({exc})") from exc
+        require(src, ("StudyInstanceUID", "FrameOfReferenceUID"), first, "which every series derived from it keeps")
         for key in STUDY_KEYS + ("SeriesDescription",):
             if key in src:
                 setattr(head, key, src.get(key))
