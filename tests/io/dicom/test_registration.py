@@ -16,6 +16,7 @@ from lungdeform.io.dicom import series as DS
 from lungdeform.io.dicom.registration import REG_SOP_CLASS
 from lungdeform.io.image import read_image
 from lungdeform.io.modelfile import save_model
+from lungdeform.model.lung import Model
 from tests.browser.support import two_lungs
 from tests.io.dicom_support import dciodvfy
 
@@ -28,6 +29,11 @@ def case(tmp_path_factory):
     d = tmp_path_factory.mktemp("reg")
     m = two_lungs(2)
     save_model(d / "model.npz", m)
+    a = np.eye(4)
+    a[:3, 3] = [1.0, 2.0, -30.0]  # a fitted scan's alignment: its states lie in that scan's frame
+    ee = sum(lung.volume_ee_ml for lung in m.lungs.values())
+    save_model(d / "fitted.npz", Model(m.lungs, {"volumes_ml": [ee, ee + 300.0],
+                                                  "alignment": [{"applied": {"matrix": a.tolist()}}]}))
     a = np.full((42, 45, 75), 40, np.int16)
     a[12:30, 10:35, 8:30] = a[12:30, 10:35, 45:67] = -800
     head = DS.study_header(None)
@@ -94,12 +100,14 @@ def test_reg_with_a_moving_series_references_it_and_validates(case, tmp_path):
     assert errors == []
 
 
-@pytest.mark.parametrize("why", ["frame", "patient", "inverse", "nifti"])
+@pytest.mark.parametrize("why", ["frame", "patient", "inverse", "nifti", "aligned"])
 def test_reg_refused_across_frames_or_patients_writes_nothing(case, tmp_path, capsys, why):
     # radiotherapy: a REG between two Frames of Reference (or patients) that lungdeform cannot
     # relate would be a wrong answer; --inverse is not the DICOM direction; a NIfTI reference has no
-    # series to reference. Each: exit 2, one line naming the cause, neither output written
+    # series to reference; a state in a fitted scan's frame without that scan's series has no frame
+    # to name. Each: exit 2, one line naming the cause, neither output written
     d, ee = case
+    model, state = d / "model.npz", ["--volume-ml", str(ee + 300)]
     ct = read_image(d / "ct")
     args = ["--reference", str(d / "ct")]
     if why in ("frame", "patient"):
@@ -115,11 +123,14 @@ def test_reg_refused_across_frames_or_patients_writes_nothing(case, tmp_path, ca
     if why == "nifti":
         sitk.WriteImage(_nifti(ct), str(tmp_path / "ref.nii.gz"))
         args = ["--reference", str(tmp_path / "ref.nii.gz")]
-    code = main(["dvf", str(d / "model.npz"), *args, "--volume-ml", str(ee + 300),
-                 "--out", str(tmp_path / "u.mha"), "--out-reg", str(tmp_path / "reg.dcm")])
+    if why == "aligned":
+        model, state = d / "fitted.npz", ["--scan", "1"]
+    code = main(["dvf", str(model), *args, *state, "--out", str(tmp_path / "u.mha"),
+                 "--out-reg", str(tmp_path / "reg.dcm")])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1, err
-    expect = {"frame": "FrameOfReferenceUID", "patient": "PatientID", "inverse": "--inverse", "nifti": "DICOM CT series"}
+    expect = {"frame": "FrameOfReferenceUID", "patient": "PatientID", "inverse": "--inverse",
+              "nifti": "DICOM CT series", "aligned": "give that scan's series as --moving"}
     assert expect[why] in err[0]
     assert not (tmp_path / "u.mha").exists() and not (tmp_path / "reg.dcm").exists()
 
