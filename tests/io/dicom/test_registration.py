@@ -100,7 +100,7 @@ def test_reg_with_a_moving_series_references_it_and_validates(case, tmp_path):
     assert errors == []
 
 
-@pytest.mark.parametrize("why", ["frame", "patient", "inverse", "nifti", "aligned"])
+@pytest.mark.parametrize("why", ["frame", "patient", "inverse", "nifti", "aligned", "same"])
 def test_reg_refused_across_frames_or_patients_writes_nothing(case, tmp_path, capsys, why):
     # radiotherapy: a REG between two Frames of Reference (or patients) that lungdeform cannot
     # relate would be a wrong answer; --inverse is not the DICOM direction; a NIfTI reference has no
@@ -123,6 +123,8 @@ def test_reg_refused_across_frames_or_patients_writes_nothing(case, tmp_path, ca
     if why == "nifti":
         sitk.WriteImage(_nifti(ct), str(tmp_path / "ref.nii.gz"))
         args = ["--reference", str(tmp_path / "ref.nii.gz")]
+    if why == "same":  # two items, identity and the grid, for the same images: contradictory
+        args += ["--moving", str(d / "ct")]
     if why == "aligned":
         model, state = d / "fitted.npz", ["--scan", "1"]
     code = main(["dvf", str(model), *args, *state, "--out", str(tmp_path / "u.mha"),
@@ -130,7 +132,8 @@ def test_reg_refused_across_frames_or_patients_writes_nothing(case, tmp_path, ca
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1, err
     expect = {"frame": "FrameOfReferenceUID", "patient": "PatientID", "inverse": "--inverse",
-              "nifti": "DICOM CT series", "aligned": "give that scan's series as --moving"}
+              "nifti": "DICOM CT series", "aligned": "give that scan's series as --moving",
+              "same": "the fixed series itself"}
     assert expect[why] in err[0]
     assert not (tmp_path / "u.mha").exists() and not (tmp_path / "reg.dcm").exists()
 

@@ -59,9 +59,13 @@ _TYPE2 = ("PatientName", "PatientID", "PatientBirthDate", "PatientSex", "StudyDa
 
 
 def check_pair(fixed: CTSeries, moving: CTSeries | None) -> None:
-    """Refuse a moving series of another patient or Frame of Reference than ``fixed`` (messages name both)."""
+    """Refuse a moving series that is ``fixed`` itself, or of another patient or Frame of Reference
+    (messages name both)."""
     if moving is None:
         return
+    if str(moving.header.SeriesInstanceUID) == str(fixed.header.SeriesInstanceUID):
+        raise InputError(f"--moving {moving.source}: the fixed series itself ({fixed.source}); "
+                         "give the moving state's series")
     for key in ("PatientID", "FrameOfReferenceUID"):
         a, b = str(fixed.header.get(key, "")), str(moving.header.get(key, ""))
         if a != b:
