@@ -4,6 +4,7 @@ IOD checker) with 0 errors, and only the warnings docs/RADIOTHERAPY.md ("DICOM c
 import re
 
 import numpy as np
+import pydicom
 import pytest
 from trimesh.creation import icosphere
 
@@ -54,4 +55,20 @@ def test_rtstruct_and_reg_validate(tmp_path):
     image = read_image(src)
     field = np.random.default_rng(3).normal(0, 2, image.array.shape + (3,)).astype(np.float32)
     write_registration(tmp_path / "reg.dcm", field, image, ct)
+    _check(tmp_path / "reg.dcm")
+
+
+def test_reg_with_a_moving_series_of_another_study_validates(tmp_path):
+    # the moving series in another study of the same patient and frame: referenced through
+    # StudiesContainingOtherReferencedInstancesSequence (Common Instance Reference module)
+    src = write_ct_series(tmp_path / "src", shape=(3, 8, 8))
+    image = read_image(src)
+    head = DS.study_header(src)
+    head.StudyInstanceUID = pydicom.uid.generate_uid()
+    DS.write_ct_series(tmp_path / "mov", image.array, image.spacing, image.origin, image.direction, head,
+                       description="moving")
+    field = np.random.default_rng(5).normal(0, 2, image.array.shape + (3,)).astype(np.float32)
+    write_registration(tmp_path / "reg.dcm", field, image, read_ct_series(src), read_ct_series(tmp_path / "mov"))
+    other = pydicom.dcmread(tmp_path / "reg.dcm").StudiesContainingOtherReferencedInstancesSequence
+    assert [s.StudyInstanceUID for s in other] == [head.StudyInstanceUID]
     _check(tmp_path / "reg.dcm")
