@@ -1,4 +1,4 @@
-"""A small synthetic 4-D CT written as DICOM (tests of lungdeform.io.fourdct, fit and cohort)."""
+"""A small synthetic 4-D CT written as DICOM (tests of lungdeform.io.dicom.fourdct, fit and cohort)."""
 
 from __future__ import annotations
 

@@ -9,7 +9,8 @@ import pytest
 from lungdeform.errors import InputError, ReadError
 from lungdeform.fit import ct as C
 from lungdeform.fit import segment as S
-from lungdeform.io.image import Image, read_image
+from lungdeform.io.grid import Image
+from lungdeform.io.image import read_image
 from tests.fit.test_segment import phantom
 
 

@@ -8,7 +8,8 @@ import pytest
 
 from lungdeform.errors import InputError, MaskError
 from lungdeform.fit import lungsplit as L
-from lungdeform.io.image import Image, read_image
+from lungdeform.io.grid import Image
+from lungdeform.io.image import read_image
 from lungdeform.io.landmarks import read_elastix_points
 from tests.conftest import require_path
 

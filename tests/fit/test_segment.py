@@ -8,7 +8,7 @@ import pytest
 from lungdeform.errors import InputError, MaskError
 from lungdeform.fit import ct as C
 from lungdeform.fit import segment as S
-from lungdeform.io.image import Image
+from lungdeform.io.grid import Image
 from tests.conftest import require_path
 
 SPACING = np.array([2.0, 2.0, 3.0])  # mm, x y z

@@ -24,7 +24,7 @@ import typer
 
 from lungdeform import __version__
 from lungdeform.errors import LungdeformError
-from lungdeform.io.image import MAX_VOXELS_ENV
+from lungdeform.io.grid import MAX_VOXELS_ENV
 
 from .common import MAX_VOXELS_HELP, VERBOSE, set_max_voxels
 

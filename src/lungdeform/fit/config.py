@@ -35,7 +35,7 @@ class FitInputs:
     ----------
     paths : tuple of path
         Surface meshes, masks or CTs (a DICOM folder or archive), volumes increasing; or one folder
-        holding a 4-D CT (every phase, :mod:`lungdeform.io.fourdct`), whose phases are the inputs.
+        holding a 4-D CT (every phase, :mod:`lungdeform.io.dicom.fourdct`), whose phases are the inputs.
     side : str
         ``"left"`` or ``"right"``.
     volumes_ml : tuple of float, or None

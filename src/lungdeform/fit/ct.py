@@ -7,7 +7,7 @@
   (an exact transpose); :func:`downsample` block-means by integer factors;
 - :func:`write_mask` writes a mask image atomically.
 
-Frames: images are :class:`lungdeform.io.image.Image`: ``array`` is ``(z, y, x)`` (SimpleITK order),
+Frames: images are :class:`lungdeform.io.grid.Image`: ``array`` is ``(z, y, x)`` (SimpleITK order),
 HU for a CT, 0/1 for a mask; spacing x y z mm, origin mm LPS, direction columns (index axes
 i, j, k) in LPS.
 """
@@ -25,7 +25,10 @@ import SimpleITK as sitk
 
 from lungdeform.atomic import atomic_path
 from lungdeform.errors import InputError, ReadError
-from lungdeform.io.image import IMAGE_SUFFIXES, Image, dicom_series_files, is_dicom_file, read_image
+from lungdeform.io.dicom.guard import is_dicom_file
+from lungdeform.io.dicom.series import dicom_series_files
+from lungdeform.io.grid import Image
+from lungdeform.io.image import IMAGE_SUFFIXES, read_image
 
 ARCHIVE_SUFFIXES = (".tar.gz", ".tgz", ".tar", ".zip")
 
@@ -68,7 +71,7 @@ def check_slice_spacing(folder, tolerance: float = 0.01) -> None:
     """Refuse a DICOM series whose slices are not evenly spaced (missing or duplicated slices).
 
     Reads ImagePositionPatient and ImageOrientationPatient of every file of the series that
-    ``folder`` names (:func:`lungdeform.io.image.dicom_series_files`: a folder, a parent folder or one file); the gaps along the slice normal must agree within ``tolerance`` (relative) and be
+    ``folder`` names (:func:`lungdeform.io.dicom.series.dicom_series_files`: a folder, a parent folder or one file); the gaps along the slice normal must agree within ``tolerance`` (relative) and be
     non-zero. Raises :class:`ReadError` naming the folder, the gaps and the files around the worst one.
     """
 

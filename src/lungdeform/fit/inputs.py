@@ -24,8 +24,9 @@ from lungdeform.geometry.frame import check_side
 from lungdeform.geometry.mesh import Surface, winding_numbers
 from lungdeform.io import mask as M
 from lungdeform.io import meshfile as lio
-from lungdeform.io.fourdct import read_phases
-from lungdeform.io.image import Image, is_image_path, read_image
+from lungdeform.io.dicom.fourdct import read_phases
+from lungdeform.io.grid import Image
+from lungdeform.io.image import is_image_path, read_image
 from lungdeform.io.landmarks import read_elastix_points
 
 from .align import CropPlane, crop_planes
@@ -114,7 +115,7 @@ def read_inputs(inputs: FitInputs, side_check: bool = True,
 
 
 def read_fourdct(folder: Path, side: str, progress) -> tuple[list[str], list[tuple], list[str]]:
-    """The phases of the 4-D CT in ``folder`` (:func:`lungdeform.io.fourdct.read_phases`) as inputs:
+    """The phases of the 4-D CT in ``folder`` (:func:`lungdeform.io.dicom.fourdct.read_phases`) as inputs:
     ``(names, read_input results, notes)``, each phase's ``side`` lung segmented, the phases ordered
     by their lung's volume (end-exhale, the smallest, first: the model is a function of volume). The
     notes give the phase order and each phase's volume (mL)."""
