@@ -344,3 +344,31 @@ def test_a_bad_input_leaves_no_output_folder_and_out_may_not_be_an_input(tmp_pat
     assert main(["fit", str(a), str(b), "--side", "right", "--out", str(tmp_path), "--landmarks", str(metrics),
                  "--landmarks", str(metrics)]) == 2
     assert "would overwrite the input" in _one_error_line(capsys) and metrics.read_text() == "{}"
+
+
+def test_a_full_cycle_4dct_is_fitted_with_its_hysteresis(tmp_path, rng, capsys):
+    # truth: a 5-phase cycle (tests/fourdct_phantom.py) of lung scales 1.0, 1.08, 1.16, 1.08, 1.0 by
+    # phase, the 60 % lung moved 6 mm along z (one slice), every slice in one Frame of Reference.
+    # Equal volumes are exact (the same voxels, shifted): 20 % and 60 % are two targets at one
+    # volume, 80 % has the end-exhale volume (no target); the exhale phases 60 % and 80 % are paired
+    # with the inhale phases of equal volume, 20 % (a 6 mm shift: every distance <= 6 mm, mean > 1)
+    # and 0 % (the same lung: 0 mm); one Frame of Reference: no alignment fitted
+    from tests.fourdct_phantom import write_cycle
+
+    write_cycle(tmp_path / "ct4d", rng, [1.0, 1.08, 1.16, 1.08, 1.0], [0, 0, 0, 6.0, 0], frame_uid="1.2.826.0.1.9")
+    out = tmp_path / "out"
+    assert main(["fit", str(tmp_path / "ct4d"), "--out", str(out), "--side", "right", "--no-baselines",
+                 "--evaluations", "20", "--direction-degree", "0", "--no-stiffness"]) == 0
+    text = capsys.readouterr().out
+    assert "alignment: none (every phase shares one DICOM Frame of Reference (1.2.826.0.1.9)" in text
+    assert "hysteresis: exhale 60% " in text and "vs inhale 20% " in text
+    m = json.loads((out / "metrics.json").read_text())
+    assert [p.rsplit("[", 1)[1] for p in m["inputs"]] == ["0%]", "20%]", "60%]", "40%]"]
+    assert m["volumes_ml"][1] == m["volumes_ml"][2] and len(m["targets"]) == 3
+    assert m["alignment_choice"] == {"asked": "auto", "used": "none", "why": m["alignment_choice"]["why"]}
+    assert all(a["method"] == "none" and a["applied"]["translation_mm"] == [0.0, 0.0, 0.0] for a in m["alignment"])
+    pairs = {(p["exhale"], p["inhale"]): p for p in m["cycle"]["hysteresis"]}
+    assert set(pairs) == {("60%", "20%"), ("80%", "0%")}
+    assert pairs[("80%", "0%")]["max_mm"] == 0.0
+    assert 1.0 < pairs[("60%", "20%")]["mean_mm"] and pairs[("60%", "20%")]["max_mm"] <= 6.0 + 1e-6
+    assert any("80% has the end-exhale volume" in n for n in m["notes"])
