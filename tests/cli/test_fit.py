@@ -372,3 +372,48 @@ def test_a_full_cycle_4dct_is_fitted_with_its_hysteresis(tmp_path, rng, capsys):
     assert pairs[("80%", "0%")]["max_mm"] == 0.0
     assert 1.0 < pairs[("60%", "20%")]["mean_mm"] and pairs[("60%", "20%")]["max_mm"] <= 6.0 + 1e-6
     assert any("80% has the end-exhale volume" in n for n in m["notes"])
+
+
+@pytest.mark.realdata
+def test_popi_ten_phase_full_cycle_4dct_goes_through_fit(data_dir, tmp_path, capsys):
+    # the README workflow on the POPI phase-00 CT: segment → build → warp --phases 10 over a 4 s,
+    # 500 mL cosine breath (the CT downsampled 2 × 2 × 2 to 256 × 256 × 71, a 12 mm field lattice, to
+    # keep this short) → fit on the 10-phase folder, inhale and exhale. Truth: phase00 is the source
+    # (+0 mL, the smallest: end-exhale) and 50 % the largest; the warp is a function of volume only
+    # (no hysteresis), so each exhale phase matches the inhale phase of similar volume within about a
+    # voxel; every phase keeps POPI's Frame of Reference, so no alignment is fitted
+    import tarfile
+
+    from lungdeform.io import dicomseries as DS
+    from lungdeform.io.image import read_image
+    from tests.cli.test_warp import _curve
+    from tests.conftest import require_path
+
+    archive = require_path(data_dir, "popi-ct-phase00", "popi_phase00_dicom_141slices.tar.gz")
+    with tarfile.open(archive) as tar:
+        tar.extractall(tmp_path, filter="data")
+    popi = tmp_path / "popi00"
+    assert main(["segment", str(popi), "--out", str(tmp_path / "seg"), "--downsample", "4"]) == 0
+    model = tmp_path / "model.npz"
+    assert main(["build", str(tmp_path / "seg" / "left_lung.nii.gz"), str(tmp_path / "seg" / "right_lung.nii.gz"),
+                 "--target-vertices", "1500", "--out", str(model)]) == 0
+    ct, head = read_image(popi), DS.study_header(popi)
+    DS.write_ct_series(tmp_path / "ct", ct.array[::2, ::2, ::2], ct.spacing * [2, 2, 2], ct.origin, ct.direction,
+                       head, description=head.SeriesDescription)
+    assert main(["warp", str(tmp_path / "ct"), str(model), "--curve", str(_curve(tmp_path / "c.csv")), "--phases",
+                 "10", "--node-mm", "12", "--out", str(tmp_path / "4dct")]) == 0
+    capsys.readouterr()
+    out = tmp_path / "fit"
+    assert main(["fit", str(tmp_path / "4dct"), "--side", "right", "--out", str(out), "--no-baselines",
+                 "--no-stiffness", "--direction-degree", "0", "--evaluations", "40"]) == 0
+    text = capsys.readouterr().out
+    assert f"alignment: none (every phase shares one DICOM Frame of Reference ({head.FrameOfReferenceUID})" in text
+    m = json.loads((out / "metrics.json").read_text())
+    labels = [p.rsplit("[", 1)[1].rstrip("]") for p in m["inputs"]]
+    assert labels[0] == "0%" and labels[-1] == "50%" and sorted(labels) == sorted(f"{10 * i}%" for i in range(10))
+    assert np.all(np.diff(m["volumes_ml"]) >= 0)
+    pairs = m["cycle"]["hysteresis"]
+    assert [p["exhale"] for p in pairs] == ["60%", "70%", "80%", "90%"]
+    assert all(p["mean_mm"] < 1.0 and p["p95_mm"] < 2.5 for p in pairs)
+    assert sum(f"hysteresis: exhale {p['exhale']} " in text for p in pairs) == 4
+    assert all(per["model"]["surface_mean_mm"] < 2.0 for per in m["targets"].values())
