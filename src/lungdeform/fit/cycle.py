@@ -15,7 +15,7 @@ alignment is fitted unless asked; otherwise the apex alignment.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import numpy as np
 import pydicom
@@ -72,7 +72,7 @@ class HysteresisPair:
     max_mm: float
 
     def as_dict(self) -> dict:
-        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+        return asdict(self)
 
     def line(self) -> str:
         return (f"exhale {self.exhale} ({self.exhale_ml:.1f} mL) vs inhale {self.inhale} ({self.inhale_ml:.1f} mL): "
