@@ -372,7 +372,7 @@ def test_a_full_cycle_4dct_is_fitted_with_its_hysteresis(tmp_path, rng, capsys):
     assert pairs[("80%", "0%")]["max_mm"] == 0.0
     assert 1.0 < pairs[("60%", "20%")]["mean_mm"] and pairs[("60%", "20%")]["max_mm"] <= 6.0 + 1e-6
     assert any("80% has the end-exhale volume" in n for n in m["notes"])
-    report = (out / "report.html").read_text()
+    report = (out / "report.html").read_text(encoding="utf-8")
     assert "Alignment: <b>none</b>" in report and "<td>60%</td>" in report and "<h2>Hysteresis" in report
 
 
