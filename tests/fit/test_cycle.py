@@ -5,8 +5,7 @@ import pytest
 
 from lungdeform.errors import InputError
 from lungdeform.fit.cycle import branches, choose_alignment, frame_of_reference, hysteresis, surface_gap, volume_order
-from lungdeform.geometry.mesh import icosphere
-from lungdeform.geometry.mesh import Surface
+from lungdeform.geometry.mesh import Surface, icosphere
 from tests.fourdct_phantom import write_cycle
 
 

@@ -142,8 +142,8 @@ def read_fourdct(folder: Path, side: str, progress) -> tuple[list[str], list[tup
     order = [i for i in order if i not in tied]
     by_phase = ", ".join(f"{ph.label} {v:.1f} mL" for ph, v in zip(phases, volumes))
     notes = [f"{folder}: 4-D CT of {len(phases)} phases; {side} lung by phase: {by_phase}",
-             f"{folder}: phases fitted in the order of their volume (end-exhale first; a phase of equal volume on "
-             f"the other branch is a second target at that volume): {', '.join(phases[i].label for i in order)}"]
+             (f"{folder}: phases fitted in the order of their volume (end-exhale first; a phase of equal volume on "
+              f"the other branch is a second target at that volume): {', '.join(phases[i].label for i in order)}")]
     notes += [f"{folder}: phase {phases[i].label} has the end-exhale volume ({volumes[i]:.1f} mL): not a target"
               for i in tied]
     progress("hysteresis: exhale-branch phases against inhale-branch phases of similar volume")
