@@ -12,7 +12,8 @@ surface-to-surface map behind the correspondence interior field), :mod:`~lungdef
 (the population prior of interior motion, learned across subjects), :mod:`~lungdeform.fit.baselines`
 (comparison methods), :mod:`~lungdeform.fit.pipeline` (inputs to a saved model and its metrics, in
 steps: :mod:`~lungdeform.fit.config` what a fit is given, :mod:`~lungdeform.fit.inputs` reading and
-checking, :mod:`~lungdeform.fit.placement` the model mesh and the targets in its frame,
+checking, :mod:`~lungdeform.fit.cycle` a 4-D CT's phases as one breathing cycle (volume order,
+hysteresis, the alignment chosen), :mod:`~lungdeform.fit.placement` the model mesh and the targets in its frame,
 :mod:`~lungdeform.fit.heldout` what landmarks give, held out, :mod:`~lungdeform.fit.scoring` every
 method measured) and :mod:`~lungdeform.fit.report` (the HTML report).
 

@@ -21,8 +21,10 @@ from .direction_correction import DEFAULT_DEGREE
 from .fitting import MODES
 from .refinement import FINEST_MM
 
-#: Ways of bringing the larger-volume inputs into the end-exhale frame (:mod:`lungdeform.fit.placement`).
-ALIGN_MODES = ("apex", "joint", "none")
+#: Ways of bringing the larger-volume inputs into the end-exhale frame (:mod:`lungdeform.fit.placement`);
+#: ``"auto"``: ``"none"`` for inputs sharing one DICOM Frame of Reference, else ``"apex"``
+#: (:func:`lungdeform.fit.cycle.choose_alignment`).
+ALIGN_MODES = ("auto", "apex", "joint", "none")
 #: Search modes that can fit a translation per target (``align="joint"``).
 JOINT_MODES = ("optimizer", "least_squares")
 
@@ -141,7 +143,7 @@ class FitConfig:
     landmark_fit: bool = True
     folds: int = 5
     landmark_weight: float = 1.0
-    align: str = "apex"
+    align: str = "auto"
     mode: str = "optimizer"
     direction_degree: int = DEFAULT_DEGREE
     landmark_comparisons: bool = False

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import pydicom
 import SimpleITK as sitk
 
 from lungdeform.errors import ReadError
@@ -279,3 +280,16 @@ def is_fourdct(path) -> bool:
         if info is not None:
             series.setdefault(info["0020|000e"], []).append(_position(info))
     return len(series) >= 2 or any(len(set(v)) < len(v) for v in series.values())
+
+
+def frame_of_reference(files_per_phase) -> str | None:
+    """The FrameOfReferenceUID every phase shares (read from each phase's first DICOM file,
+    ``files_per_phase``: a sequence of file lists), or None when a phase has none or two differ."""
+    uids = set()
+    for files in files_per_phase:
+        try:
+            ds = pydicom.dcmread(files[0], stop_before_pixels=True, specific_tags=["FrameOfReferenceUID"])
+        except (OSError, pydicom.errors.InvalidDicomError) as exc:
+            raise ReadError(f"{files[0]}: cannot read its FrameOfReferenceUID ({exc})") from exc
+        uids.add(str(ds.get("FrameOfReferenceUID", "") or "").strip())
+    return uids.pop() if len(uids) == 1 and "" not in uids else None
