@@ -386,7 +386,7 @@ def test_popi_ten_phase_full_cycle_4dct_goes_through_fit(data_dir, tmp_path, cap
     # voxel; every phase keeps POPI's Frame of Reference, so no alignment is fitted
     import tarfile
 
-    from lungdeform.io import dicomseries as DS
+    from lungdeform.io.dicom import series as DS
     from lungdeform.io.image import read_image
     from tests.cli.test_warp import _curve
     from tests.conftest import require_path
