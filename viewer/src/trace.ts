@@ -289,7 +289,8 @@ export const GATE_COLOURS = { background: '#0f1318', window: '#1e3a52', windowEd
 /**
  * The gate strip, in the trace's units over the last windowS seconds of trace time and aheadS beyond
  * it: the gating window known at each sample (shaded, its edge a line), the raw amplitude (teal) at t_s,
- * the prediction for t_s + aheadS (orange) with its interval band, and the beam decision for
+ * the prediction for t_s + aheadS (orange) with its interval band (clipped to the chart: the vertical
+ * scale follows the signal, the prediction and the window edge), and the beam decision for
  * t_s + aheadS as a bar along the bottom (green on, red off); a vertical line marks now. Drawn from
  * the series in place: no per-frame allocation.
  */
@@ -312,7 +313,7 @@ export class GateChart {
     let ymin = Infinity, ymax = -Infinity;
     const widen = (v: number) => { if (Number.isFinite(v)) { if (v < ymin) ymin = v; if (v > ymax) ymax = v; } };
     for (let i = first; i <= last; i++) {
-      widen(g.amplitude[i]); widen(g.lo[i]); widen(g.hi[i]); widen(g.wLow[i]); widen(g.wHigh[i]);
+      widen(g.amplitude[i]); widen(g.predicted[i]); widen(g.wLow[i]); widen(g.wHigh[i]); // the band is clipped
     }
     if (!(ymax > ymin)) { ymin -= 1; ymax += 1; }
     const pad = 0.05 * (ymax - ymin), top = 2, bottom = h - bar - 2;
