@@ -108,15 +108,16 @@ def prediction_series(t_s, amplitude, predict_ms: float = 0.0, gate: GateRule | 
             "gate": None if rule is None else {**gate_meta(rule, ahead.predict_ms), **gated}}
 
 
-def trace_payload(path=None, predict_ms: float = 0.0) -> dict:
+def trace_payload(path=None, predict_ms: float = 0.0, gate: GateRule | None = None) -> dict:
     """What ``/trace.json`` holds: the trace at ``path`` (any file ``lungdeform stream`` reads) with
-    :func:`prediction_series` under ``"trace"``, or ``"trace": null`` without a path."""
+    :func:`prediction_series` (``gate``: its gating rule) under ``"trace"``, or ``"trace": null``
+    without a path."""
     check_view_predict_ms(predict_ms)
     body = None
     if path is not None:
         tr = read_trace(Path(path))
         try:
-            series = prediction_series(tr.t_s, tr.amplitude, predict_ms)
+            series = prediction_series(tr.t_s, tr.amplitude, predict_ms, gate)
         except InputError as exc:
             raise InputError(f"{path}: {exc}") from None
         body = {"source": str(path), "unit": tr.unit, "fixes": list(tr.fixes), **series}
@@ -130,11 +131,14 @@ def trace_payload(path=None, predict_ms: float = 0.0) -> dict:
             "trace": body}
 
 
-def check_view_options(model, trace=None, curve=None, predict_ms: float = 0.0) -> None:
+def check_view_options(model, trace=None, curve=None, predict_ms: float = 0.0, gate: GateRule | None = None) -> None:
     """Refuse, naming the options, a ``--trace`` (file or ``-``) with a ``.glb`` (play it from the model
-    file) or with ``--curve`` (one source of the volume), and ``--predict-ms`` without a trace or out
-    of [0, 2000] ms."""
+    file) or with ``--curve`` (one source of the volume), ``--predict-ms`` without a trace or out
+    of [0, 2000] ms, and a gating rule (``--window``, ``--confident``, ``--coverage``) without
+    ``--predict-ms`` > 0 (the gate decides for the position that latency later)."""
     check_view_predict_ms(predict_ms)
+    if gate is not None and not predict_ms > 0:
+        raise InputError("--window, --confident and --coverage set the gate of --predict-ms H > 0: give the latency")
     if trace is None:
         if predict_ms:
             raise InputError("--predict-ms applies to a --trace; give the trace to predict")
@@ -145,16 +149,16 @@ def check_view_options(model, trace=None, curve=None, predict_ms: float = 0.0) -
         raise InputError(f"--trace and --curve both give the breathing volume; pass one ({trace}, {curve})")
 
 
-def view_trace_json(model, trace=None, curve=None, predict_ms: float = 0.0) -> bytes:
+def view_trace_json(model, trace=None, curve=None, predict_ms: float = 0.0, gate: GateRule | None = None) -> bytes:
     """``/trace.json`` for ``lungdeform view MODEL [--trace TRACE] [--curve CSV] [--predict-ms H]``
     (:func:`check_view_options` first, so nothing is read on a bad combination)."""
-    check_view_options(model, trace, curve, predict_ms)
-    return trace_json(trace, predict_ms)
+    check_view_options(model, trace, curve, predict_ms, gate)
+    return trace_json(trace, predict_ms, gate)
 
 
-def trace_json(path=None, predict_ms: float = 0.0) -> bytes:
-    """:func:`trace_payload` as UTF-8 JSON."""
-    return json.dumps(trace_payload(path, predict_ms), ensure_ascii=False).encode("utf-8")
+def trace_json(path=None, predict_ms: float = 0.0, gate: GateRule | None = None) -> bytes:
+    """:func:`trace_payload` as UTF-8 JSON (strict: no NaN or Infinity, which browsers refuse)."""
+    return json.dumps(trace_payload(path, predict_ms, gate), ensure_ascii=False, allow_nan=False).encode("utf-8")
 
 
 class LiveFeed:
@@ -191,7 +195,7 @@ class LiveFeed:
         if p.gate is not None:
             ev["gate"] = gate_fields(amplitude, p.gate)
         with self._cond:
-            self._events.append(f"data: {json.dumps(ev)}\n\n".encode())
+            self._events.append(f"data: {json.dumps(ev, allow_nan=False)}\n\n".encode())
             self._cond.notify_all()
         return ev
 
@@ -245,4 +249,4 @@ def live_json(feed: LiveFeed) -> bytes:
     """``/trace.json`` for a live feed: no recorded trace, and where the samples come from."""
     doc = trace_payload()
     doc["live"] = feed.meta()
-    return json.dumps(doc).encode("utf-8")
+    return json.dumps(doc, allow_nan=False).encode("utf-8")
