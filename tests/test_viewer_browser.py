@@ -61,7 +61,8 @@ def test_viewer_in_headless_chromium(tmp_path):
     live = LiveFeed(400)
     events = [live.push(ti, xi) for ti, xi in zip(t[:100], 8 * breath(t[:100]))]
     live.end()
-    expect_trace["live"] = {"n": 100, "dv": events[-1]["predicted_ml"] - 2400.0}
+    expect_trace["live"] = {"n": 100, "dv": events[-1]["predicted_ml"] - 2400.0,
+                            "beam": "BEAM ON" if events[-1]["gate"]["beam_on"] else "BEAM OFF"}
     bundle = os.environ.get("LUNGDEFORM_VIEWER_BUNDLE") or None
     with ViewerServer(glb, bundle=bundle) as server, \
             ViewerServer(glb, presets=b"<html>not json</html>", bundle=bundle) as broken, \

@@ -229,7 +229,8 @@ try {
     const ls = await lp.evaluate(() => { window.lungdeform.renderOnce(); return window.lungdeform.state(); });
     const latency = (await lp.locator('#latency').textContent()) ?? '';
     check('live samples play as they arrive', ls.trace.index === expectTrace.live.n - 1
-      && Math.abs(ls.dvMl - expectTrace.live.dv) < 1e-6 && latency.startsWith(expectTrace.latency) && lpErrors.length === 0,
+      && Math.abs(ls.dvMl - expectTrace.live.dv) < 1e-6 && latency.startsWith(expectTrace.latency) && lpErrors.length === 0
+      && ls.trace.beam.startsWith(`${expectTrace.live.beam} (for t + 400 ms)`),
     { trace: ls.trace, dvMl: ls.dvMl, expected: expectTrace.live, lpErrors });
     await lp.screenshot({ path: path.join(artifacts, 'live-predict-400.png') });
     await lp.close();
