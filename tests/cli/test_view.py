@@ -120,7 +120,7 @@ def test_view_live_bad_stdin_line_exits_2_naming_it(tmp_path, capsys, monkeypatc
 def test_view_gate_options_set_the_served_gate(tmp_path, capsys, monkeypatch):
     # --window/--confident/--coverage reach /trace.json: the gate's meta says them, and its beam
     # decisions are those of `stream --gate` with the same options (one gate, BeamGate)
-    import lungdeform.cli.view as view
+    from lungdeform.cli import view
 
     t = np.arange(0.0, 40.0, 0.1)
     trace = write_marker_csv(tmp_path / "b.csv", t * 1000, 8 * breath(t))
