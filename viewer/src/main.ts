@@ -144,6 +144,7 @@ function frame(now: number): void {
   update();
   renderer.render(scene, camera);
   stats.record(performance.now() - t0, now);
+  showBeam();
   if (stats.due(now)) showReadout();
 }
 
@@ -152,14 +153,26 @@ function showTrace(): void {
   if (!state.trace) return;
   $('trace-values').textContent = valuesText(state.trace, state.t);
   strip?.draw(state.trace, state.t);
-  const gate = gateAt(state.trace, state.t);
-  if (!gate || !gateStrip) return;
-  const beam = $('beam');
-  beam.textContent = beamText(state.trace, state.t);
-  beam.classList.toggle('on', gate.beamOn);
-  beam.classList.toggle('off', !gate.beamOn);
+  if (!gateStrip) return;
+  showBeam();
   $('gate-values').textContent = gateText(state.trace, state.t);
   gateStrip.draw(state.trace, state.t);
+}
+
+let beamShown = -1; // the indicator's state: -1 not yet set, 0 off, 1 on
+
+/** The BEAM ON/OFF indicator, every frame (a beam indicator must not lag): the DOM is touched only
+ * when the decision of the sample shown changes. */
+function showBeam(): void {
+  const g = state.trace?.gate;
+  if (!g || !state.trace || state.trace.n === 0) return;
+  const on = g.beam[sampleIndex(state.trace.t, traceTime(state.trace, state.t), state.trace.n)];
+  if (on === beamShown) return;
+  beamShown = on;
+  const beam = $('beam');
+  beam.textContent = beamText(state.trace, state.t);
+  beam.classList.toggle('on', on === 1);
+  beam.classList.toggle('off', on !== 1);
 }
 
 // ------------------------------------------------------------------ model loading
