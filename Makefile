@@ -24,7 +24,7 @@ $(STAMP): pyproject.toml requirements.lock
 demo: $(STAMP)
 	$(BIN)/lungdeform demo --out $(DEMO_OUT)
 
-test: $(STAMP) viewer-deps $(VIEWER_BUNDLE)
+test: $(STAMP) viewer-deps $(VIEWER_BUNDLE) dicom3tools
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
 
 # --- fuzzing: every file reader under atheris (coverage guided; a seeded random-mutation fuzzer when
@@ -50,7 +50,7 @@ VIEWER_STAMP := viewer/node_modules/.installed
 VIEWER_BUNDLE := src/lungdeform/data/viewer/index.html
 VIEWER_SRC := $(wildcard viewer/src/*.ts viewer/src/*.css) viewer/index.html viewer/vite.config.ts viewer/package-lock.json
 
-.PHONY: viewer-deps chromium
+.PHONY: viewer-deps chromium dicom3tools
 viewer-deps: $(VIEWER_STAMP) chromium
 
 $(VIEWER_STAMP): viewer/package.json viewer/package-lock.json
@@ -62,6 +62,15 @@ chromium:
 	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
 	    apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends chromium; \
 	  else echo "/usr/bin/chromium missing and not root: the browser test will skip"; fi; \
+	fi
+
+# Debian's dicom3tools for dciodvfy, which checks every DICOM file lungdeform writes against its IOD
+# (tests/io/dicom/test_conformance.py; installed as root when missing, else those tests skip).
+dicom3tools:
+	@if [ ! -x /usr/bin/dciodvfy ]; then \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	    apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends dicom3tools; \
+	  else echo "/usr/bin/dciodvfy missing and not root: the DICOM conformance tests will skip"; fi; \
 	fi
 
 $(VIEWER_BUNDLE): $(VIEWER_SRC) | $(VIEWER_STAMP)

@@ -364,9 +364,9 @@ def build_fixtures(root: Path, seed: int) -> Fixtures:
     import pydicom
 
     from lungdeform.geometry.mesh import Surface, icosphere
+    from lungdeform.io.dicom.rtstruct import read_ct_series, write_rtstruct
     from lungdeform.io.image import write_image
     from lungdeform.io.modelfile import save_model
-    from lungdeform.io.rtstruct import read_ct_series, write_rtstruct
     from lungdeform.model.lung import Model, build_lung
 
     fx = Fixtures(root, seed)
@@ -536,7 +536,7 @@ def verify_finite_stdout(_d: Path, stdout: str):
 
 def verify_contours_kept(n: int):
     def check(d: Path, _stdout: str):
-        from lungdeform.io.rtstruct import read_rtstruct
+        from lungdeform.io.dicom.rtstruct import read_rtstruct
 
         got = {k: len(s.contours) for k, s in read_rtstruct(d / "moved.dcm").items()}
         rest = [k for k in got if k.endswith(("@phase00",))] or list(got)[:1]

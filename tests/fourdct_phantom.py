@@ -1,4 +1,4 @@
-"""A small synthetic 4-D CT written as DICOM (tests of lungdeform.io.fourdct, fit and cohort)."""
+"""A small synthetic 4-D CT written as DICOM (tests of lungdeform.io.dicom.fourdct, fit and cohort)."""
 
 from __future__ import annotations
 
@@ -10,9 +10,10 @@ SPACING = (4.0, 4.0, 6.0)  # mm, x y z
 STUDY = "1.2.826.0.1.3680043.2.1125.7"
 
 
-def phase_ct(scale: float, rng) -> np.ndarray:
+def phase_ct(scale: float, rng, shift_z: float = 0.0) -> np.ndarray:
     """A (z, y, x) int16 CT in HU: a body (40 HU, elliptic cylinder) in air (-1000 HU) holding two
-    "lungs" (-850 HU), ellipsoids of semi-axes (28, 34, 44) mm * ``scale`` centred at x = +-40 mm."""
+    "lungs" (-850 HU), ellipsoids of semi-axes (28, 34, 44) mm * ``scale`` centred at x = +-40 mm,
+    z = ``shift_z`` mm."""
     nz, ny, nx = SHAPE
     k, j, i = np.meshgrid(np.arange(nz), np.arange(ny), np.arange(nx), indexing="ij")
     p = np.stack([(i - (nx - 1) / 2) * SPACING[0], (j - (ny - 1) / 2) * SPACING[1],
@@ -20,7 +21,7 @@ def phase_ct(scale: float, rng) -> np.ndarray:
     ct = np.full(SHAPE, -1000.0)
     ct[(p[..., 0] / 90) ** 2 + (p[..., 1] / 80) ** 2 <= 1] = 40.0
     for sgn in (1.0, -1.0):
-        ct[((((p - [sgn * 40.0, 0.0, 0.0]) / (np.array([28.0, 34.0, 44.0]) * scale)) ** 2).sum(-1)) <= 1] = -850.0
+        ct[((((p - [sgn * 40.0, 0.0, shift_z]) / (np.array([28.0, 34.0, 44.0]) * scale)) ** 2).sum(-1)) <= 1] = -850.0
     return (ct + rng.normal(0, 5, ct.shape)).astype(np.int16)
 
 
@@ -64,3 +65,14 @@ def write_4dct(folder, rng, n_phases: int = 4, mode: str = "description", order=
         else:
             write_slices(folder, ct, {"0008|103e": "4D CT"}, f"{STUDY}.{p + 1}", name=f"p{p}_")
     return scales
+
+
+def write_cycle(folder, rng, scales, shifts_z=None, frame_uid: str | None = None) -> None:
+    """A full-cycle 4-D CT in ``folder``: phase ``p`` (SeriesDescription ``"CT <100 p / n>%"``, a
+    subfolder each) has lungs scaled by ``scales[p]`` per axis and moved by ``shifts_z[p]`` mm
+    along z; ``frame_uid``: the FrameOfReferenceUID of every slice (none when None)."""
+    n = len(scales)
+    for p in range(n):
+        ct = phase_ct(scales[p], rng, 0.0 if shifts_z is None else shifts_z[p])
+        tags = {"0008|103e": f"CT {100 * p // n}%", **({"0020|0052": frame_uid} if frame_uid else {})}
+        write_slices(folder / f"phase{p}", ct, tags, f"{STUDY}.{p + 1}")

@@ -48,12 +48,21 @@ def test_viewer_in_headless_chromium(tmp_path):
     series = json.loads(feed)["trace"]
     expect_trace = {"time": 12.05, "index": 120, "dv": series["predicted_ml"][120] - series["v_ee_ml"],
                     "latency": "predicting 400 ms ahead"}
+    # the gate served with it (BeamGate, end-exhale 30 %, 90 % intervals): at a sample time after 15 s
+    # where the beam is on and one where it is off, the page must say so, give that sample's interval,
+    # and draw the window, the band and the beam bar (pixels of their colours in the gate strip)
+    gate = series["gate"]
+    on = next(i for i in range(150, t.size) if gate["beam_on"][i])
+    off = next(i for i in range(150, t.size) if not gate["beam_on"][i])
+    expect_trace["gate"] = {k: {"time": float(t[i]) + 0.05, "index": i, "lo": gate["lo"][i], "hi": gate["hi"][i],
+                                "window_high": gate["window_high"][i]} for k, i in (("on", on), ("off", off))}
     # `view --trace - --predict-ms 400`: 100 live samples, then the end of input; the page must show the
     # newest one's predicted volume
     live = LiveFeed(400)
     events = [live.push(ti, xi) for ti, xi in zip(t[:100], 8 * breath(t[:100]))]
     live.end()
-    expect_trace["live"] = {"n": 100, "dv": events[-1]["predicted_ml"] - 2400.0}
+    expect_trace["live"] = {"n": 100, "dv": events[-1]["predicted_ml"] - 2400.0,
+                            "beam": "BEAM ON" if events[-1]["gate"]["beam_on"] else "BEAM OFF"}
     bundle = os.environ.get("LUNGDEFORM_VIEWER_BUNDLE") or None
     with ViewerServer(glb, bundle=bundle) as server, \
             ViewerServer(glb, presets=b"<html>not json</html>", bundle=bundle) as broken, \
@@ -77,13 +86,14 @@ def test_viewer_in_headless_chromium(tmp_path):
     assert {"preset list from the server", "presets play the served curves", "preset changes picture",
             "fallback to built-in presets with a note", "fallback shapes play", "no trace panel without a trace",
             "trace plays the predicted volume", "trace HUD shows the latency",
-            "live samples play as they arrive"} <= set(r)
+            "live samples play as they arrive", "beam on shown", "beam off shown", "gate strip drawn"} <= set(r)
     print(f"silhouette pixels end-exhale {r['silhouette differs ee/ei']['ee']}, end-inhale "
           f"{r['silhouette differs ee/ei']['ei']}; changed by orientation {r['orientation changes picture']['colour']}, "
           f"by preset normal→copd {r['preset changes picture']['silhouette']} (colour {r['preset changes picture']['colour']}); "
           f"presets {r['preset list from the server']['presets']}; fallback note: {r['fallback to built-in presets with a note']['note']!r}; "
           f"{r['fps readout']['stats']['fps']:.1f} fps; trace HUD: {r['trace HUD shows the latency']['latency']!r}, "
-          f"{r['trace HUD shows the latency']['values']!r}")
+          f"{r['trace HUD shows the latency']['values']!r}; gate: {r['beam on shown']['beam']!r}, "
+          f"{r['beam on shown']['gateValues']!r}; gate strip pixels {r['gate strip drawn']['pixels']}")
 
 
 def test_viewer_unit_tests_in_node(tmp_path):

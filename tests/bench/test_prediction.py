@@ -9,7 +9,7 @@ from lungdeform.errors import InputError
 
 def test_records_compare_every_predictor_with_the_linear_baseline_of_the_same_run():
     rows = bench_predict(seconds=45.0, rate_hz=10.0, horizon_ms=300.0, warm_s=30.0)
-    assert [r["method"] for r in rows] == ["model", "linear", "none"]
+    assert [r["method"] for r in rows] == ["model", "model_intervals", "gate", "linear", "none"]
     by = {r["method"]: r for r in rows}
     # the yardstick is the linear baseline measured in this run: its own ratio is exactly 1
     assert by["linear"]["ratio_to_linear"] == 1.0

@@ -192,6 +192,30 @@ try {
       && latency.startsWith(expectTrace.latency) && /measured \d+ mL {3}predicted \d+ mL/.test(values),
     { latency, values });
     await tp.screenshot({ path: path.join(artifacts, 'trace-predict-400.png') });
+    // the gate (EXPECT_TRACE.gate): at a deterministic time the indicator says BEAM ON / BEAM OFF as
+    // served for that sample, the HUD gives its interval, and the strip draws window, band and beam bar
+    if (expectTrace.gate) {
+      for (const which of ['on', 'off']) {
+        const e = expectTrace.gate[which];
+        const gs = await tp.evaluate((time) => {
+          window.lungdeform.setTime(time); window.lungdeform.renderOnce();
+          return { ...window.lungdeform.state().trace, pixels: window.lungdeform.gatePixels() };
+        }, e.time);
+        const want = which === 'on' ? 'BEAM ON' : 'BEAM OFF';
+        check(`beam ${which} shown`, gs.index === e.index && gs.beam.startsWith(`${want} (for t + 400 ms)`)
+          && gs.beamClass.split(' ').includes(which) && gs.gate.beamOn === (which === 'on')
+          && Math.abs(gs.gate.lo - e.lo) < 1e-9 && Math.abs(gs.gate.hi - e.hi) < 1e-9
+          && Math.abs(gs.gate.windowHigh - e.window_high) < 1e-9 && /90 % interval \[-?\d/.test(gs.gateValues)
+          && /window end-exhale:30/.test(gs.gateValues) && (await tp.locator('#beam').isVisible()),
+        { index: gs.index, beam: gs.beam, beamClass: gs.beamClass, gate: gs.gate, gateValues: gs.gateValues, expected: e });
+        if (which === 'on') {
+          const p = gs.pixels;
+          check('gate strip drawn', p.window > 200 && p.band > 100 && p.beamOn > 20 && p.beamOff > 20
+            && p.amplitude > 0 && p.predicted > 0, { pixels: p });
+        }
+        await tp.locator('#trace-panel').screenshot({ path: path.join(artifacts, `trace-gate-beam-${which}.png`) });
+      }
+    }
     await tp.close();
   }
   // 9. `view --trace -`: samples pushed as Server-Sent Events; the newest one's predicted volume is shown
@@ -205,7 +229,8 @@ try {
     const ls = await lp.evaluate(() => { window.lungdeform.renderOnce(); return window.lungdeform.state(); });
     const latency = (await lp.locator('#latency').textContent()) ?? '';
     check('live samples play as they arrive', ls.trace.index === expectTrace.live.n - 1
-      && Math.abs(ls.dvMl - expectTrace.live.dv) < 1e-6 && latency.startsWith(expectTrace.latency) && lpErrors.length === 0,
+      && Math.abs(ls.dvMl - expectTrace.live.dv) < 1e-6 && latency.startsWith(expectTrace.latency) && lpErrors.length === 0
+      && ls.trace.beam.startsWith(`${expectTrace.live.beam} (for t + 400 ms)`),
     { trace: ls.trace, dvMl: ls.dvMl, expected: expectTrace.live, lpErrors });
     await lp.screenshot({ path: path.join(artifacts, 'live-predict-400.png') });
     await lp.close();

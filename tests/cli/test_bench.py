@@ -44,7 +44,7 @@ def test_bench_predict_reports_the_ratio_to_the_linear_baseline(tmp_path, capsys
     out = capsys.readouterr().out
     assert "the linear baseline" in out and "model:" in out
     doc = json.loads(path.read_text())
-    assert doc["benchmark"] == "predict" and [r["method"] for r in doc["results"]] == ["model", "linear", "none"]
+    assert doc["benchmark"] == "predict" and [r["method"] for r in doc["results"]] == ["model", "model_intervals", "gate", "linear", "none"]
 
 
 def test_bench_dvf_small_grid(tmp_path, capsys):

@@ -228,7 +228,7 @@ def _write_mask(image, path):
 
 
 def test_build_mask_holding_both_lungs(tmp_path, capsys):
-    # truth: the mask holds two touching ellipsoids in one label (tests/fit/test_lungsplit.py);
+    # truth: the mask holds two touching ellipsoids in one label (tests/segment/test_split.py);
     # --side left takes the left one (at +x, the smaller) of the split, not the fused component,
     # and says so; without --side the mask gives both lungs
     image, left, right = two_lungs()

@@ -232,7 +232,7 @@ def test_unconverged_fit_is_said_and_zero_evaluations_refused(tmp_path, pair, ca
 
 def test_fit_masks_holding_both_lungs_keeps_that_lungs_landmarks(tmp_path, capsys):
     # truth: two binary masks of both lungs in one label (touching ellipsoids, the second larger:
-    # tests/fit/test_lungsplit.py); --side left fits the left ellipsoid of each split, and of 10
+    # tests/segment/test_split.py); --side left fits the left ellipsoid of each split, and of 10
     # landmark rows (6 in the left lung, 4 in the right) only the 6 left ones are used, said in a note
     ee, left_ee, _ = two_lungs(source="ee.nii.gz")
     ei, left_ei, _ = two_lungs(source="ei.nii.gz", scale=(1.05, 1.05, 1.1))
@@ -344,3 +344,78 @@ def test_a_bad_input_leaves_no_output_folder_and_out_may_not_be_an_input(tmp_pat
     assert main(["fit", str(a), str(b), "--side", "right", "--out", str(tmp_path), "--landmarks", str(metrics),
                  "--landmarks", str(metrics)]) == 2
     assert "would overwrite the input" in _one_error_line(capsys) and metrics.read_text() == "{}"
+
+
+def test_a_full_cycle_4dct_is_fitted_with_its_hysteresis(tmp_path, rng, capsys):
+    # truth: a 5-phase cycle (tests/fourdct_phantom.py) of lung scales 1.0, 1.08, 1.16, 1.08, 1.0 by
+    # phase, the 60 % lung moved 6 mm along z (one slice), every slice in one Frame of Reference.
+    # Equal volumes are exact (the same voxels, shifted): 20 % and 60 % are two targets at one
+    # volume, 80 % has the end-exhale volume (no target); the exhale phases 60 % and 80 % are paired
+    # with the inhale phases of equal volume, 20 % (a 6 mm shift: every distance <= 6 mm, mean > 1)
+    # and 0 % (the same lung: 0 mm); one Frame of Reference: no alignment fitted
+    from tests.fourdct_phantom import write_cycle
+
+    write_cycle(tmp_path / "ct4d", rng, [1.0, 1.08, 1.16, 1.08, 1.0], [0, 0, 0, 6.0, 0], frame_uid="1.2.826.0.1.9")
+    out = tmp_path / "out"
+    assert main(["fit", str(tmp_path / "ct4d"), "--out", str(out), "--side", "right", "--no-baselines",
+                 "--evaluations", "20", "--direction-degree", "0", "--no-stiffness"]) == 0
+    text = capsys.readouterr().out
+    assert "alignment: none (every phase shares one DICOM Frame of Reference (1.2.826.0.1.9)" in text
+    assert "hysteresis: exhale 60% " in text and "vs inhale 20% " in text
+    m = json.loads((out / "metrics.json").read_text())
+    assert [p.rsplit("[", 1)[1] for p in m["inputs"]] == ["0%]", "20%]", "60%]", "40%]"]
+    assert m["volumes_ml"][1] == m["volumes_ml"][2] and len(m["targets"]) == 3
+    assert m["alignment_choice"] == {"asked": "auto", "used": "none", "why": m["alignment_choice"]["why"]}
+    assert all(a["method"] == "none" and a["applied"]["translation_mm"] == [0.0, 0.0, 0.0] for a in m["alignment"])
+    pairs = {(p["exhale"], p["inhale"]): p for p in m["cycle"]["hysteresis"]}
+    assert set(pairs) == {("60%", "20%"), ("80%", "0%")}
+    assert pairs[("80%", "0%")]["max_mm"] == 0.0
+    assert 1.0 < pairs[("60%", "20%")]["mean_mm"] and pairs[("60%", "20%")]["max_mm"] <= 6.0 + 1e-6
+    assert any("80% has the end-exhale volume" in n for n in m["notes"])
+    report = (out / "report.html").read_text(encoding="utf-8")
+    assert "Alignment: <b>none</b>" in report and "<td>60%</td>" in report and "<h2>Hysteresis" in report
+
+
+@pytest.mark.realdata
+def test_popi_ten_phase_full_cycle_4dct_goes_through_fit(data_dir, tmp_path, capsys):
+    # the README workflow on the POPI phase-00 CT: segment → build → warp --phases 10 over a 4 s,
+    # 500 mL cosine breath (the CT downsampled 2 × 2 × 2 to 256 × 256 × 71, a 12 mm field lattice, to
+    # keep this short) → fit on the 10-phase folder, inhale and exhale. Truth: phase00 is the source
+    # (+0 mL, the smallest: end-exhale) and 50 % the largest; the warp is a function of volume only
+    # (no hysteresis), so each exhale phase matches the inhale phase of similar volume within about a
+    # voxel; every phase keeps POPI's Frame of Reference, so no alignment is fitted
+    import tarfile
+
+    from lungdeform.io.dicom import series as DS
+    from lungdeform.io.image import read_image
+    from tests.cli.test_warp import _curve
+    from tests.conftest import require_path
+
+    archive = require_path(data_dir, "popi-ct-phase00", "popi_phase00_dicom_141slices.tar.gz")
+    with tarfile.open(archive) as tar:
+        tar.extractall(tmp_path, filter="data")
+    popi = tmp_path / "popi00"
+    assert main(["segment", str(popi), "--out", str(tmp_path / "seg"), "--downsample", "4"]) == 0
+    model = tmp_path / "model.npz"
+    assert main(["build", str(tmp_path / "seg" / "left_lung.nii.gz"), str(tmp_path / "seg" / "right_lung.nii.gz"),
+                 "--target-vertices", "1500", "--out", str(model)]) == 0
+    ct, head = read_image(popi), DS.study_header(popi)
+    DS.write_ct_series(tmp_path / "ct", ct.array[::2, ::2, ::2], ct.spacing * [2, 2, 2], ct.origin, ct.direction,
+                       head, description=head.SeriesDescription)
+    assert main(["warp", str(tmp_path / "ct"), str(model), "--curve", str(_curve(tmp_path / "c.csv")), "--phases",
+                 "10", "--node-mm", "12", "--out", str(tmp_path / "4dct")]) == 0
+    capsys.readouterr()
+    out = tmp_path / "fit"
+    assert main(["fit", str(tmp_path / "4dct"), "--side", "right", "--out", str(out), "--no-baselines",
+                 "--no-stiffness", "--direction-degree", "0", "--evaluations", "40"]) == 0
+    text = capsys.readouterr().out
+    assert f"alignment: none (every phase shares one DICOM Frame of Reference ({head.FrameOfReferenceUID})" in text
+    m = json.loads((out / "metrics.json").read_text())
+    labels = [p.rsplit("[", 1)[1].rstrip("]") for p in m["inputs"]]
+    assert labels[0] == "0%" and labels[-1] == "50%" and sorted(labels) == sorted(f"{10 * i}%" for i in range(10))
+    assert np.all(np.diff(m["volumes_ml"]) >= 0)
+    pairs = m["cycle"]["hysteresis"]
+    assert [p["exhale"] for p in pairs] == ["60%", "70%", "80%", "90%"]
+    assert all(p["mean_mm"] < 1.0 and p["p95_mm"] < 2.5 for p in pairs)
+    assert sum(f"hysteresis: exhale {p['exhale']} " in text for p in pairs) == 4
+    assert all(per["model"]["surface_mean_mm"] < 2.0 for per in m["targets"].values())

@@ -161,7 +161,7 @@ def test_dicom_ambiguous_or_missing_series_one_error_line(tmp_path, rng, run, ca
 
 
 def test_binary_mask_of_both_lungs_gives_left_and_right(tmp_path, run, capsys):
-    # truth: a binary mask of two touching ellipsoids (tests/fit/test_lungsplit.py) is split, not
+    # truth: a binary mask of two touching ellipsoids (tests/segment/test_split.py) is split, not
     # segmented as a CT: left_lung holds the +x ellipsoid, right_lung the other, volumes said
     image, left, right = two_lungs()
     path = tmp_path / "both.nii.gz"

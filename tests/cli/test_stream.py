@@ -63,3 +63,22 @@ def test_stream_and_view_share_the_predict_ms_bound(capsys):
         assert main([*words, "--predict-ms", f"{MAX_PREDICT_MS + 1:g}"]) == 2
         lines += capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 2 and lines[0] == lines[1] and f"[0, {MAX_PREDICT_MS:g}] ms" in lines[0], lines
+
+
+def test_gate_prints_the_beam_with_the_interval_and_needs_a_latency(tmp_path, capsys):
+    # a regular breath replayed with --gate: every line carries the prediction, its interval (lo <= hi
+    # once learned), the window and on/off; the beam is on for part of each breath only
+    t = np.arange(0, 80, 0.1)
+    path = write_marker_csv(tmp_path / "b.csv", t * 1000, 8 * breath(t))
+    assert main(["stream", str(path), "--predict-ms", "300", "--gate"]) == 0
+    lines = capsys.readouterr().out.split()
+    assert lines[0] == "t_s,volume_ml,ahead_s,predicted,lo,hi,window_low,window_high,beam"
+    rows = [line.split(",") for line in lines[1:]]
+    assert len(rows) == t.size
+    late = [r for r in rows if float(r[0]) > 40]
+    assert all(float(r[4]) <= float(r[3]) <= float(r[5]) for r in late)
+    beams = {r[-1] for r in late}
+    assert beams == {"on", "off"}
+    assert main(["stream", str(path), "--gate"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--predict-ms" in err[0]

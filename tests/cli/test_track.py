@@ -11,8 +11,8 @@ import pytest
 import trimesh
 
 from lungdeform.cli.main import main
+from lungdeform.io.dicom.rtstruct import read_ct_series, read_rtstruct, write_rtstruct
 from lungdeform.io.modelfile import save_model
-from lungdeform.io.rtstruct import read_ct_series, read_rtstruct, write_rtstruct
 from lungdeform.playback.trajectory import lung_scales
 from tests.browser.support import two_lungs
 from tests.io.dicom_support import patch_element, write_ct_series

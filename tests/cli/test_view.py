@@ -72,6 +72,9 @@ def test_view_trace_serves_what_stream_prints(tmp_path, capsys, monkeypatch):
     (["--predict-ms", "-1"], "--predict-ms must be a finite number in [0, 2000] ms"),
     (["--predict-ms", "2500"], "--predict-ms must be a finite number in [0, 2000] ms"),
     (["--curve", "CURVE"], "--trace and --curve"),
+    (["--window", "end-exhale:30"], "--window, --confident and --coverage set the gate of --predict-ms"),
+    (["--predict-ms", "300", "--coverage", "1.5"], "--coverage: coverage must be in (0, 1)"),
+    (["--predict-ms", "300", "--window", "mid:30"], "--window 'mid:30': window kind must be one of"),
 ])
 def test_view_trace_bad_options_exit_2_with_one_line(tmp_path, capsys, args, needle):
     # refused by option name before anything is served or written
@@ -112,3 +115,23 @@ def test_view_live_bad_stdin_line_exits_2_naming_it(tmp_path, capsys, monkeypatc
     assert main(["view", str(model), "--trace", "-", "--predict-ms", "300", "--port", "0"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "stdin line 4" in err[0], err
+
+
+def test_view_gate_options_set_the_served_gate(tmp_path, capsys, monkeypatch):
+    # --window/--confident/--coverage reach /trace.json: the gate's meta says them, and its beam
+    # decisions are those of `stream --gate` with the same options (one gate, BeamGate)
+    from lungdeform.cli import view
+
+    t = np.arange(0.0, 40.0, 0.1)
+    trace = write_marker_csv(tmp_path / "b.csv", t * 1000, 8 * breath(t))
+    model = save_model(tmp_path / "m.npz", two_lungs(2))
+    monkeypatch.setattr(view, "ViewerServer", _Captured)
+    opts = ["--predict-ms", "300", "--window", "end-inhale:20", "--confident", "--coverage", "0.8"]
+    assert main(["view", str(model), "--trace", str(trace), *opts]) == 0
+    gate = json.loads(_Captured.served["trace"])["trace"]["gate"]
+    assert gate["window"] == "end-inhale:20" and gate["coverage"] == 0.8 and gate["rule"].startswith("whole 0.8")
+    assert set(gate["window_high"]) == {None}  # end-inhale: open above
+    capsys.readouterr()
+    assert main(["stream", str(trace), "--gate", *opts]) == 0
+    rows = [line.split(",") for line in capsys.readouterr().out.split()[1:]]
+    assert [("on" if b else "off") for b in gate["beam_on"]] == [r[-1] for r in rows]

@@ -9,11 +9,13 @@ import SimpleITK as sitk
 
 from lungdeform.cli.main import main
 from lungdeform.geometry.mesh import icosphere
-from lungdeform.io import dicomseries as DS
+from lungdeform.io.dicom import series as DS
+from lungdeform.io.dicom.rtstruct import read_ct_series, write_rtstruct
 from lungdeform.io.image import read_image
-from lungdeform.io.rtstruct import read_ct_series, write_rtstruct
+from lungdeform.io.modelfile import load_model
 from tests.cli.test_dvf import files  # noqa: F401  (the shared module fixture)
 from tests.conftest import require_path
+from tests.io.dicom_support import dciodvfy
 
 
 def test_warp_keeps_labels_and_metadata(files, tmp_path):
@@ -68,7 +70,7 @@ def test_warp_phases_to_dicom_series(files, tmp_path):
         assert np.abs(got.array - mha.array.astype(float)).max() <= 0.5
         ds = pydicom.dcmread(out / name / "CT0001.dcm")
         assert ds.StudyInstanceUID == head.StudyInstanceUID and ds.FrameOfReferenceUID == head.FrameOfReferenceUID
-        assert ds.SeriesDescription == f"4D phase {50 * i}%" and ds.TemporalPositionIndex == i + 1
+        assert ds.SeriesDescription == f"4D phase {50 * i}%" and ds.TemporalPositionIdentifier == i + 1
         assert ds.NumberOfTemporalPositions == 2
         series.add(ds.SeriesInstanceUID)
     assert len(series) == 2
@@ -143,6 +145,18 @@ def test_popi_ten_phase_dicom_4dct_and_its_rtstruct(data_dir, tmp_path, capsys):
     slices = {pydicom.dcmread(p, stop_before_pixels=True).SOPInstanceUID
               for p in (tmp_path / "4dct" / "phase00").iterdir()}
     assert refs and refs <= slices and ds.FrameOfReferenceUID == head.FrameOfReferenceUID
+    # every DICOM kind written from the real CT passes dciodvfy with 0 errors (docs/RADIOTHERAPY.md,
+    # "DICOM conformance"): the RTSTRUCT, a CT phase, and the REG of the 50 % phase's field, whose raw
+    # vectors equal the .mha field (the last registration item names phase50's images)
+    ee = sum(lung.volume_ee_ml for lung in load_model(model).lungs.values())
+    assert main(["dvf", str(model), "--reference", str(tmp_path / "ct"), "--volume-ml", str(ee + 499.79),
+                 "--node-mm", "12", "--out", str(tmp_path / "u50.mha"), "--out-reg", str(tmp_path / "reg.dcm"),
+                 "--moving", str(tmp_path / "4dct" / "phase50")]) == 0
+    for f in (tmp_path / "gtv_phases.dcm", tmp_path / "4dct" / "phase50" / "CT0036.dcm", tmp_path / "reg.dcm"):
+        assert dciodvfy(f)[0] == [], f
+    grid = pydicom.dcmread(tmp_path / "reg.dcm").DeformableRegistrationSequence[-1].DeformableRegistrationGridSequence[0]
+    raw = np.frombuffer(grid.VectorGridData, "<f4").reshape(71, 128, 128, 3)
+    assert np.abs(raw - sitk.GetArrayFromImage(sitk.ReadImage(str(tmp_path / "u50.mha")))).max() <= 0.01
 
 
 def test_warp_failure_in_a_later_phase_leaves_no_folder(files, tmp_path, monkeypatch, capsys):

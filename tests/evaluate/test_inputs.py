@@ -6,7 +6,8 @@ import pytest
 
 from lungdeform.errors import InputError
 from lungdeform.evaluate.inputs import check_landmarks, landmark_mask_warnings, read_input
-from lungdeform.io.image import Image, read_image
+from lungdeform.io.grid import Image
+from lungdeform.io.image import read_image
 from lungdeform.io.landmarks import read_elastix_points
 from lungdeform.io.mask import extract_surface
 from tests.conftest import require_path

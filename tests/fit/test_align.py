@@ -5,7 +5,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from lungdeform.fit.align import RigidTransform, align_apex, align_landmarks, crop_planes, kabsch, near_planes
-from lungdeform.io.image import Image
+from lungdeform.io.grid import Image
 from tests.conftest import ellipsoid_lung
 
 

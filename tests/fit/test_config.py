@@ -31,15 +31,16 @@ def test_fit_inputs_are_checked_and_normalised():
 
 def test_fit_config_names_the_field_and_never_an_option():
     # every bad value is refused with the field's name first (the CLI maps it to its option);
-    # the defaults are the library's: no grid, no stiffness field, apex alignment, 5 folds
+    # the defaults are the library's: no grid, no stiffness field, alignment chosen on the inputs
+    # ("auto": none for one DICOM Frame of Reference, else apex), 5 folds
     config = FitConfig()
-    assert (config.grid, config.stiffness, config.align, config.folds) == (False, False, "apex", 5)
+    assert (config.grid, config.stiffness, config.align, config.folds) == (False, False, "auto", 5)
     assert config.command == "fit"
     bad = [({"folds": 1}, "folds must be a whole number >= 2"), ({"folds": 2.9}, "folds"),
            ({"max_evaluations": 0}, "max_evaluations must be a whole number >= 1"),
            ({"max_evaluations": True}, "max_evaluations"),
            ({"direction_degree": MAX_DEGREE + 1}, f"direction_degree must be a whole number 0…{MAX_DEGREE}"),
-           ({"align": "sideways"}, "align must be one of apex, joint, none"),
+           ({"align": "sideways"}, "align must be one of auto, apex, joint, none"),
            ({"mode": "grid"}, "mode must be one of optimizer, least_squares, powell"),
            ({"align": "joint", "mode": "powell"}, "align 'joint' needs the least-squares optimiser"),
            ({"landmark_weight": -1.0}, "landmark_weight must be a finite number >= 0"),

@@ -73,9 +73,13 @@ def test_bad_volumes(truth):
     lung, _, target = truth
     with pytest.raises(InputError, match="not larger"):
         LungFitter(lung, "right", [Target(target, lung.volume_ml - 1.0, name="t")])
-    with pytest.raises(InputError, match="increase"):
+    with pytest.raises(InputError, match="must not decrease"):
         LungFitter(lung, "right", [Target(target, lung.volume_ml + 300, name="a"),
                                     Target(target, lung.volume_ml + 200, name="b")])
+    # equal volumes (an inhale and an exhale phase of one volume) are two targets at one volume
+    fitter = LungFitter(lung, "right", [Target(target, lung.volume_ml + 300, name="a"),
+                                        Target(target, lung.volume_ml + 300, name="b")])
+    assert [t.name for t in fitter.targets] == ["a", "b"]
 
 
 def _interior_landmarks(lung, u, count=24, seed=1):

@@ -56,7 +56,7 @@ def _dicom(path):
     DICOM readers, chosen by the input's first byte (a byte of the preamble, which no reader uses;
     one reader per input halves the cost of an execution, GDCM reading a whole series): odd, as its
     series by :func:`read_image`; even, the whole folder by the 4-D CT phase sorter."""
-    from lungdeform.io.fourdct import read_phases
+    from lungdeform.io.dicom.fourdct import read_phases
     from lungdeform.io.image import read_image
 
     with open(path, "rb") as fh:
@@ -69,7 +69,7 @@ def _dicom(path):
 def _fourdct_folder(path):
     """The table of :mod:`tests.fuzz.fourdct_folder` (the fuzzed bytes) written as a 4-D CT folder
     beside it, read by the 4-D CT phase sorter."""
-    from lungdeform.io.fourdct import read_phases
+    from lungdeform.io.dicom.fourdct import read_phases
     from tests.fuzz.fourdct_folder import write_folder
 
     folder = Path(path).parent / "fourdct"
@@ -126,7 +126,7 @@ def _dirlab_points(path):
 
 
 def _rtstruct(path):
-    from lungdeform.io.rtstruct import read_rtstruct
+    from lungdeform.io.dicom.rtstruct import read_rtstruct
 
     return read_rtstruct(path)
 
@@ -144,8 +144,8 @@ def _track_fixture() -> dict:
     if not _TRACK:
         import trimesh
 
+        from lungdeform.io.dicom.rtstruct import read_ct_series, write_rtstruct
         from lungdeform.io.modelfile import load_model
-        from lungdeform.io.rtstruct import read_ct_series, write_rtstruct
         from lungdeform.playback.structures import read_structure
         from tests.io.dicom_support import write_ct_series
 
@@ -169,7 +169,7 @@ def _track_rtstruct(path):
     of reference is the CT's, every ROI has contours, every contour lies on a slice of the CT."""
     import io
 
-    from lungdeform.io.rtstruct import build_rtstruct, check_structure_on_ct, read_ct_series
+    from lungdeform.io.dicom.rtstruct import build_rtstruct, check_structure_on_ct, read_ct_series
     from lungdeform.playback.structures import moved_surfaces, read_structure
     from lungdeform.playback.trajectory import place_points
 
@@ -222,11 +222,12 @@ READERS: dict[str, tuple[str, Callable]] = {
 }
 
 
-READER_MODULES = ("lungdeform.io.meshfile", "lungdeform.io.vtk", "lungdeform.io.image", "lungdeform.io.fourdct",
+READER_MODULES = ("lungdeform.io.meshfile", "lungdeform.io.vtk", "lungdeform.io.image", "lungdeform.io.dicom.guard",
+                  "lungdeform.io.dicom.series", "lungdeform.io.dicom.fourdct",
                   "lungdeform.io.modelfile",
                   "lungdeform.playback.schedule", "lungdeform.breathing.trace", "lungdeform.io.landmarks",
                   "lungdeform.playback.trajectory", "lungdeform.cohort.manifest", "lungdeform.validate.dirlab_files",
-                  "lungdeform.io.rtstruct", "lungdeform.geometry.contours", "lungdeform.playback.structures")
+                  "lungdeform.io.dicom.rtstruct", "lungdeform.geometry.contours", "lungdeform.playback.structures")
 
 
 # =========================================================================== seeds
@@ -354,7 +355,7 @@ def _rtstruct_seed(folder: Path) -> list[Path]:
     """A two-ROI structure set on a 6-slice synthetic CT series (tests/io/dicom_support.py)."""
     import trimesh
 
-    from lungdeform.io.rtstruct import read_ct_series, write_rtstruct
+    from lungdeform.io.dicom.rtstruct import read_ct_series, write_rtstruct
     from tests.io.dicom_support import write_ct_series
 
     ct = read_ct_series(write_ct_series(folder / "ct", shape=(6, 8, 8), origin=(-7.0, -7.0, -5.0)))

@@ -7,7 +7,7 @@ orientation, UIDs, phase tags) in one slice, or in all of them through the heade
 deleted or repeated is a slice missing or repeated. :func:`write_folder` writes the table as one
 explicit-VR little-endian DICOM file per line (6 × 5 int16 voxels each, the pixel module fixed),
 so that every table, however mutated, becomes a folder that
-:func:`lungdeform.io.fourdct.read_phases` must read or refuse with the package's own errors.
+:func:`lungdeform.io.dicom.fourdct.read_phases` must read or refuse with the package's own errors.
 """
 
 from __future__ import annotations

@@ -7,7 +7,8 @@ import pytest
 
 from lungdeform.errors import InputError, MaskError
 from lungdeform.geometry.mesh import check_surface
-from lungdeform.io.image import Image, index_to_world, read_image
+from lungdeform.io.grid import Image, index_to_world
+from lungdeform.io.image import read_image
 from lungdeform.io.mask import (
     LOBE_LABELS,
     extract_surface,
@@ -231,7 +232,7 @@ def test_side_mask_picks_the_side_lobes_also_from_a_ras_nifti(tmp_path):
 
 def test_side_mask_refuses_a_mirrored_convention_and_passes_binary_masks():
     from lungdeform.errors import MaskError
-    from lungdeform.io.image import Image
+    from lungdeform.io.grid import Image
     from lungdeform.io.mask import side_mask
 
     a = _lobe_map()

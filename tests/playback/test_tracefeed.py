@@ -8,6 +8,7 @@ import threading
 import numpy as np
 import pytest
 
+from lungdeform.breathing.gating import BeamGate
 from lungdeform.breathing.stream import StreamingVolumeEstimator
 from lungdeform.errors import InputError, ReadError
 from lungdeform.playback.tracefeed import (
@@ -136,3 +137,64 @@ def test_live_feed_reader_waits_for_new_samples():
     reader.join(5)
     text = b"".join(got).decode()
     assert not reader.is_alive() and text.count("data: {\"t_s\"") == 2 and text.endswith("event: end\ndata: {}\n\n")
+
+
+def test_gate_fields_are_the_beam_gate_sample_by_sample(rng):
+    # one implementation: with predict_ms the served gate fields are a BeamGate (300 ms, default rule)
+    # fed the same samples in order; infinite bounds (the open side of the end-exhale window, the
+    # interval before it is learned) become JSON null; the predicted volume is the ungated one's
+    t, x = noisy_breaths(rng, seconds=40)
+    got = json.loads(json.dumps(prediction_series(t, x, predict_ms=300), allow_nan=False))
+    gate = BeamGate(0.3)
+    ref = [gate.update(a, b) for a, b in zip(t, x)]
+    g = got["gate"]
+    assert g["window"] == "end-exhale:30" and g["coverage"] == 0.9 and g["latency_ms"] == 300.0
+    assert g["amplitude"] == x.tolist() and g["beam_on"] == [r.beam_on for r in ref]
+    assert g["predicted"] == [r.predicted for r in ref]
+    assert g["lo"] == [r.lo if np.isfinite(r.lo) else None for r in ref]
+    assert g["window_high"] == [r.window[1] for r in ref] and set(g["window_low"]) == {None}
+    plain = StreamingVolumeEstimator(predict_ms=300)
+    assert got["predicted_ml"] == [plain.update(a, b).volume_ml for a, b in zip(t, x)]
+    # the interval is learned within the first seconds and then holds the prediction; the beam goes
+    # both on and off over 40 s of breathing (else the viewer's indicator would never change)
+    learned = [i for i, v in enumerate(g["lo"]) if v is not None]
+    assert learned and learned[0] < 100 and len(learned) == t.size - learned[0]
+    assert all(g["lo"][i] <= g["predicted"][i] <= g["hi"][i] for i in learned)
+    assert 0 < sum(g["beam_on"]) < t.size
+    assert prediction_series(t, x)["gate"] is None  # no prediction: no latency to gate for
+
+
+def test_gate_window_is_the_last_15_s_of_raw_samples(rng):
+    # against truth computed here with numpy: the end-exhale 30 % edge at sample i is
+    # min + 0.3 (max - min) of the raw samples in [t_i - 15 s, t_i]
+    t, x = noisy_breaths(rng, seconds=40)
+    edge = prediction_series(t, x, predict_ms=400)["gate"]["window_high"]
+    for i in range(0, t.size, 37):
+        past = x[(t >= t[i] - 15.0 - 1e-9) & (t <= t[i])]
+        assert edge[i] == pytest.approx(past.min() + 0.3 * np.ptp(past), rel=1e-12, abs=1e-12)
+
+
+def test_gate_fields_are_causal_changing_the_future_changes_nothing_before(rng):
+    # the gate at sample i uses samples 0..i only: replacing every sample after 350 by other values
+    # leaves each gate field of samples 0..350 exactly as it was
+    t, x = noisy_breaths(rng)
+    y = x.copy()
+    y[351:] = rng.normal(0.0, 5.0, y.size - 351)
+    a = prediction_series(t, x, predict_ms=400)["gate"]
+    b = prediction_series(t, y, predict_ms=400)["gate"]
+    for key in ("predicted", "lo", "hi", "window_low", "window_high", "probability", "beam_on"):
+        assert a[key][:351] == b[key][:351], key
+        if key != "window_low":  # (open: None throughout) the change does reach the later samples
+            assert a[key][351:] != b[key][351:], key
+
+
+def test_live_feed_events_carry_the_gate(rng):
+    # the live events hold the same gate fields as the recorded series, and the meta says the rule
+    t, x = noisy_breaths(rng, seconds=20)
+    feed = LiveFeed(predict_ms=400)
+    events = [feed.push(a, b) for a, b in zip(t.tolist(), x.tolist())]
+    ref = prediction_series(t, x, predict_ms=400)["gate"]
+    for key in ("amplitude", "predicted", "lo", "hi", "window_high", "beam_on"):
+        assert [e["gate"][key] for e in events] == ref[key], key
+    assert json.loads(live_json(feed))["live"]["gate"]["window"] == "end-exhale:30"
+    assert "gate" not in LiveFeed().push(0.0, 1.0)  # no prediction: no gate

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from lungdeform.errors import InputError, ReadError
-from lungdeform.io.image import Image, read_image
+from lungdeform.io.grid import Image
+from lungdeform.io.image import read_image
 from lungdeform.segment import ct as C
 from lungdeform.segment import lungs as S
 from tests.segment.test_lungs import phantom

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from lungdeform.errors import InputError, MaskError
-from lungdeform.io.image import Image
+from lungdeform.io.grid import Image
 from lungdeform.segment import ct as C
 from lungdeform.segment import lungs as S
 from tests.conftest import require_path

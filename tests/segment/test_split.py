@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from lungdeform.errors import InputError, MaskError
-from lungdeform.io.image import Image, read_image
+from lungdeform.io.grid import Image
+from lungdeform.io.image import read_image
 from lungdeform.io.landmarks import read_elastix_points
 from lungdeform.segment import split as L
 from tests.conftest import require_path

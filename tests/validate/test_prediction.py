@@ -41,6 +41,12 @@ def test_validate_prediction_writes_the_metrics_of_the_spec(tmp_path, rng):
     assert {"model_rms", "none_rms", "linear_rms"} <= set(row)
     assert row["model_rms"] / row["none_rms"] == pytest.approx(row["model_over_none"])
     assert doc["medians"]["400"]["model_over_none"] < 0.6 and m["n_quiet"] == 2
+    # the 90 % intervals: coverage near nominal on a regular breath with white noise (60 s scored at
+    # 10 Hz: ±0.1 is several binomial standard errors), a positive width and interval score
+    for prefix in ("", "linear_"):
+        assert 0.8 <= row[prefix + "coverage"] <= 0.98
+        assert row[prefix + "width_over_none_rms"] > 0 and row[prefix + "interval_score"] > 0
+    assert "coverage_every_horizon" in doc["targets"]
     assert (out / "plots" / "errors_vs_horizon.png").stat().st_size > 5000
     assert (out / "plots" / "predicted_trace.png").stat().st_size > 5000
 
@@ -65,3 +71,4 @@ def test_shared_traces_meet_the_targets_and_the_baseline_is_as_strong_as_calibra
     assert len(markers) == 15 and np.median(markers) <= 0.78
     assert m["targets"]["model_over_linear_every_horizon"]["met"]
     assert m["targets"]["quiet_model_over_none"]["met"]
+    assert m["targets"]["coverage_every_horizon"]["met"]  # 90 % intervals cover 87–93 % at every horizon

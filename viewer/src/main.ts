@@ -15,7 +15,7 @@ import { GRAVITY, isMovable, LungWeights, MarkerMotion, normalize, type LungMeta
 import { loadPresets, loopDuration, sampledCurve, volumeAt, type Curve, type PresetSet } from './curves';
 import { colourise, legendGradient } from './overlay';
 import { FrameStats } from './stats';
-import { latencyText, loadTrace, pushEvent, sampleIndex, StripChart, traceTime, traceVolumeAt, valuesText, type TraceSeries } from './trace';
+import { beamText, GATE_COLOURS, GateChart, gateAt, gateText, latencyText, loadTrace, pushEvent, sampleIndex, StripChart, traceTime, traceVolumeAt, valuesText, type TraceSeries } from './trace';
 import { setupXR } from './xr';
 
 const params = new URLSearchParams(location.search);
@@ -71,6 +71,7 @@ let curves: Curve[] = [];
 let presetSet: PresetSet | null = null;
 let served: TraceSeries | null = null; // /trace.json, null when the server plays no trace
 let strip: StripChart | null = null;
+let gateStrip: GateChart | null = null; // with a gate (--predict-ms > 0): window, interval band, beam
 let root: THREE.Object3D | null = null;
 let arrow: THREE.ArrowHelper | null = null;
 const stats = new FrameStats();
@@ -143,6 +144,7 @@ function frame(now: number): void {
   update();
   renderer.render(scene, camera);
   stats.record(performance.now() - t0, now);
+  showBeam();
   if (stats.due(now)) showReadout();
 }
 
@@ -151,6 +153,26 @@ function showTrace(): void {
   if (!state.trace) return;
   $('trace-values').textContent = valuesText(state.trace, state.t);
   strip?.draw(state.trace, state.t);
+  if (!gateStrip) return;
+  showBeam();
+  $('gate-values').textContent = gateText(state.trace, state.t);
+  gateStrip.draw(state.trace, state.t);
+}
+
+let beamShown = -1; // the indicator's state: -1 not yet set, 0 off, 1 on
+
+/** The BEAM ON/OFF indicator, every frame (a beam indicator must not lag): the DOM is touched only
+ * when the decision of the sample shown changes. */
+function showBeam(): void {
+  const g = state.trace?.gate;
+  if (!g || !state.trace || state.trace.n === 0) return;
+  const on = g.beam[sampleIndex(state.trace.t, traceTime(state.trace, state.t), state.trace.n)];
+  if (on === beamShown) return;
+  beamShown = on;
+  const beam = $('beam');
+  beam.textContent = beamText(state.trace, state.t);
+  beam.classList.toggle('on', on === 1);
+  beam.classList.toggle('off', on !== 1);
 }
 
 // ------------------------------------------------------------------ model loading
@@ -198,6 +220,11 @@ async function loadModel(): Promise<void> {
     if (feed.liveUrl) listen(served, feed.liveUrl);
     $('latency').textContent = latencyText(served);
     strip = new StripChart($('strip') as HTMLCanvasElement);
+    if (served.gate) {
+      $('gate').hidden = false;
+      $('gate-rule').textContent = `gate: window ${served.gate.window}, beam on when ${served.gate.rule}`;
+      gateStrip = new GateChart($('gate-strip') as HTMLCanvasElement);
+    }
   }
   const note = $('presets-note');
   note.textContent = presetSet.note;
@@ -497,7 +524,9 @@ const api = {
   state: () => ({ t: state.t, dvMl: state.dvMl, playing: state.playing, preset: state.curve?.name, tidalMl: state.tidalMl,
                   rateBpm: state.rateBpm, orientation: state.orientation, overlay: state.overlay, loopS: loop(),
                   trace: state.trace ? { index: sampleIndex(state.trace.t, traceTime(state.trace, state.t), state.trace.n), n: state.trace.n,
-                                         latency: $('latency').textContent, values: $('trace-values').textContent } : null,
+                                         latency: $('latency').textContent, values: $('trace-values').textContent,
+                                         gate: gateAt(state.trace, state.t), beam: $('beam').textContent, beamClass: $('beam').className,
+                                         gateValues: $('gate-values').textContent } : null,
                   weights: Object.fromEntries(lungs.map((l) => [l.name, [...l.influences]])) }),
   setTime: (t: number) => { state.t = t; state.playing = false; syncUI(); },
   setPhase: (phase: number) => { state.t = phase * loop(); state.playing = false; syncUI(); },
@@ -508,6 +537,19 @@ const api = {
   setRate: (bpm: number) => { state.rateBpm = bpm; syncUI(); },
   setGain: (g: number) => { state.gain = g; syncUI(); },
   renderOnce, snapshot, diff, bench, stats: () => stats.summary(),
+  /** Pixels of the gate strip in each of its colours (window, band, beam on/off): what is drawn. */
+  gatePixels: () => {
+    const c = $('gate-strip') as HTMLCanvasElement;
+    const px = c.getContext('2d')!.getImageData(0, 0, c.width, c.height).data;
+    const counts: Record<string, number> = {};
+    for (const [name, hex] of Object.entries(GATE_COLOURS)) {
+      const v = parseInt(hex.slice(1), 16), r = v >> 16, g = (v >> 8) & 255, b = v & 255;
+      let n = 0;
+      for (let i = 0; i < px.length; i += 4) if (px[i] === r && px[i + 1] === g && px[i + 2] === b) n++;
+      counts[name] = n;
+    }
+    return counts;
+  },
   /** Marker positions per lung (LPS mm, 3 per marker) as last placed (while markers are shown). */
   markerPositions: () => Object.fromEntries(lungs.map((l) => [l.name, l.markers ? Array.from(l.markers.out) : []])),
   /** Sum of the position buffers' versions: constant on the GPU path (no per-frame vertex upload). */

@@ -3,7 +3,7 @@
 // lungdeform.playback.tracefeed) the real served document is checked too; skipped without it.
 import { readFileSync } from 'node:fs';
 import { describe, expect, it } from 'vitest';
-import { latencyText, liveSeries, loadTrace, parseTrace, pushEvent, pushSample, sampleIndex, traceTime, traceVolumeAt, valuesText } from '../src/trace';
+import { beamText, gateAt, gateText, latencyText, liveSeries, loadTrace, parseTrace, pushEvent, pushSample, sampleIndex, traceTime, traceVolumeAt, valuesText } from '../src/trace';
 
 /** A served document: n samples dt apart from t0, measured = 2400 + i, predicted = 2400 + 2i. */
 function doc(n: number, dt = 0.1, t0 = 0.5, predictMs = 400) {
@@ -95,6 +95,55 @@ describe('live feed', () => {
   });
 });
 
+describe('gate', () => {
+  /** doc(n) with a gate: beam on at even samples; the interval unknown (null) for the first two. */
+  function gated(n: number) {
+    const d = doc(n) as ReturnType<typeof doc> & { trace: { gate?: unknown } };
+    const idx = Array.from({ length: n }, (_, i) => i);
+    d.trace.gate = { window: 'end-exhale:30', rule: 'predicted window probability >= 0.5', coverage: 0.9,
+      amplitude: idx.map((i) => i / 10), predicted: idx.map((i) => i / 10 + 1),
+      lo: idx.map((i) => (i < 2 ? null : i / 10 + 0.5)), hi: idx.map((i) => (i < 2 ? null : i / 10 + 1.5)),
+      window_low: idx.map(() => null), window_high: idx.map(() => 0.9), probability: idx.map(() => null),
+      beam_on: idx.map((i) => i % 2 === 0) };
+    return d;
+  }
+  it('reads null as an open window edge or an interval not yet learned', () => {
+    const s = parseTrace(gated(10))!;
+    // playback 0.25 s = trace time 0.75 s: sample 2 (t 0.7 s), beam on, interval [0.7, 1.7]
+    expect(gateAt(s, 0.25)).toEqual({ index: 2, beamOn: true, predicted: 1.2, lo: 0.7, hi: 1.7, windowLow: -Infinity, windowHigh: 0.9 });
+    expect(beamText(s, 0.25)).toBe('BEAM ON (for t + 400 ms)');
+    expect(beamText(s, 0.35)).toBe('BEAM OFF (for t + 400 ms)');
+    expect(gateText(s, 0.25)).toBe('90 % interval [0.70, 1.70] mm   window end-exhale:30 [−∞, 0.90] mm');
+    expect(gateText(s, 0.05)).toMatch(/^90 % interval not yet learned/);
+    expect(Number.isNaN(gateAt(s, 0.05)!.lo)).toBe(true);
+  });
+  it('is absent without prediction, and refuses a bad one naming the field', () => {
+    expect(gateAt(parseTrace(doc(5))!, 0)).toBeNull();
+    expect(beamText(parseTrace(doc(5))!, 0)).toBe('');
+    const bad = gated(5);
+    (bad.trace.gate as { beam_on: unknown[] }).beam_on[1] = 1;
+    expect(() => parseTrace(bad)).toThrow(/"gate.beam_on" must be a list of 5 booleans/);
+    const short = gated(5);
+    (short.trace.gate as { lo: unknown[] }).lo.pop();
+    expect(() => parseTrace(short)).toThrow(/"gate.lo" must be a list of 5 numbers or nulls/);
+  });
+  it('live: the gate of each event goes into buffers allocated once', () => {
+    const meta = { url: 'live', predict_ms: 300, ahead_s: 0.3, tidal_volume_ml: 500, v_ee_ml: 2400, source: 'stdin',
+                   gate: { window: 'end-exhale:30', rule: 'r', coverage: 0.9 } };
+    const s = liveSeries(meta, 4);
+    const buf = s.gate!.lo;
+    for (let i = 0; i < 5; i++) {
+      pushEvent(s, JSON.stringify({ t_s: i, measured_ml: 2400, predicted_ml: 2400, ahead_s: 0.3, gate: {
+        amplitude: i, predicted: i + 1, lo: i === 0 ? null : i, hi: i + 2, window_low: null, window_high: 1, beam_on: i === 4 } }));
+    }
+    // capacity 4: samples 2, 3, 4 remain in the same buffers; the newest (beam on) is shown
+    expect(s.gate!.lo).toBe(buf);
+    expect(Array.from(s.gate!.lo.subarray(0, 3))).toEqual([2, 3, 4]);
+    expect(gateAt(s, 0)).toEqual({ index: 2, beamOn: true, predicted: 5, lo: 4, hi: 6, windowLow: -Infinity, windowHigh: 1 });
+    expect(beamText(s, 0)).toBe('BEAM ON (for t + 300 ms)');
+  });
+});
+
 const served = process.env.LUNGDEFORM_TRACE;
 describe.skipIf(!served)('the served /trace.json', () => {
   it('plays predicted - V_EE at each sample time and says its horizon', () => {
@@ -106,5 +155,18 @@ describe.skipIf(!served)('the served /trace.json', () => {
       expect(traceVolumeAt(s, 0.5 * (s.t[i] + s.t[i + 1]) - s.t[0], tr.tidal_volume_ml)).toBeCloseTo(tr.predicted_ml[i] - tr.v_ee_ml, 9);
     }
     expect(latencyText(s)).toBe(`predicting ${tr.predict_ms} ms ahead (compensates ${tr.predict_ms} ms of display latency)`);
+  });
+  it('carries the gate of --predict-ms: per sample the beam decision and the interval as served', () => {
+    const raw = JSON.parse(readFileSync(served!, 'utf-8'));
+    const s = parseTrace(raw)!;
+    const g = raw.trace.gate;
+    expect(s.gate).not.toBeNull();
+    for (let i = 0; i < s.t.length - 1; i += 7) {
+      const at = gateAt(s, 0.5 * (s.t[i] + s.t[i + 1]) - s.t[0])!;
+      expect(at.index).toBe(i);
+      expect(at.beamOn).toBe(g.beam_on[i]);
+      expect(at.lo).toBe(g.lo[i] ?? Number.NaN);
+      expect(at.windowHigh).toBe(g.window_high[i] ?? Number.POSITIVE_INFINITY);
+    }
   });
 });

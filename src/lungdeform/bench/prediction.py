@@ -1,5 +1,8 @@
 """Cost per sample of the breathing predictors (``lungdeform bench predict``), against the linear
 autoregressive baseline and no prediction timed in the same run, and against the 100 Hz budget.
+Methods: ``model``, ``model_intervals`` (the model with its conformal interval,
+:mod:`lungdeform.breathing.predict_interval`), ``gate`` (the live beam gate of ``stream --gate``:
+window, interval, window probability and decision), ``linear``, ``none``.
 
 The stream is a synthetic breath (a seeded, slightly irregular 0.25 Hz cycle with sensor noise) at
 ``rate_hz``; every sample goes through :meth:`update` of each predictor in turn, and the time of each
@@ -15,7 +18,9 @@ import time
 
 import numpy as np
 
+from lungdeform.breathing.gating import BeamGate
 from lungdeform.breathing.predict import BlendPredictor, LastSample, baseline_linear
+from lungdeform.breathing.predict_interval import IntervalPredictor
 from lungdeform.errors import InputError
 
 
@@ -49,7 +54,8 @@ def bench_predict(seconds: float = 300.0, rate_hz: float = 100.0, horizon_ms: fl
                          f"got {seconds!r}, {rate_hz!r}, {horizon_ms!r}")
     t, x = synthetic_breath(seconds, rate_hz)
     h = horizon_ms / 1000.0
-    makers = {"model": lambda: BlendPredictor(h), "linear": lambda: baseline_linear(h, dt_s=1.0 / rate_hz),
+    makers = {"model": lambda: BlendPredictor(h), "model_intervals": lambda: IntervalPredictor(BlendPredictor(h)),
+              "gate": lambda: BeamGate(h), "linear": lambda: baseline_linear(h, dt_s=1.0 / rate_hz),
               "none": lambda: LastSample(h)}
     times = {name: _time_updates(make(), t, x, warm_s) for name, make in makers.items()}
     linear = float(np.median(times["linear"]))

@@ -4,7 +4,9 @@ Owns: :mod:`~lungdeform.breathing.pv` (the single-compartment PV model and its s
 :mod:`~lungdeform.breathing.inversion` (its fit to a measured trace), :mod:`~lungdeform.breathing.presets`
 (named breathing patterns with their sources), :mod:`~lungdeform.breathing.trace` (trace readers),
 :mod:`~lungdeform.breathing.cycles` (cycle detection), :mod:`~lungdeform.breathing.holdout` (held-out
-scoring), :mod:`~lungdeform.breathing.stream` (causal streaming),
+scoring), :mod:`~lungdeform.breathing.stream` (causal streaming), :mod:`~lungdeform.breathing.predict`
+(causal prediction), :mod:`~lungdeform.breathing.predict_interval` (its online conformal intervals),
+:mod:`~lungdeform.breathing.gating` (the gating window and the beam decision),
 :mod:`~lungdeform.breathing.curve_models` (Lujan and Fourier curves to compare against) and
 :mod:`~lungdeform.breathing.run` (a preset run or a trace fit with its curve, metrics and plots).
 

@@ -11,7 +11,9 @@ The estimator is causal and O(1) per sample (amortised):
 3. volume = V_EE + V_T·(filtered − min)/(max − min), mL; scale s = (V − V_EE)/ΔV for playback.
 
 With ``predict_ms`` > 0, each raw sample is first replaced by the causal prediction of the signal
-``predict_ms`` later (:class:`lungdeform.breathing.predict.BlendPredictor`), so the volume shown when a
+``predict_ms`` later (:class:`lungdeform.breathing.predict.BlendPredictor`; with ``gate``, the same
+model inside :class:`lungdeform.breathing.gating.BeamGate`, which also gives the interval and the beam
+decision for ``predict_ms`` later), so the volume shown when a
 frame reaches the eye (or a beam) is the one the patient then has; ``StreamSample.ahead_s`` says how far
 ahead it is.
 
@@ -33,6 +35,7 @@ from scipy.ndimage import maximum_filter1d, minimum_filter1d
 from lungdeform.errors import InputError
 
 from .cycles import smooth
+from .gating import BeamGate, GateRule, GateSample
 from .predict import BlendPredictor
 
 #: The longest prediction horizon (ms) the estimator, ``lungdeform stream`` and ``lungdeform view``
@@ -49,7 +52,9 @@ MAX_VOLUME_ML = 20000.0
 class StreamSample:
     """t_s : s; amplitude : the filtered surrogate (trace unit); volume_ml : mL; scale : (V − V_EE)/ΔV
     (NaN without ``unit_ml``); warm : True once a full calibration window has been seen; ahead_s : s,
-    the time after ``t_s`` the estimate is for (the prediction horizon; 0 without prediction)."""
+    the time after ``t_s`` the estimate is for (the prediction horizon; 0 without prediction); gate :
+    with ``gate``, the beam decision for ``t_s + ahead_s`` with the prediction's interval (raw signal
+    units)."""
 
     t_s: float
     amplitude: float
@@ -57,13 +62,15 @@ class StreamSample:
     scale: float
     warm: bool
     ahead_s: float = 0.0
+    gate: GateSample | None = None
 
 
 class StreamingVolumeEstimator:
     """Causal amplitude → volume estimator (see module doc). Call :meth:`update` once per sample."""
 
     def __init__(self, tidal_volume_ml: float = 500.0, v_ee_ml: float = 2400.0, window_s: float = 10.0,
-                 smoothing_s: float = 0.05, unit_ml: float | None = None, predict_ms: float = 0.0):
+                 smoothing_s: float = 0.05, unit_ml: float | None = None, predict_ms: float = 0.0,
+                 gate: GateRule | None = None):
         if not (math.isfinite(float(tidal_volume_ml)) and 0 < float(tidal_volume_ml) <= MAX_VOLUME_ML):
             raise InputError(f"tidal_volume_ml must be a finite volume in (0, {MAX_VOLUME_ML:g}] mL, "
                              f"got {tidal_volume_ml!r}")
@@ -84,6 +91,9 @@ class StreamingVolumeEstimator:
         if not (math.isfinite(float(predict_ms)) and 0.0 <= float(predict_ms) <= MAX_PREDICT_MS):
             raise InputError(f"predict_ms must be in [0, {MAX_PREDICT_MS:g}] ms, got {predict_ms!r}")
         self.predict_ms = float(predict_ms)
+        if gate is not None and self.predict_ms <= 0:
+            raise InputError("gating needs predict_ms > 0: the beam's latency, the horizon its decision is for")
+        self.gate = gate
         self.reset()
 
     def reset(self) -> None:
@@ -92,7 +102,9 @@ class StreamingVolumeEstimator:
         self._s1 = self._s2 = 0.0
         self._min: deque = deque()
         self._max: deque = deque()
-        self._predictor = BlendPredictor(self.predict_ms / 1000.0) if self.predict_ms > 0 else None
+        self._predictor = BlendPredictor(self.predict_ms / 1000.0) if self.predict_ms > 0 and self.gate is None \
+            else None
+        self._gate = BeamGate(self.predict_ms / 1000.0, self.gate) if self.gate is not None else None
 
     def update(self, t_s: float, amplitude: float) -> StreamSample:
         """Feed one sample (time s, amplitude in the trace unit); returns the estimate for it."""
@@ -103,9 +115,12 @@ class StreamingVolumeEstimator:
         if not (abs(t) <= MAX_SAMPLE and abs(x) <= MAX_SAMPLE):
             raise InputError(f"stream sample at t={t:g} s, amplitude {x:g}: beyond ±{MAX_SAMPLE:g} (a corrupt "
                              f"or mis-scaled feed)")
-        if self._predictor is not None:
-            if self._t is not None and t <= self._t:
-                raise InputError(f"stream time must increase: got t={t:.6g} s after t={self._t:.6g} s")
+        if (self._predictor is not None or self._gate is not None) and self._t is not None and t <= self._t:
+            raise InputError(f"stream time must increase: got t={t:.6g} s after t={self._t:.6g} s")
+        gate = self._gate.update(t, x) if self._gate is not None else None
+        if gate is not None:
+            x = gate.predicted
+        elif self._predictor is not None:
             x = self._predictor.update(t, x)
         if self._t is None:
             self._t0 = t
@@ -131,7 +146,7 @@ class StreamingVolumeEstimator:
         frac = (y - lo) / span if span > 0 else 0.0
         volume = self.v_ee_ml + self.tidal_volume_ml * frac
         scale = (volume - self.v_ee_ml) / self.unit_ml if self.unit_ml else float("nan")
-        return StreamSample(t, y, volume, scale, t - self._t0 >= self.window_s, self.predict_ms / 1000.0)
+        return StreamSample(t, y, volume, scale, t - self._t0 >= self.window_s, self.predict_ms / 1000.0, gate)
 
 
 def replay(t_s, amplitude, estimator: StreamingVolumeEstimator, clock=time.perf_counter):

@@ -81,7 +81,7 @@ def register(apps) -> None:
         say(f"streaming {seconds:g} s of a synthetic breath at {rate_hz:g} Hz through each predictor")
         rows = bench_predict(seconds, rate_hz, horizon_ms)
         for r in rows:
-            typer.echo(f"{r['method']:>7}: {r['seconds'] * 1e6:8.1f} µs/sample median (p99 "
+            typer.echo(f"{r['method']:>15}: {r['seconds'] * 1e6:8.1f} µs/sample median (p99 "
                        f"{r['p99_seconds'] * 1e6:.1f} µs), ×{r['ratio_to_linear']:.2f} the linear baseline, "
                        f"{100 * r['budget_fraction']:.2f} % of the {1000 / r['rate_hz']:g} ms between samples")
         if json_path:

@@ -16,7 +16,7 @@ import typer
 from lungdeform.atomic import write_json
 from lungdeform.constants import GRAVITY
 from lungdeform.errors import InputError
-from lungdeform.io.image import MAX_VOXELS, MAX_VOXELS_ENV, voxel_limit
+from lungdeform.io.grid import MAX_VOXELS, MAX_VOXELS_ENV, voxel_limit
 from lungdeform.playback.dvf import FieldResult, State, scan_state, volume_state
 from lungdeform.playback.schedule import check_reachable, read_volume_csv
 
@@ -51,7 +51,7 @@ MAX_VOXELS_HELP = (f"Largest image grid read or written, in voxels (default {MAX
 
 def set_max_voxels(value: str | None) -> None:
     """``--max-voxels``: the grid-size cap of every image read or written
-    (:func:`lungdeform.io.image.voxel_limit`), passed on as :data:`~lungdeform.io.image.MAX_VOXELS_ENV`
+    (:func:`lungdeform.io.grid.voxel_limit`), passed on as :data:`~lungdeform.io.grid.MAX_VOXELS_ENV`
     so that worker processes (cohort) see it too. None leaves it as it is."""
     if value is None:
         return

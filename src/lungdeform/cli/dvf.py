@@ -6,6 +6,10 @@ from pathlib import Path
 
 import typer
 
+from lungdeform.errors import InputError
+from lungdeform.io.dicom.guard import is_dicom_file
+from lungdeform.io.dicom.registration import check_pair, write_registration
+from lungdeform.io.dicom.rtstruct import read_ct_series
 from lungdeform.io.image import read_image, write_image, write_suffix
 from lungdeform.io.modelfile import load_model
 from lungdeform.playback import dvf as D
@@ -23,6 +27,8 @@ def register(apps) -> None:
         volume_ml: float | None = typer.Option(None, "--volume-ml", callback=bounded(0, MAX_LUNGS_ML, "mL", low_open=True), help="Absolute volume of the model's lungs together (mL)."),
         scan: int | None = typer.Option(None, "--scan", help="Input scan K of the fit (0 = rest): its volume, in its own frame."),
         inverse: bool = typer.Option(False, "--inverse", help="Write the resampling field (ITK/elastix convention) instead of the forward one."),
+        out_reg: Path | None = typer.Option(None, "--out-reg", help="Also write the field as a DICOM Deformable Spatial Registration object (fixed: --reference, a DICOM CT series; docs/RADIOTHERAPY.md)."),
+        moving: Path | None = typer.Option(None, "--moving", help="With --out-reg: the moving state's DICOM series (e.g. a phase of 'warp --phases'), of --reference's patient and Frame of Reference."),
         node_mm: float = typer.Option(D.NODE_SPACING_MM, "--node-mm", callback=bounded(0, D.MAX_NODE_MM, "mm", low_open=True), help="Lattice spacing (mm) at which the interior field is evaluated."),
     ) -> None:
         """Displacement field of the model at a breathing state (docs/RADIOTHERAPY.md).
@@ -32,8 +38,11 @@ def register(apps) -> None:
 
         write_suffix(out)
         check_output(out, [model, reference])
+        if out_reg is not None:
+            check_output(out_reg, [model, reference, moving, out], option="--out-reg")
         m = load_model(model)
         state = pick_state(m, volume_ml, scan)
+        series = _registration_series(reference, moving, inverse, state) if out_reg else None
         image = read_image(reference)
         note = extrapolation_note(m, [state.delta_ml])
         if note:
@@ -46,3 +55,23 @@ def register(apps) -> None:
         for line in field_lines(result):
             typer.echo(line)
         typer.echo(f"wrote {out}")
+        if series is not None:
+            write_registration(out_reg, result.field, image, *series, description=f"lungdeform {state.source}")
+            typer.echo(f"wrote {out_reg}")
+
+
+def _registration_series(reference: Path, moving: Path | None, inverse: bool, state):
+    """The fixed and moving series of ``--out-reg``, checked before the field is evaluated: the
+    REG holds the forward field (fixed → moving, docs/RADIOTHERAPY.md), so --inverse is refused; a
+    state in a fitted scan's own frame (an alignment) needs that scan's series as --moving."""
+    if inverse:
+        raise InputError("--out-reg holds the forward field (fixed → moving, DICOM's resampling direction); "
+                         "drop --inverse")
+    if not (reference.is_dir() or is_dicom_file(reference)):
+        raise InputError(f"--out-reg needs --reference to be a DICOM CT series (the fixed one), got {reference}")
+    if moving is None and state.alignment is not None:
+        raise InputError("--out-reg: this state lies in a fitted scan's own frame; give that scan's series as --moving")
+    fixed = read_ct_series(reference)
+    mov = None if moving is None else read_ct_series(moving)
+    check_pair(fixed, mov)
+    return fixed, mov

@@ -14,6 +14,7 @@ import typer
 from lungdeform.errors import InputError
 from lungdeform.evaluate.pipeline import check_prior, run_fit
 from lungdeform.fit.config import FitConfig, FitInputs
+from lungdeform.fit.cycle import HysteresisPair
 from lungdeform.interior.motion_prior import load_prior
 
 from .common import (
@@ -35,7 +36,7 @@ FIT_FILES = ("model.npz", "metrics.json", "report.html", "landmarks.npz")
 def register(apps) -> None:
     @apps.root.command("fit")
     def fit_command(
-        inputs: list[Path] = typer.Argument(..., help="Surfaces, masks or CTs of one lung, end-exhale first, volumes increasing; or one folder holding a 4-D CT (all phases, docs/FITTING.md)."),
+        inputs: list[Path] = typer.Argument(..., help="Surfaces, masks or CTs of one lung, end-exhale first, volumes increasing (equal ones allowed); or one folder holding a 4-D CT (all phases of a cycle, docs/FITTING.md, \"4-D CT input\")."),
         out: Path = typer.Option(..., "--out", help="Output folder: model.npz, metrics.json, report.html."),
         side: str = typer.Option(..., "--side", help="'left' or 'right'."),
         side_check: bool = typer.Option(True, "--side-check/--no-side-check", help=SIDE_CHECK_HELP),
@@ -50,9 +51,10 @@ def register(apps) -> None:
         folds: int = typer.Option(5, "--folds", help="Folds of the landmark cross-validation."),
         direction_degree: int = typer.Option(3, "--direction-degree", help=DIRECTION_DEGREE_HELP),
         landmark_comparisons: bool = typer.Option(False, "--landmark-comparisons", help="With --landmarks: also the landmark-informed fits of c1…c9 (k-fold, slow) as comparison rows."),
-        align: str = typer.Option("apex", "--align", help="apex: rigid alignment on the apex cap (scans with a table shift); "
+        align: str = typer.Option("auto", "--align", help="auto (default): none when every phase of a 4-D CT shares one DICOM "
+                                  "Frame of Reference, else apex; apex: rigid alignment on the apex cap (scans with a table shift); "
                                   "joint: a translation per target fitted with the constants, started from apex; "
-                                  "none: inputs already in one frame (e.g. synthetic)."),
+                                  "none: inputs already in one frame (e.g. synthetic). docs/FITTING.md, \"4-D CT input\"."),
         interior: str = typer.Option("auto", "--interior",
                                      help="Surface part of the interior field: correspondence (a smooth map of the "
                                           "end-exhale lung onto the largest volume's), sliding (the sliding "
@@ -87,6 +89,17 @@ def register(apps) -> None:
             m = run_fit(fit_inputs, folder, config, progress=say, prior=prior)
         for text in m.get("notes") or []:
             typer.echo(f"note: {text}")
+        choice = m["alignment_choice"]
+        typer.echo(f"alignment: {choice['used']} ({choice['why']})")
+        for pair in (m.get("cycle") or {}).get("hysteresis", []):
+            typer.echo(f"hysteresis: {hysteresis_line(pair)}")
+        if m.get("cycle") and not m["cycle"]["hysteresis"]:
+            typer.echo("hysteresis: no phase on the exhale branch (volumes monotone in phase order)")
         print_fit_table(m)
         typer.echo(f"wrote {folder / 'model.npz'}, {folder / 'metrics.json'}, {folder / 'report.html'}")
         print_fit_warnings(m)
+
+
+def hysteresis_line(pair: dict) -> str:
+    """One line of ``metrics["cycle"]["hysteresis"]`` (:class:`lungdeform.fit.cycle.HysteresisPair`)."""
+    return HysteresisPair(**pair).line()

@@ -24,7 +24,7 @@ import typer
 
 from lungdeform import __version__
 from lungdeform.errors import LungdeformError
-from lungdeform.io.image import MAX_VOXELS_ENV
+from lungdeform.io.grid import MAX_VOXELS_ENV
 
 from .common import MAX_VOXELS_HELP, VERBOSE, set_max_voxels
 
@@ -41,6 +41,7 @@ COMMAND_MODULES = [
     "lungdeform.cli.breathe",
     "lungdeform.cli.validate_breathing",
     "lungdeform.cli.validate_prediction",
+    "lungdeform.cli.validate_gating",
     "lungdeform.cli.stream",
     "lungdeform.cli.fit",
     "lungdeform.cli.validate_itk",

@@ -9,15 +9,15 @@ import typer
 
 from lungdeform.breathing.presets import get_preset
 from lungdeform.errors import InputError
-from lungdeform.io.dicomseries import MAX_PHASES
-from lungdeform.io.modelfile import load_model
-from lungdeform.io.rtstruct import (
+from lungdeform.io.dicom.rtstruct import (
     build_rtstruct,
     check_roi_name,
     check_structure_on_ct,
     read_ct_series,
     save_rtstruct,
 )
+from lungdeform.io.dicom.series import MAX_PHASES
+from lungdeform.io.modelfile import load_model
 from lungdeform.playback import schedule as S
 from lungdeform.playback import structures as R
 from lungdeform.playback import trajectory as T

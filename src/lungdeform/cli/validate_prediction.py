@@ -44,12 +44,21 @@ def register(apps) -> None:
             cells = [figure_or_na(v, 3) for v in (a["model_over_linear"], a["model_over_none"],
                                                     a["linear_over_none"], q["model_over_none"])]
             typer.echo(f"  {h:>5} ms   {cells[0]:>12}   {cells[1]:>10}   {cells[2]:>11}   {cells[3]:>16}")
+        typer.echo("90 % intervals, medians over traces (width: mean width / RMS of no prediction):")
+        typer.echo("  horizon   coverage   width   linear coverage   linear width   score/linear")
+        for h in m["horizons_ms"]:
+            a = m["medians"][str(h)]
+            cells = [figure_or_na(a[k], 3) for k in ("coverage", "width_over_none_rms", "linear_coverage",
+                                                     "linear_width_over_none_rms", "interval_score_over_linear")]
+            typer.echo(f"  {h:>5} ms   {cells[0]:>8}   {cells[1]:>5}   {cells[2]:>15}   {cells[3]:>12}   {cells[4]:>12}")
         t = m["targets"]
-        lin, quiet = t["model_over_linear_every_horizon"], t["quiet_model_over_none"]
+        lin, quiet, cov = t["model_over_linear_every_horizon"], t["quiet_model_over_none"], t["coverage_every_horizon"]
+        typer.echo(f"target coverage in {cov['range'][0]:g}-{cov['range'][1]:g} at every horizon: "
+                   f"{'met' if cov['met'] else 'not met'}")
         typer.echo(f"target model/linear <= {lin['threshold']} at every horizon: "
                    f"{'met' if lin['met'] else 'not met'} (worst {figure_or_na(lin['worst'], 3)})")
         typer.echo(f"target quiet model/none <= {quiet['threshold']} at {TARGET_QUIET_HORIZON_MS} ms: "
                    f"{'met' if quiet['met'] else 'not met'} ({figure_or_na(quiet['value'], 3)})")
         typer.echo(f"wrote {Path(out) / 'metrics.json'} and {len(m['plots'])} plots in {Path(out) / 'plots'}")
-        if strict and not (lin["met"] and quiet["met"]):
+        if strict and not (lin["met"] and quiet["met"] and cov["met"]):
             raise typer.Exit(STRICT_EXIT)

@@ -1,7 +1,10 @@
 """``lungdeform view``: serve the browser viewer for a model or a .glb on a loopback address; with
 ``--trace TRACE [--predict-ms H]`` the viewer plays a recorded breathing trace in trace time, showing
 the volume the streaming estimator predicts H ms ahead (docs/PREDICTION.md); ``--trace -`` reads
-``t_s,amplitude`` lines from stdin and pushes each estimate to the page as it arrives."""
+``t_s,amplitude`` lines from stdin and pushes each estimate to the page as it arrives. With
+``--predict-ms`` the page also shows the beam gate for that latency (``lungdeform stream --gate``:
+the window, the prediction's interval band, BEAM ON/OFF; docs/VIEWER.md), set by ``--window``,
+``--confident`` and ``--coverage``."""
 
 from __future__ import annotations
 
@@ -12,6 +15,8 @@ from pathlib import Path
 
 import typer
 
+from lungdeform.breathing.gating import GateRule, parse_window
+from lungdeform.breathing.predict_interval import IntervalConfig
 from lungdeform.breathing.stream import MAX_PREDICT_MS
 from lungdeform.errors import InputError
 from lungdeform.playback.server import ViewerServer, model_glb
@@ -40,14 +45,27 @@ def register(apps) -> None:
         predict_ms: float = typer.Option(0.0, "--predict-ms", callback=bounded(0, MAX_PREDICT_MS, "ms"),
                                          help="With --trace: show the volume predicted this many ms ahead "
                                               f"(0-{MAX_PREDICT_MS:g}), compensating that display latency."),
+        window: str | None = typer.Option(None, "--window", help="With --predict-ms: the gating window KIND:PERCENT "
+                                                                   "(default end-exhale:30)."),
+        confident: bool = typer.Option(False, "--confident", help="With --predict-ms: beam on only when the whole "
+                                                                  "interval is inside the window."),
+        coverage: float | None = typer.Option(None, "--coverage", help="With --predict-ms: the interval's coverage "
+                                                                       "(0-1, default 0.9)."),
         open_browser: bool = typer.Option(False, "--open", help="Open the default web browser."),
     ) -> None:
         """Show both lungs breathing in the browser (three.js, deformation on the GPU, WebXR)."""
 
 
-        live = LiveFeed(predict_ms) if str(trace) == "-" else None
-        check_view_options(model, trace, curve, predict_ms)  # before the model is exported
-        feed = live_json(live) if live is not None else view_trace_json(model, trace, curve, predict_ms)
+        rule = None
+        if window is not None or confident or coverage is not None:
+            try:
+                interval = IntervalConfig(coverage=0.9 if coverage is None else coverage)
+            except InputError as exc:
+                raise InputError(f"--coverage: {exc}") from None
+            rule = GateRule(parse_window(window or "end-exhale:30"), confident, interval=interval)
+        check_view_options(model, trace, curve, predict_ms, rule)  # before the model is exported
+        live = LiveFeed(predict_ms, rule) if str(trace) == "-" else None
+        feed = live_json(live) if live is not None else view_trace_json(model, trace, curve, predict_ms, rule)
         glb = model_glb(model, curve, markers)
         # /presets.json: lungdeform.breathing.presets; /trace.json: the trace; /live: the live feed
         server = ViewerServer(glb, host=host, port=port, trace=feed, live=live,

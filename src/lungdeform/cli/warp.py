@@ -8,7 +8,7 @@ import typer
 
 from lungdeform.atomic import atomic_dir, atomic_paths
 from lungdeform.errors import InputError
-from lungdeform.io import dicomseries as DS
+from lungdeform.io.dicom import series as DS
 from lungdeform.io.image import WRITE_SUFFIXES, read_image, resample_image, write_image, write_suffix
 from lungdeform.io.modelfile import load_model
 from lungdeform.playback import dvf as D

@@ -20,7 +20,7 @@ Format (UTF-8, comma-separated, header row required; column order free)::
 
 Rows are numbered as a spreadsheet shows them: the header is row 1.
 
-A job may also be one row naming a folder that holds a 4-D CT (every phase, :mod:`lungdeform.io.fourdct`;
+A job may also be one row naming a folder that holds a 4-D CT (every phase, :mod:`lungdeform.io.dicom.fourdct`;
 ``volume_ml`` and ``landmarks`` empty): its phases are the scans, measured and ordered by the fit.
 
 One job is one (subject, side) with two or more scans, end-exhale first: ordered by volume, or,

@@ -4,7 +4,7 @@
 :func:`lungdeform.segment.lungs.segment_lungs`) into a full-resolution surface; for images it notes
 the border faces the mask touches (crop faces, :func:`lungdeform.fit.align.crop_planes`) and checks
 that all images share one voxel spacing. It then checks that the inputs are one lung of the given
-side with volumes strictly increasing, and reads the landmarks (refused outside their image,
+side with volumes increasing from the end-exhale one (later inputs may share a volume), and reads the landmarks (refused outside their image,
 reported when they lie outside their own lung mask). A mask holding both lungs in one label gives the
 side's lung of its split (:mod:`lungdeform.segment.split`); with landmarks, only the rows in that
 lung are kept (noted, with how many were dropped).
@@ -21,13 +21,15 @@ import numpy as np
 from lungdeform.errors import InputError, ReadError
 from lungdeform.fit.align import CropPlane, crop_planes
 from lungdeform.fit.config import FitInputs
+from lungdeform.fit.cycle import hysteresis, volume_order
 from lungdeform.geometry.distance import point_to_surface
 from lungdeform.geometry.frame import check_side
 from lungdeform.geometry.mesh import Surface, winding_numbers
 from lungdeform.io import mask as M
 from lungdeform.io import meshfile as lio
-from lungdeform.io.fourdct import read_phases
-from lungdeform.io.image import Image, is_image_path, read_image
+from lungdeform.io.dicom.fourdct import frame_of_reference, read_phases
+from lungdeform.io.grid import Image
+from lungdeform.io.image import is_image_path, read_image
 from lungdeform.io.landmarks import read_elastix_points
 from lungdeform.segment.ct import archive_in, is_archive, read_ct
 from lungdeform.segment.lungs import segment_lungs
@@ -62,6 +64,10 @@ class ReadInputs:
         a 4-D CT's phase order and volumes).
     paths : list of str
         What each input is, in fit order (its path; a 4-D CT's phases as ``"<folder> [<label>]"``).
+    cycle : dict or None
+        For a 4-D CT (:mod:`lungdeform.fit.cycle`): ``phases`` (label, volume mL, in phase order),
+        ``frame_of_reference`` (the UID all phases share, or None) and ``hysteresis`` (one dict per
+        exhale-branch phase, :class:`~lungdeform.fit.cycle.HysteresisPair`); None otherwise.
     """
 
     surfaces: list[Surface]
@@ -73,6 +79,7 @@ class ReadInputs:
     warnings: list[str]
     notes: list[str] = field(default_factory=list)
     paths: list[str] = field(default_factory=list)
+    cycle: dict | None = None
 
 
 def read_inputs(inputs: FitInputs, side_check: bool = True,
@@ -81,8 +88,9 @@ def read_inputs(inputs: FitInputs, side_check: bool = True,
     whose shape says the other side (:func:`lungdeform.geometry.frame.check_side`)."""
 
     say = progress or (lambda _m: None)
+    cycle = None
     if len(inputs.paths) == 1:  # one 4-D CT folder: its phases, in the order of their volumes
-        paths, read, notes4d = read_fourdct(Path(inputs.paths[0]), inputs.side, say)
+        paths, read, notes4d, cycle = read_fourdct(Path(inputs.paths[0]), inputs.side, say)
     else:
         paths, read, notes4d = list(inputs.paths), [], []
         first_image = None  # every image is checked against the first one's spacing as soon as it is read
@@ -109,14 +117,17 @@ def read_inputs(inputs: FitInputs, side_check: bool = True,
             check_landmarks(pts, image, p)
             warnings += landmark_mask_warnings(pts, image, surface, p)
     return ReadInputs(surfaces, [r[1] for r in read], images, volumes, given, landmarks, warnings, notes,
-                      [str(p) for p in paths])
+                      [str(p) for p in paths], cycle)
 
 
-def read_fourdct(folder: Path, side: str, progress) -> tuple[list[str], list[tuple], list[str]]:
-    """The phases of the 4-D CT in ``folder`` (:func:`lungdeform.io.fourdct.read_phases`) as inputs:
-    ``(names, read_input results, notes)``, each phase's ``side`` lung segmented, the phases ordered
-    by their lung's volume (end-exhale, the smallest, first: the model is a function of volume). The
-    notes give the phase order and each phase's volume (mL)."""
+def read_fourdct(folder: Path, side: str, progress) -> tuple[list[str], list[tuple], list[str], dict]:
+    """The phases of the 4-D CT in ``folder`` (:func:`lungdeform.io.dicom.fourdct.read_phases`) as inputs:
+    ``(names, read_input results, notes, cycle)``, each phase's ``side`` lung segmented, the phases
+    ordered by their lung's volume (end-exhale, the smallest, first: the model is a function of
+    volume; equal volumes kept, in phase order, :func:`lungdeform.fit.cycle.volume_order`). A phase
+    of exactly the end-exhale volume is no target (the model cannot move at zero volume change):
+    left out, noted, still measured in the hysteresis. The notes give the phase order and each
+    phase's volume (mL); ``cycle``: :attr:`ReadInputs.cycle`."""
 
     progress(f"reading the 4-D CT {folder}")
     phases = read_phases(folder)
@@ -126,11 +137,21 @@ def read_fourdct(folder: Path, side: str, progress) -> tuple[list[str], list[tup
         read.append(image_input(ph.image, ph.image.source, side, progress=progress, spacing_like=first))
         first = first or (ph.image.source, read[-1][2])
     volumes = [r[0].volume_ml for r in read]
-    order = sorted(range(len(phases)), key=lambda i: volumes[i])
+    order = volume_order([ph.key for ph in phases], volumes)
+    tied = [i for i in order[1:] if volumes[i] <= volumes[order[0]]]
+    order = [i for i in order if i not in tied]
     by_phase = ", ".join(f"{ph.label} {v:.1f} mL" for ph, v in zip(phases, volumes))
     notes = [f"{folder}: 4-D CT of {len(phases)} phases; {side} lung by phase: {by_phase}",
-             f"{folder}: phases fitted in the order of their volume: {', '.join(phases[i].label for i in order)}"]
-    return [phases[i].image.source for i in order], [read[i] for i in order], notes
+             (f"{folder}: phases fitted in the order of their volume (end-exhale first; a phase of equal volume on "
+              f"the other branch is a second target at that volume): {', '.join(phases[i].label for i in order)}")]
+    notes += [f"{folder}: phase {phases[i].label} has the end-exhale volume ({volumes[i]:.1f} mL): not a target"
+              for i in tied]
+    progress("hysteresis: exhale-branch phases against inhale-branch phases of similar volume")
+    pairs = hysteresis([ph.label for ph in phases], [r[0] for r in read], volumes)
+    cycle = {"phases": [{"label": ph.label, "volume_ml": v} for ph, v in zip(phases, volumes)],
+             "frame_of_reference": frame_of_reference([ph.files for ph in phases]),
+             "hysteresis": [p.as_dict() for p in pairs]}
+    return [phases[i].image.source for i in order], [read[i] for i in order], notes, cycle
 
 
 def read_input(path: Path, side: str, *, progress=None, spacing_like=None):
@@ -191,12 +212,17 @@ def check_sides(paths, surfaces, side: str | None) -> None:
 
 
 def check_increasing(paths, volumes_ml) -> None:
-    """Refuse volumes (mL, one per input path) that do not strictly increase."""
+    """Refuse volumes (mL, one per input path) not larger than the first (end-exhale) one, or that
+    decrease; later inputs may share a volume (two phases of a cycle, inhale and exhale)."""
 
     for i in range(1, len(volumes_ml)):
-        if not volumes_ml[i] > volumes_ml[i - 1]:
+        if not volumes_ml[i] > volumes_ml[0]:
             raise InputError(f"{paths[i]}: volume {volumes_ml[i]:.1f} mL is not larger than that of "
-                             f"{paths[i - 1]} ({volumes_ml[i - 1]:.1f} mL); volumes must increase (end-exhale first)")
+                             f"{paths[0]} ({volumes_ml[0]:.1f} mL); volumes must increase (end-exhale first)")
+        if volumes_ml[i] < volumes_ml[i - 1]:
+            raise InputError(f"{paths[i]}: volume {volumes_ml[i]:.1f} mL is smaller than that of "
+                             f"{paths[i - 1]} ({volumes_ml[i - 1]:.1f} mL); volumes must increase (end-exhale "
+                             "first; equal volumes allowed)")
 
 
 def read_landmark_files(paths, images) -> list[np.ndarray]:

@@ -7,10 +7,12 @@ imports nothing from the CLI. :func:`run_fit` takes one lung's inputs
 and runs these steps, each a function of its own:
 
 1. read and check every input (:func:`lungdeform.evaluate.inputs.read_inputs`): surfaces, crop faces,
-   one side, volumes strictly increasing, landmarks inside their images; the landmark folds are
+   one side, volumes increasing from end-exhale (equal ones allowed), landmarks inside their images;
+   a 4-D CT's hysteresis measured (:mod:`lungdeform.fit.cycle`); the landmark folds are
    split (and ``folds`` checked against the landmark count) before any fitting;
 2. and 3. the model mesh (the end-exhale surface decimated) and every other surface in its frame
-   (``align``; :func:`lungdeform.evaluate.placement.place_targets`);
+   (``align``, ``"auto"`` resolved by :func:`lungdeform.fit.cycle.choose_alignment`;
+   :func:`lungdeform.evaluate.placement.place_targets`);
 4. the surface fit of c1…c9 (:func:`fit_surfaces`: :func:`lungdeform.fit.fitting.fit_lung`, and
    optionally the paper's grid search); with ``align="joint"`` its fitted translations move the
    targets (and their landmarks) before everything after it; then the surface refinement of the
@@ -36,6 +38,7 @@ import numpy as np
 from lungdeform.atomic import atomic_path, jsonable, write_json
 from lungdeform.errors import InputError
 from lungdeform.fit.config import CROP_LIMIT, FitConfig, FitInputs
+from lungdeform.fit.cycle import choose_alignment
 from lungdeform.fit.fitting import DIRECTION_HI, DIRECTION_LO, FitSettings, fit_lung, to_lung_model
 from lungdeform.fit.refinement import refine_displacement
 from lungdeform.fit.registration import surface_map_field
@@ -63,17 +66,24 @@ def run_fit(inputs: FitInputs, out: Path, config: FitConfig = FitConfig(), *,
     on landmarks held out from the correction (``folds``-fold); the surface-driven field alone is
     reported as ``model_surface_only``. ``metrics["protocols"]`` says, per method, what it saw and
     how its landmark error was measured; ``metrics["alignment"][i]["applied"]`` is the rigid
-    transform (moving → end-exhale) the fitted target went through. ``progress``: called with one
+    transform (moving → end-exhale) the fitted target went through, ``metrics["alignment_choice"]``
+    the alignment asked, used and why; for a 4-D CT ``metrics["cycle"]`` its phases, Frame of
+    Reference and hysteresis (:attr:`lungdeform.evaluate.inputs.ReadInputs.cycle`). ``progress``: called with one
     line of text per step. ``prior``: a population motion prior (:mod:`lungdeform.interior.motion_prior`)
     folded into the correspondence field (``config.interior == "correspondence"`` only)."""
 
     say = progress or (lambda _m: None)
     check_prior(config, prior)  # an explicit sliding interior: refused before any reading
+    asked_align = config.align
     t_start = time.perf_counter()
     read = read_inputs(inputs, config.side_check, say)
     # the landmark folds, split (and folds checked) once, before any fitting
     folds = (landmark_folds(len(read.landmarks[0]), config.folds)
              if read.landmarks is not None and config.landmark_fit else None)
+    frame_uid = None if read.cycle is None else read.cycle["frame_of_reference"]
+    align, why = choose_alignment(config.align, frame_uid)
+    say(f"alignment: {align} ({why})")
+    config = replace(config, align=align)  # "auto" resolved once, on the inputs read
     placed = place_targets(read, read.paths, inputs.landmarks, config.align, say)
     kind = interior_kind(placed, config)  # resolved once ("auto": on the crop faces), then passed on
     check_prior(config, prior, kind)
@@ -90,6 +100,9 @@ def run_fit(inputs: FitInputs, out: Path, config: FitConfig = FitConfig(), *,
     per_target, predictions, skipped, baseline_seconds = score_targets(placed, landmarks, fits, held, config, folds, say)
     run = FitRun(inputs, read, placed, fits, held, surface_field)
     metrics = fit_metrics(run, config, per_target, skipped, read.warnings + placed.warnings + warnings)
+    metrics["alignment_choice"] = {"asked": asked_align, "used": align, "why": why}
+    if read.cycle is not None:
+        metrics["cycle"] = read.cycle
     metrics["interior"] = {"surface_part": "sliding" if surface_field is None else "correspondence",
                            "asked": config.interior, "prior": None if prior is None else prior.as_dict()}
     metrics["seconds"] = time.perf_counter() - t_start

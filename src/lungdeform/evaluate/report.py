@@ -1,6 +1,7 @@
 """Self-contained HTML report of a fit: metrics table and PNG plots embedded as base64.
 
-Plots (drawn by :mod:`lungdeform.plot`): the error colour map on the predicted surface (shaded,
+The alignment used and, for a 4-D CT, the hysteresis table (:mod:`lungdeform.fit.cycle`) come
+first. Plots (drawn by :mod:`lungdeform.plot`): the error colour map on the predicted surface (shaded,
 from the front, the lateral side and the back; colour = distance of each model vertex to the target
 surface, mm, one scale); the cumulative distribution of those distances per method (median marked);
 the ray hit-distance histogram; bounding-box dimensions and volume / box-volume against volume
@@ -42,6 +43,24 @@ def _table(per: dict) -> str:
     return f"<table><tr><th>method</th>{head}</tr>{rows}</table>"
 
 
+def _cycle(metrics: dict) -> str:
+    """The alignment used and, for a 4-D CT, its hysteresis table (docs/FITTING.md, "4-D CT input")."""
+    choice = metrics.get("alignment_choice")
+    out = "" if choice is None else (f"<p>Alignment: <b>{html.escape(choice['used'])}</b> "
+                                     f"({html.escape(choice['why'])}).</p>")
+    pairs = (metrics.get("cycle") or {}).get("hysteresis")
+    if metrics.get("cycle") is None:
+        return out
+    if not pairs:
+        return out + "<p>Hysteresis: no phase on the exhale branch.</p>"
+    rows = "".join(f"<tr><td>{html.escape(p['exhale'])}</td><td>{p['exhale_ml']:.1f}</td><td>{html.escape(p['inhale'])}"
+                   f"</td><td>{p['inhale_ml']:.1f}</td><td>{p['mean_mm']:.2f}</td><td>{p['p95_mm']:.2f}</td>"
+                   f"<td>{p['max_mm']:.2f}</td></tr>" for p in pairs)
+    return out + ("<h2>Hysteresis (not modelled: the fit averages inhale and exhale at equal volume)</h2><table><tr>"
+                  "<th>exhale phase</th><th>mL</th><th>inhale phase</th><th>mL</th><th>mean mm</th><th>p95 mm</th>"
+                  f"<th>max mm</th></tr>{rows}</table>")
+
+
 def write_report(path, *, rest, targets, fits, predictions, metrics, headline: str = "optimizer",
                  keep=None) -> Path:
     """Write the HTML report atomically; returns the path. ``headline``: the key of ``fits`` whose
@@ -60,6 +79,7 @@ def write_report(path, *, rest, targets, fits, predictions, metrics, headline: s
              f"{metrics['model_mesh_vertices']} vertices. Surfaces measured with the crop faces left out "
              "(exact point-to-triangle distances, area weighted); landmarks moved by the sliding interpolation "
              "of each method's surface displacement (the smoothest field with its normal motion; crop faces carry no data).</p>"]
+    parts.append(_cycle(metrics))
     protocols = metrics.get("protocols", {})
     if protocols:
         parts.append("<h2>What each method saw</h2><ul>" + "".join(

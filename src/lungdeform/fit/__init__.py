@@ -1,8 +1,8 @@
 """Fitting the model to a patient: alignment, ray correspondence, the objective, the search.
 
-Owns: :mod:`~lungdeform.fit.config` (what a fit is given), :mod:`~lungdeform.evaluate.inputs` (reading and
-checking the inputs), :mod:`~lungdeform.fit.align` (rigid alignment), :mod:`~lungdeform.evaluate.placement`
-(the model mesh and the targets in its frame), :mod:`~lungdeform.fit.rays` (ray casting: where each
+Owns: :mod:`~lungdeform.fit.config` (what a fit is given), :mod:`~lungdeform.fit.cycle` (a 4-D CT's
+phases as one breathing cycle: volume order, hysteresis, the alignment chosen),
+:mod:`~lungdeform.fit.align` (rigid alignment), :mod:`~lungdeform.fit.rays` (ray casting: where each
 vertex's ray meets a target), :mod:`~lungdeform.fit.objective` (one lung's objective),
 :mod:`~lungdeform.fit.fitting` (c1…c9, stiffness and direction correction), :mod:`~lungdeform.fit.search`
 (optimiser and the paper's grid), :mod:`~lungdeform.fit.expandability` (the fitted stiffness field),

@@ -235,7 +235,7 @@ class CropPlane:
 
 
 def crop_planes(image, min_voxels: int = 1) -> list[CropPlane]:
-    """Border faces of ``image`` (a :class:`lungdeform.io.image.Image`) that its foreground touches.
+    """Border faces of ``image`` (a :class:`lungdeform.io.grid.Image`) that its foreground touches.
 
     The surface of a padded mask sits half a voxel outside the last voxel, so the plane is at
     index ``-0.5`` or ``size - 0.5`` along the axis.

@@ -21,8 +21,10 @@ from .direction_correction import DEFAULT_DEGREE
 from .fitting import MODES
 from .refinement import FINEST_MM
 
-#: Ways of bringing the larger-volume inputs into the end-exhale frame (:mod:`lungdeform.evaluate.placement`).
-ALIGN_MODES = ("apex", "joint", "none")
+#: Ways of bringing the larger-volume inputs into the end-exhale frame (:mod:`lungdeform.evaluate.placement`);
+#: ``"auto"``: ``"none"`` for inputs sharing one DICOM Frame of Reference, else ``"apex"``
+#: (:func:`lungdeform.fit.cycle.choose_alignment`).
+ALIGN_MODES = ("auto", "apex", "joint", "none")
 #: Search modes that can fit a translation per target (``align="joint"``).
 JOINT_MODES = ("optimizer", "least_squares")
 
@@ -35,7 +37,7 @@ class FitInputs:
     ----------
     paths : tuple of path
         Surface meshes, masks or CTs (a DICOM folder or archive), volumes increasing; or one folder
-        holding a 4-D CT (every phase, :mod:`lungdeform.io.fourdct`), whose phases are the inputs.
+        holding a 4-D CT (every phase, :mod:`lungdeform.io.dicom.fourdct`), whose phases are the inputs.
     side : str
         ``"left"`` or ``"right"``.
     volumes_ml : tuple of float, or None
@@ -141,7 +143,7 @@ class FitConfig:
     landmark_fit: bool = True
     folds: int = 5
     landmark_weight: float = 1.0
-    align: str = "apex"
+    align: str = "auto"
     mode: str = "optimizer"
     direction_degree: int = DEFAULT_DEGREE
     landmark_comparisons: bool = False

@@ -225,7 +225,7 @@ class LungFitter:
         End-exhale surface p (the model mesh; a few thousand vertices), mm LPS.
     side : 'left' | 'right'
     targets : sequence of Target
-        Aligned surfaces at larger volumes (volumes must increase, all above V_EE).
+        Aligned surfaces at larger volumes (all above V_EE, never decreasing; equal volumes allowed).
     fit_on : sequence of int, optional
         Indices of the targets in the objective (default: all). The first is the calibration
         target (``k`` makes its volume exact) and the one rays are cast to.
@@ -255,8 +255,8 @@ class LungFitter:
                 raise InputError(
                     f"{t.name}: volume {v:.1f} mL is not larger than the end-exhale volume "
                     f"{self.v_ee:.1f} mL; volumes must increase from the end-exhale surface")
-        if any(b <= a for a, b in zip(vols, vols[1:])):
-            raise InputError(f"target volumes must increase strictly, got {', '.join(f'{v:.1f}' for v in vols)} mL")
+        if any(b < a for a, b in zip(vols, vols[1:])):  # equal: inhale and exhale phases of one volume
+            raise InputError(f"target volumes must not decrease, got {', '.join(f'{v:.1f}' for v in vols)} mL")
         self.targets = list(targets)
         self.fit_on = list(range(len(targets))) if fit_on is None else [int(i) for i in fit_on]
         if not self.fit_on or any(i < 0 or i >= len(targets) for i in self.fit_on):

@@ -2,14 +2,13 @@
 
 Owns: :mod:`~lungdeform.io.meshfile` (STL, OBJ, PLY, VTK, VTP, OFF, glTF/GLB surfaces),
 :mod:`~lungdeform.io.vtk` (the VTK legacy and VTP XML readers and the one VTP writer),
-:mod:`~lungdeform.io.image` (NIfTI, MHA/MHD, NRRD, DICOM in LPS; writing images and
-displacement fields, resampling through a field), :mod:`~lungdeform.io.fourdct` (the phases of a 4-D CT
-in one DICOM folder, told apart and ordered by their tags), :mod:`~lungdeform.io.slices` (a DICOM
-series' slice geometry checked before reading: orientation, positions, even gaps, gantry tilt),
-:mod:`~lungdeform.io.mask` (masks → surfaces by marching cubes in world mm), :mod:`~lungdeform.io.landmarks` (DIR-Lab and
-elastix point files), :mod:`~lungdeform.io.rtstruct` (DICOM RT structure sets in and out,
-docs/RADIOTHERAPY.md), :mod:`~lungdeform.io.dicomseries` (an image written as a DICOM CT series,
-one per phase of a synthetic 4-D CT) and :mod:`~lungdeform.io.modelfile` (the versioned model file, docs/MODEL_FORMAT.md).
+:mod:`~lungdeform.io.grid` (the image grid: :class:`~lungdeform.io.grid.Image`, voxel → world, the
+voxel cap), :mod:`~lungdeform.io.image` (NIfTI, MHA/MHD, NRRD, DICOM in LPS; writing images and
+displacement fields, resampling through a field), :mod:`~lungdeform.io.dicom` (everything DICOM:
+the byte guard, series, 4-D CT, RT structure sets, the registration object, conformance),
+:mod:`~lungdeform.io.mask` (masks → surfaces by marching cubes in world mm),
+:mod:`~lungdeform.io.landmarks` (DIR-Lab and elastix point files) and
+:mod:`~lungdeform.io.modelfile` (the versioned model file, docs/MODEL_FORMAT.md).
 
 May import: :mod:`lungdeform.model`, :mod:`lungdeform.interior`, :mod:`lungdeform.geometry` and the
 core modules. Every reader normalises to ``(n, 3)`` C-contiguous float64 mm once, here, and raises

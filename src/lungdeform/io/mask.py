@@ -14,7 +14,7 @@ Pipeline of :func:`extract_surface` (each step says what it fixes):
    border (the ITK example masks touch the cropped medial face); the faces it touches are named
    in a warning (the lung may be cropped there);
 6. marching cubes (scikit-image, Lewiner, level 0.5) in voxel index space, then index → world mm
-   LPS through spacing, direction and origin (:func:`lungdeform.io.image.index_to_world`); faces are
+   LPS through spacing, direction and origin (:func:`lungdeform.io.grid.index_to_world`); faces are
    flipped if needed so that the signed volume is positive (outward), which also covers
    ``det(direction) < 0``;
 7. volume-preserving Taubin smoothing (:func:`lungdeform.geometry.remesh.taubin_smooth`) against the voxel
@@ -24,7 +24,7 @@ Pipeline of :func:`extract_surface` (each step says what it fixes):
    vertices merged, non-manifold fins and pinches removed, so that
    :func:`lungdeform.geometry.mesh.check_surface` passes.
 
-Images are :class:`lungdeform.io.image.Image` (read by :func:`lungdeform.io.image.read_image`); their
+Images are :class:`lungdeform.io.grid.Image` (read by :func:`lungdeform.io.image.read_image`); their
 arrays follow SimpleITK: ``array`` is indexed ``[k, j, i]`` = ``[z, y, x]``; spacing, origin and
 voxel indices ``ijk`` are ordered ``(x, y, z)``. Surfaces are in mm, LPS world.
 """
@@ -45,7 +45,7 @@ from lungdeform.errors import InputError, MaskError, MeshError, UnitsError
 from lungdeform.geometry.mesh import Surface, SurfaceReport, check_surface, signed_volume
 from lungdeform.geometry.remesh import clean_mesh, decimate, largest_surface_piece, taubin_smooth
 
-from .image import Image, index_to_world
+from .grid import Image, index_to_world
 
 #: Lobe label maps (coronacases convention): 1 left upper, 2 left lower, 3 right upper,
 #: 4 right middle, 5 right lower lobe.

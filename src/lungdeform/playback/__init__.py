@@ -8,7 +8,7 @@ ParaView series), :mod:`~lungdeform.playback.markers` (markers carried in a glb)
 its per-voxel numba passes in :mod:`~lungdeform.playback.voxel`),
 :mod:`~lungdeform.playback.structures` (RTSTRUCT structures moved per breathing state),
 :mod:`~lungdeform.playback.server` (the three.js viewer on 127.0.0.1), :mod:`~lungdeform.playback.tracefeed` (a recorded trace
-with its measured and predicted volume, as the viewer plays it) and :mod:`~lungdeform.playback.demo`
+with its measured and predicted volume and, with a prediction, its beam gate, as the viewer plays it) and :mod:`~lungdeform.playback.demo`
 (the demo run; its off-screen snapshot is drawn by :mod:`lungdeform.plot`).
 
 May import: :mod:`lungdeform.data`, :mod:`lungdeform.io`, :mod:`lungdeform.breathing`,

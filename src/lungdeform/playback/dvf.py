@@ -3,7 +3,7 @@
 Frames and units: every displacement is mm in the LPS world of the reference image; arrays of a
 field are ``(z, y, x, 3) float32`` indexed like SimpleITK's ``[k, j, i]`` (the components stay
 ``(x, y, z)`` LPS); the grid is :class:`Grid` (spacing, origin and direction as
-:class:`lungdeform.io.image.Image`).
+:class:`lungdeform.io.grid.Image`).
 
 Forward field ``u``: a point at ``x`` in the reference (the model's rest state, end-exhale) is at
 ``x + u(x)`` at the breathing state: inside lung ``i`` the lung's interior field at its scale,
@@ -80,7 +80,7 @@ class Grid:
 
     @staticmethod
     def of(image) -> "Grid":
-        """The grid of an :class:`lungdeform.io.image.Image` (or anything with its attributes)."""
+        """The grid of an :class:`lungdeform.io.grid.Image` (or anything with its attributes)."""
         shape = tuple(int(n) for n in (image.shape if hasattr(image, "shape") else image.array.shape))
         return Grid(shape, np.asarray(image.spacing, float), np.asarray(image.origin, float),
                     np.asarray(image.direction, float).reshape(3, 3))

@@ -2,9 +2,9 @@
 
 Behind ``lungdeform track --rtstruct FILE --structure NAME`` (docs/RADIOTHERAPY.md): the structure's
 contour points are tracked like any points (:mod:`lungdeform.playback.trajectory`), and its closed
-surface through the contours (:func:`lungdeform.io.rtstruct.structure_mesh`) is moved vertex by
+surface through the contours (:func:`lungdeform.io.dicom.rtstruct.structure_mesh`) is moved vertex by
 vertex by the same interior field at each state, one surface per state, named ``NAME@TAG`` (``GTV@phase03``,
-``GTV@3100mL``) for :func:`lungdeform.io.rtstruct.write_rtstruct`.
+``GTV@3100mL``) for :func:`lungdeform.io.dicom.rtstruct.write_rtstruct`.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lungdeform.io.rtstruct import Structure, pick_structure, read_rois, structure_mesh, structure_points
+from lungdeform.io.dicom.rtstruct import Structure, pick_structure, read_rois, structure_mesh, structure_points
 
 from .dvf import phase_states
 from .trajectory import FrameSchedule, place_points, point_trajectories

@@ -2,13 +2,13 @@
 
 - :func:`read_ct` reads a NIfTI/MHA/NRRD file, a DICOM series (a folder, a parent folder or one
   file) or a .tar.gz/.zip of one (:func:`extracted`; DICOM slices checked by the one slice check,
-  :func:`lungdeform.io.slices.check_slices`, inside :func:`~lungdeform.io.image.read_image`) and
+  :func:`lungdeform.io.dicom.slices.check_slices`, inside :func:`~lungdeform.io.image.read_image`) and
   checks that the image is CT in Hounsfield units (:func:`check_ct`);
 - :func:`axial_axes` and :func:`to_axial` give the array in (z, y, x) order along world z, y, x
   (an exact transpose); :func:`downsample` block-means by integer factors;
 - :func:`write_mask` writes a mask image atomically.
 
-Frames: images are :class:`lungdeform.io.image.Image`: ``array`` is ``(z, y, x)`` (SimpleITK order),
+Frames: images are :class:`lungdeform.io.grid.Image`: ``array`` is ``(z, y, x)`` (SimpleITK order),
 HU for a CT, 0/1 for a mask; spacing x y z mm, origin mm LPS, direction columns (index axes
 i, j, k) in LPS.
 """
@@ -26,7 +26,8 @@ import SimpleITK as sitk
 
 from lungdeform.atomic import atomic_path
 from lungdeform.errors import InputError, ReadError
-from lungdeform.io.image import IMAGE_SUFFIXES, Image, read_image
+from lungdeform.io.grid import Image
+from lungdeform.io.image import IMAGE_SUFFIXES, read_image
 
 ARCHIVE_SUFFIXES = (".tar.gz", ".tgz", ".tar", ".zip")
 
@@ -89,7 +90,7 @@ def read_ct(path, workdir=None) -> Image:
     read, and named as the source).
 
     DICOM series are checked for even slice spacing (by :func:`~lungdeform.io.image.read_image`:
-    :func:`lungdeform.io.slices.check_slices`). The image must
+    :func:`lungdeform.io.dicom.slices.check_slices`). The image must
     look like HU (some voxels below −500): otherwise :class:`InputError`. Archives are extracted
     into a temporary folder (inside ``workdir`` if given) that is removed afterwards.
     """

@@ -28,7 +28,7 @@ Pipeline of :func:`segment_lungs` (each step names what it is for):
    slice (2-D) and in 3-D.
 
 Frames: masks are ``(z, y, x) bool`` arrays on the CT grid (SimpleITK order); geometry follows
-:class:`lungdeform.io.image.Image` (spacing x y z mm, origin mm LPS, direction columns in LPS).
+:class:`lungdeform.io.grid.Image` (spacing x y z mm, origin mm LPS, direction columns in LPS).
 Volumes are mL (= voxel count × voxel volume / 1000). Reading the CT and reordering its grid are
 in :mod:`lungdeform.segment.ct`.
 """
@@ -44,7 +44,7 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from lungdeform.errors import InputError, MaskError
-from lungdeform.io.image import Image
+from lungdeform.io.grid import Image
 from lungdeform.plot import label_overlay, save_png
 
 from .ct import axial_axes, check_ct, to_axial

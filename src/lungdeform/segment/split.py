@@ -25,7 +25,7 @@ holding both lungs the side's lung of the split, anything else is returned as it
 :func:`segment_ct_or_mask`).
 
 Arrays are ``(z, y, x)`` on the mask's grid (SimpleITK order); geometry follows
-:class:`lungdeform.io.image.Image`; volumes are mL.
+:class:`lungdeform.io.grid.Image`; volumes are mL.
 """
 
 from __future__ import annotations
@@ -43,7 +43,8 @@ from scipy.spatial import cKDTree
 from lungdeform.errors import InputError, MaskError
 from lungdeform.io import mask as M
 from lungdeform.io import meshfile as lio
-from lungdeform.io.image import IMAGE_SUFFIXES, Image, is_image_path, read_image
+from lungdeform.io.grid import Image
+from lungdeform.io.image import IMAGE_SUFFIXES, is_image_path, read_image
 
 from .ct import check_ct, read_ct, to_axial
 from .ct import downsample as downsample_ct

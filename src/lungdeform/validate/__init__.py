@@ -7,7 +7,9 @@ CT landmarks: the models, finding the files, the experiment of ``lungdeform vali
 :mod:`~lungdeform.validate.itk_pair` (the model fitted to the ITK right lung at two volumes and measured
 against baselines), :mod:`~lungdeform.validate.copd` (both lungs of the DIR-Lab COPDgene lung masks, fitted per
 lung, with calibrated mask-only baselines), :mod:`~lungdeform.validate.breathing` (the PV breathing driver scored on held-out
-cycles of a folder of recorded traces), :mod:`~lungdeform.validate.single_scan` (the defaults scored
+cycles of a folder of recorded traces), :mod:`~lungdeform.validate.prediction` (live breathing
+prediction and its intervals scored on recorded traces), :mod:`~lungdeform.validate.gating` (amplitude
+gating of a beam simulated on recorded traces), :mod:`~lungdeform.validate.single_scan` (the defaults scored
 from one scan, leave one subject out; learning a default from data folders) and
 :mod:`~lungdeform.validate.physiology` (a tidal breath's motion: base SI against AP, diaphragm per litre).
 

@@ -15,11 +15,17 @@ principal component in mm, the RPM amplitude in cm):
    linear/none; over traces, the median of each ratio (and over the quiet-breathing traces, tags N and
    NO of the marker files' names, ``<date>-<marker>-1-<tag>-<seconds>-6.csv``).
 
+4. the model and the linear baseline also give 90 % prediction intervals
+   (:class:`lungdeform.breathing.predict_interval.IntervalPredictor`, the same method for both); per
+   trace and horizon: ``coverage`` (share of scored samples whose truth is inside), ``width_over_none_rms``
+   (mean width over the RMS of no prediction), ``interval_score`` (Gneiting & Raftery 2007, trace units)
+   and the same with the prefix ``linear_``; ``interval_score_over_linear``.
+
 Targets (medians of per-trace ratios): model ≤ 0.95 × linear at every horizon; on quiet traces at
-400 ms, model ≤ 0.5 × none. ``metrics.json``::
+400 ms, model ≤ 0.5 × none; the median coverage within 0.87–0.93 at every horizon. ``metrics.json``::
 
     {"traces": {NAME: {"tag": …, "n_samples": …, "horizon_ms": {"400": {"model_rms": …, "none_rms": …,
-                "linear_rms": …, "model_over_linear": …, …}, …}}},
+                "linear_rms": …, "model_over_linear": …, "coverage": …, "linear_coverage": …, …}, …}}},
      "medians": {"400": {"model_over_linear": …, "model_over_none": …, "linear_over_none": …}, …},
      "quiet_medians": {…}, "targets": {…}, "errors": {…}, "protocol": "…"}
 """
@@ -32,7 +38,8 @@ from pathlib import Path
 import numpy as np
 
 from lungdeform.atomic import write_json
-from lungdeform.breathing.predict import PREDICTORS, predict_trace
+from lungdeform.breathing.predict import PREDICTORS, BlendPredictor, baseline_linear, predict_trace
+from lungdeform.breathing.predict_interval import IntervalConfig, interval_score, interval_trace
 from lungdeform.breathing.trace import read_trace
 from lungdeform.errors import InputError, LungdeformError
 from lungdeform.plot import prediction_errors, prediction_excerpt, save_png
@@ -50,6 +57,11 @@ TARGET_MODEL_OVER_LINEAR = 0.95
 #: median model/none on quiet traces at TARGET_QUIET_HORIZON_MS must not exceed this
 TARGET_QUIET_MODEL_OVER_NONE = 0.5
 TARGET_QUIET_HORIZON_MS = 400
+#: median coverage of the 90 % intervals at every horizon must lie in this range
+TARGET_COVERAGE = (0.87, 0.93)
+#: interval figures of each horizon whose medians over traces are reported
+INTERVAL_KEYS = ("coverage", "linear_coverage", "width_over_none_rms", "linear_width_over_none_rms",
+                 "interval_score_over_linear")
 RATIOS = (("model_over_linear", "model", "linear"), ("model_over_none", "model", "none"),
           ("linear_over_none", "linear", "none"))
 
@@ -81,21 +93,49 @@ def scored_rms(t_s: np.ndarray, x: np.ndarray, predicted: np.ndarray, horizon_s:
     return float(np.sqrt(np.mean((predicted[ok] - truth) ** 2))), int(ok.sum())
 
 
-def score_trace(t_s, x, horizons_ms=HORIZONS_MS, warm_s: float = WARM_S, keep: int | None = None) -> dict:
+def scored_intervals(t_s: np.ndarray, x: np.ndarray, band: np.ndarray, horizon_s: float, coverage: float,
+                     warm_s: float = WARM_S) -> dict:
+    """Over the scored samples (step 2 of the protocol), of the intervals ``band : (n, 3)`` (prediction,
+    lo, hi): the share holding the truth (``coverage``), their mean width (trace units; inf while any is
+    infinite) and the mean interval score (Gneiting & Raftery 2007, trace units)."""
+    ok = (t_s >= t_s[0] + warm_s) & (t_s + horizon_s <= t_s[-1])
+    if not ok.any():
+        return {"coverage": math.nan, "mean_width": math.nan, "interval_score": math.nan}
+    truth = np.interp(t_s[ok] + horizon_s, t_s, x)
+    lo, hi = band[ok, 1], band[ok, 2]
+    return {"coverage": float(np.mean((lo <= truth) & (truth <= hi))), "mean_width": float(np.mean(hi - lo)),
+            "interval_score": float(np.mean(interval_score(lo, hi, truth, coverage)))}
+
+
+def score_trace(t_s, x, horizons_ms=HORIZONS_MS, warm_s: float = WARM_S, keep: int | None = None,
+                interval: IntervalConfig | None = None) -> dict:
     """Every predictor at every horizon on one trace: ``{"n_samples", "horizon_ms": {"400": {…}}}``;
-    with ``keep``, also ``"_predictions"`` at that horizon (ms) for the plots."""
+    with ``keep``, also ``"_predictions"`` at that horizon (ms) for the plots. The model and the linear
+    baseline carry intervals (``interval``: their settings, coverage 0.9 by default)."""
+    interval = interval or IntervalConfig()
     t, v = np.asarray(t_s, float), np.asarray(x, float)
     if t.size < 2 or t[-1] - t[0] <= warm_s:
         raise InputError(f"trace of {t[-1] - t[0]:.1f} s is not longer than the {warm_s:g} s warm-up")
     out: dict = {"n_samples": int(t.size), "duration_s": float(t[-1] - t[0]), "horizon_ms": {}}
+    dt = float(np.median(np.diff(t)))
     for h_ms in horizons_ms:
         h = h_ms / 1000.0
-        preds = {name: predict_trace(t, v, h, name) for name in PREDICTORS}
+        bands = {"model": interval_trace(t, v, BlendPredictor(h), interval),
+                 "linear": interval_trace(t, v, baseline_linear(h, dt_s=dt), interval)}
+        preds = {name: bands[name][:, 0] if name in bands else predict_trace(t, v, h, name) for name in PREDICTORS}
         row = {}
         for name, p in preds.items():
             row[f"{name}_rms"], row["n_scored"] = scored_rms(t, v, p, h, warm_s)
         for key, a, b in RATIOS:
             row[key] = row[f"{a}_rms"] / row[f"{b}_rms"] if row[f"{b}_rms"] > 0 else math.nan
+        for name, band in bands.items():
+            prefix = "" if name == "model" else f"{name}_"
+            for key, value in scored_intervals(t, v, band, h, interval.coverage, warm_s).items():
+                row[prefix + key] = value
+            row[prefix + "width_over_none_rms"] = (row.pop(prefix + "mean_width") / row["none_rms"]
+                                                   if row["none_rms"] > 0 else math.nan)
+        row["interval_score_over_linear"] = (row["interval_score"] / row["linear_interval_score"]
+                                             if row["linear_interval_score"] > 0 else math.nan)
         out["horizon_ms"][str(h_ms)] = row
         if keep == h_ms:
             out["_predictions"] = preds
@@ -107,7 +147,7 @@ def medians(traces: dict, horizons_ms, names=None) -> dict:
     out = {}
     for h_ms in horizons_ms:
         out[str(h_ms)] = {}
-        for key, _, _ in RATIOS:
+        for key in [k for k, _, _ in RATIOS] + list(INTERVAL_KEYS):
             vals = [r["horizon_ms"][str(h_ms)][key] for n, r in traces.items() if names is None or n in names]
             vals = [v for v in vals if math.isfinite(v)]
             out[str(h_ms)][key] = float(np.median(vals)) if vals else None
@@ -118,7 +158,11 @@ def targets(med: dict, quiet: dict) -> dict:
     """The two targets as measured: value, threshold and whether each is met."""
     worst = [m["model_over_linear"] for m in med.values()]
     q = quiet.get(str(TARGET_QUIET_HORIZON_MS), {}).get("model_over_none")
+    cov = [m["coverage"] for m in med.values()]
+    lo, hi = TARGET_COVERAGE
     return {
+        "coverage_every_horizon": {"range": [lo, hi], "values": cov,
+                                   "met": all(v is not None and lo <= v <= hi for v in cov)},
         "model_over_linear_every_horizon": {
             "worst": None if any(v is None for v in worst) else max(worst), "threshold": TARGET_MODEL_OVER_LINEAR,
             "met": all(v is not None and v <= TARGET_MODEL_OVER_LINEAR for v in worst)},
@@ -134,7 +178,10 @@ def protocol(horizons_ms, warm_s: float) -> str:
             f"{', '.join(str(h) for h in horizons_ms)} ms; RMS in the trace's own unit; medians over traces of "
             f"per-trace ratios; quiet = marker sessions tagged {' or '.join(QUIET_TAGS)}; none = the last "
             f"sample; linear = least squares with an intercept on the last 2 s of samples, trained on the "
-            f"preceding 30 s, refitted every 5 s; model = lungdeform.breathing.predict.BlendPredictor")
+            f"preceding 30 s, refitted every 5 s; model = lungdeform.breathing.predict.BlendPredictor; "
+            f"intervals (model and linear) = lungdeform.breathing.predict_interval.IntervalPredictor at "
+            f"coverage 0.9, scored on the same samples: coverage, mean width / RMS of none, interval score "
+            f"(Gneiting & Raftery 2007)")
 
 
 def score_folder(data: Path, horizons_ms, warm_s: float, plot_ms: int, progress=None) -> tuple[dict, dict]:

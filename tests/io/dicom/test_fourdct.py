@@ -1,4 +1,4 @@
-"""A 4-D CT in one DICOM folder (lungdeform.io.fourdct): phases told apart by SeriesDescription
+"""A 4-D CT in one DICOM folder (lungdeform.io.dicom.fourdct): phases told apart by SeriesDescription
 percentages or TemporalPositionIndex, ordered, and refused when they cannot be told apart."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import pytest
 import SimpleITK as sitk
 
 from lungdeform.errors import InputError, ReadError
-from lungdeform.io.fourdct import _number, _percent, read_phases
+from lungdeform.io.dicom.fourdct import _number, _percent, read_phases
 from tests.fourdct_phantom import SHAPE, STUDY, phase_ct, write_4dct, write_slices
 
 

@@ -1,4 +1,4 @@
-"""A 3-D image written as a DICOM CT series (lungdeform.io.dicomseries), read back by SimpleITK and pydicom."""
+"""A 3-D image written as a DICOM CT series (lungdeform.io.dicom.series), read back by SimpleITK and pydicom."""
 
 import numpy as np
 import pydicom
@@ -6,10 +6,10 @@ import pytest
 import SimpleITK as sitk
 
 from lungdeform.atomic import atomic_dir
-from lungdeform.errors import InputError
-from lungdeform.io import dicomseries as DS
+from lungdeform.errors import InputError, ReadError
+from lungdeform.io.dicom import series as DS
+from lungdeform.io.dicom.rtstruct import read_ct_series
 from lungdeform.io.image import read_image
-from lungdeform.io.rtstruct import read_ct_series
 from tests.io.dicom_support import write_ct_series as write_source_series
 
 #: an oblique grid: index axes rotated 30° about z, so a swapped row/column or a wrong slice
@@ -50,7 +50,8 @@ def test_tags_of_a_phase(rng, tmp_path):
     assert ds.StudyInstanceUID == s.StudyInstanceUID and ds.FrameOfReferenceUID == s.FrameOfReferenceUID
     assert ds.SeriesInstanceUID != s.SeriesInstanceUID and ds.PatientID == "SYN001"
     assert ds.SeriesDescription == "CT phase 30%"
-    assert ds.TemporalPositionIndex == 4 and ds[0x0020, 0x0100].value == 4 and ds.NumberOfTemporalPositions == 10
+    # TemporalPositionIdentifier, not the multi-frame TemporalPositionIndex (not in the CT IOD, dciodvfy)
+    assert "TemporalPositionIndex" not in ds and ds[0x0020, 0x0100].value == 4 and ds.NumberOfTemporalPositions == 10
     assert ds.pixel_array.dtype == np.int16 and ds.RescaleType == "HU"
 
 
@@ -101,3 +102,15 @@ def test_sitk_series_reader_sorts_the_slices(rng, tmp_path):
     DS.write_ct_series(tmp_path / "s", _image(rng), SPACING, ORIGIN, np.eye(3), DS.study_header(), description="s")
     ids = sitk.ImageSeriesReader.GetGDCMSeriesIDs(str(tmp_path / "s"))
     assert len(ids) == 1 and len(sitk.ImageSeriesReader.GetGDCMSeriesFileNames(str(tmp_path / "s"), ids[0])) == 6
+
+
+def test_study_header_refuses_a_source_without_a_valid_frame_of_reference(tmp_path):
+    # why: the phases keep the source's Frame of Reference; a source without one (or with a malformed
+    # UID) would give phases that a planning system places nowhere, or that fail validation on write
+    src = write_source_series(tmp_path / "src", shape=(2, 4, 4))
+    for f in src.iterdir():
+        ds = pydicom.dcmread(f)
+        del ds.FrameOfReferenceUID
+        ds.save_as(f)
+    with pytest.raises(ReadError, match="lacks FrameOfReferenceUID, which every series derived from it keeps"):
+        DS.study_header(src)

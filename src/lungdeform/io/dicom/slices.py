@@ -1,6 +1,6 @@
 """The geometry of a DICOM series' slices, checked before its voxels are read.
 
-A series is read as one regular grid (:class:`lungdeform.io.image.Image`): one orientation, slices
+A series is read as one regular grid (:class:`lungdeform.io.grid.Image`): one orientation, slices
 stacked along the normal of that orientation, evenly spaced. ITK reads any series onto such a grid
 whatever its slices say: it spaces them by the distance from the first slice to the last divided by
 their number, and ignores a gantry tilt. :func:`check_slices` refuses what such a grid would

@@ -1,4 +1,4 @@
-"""Tests of lungdeform.io.rtstruct: RTSTRUCT contours read, written on a CT series, read back."""
+"""Tests of lungdeform.io.dicom.rtstruct: RTSTRUCT contours read, written on a CT series, read back."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import trimesh
 
 from lungdeform.errors import InputError, ReadError
 from lungdeform.geometry.contours import MAX_CONTOURS, MAX_SLICES
-from lungdeform.io.rtstruct import (
+from lungdeform.io.dicom.rtstruct import (
     RTSTRUCT_SOP_CLASS,
     Structure,
     check_structure_on_ct,

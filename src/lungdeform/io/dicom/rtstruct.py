@@ -18,7 +18,6 @@ of the referenced series, as planning systems expect. See docs/RADIOTHERAPY.md.
 from __future__ import annotations
 
 import datetime as _dt
-import re
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,7 +33,8 @@ from lungdeform.atomic import atomic_path
 from lungdeform.errors import InputError, ReadError
 from lungdeform.geometry.contours import contours_to_mesh, section_mesh
 
-from .image import dicom_series_files
+from .attributes import check_dataset, require
+from .series import dicom_series_files
 
 #: RT Structure Set Storage
 RTSTRUCT_SOP_CLASS = "1.2.840.10008.5.1.4.1.1.481.3"
@@ -213,7 +213,7 @@ def structure_mesh(structure: Structure, source: str | None = None) -> tuple[np.
 
 def read_ct_series(path) -> CTSeries:
     """The slices of the DICOM CT series ``path`` names (a folder or one of its files, as
-    :func:`lungdeform.io.image.dicom_series_files`), sorted along their normal.
+    :func:`lungdeform.io.dicom.series.dicom_series_files`), sorted along their normal.
 
     Refused with :class:`ReadError` naming the file: a slice pydicom cannot read, an
     ImageOrientationPatient that is not two unit, orthogonal vectors (or differs between slices), an
@@ -243,27 +243,15 @@ def read_ct_series(path) -> CTSeries:
     return CTSeries(head, uids, str(head.SOPClassUID), origins[order], normal, str(path))
 
 
-#: A DICOM UID (PS3.5 9.1): dot-separated numbers without leading zeros, at most 64 characters.
-_UID = re.compile(r"(?=.{1,64}$)(0|[1-9][0-9]*)(\.(0|[1-9][0-9]*))*")
-
-
 def _ct_slice(f) -> dict:
     """One slice's header and the geometry and UIDs an RTSTRUCT needs, checked."""
     try:
         h = pydicom.dcmread(f, stop_before_pixels=True)
     except Exception as exc:  # any parse failure becomes one clear line
         raise ReadError(f"{f}: not a readable DICOM slice ({type(exc).__name__}: {_first_line(exc)})") from exc
-    try:  # a value pydicom cannot convert raises on first access
-        missing = [k for k in ("ImageOrientationPatient", "ImagePositionPatient", "SOPInstanceUID", "SOPClassUID",
-                               "FrameOfReferenceUID", "StudyInstanceUID", "SeriesInstanceUID") if not h.get(k)]
-    except Exception as exc:  # any conversion failure becomes one clear line
-        raise ReadError(f"{f}: unreadable DICOM attribute ({type(exc).__name__}: {_first_line(exc)})") from exc
-    if missing:
-        raise ReadError(f"{f}: DICOM slice lacks {', '.join(missing)}, which an RTSTRUCT needs")
-    for key in ("SOPInstanceUID", "SOPClassUID", "FrameOfReferenceUID", "StudyInstanceUID", "SeriesInstanceUID"):
-        uid = str(h.get(key, ""))
-        if not _UID.fullmatch(uid):  # copied into the RTSTRUCT, where an invalid UID cannot go
-            raise ReadError(f"{f}: {key} {uid[:70]!r} is not a DICOM UID (digits and dots, at most 64 characters)")
+    # the UIDs are copied into the RTSTRUCT, where an invalid UID cannot go
+    require(h, ("ImageOrientationPatient", "ImagePositionPatient", "SOPInstanceUID", "SOPClassUID",
+                "FrameOfReferenceUID", "StudyInstanceUID", "SeriesInstanceUID"), f, "which an RTSTRUCT needs")
     iop = _numbers(h, "ImageOrientationPatient", 6, f).reshape(2, 3)
     if np.abs(np.linalg.norm(iop, axis=1) - 1).max() > 1e-2 or abs(float(iop[0] @ iop[1])) > 1e-2:
         raise ReadError(f"{f}: ImageOrientationPatient {iop.ravel().tolist()} is not two orthogonal unit vectors")
@@ -395,7 +383,9 @@ def write_rtstruct(path, ct: CTSeries, surfaces: list, *, label: str = "lungdefo
 
 
 def save_rtstruct(path, ds: FileDataset) -> None:
-    """Save the dataset of :func:`build_rtstruct` to ``path`` atomically."""
+    """Save the dataset of :func:`build_rtstruct` to ``path`` atomically, every value within its VR's
+    limits first (:func:`~lungdeform.io.dicom.attributes.check_dataset`)."""
+    check_dataset(ds, str(path))
     with atomic_path(path) as tmp:
         ds.save_as(tmp, enforce_file_format=True)
 
@@ -427,6 +417,8 @@ def _base_dataset(ct: CTSeries, label: str) -> FileDataset:
     ds.Modality, ds.SeriesInstanceUID, ds.SeriesNumber, ds.InstanceNumber = "RTSTRUCT", generate_uid(), 900, 1
     ds.Manufacturer, ds.SeriesDescription = "lungdeform", label[:64]
     ds.FrameOfReferenceUID = ct.header.FrameOfReferenceUID
+    ds.PositionReferenceIndicator = ct.header.get("PositionReferenceIndicator", "")
+    ds.OperatorsName = ""  # Type 2 (RT Series module): not known here
     ds.StructureSetLabel = label[:16]
     ds.StructureSetDate, ds.StructureSetTime = now.strftime("%Y%m%d"), now.strftime("%H%M%S")
     series = Dataset()

@@ -17,10 +17,10 @@ A :class:`~lungdeform.errors.ReadError` names the folder when it holds fewer tha
 no key tells the phases apart, when its slices name more than one patient, study or frame of
 reference (:data:`SAME_TAGS`), or when a phase's slices are no regular grid (two at one position,
 uneven gaps, a missing slice, a gantry tilt, a bad orientation or position:
-:func:`lungdeform.io.slices.check_slices`) or exceed the grid cap
-(:func:`lungdeform.io.image.voxel_limit`); every phase is checked before any is read.
+:func:`lungdeform.io.dicom.slices.check_slices`) or exceed the grid cap
+(:func:`lungdeform.io.grid.voxel_limit`); every phase is checked before any is read.
 
-Frames: each phase is an :class:`~lungdeform.io.image.Image` (``array`` ``(z, y, x)``, spacing
+Frames: each phase is an :class:`~lungdeform.io.grid.Image` (``array`` ``(z, y, x)``, spacing
 x y z mm, origin mm LPS, direction columns in LPS), read by SimpleITK from its files in slice order.
 """
 
@@ -32,11 +32,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import pydicom
 import SimpleITK as sitk
 
 from lungdeform.errors import ReadError
+from lungdeform.io.grid import Image, check_grid, quiet_itk
 
-from .image import Image, _quiet_itk, check_dicom_file, check_grid, is_dicom_file
+from .guard import check_dicom_file, is_dicom_file
 from .slices import GEOMETRY_TAGS, SliceGeometry, check_orientations, check_slices, check_spacing
 
 #: The tags that may tell phases apart, in order of preference after the SeriesDescription percentage.
@@ -75,7 +77,7 @@ class Phase:
 
 def _slice_info(path: str) -> dict[str, str] | None:
     """The tags of :data:`_READ_TAGS` of one DICOM file (stripped strings), or None if it is not a DICOM image;
-    :class:`ReadError` for a damaged one (:func:`~lungdeform.io.image.check_dicom_file`)."""
+    :class:`ReadError` for a damaged one (:func:`~lungdeform.io.dicom.guard.check_dicom_file`)."""
     check_dicom_file(path)
     return _slice_tags(path)
 
@@ -86,7 +88,7 @@ def _slice_tags(path: str) -> dict[str, str] | None:
     reader.SetFileName(path)
     reader.SetImageIO("GDCMImageIO")
     try:
-        with _quiet_itk():
+        with quiet_itk():
             reader.ReadImageInformation()
     except RuntimeError:
         return None
@@ -159,7 +161,7 @@ def _group_key(folder: Path, files: list[tuple[str, dict]], kind: str) -> tuple[
 def _split_series(folder: Path, files: list[tuple[str, dict]]) -> list[list[tuple[str, dict]]]:
     """One series split into phases by the first tag of :data:`PHASE_TAGS` present in all its slices
     (it is returned whole when no slice position repeats); its slices must share one orientation
-    (:func:`~lungdeform.io.slices.check_orientations`), or positions along their normals mean nothing."""
+    (:func:`~lungdeform.io.dicom.slices.check_orientations`), or positions along their normals mean nothing."""
     check_orientations(files, f"{folder}: series {files[0][1]['0020|000e'] or '(no SeriesInstanceUID)'}")
     positions = [_position(info) for _, info in files]
     if len(set(positions)) == len(positions):
@@ -188,8 +190,8 @@ def _order(folder: Path, groups: list[list[tuple[str, dict]]]) -> list[tuple[flo
 
 def _phase_geometry(folder: Path, label: str, files: list[tuple[str, dict]], max_voxels=None) -> SliceGeometry:
     """One phase's slice geometry (its files in slice order); :class:`ReadError` for a grid over the
-    cap (:func:`~lungdeform.io.image.check_grid`) or slices that are no regular grid
-    (:func:`~lungdeform.io.slices.check_slices`: orientation, positions, gaps, gantry tilt)."""
+    cap (:func:`~lungdeform.io.grid.check_grid`) or slices that are no regular grid
+    (:func:`~lungdeform.io.dicom.slices.check_slices`: orientation, positions, gaps, gantry tilt)."""
     where = f"{folder}: phase {label}"
     sizes = [[int(n) for n in info["size"].split()] for _, info in files]
     check_grid((max(s[0] for s in sizes), max(s[1] for s in sizes), sum(int(np.prod(s[2:])) for s in sizes)),
@@ -203,7 +205,7 @@ def _read_phase(folder: Path, label: str, geometry: SliceGeometry) -> Image:
     reader = sitk.ImageSeriesReader()
     reader.SetFileNames(list(geometry.files))
     try:
-        with _quiet_itk():
+        with quiet_itk():
             img = reader.Execute()
     except RuntimeError as exc:
         detail = next((ln.strip() for ln in str(exc).splitlines() if "rror" in ln), "")
@@ -235,8 +237,8 @@ def read_phases(folder, *, max_voxels=None) -> list[Phase]:
 
     Raises :class:`ReadError` naming the folder when it is missing, holds no DICOM image, slices of
     more than one patient, study or frame of reference, fewer than two phases, phases that cannot be
-    told apart, a phase whose slices are no regular grid (:func:`~lungdeform.io.slices.check_slices`)
-    or a phase over the grid cap (``max_voxels``, :func:`~lungdeform.io.image.voxel_limit`).
+    told apart, a phase whose slices are no regular grid (:func:`~lungdeform.io.dicom.slices.check_slices`)
+    or a phase over the grid cap (``max_voxels``, :func:`~lungdeform.io.grid.voxel_limit`).
     """
     folder = Path(folder)
     if not folder.is_dir():
@@ -278,3 +280,16 @@ def is_fourdct(path) -> bool:
         if info is not None:
             series.setdefault(info["0020|000e"], []).append(_position(info))
     return len(series) >= 2 or any(len(set(v)) < len(v) for v in series.values())
+
+
+def frame_of_reference(files_per_phase) -> str | None:
+    """The FrameOfReferenceUID every phase shares (read from each phase's first DICOM file,
+    ``files_per_phase``: a sequence of file lists), or None when a phase has none or two differ."""
+    uids = set()
+    for files in files_per_phase:
+        try:
+            ds = pydicom.dcmread(files[0], stop_before_pixels=True, specific_tags=["FrameOfReferenceUID"])
+        except (OSError, pydicom.errors.InvalidDicomError) as exc:
+            raise ReadError(f"{files[0]}: cannot read its FrameOfReferenceUID ({exc})") from exc
+        uids.add(str(ds.get("FrameOfReferenceUID", "") or "").strip())
+    return uids.pop() if len(uids) == 1 and "" not in uids else None

@@ -1,0 +1,60 @@
+"""``lungdeform validate gating``: amplitude gating of a beam simulated on every trace under a folder.
+
+The work is :mod:`lungdeform.validate.gating` (protocol, metrics.json layout and targets there).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from lungdeform.breathing.gating import GateRule, parse_window
+from lungdeform.breathing.predict_interval import IntervalConfig
+from lungdeform.validate.gating import STRATEGIES, GatingConfig, validate_gating
+
+from .common import STRICT_EXIT, check_output, figure_or_na, say
+
+
+def register(apps) -> None:
+    @apps.validate.command("gating")
+    def gating(
+        data: Path = typer.Option(..., "--data", help="Folder searched for .vxp / .csv breathing traces."),
+        out: Path = typer.Option(..., "--out", help="Output folder: metrics.json and plots/."),
+        latency_ms: float = typer.Option(300.0, "--latency-ms", help="Latency between decision and beam (ms)."),
+        window: str = typer.Option("end-exhale:30", "--window",
+                                   help="Gating window KIND:PERCENT, KIND end-exhale or end-inhale."),
+        confident: bool = typer.Option(False, "--confident",
+                                       help="model_intervals: the whole interval must be inside the window."),
+        coverage: float = typer.Option(0.9, "--coverage", help="Coverage of the prediction intervals (0-1)."),
+        min_probability: float = typer.Option(0.5, "--min-probability",
+                                              help="model_intervals without --confident: the predicted "
+                                                   "probability of the window needed (0-1)."),
+        strict: bool = typer.Option(False, "--strict", help="Exit with code 3 when a target is not met (for CI)."),
+    ):
+        """Gate a beam on each trace: no compensation, linear, model, model with intervals and an oracle."""
+        check_output(out, [data], folder=True)
+        rule = GateRule(parse_window(window), confident, min_probability, IntervalConfig(coverage=coverage))
+        config = GatingConfig(latency_ms=latency_ms, rule=rule)
+        m = validate_gating(data, out, config, progress=say)
+        for name, err in m["errors"].items():
+            typer.echo(f"skipped {name}: {err}", err=True)
+        typer.echo(f"{m['n_traces']} traces, window {m['window']}, latency {m['latency_ms']:g} ms; medians over traces:")
+        typer.echo("  strategy          duty cycle   beam-on error   residual RMS")
+        for k in STRATEGIES:
+            r = m["summary"][k]
+            typer.echo(f"  {k:<16}  {figure_or_na(r['duty_cycle'], 3):>10}   {figure_or_na(r['beam_on_error'], 3):>13}"
+                       f"   {figure_or_na(r['residual_rms'], 3):>12}")
+        mt = m["summary"]["matched"]
+        typer.echo(f"  at linear's duty cycle: model_intervals beam-on error "
+                   f"{figure_or_na(mt['model_intervals_beam_on_error'], 3)} (linear "
+                   f"{figure_or_na(mt['linear_beam_on_error'], 3)})")
+        t = m["targets"]
+        for key, text in (("error_vs_none", "beam-on error <= 0.5 x none's"),
+                          ("duty_vs_none", "duty cycle >= 0.9 x none's"),
+                          ("better_than_linear", "better than linear at equal or higher duty"),
+                          ("better_than_linear_at_matched_duty", "better than linear at linear's duty")):
+            typer.echo(f"target model_intervals {text}: {'met' if t[key]['met'] else 'not met'}")
+        typer.echo(f"wrote {Path(out) / 'metrics.json'} and {len(m['plots'])} plots in {Path(out) / 'plots'}")
+        if strict and not all(v["met"] for v in t.values()):
+            raise typer.Exit(STRICT_EXIT)

@@ -1,0 +1,112 @@
+"""The one validation walk of DICOM attributes: what a reader requires, what a writer may write.
+
+Reading: :func:`require` checks that a dataset holds the attributes a reader needs, each readable,
+and that those holding UIDs are DICOM UIDs (:data:`UID`); a :class:`~lungdeform.errors.ReadError`
+names the file and the attributes. Every pydicom reader of this package calls it
+(:mod:`~lungdeform.io.dicom.rtstruct`, :mod:`~lungdeform.io.dicom.series`,
+:mod:`~lungdeform.io.dicom.registration`).
+
+Writing: :func:`decimal` formats a number as a Decimal String of at most 16 bytes (PS3.5 6.2, DS;
+Eclipse refuses longer ones) and :func:`check_dataset` walks a dataset, its sequences included,
+before it is saved: every value within its VR's limits (:data:`MAX_BYTES`: DS 16, IS 12, UI 64
+bytes, ...), every UI a UID. A value outside them is a bug of the writer, refused with
+:class:`~lungdeform.errors.InputError` naming the attribute, never written.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import warnings
+
+from pydicom.dataset import Dataset
+from pydicom.multival import MultiValue
+
+from lungdeform.errors import InputError, ReadError
+
+#: A DICOM UID (PS3.5 9.1): dot-separated numbers without leading zeros, at most 64 characters.
+UID = re.compile(r"(?=.{1,64}$)(0|[1-9][0-9]*)(\.(0|[1-9][0-9]*))*")
+#: Largest value length in bytes per VR, one value of a multi-valued attribute (PS3.5 Table 6.2-1;
+#: PN: 64 per component group).
+MAX_BYTES = {"AE": 16, "AS": 4, "CS": 16, "DA": 8, "DS": 16, "IS": 12, "LO": 64, "LT": 10240, "PN": 64,
+             "SH": 16, "ST": 1024, "TM": 14, "UI": 64, "DT": 26}
+#: Attributes holding UIDs that :func:`require` checks when asked for them.
+_UID_KEYS = ("SOPInstanceUID", "SOPClassUID", "FrameOfReferenceUID", "StudyInstanceUID", "SeriesInstanceUID")
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0][:200] if text else "no detail"
+
+
+def require(ds: Dataset, keys, where, purpose: str) -> None:
+    """:class:`ReadError` naming ``where`` (the file) when ``ds`` lacks any of ``keys`` (absent or
+    empty), when one cannot be read (pydicom converts on first access), or when one of the UID
+    attributes among them (:data:`_UID_KEYS`) is not a DICOM UID; ``purpose`` ends the message
+    ("which an RTSTRUCT needs")."""
+    try:  # a value pydicom cannot convert raises on first access
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            missing = [k for k in keys if not ds.get(k)]
+            uids = {k: str(ds.get(k, "")) for k in keys if k in _UID_KEYS and k not in missing}
+    except Exception as exc:  # any conversion failure becomes one clear line
+        raise ReadError(f"{where}: unreadable DICOM attribute ({type(exc).__name__}: {_first_line(exc)})") from exc
+    if missing:
+        raise ReadError(f"{where}: DICOM file lacks {', '.join(missing)}, {purpose}")
+    for key, uid in uids.items():
+        if not UID.fullmatch(uid):
+            raise ReadError(f"{where}: {key} {uid[:70]!r} is not a DICOM UID (digits and dots, at most 64 characters)")
+
+
+def decimal(value: float, digits: int = 12, places: int | None = None) -> str:
+    """``value`` as a DICOM Decimal String of at most 16 bytes: with ``places`` decimals when that
+    fits (``f"{value:.6f}"``, how lungdeform has always written positions), else with as many
+    significant digits as fit, up to ``digits`` (``-123.456789012`` for -123.45678901234,
+    ``1.2345678901e-05``); a value that is not finite is refused with :class:`InputError`."""
+    x = float(value)
+    if not math.isfinite(x):
+        raise InputError(f"a DICOM decimal string must be finite, got {value!r}")
+    if places is not None and len(text := f"{x:.{places}f}") <= 16:
+        return text
+    for n in range(digits, 0, -1):
+        text = f"{x:.{n}g}"
+        if len(text) <= 16:
+            return text
+    raise InputError(f"{value!r} cannot be written as a DICOM decimal string of 16 bytes")
+
+
+def type2_defaults(ds: Dataset, keys) -> None:
+    """Add each of ``keys`` that ``ds`` lacks with an empty value: a Type 2 attribute must be present,
+    empty when unknown (PS3.5 7.4.3); a value is never invented."""
+    for key in keys:
+        if key not in ds:
+            setattr(ds, key, "")
+
+
+def check_dataset(ds: Dataset, where: str = "dataset") -> None:
+    """Walk ``ds`` and its sequences: every value of a VR in :data:`MAX_BYTES` at most that many
+    bytes, every UI value a UID (:data:`UID`); :class:`InputError` naming ``where`` and the attribute."""
+    with warnings.catch_warnings():  # pydicom's own warnings on such values: refused here instead
+        warnings.simplefilter("ignore")
+        _walk(ds, where)
+
+
+def _walk(ds: Dataset, where: str) -> None:
+    for elem in ds:
+        if elem.VR == "SQ":
+            for i, item in enumerate(elem.value):
+                _walk(item, f"{where}: {elem.keyword}[{i}]")
+            continue
+        limit = MAX_BYTES.get(elem.VR)
+        if limit is None or elem.value is None:
+            continue
+        values = elem.value if isinstance(elem.value, (list, tuple, MultiValue)) else [elem.value]
+        for v in values:
+            text = v.original_string if getattr(v, "original_string", None) is not None else v
+            text = text.decode("latin-1") if isinstance(text, bytes) else str(text)
+            parts = text.split("=") if elem.VR == "PN" else [text]
+            if any(len(part.encode("utf-8")) > limit for part in parts):
+                raise InputError(f"{where}: {elem.keyword or elem.tag} value {text[:40]!r} is longer than "
+                                 f"{limit} bytes, the limit of VR {elem.VR}")
+            if elem.VR == "UI" and text and not UID.fullmatch(text):
+                raise InputError(f"{where}: {elem.keyword or elem.tag} {text[:70]!r} is not a DICOM UID")

@@ -1,0 +1,241 @@
+"""``lungdeform validate gating``: amplitude gating of a radiotherapy beam simulated on recorded traces.
+
+Protocol, per trace (every trace :func:`lungdeform.validate.breathing.trace_files` finds, in its own
+unit as :func:`lungdeform.breathing.trace.read_trace` gives it, inhale positive):
+
+1. the window (:class:`lungdeform.breathing.gating.GateWindow`, default ``end-exhale:30``: the lowest
+   30 % of the breath's amplitude over the last 15 s of samples) is known at each sample ``t_i`` from
+   the samples up to ``t_i`` only;
+2. the beam decision made at ``t_i`` acts at ``t_i + latency`` (default 300 ms). Strategies, all in
+   the same run:
+
+   - ``none``: no compensation, the newest sample ``x(t_i)`` inside the window;
+   - ``linear``: the online linear baseline's prediction of ``x(t_i + latency)`` inside;
+   - ``model``: the model's (:class:`lungdeform.breathing.predict.BlendPredictor`) prediction inside;
+   - ``model_intervals``: the model with its conformal predictive distribution
+     (:mod:`lungdeform.breathing.predict_interval`): the predicted probability of the window at least
+     ``min_probability`` (0.5); with ``confident``, instead the whole ``coverage`` interval inside;
+   - ``oracle``: the true ``x(t_i + latency)`` inside (knows the future: the ceiling);
+
+3. scored for every ``t_i`` at least ``warm_s`` (30 s) after the first sample with ``t_i + latency``
+   inside the trace (linear interpolation), against the window of ``t_i``: the duty cycle (share of
+   scored samples with the beam on), the beam-on error (share of beam-on samples whose true position
+   is outside the window) and the residual motion (RMS over beam-on samples of the distance outside
+   the window, trace units). Summary: medians over traces.
+
+Also, per trace, ``matched``: the beam-on error of the model-with-intervals gate at the linear
+strategy's duty cycle (its samples of highest predicted window probability, as many as linear's
+beam-on samples; chosen after the fact: a comparison of the two trade-offs, not a gate).
+
+``metrics.json``: ``{"traces": {NAME: {"none": {"duty_cycle", "beam_on_error", "residual_rms"}, …,
+"matched": {…}}}, "summary": {STRATEGY: {…}}, "targets": {…}, "errors": {…}, …}``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from lungdeform.atomic import write_json
+from lungdeform.breathing.gating import BeamGate, GateRule, distance_outside, gate_point
+from lungdeform.breathing.predict import baseline_linear, check_horizon
+from lungdeform.breathing.trace import read_trace
+from lungdeform.errors import InputError, LungdeformError
+from lungdeform.plot import new_figure, save_png
+
+from .breathing import trace_files
+
+STRATEGIES = ("none", "linear", "model", "model_intervals", "oracle")
+METRICS = ("duty_cycle", "beam_on_error", "residual_rms")
+WARM_S = 30.0
+#: must show: model_intervals beam-on error ≤ this × none's, at a duty cycle ≥ DUTY_FLOOR × none's
+TARGET_ERROR_OVER_NONE = 0.5
+TARGET_DUTY_OVER_NONE = 0.9
+
+
+@dataclass(frozen=True)
+class GatingConfig:
+    """latency_ms : ms between decision and beam (0, 2000]; rule : the window and the rule of
+    model_intervals (:class:`lungdeform.breathing.gating.GateRule`); warm_s : s not scored."""
+
+    latency_ms: float = 300.0
+    rule: GateRule = field(default_factory=GateRule)
+    warm_s: float = WARM_S
+
+    def __post_init__(self):
+        if not (math.isfinite(self.latency_ms) and 0.0 < self.latency_ms <= 2000.0):
+            raise InputError(f"--latency-ms must be in (0, 2000] ms, got {self.latency_ms!r}")
+
+
+def gate_decisions(t_s, x, config: GatingConfig) -> dict:
+    """Every strategy's beam decision at every sample of one trace (causal except ``oracle``):
+    ``{"window": (n, 2) float, "truth": (n,) float x(t + latency) (NaN past the end), STRATEGY: (n,)
+    bool, "probability": (n,) float (the model's predicted window probability)}``."""
+    t, v = np.asarray(t_s, float), np.asarray(x, float)
+    lat = check_horizon(config.latency_ms / 1000.0)
+    gate = BeamGate(lat, config.rule)
+    lin = baseline_linear(lat, dt_s=float(np.median(np.diff(t))))
+    n = t.size
+    win, prob = np.empty((n, 2)), np.empty(n)
+    dec = {k: np.zeros(n, bool) for k in STRATEGIES}
+    for i in range(n):
+        g = gate.update(t[i], v[i])
+        win[i], prob[i] = g.window, g.probability
+        dec["none"][i] = gate_point(g.window, v[i])
+        dec["linear"][i] = gate_point(g.window, lin.update(t[i], v[i]))
+        dec["model"][i] = gate_point(g.window, g.predicted)
+        dec["model_intervals"][i] = g.beam_on
+    truth = np.interp(t + lat, t, v)
+    truth[t + lat > t[-1]] = np.nan
+    dec["oracle"] = (win[:, 0] <= truth) & (truth <= win[:, 1])
+    return {"window": win, "truth": truth, "probability": prob, **dec}
+
+
+def gate_metrics(on: np.ndarray, truth: np.ndarray, window: np.ndarray) -> dict:
+    """Duty cycle, beam-on error and residual RMS (trace units) of beam decisions ``on : (m,) bool``
+    against the true positions ``truth : (m,)`` and the windows ``(m, 2)``; None where undefined."""
+    out = np.array([distance_outside(w, y) for w, y in zip(window, truth)])
+    duty = float(on.mean()) if on.size else None
+    if not on.any():
+        return {"duty_cycle": duty, "beam_on_error": None, "residual_rms": None, "n_on": 0}
+    return {"duty_cycle": duty, "beam_on_error": float(np.mean(out[on] > 0)),
+            "residual_rms": float(np.sqrt(np.mean(out[on] ** 2))), "n_on": int(on.sum())}
+
+
+def matched_error(probability: np.ndarray, truth: np.ndarray, window: np.ndarray, n_on: int) -> float | None:
+    """Beam-on error of the ``n_on`` samples of highest predicted window probability (module doc)."""
+    if n_on <= 0:
+        return None
+    top = np.argsort(-np.nan_to_num(probability, nan=-1.0), kind="stable")[:n_on]
+    return float(np.mean([distance_outside(window[i], truth[i]) > 0 for i in top]))
+
+
+def score_trace(t_s, x, config: GatingConfig) -> dict:
+    """:func:`gate_decisions` scored (protocol step 3): ``{STRATEGY: metrics, "matched": …, "n_scored"}``
+    and ``"_decisions"`` (for the plots)."""
+    t = np.asarray(t_s, float)
+    if t.size < 2 or t[-1] - t[0] <= config.warm_s:
+        raise InputError(f"trace of {t[-1] - t[0]:.1f} s is not longer than the {config.warm_s:g} s warm-up")
+    d = gate_decisions(t, x, config)
+    ok = (t >= t[0] + config.warm_s) & np.isfinite(d["truth"])
+    out: dict = {k: gate_metrics(d[k][ok], d["truth"][ok], d["window"][ok]) for k in STRATEGIES}
+    n_lin = out["linear"]["n_on"]
+    out["matched"] = {"linear_duty_cycle": out["linear"]["duty_cycle"],
+                      "linear_beam_on_error": out["linear"]["beam_on_error"],
+                      "model_intervals_beam_on_error": matched_error(d["probability"][ok], d["truth"][ok],
+                                                                     d["window"][ok], n_lin)}
+    out["n_scored"] = int(ok.sum())
+    out["_decisions"] = d
+    return out
+
+
+def summary(traces: dict) -> dict:
+    """Median over traces of each metric of each strategy (None where no trace has it), and of matched."""
+    def med(vals):
+        vals = [v for v in vals if v is not None and math.isfinite(v)]
+        return float(np.median(vals)) if vals else None
+
+    out = {k: {m: med([r[k][m] for r in traces.values()]) for m in METRICS} for k in STRATEGIES}
+    out["matched"] = {m: med([r["matched"][m] for r in traces.values()]) for m in next(iter(traces.values()))["matched"]}
+    return out
+
+
+def targets(s: dict) -> dict:
+    """The must-show comparisons on the medians: against no compensation and against linear."""
+    none, mi, lin = s["none"], s["model_intervals"], s["linear"]
+
+    def le(a, b, f=1.0):
+        return a is not None and b is not None and a <= f * b
+
+    return {
+        "error_vs_none": {"value": mi["beam_on_error"], "threshold": None if none["beam_on_error"] is None
+                          else TARGET_ERROR_OVER_NONE * none["beam_on_error"],
+                          "met": le(mi["beam_on_error"], none["beam_on_error"], TARGET_ERROR_OVER_NONE)},
+        "duty_vs_none": {"value": mi["duty_cycle"], "threshold": None if none["duty_cycle"] is None
+                         else TARGET_DUTY_OVER_NONE * none["duty_cycle"],
+                         "met": le(TARGET_DUTY_OVER_NONE * (none["duty_cycle"] or 0.0), mi["duty_cycle"])},
+        "better_than_linear": {"met": le(mi["beam_on_error"], lin["beam_on_error"])
+                               and le(lin["duty_cycle"], mi["duty_cycle"]),
+                               "beam_on_error": [mi["beam_on_error"], lin["beam_on_error"]],
+                               "duty_cycle": [mi["duty_cycle"], lin["duty_cycle"]]},
+        "better_than_linear_at_matched_duty": {
+            "met": le(s["matched"]["model_intervals_beam_on_error"], s["matched"]["linear_beam_on_error"]),
+            "beam_on_error": [s["matched"]["model_intervals_beam_on_error"], s["matched"]["linear_beam_on_error"]]},
+    }
+
+
+def protocol(config: GatingConfig) -> str:
+    rule, window = config.rule.text, config.rule.window
+    return (f"window {window.text} of the breath, causal (extremes of the last {window.span_s:g} s); "
+            f"decision at t_i for t_i + {config.latency_ms:g} ms; scored for t_i >= t_0 + {config.warm_s:g} s "
+            f"against the window of t_i; model_intervals: {rule}; medians over traces")
+
+
+def write_plots(scores: dict, config: GatingConfig, folder: Path) -> dict[str, str]:
+    """Duty cycle against beam-on error per strategy (every trace, medians), and 30 s of one trace with
+    the window and each strategy's beam."""
+    folder.mkdir(parents=True, exist_ok=True)
+    fig = new_figure(6.4, 4.6, layout="constrained")
+    ax = fig.subplots()
+    for j, k in enumerate(STRATEGIES):
+        pts = np.array([(r[k]["duty_cycle"], r[k]["beam_on_error"]) for r in scores.values()
+                        if r[k]["beam_on_error"] is not None], float).reshape(-1, 2)
+        ax.scatter(pts[:, 0], pts[:, 1], s=12, color=f"C{j}", alpha=0.5)
+        if len(pts):
+            ax.scatter(*np.median(pts, axis=0), s=90, marker="*", color=f"C{j}", label=f"{k} (median)")
+    ax.set_xlabel("duty cycle")
+    ax.set_ylabel("beam-on error (share of beam-on time outside the window)")
+    ax.set_title(f"gating, {config.rule.window.text}, latency {config.latency_ms:g} ms", fontsize=10)
+    ax.legend(fontsize=8)
+    files = {"duty_vs_error.png": str(save_png(fig, folder / "duty_vs_error.png"))}
+    name = next(iter(scores))
+    t, x = scores[name]["_trace"]
+    d = scores[name]["_decisions"]
+    keep = (t >= t[0] + config.warm_s) & (t <= t[0] + config.warm_s + 30.0)
+    fig = new_figure(10.0, 4.4, layout="constrained")
+    ax = fig.subplots()
+    lat = config.latency_ms / 1000.0
+    ax.plot(t[keep], x[keep], color="black", lw=1.4, label="signal")
+    edge = np.where(np.isinf(d["window"][:, 1]), d["window"][:, 0], d["window"][:, 1])
+    ax.plot(t[keep] + lat, edge[keep], color="0.5", ls="--", lw=1.0, label="window edge (at the time it gates)")
+    lo, hi = float(np.min(x[keep])), float(np.max(x[keep]))
+    for j, k in enumerate(STRATEGIES):
+        y0 = lo - (j + 1) * 0.08 * (hi - lo)
+        on = keep & d[k]
+        ax.plot(np.where(on, t + lat, np.nan), np.full(t.size, y0), color=f"C{j}", lw=4, label=f"beam on: {k}")
+    ax.set_xlabel("t (s)")
+    ax.set_ylabel(f"signal ({scores[name]['unit']})")
+    ax.set_title(f"{name}: beam on where each strategy gates (drawn at the time the beam acts)", fontsize=10)
+    ax.legend(fontsize=7, ncols=3, loc="upper right")
+    files["gated_trace.png"] = str(save_png(fig, folder / "gated_trace.png"))
+    return files
+
+
+def validate_gating(data: Path, out: Path, config: GatingConfig | None = None, progress=None) -> dict:
+    """Gate every trace under ``data`` (module doc); write ``out/metrics.json`` and ``out/plots/*.png``."""
+    config = config or GatingConfig()
+    scores, errors = {}, {}
+    for key, f in trace_files(Path(data)).items():
+        if progress:
+            progress(f"gating {key}")
+        try:
+            tr = read_trace(f)
+            scores[key] = {"unit": tr.unit, **score_trace(tr.t_s, tr.amplitude, config),
+                           "_trace": (tr.t_s, tr.amplitude)}
+        except LungdeformError as exc:
+            errors[key] = " ".join(str(exc).split())
+    if not scores:
+        raise InputError(f"data {data}: no trace could be gated ({len(errors)} failed"
+                         + (f"; first: {next(iter(errors.values()))})" if errors else ")"))
+    files = write_plots(scores, config, Path(out) / "plots")
+    traces = {n: {k: v for k, v in r.items() if not k.startswith("_")} for n, r in scores.items()}
+    s = summary(traces)
+    metrics = {"traces": traces, "summary": s, "targets": targets(s), "n_traces": len(traces),
+               "errors": errors, "latency_ms": config.latency_ms, "window": config.rule.window.text,
+               "confident": config.rule.confident, "min_probability": config.rule.min_probability,
+               "coverage": config.rule.interval.coverage, "plots": files, "protocol": protocol(config)}
+    write_json(Path(out) / "metrics.json", metrics, strict=True)
+    return metrics

@@ -1,0 +1,68 @@
+"""The one validation walk (lungdeform.io.dicom.attributes): decimal strings, VR limits, required attributes."""
+
+import warnings
+
+import numpy as np
+import pytest
+from pydicom.dataset import Dataset
+from pydicom.sequence import Sequence
+
+from lungdeform.errors import InputError, ReadError
+from lungdeform.io.dicom.attributes import check_dataset, decimal, require
+
+
+def test_decimal_strings_fit_16_bytes_and_keep_the_value():
+    # why: Eclipse refuses DS values over 16 bytes (PS3.5 6.2); the string must also read back as
+    # the number to the precision 16 bytes allow (12 significant digits, fewer for long exponents)
+    rng = np.random.default_rng(27)
+    values = np.concatenate([rng.normal(0, 1, 200) * 10.0 ** rng.integers(-30, 30, 200),
+                             [0.0, -0.0, 1e-300, -1.2345678901234567e-05, -123456789.123456789, 2 ** 60]])
+    for x in values:
+        text = decimal(x)
+        assert len(text.encode()) <= 16, text
+        assert float(text) == pytest.approx(x, rel=1e-7, abs=0.0), (x, text)
+
+
+def test_decimal_refuses_what_is_not_finite():
+    with pytest.raises(InputError, match="finite"):
+        decimal(float("nan"))
+
+
+def test_check_dataset_walks_sequences_and_names_the_attribute():
+    # a DS value of 17 bytes deep in a sequence, and a malformed UID: refused, never written
+    ds = Dataset()
+    item = Dataset()
+    with warnings.catch_warnings():  # pydicom warns of the long value it holds: the walk must refuse it
+        warnings.simplefilter("ignore")
+        item.ContourData = ["1.2345678901234567", "0", "0"]
+    ds.ROIContourSequence = Sequence([item])
+    with pytest.raises(InputError, match=r"ROIContourSequence\[0\].*ContourData.*16 bytes"):
+        check_dataset(ds, "rs.dcm")
+    ok = Dataset()
+    ok.SliceThickness = decimal(1 / 3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ok.SOPInstanceUID = "1.2.3.04"  # a leading zero (PS3.5 9.1)
+    with pytest.raises(InputError, match="SOPInstanceUID.*not a DICOM UID"):
+        check_dataset(ok)
+    ok.SOPInstanceUID = "1.2.3.4"
+    check_dataset(ok)
+
+
+def test_require_names_what_is_missing_and_bad_uids():
+    ds = Dataset()
+    ds.SOPInstanceUID = "1.2.3"
+    with pytest.raises(ReadError, match="f.dcm: DICOM file lacks FrameOfReferenceUID, which X needs"):
+        require(ds, ("SOPInstanceUID", "FrameOfReferenceUID"), "f.dcm", "which X needs")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ds.FrameOfReferenceUID = "1.2.x"
+    with pytest.raises(ReadError, match="FrameOfReferenceUID '1.2.x' is not a DICOM UID"):
+        require(ds, ("SOPInstanceUID", "FrameOfReferenceUID"), "f.dcm", "which X needs")
+
+
+def test_decimal_keeps_the_places_asked_for_while_they_fit():
+    # positions are written with 6 decimals as before (the grid read back unchanged); a value too
+    # long for that falls back to significant digits within 16 bytes
+    assert decimal(-166.0, places=6) == "-166.000000" and decimal(4.800000190734863, 6) == "4.8"
+    assert decimal(-123456789.123456, places=6) == "-123456789.123"  # 12 significant digits
