@@ -8,7 +8,9 @@ import numpy as np
 import typer
 
 from lungdeform.breathing.presets import get_preset
+from lungdeform.atomic import write_bytes
 from lungdeform.errors import InputError
+from lungdeform.geometry.moments import solid_moments
 from lungdeform.io.dicomseries import MAX_PHASES
 from lungdeform.io.modelfile import load_model
 from lungdeform.io.rtstruct import (
@@ -60,7 +62,7 @@ def register(apps) -> None:
         _check_structure_options(points, rtstruct, structure, out_rtstruct, reference_ct, phases, volume_ml)
         _check_out_rtstruct(out_rtstruct, model, points, rtstruct, curve)
         check_output(out, [model, points, rtstruct, curve, reference_ct], folder=True,
-                     writes=("trajectories.csv", "points.json", "motion.png"))
+                     writes=("trajectories.csv", "points.json", "motion.png", "structure_motion.csv"))
         m = load_model(model)
         tracked = R.read_structure(rtstruct, structure) if rtstruct is not None else None
         ct = _reference_ct(tracked, rtstruct, out_rtstruct, reference_ct)
@@ -80,8 +82,8 @@ def register(apps) -> None:
             _check_rows(len(pts), (trace.t_s[-1] - trace.t_s[0]) * fps + 1, source)  # before the frames are made
             frames, tags = T.trace_frames(trace, fps), []
         _check_rows(len(pts), len(frames.delta_ml), source)
-        for tag in tags if out_rtstruct is not None else []:  # the ROI names, before the surfaces are moved
-            check_roi_name(f"{structure}@{tag}", str(rtstruct))
+        for name in [f"{structure}@{tag}" for tag in tags] + [f"ITV_{structure}"] if out_rtstruct is not None else []:
+            check_roi_name(name, str(rtstruct))  # the ROI names, before the surfaces are moved
         note = T.extrapolation_note(m, frames.delta_ml)
         if note:
             typer.echo(f"note: {note}")
@@ -89,6 +91,8 @@ def register(apps) -> None:
         built = None
         if out_rtstruct is not None:  # made and checked (names, extent on the CT) before any output
             surfaces = R.moved_surfaces(m, tracked, frames.delta_ml, tags, lung, source=f"{rtstruct} {structure}")
+            motion = R.motion_table(surfaces)
+            surfaces.append(R.itv_surface(surfaces, structure))  # the union over the states
             built = build_rtstruct(ct, surfaces, label=f"{structure} moved", source=str(rtstruct))
         folder = output_dir(out)
         meta = {"model": str(model), "schedule": frames.source, "end_exhale_ml": T.end_exhale_ml(m), **T.interior_meta(m)}
@@ -96,12 +100,25 @@ def register(apps) -> None:
         if built is not None:
             save_rtstruct(out_rtstruct, built[0])
             typer.echo(f"wrote {out_rtstruct}: " + ", ".join(f"{k} ({n} contours)" for k, n in built[1].items()))
+            paths["motion"] = write_bytes(folder / "structure_motion.csv", R.motion_csv({structure: motion}))
+            _print_motion(structure, motion, surfaces[-1])
         typer.echo(f"{len(pts)} point(s), {len(frames.delta_ml)} frame(s): {frames.source}")
         if tracked is None:
             _print_points(labels, placement, T.motion_summary(positions, pts), paths)
         else:
             _print_structure(structure, placement, T.motion_summary(positions, pts))
         typer.echo(f"wrote {paths['csv']}, {paths['json']}, {paths['png']}")
+
+
+def _print_motion(name: str, motion: list[dict], itv) -> None:
+    """The structure's volume and centroid motion over the states, and its ITV's volume."""
+    vols = [r["volume_ml"] for r in motion]
+    amp = ", ".join(f"{x:.1f}" for x in motion[0]["amplitude_mm"])
+    far = max(motion, key=lambda r: r["distance_mm"])
+    itv_ml = solid_moments(itv[1], itv[2])[0] / 1000.0
+    typer.echo(f"  {name}: volume {min(vols):.2f} to {max(vols):.2f} mL over {len(motion)} state(s); centroid "
+               f"amplitude (x, y, z) ({amp}) mm LPS, farthest from {motion[0]['state']} at {far['state']} "
+               f"({far['distance_mm']:.1f} mm); {itv[0]} {itv_ml:.2f} mL (structure_motion.csv)")
 
 
 def _check_rows(points: int, frames: float, source: str) -> None:
