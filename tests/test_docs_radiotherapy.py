@@ -42,11 +42,9 @@ def doc_commands() -> list[str]:
 
 def _command(tokens: list[str]):
     """The click command a token list names (``validate itk-pair`` walks the group), and the rest."""
-    import click
-
     cmd = typer.main.get_command(make_app())
     rest = tokens[1:]
-    while isinstance(cmd, click.Group):
+    while hasattr(cmd, "commands"):  # a group
         cmd, rest = cmd.commands[rest[0]], rest[1:]
     return cmd, rest
 
