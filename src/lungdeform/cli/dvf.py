@@ -29,7 +29,7 @@ def register(apps) -> None:
         no_rigid: bool = typer.Option(False, "--no-rigid", help="With --scan: leave the fit's alignment of that scan out (the field stays in the model's frame)."),
         rigid_structure: str | None = typer.Option(None, "--rigid-structure", help="With --rtstruct: this ROI (e.g. GTV) moves rigidly, keeping its volume."),
         rtstruct: Path | None = typer.Option(None, "--rtstruct", help="RTSTRUCT holding --rigid-structure, drawn on the reference's frame."),
-        rigid_mask: Path | None = typer.Option(None, "--rigid-mask", help="A mask on the output grid (non-zero voxels) that moves rigidly."),
+        rigid_mask: Path | None = typer.Option(None, "--rigid-mask", help="A mask (non-zero voxels, in the reference's LPS world) that moves rigidly."),
         rigid_border_mm: float = typer.Option(10.0, "--rigid-border-mm", help="Width (mm) over which the rigid motion is blended back into the field."),
     ) -> None:
         """Displacement field of the model at a breathing state (docs/RADIOTHERAPY.md).

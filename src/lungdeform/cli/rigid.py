@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from lungdeform.errors import InputError
-from lungdeform.io.image import read_image
+from lungdeform.io.image import read_image, resample_image
 from lungdeform.playback import rigid as RG
 from lungdeform.playback.structures import read_structure
 
@@ -43,7 +43,8 @@ class RigidOptions:
 
 def rigid_region(options: RigidOptions | None, grid) -> np.ndarray | None:
     """``(z, y, x) bool`` on ``grid``: the structure's voxels (inside its closed surface through the
-    contours) or the mask's non-zero voxels (the mask must be on ``grid``); None without options."""
+    contours) or the mask's non-zero voxels (a mask on another grid of the same LPS world taken by
+    nearest neighbour); None without options."""
     if options is None:
         return None
     if options.name is not None:
@@ -55,9 +56,8 @@ def rigid_region(options: RigidOptions | None, grid) -> np.ndarray | None:
         same = (img.array.shape == tuple(grid.shape) and np.allclose(img.spacing, grid.spacing, atol=1e-4)
                 and np.allclose(img.origin, grid.origin, atol=1e-3)
                 and np.allclose(np.asarray(img.direction).reshape(3, 3), grid.direction, atol=1e-6))
-        if not same:
-            raise InputError(f"--rigid-mask {options.mask}: not on the image's grid (shape {img.array.shape[::-1]}, "
-                             f"expected {tuple(grid.shape[::-1])} with the same spacing, origin and direction)")
+        if not same:  # another grid of the same world: its voxels, nearest neighbour, on this grid
+            img = resample_image(img, np.zeros(tuple(grid.shape) + (3,)), label=True, grid=grid)
         region = img.array != 0
         where = f"--rigid-mask {options.mask}"
     if region.sum() < 4:

@@ -42,7 +42,7 @@ def register(apps) -> None:
         projections: str | None = typer.Option(None, "--projections", help="With --phases and an image-file --out: also OUT_mip, OUT_aip, OUT_minip (maximum, mean, minimum over the phases); e.g. mip,aip,minip."),
         rigid_structure: str | None = typer.Option(None, "--rigid-structure", help="With --rtstruct: this ROI (e.g. GTV) moves rigidly, keeping its volume (docs/RADIOTHERAPY.md, \"A rigid tumour\")."),
         rtstruct: Path | None = typer.Option(None, "--rtstruct", help="RTSTRUCT holding --rigid-structure, drawn on IMAGE's frame."),
-        rigid_mask: Path | None = typer.Option(None, "--rigid-mask", help="A mask on IMAGE's grid (non-zero voxels) that moves rigidly; instead of --rigid-structure."),
+        rigid_mask: Path | None = typer.Option(None, "--rigid-mask", help="A mask (non-zero voxels, in IMAGE's LPS world) that moves rigidly; instead of --rigid-structure."),
         rigid_border_mm: float = typer.Option(10.0, "--rigid-border-mm", help="Width (mm) over which the rigid motion is blended back into the field."),
         grid: Path | None = typer.Option(None, "--grid", help="Write on this image's grid instead of IMAGE's (e.g. the target scan's, so an inhaled lung is not cropped); same LPS world."),
         no_rigid: bool = typer.Option(False, "--no-rigid", help="With --scan: leave the fit's alignment of that scan out (the image stays in the model's frame)."),
