@@ -24,7 +24,7 @@ class RigidOptions:
     border_mm: float
 
     @staticmethod
-    def of(name, rtstruct, mask, border_mm) -> "RigidOptions | None":
+    def of(name, rtstruct, mask, border_mm) -> RigidOptions | None:
         """Checked before any work: --rigid-structure with --rtstruct, or --rigid-mask; None without."""
         if (name is None) != (rtstruct is None):
             raise InputError("--rigid-structure and --rtstruct go together")
@@ -73,8 +73,8 @@ def apply_rigid(result, grid, region, options: RigidOptions | None) -> list[str]
     r = RG.rigid_field(result, grid, region, options.border_mm)
     angle = np.degrees(np.arccos(np.clip((np.trace(r.motion.rotation) - 1) / 2, -1, 1)))
     t = ", ".join(f"{x:.2f}" for x in r.motion.translation)
-    return [f"rigid {options.label}: {r.volume_ml:.2f} mL; at this state {r.rigid_ml:.2f} mL "
-            f"({100 * (r.rigid_ml / r.volume_ml - 1):+.2f} %; the elastic field gave {r.elastic_ml:.2f} mL, "
-            f"{100 * (r.elastic_ml / r.volume_ml - 1):+.2f} %); centroid moved ({t}) mm, rotated {angle:.2f}°, "
-            f"blended over {options.border_mm:g} mm",
-            f"Jacobian determinant after the rigid structure: checked (no folding)"]
+    return [(f"rigid {options.label}: {r.volume_ml:.2f} mL; at this state {r.rigid_ml:.2f} mL "
+             f"({100 * (r.rigid_ml / r.volume_ml - 1):+.2f} %; the elastic field gave {r.elastic_ml:.2f} mL, "
+             f"{100 * (r.elastic_ml / r.volume_ml - 1):+.2f} %); centroid moved ({t}) mm, rotated {angle:.2f}°, "
+             f"blended over {options.border_mm:g} mm"),
+            "Jacobian determinant after the rigid structure: checked (no folding)"]

@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from lungdeform.breathing.presets import get_preset
 from lungdeform.atomic import write_bytes
+from lungdeform.breathing.presets import get_preset
 from lungdeform.errors import InputError
 from lungdeform.geometry.moments import solid_moments
 from lungdeform.io.dicomseries import MAX_PHASES

@@ -26,7 +26,6 @@ from .dvf import Grid, phase_states
 from .rigid import surface_mask
 from .trajectory import FrameSchedule, place_points, point_trajectories
 
-
 #: Voxel size (mm) of the grid the ITV's union is filled on.
 ITV_VOXEL_MM = 0.5
 
