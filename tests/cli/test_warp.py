@@ -294,3 +294,32 @@ def test_warp_density_on_a_label_pixel_type_is_refused(files, tmp_path, capsys):
                  "--out", str(tmp_path / "w.mha")]) == 2
     assert "pixel type uint8" in capsys.readouterr().err
     assert not list(tmp_path.iterdir())
+
+
+def test_warp_rigid_structure_from_an_rtstruct(tmp_path, capsys):
+    # why: the RTSTRUCT path of --rigid-structure (the ROI's closed surface filled on the grid): the
+    # 10 mm GTV inflates with the elastic field at +500 mL and keeps its volume within 2 % when rigid
+    import re
+
+    import trimesh
+
+    from lungdeform.io.modelfile import save_model
+    from tests.browser.support import two_lungs
+    from tests.cli.test_track import GTV_CENTRE
+    from tests.io.dicom_support import write_ct_series
+    m = two_lungs(2)
+    model = save_model(tmp_path / "m.npz", m)
+    folder = write_ct_series(tmp_path / "ct", origin=tuple(GTV_CENTRE + [-31.0, -31.0, -19.0]))
+    s = trimesh.creation.icosphere(4, radius=10.0)
+    write_rtstruct(tmp_path / "gtv.dcm", read_ct_series(folder), [("GTV", s.vertices + GTV_CENTRE, s.faces, "GTV")])
+    ee = sum(lung.volume_ee_ml for lung in m.lungs.values())
+    assert main(["warp", str(folder), str(model), "--volume-ml", str(ee + 500), "--rigid-structure", "GTV",
+                 "--rtstruct", str(tmp_path / "gtv.dcm"), "--out", str(tmp_path / "w.mha")]) == 0
+    text = capsys.readouterr().out
+    rigid = float(re.search(r"at this state [\d.]+ mL \(([-+\d.]+) %", text).group(1))
+    elastic = float(re.search(r"the elastic field gave [\d.]+ mL, ([-+\d.]+) %", text).group(1))
+    assert abs(rigid) < 2 and elastic > 2, text
+    assert main(["warp", str(folder), str(model), "--volume-ml", str(ee + 500), "--rigid-structure", "CTV",
+                 "--rtstruct", str(tmp_path / "gtv.dcm"), "--out", str(tmp_path / "x.mha")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no structure 'CTV'" in err[0] and not (tmp_path / "x.mha").exists()
