@@ -31,12 +31,16 @@ def axis_weights(n_out: int, lo: int, stride: int, nodes: int, box_lo: int, box_
 
 
 @numba.njit(cache=True)
-def _row(values, k0, fz, j0, fy):
-    """``(nx, 3) float32``: the lattice row at (z, y) fractions ``fz``, ``fy`` past nodes ``k0``, ``j0``
-    (bilinear in z and y, every x node)."""
+def _row(values, k0, fz, j0, fy, buf):
+    """Write into ``buf : (nx, 3) float32`` the lattice row at (z, y) fractions ``fz``, ``fy`` past
+    nodes ``k0``, ``j0`` (bilinear in z and y, every x node; float32 arithmetic)."""
     k1, j1 = min(k0 + 1, values.shape[0] - 1), min(j0 + 1, values.shape[1] - 1)
     gy, gz = np.float32(1.0) - fy, np.float32(1.0) - fz
-    return (values[k0, j0] * gy + values[k0, j1] * fy) * gz + (values[k1, j0] * gy + values[k1, j1] * fy) * fz
+    for n in range(values.shape[2]):
+        for c in range(3):
+            buf[n, c] = ((values[k0, j0, n, c] * gy + values[k0, j1, n, c] * fy) * gz
+                         + (values[k1, j0, n, c] * gy + values[k1, j1, n, c] * fy) * fz)
+    return buf
 
 
 @numba.njit(cache=True, parallel=True)
@@ -45,19 +49,24 @@ def fill_field(out, values, nodes_k, frac_k, nodes_j, frac_j, nodes_i, frac_i, c
     j0, j1, i0, i1): the lattice ``values : (nz, ny, nx, 3) float32`` interpolated trilinearly where
     all three axes' nodes (:func:`axis_weights`) are ≥ 0 (else 0), plus ``const + steps @ (i, j, k)``
     (``const`` (3,) mm, ``steps`` (3, 3) mm per voxel, column a along index axis a). Separable: per
-    voxel row one bilinear lattice row (:func:`_row`), then one lerp per voxel."""
+    voxel row one bilinear lattice row (:func:`_row`, into a buffer per z-slice), then one lerp per voxel."""
     last = values.shape[2] - 1
     affine = np.any(const != 0) or np.any(steps != 0)
     for k in numba.prange(ranges[0], ranges[1]):
+        row = np.empty((values.shape[2], 3), np.float32)
         for j in range(ranges[2], ranges[3]):
             lattice = nodes_k[k] >= 0 and nodes_j[j] >= 0
-            row = _row(values, nodes_k[k], frac_k[k], nodes_j[j], frac_j[j]) if lattice else values[0, 0]
+            if lattice:
+                _row(values, nodes_k[k], frac_k[k], nodes_j[j], frac_j[j], row)
             for i in range(ranges[4], ranges[5]):
                 n0 = nodes_i[i]
+                inside = lattice and n0 >= 0
+                n1 = min(n0 + 1, last)
+                f = frac_i[i]
                 for c in range(3):
                     x = 0.0
-                    if lattice and n0 >= 0:
-                        x = row[n0, c] * (1 - frac_i[i]) + row[min(n0 + 1, last), c] * frac_i[i]
+                    if inside:
+                        x = row[n0, c] * (1 - f) + row[n1, c] * f
                     if affine:
                         x += const[c] + steps[c, 0] * i + steps[c, 1] * j + steps[c, 2] * k
                     if add:
