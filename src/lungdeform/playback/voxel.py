@@ -77,24 +77,14 @@ def fill_field(out, values, nodes_k, frac_k, nodes_j, frac_j, nodes_i, frac_i, c
 
 
 @numba.njit(cache=True, inline="always")
-def _diff(f, k, j, i, axis, c):
-    """∂f_c/∂(index ``axis``) (0 = k, 1 = j, 2 = i) at a voxel: central, one-sided at the edges."""
-    n = f.shape[axis]
-    p = (k, j, i)[axis]
-    lo, hi = max(p - 1, 0), min(p + 1, n - 1)
-    if axis == 0:
-        a, b = f[lo, j, i, c], f[hi, j, i, c]
-    elif axis == 1:
-        a, b = f[k, lo, i, c], f[k, hi, i, c]
-    else:
-        a, b = f[k, j, lo, c], f[k, j, hi, c]
-    return (np.float64(b) - np.float64(a)) / max(hi - lo, 1)
-
-
-@numba.njit(cache=True, inline="always")
-def _grad_row(f, k, j, i, inv, c):
-    """Row ``c`` of ``I + ∇u`` at voxel (k, j, i): ``(∂u_c/∂x_r + δ_cr for r = 0, 1, 2)``."""
-    di, dj, dk = _diff(f, k, j, i, 2, c), _diff(f, k, j, i, 1, c), _diff(f, k, j, i, 0, c)
+def _grad_row(f, k, j, i, near, inv, c):
+    """Row ``c`` of ``I + ∇u`` at voxel (k, j, i): ``(∂u_c/∂x_r + δ_cr for r = 0, 1, 2)``; the
+    differences central, one-sided at the array's edges (``near`` = the neighbours' indices and the
+    index steps between them, :func:`_det_at`)."""
+    kl, kh, jl, jh, il, ih, sk, sj, si = near
+    di = (np.float64(f[k, j, ih, c]) - np.float64(f[k, j, il, c])) / si
+    dj = (np.float64(f[k, jh, i, c]) - np.float64(f[k, jl, i, c])) / sj
+    dk = (np.float64(f[kh, j, i, c]) - np.float64(f[kl, j, i, c])) / sk
     return (di * inv[0, 0] + dj * inv[0, 1] + dk * inv[0, 2] + (c == 0),
             di * inv[1, 0] + dj * inv[1, 1] + dk * inv[1, 2] + (c == 1),
             di * inv[2, 0] + dj * inv[2, 1] + dk * inv[2, 2] + (c == 2))
@@ -103,9 +93,13 @@ def _grad_row(f, k, j, i, inv, c):
 @numba.njit(cache=True, inline="always")
 def _det_at(f, k, j, i, inv):
     """``det(I + ∇u)`` at voxel (k, j, i); ``inv[r, a] = ∂index_a / ∂x_r`` (a = i, j, k)."""
-    a11, a12, a13 = _grad_row(f, k, j, i, inv, 0)
-    a21, a22, a23 = _grad_row(f, k, j, i, inv, 1)
-    a31, a32, a33 = _grad_row(f, k, j, i, inv, 2)
+    kl, kh = max(k - 1, 0), min(k + 1, f.shape[0] - 1)
+    jl, jh = max(j - 1, 0), min(j + 1, f.shape[1] - 1)
+    il, ih = max(i - 1, 0), min(i + 1, f.shape[2] - 1)
+    near = (kl, kh, jl, jh, il, ih, max(kh - kl, 1), max(jh - jl, 1), max(ih - il, 1))
+    a11, a12, a13 = _grad_row(f, k, j, i, near, inv, 0)
+    a21, a22, a23 = _grad_row(f, k, j, i, near, inv, 1)
+    a31, a32, a33 = _grad_row(f, k, j, i, near, inv, 2)
     return a11 * (a22 * a33 - a23 * a32) - a12 * (a21 * a33 - a23 * a31) + a13 * (a21 * a32 - a22 * a31)
 
 
