@@ -126,9 +126,8 @@ def test_worked_example_2_runs_on_a_smaller_popi(data_dir, tmp_path, monkeypatch
     sphere = icosphere(3, 12.0, center=(-90.0, 80.0, -50.0))
     write_rtstruct("gtv.dcm", read_ct_series(tmp_path / "popi00"), [("GTV", sphere.vertices, sphere.faces, "GTV")])
     ran = 0
-    for command in doc_commands():  # the generic structure commands too, on this model and CT
-        if not any(k in command for k in ("popi", "4dct", "MODEL")):
-            continue
+    commands = doc_commands()  # the worked example, then the generic structure commands on its model and CT
+    for command in [c for c in commands if "popi" in c or "4dct" in c] + [c for c in commands if "MODEL" in c]:
         if "MODEL" in command:
             from lungdeform.io.modelfile import load_model
             ee = sum(lung.volume_ee_ml for lung in load_model("popi.npz").lungs.values())
