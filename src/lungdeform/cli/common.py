@@ -284,3 +284,11 @@ def write_bench_json(path: Path, results: list[dict], kind: str) -> None:
 def figure_or_na(value, digits: int = 2) -> str:
     """A summary figure for the terminal: ``n/a`` where it is undefined (None: no finite score)."""
     return "n/a" if value is None else f"{value:.{digits}f}"
+
+
+def without_alignment(state: State, no_rigid: bool) -> State:
+    """``state`` without the fit's alignment with ``--no-rigid`` (the field then stays in the model's
+    frame, the end-exhale scan's, rather than scan K's); unchanged otherwise."""
+    if not no_rigid or state.alignment is None:
+        return state
+    return State(state.delta_ml, None, f"{state.source}; its alignment left out (--no-rigid: the model's frame)")
