@@ -24,6 +24,7 @@ import numpy as np
 from lungdeform import plot
 from lungdeform.atomic import write_json, write_text
 from lungdeform.errors import InputError
+from lungdeform.progress import Progress
 
 from . import inversion as inv
 from . import pv as br
@@ -153,7 +154,8 @@ def stream_metrics(t_s: np.ndarray, amplitude: np.ndarray, tidal_volume_ml: floa
             "window_s": est.window_s, "smoothing_s": est.smoothing_s}
 
 
-def run_fit(path: Path, out: Path, tidal_volume_ml: float, train_fraction: float, progress=None) -> dict:
+def run_fit(path: Path, out: Path, tidal_volume_ml: float, train_fraction: float,
+            progress: Progress | None = None) -> dict:
     """Fit the trace at ``path`` (RPM ``.vxp`` or marker ``.csv``) and write its outputs into ``out``
     (created); returns the metrics. ``tidal_volume_ml``: the calibration (mL); ``train_fraction``:
     the share of cycles fitted, later ones held out; ``progress``: a callable given progress lines."""

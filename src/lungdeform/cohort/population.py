@@ -31,7 +31,7 @@ import io as _io
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Sequence
 
 import numpy as np
 
@@ -39,6 +39,7 @@ from lungdeform import plot as P
 from lungdeform.atomic import write_json, write_text
 from lungdeform.constants import TABLE_I, table_constants
 from lungdeform.errors import InputError
+from lungdeform.progress import Progress, silent
 
 from .job import RESULT_SCHEMA, RESULT_VERSION, finite_or_none
 from .synthetic import normalise_force_constants
@@ -215,7 +216,7 @@ def statistics_csv(stats: dict[str, Summary], side: str | None = None) -> list[l
 
 
 def write_population(results: list[dict], out: Path, manifest_dir: Path,
-                     progress: Callable[[str], None] | None = None) -> dict:
+                     progress: Progress | None = None) -> dict:
     """Population statistics (and recovery for a synthetic cohort) of a cohort run.
 
     ``results``: the runner's result records (ok and failed). ``out``: the cohort output folder
@@ -228,7 +229,7 @@ def write_population(results: list[dict], out: Path, manifest_dir: Path,
     departures from Table I, the time per lung without its per-lung list, ``"recovery": None``).
     """
 
-    say = progress or (lambda _m: None)
+    say = progress or silent
     out = Path(out)
     stats = population_statistics(results)
     table = table_comparison(stats["by_side"])

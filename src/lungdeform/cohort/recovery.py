@@ -22,7 +22,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Sequence
 
 import numpy as np
 
@@ -33,6 +33,7 @@ from lungdeform.fit.search import GAUGE
 from lungdeform.geometry.distance import symmetric_distance
 from lungdeform.geometry.mesh import Surface, vertex_normals
 from lungdeform.io.modelfile import load_model
+from lungdeform.progress import Progress
 
 from .job import finite_or_none
 from .population import CONSTANTS, METRICS, SIDE_COLOURS, SIDES, csv_text, describe, split_results
@@ -279,7 +280,7 @@ def recovery_plot(rec: dict, folder: Path) -> dict[str, str]:
 
 
 def add_recovery(summary: dict, results: list[dict], out: Path, manifest_dir: Path,
-                 progress: Callable[[str], None] | None = None) -> dict:
+                 progress: Progress | None = None) -> dict:
     """When ``manifest_dir/truth.json`` exists (a synthetic cohort), write the recovery of that truth
     (:func:`write_recovery`: ``recovery.json``, ``recovery.csv``, ``recovery_by_lung.csv``,
     ``plots/recovery.png``) into ``out`` and put its headline and files into ``summary`` (the dict

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -27,6 +26,8 @@ from lungdeform.io import meshfile as lio
 from lungdeform.io.fourdct import read_phases
 from lungdeform.io.image import Image, is_image_path, read_image
 from lungdeform.io.landmarks import read_elastix_points
+from lungdeform.progress import Progress, silent
+from lungdeform.progress import Progress
 
 from .align import CropPlane, crop_planes
 from .config import FitInputs
@@ -77,11 +78,11 @@ class ReadInputs:
 
 
 def read_inputs(inputs: FitInputs, side_check: bool = True,
-                progress: Callable[[str], None] | None = None) -> ReadInputs:
+                progress: Progress | None = None) -> ReadInputs:
     """Read and check every input of ``inputs`` (module docstring); ``side_check``: refuse an input
     whose shape says the other side (:func:`lungdeform.geometry.frame.check_side`)."""
 
-    say = progress or (lambda _m: None)
+    say = progress or silent
     if len(inputs.paths) == 1:  # one 4-D CT folder: its phases, in the order of their volumes
         paths, read, notes4d = read_fourdct(Path(inputs.paths[0]), inputs.side, say)
     else:
@@ -134,7 +135,7 @@ def read_fourdct(folder: Path, side: str, progress) -> tuple[list[str], list[tup
     return [phases[i].image.source for i in order], [read[i] for i in order], notes
 
 
-def read_input(path: Path, side: str, *, progress=None, spacing_like=None):
+def read_input(path: Path, side: str, *, progress: Progress | None = None, spacing_like=None):
     """``(dense Surface, crop planes, spacing or None, image or None, split or None)`` for one input
     path; ``split`` (:class:`~lungdeform.fit.lungsplit.LungSplit`) when the input was a mask holding
     both lungs in one label, ``image`` then its ``side`` lung.
@@ -157,7 +158,7 @@ def read_input(path: Path, side: str, *, progress=None, spacing_like=None):
     return image_input(image, path, side, progress=progress, spacing_like=spacing_like)
 
 
-def image_input(image: Image, path: Path, side: str, *, progress=None, spacing_like=None):
+def image_input(image: Image, path: Path, side: str, *, progress: Progress | None = None, spacing_like=None):
     """What :func:`read_input` returns for an ``image`` read from ``path`` (a CT is segmented, a mask
     split, both checked against ``spacing_like``)."""
 

@@ -34,7 +34,6 @@ import hashlib
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 from scipy import ndimage as ndi
@@ -44,6 +43,7 @@ from lungdeform.errors import InputError, MaskError
 from lungdeform.io import mask as M
 from lungdeform.io import meshfile as lio
 from lungdeform.io.image import IMAGE_SUFFIXES, Image, is_image_path, read_image
+from lungdeform.progress import Progress
 
 from .ct import check_ct, read_ct, to_axial
 from .ct import downsample as downsample_ct
@@ -345,7 +345,7 @@ def one_lung(image: Image, side: str) -> tuple[Image, tuple[str, ...], LungSplit
 
 
 def load_lungs(path, side: str | None = None, *, labels=None, units: str = "mm", repair: bool = False,
-               target_vertices: int | None = None, progress: Callable[[str], None] | None = None):
+               target_vertices: int | None = None, progress: Progress | None = None):
     """``(list of (Surface, SurfaceReport), notes)``: :func:`lungdeform.io.meshfile.load`, except that a
     binary mask holding both lungs (and no ``labels``) gives its two lungs, named ``<stem>-left`` and
     ``<stem>-right``, or only the ``side`` one."""
@@ -396,7 +396,7 @@ def read_ct_or_mask(path) -> Image:
 
 
 def segment_ct_or_mask(image: Image, downsample: int = 1,
-                       progress: Callable[[str], None] | None = None) -> tuple[Image, LungSegmentation]:
+                       progress: Progress | None = None) -> tuple[Image, LungSegmentation]:
     """``(the image segmented, its LungSegmentation)``: a binary mask holding both lungs is split
     (:func:`mask_segmentation`, at full resolution); a CT is block-mean downsampled in-plane by
     ``downsample`` (along world x and y whatever the file's axis order) and segmented

@@ -12,11 +12,11 @@ what it saw and how its landmark error was measured.
 from __future__ import annotations
 
 import time
-from typing import Callable
 
 import numpy as np
 
 from lungdeform.geometry.distance import SurfaceDistance
+from lungdeform.progress import Progress, silent
 
 from . import baselines as B
 from .config import FitConfig
@@ -146,13 +146,13 @@ def baseline_methods(target: Target, placed: Placement, landmarks, landmarks_tar
 
 
 def score_targets(placed: Placement, landmarks, fits: dict, held: HeldOut, config: FitConfig, folds,
-                  progress: Callable[[str], None] | None = None):
+                  progress: Progress | None = None):
     """Every method measured on every target: ``(metrics per target name → method name → metrics
     dict, predictions (target name, method name) → (vertices, per-vertex error, landmark errors),
     skipped baselines name → reason, seconds spent computing the baselines and references)``.
     ``landmarks : (m, 3)`` mm: the end-exhale ones, or None."""
 
-    say = progress or (lambda _m: None)
+    say = progress or silent
     rest, keep = placed.rest, placed.keep
     per_target, predictions, skipped, baseline_seconds = {}, {}, {}, 0.0
     for ti, tg in enumerate(placed.targets):

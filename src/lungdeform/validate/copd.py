@@ -36,7 +36,6 @@ import re
 import time
 from dataclasses import asdict
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -51,6 +50,7 @@ from lungdeform.fit.motion_prior import RIDGE, PriorSample, learn_motion_prior, 
 from lungdeform.fit.pipeline import run_fit
 from lungdeform.io.image import read_image
 from lungdeform.io.landmarks import read_elastix_points
+from lungdeform.progress import Progress, silent
 
 COMMAND = "validate copd"
 FILES = ("copd{n}_exp_mask.nii.gz", "copd{n}_insp_mask.nii.gz", "copd{n}_exp_landmarks.txt",
@@ -205,7 +205,7 @@ def _done(folder: Path, digest: str) -> dict | None:
 
 
 def run_lung(files, side: str, out: Path, config: FitConfig, mask_rows=None, *,
-             progress: Callable[[str], None] | None = None) -> tuple[dict, bool]:
+             progress: Progress | None = None) -> tuple[dict, bool]:
     """``(metrics, fitted)``: one lung of a case (``files`` from :func:`find_cases`) fitted into the
     folder ``out`` with ``config``, unless its ``metrics.json`` already records the same
     :func:`settings_digest` (then read back, ``fitted`` False). ``mask_rows``: that lung's
@@ -280,12 +280,12 @@ def summarise(cases: dict) -> dict:
 
 
 def run_copd(data: Path, out: Path, config: FitConfig | None = None, cases=None, *,
-             progress: Callable[[str], None] | None = None) -> dict:
+             progress: Progress | None = None) -> dict:
     """Every case in ``data`` (:func:`find_cases`, ``cases`` a subset by number), both lungs, fitted
     (:func:`run_lung`) into ``out/copdN/<side>``; writes ``out/metrics.json`` (``cases``, ``summary``,
     ``refitted``: the lungs fitted this run, ``timing``: per case :func:`case_seconds`) and
     ``out/report.html``; returns the metrics."""
-    say = progress or (lambda _m: None)
+    say = progress or silent
     config = copd_config() if config is None else config
     out = Path(out)
     found = find_cases(data, cases)

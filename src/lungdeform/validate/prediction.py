@@ -36,6 +36,7 @@ from lungdeform.breathing.predict import PREDICTORS, predict_trace
 from lungdeform.breathing.trace import read_trace
 from lungdeform.errors import InputError, LungdeformError
 from lungdeform.plot import prediction_errors, prediction_excerpt, save_png
+from lungdeform.progress import Progress
 
 from .breathing import trace_files
 
@@ -137,7 +138,8 @@ def protocol(horizons_ms, warm_s: float) -> str:
             f"preceding 30 s, refitted every 5 s; model = lungdeform.breathing.predict.BlendPredictor")
 
 
-def score_folder(data: Path, horizons_ms, warm_s: float, plot_ms: int, progress=None) -> tuple[dict, dict]:
+def score_folder(data: Path, horizons_ms, warm_s: float, plot_ms: int,
+                 progress: Progress | None = None) -> tuple[dict, dict]:
     """:func:`score_trace` on every trace under ``data``: ``(scores, errors)`` keyed as
     :func:`lungdeform.validate.breathing.trace_files`."""
     scores, errors = {}, {}
@@ -176,7 +178,7 @@ def write_plots(scores: dict, horizons_ms, plot_ms: int, folder: Path) -> dict[s
 
 
 def validate_prediction(data: Path, out: Path, horizons_ms=HORIZONS_MS, warm_s: float = WARM_S,
-                        progress=None) -> dict:
+                        progress: Progress | None = None) -> dict:
     """Score every trace under ``data`` (:func:`score_folder`), write ``out/metrics.json`` and
     ``out/plots/*.png``; return the metrics."""
     horizons_ms = check_horizons(horizons_ms)

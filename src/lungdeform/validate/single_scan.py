@@ -41,7 +41,6 @@ import time
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -60,6 +59,7 @@ from lungdeform.geometry.mesh import Surface
 from lungdeform.geometry.moments import solid_moments
 from lungdeform.model.lung import LungModel, build_lung
 from lungdeform.model.population import PopulationDefault, paper_default, resolve_default
+from lungdeform.progress import Progress, silent
 
 from . import copd, itk_pair
 
@@ -134,7 +134,7 @@ def find_subjects(data: Path) -> list[Subject]:
     return [Subject(name, SIDES, (f[0], f[1]), (f[2], f[3])) for name, f in cases.items()]
 
 
-def read_pair(subject: Subject, side: str, progress: Callable[[str], None] | None = None) -> LungPair:
+def read_pair(subject: Subject, side: str, progress: Progress | None = None) -> LungPair:
     """One lung of ``subject`` (:class:`LungPair`): both scans read, the landmarks of that lung."""
     read = read_inputs(FitInputs(list(subject.scans), side, landmarks=list(subject.landmarks)), True, progress)
     placed = place_targets(read, read.paths, list(subject.landmarks), "none", progress)
@@ -310,10 +310,10 @@ def _check_leave_one_out(seen: set[str], names: set[str]) -> None:
 
 
 def run_single_scan(data: Path, out: Path, config: SingleScanConfig = SingleScanConfig(), *,
-                    progress: Callable[[str], None] | None = None) -> dict:
+                    progress: Progress | None = None) -> dict:
     """The experiment (module docstring) on every subject in ``data``; writes ``out/metrics.json`` and
     ``out/report.html``; returns the metrics."""
-    say = progress or (lambda _m: None)
+    say = progress or silent
     subjects = find_subjects(data)
     given = None if config.default is None else resolve_default(config.default)  # refused before any reading
     pairs: dict[tuple[str, str], LungPair] = {}
@@ -411,13 +411,13 @@ def write_report(path: Path, result: dict) -> Path:
 
 
 def learn_from_folders(folders, name: str = "population", *,
-                       progress: Callable[[str], None] | None = None) -> PopulationDefault:
+                       progress: Progress | None = None) -> PopulationDefault:
     """A population default learned from every two-volume subject in ``folders``
     (:func:`find_subjects`): each lung fitted on its own (:func:`fit_pair`), then pooled
     (:func:`lungdeform.cohort.default.learn_default`). The provenance records the subjects, the
     digest of each one's smaller-volume scan (so that ``validate single-scan`` scores a subject it
     saw leave one subject out) and the data's citations."""
-    say = progress or (lambda _m: None)
+    say = progress or silent
     samples, digests = [], {}
     for folder in folders:
         for s in find_subjects(folder):
