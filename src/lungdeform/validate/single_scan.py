@@ -51,7 +51,7 @@ from lungdeform.errors import ReadError
 from lungdeform.fit.config import FitInputs
 from lungdeform.fit.fitting import fit_lung, to_lung_model
 from lungdeform.fit.inputs import read_inputs
-from lungdeform.fit.lungsplit import SIDES, shared_splits
+from lungdeform.fit.lungsplit import SIDES, SplitCache
 from lungdeform.fit.objective import Target
 from lungdeform.fit.placement import place_targets
 from lungdeform.geometry.distance import SurfaceDistance, symmetric_distance
@@ -134,9 +134,12 @@ def find_subjects(data: Path) -> list[Subject]:
     return [Subject(name, SIDES, (f[0], f[1]), (f[2], f[3])) for name, f in cases.items()]
 
 
-def read_pair(subject: Subject, side: str, progress: Progress | None = None) -> LungPair:
-    """One lung of ``subject`` (:class:`LungPair`): both scans read, the landmarks of that lung."""
-    read = read_inputs(FitInputs(list(subject.scans), side, landmarks=list(subject.landmarks)), True, progress)
+def read_pair(subject: Subject, side: str, progress: Progress | None = None,
+              splits: SplitCache | None = None) -> LungPair:
+    """One lung of ``subject`` (:class:`LungPair`): both scans read, the landmarks of that lung;
+    ``splits``: where a mask holding both lungs is split (one cache for both lungs of a subject)."""
+    inputs = FitInputs(list(subject.scans), side, landmarks=list(subject.landmarks), splits=splits)
+    read = read_inputs(inputs, True, progress)
     placed = place_targets(read, read.paths, list(subject.landmarks), "none", progress)
     volume = placed.rest.volume_ml + read.volumes_ml[1] - read.volumes_ml[0]
     return LungPair(subject.name, side, placed.rest, placed.keep, placed.targets[0], float(volume),
@@ -294,10 +297,10 @@ def _training_pairs(folders, scored: set[str], say) -> tuple[dict[tuple[str, str
             subjects.append(s)
             if s.name in scored:
                 raise ReadError(f"{folder}: subject {s.name!r} is also in the data folder")
-            with shared_splits():
-                for side in s.sides:
-                    say(f"{s.name} {side}: reading both scans (training only)")
-                    out[(s.name, side)] = read_pair(s, side)
+            splits = SplitCache()  # each mask split once per subject, not once per lung
+            for side in s.sides:
+                say(f"{s.name} {side}: reading both scans (training only)")
+                out[(s.name, side)] = read_pair(s, side, splits=splits)
     return out, subjects
 
 
@@ -318,10 +321,10 @@ def run_single_scan(data: Path, out: Path, config: SingleScanConfig = SingleScan
     given = None if config.default is None else resolve_default(config.default)  # refused before any reading
     pairs: dict[tuple[str, str], LungPair] = {}
     for s in subjects:
-        with shared_splits():
-            for side in s.sides:
-                say(f"{s.name} {side}: reading both scans")
-                pairs[(s.name, side)] = read_pair(s, side, lambda m, n=s.name, sd=side: say(f"{n} {sd}: {m}"))
+        splits = SplitCache()  # each mask split once per subject, not once per lung
+        for side in s.sides:
+            say(f"{s.name} {side}: reading both scans")
+            pairs[(s.name, side)] = read_pair(s, side, lambda m, n=s.name, sd=side: say(f"{n} {sd}: {m}"), splits)
     seen = _seen_by_shipped(subjects, given)
     fits, extra = {}, {}
     if config.with_fitted or seen:
@@ -424,11 +427,11 @@ def learn_from_folders(folders, name: str = "population", *,
             if s.name in digests:
                 raise ReadError(f"{folder}: a second subject named {s.name!r}")
             digests[s.name] = s.digest
-            with shared_splits():
-                for side in s.sides:
-                    say(f"{s.name} {side}: reading and fitting both scans")
-                    pair = read_pair(s, side, lambda m, n=s.name, sd=side: say(f"{n} {sd}: {m}"))
-                    samples.append(sample_of(pair, fit_pair(pair)))
+            splits = SplitCache()  # each mask split once per subject, not once per lung
+            for side in s.sides:
+                say(f"{s.name} {side}: reading and fitting both scans")
+                pair = read_pair(s, side, lambda m, n=s.name, sd=side: say(f"{n} {sd}: {m}"), splits)
+                samples.append(sample_of(pair, fit_pair(pair)))
     return learn_default(samples, name=name, provenance={"subject_digests": digests, "citation": CITATIONS,
                                                          "source": f"{name}: learned by lungdeform learn-default"})
 
