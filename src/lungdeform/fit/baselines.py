@@ -36,7 +36,7 @@ from scipy import ndimage as ndi
 from scipy.spatial.distance import cdist
 from skimage.measure import marching_cubes
 
-from lungdeform.errors import ConvergenceError, InputError, require
+from lungdeform.errors import ConvergenceError, InputError
 from lungdeform.geometry.distance import SurfaceDistance, symmetric_distance
 from lungdeform.geometry.mesh import Surface, as_vertices, farthest_points, thinned
 from lungdeform.interior.interpolate import interpolation_weights
@@ -150,7 +150,6 @@ def cpd_deformable(surface: Surface, target: Surface, *, samples: int = 1500, al
     is relative to the lung size (2 = twice the RMS radius, the usual CPD setting on unit-variance data); ``alpha`` is the smoothness
     weight and ``w`` the outlier weight (pycpd's meanings). Returns ``(n, 3)`` mm.
     """
-    require("pycpd", "the CPD baseline", "pycpd")
     rng = np.random.default_rng(seed)
     p = surface.vertices
     c = p.mean(axis=0)
