@@ -297,7 +297,7 @@ def measure(rest: Surface, predicted, target: Surface, *, keep=None, keep_target
 #: Surface points per phase of :func:`mask_cpd_map`, Gaussian smoothing (voxels) before marching cubes.
 MASK_CPD_POINTS = 1500
 MASK_CPD_SIGMA = 0.7
-#: How the surface points are chosen: ``"farthest"`` (since 0.7: the farthest-point subset the model's
+#: How the surface points are chosen: ``"farthest"`` (the default: the farthest-point subset the model's
 #: correspondence field uses, deterministic; 8.01 mm on the ten lungs) or ``"random"`` (a seeded
 #: draw, the calibration's reading: 8.29 mm with seed 0, 8.3–10.0 on case 5 with other seeds).
 MASK_CPD_SAMPLING = "farthest"
