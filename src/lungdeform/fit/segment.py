@@ -44,7 +44,8 @@ from scipy import ndimage as ndi
 
 from lungdeform.errors import InputError, MaskError
 from lungdeform.io.image import Image
-from lungdeform.plot import label_overlay, save_png
+from lungdeform.plot.figure import save_png
+from lungdeform.plot.segmentation import label_overlay
 from lungdeform.progress import Progress, silent
 
 from .ct import axial_axes, check_ct, to_axial

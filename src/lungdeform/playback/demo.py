@@ -32,7 +32,8 @@ from lungdeform.io.modelfile import save_model
 from lungdeform.model.displacement import enclosed_volume_ml, volume_change_ml
 from lungdeform.model.lung import build_model
 from lungdeform.model.population import PopulationDefault, resolve_default
-from lungdeform.plot import save_png, snapshot
+from lungdeform.plot.figure import save_png
+from lungdeform.plot.surface import snapshot
 from lungdeform.progress import Progress, silent
 
 from .export import export_pvd

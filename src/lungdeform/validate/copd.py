@@ -39,7 +39,6 @@ from pathlib import Path
 
 import numpy as np
 
-from lungdeform import plot as P
 from lungdeform.atomic import atomic_dir, write_json, write_text
 from lungdeform.errors import InputError, ReadError
 from lungdeform.fit import baselines as B
@@ -50,6 +49,8 @@ from lungdeform.fit.motion_prior import RIDGE, PriorSample, learn_motion_prior, 
 from lungdeform.fit.pipeline import run_fit
 from lungdeform.io.image import read_image
 from lungdeform.io.landmarks import read_elastix_points
+from lungdeform.plot.figure import png_bytes
+from lungdeform.plot.statistics import grouped_bars
 from lungdeform.progress import Progress, silent
 
 COMMAND = "validate copd"
@@ -375,7 +376,7 @@ def _timing_table(timing: dict) -> str:
 
 def write_report(path: Path, result: dict) -> Path:
     """``report.html``: the summary table, and per case its table and a bar plot of the mean
-    landmark error per method and lung (:func:`lungdeform.plot.grouped_bars`)."""
+    landmark error per method and lung (:func:`lungdeform.plot.statistics.grouped_bars`)."""
     parts = ["<html><head><meta charset='utf-8'><title>DIR-Lab COPDgene</title></head><body>",
              "<h1>DIR-Lab COPDgene: expiration → inspiration, per lung (mm)</h1>",
              "<p>Landmark errors are held out from what they score; cpd, affine and the calibrated rows "
@@ -386,8 +387,8 @@ def write_report(path: Path, result: dict) -> Path:
     for name, case in result["cases"].items():
         values = {side: {m: row[m]["landmark_mean_mm"] for m in row if isinstance(row[m], dict)
                          and "landmark_mean_mm" in row[m]} for side, row in case.items()}
-        fig = P.grouped_bars(values, title=f"{name}: mean landmark error", ylabel="mm")
-        b64 = base64.b64encode(P.png_bytes(fig)).decode("ascii")
+        fig = grouped_bars(values, title=f"{name}: mean landmark error", ylabel="mm")
+        b64 = base64.b64encode(png_bytes(fig)).decode("ascii")
         parts += [f"<h2>{html.escape(name)}</h2>", _table(case), f'<img alt="{html.escape(name)}" '
                   f'src="data:image/png;base64,{b64}">']
     parts.append("</body></html>")

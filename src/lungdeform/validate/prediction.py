@@ -35,7 +35,8 @@ from lungdeform.atomic import write_json
 from lungdeform.breathing.predict import PREDICTORS, predict_trace
 from lungdeform.breathing.trace import read_trace
 from lungdeform.errors import InputError, LungdeformError
-from lungdeform.plot import prediction_errors, prediction_excerpt, save_png
+from lungdeform.plot.breathing import prediction_errors, prediction_excerpt
+from lungdeform.plot.figure import save_png
 from lungdeform.progress import Progress
 
 from .breathing import trace_files

@@ -44,7 +44,6 @@ from pathlib import Path
 
 import numpy as np
 
-from lungdeform import plot as P
 from lungdeform.atomic import write_bytes, write_json, write_text
 from lungdeform.cohort.default import DefaultSample, learn_default
 from lungdeform.errors import ReadError
@@ -59,6 +58,8 @@ from lungdeform.geometry.mesh import Surface
 from lungdeform.geometry.moments import solid_moments
 from lungdeform.model.lung import LungModel, build_lung
 from lungdeform.model.population import PopulationDefault, paper_default, resolve_default
+from lungdeform.plot.figure import png_bytes
+from lungdeform.plot.statistics import grouped_bars
 from lungdeform.progress import Progress, silent
 
 from . import copd, itk_pair
@@ -379,8 +380,8 @@ def summarise(lungs: dict) -> dict:
 
 
 def _figure(values: dict, title: str) -> str:
-    fig = P.grouped_bars(values, title=title, ylabel="mm")
-    return f'<img alt="{html.escape(title)}" src="data:image/png;base64,{base64.b64encode(P.png_bytes(fig)).decode()}">'
+    fig = grouped_bars(values, title=title, ylabel="mm")
+    return f'<img alt="{html.escape(title)}" src="data:image/png;base64,{base64.b64encode(png_bytes(fig)).decode()}">'
 
 
 def write_report(path: Path, result: dict) -> Path:
