@@ -72,3 +72,25 @@ def test_release_note_lists_every_moved_path():
         old, new, version = (cell.strip(" `") for cell in row.strip().strip("|").split("|"))
         documented[old.removeprefix("lungdeform.")] = (new.removeprefix("lungdeform."), version)
     assert documented == MOVED
+
+
+def test_names_of_the_old_plot_module_fail_naming_their_module():
+    # truth: each name is defined in the module the message names; `plot.NAME` and `from
+    # lungdeform.plot import NAME` both show that one line (motion: a module of the same name now)
+    import lungdeform.plot as plot
+
+    doc = (Path(__file__).parents[1] / "docs" / "CHANGELOG.md").read_text(encoding="utf-8")
+    for name, module in plot.MOVED.items():
+        assert hasattr(importlib.import_module(f"lungdeform.plot.{module}"), name), (name, module)
+        assert f"`{name}`" in doc.split(f"| `plot.{module}` |", 1)[1].split("\n", 1)[0], name
+        if name == module:
+            continue
+        expected = f"lungdeform.plot.{name} moved to lungdeform.plot.{module}.{name} in 0.8 (docs/CHANGELOG.md)"
+        with pytest.raises(ImportError) as caught:
+            getattr(plot, name)
+        assert str(caught.value) == expected
+        with pytest.raises(ImportError, match=rf"moved to lungdeform\.plot\.{module}\.{name} "):
+            exec(f"from lungdeform.plot import {name}", {})
+    with pytest.raises(AttributeError):
+        plot.not_a_figure  # noqa: B018
+    assert not hasattr(plot, "not_a_figure")
