@@ -11,7 +11,7 @@ fits on all landmarks (the model a user keeps).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Callable, Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
@@ -19,6 +19,7 @@ from lungdeform.errors import InputError
 from lungdeform.geometry.mesh import as_vertices
 from lungdeform.interior.field import landmark_folds
 from lungdeform.interior.sliding import checked_operator, surface_weights
+from lungdeform.progress import Progress, silent
 
 from .fitting import fit_lung
 
@@ -54,7 +55,7 @@ class LandmarkCV:
 
 def cross_validate_landmarks(surface: Surface, side: str, targets: Sequence[Target], landmarks_rest,
                              landmarks_targets: dict, *, folds=5, seed: int = 0, initial=None,
-                             max_evaluations: int = 200, progress: Callable[[str], None] | None = None,
+                             max_evaluations: int = 200, progress: Progress | None = None,
                              landmark_matrix=None, **fit_kwargs) -> LandmarkCV:
     """k-fold protocol for the landmark-informed fit: for each fold, fit on the surfaces and the
     other folds' landmarks (:func:`fit_lung` with the landmark term), then move the fold's
@@ -69,7 +70,7 @@ def cross_validate_landmarks(surface: Surface, side: str, targets: Sequence[Targ
     :attr:`LandmarkCV.predicted` are held out.
     """
 
-    say = progress or (lambda _m: None)
+    say = progress or silent
     rest = as_vertices(landmarks_rest, "landmarks_rest")
     if isinstance(folds, (int, np.integer)):
         parts = landmark_folds(len(rest), int(folds), seed)

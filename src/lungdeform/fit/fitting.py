@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, replace
-from typing import Callable, Sequence
+from typing import Sequence
 
 import numpy as np
 
@@ -38,6 +38,7 @@ from lungdeform.geometry.mesh import Surface
 from lungdeform.model.force import field_basis
 from lungdeform.model.lung import LungModel
 from lungdeform.model.response import solve_response
+from lungdeform.progress import Progress, silent
 
 from .correspond import RayHits
 from .direction_correction import DirectionCorrection, fit_direction_correction
@@ -201,7 +202,7 @@ def fit_lung(
     landmark_matrix=None,
     translate: bool = False,
     direction_degree: int = 0,
-    progress: Callable[[str], None] | None = None,
+    progress: Progress | None = None,
 ) -> FitResult:
     """Fit c1…c9 (and optionally a stiffness field) of one lung; see the module docstring.
 
@@ -227,7 +228,7 @@ def fit_lung(
     method = DEFAULT_OPTIMIZER if mode == "optimizer" else mode
     if translate and method != "least_squares":
         raise InputError(f"translate=True needs the least-squares mode, not {method!r}")
-    say = progress or (lambda _m: None)
+    say = progress or silent
     t0 = time.perf_counter()
     fitter = LungFitter(surface, side, targets, fit_on=fit_on, keep=keep, gravity=gravity,
                         max_distance=max_distance, min_cosine=min_cosine, samples=samples,
