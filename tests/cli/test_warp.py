@@ -139,7 +139,8 @@ def test_popi_ten_phase_dicom_4dct_and_its_rtstruct(data_dir, tmp_path, capsys):
                  "--out-rtstruct", str(tmp_path / "gtv_phases.dcm"),
                  "--reference-ct", str(tmp_path / "4dct" / "phase00")]) == 0
     ds = pydicom.dcmread(tmp_path / "gtv_phases.dcm")
-    assert [r.ROIName for r in ds.StructureSetROISequence] == [f"GTV@phase{i:02d}" for i in range(10)]
+    # one ROI per phase, then the ITV (their union) that track adds (docs/RADIOTHERAPY.md)
+    assert [r.ROIName for r in ds.StructureSetROISequence] == [f"GTV@phase{i:02d}" for i in range(10)] + ["ITV_GTV"]
     refs = {c.ContourImageSequence[0].ReferencedSOPInstanceUID for r in ds.ROIContourSequence
             for c in r.ContourSequence}
     slices = {pydicom.dcmread(p, stop_before_pixels=True).SOPInstanceUID
