@@ -4,7 +4,7 @@ The method is described equation by equation in docs/METHOD_NOTES.md, the packag
 every module names the equations it implements. Heavy optional libraries are imported lazily where they are used.
 """
 
-from lungdeform._compat import install as _install_compat
+from lungdeform._moved import install as _install_moved
 from lungdeform.errors import (
     ConvergenceError,
     InputError,
@@ -17,9 +17,9 @@ from lungdeform.errors import (
 )
 from lungdeform.geometry.mesh import Surface, check_surface
 
-__version__ = "0.7.0"
+__version__ = "0.8.0"
 
-_install_compat()  # the module names of 0.4 (lungdeform.mesh, …) still import, with a warning
+_install_moved()  # a module path of before 0.8 (lungdeform.mesh, …) fails naming its path now
 
 __all__ = [
     "ConvergenceError",

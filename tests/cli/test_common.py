@@ -9,24 +9,57 @@ import sys
 from pathlib import Path
 
 import pytest
+import typer
 
 from lungdeform.cli import common
 from lungdeform.errors import InputError, ReadError
 
 
+def _command_context(verbose: bool | None) -> typer.Context:
+    """The context a command runs in: a root whose object is what ``lungdeform [--verbose]`` made
+    (None: no root callback ran, as for library code called outside the CLI)."""
+    command = typer.main.get_command(typer.Typer(callback=lambda: None))
+    root = typer.Context(command, obj=None if verbose is None else common.Verbosity(verbose))
+    return typer.Context(command, parent=root)
+
+
 def test_progress_enabled_follows_verbose_then_terminal(monkeypatch, capsys):
     # under pytest stderr is captured, not a terminal: progress is off unless --verbose set it on
-    monkeypatch.setitem(common.VERBOSE, "on", None)
-    assert not sys.stderr.isatty() and common.progress_enabled() is False
-    common.say("hidden")
+    assert not sys.stderr.isatty()
+    for verbose in (None, False):
+        with _command_context(verbose):
+            assert common.progress_enabled() is False
+            common.say("hidden")
+    assert common.progress_enabled() is False  # outside any command
     assert capsys.readouterr().err == ""
-    monkeypatch.setitem(common.VERBOSE, "on", True)
-    assert common.progress_enabled() is True  # --verbose: shown even when not a terminal
-    common.say("shown")
+    with _command_context(True):
+        assert common.progress_enabled() is True  # --verbose: shown even when not a terminal
+        common.say("shown")
     assert capsys.readouterr().err == "shown\n"
-    monkeypatch.setitem(common.VERBOSE, "on", None)
+    assert common.progress_enabled() is False  # the setting lived in that command's context only
     monkeypatch.setattr(sys.stderr, "isatty", lambda: True)
-    assert common.progress_enabled() is True  # no --verbose, but a terminal: progress shown
+    with _command_context(False):
+        assert common.progress_enabled() is True  # no --verbose, but a terminal: progress shown
+
+
+def test_verbose_reaches_the_command_through_its_context(monkeypatch, capsys):
+    # end to end: `lungdeform --verbose CMD` shows CMD's progress on a captured (non-terminal)
+    # stderr, and the same command without --verbose shows none; nothing outlives the call
+    from lungdeform.cli.main import make_app
+
+    seen = []
+    app = make_app()
+
+    @app.command("probe-verbosity")
+    def _probe():
+        seen.append(common.progress_enabled())
+
+    for argv in (["--verbose", "probe-verbosity"], ["probe-verbosity"]):
+        with pytest.raises(SystemExit) as done:
+            app(argv)
+        assert done.value.code == 0
+    assert seen == [True, False]
+    assert common.progress_enabled() is False
 
 
 def test_version_prints_without_a_command(capsys):

@@ -83,3 +83,41 @@ def test_a_field_beyond_the_lattice_cap_is_refused_before_it_is_allocated(files,
     grid = D.Grid.of(read_image(d / "ref.nii.gz"))
     with pytest.raises(InputError, match="lattice nodes .* fade margin"):
         D.displacement_field(m, grid, 300.0)
+
+
+def test_track_scan_is_in_the_frame_and_state_of_dvf_scan(files, tmp_path, capsys):
+    # why: `dvf --scan K` maps x → A⁻¹(x + u(x)) (the fit's alignment A of scan K undone); `track
+    # --scan K` must give the same point: the forward field sampled at the points by SimpleITK's
+    # DisplacementFieldTransform equals track's displacement (within the lattice's error, 0.1 mm);
+    # --no-rigid leaves A out of both (a 7 mm shift here), and the two still agree
+    from lungdeform.model.lung import Model
+    d, m = files
+    ee = sum(lung.volume_ee_ml for lung in m.lungs.values())
+    a = np.eye(4)
+    a[:3, 3] = [2.0, -3.0, 6.0]  # scan 1 → model frame
+    fitted = tmp_path / "fitted.npz"
+    save_model(fitted, Model(m.lungs, {"volumes_ml": [ee, ee + 300.0], "alignment": [{"applied": {"matrix": a.tolist()}}]}))
+    pts = np.array([[90.0, 0.0, -40.0], [-90.0, 10.0, 20.0]])
+    (tmp_path / "p.csv").write_text("x_mm,y_mm,z_mm\n" + "".join(f"{x},{y},{z}\n" for x, y, z in pts))
+    moved = {}
+    for extra in ([], ["--no-rigid"]):
+        key = "no-rigid" if extra else "scan"
+        assert main(["dvf", str(fitted), "--reference", str(d / "ref.nii.gz"), "--scan", "1", *extra,
+                     "--out", str(tmp_path / f"{key}.mha")]) == 0
+        assert main(["track", str(fitted), "--points", str(tmp_path / "p.csv"), "--scan", "1", *extra,
+                     "--out", str(tmp_path / key)]) == 0
+        field = sitk.ReadImage(str(tmp_path / f"{key}.mha"), sitk.sitkVectorFloat64)
+        tx = sitk.DisplacementFieldTransform(field)
+        via_dvf = np.array([tx.TransformPoint(tuple(p)) for p in pts])
+        rows = (tmp_path / key / "trajectories.csv").read_text().splitlines()[1:]
+        via_track = np.array([[float(x) for x in r.split(",")[5:8]] for r in rows])
+        assert np.abs(via_dvf - via_track).max() < 0.1, (via_dvf, via_track)
+        moved[key] = via_track
+    assert np.allclose(moved["scan"] - moved["no-rigid"], -a[:3, 3], atol=1e-6)
+    capsys.readouterr()
+    assert main(["track", str(fitted), "--points", str(tmp_path / "p.csv"), "--no-rigid",
+                 "--out", str(tmp_path / "x")]) == 2
+    assert main(["track", str(fitted), "--points", str(tmp_path / "p.csv"), "--scan", "1", "--volume-ml", "3000",
+                 "--out", str(tmp_path / "y")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and "--no-rigid applies to --scan" in err[0] and "--scan names one state" in err[1]

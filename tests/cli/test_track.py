@@ -167,7 +167,7 @@ def test_track_rtstruct_writes_one_roi_per_volume(model_file, gtv_files, tmp_pat
     assert "GTV: " in printed and "left lung" in printed and f"wrote {rs}" in printed
     moved = read_rtstruct(rs)
     names = list(moved)
-    assert names == [f"GTV@{v_ee:g}mL", f"GTV@{v_ee + 500:g}mL"]
+    assert names == [f"GTV@{v_ee:g}mL", f"GTV@{v_ee + 500:g}mL", "ITV_GTV"]
     rest = np.concatenate(moved[names[0]].contours)
     assert np.abs(np.linalg.norm(rest - GTV_CENTRE, axis=1) - 10.0).max() < 1.0
     z = read_ct_series(ct_dir).origins[:, 2]
@@ -185,9 +185,44 @@ def test_track_rtstruct_phases(model_file, gtv_files, tmp_path):
     assert main(["track", str(model_file), "--rtstruct", str(gtv), "--structure", "GTV", "--out", str(tmp_path / "o"),
                  "--phases", "3", "--out-rtstruct", str(rs), "--reference-ct", str(ct_dir)]) == 0
     moved = read_rtstruct(rs)
-    assert list(moved) == ["GTV@phase00", "GTV@phase01", "GTV@phase02"]
+    assert list(moved) == ["GTV@phase00", "GTV@phase01", "GTV@phase02", "ITV_GTV"]
     rest = np.concatenate(moved["GTV@phase00"].contours)
     assert np.abs(np.linalg.norm(rest - GTV_CENTRE, axis=1) - 10.0).max() < 1.0
+
+
+def test_track_rtstruct_itv_holds_every_phase_and_the_motion_table_is_the_centroid(model_file, gtv_files, tmp_path,
+                                                                                    capsys):
+    # why: the ITV is the union over the phases, so every contour point of every phase ROI (read
+    # back from the file) lies inside it or on its surface (within 0.5 mm: the union's 0.5 mm voxels);
+    # structure_motion.csv: at phase 0 (end-exhale) the 10 mm sphere's own volume (4.19 mL) and centre,
+    # at each phase a centroid displacement equal to the mean motion of its tracked contour points
+    # (trajectories.csv, the independent point path) within 0.3 mm, the amplitude max − min of it
+    from lungdeform.geometry.contours import contours_to_mesh
+    from lungdeform.geometry.distance import SurfaceDistance
+    from lungdeform.geometry.mesh import winding_numbers
+    ct_dir, gtv = gtv_files
+    out, rs = tmp_path / "o", tmp_path / "p.dcm"
+    assert main(["track", str(model_file), "--rtstruct", str(gtv), "--structure", "GTV", "--out", str(out),
+                 "--phases", "4", "--out-rtstruct", str(rs), "--reference-ct", str(ct_dir)]) == 0
+    assert "ITV_GTV" in capsys.readouterr().out
+    moved = read_rtstruct(rs)
+    v, f = contours_to_mesh(moved["ITV_GTV"].contours)
+    dist = SurfaceDistance(v, f)
+    for k in range(4):
+        pts = np.concatenate(moved[f"GTV@phase{k:02d}"].contours)
+        outside = winding_numbers(pts, v, f) < 0.5
+        assert not outside.any() or dist.distance(pts[outside]).max() < 0.5
+    table = _rows(out / "structure_motion.csv")
+    assert [r["state"] for r in table] == [f"phase{k:02d}" for k in range(4)]
+    assert float(table[0]["volume_ml"]) == pytest.approx(4 / 3 * np.pi, rel=0.02)
+    c = np.array([[float(r[f"centroid_{a}_mm"]) for a in "xyz"] for r in table])
+    assert np.allclose(c[0], GTV_CENTRE, atol=0.1)
+    traj = np.array([[float(t[f"d{a}_mm"]) for a in "xyz"] for t in _rows(out / "trajectories.csv")])
+    for k, r in enumerate(table):
+        mean = traj.reshape(4, -1, 3)[k].mean(axis=0)  # rows frame by frame
+        assert np.allclose([float(r[f"d{a}_mm"]) for a in "xyz"], mean, atol=0.3)
+        assert np.allclose([float(r[f"amplitude_{a}_mm"]) for a in "xyz"], np.ptp(c, axis=0), atol=2e-3)
+    assert np.ptp(c[:, 2]) > 1.0  # it moves
 
 
 @pytest.mark.parametrize("structure, message", [
@@ -268,12 +303,13 @@ def test_track_rtstruct_names(model_file, gtv_files, tmp_path, capsys):
                                              (long_name, s.vertices + GTV_CENTRE, s.faces, "GTV")])
     code, out, rs = _run_rtstruct(model_file, tmp_path / "in.dcm", ct_dir, tmp_path, "Tumör")
     assert code == 0, capsys.readouterr().err
-    assert list(read_rtstruct(rs)) == ["Tumör@phase00", "Tumör@phase01"]
+    assert list(read_rtstruct(rs)) == ["Tumör@phase00", "Tumör@phase01", "ITV_Tumör"]
     rs.unlink()
     shutil.rmtree(out)
     code, out, rs = _run_rtstruct(model_file, tmp_path / "in.dcm", ct_dir, tmp_path, long_name)
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and f"in.dcm: ROI name '{long_name}@phase00': 68 characters, longer than" in err[0]
+    assert not out.exists() and not rs.exists()
     assert not out.exists() and not rs.exists()
 
 

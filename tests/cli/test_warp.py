@@ -139,7 +139,8 @@ def test_popi_ten_phase_dicom_4dct_and_its_rtstruct(data_dir, tmp_path, capsys):
                  "--out-rtstruct", str(tmp_path / "gtv_phases.dcm"),
                  "--reference-ct", str(tmp_path / "4dct" / "phase00")]) == 0
     ds = pydicom.dcmread(tmp_path / "gtv_phases.dcm")
-    assert [r.ROIName for r in ds.StructureSetROISequence] == [f"GTV@phase{i:02d}" for i in range(10)]
+    # one ROI per phase, then the ITV (their union) that track adds (docs/RADIOTHERAPY.md)
+    assert [r.ROIName for r in ds.StructureSetROISequence] == [f"GTV@phase{i:02d}" for i in range(10)] + ["ITV_GTV"]
     refs = {c.ContourImageSequence[0].ReferencedSOPInstanceUID for r in ds.ROIContourSequence
             for c in r.ContourSequence}
     slices = {pydicom.dcmread(p, stop_before_pixels=True).SOPInstanceUID
@@ -226,3 +227,114 @@ def test_dvf_refuses_an_output_that_is_an_input(files, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "would overwrite the input" in err[0], err
     assert ref.read_bytes() == (d / "ref.nii.gz").read_bytes() and [p.name for p in tmp_path.iterdir()] == ["ref.nii.gz"]
+
+
+def _hu_image(d, tmp_path):
+    """A CT-like float image on the fixture's grid: −800 HU in the lung boxes, water elsewhere, air
+    in a 4-voxel rim (so nothing dense leaves the grid)."""
+    ref = read_image(d / "ref.nii.gz")
+    hu = np.where(ref.array > 0, -800.0, 0.0).astype(np.float32)
+    hu[:4], hu[-4:], hu[:, :4], hu[:, -4:], hu[:, :, :4], hu[:, :, -4:] = (-1000.0,) * 6
+    from lungdeform.io.image import write_image
+    write_image(tmp_path / "hu.mha", hu, ref.spacing, ref.origin, ref.direction)
+    return tmp_path / "hu.mha", ref
+
+
+def test_warp_density_conserves_the_mass_that_a_plain_warp_adds(files, tmp_path, capsys):
+    # why: mass = Σ (HU + 1000)/1000 · dV (g); an inhaled state resampled plainly keeps the lungs'
+    # −800 HU over a larger volume and squeezes the water around them (mass not conserved),
+    # --density scales by det ∇φ and keeps the image's mass within 1 % (the field is zero at the
+    # grid's edge, so nothing leaves it)
+    from lungdeform.playback.density import mass_g
+    d, m = files
+    ee = sum(lung.volume_ee_ml for lung in m.lungs.values())
+    hu, ref = _hu_image(d, tmp_path)
+    args = ["warp", str(hu), str(d / "model.npz"), "--volume-ml", str(ee + 400)]
+    assert main([*args, "--out", str(tmp_path / "plain.mha")]) == 0
+    assert main([*args, "--density", "--out", str(tmp_path / "dens.mha")]) == 0
+    assert "mass conserved" in capsys.readouterr().out
+    vox = float(np.prod(ref.spacing)) / 1000
+    m0 = mass_g(read_image(hu).array, vox)
+    plain, dens = (read_image(tmp_path / n).array for n in ("plain.mha", "dens.mha"))
+    assert abs(mass_g(dens, vox) / m0 - 1) < 0.01
+    lungs = read_image(d / "ref.nii.gz").array > 0
+    assert abs(mass_g(plain, vox) / m0 - 1) > 0.01 > abs(mass_g(dens, vox) / m0 - 1)
+    assert dens[lungs].mean() < plain[lungs].mean()  # the lungs get darker
+
+
+def test_warp_projections_and_a_rigid_mask(files, tmp_path, capsys):
+    # why: MIP/AIP/MinIP files are the voxel-wise max/mean/min of the phase files written beside
+    # them; a rigid mask keeps its volume (< 2 %) where the elastic field inflates it
+    d, m = files
+    hu, ref = _hu_image(d, tmp_path)
+    mask = np.zeros(ref.array.shape, np.uint8)
+    mask[18:24, 18:26, 14:22] = 1  # inside the left box
+    from lungdeform.io.image import write_image
+    write_image(tmp_path / "gtv.mha", mask, ref.spacing, ref.origin, ref.direction)
+    out = tmp_path / "ct.mha"
+    assert main(["warp", str(hu), str(d / "model.npz"), "--curve", str(_curve(tmp_path / "c.csv")), "--phases", "3",
+                 "--projections", "mip,aip,minip", "--rigid-mask", str(tmp_path / "gtv.mha"), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    stack = np.stack([read_image(tmp_path / f"ct_phase0{i}.mha").array for i in range(3)])
+    assert np.array_equal(read_image(tmp_path / "ct_mip.mha").array, stack.max(axis=0))
+    assert np.array_equal(read_image(tmp_path / "ct_minip.mha").array, stack.min(axis=0))
+    assert np.allclose(read_image(tmp_path / "ct_aip.mha").array, stack.mean(axis=0), atol=1e-3)
+    import re
+    changes = [float(x) for x in re.findall(r"at this state [\d.]+ mL \(([-+\d.]+) %", text)]
+    elastic = [float(x) for x in re.findall(r"the elastic field gave [\d.]+ mL, ([-+\d.]+) %", text)]
+    assert len(changes) == 3 and max(abs(c) for c in changes) < 2 and max(elastic) > 2, text
+
+
+@pytest.mark.parametrize("extra, needle", [
+    (["--density", "--label"], "--density scales CT numbers"),
+    (["--projections", "mip"], "--projections needs --curve and --phases"),
+    (["--rigid-structure", "GTV"], "--rigid-structure and --rtstruct go together"),
+    (["--rigid-mask", "nowhere.mha", "--rigid-border-mm", "0"], "--rigid-border-mm must be"),
+])
+def test_warp_new_options_bad_input_is_one_line(files, tmp_path, capsys, extra, needle):
+    d, m = files
+    ee = sum(lung.volume_ee_ml for lung in m.lungs.values())
+    assert main(["warp", str(d / "ref.nii.gz"), str(d / "model.npz"), "--volume-ml", str(ee + 100), *extra,
+                 "--out", str(tmp_path / "w.mha")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and needle in err[0], err
+    assert not list(tmp_path.iterdir())
+
+
+def test_warp_density_on_a_label_pixel_type_is_refused(files, tmp_path, capsys):
+    # why: a uint8 image cannot hold mass-conserving CT numbers (−1000 …); refused, not clipped, nothing written
+    d, m = files
+    ee = sum(lung.volume_ee_ml for lung in m.lungs.values())
+    assert main(["warp", str(d / "ref.nii.gz"), str(d / "model.npz"), "--volume-ml", str(ee + 100), "--density",
+                 "--out", str(tmp_path / "w.mha")]) == 2
+    assert "pixel type uint8" in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())
+
+
+def test_warp_rigid_structure_from_an_rtstruct(tmp_path, capsys):
+    # why: the RTSTRUCT path of --rigid-structure (the ROI's closed surface filled on the grid): the
+    # 10 mm GTV inflates with the elastic field at +500 mL and keeps its volume within 2 % when rigid
+    import re
+
+    import trimesh
+
+    from lungdeform.io.modelfile import save_model
+    from tests.browser.support import two_lungs
+    from tests.cli.test_track import GTV_CENTRE
+    from tests.io.dicom_support import write_ct_series
+    m = two_lungs(2)
+    model = save_model(tmp_path / "m.npz", m)
+    folder = write_ct_series(tmp_path / "ct", origin=tuple(GTV_CENTRE + [-31.0, -31.0, -19.0]))
+    s = trimesh.creation.icosphere(4, radius=10.0)
+    write_rtstruct(tmp_path / "gtv.dcm", read_ct_series(folder), [("GTV", s.vertices + GTV_CENTRE, s.faces, "GTV")])
+    ee = sum(lung.volume_ee_ml for lung in m.lungs.values())
+    assert main(["warp", str(folder), str(model), "--volume-ml", str(ee + 500), "--rigid-structure", "GTV",
+                 "--rtstruct", str(tmp_path / "gtv.dcm"), "--out", str(tmp_path / "w.mha")]) == 0
+    text = capsys.readouterr().out
+    rigid = float(re.search(r"at this state [\d.]+ mL \(([-+\d.]+) %", text).group(1))
+    elastic = float(re.search(r"the elastic field gave [\d.]+ mL, ([-+\d.]+) %", text).group(1))
+    assert abs(rigid) < 2 and elastic > 2, text
+    assert main(["warp", str(folder), str(model), "--volume-ml", str(ee + 500), "--rigid-structure", "CTV",
+                 "--rtstruct", str(tmp_path / "gtv.dcm"), "--out", str(tmp_path / "x.mha")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no structure 'CTV'" in err[0] and not (tmp_path / "x.mha").exists()

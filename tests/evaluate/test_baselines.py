@@ -39,7 +39,6 @@ def test_measure_landmarks_and_no_motion():
 
 
 def test_cpd_recovers_a_smooth_deformation():
-    pytest.importorskip("pycpd")
     s = ellipsoid_lung("right", 3)
     c = s.vertices.mean(0)
     target = Surface(c + (s.vertices - c) * np.array([1.05, 1.08, 1.03]), s.faces)
@@ -111,7 +110,6 @@ def test_measure_uses_kept_vertices_and_given_predictions():
 def test_cpd_leaves_out_crop_faces():
     # a crop-face artefact (the target's cap pushed out 15 mm): registered from the kept vertices
     # only, CPD matches the true scaled surface on the kept part better than when it chases the cap
-    pytest.importorskip("pycpd")
     s = ellipsoid_lung("right", 3)
     c = s.vertices.mean(0)
     true = c + (s.vertices - c) * np.array([1.05, 1.08, 1.03])

@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
+import pycpd
 import pytest
 
 from lungdeform.fit.cpd import deformable_cpd
-
-pycpd = pytest.importorskip("pycpd")
 
 
 @pytest.mark.parametrize("w, alpha, beta", [(0.05, 2.0, 2.0), (0.0, 1000.0, 0.8)])

@@ -1,13 +1,10 @@
 """Surface registration: the moment affine and the smooth map, on ellipsoids with known motion."""
 
 import numpy as np
-import pytest
 
 from lungdeform.fit import registration as R
 from lungdeform.geometry.mesh import Surface, icosphere
 from lungdeform.geometry.moments import solid_moments
-
-pytest.importorskip("pycpd")
 
 
 def _ellipsoid(axes, center, subdivisions=3):

@@ -205,3 +205,18 @@ def test_farthest_points_even_deterministic_and_equivariant():
     np.testing.assert_array_equal(farthest_points(pts[:50], 400), np.arange(50))
     with pytest.raises(InputError, match="count"):
         farthest_points(pts, 0)
+
+
+def test_inside_by_parity_is_the_winding_number_test_and_the_sphere():
+    # why: for a closed surface and points off it, the parity of a ray's crossings and the winding
+    # number > 0.5 are the same inside test; on a sphere both are |p − c| < r (up to the mesh's
+    # chordal sag, so points within 0.3 mm of the sphere are left out of that comparison)
+    from lungdeform.geometry.mesh import icosphere, inside_by_parity, winding_numbers
+    rng = np.random.default_rng(11)
+    s = icosphere(4, 20.0, center=(5.0, -3.0, 40.0))
+    q = rng.uniform(-20.0, 30.0, size=(3000, 3)) + [0.0, -8.0, 35.0]
+    inside = inside_by_parity(q, s.vertices, s.faces)
+    assert np.array_equal(inside, winding_numbers(q, s.vertices, s.faces) > 0.5)
+    r = np.linalg.norm(q - [5.0, -3.0, 40.0], axis=1)
+    clear = np.abs(r - 20.0) > 0.3
+    assert np.array_equal(inside[clear], r[clear] < 20.0) and 0 < inside.sum() < len(q)

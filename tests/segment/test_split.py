@@ -150,18 +150,21 @@ def test_copd1_touching_lungs_split(data_dir):
     assert a.counts()["outside"] <= 0.02 * len(a.side)
 
 
-def test_shared_splits_split_a_mask_once_and_only_inside_the_block(monkeypatch):
-    # truth: inside shared_splits the same mask read twice (a new Image, equal voxels) is split once
-    # and gives the very same split; another source name, or outside the block, splits again
+def test_split_cache_splits_a_mask_once_and_only_through_the_cache(monkeypatch):
+    # truth: through one SplitCache the same mask read twice (a new Image, equal voxels) is split once
+    # and gives the very same split; another source name, another cache or no cache splits again
     calls = []
     real = L._find_lungs
     monkeypatch.setattr(L, "_find_lungs", lambda *a: calls.append(1) or real(*a))
     image, _, _ = two_lungs(bridge=False)
     again = Image(np.array(image.array), image.spacing, image.origin, image.direction, image.source)
-    with L.shared_splits():
-        first = L.find_lungs(image)
-        assert L.find_lungs(again) is first and len(calls) == 1
-        other = Image(image.array, image.spacing, image.origin, image.direction, "other.nii.gz")
-        assert L.find_lungs(other) is not first and len(calls) == 2
-    assert L.find_lungs(image) is not first and len(calls) == 3
+    cache = L.SplitCache()
+    first = L.find_lungs(image, cache=cache)
+    assert L.find_lungs(again, cache=cache) is first and len(calls) == 1
+    assert L.require_split(again, cache=cache) is first and len(calls) == 1
+    assert L.one_lung(again, "left", cache)[2] is first and len(calls) == 1
+    other = Image(image.array, image.spacing, image.origin, image.direction, "other.nii.gz")
+    assert L.find_lungs(other, cache=cache) is not first and len(calls) == 2 and len(cache) == 2
+    assert L.find_lungs(image, cache=L.SplitCache()) is not first and len(calls) == 3
+    assert L.find_lungs(image) is not first and len(calls) == 4
     np.testing.assert_array_equal(L.find_lungs(image).labels, first.labels)

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -30,6 +29,7 @@ from lungdeform.errors import InputError
 from lungdeform.geometry.mesh import Surface
 from lungdeform.io.meshfile import write_mesh
 from lungdeform.model.lung import build_lung
+from lungdeform.progress import Progress, silent
 
 from .kernels import lung_with_vertices
 
@@ -68,12 +68,12 @@ def make_bench_cohort(folder: Path, subjects: int, *, vertices: int | None = Non
 
 
 def bench_cohort(manifest: Path, work: Path, workers: list[int], options: FitOptions, *,
-                 progress: Callable[[str], None] | None = None) -> list[dict]:
+                 progress: Progress | None = None) -> list[dict]:
     """Serial loop then Dask at each of ``workers`` (counts ≥ 1) on the same cohort, results under
     ``work``; one :func:`throughput_record` per run, the serial loop's first."""
     if any(w < 1 for w in workers):
         raise InputError(f"workers must be at least 1, got {min(workers)}")
-    say = progress or (lambda _m: None)
+    say = progress or silent
     work = Path(work)
     m = read_manifest(manifest)
     n = len(m.jobs)

@@ -30,6 +30,7 @@ from lungdeform.geometry.remesh import decimate
 from lungdeform.model.lung import LungModel, Model, build_lung
 from lungdeform.playback.export import glb_bytes
 from lungdeform.playback.server import ViewerServer
+from lungdeform.progress import Progress, silent
 
 from .kernels import bench_playback
 
@@ -54,9 +55,9 @@ def upsampled(lung: LungModel, levels: int) -> LungModel:
                    displacement=np.ascontiguousarray(per_vertex["displacement"]))
 
 
-def model_with_vertices(total: int, progress: Callable[[str], None] | None = None) -> Model:
+def model_with_vertices(total: int, progress: Progress | None = None) -> Model:
     """Two real lungs with about ``total`` vertices together."""
-    say = progress or (lambda _m: None)
+    say = progress or silent
     lungs = {}
     for side, surf in default_lungs().items():
         want = total / 2
@@ -98,10 +99,10 @@ def run_browser_bench(glb: bytes, viewer_dir: Path, frames: int, size: str, *, v
 
 
 def viewer_record(model: Model, browser: Callable[[bytes], dict], *, playback_frames: int = 50,
-                  progress: Callable[[str], None] | None = None) -> dict:
+                  progress: Progress | None = None) -> dict:
     """One size: the model's glb, the CPU playback step on all its vertices against a memory copy
     (same run), and ``browser(glb)`` (:func:`run_browser_bench` with its settings bound)."""
-    say = progress or (lambda _m: None)
+    say = progress or silent
     glb = glb_bytes(model)
     total = sum(lung.n_vertices for lung in model.lungs.values())
     v = np.vstack([lung.surface.vertices for lung in model.lungs.values()])

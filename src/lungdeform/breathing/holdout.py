@@ -47,6 +47,7 @@ import numpy as np
 from lungdeform.breathing import curve_models as rb
 from lungdeform.breathing import inversion as inv
 from lungdeform.errors import InputError
+from lungdeform.progress import Progress
 
 from .cycles import CycleAnchors, cycle_anchors, cycle_flags, mark_agreement, noise_level, smooth
 from .trace import Trace, resample
@@ -229,7 +230,7 @@ def _score_table(models: dict, refit: dict, vt, tt, s_test, regular, reasons) ->
 
 def evaluate(trace: Trace, tidal_volume_ml: float = 500.0, train_fraction: float = 0.5,
              fs_hz: float | None = None, elastance: float = 10.0, use_marks: bool = False,
-             drift: bool = True, anchors: CycleAnchors | None = None, progress=None) -> dict:
+             drift: bool = True, anchors: CycleAnchors | None = None, progress: Progress | None = None) -> dict:
     """Fit the PV driver and the baselines on early cycles, score them on later ones (see module doc).
 
     anchors : the cycles of the resampled trace, if known (else detected); ``use_marks`` takes them

@@ -21,9 +21,11 @@ from pathlib import Path
 
 import numpy as np
 
-from lungdeform import plot
 from lungdeform.atomic import write_json, write_text
 from lungdeform.errors import InputError
+from lungdeform.plot.breathing import breathing_volume, pv_loop, residuals
+from lungdeform.plot.figure import save_png
+from lungdeform.progress import Progress
 
 from . import inversion as inv
 from . import pv as br
@@ -108,12 +110,12 @@ def run_preset(name: str, out: Path, cycles: int, fs_hz: float) -> dict:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     write_text(out / "curve.csv", curve_csv(curve))
-    plot.save_png(plot.breathing_volume(curve.t_s, curve.volume_ml, f"preset {preset.name}: {preset.description}"),
-                  out / "volume.png")
-    plot.save_png(plot.pv_loop(curve.pressure_cmH2O, curve.volume_ml, f"PV loop, preset {preset.name}"),
-                  out / "pv_loop.png")
-    plot.save_png(plot.residuals(curve.t_s, resid, "Radau integrator minus exact periodic solution",
-                                 "difference (mL)"), out / "residuals.png")
+    save_png(breathing_volume(curve.t_s, curve.volume_ml, f"preset {preset.name}: {preset.description}"),
+             out / "volume.png")
+    save_png(pv_loop(curve.pressure_cmH2O, curve.volume_ml, f"PV loop, preset {preset.name}"),
+             out / "pv_loop.png")
+    save_png(residuals(curve.t_s, resid, "Radau integrator minus exact periodic solution",
+                       "difference (mL)"), out / "residuals.png")
     write_json(out / "metrics.json", metrics, allow_nan=False)
     return metrics
 
@@ -153,7 +155,8 @@ def stream_metrics(t_s: np.ndarray, amplitude: np.ndarray, tidal_volume_ml: floa
             "window_s": est.window_s, "smoothing_s": est.smoothing_s}
 
 
-def run_fit(path: Path, out: Path, tidal_volume_ml: float, train_fraction: float, progress=None) -> dict:
+def run_fit(path: Path, out: Path, tidal_volume_ml: float, train_fraction: float,
+            progress: Progress | None = None) -> dict:
     """Fit the trace at ``path`` (RPM ``.vxp`` or marker ``.csv``) and write its outputs into ``out``
     (created); returns the metrics. ``tidal_volume_ml``: the calibration (mL); ``train_fraction``:
     the share of cycles fitted, later ones held out; ``progress``: a callable given progress lines."""
@@ -182,13 +185,13 @@ def run_fit(path: Path, out: Path, tidal_volume_ml: float, train_fraction: float
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     write_text(out / "curve.csv", curve_csv(curve))
-    plot.save_png(plot.breathing_volume(curve.t_s, curve.volume_ml, f"PV fit to {trace.source}", data=(tr.t_s, vol)),
-                  out / "volume.png")
-    plot.save_png(plot.pv_loop(curve.pressure_cmH2O, curve.volume_ml, f"PV loop, fit to {trace.source}"),
-                  out / "pv_loop.png")
+    save_png(breathing_volume(curve.t_s, curve.volume_ml, f"PV fit to {trace.source}", data=(tr.t_s, vol)),
+             out / "volume.png")
+    save_png(pv_loop(curve.pressure_cmH2O, curve.volume_ml, f"PV loop, fit to {trace.source}"),
+             out / "pv_loop.png")
     test = curves["test"]
     resid = curves["volume_ml"][test] - curves["pv_held_out_ml"]
-    plot.save_png(plot.residuals(curves["t_s"][test], resid, f"held-out residuals (shared shape), "
-                                 f"RMS {res['model_rms_percent']:.1f} % of p2p"), out / "residuals.png")
+    save_png(residuals(curves["t_s"][test], resid, f"held-out residuals (shared shape), "
+                       f"RMS {res['model_rms_percent']:.1f} % of p2p"), out / "residuals.png")
     write_json(out / "metrics.json", metrics, strict=True)
     return metrics

@@ -8,6 +8,7 @@ import platform
 import re
 import sys
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -20,15 +21,26 @@ from lungdeform.io.grid import MAX_VOXELS, MAX_VOXELS_ENV, voxel_limit
 from lungdeform.playback.dvf import FieldResult, State, scan_state, volume_state
 from lungdeform.playback.schedule import check_reachable, read_volume_csv
 
-#: Progress lines go to stderr when it is a terminal, or always after ``lungdeform --verbose``;
-#: so that in pipes and CI an error is the only line on stderr.
-VERBOSE = {"on": None}
+try:  # typer ≥ 0.2x runs on its own copy of click and imports the context getter here
+    from typer.main import get_current_context
+except ImportError:  # an older typer runs on click itself
+    from click import get_current_context
+
+@dataclass(frozen=True)
+class Verbosity:
+    """The root command's typer context object (``ctx.obj``): ``--verbose`` given. Progress lines go
+    to stderr when it is a terminal, or always after ``lungdeform --verbose``; so that in pipes and
+    CI an error is the only line on stderr."""
+
+    verbose: bool = False
 
 
 def progress_enabled() -> bool:
-    """Whether progress goes to stderr: ``--verbose`` given, or else stderr is a terminal."""
-    on = VERBOSE["on"]
-    return sys.stderr.isatty() if on is None else bool(on)
+    """Whether progress goes to stderr: ``--verbose`` given to the running command (its root
+    context's :class:`Verbosity`), or else stderr is a terminal."""
+    ctx = get_current_context(silent=True)
+    settings = None if ctx is None else ctx.find_root().obj
+    return (isinstance(settings, Verbosity) and settings.verbose) or sys.stderr.isatty()
 
 
 def say(message: str) -> None:
@@ -284,3 +296,11 @@ def write_bench_json(path: Path, results: list[dict], kind: str) -> None:
 def figure_or_na(value, digits: int = 2) -> str:
     """A summary figure for the terminal: ``n/a`` where it is undefined (None: no finite score)."""
     return "n/a" if value is None else f"{value:.{digits}f}"
+
+
+def without_alignment(state: State, no_rigid: bool) -> State:
+    """``state`` without the fit's alignment with ``--no-rigid`` (the field then stays in the model's
+    frame, the end-exhale scan's, rather than scan K's); unchanged otherwise."""
+    if not no_rigid or state.alignment is None:
+        return state
+    return State(state.delta_ml, None, f"{state.source}; its alignment left out (--no-rigid: the model's frame)")

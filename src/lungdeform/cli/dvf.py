@@ -15,7 +15,8 @@ from lungdeform.io.modelfile import load_model
 from lungdeform.playback import dvf as D
 from lungdeform.playback.trajectory import extrapolation_note
 
-from .common import MAX_LUNGS_ML, bounded, check_output, field_lines, pick_state, say
+from .common import MAX_LUNGS_ML, bounded, check_output, field_lines, pick_state, say, without_alignment
+from .rigid import RigidOptions, apply_rigid, rigid_region
 
 
 def register(apps) -> None:
@@ -30,6 +31,12 @@ def register(apps) -> None:
         out_reg: Path | None = typer.Option(None, "--out-reg", help="Also write the field as a DICOM Deformable Spatial Registration object (fixed: --reference, a DICOM CT series; docs/RADIOTHERAPY.md)."),
         moving: Path | None = typer.Option(None, "--moving", help="With --out-reg: the moving state's DICOM series (e.g. a phase of 'warp --phases'), of --reference's patient and Frame of Reference."),
         node_mm: float = typer.Option(D.NODE_SPACING_MM, "--node-mm", callback=bounded(0, D.MAX_NODE_MM, "mm", low_open=True), help="Lattice spacing (mm) at which the interior field is evaluated."),
+        grid: Path | None = typer.Option(None, "--grid", help="Write the field on this image's grid instead of --reference's (e.g. the target scan's, so an inhaled lung is not cropped); same LPS world."),
+        no_rigid: bool = typer.Option(False, "--no-rigid", help="With --scan: leave the fit's alignment of that scan out (the field stays in the model's frame)."),
+        rigid_structure: str | None = typer.Option(None, "--rigid-structure", help="With --rtstruct: this ROI (e.g. GTV) moves rigidly, keeping its volume."),
+        rtstruct: Path | None = typer.Option(None, "--rtstruct", help="RTSTRUCT holding --rigid-structure, drawn on the reference's frame."),
+        rigid_mask: Path | None = typer.Option(None, "--rigid-mask", help="A mask (non-zero voxels, in the reference's LPS world) that moves rigidly."),
+        rigid_border_mm: float = typer.Option(10.0, "--rigid-border-mm", help="Width (mm) over which the rigid motion is blended back into the field."),
     ) -> None:
         """Displacement field of the model at a breathing state (docs/RADIOTHERAPY.md).
 
@@ -37,22 +44,25 @@ def register(apps) -> None:
         track' moves it. --inverse: for each point y at that state, y + w(y) in the reference."""
 
         write_suffix(out)
-        check_output(out, [model, reference])
+        check_output(out, [model, reference, grid, rtstruct, rigid_mask])
         if out_reg is not None:
-            check_output(out_reg, [model, reference, moving, out], option="--out-reg")
+            check_output(out_reg, [model, reference, grid, rtstruct, rigid_mask, moving, out], option="--out-reg")
+        rigid = RigidOptions.of(rigid_structure, rtstruct, rigid_mask, rigid_border_mm)
         m = load_model(model)
-        state = pick_state(m, volume_ml, scan)
+        state = without_alignment(pick_state(m, volume_ml, scan), no_rigid)
         series = _registration_series(reference, moving, inverse, state) if out_reg else None
-        image = read_image(reference)
+        image = read_image(reference if grid is None else grid)
+        region = rigid_region(rigid, D.Grid.of(image))
         note = extrapolation_note(m, [state.delta_ml])
         if note:
             typer.echo(f"note: {note}")
         say("evaluating the field")
         result = D.displacement_field(m, D.Grid.of(image), state.delta_ml, alignment=state.alignment,
                                       inverse=inverse, spacing_mm=node_mm)
+        lines = field_lines(result) + apply_rigid(result, D.Grid.of(image), region, rigid)
         write_image(out, result.field, image.spacing, image.origin, image.direction)
         typer.echo(f"{'inverse' if inverse else 'forward'} field at {state.source}")
-        for line in field_lines(result):
+        for line in lines:
             typer.echo(line)
         typer.echo(f"wrote {out}")
         if series is not None:

@@ -26,7 +26,7 @@ from lungdeform import __version__
 from lungdeform.errors import LungdeformError
 from lungdeform.io.grid import MAX_VOXELS_ENV
 
-from .common import MAX_VOXELS_HELP, VERBOSE, set_max_voxels
+from .common import MAX_VOXELS_HELP, Verbosity, set_max_voxels
 
 COMMAND_MODULES = [
     "lungdeform.cli.build",
@@ -85,12 +85,13 @@ def make_app() -> typer.Typer:
 
     @root.callback()
     def _root(
+        ctx: typer.Context,
         version: bool = typer.Option(False, "--version", help="Print the version and exit.", is_eager=True,
                                      callback=_print_version),
         verbose: bool = typer.Option(False, "--verbose", "-v", help="Show progress even when stderr is not a terminal."),
         max_voxels: str = typer.Option(None, "--max-voxels", help=MAX_VOXELS_HELP),
     ):
-        VERBOSE["on"] = True if verbose else None
+        ctx.obj = Verbosity(verbose)  # read by common.progress_enabled, through the context
         set_max_voxels(max_voxels)
 
     apps = Apps(root, validate, bench)

@@ -7,8 +7,10 @@ from pathlib import Path
 import numpy as np
 import typer
 
+from lungdeform.atomic import write_bytes
 from lungdeform.breathing.presets import get_preset
 from lungdeform.errors import InputError
+from lungdeform.geometry.moments import solid_moments
 from lungdeform.io.dicom.rtstruct import (
     build_rtstruct,
     check_roi_name,
@@ -21,9 +23,9 @@ from lungdeform.io.modelfile import load_model
 from lungdeform.playback import schedule as S
 from lungdeform.playback import structures as R
 from lungdeform.playback import trajectory as T
-from lungdeform.playback.dvf import volume_state
+from lungdeform.playback.dvf import scan_state, volume_state
 
-from .common import check_cycles, check_output, check_tidal_ml, output_dir, read_curve
+from .common import check_cycles, check_output, check_tidal_ml, output_dir, read_curve, without_alignment
 
 #: Bounds on the schedule: frames per second, preset cycles, and points × frames (rows of trajectories.csv)
 MAX_FPS = 1000.0
@@ -50,6 +52,8 @@ def register(apps) -> None:
         phases: int | None = typer.Option(None, "--phases", help="With --curve, --preset or the plain cycle: this many states evenly over one breath instead of frames at --fps."),
         out_rtstruct: Path | None = typer.Option(None, "--out-rtstruct", help="Write the moved structure, one ROI per volume or phase (NAME@TAG), as an RTSTRUCT on --reference-ct."),
         reference_ct: Path | None = typer.Option(None, "--reference-ct", help="With --out-rtstruct: the DICOM CT series (folder) the structure was drawn on."),
+        scan: int | None = typer.Option(None, "--scan", help="Input scan K of the fit (0 = rest): its volume, in its own frame (the fit's alignment undone), as 'dvf --scan K'."),
+        no_rigid: bool = typer.Option(False, "--no-rigid", help="With --scan: leave the fit's alignment out (positions in the model's frame)."),
     ) -> None:
         """Move interior points with the model: positions at given volumes or over a breathing curve.
 
@@ -57,10 +61,12 @@ def register(apps) -> None:
 
 
         _check_schedule(volume_ml, curve, preset, cycles, tidal_ml, fps)
-        _check_structure_options(points, rtstruct, structure, out_rtstruct, reference_ct, phases, volume_ml)
+        _check_scan(scan, no_rigid, volume_ml or curve or preset, phases)
+        _check_structure_options(points, rtstruct, structure, out_rtstruct, reference_ct, phases,
+                                 volume_ml or ([] if scan is None else [scan]))
         _check_out_rtstruct(out_rtstruct, model, points, rtstruct, curve)
         check_output(out, [model, points, rtstruct, curve, reference_ct], folder=True,
-                     writes=("trajectories.csv", "points.json", "motion.png"))
+                     writes=("trajectories.csv", "points.json", "motion.png", "structure_motion.csv"))
         m = load_model(model)
         tracked = R.read_structure(rtstruct, structure) if rtstruct is not None else None
         ct = _reference_ct(tracked, rtstruct, out_rtstruct, reference_ct)
@@ -69,26 +75,22 @@ def register(apps) -> None:
         else:
             (pts, labels), source = _read_points(points, skip_invalid), str(points)
         placement = T.place_points(m, pts, lung, source=source)
-        if volume_ml:
-            for v in volume_ml:  # finite, and a volume the lungs reach (as dvf and warp check it)
-                volume_state(m, v)
-            frames, tags = T.volume_frames(m, volume_ml), R.volume_tags(volume_ml)
-        elif phases is not None:
-            frames, tags = R.phase_frames(_trace(m, curve, preset, cycles, tidal_ml), phases)
-        else:
-            trace = _trace(m, curve, preset, cycles, tidal_ml)
-            _check_rows(len(pts), (trace.t_s[-1] - trace.t_s[0]) * fps + 1, source)  # before the frames are made
-            frames, tags = T.trace_frames(trace, fps), []
+        frames, tags, matrix = _frames(m, dict(volume_ml=volume_ml, scan=scan, no_rigid=no_rigid, phases=phases,
+                                               curve=curve, preset=preset, cycles=cycles, tidal_ml=tidal_ml, fps=fps),
+                                       len(pts), source)
         _check_rows(len(pts), len(frames.delta_ml), source)
-        for tag in tags if out_rtstruct is not None else []:  # the ROI names, before the surfaces are moved
-            check_roi_name(f"{structure}@{tag}", str(rtstruct))
+        for name in [f"{structure}@{tag}" for tag in tags] + [f"ITV_{structure}"] if out_rtstruct is not None else []:
+            check_roi_name(name, str(rtstruct))  # the ROI names, before the surfaces are moved
         note = T.extrapolation_note(m, frames.delta_ml)
         if note:
             typer.echo(f"note: {note}")
-        positions = T.point_trajectories(m, pts, placement, frames.delta_ml)
+        positions = _in_frame(T.point_trajectories(m, pts, placement, frames.delta_ml), matrix)
         built = None
         if out_rtstruct is not None:  # made and checked (names, extent on the CT) before any output
-            surfaces = R.moved_surfaces(m, tracked, frames.delta_ml, tags, lung, source=f"{rtstruct} {structure}")
+            surfaces = [(n, _in_frame(v, matrix), f, k) for n, v, f, k in
+                        R.moved_surfaces(m, tracked, frames.delta_ml, tags, lung, source=f"{rtstruct} {structure}")]
+            motion = R.motion_table(surfaces)
+            surfaces.append(R.itv_surface(surfaces, structure))  # the union over the states
             built = build_rtstruct(ct, surfaces, label=f"{structure} moved", source=str(rtstruct))
         folder = output_dir(out)
         meta = {"model": str(model), "schedule": frames.source, "end_exhale_ml": T.end_exhale_ml(m), **T.interior_meta(m)}
@@ -96,12 +98,52 @@ def register(apps) -> None:
         if built is not None:
             save_rtstruct(out_rtstruct, built[0])
             typer.echo(f"wrote {out_rtstruct}: " + ", ".join(f"{k} ({n} contours)" for k, n in built[1].items()))
+            paths["motion"] = write_bytes(folder / "structure_motion.csv", R.motion_csv({structure: motion}))
+            _print_motion(structure, motion, surfaces[-1])
         typer.echo(f"{len(pts)} point(s), {len(frames.delta_ml)} frame(s): {frames.source}")
         if tracked is None:
             _print_points(labels, placement, T.motion_summary(positions, pts), paths)
         else:
             _print_structure(structure, placement, T.motion_summary(positions, pts))
         typer.echo(f"wrote {paths['csv']}, {paths['json']}, {paths['png']}")
+
+
+def _print_motion(name: str, motion: list[dict], itv) -> None:
+    """The structure's volume and centroid motion over the states, and its ITV's volume."""
+    vols = [r["volume_ml"] for r in motion]
+    amp = ", ".join(f"{x:.1f}" for x in motion[0]["amplitude_mm"])
+    far = max(motion, key=lambda r: r["distance_mm"])
+    itv_ml = solid_moments(itv[1], itv[2])[0] / 1000.0
+    typer.echo(f"  {name}: volume {min(vols):.2f} to {max(vols):.2f} mL over {len(motion)} state(s); centroid "
+               f"amplitude (x, y, z) ({amp}) mm LPS, farthest from {motion[0]['state']} at {far['state']} "
+               f"({far['distance_mm']:.1f} mm); {itv[0]} {itv_ml:.2f} mL (structure_motion.csv)")
+
+
+def _frames(m, given: dict, points: int, source: str):
+    """``(frames, ROI tags, matrix)``: the states the options name (``given``: volume_ml, scan,
+    no_rigid, phases, curve, preset, cycles, tidal_ml, fps); ``matrix`` the 4×4 alignment (scan →
+    model frame) whose inverse puts positions in scan K's frame (``--scan``, as ``dvf --scan``), or None."""
+    if given["scan"] is not None:
+        state = without_alignment(scan_state(m, given["scan"]), given["no_rigid"])
+        return T.FrameSchedule(np.array([state.delta_ml]), None, state.source), [f"scan{given['scan']}"], state.alignment
+    if given["volume_ml"]:
+        for v in given["volume_ml"]:  # finite, and a volume the lungs reach (as dvf and warp check it)
+            volume_state(m, v)
+        return T.volume_frames(m, given["volume_ml"]), R.volume_tags(given["volume_ml"]), None
+    trace = _trace(m, given["curve"], given["preset"], given["cycles"], given["tidal_ml"])
+    if given["phases"] is not None:
+        return (*R.phase_frames(trace, given["phases"]), None)
+    _check_rows(points, (trace.t_s[-1] - trace.t_s[0]) * given["fps"] + 1, source)  # before the frames are made
+    return T.trace_frames(trace, given["fps"]), [], None
+
+
+def _in_frame(positions, matrix):
+    """``positions : (…, 3)`` mm in the model's frame moved into a scan's by ``matrix⁻¹`` (4×4 scan →
+    model, the fit's alignment); unchanged without one."""
+    if matrix is None:
+        return positions
+    inv = np.linalg.inv(np.asarray(matrix, float))
+    return np.asarray(positions, float) @ inv[:3, :3].T + inv[:3, 3]
 
 
 def _check_rows(points: int, frames: float, source: str) -> None:
@@ -138,6 +180,14 @@ def _check_out_rtstruct(out_rtstruct: Path | None, *inputs: Path | None) -> None
     check_output(out_rtstruct, inputs, option="--out-rtstruct")  # also a path under a regular file
 
 
+def _check_scan(scan, no_rigid: bool, other_schedule, phases) -> None:
+    """--scan alone (no other schedule, no --phases); --no-rigid only with it."""
+    if scan is not None and (other_schedule or phases is not None):
+        raise InputError("--scan names one state: not with --volume-ml, --curve, --preset or --phases")
+    if no_rigid and scan is None:
+        raise InputError("--no-rigid applies to --scan (the fit's alignment of that scan)")
+
+
 def _check_schedule(volume_ml, curve, preset, cycles, tidal_ml, fps) -> None:
     """One volume schedule at most, and its options in range."""
     given = [name for name, v in (("--volume-ml", volume_ml or None), ("--curve", curve), ("--preset", preset)) if v]
@@ -165,7 +215,7 @@ def _check_structure_options(points, rtstruct, structure, out_rtstruct, referenc
     if out_rtstruct is not None and rtstruct is None:
         raise InputError("--out-rtstruct writes the structure of --rtstruct: give --rtstruct and --structure")
     if out_rtstruct is not None and not volume_ml and phases is None:
-        raise InputError("--out-rtstruct needs --volume-ml or --phases (one ROI per state)")
+        raise InputError("--out-rtstruct needs --volume-ml, --scan or --phases (one ROI per state)")
     if phases is not None and volume_ml:
         raise InputError("--phases applies to --curve, --preset or the plain cycle, not --volume-ml")
     if phases is not None and not 1 <= phases <= MAX_PHASES:

@@ -4,17 +4,21 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import typer
 
 from lungdeform.atomic import atomic_dir, atomic_paths
 from lungdeform.errors import InputError
 from lungdeform.io.dicom import series as DS
+from lungdeform.io.grid import Image
 from lungdeform.io.image import WRITE_SUFFIXES, read_image, resample_image, write_image, write_suffix
 from lungdeform.io.modelfile import load_model
+from lungdeform.playback import density as M
 from lungdeform.playback import dvf as D
 from lungdeform.playback.trajectory import extrapolation_note
 
-from .common import MAX_LUNGS_ML, bounded, check_output, field_lines, pick_state, read_curve, say
+from .common import MAX_LUNGS_ML, bounded, check_output, field_lines, pick_state, read_curve, say, without_alignment
+from .rigid import RigidOptions, apply_rigid, rigid_region
 
 
 def phase_path(out: Path, index: int) -> Path:
@@ -35,33 +39,41 @@ def register(apps) -> None:
         phases: int | None = typer.Option(None, "--phases", help="With --curve: this many images evenly over one breathing cycle."),
         label: bool = typer.Option(False, "--label", help="A label image: nearest-neighbour, values kept."),
         node_mm: float = typer.Option(D.NODE_SPACING_MM, "--node-mm", callback=bounded(0, D.MAX_NODE_MM, "mm", low_open=True), help="Lattice spacing (mm) of the interior field."),
+        density: bool = typer.Option(False, "--density", help="Conserve mass: HU + 1000 scaled by the Jacobian determinant of the resampling field, so an inhaled lung gets darker (docs/RADIOTHERAPY.md, \"Density and projections\")."),
+        projections: str | None = typer.Option(None, "--projections", help="With --phases and an image-file --out: also OUT_mip, OUT_aip, OUT_minip (maximum, mean, minimum over the phases); e.g. mip,aip,minip."),
+        rigid_structure: str | None = typer.Option(None, "--rigid-structure", help="With --rtstruct: this ROI (e.g. GTV) moves rigidly, keeping its volume (docs/RADIOTHERAPY.md, \"A rigid tumour\")."),
+        rtstruct: Path | None = typer.Option(None, "--rtstruct", help="RTSTRUCT holding --rigid-structure, drawn on IMAGE's frame."),
+        rigid_mask: Path | None = typer.Option(None, "--rigid-mask", help="A mask (non-zero voxels, in IMAGE's LPS world) that moves rigidly; instead of --rigid-structure."),
+        rigid_border_mm: float = typer.Option(10.0, "--rigid-border-mm", help="Width (mm) over which the rigid motion is blended back into the field."),
+        grid: Path | None = typer.Option(None, "--grid", help="Write on this image's grid instead of IMAGE's (e.g. the target scan's, so an inhaled lung is not cropped); same LPS world."),
+        no_rigid: bool = typer.Option(False, "--no-rigid", help="With --scan: leave the fit's alignment of that scan out (the image stays in the model's frame)."),
     ) -> None:
         """Resample IMAGE at a breathing state of MODEL on IMAGE's own grid (docs/RADIOTHERAPY.md)."""
 
-        inputs = [image, model, curve]
+        inputs = [image, model, curve, rtstruct, rigid_mask, grid]
+        rigid = RigidOptions.of(rigid_structure, rtstruct, rigid_mask, rigid_border_mm)
+        kinds = M.parse_projections(projections)
         if out.is_dir() and any(out.name.lower().endswith(x) for x in WRITE_SUFFIXES):
             check_output(out)  # an existing folder named like an image file: refused
         dicom = DS.is_series_output(out)
         DS.check_series_output(out) if dicom else write_suffix(out)
         check_output(out, inputs, folder=dicom, whole=dicom)
-        if dicom and label:
-            raise InputError(f"--out {out}: a label image is not written as a DICOM CT series; use .mha, .nii.gz or .nrrd")
-        if (curve is None) != (phases is None):
-            raise InputError("--curve and --phases go together")
-        if phases is not None:
-            D.check_phases(phases)
-        if curve is not None and (volume_ml is not None or scan is not None):
-            raise InputError("--curve with --volume-ml or --scan: give one breathing state or one curve")
+        _check_combinations(out, dicom, dict(label=label, density=density, kinds=kinds, phases=phases, curve=curve,
+                                             state=volume_ml is not None or scan is not None, grid=grid))
         m = load_model(model)
         if curve is not None:
             states, period = D.phase_states(read_curve(curve, m), phases)
             typer.echo(f"{len(states)} phase(s) over a cycle of {period:.2f} s of {curve}")
             paths = [Path(DS.phase_folder(i, len(states))) if dicom else phase_path(out, i) for i in range(len(states))]
+            paths += [projection_path(out, k) for k in kinds]
             for path in [] if dicom else paths:
                 check_output(path, inputs)
         else:
-            states, paths = [pick_state(m, volume_ml, scan)], [Path() if dicom else out]
+            states, paths = [without_alignment(pick_state(m, volume_ml, scan), no_rigid)], [Path() if dicom else out]
         img = read_image(image)
+        target = img if grid is None else read_image(grid)
+        region = rigid_region(rigid, D.Grid.of(target))
+        projector = M.Projector() if kinds else None
         header = DS.study_header(image) if dicom else None
         note = extrapolation_note(m, [s.delta_ml for s in states])
         if note:
@@ -70,18 +82,70 @@ def register(apps) -> None:
         with atomic_dir(out) if dicom else atomic_paths(paths, [write_suffix(p) for p in paths]) as tmp:
             for i, (state, path) in enumerate(zip(states, paths)):
                 say(f"resampling at {state.source}")
-                result = D.displacement_field(m, D.Grid.of(img), state.delta_ml, alignment=state.alignment,
+                result = D.displacement_field(m, D.Grid.of(target), state.delta_ml, alignment=state.alignment,
                                               inverse=True, spacing_mm=node_mm)
-                warped = resample_image(img, result.field, label=label)
+                lines = field_lines(result) + apply_rigid(result, D.Grid.of(target), region, rigid)
+                warped, more = _resampled(img, target, result, (label, density))
+                lines += more
+                if projector is not None:
+                    projector.add(warped.array)
                 if dicom:
                     temporal = (i, len(states)) if curve is not None else None
                     _write_series(tmp / path, warped, header, temporal)
                 else:
-                    write_image(tmp[i], warped.array, img.spacing, img.origin, img.direction)
+                    write_image(tmp[i], warped.array, warped.spacing, warped.origin, warped.direction)
                 typer.echo(f"{state.source}:")
-                for line in field_lines(result):
+                for line in lines:
                     typer.echo(f"  {line}")
                 typer.echo(f"wrote {out / path if dicom else path}")
+            for n, kind in enumerate(kinds):
+                write_image(tmp[len(states) + n], M.as_pixel_type(projector.result(kind), img.array.dtype),
+                            target.spacing, target.origin, target.direction)
+                typer.echo(f"wrote {paths[len(states) + n]} ({kind.upper()} over {len(states)} phases)")
+
+
+def _check_combinations(out: Path, dicom: bool, given: dict) -> None:
+    """Refuse, before any work, options that do not go together (``given``: label, density, kinds,
+    phases, curve, state (--volume-ml or --scan), grid)."""
+    if dicom and given["label"]:
+        raise InputError(f"--out {out}: a label image is not written as a DICOM CT series; use .mha, .nii.gz or .nrrd")
+    if (given["curve"] is None) != (given["phases"] is None):
+        raise InputError("--curve and --phases go together")
+    if given["phases"] is not None:
+        D.check_phases(given["phases"])
+    if given["curve"] is not None and given["state"]:
+        raise InputError("--curve with --volume-ml or --scan: give one breathing state or one curve")
+    if given["density"] and given["label"]:
+        raise InputError("--density scales CT numbers; a --label image has none")
+    if given["kinds"] and given["phases"] is None:
+        raise InputError("--projections needs --curve and --phases (the phases it projects)")
+    if given["kinds"] and dicom:
+        raise InputError(f"--out {out}: --projections are written as image files; give --out OUT.mha")
+    if dicom and given["grid"] is not None:
+        raise InputError("--grid with a DICOM --out: the series keeps IMAGE's slices; give --out OUT.mha")
+
+
+def projection_path(out: Path, kind: str) -> Path:
+    """``OUT_kind`` with OUT's own suffix: ``ct.mha`` → ``ct_mip.mha``."""
+    suffix = write_suffix(out)
+    return out.with_name(f"{out.name[:-len(suffix)]}_{kind}{suffix}")
+
+
+def _resampled(img: Image, target: Image, result, kind: tuple[bool, bool]) -> tuple[Image, list[str]]:
+    """IMAGE resampled through the inverse field on ``target``'s grid; ``kind`` = (label, density):
+    with density its HU scaled to conserve mass (:func:`lungdeform.playback.density.conserve_mass`)
+    and the mass before and after in a line."""
+    label, density = kind
+    warped = resample_image(img, result.field, label=label, grid=None if target is img else target)
+    if not density:
+        return warped, []
+    jac = D.jacobian_determinant(result.field, target.spacing, target.direction)
+    hu = M.as_pixel_type(M.conserve_mass(warped.array, jac), img.array.dtype)
+    voxel = [float(abs(np.linalg.det(np.reshape(g.direction, (3, 3)))) * np.prod(g.spacing)) / 1000.0 for g in (img, target)]
+    before, after = M.mass_g(img.array, voxel[0]), M.mass_g(hu, voxel[1])
+    line = (f"density: HU scaled by the Jacobian (mass conserved); mass of the image {before / 1000:.3f} kg "
+            f"→ {after / 1000:.3f} kg ({100 * (after / before - 1):+.2f} %; tissue leaving the grid counts)")
+    return Image(hu, warped.spacing, warped.origin, warped.direction, img.source), [line]
 
 
 def _write_series(folder: Path, image, header, temporal) -> None:

@@ -41,6 +41,7 @@ from lungdeform import __version__
 from lungdeform.atomic import jsonable, write_json
 from lungdeform.evaluate.pipeline import run_fit
 from lungdeform.fit.config import FitConfig, FitInputs
+from lungdeform.progress import silent
 
 from .manifest import Job
 
@@ -120,7 +121,7 @@ def fit_job(job: Job, out_dir, options: FitOptions = FitOptions(), *, progress: 
     """
 
     out_dir = Path(out_dir)
-    emit = progress or (lambda _e: None)
+    emit = progress or silent
     t0 = time.perf_counter()
     digest = input_digest(job, options)
     stage = {"now": None}

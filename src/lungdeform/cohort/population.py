@@ -31,14 +31,16 @@ import io as _io
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Sequence
 
 import numpy as np
 
-from lungdeform import plot as P
 from lungdeform.atomic import write_json, write_text
 from lungdeform.constants import TABLE_I, table_constants
 from lungdeform.errors import InputError
+from lungdeform.plot.figure import save_png
+from lungdeform.plot.statistics import ScatterPanel, StripPanel, scatter_grid, strip_boxes
+from lungdeform.progress import Progress, silent
 
 from .job import RESULT_SCHEMA, RESULT_VERSION, finite_or_none
 from .synthetic import normalise_force_constants
@@ -215,7 +217,7 @@ def statistics_csv(stats: dict[str, Summary], side: str | None = None) -> list[l
 
 
 def write_population(results: list[dict], out: Path, manifest_dir: Path,
-                     progress: Callable[[str], None] | None = None) -> dict:
+                     progress: Progress | None = None) -> dict:
     """Population statistics (and recovery for a synthetic cohort) of a cohort run.
 
     ``results``: the runner's result records (ok and failed). ``out``: the cohort output folder
@@ -228,7 +230,7 @@ def write_population(results: list[dict], out: Path, manifest_dir: Path,
     departures from Table I, the time per lung without its per-lung list, ``"recovery": None``).
     """
 
-    say = progress or (lambda _m: None)
+    say = progress or silent
     out = Path(out)
     stats = population_statistics(results)
     table = table_comparison(stats["by_side"])
@@ -294,25 +296,25 @@ def population_plots(ok: Sequence[dict], folder: Path) -> dict[str, str]:
     panels = []
     for k, name in enumerate(CONSTANTS):
         g = groups(name)
-        panels.append(P.StripPanel(name, g, [f"{s}\n(n={len(x[np.isfinite(x)])})" for s, x in zip(sides, g)],
-                                   reference=[table_i(side)[k] for side in sides]))
-    fig = P.strip_boxes(panels, col, rows=3, cols=3, rng=rng, reference_label="Table I",
-                        title="Fitted constants per side (boxes: quartiles; red: Santhanam et al. Table I, "
-                              "c7…c9 normalised)")
-    files["plots/constants_by_side.png"] = str(P.save_png(fig, folder / "constants_by_side.png"))
+        panels.append(StripPanel(name, g, [f"{s}\n(n={len(x[np.isfinite(x)])})" for s, x in zip(sides, g)],
+                                 reference=[table_i(side)[k] for side in sides]))
+    fig = strip_boxes(panels, col, rows=3, cols=3, rng=rng, reference_label="Table I",
+                      title="Fitted constants per side (boxes: quartiles; red: Santhanam et al. Table I, "
+                            "c7…c9 normalised)")
+    files["plots/constants_by_side.png"] = str(save_png(fig, folder / "constants_by_side.png"))
 
-    panels = [P.ScatterPanel(name, {side: np.array([(v["volume_ee_ml"], v[name]) for s, v in rows if s == side])
-                                    for side in sides},
+    panels = [ScatterPanel(name, {side: np.array([(v["volume_ee_ml"], v[name]) for s, v in rows if s == side])
+                                  for side in sides},
                              levels={side: table_i(side)[k] for side in sides}, xlabel="end-exhale volume (mL)",
                              legend=k == 0)
               for k, name in enumerate(CONSTANTS)]
-    fig = P.scatter_grid(panels, SIDE_COLOURS, rows=3, cols=3,
-                         title="Constants against end-exhale lung volume (dashed: Table I per side)")
-    files["plots/constants_vs_volume.png"] = str(P.save_png(fig, folder / "constants_vs_volume.png"))
+    fig = scatter_grid(panels, SIDE_COLOURS, rows=3, cols=3,
+                       title="Constants against end-exhale lung volume (dashed: Table I per side)")
+    files["plots/constants_vs_volume.png"] = str(save_png(fig, folder / "constants_vs_volume.png"))
 
-    panels = [P.StripPanel(name.replace("_mm", " (mm)"), groups(name), sides, title_size=9) for name in METRICS]
-    panels.append(P.StripPanel("time per lung (s)", groups("seconds"), sides, title_size=9))
-    fig = P.strip_boxes(panels, col, rows=1, cols=len(panels), rng=rng,
-                        title="Fit errors per side (largest-volume target) and time per lung")
-    files["plots/fit_errors.png"] = str(P.save_png(fig, folder / "fit_errors.png"))
+    panels = [StripPanel(name.replace("_mm", " (mm)"), groups(name), sides, title_size=9) for name in METRICS]
+    panels.append(StripPanel("time per lung (s)", groups("seconds"), sides, title_size=9))
+    fig = strip_boxes(panels, col, rows=1, cols=len(panels), rng=rng,
+                      title="Fit errors per side (largest-volume target) and time per lung")
+    files["plots/fit_errors.png"] = str(save_png(fig, folder / "fit_errors.png"))
     return files

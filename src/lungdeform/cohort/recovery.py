@@ -22,17 +22,19 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Sequence
 
 import numpy as np
 
-from lungdeform import plot as P
 from lungdeform.atomic import finite_json, write_json, write_text
 from lungdeform.errors import LungdeformError
 from lungdeform.fit.search import GAUGE
 from lungdeform.geometry.distance import symmetric_distance
 from lungdeform.geometry.mesh import Surface, vertex_normals
 from lungdeform.io.modelfile import load_model
+from lungdeform.plot.figure import save_png
+from lungdeform.plot.statistics import ScatterPanel, scatter_grid
+from lungdeform.progress import Progress
 
 from .job import finite_or_none
 from .population import CONSTANTS, METRICS, SIDE_COLOURS, SIDES, csv_text, describe, split_results
@@ -262,24 +264,24 @@ def recovery_plot(rec: dict, folder: Path) -> dict[str, str]:
     """Fitted against true value per constant and ratio (identity line), and the per-lung
     normal and tangential displacement error (PNG, atomically)."""
     lungs = rec["lungs"]
-    panels = [P.ScatterPanel(name, {side: np.array([(lu["true_in_fit_gauge"][name], lu["fitted"][name])
-                                                    for lu in lungs if lu["side"] == side]) for side in SIDES},
+    panels = [ScatterPanel(name, {side: np.array([(lu["true_in_fit_gauge"][name], lu["fitted"][name])
+                                                  for lu in lungs if lu["side"] == side]) for side in SIDES},
                              identity=True, ylabel="fitted", xlabel_size=8, legend=k == 0,
                              xlabel="true · fitted c3/true c3" if name in SCALE_CONSTANTS else "true")
               for k, name in enumerate(list(CONSTANTS) + list(RATIOS))]
     last = {side: [lu["field"][-1] for lu in lungs if lu["side"] == side and lu["field"]] for side in SIDES}
-    panels.append(P.ScatterPanel(
+    panels.append(ScatterPanel(
         "displacement error, largest volume",
         {side: np.array([(f.get("normal_rms_mm", np.nan), f.get("tangential_rms_mm", np.nan)) for f in fields])
          for side, fields in last.items()},
         xlabel="normal RMS error (mm)", ylabel="tangential RMS error (mm)", title_size=9))
-    fig = P.scatter_grid(panels, SIDE_COLOURS, rows=3, cols=4,
-                         title="Recovery of the synthetic truth (grey: fitted = true)")
-    return {"plots/recovery.png": str(P.save_png(fig, folder / "recovery.png"))}
+    fig = scatter_grid(panels, SIDE_COLOURS, rows=3, cols=4,
+                       title="Recovery of the synthetic truth (grey: fitted = true)")
+    return {"plots/recovery.png": str(save_png(fig, folder / "recovery.png"))}
 
 
 def add_recovery(summary: dict, results: list[dict], out: Path, manifest_dir: Path,
-                 progress: Callable[[str], None] | None = None) -> dict:
+                 progress: Progress | None = None) -> dict:
     """When ``manifest_dir/truth.json`` exists (a synthetic cohort), write the recovery of that truth
     (:func:`write_recovery`: ``recovery.json``, ``recovery.csv``, ``recovery_by_lung.csv``,
     ``plots/recovery.png``) into ``out`` and put its headline and files into ``summary`` (the dict

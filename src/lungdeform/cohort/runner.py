@@ -47,6 +47,7 @@ from typing import Callable
 
 from lungdeform.atomic import write_json
 from lungdeform.errors import InputError, require
+from lungdeform.progress import silent
 
 from .job import (
     FitOptions,
@@ -130,7 +131,7 @@ def run_cohort(manifest, out, *, scheduler: str | None = None, workers: int | No
 
     t_start = time.perf_counter()
     started = _now()
-    emit = progress or (lambda _e: None)
+    emit = progress or silent
     _check_cluster(scheduler, workers)
     m = manifest if isinstance(manifest, Manifest) else read_manifest(manifest)
     out = Path(out)

@@ -45,7 +45,7 @@ import io as _io
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Sequence
 
 import numpy as np
 
@@ -59,6 +59,7 @@ from lungdeform.io.landmarks import write_elastix_points
 from lungdeform.io.meshfile import write_mesh
 from lungdeform.model.displacement import scales_for_volumes, volume_polynomial
 from lungdeform.model.lung import build_lung
+from lungdeform.progress import Progress, silent
 
 TRUTH_SCHEMA = "lungdeform.synthetic.truth"
 TRUTH_VERSION = 1
@@ -296,14 +297,14 @@ def synthesize_lung(surface: Surface, side: str, constants, delta_ml: Sequence[f
 def synthetic_cohort(n_subjects: int = 4, *, delta_ml: Sequence[float] = (300.0, 500.0), noise_mm: float = 0.0,
                      seed: int = 0, law: str = "exact", spread: float = 0.2, shape_spread: float = 0.1,
                      landmarks: int = 50, sides: Sequence[str] = ("left", "right"), table_shift_mm: float = 0.0,
-                     progress: Callable[[str], None] | None = None) -> list[SyntheticLung]:
+                     progress: Progress | None = None) -> list[SyntheticLung]:
     """``n_subjects`` synthetic subjects, one :class:`SyntheticLung` per side.
 
     Shapes: :func:`subject_sources`, each scaled by factors drawn uniformly in
     ``1 ± shape_spread`` per axis; constants: :func:`draw_constants` with ``spread``; table shifts
     of the larger-volume scans: N(0, table_shift_mm²) per axis (0: none).
     """
-    say = progress or (lambda _m: None)
+    say = progress or silent
     if int(n_subjects) != n_subjects or n_subjects < 1:
         raise InputError(f"the number of subjects must be a positive integer, got {n_subjects!r}")
     if not 0 <= shape_spread < 1:
@@ -363,7 +364,7 @@ def truth_record(lung: SyntheticLung, files: dict) -> dict:
 
 
 def write_cohort(lungs: Sequence[SyntheticLung], out, *, seed: int | None = None,
-                 progress: Callable[[str], None] | None = None) -> dict:
+                 progress: Progress | None = None) -> dict:
     """Write surfaces (binary PLY, float64), landmark files, ``truth/<subject>_<side>.npz``,
     ``manifest.csv`` (``subject,side,volume_ml,path[,landmarks]``, paths relative to ``out``) and
     ``truth.json`` into the folder ``out``, every file atomically. Returns
@@ -373,7 +374,7 @@ def write_cohort(lungs: Sequence[SyntheticLung], out, *, seed: int | None = None
     per ``unit_ml``, ``scales (k,)``, ``noise (k, n)`` mm, ``landmark_index (m,)``.
     """
 
-    say = progress or (lambda _m: None)
+    say = progress or silent
     if not lungs:
         raise InputError("no synthetic lungs to write")
     out = Path(out)

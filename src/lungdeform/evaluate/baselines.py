@@ -36,7 +36,7 @@ from scipy import ndimage as ndi
 from scipy.spatial.distance import cdist
 from skimage.measure import marching_cubes
 
-from lungdeform.errors import ConvergenceError, InputError, require
+from lungdeform.errors import ConvergenceError, InputError
 from lungdeform.fit import registration
 from lungdeform.fit.cpd import deformable_cpd
 from lungdeform.geometry.distance import SurfaceDistance, symmetric_distance
@@ -173,7 +173,6 @@ def cpd_deformable(surface: Surface, target: Surface, settings: CpdSettings = Cp
     is relative to the lung size (2 = twice the RMS radius, the usual CPD setting on unit-variance data); ``alpha`` is the smoothness
     weight and ``w`` the outlier weight (pycpd's meanings). Returns ``(n, 3)`` mm.
     """
-    require("pycpd", "the CPD baseline", "pycpd")
     samples, beta = settings.samples, settings.beta
     rng = np.random.default_rng(settings.seed)
     p = surface.vertices
@@ -324,7 +323,7 @@ def measure(rest: Surface, predicted, target: Surface, *, keep=None, keep_target
 #: Surface points per phase of :func:`mask_cpd_map`, Gaussian smoothing (voxels) before marching cubes.
 MASK_CPD_POINTS = 1500
 MASK_CPD_SIGMA = 0.7
-#: How the surface points are chosen: ``"farthest"`` (since 0.7: the farthest-point subset the model's
+#: How the surface points are chosen: ``"farthest"`` (the default: the farthest-point subset the model's
 #: correspondence field uses, deterministic; 8.01 mm on the ten lungs) or ``"random"`` (a seeded
 #: draw, the calibration's reading: 8.29 mm with seed 0, 8.3–10.0 on case 5 with other seeds).
 MASK_CPD_SAMPLING = "farthest"

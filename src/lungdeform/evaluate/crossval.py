@@ -12,7 +12,7 @@ fits on all landmarks (the model a user keeps).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Callable, Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
@@ -21,6 +21,7 @@ from lungdeform.fit.fitting import FitSettings, fit_lung
 from lungdeform.fit.objective import LandmarkTerm
 from lungdeform.geometry.mesh import as_vertices
 from lungdeform.interior.sliding import checked_operator, surface_weights
+from lungdeform.progress import Progress, silent
 
 from .folds import landmark_folds
 
@@ -55,7 +56,7 @@ class LandmarkCV:
 
 def cross_validate_landmarks(surface: Surface, side: str, targets: Sequence[Target], landmarks: LandmarkTerm,
                              settings: FitSettings = FitSettings(max_evaluations=200), *, folds=5, keep=None,
-                             progress: Callable[[str], None] | None = None) -> LandmarkCV:
+                             progress: Progress | None = None) -> LandmarkCV:
     """k-fold protocol for the landmark-informed fit: for each fold, fit on the surfaces and the
     other folds' landmarks (:func:`fit_lung` with the landmark term), then move the fold's
     landmarks with that fit; finally fit on all landmarks.
@@ -70,7 +71,7 @@ def cross_validate_landmarks(surface: Surface, side: str, targets: Sequence[Targ
     vertices measured. Landmark errors computed from :attr:`LandmarkCV.predicted` are held out.
     """
 
-    say = progress or (lambda _m: None)
+    say = progress or silent
     rest = as_vertices(landmarks.rest, "landmarks_rest")
     landmarks_targets, landmark_matrix = landmarks.targets, landmarks.matrix
     if isinstance(folds, (int, np.integer)):

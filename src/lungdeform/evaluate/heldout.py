@@ -11,7 +11,6 @@ share one sliding interpolation from the kept model vertices to the landmarks
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
@@ -19,6 +18,7 @@ from lungdeform.fit.config import FitConfig
 from lungdeform.fit.fitting import FitResult, FitSettings
 from lungdeform.fit.objective import LandmarkTerm
 from lungdeform.interior.field import correction_per_unit
+from lungdeform.progress import Progress, silent
 
 from . import baselines as B
 from .crossval import LandmarkCV, cross_validate_landmarks
@@ -52,7 +52,7 @@ class HeldOut:
 
 
 def held_out_landmarks(placed: Placement, landmarks, fit: FitResult, side: str, config: FitConfig, folds,
-                       progress: Callable[[str], None] | None = None, surface_field=None) -> HeldOut:
+                       progress: Progress | None = None, surface_field=None) -> HeldOut:
     """The landmark step for the surface ``fit`` of the model mesh in ``placed``: ``landmarks : (m, 3)``
     mm are the end-exhale ones (None: no landmarks), ``folds`` their k-fold split
     (:func:`lungdeform.interior.field.landmark_folds`; None without ``landmark_fit``).
@@ -60,7 +60,7 @@ def held_out_landmarks(placed: Placement, landmarks, fit: FitResult, side: str, 
 
     if landmarks is None:
         return HeldOut()
-    say = progress or (lambda _m: None)
+    say = progress or silent
     # the sliding interpolation from the kept model vertices to the landmarks: one dense solve,
     # shared by every landmark-informed fit (rows per fold) and by the metrics of every method
     weights = B.landmark_matrix(placed.rest, landmarks, placed.keep)

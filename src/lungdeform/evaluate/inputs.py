@@ -14,7 +14,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -31,9 +30,10 @@ from lungdeform.io.dicom.fourdct import frame_of_reference, read_phases
 from lungdeform.io.grid import Image
 from lungdeform.io.image import is_image_path, read_image
 from lungdeform.io.landmarks import read_elastix_points
+from lungdeform.progress import Progress, silent
 from lungdeform.segment.ct import archive_in, is_archive, read_ct
 from lungdeform.segment.lungs import segment_lungs
-from lungdeform.segment.split import landmarks_of_side, one_lung
+from lungdeform.segment.split import SplitCache, landmarks_of_side, one_lung
 
 #: Landmarks more than this outside their own image's lung mask count as outside (mm).
 LANDMARK_OUTSIDE_MM = 3.0
@@ -83,11 +83,11 @@ class ReadInputs:
 
 
 def read_inputs(inputs: FitInputs, side_check: bool = True,
-                progress: Callable[[str], None] | None = None) -> ReadInputs:
+                progress: Progress | None = None) -> ReadInputs:
     """Read and check every input of ``inputs`` (module docstring); ``side_check``: refuse an input
     whose shape says the other side (:func:`lungdeform.geometry.frame.check_side`)."""
 
-    say = progress or (lambda _m: None)
+    say = progress or silent
     cycle = None
     if len(inputs.paths) == 1:  # one 4-D CT folder: its phases, in the order of their volumes
         paths, read, notes4d, cycle = read_fourdct(Path(inputs.paths[0]), inputs.side, say)
@@ -96,7 +96,8 @@ def read_inputs(inputs: FitInputs, side_check: bool = True,
         first_image = None  # every image is checked against the first one's spacing as soon as it is read
         for p in inputs.paths:
             say(f"reading {p}")
-            read.append(read_input(Path(p), inputs.side, progress=say, spacing_like=first_image))
+            read.append(read_input(Path(p), inputs.side, progress=say, spacing_like=first_image,
+                                   splits=inputs.splits))
             if first_image is None and read[-1][2] is not None:
                 first_image = (p, read[-1][2])
     surfaces, images = [r[0] for r in read], [r[3] for r in read]
@@ -154,13 +155,15 @@ def read_fourdct(folder: Path, side: str, progress) -> tuple[list[str], list[tup
     return [phases[i].image.source for i in order], [read[i] for i in order], notes, cycle
 
 
-def read_input(path: Path, side: str, *, progress=None, spacing_like=None):
+def read_input(path: Path, side: str, *, progress: Progress | None = None, spacing_like=None,
+               splits: SplitCache | None = None):
     """``(dense Surface, crop planes, spacing or None, image or None, split or None)`` for one input
     path; ``split`` (:class:`~lungdeform.segment.split.LungSplit`) when the input was a mask holding
     both lungs in one label, ``image`` then its ``side`` lung.
 
     ``spacing_like``: ``(path, spacing (3,) mm)`` of an image read before; an image of another
-    spacing is refused as soon as it is read, before the (slow) segmentation and surface."""
+    spacing is refused as soon as it is read, before the (slow) segmentation and surface. ``splits``:
+    where a mask holding both lungs is split (:class:`~lungdeform.fit.lungsplit.SplitCache`)."""
 
     path = Path(path)
     if not path.exists():
@@ -174,10 +177,11 @@ def read_input(path: Path, side: str, *, progress=None, spacing_like=None):
         return surface, [], None, None, None
     else:
         image = read_image(path)
-    return image_input(image, path, side, progress=progress, spacing_like=spacing_like)
+    return image_input(image, path, side, progress=progress, spacing_like=spacing_like, splits=splits)
 
 
-def image_input(image: Image, path: Path, side: str, *, progress=None, spacing_like=None):
+def image_input(image: Image, path: Path, side: str, *, progress: Progress | None = None, spacing_like=None,
+                splits: SplitCache | None = None):
     """What :func:`read_input` returns for an ``image`` read from ``path`` (a CT is segmented, a mask
     split, both checked against ``spacing_like``)."""
 
@@ -191,7 +195,7 @@ def image_input(image: Image, path: Path, side: str, *, progress=None, spacing_l
         image = Image(getattr(seg, side).astype(np.uint8), image.spacing, image.origin, image.direction,
                       f"{image.source} ({side} lung)")
     else:  # a lobe map or a binary mask holding both lungs: this side's lung (one lung passes unchanged)
-        image, _notes, split = one_lung(image, side)
+        image, _notes, split = one_lung(image, side, splits)
     surface = M.extract_surface(image, name=Path(path).name).surface
     return surface, crop_planes(image), np.asarray(image.spacing, float), image, split
 

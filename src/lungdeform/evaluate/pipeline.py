@@ -31,7 +31,6 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -46,6 +45,7 @@ from lungdeform.geometry.mesh import Surface
 from lungdeform.interior.motion_prior import MotionPrior, lung_normaliser
 from lungdeform.io.modelfile import provenance, save_model
 from lungdeform.model.lung import Model
+from lungdeform.progress import Progress, silent
 
 from .folds import landmark_folds
 from .heldout import HeldOut, held_out_landmarks
@@ -56,7 +56,7 @@ from .scoring import bounding_boxes, protocols, score_targets
 
 
 def run_fit(inputs: FitInputs, out: Path, config: FitConfig = FitConfig(), *,
-            progress: Callable[[str], None] | None = None, prior: MotionPrior | None = None) -> dict:
+            progress: Progress | None = None, prior: MotionPrior | None = None) -> dict:
     """Run the whole pipeline (module docstring) on ``inputs``; write model.npz, metrics.json and
     report.html in the folder ``out`` (created if missing); return the metrics dictionary.
 
@@ -72,7 +72,7 @@ def run_fit(inputs: FitInputs, out: Path, config: FitConfig = FitConfig(), *,
     line of text per step. ``prior``: a population motion prior (:mod:`lungdeform.interior.motion_prior`)
     folded into the correspondence field (``config.interior == "correspondence"`` only)."""
 
-    say = progress or (lambda _m: None)
+    say = progress or silent
     check_prior(config, prior)  # an explicit sliding interior: refused before any reading
     asked_align = config.align
     t_start = time.perf_counter()
@@ -134,13 +134,13 @@ def check_prior(config: FitConfig, prior: MotionPrior | None, kind: str | None =
 
 
 def interior_surface(placed: Placement, fit, side: str, kind: str, prior: MotionPrior | None,
-                     progress: Callable[[str], None] | None = None, *, whole: Surface | None = None):
+                     progress: Progress | None = None, *, whole: Surface | None = None):
     """The correspondence field (mm per unit) of the end-exhale surface onto the model's
     largest-volume target (:func:`lungdeform.fit.registration.surface_map_field`), with ``prior``
     folded in; None for the sliding interior (``kind``, :func:`interior_kind`; a prior with it is
     refused by :func:`check_prior`). ``whole``: the end-exhale surface at full resolution, in the
     model's frame (the model mesh is its decimation); default the model mesh."""
-    say = progress or (lambda _m: None)
+    say = progress or silent
     if kind == "sliding":
         return None
     scales = [fit.scale_at(tg.volume_ml) for tg in placed.targets]
@@ -156,13 +156,13 @@ def interior_surface(placed: Placement, fit, side: str, kind: str, prior: Motion
 
 
 def fit_surfaces(placed: Placement, read: ReadInputs, side: str, config: FitConfig,
-                 progress: Callable[[str], None] | None = None) -> tuple[dict, Placement, list[str]]:
+                 progress: Progress | None = None) -> tuple[dict, Placement, list[str]]:
     """The surface fits of the model mesh to the placed targets: ``(fits, placement, warnings)``;
     ``fits["optimizer"]`` is the headline fit (``config.mode``), ``fits["grid"]`` the paper's grid
     search (with ``config.grid``); with ``align="joint"`` the placement returned has every target
     moved by its fitted translation. A warning when c1…c6 end on the bound of the search."""
 
-    say = progress or (lambda _m: None)
+    say = progress or silent
     say(f"fitting ({len(placed.targets)} target(s), model mesh {placed.rest.n_vertices} vertices)")
     settings = FitSettings(mode=config.mode, fit_stiffness=config.stiffness, max_evaluations=config.max_evaluations,
                            translate=config.align == "joint", direction_degree=config.direction_degree)
@@ -183,13 +183,13 @@ def fit_surfaces(placed: Placement, read: ReadInputs, side: str, config: FitConf
     return fits, placed, warnings
 
 
-def refine_surface(placed: Placement, fit, config: FitConfig, progress: Callable[[str], None] | None = None):
+def refine_surface(placed: Placement, fit, config: FitConfig, progress: Progress | None = None):
     """``fit`` with its displacement brought onto the placed targets by the surface refinement
     (:func:`lungdeform.fit.refinement.refine_displacement`, finest width ``config.refine_mm``);
     ``fit`` unchanged when ``config.refine_mm`` is 0."""
     if not config.refine_mm:
         return fit
-    say = progress or (lambda _m: None)
+    say = progress or silent
     scales = [fit.scale_at(tg.volume_ml) for tg in placed.targets]
     ref = refine_displacement(placed.rest.vertices, fit.displacement, [tg.surface for tg in placed.targets], scales,
                               placed.keep, finest_mm=config.refine_mm)

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -24,6 +23,7 @@ from lungdeform.fit.align import CropPlane, RigidTransform, align_apex, align_la
 from lungdeform.fit.objective import Target
 from lungdeform.geometry.mesh import Surface, check_surface
 from lungdeform.geometry.remesh import decimate
+from lungdeform.progress import Progress, silent
 
 from .inputs import ReadInputs
 
@@ -90,11 +90,11 @@ def model_mesh(surface, image=None):
 
 
 def place_targets(read: ReadInputs, paths, landmark_paths, align: str,
-                  progress: Callable[[str], None] | None = None) -> Placement:
+                  progress: Progress | None = None) -> Placement:
     """The model mesh of the first input and every other input ``paths[i]`` (landmark file
     ``landmark_paths[i]``) brought into its frame by ``align`` (module docstring)."""
 
-    say = progress or (lambda _m: None)
+    say = progress or silent
     say("model mesh (decimation)")
     rest = model_mesh(read.surfaces[0])
     vols = read.volumes_ml
@@ -165,11 +165,11 @@ def _compare_landmarks(read: ReadInputs, i: int, xf: RigidTransform, info: dict,
 
 
 def shift_targets(placed: Placement, read: ReadInputs, translations,
-                  progress: Callable[[str], None] | None = None) -> Placement:
+                  progress: Progress | None = None) -> Placement:
     """``placed`` with every target (its landmarks and crop faces) moved by its jointly fitted
     translation ``translations : (k, 3) float`` mm (``align="joint"``)."""
 
-    say = progress or (lambda _m: None)
+    say = progress or silent
     planes = list(read.planes[0])
     targets, transforms, alignments = list(placed.targets), list(placed.transforms), list(placed.alignments)
     landmarks = None if placed.landmarks is None else list(placed.landmarks)

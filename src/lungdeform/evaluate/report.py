@@ -16,12 +16,14 @@ from pathlib import Path
 
 import numpy as np
 
-from lungdeform import plot as P
 from lungdeform.atomic import write_bytes
+from lungdeform.plot.figure import png_bytes
+from lungdeform.plot.fit import bounding_box, cumulative_errors, direction_field, fit_history, ray_histogram
+from lungdeform.plot.surface import error_map
 
 
 def _png(fig) -> str:
-    return base64.b64encode(P.png_bytes(fig)).decode("ascii")
+    return base64.b64encode(png_bytes(fig)).decode("ascii")
 
 
 def _img(b64: str, title: str) -> str:
@@ -88,20 +90,20 @@ def write_report(path, *, rest, targets, fits, predictions, metrics, headline: s
         parts.append(f"<h2>Target {html.escape(tname)}</h2>{_table(per)}")
         errs = {name: predictions[(tname, name)][1][measured] for name in per}
         x, e, _ = predictions[(tname, "model")]
-        parts.append(_img(_png(P.error_map(x, rest.faces, np.where(measured, e, np.nan),
-                                           views=error_views(metrics["side"]),
-                                           title=f"model: distance of each vertex to {tname}{grey}")),
+        parts.append(_img(_png(error_map(x, rest.faces, np.where(measured, e, np.nan),
+                                         views=error_views(metrics["side"]),
+                                         title=f"model: distance of each vertex to {tname}{grey}")),
                           "Error colour map (model)"))
-        parts.append(_img(_png(P.cumulative_errors(errs, ylabel="fraction of measured vertices",
-                                                   title=f"distance of each predicted vertex to {tname}")),
+        parts.append(_img(_png(cumulative_errors(errs, ylabel="fraction of measured vertices",
+                                                 title=f"distance of each predicted vertex to {tname}")),
                           "Error distributions (cumulative)"))
     fit = fits.get(headline, fits["optimizer"])
-    parts.append(_img(_png(P.ray_histogram(*fit.rays.histogram())), "Ray hit distances (fitted directions)"))
+    parts.append(_img(_png(ray_histogram(*fit.rays.histogram())), "Ray hit distances (fitted directions)"))
     parts.append(f"<p>Rays: {html.escape(str(fit.rays.summary()))}</p>")
-    parts.append(_img(_png(P.bounding_box(metrics["bounding_box"])), "Bounding box against volume (paper Fig. 4)"))
-    parts.append(_img(_png(P.direction_field(rest.vertices, fit.directions, np.linalg.norm(fit.displacement, axis=1))),
+    parts.append(_img(_png(bounding_box(metrics["bounding_box"])), "Bounding box against volume (paper Fig. 4)"))
+    parts.append(_img(_png(direction_field(rest.vertices, fit.directions, np.linalg.norm(fit.displacement, axis=1))),
                       "Fitted direction field"))
-    parts.append(_img(_png(P.fit_history({k: r.history for k, r in fits.items()})), "Fit history"))
+    parts.append(_img(_png(fit_history({k: r.history for k, r in fits.items()})), "Fit history"))
     parts.append("<h2>Fit</h2><pre>" + html.escape(str({k: r.as_dict() for k, r in fits.items()})) + "</pre>")
     parts.append("</body></html>")
     path = Path(path)

@@ -12,7 +12,6 @@ what it saw and how its landmark error was measured.
 from __future__ import annotations
 
 import time
-from typing import Callable
 
 import numpy as np
 
@@ -20,6 +19,7 @@ from lungdeform.fit.config import FitConfig
 from lungdeform.fit.fitting import FitResult
 from lungdeform.fit.objective import Target
 from lungdeform.geometry.distance import SurfaceDistance
+from lungdeform.progress import Progress, silent
 
 from . import baselines as B
 from .heldout import HeldOut
@@ -126,17 +126,14 @@ def model_methods(ti: int, target: Target, fits: dict, held: HeldOut, rest, land
 def baseline_methods(target: Target, placed: Placement, landmarks, landmarks_target, held: HeldOut, folds,
                      landmark_weight: float, skipped: dict) -> dict:
     """The baselines' predictions of ``target`` (and with the interior correction, the
-    landmark-informed references on the same ``folds``), as in :func:`model_methods`; a baseline
-    whose optional package is missing is left out, the reason in ``skipped``."""
+    landmark-informed references on the same ``folds``), as in :func:`model_methods`. Every baseline
+    runs (their packages are required), so nothing is added to ``skipped`` here."""
 
     rest, keep = placed.rest, placed.keep
     methods = {"no_motion": (B.no_motion(rest), None),
                "affine": (B.affine_fit(rest, target.surface, keep=keep, keep_target=target.keep)[0], None),
                "apex_scaling": (B.apex_scaling(rest, target.volume_ml), None)}
-    try:
-        methods["cpd"] = (B.cpd_deformable(rest, target.surface, keep=keep, keep_target=target.keep), None)
-    except ImportError as exc:  # pycpd missing: reported, not fatal
-        skipped["cpd"] = str(exc)
+    methods["cpd"] = (B.cpd_deformable(rest, target.surface, keep=keep, keep_target=target.keep), None)
     if held.interior is not None:
         methods["affine_landmarks"] = B.affine_landmarks_cv(rest, target.surface, landmarks, landmarks_target, folds,
                                                             keep=keep, keep_target=target.keep,
@@ -146,13 +143,13 @@ def baseline_methods(target: Target, placed: Placement, landmarks, landmarks_tar
 
 
 def score_targets(placed: Placement, landmarks, fits: dict, held: HeldOut, config: FitConfig, folds,
-                  progress: Callable[[str], None] | None = None):
+                  progress: Progress | None = None):
     """Every method measured on every target: ``(metrics per target name → method name → metrics
     dict, predictions (target name, method name) → (vertices, per-vertex error, landmark errors),
     skipped baselines name → reason, seconds spent computing the baselines and references)``.
     ``landmarks : (m, 3)`` mm: the end-exhale ones, or None."""
 
-    say = progress or (lambda _m: None)
+    say = progress or silent
     rest, keep = placed.rest, placed.keep
     per_target, predictions, skipped, baseline_seconds = {}, {}, {}, 0.0
     for ti, tg in enumerate(placed.targets):

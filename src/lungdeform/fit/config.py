@@ -7,7 +7,7 @@ Both are frozen and validated once, on construction; an error names the field at
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Sequence
 
@@ -19,6 +19,7 @@ from lungdeform.model.direction import MAX_DEGREE
 
 from .direction_correction import DEFAULT_DEGREE
 from .fitting import MODES
+from lungdeform.segment.split import SplitCache
 from .refinement import FINEST_MM
 
 #: Ways of bringing the larger-volume inputs into the end-exhale frame (:mod:`lungdeform.evaluate.placement`);
@@ -45,12 +46,16 @@ class FitInputs:
         Only their changes are used: the end-exhale volume is the model mesh's own.
     landmarks : tuple of path, or None
         One elastix point-set file per input, rows corresponding (an empty sequence is None).
+    splits : SplitCache, or None
+        Where a mask holding both lungs is split (:class:`~lungdeform.segment.split.SplitCache`): a
+        caller fitting both lungs of the same masks passes one, so that each mask is split once.
     """
 
     paths: Sequence[Path | str]
     side: str
     volumes_ml: Sequence[float] | None = None
     landmarks: Sequence[Path | str] | None = None
+    splits: SplitCache | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self):
         object.__setattr__(self, "paths", tuple(self.paths))

@@ -25,13 +25,14 @@ the paper's directions for another gravity and so drops it.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from lungdeform.errors import InputError
 from lungdeform.model.direction import corrected_directions, polynomial_basis
+from lungdeform.progress import Progress, silent
 
 if TYPE_CHECKING:  # annotations only
     from .objective import LungFitter
@@ -116,13 +117,13 @@ class CorrectionSearch:
 
 def fit_direction_correction(fitter: LungFitter, d0, c_force, shifts=None, *, degree: int = DEFAULT_DEGREE,
                              initial=None, search: CorrectionSearch = CorrectionSearch(),
-                             progress: Callable[[str], None] | None = None) -> DirectionCorrection:
+                             progress: Progress | None = None) -> DirectionCorrection:
     """Fit ``C`` for the paper's directions ``d0 : (n, 3)`` and c7…c9 ``c_force (3,)`` (see the
     module docstring), starting from ``initial (K, 3)`` (default zeros); ``shifts : (k, 3)`` mm,
     the targets' fitted translations; ``search``: steps, damping and patience
     (:class:`CorrectionSearch`). ``accepted``: the result beats the start (the paper's field, or
     ``initial``)."""
-    say = progress or (lambda _m: None)
+    say = progress or silent
     steps, ridge, patience = search.steps, search.ridge, search.patience
     basis = polynomial_basis(fitter.xyz, degree)
     k = basis.shape[1]

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, replace
-from typing import Callable, Sequence
+from typing import Sequence
 
 import numpy as np
 
@@ -38,6 +38,7 @@ from lungdeform.geometry.mesh import Surface
 from lungdeform.model.force import field_basis
 from lungdeform.model.lung import LungModel
 from lungdeform.model.response import solve_response
+from lungdeform.progress import Progress, silent
 
 from .direction_correction import DirectionCorrection, fit_direction_correction
 from .expandability import fit_stiffness_if_better
@@ -224,7 +225,7 @@ class FitSettings:
 
 def fit_lung(surface: Surface, side: str, targets: Sequence[Target], settings: FitSettings = FitSettings(), *,
              landmarks: LandmarkTerm | None = None, fit_on=None, keep=None,
-             progress: Callable[[str], None] | None = None) -> FitResult:
+             progress: Progress | None = None) -> FitResult:
     """Fit c1…c9 (and optionally a stiffness field) of one lung; see the module docstring.
 
     ``settings``: the search (:class:`FitSettings`). ``landmarks``: the optional landmark term of
@@ -240,7 +241,7 @@ def fit_lung(surface: Surface, side: str, targets: Sequence[Target], settings: F
         raise InputError(f"mode must be one of {', '.join(MODES)}, got {settings.mode!r}")
     if settings.translate and settings.method != "least_squares":
         raise InputError(f"translate=True needs the least-squares mode, not {settings.method!r}")
-    say = progress or (lambda _m: None)
+    say = progress or silent
     t0 = time.perf_counter()
     fitter = LungFitter(surface, side, targets, fit_on=fit_on, keep=keep, settings=settings.objective,
                         landmarks=landmarks)

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lungdeform.errors import InputError, require
+from lungdeform.errors import InputError
 from lungdeform.geometry.mesh import Surface, as_vertices, farthest_points
 from lungdeform.geometry.moments import solid_moments
 from lungdeform.interior.surface_map import SurfaceMapField
@@ -91,7 +91,6 @@ def register_points(affine: tuple[np.ndarray, np.ndarray], points_small, points_
                     beta_mm: float = BETA_MM, max_iterations: int = 150, tolerance: float = 1e-5) -> SurfaceMap:
     """The map from ``affine`` ``(A, t)`` then CPD's Gaussian field fitted from the affine image of
     ``points_small : (n, 3)`` mm to ``points_large : (k, 3)`` mm (module docstring)."""
-    require("pycpd", "the surface registration", "pycpd")
     mat, t = (np.asarray(a, float) for a in affine)
     big = as_vertices(points_large, "points_large")
     c = big.mean(axis=0)

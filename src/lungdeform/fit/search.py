@@ -32,6 +32,7 @@ import numpy as np
 from scipy import optimize
 
 from lungdeform.errors import ConvergenceError
+from lungdeform.progress import Progress
 
 if TYPE_CHECKING:  # annotations only
     from .objective import LungFitter
@@ -128,7 +129,7 @@ def from_unbounded(z: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return lo + (hi - lo) * (1.0 + np.sin(z)) / 2.0
 
 
-def grid_search(fun, x0, bounds, step=0.01, max_cycles=20, span=None, progress=None):
+def grid_search(fun, x0, bounds, step=0.01, max_cycles=20, span=None, progress: Progress | None = None):
     """Cyclic coordinate search on a grid of ``step``; returns (x, f, cycles, converged)."""
     x = np.round(np.asarray(x0, float) / step) * step
     best = fun(x)

@@ -20,14 +20,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
+import numba
 import numpy as np
 from scipy.spatial.distance import cdist
 
 from lungdeform.errors import InputError
 from lungdeform.geometry.mesh import as_vertices
-
-#: Points evaluated per block (bounds the (block, k) kernel matrix).
-BLOCK = 4096
 
 
 def _affine(matrix, name: str) -> np.ndarray:
@@ -76,16 +74,33 @@ class SurfaceMapField:
     def __call__(self, points) -> np.ndarray:
         """``v : (q, 3) float`` mm per unit at ``points : (q, 3)`` mm LPS."""
         q = as_vertices(points, "points")
-        out = q @ self.linear[:, :3].T + self.linear[:, 3]
-        inv = 1.0 / (2.0 * self.width_mm**2)
-        for start in range(0, len(q), BLOCK):
-            y = q[start:start + BLOCK] @ self.warp[:, :3].T + self.warp[:, 3]
-            out[start:start + BLOCK] += np.exp(-cdist(y, self.centers, "sqeuclidean") * inv) @ self.weights
-        return np.ascontiguousarray(out)
+        out = np.ascontiguousarray(q @ self.linear[:, :3].T + self.linear[:, 3])
+        y = np.ascontiguousarray(q @ self.warp[:, :3].T + self.warp[:, 3])
+        _gauss_sum(y, self.centers, self.weights, 1.0 / (2.0 * self.width_mm**2), out)
+        return out
 
     def with_linear(self, extra) -> "SurfaceMapField":
         """A new field whose affine part per unit has ``extra : (3, 4)`` (mm per unit) added."""
         return replace(self, linear=self.linear + _affine(extra, "extra"))
+
+
+@numba.njit(cache=True, parallel=True)
+def _gauss_sum(y, centers, weights, inv, out):
+    """Add, in place, ``Σ_j exp(−|y_i − c_j|² · inv) g_j`` to ``out[i]`` (mm per unit) for ``y : (q, 3)``
+    mm, ``centers : (k, 3)``, ``weights : (k, 3)``: one fused loop parallel over the points (no
+    ``(q, k)`` kernel matrix)."""
+    for i in numba.prange(y.shape[0]):
+        s0 = s1 = s2 = 0.0
+        for j in range(centers.shape[0]):
+            d0, d1, d2 = y[i, 0] - centers[j, 0], y[i, 1] - centers[j, 1], y[i, 2] - centers[j, 2]
+            e = np.exp(-(d0 * d0 + d1 * d1 + d2 * d2) * inv)
+            s0 += e * weights[j, 0]
+            s1 += e * weights[j, 1]
+            s2 += e * weights[j, 2]
+        out[i, 0] += s0
+        out[i, 1] += s1
+        out[i, 2] += s2
+    return out
 
 
 #: Gaussian width (mm) and number of centres of :func:`surface_extension`.

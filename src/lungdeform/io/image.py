@@ -268,18 +268,22 @@ def write_image(path, array, spacing, origin, direction, *, max_voxels=None) -> 
     return p
 
 
-def resample_image(image: Image, field, *, label: bool = False, default: float | None = None) -> Image:
-    """``image`` resampled on its own grid through the displacement field ``field : (z, y, x, 3)`` mm
-    LPS on that grid (the ITK resampling convention: output voxel ``y`` takes the input at
-    ``y + field(y)``): linear interpolation, or nearest neighbour with ``label`` (labels kept as they
-    are); pixel type and grid kept. Outside the image: ``default`` (0 for labels, else the image's
-    minimum, e.g. air in a CT)."""
+def resample_image(image: Image, field, *, label: bool = False, default: float | None = None,
+                   grid: Image | None = None) -> Image:
+    """``image`` resampled on its own grid (or on ``grid``'s: its shape, spacing, origin and direction)
+    through the displacement field ``field : (z, y, x, 3)`` mm LPS on that output grid (the ITK
+    resampling convention: output voxel ``y`` takes the input at ``y + field(y)``): linear
+    interpolation, or nearest neighbour with ``label`` (labels kept as they are); pixel type kept.
+    Outside the image: ``default`` (0 for labels, else the image's minimum, e.g. air in a CT)."""
     img = to_sitk(image.array, image.spacing, image.origin, image.direction)
+    g = image if grid is None else grid
+    shape = tuple(g.array.shape) if hasattr(g, "array") else tuple(g.shape)
     f = np.asarray(field, np.float64)
-    if f.shape != image.array.shape + (3,):
-        raise InputError(f"{image.source}: the field has shape {f.shape}, the image {image.array.shape} (+ 3 components)")
-    transform = sitk.DisplacementFieldTransform(to_sitk(f, image.spacing, image.origin, image.direction))
+    if f.shape != shape + (3,):
+        raise InputError(f"{image.source}: the field has shape {f.shape}, the output grid {shape} (+ 3 components)")
+    target = to_sitk(np.zeros(shape, np.uint8), g.spacing, g.origin, g.direction)
+    transform = sitk.DisplacementFieldTransform(to_sitk(f, g.spacing, g.origin, g.direction))
     fill = (0.0 if label else float(np.min(image.array))) if default is None else float(default)
-    out = sitk.Resample(img, img, transform, sitk.sitkNearestNeighbor if label else sitk.sitkLinear, fill,
+    out = sitk.Resample(img, target, transform, sitk.sitkNearestNeighbor if label else sitk.sitkLinear, fill,
                         img.GetPixelID())
-    return Image(sitk.GetArrayFromImage(out), image.spacing, image.origin, image.direction, image.source)
+    return Image(sitk.GetArrayFromImage(out), g.spacing, g.origin, g.direction, image.source)

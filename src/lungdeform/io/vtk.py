@@ -47,7 +47,7 @@ def _fan_offsets(connectivity: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     connectivity = np.asarray(connectivity, dtype=np.int64)
     ends = np.asarray(offsets, dtype=np.int64)
     # bounds first: with offsets near +-2**63 the differences below wrap around, and np.repeat on
-    # the wrapped counts corrupts memory (a segmentation fault found by tests/fuzz/fuzz_mesh_vtp.py)
+    # the wrapped counts corrupts memory (a segmentation fault)
     if len(ends) and (ends.min() < 0 or ends.max() > len(connectivity)):
         raise FormatError("polygon offsets are inconsistent with the connectivity array")
     starts = np.concatenate([[0], ends[:-1]])

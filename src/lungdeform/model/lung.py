@@ -16,7 +16,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 from functools import cached_property
-from typing import Callable
 
 import numpy as np
 
@@ -27,6 +26,7 @@ from lungdeform.geometry.mesh import Surface
 from lungdeform.interior.field import KINDS, interior_field
 from lungdeform.interior.prior import lung_normaliser, prior_affine
 from lungdeform.interior.surface_map import SurfaceMapField, surface_extension
+from lungdeform.progress import Progress, silent
 
 from .direction import corrected_directions, polynomial_basis
 from .direction import directions as direction_field
@@ -228,7 +228,7 @@ def build_lung(
     calibration_ml: float = TIDAL_VOLUME_ML,
     unit_ml: float = 1.0,
     default: PopulationDefault | str | None = None,
-    progress: Callable[[str], None] | None = None,
+    progress: Progress | None = None,
 ) -> LungModel:
     """Precompute a lung model from its end-exhale surface.
 
@@ -254,7 +254,7 @@ def build_lung(
         Where c1…c9 and the direction correction come from when ``constants`` is not given
         (:mod:`lungdeform.model.population`; None: the shipped population default).
     """
-    say = progress or (lambda _msg: None)
+    say = progress or silent
     chosen = resolve_default(default) if constants is None else None
     c = chosen.constants_for(side) if chosen is not None else np.asarray(constants, dtype=float)
     if c.shape != (9,) or not np.all(np.isfinite(c)):
@@ -335,7 +335,7 @@ def build_model(
     constants: dict[str, np.ndarray] | None = None,
     stiffness: dict[str, np.ndarray] | None = None,
     provenance: dict | None = None,
-    progress: Callable[[str], None] | None = None,
+    progress: Progress | None = None,
     **kwargs,
 ) -> Model:
     """Build one model per side from ``{side: surface}``.

@@ -6,7 +6,9 @@ ParaView series), :mod:`~lungdeform.playback.markers` (markers carried in a glb)
 :mod:`~lungdeform.playback.trajectory` (where interior points go as the model breathes),
 :mod:`~lungdeform.playback.dvf` (the motion as a displacement-field image on a reference grid, docs/RADIOTHERAPY.md;
 its per-voxel numba passes in :mod:`~lungdeform.playback.voxel`),
-:mod:`~lungdeform.playback.structures` (RTSTRUCT structures moved per breathing state),
+:mod:`~lungdeform.playback.structures` (RTSTRUCT structures moved per breathing state, their ITV and motion table),
+:mod:`~lungdeform.playback.density` (mass-conserving CT numbers, MIP/AIP/MinIP over phases),
+:mod:`~lungdeform.playback.rigid` (a structure kept rigid inside a field),
 :mod:`~lungdeform.playback.server` (the three.js viewer on 127.0.0.1), :mod:`~lungdeform.playback.tracefeed` (a recorded trace
 with its measured and predicted volume and, with a prediction, its beam gate, as the viewer plays it) and :mod:`~lungdeform.playback.demo`
 (the demo run; its off-screen snapshot is drawn by :mod:`lungdeform.plot`).

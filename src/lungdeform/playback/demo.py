@@ -20,7 +20,6 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -33,7 +32,9 @@ from lungdeform.io.modelfile import save_model
 from lungdeform.model.displacement import enclosed_volume_ml, volume_change_ml
 from lungdeform.model.lung import build_model
 from lungdeform.model.population import PopulationDefault, resolve_default
-from lungdeform.plot import save_png, snapshot
+from lungdeform.plot.figure import save_png
+from lungdeform.plot.surface import snapshot
+from lungdeform.progress import Progress, silent
 
 from .export import export_pvd
 from .schedule import lung_shares, preset_trace
@@ -121,7 +122,7 @@ def run_demo(
     orientation="supine",
     series_fps: float = 10.0,
     constants=None,
-    progress: Callable[[str], None] | None = None,
+    progress: Progress | None = None,
 ) -> DemoResult:
     """Build the default lungs and play ``preset`` (one period unless ``duration_s``) into ``out``.
 
@@ -133,7 +134,7 @@ def run_demo(
     None or ``"population"``, ``"paper"``, a file).
     """
 
-    say = progress or (lambda _m: None)
+    say = progress or silent
     chosen = get_preset(preset)
     posture = Posture(orientation, resolve_default(constants))
     params, _curve, trace = preset_trace(chosen, 1, tidal_ml, STEPS_PER_S, duration_s=duration_s)

@@ -39,7 +39,7 @@ from scipy import ndimage
 from lungdeform.breathing.cycles import dominant_period
 from lungdeform.errors import FoldError, InputError, LungdeformError
 from lungdeform.geometry.distance import SurfaceDistance
-from lungdeform.geometry.mesh import winding_numbers
+from lungdeform.geometry.mesh import inside_by_parity
 
 from . import voxel as V
 from .schedule import MIN_VOLUME_FRACTION, lung_shares
@@ -343,7 +343,7 @@ def lattice_error(model, lat: Lattice, u: np.ndarray, grid: Grid, scales: dict, 
     for name, lung in model.lungs.items():
         v = lung.surface.vertices
         q = rng.uniform(v.min(axis=0), v.max(axis=0), size=(n, 3))
-        q = q[winding_numbers(q, v, lung.surface.faces) > 0.5]
+        q = q[inside_by_parity(q, v, lung.surface.faces)]
         if len(q):
             exact = lung.points_at(q, scale=scales[name]) - q
             worst = max(worst, float(np.linalg.norm(sample(lat, u, grid, q) - exact, axis=1).max()))

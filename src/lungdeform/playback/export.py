@@ -85,6 +85,7 @@ from lungdeform.model.displacement import (
 )
 from lungdeform.model.force import force_weights
 from lungdeform.model.lung import LungModel, Model
+from lungdeform.progress import Progress, silent
 
 from .schedule import VolumeTrace, lung_shares, plain_cycle
 
@@ -272,7 +273,7 @@ def export_glb(model: Model, path, trace: VolumeTrace | None = None, markers: li
 
 # --------------------------------------------------------------------------- VTK time series
 def export_pvd(model: Model, path, trace: VolumeTrace | None = None, fps: float = 10.0,
-               progress=None) -> Path:
+               progress: Progress | None = None) -> Path:
     """Write ``path`` (``.pvd``) and its frames ``<stem>_frames/<lung>_<k>.vtp`` (time series for
     ParaView). The frames folder is written beside the ``.pvd`` in a temporary folder and renamed
     into place; the ``.pvd`` is written last, atomically."""
@@ -280,7 +281,7 @@ def export_pvd(model: Model, path, trace: VolumeTrace | None = None, fps: float 
     if not fps > 0:
         raise InputError(f"fps must be > 0, got {fps}")
     trace = trace or plain_cycle()
-    say = progress or (lambda _m: None)
+    say = progress or silent
     shares = lung_shares(model)
     duration = float(trace.t_s[-1] - trace.t_s[0])
     n = max(int(round(duration * fps)), 1) + 1

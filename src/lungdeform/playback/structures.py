@@ -4,19 +4,30 @@ Behind ``lungdeform track --rtstruct FILE --structure NAME`` (docs/RADIOTHERAPY.
 contour points are tracked like any points (:mod:`lungdeform.playback.trajectory`), and its closed
 surface through the contours (:func:`lungdeform.io.dicom.rtstruct.structure_mesh`) is moved vertex by
 vertex by the same interior field at each state, one surface per state, named ``NAME@TAG`` (``GTV@phase03``,
-``GTV@3100mL``) for :func:`lungdeform.io.dicom.rtstruct.write_rtstruct`.
+``GTV@3100mL``) for :func:`lungdeform.io.dicom.rtstruct.write_rtstruct`; their union over the states, the
+ITV (:func:`itv_surface`), and the per-state volume and centroid motion (:func:`motion_table`).
 """
 
 from __future__ import annotations
 
+import csv
+import io
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import ndimage
 
+from lungdeform.geometry.moments import solid_moments
 from lungdeform.io.dicom.rtstruct import Structure, pick_structure, read_rois, structure_mesh, structure_points
+from lungdeform.io.grid import Image
+from lungdeform.io.mask import mask_to_surface
 
-from .dvf import phase_states
+from .dvf import Grid, phase_states
+from .rigid import surface_mask
 from .trajectory import FrameSchedule, place_points, point_trajectories
+
+#: Voxel size (mm) of the grid the ITV's union is filled on.
+ITV_VOXEL_MM = 0.5
 
 
 @dataclass(frozen=True, eq=False)
@@ -67,3 +78,53 @@ def moved_surfaces(model, structure: TrackedStructure, delta_ml, tags: list[str]
     placement = place_points(model, structure.vertices, lung, source=source)
     moved = point_trajectories(model, structure.vertices, placement, delta_ml)
     return [(f"{structure.name}@{tag}", moved[i], structure.faces, structure.kind) for i, tag in enumerate(tags)]
+
+
+def itv_surface(surfaces: list[tuple], name: str, voxel_mm: float = ITV_VOXEL_MM) -> tuple:
+    """``(ITV_NAME, vertices (n, 3) float mm LPS, faces, "ITV")``: the internal target volume, the union
+    of the regions ``surfaces`` (``(name, vertices, faces, kind)`` per state, :func:`moved_surfaces`)
+    enclose. Each region is filled on a common grid of ``voxel_mm`` voxels (voxel centres inside the
+    surface), the union grown by one voxel so that it holds every state's surface (the mesh through
+    the voxels' faces lies half a voxel in, its smoothing a little more), and meshed
+    (:func:`lungdeform.io.mask.mask_to_surface`)."""
+    pts = np.concatenate([np.asarray(s[1], float) for s in surfaces])
+    lo = pts.min(axis=0) - 4 * voxel_mm
+    shape = tuple(int(n) for n in (np.ceil((pts.max(axis=0) + 4 * voxel_mm - lo) / voxel_mm) + 1)[::-1])
+    grid = Grid(shape, np.full(3, float(voxel_mm)), lo, np.eye(3))
+    union = np.zeros(shape, bool)
+    for s in surfaces:
+        union |= surface_mask(s[1], s[2], grid)
+    union = ndimage.binary_dilation(union, structure=np.ones((3, 3, 3), bool))
+    surface = mask_to_surface(Image(union.astype(np.uint8), grid.spacing, grid.origin, grid.direction, f"ITV of {name}"))
+    return (f"ITV_{name}", surface.vertices, surface.faces, "ITV")
+
+
+def motion_table(surfaces: list[tuple]) -> list[dict]:
+    """Per state of a structure (``surfaces`` as :func:`moved_surfaces`, state 0 first): ``state`` (the
+    tag after ``@``), ``volume_ml``, ``centroid_mm`` (3,) LPS (of the solid,
+    :func:`lungdeform.geometry.moments.solid_moments`), ``displacement_mm`` (3,) from state 0 and its
+    length ``distance_mm``, and the structure's ``amplitude_mm`` (3,): max − min of the centroid over
+    the states along x, y, z (LR, AP, SI)."""
+    moments = [solid_moments(s[1], s[2]) for s in surfaces]
+    centroids = np.array([c for _v, c, _cov in moments])
+    amplitude = centroids.max(axis=0) - centroids.min(axis=0)
+    rows = []
+    for s, (vol, c, _cov) in zip(surfaces, moments):
+        d = c - centroids[0]
+        rows.append({"state": s[0].split("@", 1)[-1], "volume_ml": vol / 1000.0, "centroid_mm": c,
+                     "displacement_mm": d, "distance_mm": float(np.linalg.norm(d)), "amplitude_mm": amplitude})
+    return rows
+
+
+def motion_csv(tables: dict[str, list[dict]]) -> bytes:
+    """``structure_motion.csv``: one row per structure and state (:func:`motion_table`), mm LPS, mL."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["structure", "state", "volume_ml", "centroid_x_mm", "centroid_y_mm", "centroid_z_mm", "dx_mm",
+                "dy_mm", "dz_mm", "distance_mm", "amplitude_x_mm", "amplitude_y_mm", "amplitude_z_mm"])
+    for name, rows in tables.items():
+        for r in rows:
+            w.writerow([name, r["state"], f"{r['volume_ml']:.4f}", *(f"{x:.3f}" for x in r["centroid_mm"]),
+                        *(f"{x:.3f}" for x in r["displacement_mm"]), f"{r['distance_mm']:.3f}",
+                        *(f"{x:.3f}" for x in r["amplitude_mm"])])
+    return buf.getvalue().encode()

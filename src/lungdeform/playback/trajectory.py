@@ -25,7 +25,8 @@ from lungdeform.geometry.mesh import as_vertices, winding_numbers
 from lungdeform.interior.field import KIND_TEXT
 from lungdeform.io.landmarks import read_elastix_points
 from lungdeform.model.displacement import positions_at, scales_for_volumes
-from lungdeform.plot import motion, save_png
+from lungdeform.plot.figure import save_png
+from lungdeform.plot.motion import motion
 
 from .schedule import lung_shares
 

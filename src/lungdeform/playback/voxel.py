@@ -31,12 +31,16 @@ def axis_weights(n_out: int, lo: int, stride: int, nodes: int, box_lo: int, box_
 
 
 @numba.njit(cache=True)
-def _row(values, k0, fz, j0, fy):
-    """``(nx, 3) float32``: the lattice row at (z, y) fractions ``fz``, ``fy`` past nodes ``k0``, ``j0``
-    (bilinear in z and y, every x node)."""
+def _row(values, k0, fz, j0, fy, buf):
+    """Write into ``buf : (nx, 3) float32`` the lattice row at (z, y) fractions ``fz``, ``fy`` past
+    nodes ``k0``, ``j0`` (bilinear in z and y, every x node; float32 arithmetic)."""
     k1, j1 = min(k0 + 1, values.shape[0] - 1), min(j0 + 1, values.shape[1] - 1)
     gy, gz = np.float32(1.0) - fy, np.float32(1.0) - fz
-    return (values[k0, j0] * gy + values[k0, j1] * fy) * gz + (values[k1, j0] * gy + values[k1, j1] * fy) * fz
+    for n in range(values.shape[2]):
+        for c in range(3):
+            buf[n, c] = ((values[k0, j0, n, c] * gy + values[k0, j1, n, c] * fy) * gz
+                         + (values[k1, j0, n, c] * gy + values[k1, j1, n, c] * fy) * fz)
+    return buf
 
 
 @numba.njit(cache=True, parallel=True)
@@ -45,19 +49,24 @@ def fill_field(out, values, nodes_k, frac_k, nodes_j, frac_j, nodes_i, frac_i, c
     j0, j1, i0, i1): the lattice ``values : (nz, ny, nx, 3) float32`` interpolated trilinearly where
     all three axes' nodes (:func:`axis_weights`) are ≥ 0 (else 0), plus ``const + steps @ (i, j, k)``
     (``const`` (3,) mm, ``steps`` (3, 3) mm per voxel, column a along index axis a). Separable: per
-    voxel row one bilinear lattice row (:func:`_row`), then one lerp per voxel."""
+    voxel row one bilinear lattice row (:func:`_row`, into a buffer per z-slice), then one lerp per voxel."""
     last = values.shape[2] - 1
     affine = np.any(const != 0) or np.any(steps != 0)
     for k in numba.prange(ranges[0], ranges[1]):
+        row = np.empty((values.shape[2], 3), np.float32)
         for j in range(ranges[2], ranges[3]):
             lattice = nodes_k[k] >= 0 and nodes_j[j] >= 0
-            row = _row(values, nodes_k[k], frac_k[k], nodes_j[j], frac_j[j]) if lattice else values[0, 0]
+            if lattice:
+                _row(values, nodes_k[k], frac_k[k], nodes_j[j], frac_j[j], row)
             for i in range(ranges[4], ranges[5]):
                 n0 = nodes_i[i]
+                inside = lattice and n0 >= 0
+                n1 = min(n0 + 1, last)
+                f = frac_i[i]
                 for c in range(3):
                     x = 0.0
-                    if lattice and n0 >= 0:
-                        x = row[n0, c] * (1 - frac_i[i]) + row[min(n0 + 1, last), c] * frac_i[i]
+                    if inside:
+                        x = row[n0, c] * (1 - f) + row[n1, c] * f
                     if affine:
                         x += const[c] + steps[c, 0] * i + steps[c, 1] * j + steps[c, 2] * k
                     if add:
@@ -68,24 +77,14 @@ def fill_field(out, values, nodes_k, frac_k, nodes_j, frac_j, nodes_i, frac_i, c
 
 
 @numba.njit(cache=True, inline="always")
-def _diff(f, k, j, i, axis, c):
-    """∂f_c/∂(index ``axis``) (0 = k, 1 = j, 2 = i) at a voxel: central, one-sided at the edges."""
-    n = f.shape[axis]
-    p = (k, j, i)[axis]
-    lo, hi = max(p - 1, 0), min(p + 1, n - 1)
-    if axis == 0:
-        a, b = f[lo, j, i, c], f[hi, j, i, c]
-    elif axis == 1:
-        a, b = f[k, lo, i, c], f[k, hi, i, c]
-    else:
-        a, b = f[k, j, lo, c], f[k, j, hi, c]
-    return (np.float64(b) - np.float64(a)) / max(hi - lo, 1)
-
-
-@numba.njit(cache=True, inline="always")
-def _grad_row(f, k, j, i, inv, c):
-    """Row ``c`` of ``I + ∇u`` at voxel (k, j, i): ``(∂u_c/∂x_r + δ_cr for r = 0, 1, 2)``."""
-    di, dj, dk = _diff(f, k, j, i, 2, c), _diff(f, k, j, i, 1, c), _diff(f, k, j, i, 0, c)
+def _grad_row(f, k, j, i, near, inv, c):
+    """Row ``c`` of ``I + ∇u`` at voxel (k, j, i): ``(∂u_c/∂x_r + δ_cr for r = 0, 1, 2)``; the
+    differences central, one-sided at the array's edges (``near`` = the neighbours' indices and the
+    index steps between them, :func:`_det_at`)."""
+    kl, kh, jl, jh, il, ih, sk, sj, si = near
+    di = (np.float64(f[k, j, ih, c]) - np.float64(f[k, j, il, c])) / si
+    dj = (np.float64(f[k, jh, i, c]) - np.float64(f[k, jl, i, c])) / sj
+    dk = (np.float64(f[kh, j, i, c]) - np.float64(f[kl, j, i, c])) / sk
     return (di * inv[0, 0] + dj * inv[0, 1] + dk * inv[0, 2] + (c == 0),
             di * inv[1, 0] + dj * inv[1, 1] + dk * inv[1, 2] + (c == 1),
             di * inv[2, 0] + dj * inv[2, 1] + dk * inv[2, 2] + (c == 2))
@@ -94,9 +93,13 @@ def _grad_row(f, k, j, i, inv, c):
 @numba.njit(cache=True, inline="always")
 def _det_at(f, k, j, i, inv):
     """``det(I + ∇u)`` at voxel (k, j, i); ``inv[r, a] = ∂index_a / ∂x_r`` (a = i, j, k)."""
-    a11, a12, a13 = _grad_row(f, k, j, i, inv, 0)
-    a21, a22, a23 = _grad_row(f, k, j, i, inv, 1)
-    a31, a32, a33 = _grad_row(f, k, j, i, inv, 2)
+    kl, kh = max(k - 1, 0), min(k + 1, f.shape[0] - 1)
+    jl, jh = max(j - 1, 0), min(j + 1, f.shape[1] - 1)
+    il, ih = max(i - 1, 0), min(i + 1, f.shape[2] - 1)
+    near = (kl, kh, jl, jh, il, ih, max(kh - kl, 1), max(jh - jl, 1), max(ih - il, 1))
+    a11, a12, a13 = _grad_row(f, k, j, i, near, inv, 0)
+    a21, a22, a23 = _grad_row(f, k, j, i, near, inv, 1)
+    a31, a32, a33 = _grad_row(f, k, j, i, near, inv, 2)
     return a11 * (a22 * a33 - a23 * a32) - a12 * (a21 * a33 - a23 * a31) + a13 * (a21 * a32 - a22 * a31)
 
 

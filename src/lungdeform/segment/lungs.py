@@ -36,7 +36,6 @@ in :mod:`lungdeform.segment.ct`.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -45,7 +44,9 @@ from scipy import ndimage as ndi
 
 from lungdeform.errors import InputError, MaskError
 from lungdeform.io.grid import Image
-from lungdeform.plot import label_overlay, save_png
+from lungdeform.plot.figure import save_png
+from lungdeform.plot.segmentation import label_overlay
+from lungdeform.progress import Progress, silent
 
 from .ct import axial_axes, check_ct, to_axial
 
@@ -324,14 +325,14 @@ def segment_lungs(
     airway_max_ml: float = 400.0,
     min_lung_ml: float = 100.0,
     max_erosions: int = 10,
-    progress: Callable[[str], None] | None = None,
+    progress: Progress | None = None,
 ) -> LungSegmentation:
     """Segment left and right lungs of a CT in HU (module docstring: the steps and their defaults).
 
     Raises :class:`MaskError` when no lung-sized air is found inside the body, or the lungs cannot
     be split, and :class:`InputError` for an image that is not CT in HU.
     """
-    say = progress or (lambda _msg: None)
+    say = progress or silent
     options = {"air_hu": air_hu, "lumen_hu": lumen_hu, "airway_max_hu": airway_max_hu, "airway_max_ml": airway_max_ml,
                "min_lung_ml": min_lung_ml, "max_erosions": max_erosions, "progress": progress}
     check_ct(image)

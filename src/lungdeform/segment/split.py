@@ -31,10 +31,8 @@ Arrays are ``(z, y, x)`` on the mask's grid (SimpleITK order); geometry follows
 from __future__ import annotations
 
 import hashlib
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 from scipy import ndimage as ndi
@@ -45,6 +43,7 @@ from lungdeform.io import mask as M
 from lungdeform.io import meshfile as lio
 from lungdeform.io.grid import Image
 from lungdeform.io.image import IMAGE_SUFFIXES, is_image_path, read_image
+from lungdeform.progress import Progress
 
 from .ct import check_ct, read_ct, to_axial
 from .ct import downsample as downsample_ct
@@ -124,11 +123,13 @@ def split_lungs(image: Image, *, max_erosions: int = MAX_EROSIONS,
     return split.mask("left"), split.mask("right"), split.notes
 
 
-def require_split(image: Image, *, max_erosions: int = MAX_EROSIONS, min_part: float = MIN_PART) -> LungSplit:
-    """:func:`find_lungs`, or :class:`MaskError` naming the file when there is no two-lung split."""
+def require_split(image: Image, *, max_erosions: int = MAX_EROSIONS, min_part: float = MIN_PART,
+                  cache: SplitCache | None = None) -> LungSplit:
+    """:func:`find_lungs` (through ``cache`` when given), or :class:`MaskError` naming the file when
+    there is no two-lung split."""
     if not is_binary_mask(image):
         raise MaskError(f"{image.source}: not a binary mask (one non-zero label): cannot split it into two lungs")
-    split = find_lungs(image, max_erosions=max_erosions, min_part=min_part)
+    split = find_lungs(image, max_erosions=max_erosions, min_part=min_part, cache=cache)
     if split is None:
         raise MaskError(f"{image.source}: no two-lung split found (neither two components nor {max_erosions} "
                         f"in-plane erosions give two side-by-side parts of ≥ {min_part:.0%} each): one lung, "
@@ -136,22 +137,24 @@ def require_split(image: Image, *, max_erosions: int = MAX_EROSIONS, min_part: f
     return split
 
 
-#: The splits kept while :func:`shared_splits` is open (None: closed, nothing kept).
-_SHARED: dict | None = None
+class SplitCache:
+    """The splits a caller has asked :func:`find_lungs` for, kept by mask: the same mask (same voxels,
+    geometry and source) read again, e.g. once per lung and once for the mask-only baselines of one
+    DIR-Lab COPDgene case, gets the split already found. The caller makes one, passes it as
+    ``cache=`` (``FitInputs(splits=)``) and drops it when done (one case, one subject)."""
 
+    def __init__(self):
+        self._splits: dict[tuple, LungSplit | None] = {}
 
-@contextmanager
-def shared_splits():
-    """Within this block, :func:`find_lungs` computes the split of a mask once: the same mask (same
-    voxels, geometry and source) read again, e.g. once per lung and once for the mask-only baselines
-    of one DIR-Lab COPDgene case, gets the split already found. Nothing is kept after the block."""
-    global _SHARED
-    outer = _SHARED
-    _SHARED = {} if outer is None else outer
-    try:
-        yield
-    finally:
-        _SHARED = outer
+    def split(self, image: Image, max_erosions: int, min_part: float) -> LungSplit | None:
+        """:func:`find_lungs` of ``image``, computed on the first call for its mask."""
+        key = _split_key(image, max_erosions, min_part)
+        if key not in self._splits:
+            self._splits[key] = _find_lungs(image, max_erosions, min_part)
+        return self._splits[key]
+
+    def __len__(self) -> int:
+        return len(self._splits)
 
 
 def _split_key(image: Image, max_erosions: int, min_part: float) -> tuple:
@@ -161,16 +164,14 @@ def _split_key(image: Image, max_erosions: int, min_part: float) -> tuple:
     return digest, a.shape, a.dtype.str, geometry.tobytes(), str(image.source), int(max_erosions), float(min_part)
 
 
-def find_lungs(image: Image, *, max_erosions: int = MAX_EROSIONS, min_part: float = MIN_PART) -> LungSplit | None:
+def find_lungs(image: Image, *, max_erosions: int = MAX_EROSIONS, min_part: float = MIN_PART,
+               cache: SplitCache | None = None) -> LungSplit | None:
     """The :class:`LungSplit` of a binary mask holding both lungs, or None when it is not that (not
-    binary, or no two large side-by-side parts: steps 1–3 of the module docstring). Inside
-    :func:`shared_splits`, a mask already split gives the same split again."""
-    if _SHARED is None:
+    binary, or no two large side-by-side parts: steps 1–3 of the module docstring). With a
+    ``cache``, a mask already split through it gives the same split again."""
+    if cache is None:
         return _find_lungs(image, max_erosions, min_part)
-    key = _split_key(image, max_erosions, min_part)
-    if key not in _SHARED:
-        _SHARED[key] = _find_lungs(image, max_erosions, min_part)
-    return _SHARED[key]
+    return cache.split(image, max_erosions, min_part)
 
 
 def _find_lungs(image: Image, max_erosions: int, min_part: float) -> LungSplit | None:
@@ -332,21 +333,23 @@ def landmarks_of_side(points: list[np.ndarray], splits: list[LungSplit | None], 
 
 
 # =========================================================================== commands
-def one_lung(image: Image, side: str) -> tuple[Image, tuple[str, ...], LungSplit | None]:
+def one_lung(image: Image, side: str,
+             cache: SplitCache | None = None) -> tuple[Image, tuple[str, ...], LungSplit | None]:
     """``(the side lung's mask, notes, split or None)`` of a mask given for one lung: a lobe map gives
     its side's lobes (:func:`lungdeform.io.mask.side_mask`), a binary mask holding both lungs the
-    side's lung of its split (:func:`find_lungs`), anything else comes back as it is."""
+    side's lung of its split (:func:`find_lungs`, through ``cache`` when given), anything else comes
+    back as it is."""
     lobes = M.side_mask(image, side)
     if lobes is not image:
         return lobes, (), None
-    split = find_lungs(image)
+    split = find_lungs(image, cache=cache)
     if split is None:
         return image, (), None
     return split.mask(side), split.notes + (f"{image.source}: took the {side} lung of the split",), split
 
 
 def load_lungs(path, side: str | None = None, *, labels=None, units: str = "mm", repair: bool = False,
-               target_vertices: int | None = None, progress: Callable[[str], None] | None = None):
+               target_vertices: int | None = None, progress: Progress | None = None):
     """``(list of (Surface, SurfaceReport), notes)``: :func:`lungdeform.io.meshfile.load`, except that a
     binary mask holding both lungs (and no ``labels``) gives its two lungs, named ``<stem>-left`` and
     ``<stem>-right``, or only the ``side`` one."""
@@ -397,7 +400,7 @@ def read_ct_or_mask(path) -> Image:
 
 
 def segment_ct_or_mask(image: Image, downsample: int = 1,
-                       progress: Callable[[str], None] | None = None) -> tuple[Image, LungSegmentation]:
+                       progress: Progress | None = None) -> tuple[Image, LungSegmentation]:
     """``(the image segmented, its LungSegmentation)``: a binary mask holding both lungs is split
     (:func:`mask_segmentation`, at full resolution); a CT is block-mean downsampled in-plane by
     ``downsample`` (along world x and y whatever the file's axis order) and segmented

@@ -27,6 +27,7 @@ from lungdeform.atomic import write_json
 from lungdeform.breathing import holdout
 from lungdeform.breathing.trace import read_trace
 from lungdeform.errors import InputError, LungdeformError
+from lungdeform.progress import Progress
 
 #: The median held-out RMS (% of the breath amplitude) the PV driver is asked to stay under.
 TARGET_MEDIAN_MODEL_RMS_PERCENT = 5.0
@@ -54,7 +55,7 @@ def trace_files(data: Path) -> dict[str, Path]:
 
 
 def score_traces(data: Path, tidal_volume_ml: float = 500.0, train_fraction: float = 0.5,
-                 progress=None) -> tuple[dict, dict]:
+                 progress: Progress | None = None) -> tuple[dict, dict]:
     """:func:`lungdeform.breathing.holdout.evaluate` on every trace under ``data``. Returns
     ``(scores, errors)``, both keyed as :func:`trace_files`; ``errors`` holds the one-line reason a
     trace could not be scored."""
@@ -131,7 +132,7 @@ def summarise(traces: dict, errors: dict, tidal_volume_ml: float, train_fraction
 
 
 def validate_breathing(data: Path, out: Path, tidal_volume_ml: float = 500.0, train_fraction: float = 0.5,
-                       progress=None) -> dict:
+                       progress: Progress | None = None) -> dict:
     """Score every trace under the folder ``data`` (:func:`score_traces`) and write
     ``out/metrics.json`` (:func:`summarise`; ``out`` created); returns the metrics. ``tidal_volume_ml``:
     the calibration (mL); ``train_fraction``: the share of each trace's cycles fitted."""

@@ -10,7 +10,7 @@ lung's landmarks) :func:`run_lung` runs :func:`lungdeform.evaluate.pipeline.run_
 ``OUT/copdN/<side>/`` (model.npz, metrics.json, report.html) and adds the calibrated mask-only
 baselines (:func:`mask_baselines`, once per case: :class:`CaseBaselines`); :func:`run_copd` collects
 ``OUT/metrics.json`` (:func:`lung_row` per lung, :func:`summarise`: medians over the lungs) and
-``OUT/report.html``. Each mask is split once per case (:func:`lungdeform.segment.split.shared_splits`).
+``OUT/report.html``. Each mask is split once per case (a :class:`lungdeform.segment.split.SplitCache`).
 Times: per lung ``seconds`` (the whole fit pipeline), ``model_seconds`` (the model's own fit: that
 less ``baseline_seconds``, the pipeline's baselines and landmark-informed references), per case
 ``fit_seconds`` and ``model_fit_seconds`` (its two lungs) and ``mask_baselines_seconds`` (the
@@ -36,11 +36,9 @@ import re
 import time
 from dataclasses import asdict
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
-from lungdeform import plot as P
 from lungdeform.atomic import atomic_dir, write_json, write_text
 from lungdeform.errors import InputError, ReadError
 from lungdeform.evaluate import baselines as B
@@ -50,7 +48,10 @@ from lungdeform.fit.config import FitConfig, FitInputs
 from lungdeform.interior.motion_prior import RIDGE, PriorSample, learn_motion_prior, save_prior
 from lungdeform.io.image import read_image
 from lungdeform.io.landmarks import read_elastix_points
-from lungdeform.segment.split import SIDES, landmarks_of_side, require_split, shared_splits
+from lungdeform.plot.figure import png_bytes
+from lungdeform.plot.statistics import grouped_bars
+from lungdeform.progress import Progress, silent
+from lungdeform.segment.split import SIDES, SplitCache, landmarks_of_side, require_split
 
 COMMAND = "validate copd"
 FILES = ("copd{n}_exp_mask.nii.gz", "copd{n}_insp_mask.nii.gz", "copd{n}_exp_landmarks.txt",
@@ -150,13 +151,13 @@ def settings_digest(files, side: str, config: FitConfig) -> str:
     return h.hexdigest()[:16]
 
 
-def mask_baselines(files) -> dict[str, dict[str, dict[str, float]]]:
+def mask_baselines(files, cache: SplitCache | None = None) -> dict[str, dict[str, dict[str, float]]]:
     """``{side: {row: {"landmark_mean_mm": …}}}``: the calibrated mask-only baselines of a case
     (:data:`MASK_ROWS`; :func:`lungdeform.evaluate.baselines.centroid_map`, ``moment_affine_map``,
     ``mask_cpd_map``), each lung's expiration points mapped to inspiration, on that lung's landmarks."""
     exp_mask, insp_mask, exp_lm, insp_lm = files
     images = [read_image(exp_mask), read_image(insp_mask)]
-    splits = [require_split(im) for im in images]
+    splits = [require_split(im, cache=cache) for im in images]
     points = [read_elastix_points(exp_lm), read_elastix_points(insp_lm)]
     out = {}
     for k, side in enumerate(SIDES, start=1):
@@ -177,13 +178,13 @@ class CaseBaselines:
     """One case's :func:`mask_baselines` (``files`` from :func:`find_cases`), computed on the first
     call and kept: ``(rows of side, seconds)``, ``seconds`` the time of computing both lungs' once."""
 
-    def __init__(self, files):
-        self.files, self.rows, self.seconds = files, None, None
+    def __init__(self, files, splits: SplitCache | None = None):
+        self.files, self.splits, self.rows, self.seconds = files, splits, None, None
 
     def __call__(self, side: str) -> tuple[dict, float]:
         if self.rows is None:
             t0 = time.perf_counter()
-            self.rows = mask_baselines(self.files)
+            self.rows = mask_baselines(self.files, self.splits)
             self.seconds = time.perf_counter() - t0
         return self.rows[side], self.seconds
 
@@ -205,13 +206,14 @@ def _done(folder: Path, digest: str) -> dict | None:
 
 
 def run_lung(files, side: str, out: Path, config: FitConfig, mask_rows=None, *,
-             progress: Callable[[str], None] | None = None) -> tuple[dict, bool]:
+             progress: Progress | None = None, splits: SplitCache | None = None) -> tuple[dict, bool]:
     """``(metrics, fitted)``: one lung of a case (``files`` from :func:`find_cases`) fitted into the
     folder ``out`` with ``config``, unless its ``metrics.json`` already records the same
     :func:`settings_digest` (then read back, ``fitted`` False). ``mask_rows``: that lung's
     :func:`mask_baselines` (a dict), or a :class:`CaseBaselines` of the case (called after the fit),
     or None (computed). ``metrics["seconds"]`` is the fit's time, ``metrics["mask_baselines_seconds"]`` the
-    mask-only baselines' (both lungs of the case, computed once; absent when given as a dict)."""
+    mask-only baselines' (both lungs of the case, computed once; absent when given as a dict).
+    ``splits``: where the case's masks are split (one :class:`SplitCache` for both lungs)."""
     out = Path(out)
     digest = settings_digest(files, side, config)
     done = _done(out, digest)
@@ -220,13 +222,14 @@ def run_lung(files, side: str, out: Path, config: FitConfig, mask_rows=None, *,
     t0 = time.perf_counter()
     exp_mask, insp_mask, exp_lm, insp_lm = files
     with atomic_dir(out) as tmp:  # the lung's folder is complete, with its digest, or absent
-        metrics = run_fit(FitInputs([exp_mask, insp_mask], side, landmarks=[exp_lm, insp_lm]), tmp, config,
+        inputs = FitInputs([exp_mask, insp_mask], side, landmarks=[exp_lm, insp_lm], splits=splits)
+        metrics = run_fit(inputs, tmp, config,
                           progress=progress)
         metrics["seconds"] = time.perf_counter() - t0
         if isinstance(mask_rows, dict):
             metrics["mask_baselines"] = mask_rows
-        else:  # computed after the fit (which split the masks first: shared_splits), timed apart
-            get = mask_rows if mask_rows is not None else CaseBaselines(files)
+        else:  # computed after the fit (which split the masks first, into the same cache), timed apart
+            get = mask_rows if mask_rows is not None else CaseBaselines(files, splits)
             metrics["mask_baselines"], metrics["mask_baselines_seconds"] = get(side)
         metrics["settings_digest"] = digest
         write_json(tmp / "metrics.json", metrics, strict=True, default=str)
@@ -280,26 +283,26 @@ def summarise(cases: dict) -> dict:
 
 
 def run_copd(data: Path, out: Path, config: FitConfig | None = None, cases=None, *,
-             progress: Callable[[str], None] | None = None) -> dict:
+             progress: Progress | None = None) -> dict:
     """Every case in ``data`` (:func:`find_cases`, ``cases`` a subset by number), both lungs, fitted
     (:func:`run_lung`) into ``out/copdN/<side>``; writes ``out/metrics.json`` (``cases``, ``summary``,
     ``refitted``: the lungs fitted this run, ``timing``: per case :func:`case_seconds`) and
     ``out/report.html``; returns the metrics."""
-    say = progress or (lambda _m: None)
+    say = progress or silent
     config = copd_config() if config is None else config
     out = Path(out)
     found = find_cases(data, cases)
     result: dict = {"cases": {}, "refitted": [], "timing": {}, "settings": asdict(config)}
     for name, files in found.items():
-        masks = CaseBaselines(files)  # both lungs' mask-only baselines, once, after the first fit
-        with shared_splits():  # each mask split once per case (by the first fit), not once per use
-            for side in SIDES:
-                say(f"{name} {side}: fitting (or reading the finished fit)")
-                metrics, fitted = run_lung(files, side, out / name / side, config, masks,
-                                           progress=lambda m, n=name, s=side: say(f"{n} {s}: {m}"))
-                result["cases"].setdefault(name, {})[side] = lung_row(metrics)
-                if fitted:
-                    result["refitted"].append(f"{name}/{side}")
+        splits = SplitCache()  # each mask split once per case (by the first fit), not once per use
+        masks = CaseBaselines(files, splits)  # both lungs' mask-only baselines, once, after the first fit
+        for side in SIDES:
+            say(f"{name} {side}: fitting (or reading the finished fit)")
+            metrics, fitted = run_lung(files, side, out / name / side, config, masks,
+                                       progress=lambda m, n=name, s=side: say(f"{n} {s}: {m}"), splits=splits)
+            result["cases"].setdefault(name, {})[side] = lung_row(metrics)
+            if fitted:
+                result["refitted"].append(f"{name}/{side}")
         result["timing"][name] = case_seconds(result["cases"][name])
     result["prior"] = apply_loso_priors(out, result["cases"])
     result["summary"] = summarise(result["cases"])
@@ -373,7 +376,7 @@ def _timing_table(timing: dict) -> str:
 
 def write_report(path: Path, result: dict) -> Path:
     """``report.html``: the summary table, and per case its table and a bar plot of the mean
-    landmark error per method and lung (:func:`lungdeform.plot.grouped_bars`)."""
+    landmark error per method and lung (:func:`lungdeform.plot.statistics.grouped_bars`)."""
     parts = ["<html><head><meta charset='utf-8'><title>DIR-Lab COPDgene</title></head><body>",
              "<h1>DIR-Lab COPDgene: expiration → inspiration, per lung (mm)</h1>",
              "<p>Landmark errors are held out from what they score; cpd, affine and the calibrated rows "
@@ -384,8 +387,8 @@ def write_report(path: Path, result: dict) -> Path:
     for name, case in result["cases"].items():
         values = {side: {m: row[m]["landmark_mean_mm"] for m in row if isinstance(row[m], dict)
                          and "landmark_mean_mm" in row[m]} for side, row in case.items()}
-        fig = P.grouped_bars(values, title=f"{name}: mean landmark error", ylabel="mm")
-        b64 = base64.b64encode(P.png_bytes(fig)).decode("ascii")
+        fig = grouped_bars(values, title=f"{name}: mean landmark error", ylabel="mm")
+        b64 = base64.b64encode(png_bytes(fig)).decode("ascii")
         parts += [f"<h2>{html.escape(name)}</h2>", _table(case), f'<img alt="{html.escape(name)}" '
                   f'src="data:image/png;base64,{b64}">']
     parts.append("</body></html>")

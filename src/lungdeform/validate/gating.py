@@ -44,7 +44,7 @@ from lungdeform.breathing.gating import BeamGate, GateRule, distance_outside, ga
 from lungdeform.breathing.predict import baseline_linear, check_horizon
 from lungdeform.breathing.trace import read_trace
 from lungdeform.errors import InputError, LungdeformError
-from lungdeform.plot import new_figure, save_png
+from lungdeform.plot.figure import new_figure, save_png
 
 from .breathing import trace_files
 

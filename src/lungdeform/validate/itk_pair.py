@@ -28,7 +28,6 @@ with methods that saw the same information (:func:`targets_met` reports both com
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Callable
 
 from lungdeform.atomic import write_json
 from lungdeform.data import itk_right_lung
@@ -37,6 +36,7 @@ from lungdeform.evaluate.pipeline import run_fit
 from lungdeform.fit.config import FitConfig, FitInputs
 from lungdeform.fit.direction_correction import DEFAULT_DEGREE
 from lungdeform.fit.rays import rays_per_second
+from lungdeform.progress import Progress
 
 FOLDER = "itk-right-lung-two-volumes"
 FILES = ("CT_3D_lung_fixed_mask.mha", "CT_3D_lung_moving_mask.mha",
@@ -73,7 +73,7 @@ def pair_config(*, grid: bool = True, stiffness: bool = True, max_evaluations: i
 
 
 def run_itk_pair(files, out: Path, config: FitConfig | None = None, *,
-                 progress: Callable[[str], None] | None = None) -> dict:
+                 progress: Progress | None = None) -> dict:
     """Fit the right lung of the pair ``files`` (:func:`find_pair`) with ``config`` (default
     :func:`pair_config`) into the folder ``out``; measure the ray-casting throughput and the
     targets (:func:`targets_met`); rewrite ``out/metrics.json`` with them; return the metrics."""

@@ -63,7 +63,8 @@ from lungdeform.geometry.mesh import unique_edges
 from lungdeform.model.graph import SpringGraph, spring_graph
 from lungdeform.model.solve import ForceSolver, push
 from lungdeform.model.transfer import local_transfer
-from lungdeform.plot import circular_figure, convergence_figure, planar_figure, save_png
+from lungdeform.plot.figure import save_png
+from lungdeform.plot.paper import circular_figure, convergence_figure, planar_figure
 
 from .msd import MSDIntegrator, MSDResult, transfer_network
 

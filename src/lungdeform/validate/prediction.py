@@ -42,7 +42,9 @@ from lungdeform.breathing.predict import PREDICTORS, BlendPredictor, baseline_li
 from lungdeform.breathing.predict_interval import IntervalConfig, interval_score, interval_trace
 from lungdeform.breathing.trace import read_trace
 from lungdeform.errors import InputError, LungdeformError
-from lungdeform.plot import prediction_errors, prediction_excerpt, save_png
+from lungdeform.plot.breathing import prediction_errors, prediction_excerpt
+from lungdeform.plot.figure import save_png
+from lungdeform.progress import Progress
 
 from .breathing import trace_files
 
@@ -184,7 +186,8 @@ def protocol(horizons_ms, warm_s: float) -> str:
             f"(Gneiting & Raftery 2007)")
 
 
-def score_folder(data: Path, horizons_ms, warm_s: float, plot_ms: int, progress=None) -> tuple[dict, dict]:
+def score_folder(data: Path, horizons_ms, warm_s: float, plot_ms: int,
+                 progress: Progress | None = None) -> tuple[dict, dict]:
     """:func:`score_trace` on every trace under ``data``: ``(scores, errors)`` keyed as
     :func:`lungdeform.validate.breathing.trace_files`."""
     scores, errors = {}, {}
@@ -223,7 +226,7 @@ def write_plots(scores: dict, horizons_ms, plot_ms: int, folder: Path) -> dict[s
 
 
 def validate_prediction(data: Path, out: Path, horizons_ms=HORIZONS_MS, warm_s: float = WARM_S,
-                        progress=None) -> dict:
+                        progress: Progress | None = None) -> dict:
     """Score every trace under ``data`` (:func:`score_folder`), write ``out/metrics.json`` and
     ``out/plots/*.png``; return the metrics."""
     horizons_ms = check_horizons(horizons_ms)

@@ -41,11 +41,9 @@ import time
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
-from lungdeform import plot as P
 from lungdeform.atomic import write_bytes, write_json, write_text
 from lungdeform.cohort.default import DefaultSample, learn_default
 from lungdeform.errors import ReadError
@@ -59,7 +57,10 @@ from lungdeform.geometry.mesh import Surface
 from lungdeform.geometry.moments import solid_moments
 from lungdeform.model.lung import LungModel, build_lung
 from lungdeform.model.population import PopulationDefault, paper_default, resolve_default
-from lungdeform.segment.split import SIDES, shared_splits
+from lungdeform.plot.figure import png_bytes
+from lungdeform.plot.statistics import grouped_bars
+from lungdeform.progress import Progress, silent
+from lungdeform.segment.split import SIDES, SplitCache
 
 from . import copd, itk_pair
 
@@ -134,9 +135,12 @@ def find_subjects(data: Path) -> list[Subject]:
     return [Subject(name, SIDES, (f[0], f[1]), (f[2], f[3])) for name, f in cases.items()]
 
 
-def read_pair(subject: Subject, side: str, progress: Callable[[str], None] | None = None) -> LungPair:
-    """One lung of ``subject`` (:class:`LungPair`): both scans read, the landmarks of that lung."""
-    read = read_inputs(FitInputs(list(subject.scans), side, landmarks=list(subject.landmarks)), True, progress)
+def read_pair(subject: Subject, side: str, progress: Progress | None = None,
+              splits: SplitCache | None = None) -> LungPair:
+    """One lung of ``subject`` (:class:`LungPair`): both scans read, the landmarks of that lung;
+    ``splits``: where a mask holding both lungs is split (one cache for both lungs of a subject)."""
+    inputs = FitInputs(list(subject.scans), side, landmarks=list(subject.landmarks), splits=splits)
+    read = read_inputs(inputs, True, progress)
     placed = place_targets(read, read.paths, list(subject.landmarks), "none", progress)
     volume = placed.rest.volume_ml + read.volumes_ml[1] - read.volumes_ml[0]
     return LungPair(subject.name, side, placed.rest, placed.keep, placed.targets[0], float(volume),
@@ -294,10 +298,10 @@ def _training_pairs(folders, scored: set[str], say) -> tuple[dict[tuple[str, str
             subjects.append(s)
             if s.name in scored:
                 raise ReadError(f"{folder}: subject {s.name!r} is also in the data folder")
-            with shared_splits():
-                for side in s.sides:
-                    say(f"{s.name} {side}: reading both scans (training only)")
-                    out[(s.name, side)] = read_pair(s, side)
+            splits = SplitCache()  # each mask split once per subject, not once per lung
+            for side in s.sides:
+                say(f"{s.name} {side}: reading both scans (training only)")
+                out[(s.name, side)] = read_pair(s, side, splits=splits)
     return out, subjects
 
 
@@ -310,18 +314,18 @@ def _check_leave_one_out(seen: set[str], names: set[str]) -> None:
 
 
 def run_single_scan(data: Path, out: Path, config: SingleScanConfig = SingleScanConfig(), *,
-                    progress: Callable[[str], None] | None = None) -> dict:
+                    progress: Progress | None = None) -> dict:
     """The experiment (module docstring) on every subject in ``data``; writes ``out/metrics.json`` and
     ``out/report.html``; returns the metrics."""
-    say = progress or (lambda _m: None)
+    say = progress or silent
     subjects = find_subjects(data)
     given = None if config.default is None else resolve_default(config.default)  # refused before any reading
     pairs: dict[tuple[str, str], LungPair] = {}
     for s in subjects:
-        with shared_splits():
-            for side in s.sides:
-                say(f"{s.name} {side}: reading both scans")
-                pairs[(s.name, side)] = read_pair(s, side, lambda m, n=s.name, sd=side: say(f"{n} {sd}: {m}"))
+        splits = SplitCache()  # each mask split once per subject, not once per lung
+        for side in s.sides:
+            say(f"{s.name} {side}: reading both scans")
+            pairs[(s.name, side)] = read_pair(s, side, lambda m, n=s.name, sd=side: say(f"{n} {sd}: {m}"), splits)
     seen = _seen_by_shipped(subjects, given)
     fits, extra = {}, {}
     if config.with_fitted or seen:
@@ -376,8 +380,8 @@ def summarise(lungs: dict) -> dict:
 
 
 def _figure(values: dict, title: str) -> str:
-    fig = P.grouped_bars(values, title=title, ylabel="mm")
-    return f'<img alt="{html.escape(title)}" src="data:image/png;base64,{base64.b64encode(P.png_bytes(fig)).decode()}">'
+    fig = grouped_bars(values, title=title, ylabel="mm")
+    return f'<img alt="{html.escape(title)}" src="data:image/png;base64,{base64.b64encode(png_bytes(fig)).decode()}">'
 
 
 def write_report(path: Path, result: dict) -> Path:
@@ -411,24 +415,24 @@ def write_report(path: Path, result: dict) -> Path:
 
 
 def learn_from_folders(folders, name: str = "population", *,
-                       progress: Callable[[str], None] | None = None) -> PopulationDefault:
+                       progress: Progress | None = None) -> PopulationDefault:
     """A population default learned from every two-volume subject in ``folders``
     (:func:`find_subjects`): each lung fitted on its own (:func:`fit_pair`), then pooled
     (:func:`lungdeform.cohort.default.learn_default`). The provenance records the subjects, the
     digest of each one's smaller-volume scan (so that ``validate single-scan`` scores a subject it
     saw leave one subject out) and the data's citations."""
-    say = progress or (lambda _m: None)
+    say = progress or silent
     samples, digests = [], {}
     for folder in folders:
         for s in find_subjects(folder):
             if s.name in digests:
                 raise ReadError(f"{folder}: a second subject named {s.name!r}")
             digests[s.name] = s.digest
-            with shared_splits():
-                for side in s.sides:
-                    say(f"{s.name} {side}: reading and fitting both scans")
-                    pair = read_pair(s, side, lambda m, n=s.name, sd=side: say(f"{n} {sd}: {m}"))
-                    samples.append(sample_of(pair, fit_pair(pair)))
+            splits = SplitCache()  # each mask split once per subject, not once per lung
+            for side in s.sides:
+                say(f"{s.name} {side}: reading and fitting both scans")
+                pair = read_pair(s, side, lambda m, n=s.name, sd=side: say(f"{n} {sd}: {m}"), splits)
+                samples.append(sample_of(pair, fit_pair(pair)))
     return learn_default(samples, name=name, provenance={"subject_digests": digests, "citation": CITATIONS,
                                                          "source": f"{name}: learned by lungdeform learn-default"})
 

@@ -3,7 +3,7 @@
 :func:`is_dicom_file` tells a DICOM file by its name or its preamble; :func:`check_dicom_file`
 walks a file's element headers (PS3.5 7.1, 7.5) and refuses, with a
 :class:`~lungdeform.errors.ReadError` naming the file and element, what would make GDCM take
-seconds and gigabytes or corrupt its heap (found by tests/fuzz/fuzz_image_dicom.py). Every DICOM
+seconds and gigabytes or corrupt its heap (tests/fuzz/fuzz_image_dicom.py feeds it damaged files). Every DICOM
 reader of lungdeform calls it on each file before any other library opens it.
 """
 
@@ -51,19 +51,17 @@ def _element_header(h: bytes, explicit: bool) -> tuple[int, int, bytes, int, int
 
 
 def check_dicom_file(path) -> None:
-    """Refuse, before GDCM parses it, a DICOM file (``DICM`` preamble) whose element headers are damaged:
-    an explicit value representation that is none of the standard's (PS3.5 Table 6.2-1), or a value length larger than what is left of the file.
-    GDCM tries to make sense of such a file, taking seconds and allocating up to gigabytes for a length
-    it read from the wrong bytes (found by tests/fuzz/fuzz_image_dicom.py). Walks the element headers only
-    (sequences and items flatly, PS3.5 7.5), up to the pixel data. A file without the preamble that starts
-    with an explicit-VR element header (a standard VR at bytes 4-5) is walked from byte 0 (GDCM spent 1.5 s
-    and 1 GB on a 700-byte one); any other file without it is walked from byte 0 as implicit VR little
-    endian, the default transfer syntax (GDCM spent 4 s and 3.3 GB on a 65-byte one whose first element
-    claimed 3.3 GB). After the preamble the file meta information (group 0002) must come first (PS3.10
-    7.1; GDCM took 600 MB for a 912-byte file with another group there), and a file without the preamble
-    starts with group 0002 or a data set group (0008 or above; GDCM took 4 GB for an 828-byte file
-    starting with (0000,0000)); big-endian or deflated data sets and sequences of unknown content (UN, undefined
-    length) are left to GDCM."""
+    """Refuse, before GDCM parses it, a DICOM file whose element headers are damaged: an explicit value
+    representation that is none of the standard's (PS3.5 Table 6.2-1), or a value length larger than
+    what is left of the file. GDCM tries to make sense of such a file and allocates what a length read
+    from the wrong bytes says (seconds and gigabytes for a file of a few hundred bytes).
+
+    Walks the element headers only (sequences and items flatly, PS3.5 7.5), up to the pixel data:
+    after the ``DICM`` preamble, from byte 132, the file meta information (group 0002) first (PS3.10
+    7.1); without it, from byte 0, as explicit VR when a standard VR sits at bytes 4–5, else as implicit
+    VR little endian (the default transfer syntax), starting with group 0002 or a data set group (0008
+    or above). Big-endian or deflated data sets and sequences of unknown content (UN, undefined length)
+    are left to GDCM. tests/fuzz/fuzz_image_dicom.py feeds it damaged files."""
     p = Path(path)
     size = p.stat().st_size
     with open(p, "rb") as fh:
@@ -125,8 +123,7 @@ _PIXEL_TAGS = (0x0002, 0x0010, 0x0011, 0x0100, 0x0101)
 def _check_pixel_module(pixel: dict, where: str) -> None:
     """ReadError (``where`` names the file and element) for BitsAllocated other than 1 or a multiple
     of 8 up to 64 (PS3.5 8.1.1), or BitsStored outside 1…BitsAllocated: GDCM sizes its buffers from
-    them (found by tests/fuzz/fuzz_image_dicom.py: BitsAllocated 24 and BitsStored 2064 over 16-bit
-    pixel data corrupted the heap and killed the process)."""
+    them, and other values over the pixel data can overrun the heap and kill the process."""
     ba, bs = pixel.get((0x0028, 0x0100)), pixel.get((0x0028, 0x0101))
     if ba is not None and not (ba == 1 or (ba % 8 == 0 and 8 <= ba <= 64)):
         raise ReadError(f"{where}: BitsAllocated is {ba}, not 1 or a multiple of 8 up to 64")

@@ -1,0 +1,112 @@
+"""CT values of a warped image: mass conservation and projections over the phases of a 4-D CT.
+
+Behind ``lungdeform warp --density`` and ``warp --phases N --projections mip,aip,minip``
+(docs/RADIOTHERAPY.md, "Density and projections").
+
+**Mass.** A CT number is a linear function of density: ``ρ = (HU + 1000) / 1000`` g/mL (water 0 HU
+is 1 g/mL, air −1000 HU is 0). Resampling an image through the inverse field ``w`` (the output point
+``y`` takes the reference at ``φ(y) = y + w(y)``) carries the density along unchanged, so an inhaled
+lung keeps its end-exhale HU while its volume grows: its mass grows with it. Conserving mass
+(continuity equation) divides the density by the local volume change of the forward map, i.e.
+multiplies it by ``det ∇φ(y) = det(I + ∇w(y))``:
+
+    HU_out(y) = (HU_ref(φ(y)) + 1000) · det(I + ∇w(y)) − 1000.
+
+Then ``Σ (HU + 1000) · dV`` over a region equals the same sum over its preimage (change of variables),
+up to interpolation and the discrete Jacobian. Arrays: images ``(z, y, x)``, fields ``(z, y, x, 3)
+float32`` mm LPS, as in :mod:`lungdeform.playback.dvf`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lungdeform.errors import InputError
+
+#: CT number of air (HU): zero density.
+AIR_HU = -1000.0
+#: The projections ``--projections`` names: maximum, average and minimum intensity over the phases.
+PROJECTIONS = ("mip", "aip", "minip")
+
+
+def conserve_mass(hu, jacobian) -> np.ndarray:
+    """``(z, y, x) float32`` HU of a resampled image ``hu : (z, y, x)`` scaled so that mass is
+    conserved: ``(hu + 1000) · jacobian − 1000``, with ``jacobian : (z, y, x)`` the determinant
+    ``det(I + ∇w)`` of the resampling field ``w`` on the same grid
+    (:func:`lungdeform.playback.dvf.jacobian_determinant`)."""
+    hu = np.asarray(hu)
+    j = np.asarray(jacobian)
+    if hu.shape != j.shape:
+        raise InputError(f"mass conservation: the image has shape {hu.shape}, the Jacobian {j.shape}")
+    return ((hu.astype(np.float32) - np.float32(AIR_HU)) * j.astype(np.float32) + np.float32(AIR_HU)).astype(np.float32)
+
+
+def mass_g(hu, voxel_ml: float, mask=None) -> float:
+    """Mass (g) of an image in HU, ``Σ (HU + 1000) / 1000 · voxel_ml`` over the voxels of ``mask``
+    (``(z, y, x) bool``, or float weights: the fraction of each voxel in the region, e.g. a mask
+    resampled linearly; the whole image without one): the figure ``warp --density`` conserves."""
+    a = (np.asarray(hu, np.float64) - AIR_HU) / 1000.0
+    if mask is not None:
+        w = np.asarray(mask)
+        a = a[w] if w.dtype == bool else a * w
+    return float(a.sum() * float(voxel_ml))
+
+
+def as_pixel_type(values, dtype) -> np.ndarray:
+    """``values`` in the image's pixel ``dtype``: rounded to the nearest integer for an integer type;
+    :class:`InputError` when a value falls outside that type's range (no silent clipping)."""
+    dtype = np.dtype(dtype)
+    if not np.issubdtype(dtype, np.integer):
+        return np.asarray(values, dtype)
+    r = np.rint(values)
+    info = np.iinfo(dtype)
+    lo, hi = float(r.min(initial=0)), float(r.max(initial=0))
+    if lo < info.min or hi > info.max:
+        raise InputError(f"--density: the mass-conserving CT numbers span {lo:.0f} to {hi:.0f} HU, outside the "
+                         f"image's pixel type {dtype} ({info.min} to {info.max}); write a float image (.mha of float32)")
+    return r.astype(dtype)
+
+
+def parse_projections(text: str | None) -> list[str]:
+    """The projection names of ``--projections`` (comma-separated ``mip``, ``aip``, ``minip``), in the
+    given order, each once; :class:`InputError` for an unknown or repeated name, or none."""
+    if text is None:
+        return []
+    names = [t.strip().lower() for t in text.split(",")]
+    unknown = [n for n in names if n not in PROJECTIONS]
+    if unknown or not names or len(set(names)) != len(names):
+        raise InputError(f"--projections must be a comma-separated subset of {','.join(PROJECTIONS)}, each once; "
+                         f"got {text!r}")
+    return names
+
+
+class Projector:
+    """Running maximum, sum and minimum of the phases' images ``(z, y, x)``, one phase at a time (no
+    stack of every phase in memory); :meth:`result` the ``(z, y, x) float32`` projection by name."""
+
+    def __init__(self):
+        self.high = self.low = self.total = None
+        self.count = 0
+
+    def add(self, image) -> None:
+        a = np.asarray(image, np.float32)
+        if self.count == 0:
+            self.high, self.low, self.total = a.copy(), a.copy(), a.astype(np.float64)
+        else:
+            if a.shape != self.high.shape:
+                raise InputError(f"projections: phase {self.count} has shape {a.shape}, phase 0 {self.high.shape}")
+            np.maximum(self.high, a, out=self.high)
+            np.minimum(self.low, a, out=self.low)
+            self.total += a
+        self.count += 1
+
+    def result(self, name: str) -> np.ndarray:
+        if self.count == 0:
+            raise InputError("projections: no phase was added")
+        if name == "mip":
+            return self.high
+        if name == "minip":
+            return self.low
+        if name == "aip":
+            return (self.total / self.count).astype(np.float32)
+        raise InputError(f"unknown projection {name!r}; expected one of {', '.join(PROJECTIONS)}")

@@ -1,0 +1,90 @@
+"""Every figure of lungdeform.plot writes a non-blank PNG of its size, atomically, without pyplot
+(lungdeform.plot.figure)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from matplotlib.image import imread
+
+from lungdeform.plot.breathing import breathing_volume, pv_loop, residuals
+from lungdeform.plot.figure import save_png
+from lungdeform.plot.fit import bounding_box, cumulative_errors, direction_field, fit_history, ray_histogram
+from lungdeform.plot.motion import motion
+from lungdeform.plot.paper import circular_figure, convergence_figure, planar_figure
+from lungdeform.plot.segmentation import label_overlay
+from lungdeform.plot.statistics import ScatterPanel, StripPanel, grouped_bars, scatter_grid, strip_boxes
+from lungdeform.plot.surface import error_map, snapshot
+from tests.conftest import ellipsoid_lung
+
+
+def _figures(rng):
+    lung = ellipsoid_lung("right", subdivisions=2)
+    v, f = lung.vertices, lung.faces
+    err = rng.random(len(v))
+    bb = {"model": [{"volume_ml": 1500.0 + 50 * k, "dims_mm": [90 + k, 140 + k, 220 + k], "ratio": 0.52}
+                    for k in range(3)],
+          "observed": [{"volume_ml": 1500.0, "dims_mm": [90, 140, 220], "ratio": 0.52}]}
+    ct = rng.normal(-500, 300, (40, 50))
+    lab = np.zeros((40, 50), int)
+    lab[10:30, 5:20], lab[10:30, 30:45] = 1, 2
+    t = np.linspace(0, 8, 200)
+    grid_v = np.array([[x, y, 0.0] for y in range(5) for x in range(5)], float)
+    grid_f = np.array([[i + 5 * j, i + 1 + 5 * j, i + 6 + 5 * j] for j in range(4) for i in range(4)]
+                      + [[i + 5 * j, i + 6 + 5 * j, i + 5 + 5 * j] for j in range(4) for i in range(4)])
+    bump = np.sin(np.pi * grid_v[:, 0] / 4) * np.sin(np.pi * grid_v[:, 1] / 4)
+    groups = [rng.normal(1, 0.1, 5), rng.normal(2, 0.1, 4)]
+    return {
+        "snapshot": (lambda: snapshot([([(v, f)], "#4a7ab5", 1.0)], views=("anterior", "superior")), (924, 528)),
+        "error_map": (lambda: error_map(v, f, err, title="t"), (1080, 414)),
+        "cumulative_errors": (lambda: cumulative_errors({"a": err, "b": 2 * err}), (810, 378)),
+        "ray_histogram": (lambda: ray_histogram(np.array([1, 3, 2]), np.array([-1.0, 0, 1, 2])), (560, 280)),
+        "bounding_box": (lambda: bounding_box(bb), (880, 320)),
+        "direction_field": (lambda: direction_field(v, lung.vertices / 100.0, err), (880, 400)),
+        "fit_history": (lambda: fit_history({"optimizer": np.linspace(3, 1, 20)}), (560, 280)),
+        "label_overlay": (lambda: label_overlay([(ct, lab, 1.0, "axial"), (ct, lab, 1.5, "coronal")], "t"),
+                          (756, 414)),
+        "motion": (lambda: motion(rng.normal(size=(6, 2, 3)), np.arange(6.0), "time (s)", ["a", "b"]), (1210, 374)),
+        "breathing_volume": (lambda: breathing_volume(t, 2400 + 250 * np.sin(t), "t", data=(t, 2400 + np.cos(t)),
+                                                      held_out_from=4.0), (1100, 396)),
+        "pv_loop": (lambda: pv_loop(np.sin(t), 2400 + np.cos(t), "t"), (528, 462)),
+        "residuals": (lambda: residuals(t, np.sin(t), "t"), (1100, 330)),
+        "strip_boxes": (lambda: strip_boxes([StripPanel("c1", groups, ["left", "right"], [1.0, 2.0])] * 2,
+                                            ["tab:blue", "tab:orange"], rows=1, cols=2, title="t",
+                                            rng=np.random.default_rng(0)), (704, 286)),
+        "scatter_grid": (lambda: scatter_grid([ScatterPanel("c1", {"left": rng.random((4, 2))}, identity=True,
+                                                            legend=True)], {"left": "tab:blue"},
+                                                rows=1, cols=1, title="t"), (352, 286)),
+        "planar_figure": (lambda: planar_figure(grid_v, grid_f, bump, bump * 1.001, 0.1), (1500, 480)),
+        "circular_figure": (lambda: circular_figure(grid_v - 2.0, grid_f, 1.0 + bump, np.c_[bump, bump, 0 * bump],
+                                                    bump + 0.1, 0.5, 0.6), (1200, 540)),
+        "convergence_figure": (lambda: convergence_figure(np.arange(5.0), 10.0 ** -np.arange(5.0),
+                                                          10.0 ** -np.arange(8.0), 10.0 ** -np.arange(8.0),
+                                                          tol=1e-6, n_nodes=100, title="t"), (800, 550)),
+        "grouped_bars": (lambda: grouped_bars({"left": {"a": 1.0, "b": 2.0, "c": np.nan},
+                                               "right": {"a": 1.5, "b": 3.0}}, title="t", ylabel="mm"), (550, 352)),
+    }
+
+
+@pytest.mark.parametrize("name", sorted(_figures(np.random.default_rng(0))))
+def test_every_figure_writes_a_nonblank_png_of_its_size(name, tmp_path, rng):
+    build, (width, height) = _figures(rng)[name]
+    path = save_png(build(), tmp_path / f"{name}.png")
+    img = imread(path)
+    # the size is the figure's inches × its dpi (saved at the figure's own dpi, no cropping)
+    assert img.shape[:2] == (height, width)
+    # drawn on: a good share of the pixels is not the white background
+    assert (img[..., :3] < 0.9).any(axis=2).mean() > 0.01
+    assert not list(tmp_path.glob(".*"))  # written atomically: no temporary left
+
+
+def test_no_pyplot_and_no_backend_choice():
+    # the Figure + Agg canvas route must never load pyplot (global state, a GUI backend): checked in
+    # a fresh interpreter, where nothing else could have loaded it
+    code = ("import sys, numpy as np; from lungdeform.plot.figure import png_bytes; "
+            "from lungdeform.plot.fit import fit_history; png_bytes(fit_history({'a': np.arange(3.0)})); "
+            "assert 'matplotlib.pyplot' not in sys.modules, 'pyplot loaded'")
+    subprocess.run([sys.executable, "-c", code], check=True)
