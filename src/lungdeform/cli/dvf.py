@@ -15,8 +15,18 @@ from lungdeform.io.modelfile import load_model
 from lungdeform.playback import dvf as D
 from lungdeform.playback.trajectory import extrapolation_note
 
-from .common import MAX_LUNGS_ML, bounded, check_output, field_lines, pick_state, say, without_alignment
-from .rigid import RigidOptions, apply_rigid, rigid_region
+from .common import (
+    MAX_LUNGS_ML,
+    RigidOptions,
+    apply_rigid,
+    bounded,
+    check_output,
+    field_lines,
+    pick_state,
+    rigid_region,
+    say,
+    without_alignment,
+)
 
 
 def register(apps) -> None:
@@ -36,7 +46,7 @@ def register(apps) -> None:
         rigid_structure: str | None = typer.Option(None, "--rigid-structure", help="With --rtstruct: this ROI (e.g. GTV) moves rigidly, keeping its volume."),
         rtstruct: Path | None = typer.Option(None, "--rtstruct", help="RTSTRUCT holding --rigid-structure, drawn on the reference's frame."),
         rigid_mask: Path | None = typer.Option(None, "--rigid-mask", help="A mask (non-zero voxels, in the reference's LPS world) that moves rigidly."),
-        rigid_border_mm: float = typer.Option(10.0, "--rigid-border-mm", help="Width (mm) over which the rigid motion is blended back into the field."),
+        rigid_border_mm: float = typer.Option(10.0, "--rigid-border-mm", callback=bounded(0, 100, "mm", low_open=True), help="Width (mm) over which the rigid motion is blended back into the field."),
     ) -> None:
         """Displacement field of the model at a breathing state (docs/RADIOTHERAPY.md).
 

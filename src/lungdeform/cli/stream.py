@@ -41,7 +41,7 @@ def register(apps) -> None:
                                                         "with the prediction's interval."),
         window: str = typer.Option("end-exhale:30", "--window", help="With --gate: the gating window KIND:PERCENT."),
         confident: bool = typer.Option(False, "--confident", help="With --gate: the whole interval must be inside."),
-        coverage: float = typer.Option(0.9, "--coverage", help="With --gate: the interval's coverage (0-1)."),
+        coverage: float = typer.Option(0.9, "--coverage", callback=bounded(0, 1, low_open=True, high_open=True), help="With --gate: the interval's coverage (0-1)."),
     ):
         """Volume per sample from a live breathing signal (stdin) or a recorded trace, optionally predicted ahead."""
 

@@ -13,7 +13,7 @@ from lungdeform.breathing.gating import GateRule, parse_window
 from lungdeform.breathing.predict_interval import IntervalConfig
 from lungdeform.validate.gating import STRATEGIES, GatingConfig, validate_gating
 
-from .common import STRICT_EXIT, check_output, figure_or_na, say
+from .common import STRICT_EXIT, bounded, check_output, figure_or_na, say
 
 
 def register(apps) -> None:
@@ -21,13 +21,13 @@ def register(apps) -> None:
     def gating(
         data: Path = typer.Option(..., "--data", help="Folder searched for .vxp / .csv breathing traces."),
         out: Path = typer.Option(..., "--out", help="Output folder: metrics.json and plots/."),
-        latency_ms: float = typer.Option(300.0, "--latency-ms", help="Latency between decision and beam (ms)."),
+        latency_ms: float = typer.Option(300.0, "--latency-ms", callback=bounded(0, 10000, "ms"), help="Latency between decision and beam (ms)."),
         window: str = typer.Option("end-exhale:30", "--window",
                                    help="Gating window KIND:PERCENT, KIND end-exhale or end-inhale."),
         confident: bool = typer.Option(False, "--confident",
                                        help="model_intervals: the whole interval must be inside the window."),
-        coverage: float = typer.Option(0.9, "--coverage", help="Coverage of the prediction intervals (0-1)."),
-        min_probability: float = typer.Option(0.5, "--min-probability",
+        coverage: float = typer.Option(0.9, "--coverage", callback=bounded(0, 1, low_open=True, high_open=True), help="Coverage of the prediction intervals (0-1)."),
+        min_probability: float = typer.Option(0.5, "--min-probability", callback=bounded(0, 1, low_open=True, high_open=True),
                                               help="model_intervals without --confident: the predicted "
                                                    "probability of the window needed (0-1)."),
         strict: bool = typer.Option(False, "--strict", help="Exit with code 3 when a target is not met (for CI)."),

@@ -49,7 +49,7 @@ def register(apps) -> None:
                                                                    "(default end-exhale:30)."),
         confident: bool = typer.Option(False, "--confident", help="With --predict-ms: beam on only when the whole "
                                                                   "interval is inside the window."),
-        coverage: float | None = typer.Option(None, "--coverage", help="With --predict-ms: the interval's coverage "
+        coverage: float | None = typer.Option(None, "--coverage", callback=bounded(0, 1, low_open=True, high_open=True), help="With --predict-ms: the interval's coverage "
                                                                        "(0-1, default 0.9)."),
         open_browser: bool = typer.Option(False, "--open", help="Open the default web browser."),
     ) -> None:

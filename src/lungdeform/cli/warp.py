@@ -17,8 +17,19 @@ from lungdeform.playback import density as M
 from lungdeform.playback import dvf as D
 from lungdeform.playback.trajectory import extrapolation_note
 
-from .common import MAX_LUNGS_ML, bounded, check_output, field_lines, pick_state, read_curve, say, without_alignment
-from .rigid import RigidOptions, apply_rigid, rigid_region
+from .common import (
+    MAX_LUNGS_ML,
+    RigidOptions,
+    apply_rigid,
+    bounded,
+    check_output,
+    field_lines,
+    pick_state,
+    read_curve,
+    rigid_region,
+    say,
+    without_alignment,
+)
 
 
 def phase_path(out: Path, index: int) -> Path:
@@ -44,7 +55,7 @@ def register(apps) -> None:
         rigid_structure: str | None = typer.Option(None, "--rigid-structure", help="With --rtstruct: this ROI (e.g. GTV) moves rigidly, keeping its volume (docs/RADIOTHERAPY.md, \"A rigid tumour\")."),
         rtstruct: Path | None = typer.Option(None, "--rtstruct", help="RTSTRUCT holding --rigid-structure, drawn on IMAGE's frame."),
         rigid_mask: Path | None = typer.Option(None, "--rigid-mask", help="A mask (non-zero voxels, in IMAGE's LPS world) that moves rigidly; instead of --rigid-structure."),
-        rigid_border_mm: float = typer.Option(10.0, "--rigid-border-mm", help="Width (mm) over which the rigid motion is blended back into the field."),
+        rigid_border_mm: float = typer.Option(10.0, "--rigid-border-mm", callback=bounded(0, 100, "mm", low_open=True), help="Width (mm) over which the rigid motion is blended back into the field."),
         grid: Path | None = typer.Option(None, "--grid", help="Write on this image's grid instead of IMAGE's (e.g. the target scan's, so an inhaled lung is not cropped); same LPS world."),
         no_rigid: bool = typer.Option(False, "--no-rigid", help="With --scan: leave the fit's alignment of that scan out (the image stays in the model's frame)."),
     ) -> None:
