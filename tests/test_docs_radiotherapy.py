@@ -72,8 +72,8 @@ def test_worked_example_1_runs_and_track_agrees_with_dvf(data_dir, tmp_path, mon
     # the ITK pair's commands as written (the fit quicker: 60 evaluations, 3 folds, no baselines,
     # instead of `validate itk-pair`'s defaults); then the frames check the document states: the 51
     # landmarks through dvf.mha (SimpleITK) land where `track --scan 1` puts them, within 0.01 mm
-    from lungdeform.fit.config import FitConfig, FitInputs
     from lungdeform.evaluate.pipeline import run_fit
+    from lungdeform.fit.config import FitConfig, FitInputs
     folder = require_path(data_dir, "itk-right-lung-two-volumes")
     monkeypatch.chdir(tmp_path)
     files = [folder / f"CT_3D_lung_{n}" for n in ("fixed_mask.mha", "moving_mask.mha",

@@ -45,6 +45,30 @@ MOVED: dict[str, tuple[str, str]] = {
         "paper": "validate.paper", "msd": "validate.msd", "dirlab": "validate.dirlab",
         "dirlab_files": "validate.dirlab_files",
     }.items()},
+    # 0.8: fit/ split by concept (segment/, evaluate/), DICOM in io/dicom/, one name per meaning
+    **{old: (new, "0.8") for old, new in {
+        "fit.ct": "segment.ct",
+        "fit.segment": "segment.lungs",
+        "fit.lungsplit": "segment.split",
+        "fit.baselines": "evaluate.baselines",
+        "fit.crossval": "evaluate.crossval",
+        "fit.heldout": "evaluate.heldout",
+        "fit.inputs": "evaluate.inputs",
+        "fit.pipeline": "evaluate.pipeline",
+        "fit.placement": "evaluate.placement",
+        "fit.report": "evaluate.report",
+        "fit.scoring": "evaluate.scoring",
+        "fit.correspond": "fit.rays",
+        "fit.motion_prior": "interior.motion_prior",
+        "interior.correspondence": "interior.surface_map",
+        "breathing.baselines": "breathing.curve_models",
+        "io.dicomseries": "io.dicom.series",
+        "io.fourdct": "io.dicom.fourdct",
+        "io.rtstruct": "io.dicom.rtstruct",
+        "io.slices": "io.dicom.slices",
+        "playback.dvf": "playback.displacement_field",
+        "bench.dvf": "bench.displacement_field",
+    }.items()},
 }
 
 

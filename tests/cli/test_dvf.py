@@ -76,7 +76,7 @@ def test_a_field_beyond_the_lattice_cap_is_refused_before_it_is_allocated(files,
     # why: the fade margin grows with the motion, and with it the lattice; a state whose lattice
     # would pass MAX_LATTICE_NODES is an InputError naming the margin, not a MemoryError
     from lungdeform.errors import InputError
-    from lungdeform.playback import dvf as D
+    from lungdeform.playback import displacement_field as D
 
     d, m = files
     monkeypatch.setattr(D, "MAX_LATTICE_NODES", 1000)

@@ -7,7 +7,7 @@ from scipy import ndimage
 from lungdeform.errors import InputError
 from lungdeform.io.image import Image, resample_image
 from lungdeform.playback import density as M
-from lungdeform.playback import dvf as D
+from lungdeform.playback import displacement_field as D
 
 
 def _expansion(shape, spacing, centre, s):

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from lungdeform.geometry.mesh import icosphere
-from lungdeform.playback import dvf as D
+from lungdeform.playback import displacement_field as D
 from lungdeform.playback import rigid as RG
 
 

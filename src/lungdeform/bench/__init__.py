@@ -3,7 +3,7 @@
 Owns: :mod:`~lungdeform.bench.kernels` (the force solve: push loop against the sparse solve; playback
 against a memory copy of the same bytes), :mod:`~lungdeform.bench.cohort` (cohort-fit throughput:
 a serial loop against Dask at each worker count) and :mod:`~lungdeform.bench.viewer` (models of N
-vertices, the browser viewer's frame time beside the CPU playback step) and :mod:`~lungdeform.bench.dvf`
+vertices, the browser viewer's frame time beside the CPU playback step) and :mod:`~lungdeform.bench.displacement_field`
 (a displacement-field image against a trilinear resampling of the same grid).
 
 May import: everything below it (:mod:`lungdeform.cohort`, :mod:`lungdeform.playback`, …); never the CLI.

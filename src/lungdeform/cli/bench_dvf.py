@@ -7,9 +7,9 @@ from typing import Optional
 
 import typer
 
-from lungdeform.bench.dvf import bench_dvf
+from lungdeform.bench.displacement_field import bench_dvf
 from lungdeform.errors import InputError
-from lungdeform.playback import dvf as D
+from lungdeform.playback import displacement_field as D
 
 from .common import bounded, say, write_bench_json
 

@@ -20,7 +20,7 @@ from lungdeform.errors import InputError
 from lungdeform.io.grid import MAX_VOXELS, MAX_VOXELS_ENV, voxel_limit
 from lungdeform.io.image import read_image, resample_image
 from lungdeform.playback import rigid as RG
-from lungdeform.playback.dvf import FieldResult, State, scan_state, volume_state
+from lungdeform.playback.displacement_field import FieldResult, State, scan_state, volume_state
 from lungdeform.playback.schedule import check_reachable, read_volume_csv
 from lungdeform.playback.structures import read_structure
 

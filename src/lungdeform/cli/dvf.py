@@ -12,7 +12,7 @@ from lungdeform.io.dicom.registration import check_pair, write_registration
 from lungdeform.io.dicom.rtstruct import read_ct_series
 from lungdeform.io.image import read_image, write_image, write_suffix
 from lungdeform.io.modelfile import load_model
-from lungdeform.playback import dvf as D
+from lungdeform.playback import displacement_field as D
 from lungdeform.playback.trajectory import extrapolation_note
 
 from .common import (

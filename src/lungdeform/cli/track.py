@@ -23,7 +23,7 @@ from lungdeform.io.modelfile import load_model
 from lungdeform.playback import schedule as S
 from lungdeform.playback import structures as R
 from lungdeform.playback import trajectory as T
-from lungdeform.playback.dvf import scan_state, volume_state
+from lungdeform.playback.displacement_field import scan_state, volume_state
 
 from .common import check_cycles, check_output, check_tidal_ml, output_dir, read_curve, without_alignment
 

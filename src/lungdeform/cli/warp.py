@@ -14,7 +14,7 @@ from lungdeform.io.grid import Image
 from lungdeform.io.image import WRITE_SUFFIXES, read_image, resample_image, write_image, write_suffix
 from lungdeform.io.modelfile import load_model
 from lungdeform.playback import density as M
-from lungdeform.playback import dvf as D
+from lungdeform.playback import displacement_field as D
 from lungdeform.playback.trajectory import extrapolation_note
 
 from .common import (

@@ -16,10 +16,10 @@ import numpy as np
 from lungdeform.errors import InputError
 from lungdeform.geometry.frame import SIDES
 from lungdeform.model.direction import MAX_DEGREE
+from lungdeform.segment.split import SplitCache
 
 from .direction_correction import DEFAULT_DEGREE
 from .fitting import MODES
-from lungdeform.segment.split import SplitCache
 from .refinement import FINEST_MM
 
 #: Ways of bringing the larger-volume inputs into the end-exhale frame (:mod:`lungdeform.evaluate.placement`);

@@ -4,7 +4,7 @@ Owns: :mod:`~lungdeform.playback.schedule` (the volume over time an export plays
 simulated preset, a plain cycle), :mod:`~lungdeform.playback.export` (glTF 2.0 with morph targets,
 ParaView series), :mod:`~lungdeform.playback.markers` (markers carried in a glb),
 :mod:`~lungdeform.playback.trajectory` (where interior points go as the model breathes),
-:mod:`~lungdeform.playback.dvf` (the motion as a displacement-field image on a reference grid, docs/RADIOTHERAPY.md;
+:mod:`~lungdeform.playback.displacement_field` (the motion as a displacement-field image on a reference grid, docs/RADIOTHERAPY.md;
 its per-voxel numba passes in :mod:`~lungdeform.playback.voxel`),
 :mod:`~lungdeform.playback.structures` (RTSTRUCT structures moved per breathing state, their ITV and motion table),
 :mod:`~lungdeform.playback.density` (mass-conserving CT numbers, MIP/AIP/MinIP over phases),

@@ -14,7 +14,7 @@ multiplies it by ``det ∇φ(y) = det(I + ∇w(y))``:
 
 Then ``Σ (HU + 1000) · dV`` over a region equals the same sum over its preimage (change of variables),
 up to interpolation and the discrete Jacobian. Arrays: images ``(z, y, x)``, fields ``(z, y, x, 3)
-float32`` mm LPS, as in :mod:`lungdeform.playback.dvf`.
+float32`` mm LPS, as in :mod:`lungdeform.playback.displacement_field`.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ def conserve_mass(hu, jacobian) -> np.ndarray:
     """``(z, y, x) float32`` HU of a resampled image ``hu : (z, y, x)`` scaled so that mass is
     conserved: ``(hu + 1000) · jacobian − 1000``, with ``jacobian : (z, y, x)`` the determinant
     ``det(I + ∇w)`` of the resampling field ``w`` on the same grid
-    (:func:`lungdeform.playback.dvf.jacobian_determinant`)."""
+    (:func:`lungdeform.playback.displacement_field.jacobian_determinant`)."""
     hu = np.asarray(hu)
     j = np.asarray(jacobian)
     if hu.shape != j.shape:

@@ -6,14 +6,14 @@ lung by the lung's volume change (a GTV's mean Jacobian ≈ 1.10 on the POPI CT 
 tumour is far stiffer than the parenchyma around it and keeps its volume. Here the field ``f`` inside
 the structure's region ``S`` is replaced by the best rigid motion of ``S`` under ``f`` (least
 squares, Kabsch: the rotation ``R`` and the centroid's motion ``t``), blended back to ``f`` over a
-border of ``border_mm`` outside ``S`` by the smoothstep :func:`lungdeform.playback.dvf.fade` of the
+border of ``border_mm`` outside ``S`` by the smoothstep :func:`lungdeform.playback.displacement_field.fade` of the
 distance to ``S``:
 
     f'(x) = f(x) + β(x) · (R (x − c) + c + t − x − f(x)),   β = 1 in S, 0 from border_mm outside.
 
 Inside ``S`` the map is rigid (Jacobian 1: the volume is kept); the border absorbs the difference.
 Arrays: fields ``(z, y, x, 3) float32`` mm LPS, masks ``(z, y, x) bool`` on the same
-:class:`~lungdeform.playback.dvf.Grid`.
+:class:`~lungdeform.playback.displacement_field.Grid`.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from scipy import ndimage
 
 from lungdeform.errors import FoldError, InputError
 
-from .dvf import Grid, Lattice, fade, inside_lattice, jacobian_determinant, jacobian_range
+from .displacement_field import Grid, Lattice, fade, inside_lattice, jacobian_determinant, jacobian_range
 
 #: Default width (mm) of the border over which the rigid motion is blended back into the field.
 BORDER_MM = 10.0
@@ -138,7 +138,7 @@ class RigidReport:
 
 
 def rigid_field(result, grid: Grid, mask, border_mm: float = BORDER_MM) -> RigidReport:
-    """Make ``result.field`` (a :class:`~lungdeform.playback.dvf.FieldResult`) rigid, in place, over a
+    """Make ``result.field`` (a :class:`~lungdeform.playback.displacement_field.FieldResult`) rigid, in place, over a
     region ``mask : (z, y, x) bool`` of the reference, blended over ``border_mm``: a forward field over
     the region itself, an inverse (resampling) field over where the region lies at the state (the
     region resampled through the field). The Jacobian is checked again (:class:`FoldError` on folding)."""

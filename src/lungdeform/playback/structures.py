@@ -22,7 +22,7 @@ from lungdeform.io.dicom.rtstruct import Structure, pick_structure, read_rois, s
 from lungdeform.io.grid import Image
 from lungdeform.io.mask import mask_to_surface
 
-from .dvf import Grid, phase_states
+from .displacement_field import Grid, phase_states
 from .rigid import surface_mask
 from .trajectory import FrameSchedule, place_points, point_trajectories
 
@@ -58,7 +58,7 @@ def read_structure(path, name: str) -> TrackedStructure:
 
 def phase_frames(trace, phases: int) -> tuple[FrameSchedule, list[str]]:
     """``phases`` frames evenly over one breathing cycle of ``trace`` (as ``warp --phases``,
-    :func:`lungdeform.playback.dvf.phase_states`) and their tags ``phase00`` …"""
+    :func:`lungdeform.playback.displacement_field.phase_states`) and their tags ``phase00`` …"""
     states, period = phase_states(trace, phases)
     t_s = float(trace.t_s[0]) + period * np.arange(len(states)) / len(states)
     delta = np.array([s.delta_ml for s in states])

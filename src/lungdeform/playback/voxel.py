@@ -1,7 +1,7 @@
 """Fused per-voxel passes over a displacement-field image (numba, parallel over z-slices).
 
 Arrays: a field is ``(z, y, x, 3) float32`` mm LPS indexed ``[k, j, i]`` (components x, y, z), as in
-:mod:`lungdeform.playback.dvf`, which owns the grid, the lattice and the meaning of the field; this
+:mod:`lungdeform.playback.displacement_field`, which owns the grid, the lattice and the meaning of the field; this
 module only holds the loops that touch every voxel, so that no full-grid temporary is made:
 
 - :func:`fill_field`: trilinear interpolation of lattice nodes to every voxel of a box plus an

@@ -15,7 +15,7 @@ from lungdeform.fit.config import FitConfig, FitInputs
 from lungdeform.io.image import read_image, resample_image, to_sitk
 from lungdeform.io.landmarks import read_elastix_points
 from lungdeform.io.modelfile import load_model
-from lungdeform.playback import dvf as D
+from lungdeform.playback import displacement_field as D
 from tests.conftest import require_path
 
 

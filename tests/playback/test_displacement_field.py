@@ -9,7 +9,7 @@ from lungdeform.geometry.distance import SurfaceDistance
 from lungdeform.geometry.mesh import winding_numbers
 from lungdeform.io.image import to_sitk
 from lungdeform.model.lung import Model
-from lungdeform.playback import dvf as D
+from lungdeform.playback import displacement_field as D
 from lungdeform.playback.schedule import VolumeTrace
 from tests.browser.support import two_lungs
 

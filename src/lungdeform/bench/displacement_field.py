@@ -2,7 +2,7 @@
 
 The model of the embedded lungs (:func:`lungdeform.data.default_lungs`, Table I, supine) on a CT-sized
 grid (512 × 512 × 150 voxels by default, 0.8 × 0.8 × 2.5 mm about the lungs): the forward field at
-end-inhale of a tidal breath (:func:`lungdeform.playback.dvf.displacement_field`) and, as the
+end-inhale of a tidal breath (:func:`lungdeform.playback.displacement_field.displacement_field`) and, as the
 yardstick in the same run, SimpleITK's linear resampling of a float32 image of that grid through a
 rigid shift. The ratio of the two median times is the figure (docs/RADIOTHERAPY.md).
 """
@@ -18,7 +18,7 @@ from lungdeform.constants import TIDAL_VOLUME_ML
 from lungdeform.data import default_lungs
 from lungdeform.errors import InputError
 from lungdeform.model.lung import build_model
-from lungdeform.playback import dvf as D
+from lungdeform.playback import displacement_field as D
 
 
 def bench_grid(model, shape=(150, 512, 512), spacing=(0.8, 0.8, 2.5)) -> D.Grid:
