@@ -32,7 +32,7 @@ def test_validate_gating_prints_every_strategy_and_writes_metrics(tmp_path, rng,
 def test_bad_options_exit_2_with_one_line_and_write_nothing(tmp_path, rng, capsys):
     data = _data(tmp_path, rng)
     for opts, word in ((["--window", "middle:30"], "--window"), (["--latency-ms", "0"], "--latency-ms"),
-                       (["--coverage", "1.5"], "coverage"), (["--min-probability", "0"], "min_probability")):
+                       (["--coverage", "1.5"], "coverage"), (["--min-probability", "0"], "--min-probability")):
         assert main(["validate", "gating", "--data", str(data), "--out", str(tmp_path / "o"), *opts]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and word in err[0]

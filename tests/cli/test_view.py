@@ -73,7 +73,7 @@ def test_view_trace_serves_what_stream_prints(tmp_path, capsys, monkeypatch):
     (["--predict-ms", "2500"], "--predict-ms must be a finite number in [0, 2000] ms"),
     (["--curve", "CURVE"], "--trace and --curve"),
     (["--window", "end-exhale:30"], "--window, --confident and --coverage set the gate of --predict-ms"),
-    (["--predict-ms", "300", "--coverage", "1.5"], "--coverage: coverage must be in (0, 1)"),
+    (["--predict-ms", "300", "--coverage", "1.5"], "--coverage must be a finite number in (0, 1)"),
     (["--predict-ms", "300", "--window", "mid:30"], "--window 'mid:30': window kind must be one of"),
 ])
 def test_view_trace_bad_options_exit_2_with_one_line(tmp_path, capsys, args, needle):

@@ -21,7 +21,7 @@ def register(apps) -> None:
     def gating(
         data: Path = typer.Option(..., "--data", help="Folder searched for .vxp / .csv breathing traces."),
         out: Path = typer.Option(..., "--out", help="Output folder: metrics.json and plots/."),
-        latency_ms: float = typer.Option(300.0, "--latency-ms", callback=bounded(0, 10000, "ms"), help="Latency between decision and beam (ms)."),
+        latency_ms: float = typer.Option(300.0, "--latency-ms", callback=bounded(0, 10000, "ms", low_open=True), help="Latency between decision and beam (ms)."),
         window: str = typer.Option("end-exhale:30", "--window",
                                    help="Gating window KIND:PERCENT, KIND end-exhale or end-inhale."),
         confident: bool = typer.Option(False, "--confident",
