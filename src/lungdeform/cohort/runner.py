@@ -152,13 +152,16 @@ def run_cohort(manifest, out, *, scheduler: str | None = None, workers: int | No
         address = None
 
         def summary(interrupted: bool, pop: dict | None = None) -> dict:
-            return _summary(m, out, results, skipped, started, time.perf_counter() - t_start, address, n_workers,
-                            processes, options, interrupted, pop)
+            seconds = time.perf_counter() - t_start
+            run = {"started": started, "finished": _now(), "seconds": seconds, "interrupted": interrupted,
+                   "scheduler": address, "workers": n_workers,
+                   "processes": processes if address and n_workers else None}
+            return _summary(m, out, results, skipped, run, options, pop)
 
         try:
             if to_run:
-                address = _run_on_dask(to_run, out, options, scheduler, n_workers, processes, connect_timeout_s,
-                                       results, emit)
+                cluster = _Cluster(scheduler, n_workers, processes, connect_timeout_s)
+                address = _run_on_dask(to_run, out, options, cluster, results, emit)
         except KeyboardInterrupt:
             _collect_finished(to_run, out, options, results)
             write_json(out / "cohort.json", summary(True))
@@ -211,10 +214,23 @@ def _collect_finished(jobs: list[Job], out: Path, options: FitOptions, results: 
             results[job.key] = stored
 
 
-def _run_on_dask(jobs: list[Job], out: Path, options: FitOptions, scheduler, n_workers, processes,
-                 connect_timeout_s, results: dict, emit) -> str:
+@dataclass(frozen=True)
+class _Cluster:
+    """Where the jobs run: a running ``scheduler``'s address (connect within ``connect_timeout_s``),
+    else a local cluster of ``n_workers`` (worker ``processes``, or threads in this process)."""
+
+    scheduler: str | None
+    n_workers: int | None
+    processes: bool
+    connect_timeout_s: float
+
+
+def _run_on_dask(jobs: list[Job], out: Path, options: FitOptions, cluster_spec: _Cluster, results: dict,
+                 emit) -> str:
     """Submit one task per job, relay stage events, record results as they finish; return the
     scheduler's address. Closes what it opened, also on Ctrl-C."""
+    scheduler, n_workers = cluster_spec.scheduler, cluster_spec.n_workers
+    processes, connect_timeout_s = cluster_spec.processes, cluster_spec.connect_timeout_s
 
     require("distributed", "lungdeform cohort", "dask[distributed]")
     from distributed import Client, LocalCluster
@@ -337,8 +353,9 @@ def _collect(future, job: Job, out: Path, options: FitOptions) -> dict:
         return r
 
 
-def _summary(m, out, results, skipped, started, seconds, address, n_workers, processes, options,
-             interrupted, population) -> dict:
+def _summary(m, out, results, skipped, run: dict, options, population) -> dict:
+    """The ``cohort.json`` of ``m``; ``run`` : its started, finished, seconds, interrupted, scheduler,
+    workers and processes entries."""
     per_job = []
     for job in m.jobs:
         r = results.get(job.key)
@@ -355,8 +372,7 @@ def _summary(m, out, results, skipped, started, seconds, address, n_workers, pro
     return {
         "schema": SUMMARY_SCHEMA, "version": 1,
         "manifest": str(m.path), "out": str(out.resolve()),
-        "started": started, "finished": _now(), "seconds": seconds, "interrupted": interrupted,
-        "scheduler": address, "workers": n_workers, "processes": processes if address and n_workers else None,
+        **run,
         "options": asdict(options),
         "jobs": {"total": len(per_job), "ok": sum(p["status"] == "ok" for p in per_job),
                  "failed": sum(p["status"] == "failed" for p in per_job),
