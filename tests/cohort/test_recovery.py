@@ -16,10 +16,10 @@ from tests.cohort.test_population import _strict, record
 
 @pytest.fixture(scope="module")
 def synthetic(tmp_path_factory):
-    from lungdeform.cohort.synthetic import synthetic_cohort, write_cohort
+    from lungdeform.cohort.synthetic import SyntheticLungSpec, synthetic_cohort, write_cohort
 
     folder = tmp_path_factory.mktemp("synthetic")
-    lungs = synthetic_cohort(1, delta_ml=(200.0, 300.0), seed=2, law="linear", landmarks=0)
+    lungs = synthetic_cohort(1, delta_ml=(200.0, 300.0), seed=2, spec=SyntheticLungSpec(law="linear"))
     write_cohort(lungs, folder, seed=2)
     return folder, lungs
 
