@@ -23,7 +23,7 @@ import numpy as np
 from lungdeform.atomic import write_text
 from lungdeform.cohort.job import FitOptions, fit_job
 from lungdeform.cohort.manifest import read_manifest
-from lungdeform.cohort.runner import run_cohort
+from lungdeform.cohort.runner import Cluster, run_cohort
 from lungdeform.data import default_lungs
 from lungdeform.errors import InputError
 from lungdeform.geometry.mesh import Surface
@@ -85,7 +85,7 @@ def bench_cohort(manifest: Path, work: Path, workers: list[int], options: FitOpt
     for w in workers:
         say(f"dask: {n} subjects on {w} worker process{'es' if w != 1 else ''}")
         t0 = time.perf_counter()
-        r = run_cohort(m, work / f"dask-{w}", workers=w, options=options, population=False)
+        r = run_cohort(m, work / f"dask-{w}", cluster=Cluster(workers=w), options=options, population=False)
         rows.append(throughput_record("dask", w, n, time.perf_counter() - t0, list(r.results), serial_s))
     return rows
 
