@@ -39,8 +39,6 @@ WIDE_FUNCTIONS = {
     "lungdeform.playback.voxel:fill_field": 12, "lungdeform.playback.server:ViewerServer.__init__": 9,
     "lungdeform.model.lung:build_lung": 11, "lungdeform.io.dicom.series:write_ct_series": 9,
     "lungdeform.interior.field:interior_field": 9,
-    "lungdeform.evaluate.baselines:measure": 10,
-    "lungdeform.evaluate.baselines:affine_landmarks_cv": 9,
 }
 
 
