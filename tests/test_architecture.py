@@ -38,7 +38,6 @@ WIDE_FUNCTIONS = {
     "lungdeform.breathing.inversion:invert": 13,
     "lungdeform.playback.voxel:fill_field": 12, "lungdeform.playback.server:ViewerServer.__init__": 9,
     "lungdeform.model.lung:build_lung": 11, "lungdeform.io.dicom.series:write_ct_series": 9,
-    "lungdeform.interior.field:interior_field": 9,
 }
 
 

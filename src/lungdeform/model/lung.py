@@ -23,7 +23,7 @@ from lungdeform.constants import TIDAL_VOLUME_ML, gravity_vector
 from lungdeform.errors import InputError, LungdeformError
 from lungdeform.geometry.frame import LungFrame, lung_frame
 from lungdeform.geometry.mesh import Surface
-from lungdeform.interior.field import KINDS, interior_field
+from lungdeform.interior.field import KINDS, LandmarkCorrection, interior_field
 from lungdeform.interior.prior import lung_normaliser, prior_affine
 from lungdeform.interior.surface_map import SurfaceMapField, surface_extension
 from lungdeform.progress import Progress, silent
@@ -181,8 +181,8 @@ class LungModel:
         point inside it (surface-driven, plus the landmark correction when the model has one)."""
 
         on = slice(None) if self.interior_vertices is None else np.asarray(self.interior_vertices, bool)
-        return interior_field(self.surface.vertices[on], self.displacement[on], self.landmarks,
-                              self.landmark_correction, self.landmark_smoothing,
+        correction = LandmarkCorrection(self.landmarks, self.landmark_correction, self.landmark_smoothing)
+        return interior_field(self.surface.vertices[on], self.displacement[on], correction,
                               normals=self.surface.vertex_normals[on], kind=self.interior_kind,
                               correspondence=self.interior_map)
 
