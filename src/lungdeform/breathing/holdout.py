@@ -150,8 +150,8 @@ def fit_shapes(t_s, volume_ml, train: CycleAnchors, elastance: float, drift: boo
     """Fit the three shared shapes on the training cycles only. Returns {"pv": BreathingFit,
     "lujan": LujanFit, "fourier": (4,) coefficients, "peak_phase": float}."""
     ph = rb.median_peak_phase(train.starts_s, train.peaks_s)
-    pv = inv.invert(t_s, volume_ml, train.starts_s, peaks_s=train.peaks_s, elastance=elastance,
-                   per_cycle_calibration=True, drift=drift)
+    pv = inv.invert(t_s, volume_ml, train.starts_s, peaks_s=train.peaks_s,
+                    settings=inv.InversionSettings(elastance=elastance, per_cycle_calibration=True, drift=drift))
     lj = rb.fit_lujan(t_s, volume_ml, train.starts_s, peaks_s=train.peaks_s, peak_phase=ph, drift=drift)
     fo = rb.fit_fourier_shape(t_s, volume_ml, train.starts_s, peaks_s=train.peaks_s, peak_phase=ph, drift=drift)
     return {"pv": pv, "lujan": lj, "fourier": fo, "peak_phase": ph}
