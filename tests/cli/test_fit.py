@@ -387,6 +387,7 @@ def test_popi_ten_phase_full_cycle_4dct_goes_through_fit(data_dir, tmp_path, cap
     import tarfile
 
     from lungdeform.io.dicom import series as DS
+    from lungdeform.io.grid import Image
     from lungdeform.io.image import read_image
     from tests.cli.test_warp import _curve
     from tests.conftest import require_path
@@ -400,7 +401,7 @@ def test_popi_ten_phase_full_cycle_4dct_goes_through_fit(data_dir, tmp_path, cap
     assert main(["build", str(tmp_path / "seg" / "left_lung.nii.gz"), str(tmp_path / "seg" / "right_lung.nii.gz"),
                  "--target-vertices", "1500", "--out", str(model)]) == 0
     ct, head = read_image(popi), DS.study_header(popi)
-    DS.write_ct_series(tmp_path / "ct", ct.array[::2, ::2, ::2], ct.spacing * [2, 2, 2], ct.origin, ct.direction,
+    DS.write_ct_series(tmp_path / "ct", Image(ct.array[::2, ::2, ::2], ct.spacing * [2, 2, 2], ct.origin, ct.direction),
                        head, description=head.SeriesDescription)
     assert main(["warp", str(tmp_path / "ct"), str(model), "--curve", str(_curve(tmp_path / "c.csv")), "--phases",
                  "10", "--node-mm", "12", "--out", str(tmp_path / "4dct")]) == 0

@@ -11,8 +11,8 @@ import pytest
 
 from lungdeform import data
 from lungdeform.cohort.synthetic import (
-    SyntheticLungSpec,
     SOURCES,
+    SyntheticLungSpec,
     draw_constants,
     model_displacement,
     normal_noise,

@@ -13,7 +13,15 @@ from lungdeform.breathing.presets import PRESET_NAMES, PRESETS
 from lungdeform.breathing.pv import simulate
 from lungdeform.errors import InputError, ReadError
 from lungdeform.playback.export import glb_bytes
-from lungdeform.playback.server import PRESET_RATE_HZ, ServerLog, ViewerServer, check_glb, model_glb, presets_json, viewer_dir
+from lungdeform.playback.server import (
+    PRESET_RATE_HZ,
+    ServerLog,
+    ViewerServer,
+    check_glb,
+    model_glb,
+    presets_json,
+    viewer_dir,
+)
 from lungdeform.playback.tracefeed import LiveFeed
 from tests.browser.support import two_lungs
 

@@ -451,7 +451,8 @@ def _remove_airways(ct, candidate, spacing, body_cx, voxel_ml, lumen_hu, airway_
     z, seed2d, seed_info = seed
     seed_mask = np.zeros_like(candidate)
     seed_mask[z] = seed2d
-    tree, grow = grow_airways(ct, candidate, seed_mask, voxel_ml, AirwayGrowth(max_hu=airway_max_hu, max_ml=airway_max_ml))
+    growth = AirwayGrowth(max_hu=airway_max_hu, max_ml=airway_max_ml)
+    tree, grow = grow_airways(ct, candidate, seed_mask, voxel_ml, growth)
     removed = ndi.binary_dilation(tree, structure=_SIX) & candidate
     return tree, removed, grow, seed_info
 
