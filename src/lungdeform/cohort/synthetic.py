@@ -58,7 +58,7 @@ from lungdeform.geometry.mesh import Surface, vertex_normals
 from lungdeform.io.landmarks import write_elastix_points
 from lungdeform.io.meshfile import write_mesh
 from lungdeform.model.displacement import scales_for_volumes, volume_polynomial
-from lungdeform.model.lung import build_lung
+from lungdeform.model.lung import BuildSettings, build_lung
 from lungdeform.progress import Progress, silent
 
 TRUTH_SCHEMA = "lungdeform.synthetic.truth"
@@ -149,7 +149,7 @@ def model_displacement(surface: Surface, side: str, constants, unit_ml: float, *
     if not unit_ml > 0:
         raise InputError(f"unit_ml must be > 0 mL, got {unit_ml!r}")
     lung = build_lung(surface, side, constants=np.asarray(constants, float), gravity=gravity,
-                      calibration_ml=float(unit_ml), unit_ml=float(unit_ml))
+                      settings=BuildSettings(float(unit_ml), float(unit_ml)))
     return lung.displacement
 
 
