@@ -35,18 +35,7 @@ WIDE_FUNCTIONS = {
     "lungdeform.geometry.distance:_closest_on_triangle": 12, "lungdeform.geometry.distance:_closest_on_degenerate": 12,
     "lungdeform.geometry.distance:_closest_kernel": 10, "lungdeform.geometry.distance:_closest_on_segment": 9,
     "lungdeform.geometry.intersect:_narrow": 10,
-    "lungdeform.cohort.synthetic:synthesize_lung": 13, "lungdeform.cohort.synthetic:synthetic_cohort": 11,
-    "lungdeform.cohort.runner:_summary": 12, "lungdeform.cohort.runner:run_cohort": 10,
-    "lungdeform.cohort.runner:_run_on_dask": 9,
-    "lungdeform.breathing.inversion:invert": 13, "lungdeform.breathing.trace:_finish": 10,
-    "lungdeform.breathing.presets:_make": 10, "lungdeform.breathing.holdout:_held_out_models": 10,
-    "lungdeform.breathing.holdout:evaluate": 9,
-    "lungdeform.playback.voxel:fill_field": 12, "lungdeform.playback.server:ViewerServer.__init__": 9,
-    "lungdeform.model.lung:build_lung": 11, "lungdeform.io.dicom.series:write_ct_series": 9,
-    "lungdeform.interior.field:interior_field": 9,
-    "lungdeform.segment.lungs:grow_airways": 10, "lungdeform.fit.align:align_apex": 9,
-    "lungdeform.evaluate.baselines:measure": 10,
-    "lungdeform.evaluate.baselines:affine_landmarks_cv": 9,
+    "lungdeform.playback.voxel:fill_field": 12,
 }
 
 

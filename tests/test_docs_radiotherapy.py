@@ -110,13 +110,14 @@ def test_worked_example_2_runs_on_a_smaller_popi(data_dir, tmp_path, monkeypatch
     from lungdeform.geometry.mesh import icosphere
     from lungdeform.io.dicom import series as DS
     from lungdeform.io.dicom.rtstruct import read_ct_series, write_rtstruct
+    from lungdeform.io.grid import Image
     from lungdeform.io.image import read_image
     archive = require_path(data_dir, "popi-ct-phase00", "popi_phase00_dicom_141slices.tar.gz")
     monkeypatch.chdir(tmp_path)
     with tarfile.open(archive) as tar:
         tar.extractall(tmp_path / "full", filter="data")
     ct, head = read_image(tmp_path / "full" / "popi00"), DS.study_header(tmp_path / "full" / "popi00")
-    DS.write_ct_series(tmp_path / "popi00", ct.array[::2, ::4, ::4], ct.spacing * [4, 4, 2], ct.origin, ct.direction,
+    DS.write_ct_series(tmp_path / "popi00", Image(ct.array[::2, ::4, ::4], ct.spacing * [4, 4, 2], ct.origin, ct.direction),
                        head, description=head.SeriesDescription)
     shutil.rmtree(tmp_path / "full")
     t = np.linspace(0, 8, 161)

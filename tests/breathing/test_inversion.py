@@ -19,8 +19,8 @@ def test_invert_recovers_control_parameters_given_mechanics(rng):
     curve = br.simulate(truth, n_cycles=6, fs_hz=25.0)
     noisy = curve.volume_ml + rng.normal(0.0, 2.0, curve.t_s.size)
     starts = np.arange(7) * truth.period_s
-    fit = inv.invert(curve.t_s, noisy, starts, elastance=10.0, relaxation_ml=truth.relaxation_ml,
-                     fit_shape=False, init=truth)
+    settings = inv.InversionSettings(elastance=10.0, relaxation_ml=truth.relaxation_ml, fit_shape=False)
+    fit = inv.invert(curve.t_s, noisy, starts, settings=settings, init=truth)
     assert fit.success, fit.message
     assert np.allclose(fit.params.a, truth.a, atol=0.2)  # cmH2O; a_2 and a_3 (u, u²) correlate
     assert abs(np.std(fit.residual_ml) - 2.0) < 0.3  # the residual is the noise, nothing more
@@ -34,7 +34,8 @@ def test_invert_full_shape_fit_reproduces_the_curve(rng):
     curve = br.simulate(truth, n_cycles=6, fs_hz=25.0)
     noisy = curve.volume_ml + rng.normal(0.0, 2.0, curve.t_s.size)
     starts = np.arange(7) * truth.period_s
-    fit = inv.invert(curve.t_s, noisy, starts, elastance=10.0, relaxation_ml=truth.relaxation_ml)
+    fit = inv.invert(curve.t_s, noisy, starts,
+                     settings=inv.InversionSettings(elastance=10.0, relaxation_ml=truth.relaxation_ml))
     assert fit.success, fit.message
     assert np.std(fit.residual_ml) < 2.3
     clean = np.interp(fit.t_s, curve.t_s, curve.volume_ml)
@@ -54,7 +55,8 @@ def test_invert_with_peaks_recovers_lag_and_shape(rng):
     idx, y, _ = inv.cycle_design(t, starts, NORMAL.mechanics, rho_true, NORMAL.decay)
     gains = np.array([1.0, 0.8, 1.2, 0.9, 1.1, 1.0])
     v = 2400 + 1000 * (y @ NORMAL.a) * gains[idx] + rng.normal(0, 1.0, t.size)
-    fit = inv.invert(t, v, starts, peaks_s=peaks, elastance=10.0, per_cycle_calibration=True)
+    fit = inv.invert(t, v, starts, peaks_s=peaks,
+                     settings=inv.InversionSettings(elastance=10.0, per_cycle_calibration=True))
     assert abs(fit.peak_lag_s - lag) < 0.05
     assert fit.rms_percent < 1.0
     assert "offset" in fit.per_cycle and "a_1..a_5" in fit.shared

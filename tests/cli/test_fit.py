@@ -10,7 +10,7 @@ from lungdeform.cli.main import main
 from lungdeform.io.landmarks import write_elastix_points
 from lungdeform.io.meshfile import write_mesh
 from lungdeform.io.modelfile import load_model
-from lungdeform.model.lung import build_lung
+from lungdeform.model.lung import BuildSettings, build_lung
 from tests.conftest import ellipsoid_lung
 from tests.segment.test_split import two_lungs
 
@@ -21,7 +21,7 @@ TRUE = np.array([0.2, 1.5, 0.4, 0.8, 0.9, 1.8, 0.3, 1.0, 0.5])
 def pair(tmp_path):
     # synthetic truth: the end-exhale ellipsoid and the same lung deformed by a known model (+200 mL)
     lung = ellipsoid_lung("right")
-    model = build_lung(lung, "right", constants=TRUE, calibration_ml=200.0, unit_ml=200.0)
+    model = build_lung(lung, "right", constants=TRUE, settings=BuildSettings(200.0, 200.0))
     a = write_mesh(tmp_path / "ee.ply", lung.vertices, lung.faces)
     b = write_mesh(tmp_path / "ei.ply", lung.vertices + model.displacement, lung.faces)
     return a, b, lung
@@ -149,7 +149,7 @@ def test_fit_with_landmarks_is_held_out(tmp_path, pair, capsys):
     from lungdeform.io.landmarks import write_elastix_points
 
     a, b, lung = pair
-    u = build_lung(lung, "right", constants=TRUE, calibration_ml=200.0, unit_ml=200.0).displacement
+    u = build_lung(lung, "right", constants=TRUE, settings=BuildSettings(200.0, 200.0)).displacement
     rng = np.random.default_rng(2)
     lm = lung.vertices.mean(0) + rng.uniform(-1, 1, size=(12, 3)) * np.array([20.0, 35.0, 55.0])
     la = write_elastix_points(tmp_path / "ee.txt", lm)
@@ -387,6 +387,7 @@ def test_popi_ten_phase_full_cycle_4dct_goes_through_fit(data_dir, tmp_path, cap
     import tarfile
 
     from lungdeform.io.dicom import series as DS
+    from lungdeform.io.grid import Image
     from lungdeform.io.image import read_image
     from tests.cli.test_warp import _curve
     from tests.conftest import require_path
@@ -400,7 +401,7 @@ def test_popi_ten_phase_full_cycle_4dct_goes_through_fit(data_dir, tmp_path, cap
     assert main(["build", str(tmp_path / "seg" / "left_lung.nii.gz"), str(tmp_path / "seg" / "right_lung.nii.gz"),
                  "--target-vertices", "1500", "--out", str(model)]) == 0
     ct, head = read_image(popi), DS.study_header(popi)
-    DS.write_ct_series(tmp_path / "ct", ct.array[::2, ::2, ::2], ct.spacing * [2, 2, 2], ct.origin, ct.direction,
+    DS.write_ct_series(tmp_path / "ct", Image(ct.array[::2, ::2, ::2], ct.spacing * [2, 2, 2], ct.origin, ct.direction),
                        head, description=head.SeriesDescription)
     assert main(["warp", str(tmp_path / "ct"), str(model), "--curve", str(_curve(tmp_path / "c.csv")), "--phases",
                  "10", "--node-mm", "12", "--out", str(tmp_path / "4dct")]) == 0

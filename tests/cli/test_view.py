@@ -35,7 +35,7 @@ class _Captured:
 
     served: dict = {}
 
-    def __init__(self, glb, *, host, port, trace, live, errors=None):
+    def __init__(self, glb, *, host, port, trace, live, report=None):
         _Captured.served = {"glb": glb, "trace": trace}
         self.url = "http://127.0.0.1:0/"
 

@@ -11,6 +11,7 @@ from lungdeform.cli.main import main
 from lungdeform.geometry.mesh import icosphere
 from lungdeform.io.dicom import series as DS
 from lungdeform.io.dicom.rtstruct import read_ct_series, write_rtstruct
+from lungdeform.io.grid import Image
 from lungdeform.io.image import read_image
 from lungdeform.io.modelfile import load_model
 from tests.cli.test_dvf import files  # noqa: F401  (the shared module fixture)
@@ -56,7 +57,8 @@ def test_warp_phases_to_dicom_series(files, tmp_path):
     d, _ = files
     ref = read_image(d / "ref.nii.gz")
     head = DS.study_header()
-    DS.write_ct_series(tmp_path / "src", ref.array, ref.spacing, ref.origin, ref.direction, head, description="4D")
+    DS.write_ct_series(tmp_path / "src", Image(ref.array, ref.spacing, ref.origin, ref.direction), head,
+                       description="4D")
     out = tmp_path / "4dct"
     args = ["--curve", str(_curve(tmp_path / "c.csv")), "--phases", "2"]
     assert main(["warp", str(tmp_path / "src"), str(d / "model.npz"), *args, "--out", str(out)]) == 0
@@ -121,7 +123,7 @@ def test_popi_ten_phase_dicom_4dct_and_its_rtstruct(data_dir, tmp_path, capsys):
     assert main(["build", str(tmp_path / "seg" / "left_lung.nii.gz"), str(tmp_path / "seg" / "right_lung.nii.gz"),
                  "--target-vertices", "1000", "--out", str(model)]) == 0
     ct, head = read_image(popi), DS.study_header(popi)
-    DS.write_ct_series(tmp_path / "ct", ct.array[::2, ::4, ::4], ct.spacing * [4, 4, 2], ct.origin, ct.direction,
+    DS.write_ct_series(tmp_path / "ct", Image(ct.array[::2, ::4, ::4], ct.spacing * [4, 4, 2], ct.origin, ct.direction),
                        head, description=head.SeriesDescription)
     curve = _curve(tmp_path / "c.csv")
     assert main(["warp", str(tmp_path / "ct"), str(model), "--curve", str(curve), "--phases", "10",

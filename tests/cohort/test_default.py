@@ -7,7 +7,7 @@ import pytest
 
 from lungdeform.cohort.default import DefaultSample, learn_default, pooled_constants
 from lungdeform.errors import InputError
-from lungdeform.model.lung import build_lung
+from lungdeform.model.lung import BuildSettings, build_lung
 from lungdeform.model.population import paper_default
 from tests.conftest import ellipsoid_lung
 
@@ -22,7 +22,7 @@ def _samples(offset_per_ml, rng):
     for subject, dv in (("a", 300.0), ("b", 600.0)):
         for side in ("left", "right"):
             s = ellipsoid_lung(side, 3)
-            lung = build_lung(s, side, default=truth, calibration_ml=dv)
+            lung = build_lung(s, side, default=truth, settings=BuildSettings(dv))
             q = s.vertices.mean(axis=0) + rng.normal(scale=15.0, size=(40, 3))
             moved = lung.points_at(q, lung.volume_ee_ml + dv, exact=True)
             mirror = np.array([-1.0, 1, 1]) if side == "left" else np.ones(3)

@@ -31,13 +31,13 @@ def make_cohort(folder: Path, broken: str | None = "S2") -> Path:
     """Three one-lung subjects S0 (right), S1 (left, volumes given), S2 (right); ``broken``'s
     second scan is garbage with a valid name (it passes the manifest check, fails in the fit)."""
     from lungdeform.io.meshfile import write_mesh
-    from lungdeform.model.lung import build_lung
+    from lungdeform.model.lung import BuildSettings, build_lung
 
     rows = ["subject,side,volume_ml,path"]
     for i, side in enumerate(("right", "left", "right")):
         name = f"S{i}"
         lung = ellipsoid_lung(side, subdivisions=2)
-        model = build_lung(lung, side, constants=TRUE, calibration_ml=INSPIRATION_ML, unit_ml=INSPIRATION_ML)
+        model = build_lung(lung, side, constants=TRUE, settings=BuildSettings(INSPIRATION_ML, INSPIRATION_ML))
         write_mesh(folder / name / "ee.ply", lung.vertices, lung.faces)
         write_mesh(folder / name / "ei.ply", lung.vertices + model.displacement, lung.faces)
         if name == broken:
@@ -116,10 +116,10 @@ def test_result_constants_are_those_of_the_saved_model(tmp_path):
     from lungdeform.io.landmarks import write_elastix_points
     from lungdeform.io.meshfile import write_mesh
     from lungdeform.io.modelfile import load_model
-    from lungdeform.model.lung import build_lung
+    from lungdeform.model.lung import BuildSettings, build_lung
 
     lung = ellipsoid_lung("right", subdivisions=2)
-    model = build_lung(lung, "right", constants=TRUE, calibration_ml=INSPIRATION_ML, unit_ml=INSPIRATION_ML)
+    model = build_lung(lung, "right", constants=TRUE, settings=BuildSettings(INSPIRATION_ML, INSPIRATION_ML))
     folder = tmp_path / "c"
     idx = np.arange(0, lung.n_vertices, 16)  # surface landmarks at their true positions
     write_mesh(folder / "ee.ply", lung.vertices, lung.faces)

@@ -16,10 +16,10 @@ from tests.cohort.test_population import _strict, record
 
 @pytest.fixture(scope="module")
 def synthetic(tmp_path_factory):
-    from lungdeform.cohort.synthetic import synthetic_cohort, write_cohort
+    from lungdeform.cohort.synthetic import SyntheticLungSpec, synthetic_cohort, write_cohort
 
     folder = tmp_path_factory.mktemp("synthetic")
-    lungs = synthetic_cohort(1, delta_ml=(200.0, 300.0), seed=2, law="linear", landmarks=0)
+    lungs = synthetic_cohort(1, delta_ml=(200.0, 300.0), seed=2, spec=SyntheticLungSpec(law="linear"))
     write_cohort(lungs, folder, seed=2)
     return folder, lungs
 
@@ -27,9 +27,9 @@ def synthetic(tmp_path_factory):
 def _fabricate(out, lung, offset, eps, translation=None):
     """A fitted model whose u is (1 + eps)·u_true and constants true + offset (known errors)."""
     from lungdeform.io.modelfile import save_model
-    from lungdeform.model.lung import Model, build_lung
+    from lungdeform.model.lung import BuildSettings, Model, build_lung
 
-    model = build_lung(lung.rest, lung.side, constants=lung.constants, calibration_ml=lung.unit_ml, unit_ml=lung.unit_ml)
+    model = build_lung(lung.rest, lung.side, constants=lung.constants, settings=BuildSettings(lung.unit_ml, lung.unit_ml))
     model = dataclasses.replace(model, displacement=model.displacement * (1.0 + eps))
     folder = out / "subjects" / lung.subject / lung.side
     save_model(folder / "model.npz", Model({lung.side: model}))

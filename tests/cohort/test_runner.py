@@ -15,7 +15,7 @@ from lungdeform.cohort import job as J
 from lungdeform.cohort import runner as C
 from lungdeform.cohort.job import FitOptions, fit_job, input_digest, job_folder
 from lungdeform.cohort.manifest import read_manifest
-from lungdeform.cohort.runner import run_cohort
+from lungdeform.cohort.runner import Cluster, run_cohort
 from lungdeform.errors import InputError
 from tests.cohort.test_job import FAST, _hidden, cohort, make_cohort, quick_report  # noqa: F401 (fixtures)
 
@@ -34,10 +34,14 @@ def population_stub(monkeypatch):
     return calls
 
 
+#: one worker thread in this process: the jobs run here, fast to start
+LOCAL = Cluster(workers=1, processes=False)
+
+
 def test_cohort_isolates_failure_and_resumes(tmp_path, cohort, population_stub, quick_report):
     out = tmp_path / "out"
     events = []
-    r1 = run_cohort(cohort, out, workers=1, processes=False, options=FAST, progress=events.append)
+    r1 = run_cohort(cohort, out, cluster=LOCAL, options=FAST, progress=events.append)
     status = {f"{r['subject']}/{r['side']}": r["status"] for r in r1.results}
     assert status == {"S0/right": "ok", "S1/left": "ok", "S2/right": "failed"}
     assert r1.skipped == frozenset() and r1.failed[0]["error_type"] == "ReadError"
@@ -58,7 +62,7 @@ def test_cohort_isolates_failure_and_resumes(tmp_path, cohort, population_stub, 
     stamps = {k: (out / "subjects" / k / "result.json").stat().st_mtime_ns for k in ("S0/right", "S1/left")}
 
     # second run: the finished jobs are skipped untouched, the failed one runs again
-    r2 = run_cohort(cohort, out, workers=1, processes=False, options=FAST)
+    r2 = run_cohort(cohort, out, cluster=LOCAL, options=FAST)
     assert r2.skipped == {"S0/right", "S1/left"}
     assert [r["status"] for r in r2.results] == ["ok", "ok", "failed"]
     for k, t in stamps.items():
@@ -66,13 +70,13 @@ def test_cohort_isolates_failure_and_resumes(tmp_path, cohort, population_stub, 
     assert json.loads((out / "cohort.json").read_text())["jobs"]["ran"] == 1
 
     # --skip-failed: nothing to run, so no cluster is even started
-    r3 = run_cohort(cohort, out, workers=1, processes=False, options=FAST, skip_failed=True)
+    r3 = run_cohort(cohort, out, cluster=LOCAL, options=FAST, skip_failed=True)
     assert r3.skipped == {"S0/right", "S1/left", "S2/right"} and r3.scheduler is None
 
     # the broken input is fixed: only that job runs, and its new folder replaces the failed one whole
     good = make_cohort(tmp_path / "fixed", broken=None)
     (cohort.parent / "S2" / "ei.ply").write_bytes((good.parent / "S2" / "ei.ply").read_bytes())
-    r4 = run_cohort(cohort, out, workers=1, processes=False, options=FAST)
+    r4 = run_cohort(cohort, out, cluster=LOCAL, options=FAST)
     assert r4.skipped == {"S0/right", "S1/left"} and len(r4.ok) == 3
     assert {p.name for p in (out / "subjects" / "S2" / "right").iterdir()} == {
         "result.json", "model.npz", "metrics.json", "report.html"}  # no traceback.txt left from the failure
@@ -92,7 +96,7 @@ def test_exception_after_temp_folder_leaves_no_half_folder(tmp_path, cohort, mon
 
     monkeypatch.setattr(J, "_publish", flaky)
     out = tmp_path / "out"
-    r = run_cohort(cohort, out, workers=1, processes=False, options=FAST, population=False)
+    r = run_cohort(cohort, out, cluster=LOCAL, options=FAST, population=False)
     s1 = r.results[1]
     assert s1["status"] == "failed" and "injected" in s1["error"] and "could not be written" in s1["error"]
     assert [x["status"] for x in r.results] == ["ok", "failed", "failed"]
@@ -100,7 +104,7 @@ def test_exception_after_temp_folder_leaves_no_half_folder(tmp_path, cohort, mon
     assert _hidden(out) == []
     # once the disk is fine again, a re-run does S1 (and the still-broken S2) only
     monkeypatch.setattr(J, "_publish", publish)
-    r2 = run_cohort(cohort, out, workers=1, processes=False, options=FAST, population=False)
+    r2 = run_cohort(cohort, out, cluster=LOCAL, options=FAST, population=False)
     assert r2.skipped == {"S0/right"} and r2.results[1]["status"] == "ok"
 
 
@@ -123,20 +127,21 @@ def test_killed_job_leaves_only_a_stale_temp_folder_cleaned_next_run(tmp_path, c
     monkeypatch.setattr(J, "_publish", publish)
     monkeypatch.setattr(J, "_discard", discard)
     # the next run removes it and does the job
-    r = run_cohort(cohort, out, workers=1, processes=False, options=FAST, population=False)
+    r = run_cohort(cohort, out, cluster=LOCAL, options=FAST, population=False)
     assert r.results[0]["status"] == "ok" and _hidden(out) == []
 
 
 def test_refuses_bad_options_and_a_busy_output(tmp_path, cohort):
     with pytest.raises(InputError, match="^workers sets the size of the local cluster"):
-        run_cohort(cohort, tmp_path / "o", scheduler="tcp://127.0.0.1:1", workers=2)
+        run_cohort(cohort, tmp_path / "o", cluster=Cluster(scheduler="tcp://127.0.0.1:1", workers=2))
     with pytest.raises(InputError, match=r"^scheduler tcp://127\.0\.0\.1:1: cannot connect"):
-        run_cohort(cohort, tmp_path / "o", scheduler="tcp://127.0.0.1:1", connect_timeout_s=0.5, population=False)
+        run_cohort(cohort, tmp_path / "o", cluster=Cluster(scheduler="tcp://127.0.0.1:1", connect_timeout_s=0.5),
+                   population=False)
     busy = tmp_path / "busy"
     busy.mkdir()
     with C._exclusive(busy):
         with pytest.raises(InputError, match="in use by another cohort run"):
-            run_cohort(cohort, busy, processes=False)
+            run_cohort(cohort, busy, cluster=Cluster(processes=False))
     with pytest.raises(InputError, match="max_evaluations must be a whole number >= 1"):
         FitOptions(max_evaluations=0)
     # no silent coercion: fractions and strings are refused, numpy integers accepted

@@ -12,6 +12,7 @@ import pytest
 from lungdeform import data
 from lungdeform.cohort.synthetic import (
     SOURCES,
+    SyntheticLungSpec,
     draw_constants,
     model_displacement,
     normal_noise,
@@ -38,7 +39,8 @@ def left():
 @pytest.fixture(scope="module")
 def linear_lung(left):
     # the fit's own model form: linear playback, so the true constants reproduce every target
-    return synthesize_lung(left, "left", TRUE, [200.0, 350.0], rng=np.random.default_rng(1), law="linear")
+    return synthesize_lung(left, "left", TRUE, [200.0, 350.0], rng=np.random.default_rng(1),
+                           spec=SyntheticLungSpec(law="linear"))
 
 
 def test_displacement_is_k_F_d_rebuilt_from_parts(left):
@@ -65,7 +67,8 @@ def test_displacement_is_k_F_d_rebuilt_from_parts(left):
 
 
 def test_exact_law_gives_the_requested_volumes(left):
-    lung = synthesize_lung(left, "left", TRUE, [300.0, 500.0], rng=np.random.default_rng(2), law="exact")
+    lung = synthesize_lung(left, "left", TRUE, [300.0, 500.0], rng=np.random.default_rng(2),
+                           spec=SyntheticLungSpec(law="exact"))
     assert lung.scales[0] == pytest.approx(1.0, abs=1e-12)
     for j, dv in enumerate([300.0, 500.0]):
         clean = Surface(lung.clean_vertices(j), left.faces)
@@ -105,7 +108,7 @@ def test_true_constants_give_the_fit_a_near_zero_residual(linear_lung, left):
 
 def test_noise_is_normal_gaussian_with_requested_sd(left):
     sigma = 0.5
-    lung = synthesize_lung(left, "left", TRUE, [300.0], rng=np.random.default_rng(5), noise_mm=sigma)
+    lung = synthesize_lung(left, "left", TRUE, [300.0], rng=np.random.default_rng(5), spec=SyntheticLungSpec(noise_mm=sigma))
     clean = lung.clean_vertices(0)
     moved = lung.target(0).vertices - clean
     normals = Surface(clean, left.faces).vertex_normals
@@ -117,8 +120,8 @@ def test_noise_is_normal_gaussian_with_requested_sd(left):
     assert np.std(eps) == pytest.approx(sigma, abs=4 * se)
     assert abs(eps.mean()) < 4 * sigma / np.sqrt(len(eps))
     # seeded: the same seed gives the same noise, another seed another
-    again = synthesize_lung(left, "left", TRUE, [300.0], rng=np.random.default_rng(5), noise_mm=sigma)
-    other = synthesize_lung(left, "left", TRUE, [300.0], rng=np.random.default_rng(6), noise_mm=sigma)
+    again = synthesize_lung(left, "left", TRUE, [300.0], rng=np.random.default_rng(5), spec=SyntheticLungSpec(noise_mm=sigma))
+    other = synthesize_lung(left, "left", TRUE, [300.0], rng=np.random.default_rng(6), spec=SyntheticLungSpec(noise_mm=sigma))
     assert np.array_equal(again.noise, lung.noise) and not np.allclose(other.noise, lung.noise)
     with pytest.raises(InputError, match="noise"):
         normal_noise(clean, left.faces, -1.0, np.random.default_rng(0))
@@ -146,14 +149,14 @@ def test_scaled_shape_and_bad_input(left):
     with pytest.raises(InputError, match="subjects"):
         synthetic_cohort(0)
     with pytest.raises(InputError, match="law"):
-        synthetic_cohort(1, law="quadratic")
+        synthetic_cohort(1, spec=SyntheticLungSpec(law="quadratic"))
 
 
 def test_cohort_files_read_back(tmp_path):
     from lungdeform.io.landmarks import read_elastix_points
     from lungdeform.io.meshfile import load_surface
 
-    lungs = synthetic_cohort(2, noise_mm=0.3, seed=4, delta_ml=(250.0,), landmarks=20)
+    lungs = synthetic_cohort(2, spec=SyntheticLungSpec(noise_mm=0.3, landmarks=20), seed=4, delta_ml=(250.0,))
     assert [(lu.subject, lu.side, lu.source) for lu in lungs] == [
         ("synth000", "left", "coronacases_001_left"), ("synth000", "right", "coronacases_001_right"),
         ("synth001", "left", "coronacases_001_left"), ("synth001", "right", "itk_right_lung")]
@@ -174,7 +177,7 @@ def test_cohort_files_read_back(tmp_path):
         with np.load(tmp_path / rec["files"]["arrays"]) as z:
             assert np.array_equal(z["displacement"], lung.displacement)
     # the same seed reproduces the same cohort; subjects are independent of the cohort size
-    again = synthetic_cohort(1, noise_mm=0.3, seed=4, delta_ml=(250.0,), landmarks=20)
+    again = synthetic_cohort(1, spec=SyntheticLungSpec(noise_mm=0.3, landmarks=20), seed=4, delta_ml=(250.0,))
     assert np.array_equal(again[1].noise, lungs[1].noise)
     (tmp_path / "bad.json").write_text(json.dumps({"schema": "other"}))
     with pytest.raises(ReadError, match="bad.json"):
@@ -185,10 +188,10 @@ def test_table_shift_moves_targets_and_landmarks_only(left, tmp_path):
     # a known table shift per larger-volume scan: the surfaces and their landmarks are the unshifted
     # ones translated by it (truth), the end-exhale scan stays, and the shift is drawn last, so the
     # rest of the lung (constants, noise, landmarks) is the same as without one
-    kw = dict(rng=None, noise_mm=0.2, landmarks=10)
-    plain = synthesize_lung(left, "left", TRUE, [200.0, 350.0], **{**kw, "rng": np.random.default_rng(7)})
-    moved = synthesize_lung(left, "left", TRUE, [200.0, 350.0], table_shift_mm=5.0,
-                            **{**kw, "rng": np.random.default_rng(7)})
+    spec = SyntheticLungSpec(noise_mm=0.2, landmarks=10)
+    plain = synthesize_lung(left, "left", TRUE, [200.0, 350.0], rng=np.random.default_rng(7), spec=spec)
+    moved = synthesize_lung(left, "left", TRUE, [200.0, 350.0], rng=np.random.default_rng(7),
+                            spec=SyntheticLungSpec(noise_mm=0.2, landmarks=10, table_shift_mm=5.0))
     assert plain.table_shifts is None and moved.table_shifts.shape == (2, 3)
     assert np.array_equal(moved.noise, plain.noise) and np.array_equal(moved.landmark_index, plain.landmark_index)
     for j in range(2):
@@ -200,7 +203,8 @@ def test_table_shift_moves_targets_and_landmarks_only(left, tmp_path):
     assert np.asarray(data["lungs"][0]["table_shifts_mm"]) == pytest.approx(moved.table_shifts)
     assert data["cohort_command"].endswith("--align joint") and "--align none" in data["notes"]
     with pytest.raises(InputError, match="table_shift_mm"):
-        synthesize_lung(left, "left", TRUE, [200.0], rng=np.random.default_rng(0), table_shift_mm=-1.0)
+        synthesize_lung(left, "left", TRUE, [200.0], rng=np.random.default_rng(0),
+                        spec=SyntheticLungSpec(table_shift_mm=-1.0))
 
 
 def test_tiny_end_to_end_fit_recovers_the_constants(linear_lung, left):

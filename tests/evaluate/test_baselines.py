@@ -33,7 +33,7 @@ def test_apex_scaling_volume_and_apex():
 def test_measure_landmarks_and_no_motion():
     s = ellipsoid_lung("left", 3)
     lm = s.vertices.mean(0)[None] + np.array([[0.0, 0, 0], [10.0, 5, -20]])
-    m, per_vertex, err = measure(s, no_motion(s), s, landmarks=lm, landmarks_target=lm + [0, 0, 3.0])
+    m, per_vertex, err = measure(s, no_motion(s), s, landmarks=B.LandmarkPairs(lm, lm + [0, 0, 3.0]))
     assert m.surface_mean_mm == pytest.approx(0.0, abs=1e-9)
     assert err == pytest.approx([3.0, 3.0], abs=1e-9)
 
@@ -67,7 +67,8 @@ def test_affine_with_landmarks_moves_toward_them():
     assert lm @ m1[:3, :3].T + m1[:3, 3] == pytest.approx(lm_t, abs=1e-3)
     # held out: with landmarks that agree with the surfaces, every held-out landmark is exact
     lm_a = (lm - c) @ a.T + c
-    _, held = affine_landmarks_cv(s, target, lm, lm_a, landmark_folds(len(lm), 3), B.IcpSettings(iterations=300, tol_mm=0.0))
+    _, held = affine_landmarks_cv(s, target, B.LandmarkPairs(lm, lm_a), landmark_folds(len(lm), 3),
+                                  B.IcpSettings(iterations=300, tol_mm=0.0))
     assert held == pytest.approx(lm_a, abs=0.05)
 
 
@@ -100,10 +101,10 @@ def test_measure_uses_kept_vertices_and_given_predictions():
     keep = s.vertices[:, 0] < s.vertices[:, 0].max() - 10.0
     x = s.vertices + np.array([0.0, 0.0, 3.0])
     x[~keep] += 50.0
-    m, _, err = measure(s, x, s, keep=keep, landmarks=lm, landmarks_target=lm + [0, 0, 3.0])
+    m, _, err = measure(s, x, s, keep=keep, landmarks=B.LandmarkPairs(lm, lm + [0, 0, 3.0]))
     assert err == pytest.approx([0.0, 0.0], abs=1e-6)
-    m, _, err = measure(s, x, s, keep=keep, landmarks=lm, landmarks_target=lm + [0, 0, 3.0],
-                        landmarks_predicted=lm + [0, 4.0, 3.0])
+    m, _, err = measure(s, x, s, keep=keep,
+                        landmarks=B.LandmarkPairs(lm, lm + [0, 0, 3.0], predicted=lm + [0, 4.0, 3.0]))
     assert err == pytest.approx([4.0, 4.0]) and m.landmark_median_mm == pytest.approx(4.0)
 
 

@@ -14,7 +14,7 @@ from lungdeform.fit.fitting import FitSettings, fit_lung
 from lungdeform.fit.objective import LungFitter, Target
 from lungdeform.geometry.mesh import Surface
 from lungdeform.model.displacement import calibrate
-from lungdeform.model.lung import build_lung
+from lungdeform.model.lung import BuildSettings, build_lung
 from tests.conftest import ellipsoid_lung
 
 TRUE = np.array([0.2, 1.5, 0.4, 0.8, 0.9, 1.8, 0.3, 1.0, 0.5])
@@ -47,7 +47,7 @@ def rotated():
     # truth outside the paper's form but inside the correction's: the true model (Table-like
     # constants) with its directions turned by a known degree-1 field, same force, same volume
     lung = ellipsoid_lung("right", 3)
-    model = build_lung(lung, "right", constants=TRUE, calibration_ml=200.0, unit_ml=200.0)
+    model = build_lung(lung, "right", constants=TRUE, settings=BuildSettings(200.0, 200.0))
     fitter = LungFitter(lung, "right", [Target(lung, lung.volume_ml + 200.0)])  # for its frame and basis only
     c_true = np.zeros((4, 3))
     c_true[3] = [0.35, 0.0, 0.0]  # the x-component grows with the lung-frame ẑ
@@ -78,7 +78,7 @@ def test_paper_truth_needs_no_correction():
     # invariant: on a target made by the paper's own form, the correction cannot do much better
     # than the exact constants (objective ≈ 0) and an accepted one is always lower
     lung = ellipsoid_lung("right", 3)
-    model = build_lung(lung, "right", constants=TRUE, calibration_ml=200.0, unit_ml=200.0)
+    model = build_lung(lung, "right", constants=TRUE, settings=BuildSettings(200.0, 200.0))
     target = lung.deformed(model.displacement)
     fitter = LungFitter(lung, "right", [Target(target, target.volume_ml)])
     r = fit_direction_correction(fitter, model.directions, model.constants[6:], degree=2,

@@ -11,7 +11,7 @@ from lungdeform.fit.expandability import (
     smooth_observations,
 )
 from lungdeform.fit.objective import LungFitter, ObjectiveSettings, Target
-from lungdeform.model.lung import build_lung
+from lungdeform.model.lung import BuildSettings, build_lung
 from tests.conftest import ellipsoid_lung
 
 TRUE = np.array([0.2, 1.5, 0.4, 0.8, 0.9, 1.8, 0.3, 1.0, 0.5])
@@ -36,7 +36,7 @@ def test_stiffness_field_is_bounded_and_recovers_a_soft_region():
     lung = ellipsoid_lung("right", 3)
     z = lung.vertices[:, 2]
     e = np.where(z < np.median(z), 1.0 / 3.0, 1.0)
-    model = build_lung(lung, "right", constants=TRUE, stiffness=e, calibration_ml=200.0, unit_ml=200.0)
+    model = build_lung(lung, "right", constants=TRUE, stiffness=e, settings=BuildSettings(200.0, 200.0))
     target = lung.deformed(model.displacement).with_name("target")
     fitter = LungFitter(lung, "right", [Target(target, lung.volume_ml + 200.0, name="t")])
     uniform_obj = fitter.evaluate(TRUE[:6])
@@ -55,7 +55,7 @@ def test_stiffness_field_is_kept_only_when_it_lowers_the_objective():
     # the exact minimum (objective ~0): a fitted field cannot be better and must be rejected, with
     # the fitter left at uniform stiffness
     lung = ellipsoid_lung("right", 3)
-    model = build_lung(lung, "right", constants=TRUE, calibration_ml=200.0, unit_ml=200.0)
+    model = build_lung(lung, "right", constants=TRUE, settings=BuildSettings(200.0, 200.0))
     target = lung.deformed(model.displacement).with_name("target")
     fitter = LungFitter(lung, "right", [Target(target, lung.volume_ml + 200.0, name="t")], settings=ObjectiveSettings(samples=500))
     best = fitter.evaluate(TRUE[:6])

@@ -15,7 +15,7 @@ from lungdeform.fit.objective import (
     least_squares_constants,
 )
 from lungdeform.model.graph import spring_graph
-from lungdeform.model.lung import build_lung
+from lungdeform.model.lung import BuildSettings, build_lung
 from lungdeform.model.solve import ForceSolver
 from lungdeform.model.transfer import local_transfer
 from tests.conftest import ellipsoid_lung
@@ -26,7 +26,7 @@ TRUE = np.array([0.2, 1.5, 0.4, 0.8, 0.9, 1.8, 0.3, 1.0, 0.5])
 @pytest.fixture(scope="module")
 def truth():
     lung = ellipsoid_lung("right", 3)
-    model = build_lung(lung, "right", constants=TRUE, calibration_ml=200.0, unit_ml=200.0)
+    model = build_lung(lung, "right", constants=TRUE, settings=BuildSettings(200.0, 200.0))
     target = lung.deformed(model.displacement).with_name("target")
     return lung, model, target
 

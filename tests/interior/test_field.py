@@ -5,7 +5,7 @@ import pytest
 
 from lungdeform.errors import InputError
 from lungdeform.geometry.mesh import icosphere
-from lungdeform.interior.field import correction_per_unit, interior_field
+from lungdeform.interior.field import LandmarkCorrection, correction_per_unit, interior_field
 
 
 def _inside(rng, n, radius):
@@ -47,7 +47,8 @@ def test_correction_adds_the_landmark_motion(rng):
     def slide(x):
         return np.stack([np.sin(x[:, 2] / 30.0), 0.5 * np.cos(x[:, 0] / 25.0), np.zeros(len(x))], axis=1)
 
-    field = interior_field(s.vertices, np.zeros_like(s.vertices), lm, slide(lm), 0.0, normals=s.vertex_normals)
+    field = interior_field(s.vertices, np.zeros_like(s.vertices), LandmarkCorrection(lm, slide(lm), 0.0),
+                           normals=s.vertex_normals)
     assert field.corrected
     assert field.displacement(lm) == pytest.approx(slide(lm), abs=1e-6)
     q = _inside(rng, 50, 30.0)
@@ -65,11 +66,11 @@ def test_bad_input():
     with pytest.raises(InputError, match="unit length"):
         interior_field(v, v, normals=2.0 * n)
     with pytest.raises(InputError, match="at least 5 points"):
-        interior_field(v, v, v[:3], v[:3], normals=n, kind="sliding_thin_plate")
+        interior_field(v, v, LandmarkCorrection(v[:3], v[:3]), normals=n, kind="sliding_thin_plate")
     with pytest.raises(InputError, match="values must be finite with the anchors' shape"):
-        interior_field(v, v, v[:3], v[:2], normals=n)
+        interior_field(v, v, LandmarkCorrection(v[:3], v[:2]), normals=n)
     with pytest.raises(InputError, match="smoothing"):
-        interior_field(v, v, smoothing=-1.0, normals=n)
+        interior_field(v, v, LandmarkCorrection(smoothing=-1.0), normals=n)
     with pytest.raises(InputError, match="interior kind"):
         interior_field(v, v, normals=n, kind="spline")
     with pytest.raises(InputError, match="NaN"):

@@ -6,7 +6,7 @@ import pytest
 from lungdeform.errors import InputError
 from lungdeform.model.force import field_basis
 from lungdeform.model.graph import spring_graph
-from lungdeform.model.lung import build_lung
+from lungdeform.model.lung import BuildSettings, build_lung
 from lungdeform.model.solve import push
 from lungdeform.model.transfer import local_transfer
 
@@ -60,7 +60,7 @@ def test_orientation_changes_motion_but_keeps_volume(model):
 
 
 def test_solver_choice_does_not_change_the_model(left_lung, model):
-    direct = build_lung(left_lung, "left", solver="direct")
+    direct = build_lung(left_lung, "left", settings=BuildSettings(solver="direct"))
     assert np.allclose(direct.displacement, model.displacement, rtol=1e-8, atol=1e-12)
 
 
@@ -92,7 +92,7 @@ def test_embedded_real_lungs_follow_500_ml(tmp_path):
     model = build_model(lungs, tidal_ml=500.0)
     for lung in model.lungs.values():
         _check_tidal_linearity(lung)
-    single = build_lung(lungs["right"], "right", calibration_ml=500.0)
+    single = build_lung(lungs["right"], "right", settings=BuildSettings(500.0))
     _check_tidal_linearity(single)
     # directions and force are physical: every vertex moves outward-ish on average
     u = single.displacement
@@ -110,7 +110,7 @@ def test_real_itk_lung_follows_500_ml(data_dir):
     surfaces = [s for m in mask for s, _ in load(m, target_vertices=4000)]
     smaller = min(surfaces, key=lambda s: s.volume_ml)
     assert 3000 < smaller.volume_ml < 3700  # data README: 3.36 L
-    lung = build_lung(smaller, "right", calibration_ml=500.0)
+    lung = build_lung(smaller, "right", settings=BuildSettings(500.0))
     _check_tidal_linearity(lung)
 
 

@@ -13,7 +13,15 @@ from lungdeform.breathing.presets import PRESET_NAMES, PRESETS
 from lungdeform.breathing.pv import simulate
 from lungdeform.errors import InputError, ReadError
 from lungdeform.playback.export import glb_bytes
-from lungdeform.playback.server import PRESET_RATE_HZ, ViewerServer, check_glb, model_glb, presets_json, viewer_dir
+from lungdeform.playback.server import (
+    PRESET_RATE_HZ,
+    ServerLog,
+    ViewerServer,
+    check_glb,
+    model_glb,
+    presets_json,
+    viewer_dir,
+)
 from lungdeform.playback.tracefeed import LiveFeed
 from tests.browser.support import two_lungs
 
@@ -202,7 +210,7 @@ def test_a_client_that_resets_the_connection_is_one_line_not_a_traceback(glb, ca
     import time
 
     lines: list[str] = []
-    with ViewerServer(glb, port=0, errors=lines.append) as srv:
+    with ViewerServer(glb, port=0, report=ServerLog(errors=lines.append)) as srv:
         for _ in range(3):
             s = socket.create_connection(("127.0.0.1", srv.port), timeout=5)
             s.sendall(b"GET /model.glb HTTP/1.1\r\nHost: 127.0.0.1")  # the headers never end

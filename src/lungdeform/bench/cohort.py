@@ -23,12 +23,12 @@ import numpy as np
 from lungdeform.atomic import write_text
 from lungdeform.cohort.job import FitOptions, fit_job
 from lungdeform.cohort.manifest import read_manifest
-from lungdeform.cohort.runner import run_cohort
+from lungdeform.cohort.runner import Cluster, run_cohort
 from lungdeform.data import default_lungs
 from lungdeform.errors import InputError
 from lungdeform.geometry.mesh import Surface
 from lungdeform.io.meshfile import write_mesh
-from lungdeform.model.lung import build_lung
+from lungdeform.model.lung import BuildSettings, build_lung
 from lungdeform.progress import Progress, silent
 
 from .kernels import lung_with_vertices
@@ -59,7 +59,7 @@ def make_bench_cohort(folder: Path, subjects: int, *, vertices: int | None = Non
         base = lungs[side]
         c = base.vertices.mean(axis=0)
         ee = Surface(c + (base.vertices - c) * rng.uniform(0.9, 1.1), base.faces, f"bench{i:03d}")
-        model = build_lung(ee, side, calibration_ml=INSPIRATION_ML, unit_ml=INSPIRATION_ML)
+        model = build_lung(ee, side, settings=BuildSettings(INSPIRATION_ML, INSPIRATION_ML))
         name = f"B{i:03d}"
         write_mesh(folder / name / "ee.ply", ee.vertices, ee.faces)
         write_mesh(folder / name / "ei.ply", ee.vertices + model.displacement, ee.faces)
@@ -85,7 +85,7 @@ def bench_cohort(manifest: Path, work: Path, workers: list[int], options: FitOpt
     for w in workers:
         say(f"dask: {n} subjects on {w} worker process{'es' if w != 1 else ''}")
         t0 = time.perf_counter()
-        r = run_cohort(m, work / f"dask-{w}", workers=w, options=options, population=False)
+        r = run_cohort(m, work / f"dask-{w}", cluster=Cluster(workers=w), options=options, population=False)
         rows.append(throughput_record("dask", w, n, time.perf_counter() - t0, list(r.results), serial_s))
     return rows
 

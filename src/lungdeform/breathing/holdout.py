@@ -42,6 +42,8 @@ amplitude), the score on held-out cycles that model-free flags call regular
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from lungdeform.breathing import curve_models as rb
@@ -55,6 +57,28 @@ from .trace import Trace, resample
 MODELS = ("model", "lujan", "fourier")
 #: Low-pass (Hz) for the anchor levels of the "anchored" calibration.
 ANCHOR_LEVEL_CUTOFF_HZ = 1.0
+
+
+@dataclass(frozen=True)
+class HoldoutSettings:
+    """How :func:`evaluate` fits: ``fs_hz`` the resampling rate (None: the trace's own); ``elastance``
+    cmH2O/L of the PV fit; ``use_marks`` takes the cycles from recorded RPM marks instead of the
+    detector; ``drift``: the headline calibration includes a per-cycle linear drift (the fits then
+    allow it too)."""
+
+    fs_hz: float | None = None
+    elastance: float = 10.0
+    use_marks: bool = False
+    drift: bool = True
+
+
+@dataclass(frozen=True)
+class _Samples:
+    """One side of the split: times ``t_s (n,)`` s, volumes ``volume_ml (n,)`` mL, and their cycles."""
+
+    t_s: np.ndarray
+    volume_ml: np.ndarray
+    anchors: CycleAnchors
 
 
 def rms_percent(model, values, cycle_starts_s, t_s, of: str = "cycle", keep=None) -> float:
@@ -126,8 +150,8 @@ def fit_shapes(t_s, volume_ml, train: CycleAnchors, elastance: float, drift: boo
     """Fit the three shared shapes on the training cycles only. Returns {"pv": BreathingFit,
     "lujan": LujanFit, "fourier": (4,) coefficients, "peak_phase": float}."""
     ph = rb.median_peak_phase(train.starts_s, train.peaks_s)
-    pv = inv.invert(t_s, volume_ml, train.starts_s, peaks_s=train.peaks_s, elastance=elastance,
-                   per_cycle_calibration=True, drift=drift)
+    pv = inv.invert(t_s, volume_ml, train.starts_s, peaks_s=train.peaks_s,
+                    settings=inv.InversionSettings(elastance=elastance, per_cycle_calibration=True, drift=drift))
     lj = rb.fit_lujan(t_s, volume_ml, train.starts_s, peaks_s=train.peaks_s, peak_phase=ph, drift=drift)
     fo = rb.fit_fourier_shape(t_s, volume_ml, train.starts_s, peaks_s=train.peaks_s, peak_phase=ph, drift=drift)
     return {"pv": pv, "lujan": lj, "fourier": fo, "peak_phase": ph}
@@ -165,17 +189,17 @@ def _split_cycles(trace: Trace, train_fraction: float, fs_hz, use_marks: bool, a
     return fs, tr, anchors, n_train, anchors.subset(0, n_train), anchors.subset(n_train, k)
 
 
-def _held_out_models(t, vol, in_train, tt, vt, train: CycleAnchors, test: CycleAnchors, level_fn,
-                     elastance: float, drift: bool) -> dict:
-    """The shared shapes fitted on the training samples and calibrated three ways on the held-out
-    samples ``tt, vt`` (s, mL): ``{"fits", "fits_no_drift", "shared", "no_drift", "anchored"}``, the
-    last three name -> model (mL) at ``tt``."""
+def _held_out_models(training: _Samples, held_out: _Samples, level_fn, elastance: float, drift: bool) -> dict:
+    """The shared shapes fitted on the ``training`` samples and calibrated three ways on the
+    ``held_out`` samples ``tt, vt`` (s, mL): ``{"fits", "fits_no_drift", "shared", "no_drift",
+    "anchored"}``, the last three name -> model (mL) at ``tt``."""
+    train, test, tt, vt = training.anchors, held_out.anchors, held_out.t_s, held_out.volume_ml
     s_test = test.starts_s
-    fits = fit_shapes(t[in_train], vol[in_train], train, elastance, drift)
+    fits = fit_shapes(training.t_s, training.volume_ml, train, elastance, drift)
     shapes = shape_functions(fits, test)
     shared = {m: calibrate_lsq(f(tt), tt, vt, s_test, drift) for m, f in shapes.items()}
     if drift:
-        fits_nd = fit_shapes(t[in_train], vol[in_train], train, elastance, False)
+        fits_nd = fit_shapes(training.t_s, training.volume_ml, train, elastance, False)
         no_drift = {m: calibrate_lsq(f(tt), tt, vt, s_test, False)
                     for m, f in shape_functions(fits_nd, test).items()}
     else:
@@ -228,15 +252,15 @@ def _score_table(models: dict, refit: dict, vt, tt, s_test, regular, reasons) ->
     }
 
 
-def evaluate(trace: Trace, tidal_volume_ml: float = 500.0, train_fraction: float = 0.5,
-             fs_hz: float | None = None, elastance: float = 10.0, use_marks: bool = False,
-             drift: bool = True, anchors: CycleAnchors | None = None, progress: Progress | None = None) -> dict:
+def evaluate(trace: Trace, tidal_volume_ml: float = 500.0, train_fraction: float = 0.5, *,
+             settings: HoldoutSettings = HoldoutSettings(), anchors: CycleAnchors | None = None,
+             progress: Progress | None = None) -> dict:
     """Fit the PV driver and the baselines on early cycles, score them on later ones (see module doc).
 
-    anchors : the cycles of the resampled trace, if known (else detected); ``use_marks`` takes them
-    from recorded RPM marks instead of the detector. ``drift`` : the headline calibration includes a
-    per-cycle linear drift (the fits then allow it too).
+    anchors : the cycles of the resampled trace, if known (else detected); ``settings`` : resampling
+    rate, elastance, cycles from marks, drift (:class:`HoldoutSettings`).
     """
+    fs_hz, elastance, use_marks, drift = settings.fs_hz, settings.elastance, settings.use_marks, settings.drift
     fs, tr, anchors, n_train, train, test = _split_cycles(trace, train_fraction, fs_hz, use_marks, anchors)
     s_train, s_test = train.starts_s, test.starts_s
     t = tr.t_s
@@ -251,7 +275,8 @@ def evaluate(trace: Trace, tidal_volume_ml: float = 500.0, train_fraction: float
 
     if progress:
         progress(f"{trace.source}: fits on {n_train} cycles")
-    models = _held_out_models(t, vol, in_train, tt, vt, train, test, level_fn, elastance, drift)
+    models = _held_out_models(_Samples(t[in_train], vol[in_train], train), _Samples(tt, vt, test), level_fn,
+                              elastance, drift)
     if progress:
         progress(f"{trace.source}: per-cycle refits")
     fits = models["fits"]

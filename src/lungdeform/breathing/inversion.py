@@ -290,27 +290,46 @@ def _fit_result(problem: _ShapeProblem, x, success: bool, message: str, v_ml, v_
                         peak_lag_s=float(x[2]) if use_peaks else None)
 
 
-def invert(t_s, volume_ml, cycle_starts_s, peaks_s=None, elastance: float = 10.0,
-           per_cycle_calibration: bool = False, drift: bool = False, relaxation_ml: float | None = None,
-           fit_shape: bool = True, init: BreathingParams | None = None, bounds: dict | None = None,
-           n_polish: int = 2, max_evals: int = 500) -> BreathingFit:
+@dataclass(frozen=True)
+class InversionSettings:
+    """How :func:`invert` fits.
+
+    elastance : E (cmH2O/L) held fixed — volume alone cannot separate E from the a_k scale.
+    per_cycle_calibration : let each cycle have its own gain and offset (amplitude drift of an
+    external surrogate); the five a_k then describe the shape shared by all cycles. ``drift`` adds
+    a per-cycle linear baseline drift to that calibration.
+    relaxation_ml : the relaxation volume, mL (None: the trace's minimum).
+    fit_shape : False keeps τ, I/E, ρ (or δ), κ of ``init`` and solves only the linear a_k.
+    bounds : overrides of :data:`SHAPE_BOUNDS`.
+    n_polish, max_evals : L-BFGS-B polishes from the best grid starts, and their evaluation budget.
+    """
+
+    elastance: float = 10.0
+    per_cycle_calibration: bool = False
+    drift: bool = False
+    relaxation_ml: float | None = None
+    fit_shape: bool = True
+    bounds: dict | None = None
+    n_polish: int = 2
+    max_evals: int = 500
+
+
+def invert(t_s, volume_ml, cycle_starts_s, peaks_s=None, *, settings: InversionSettings = InversionSettings(),
+           init: BreathingParams | None = None) -> BreathingFit:
     """Estimate the five control parameters (and τ = R/E, I/E, ρ, κ) from a volume trace.
 
     t_s : (n,) float, s; volume_ml : (n,) float, mL; cycle_starts_s : (k+1,) float, s, the
     inspiration onsets that bound k ≥ 1 cycles (samples outside them are ignored).
     peaks_s : (k,) float, s, optional end-inhale times: then each cycle's drive has its own
     inspiratory time, ending a shared lag δ (fitted, s) before the observed peak, instead of one ρ.
-    elastance : E (cmH2O/L) held fixed — volume alone cannot separate E from the a_k scale.
-    per_cycle_calibration : let each cycle have its own gain and offset (amplitude drift of an
-    external surrogate); the five a_k then describe the shape shared by all cycles. ``drift`` adds
-    a per-cycle linear baseline drift to that calibration.
-    fit_shape : False keeps τ, I/E, ρ (or δ), κ of ``init`` and solves only the linear a_k.
-    bounds : overrides of :data:`SHAPE_BOUNDS`.
-    n_polish, max_evals : L-BFGS-B polishes from the best grid starts, and their evaluation budget.
+    settings : elastance, calibration, relaxation volume, search (:class:`InversionSettings`).
+    init : the start of the search (``fit_shape=False``: the shape kept).
     Returns a :class:`BreathingFit`; ``success`` is False (with the reason) when the outer search
     fails to converge or the fitted system is non-physical.
     """
-
+    elastance, relaxation_ml, bounds = settings.elastance, settings.relaxation_ml, settings.bounds
+    per_cycle_calibration, drift = settings.per_cycle_calibration, settings.drift
+    fit_shape, n_polish, max_evals = settings.fit_shape, settings.n_polish, settings.max_evals
     t, v_ml, starts = _samples_in_cycles(t_s, volume_ml, cycle_starts_s, peaks_s)
     v_rel = relaxation_ml if relaxation_ml is not None else float(np.min(v_ml))
     cidx = np.searchsorted(starts, t, side="right") - 1

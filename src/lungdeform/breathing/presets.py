@@ -59,9 +59,13 @@ class Preset:
                 "params": self.params.as_dict(), "sources": list(self.sources)}
 
 
-def _make(name, description, mech, pattern, period, rho, decay, vt, relax, sources) -> Preset:
-    p = BreathingParams(mech, pattern, period_s=period, insp_fraction=rho, decay=decay, relaxation_ml=relax)
-    return Preset(name, description, scaled_to_tidal_volume(p, vt), vt, tuple(sources))
+def _make(name, description, params: BreathingParams, vt, sources) -> Preset:
+    """The preset with ``params`` (a_k relative) scaled once to the tidal volume ``vt`` mL."""
+    return Preset(name, description, scaled_to_tidal_volume(params, vt), vt, tuple(sources))
+
+
+def _params(mech, pattern, period, rho, decay, relax) -> BreathingParams:
+    return BreathingParams(mech, pattern, period_s=period, insp_fraction=rho, decay=decay, relaxation_ml=relax)
 
 
 _WEST = "West JB, Respiratory Physiology: The Essentials (compliance, airway resistance)"
@@ -71,26 +75,26 @@ _MEAD = "Mead J, Physiol Rev 1961;41:281 (inertance)"
 def _build() -> dict[str, Preset]:
     presets = [
         _make("normal", "normal quiet breathing, 15/min, 500 mL",
-              Mechanics(10.0, 2.5, 0.01), (0.0, 1.0, 0.5, 0.0, 0.0), 4.0, 0.42, 0.15, 500.0, 2400.0,
+              _params(Mechanics(10.0, 2.5, 0.01), (0.0, 1.0, 0.5, 0.0, 0.0), 4.0, 0.42, 0.15, 2400.0), 500.0,
               [_WEST, _MEAD, "Tobin MJ et al., Chest 1983;84:202 (normal breathing pattern)"]),
         _make("deep", "deep breathing / slow vital-capacity manoeuvre, 5/min, 4.5 L with active expiration",
-              Mechanics(10.0, 2.5, 0.01), (0.0, 1.0, 0.3, -0.6, 0.0), 12.0, 0.45, 0.1, 4500.0, 2400.0,
+              _params(Mechanics(10.0, 2.5, 0.01), (0.0, 1.0, 0.3, -0.6, 0.0), 12.0, 0.45, 0.1, 2400.0), 4500.0,
               ["Quanjer PH et al., Eur Respir J 1993;6 Suppl 16:5 (vital capacity)",
                "Miller MR et al., Eur Respir J 2005;26:319 (slow VC manoeuvre)", _WEST]),
         _make("copd", "obstructive (COPD): high resistance, long expiration, air trapping",
-              Mechanics(8.0, 12.0, 0.01), (0.0, 1.0, 0.3, 0.0, 0.0), 3.2, 0.33, 0.1, 500.0, 3500.0,
+              _params(Mechanics(8.0, 12.0, 0.01), (0.0, 1.0, 0.3, 0.0, 0.0), 3.2, 0.33, 0.1, 3500.0), 500.0,
               ["Lucangelo U et al., Respir Care 2005;50:55 (R_rs, E_rs in COPD)",
                "Tobin MJ et al., Chest 1983;84:286 (breathing pattern in COPD)"]),
         _make("restrictive", "restrictive (fibrosis): stiff lungs, small fast breaths",
-              Mechanics(25.0, 3.0, 0.01), (0.0, 1.0, 0.5, 0.0, 0.0), 2.6, 0.42, 0.15, 350.0, 1700.0,
+              _params(Mechanics(25.0, 3.0, 0.01), (0.0, 1.0, 0.5, 0.0, 0.0), 2.6, 0.42, 0.15, 1700.0), 350.0,
               ["Javaheri S, Sicilian L, Thorax 1992;47:93 (breathing pattern in interstitial lung disease)",
                _WEST]),
         _make("dyspnoea", "dyspnoea: rapid shallow breathing, 32/min, 280 mL",
-              Mechanics(10.0, 2.5, 0.01), (0.0, 1.0, 0.2, 0.0, 0.3), 1.875, 0.45, 0.15, 280.0, 2400.0,
+              _params(Mechanics(10.0, 2.5, 0.01), (0.0, 1.0, 0.2, 0.0, 0.3), 1.875, 0.45, 0.15, 2400.0), 280.0,
               ["Yang KL, Tobin MJ, N Engl J Med 1991;324:1445 (rapid shallow breathing index)", _WEST]),
         _make("pneumothorax", "one-sided pneumothorax: PV relation of the collapsed lung (use the other "
               "preset for the healthy side)",
-              Mechanics(60.0, 4.0, 0.01), (0.0, 1.0, 0.5, 0.0, 0.0), 2.4, 0.42, 0.15, 60.0, 400.0,
+              _params(Mechanics(60.0, 4.0, 0.01), (0.0, 1.0, 0.5, 0.0, 0.0), 2.4, 0.42, 0.15, 400.0), 60.0,
               ["Noppen M, De Keukeleire T, Respiration 2008;76:121 (pneumothorax)", _WEST]),
     ]
     return {p.name: p for p in presets}

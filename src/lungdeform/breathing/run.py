@@ -167,7 +167,8 @@ def run_fit(path: Path, out: Path, tidal_volume_ml: float, train_fraction: float
     # the whole trace, all cycles, for the curve the viewer plays back
     tr = resample(trace, res["sample_rate_hz"])
     vol, _, _ = calibrate(tr, anchors.starts_s, tidal_volume_ml)
-    full = inv.invert(tr.t_s, vol, anchors.starts_s, peaks_s=anchors.peaks_s, per_cycle_calibration=True)
+    full = inv.invert(tr.t_s, vol, anchors.starts_s, peaks_s=anchors.peaks_s,
+                      settings=inv.InversionSettings(per_cycle_calibration=True))
     curve = fitted_curve(full, anchors)
     metrics = {
         "mode": "fit",

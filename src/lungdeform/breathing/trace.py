@@ -185,8 +185,8 @@ def read_vxp(path, repair: bool = True, max_fix_fraction: float = 0.01, orient: 
     if not rows_t:
         raise ReadError(f"{p}: [Data] section holds no rows")
     t_ms = np.array(rows_t)
-    tr = _finish(p, t_ms / 1000.0, np.array(rows_a), np.array(rows_m, dtype="<U1"), np.array(line_no),
-                 "cm", repair, max_fix_fraction, positions=None, fixes=vxp_fixes)
+    rows = _Rows(t_ms / 1000.0, np.array(rows_a), np.array(rows_m, dtype="<U1"), np.array(line_no))
+    tr = _finish(p, rows, "cm", repair, max_fix_fraction, fixes=vxp_fixes)
     return orient_inhale_positive(tr) if orient else tr
 
 
@@ -270,7 +270,7 @@ def read_marker_csv(path, repair: bool = True, max_fix_fraction: float = 0.01, o
     if finite.sum() >= 3:
         amp[finite] = principal_motion(pos[finite])
     marks = np.full(arr.shape[0], "", dtype="<U1")
-    tr = _finish(p, t_s, amp, marks, line_no, "mm", repair, max_fix_fraction, positions=pos, fixes=fixes)
+    tr = _finish(p, _Rows(t_s, amp, marks, line_no, positions=pos), "mm", repair, max_fix_fraction, fixes=fixes)
     return orient_inhale_positive(tr) if orient else tr
 
 
@@ -289,8 +289,20 @@ def principal_motion(positions: np.ndarray) -> np.ndarray:
     return s
 
 
-def _finish(path: Path, t_s, amp, marks, line_no, unit, repair, max_fix_fraction, positions=None,
-            fixes=None) -> Trace:
+@dataclass(frozen=True)
+class _Rows:
+    """The rows of a trace file as read, before repair: times ``t_s (n,)`` s, amplitudes ``amp (n,)``,
+    marks ``(n,)`` str, source line numbers ``line_no (n,)`` int, optional ``positions (n, 3)``."""
+
+    t_s: np.ndarray
+    amp: np.ndarray
+    marks: np.ndarray
+    line_no: np.ndarray
+    positions: np.ndarray | None = None
+
+
+def _finish(path: Path, rows: _Rows, unit, repair, max_fix_fraction, fixes=None) -> Trace:
+    t_s, amp, marks, line_no, positions = rows.t_s, rows.amp, rows.marks, rows.line_no, rows.positions
     fixes = list(fixes or [])
     n0 = t_s.size
     bad_lines: list[int] = []

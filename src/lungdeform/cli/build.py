@@ -11,7 +11,7 @@ from lungdeform.constants import gravity_vector
 from lungdeform.errors import InputError
 from lungdeform.geometry.frame import resolve_sides
 from lungdeform.io.modelfile import provenance, save_model
-from lungdeform.model.lung import build_model
+from lungdeform.model.lung import BuildSettings, build_model
 from lungdeform.model.population import resolve_default
 from lungdeform.model.stiffness import parse_stiffness
 from lungdeform.segment.split import load_lungs
@@ -84,7 +84,8 @@ def register(apps) -> None:
             stiffness=stiffness, solver=solver, units=units,
         )
         model = build_model(surfaces, tidal_ml=tidal_ml, stiffness=stiff, gravity=gravity,
-                            solver=solver, d_min=d_min, provenance=prov, default=chosen, progress=say)
+                            settings=BuildSettings(solver=solver, d_min=d_min), provenance=prov, default=chosen,
+                            progress=say)
         path = save_model(out, model)
         for sd, lung in model.lungs.items():
             typer.echo(f"{sd}: {lung.n_vertices} vertices, V_EE {lung.volume_ee_ml:.0f} mL, "

@@ -22,7 +22,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from lungdeform.cohort.job import STAGES, FitOptions
 from lungdeform.cohort.manifest import read_manifest
-from lungdeform.cohort.runner import run_cohort
+from lungdeform.cohort.runner import Cluster, run_cohort
 
 from .common import DIRECTION_DEGREE_HELP, FIT_OPTIONS, SIDE_CHECK_HELP, option_names, output_dir, progress_enabled
 
@@ -159,8 +159,9 @@ def register(apps) -> None:
         display = Display(progress_enabled())
         try:
             with option_names(COHORT_OPTIONS):
-                result = run_cohort(m, folder, scheduler=scheduler, workers=workers, options=options,
-                                    skip_failed=skip_failed, processes=processes, progress=display)
+                cluster = Cluster(scheduler=scheduler, workers=workers, processes=processes)
+                result = run_cohort(m, folder, cluster=cluster, options=options, skip_failed=skip_failed,
+                                    progress=display)
         except KeyboardInterrupt:
             display.stop()
             typer.echo(f"interrupted: {_tally(folder, display)}; results are in {folder / 'subjects'}, summary in "

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import typer
 
-from lungdeform.cohort.synthetic import synthetic_cohort, write_cohort
+from lungdeform.cohort.synthetic import SyntheticLungSpec, synthetic_cohort, write_cohort
 from lungdeform.errors import InputError
 
 from .common import bounded, output_dir, say
@@ -44,9 +44,9 @@ def register(apps) -> None:
         """Generate a synthetic cohort with known constants, volumes and noise (truth.json)."""
 
         deltas = _floats(volumes, "--volumes")
-        lungs = synthetic_cohort(subjects, delta_ml=deltas, noise_mm=noise_mm, seed=seed, law=law, spread=spread,
-                                 shape_spread=shape_spread, landmarks=landmarks, table_shift_mm=table_shift_mm,
-                                 progress=say)
+        spec = SyntheticLungSpec(noise_mm=noise_mm, law=law, landmarks=landmarks, table_shift_mm=table_shift_mm)
+        lungs = synthetic_cohort(subjects, delta_ml=deltas, spec=spec, seed=seed, spread=spread,
+                                 shape_spread=shape_spread, progress=say)
         folder = output_dir(out)  # after the checks of every other option: bad input leaves no folder
         info = write_cohort(lungs, folder, seed=seed, progress=say)
         typer.echo(f"{'subject':<10} {'side':<6} {'source':<22} {'V_EE mL':>8}  c1…c9")

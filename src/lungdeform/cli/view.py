@@ -19,7 +19,7 @@ from lungdeform.breathing.gating import GateRule, parse_window
 from lungdeform.breathing.predict_interval import IntervalConfig
 from lungdeform.breathing.stream import MAX_PREDICT_MS
 from lungdeform.errors import InputError
-from lungdeform.playback.server import ViewerServer, model_glb
+from lungdeform.playback.server import ServerLog, ViewerServer, model_glb
 from lungdeform.playback.tracefeed import LiveFeed, check_view_options, live_json, view_trace_json
 
 from .common import bounded
@@ -69,7 +69,7 @@ def register(apps) -> None:
         glb = model_glb(model, curve, markers)
         # /presets.json: lungdeform.breathing.presets; /trace.json: the trace; /live: the live feed
         server = ViewerServer(glb, host=host, port=port, trace=feed, live=live,
-                              errors=lambda line: typer.echo(line, err=True))
+                              report=ServerLog(errors=lambda line: typer.echo(line, err=True)))
         try:
             exposed = not ipaddress.ip_address(host).is_loopback
         except ValueError:

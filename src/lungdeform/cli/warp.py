@@ -166,5 +166,5 @@ def _write_series(folder: Path, image, header, temporal) -> None:
         description, number = f"{base} lungdeform warp".strip(), 100
     else:
         description, number = DS.phase_description(base, *temporal), 100 + temporal[0]
-    DS.write_ct_series(folder, image.array, image.spacing, image.origin, image.direction, header,
+    DS.write_ct_series(folder, Image(image.array, image.spacing, image.origin, image.direction), header,
                        description=description, series_number=number, temporal=temporal)

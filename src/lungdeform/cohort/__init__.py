@@ -11,9 +11,10 @@ May import: :mod:`lungdeform.fit`, :mod:`lungdeform.playback` and everything bel
 (``pip install 'lungdeform[cohort]'``) and imported only where a cohort is run.
 """
 
-from .runner import SUMMARY_SCHEMA, CohortResult, clean_stale, run_cohort
+from .runner import SUMMARY_SCHEMA, Cluster, CohortResult, clean_stale, run_cohort
 
 __all__ = [
+    "Cluster",
     "CohortResult",
     "SUMMARY_SCHEMA",
     "clean_stale",

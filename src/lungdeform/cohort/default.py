@@ -38,7 +38,7 @@ from lungdeform.geometry.mesh import Surface
 from lungdeform.interior.prior import lung_normaliser, mirror, normalised
 from lungdeform.model.direction import directions as paper_directions
 from lungdeform.model.direction import polynomial_basis
-from lungdeform.model.lung import build_lung
+from lungdeform.model.lung import BuildSettings, build_lung
 from lungdeform.model.population import PopulationDefault
 
 #: Degree of the learned direction correction (0: none; docs/DEFAULTS.md).
@@ -137,7 +137,7 @@ def pooled_prior(samples: Sequence[DefaultSample], default: PopulationDefault,
     """``(4, 3)`` mm per mL: the interior prior of ``default`` (module docstring, step 3)."""
     xs, ys, ws = [], [], []
     for smp in samples:
-        lung = build_lung(smp.surface, smp.side, default=default, calibration_ml=smp.delta_ml)
+        lung = build_lung(smp.surface, smp.side, default=default, settings=BuildSettings(smp.delta_ml))
         moved = lung.points_at(smp.landmarks, lung.volume_ee_ml + smp.delta_ml, exact=True)
         q = normalised(smp.landmarks, *lung_normaliser(smp.surface), smp.side)
         xs.append(smp.delta_ml * np.c_[np.ones(len(q)), q])  # the prior per mL, times this lung's change

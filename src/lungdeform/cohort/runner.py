@@ -41,7 +41,7 @@ import threading
 import time
 import uuid
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
@@ -110,17 +110,30 @@ def clean_stale(out: Path) -> list[Path]:
 # --------------------------------------------------------------------------- the runner
 
 
-def run_cohort(manifest, out, *, scheduler: str | None = None, workers: int | None = None,
-               options: FitOptions = FitOptions(), skip_failed: bool = False, processes: bool = True,
-               population: bool = True, connect_timeout_s: float = 30.0,
+@dataclass(frozen=True)
+class Cluster:
+    """Where :func:`run_cohort` runs the jobs.
+
+    scheduler : address of a running Dask scheduler (``tcp://host:8786``), reached within
+        ``connect_timeout_s``; default: a local cluster of ``workers`` processes (default: CPU
+        count, at most one per job to run), one thread each (``processes=False``: threads in this
+        process, for debugging and tests).
+    """
+
+    scheduler: str | None = None
+    workers: int | None = None
+    processes: bool = True
+    connect_timeout_s: float = 30.0
+
+
+def run_cohort(manifest, out, *, cluster: Cluster = Cluster(), options: FitOptions = FitOptions(),
+               skip_failed: bool = False, population: bool = True,
                progress: Callable[[dict], None] | None = None) -> CohortResult:
     """Fit every job of ``manifest`` (a path or a read :class:`~lungdeform.cohort.manifest.Manifest`)
     into ``out``; write ``out/cohort.json``; then population statistics
     (:func:`lungdeform.cohort.population.write_population`) when at least one fit succeeded.
 
-    scheduler : address of a running Dask scheduler (``tcp://host:8786``); default: a local
-        cluster of ``workers`` processes (default: CPU count, at most one per job to run), one
-        thread each (``processes=False``: threads in this process, for debugging and tests).
+    cluster : where the jobs run (:class:`Cluster`; default: a local cluster of worker processes).
     skip_failed : do not re-run jobs whose stored result failed.
     population : compute population statistics afterwards.
 
@@ -131,6 +144,7 @@ def run_cohort(manifest, out, *, scheduler: str | None = None, workers: int | No
 
     t_start = time.perf_counter()
     started = _now()
+    scheduler, workers, processes = cluster.scheduler, cluster.workers, cluster.processes
     emit = progress or silent
     _check_cluster(scheduler, workers)
     m = manifest if isinstance(manifest, Manifest) else read_manifest(manifest)
@@ -152,13 +166,15 @@ def run_cohort(manifest, out, *, scheduler: str | None = None, workers: int | No
         address = None
 
         def summary(interrupted: bool, pop: dict | None = None) -> dict:
-            return _summary(m, out, results, skipped, started, time.perf_counter() - t_start, address, n_workers,
-                            processes, options, interrupted, pop)
+            seconds = time.perf_counter() - t_start
+            run = {"started": started, "finished": _now(), "seconds": seconds, "interrupted": interrupted,
+                   "scheduler": address, "workers": n_workers,
+                   "processes": processes if address and n_workers else None}
+            return _summary(m, out, results, skipped, run, options, pop)
 
         try:
             if to_run:
-                address = _run_on_dask(to_run, out, options, scheduler, n_workers, processes, connect_timeout_s,
-                                       results, emit)
+                address = _run_on_dask(to_run, out, options, replace(cluster, workers=n_workers), results, emit)
         except KeyboardInterrupt:
             _collect_finished(to_run, out, options, results)
             write_json(out / "cohort.json", summary(True))
@@ -211,10 +227,13 @@ def _collect_finished(jobs: list[Job], out: Path, options: FitOptions, results: 
             results[job.key] = stored
 
 
-def _run_on_dask(jobs: list[Job], out: Path, options: FitOptions, scheduler, n_workers, processes,
-                 connect_timeout_s, results: dict, emit) -> str:
+def _run_on_dask(jobs: list[Job], out: Path, options: FitOptions, cluster_spec: Cluster, results: dict,
+                 emit) -> str:
     """Submit one task per job, relay stage events, record results as they finish; return the
-    scheduler's address. Closes what it opened, also on Ctrl-C."""
+    scheduler's address. ``cluster_spec.workers`` : the local cluster's size, resolved. Closes what
+    it opened, also on Ctrl-C."""
+    scheduler, n_workers = cluster_spec.scheduler, cluster_spec.workers
+    processes, connect_timeout_s = cluster_spec.processes, cluster_spec.connect_timeout_s
 
     require("distributed", "lungdeform cohort", "dask[distributed]")
     from distributed import Client, LocalCluster
@@ -337,8 +356,9 @@ def _collect(future, job: Job, out: Path, options: FitOptions) -> dict:
         return r
 
 
-def _summary(m, out, results, skipped, started, seconds, address, n_workers, processes, options,
-             interrupted, population) -> dict:
+def _summary(m, out, results, skipped, run: dict, options, population) -> dict:
+    """The ``cohort.json`` of ``m``; ``run`` : its started, finished, seconds, interrupted, scheduler,
+    workers and processes entries."""
     per_job = []
     for job in m.jobs:
         r = results.get(job.key)
@@ -355,8 +375,7 @@ def _summary(m, out, results, skipped, started, seconds, address, n_workers, pro
     return {
         "schema": SUMMARY_SCHEMA, "version": 1,
         "manifest": str(m.path), "out": str(out.resolve()),
-        "started": started, "finished": _now(), "seconds": seconds, "interrupted": interrupted,
-        "scheduler": address, "workers": n_workers, "processes": processes if address and n_workers else None,
+        **run,
         "options": asdict(options),
         "jobs": {"total": len(per_job), "ok": sum(p["status"] == "ok" for p in per_job),
                  "failed": sum(p["status"] == "failed" for p in per_job),

@@ -58,7 +58,7 @@ from lungdeform.geometry.mesh import Surface, vertex_normals
 from lungdeform.io.landmarks import write_elastix_points
 from lungdeform.io.meshfile import write_mesh
 from lungdeform.model.displacement import scales_for_volumes, volume_polynomial
-from lungdeform.model.lung import build_lung
+from lungdeform.model.lung import BuildSettings, build_lung
 from lungdeform.progress import Progress, silent
 
 TRUTH_SCHEMA = "lungdeform.synthetic.truth"
@@ -149,7 +149,7 @@ def model_displacement(surface: Surface, side: str, constants, unit_ml: float, *
     if not unit_ml > 0:
         raise InputError(f"unit_ml must be > 0 mL, got {unit_ml!r}")
     lung = build_lung(surface, side, constants=np.asarray(constants, float), gravity=gravity,
-                      calibration_ml=float(unit_ml), unit_ml=float(unit_ml))
+                      settings=BuildSettings(float(unit_ml), float(unit_ml)))
     return lung.displacement
 
 
@@ -270,13 +270,38 @@ def _check_deltas(delta_ml) -> np.ndarray:
     return dv
 
 
+@dataclass(frozen=True)
+class SyntheticLungSpec:
+    """What :func:`synthesize_lung` makes of a shape: ``noise_mm`` the SD of the normal surface noise
+    (mm); ``law`` the volume law (:data:`LAWS`); ``landmarks`` how many surface vertices are kept as
+    landmarks; ``table_shift_mm`` the SD per axis of a random translation of each larger-volume scan
+    (mm, 0: none)."""
+
+    noise_mm: float = 0.0
+    law: str = "exact"
+    landmarks: int = 0
+    table_shift_mm: float = 0.0
+
+
+@dataclass(frozen=True)
+class SyntheticOrigin:
+    """Where a synthetic lung came from, recorded in its truth: ``subject``; ``source`` (a key of
+    :data:`SOURCES`); the ``scale_factors (3,)`` applied to the shape; the RNG ``seed``."""
+
+    subject: str = "synthetic"
+    source: str = ""
+    scale_factors: tuple = (1.0, 1.0, 1.0)
+    seed: tuple = ()
+
+
 def synthesize_lung(surface: Surface, side: str, constants, delta_ml: Sequence[float], *,
-                    rng: np.random.Generator, noise_mm: float = 0.0, law: str = "exact",
-                    landmarks: int = 0, subject: str = "synthetic", source: str = "",
-                    scale_factors=(1.0, 1.0, 1.0), seed: tuple = (), table_shift_mm: float = 0.0) -> SyntheticLung:
+                    rng: np.random.Generator, spec: SyntheticLungSpec = SyntheticLungSpec(),
+                    origin: SyntheticOrigin = SyntheticOrigin()) -> SyntheticLung:
     """Deform ``surface`` (end-exhale, mm LPS) by the model with ``constants`` to the volume changes
-    ``delta_ml`` (mL above end-exhale, increasing), add normal noise, pick landmarks. See the module
-    docstring for the steps."""
+    ``delta_ml`` (mL above end-exhale, increasing), add normal noise, pick landmarks (``spec``). See
+    the module docstring for the steps."""
+    noise_mm, law, landmarks, table_shift_mm = spec.noise_mm, spec.law, spec.landmarks, spec.table_shift_mm
+    subject, source, scale_factors, seed = origin.subject, origin.source, origin.scale_factors, origin.seed
     dv = _check_deltas(delta_ml)
     if landmarks < 0 or landmarks > surface.n_vertices:
         raise InputError(f"landmarks must be between 0 and {surface.n_vertices}, got {landmarks}")
@@ -294,17 +319,23 @@ def synthesize_lung(surface: Surface, side: str, constants, delta_ml: Sequence[f
                          np.asarray(scale_factors, float), idx.astype(np.int64), tuple(seed), law, shifts)
 
 
-def synthetic_cohort(n_subjects: int = 4, *, delta_ml: Sequence[float] = (300.0, 500.0), noise_mm: float = 0.0,
-                     seed: int = 0, law: str = "exact", spread: float = 0.2, shape_spread: float = 0.1,
-                     landmarks: int = 50, sides: Sequence[str] = ("left", "right"), table_shift_mm: float = 0.0,
+#: The default of :func:`synthetic_cohort`: no noise, the exact law, 50 landmarks per lung, no table shift.
+COHORT_SPEC = SyntheticLungSpec(landmarks=50)
+
+
+def synthetic_cohort(n_subjects: int = 4, *, delta_ml: Sequence[float] = (300.0, 500.0),
+                     spec: SyntheticLungSpec = COHORT_SPEC, seed: int = 0, spread: float = 0.2,
+                     shape_spread: float = 0.1, sides: Sequence[str] = ("left", "right"),
                      progress: Progress | None = None) -> list[SyntheticLung]:
-    """``n_subjects`` synthetic subjects, one :class:`SyntheticLung` per side.
+    """``n_subjects`` synthetic subjects, one :class:`SyntheticLung` per side, each made with ``spec``
+    (default :data:`COHORT_SPEC`: 50 landmarks, no noise).
 
     Shapes: :func:`subject_sources`, each scaled by factors drawn uniformly in
     ``1 ± shape_spread`` per axis; constants: :func:`draw_constants` with ``spread``; table shifts
     of the larger-volume scans: N(0, table_shift_mm²) per axis (0: none).
     """
     say = progress or silent
+    law, noise_mm = spec.law, spec.noise_mm
     if int(n_subjects) != n_subjects or n_subjects < 1:
         raise InputError(f"the number of subjects must be a positive integer, got {n_subjects!r}")
     if not 0 <= shape_spread < 1:
@@ -328,9 +359,8 @@ def synthetic_cohort(n_subjects: int = 4, *, delta_ml: Sequence[float] = (300.0,
             shape = scaled_shape(src.load(), factors).with_name(f"{subject}_{side}_ee")
             c = draw_constants(side, rng, spread=spread)
             say(f"{subject} {side}: {src.name}, {shape.volume_ml:.0f} mL")
-            lungs.append(synthesize_lung(shape, side, c, delta_ml, rng=rng, noise_mm=noise_mm, law=law,
-                                         landmarks=landmarks, subject=subject, source=src.name,
-                                         scale_factors=factors, seed=key, table_shift_mm=table_shift_mm))
+            origin = SyntheticOrigin(subject, src.name, factors, key)
+            lungs.append(synthesize_lung(shape, side, c, delta_ml, rng=rng, spec=spec, origin=origin))
     return lungs
 
 

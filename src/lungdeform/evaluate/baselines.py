@@ -213,17 +213,31 @@ def landmark_tps_cv(surface: Surface, landmarks, landmarks_target, folds) -> tup
     return moved, held
 
 
-def affine_landmarks_cv(surface: Surface, target: Surface, landmarks, landmarks_target, folds,
+@dataclass(frozen=True, eq=False)
+class LandmarkPairs:
+    """Landmarks of one target: ``rest (k, 3)`` mm at end-exhale and ``target (k, 3)`` mm, their
+    observed positions at the target volume (aligned). For :func:`measure`, optionally ``weights``,
+    the ``(k, n_kept)`` :func:`landmark_matrix` of these landmarks precomputed (the same for every
+    method), and ``predicted (k, 3)`` mm, landmark positions predicted some other way (held-out
+    predictions of a landmark-informed method; then no interpolation is done)."""
+
+    rest: np.ndarray
+    target: np.ndarray
+    weights: np.ndarray | None = None
+    predicted: np.ndarray | None = None
+
+
+def affine_landmarks_cv(surface: Surface, target: Surface, pairs: LandmarkPairs, folds,
                         icp: IcpSettings = IcpSettings(), *, keep=None, keep_target=None,
                         landmark_weight: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
-    """The affine baseline informed by landmarks, scored held out.
+    """The affine baseline informed by the landmark ``pairs``, scored held out.
 
     Returns ``(vertices (n, 3) mm of the affine fitted with all landmarks, held-out predictions
     (m, 3) mm)``: each fold's landmarks are moved by the affine fitted on the surfaces and the other
     folds' landmarks. ``icp`` and the keywords as :func:`affine_fit`.
     """
-    a = as_vertices(landmarks, "landmarks")
-    b = as_vertices(landmarks_target, "landmarks_target")
+    a = as_vertices(pairs.rest, "landmarks")
+    b = as_vertices(pairs.target, "landmarks_target")
     held = np.full_like(a, np.nan)
     for test in folds:
         train = np.setdiff1d(np.arange(len(a)), test)
@@ -262,8 +276,7 @@ def landmark_matrix(rest: Surface, landmarks, keep=None):
 
 
 def measure(rest: Surface, predicted, target: Surface, *, keep=None, keep_target=None,
-            landmarks=None, landmarks_target=None, target_distance: SurfaceDistance | None = None,
-            landmark_weights=None, landmarks_predicted=None):
+            landmarks: LandmarkPairs | None = None, target_distance: SurfaceDistance | None = None):
     """Metrics of a predicted surface and its interpolated landmark motion.
 
     Parameters
@@ -277,13 +290,9 @@ def measure(rest: Surface, predicted, target: Surface, *, keep=None, keep_target
     keep, keep_target : (n,), (n_target,) bool
         Vertices measured (e.g. the crop face left out); ``surface_mean_all_mm`` uses all. Only
         kept vertices of ``rest`` carry data for the landmark interpolation.
-    landmarks, landmarks_target : (k, 3) float
-        End-exhale landmarks and their observed positions at the target volume (aligned), mm.
-    landmark_weights : (k, n_kept) operator, optional
-        :func:`landmark_matrix` for these landmarks, precomputed (the same for every method).
-    landmarks_predicted : (k, 3) float, optional
-        Landmark positions predicted some other way (held-out predictions of a landmark-informed
-        method); then no interpolation is done.
+    landmarks : LandmarkPairs, optional
+        End-exhale landmarks and their observed positions at the target volume (aligned), mm, with
+        the optional precomputed weights and other predictions (:class:`LandmarkPairs`).
 
     Returns ``(MethodMetrics, per-vertex distance of predicted to target (n,), landmark errors (k,))``.
     """
@@ -297,11 +306,12 @@ def measure(rest: Surface, predicted, target: Surface, *, keep=None, keep_target
     per_vertex = td.distance(x)
     lm_err = np.zeros(0)
     if landmarks is not None:
-        obs = as_vertices(landmarks_target, "landmarks_target")
+        landmark_weights, landmarks_predicted = landmarks.weights, landmarks.predicted
+        obs = as_vertices(landmarks.target, "landmarks_target")
         if landmarks_predicted is None:
             kept = np.ones(rest.n_vertices, bool) if keep is None else np.asarray(keep, bool)
-            w = landmark_matrix(rest, landmarks, keep) if landmark_weights is None else landmark_weights
-            moved = as_vertices(landmarks, "landmarks") + w @ (x - rest.vertices)[kept]
+            w = landmark_matrix(rest, landmarks.rest, keep) if landmark_weights is None else landmark_weights
+            moved = as_vertices(landmarks.rest, "landmarks") + w @ (x - rest.vertices)[kept]
         else:
             moved = as_vertices(landmarks_predicted, "landmarks_predicted")
         if moved.shape != obs.shape:

@@ -135,7 +135,8 @@ def baseline_methods(target: Target, placed: Placement, landmarks, landmarks_tar
                "apex_scaling": (B.apex_scaling(rest, target.volume_ml), None)}
     methods["cpd"] = (B.cpd_deformable(rest, target.surface, keep=keep, keep_target=target.keep), None)
     if held.interior is not None:
-        methods["affine_landmarks"] = B.affine_landmarks_cv(rest, target.surface, landmarks, landmarks_target, folds,
+        methods["affine_landmarks"] = B.affine_landmarks_cv(rest, target.surface,
+                                                            B.LandmarkPairs(landmarks, landmarks_target), folds,
                                                             keep=keep, keep_target=target.keep,
                                                             landmark_weight=landmark_weight)
         methods["landmarks_tps"] = B.landmark_tps_cv(rest, landmarks, landmarks_target, folds)
@@ -163,9 +164,9 @@ def score_targets(placed: Placement, landmarks, fits: dict, held: HeldOut, confi
             baseline_seconds += time.perf_counter() - t0
         per = {}
         for name, (x, held_out) in methods.items():
+            pairs = None if landmarks is None else B.LandmarkPairs(landmarks, lmt, held.matrix, held_out)
             m, per_vertex, lm_err = B.measure(rest, x, tg.surface, keep=keep, keep_target=tg.keep,
-                                              landmarks=landmarks, landmarks_target=lmt, target_distance=td,
-                                              landmark_weights=held.matrix, landmarks_predicted=held_out)
+                                              landmarks=pairs, target_distance=td)
             per[name] = m.as_dict()
             predictions[(tg.name, name)] = (x, per_vertex, lm_err)
         per_target[tg.name] = per

@@ -150,27 +150,32 @@ def anchor_mask(vertices, cap_mm: float = 15.0, posterior_mm: float | None = 10.
     return m
 
 
-def align_apex(
-    fixed: Surface,
-    moving: Surface,
-    *,
-    cap_mm: float = 15.0,
-    posterior_mm: float | None = 10.0,
-    rigid: bool = False,
-    exclude_moving=None,
-    exclude_fixed=None,
-    max_iterations: int = 100,
-    tol_mm: float = 1e-4,
-) -> Alignment:
+@dataclass(frozen=True)
+class ApexSettings:
+    """How :func:`align_apex` aligns: anchors are the apex cap of ``cap_mm`` and, unless
+    ``posterior_mm`` is None, the posterior band of that depth (mm); translation only unless
+    ``rigid``; ICP stops after ``max_iterations`` or when a step moves less than ``tol_mm``."""
+
+    cap_mm: float = 15.0
+    posterior_mm: float | None = 10.0
+    rigid: bool = False
+    max_iterations: int = 100
+    tol_mm: float = 1e-4
+
+
+def align_apex(fixed: Surface, moving: Surface, *, settings: ApexSettings = ApexSettings(),
+               exclude_moving=None, exclude_fixed=None) -> Alignment:
     """Align ``moving`` onto ``fixed`` on the regions that breathing moves least (ICP).
 
     Anchors (:func:`anchor_mask`): the apex cap and, by default, the posterior band of both
     surfaces; the moving anchor points are matched to the fixed *anchor* surface region (closest
     point on the fixed surface, restricted to points whose closest fixed vertex is an anchor).
-    Translation only unless ``rigid``. ``exclude_moving`` / ``exclude_fixed : (n,) bool`` leave
-    vertices out (e.g. a crop face). Starts from the translation that matches the apex heights
+    Translation only unless ``settings.rigid``. ``exclude_moving`` / ``exclude_fixed : (n,) bool``
+    leave vertices out (e.g. a crop face). Starts from the translation that matches the apex heights
     and the posterior walls. Raises :class:`InputError` when fewer than 10 anchor vertices remain.
     """
+    cap_mm, posterior_mm, rigid = settings.cap_mm, settings.posterior_mm, settings.rigid
+    max_iterations, tol_mm = settings.max_iterations, settings.tol_mm
     if not cap_mm > 0:
         raise InputError(f"cap_mm must be > 0 mm, got {cap_mm!r}")
     am = anchor_mask(moving.vertices, cap_mm, posterior_mm)

@@ -134,16 +134,28 @@ class InteriorField:
         return q + float(scale) * self.displacement(q)
 
 
-def interior_field(vertices, displacement, landmarks=None, correction=None, smoothing: float = 0.0,
-                   *, normals, kind: str = "sliding", seed: int = 0,
+@dataclass(frozen=True, eq=False)
+class LandmarkCorrection:
+    """The landmark correction of an interior field: ``correction : (m, 3)`` mm per unit at
+    ``landmarks : (m, 3)`` mm (either None: no correction); ``smoothing``: the correction's, in mm
+    (kind ``"sliding"``: the surface smoothing of
+    :func:`lungdeform.interior.sliding.sliding_correction`) or mm² (the thin-plate kinds)."""
+
+    landmarks: np.ndarray | None = None
+    correction: np.ndarray | None = None
+    smoothing: float = 0.0
+
+
+def interior_field(vertices, displacement, correction: LandmarkCorrection = LandmarkCorrection(), *, normals,
+                   kind: str = "sliding", seed: int = 0,
                    correspondence: SurfaceMapField | None = None) -> InteriorField:
     """An :class:`InteriorField` from a lung's ``vertices : (n, 3)`` mm, their unit outward
     ``normals : (n, 3)`` and ``displacement : (n, 3)`` mm per unit, with an optional landmark
-    ``correction : (m, 3)`` mm per unit at ``landmarks : (m, 3)`` mm. ``kind``: one of
-    :data:`KINDS`; ``smoothing``: the correction's, in mm (``"sliding"``: the surface smoothing of
-    :func:`lungdeform.interior.sliding.sliding_correction`) or mm² (the thin-plate kinds).
+    ``correction`` (:class:`LandmarkCorrection`). ``kind``: one of :data:`KINDS`.
     ``correspondence``: the surface part is this map (:mod:`lungdeform.interior.surface_map`)
     instead of the sliding interpolation of ``displacement`` (kind ``"sliding"`` only)."""
+    landmarks, smoothing = correction.landmarks, correction.smoothing
+    correction = correction.correction
     if not (np.isfinite(smoothing) and smoothing >= 0):
         raise InputError(f"smoothing must be >= 0, got {smoothing!r}")
     if correspondence is not None and kind != "sliding":

@@ -14,9 +14,10 @@ May import: :mod:`lungdeform.interior`, :mod:`lungdeform.geometry` and the core 
 fitting code (:mod:`lungdeform.fit`), files (:mod:`lungdeform.io`) or playback.
 """
 
-from .lung import LungModel, Model, build_lung, build_model
+from .lung import BuildSettings, LungModel, Model, build_lung, build_model
 
 __all__ = [
+    "BuildSettings",
     "LungModel",
     "Model",
     "build_lung",

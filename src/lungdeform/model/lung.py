@@ -23,7 +23,7 @@ from lungdeform.constants import TIDAL_VOLUME_ML, gravity_vector
 from lungdeform.errors import InputError, LungdeformError
 from lungdeform.geometry.frame import LungFrame, lung_frame
 from lungdeform.geometry.mesh import Surface
-from lungdeform.interior.field import KINDS, interior_field
+from lungdeform.interior.field import KINDS, LandmarkCorrection, interior_field
 from lungdeform.interior.prior import lung_normaliser, prior_affine
 from lungdeform.interior.surface_map import SurfaceMapField, surface_extension
 from lungdeform.progress import Progress, silent
@@ -181,8 +181,8 @@ class LungModel:
         point inside it (surface-driven, plus the landmark correction when the model has one)."""
 
         on = slice(None) if self.interior_vertices is None else np.asarray(self.interior_vertices, bool)
-        return interior_field(self.surface.vertices[on], self.displacement[on], self.landmarks,
-                              self.landmark_correction, self.landmark_smoothing,
+        correction = LandmarkCorrection(self.landmarks, self.landmark_correction, self.landmark_smoothing)
+        return interior_field(self.surface.vertices[on], self.displacement[on], correction,
                               normals=self.surface.vertex_normals[on], kind=self.interior_kind,
                               correspondence=self.interior_map)
 
@@ -216,6 +216,22 @@ class LungModel:
                        landmark_correction=None, landmark_smoothing=0.0, interior_map=None)
 
 
+@dataclass(frozen=True)
+class BuildSettings:
+    """How :func:`build_lung` computes a lung.
+
+    calibration_ml : volume change (mL) at which the displacement's volume is exact.
+    unit_ml : ΔV: the displacement is mm per this many mL.
+    solver : 'bicgstab' | 'gmres' | 'direct' | callable, the linear solver of the force fixed point.
+    d_min : the smallest distance (mm) of the force response.
+    """
+
+    calibration_ml: float = TIDAL_VOLUME_ML
+    unit_ml: float = 1.0
+    solver: str | LinearSolver = "bicgstab"
+    d_min: float = 1.0
+
+
 def build_lung(
     surface: Surface,
     side: str,
@@ -223,10 +239,7 @@ def build_lung(
     constants=None,
     stiffness=None,
     gravity="supine",
-    solver: str | LinearSolver = "bicgstab",
-    d_min: float = 1.0,
-    calibration_ml: float = TIDAL_VOLUME_ML,
-    unit_ml: float = 1.0,
+    settings: BuildSettings = BuildSettings(),
     default: PopulationDefault | str | None = None,
     progress: Progress | None = None,
 ) -> LungModel:
@@ -244,17 +257,14 @@ def build_lung(
         Young's modulus per vertex; default uniform 1.
     gravity : str or (3,) float
         'supine', 'prone', 'upright', 'left-decubitus', 'right-decubitus' or an LPS vector.
-    solver : 'bicgstab' | 'gmres' | 'direct' | callable
-        Linear solver for the force fixed point.
-    calibration_ml : float
-        Volume change (mL) at which the displacement's volume is exact.
-    unit_ml : float
-        ΔV: the displacement is mm per this many mL.
+    settings : BuildSettings
+        Calibration volume, displacement unit (mL), linear solver, d_min.
     default : PopulationDefault, 'population', 'paper', path or None
         Where c1…c9 and the direction correction come from when ``constants`` is not given
         (:mod:`lungdeform.model.population`; None: the shipped population default).
     """
     say = progress or silent
+    solver, d_min, calibration_ml, unit_ml = settings.solver, settings.d_min, settings.calibration_ml, settings.unit_ml
     chosen = resolve_default(default) if constants is None else None
     c = chosen.constants_for(side) if chosen is not None else np.asarray(constants, dtype=float)
     if c.shape != (9,) or not np.all(np.isfinite(c)):
@@ -336,13 +346,15 @@ def build_model(
     stiffness: dict[str, np.ndarray] | None = None,
     provenance: dict | None = None,
     progress: Progress | None = None,
+    settings: BuildSettings = BuildSettings(),
     **kwargs,
 ) -> Model:
     """Build one model per side from ``{side: surface}``.
 
     The tidal volume (mL, both lungs together) is split between the lungs in proportion to their
-    end-exhale volumes; each lung is calibrated exactly at its share. Other keyword arguments go to
-    :func:`build_lung` (``gravity``, ``solver``, ``d_min``, ``unit_ml``, ``default``). The
+    end-exhale volumes; each lung is calibrated exactly at its share (which replaces
+    ``settings.calibration_ml``; ``settings``: :class:`BuildSettings`). Other keyword arguments go
+    to :func:`build_lung` (``gravity``, ``default``). The
     provenance records the default the lungs were built with (``"default"``: name and digest).
     """
     if not tidal_ml > 0:
@@ -356,7 +368,7 @@ def build_model(
             surface, side,
             constants=None if constants is None else constants.get(side),
             stiffness=None if stiffness is None else stiffness.get(side),
-            calibration_ml=share, default=chosen, progress=progress, **kwargs,
+            settings=replace(settings, calibration_ml=share), default=chosen, progress=progress, **kwargs,
         )
     prov = dict(provenance or {})
     prov.setdefault("tidal_ml", tidal_ml)

@@ -198,21 +198,29 @@ class _Server(ThreadingHTTPServer):
             errors(line)
 
 
+@dataclass(frozen=True)
+class ServerLog:
+    """Where a :class:`ViewerServer` reports: ``requests`` is called with a line per request;
+    ``errors`` with a line per request that failed (a client that reset the connection, …); None:
+    not reported."""
+
+    requests: Callable[[str], None] | None = None
+    errors: Callable[[str], None] | None = None
+
+
 class ViewerServer:
     """Serve the viewer and one model. ``port=0`` picks a free port; :attr:`url` says where.
     ``presets``: the bytes of ``/presets.json`` (default :func:`presets_json`); ``trace``: the bytes of
     ``/trace.json`` (default: no trace, :func:`lungdeform.playback.tracefeed.trace_json`); ``live``: a
-    :class:`~lungdeform.playback.tracefeed.LiveFeed` served as ``/live``. ``log``: called with a line
-    per request; ``errors``: with a line per request that failed (a client that reset the
-    connection, …); None: not reported.
+    :class:`~lungdeform.playback.tracefeed.LiveFeed` served as ``/live``. ``report``: where requests
+    and failed requests are reported (:class:`ServerLog`; default: nowhere).
 
     Use as a context manager (serves from a background thread) or call :meth:`serve_forever`.
     """
 
     def __init__(self, glb: bytes, *, host: str = DEFAULT_HOST, port: int = 0,
                  presets: bytes | None = None, bundle: Path | None = None, trace: bytes | None = None,
-                 live: LiveFeed | None = None, log: Callable[[str], None] | None = None,
-                 errors: Callable[[str], None] | None = None):
+                 live: LiveFeed | None = None, report: ServerLog = ServerLog()):
         if not 0 <= int(port) <= 65535:
             raise InputError(f"port must be 0..65535, got {port}")
         self.routes = bundle_routes(bundle)
@@ -223,8 +231,8 @@ class ViewerServer:
         self.routes["/presets.json"] = Resource(body, CONTENT_TYPES[".json"])
         self.routes["/trace.json"] = Resource(trace_json() if trace is None else bytes(trace), CONTENT_TYPES[".json"])
         self.live = live
-        self.log = log
-        self.errors = errors
+        self.log = report.requests
+        self.errors = report.errors
         try:
             self._httpd = _Server((host, int(port)), _Handler)
         except OSError as exc:  # port in use, address not on this machine, …: name the address

@@ -164,13 +164,29 @@ def find_trachea_seed(ct, candidate, spacing, body_center_x, lumen_hu=-900.0,
     return None
 
 
-def grow_airways(ct, candidate, seed, voxel_ml, start_hu=-1000.0, max_hu=-900.0, step_hu=20.0,
-                 min_tree_ml=5.0, explosion_ratio=2.0, max_ml=400.0):
-    """Region-grow the airway tree from ``seed`` with a rising threshold and explosion control.
+@dataclass(frozen=True)
+class AirwayGrowth:
+    """The rising threshold of :func:`grow_airways`: from ``start_hu`` to ``max_hu`` in steps of
+    ``step_hu`` (HU); a step is refused (leak) when the tree exceeds ``max_ml`` mL, or, once it holds
+    ``min_tree_ml`` mL, grows by more than ``explosion_ratio`` times in one step."""
+
+    start_hu: float = -1000.0
+    max_hu: float = -900.0
+    step_hu: float = 20.0
+    min_tree_ml: float = 5.0
+    explosion_ratio: float = 2.0
+    max_ml: float = 400.0
+
+
+def grow_airways(ct, candidate, seed, voxel_ml, growth: AirwayGrowth = AirwayGrowth()):
+    """Region-grow the airway tree from ``seed`` with a rising threshold and explosion control
+    (``growth``).
 
     Returns ``(tree (z, y, x) bool, info)``; ``info['history']`` lists ``[threshold HU, volume mL]``
     per step, ``info['threshold_hu']`` the accepted one and ``info['stopped']`` why growing stopped.
     """
+    start_hu, max_hu, step_hu = growth.start_hu, growth.max_hu, growth.step_hu
+    min_tree_ml, explosion_ratio, max_ml = growth.min_tree_ml, growth.explosion_ratio, growth.max_ml
     # work in the candidate's bounding box (speed)
     nz = [np.nonzero(candidate.any(axis=ax))[0] for ax in ((1, 2), (0, 2), (0, 1))]
     box = tuple(slice(v.min(), v.max() + 1) for v in nz)
@@ -435,7 +451,8 @@ def _remove_airways(ct, candidate, spacing, body_cx, voxel_ml, lumen_hu, airway_
     z, seed2d, seed_info = seed
     seed_mask = np.zeros_like(candidate)
     seed_mask[z] = seed2d
-    tree, grow = grow_airways(ct, candidate, seed_mask, voxel_ml, max_hu=airway_max_hu, max_ml=airway_max_ml)
+    growth = AirwayGrowth(max_hu=airway_max_hu, max_ml=airway_max_ml)
+    tree, grow = grow_airways(ct, candidate, seed_mask, voxel_ml, growth)
     removed = ndi.binary_dilation(tree, structure=_SIX) & candidate
     return tree, removed, grow, seed_info
 

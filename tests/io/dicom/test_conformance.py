@@ -11,6 +11,7 @@ from trimesh.creation import icosphere
 from lungdeform.io.dicom import series as DS
 from lungdeform.io.dicom.registration import write_registration
 from lungdeform.io.dicom.rtstruct import read_ct_series, write_rtstruct
+from lungdeform.io.grid import Image
 from lungdeform.io.image import read_image
 from tests.io.dicom_support import dciodvfy, write_ct_series
 
@@ -38,8 +39,8 @@ def test_ct_phase_validates(tmp_path, source):
     src = write_ct_series(tmp_path / "src", shape=(4, 8, 8))
     head = DS.study_header(src if source == "dicom" else None)
     rng = np.random.default_rng(7)
-    DS.write_ct_series(tmp_path / "p", rng.uniform(-1024, 40000, (4, 8, 8)), [0.9765625, 0.9765625, 2.5],
-                       [-249.51171875, -123.456789012345, -1234.56789012345], np.eye(3), head,
+    DS.write_ct_series(tmp_path / "p", Image(rng.uniform(-1024, 40000, (4, 8, 8)), [0.9765625, 0.9765625, 2.5],
+                                             [-249.51171875, -123.456789012345, -1234.56789012345], np.eye(3)), head,
                        description="CT phase 30%", temporal=(3, 10))
     for f in sorted((tmp_path / "p").iterdir()):
         _check(f)
@@ -65,7 +66,7 @@ def test_reg_with_a_moving_series_of_another_study_validates(tmp_path):
     image = read_image(src)
     head = DS.study_header(src)
     head.StudyInstanceUID = pydicom.uid.generate_uid()
-    DS.write_ct_series(tmp_path / "mov", image.array, image.spacing, image.origin, image.direction, head,
+    DS.write_ct_series(tmp_path / "mov", Image(image.array, image.spacing, image.origin, image.direction), head,
                        description="moving")
     field = np.random.default_rng(5).normal(0, 2, image.array.shape + (3,)).astype(np.float32)
     write_registration(tmp_path / "reg.dcm", field, image, read_ct_series(src), read_ct_series(tmp_path / "mov"))

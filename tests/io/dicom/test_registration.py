@@ -14,6 +14,7 @@ import SimpleITK as sitk
 from lungdeform.cli.main import main
 from lungdeform.io.dicom import series as DS
 from lungdeform.io.dicom.registration import REG_SOP_CLASS
+from lungdeform.io.grid import Image
 from lungdeform.io.image import read_image
 from lungdeform.io.modelfile import save_model
 from lungdeform.model.lung import Model
@@ -38,7 +39,7 @@ def case(tmp_path_factory):
     a[12:30, 10:35, 8:30] = a[12:30, 10:35, 45:67] = -800
     head = DS.study_header(None)
     head.PatientID, head.PatientName = "REG001", "Reg^Test"
-    DS.write_ct_series(d / "ct", a, SPACING, ORIGIN, np.eye(3), head, description="fixed")
+    DS.write_ct_series(d / "ct", Image(a, SPACING, ORIGIN, np.eye(3)), head, description="fixed")
     return d, sum(lung.volume_ee_ml for lung in m.lungs.values())
 
 
@@ -116,7 +117,7 @@ def test_reg_refused_across_frames_or_patients_writes_nothing(case, tmp_path, ca
             head.FrameOfReferenceUID = pydicom.uid.generate_uid()
         else:
             head.PatientID = "OTHER"
-        DS.write_ct_series(tmp_path / "other", ct.array, ct.spacing, ct.origin, ct.direction, head, description="x")
+        DS.write_ct_series(tmp_path / "other", Image(ct.array, ct.spacing, ct.origin, ct.direction), head, description="x")
         args += ["--moving", str(tmp_path / "other")]
     if why == "inverse":
         args += ["--inverse"]

@@ -9,6 +9,7 @@ from lungdeform.atomic import atomic_dir
 from lungdeform.errors import InputError, ReadError
 from lungdeform.io.dicom import series as DS
 from lungdeform.io.dicom.rtstruct import read_ct_series
+from lungdeform.io.grid import Image
 from lungdeform.io.image import read_image
 from tests.io.dicom_support import write_ct_series as write_source_series
 
@@ -28,7 +29,7 @@ def test_written_series_reads_back_with_its_grid_and_hu(rng, tmp_path):
     # the grid is the one given (ImagePositionPatient/ImageOrientationPatient/PixelSpacing are LPS as it stands)
     a = _image(rng)
     head = DS.study_header()
-    uids = DS.write_ct_series(tmp_path / "s", a, SPACING, ORIGIN, DIRECTION, head, description="test")
+    uids = DS.write_ct_series(tmp_path / "s", Image(a, SPACING, ORIGIN, DIRECTION), head, description="test")
     got = read_image(tmp_path / "s")
     assert np.abs(got.array - a).max() <= 0.5
     assert np.allclose(got.spacing, SPACING) and np.allclose(got.origin, ORIGIN, atol=1e-5)
@@ -42,7 +43,7 @@ def test_tags_of_a_phase(rng, tmp_path):
     # its temporal position both ways a 4-D CT reader sorts by (1-based index, "phase 30%")
     src = write_source_series(tmp_path / "src", shape=(4, 8, 8))
     head = DS.study_header(src)
-    DS.write_ct_series(tmp_path / "p", _image(rng, (4, 8, 8)), SPACING, ORIGIN, np.eye(3), head,
+    DS.write_ct_series(tmp_path / "p", Image(_image(rng, (4, 8, 8)), SPACING, ORIGIN, np.eye(3)), head,
                        description=DS.phase_description("CT", 3, 10), series_number=103, temporal=(3, 10))
     ds = pydicom.dcmread(tmp_path / "p" / "CT0002.dcm")
     s = pydicom.dcmread(next(src.iterdir()), stop_before_pixels=True)
@@ -81,8 +82,8 @@ def test_an_error_leaves_no_folder(rng, tmp_path):
     head = DS.study_header()
     with pytest.raises(InputError):
         with atomic_dir(tmp_path / "4d") as tmp:
-            DS.write_ct_series(tmp / "phase00", _image(rng), SPACING, ORIGIN, np.eye(3), head, description="a")
-            DS.write_ct_series(tmp / "phase50", np.full((2, 3, 3), np.nan), SPACING, ORIGIN, np.eye(3), head,
+            DS.write_ct_series(tmp / "phase00", Image(_image(rng), SPACING, ORIGIN, np.eye(3)), head, description="a")
+            DS.write_ct_series(tmp / "phase50", Image(np.full((2, 3, 3), np.nan), SPACING, ORIGIN, np.eye(3)), head,
                                description="b")
     assert list(tmp_path.iterdir()) == []
 
@@ -99,7 +100,7 @@ def test_refuses_a_folder_that_is_not_a_series(tmp_path):
 
 def test_sitk_series_reader_sorts_the_slices(rng, tmp_path):
     # GDCM sorts by position, not file name: the series has one id and every slice in it
-    DS.write_ct_series(tmp_path / "s", _image(rng), SPACING, ORIGIN, np.eye(3), DS.study_header(), description="s")
+    DS.write_ct_series(tmp_path / "s", Image(_image(rng), SPACING, ORIGIN, np.eye(3)), DS.study_header(), description="s")
     ids = sitk.ImageSeriesReader.GetGDCMSeriesIDs(str(tmp_path / "s"))
     assert len(ids) == 1 and len(sitk.ImageSeriesReader.GetGDCMSeriesFileNames(str(tmp_path / "s"), ids[0])) == 6
 

@@ -52,7 +52,7 @@ from pydicom.errors import InvalidDicomError
 from pydicom.uid import PYDICOM_IMPLEMENTATION_UID, ExplicitVRLittleEndian, generate_uid
 
 from lungdeform.errors import InputError, ReadError
-from lungdeform.io.grid import check_grid, quiet_itk
+from lungdeform.io.grid import Image, check_grid, quiet_itk
 
 from .attributes import check_dataset, decimal, require, type2_defaults
 from .guard import check_dicom_file, is_dicom_file
@@ -252,14 +252,15 @@ def rescale(array) -> tuple[np.ndarray, float, float]:
     return stored, slope, intercept
 
 
-def write_ct_series(folder, array, spacing, origin, direction, header: Dataset, *, description: str,
-                    series_number: int = 1, temporal: tuple[int, int] | None = None) -> list[str]:
-    """Write ``array : (z, y, x)`` HU on the grid ``spacing`` (x, y, z) mm, ``origin`` mm LPS,
-    ``direction`` (3, 3) as a new CT series in ``folder`` (created; it must not hold files yet), one
-    file ``CT0001.dcm`` … per slice. ``header`` (:func:`study_header`) gives the patient, study and
+def write_ct_series(folder, image: Image, header: Dataset, *, description: str, series_number: int = 1,
+                    temporal: tuple[int, int] | None = None) -> list[str]:
+    """Write ``image`` (its ``array : (z, y, x)`` HU on the grid ``spacing`` (x, y, z) mm, ``origin``
+    mm LPS, ``direction`` (3, 3)) as a new CT series in ``folder`` (created; it must not hold files
+    yet), one file ``CT0001.dcm`` … per slice. ``header`` (:func:`study_header`) gives the patient, study and
     frame of reference; ``temporal`` = ``(index, count)`` (0-based index) sets the temporal tags.
     Not atomic by itself: write into :func:`lungdeform.atomic.atomic_dir`. Returns the SOP Instance
     UIDs in slice order. A grid over the cap (:func:`~lungdeform.io.grid.check_grid`) is refused first."""
+    array, spacing, origin, direction = image.array, image.spacing, image.origin, image.direction
     a = np.asarray(array)
     if a.ndim != 3 or 0 in a.shape:
         raise InputError(f"{folder}: a DICOM series needs a non-empty 3-D (z, y, x) array, got shape {a.shape}")
