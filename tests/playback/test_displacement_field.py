@@ -116,7 +116,7 @@ def test_lattice_is_exact_for_affine_values():
 
 
 def test_scan_state_reads_the_fit_provenance(model):
-    # volumes_ml and the applied alignment (scan → model frame) as fit/pipeline.write_outputs stores them
+    # volumes_ml and the applied alignment (scan → model frame) as evaluate/pipeline.write_outputs stores them
     a = np.eye(4)
     a[:3, 3] = [1.0, 2.0, -30.0]
     fitted = Model(model.lungs, {"volumes_ml": [3000.0, 3500.0], "alignment": [{"applied": {"matrix": a.tolist()}}]})

@@ -48,7 +48,7 @@ def test_dicom_archive_roundtrip_and_uneven_slices(tmp_path, rng):
     assert np.allclose(img.origin, [-50, -50, 0])
     assert img.source.endswith("ct.tar.gz")
     assert not any(p.name.startswith("lungdeform-ct-") for p in tmp_path.iterdir())  # cleaned up
-    # a missing slice: gaps 2 and 4 mm → refused (by the one slice check, lungdeform.io.slices),
+    # a missing slice: gaps 2 and 4 mm → refused (by the one slice check, lungdeform.io.dicom.slices),
     # naming the folder, the cause and the files
     zs = [0, 2, 4, 8, 10, 12, 14, 16]
     _write_dicom_series(tmp_path / "gap", arr, (1.5, 1.5, 2.0), zs)

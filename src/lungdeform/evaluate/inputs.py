@@ -163,7 +163,7 @@ def read_input(path: Path, side: str, *, progress: Progress | None = None, spaci
 
     ``spacing_like``: ``(path, spacing (3,) mm)`` of an image read before; an image of another
     spacing is refused as soon as it is read, before the (slow) segmentation and surface. ``splits``:
-    where a mask holding both lungs is split (:class:`~lungdeform.fit.lungsplit.SplitCache`)."""
+    where a mask holding both lungs is split (:class:`~lungdeform.segment.split.SplitCache`)."""
 
     path = Path(path)
     if not path.exists():
