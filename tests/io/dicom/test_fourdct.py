@@ -8,8 +8,8 @@ import pytest
 import SimpleITK as sitk
 
 from lungdeform.errors import InputError, ReadError
-from lungdeform.io.dicom.fourdct import _number, _percent, read_phases
-from tests.fourdct_phantom import SHAPE, STUDY, phase_ct, write_4dct, write_slices
+from lungdeform.io.dicom.fourdct import _number, _percent, frame_of_reference, read_phases
+from tests.fourdct_phantom import SHAPE, STUDY, phase_ct, write_4dct, write_cycle, write_slices
 
 
 @pytest.mark.parametrize("mode, labels", [
@@ -185,3 +185,13 @@ def test_grid_cap_refuses_a_phase_before_reading_it(tmp_path, rng, monkeypatch):
     monkeypatch.setenv("LUNGDEFORM_MAX_VOXELS", "many")
     with pytest.raises(InputError, match="LUNGDEFORM_MAX_VOXELS must be a positive whole number of voxels, got 'many'"):
         read_phases(tmp_path)
+
+
+def test_frame_of_reference_shared_by_every_phase(tmp_path, rng):
+    # truth: the UID written into every slice is the one read back; a folder without it has none
+    write_cycle(tmp_path / "a", rng, [1.0, 1.1], frame_uid="1.2.3.4.5")
+    files = [sorted(str(f) for f in (tmp_path / "a" / f"phase{p}").iterdir()) for p in range(2)]
+    assert frame_of_reference(files) == "1.2.3.4.5"
+    write_cycle(tmp_path / "b", rng, [1.0, 1.1])
+    files = [sorted(str(f) for f in (tmp_path / "b" / f"phase{p}").iterdir()) for p in range(2)]
+    assert frame_of_reference(files) is None
