@@ -35,6 +35,15 @@ def write_marker_csv(path, t_ms, signal_mm, header='"Frame";"Timestamp";"x";"y";
     return path
 
 
+def write_marker_folder(folder, rng):
+    """A folder of one 80 s marker trace (8 mm breaths of :func:`breath`, 0.1 mm noise), named as the
+    shared traces are: what the validate commands read."""
+    folder.mkdir()
+    t = np.arange(0, 80, 0.1)
+    write_marker_csv(folder / "201201010000-LAC-1-N-80-6.csv", t * 1000, 8 * breath(t) + rng.normal(0, 0.1, t.size))
+    return folder
+
+
 def write_vxp(path, t_ms, amp, marks, layout="amplitude,phase,timestamp,validflag,ttlin,mark,ttlout"):
     cols = layout.split(",")
     lines = ["[Header]", "CRC=1", "Version=1.6", f"Data_layout={layout}", "Samples_per_second=25",

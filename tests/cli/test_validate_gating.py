@@ -3,23 +3,13 @@ exit codes."""
 
 import json
 
-import numpy as np
-
 from lungdeform.cli.main import main
-from tests.breathing.test_trace import breath, write_marker_csv
-
-
-def _data(tmp_path, rng):
-    data = tmp_path / "data"
-    data.mkdir()
-    t = np.arange(0, 80, 0.1)
-    write_marker_csv(data / "201201010000-LAC-1-N-80-6.csv", t * 1000, 8 * breath(t) + rng.normal(0, 0.1, t.size))
-    return data
+from tests.breathing.test_trace import write_marker_folder
 
 
 def test_validate_gating_prints_every_strategy_and_writes_metrics(tmp_path, rng, capsys):
     out = tmp_path / "out"
-    assert main(["validate", "gating", "--data", str(_data(tmp_path, rng)), "--out", str(out),
+    assert main(["validate", "gating", "--data", str(write_marker_folder(tmp_path / "data", rng)), "--out", str(out),
                  "--latency-ms", "200", "--window", "end-exhale:25", "--confident"]) == 0
     text = capsys.readouterr().out
     for k in ("none", "linear", "model", "model_intervals", "oracle", "beam-on error"):
@@ -30,7 +20,7 @@ def test_validate_gating_prints_every_strategy_and_writes_metrics(tmp_path, rng,
 
 
 def test_bad_options_exit_2_with_one_line_and_write_nothing(tmp_path, rng, capsys):
-    data = _data(tmp_path, rng)
+    data = write_marker_folder(tmp_path / "data", rng)
     for opts, word in ((["--window", "middle:30"], "--window"), (["--latency-ms", "0"], "--latency-ms"),
                        (["--coverage", "1.5"], "coverage"), (["--min-probability", "0"], "--min-probability")):
         assert main(["validate", "gating", "--data", str(data), "--out", str(tmp_path / "o"), *opts]) == 2

@@ -3,24 +3,13 @@ picks exit codes."""
 
 import json
 
-import numpy as np
-
 from lungdeform.cli.main import main
-from tests.breathing.test_trace import breath, write_marker_csv
-
-
-def _data(tmp_path, rng):
-    data = tmp_path / "data"
-    data.mkdir()
-    t = np.arange(0, 80, 0.1)
-    write_marker_csv(data / "201201010000-LAC-1-N-80-6.csv", t * 1000, 8 * breath(t) + rng.normal(0, 0.1, t.size))
-    return data
+from tests.breathing.test_trace import write_marker_folder
 
 
 def test_validate_prediction_prints_medians_and_writes_metrics(tmp_path, rng, capsys):
-    out = tmp_path / "out"
-    assert main(["validate", "prediction", "--data", str(_data(tmp_path, rng)), "--out", str(out),
-                 "--horizons", "200,400"]) == 0
+    out, data = tmp_path / "out", write_marker_folder(tmp_path / "data", rng)
+    assert main(["validate", "prediction", "--data", str(data), "--out", str(out), "--horizons", "200,400"]) == 0
     text = capsys.readouterr().out
     assert "model/linear" in text and "400 ms" in text and "target quiet model/none" in text
     doc = json.loads((out / "metrics.json").read_text())
@@ -28,7 +17,7 @@ def test_validate_prediction_prints_medians_and_writes_metrics(tmp_path, rng, ca
 
 
 def test_bad_horizons_and_a_missing_folder_exit_2_with_one_line(tmp_path, rng, capsys):
-    data = _data(tmp_path, rng)
+    data = write_marker_folder(tmp_path / "data", rng)
     assert main(["validate", "prediction", "--data", str(data), "--out", str(tmp_path / "o"),
                  "--horizons", "400,abc"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
