@@ -324,13 +324,12 @@ class RigidOptions:
 
     @staticmethod
     def of(name, rtstruct, mask, border_mm) -> RigidOptions | None:
-        """Checked before any work: --rigid-structure with --rtstruct, or --rigid-mask; None without."""
+        """Checked before any work: --rigid-structure with --rtstruct, or --rigid-mask; None without
+        (``border_mm`` is range-checked as the command line is parsed, :func:`bounded`)."""
         if (name is None) != (rtstruct is None):
             raise InputError("--rigid-structure and --rtstruct go together")
         if name is not None and mask is not None:
             raise InputError("--rigid-structure and --rigid-mask are mutually exclusive: give one rigid region")
-        if not (np.isfinite(border_mm) and 0 < border_mm <= 100):
-            raise InputError(f"--rigid-border-mm must be a finite number in (0, 100] mm, got {border_mm}")
         if name is None and mask is None:
             return None
         return RigidOptions(name, rtstruct, mask, float(border_mm))
