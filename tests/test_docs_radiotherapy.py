@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import shlex
 import shutil
-import tarfile
 from pathlib import Path
 
 import numpy as np
@@ -108,21 +107,14 @@ def test_worked_example_2_runs_on_a_smaller_popi(data_dir, tmp_path, monkeypatch
     # UIDs: the full grid takes 7.5 min), with a 12 mm GTV sphere and a 500 mL cosine curve as the
     # document describes them
     from lungdeform.geometry.mesh import icosphere
-    from lungdeform.io.dicom import series as DS
     from lungdeform.io.dicom.rtstruct import read_ct_series, write_rtstruct
-    from lungdeform.io.grid import Image
-    from lungdeform.io.image import read_image
-    archive = require_path(data_dir, "popi-ct-phase00", "popi_phase00_dicom_141slices.tar.gz")
+    from tests.cli.test_warp import _curve
+    from tests.popi_workflow import downsampled_series, extract_popi
+
     monkeypatch.chdir(tmp_path)
-    with tarfile.open(archive) as tar:
-        tar.extractall(tmp_path / "full", filter="data")
-    ct, head = read_image(tmp_path / "full" / "popi00"), DS.study_header(tmp_path / "full" / "popi00")
-    DS.write_ct_series(tmp_path / "popi00", Image(ct.array[::2, ::4, ::4], ct.spacing * [4, 4, 2], ct.origin, ct.direction),
-                       head, description=head.SeriesDescription)
+    downsampled_series(extract_popi(data_dir, tmp_path / "full"), tmp_path / "popi00", (2, 4, 4))
     shutil.rmtree(tmp_path / "full")
-    t = np.linspace(0, 8, 161)
-    Path("curve.csv").write_text("t_s,volume_ml\n" + "".join(f"{a:.3f},{250 * (1 - np.cos(np.pi * a / 2)):.3f}\n"
-                                                               for a in t))
+    _curve(Path("curve.csv"))
     sphere = icosphere(3, 12.0, center=(-90.0, 80.0, -50.0))
     write_rtstruct("gtv.dcm", read_ct_series(tmp_path / "popi00"), [("GTV", sphere.vertices, sphere.faces, "GTV")])
     ran = 0

@@ -384,25 +384,12 @@ def test_popi_ten_phase_full_cycle_4dct_goes_through_fit(data_dir, tmp_path, cap
     # (+0 mL, the smallest: end-exhale) and 50 % the largest; the warp is a function of volume only
     # (no hysteresis), so each exhale phase matches the inhale phase of similar volume within about a
     # voxel; every phase keeps POPI's Frame of Reference, so no alignment is fitted
-    import tarfile
-
-    from lungdeform.io.dicom import series as DS
-    from lungdeform.io.grid import Image
-    from lungdeform.io.image import read_image
     from tests.cli.test_warp import _curve
-    from tests.conftest import require_path
+    from tests.popi_workflow import downsampled_series, extract_popi, popi_model
 
-    archive = require_path(data_dir, "popi-ct-phase00", "popi_phase00_dicom_141slices.tar.gz")
-    with tarfile.open(archive) as tar:
-        tar.extractall(tmp_path, filter="data")
-    popi = tmp_path / "popi00"
-    assert main(["segment", str(popi), "--out", str(tmp_path / "seg"), "--downsample", "4"]) == 0
-    model = tmp_path / "model.npz"
-    assert main(["build", str(tmp_path / "seg" / "left_lung.nii.gz"), str(tmp_path / "seg" / "right_lung.nii.gz"),
-                 "--target-vertices", "1500", "--out", str(model)]) == 0
-    ct, head = read_image(popi), DS.study_header(popi)
-    DS.write_ct_series(tmp_path / "ct", Image(ct.array[::2, ::2, ::2], ct.spacing * [2, 2, 2], ct.origin, ct.direction),
-                       head, description=head.SeriesDescription)
+    popi = extract_popi(data_dir, tmp_path)
+    model = popi_model(popi, tmp_path, 1500)
+    head = downsampled_series(popi, tmp_path / "ct", (2, 2, 2))
     assert main(["warp", str(tmp_path / "ct"), str(model), "--curve", str(_curve(tmp_path / "c.csv")), "--phases",
                  "10", "--node-mm", "12", "--out", str(tmp_path / "4dct")]) == 0
     capsys.readouterr()

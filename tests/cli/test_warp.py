@@ -1,6 +1,5 @@
 """``lungdeform warp`` on a small synthetic model and image."""
 
-import tarfile
 
 import numpy as np
 import pydicom
@@ -15,8 +14,8 @@ from lungdeform.io.grid import Image
 from lungdeform.io.image import read_image
 from lungdeform.io.modelfile import load_model
 from tests.cli.test_dvf import files  # noqa: F401  (the shared module fixture)
-from tests.conftest import require_path
 from tests.io.dicom_support import dciodvfy
+from tests.popi_workflow import downsampled_series, extract_popi, popi_model
 
 
 def test_warp_keeps_labels_and_metadata(files, tmp_path):
@@ -114,17 +113,9 @@ def test_popi_ten_phase_dicom_4dct_and_its_rtstruct(data_dir, tmp_path, capsys):
     # series reader opens each phase; a 12 mm "GTV" sphere in the right lung (-857 HU at
     # (-90, 80, -50) mm LPS, docs/RADIOTHERAPY.md) tracked to the 10 phases is written as one
     # RTSTRUCT on phase00 that pydicom reads, every referenced SOP Instance UID a slice of phase00
-    archive = require_path(data_dir, "popi-ct-phase00", "popi_phase00_dicom_141slices.tar.gz")
-    with tarfile.open(archive) as tar:
-        tar.extractall(tmp_path, filter="data")
-    popi = tmp_path / "popi00"
-    assert main(["segment", str(popi), "--out", str(tmp_path / "seg"), "--downsample", "4"]) == 0
-    model = tmp_path / "model.npz"
-    assert main(["build", str(tmp_path / "seg" / "left_lung.nii.gz"), str(tmp_path / "seg" / "right_lung.nii.gz"),
-                 "--target-vertices", "1000", "--out", str(model)]) == 0
-    ct, head = read_image(popi), DS.study_header(popi)
-    DS.write_ct_series(tmp_path / "ct", Image(ct.array[::2, ::4, ::4], ct.spacing * [4, 4, 2], ct.origin, ct.direction),
-                       head, description=head.SeriesDescription)
+    popi = extract_popi(data_dir, tmp_path)
+    model = popi_model(popi, tmp_path, 1000)
+    head = downsampled_series(popi, tmp_path / "ct", (2, 4, 4))
     curve = _curve(tmp_path / "c.csv")
     assert main(["warp", str(tmp_path / "ct"), str(model), "--curve", str(curve), "--phases", "10",
                  "--node-mm", "12", "--out", str(tmp_path / "4dct")]) == 0
