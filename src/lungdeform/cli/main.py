@@ -121,7 +121,7 @@ def _run_app(app, argv) -> int:
     """Run ``app`` on ``argv``; the exit code of :func:`main`."""
     try:
         # standalone mode: typer itself reports usage errors (exit 2) and Ctrl-C
-        with sigterm_interrupts() as signalled:
+        with signals_interrupt() as signalled:
             app(args=argv, prog_name="lungdeform")
     except SystemExit as exc:
         if exc.code is None:
@@ -151,11 +151,14 @@ class Terminated(KeyboardInterrupt):
 
 
 @contextmanager
-def sigterm_interrupts():
+def signals_interrupt():
     """While the command runs, SIGTERM raises :class:`Terminated` (a KeyboardInterrupt) instead of
-    killing the process outright; the previous handler is put back after. Only in the main thread
-    (where Python delivers signals); elsewhere nothing changes."""
-    signalled: list[int] = []  # yielded: holds the signal once it came
+    killing the process outright, and Ctrl-C (SIGINT, unless the process was started with it
+    ignored) raises KeyboardInterrupt as Python's own handler does. Either one arriving inside a
+    callback from compiled code, where an exception is printed and dropped, is sent again a little
+    later. The previous handlers are put back after. Only in the main thread (where Python delivers
+    signals); elsewhere nothing changes."""
+    signalled: list[int] = []  # yielded: holds SIGTERM once it came
     if threading.current_thread() is not threading.main_thread():
         yield signalled
         return
@@ -164,15 +167,21 @@ def sigterm_interrupts():
         if _in_c_callback(frame):  # an exception there is printed and dropped: ask again a little later
             threading.Timer(0.05, os.kill, (os.getpid(), signum)).start()
             return
+        if signum == signal.SIGINT:
+            raise KeyboardInterrupt()
         signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a second SIGTERM does not cut the clean-up short
         signalled.append(signum)
         raise Terminated()
 
-    previous = signal.signal(signal.SIGTERM, handler)
+    handled = [signal.SIGTERM]
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        handled.append(signal.SIGINT)
+    previous = {signum: signal.signal(signum, handler) for signum in handled}
     try:
         yield signalled
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for signum, before in previous.items():
+            signal.signal(signum, before)
 
 
 def _in_c_callback(frame) -> bool:
