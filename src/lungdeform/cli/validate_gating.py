@@ -9,7 +9,7 @@ from pathlib import Path
 
 import typer
 
-from lungdeform.breathing.gating import GateRule, parse_window
+from lungdeform.breathing.gating import GateRule, RiskControl, parse_window
 from lungdeform.breathing.predict_interval import IntervalConfig
 from lungdeform.validate.gating import STRATEGIES, GatingConfig, validate_gating
 
@@ -27,14 +27,19 @@ def register(apps) -> None:
         confident: bool = typer.Option(False, "--confident",
                                        help="model_intervals: the whole interval must be inside the window."),
         coverage: float = typer.Option(0.9, "--coverage", callback=bounded(0, 1, low_open=True, high_open=True), help="Coverage of the prediction intervals (0-1)."),
-        min_probability: float = typer.Option(0.5, "--min-probability", callback=bounded(0, 1, low_open=True, high_open=True),
-                                              help="model_intervals without --confident: the predicted "
-                                                   "probability of the window needed (0-1)."),
+        target_error: float = typer.Option(0.05, "--target-error", callback=bounded(0, 1, low_open=True, high_open=True),
+                                           help="Tolerated beam-on error (0-1): the window-probability threshold "
+                                                "adapts online so the realised beam-on error tends to it."),
+        min_probability: float | None = typer.Option(None, "--min-probability", callback=bounded(0, 1, low_open=True, high_open=True),
+                                                     help="Fix the window-probability threshold (0-1) instead of "
+                                                          "adapting it to --target-error."),
         strict: bool = typer.Option(False, "--strict", help="Exit with code 3 when a target is not met (for CI)."),
     ):
         """Gate a beam on each trace: no compensation, linear, model, model with intervals and an oracle."""
         check_output(out, [data], folder=True)
-        rule = GateRule(parse_window(window), confident, min_probability, IntervalConfig(coverage=coverage))
+        risk = RiskControl(target_error=target_error) if min_probability is None else None
+        rule = GateRule(parse_window(window), confident, 0.5 if min_probability is None else min_probability,
+                        IntervalConfig(coverage=coverage), risk)
         config = GatingConfig(latency_ms=latency_ms, rule=rule)
         m = validate_gating(data, out, config, progress=say)
         for name, err in m["errors"].items():
@@ -53,6 +58,7 @@ def register(apps) -> None:
         for key, text in (("error_vs_none", "beam-on error <= 0.5 x none's"),
                           ("duty_vs_none", "duty cycle >= 0.9 x none's"),
                           ("better_than_linear", "better than linear at equal or higher duty"),
+                          ("better_than_linear_same_rule", "better than linear_intervals (same rule) on both"),
                           ("better_than_linear_at_matched_duty", "better than linear at linear's duty")):
             typer.echo(f"target model_intervals {text}: {'met' if t[key]['met'] else 'not met'}")
         typer.echo(f"wrote {Path(out) / 'metrics.json'} and {len(m['plots'])} plots in {Path(out) / 'plots'}")
