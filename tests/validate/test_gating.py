@@ -44,7 +44,7 @@ def test_decisions_never_use_later_samples_except_the_oracle(rng):
     y = x.copy()
     y[500:] = rng.normal(0, 3.0, t.size - 500)
     a, b = G.gate_decisions(t, x, G.GatingConfig()), G.gate_decisions(t, y, G.GatingConfig())
-    for k in ("none", "linear", "model", "model_intervals"):
+    for k in ("none", "linear", "model", "model_intervals", "linear_intervals"):
         assert np.array_equal(a[k][:500], b[k][:500])
     assert np.array_equal(a["window"][:500], b["window"][:500])
 
