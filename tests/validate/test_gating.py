@@ -83,3 +83,5 @@ def test_shared_traces_meet_the_gating_targets(tmp_path, data_dir):
     t = m["targets"]
     assert m["n_traces"] == 16 and t["error_vs_none"]["met"] and t["duty_vs_none"]["met"]
     assert t["better_than_linear_at_matched_duty"]["met"]
+    # with the same intervals and the same adaptive rule, the model gates more and errs less than linear
+    assert t["better_than_linear_same_rule"]["met"]
