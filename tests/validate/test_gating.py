@@ -49,6 +49,28 @@ def test_decisions_never_use_later_samples_except_the_oracle(rng):
     assert np.array_equal(a["window"][:500], b["window"][:500])
 
 
+def test_replayed_threshold_is_the_live_gate(rng):
+    # leave-one-trace-out replays RiskThreshold on the recorded window probabilities; the predictor never
+    # sees the beam, so with the live gate's own control the replay must give its decisions exactly
+    t, x = _breath(rng, 90.0)
+    cfg = G.GatingConfig()
+    d = G.gate_decisions(t, x, cfg)
+    on = G.replay_threshold(t, x, d, 0.3, cfg.rule.risk)
+    assert np.array_equal(on, d["model_intervals"]) and on.any() and not on.all()
+
+
+def test_leave_one_trace_out_picks_the_step_on_the_other_traces(rng):
+    # each held-out trace's step comes from the others only: with the traces copied under other names
+    # (every trace identical) the pick is the same everywhere and equals the pick on all traces
+    t, x = _breath(rng, 90.0)
+    cfg = G.GatingConfig()
+    r = G.score_trace(t, x, cfg)
+    r["_trace"] = (t, x)
+    lo = G.leave_one_trace_out({"a": r, "b": r, "c": r}, cfg)
+    assert {h["gamma"] for h in lo["traces"].values()} == {lo["gamma_all"]} and lo["gamma_all"] in G.GAMMA_GRID
+    assert G.leave_one_trace_out({"a": r, "b": r}, G.GatingConfig(rule=GateRule(risk=None))) is None
+
+
 def test_confident_gate_is_stricter(rng):
     # the whole 90 % interval inside implies a predicted window probability of at least 0.95 > 0.5
     t, x = _breath(rng)

@@ -54,6 +54,12 @@ def register(apps) -> None:
         typer.echo(f"  at linear's duty cycle: model_intervals beam-on error "
                    f"{figure_or_na(mt['model_intervals_beam_on_error'], 3)} (linear "
                    f"{figure_or_na(mt['linear_beam_on_error'], 3)})")
+        lo = m["leave_one_trace_out"]
+        if lo is not None:
+            typer.echo(f"  leave-one-trace-out (step chosen on the other traces): model_intervals duty "
+                       f"{figure_or_na(lo['summary']['duty_cycle'], 3)}, beam-on error "
+                       f"{figure_or_na(lo['summary']['beam_on_error'], 3)} (target {lo['target_error']:g}); step "
+                       f"chosen on all traces {lo['gamma_all']:g}, default {lo['gamma_default']:g}")
         t = m["targets"]
         for key, text in (("error_vs_none", "beam-on error <= 0.5 x none's"),
                           ("duty_vs_none", "duty cycle >= 0.9 x none's"),

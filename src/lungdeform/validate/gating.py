@@ -31,6 +31,12 @@ Also, per trace, ``matched``: the beam-on error of the model-with-intervals gate
 strategy's duty cycle (its samples of highest predicted window probability, as many as linear's
 beam-on samples; chosen after the fact: a comparison of the two trade-offs, not a gate).
 
+``leave_one_trace_out`` (with the adaptive rule): the check of the threshold's step γ, its only setting
+besides the clinical α. For each trace, γ of :data:`GAMMA_GRID` is chosen on the other traces (the
+highest median duty cycle among the steps whose median beam-on error is at most α) and scored on that
+trace, replaying :class:`lungdeform.breathing.gating.RiskThreshold` on the recorded window
+probabilities (the predictor never sees the beam, so the replay is what the live gate would decide).
+
 ``metrics.json``: ``{"traces": {NAME: {"none": {"duty_cycle", "beam_on_error", "residual_rms"}, …,
 "matched": {…}}}, "summary": {STRATEGY: {…}}, "targets": {…}, "errors": {…}, …}``.
 """
@@ -38,13 +44,20 @@ beam-on samples; chosen after the fact: a comparison of the two trade-offs, not 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from lungdeform.atomic import write_json
-from lungdeform.breathing.gating import BeamGate, GateRule, distance_outside, gate_point
+from lungdeform.breathing.gating import (
+    BeamGate,
+    GateRule,
+    RiskControl,
+    RiskThreshold,
+    distance_outside,
+    gate_point,
+)
 from lungdeform.breathing.predict import baseline_linear, check_horizon
 from lungdeform.breathing.trace import read_trace
 from lungdeform.errors import InputError, LungdeformError
@@ -58,6 +71,8 @@ WARM_S = 30.0
 #: must show: model_intervals beam-on error ≤ this × none's, at a duty cycle ≥ DUTY_FLOOR × none's
 TARGET_ERROR_OVER_NONE = 0.5
 TARGET_DUTY_OVER_NONE = 0.9
+#: the adaptive threshold's steps γ among which leave-one-trace-out chooses (the check of the default)
+GAMMA_GRID = (0.002, 0.005, 0.01, 0.02, 0.05)
 
 
 @dataclass(frozen=True)
@@ -85,11 +100,12 @@ def gate_decisions(t_s, x, config: GatingConfig) -> dict:
     lin = baseline_linear(lat, dt_s=dt)
     lin_gate = BeamGate(lat, config.rule, point=baseline_linear(lat, dt_s=dt))
     n = t.size
-    win, prob = np.empty((n, 2)), np.empty(n)
+    win, prob, top = np.empty((n, 2)), np.empty(n), np.empty(n)
     dec = {k: np.zeros(n, bool) for k in STRATEGIES}
     for i in range(n):
         g = gate.update(t[i], v[i])
         win[i], prob[i] = g.window, g.probability
+        top[i] = gate.predictor.probability_below(math.inf)
         dec["none"][i] = gate_point(g.window, v[i])
         dec["linear"][i] = gate_point(g.window, lin.update(t[i], v[i]))
         dec["model"][i] = gate_point(g.window, g.predicted)
@@ -98,7 +114,58 @@ def gate_decisions(t_s, x, config: GatingConfig) -> dict:
     truth = np.interp(t + lat, t, v)
     truth[t + lat > t[-1]] = np.nan
     dec["oracle"] = (win[:, 0] <= truth) & (truth <= win[:, 1])
-    return {"window": win, "truth": truth, "probability": prob, **dec}
+    return {"window": win, "truth": truth, "probability": prob, "highest": top, **dec}
+
+
+def replay_threshold(t_s, x, decisions: dict, latency_s: float, control: RiskControl) -> np.ndarray:
+    """The adaptive gate's decisions ``(n,) bool`` with another ``control``, replayed on the recorded
+    window probabilities of :func:`gate_decisions` (``probability``, ``highest``, ``window``): the
+    predictor and its distribution never see the beam, so this is what :class:`BeamGate` would decide
+    (tests check it equals the live gate for the default control)."""
+    gate = RiskThreshold(latency_s, control)
+    on = np.zeros(len(t_s), bool)
+    for i, (ti, xi) in enumerate(zip(t_s, x)):
+        gate.observe(ti, xi)
+        on[i] = gate.decide(ti, decisions["probability"][i], decisions["highest"][i], tuple(decisions["window"][i]))
+    return on
+
+
+def _or_one(error: float | None) -> float:
+    """A beam-on error for ranking: a gate never on (None) counts as always wrong."""
+    return 1.0 if error is None else float(error)
+
+
+def _pick_gamma(rows: dict, names, alpha: float) -> float:
+    """The γ of GAMMA_GRID with the highest median duty cycle over ``names`` among those whose median
+    beam-on error is at most ``alpha``; none such: the lowest median beam-on error."""
+    def key(g):
+        duty = np.median([rows[n][g]["duty_cycle"] for n in names])
+        err = np.median([_or_one(rows[n][g]["beam_on_error"]) for n in names])
+        return (err <= alpha, duty if err <= alpha else -err)
+    return max(GAMMA_GRID, key=key)
+
+
+def leave_one_trace_out(scores: dict, config: GatingConfig) -> dict | None:
+    """Leave-one-trace-out check of the adaptive threshold's step γ (the only setting it has besides
+    the clinical α): for each trace, γ of :data:`GAMMA_GRID` chosen on the other traces
+    (:func:`_pick_gamma`), scored on that trace. None without the adaptive rule or with one trace."""
+    risk = config.rule.risk
+    if risk is None or config.rule.confident or len(scores) < 2:
+        return None
+    lat = config.latency_ms / 1000.0
+    rows = {}
+    for name, r in scores.items():
+        t, x = r["_trace"]
+        d, ok = r["_decisions"], r["_scored"]
+        rows[name] = {g: gate_metrics(replay_threshold(t, x, d, lat, replace(risk, gamma=g))[ok], d["truth"][ok],
+                                      d["window"][ok]) for g in GAMMA_GRID}
+    held = {}
+    for name in rows:
+        g = _pick_gamma(rows, [n for n in rows if n != name], risk.target_error)
+        held[name] = {"gamma": g, **{m: rows[name][g][m] for m in ("duty_cycle", "beam_on_error")}}
+    med = {m: float(np.median([_or_one(h[m]) for h in held.values()])) for m in ("duty_cycle", "beam_on_error")}
+    return {"traces": held, "summary": med, "gamma_grid": list(GAMMA_GRID), "gamma_all": _pick_gamma(rows, list(rows), risk.target_error),
+            "gamma_default": risk.gamma, "target_error": risk.target_error}
 
 
 def gate_metrics(on: np.ndarray, truth: np.ndarray, window: np.ndarray) -> dict:
@@ -135,7 +202,7 @@ def score_trace(t_s, x, config: GatingConfig) -> dict:
                       "model_intervals_beam_on_error": matched_error(d["probability"][ok], d["truth"][ok],
                                                                      d["window"][ok], n_lin)}
     out["n_scored"] = int(ok.sum())
-    out["_decisions"] = d
+    out["_decisions"], out["_scored"] = d, ok
     return out
 
 
@@ -247,6 +314,7 @@ def validate_gating(data: Path, out: Path, config: GatingConfig | None = None, p
     traces = {n: {k: v for k, v in r.items() if not k.startswith("_")} for n, r in scores.items()}
     s = summary(traces)
     metrics = {"traces": traces, "summary": s, "targets": targets(s), "n_traces": len(traces),
+               "leave_one_trace_out": leave_one_trace_out(scores, config),
                "errors": errors, "latency_ms": config.latency_ms, "window": config.rule.window.text,
                "confident": config.rule.confident, "min_probability": config.rule.min_probability,
                "target_error": None if config.rule.risk is None else config.rule.risk.target_error,
