@@ -36,6 +36,7 @@ WIDE_FUNCTIONS = {
     "lungdeform.geometry.distance:_closest_kernel": 10, "lungdeform.geometry.distance:_closest_on_segment": 9,
     "lungdeform.geometry.intersect:_narrow": 10,
     "lungdeform.playback.voxel:fill_field": 12,
+    "lungdeform.cli.validate_gating:register.gating": 9,  # typer options (issue 28: --target-error)
 }
 
 
