@@ -321,6 +321,82 @@ def check_structure_on_ct(structure: Structure, ct: CTSeries, source: str) -> li
     return []
 
 
+def check_ct_is_scan(ct: CTSeries, scans, k: int) -> None:
+    """Refuse (:class:`InputError` naming ``--reference-ct`` and the mismatch) a CT that is not
+    scan ``k`` of a fit: ``scans`` the model's provenance ``scans`` (one identity per fitted scan,
+    :func:`lungdeform.evaluate.inputs.scan_identity`). Its patient (when both give one) and Frame of
+    Reference (when scan ``k`` was a DICOM series) must be scan ``k``'s, and its slices must span scan
+    ``k``'s image box (each face within the larger of the two voxel sizes and 0.5 mm; a mask
+    segmented with ``--downsample`` spans the same box). Contours in scan ``k``'s frame written on
+    another CT would be a wrong answer: positions meaningful in one frame, labelled with another."""
+    where = f"--reference-ct {ct.source}"
+    if not scans or not 0 <= k < len(scans) or not isinstance(scans[k], dict):
+        raise InputError(f"{where}: the model records no identity of scan {k} (fitted before lungdeform recorded "
+                         f"its scans): cannot check that this CT is scan {k}'s; fit again, or give --volume-ml")
+    scan = scans[k]
+    what = f"scan {k} ({scan.get('source', '?')})"
+    patient = str(ct.header.get("PatientID", "") or "").strip()
+    if scan.get("patient_id") and patient and scan["patient_id"] != patient:
+        raise InputError(f"{where}: patient {patient!r}, {what} patient {scan['patient_id']!r}: not scan {k}'s series")
+    frame = str(ct.header.FrameOfReferenceUID)
+    if scan.get("frame_of_reference") and scan["frame_of_reference"] != frame:
+        raise InputError(f"{where}: Frame of Reference {frame}, {what} {scan['frame_of_reference']}: not scan {k}'s "
+                         "series (its contours would be written in another frame)")
+    if scan.get("grid"):
+        _check_box(ct, scan["grid"], where, what)
+
+
+def check_structure_on_scan(structure: Structure, scans, source: str) -> None:
+    """Refuse (:class:`InputError` naming ``source`` and the structure) a structure that is not drawn
+    on scan 0 of a fit (``scans``, as :func:`check_ct_is_scan`): another patient, or another Frame
+    of Reference than scan 0's; a scan 0 that was no DICOM series has no frame to check it against,
+    refused too. For ``track --scan K`` where the fit aligned scan K: the structure is drawn in the
+    model's frame (scan 0's), its moved contours are written in scan K's, on scan K's CT."""
+    name = f"{source}: structure {structure.name!r}"
+    scan = scans[0] if scans and isinstance(scans[0], dict) else {}
+    if scan.get("patient_id") and structure.patient_id and scan["patient_id"] != structure.patient_id:
+        raise InputError(f"{name} belongs to patient {structure.patient_id!r}, scan 0 of the fit "
+                         f"({scan.get('source', '?')}) to patient {scan['patient_id']!r}: not the same patient")
+    if not scan.get("frame_of_reference"):
+        raise InputError(f"{name}: scan 0 of the fit ({scan.get('source', '?')}) was no DICOM series, so nothing shows "
+                         "the structure is drawn on it; give --no-rigid, or fit DICOM series")
+    if structure.frame_uid != scan["frame_of_reference"]:
+        raise InputError(f"{name} is in Frame of Reference {structure.frame_uid or '(none)'}, scan 0 of the fit "
+                         f"({scan.get('source', '?')}) in {scan['frame_of_reference']}: not drawn on the model's scan")
+
+
+def _ct_box(ct: CTSeries) -> tuple[np.ndarray, float]:
+    """``((2, 3) lowest and highest voxel-centre corner mm LPS, largest voxel size mm)`` of ``ct``."""
+    h = ct.header
+    iop = np.asarray([float(v) for v in h.ImageOrientationPatient], float).reshape(2, 3)
+    dy, dx = (float(v) for v in h.PixelSpacing)  # row spacing, column spacing
+    rows, cols = int(h.Rows), int(h.Columns)
+    corners = [o + i * (cols - 1) * dx * iop[0] + j * (rows - 1) * dy * iop[1]
+               for o in (ct.origins[0], ct.origins[-1]) for i in (0, 1) for j in (0, 1)]
+    step = float(np.median(np.diff(ct.levels))) if len(ct.levels) > 1 else 0.0
+    return np.array([np.min(corners, 0), np.max(corners, 0)]), max(dx, dy, step)
+
+
+def _span(box: np.ndarray) -> str:
+    """``"(x0..x1, y0..y1, z0..z1) mm"`` of a (2, 3) box."""
+    return "(" + ", ".join(f"{lo:.1f}..{hi:.1f}" for lo, hi in zip(box[0], box[1])) + ") mm"
+
+
+def _check_box(ct: CTSeries, grid: dict, where: str, what: str) -> None:
+    """InputError when ``ct``'s voxel-centre box differs from that of the recorded ``grid``."""
+    size, spacing = np.asarray(grid["size"], float), np.asarray(grid["spacing"], float)
+    origin, direction = np.asarray(grid["origin"], float), np.asarray(grid["direction"], float).reshape(3, 3)
+    idx = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], float) * (size - 1)
+    corners = origin + (idx * spacing) @ direction.T
+    box = np.array([corners.min(0), corners.max(0)])
+    ours, voxel = _ct_box(ct)
+    tol = max(voxel, float(spacing.max())) + 0.5
+    off = np.abs(ours - box)
+    if off.max() > tol:
+        raise InputError(f"{where}: its slices span {_span(ours)} LPS, {what} spans {_span(box)}: not scan "
+                         f"{what.split()[1]}'s series (another grid, {off.max():.1f} mm off)")
+
+
 def check_within_slices(ct: CTSeries, name: str, points) -> None:
     """Refuse (:class:`InputError` naming ``name``) ``points : (n, 3)`` mm reaching a slice spacing
     or more beyond the first or last slice of ``ct``: a slice there would cut it, and the CT has
