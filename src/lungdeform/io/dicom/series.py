@@ -179,17 +179,19 @@ def series_identity(files) -> dict[str, str]:
     header only): ``{"patient_id", "study_uid", "series_uid", "frame_of_reference"}`` (``""`` where
     the file has none). A model records it per fitted scan, so that an output later said to be on
     scan K's series can be checked against it (:func:`lungdeform.io.dicom.rtstruct.check_ct_is_scan`).
-    :class:`ReadError` naming the file when it cannot be read or lacks a valid SeriesInstanceUID or
-    FrameOfReferenceUID (:func:`~lungdeform.io.dicom.attributes.require`)."""
+    :class:`ReadError` naming the file when it cannot be read, lacks a SeriesInstanceUID or holds a
+    UID that is not one (:func:`~lungdeform.io.dicom.attributes.require`)."""
     first = str(list(files)[0])
     try:
         ds = pydicom.dcmread(first, stop_before_pixels=True)
     except (InvalidDicomError, OSError, EOFError, ValueError) as exc:
         raise ReadError(f"{first}: not a readable DICOM slice ({exc})") from exc
-    require(ds, ("SeriesInstanceUID", "FrameOfReferenceUID"), first, "which a fitted scan's record needs")
+    require(ds, ("SeriesInstanceUID",), first, "which a fitted scan's record needs",
+            optional=("StudyInstanceUID", "FrameOfReferenceUID"))
     return {"patient_id": str(ds.get("PatientID", "") or "").strip(),
             "study_uid": str(ds.get("StudyInstanceUID", "") or "").strip(),
-            "series_uid": str(ds.SeriesInstanceUID).strip(), "frame_of_reference": str(ds.FrameOfReferenceUID).strip()}
+            "series_uid": str(ds.SeriesInstanceUID).strip(),
+            "frame_of_reference": str(ds.get("FrameOfReferenceUID", "") or "").strip()}
 
 
 def study_header(source=None) -> Dataset:
