@@ -89,6 +89,23 @@ def decimal(value: float, digits: int = 12, places: int | None = None) -> str:
     raise InputError(f"{value!r} cannot be written as a DICOM decimal string of 16 bytes")
 
 
+#: Text value representations, whose characters SpecificCharacterSet (0008,0005) governs (PS3.5 6.1.2.3)
+TEXT_VRS = ("SH", "LO", "ST", "LT", "UT", "UC", "PN")
+
+
+def declare_charset(ds: Dataset) -> None:
+    """Set ``ds.SpecificCharacterSet`` to ``ISO_IR 192`` (UTF-8) when a text value of ``ds`` or its
+    sequences is not ASCII (a patient name copied from a Latin-1 source, ``Müller``), so that pydicom
+    writes it as UTF-8 and says so; without it the file would hold bytes outside the default
+    repertoire, which dciodvfy and planning systems refuse or garble (PS3.5 6.1.2.3)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        texts = [e.value for e in ds.iterall() if e.VR in TEXT_VRS and e.value is not None]
+    values = [v for t in texts for v in (t if isinstance(t, (list, tuple, MultiValue)) else [t])]
+    if not all(str(v).isascii() for v in values):
+        ds.SpecificCharacterSet = "ISO_IR 192"
+
+
 def type2_defaults(ds: Dataset, keys) -> None:
     """Add each of ``keys`` that ``ds`` lacks with an empty value: a Type 2 attribute must be present,
     empty when unknown (PS3.5 7.4.3); a value is never invented."""

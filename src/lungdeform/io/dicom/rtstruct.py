@@ -33,7 +33,7 @@ from lungdeform.atomic import atomic_path
 from lungdeform.errors import InputError, ReadError
 from lungdeform.geometry.contours import contours_to_mesh, section_mesh
 
-from .attributes import check_dataset, require
+from .attributes import check_dataset, declare_charset, require
 from .series import dicom_series_files
 
 #: RT Structure Set Storage
@@ -43,8 +43,6 @@ STUDY_SOP_CLASS = "1.2.840.10008.3.1.2.3.1"
 #: ROI colours (RGB) given in turn
 COLOURS = ((255, 0, 0), (0, 160, 255), (0, 200, 0), (255, 160, 0), (200, 0, 255), (255, 255, 0),
            (0, 255, 200), (255, 80, 160), (120, 120, 255), (160, 255, 80))
-#: Text value representations (checked for non-ASCII characters before writing)
-_TEXT_VRS = ("SH", "LO", "ST", "LT", "UT", "UC", "PN")
 #: Study and patient attributes copied from the CT into the structure set
 _COPIED = ("PatientName", "PatientID", "PatientBirthDate", "PatientSex", "StudyInstanceUID", "StudyDate",
            "StudyTime", "StudyID", "AccessionNumber", "ReferringPhysicianName", "StudyDescription")
@@ -437,14 +435,8 @@ def build_rtstruct(ct: CTSeries, surfaces: list, *, label: str = "lungdeform",
         contours = _slice_contours(ct, v, f)
         counts[name] = len(contours)
         _add_roi(ds, number, name, kind, COLOURS[(number - 1) % len(COLOURS)], contours, ct)
-    if not all(_ascii(e.value) for e in ds.iterall() if e.VR in _TEXT_VRS):
-        ds.SpecificCharacterSet = "ISO_IR 192"  # UTF-8: a name that is not ASCII round-trips
+    declare_charset(ds)  # UTF-8 when a name that is not ASCII: it round-trips
     return ds, counts
-
-
-def _ascii(value) -> bool:
-    values = value if isinstance(value, (list, tuple, MultiValue)) else [value]
-    return all(str(v).isascii() for v in values)
 
 
 def write_rtstruct(path, ct: CTSeries, surfaces: list, *, label: str = "lungdeform") -> dict:

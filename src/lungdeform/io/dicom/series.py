@@ -54,7 +54,7 @@ from pydicom.uid import PYDICOM_IMPLEMENTATION_UID, ExplicitVRLittleEndian, gene
 from lungdeform.errors import InputError, ReadError
 from lungdeform.io.grid import Image, check_grid, quiet_itk
 
-from .attributes import check_dataset, decimal, require, type2_defaults
+from .attributes import check_dataset, decimal, declare_charset, require, type2_defaults
 from .guard import check_dicom_file, is_dicom_file
 from .slices import GEOMETRY_TAGS, SliceGeometry, check_slices, check_spacing
 
@@ -344,6 +344,7 @@ def _write_slice(path: Path, series: Dataset, pixels: np.ndarray, k: int, positi
     ds.SOPInstanceUID, ds.InstanceNumber = meta.MediaStorageSOPInstanceUID, k + 1
     ds.ImagePositionPatient = [decimal(x, places=6) for x in position]
     ds.PixelData = np.ascontiguousarray(pixels, dtype="<i2").tobytes()
+    declare_charset(ds)  # a Latin-1 patient name of the source, written as UTF-8 and declared
     check_dataset(ds, str(path))
     ds.save_as(path, enforce_file_format=True)
     return str(ds.SOPInstanceUID)
