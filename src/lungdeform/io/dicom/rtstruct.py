@@ -289,32 +289,33 @@ def _check_slice_positions(levels: np.ndarray, path) -> None:
                         "contours on missing slices would be lost")
 
 
-def check_structure_on_ct(structure: Structure, ct: CTSeries, source: str) -> list[str]:
+def check_structure_on_ct(structure: Structure, ct: CTSeries, source: str, option: str = "--reference-ct") -> list[str]:
     """Refuse (:class:`InputError` naming ``source``, the structure and the cause) a structure that
     cannot be written on ``ct``: another patient (PatientID, when both give one), another Frame of
     Reference than the CT's (its coordinates mean nothing there), slices it is drawn on that the CT
     lacks (when it references slices of this series), or contours beyond the CT's first or last
-    slice. Returns warnings: the same Frame of Reference in another study."""
+    slice. Returns warnings: the same Frame of Reference in another study. ``option`` names the CT
+    in messages (``--reference-ct``, ``--reference``)."""
     name = f"{source}: structure {structure.name!r}"
     frame, study = str(ct.header.FrameOfReferenceUID), str(ct.header.StudyInstanceUID)
     patient = str(ct.header.get("PatientID", "")).strip()
     if structure.patient_id and patient and structure.patient_id != patient:
-        raise InputError(f"{name} belongs to patient {structure.patient_id!r}, --reference-ct {ct.source} to "
+        raise InputError(f"{name} belongs to patient {structure.patient_id!r}, {option} {ct.source} to "
                          f"patient {patient!r}: not the same patient")
     if not structure.frame_uid:
-        raise InputError(f"{name} has no Frame of Reference UID: cannot check it is drawn on --reference-ct {ct.source}")
+        raise InputError(f"{name} has no Frame of Reference UID: cannot check it is drawn on {option} {ct.source}")
     if structure.frame_uid != frame:
         also = f"; study {structure.study_uid} against {study}" if structure.study_uid and structure.study_uid != study else ""
-        raise InputError(f"{name} is in Frame of Reference {structure.frame_uid}, --reference-ct {ct.source} in "
+        raise InputError(f"{name} is in Frame of Reference {structure.frame_uid}, {option} {ct.source} in "
                          f"{frame}{also}: not the CT it was drawn on")
     ours = structure.image_uids & set(ct.sop_uids)
     lost = structure.image_uids - set(ct.sop_uids)
     if ours and lost:
-        raise InputError(f"{name} is drawn on {len(lost)} slice(s) that --reference-ct {ct.source} lacks "
+        raise InputError(f"{name} is drawn on {len(lost)} slice(s) that {option} {ct.source} lacks "
                          f"(e.g. SOP Instance UID {min(lost)}): missing slices")
-    check_within_slices(ct, name, np.concatenate([c for c in structure.contours if len(c)]))
+    check_within_slices(ct, name, np.concatenate([c for c in structure.contours if len(c)]), option)
     if structure.study_uid and structure.study_uid != study:
-        return [f"{name} is in study {structure.study_uid}, --reference-ct {ct.source} in study {study} "
+        return [f"{name} is in study {structure.study_uid}, {option} {ct.source} in study {study} "
                 "(the same Frame of Reference): check that this is the planning CT it was drawn on"]
     return []
 
@@ -395,7 +396,7 @@ def _check_box(ct: CTSeries, grid: dict, where: str, what: str) -> None:
                          f"{what.split()[1]}'s series (another grid, {off.max():.1f} mm off)")
 
 
-def check_within_slices(ct: CTSeries, name: str, points) -> None:
+def check_within_slices(ct: CTSeries, name: str, points, option: str = "--reference-ct") -> None:
     """Refuse (:class:`InputError` naming ``name``) ``points : (n, 3)`` mm reaching a slice spacing
     or more beyond the first or last slice of ``ct``: a slice there would cut it, and the CT has
     none, so its contours there would be lost (a surface through contours on the end slice closes
@@ -405,7 +406,7 @@ def check_within_slices(ct: CTSeries, name: str, points) -> None:
     step = float(np.median(np.diff(levels))) if len(levels) > 1 else 0.0
     if not (h.min() > levels[0] - step - 1e-6 and h.max() < levels[-1] + step + 1e-6):
         raise InputError(f"{name} reaches {h.min():.1f} to {h.max():.1f} mm along the slice normal, beyond the "
-                         f"slices of --reference-ct {ct.source} ({levels[0]:.1f} to {levels[-1]:.1f} mm, "
+                         f"slices of {option} {ct.source} ({levels[0]:.1f} to {levels[-1]:.1f} mm, "
                          f"{step:.2f} mm apart): its contours there would be lost")
 
 
