@@ -161,7 +161,8 @@ def read_fourdct(folder: Path, side: str, progress) -> tuple[list[str], list[tup
     volume; equal volumes kept, in phase order, :func:`lungdeform.fit.cycle.volume_order`). A phase
     of exactly the end-exhale volume is no target (the model cannot move at zero volume change):
     left out, noted, still measured in the hysteresis. The notes give the phase order and each
-    phase's volume (mL); ``cycle``: :attr:`ReadInputs.cycle`."""
+    phase's volume (mL); ``cycle``: :attr:`ReadInputs.cycle`, with ``"series"`` (each phase's files, in
+    fit order) that :func:`read_inputs` takes out for :attr:`ReadInputs.scans`."""
 
     progress(f"reading the 4-D CT {folder}")
     phases = read_phases(folder)

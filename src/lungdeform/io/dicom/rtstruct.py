@@ -334,6 +334,9 @@ def check_ct_is_scan(ct: CTSeries, scans, k: int) -> None:
                          f"its scans): cannot check that this CT is scan {k}'s; fit again, or give --volume-ml")
     scan = scans[k]
     what = f"scan {k} ({scan.get('source', '?')})"
+    if not scan.get("frame_of_reference") and not scan.get("grid"):
+        raise InputError(f"{where}: {what} was neither a DICOM series nor an image (a mesh?): nothing to check "
+                         f"that this CT is scan {k}'s against; give --volume-ml")
     patient = str(ct.header.get("PatientID", "") or "").strip()
     if scan.get("patient_id") and patient and scan["patient_id"] != patient:
         raise InputError(f"{where}: patient {patient!r}, {what} patient {scan['patient_id']!r}: not scan {k}'s series")
