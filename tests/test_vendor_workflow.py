@@ -101,7 +101,7 @@ def test_track_on_every_phase_with_the_foreign_rtstruct(run, capsys):
     assert np.linalg.norm(centroids[-1] - centroids[0]) > 1.0  # the largest volume moves the GTV
     rs = d / f"gtv_scan{len(run['phases']) - 1}.dcm"
     assert pydicom.dcmread(rs).SpecificCharacterSet == "ISO_IR 192"  # Müller, as UTF-8
-    for f in (rs, sorted(run["phases"][-1].iterdir())[0]):
+    for f in (rs, min(run["phases"][-1].iterdir())):
         assert dciodvfy(f)[0] == [], f
 
 

@@ -374,7 +374,6 @@ def _scan(folder, uid_root="1.2.826.0.1.3680043.8.498.77", origin=GTV_CENTRE + [
 def scan_files(gtv_files, tmp_path):
     """Scan 0 (the GTV's CT, the model's frame) and scan 1 (another series and Frame of Reference,
     the same grid), and a model fitted to them whose alignment of scan 1 is a (2, -3, 6) mm shift."""
-    from lungdeform.model.lung import Model
     ct0, gtv = gtv_files
     ct1 = write_ct_series(tmp_path / "ct1", origin=tuple(GTV_CENTRE + [-31.0, -31.0, -19.0]), uid_root="1.2.3.88")
     m = two_lungs(2)

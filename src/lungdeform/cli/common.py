@@ -17,9 +17,9 @@ import typer
 from lungdeform.atomic import write_json
 from lungdeform.constants import GRAVITY
 from lungdeform.errors import InputError
-from lungdeform.io.grid import MAX_VOXELS, MAX_VOXELS_ENV, voxel_limit
 from lungdeform.io.dicom.guard import is_dicom_file
 from lungdeform.io.dicom.rtstruct import check_structure_on_ct, read_ct_series
+from lungdeform.io.grid import MAX_VOXELS, MAX_VOXELS_ENV, voxel_limit
 from lungdeform.io.image import IMAGE_SUFFIXES, read_image, resample_image
 from lungdeform.playback import rigid as RG
 from lungdeform.playback.displacement_field import FieldResult, State, scan_state, volume_state

@@ -181,7 +181,7 @@ def series_identity(files) -> dict[str, str]:
     scan K's series can be checked against it (:func:`lungdeform.io.dicom.rtstruct.check_ct_is_scan`).
     :class:`ReadError` naming the file when it cannot be read, lacks a SeriesInstanceUID or holds a
     UID that is not one (:func:`~lungdeform.io.dicom.attributes.require`)."""
-    first = str(list(files)[0])
+    first = str(next(iter(files)))
     try:
         ds = pydicom.dcmread(first, stop_before_pixels=True)
     except (InvalidDicomError, OSError, EOFError, ValueError) as exc:
