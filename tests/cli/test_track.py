@@ -421,6 +421,7 @@ def test_track_scan_writes_on_scan_ks_ct_in_its_frame(scan_files, tmp_path, caps
     ("gtv not on scan 0", "not drawn on the model's scan"),
     ("scan 0 not dicom", "scan 0 of the fit (mask.nii.gz) was no DICOM series"),
     ("scan 1 a mesh", "scan 1 (lung.obj) was neither a DICOM series nor an image"),
+    ("ct without pixel spacing", "ct1: DICOM file lacks PixelSpacing"),  # the image box needs it
     # --no-rigid: positions in the model's frame, so scan 1's CT is the wrong one
     ("no-rigid on scan 1", "ct1: Frame of Reference 1.2.3.88.3, scan 0 ("),
 ])
@@ -444,6 +445,12 @@ def test_track_scan_refuses_a_ct_that_is_not_scan_ks(scan_files, tmp_path, capsy
         prov["scans"][0] = {"source": "mask.nii.gz", "grid": prov["scans"][0]["grid"]}
     elif case == "scan 1 a mesh":
         prov["scans"][1] = {"source": "lung.obj", "grid": None}
+    elif case == "ct without pixel spacing":
+        import pydicom
+        for f in ct1.iterdir():
+            ds = pydicom.dcmread(f)
+            del ds.PixelSpacing
+            ds.save_as(f)
     else:
         extra = ["--no-rigid"]
     model = save_model(tmp_path / "fitted.npz", Model(m.lungs, prov))

@@ -370,8 +370,9 @@ def check_structure_on_scan(structure: Structure, scans, source: str) -> None:
 def _ct_box(ct: CTSeries) -> tuple[np.ndarray, float]:
     """``((2, 3) lowest and highest voxel-centre corner mm LPS, largest voxel size mm)`` of ``ct``."""
     h = ct.header
+    require(h, ("PixelSpacing", "Rows", "Columns"), ct.source, "which the check against the fitted scan needs")
     iop = np.asarray([float(v) for v in h.ImageOrientationPatient], float).reshape(2, 3)
-    dy, dx = (float(v) for v in h.PixelSpacing)  # row spacing, column spacing
+    dy, dx = _numbers(h, "PixelSpacing", 2, ct.source)  # row spacing, column spacing
     rows, cols = int(h.Rows), int(h.Columns)
     corners = [o + i * (cols - 1) * dx * iop[0] + j * (rows - 1) * dy * iop[1]
                for o in (ct.origins[0], ct.origins[-1]) for i in (0, 1) for j in (0, 1)]
