@@ -335,3 +335,21 @@ def test_max_voxels_lasts_one_command(tmp_path, monkeypatch):
     monkeypatch.delenv(MAX_VOXELS_ENV, raising=False)
     main(["--max-voxels", "999", "build", str(tmp_path / "none.nii.gz"), "--out", str(tmp_path / "m.npz")])
     assert MAX_VOXELS_ENV not in os.environ
+
+
+@pytest.mark.parametrize("suffix", [".nii", ".nii.gz", ".mha", ".nrrd"])
+@pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf])
+def test_non_finite_voxels_are_refused_naming_the_first(tmp_path, suffix, value):
+    # why: ITK reads a NaN or inf NIfTI voxel as 0 (a NaN region of a CT became 0 HU, soft tissue,
+    # and segment, warp and build went on: exit 0); other formats keep it, and every consumer then
+    # coerced it (a NaN fails every threshold). Truth: the voxel written, named by its (x, y, z) index
+    import SimpleITK as sitk
+    a = np.zeros((4, 5, 6), np.float32)
+    a[2, 3, 1] = value
+    path = tmp_path / f"v{suffix}"
+    sitk.WriteImage(sitk.GetImageFromArray(a), str(path))
+    with pytest.raises(ReadError, match=rf"v{suffix.replace('.', '[.]')}: .*\(1, 3, 2\).*finite numbers only"):
+        read_image(path)
+    a[2, 3, 1] = -1000.5  # the same file finite: read as written
+    sitk.WriteImage(sitk.GetImageFromArray(a), str(path))
+    assert read_image(path).array[2, 3, 1] == -1000.5

@@ -62,7 +62,7 @@ def register(apps) -> None:
         state = without_alignment(pick_state(m, volume_ml, scan), no_rigid)
         series = _registration_series(reference, moving, inverse, state) if out_reg else None
         image = read_image(reference if grid is None else grid)
-        region = rigid_region(rigid, D.Grid.of(image))
+        region = rigid_region(rigid, D.Grid.of(image), ("--reference", reference))
         note = extrapolation_note(m, [state.delta_ml])
         if note:
             typer.echo(f"note: {note}")

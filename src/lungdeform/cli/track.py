@@ -13,8 +13,10 @@ from lungdeform.errors import InputError
 from lungdeform.geometry.moments import solid_moments
 from lungdeform.io.dicom.rtstruct import (
     build_rtstruct,
+    check_ct_is_scan,
     check_roi_name,
     check_structure_on_ct,
+    check_structure_on_scan,
     read_ct_series,
     save_rtstruct,
 )
@@ -69,7 +71,7 @@ def register(apps) -> None:
                      writes=("trajectories.csv", "points.json", "motion.png", "structure_motion.csv"))
         m = load_model(model)
         tracked = R.read_structure(rtstruct, structure) if rtstruct is not None else None
-        ct = _reference_ct(tracked, rtstruct, out_rtstruct, reference_ct)
+        ct = _reference_ct(tracked, rtstruct, out_rtstruct, reference_ct, (m, scan, no_rigid))
         if tracked is not None:
             pts, labels, source = tracked.points, tracked.labels, str(rtstruct)
         else:
@@ -153,18 +155,37 @@ def _check_rows(points: int, frames: float, source: str) -> None:
                          "trajectories; lower --fps, or give --phases or --volume-ml")
 
 
-def _reference_ct(tracked, rtstruct, out_rtstruct, reference_ct):
+def _reference_ct(tracked, rtstruct, out_rtstruct, reference_ct, state):
     """The reference CT (None without --out-rtstruct), read and the structure checked on it before
-    anything is written; warnings (another study; no frame of reference at all) on stderr."""
+    anything is written; warnings (another study; no frame of reference at all) on stderr.
+    ``state`` = ``(model, --scan, --no-rigid)``: with ``--scan K`` the CT must be the scan whose
+    frame the contours are in (:func:`_check_scan_ct`)."""
     if tracked is not None and not tracked.roi.frame_uid and out_rtstruct is None:
         typer.echo(f"warning: {rtstruct}: structure {tracked.roi.name!r} has no Frame of Reference UID: nothing shows "
                    "it was drawn in the frame of the model's end-exhale scan", err=True)
     if out_rtstruct is None:
         return None
     ct = read_ct_series(reference_ct)
+    if state[1] is not None and _check_scan_ct(ct, tracked, rtstruct, *state):
+        return ct
     for line in check_structure_on_ct(tracked.roi, ct, str(rtstruct)):
         typer.echo(f"warning: {line}", err=True)
     return ct
+
+
+def _check_scan_ct(ct, tracked, rtstruct, m, scan: int, no_rigid: bool) -> bool:
+    """With ``--scan K``: ``ct`` must be the fitted scan whose frame the contours are in (the model's
+    provenance ``scans``, :func:`~lungdeform.io.dicom.rtstruct.check_ct_is_scan`): scan K where the
+    fit aligned it (its alignment undone), else scan K or, with --no-rigid, scan 0 (the model's
+    frame). True when the structure was checked here instead (drawn on scan 0, written on scan K's
+    CT in another frame: :func:`~lungdeform.io.dicom.rtstruct.check_structure_on_scan`)."""
+    scans = (m.provenance or {}).get("scans")
+    aligned = scan_state(m, scan).alignment is not None
+    check_ct_is_scan(ct, scans, 0 if aligned and no_rigid else scan)
+    if aligned and not no_rigid:
+        check_structure_on_scan(tracked.roi, scans, str(rtstruct))
+        return True
+    return False
 
 
 def _check_out_rtstruct(out_rtstruct: Path | None, *inputs: Path | None) -> None:

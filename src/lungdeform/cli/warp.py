@@ -83,7 +83,7 @@ def register(apps) -> None:
             states, paths = [without_alignment(pick_state(m, volume_ml, scan), no_rigid)], [Path() if dicom else out]
         img = read_image(image)
         target = img if grid is None else read_image(grid)
-        region = rigid_region(rigid, D.Grid.of(target))
+        region = rigid_region(rigid, D.Grid.of(target), ("IMAGE", image))
         projector = M.Projector() if kinds else None
         header = DS.study_header(image) if dicom else None
         note = extrapolation_note(m, [s.delta_ml for s in states])
