@@ -187,8 +187,8 @@ def _resampled(img: Image, target: Image, result, kind: tuple[bool, bool], lungs
     hu = M.as_pixel_type(M.conserve_mass(hu, jac), img.array.dtype)
     voxel = [float(abs(np.linalg.det(np.reshape(g.direction, (3, 3)))) * np.prod(g.spacing)) / 1000.0 for g in (img, target)]
     before, after = M.mass_g(img.array, voxel[0]), M.mass_g(hu, voxel[1])
-    lines = [f"density: HU scaled by the Jacobian (mass conserved); mass of the image {before / 1000:.3f} kg "
-             f"→ {after / 1000:.3f} kg ({100 * (after / before - 1):+.2f} %; tissue leaving the grid counts)"]
+    lines = [(f"density: HU scaled by the Jacobian (mass conserved); mass of the image {before / 1000:.3f} kg "
+              f"→ {after / 1000:.3f} kg ({100 * (after / before - 1):+.2f} %; tissue leaving the grid counts)")]
     if at_state is not None:
         b, a = M.mass_g(img.array, voxel[0], lungs), M.mass_g(hu, voxel[1], at_state)
         lines.append(f"lungs (--lung-mask, at this state by nearest neighbour): {lungs.sum() * voxel[0]:.0f} mL → "
