@@ -38,7 +38,7 @@ import numpy as np
 
 from lungdeform.errors import InputError
 from lungdeform.io.grid import Image
-from lungdeform.io.image import resample_image
+from lungdeform.io.image import resample_channels, resample_image
 
 #: CT number of air (HU): zero density.
 AIR_HU = -1000.0
@@ -71,17 +71,17 @@ def resample_by_tissue(image: Image, lung, field, grid: Image | None = None) -> 
         raise InputError(f"lung mask: shape {m.shape}, the image {image.source} {image.array.shape}; "
                          "give the mask on the image's own grid")
     m = m.astype(bool)
-
-    def warped(values, default, label=False):
-        return resample_image(Image(values, image.spacing, image.origin, image.direction, image.source), field,
-                              label=label, default=default, grid=grid).array
-
     rho = image.array.astype(np.float32) - np.float32(AIR_HU)
-    outside = float(np.min(image.array)) - AIR_HU  # the ordinary resampling's fill (air in a CT)
-    f = warped(m.astype(np.float32), 0.0)  # fraction of lung in each stencil
-    lung_rho = warped(np.where(m, rho, np.float32(0)), 0.0)
-    all_rho = warped(rho, outside)
-    at_state = warped(m.astype(np.uint8), 0, label=True) > 0
+    # one linear pass over (ρ·m, m, ρ, 1): the lung's share, its fraction in each stencil, the whole
+    # image, and 1 where the source point lies in the image (0 outside, where the ordinary resampling
+    # fills with the image's minimum, air in a CT)
+    ones = np.ones_like(rho)
+    lung_rho, f, all_rho, seen = np.moveaxis(resample_channels(
+        image, np.stack([np.where(m, rho, np.float32(0)), m.astype(np.float32), rho, ones], axis=-1), field,
+        grid=grid), -1, 0)
+    all_rho = all_rho + (1 - seen) * np.float32(float(np.min(image.array)) - AIR_HU)
+    at_state = resample_image(Image(m.astype(np.uint8), image.spacing, image.origin, image.direction, image.source),
+                              field, label=True, default=0, grid=grid).array > 0
     rest = 1.0 - f
     with np.errstate(divide="ignore", invalid="ignore"):
         in_lung = lung_rho / f
