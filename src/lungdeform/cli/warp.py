@@ -178,9 +178,9 @@ def _resampled(img: Image, target: Image, result, kind: tuple[bool, bool], lungs
     other = None if target is img else target
     if not density:
         return resample_image(img, result.field, label=label, grid=other), []
-    if lungs is None:
-        warped, at_state = resample_image(img, result.field, grid=other), None
-        hu = warped.array
+    if lungs is None:  # in float32: an integer image resampled in its own type is truncated toward zero
+        as_float = Image(img.array.astype(np.float32), img.spacing, img.origin, img.direction, img.source)
+        hu, at_state = resample_image(as_float, result.field, default=float(np.min(img.array)), grid=other).array, None
     else:
         hu, at_state = M.resample_by_tissue(img, lungs, result.field, grid=other)
     jac = D.jacobian_determinant(result.field, target.spacing, target.direction)
