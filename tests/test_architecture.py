@@ -35,7 +35,6 @@ WIDE_FUNCTIONS = {
     "lungdeform.geometry.distance:_closest_on_triangle": 12, "lungdeform.geometry.distance:_closest_on_degenerate": 12,
     "lungdeform.geometry.distance:_closest_kernel": 10, "lungdeform.geometry.distance:_closest_on_segment": 9,
     "lungdeform.geometry.intersect:_narrow": 10,
-    "lungdeform.playback.voxel:fill_field": 12,
 }
 
 
