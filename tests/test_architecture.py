@@ -32,9 +32,6 @@ WIDE_FUNCTIONS = {
     "lungdeform.cli.export:register.export_command": 10,
     "lungdeform.cli.warp:register.warp_command": 17, "lungdeform.cli.view:register.view_command": 11,
     "lungdeform.cli.dvf:register.dvf_command": 15, "lungdeform.cli.stream:register.stream": 9, "lungdeform.cli.validate_itk:register.itk_pair_command": 9,
-    "lungdeform.geometry.distance:_closest_on_triangle": 12, "lungdeform.geometry.distance:_closest_on_degenerate": 12,
-    "lungdeform.geometry.distance:_closest_kernel": 10, "lungdeform.geometry.distance:_closest_on_segment": 9,
-    "lungdeform.geometry.intersect:_narrow": 10,
 }
 
 
