@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+import inspect
 import math
 import os
 import platform
@@ -10,6 +12,7 @@ import sys
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import get_type_hints
 
 import numpy as np
 import typer
@@ -37,6 +40,59 @@ class Verbosity:
     CI an error is the only line on stderr."""
 
     verbose: bool = False
+
+
+def takes(options: type):
+    """Decorator of a typer command ``body(opts)`` whose options are the fields of the dataclass
+    ``options``, each annotated ``Annotated[type, typer.Option(...)]`` (or ``typer.Argument``) with
+    its default (none: required). Typer gets a function whose signature lists those fields (a field
+    whose type is itself such a dataclass contributes its fields, so option groups are shared between
+    commands) and which calls ``body`` with one ``options(**fields)``. The command keeps ``body``'s
+    name and docstring (its help)."""
+    params = _option_parameters(options)
+
+    def wrap(body):
+        def command(**given):
+            return body(_options_of(options, given))
+
+        command.__name__, command.__qualname__ = body.__name__, body.__qualname__
+        command.__doc__, command.__module__ = body.__doc__, body.__module__
+        command.__signature__ = inspect.Signature(params, return_annotation=None)
+        command.__annotations__ = {p.name: p.annotation for p in params} | {"return": None}
+        return command
+
+    return wrap
+
+
+def _option_parameters(options: type) -> list[inspect.Parameter]:
+    """The keyword parameters of :func:`takes` for ``options``: its fields, nested option groups
+    flattened; a name given twice is refused."""
+    hints = get_type_hints(options, include_extras=True)
+    out = []
+    for f in dataclasses.fields(options):
+        kind = hints[f.name]
+        if dataclasses.is_dataclass(kind):
+            out += _option_parameters(kind)
+            continue
+        default = f.default
+        if default is dataclasses.MISSING:
+            default = inspect.Parameter.empty if f.default_factory is dataclasses.MISSING else f.default_factory()
+        out.append(inspect.Parameter(f.name, inspect.Parameter.KEYWORD_ONLY, default=default, annotation=kind))
+    names = [p.name for p in out]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise TypeError(f"{options.__name__}: option field(s) {', '.join(twice)} given twice")
+    return out
+
+
+def _options_of(options: type, given: dict):
+    """``options`` built from the flat keyword values ``given`` (nested groups built from theirs)."""
+    hints = get_type_hints(options)
+    values = {}
+    for f in dataclasses.fields(options):
+        kind = hints[f.name]
+        values[f.name] = _options_of(kind, given) if dataclasses.is_dataclass(kind) else given[f.name]
+    return options(**values)
 
 
 def progress_enabled() -> bool:
