@@ -12,7 +12,7 @@ import sys
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import get_type_hints
+from typing import Annotated, get_type_hints
 
 import numpy as np
 import typer
@@ -369,6 +369,22 @@ def without_alignment(state: State, no_rigid: bool) -> State:
 # --rigid-structure NAME --rtstruct FILE / --rigid-mask MASK of dvf and warp: a tumour that moves
 # rigidly (lungdeform.playback.rigid)
 
+@dataclass(frozen=True, kw_only=True)
+class RigidFlags:
+    """The rigid-structure options of dvf and warp as given (an option group of :func:`takes`;
+    :meth:`RigidOptions.of` checks them)."""
+
+    rigid_structure: Annotated[str | None, typer.Option("--rigid-structure", help="With --rtstruct: this ROI (e.g. GTV) moves rigidly, keeping its volume (docs/RADIOTHERAPY.md, \"A rigid tumour\").")] = None
+    rtstruct: Annotated[Path | None, typer.Option("--rtstruct", help="RTSTRUCT holding --rigid-structure, drawn on the input image's frame (dvf: --reference; warp: IMAGE).")] = None
+    rigid_mask: Annotated[Path | None, typer.Option("--rigid-mask", help="A mask (non-zero voxels, in the input image's LPS world) that moves rigidly; instead of --rigid-structure.")] = None
+    rigid_border_mm: Annotated[float, typer.Option("--rigid-border-mm", callback=bounded(0, 100, "mm", low_open=True), help="Width (mm) over which the rigid motion is blended back into the field.")] = 10.0
+
+    @property
+    def inputs(self) -> list[Path | None]:
+        """The files these options read (None where not given), for :func:`check_output`."""
+        return [self.rtstruct, self.rigid_mask]
+
+
 @dataclass(frozen=True)
 class RigidOptions:
     """The rigid-structure options: a ROI ``name`` of ``rtstruct``, or a ``mask`` image; ``border_mm``."""
@@ -379,9 +395,10 @@ class RigidOptions:
     border_mm: float
 
     @staticmethod
-    def of(name, rtstruct, mask, border_mm) -> RigidOptions | None:
+    def of(flags: RigidFlags) -> RigidOptions | None:
         """Checked before any work: --rigid-structure with --rtstruct, or --rigid-mask; None without
-        (``border_mm`` is range-checked as the command line is parsed, :func:`bounded`)."""
+        (``--rigid-border-mm`` is range-checked as the command line is parsed, :func:`bounded`)."""
+        name, rtstruct, mask, border_mm = flags.rigid_structure, flags.rtstruct, flags.rigid_mask, flags.rigid_border_mm
         if (name is None) != (rtstruct is None):
             raise InputError("--rigid-structure and --rtstruct go together")
         if name is not None and mask is not None:

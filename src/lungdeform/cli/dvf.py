@@ -19,6 +19,7 @@ from lungdeform.playback.trajectory import extrapolation_note
 
 from .common import (
     MAX_LUNGS_ML,
+    RigidFlags,
     RigidOptions,
     apply_rigid,
     bounded,
@@ -47,10 +48,7 @@ class DvfOptions:
     node_mm: Annotated[float, typer.Option("--node-mm", callback=bounded(0, D.MAX_NODE_MM, "mm", low_open=True), help="Lattice spacing (mm) at which the interior field is evaluated.")] = D.NODE_SPACING_MM
     grid: Annotated[Path | None, typer.Option("--grid", help="Write the field on this image's grid instead of --reference's (e.g. the target scan's, so an inhaled lung is not cropped); same LPS world.")] = None
     no_rigid: Annotated[bool, typer.Option("--no-rigid", help="With --scan: leave the fit's alignment of that scan out (the field stays in the model's frame).")] = False
-    rigid_structure: Annotated[str | None, typer.Option("--rigid-structure", help="With --rtstruct: this ROI (e.g. GTV) moves rigidly, keeping its volume.")] = None
-    rtstruct: Annotated[Path | None, typer.Option("--rtstruct", help="RTSTRUCT holding --rigid-structure, drawn on the reference's frame.")] = None
-    rigid_mask: Annotated[Path | None, typer.Option("--rigid-mask", help="A mask (non-zero voxels, in the reference's LPS world) that moves rigidly.")] = None
-    rigid_border_mm: Annotated[float, typer.Option("--rigid-border-mm", callback=bounded(0, 100, "mm", low_open=True), help="Width (mm) over which the rigid motion is blended back into the field.")] = 10.0
+    rigid: RigidFlags = RigidFlags()
 
 
 def register(apps) -> None:
@@ -63,10 +61,10 @@ def register(apps) -> None:
         track' moves it. --inverse: for each point y at that state, y + w(y) in the reference."""
 
         write_suffix(opts.out)
-        check_output(opts.out, [opts.model, opts.reference, opts.grid, opts.rtstruct, opts.rigid_mask])
+        check_output(opts.out, [opts.model, opts.reference, opts.grid, *opts.rigid.inputs])
         if opts.out_reg is not None:
-            check_output(opts.out_reg, [opts.model, opts.reference, opts.grid, opts.rtstruct, opts.rigid_mask, opts.moving, opts.out], option="--out-reg")
-        rigid = RigidOptions.of(opts.rigid_structure, opts.rtstruct, opts.rigid_mask, opts.rigid_border_mm)
+            check_output(opts.out_reg, [opts.model, opts.reference, opts.grid, *opts.rigid.inputs, opts.moving, opts.out], option="--out-reg")
+        rigid = RigidOptions.of(opts.rigid)
         m = load_model(opts.model)
         state = without_alignment(pick_state(m, opts.volume_ml, opts.scan), opts.no_rigid)
         series = _registration_series(opts.reference, opts.moving, opts.inverse, state) if opts.out_reg else None

@@ -21,6 +21,7 @@ from lungdeform.playback.trajectory import extrapolation_note
 
 from .common import (
     MAX_LUNGS_ML,
+    RigidFlags,
     RigidOptions,
     apply_rigid,
     bounded,
@@ -56,10 +57,7 @@ class WarpOptions:
     node_mm: Annotated[float, typer.Option("--node-mm", callback=bounded(0, D.MAX_NODE_MM, "mm", low_open=True), help="Lattice spacing (mm) of the interior field.")] = D.NODE_SPACING_MM
     density: Annotated[bool, typer.Option("--density", help="Conserve mass: HU + 1000 scaled by the Jacobian determinant of the resampling field, so an inhaled lung gets darker (docs/RADIOTHERAPY.md, \"Density and projections\").")] = False
     projections: Annotated[str | None, typer.Option("--projections", help="With --phases and an image-file --out: also OUT_mip, OUT_aip, OUT_minip (maximum, mean, minimum over the phases); e.g. mip,aip,minip.")] = None
-    rigid_structure: Annotated[str | None, typer.Option("--rigid-structure", help="With --rtstruct: this ROI (e.g. GTV) moves rigidly, keeping its volume (docs/RADIOTHERAPY.md, \"A rigid tumour\").")] = None
-    rtstruct: Annotated[Path | None, typer.Option("--rtstruct", help="RTSTRUCT holding --rigid-structure, drawn on IMAGE's frame.")] = None
-    rigid_mask: Annotated[Path | None, typer.Option("--rigid-mask", help="A mask (non-zero voxels, in IMAGE's LPS world) that moves rigidly; instead of --rigid-structure.")] = None
-    rigid_border_mm: Annotated[float, typer.Option("--rigid-border-mm", callback=bounded(0, 100, "mm", low_open=True), help="Width (mm) over which the rigid motion is blended back into the field.")] = 10.0
+    rigid: RigidFlags = RigidFlags()
     grid: Annotated[Path | None, typer.Option("--grid", help="Write on this image's grid instead of IMAGE's (e.g. the target scan's, so an inhaled lung is not cropped); same LPS world.")] = None
     no_rigid: Annotated[bool, typer.Option("--no-rigid", help="With --scan: leave the fit's alignment of that scan out (the image stays in the model's frame).")] = False
 
@@ -70,8 +68,8 @@ def register(apps) -> None:
     def warp_command(opts: WarpOptions) -> None:
         """Resample IMAGE at a breathing state of MODEL on IMAGE's own grid (docs/RADIOTHERAPY.md)."""
 
-        inputs = [opts.image, opts.model, opts.curve, opts.rtstruct, opts.rigid_mask, opts.grid]
-        rigid = RigidOptions.of(opts.rigid_structure, opts.rtstruct, opts.rigid_mask, opts.rigid_border_mm)
+        inputs = [opts.image, opts.model, opts.curve, *opts.rigid.inputs, opts.grid]
+        rigid = RigidOptions.of(opts.rigid)
         kinds = M.parse_projections(opts.projections)
         if opts.out.is_dir() and any(opts.out.name.lower().endswith(x) for x in WRITE_SUFFIXES):
             check_output(opts.out)  # an existing folder named like an image file: refused
