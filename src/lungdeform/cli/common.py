@@ -1,4 +1,4 @@
-"""Helpers shared by CLI commands: progress output, output folders, option parsing, the rigid-structure options of dvf and warp."""
+"""Helpers shared by CLI commands: the options dataclass of a command (:func:`takes`), progress output, output folders, option parsing, the rigid-structure options of dvf and warp."""
 
 from __future__ import annotations
 
