@@ -138,8 +138,8 @@ class CohortOptions:
     baselines: Annotated[bool, typer.Option("--baselines/--no-baselines", help="Measure the baselines too.")] = True
     processes: Annotated[bool, typer.Option("--processes/--threads", help="Local workers as processes, or threads in this process (debugging).")] = True
     align: Annotated[str, typer.Option("--align", help="apex: rigid alignment on the apex cap (scans with a table shift); "
-                                  "joint: a translation per target fitted with the constants; none: inputs already in one "
-                                  "frame (a synthetic cohort from synth-cohort: use none or joint).")] = "apex"
+        "joint: a translation per target fitted with the constants; none: inputs already in one "
+        "frame (a synthetic cohort from synth-cohort: use none or joint).")] = "apex"
     landmark_fit: Annotated[bool, typer.Option("--landmark-fit/--no-landmark-fit", help="With landmarks: the interior landmark correction, k-fold cross-validated.")] = True
     folds: Annotated[int, typer.Option("--folds", help="Folds of the landmark cross-validation.")] = 5
     direction_degree: Annotated[int, typer.Option("--direction-degree", help=DIRECTION_DEGREE_HELP)] = 3

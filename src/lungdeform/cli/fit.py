@@ -55,18 +55,18 @@ class FitOptions:
     direction_degree: Annotated[int, typer.Option("--direction-degree", help=DIRECTION_DEGREE_HELP)] = 3
     landmark_comparisons: Annotated[bool, typer.Option("--landmark-comparisons", help="With --landmarks: also the landmark-informed fits of c1…c9 (k-fold, slow) as comparison rows.")] = False
     align: Annotated[str, typer.Option("--align", help="auto (default): none when every phase of a 4-D CT shares one DICOM "
-                                  "Frame of Reference, else apex; apex: rigid alignment on the apex cap (scans with a table shift); "
-                                  "joint: a translation per target fitted with the constants, started from apex; "
-                                  "none: inputs already in one frame (e.g. synthetic). docs/FITTING.md, \"4-D CT input\".")] = "auto"
+        "Frame of Reference, else apex; apex: rigid alignment on the apex cap (scans with a table shift); "
+        "joint: a translation per target fitted with the constants, started from apex; "
+        "none: inputs already in one frame (e.g. synthetic). docs/FITTING.md, \"4-D CT input\".")] = "auto"
     interior: Annotated[str, typer.Option("--interior", help="Surface part of the interior field: correspondence (a smooth map of the "
-                                          "end-exhale lung onto the largest volume's), sliding (the sliding "
-                                          "interpolation of the fitted surface's normal motion) or auto "
-                                          "(correspondence unless the scans are cropped).")] = "auto"
+        "end-exhale lung onto the largest volume's), sliding (the sliding "
+        "interpolation of the fitted surface's normal motion) or auto "
+        "(correspondence unless the scans are cropped).")] = "auto"
     motion_prior: Annotated[Path | None, typer.Option("--motion-prior", help="A population motion prior (JSON, e.g. the motion_prior.json "
-                                                      "of validate copd) folded into the correspondence field.")] = None
+        "of validate copd) folded into the correspondence field.")] = None
     refine_mm: Annotated[float, typer.Option("--refine-mm", callback=bounded(0, 100, "mm"), help="Finest smoothing width (mm) of the surface refinement, which brings "
-                                             "the fitted displacement onto the target surfaces (docs/FITTING.md); "
-                                             "0: none (the fitted k·F·d only).")] = 5.0
+        "the fitted displacement onto the target surfaces (docs/FITTING.md); "
+        "0: none (the fitted k·F·d only).")] = 5.0
 
 
 def register(apps) -> None:

@@ -37,7 +37,7 @@ class StreamOptions:
     v_ee_ml: Annotated[float, typer.Option("--v-ee-ml", callback=bounded(0, MAX_LUNGS_ML, "mL"), help="End-exhale lung volume (mL); 0: volumes above end-exhale.")] = 2400.0
     window_s: Annotated[float, typer.Option("--window-s", callback=bounded(0, 3600, "s", low_open=True), help="Calibration window (s): two or more breaths.")] = 10.0
     gate: Annotated[bool, typer.Option("--gate", help="Add the beam decision for t_s + H (needs --predict-ms H) "
-                                                        "with the prediction's interval.")] = False
+        "with the prediction's interval.")] = False
     window: Annotated[str, typer.Option("--window", help="With --gate: the gating window KIND:PERCENT.")] = "end-exhale:30"
     confident: Annotated[bool, typer.Option("--confident", help="With --gate: the whole interval must be inside.")] = False
     coverage: Annotated[float, typer.Option("--coverage", callback=bounded(0, 1, low_open=True, high_open=True), help="With --gate: the interval's coverage (0-1).")] = 0.9

@@ -44,15 +44,15 @@ class ViewOptions:
     curve: Annotated[Path | None, typer.Option("--curve", help="Breathing curve CSV for a model file.")] = None
     markers: Annotated[Path | None, typer.Option("--markers", help="Markers CSV (x_mm,y_mm,z_mm[,label]) for a model file.")] = None
     trace: Annotated[Path | None, typer.Option("--trace", help="Breathing trace to play (.vxp or marker .csv) "
-                                          "through the streaming volume estimator, or - for live 't_s,amplitude' lines on stdin.")] = None
+        "through the streaming volume estimator, or - for live 't_s,amplitude' lines on stdin.")] = None
     predict_ms: Annotated[float, typer.Option("--predict-ms", callback=bounded(0, MAX_PREDICT_MS, "ms"), help="With --trace: show the volume predicted this many ms ahead "
-                                              f"(0-{MAX_PREDICT_MS:g}), compensating that display latency.")] = 0.0
+        f"(0-{MAX_PREDICT_MS:g}), compensating that display latency.")] = 0.0
     window: Annotated[str | None, typer.Option("--window", help="With --predict-ms: the gating window KIND:PERCENT "
-                                                                   "(default end-exhale:30).")] = None
+        "(default end-exhale:30).")] = None
     confident: Annotated[bool, typer.Option("--confident", help="With --predict-ms: beam on only when the whole "
-                                                                  "interval is inside the window.")] = False
+        "interval is inside the window.")] = False
     coverage: Annotated[float | None, typer.Option("--coverage", callback=bounded(0, 1, low_open=True, high_open=True), help="With --predict-ms: the interval's coverage "
-                                                                       "(0-1, default 0.9).")] = None
+        "(0-1, default 0.9).")] = None
     open_browser: Annotated[bool, typer.Option("--open", help="Open the default web browser.")] = False
 
 
