@@ -44,12 +44,15 @@ def _row(values, k0, fz, j0, fy, buf):
 
 
 @numba.njit(cache=True, parallel=True)
-def fill_field(out, values, nodes_k, frac_k, nodes_j, frac_j, nodes_i, frac_i, const, steps, add, ranges):
+def fill_field(out, values, axes, affine_part, add, ranges):
     """Write (or, with ``add``, add) into ``out : (z, y, x, 3) float32`` at voxels ``ranges`` (k0, k1,
     j0, j1, i0, i1): the lattice ``values : (nz, ny, nx, 3) float32`` interpolated trilinearly where
-    all three axes' nodes (:func:`axis_weights`) are ≥ 0 (else 0), plus ``const + steps @ (i, j, k)``
-    (``const`` (3,) mm, ``steps`` (3, 3) mm per voxel, column a along index axis a). Separable: per
-    voxel row one bilinear lattice row (:func:`_row`, into a buffer per z-slice), then one lerp per voxel."""
+    all three axes' nodes are ≥ 0 (else 0), plus ``const + steps @ (i, j, k)``. ``axes`` = the
+    ``(nodes, frac)`` pairs (:func:`axis_weights`) of axes k, j, i; ``affine_part`` = ``(const (3,) mm,
+    steps (3, 3) mm per voxel)``, column a of ``steps`` along index axis a. Separable: per voxel row one
+    bilinear lattice row (:func:`_row`, into a buffer per z-slice), then one lerp per voxel."""
+    (nodes_k, frac_k), (nodes_j, frac_j), (nodes_i, frac_i) = axes
+    const, steps = affine_part
     last = values.shape[2] - 1
     affine = np.any(const != 0) or np.any(steps != 0)
     for k in numba.prange(ranges[0], ranges[1]):
