@@ -193,3 +193,23 @@ def test_fused_jacobian_equals_numpy_gradient(rng):
     sub = ref[3:7, 1:8, 2:9]
     lo, hi, folded = D.jacobian_range(field, grid, box)
     assert (lo, hi) == pytest.approx((sub.min(), sub.max()), abs=1e-4) and folded == int((sub <= 0).sum()) > 0
+
+
+def test_active_values_equal_the_field_at_the_active_nodes(model, rng):
+    # active_values evaluates each lattice row from its first to its last active node (a surface map
+    # by its row kernel, other fields point by point); at the active nodes it must equal the interior
+    # field at the nodes' world positions (1e-9 mm: the row kernel's rounding, tests/interior), zero elsewhere
+    from lungdeform.interior.field import InteriorField
+    from lungdeform.interior.surface_map import surface_extension
+
+    lung = model.lungs["left"] if "left" in model.lungs else next(iter(model.lungs.values()))
+    v = lung.surface.vertices
+    mapped = InteriorField(surface_extension(v, lung.interior.displacement(v)))
+    lat = D.lattice(GRID, v.min(axis=0) - 10.0, v.max(axis=0) + 10.0, 7.0)
+    active = rng.random(tuple(lat.dims[::-1])) < 0.3
+    nodes = GRID.world(lat.ijk())
+    for interior in (lung.interior, mapped):
+        got = D.active_values(interior, GRID, lat, active)
+        flat = active.ravel()
+        assert np.abs(got[flat] - interior.displacement(nodes[flat])).max() <= 1e-9
+        assert flat.sum() > 100 and not got[~flat].any()

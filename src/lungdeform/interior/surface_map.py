@@ -79,6 +79,26 @@ class SurfaceMapField:
         _gauss_sum(y, self.centers, self.weights, 1.0 / (2.0 * self.width_mm**2), out)
         return out
 
+    def along_rows(self, starts, step, counts) -> np.ndarray:
+        """``v : (Σ counts, 3) float`` mm per unit at the points of straight rows, row ``r`` the points
+        ``starts[r] + a·step`` (``a = 0 … counts[r] − 1``; ``starts : (r, 3)`` mm LPS, ``step`` (3,) mm),
+        row after row: :meth:`__call__` of those points, with the Gaussians along each row by
+        multiplication (:func:`_gauss_rows`, three exponentials a row and centre)."""
+        s0 = as_vertices(starts, "starts")
+        st = np.asarray(step, dtype=np.float64).reshape(3)
+        n = np.asarray(counts, dtype=np.int64).reshape(-1)
+        if len(n) != len(s0) or np.any(n < 0) or not np.all(np.isfinite(st)):
+            raise InputError(f"counts: need one count >= 0 per row ({len(s0)}) and a finite (3,) step, got "
+                             f"{len(n)} counts, step {st.tolist()}")
+        offsets = np.concatenate([[0], np.cumsum(n)])
+        a = np.arange(offsets[-1]) - np.repeat(offsets[:-1], n)
+        out = np.ascontiguousarray((np.repeat(s0, n, axis=0) + a[:, None] * st) @ self.linear[:, :3].T
+                                   + self.linear[:, 3])
+        a_ = self.warp[:, :3]
+        _gauss_rows(np.ascontiguousarray(s0 @ a_.T + self.warp[:, 3]), a_ @ st, offsets, self.centers,
+                    self.weights, 1.0 / (2.0 * self.width_mm**2), out)
+        return out
+
     def with_linear(self, extra) -> "SurfaceMapField":
         """A new field whose affine part per unit has ``extra : (3, 4)`` (mm per unit) added."""
         return replace(self, linear=self.linear + _affine(extra, "extra"))
@@ -100,6 +120,59 @@ def _gauss_sum(y, centers, weights, inv, out):
         out[i, 0] += s0
         out[i, 1] += s1
         out[i, 2] += s2
+    return out
+
+
+#: Below this a Gaussian factor is dropped (it only falls farther along the row): no float64 sum feels it.
+_NEGLIGIBLE = 1e-300
+
+
+@numba.njit(cache=True, parallel=True)
+def _gauss_rows(starts, step, offsets, centers, weights, inv, out):
+    """Add, in place, ``Σ_j exp(−|y − c_j|² · inv) g_j`` to ``out`` at the points ``y = starts[r] + a·step``
+    of row ``r`` (``out[offsets[r] + a]``, ``a < offsets[r + 1] − offsets[r]``), parallel over rows.
+
+    Along a row the Gaussian of a centre is ``t(a) = exp(−inv·|d + a·step|²)`` (``d = starts[r] − c``):
+    from its largest value at ``a₀`` (the node nearest the foot of the centre on the row) each next
+    value is ``t(a ± 1) = t(a)·R``, the ratio ``R = exp(−inv·(±2 step·(d + a·step) + |step|²))`` itself
+    times ``exp(−2 inv |step|²)`` a node, so three exponentials a row and centre instead of one a point.
+    Every factor is ≤ 1 away from ``a₀``, so nothing overflows; each value carries at most ``m²/2``
+    roundings after ``m`` steps (relative error below 1e-10 for rows under 1400 nodes)."""
+    hh = step[0] * step[0] + step[1] * step[1] + step[2] * step[2]
+    q = np.exp(-2.0 * inv * hh)
+    for r in numba.prange(starts.shape[0]):
+        o, n = offsets[r], offsets[r + 1] - offsets[r]
+        acc = np.zeros((n, 3))
+        for j in range(centers.shape[0] if n > 0 else 0):
+            d0, d1, d2 = starts[r, 0] - centers[j, 0], starts[r, 1] - centers[j, 1], starts[r, 2] - centers[j, 2]
+            lin = step[0] * d0 + step[1] * d1 + step[2] * d2
+            peak = min(max(-lin / hh, 0.0), n - 1.0) if hh > 0 else 0.0
+            a0 = int(np.floor(peak + 0.5))
+            e0, e1, e2 = d0 + a0 * step[0], d1 + a0 * step[1], d2 + a0 * step[2]
+            t0 = np.exp(-(e0 * e0 + e1 * e1 + e2 * e2) * inv)
+            if t0 < _NEGLIGIBLE:
+                continue
+            g0, g1, g2 = weights[j, 0], weights[j, 1], weights[j, 2]
+            acc[a0, 0] += t0 * g0
+            acc[a0, 1] += t0 * g1
+            acc[a0, 2] += t0 * g2
+            slope = 2.0 * (step[0] * e0 + step[1] * e1 + step[2] * e2)
+            for sign in (1, -1):
+                t, ratio = t0, np.exp(-(sign * slope + hh) * inv)
+                a = a0 + sign
+                while 0 <= a < n:
+                    t *= ratio
+                    if t < _NEGLIGIBLE:
+                        break
+                    ratio *= q
+                    acc[a, 0] += t * g0
+                    acc[a, 1] += t * g1
+                    acc[a, 2] += t * g2
+                    a += sign
+        for a in range(n):
+            out[o + a, 0] += acc[a, 0]
+            out[o + a, 1] += acc[a, 1]
+            out[o + a, 2] += acc[a, 2]
     return out
 
 

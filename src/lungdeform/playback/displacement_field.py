@@ -212,6 +212,25 @@ def surface_peak(model, scales: dict) -> float:
                for n, lung in model.lungs.items())
 
 
+def active_values(interior, grid: Grid, lat: Lattice, active: np.ndarray) -> np.ndarray:
+    """``(n, 3) float`` mm per unit, the lattice's nodes in C order: the ``interior`` field's displacement
+    at the nodes where ``active : (nz, ny, nx) bool``, zero elsewhere; each lattice row evaluated as
+    one straight row from its first to its last active node
+    (:meth:`~lungdeform.interior.field.InteriorField.along_rows`)."""
+    nz, ny, nx = active.shape
+    k, j = np.nonzero(active.any(axis=2))
+    first = np.argmax(active[k, j], axis=1)
+    counts = nx - np.argmax(active[k, j, ::-1], axis=1) - first
+    starts = grid.world(np.stack([first, j, k], axis=1) * lat.stride + lat.lo)
+    step = grid.direction[:, 0] * (grid.spacing[0] * lat.stride[0])
+    out = np.zeros((nz * ny * nx, 3))
+    if len(k):
+        rank = np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
+        out[np.repeat((k * ny + j) * nx + first, counts) + rank] = interior.along_rows(starts, step, counts)
+        out[~active.ravel()] = 0.0
+    return out
+
+
 def lattice_field(model, grid: Grid, scales: dict, *, spacing_mm: float = NODE_SPACING_MM,
                   base_margin_mm: float = BASE_MARGIN_MM, reach_mm: float = 0.0):
     """The forward deformation on the lattice: ``(Lattice, u (z, y, x, 3) float mm, info)`` over the
@@ -238,10 +257,7 @@ def lattice_field(model, grid: Grid, scales: dict, *, spacing_mm: float = NODE_S
         d = outside_distance(lung.surface, pts, ins3, node_mm, margin)
         ins = ins3.ravel()
         active = ins | (d < margin)
-        f = np.zeros_like(pts)
-        if active.any():
-            f[active] = scales[name] * lung.interior.displacement(pts[active])
-        fields.append(f)
+        fields.append(scales[name] * active_values(lung.interior, grid, lat, active.reshape(shape3)))
         inside.append(ins)
         dist.append(d)
         evaluated += int(active.sum())
