@@ -81,48 +81,65 @@ def fill_field(out, values, axes, affine_part, add, ranges):
 
 @numba.njit(cache=True, inline="always")
 def _grad_row(f, k, j, i, near, inv, c):
-    """Row ``c`` of ``I + ∇u`` at voxel (k, j, i): ``(∂u_c/∂x_r + δ_cr for r = 0, 1, 2)``; the
-    differences central, one-sided at the array's edges (``near`` = the neighbours' indices and the
-    index steps between them, :func:`_det_at`)."""
-    kl, kh, jl, jh, il, ih, sk, sj, si = near
-    di = (np.float64(f[k, j, ih, c]) - np.float64(f[k, j, il, c])) / si
-    dj = (np.float64(f[k, jh, i, c]) - np.float64(f[k, jl, i, c])) / sj
-    dk = (np.float64(f[kh, j, i, c]) - np.float64(f[kl, j, i, c])) / sk
+    """Row ``c`` of ``I + ∇u`` at voxel (k, j, i): ``(∂u_c/∂x_r + δ_cr for r = 0, 1, 2)``; ``near`` =
+    the neighbours' indices and the reciprocal index steps between them (:func:`_det_row`)."""
+    kl, kh, jl, jh, il, ih, rk, rj, ri = near
+    di = (np.float64(f[k, j, ih, c]) - np.float64(f[k, j, il, c])) * ri
+    dj = (np.float64(f[k, jh, i, c]) - np.float64(f[k, jl, i, c])) * rj
+    dk = (np.float64(f[kh, j, i, c]) - np.float64(f[kl, j, i, c])) * rk
     return (di * inv[0, 0] + dj * inv[0, 1] + dk * inv[0, 2] + (c == 0),
             di * inv[1, 0] + dj * inv[1, 1] + dk * inv[1, 2] + (c == 1),
             di * inv[2, 0] + dj * inv[2, 1] + dk * inv[2, 2] + (c == 2))
 
 
 @numba.njit(cache=True, inline="always")
-def _det_at(f, k, j, i, inv):
-    """``det(I + ∇u)`` at voxel (k, j, i); ``inv[r, a] = ∂index_a / ∂x_r`` (a = i, j, k)."""
-    kl, kh = max(k - 1, 0), min(k + 1, f.shape[0] - 1)
-    jl, jh = max(j - 1, 0), min(j + 1, f.shape[1] - 1)
-    il, ih = max(i - 1, 0), min(i + 1, f.shape[2] - 1)
-    near = (kl, kh, jl, jh, il, ih, max(kh - kl, 1), max(jh - jl, 1), max(ih - il, 1))
+def _det_near(f, k, j, i, near, inv):
     a11, a12, a13 = _grad_row(f, k, j, i, near, inv, 0)
     a21, a22, a23 = _grad_row(f, k, j, i, near, inv, 1)
     a31, a32, a33 = _grad_row(f, k, j, i, near, inv, 2)
     return a11 * (a22 * a33 - a23 * a32) - a12 * (a21 * a33 - a23 * a31) + a13 * (a21 * a32 - a22 * a31)
 
 
+@numba.njit(cache=True)
+def _det_row(f, k, j, box_i, inv, dets):
+    """Write into ``dets`` ``det(I + ∇u)`` at the voxels (k, j, i) for i in ``box_i`` (i0, i1) of
+    ``f : (z, y, x, 3)``; ``inv[r, a] = ∂index_a / ∂x_r`` (a = i, j, k). The differences central,
+    one-sided at the array's edges (as ``numpy.gradient``): over 2 index steps or 1, so multiplying
+    by the halves and wholes below is exact division; the row's inner voxels in one branch-free loop."""
+    nz, ny, nx = f.shape[0], f.shape[1], f.shape[2]
+    kl, kh, jl, jh = max(k - 1, 0), min(k + 1, nz - 1), max(j - 1, 0), min(j + 1, ny - 1)
+    rk, rj = 0.5 if kh - kl == 2 else 1.0, 0.5 if jh - jl == 2 else 1.0
+    i0, i1 = box_i
+    lo, hi = max(i0, 1), min(i1, nx - 1)
+    for i in range(lo, hi):
+        dets[i - i0] = _det_near(f, k, j, i, (kl, kh, jl, jh, i - 1, i + 1, rk, rj, 0.5), inv)
+    for i in range(i0, i1):
+        if lo <= i < hi:
+            continue
+        il, ih = max(i - 1, 0), min(i + 1, nx - 1)
+        dets[i - i0] = _det_near(f, k, j, i, (kl, kh, jl, jh, il, ih, rk, rj, 0.5 if ih - il == 2 else 1.0), inv)
+    return dets
+
+
 @numba.njit(cache=True, parallel=True)
 def jacobian_pass(f, inv, ranges, out):
-    """Per z-slice ``(min, max, folded count)`` of :func:`_det_at` over the voxels ``ranges`` (k0, k1,
+    """Per z-slice ``(min, max, folded count)`` of :func:`_det_row` over the voxels ``ranges`` (k0, k1,
     j0, j1, i0, i1) of ``f : (z, y, x, 3)``; each determinant also written to ``out`` (same z, y, x
     shape) unless ``out`` is empty. Returns ``(n, 3) float`` rows, one per slice."""
     nk = ranges[1] - ranges[0]
     rows = np.empty((max(nk, 0), 3))
     write = out.size > 0
+    box_i = (ranges[4], ranges[5])
     for s in numba.prange(nk):
         k = ranges[0] + s
+        dets = np.empty(max(ranges[5] - ranges[4], 0))
         lo, hi, folded = np.inf, -np.inf, 0
         for j in range(ranges[2], ranges[3]):
-            for i in range(ranges[4], ranges[5]):
-                d = _det_at(f, k, j, i, inv)
+            _det_row(f, k, j, box_i, inv, dets)
+            for d in dets:
                 lo, hi = min(lo, d), max(hi, d)
                 folded += d <= 0.0
-                if write:
-                    out[k, j, i] = d
+            if write:
+                out[k, j, box_i[0]:box_i[1]] = dets
         rows[s, 0], rows[s, 1], rows[s, 2] = lo, hi, folded
     return rows
