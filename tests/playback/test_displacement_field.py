@@ -213,3 +213,24 @@ def test_active_values_equal_the_field_at_the_active_nodes(model, rng):
         flat = active.ravel()
         assert np.abs(got[flat] - interior.displacement(nodes[flat])).max() <= 1e-9
         assert flat.sum() > 100 and not got[~flat].any()
+
+
+def test_jacobian_skips_only_voxels_where_nothing_moves(rng):
+    # the fused pass gives a determinant of exactly 1, without arithmetic, to voxels more than one
+    # voxel from every non-zero displacement in their row and the four rows beside it; reference:
+    # numpy.gradient's determinant everywhere (exactly 1 where all differences are 0). A field that
+    # moves only in a blob, touching the array's edge along i, and one isolated non-zero voxel
+    grid = D.Grid((12, 13, 14), np.array([0.9, 1.4, 2.5]), np.zeros(3), np.eye(3))
+    field = np.zeros(grid.shape + (3,), np.float32)
+    field[3:8, 2:9, 9:] = rng.normal(scale=0.2, size=(5, 7, 5, 3))
+    field[10, 11, 2] = (0.0, 0.0, -6.0)  # folds its neighbour at k = 9 (det 1 − 6 / (2 · 2.5))
+    d = [np.gradient(field.astype(float), axis=ax) for ax in (2, 1, 0)]
+    ref = np.linalg.det(np.eye(3) + np.einsum("azyxc,ra->zyxcr", np.stack(d), grid.direction / grid.spacing))
+    got = D.jacobian_determinant(field, grid.spacing, grid.direction)
+    assert got == pytest.approx(ref, abs=1e-5) and (got == 1.0).sum() > field.size // 6
+    for box in (((0, 0, 0), (14, 13, 12)), ((8, 1, 2), (12, 9, 9)), ((10, 8, 0), (11, 9, 12))):
+        (i0, j0, k0), (i1, j1, k1) = box
+        sub = ref[k0:k1, j0:j1, i0:i1]
+        lo, hi, folded = D.jacobian_range(field, grid, box)
+        assert (lo, hi) == pytest.approx((sub.min(), sub.max()), abs=1e-5) and folded == int((sub <= 0).sum())
+    assert D.jacobian_range(field, grid)[2] == 1

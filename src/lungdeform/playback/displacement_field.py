@@ -289,7 +289,7 @@ def upsample(lat: Lattice, values: np.ndarray, grid: Grid, matrix=None) -> np.nd
     out = np.zeros(tuple(grid.shape) + (3,), np.float32)
     nz, ny, nx = grid.shape
     ranges = np.array([k0, k1, j0, j1, i0, i1] if matrix is None else [0, nz, 0, ny, 0, nx], np.int64)
-    return V.fill_field(out, c, (axes[0], axes[1], axes[2]), (const, steps), False, ranges)
+    return V.fill_field(out, c, (axes[0], axes[1], axes[2]), (const, steps), ranges)
 
 
 def sample(lat: Lattice, values: np.ndarray, grid: Grid, points) -> np.ndarray:
@@ -320,7 +320,7 @@ def add_affine(field: np.ndarray, grid: Grid, matrix) -> np.ndarray:
     none = [(np.full(n, -1, np.int64), np.zeros(n, np.float32)) for n in (nz, ny, nx)]
     const, steps = _affine_steps(grid, matrix)
     return V.fill_field(field, np.zeros((1, 1, 1, 3), np.float32), (none[0], none[1], none[2]),
-                        (const, steps), True, np.array([0, nz, 0, ny, 0, nx], np.int64))
+                        (const, steps), np.array([0, nz, 0, ny, 0, nx], np.int64))
 
 
 def _inverse_axes(spacing, direction) -> np.ndarray:

@@ -7,9 +7,10 @@ module only holds the loops that touch every voxel, so that no full-grid tempora
 - :func:`fill_field`: trilinear interpolation of lattice nodes to every voxel of a box plus an
   affine displacement at every voxel, in one pass (the lattice weights per index are precomputed
   along each axis, :func:`axis_weights`; per voxel row one bilinear row of nodes, then one lerp a
-  voxel);
+  voxel), added into a zeroed output and skipping the voxels it would leave at 0;
 - :func:`jacobian_pass`: ``det(I + ∇u)`` by central differences in physical units (one-sided at the
-  array's edges, as ``numpy.gradient``), written out or reduced to min, max and folded count.
+  array's edges, as ``numpy.gradient``), written out or reduced to min, max and folded count; 1
+  without arithmetic where nothing within a voxel moves.
 """
 
 from __future__ import annotations
@@ -44,27 +45,34 @@ def _row(values, k0, fz, j0, fy, buf):
 
 
 @numba.njit(cache=True, parallel=True)
-def fill_field(out, values, axes, affine_part, add, ranges):
-    """Write (or, with ``add``, add) into ``out : (z, y, x, 3) float32`` at voxels ``ranges`` (k0, k1,
-    j0, j1, i0, i1): the lattice ``values : (nz, ny, nx, 3) float32`` interpolated trilinearly where
-    all three axes' nodes are ≥ 0 (else 0), plus ``const + steps @ (i, j, k)``. ``axes`` = the
-    ``(nodes, frac)`` pairs (:func:`axis_weights`) of axes k, j, i; ``affine_part`` = ``(const (3,) mm,
-    steps (3, 3) mm per voxel)``, column a of ``steps`` along index axis a. Separable: per voxel row one
-    bilinear lattice row (:func:`_row`, into a buffer per z-slice), then one lerp per voxel."""
+def fill_field(out, values, axes, affine_part, ranges):
+    """Add into ``out : (z, y, x, 3) float32`` at voxels ``ranges`` (k0, k1, j0, j1, i0, i1): the
+    lattice ``values : (nz, ny, nx, 3) float32`` interpolated trilinearly where all three axes' nodes
+    are ≥ 0 (else 0), plus ``const + steps @ (i, j, k)``. ``axes`` = the ``(nodes, frac)`` pairs
+    (:func:`axis_weights`) of axes k, j, i; ``affine_part`` = ``(const (3,) mm, steps (3, 3) mm per
+    voxel)``, column a of ``steps`` along index axis a. Separable: per voxel row one bilinear lattice
+    row (:func:`_row`, into a buffer per z-slice), then one lerp per voxel. A voxel that would get
+    exactly 0 (outside the lattice, or between two row nodes that do not move, and no affine part)
+    is not touched: a fresh ``numpy.zeros`` output is written, and paged in, only where the field moves."""
     (nodes_k, frac_k), (nodes_j, frac_j), (nodes_i, frac_i) = axes
     const, steps = affine_part
     last = values.shape[2] - 1
     affine = np.any(const != 0) or np.any(steps != 0)
     for k in numba.prange(ranges[0], ranges[1]):
         row = np.empty((values.shape[2], 3), np.float32)
+        still = np.ones(values.shape[2], np.bool_)
         for j in range(ranges[2], ranges[3]):
             lattice = nodes_k[k] >= 0 and nodes_j[j] >= 0
             if lattice:
                 _row(values, nodes_k[k], frac_k[k], nodes_j[j], frac_j[j], row)
+                for n in range(values.shape[2]):
+                    still[n] = row[n, 0] == 0 and row[n, 1] == 0 and row[n, 2] == 0
             for i in range(ranges[4], ranges[5]):
                 n0 = nodes_i[i]
                 inside = lattice and n0 >= 0
                 n1 = min(n0 + 1, last)
+                if not affine and not (inside and not (still[n0] and still[n1])):
+                    continue
                 f = frac_i[i]
                 for c in range(3):
                     x = 0.0
@@ -72,10 +80,7 @@ def fill_field(out, values, axes, affine_part, add, ranges):
                         x = row[n0, c] * (1 - f) + row[n1, c] * f
                     if affine:
                         x += const[c] + steps[c, 0] * i + steps[c, 1] * j + steps[c, 2] * k
-                    if add:
-                        out[k, j, i, c] += x
-                    else:
-                        out[k, j, i, c] = x
+                    out[k, j, i, c] += x
     return out
 
 
@@ -102,7 +107,7 @@ def _det_near(f, k, j, i, near, inv):
 
 @numba.njit(cache=True)
 def _det_row(f, k, j, box_i, inv, dets):
-    """Write into ``dets`` ``det(I + ∇u)`` at the voxels (k, j, i) for i in ``box_i`` (i0, i1) of
+    """Write into ``dets[i − i0]`` ``det(I + ∇u)`` at the voxels (k, j, i) for i in ``box_i`` (i0, i1) of
     ``f : (z, y, x, 3)``; ``inv[r, a] = ∂index_a / ∂x_r`` (a = i, j, k). The differences central,
     one-sided at the array's edges (as ``numpy.gradient``): over 2 index steps or 1, so multiplying
     by the halves and wholes below is exact division; the row's inner voxels in one branch-free loop."""
@@ -122,24 +127,58 @@ def _det_row(f, k, j, box_i, inv, dets):
 
 
 @numba.njit(cache=True, parallel=True)
+def _row_spans(f, ranges):
+    """Per voxel row (k, j) of ``f : (z, y, x, 3)`` within one voxel of the box ``ranges`` (k0, k1, j0,
+    j1, i0, i1): ``(first, last) (z, y) int64``, its first and last voxel within one voxel of
+    ``[i0, i1)`` with a non-zero displacement (first > last: none; rows beyond the box: none)."""
+    nz, ny, nx = f.shape[0], f.shape[1], f.shape[2]
+    lo, hi = max(ranges[4] - 1, 0), min(ranges[5] + 1, nx)
+    first, last = np.full((nz, ny), hi, np.int64), np.full((nz, ny), lo - 1, np.int64)
+    for k in numba.prange(max(ranges[0] - 1, 0), min(ranges[1] + 1, nz)):
+        for j in range(max(ranges[2] - 1, 0), min(ranges[3] + 1, ny)):
+            for i in range(lo, hi):
+                if f[k, j, i, 0] != 0 or f[k, j, i, 1] != 0 or f[k, j, i, 2] != 0:
+                    first[k, j] = i
+                    break
+            for i in range(hi - 1, first[k, j], -1):
+                if f[k, j, i, 0] != 0 or f[k, j, i, 1] != 0 or f[k, j, i, 2] != 0:
+                    last[k, j] = i
+                    break
+            last[k, j] = max(last[k, j], first[k, j]) if first[k, j] < hi else lo - 1
+    return first, last
+
+
+@numba.njit(cache=True, parallel=True)
 def jacobian_pass(f, inv, ranges, out):
     """Per z-slice ``(min, max, folded count)`` of :func:`_det_row` over the voxels ``ranges`` (k0, k1,
     j0, j1, i0, i1) of ``f : (z, y, x, 3)``; each determinant also written to ``out`` (same z, y, x
-    shape) unless ``out`` is empty. Returns ``(n, 3) float`` rows, one per slice."""
+    shape) unless ``out`` is empty. A voxel more than one voxel from every non-zero displacement in
+    its row and the four rows beside it (:func:`_row_spans`) has every difference 0: its determinant
+    is exactly 1, without arithmetic. Returns ``(n, 3) float`` rows, one per slice."""
+    nz, ny = f.shape[0], f.shape[1]
     nk = ranges[1] - ranges[0]
     rows = np.empty((max(nk, 0), 3))
     write = out.size > 0
-    box_i = (ranges[4], ranges[5])
+    i0, i1 = ranges[4], ranges[5]
+    first, last = _row_spans(f, ranges)
     for s in numba.prange(nk):
         k = ranges[0] + s
-        dets = np.empty(max(ranges[5] - ranges[4], 0))
+        dets = np.empty(max(i1 - i0, 0))
         lo, hi, folded = np.inf, -np.inf, 0
         for j in range(ranges[2], ranges[3]):
-            _det_row(f, k, j, box_i, inv, dets)
-            for d in dets:
-                lo, hi = min(lo, d), max(hi, d)
-                folded += d <= 0.0
+            kl, kh, jl, jh = max(k - 1, 0), min(k + 1, nz - 1), max(j - 1, 0), min(j + 1, ny - 1)
+            a = min(first[k, j], first[kl, j], first[kh, j], first[k, jl], first[k, jh]) - 1
+            b = max(last[k, j], last[kl, j], last[kh, j], last[k, jl], last[k, jh]) + 2
+            a, b = max(a, i0), max(min(b, i1), max(a, i0))
+            if a > i0 or b < i1:
+                lo, hi = min(lo, 1.0), max(hi, 1.0)
+            if a < b:
+                _det_row(f, k, j, (a, b), inv, dets)
+                for d in dets[:b - a]:
+                    lo, hi = min(lo, d), max(hi, d)
+                    folded += d <= 0.0
             if write:
-                out[k, j, box_i[0]:box_i[1]] = dets
+                out[k, j, i0:i1] = 1.0
+                out[k, j, a:b] = dets[:b - a]
         rows[s, 0], rows[s, 1], rows[s, 2] = lo, hi, folded
     return rows
