@@ -234,3 +234,15 @@ def test_jacobian_skips_only_voxels_where_nothing_moves(rng):
         lo, hi, folded = D.jacobian_range(field, grid, box)
         assert (lo, hi) == pytest.approx((sub.min(), sub.max()), abs=1e-5) and folded == int((sub <= 0).sum())
     assert D.jacobian_range(field, grid)[2] == 1
+
+
+def test_zeroed_is_a_writable_zero_float32_array():
+    # the field's output is allocated by an anonymous memory map (voxel.zeroed); it must behave as
+    # numpy.zeros: all zero, float32, C-contiguous, writable, and survive its maker's scope
+    from lungdeform.playback.voxel import zeroed
+
+    a = zeroed((3, 4, 5, 3))
+    assert a.dtype == np.float32 and a.shape == (3, 4, 5, 3) and a.flags.c_contiguous and a.flags.writeable
+    assert not a.any()
+    a[1, 2, 3] = (1.0, 2.0, 3.0)
+    assert a.sum() == 6.0 and zeroed((0, 4, 5, 3)).shape == (0, 4, 5, 3)

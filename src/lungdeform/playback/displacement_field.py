@@ -287,7 +287,7 @@ def upsample(lat: Lattice, values: np.ndarray, grid: Grid, matrix=None) -> np.nd
     axes = [V.axis_weights(grid.shape[2 - a], int(lat.lo[a]), int(lat.stride[a]), int(lat.dims[a]),
                            lat.box[0][a], lat.box[1][a]) for a in (2, 1, 0)]  # k, j, i
     const, steps = _affine_steps(grid, matrix)
-    out = np.zeros(tuple(grid.shape) + (3,), np.float32)
+    out = V.zeroed(tuple(grid.shape) + (3,))
     nz, ny, nx = grid.shape
     ranges = np.array([k0, k1, j0, j1, i0, i1] if matrix is None else [0, nz, 0, ny, 0, nx], np.int64)
     return V.fill_field(out, c, (axes[0], axes[1], axes[2]), (const, steps), ranges)
