@@ -86,13 +86,14 @@ class Grid:
                     np.asarray(image.direction, float).reshape(3, 3))
 
     def world(self, ijk) -> np.ndarray:
-        """``ijk : (n, 3)`` (i, j, k) index → ``(n, 3) float`` mm LPS (``einsum``, not a BLAS product:
-        an ``(n, 3) × (3, 3)`` product gains nothing from BLAS threads, which spin against numba's)."""
-        return np.einsum("na,ra->nr", np.asarray(ijk, float) * self.spacing, self.direction) + self.origin
+        """``ijk : (n, 3)`` or ``(3,)`` (i, j, k) index → ``(n, 3)`` or ``(3,) float`` mm LPS (``einsum``,
+        not a BLAS product: an ``(n, 3) × (3, 3)`` product gains nothing from BLAS threads, which spin
+        against numba's)."""
+        return np.einsum("...a,ra->...r", np.asarray(ijk, float) * self.spacing, self.direction) + self.origin
 
     def index(self, points) -> np.ndarray:
-        """``points : (n, 3)`` mm LPS → ``(n, 3) float`` continuous (i, j, k) index."""
-        return np.einsum("nr,ra->na", np.asarray(points, float) - self.origin, self.direction) / self.spacing
+        """``points : (n, 3)`` or ``(3,)`` mm LPS → the same shape, float, continuous (i, j, k) index."""
+        return np.einsum("...r,ra->...a", np.asarray(points, float) - self.origin, self.direction) / self.spacing
 
 
 @dataclass(frozen=True, eq=False)
