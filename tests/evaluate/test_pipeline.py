@@ -69,16 +69,16 @@ def test_prior_refused_with_a_sliding_interior_asked_or_resolved():
     check_prior(FitConfig(interior="sliding"), None, "sliding")  # no prior: nothing to refuse
 
 
-def test_fit_result_scale_at_is_the_volume_in_units():
+def test_fit_outcome_scale_at_is_the_volume_in_units():
     # truth: s = (V - V_EE) / unit_ml, and positions_at moves by s times the displacement
     from types import SimpleNamespace
 
     import numpy as np
 
-    from lungdeform.fit.fitting import FitResult
+    from lungdeform.fit.fitting import FitOutcome
 
     fit = SimpleNamespace(volume_ee_ml=2000.0, unit_ml=400.0, displacement=np.ones((2, 3)))
-    assert FitResult.scale_at(fit, 2600.0) == 1.5 and FitResult.scale_at(fit, 2000.0) == 0.0
-    fit.scale_at = lambda v: FitResult.scale_at(fit, v)
+    assert FitOutcome.scale_at(fit, 2600.0) == 1.5 and FitOutcome.scale_at(fit, 2000.0) == 0.0
+    fit.scale_at = lambda v: FitOutcome.scale_at(fit, v)
     surface = SimpleNamespace(vertices=np.zeros((2, 3)))
-    np.testing.assert_array_equal(FitResult.positions_at(fit, surface, 2200.0), np.full((2, 3), 0.5))
+    np.testing.assert_array_equal(FitOutcome.positions_at(fit, surface, 2200.0), np.full((2, 3), 0.5))
