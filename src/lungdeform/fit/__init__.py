@@ -43,3 +43,11 @@ __all__ = [
     "fit_lung",
     "to_lung_model",
 ]
+
+
+def __getattr__(name: str):
+    """``lungdeform.fit.FitResult`` (≤ 0.7) fails with one line naming ``FitOutcome`` (as
+    :func:`lungdeform.fit.fitting.__getattr__`); other names are missing as usual."""
+    if name == "FitResult":
+        raise ImportError("lungdeform.fit.FitResult was renamed lungdeform.fit.FitOutcome in 0.8 (docs/CHANGELOG.md)")
+    raise AttributeError(f"module 'lungdeform.fit' has no attribute {name!r}")

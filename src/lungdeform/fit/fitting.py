@@ -399,6 +399,15 @@ def _correct_directions(fitter: LungFitter, parts: dict, c_dir, shifts, degree: 
     return replace(best, start_objective_mm=first.start_objective_mm), log_e
 
 
+def __getattr__(name: str):
+    """``FitResult`` (≤ 0.7) fails with one line naming :class:`FitOutcome` (an ImportError, so that
+    ``from lungdeform.fit.fitting import FitResult`` shows it too, as :mod:`lungdeform.plot` does for
+    its moved names); other names are missing as usual."""
+    if name == "FitResult":
+        raise ImportError(f"{__name__}.FitResult was renamed {__name__}.FitOutcome in 0.8 (docs/CHANGELOG.md)")
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
 def to_lung_model(surface: Surface, side: str, result: FitOutcome, gravity="supine", d_min: float = 1.0) -> LungModel:
     """A :class:`LungModel` (model-file ready) whose displacement is the fitted ``u``.
 
