@@ -22,7 +22,9 @@ and runs these steps, each a function of its own:
    (:mod:`lungdeform.interior.field`) of the headline ``model`` and, with ``landmark_comparisons``,
    the landmark-informed fits of c1…c9;
 6. every method, the baselines and references measured on every target with the same metrics, crop
-   faces left out (:mod:`lungdeform.evaluate.scoring`), gathered in the metrics dictionary (:func:`fit_metrics`);
+   faces left out (:mod:`lungdeform.evaluate.scoring`). Steps 1 to 6 are :func:`fit_pipeline`; what they
+   give is one frozen :class:`~lungdeform.evaluate.outcome.FitRun`, from which the metrics dictionary
+   is built once (:func:`fit_metrics`; nothing is added to it afterwards);
 7. ``model.npz`` (docs/MODEL_FORMAT.md), ``metrics.json`` and ``report.html`` written (:func:`write_outputs`).
 """
 
