@@ -22,21 +22,9 @@ MAX_FUNCTION_LINES = 80
 #: Parameters a function may take (``self``/``cls`` not counted; ``*args`` and ``**kwargs`` count one each).
 MAX_PARAMETERS = 8
 #: Functions still over MAX_PARAMETERS, with their count today: a ratchet. None may grow, none may be
-#: added, and one that drops to the limit must leave this list (issue 29: group the rest in the
-#: config objects that exist). Typer commands take one parameter per CLI option; the numba kernels
-#: of geometry take arrays one by one (no objects in nopython mode).
-WIDE_FUNCTIONS = {
-    "lungdeform.cli.fit:register.fit_command": 18, "lungdeform.cli.track:register.track_command": 18,
-    "lungdeform.cli.cohort:register.cohort_command": 14, "lungdeform.cli.build:register.build": 14,
-    "lungdeform.cli.synth_cohort:register.synth_cohort_command": 10,
-    "lungdeform.cli.export:register.export_command": 10,
-    "lungdeform.cli.warp:register.warp_command": 17, "lungdeform.cli.view:register.view_command": 11,
-    "lungdeform.cli.dvf:register.dvf_command": 15, "lungdeform.cli.stream:register.stream": 9, "lungdeform.cli.validate_itk:register.itk_pair_command": 9,
-    "lungdeform.geometry.distance:_closest_on_triangle": 12, "lungdeform.geometry.distance:_closest_on_degenerate": 12,
-    "lungdeform.geometry.distance:_closest_kernel": 10, "lungdeform.geometry.distance:_closest_on_segment": 9,
-    "lungdeform.geometry.intersect:_narrow": 10,
-    "lungdeform.playback.voxel:fill_field": 12,
-}
+#: added, and one that drops to the limit must leave this list. Empty since issue 29: typer commands
+#: take one options dataclass (cli/common.py ``takes``), numba kernels their inputs grouped in tuples.
+WIDE_FUNCTIONS: dict[str, int] = {}
 
 
 def _modules() -> dict[str, ast.Module]:

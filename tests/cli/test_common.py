@@ -6,10 +6,13 @@ from __future__ import annotations
 import ast
 import inspect
 import sys
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 import pytest
 import typer
+from typer.testing import CliRunner
 
 from lungdeform.cli import common
 from lungdeform.errors import InputError, ReadError
@@ -124,9 +127,14 @@ def _float_options():
         for cmd in app.registered_commands:
             name = cmd.name or cmd.callback.__name__.replace("_", "-")
             for p in inspect.signature(cmd.callback).parameters.values():
-                info = p.default
+                # an option declared as a default (``x: float = typer.Option(...)``) or, in the option
+                # dataclasses of common.takes, as ``Annotated[float, typer.Option(...)]``
+                meta = getattr(p.annotation, "__metadata__", ())
+                info = next((m for m in meta if isinstance(m, typer.models.OptionInfo)), p.default)
                 if isinstance(info, typer.models.OptionInfo) and "float" in str(p.annotation):
-                    opt = max(info.param_decls, key=len)
+                    # Annotated: typer reads the first positional of typer.Option (its default) as a name
+                    decls = (*info.param_decls, *([info.default] if isinstance(info.default, str) else []))
+                    opt = max(decls, key=len)
                     found.append(((*words, name), opt, info.callback))
         for group in app.registered_groups:
             walk(group.typer_instance, (*words, group.name))
@@ -160,3 +168,71 @@ def test_a_non_finite_or_absurd_number_exits_2_naming_the_option(words, option, 
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"error: {option} must be"), err
     assert not list(tmp_path.iterdir())
+
+
+@dataclass(frozen=True, kw_only=True)
+class _Border:
+    border_mm: Annotated[float, typer.Option("--border-mm", callback=common.bounded(0, 100, "mm"), help="B.")] = 10.0
+    name: Annotated[str | None, typer.Option("--name", help="N.")] = None
+
+
+@dataclass(frozen=True, kw_only=True)
+class _Options:
+    model: Annotated[Path, typer.Argument(help="M.")]
+    scale: Annotated[float | None, typer.Option("--scale", help="S.")] = None
+    out: Annotated[Path, typer.Option("--out", help="O.")]  # required, after a defaulted field
+    flag: Annotated[bool, typer.Option("--flag/--no-flag", help="F.")] = True
+    border: _Border = _Border()
+
+
+def _takes_app():
+    app = typer.Typer()
+
+    @app.callback()
+    def root(ctx: typer.Context, verbose: bool = typer.Option(False, "--verbose")) -> None:
+        ctx.obj = common.Verbosity(verbose)
+
+    @app.command("go")
+    @common.takes(_Options)
+    def go(opts: _Options) -> None:
+        """Go somewhere."""
+        common.say("progress")
+        typer.echo(repr(opts))
+
+    return app
+
+
+def test_takes_gives_typer_the_fields_of_the_options_and_the_command_one_object(monkeypatch):
+    # why: the commands take one options dataclass (issue 29: no function over 8 parameters); typer
+    # must still see every field as a parameter (nested groups flattened, in field order), with its
+    # default or required, and the command gets the values as typed on the command line
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: False)
+    app = _takes_app()
+    sig = inspect.signature(app.registered_commands[0].callback)
+    assert list(sig.parameters) == ["model", "scale", "out", "flag", "border_mm", "name"]
+    assert sig.parameters["out"].default is inspect.Parameter.empty and sig.parameters["flag"].default is True
+    runner = CliRunner()
+    done = runner.invoke(app, ["--verbose", "go", "m.npz", "--out", "o", "--scale", "2.5", "--no-flag",
+                               "--border-mm", "3", "--name", "GTV"])
+    assert done.exit_code == 0, done.output
+    assert done.output.splitlines() == ["progress", repr(_Options(model=Path("m.npz"), scale=2.5, out=Path("o"),
+                                                                 flag=False, border=_Border(border_mm=3.0, name="GTV")))]
+    plain = runner.invoke(app, ["go", "m.npz", "--out", "o"])
+    assert plain.output.strip() == repr(_Options(model=Path("m.npz"), out=Path("o")))  # defaults; no progress
+    assert runner.invoke(app, ["go", "m.npz"]).exit_code == 2  # --out required
+    help_text = runner.invoke(app, ["go", "--help"]).output
+    assert "Go somewhere." in help_text and all(o in help_text for o in ("--scale", "--out", "--no-flag", "--border-mm"))
+    bad = runner.invoke(app, ["go", "m.npz", "--out", "o", "--border-mm", "nan"])  # the bounded callback runs
+    assert isinstance(bad.exception, InputError) and str(bad.exception).startswith("--border-mm must be")
+
+
+def test_takes_refuses_an_option_given_twice():
+    # why: two groups declaring one field name would make typer keep only one of them silently
+
+    @dataclass(frozen=True, kw_only=True)
+    class Twice:
+        name: Annotated[str | None, typer.Option("--other-name")] = None
+        border: _Border = _Border()
+
+    with pytest.raises(TypeError, match="name given twice"):
+        common.takes(Twice)

@@ -318,6 +318,22 @@ def test_one_4dct_folder_is_fitted_on_all_phases(tmp_path, rng, capsys, mode):
     ratios = np.diff(np.log(m["volumes_ml"]))
     assert np.allclose(ratios, 3 * np.log(1.06), atol=0.03)
     assert len(m["targets"]) == 3
+    # the model records each fitted scan's series, in fit order (what `track --scan K --out-rtstruct`
+    # checks its --reference-ct against): each phase's series and Frame of Reference, with
+    # its phase's grid (this phantom's slices carry no Frame of Reference: recorded as ""); the
+    # independent reader is pydicom on each phase's own files
+    import pydicom
+    scans = load_model(out / "model.npz").provenance["scans"]
+    assert [s["source"] for s in scans] == m["inputs"]
+    by_series = {}
+    for f in sorted((tmp_path / "ct4d").rglob("*.dcm")):
+        ds = pydicom.dcmread(f, stop_before_pixels=True)
+        by_series[str(ds.SeriesInstanceUID)] = str(ds.get("FrameOfReferenceUID", ""))
+    # ("index": one series holding the four phases)
+    assert len(scans) == 4 and sorted({s["series_uid"] for s in scans}) == sorted(by_series)
+    assert len(by_series) == (4 if mode == "description" else 1)
+    assert all(s["frame_of_reference"] == by_series[s["series_uid"]] for s in scans)
+    assert all(len(s["grid"]["size"]) == 3 and len(s["grid"]["direction"]) == 9 for s in scans)
 
 
 def test_4dct_whose_phases_cannot_be_told_apart_exits_2(tmp_path, rng, capsys):

@@ -358,3 +358,103 @@ def test_track_unreachable_volume_and_out_rtstruct_under_a_file(model_file, gtv_
                  "--phases", "2", "--out-rtstruct", str(plan / "moved.dcm"), "--reference-ct", str(ct_dir)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "is a file, not a folder" in err[0] and not out.exists()
+
+
+# --- --scan K --out-rtstruct: the reference CT must be scan K's (docs/RADIOTHERAPY.md) -----------
+
+def _scan(folder, uid_root="1.2.826.0.1.3680043.8.498.77", origin=GTV_CENTRE + [-31.0, -31.0, -19.0], patient="SYN001"):
+    """The identity a fit records of a scan read from the series ``write_ct_series`` writes."""
+    return {"source": str(folder), "patient_id": patient, "study_uid": f"{uid_root}.1", "series_uid": f"{uid_root}.2",
+            "frame_of_reference": f"{uid_root}.3",
+            "grid": {"size": [32, 32, 20], "spacing": [2.0, 2.0, 2.0], "origin": list(map(float, origin)),
+                     "direction": np.eye(3).ravel().tolist()}}
+
+
+@pytest.fixture
+def scan_files(gtv_files, tmp_path):
+    """Scan 0 (the GTV's CT, the model's frame) and scan 1 (another series and Frame of Reference,
+    the same grid), and a model fitted to them whose alignment of scan 1 is a (2, -3, 6) mm shift."""
+    ct0, gtv = gtv_files
+    ct1 = write_ct_series(tmp_path / "ct1", origin=tuple(GTV_CENTRE + [-31.0, -31.0, -19.0]), uid_root="1.2.3.88")
+    m = two_lungs(2)
+    ee = sum(lung.volume_ee_ml for lung in m.lungs.values())
+    a = np.eye(4)
+    a[:3, 3] = [2.0, -3.0, 6.0]
+    prov = {"volumes_ml": [ee, ee + 300.0], "alignment": [{"applied": {"matrix": a.tolist()}}],
+            "scans": [_scan(ct0), _scan(ct1, "1.2.3.88")]}
+    return ct0, ct1, gtv, m, prov
+
+
+def _track_scan(model, gtv, ct, tmp_path, *extra):
+    out, rs = tmp_path / "o", tmp_path / "moved.dcm"
+    code = main(["track", str(model), "--rtstruct", str(gtv), "--structure", "GTV", "--out", str(out),
+                 "--scan", "1", *extra, "--out-rtstruct", str(rs), "--reference-ct", str(ct)])
+    return code, out, rs
+
+
+def test_track_scan_writes_on_scan_ks_ct_in_its_frame(scan_files, tmp_path, capsys):
+    # why: with --scan 1 the contours are in scan 1's own frame (the fit's (2, -3, 6) mm alignment
+    # undone), so they go on scan 1's CT, whose Frame of Reference the RTSTRUCT carries; the GTV
+    # drawn on scan 0 is checked against scan 0. Truth: with the same model at the same volume and
+    # --no-rigid on scan 0's CT, the contours lie (2, -3, 6) mm away: the alignment's inverse shift
+    from lungdeform.model.lung import Model
+    ct0, ct1, gtv, m, prov = scan_files
+    model = save_model(tmp_path / "fitted.npz", Model(m.lungs, prov))
+    code, _out, rs = _track_scan(model, gtv, ct1, tmp_path / "a")
+    assert code == 0, capsys.readouterr().err
+    moved = read_rtstruct(rs)["GTV@scan1"]
+    assert moved.frame_uid == "1.2.3.88.3"
+    code, _out, rs0 = _track_scan(model, gtv, ct0, tmp_path / "b", "--no-rigid")
+    assert code == 0, capsys.readouterr().err
+    rigid = read_rtstruct(rs0)["GTV@scan1"]
+    assert rigid.frame_uid == "1.2.826.0.1.3680043.8.498.77.3"
+    c1, c0 = np.concatenate(moved.contours).mean(0), np.concatenate(rigid.contours).mean(0)
+    assert np.allclose(c1 - c0, [-2.0, 3.0, -6.0], atol=0.5), c1 - c0  # slice sampling: within 0.5 mm
+
+
+@pytest.mark.parametrize("case, message", [
+    # the known gap: scan 1's contours were written onto the rest CT (scan 0's frame) unchecked
+    ("rest ct", "ct: Frame of Reference 1.2.826.0.1.3680043.8.498.77.3, scan 1 ("),
+    ("no record", "the model records no identity of scan 1"),
+    ("other patient", "patient 'SYN001', scan 1 ("),
+    ("other grid", "its slices span"),
+    ("gtv not on scan 0", "not drawn on the model's scan"),
+    ("scan 0 not dicom", "scan 0 of the fit (mask.nii.gz) was no DICOM series"),
+    ("scan 1 a mesh", "scan 1 (lung.obj) was neither a DICOM series nor an image"),
+    ("ct without pixel spacing", "ct1: DICOM file lacks PixelSpacing"),  # the image box needs it
+    # --no-rigid: positions in the model's frame, so scan 1's CT is the wrong one
+    ("no-rigid on scan 1", "ct1: Frame of Reference 1.2.3.88.3, scan 0 ("),
+])
+def test_track_scan_refuses_a_ct_that_is_not_scan_ks(scan_files, tmp_path, capsys, case, message):
+    # exit 2, one line naming --reference-ct (or the structure) and the mismatch; nothing written
+    from lungdeform.model.lung import Model
+    ct0, ct1, gtv, m, prov = scan_files
+    ct, extra = ct1, []
+    if case == "rest ct":
+        ct = ct0
+    elif case == "no record":
+        del prov["scans"]
+    elif case == "other patient":
+        prov["scans"][1]["patient_id"] = "OTHER"
+    elif case == "other grid":
+        prov["scans"][1].update(frame_of_reference="", series_uid="")
+        prov["scans"][1]["grid"]["origin"][2] += 10.0
+    elif case == "gtv not on scan 0":
+        prov["scans"][0]["frame_of_reference"] = "1.2.3.77.3"
+    elif case == "scan 0 not dicom":
+        prov["scans"][0] = {"source": "mask.nii.gz", "grid": prov["scans"][0]["grid"]}
+    elif case == "scan 1 a mesh":
+        prov["scans"][1] = {"source": "lung.obj", "grid": None}
+    elif case == "ct without pixel spacing":
+        import pydicom
+        for f in ct1.iterdir():
+            ds = pydicom.dcmread(f)
+            del ds.PixelSpacing
+            ds.save_as(f)
+    else:
+        extra = ["--no-rigid"]
+    model = save_model(tmp_path / "fitted.npz", Model(m.lungs, prov))
+    code, out, rs = _track_scan(model, gtv, ct, tmp_path, *extra)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and message in err[0], err
+    assert not out.exists() and not rs.exists()

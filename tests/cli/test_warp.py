@@ -14,6 +14,7 @@ from lungdeform.io.grid import Image
 from lungdeform.io.image import read_image
 from lungdeform.io.modelfile import load_model
 from tests.cli.test_dvf import files  # noqa: F401  (the shared module fixture)
+from tests.conftest import require_path
 from tests.io.dicom_support import dciodvfy
 from tests.popi_workflow import downsampled_series, extract_popi, popi_model
 
@@ -153,6 +154,62 @@ def test_popi_ten_phase_dicom_4dct_and_its_rtstruct(data_dir, tmp_path, capsys):
     assert np.abs(raw - sitk.GetArrayFromImage(sitk.ReadImage(str(tmp_path / "u50.mha")))).max() <= 0.01
 
 
+def _exact_lung_mass_change(tmp_path, ct, lungs, model, state, grid=None) -> tuple[float, float]:
+    """The change of the lungs' mass (fraction) at ``state`` (warp's state options), ``lungs`` in ``ct``
+    against ``lungs`` warped with --label in the --density image: (today's --density, with --lung-mask)."""
+    extra = [] if grid is None else ["--grid", str(grid)]
+    args = ["warp", str(ct), str(model), *state, *extra, "--density"]
+    assert main([*args, "--out", str(tmp_path / "old.mha")]) == 0
+    assert main([*args, "--lung-mask", str(lungs), "--out", str(tmp_path / "new.mha")]) == 0
+    assert main(["warp", str(lungs), str(model), *state, *extra, "--label", "--out", str(tmp_path / "moved.mha")]) == 0
+    moved = read_image(tmp_path / "moved.mha")
+    voxel = [float(np.prod(g.spacing)) / 1000 for g in (read_image(lungs), moved)]
+    m0 = float(((read_image(ct).array.astype(float) + 1000) * (read_image(lungs).array > 0)).sum()) * voxel[0]
+    return tuple(float(((read_image(tmp_path / n).array.astype(float) + 1000) * (moved.array > 0)).sum()) * voxel[1]
+                 / m0 - 1 for n in ("old.mha", "new.mha"))
+
+
+@pytest.mark.realdata
+def test_popi_density_keeps_the_mass_of_the_exact_lungs(data_dir, tmp_path):
+    # why: issue 27's aim, mass over the exact lung mask (the segmented lungs in the CT against them
+    # warped with --label) within 1 % at +500 mL: the real CT's lung surface (≈ −800 HU against the
+    # chest wall's ≈ 0) is where a linear resampling mixes wall into lung (today +1.80 % on the full
+    # grid, docs/RADIOTHERAPY.md "Measured: mass"); here on the grid `segment --downsample 4` segments
+    # (the CT block-averaged 4 × 4 in-plane, int16 as a CT), where the masks are exact: +5.3 %, now −0.3 %
+    popi = extract_popi(data_dir, tmp_path)
+    model = popi_model(popi, tmp_path, 1000)
+    from lungdeform.io.image import write_image
+    from lungdeform.segment.ct import downsample
+    ct = downsample(read_image(popi), (1, 4, 4))
+    left, right = (read_image(tmp_path / "seg" / f"{s}_lung.nii.gz") for s in ("left", "right"))
+    assert left.array.shape == ct.array.shape and np.allclose(left.origin, ct.origin, atol=1e-3)
+    write_image(tmp_path / "ct.mha", np.rint(ct.array).astype(np.int16), ct.spacing, ct.origin, ct.direction)
+    write_image(tmp_path / "lungs.mha", ((left.array > 0) | (right.array > 0)).astype(np.uint8), ct.spacing,
+                ct.origin, ct.direction)
+    ee = sum(lung.volume_ee_ml for lung in load_model(model).lungs.values())
+    old, new = _exact_lung_mass_change(tmp_path, tmp_path / "ct.mha", tmp_path / "lungs.mha", model,
+                                       ["--volume-ml", str(ee + 500)])
+    assert abs(new) < 0.01 < old, (old, new)
+
+
+@pytest.mark.realdata
+def test_itk_pair_density_keeps_the_mass_of_the_exact_lung(data_dir, tmp_path):
+    # why: the same on the ITK pair's right lung at its second volume (3968 mL, +605 mL, +18 %), as a
+    # CT: −780 HU in the fixed mask, water around it, the grid padded by 12 voxels of water so that no
+    # lung leaves it (the mask touches its cropped medial face); today's --density +4.6 %, now +0.1 %
+    fixed = read_image(require_path(data_dir, "itk-right-lung-two-volumes", "CT_3D_lung_fixed_mask.mha"))
+    from lungdeform.io.image import write_image
+    mask = np.pad((fixed.array > 0).astype(np.uint8), 12)
+    origin = fixed.origin - np.reshape(fixed.direction, (3, 3)) @ (12 * fixed.spacing)
+    write_image(tmp_path / "lung.mha", mask, fixed.spacing, origin, fixed.direction)
+    write_image(tmp_path / "ct.mha", np.where(mask > 0, -780, 0).astype(np.int16), fixed.spacing, origin, fixed.direction)
+    assert main(["build", str(tmp_path / "lung.mha"), "--side", "right", "--target-vertices", "1000",
+                 "--out", str(tmp_path / "model.npz")]) == 0
+    old, new = _exact_lung_mass_change(tmp_path, tmp_path / "ct.mha", tmp_path / "lung.mha", tmp_path / "model.npz",
+                                       ["--volume-ml", "3968"])
+    assert abs(new) < 0.01 < old, (old, new)
+
+
 def test_warp_failure_in_a_later_phase_leaves_no_folder(files, tmp_path, monkeypatch, capsys):
     # phases are written into a hidden folder renamed at the end: a failure while writing phase 2
     # of 2 (a full disk, here an OSError) leaves neither OUT nor the hidden folder
@@ -255,6 +312,46 @@ def test_warp_density_conserves_the_mass_that_a_plain_warp_adds(files, tmp_path,
     assert dens[lungs].mean() < plain[lungs].mean()  # the lungs get darker
 
 
+def test_warp_density_with_the_lung_mask_conserves_the_mass_of_the_exact_lungs(files, tmp_path, capsys):
+    # why: the lungs' mass, reference mask in the reference image against the same mask warped with
+    # --label (nearest neighbour) in the --density image, is conserved (within 1 %) only when lung
+    # voxels are resampled from lung tissue: a plain linear resampling mixes the water beside the
+    # lung boxes' sharp faces into the lung voxels near them (here +9.5 %, against −0.8 %: the
+    # nearest-neighbour mask's voxel count on 4.8–8 mm voxels, box faces parallel to the grid); the
+    # image's mass stays conserved as well (each voxel takes the tissue the warped mask gives it)
+    from lungdeform.playback.density import mass_g
+    d, m = files
+    ee = sum(lung.volume_ee_ml for lung in m.lungs.values())
+    hu, ref = _hu_image(d, tmp_path)
+    args = ["warp", str(hu), str(d / "model.npz"), "--volume-ml", str(ee + 400), "--density"]
+    assert main([*args, "--out", str(tmp_path / "old.mha")]) == 0
+    assert main([*args, "--lung-mask", str(d / "ref.nii.gz"), "--out", str(tmp_path / "new.mha")]) == 0
+    text = capsys.readouterr().out
+    assert main(["warp", str(d / "ref.nii.gz"), str(d / "model.npz"), "--volume-ml", str(ee + 400), "--label",
+                 "--out", str(tmp_path / "lungs.mha")]) == 0
+    vox = float(np.prod(ref.spacing)) / 1000
+    lungs, moved = ref.array > 0, read_image(tmp_path / "lungs.mha").array > 0
+    m0 = mass_g(read_image(hu).array, vox, lungs)
+    old, new = (mass_g(read_image(tmp_path / n).array, vox, moved) / m0 - 1 for n in ("old.mha", "new.mha"))
+    assert abs(new) < 0.01 < old, (old, new)
+    whole = mass_g(read_image(tmp_path / "new.mha").array, vox) / mass_g(read_image(hu).array, vox) - 1
+    assert abs(whole) < 0.01
+    assert f"({100 * new:+.2f} %)" in text and "lungs (--lung-mask" in text, text
+
+
+def test_warp_lung_mask_on_another_grid_is_refused(files, tmp_path, capsys):
+    # why: the mask says which of IMAGE's voxels are lung; one on another grid is refused, not resampled
+    d, _ = files
+    hu, ref = _hu_image(d, tmp_path)
+    from lungdeform.io.image import write_image
+    write_image(tmp_path / "half.mha", ref.array[::2], ref.spacing * [1, 1, 2], ref.origin, ref.direction)
+    assert main(["warp", str(hu), str(d / "model.npz"), "--volume-ml", "4000", "--density", "--lung-mask",
+                 str(tmp_path / "half.mha"), "--out", str(tmp_path / "w.mha")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "is not IMAGE's" in err[0], err
+    assert not (tmp_path / "w.mha").exists()
+
+
 def test_warp_projections_and_a_rigid_mask(files, tmp_path, capsys):
     # why: MIP/AIP/MinIP files are the voxel-wise max/mean/min of the phase files written beside
     # them; a rigid mask keeps its volume (< 2 %) where the elastic field inflates it
@@ -280,6 +377,7 @@ def test_warp_projections_and_a_rigid_mask(files, tmp_path, capsys):
 
 @pytest.mark.parametrize("extra, needle", [
     (["--density", "--label"], "--density scales CT numbers"),
+    (["--lung-mask", "nowhere.mha"], "--lung-mask goes with --density"),
     (["--projections", "mip"], "--projections needs --curve and --phases"),
     (["--rigid-structure", "GTV"], "--rigid-structure and --rtstruct go together"),
     (["--rigid-mask", "nowhere.mha", "--rigid-border-mm", "0"], "--rigid-border-mm must be"),

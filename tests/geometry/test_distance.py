@@ -22,7 +22,7 @@ def _brute(points, v, f):
     for p in points:
         best = np.inf
         for tri in f:
-            q = np.array(_closest_on_triangle(*p, *v[tri].ravel()))
+            q = np.array(_closest_on_triangle(tuple(p), *(tuple(v[k]) for k in tri)))
             best = min(best, float(np.linalg.norm(p - q)))
         out.append(best)
     return np.array(out)

@@ -53,3 +53,22 @@ def test_malformed_fields_are_refused_by_name(rng, change, match):
     args = {"linear": f.linear, "warp": f.warp, "centers": f.centers, "weights": f.weights, "width_mm": 30.0}
     with pytest.raises(InputError, match=match):
         SurfaceMapField(**{**args, **change})
+
+
+@pytest.mark.parametrize("width", [30.0, 4.0])
+def test_rows_equal_the_point_evaluation(rng, width):
+    # along_rows builds each Gaussian along a row by multiplying ratios (three exponentials a row and
+    # centre); it must give __call__ at the same points: each value carries at most m²/2 roundings
+    # after m steps (m < 60 here), so 1e-12 of the weights' sum bounds the difference. Rows of 0 and
+    # 1 point and a row whose peak lies past either end are among them.
+    f = SurfaceMapField(*[getattr(_field(rng), a) for a in ("linear", "warp", "centers", "weights")], width)
+    starts = rng.normal(scale=60.0, size=(40, 3))
+    step = rng.normal(scale=3.0, size=3)
+    counts = rng.integers(0, 60, size=40)
+    counts[:2] = (0, 1)
+    a = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+    q = np.repeat(starts, counts, axis=0) + a[:, None] * step
+    np.testing.assert_allclose(f.along_rows(starts, step, counts), _dense(f, q), rtol=0,
+                               atol=1e-12 * np.abs(f.weights).sum())
+    with pytest.raises(InputError, match="counts"):
+        f.along_rows(starts, step, counts[:-1])

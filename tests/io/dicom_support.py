@@ -124,6 +124,6 @@ def dciodvfy(path) -> tuple[list[str], list[str]]:
     exe = DCIODVFY if Path(DCIODVFY).exists() else shutil.which("dciodvfy")
     if exe is None:
         pytest.skip(f"{DCIODVFY} missing: apt-get install dicom3tools (make test does, as root)")
-    out = subprocess.run([exe, str(path)], capture_output=True, text=True, timeout=120)
+    out = subprocess.run([exe, str(path)], capture_output=True, text=True, errors="replace", timeout=120)
     lines = (out.stdout + out.stderr).splitlines()
     return [ln for ln in lines if ln.startswith("Error")], [ln for ln in lines if ln.startswith("Warning")]

@@ -10,7 +10,7 @@ import pytest
 
 from lungdeform.errors import InputError, ReadError
 from lungdeform.io.grid import Image, index_to_world
-from lungdeform.io.image import read_image, resample_image, write_image
+from lungdeform.io.image import read_image, resample_channels, resample_image, write_image
 from lungdeform.io.mask import mask_to_surface
 
 from .test_mask import MIRRORED, rotation
@@ -229,6 +229,23 @@ def test_resample_with_nearest_neighbour_keeps_labels():
     assert np.array_equal(out.array[:, :, :-1], a[:, :, 1:])
 
 
+def test_resample_channels_equals_each_channel_resampled_alone():
+    # why: one pass over c channels must give what resample_image gives each channel (linear, 0
+    # outside): a field of 0.37 voxel along x and -0.6 along z, the last slab's sources off the image
+    rng = np.random.default_rng(5)
+    a = rng.normal(size=(5, 6, 7, 3)).astype(np.float32)
+    img = Image(a[..., 0], [1.5, 1.0, 2.0], [3.0, -2.0, 1.0], np.eye(3))
+    field = np.zeros(a.shape[:3] + (3,))
+    field[..., 0], field[..., 2] = 0.37 * 1.5, -0.6 * 2.0
+    out = resample_channels(img, a, field)
+    for c in range(3):
+        alone = resample_image(Image(a[..., c], img.spacing, img.origin, img.direction), field, default=0.0).array
+        assert np.allclose(out[..., c], alone, atol=1e-6)
+    assert np.all(out[0] == 0) and np.any(out[1] != 0)
+    with pytest.raises(InputError, match="channels"):
+        resample_channels(img, a[:-1], field)
+
+
 def _ct_series(folder, z_mm, tags=None):
     """A CT series of a 40 mm ball (0 HU in -1000 HU air, 2 mm pixels) with one slice per position
     ``z_mm`` (ImagePositionPatient z; in-plane origin -31 mm), plus ``tags`` in every slice."""
@@ -335,3 +352,21 @@ def test_max_voxels_lasts_one_command(tmp_path, monkeypatch):
     monkeypatch.delenv(MAX_VOXELS_ENV, raising=False)
     main(["--max-voxels", "999", "build", str(tmp_path / "none.nii.gz"), "--out", str(tmp_path / "m.npz")])
     assert MAX_VOXELS_ENV not in os.environ
+
+
+@pytest.mark.parametrize("suffix", [".nii", ".nii.gz", ".mha", ".nrrd"])
+@pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf])
+def test_non_finite_voxels_are_refused_naming_the_first(tmp_path, suffix, value):
+    # why: ITK reads a NaN or inf NIfTI voxel as 0 (a NaN region of a CT became 0 HU, soft tissue,
+    # and segment, warp and build went on: exit 0); other formats keep it, and every consumer then
+    # coerced it (a NaN fails every threshold). Truth: the voxel written, named by its (x, y, z) index
+    import SimpleITK as sitk
+    a = np.zeros((4, 5, 6), np.float32)
+    a[2, 3, 1] = value
+    path = tmp_path / f"v{suffix}"
+    sitk.WriteImage(sitk.GetImageFromArray(a), str(path))
+    with pytest.raises(ReadError, match=rf"v{suffix.replace('.', '[.]')}: .*\(1, 3, 2\).*finite numbers only"):
+        read_image(path)
+    a[2, 3, 1] = -1000.5  # the same file finite: read as written
+    sitk.WriteImage(sitk.GetImageFromArray(a), str(path))
+    assert read_image(path).array[2, 3, 1] == -1000.5

@@ -193,3 +193,56 @@ def test_fused_jacobian_equals_numpy_gradient(rng):
     sub = ref[3:7, 1:8, 2:9]
     lo, hi, folded = D.jacobian_range(field, grid, box)
     assert (lo, hi) == pytest.approx((sub.min(), sub.max()), abs=1e-4) and folded == int((sub <= 0).sum()) > 0
+
+
+def test_active_values_equal_the_field_at_the_active_nodes(model, rng):
+    # active_values evaluates each lattice row from its first to its last active node (a surface map
+    # by its row kernel, other fields point by point); at the active nodes it must equal the interior
+    # field at the nodes' world positions (1e-9 mm: the row kernel's rounding, tests/interior), zero elsewhere
+    from lungdeform.interior.field import InteriorField
+    from lungdeform.interior.surface_map import surface_extension
+
+    lung = model.lungs["left"] if "left" in model.lungs else next(iter(model.lungs.values()))
+    v = lung.surface.vertices
+    mapped = InteriorField(surface_extension(v, lung.interior.displacement(v)))
+    lat = D.lattice(GRID, v.min(axis=0) - 10.0, v.max(axis=0) + 10.0, 7.0)
+    active = rng.random(tuple(lat.dims[::-1])) < 0.3
+    nodes = GRID.world(lat.ijk())
+    for interior in (lung.interior, mapped):
+        got = D.active_values(interior, GRID, lat, active)
+        flat = active.ravel()
+        assert np.abs(got[flat] - interior.displacement(nodes[flat])).max() <= 1e-9
+        assert flat.sum() > 100 and not got[~flat].any()
+
+
+def test_jacobian_skips_only_voxels_where_nothing_moves(rng):
+    # the fused pass gives a determinant of exactly 1, without arithmetic, to voxels more than one
+    # voxel from every non-zero displacement in their row and the four rows beside it; reference:
+    # numpy.gradient's determinant everywhere (exactly 1 where all differences are 0). A field that
+    # moves only in a blob, touching the array's edge along i, and one isolated non-zero voxel
+    grid = D.Grid((12, 13, 14), np.array([0.9, 1.4, 2.5]), np.zeros(3), np.eye(3))
+    field = np.zeros(grid.shape + (3,), np.float32)
+    field[3:8, 2:9, 9:] = rng.normal(scale=0.2, size=(5, 7, 5, 3))
+    field[10, 11, 2] = (0.0, 0.0, -6.0)  # folds its neighbour at k = 9 (det 1 − 6 / (2 · 2.5))
+    d = [np.gradient(field.astype(float), axis=ax) for ax in (2, 1, 0)]
+    ref = np.linalg.det(np.eye(3) + np.einsum("azyxc,ra->zyxcr", np.stack(d), grid.direction / grid.spacing))
+    got = D.jacobian_determinant(field, grid.spacing, grid.direction)
+    assert got == pytest.approx(ref, abs=1e-5) and (got == 1.0).sum() > field.size // 6
+    for box in (((0, 0, 0), (14, 13, 12)), ((8, 1, 2), (12, 9, 9)), ((10, 8, 0), (11, 9, 12))):
+        (i0, j0, k0), (i1, j1, k1) = box
+        sub = ref[k0:k1, j0:j1, i0:i1]
+        lo, hi, folded = D.jacobian_range(field, grid, box)
+        assert (lo, hi) == pytest.approx((sub.min(), sub.max()), abs=1e-5) and folded == int((sub <= 0).sum())
+    assert D.jacobian_range(field, grid)[2] == 1
+
+
+def test_zeroed_is_a_writable_zero_float32_array():
+    # the field's output is allocated by an anonymous memory map (voxel.zeroed); it must behave as
+    # numpy.zeros: all zero, float32, C-contiguous, writable, and survive its maker's scope
+    from lungdeform.playback.voxel import zeroed
+
+    a = zeroed((3, 4, 5, 3))
+    assert a.dtype == np.float32 and a.shape == (3, 4, 5, 3) and a.flags.c_contiguous and a.flags.writeable
+    assert not a.any()
+    a[1, 2, 3] = (1.0, 2.0, 3.0)
+    assert a.sum() == 6.0 and zeroed((0, 4, 5, 3)).shape == (0, 4, 5, 3)

@@ -44,9 +44,31 @@ def test_decisions_never_use_later_samples_except_the_oracle(rng):
     y = x.copy()
     y[500:] = rng.normal(0, 3.0, t.size - 500)
     a, b = G.gate_decisions(t, x, G.GatingConfig()), G.gate_decisions(t, y, G.GatingConfig())
-    for k in ("none", "linear", "model", "model_intervals"):
+    for k in ("none", "linear", "model", "model_intervals", "linear_intervals"):
         assert np.array_equal(a[k][:500], b[k][:500])
     assert np.array_equal(a["window"][:500], b["window"][:500])
+
+
+def test_replayed_threshold_is_the_live_gate(rng):
+    # leave-one-trace-out replays RiskThreshold on the recorded window probabilities; the predictor never
+    # sees the beam, so with the live gate's own control the replay must give its decisions exactly
+    t, x = _breath(rng, 90.0)
+    cfg = G.GatingConfig()
+    d = G.gate_decisions(t, x, cfg)
+    on = G.replay_threshold(t, x, d, 0.3, cfg.rule.risk)
+    assert np.array_equal(on, d["model_intervals"]) and on.any() and not on.all()
+
+
+def test_leave_one_trace_out_picks_the_step_on_the_other_traces(rng):
+    # each held-out trace's step comes from the others only: with the traces copied under other names
+    # (every trace identical) the pick is the same everywhere and equals the pick on all traces
+    t, x = _breath(rng, 90.0)
+    cfg = G.GatingConfig()
+    r = G.score_trace(t, x, cfg)
+    r["_trace"] = (t, x)
+    lo = G.leave_one_trace_out({"a": r, "b": r, "c": r}, cfg)
+    assert {h["gamma"] for h in lo["traces"].values()} == {lo["gamma_all"]} and lo["gamma_all"] in G.GAMMA_GRID
+    assert G.leave_one_trace_out({"a": r, "b": r}, G.GatingConfig(rule=GateRule(risk=None))) is None
 
 
 def test_confident_gate_is_stricter(rng):
@@ -83,3 +105,5 @@ def test_shared_traces_meet_the_gating_targets(tmp_path, data_dir):
     t = m["targets"]
     assert m["n_traces"] == 16 and t["error_vs_none"]["met"] and t["duty_vs_none"]["met"]
     assert t["better_than_linear_at_matched_duty"]["met"]
+    # with the same intervals and the same adaptive rule, the model gates more and errs less than linear
+    assert t["better_than_linear_same_rule"]["met"]

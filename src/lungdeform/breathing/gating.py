@@ -11,7 +11,21 @@ end-exhale).
 
 Decisions at time ``t`` for the position at ``t + latency`` (:func:`gate_point`,
 :func:`gate_interval`, :func:`gate_probability`): a predicted value inside the window; a whole
-interval inside; or a predicted probability of being inside at least ``min_probability``.
+interval inside; or a predicted probability of being inside at least a threshold.
+
+The threshold (:class:`RiskThreshold`, the default) adapts online to a stated clinical tolerance
+``target_error`` (α, default 0.05) on the beam-on error, the share of beam-on time with the target
+outside the window. A decision's outcome is known ``latency`` after it: the threshold then moves by
+``γ·(e_j − α)`` for every beam-on decision ``j`` (``e_j`` = 1 when the true position missed the
+window), up after a miss, down after a hit. This is adaptive conformal inference (Gibbs & Candès,
+NeurIPS 2021, eq. 2) applied to the gate's risk instead of an interval's coverage: summed over ``N``
+scored beam-on decisions the updates telescope, ``Σ (e_j − α) = (τ_N − τ_0)/γ``, so while the
+threshold stays in ``[0, 1]`` the realised beam-on error is within ``1/(γ N)`` of α, whatever the
+predictor or the breathing, and the beam is on as much as that allows. The threshold is capped at
+the highest probability the predictive distribution can give (``n/(n + 1)`` with ``n`` stored
+errors), so a run of misses cannot hold the beam off for ever: with every stored error putting the
+target inside, the beam may come on, and its outcome steers the threshold again.
+With ``target_error=None`` the threshold is fixed at ``min_probability``.
 
 :class:`BeamGate` is the live gate: one sample in, the window, the model's prediction of the
 position ``latency`` later with its interval (:mod:`lungdeform.breathing.predict_interval`) and the
@@ -28,7 +42,7 @@ from dataclasses import dataclass, field
 
 from lungdeform.errors import InputError
 
-from .predict import BlendPredictor, check_horizon
+from .predict import EPS_S, BlendPredictor, check_horizon
 from .predict_interval import IntervalConfig, IntervalPredictor
 
 #: window kinds: the name and whether the window is the low end of the breath
@@ -130,6 +144,63 @@ def gate_probability(probability: float, min_probability: float) -> bool:
     return bool(probability >= min_probability)
 
 
+@dataclass(frozen=True)
+class RiskControl:
+    """target_error : α, the tolerated beam-on error (share of beam-on time outside the window), in
+    (0, 1); gamma : the threshold's step per scored beam-on decision, > 0; start : the threshold
+    before any outcome is known, in (0, 1)."""
+
+    target_error: float = 0.05
+    gamma: float = 0.01
+    start: float = 0.5
+
+    def __post_init__(self):
+        for name, v in (("target_error", self.target_error), ("start", self.start)):
+            if not (math.isfinite(v) and 0.0 < v < 1.0):
+                raise InputError(f"{name} must be in (0, 1), got {v!r}")
+        if not (math.isfinite(self.gamma) and self.gamma > 0.0):
+            raise InputError(f"gamma must be > 0, got {self.gamma!r}")
+
+
+class RiskThreshold:
+    """The adaptive window-probability threshold (module doc). Per sample: :meth:`observe` ``(t, x)``
+    first (scores every queued decision whose time ``t_j + latency`` has come, the true position read
+    by linear interpolation between the samples around it), then :meth:`decide`."""
+
+    def __init__(self, latency_s: float, control: RiskControl | None = None):
+        self.latency_s = check_horizon(latency_s)
+        self.control = control or RiskControl()
+        self.threshold = self.control.start
+        self._queue: deque[tuple[float, tuple[float, float]]] = deque()  # beam-on decisions: (t_j, window_j)
+        self._prev: tuple[float, float] | None = None
+        self.n_on = 0  # scored beam-on decisions
+        self.n_missed = 0  # of which the true position was outside the window
+
+    def observe(self, t: float, x: float) -> None:
+        c = self.control
+        while self._queue and self._queue[0][0] + self.latency_s <= t + EPS_S:
+            tj, w = self._queue.popleft()
+            due = tj + self.latency_s
+            if self._prev is None or due >= t - EPS_S:
+                truth = x
+            else:
+                t0, x0 = self._prev
+                truth = x0 + (x - x0) * (due - t0) / (t - t0)
+            missed = not inside(w, truth)
+            self.n_on += 1
+            self.n_missed += missed
+            self.threshold = min(1.0, max(0.0, self.threshold + c.gamma * (float(missed) - c.target_error)))
+        self._prev = (t, x)
+
+    def decide(self, t: float, probability: float, highest: float, window: tuple[float, float]) -> bool:
+        """Beam on at ``t``: ``probability`` of the window at least the threshold, capped at
+        ``highest`` (the largest probability the predictive distribution can give); NaN: off."""
+        on = gate_probability(probability, min(self.threshold, highest))
+        if on:
+            self._queue.append((t, window))
+        return on
+
+
 def distance_outside(window: tuple[float, float], value: float) -> float:
     """How far ``value`` lies outside ``window`` (0 inside), in the trace's units."""
     return max(window[0] - value, value - window[1], 0.0)
@@ -138,13 +209,15 @@ def distance_outside(window: tuple[float, float], value: float) -> float:
 @dataclass(frozen=True)
 class GateRule:
     """window : the gating window; confident : the whole interval must be inside; min_probability :
-    otherwise, the predicted probability of the window needed, in (0, 1); interval : the intervals'
-    settings (coverage 0.9)."""
+    otherwise, with ``risk`` None, the fixed predicted probability of the window needed, in (0, 1);
+    interval : the intervals' settings (coverage 0.9); risk : the threshold adapted to a tolerated
+    beam-on error (:class:`RiskControl`, default α = 0.05), or None for the fixed threshold."""
 
     window: WindowSpec = field(default_factory=WindowSpec)
     confident: bool = False
     min_probability: float = 0.5
     interval: IntervalConfig = field(default_factory=IntervalConfig)
+    risk: RiskControl | None = field(default_factory=RiskControl)
 
     def __post_init__(self):
         if not (math.isfinite(self.min_probability) and 0.0 < self.min_probability < 1.0):
@@ -152,8 +225,12 @@ class GateRule:
 
     @property
     def text(self) -> str:
-        return (f"whole {self.interval.coverage:g} interval inside" if self.confident else
-                f"predicted window probability >= {self.min_probability:g}")
+        if self.confident:
+            return f"whole {self.interval.coverage:g} interval inside"
+        if self.risk is None:
+            return f"predicted window probability >= {self.min_probability:g}"
+        return (f"predicted window probability >= a threshold adapted online to a beam-on error of "
+                f"{self.risk.target_error:g} (step {self.risk.gamma:g}, start {self.risk.start:g})")
 
 
 @dataclass(frozen=True)
@@ -175,15 +252,25 @@ class BeamGate:
     """The live gate (module doc): :meth:`update` takes a sample ``(t s, x)`` and returns a
     :class:`GateSample` for the position ``latency_s`` later."""
 
-    def __init__(self, latency_s: float, rule: GateRule | None = None):
+    def __init__(self, latency_s: float, rule: GateRule | None = None, point=None):
+        """``point``: the point predictor under the intervals (default: a fresh
+        :class:`~lungdeform.breathing.predict.BlendPredictor` for ``latency_s``)."""
         self.latency_s = check_horizon(latency_s)
         self.rule = rule or GateRule()
         self.window = GateWindow(self.rule.window)
-        self.predictor = IntervalPredictor(BlendPredictor(self.latency_s), self.rule.interval)
+        point = BlendPredictor(self.latency_s) if point is None else point
+        self.predictor = IntervalPredictor(point, self.rule.interval)
+        self.risk = RiskThreshold(self.latency_s, self.rule.risk) if self.rule.risk is not None else None
 
     def update(self, t: float, x: float) -> GateSample:
         w = self.window.update(t, x)
         r = self.predictor.update(t, x)
         prob = window_probability(w, self.predictor.probability_below)
-        on = gate_interval(w, r.lo, r.hi) if self.rule.confident else gate_probability(prob, self.rule.min_probability)
+        if self.rule.confident:
+            on = gate_interval(w, r.lo, r.hi)
+        elif self.risk is not None:
+            self.risk.observe(t, x)
+            on = self.risk.decide(t, prob, self.predictor.probability_below(math.inf), w)
+        else:
+            on = gate_probability(prob, self.rule.min_probability)
         return GateSample(r.t_s, r.value, r.lo, r.hi, w, prob, on)

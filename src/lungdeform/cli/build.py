@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
+from typing import Annotated, Optional
 
 import typer
 
@@ -25,44 +26,51 @@ from .common import (
     option_names,
     parse_orientation,
     say,
+    takes,
     tidal_option,
 )
 
 
+@dataclass(frozen=True, kw_only=True)
+class BuildOptions:
+    """The options of ``lungdeform build`` (:func:`register`)."""
+
+    sources: Annotated[list[Path], typer.Argument(help="Mesh files (STL, OBJ, PLY, VTK, VTP, OFF, glTF/GLB) or masks (NIfTI, MHA/MHD, NRRD, DICOM folder).")]
+    out: Annotated[Path, typer.Option("--out", "-o", help="Model file to write (.npz).")]
+    side: Annotated[Optional[list[str]], typer.Option("--side", help="Side of each surface in order: left|right (given once per input, it picks that lung of a mask holding both lungs in one label; without it such a mask gives both lungs). Default: from label names, from position for two surfaces, or from the shape (the concave medial face) for one.")] = None
+    labels: Annotated[Optional[str], typer.Option("--labels", help="Mask labels: 'lungs' (lobe map → left, right), 'left=1,2;right=3,4,5', or '1,2'.")] = None
+    units: Annotated[str, typer.Option("--units", help="Units of mesh files: mm, cm or m (converted to mm).")] = "mm"
+    repair: Annotated[bool, typer.Option("--repair", help="Repair fixable surface defects and report them.")] = False
+    target_vertices: Annotated[Optional[int], typer.Option("--target-vertices", help="Decimate mask surfaces to about this many vertices.")] = None
+    side_check: Annotated[bool, typer.Option("--side-check/--no-side-check", help=SIDE_CHECK_HELP)] = True
+    orientation: Annotated[str, typer.Option("--orientation", help="supine, prone, upright, left-decubitus, right-decubitus, or a gravity vector 'x,y,z' (LPS).")] = "supine"
+    tidal_ml: Annotated[float, typer.Option("--tidal-ml", callback=tidal_option, help="Tidal volume for both lungs together (mL); calibration is exact there.")] = 500.0
+    stiffness: Annotated[str, typer.Option("--stiffness", help="uniform | gradient:DEPENDENT,NONDEPENDENT | sphere:X,Y,Z,RADIUS,E (mm, LPS).")] = "uniform"
+    solver: Annotated[str, typer.Option("--solver", help="Linear solver: bicgstab, gmres or direct.")] = "bicgstab"
+    d_min: Annotated[float, typer.Option("--d-min", callback=bounded(0, 100, "mm", low_open=True), help="Minimum transfer distance (mm).")] = 1.0
+    constants: Annotated[str, typer.Option("--constants", help=CONSTANTS_HELP)] = "population"
+
+
 def register(apps) -> None:
     @apps.root.command("build")
-    def build(
-        sources: list[Path] = typer.Argument(..., help="Mesh files (STL, OBJ, PLY, VTK, VTP, OFF, glTF/GLB) or masks (NIfTI, MHA/MHD, NRRD, DICOM folder)."),
-        out: Path = typer.Option(..., "--out", "-o", help="Model file to write (.npz)."),
-        side: Optional[list[str]] = typer.Option(None, "--side", help="Side of each surface in order: left|right (given once per input, it picks that lung of a mask holding both lungs in one label; without it such a mask gives both lungs). Default: from label names, from position for two surfaces, or from the shape (the concave medial face) for one."),
-        labels: Optional[str] = typer.Option(None, "--labels", help="Mask labels: 'lungs' (lobe map → left, right), 'left=1,2;right=3,4,5', or '1,2'."),
-        units: str = typer.Option("mm", "--units", help="Units of mesh files: mm, cm or m (converted to mm)."),
-        repair: bool = typer.Option(False, "--repair", help="Repair fixable surface defects and report them."),
-        target_vertices: Optional[int] = typer.Option(None, "--target-vertices", help="Decimate mask surfaces to about this many vertices."),
-        side_check: bool = typer.Option(True, "--side-check/--no-side-check", help=SIDE_CHECK_HELP),
-        orientation: str = typer.Option("supine", "--orientation", help="supine, prone, upright, left-decubitus, right-decubitus, or a gravity vector 'x,y,z' (LPS)."),
-        tidal_ml: float = typer.Option(500.0, "--tidal-ml", callback=tidal_option, help="Tidal volume for both lungs together (mL); calibration is exact there."),
-        stiffness: str = typer.Option("uniform", "--stiffness", help="uniform | gradient:DEPENDENT,NONDEPENDENT | sphere:X,Y,Z,RADIUS,E (mm, LPS)."),
-        solver: str = typer.Option("bicgstab", "--solver", help="Linear solver: bicgstab, gmres or direct."),
-        d_min: float = typer.Option(1.0, "--d-min", callback=bounded(0, 100, "mm", low_open=True), help="Minimum transfer distance (mm)."),
-        constants: str = typer.Option("population", "--constants", help=CONSTANTS_HELP),
-    ):
+    @takes(BuildOptions)
+    def build(opts: BuildOptions) -> None:
         """Build a breathing lung model from one or two lung surfaces."""
 
-        check_tidal_ml(tidal_ml)  # before the (slow) reading, with the options' own names
-        check_output(out, sources)
-        if solver not in SOLVERS:
-            raise InputError(f"--solver must be one of {', '.join(SOLVERS)}, got {solver!r}")
+        check_tidal_ml(opts.tidal_ml)  # before the (slow) reading, with the options' own names
+        check_output(opts.out, opts.sources)
+        if opts.solver not in SOLVERS:
+            raise InputError(f"--solver must be one of {', '.join(SOLVERS)}, got {opts.solver!r}")
         with option_names({"constants": "--constants"}):
-            chosen = resolve_default(constants)
-        if target_vertices is not None and target_vertices < 100:
-            raise InputError(f"--target-vertices must be at least 100, got {target_vertices}")
+            chosen = resolve_default(opts.constants)
+        if opts.target_vertices is not None and opts.target_vertices < 100:
+            raise InputError(f"--target-vertices must be at least 100, got {opts.target_vertices}")
         loaded = []
         # --side once per source also picks that lung of a mask holding both lungs in one label
-        per_source = side if side and len(side) == len(sources) else [None] * len(sources)
-        for src, src_side in zip(sources, per_source):
-            got, notes = load_lungs(src, src_side, labels=labels, units=units, repair=repair,
-                                    target_vertices=target_vertices, progress=say)
+        per_source = opts.side if opts.side and len(opts.side) == len(opts.sources) else [None] * len(opts.sources)
+        for src, src_side in zip(opts.sources, per_source):
+            got, notes = load_lungs(src, src_side, labels=opts.labels, units=opts.units, repair=opts.repair,
+                                    target_vertices=opts.target_vertices, progress=say)
             for text in notes:
                 typer.echo(f"note: {text}")
             for surface, report in got:
@@ -72,21 +80,21 @@ def register(apps) -> None:
                     typer.echo(f"warning: {src}: {line}", err=True)
                 loaded.append((src, surface))
         with option_names({"sides": "--side"}):
-            sides = resolve_sides([s for _, s in loaded], side, check=side_check)
+            sides = resolve_sides([s for _, s in loaded], opts.side, check=opts.side_check)
         if len(set(sides)) != len(sides):
             raise InputError(f"two surfaces for the same side: {', '.join(sides)}")
         surfaces = {sd: s for sd, (_, s) in zip(sides, loaded)}
-        gravity = parse_orientation(orientation)
+        gravity = parse_orientation(opts.orientation)
         with option_names({"stiffness": "--stiffness"}):
-            stiff = {sd: parse_stiffness(stiffness, s.vertices, gravity_vector(gravity)) for sd, s in surfaces.items()}
+            stiff = {sd: parse_stiffness(opts.stiffness, s.vertices, gravity_vector(gravity)) for sd, s in surfaces.items()}
         prov = provenance(
-            "build", sources=[str(p) for p, _ in loaded], sides=sides, orientation=orientation,
-            stiffness=stiffness, solver=solver, units=units,
+            "build", sources=[str(p) for p, _ in loaded], sides=sides, orientation=opts.orientation,
+            stiffness=opts.stiffness, solver=opts.solver, units=opts.units,
         )
-        model = build_model(surfaces, tidal_ml=tidal_ml, stiffness=stiff, gravity=gravity,
-                            settings=BuildSettings(solver=solver, d_min=d_min), provenance=prov, default=chosen,
+        model = build_model(surfaces, tidal_ml=opts.tidal_ml, stiffness=stiff, gravity=gravity,
+                            settings=BuildSettings(solver=opts.solver, d_min=opts.d_min), provenance=prov, default=chosen,
                             progress=say)
-        path = save_model(out, model)
+        path = save_model(opts.out, model)
         for sd, lung in model.lungs.items():
             typer.echo(f"{sd}: {lung.n_vertices} vertices, V_EE {lung.volume_ee_ml:.0f} mL, "
                        f"calibrated at +{lung.calibration_ml:.0f} mL")

@@ -13,8 +13,9 @@ kept, and running the same command again resumes.
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
+from typing import Annotated, Optional
 
 import typer
 from rich.console import Console
@@ -24,7 +25,15 @@ from lungdeform.cohort.job import STAGES, FitOptions
 from lungdeform.cohort.manifest import read_manifest
 from lungdeform.cohort.runner import Cluster, run_cohort
 
-from .common import DIRECTION_DEGREE_HELP, FIT_OPTIONS, SIDE_CHECK_HELP, option_names, output_dir, progress_enabled
+from .common import (
+    DIRECTION_DEGREE_HELP,
+    FIT_OPTIONS,
+    SIDE_CHECK_HELP,
+    option_names,
+    output_dir,
+    progress_enabled,
+    takes,
+)
 
 #: Bar labels of the stages (lungdeform.cohort.job.STAGES).
 STAGE_LABELS = {"read": "read / segment", "align": "align", "fit": "fit + measure", "write": "write"}
@@ -116,38 +125,43 @@ def _job_line(r: dict) -> str:
     return f"FAILED  {key:<24} {r['seconds']:7.1f} s  {r['error_type']}: {r['error']}"
 
 
+@dataclass(frozen=True, kw_only=True)
+class CohortOptions:
+    """The options of ``lungdeform cohort`` (:func:`register`)."""
+
+    manifest: Annotated[Path, typer.Argument(help="CSV: subject,side,volume_ml,path[,landmarks]; one row per scan.")]
+    out: Annotated[Path, typer.Option("--out", help="Output folder: subjects/<subject>/<side>/, cohort.json, population statistics.")]
+    scheduler: Annotated[Optional[str], typer.Option("--scheduler", help="Address of a running Dask scheduler (default: a local cluster).")] = None
+    workers: Annotated[Optional[int], typer.Option("--workers", help="Worker processes of the local cluster (default: one per CPU, at most one per job).")] = None
+    skip_failed: Annotated[bool, typer.Option("--skip-failed", help="Do not re-run jobs that failed in an earlier run.")] = False
+    evaluations: Annotated[int, typer.Option("--evaluations", help="Optimiser budget per fit (objective evaluations).")] = 300
+    baselines: Annotated[bool, typer.Option("--baselines/--no-baselines", help="Measure the baselines too.")] = True
+    processes: Annotated[bool, typer.Option("--processes/--threads", help="Local workers as processes, or threads in this process (debugging).")] = True
+    align: Annotated[str, typer.Option("--align", help="apex: rigid alignment on the apex cap (scans with a table shift); "
+        "joint: a translation per target fitted with the constants; none: inputs already in one "
+        "frame (a synthetic cohort from synth-cohort: use none or joint).")] = "apex"
+    landmark_fit: Annotated[bool, typer.Option("--landmark-fit/--no-landmark-fit", help="With landmarks: the interior landmark correction, k-fold cross-validated.")] = True
+    folds: Annotated[int, typer.Option("--folds", help="Folds of the landmark cross-validation.")] = 5
+    direction_degree: Annotated[int, typer.Option("--direction-degree", help=DIRECTION_DEGREE_HELP)] = 3
+    stiffness: Annotated[bool, typer.Option("--stiffness/--no-stiffness", help="Also fit a heterogeneous stiffness field per lung (kept only if it lowers the objective; slower).")] = False
+    side_check: Annotated[bool, typer.Option("--side-check/--no-side-check", help=SIDE_CHECK_HELP)] = True
+
+
 def register(apps) -> None:
     @apps.root.command("cohort")
-    def cohort_command(
-        manifest: Path = typer.Argument(..., help="CSV: subject,side,volume_ml,path[,landmarks]; one row per scan."),
-        out: Path = typer.Option(..., "--out", help="Output folder: subjects/<subject>/<side>/, cohort.json, population statistics."),
-        scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Address of a running Dask scheduler (default: a local cluster)."),
-        workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes of the local cluster (default: one per CPU, at most one per job)."),
-        skip_failed: bool = typer.Option(False, "--skip-failed", help="Do not re-run jobs that failed in an earlier run."),
-        evaluations: int = typer.Option(300, "--evaluations", help="Optimiser budget per fit (objective evaluations)."),
-        baselines: bool = typer.Option(True, "--baselines/--no-baselines", help="Measure the baselines too."),
-        processes: bool = typer.Option(True, "--processes/--threads", help="Local workers as processes, or threads in this process (debugging)."),
-        align: str = typer.Option("apex", "--align", help="apex: rigid alignment on the apex cap (scans with a table shift); "
-                                  "joint: a translation per target fitted with the constants; none: inputs already in one "
-                                  "frame (a synthetic cohort from synth-cohort: use none or joint)."),
-        landmark_fit: bool = typer.Option(True, "--landmark-fit/--no-landmark-fit",
-                                          help="With landmarks: the interior landmark correction, k-fold cross-validated."),
-        folds: int = typer.Option(5, "--folds", help="Folds of the landmark cross-validation."),
-        direction_degree: int = typer.Option(3, "--direction-degree", help=DIRECTION_DEGREE_HELP),
-        stiffness: bool = typer.Option(False, "--stiffness/--no-stiffness", help="Also fit a heterogeneous stiffness field per lung (kept only if it lowers the objective; slower)."),
-        side_check: bool = typer.Option(True, "--side-check/--no-side-check", help=SIDE_CHECK_HELP),
-    ) -> None:
+    @takes(CohortOptions)
+    def cohort_command(opts: CohortOptions) -> None:
         """Fit every lung of a cohort in parallel on Dask; resumable (finished subjects are skipped).
 
         Exit 0 if at least one job succeeded (failures listed), 1 if all failed, 2 for a bad
         manifest, 130 when interrupted (re-run the same command to resume)."""
 
-        m = read_manifest(manifest)  # every problem reported before any work starts (exit 2)
+        m = read_manifest(opts.manifest)  # every problem reported before any work starts (exit 2)
         with option_names(FIT_OPTIONS):
-            options = FitOptions(max_evaluations=evaluations, baselines=baselines, align=align,
-                                 landmark_fit=landmark_fit, folds=folds,
-                                 direction_degree=direction_degree, stiffness=stiffness, side_check=side_check)
-        if align == "apex" and (Path(manifest).parent / "truth.json").is_file():
+            options = FitOptions(max_evaluations=opts.evaluations, baselines=opts.baselines, align=opts.align,
+                                 landmark_fit=opts.landmark_fit, folds=opts.folds,
+                                 direction_degree=opts.direction_degree, stiffness=opts.stiffness, side_check=opts.side_check)
+        if opts.align == "apex" and (Path(opts.manifest).parent / "truth.json").is_file():
             typer.echo("note: this manifest's folder holds a synthetic truth.json: its surfaces are already in one "
                        "frame, and the apex alignment shifts them (the model moves the apex); use --align none "
                        "(or joint) to measure recovery")
@@ -155,12 +169,12 @@ def register(apps) -> None:
             typer.echo(f"note: {note}")
         if len(m.notes) > MAX_NOTES:
             typer.echo(f"note: … and {len(m.notes) - MAX_NOTES} more such notes (all in cohort.json)")
-        folder = output_dir(out)
+        folder = output_dir(opts.out)
         display = Display(progress_enabled())
         try:
             with option_names(COHORT_OPTIONS):
-                cluster = Cluster(scheduler=scheduler, workers=workers, processes=processes)
-                result = run_cohort(m, folder, cluster=cluster, options=options, skip_failed=skip_failed,
+                cluster = Cluster(scheduler=opts.scheduler, workers=opts.workers, processes=opts.processes)
+                result = run_cohort(m, folder, cluster=cluster, options=options, skip_failed=opts.skip_failed,
                                     progress=display)
         except KeyboardInterrupt:
             display.stop()

@@ -1,7 +1,9 @@
-"""Helpers shared by CLI commands: progress output, output folders, option parsing, the rigid-structure options of dvf and warp."""
+"""Helpers shared by CLI commands: the options dataclass of a command (:func:`takes`), progress output, output folders, option parsing, the rigid-structure options of dvf and warp."""
 
 from __future__ import annotations
 
+import dataclasses
+import inspect
 import math
 import os
 import platform
@@ -10,6 +12,7 @@ import sys
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated, get_type_hints
 
 import numpy as np
 import typer
@@ -17,8 +20,10 @@ import typer
 from lungdeform.atomic import write_json
 from lungdeform.constants import GRAVITY
 from lungdeform.errors import InputError
+from lungdeform.io.dicom.guard import is_dicom_file
+from lungdeform.io.dicom.rtstruct import check_structure_on_ct, read_ct_series
 from lungdeform.io.grid import MAX_VOXELS, MAX_VOXELS_ENV, voxel_limit
-from lungdeform.io.image import read_image, resample_image
+from lungdeform.io.image import IMAGE_SUFFIXES, read_image, resample_image
 from lungdeform.playback import rigid as RG
 from lungdeform.playback.displacement_field import FieldResult, State, scan_state, volume_state
 from lungdeform.playback.schedule import check_reachable, read_volume_csv
@@ -37,6 +42,59 @@ class Verbosity:
     CI an error is the only line on stderr."""
 
     verbose: bool = False
+
+
+def takes(options: type):
+    """Decorator of a typer command ``body(opts)`` whose options are the fields of the dataclass
+    ``options``, each annotated ``Annotated[type, typer.Option(...)]`` (or ``typer.Argument``) with
+    its default (none: required). Typer gets a function whose signature lists those fields (a field
+    whose type is itself such a dataclass contributes its fields, so option groups are shared between
+    commands) and which calls ``body`` with one ``options(**fields)``. The command keeps ``body``'s
+    name and docstring (its help)."""
+    params = _option_parameters(options)
+
+    def wrap(body):
+        def command(**given):
+            return body(_options_of(options, given))
+
+        command.__name__, command.__qualname__ = body.__name__, body.__qualname__
+        command.__doc__, command.__module__ = body.__doc__, body.__module__
+        command.__signature__ = inspect.Signature(params, return_annotation=None)
+        command.__annotations__ = {p.name: p.annotation for p in params} | {"return": None}
+        return command
+
+    return wrap
+
+
+def _option_parameters(options: type) -> list[inspect.Parameter]:
+    """The keyword parameters of :func:`takes` for ``options``: its fields, nested option groups
+    flattened; a name given twice is refused."""
+    hints = get_type_hints(options, include_extras=True)
+    out = []
+    for f in dataclasses.fields(options):
+        kind = hints[f.name]
+        if dataclasses.is_dataclass(kind):
+            out += _option_parameters(kind)
+            continue
+        default = f.default
+        if default is dataclasses.MISSING:
+            default = inspect.Parameter.empty if f.default_factory is dataclasses.MISSING else f.default_factory()
+        out.append(inspect.Parameter(f.name, inspect.Parameter.KEYWORD_ONLY, default=default, annotation=kind))
+    names = [p.name for p in out]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise TypeError(f"{options.__name__}: option field(s) {', '.join(twice)} given twice")
+    return out
+
+
+def _options_of(options: type, given: dict):
+    """``options`` built from the flat keyword values ``given`` (nested groups built from theirs)."""
+    hints = get_type_hints(options)
+    values = {}
+    for f in dataclasses.fields(options):
+        kind = hints[f.name]
+        values[f.name] = _options_of(kind, given) if dataclasses.is_dataclass(kind) else given[f.name]
+    return options(**values)
 
 
 def progress_enabled() -> bool:
@@ -313,6 +371,22 @@ def without_alignment(state: State, no_rigid: bool) -> State:
 # --rigid-structure NAME --rtstruct FILE / --rigid-mask MASK of dvf and warp: a tumour that moves
 # rigidly (lungdeform.playback.rigid)
 
+@dataclass(frozen=True, kw_only=True)
+class RigidFlags:
+    """The rigid-structure options of dvf and warp as given (an option group of :func:`takes`;
+    :meth:`RigidOptions.of` checks them)."""
+
+    rigid_structure: Annotated[str | None, typer.Option("--rigid-structure", help="With --rtstruct: this ROI (e.g. GTV) moves rigidly, keeping its volume (docs/RADIOTHERAPY.md, \"A rigid tumour\").")] = None
+    rtstruct: Annotated[Path | None, typer.Option("--rtstruct", help="RTSTRUCT holding --rigid-structure, drawn on the input image's frame (dvf: --reference; warp: IMAGE).")] = None
+    rigid_mask: Annotated[Path | None, typer.Option("--rigid-mask", help="A mask (non-zero voxels, in the input image's LPS world) that moves rigidly; instead of --rigid-structure.")] = None
+    rigid_border_mm: Annotated[float, typer.Option("--rigid-border-mm", callback=bounded(0, 100, "mm", low_open=True), help="Width (mm) over which the rigid motion is blended back into the field.")] = 10.0
+
+    @property
+    def inputs(self) -> list[Path | None]:
+        """The files these options read (None where not given), for :func:`check_output`."""
+        return [self.rtstruct, self.rigid_mask]
+
+
 @dataclass(frozen=True)
 class RigidOptions:
     """The rigid-structure options: a ROI ``name`` of ``rtstruct``, or a ``mask`` image; ``border_mm``."""
@@ -323,9 +397,10 @@ class RigidOptions:
     border_mm: float
 
     @staticmethod
-    def of(name, rtstruct, mask, border_mm) -> RigidOptions | None:
+    def of(flags: RigidFlags) -> RigidOptions | None:
         """Checked before any work: --rigid-structure with --rtstruct, or --rigid-mask; None without
-        (``border_mm`` is range-checked as the command line is parsed, :func:`bounded`)."""
+        (``--rigid-border-mm`` is range-checked as the command line is parsed, :func:`bounded`)."""
+        name, rtstruct, mask, border_mm = flags.rigid_structure, flags.rtstruct, flags.rigid_mask, flags.rigid_border_mm
         if (name is None) != (rtstruct is None):
             raise InputError("--rigid-structure and --rtstruct go together")
         if name is not None and mask is not None:
@@ -339,14 +414,26 @@ class RigidOptions:
         return self.name if self.name is not None else str(self.mask)
 
 
-def rigid_region(options: RigidOptions | None, grid) -> np.ndarray | None:
+def is_dicom_path(path) -> bool:
+    """Whether an image path names a DICOM series: a folder, or a DICOM file without an image suffix."""
+    p = Path(path)
+    return p.is_dir() or (not p.name.lower().endswith(IMAGE_SUFFIXES) and is_dicom_file(p))
+
+
+def rigid_region(options: RigidOptions | None, grid, reference: tuple[str, Path] | None = None) -> np.ndarray | None:
     """``(z, y, x) bool`` on ``grid``: the structure's voxels (inside its closed surface through the
     contours) or the mask's non-zero voxels (a mask on another grid of the same LPS world taken by
-    nearest neighbour); None without options."""
+    nearest neighbour); None without options. ``reference`` = ``(option, path)``: the image whose
+    world ``grid`` is in; when it is a DICOM series the structure must be drawn on it (patient,
+    Frame of Reference, extent: :func:`lungdeform.io.dicom.rtstruct.check_structure_on_ct`)."""
     if options is None:
         return None
     if options.name is not None:
         s = read_structure(options.rtstruct, options.name)
+        if reference is not None and is_dicom_path(reference[1]):
+            ct = read_ct_series(reference[1])
+            for line in check_structure_on_ct(s.roi, ct, str(options.rtstruct), option=reference[0]):
+                typer.echo(f"warning: {line}", err=True)
         region = RG.surface_mask(s.vertices, s.faces, grid)
         where = f"{options.rtstruct} {options.name}"
     else:

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 import typer
 
@@ -17,6 +19,7 @@ from lungdeform.playback.trajectory import extrapolation_note
 
 from .common import (
     MAX_LUNGS_ML,
+    RigidFlags,
     RigidOptions,
     apply_rigid,
     bounded,
@@ -25,59 +28,63 @@ from .common import (
     pick_state,
     rigid_region,
     say,
+    takes,
     without_alignment,
 )
 
 
+@dataclass(frozen=True, kw_only=True)
+class DvfOptions:
+    """The options of ``lungdeform dvf`` (:func:`register`)."""
+
+    model: Annotated[Path, typer.Argument(help="Model file (.npz) written by fit, build or demo.")]
+    reference: Annotated[Path, typer.Option("--reference", help="Image whose grid (origin, spacing, direction) the field takes: the end-exhale scan.")]
+    out: Annotated[Path, typer.Option("--out", help="Field image: .mha, .nii.gz, .nii or .nrrd (3 float32 components, mm LPS).")]
+    volume_ml: Annotated[float | None, typer.Option("--volume-ml", callback=bounded(0, MAX_LUNGS_ML, "mL", low_open=True), help="Absolute volume of the model's lungs together (mL).")] = None
+    scan: Annotated[int | None, typer.Option("--scan", help="Input scan K of the fit (0 = rest): its volume, in its own frame.")] = None
+    inverse: Annotated[bool, typer.Option("--inverse", help="Write the resampling field (ITK/elastix convention) instead of the forward one.")] = False
+    out_reg: Annotated[Path | None, typer.Option("--out-reg", help="Also write the field as a DICOM Deformable Spatial Registration object (fixed: --reference, a DICOM CT series; docs/RADIOTHERAPY.md).")] = None
+    moving: Annotated[Path | None, typer.Option("--moving", help="With --out-reg: the moving state's DICOM series (e.g. a phase of 'warp --phases'), of --reference's patient and Frame of Reference.")] = None
+    node_mm: Annotated[float, typer.Option("--node-mm", callback=bounded(0, D.MAX_NODE_MM, "mm", low_open=True), help="Lattice spacing (mm) at which the interior field is evaluated.")] = D.NODE_SPACING_MM
+    grid: Annotated[Path | None, typer.Option("--grid", help="Write the field on this image's grid instead of --reference's (e.g. the target scan's, so an inhaled lung is not cropped); same LPS world.")] = None
+    no_rigid: Annotated[bool, typer.Option("--no-rigid", help="With --scan: leave the fit's alignment of that scan out (the field stays in the model's frame).")] = False
+    rigid: RigidFlags = RigidFlags()
+
+
 def register(apps) -> None:
     @apps.root.command("dvf")
-    def dvf_command(
-        model: Path = typer.Argument(..., help="Model file (.npz) written by fit, build or demo."),
-        reference: Path = typer.Option(..., "--reference", help="Image whose grid (origin, spacing, direction) the field takes: the end-exhale scan."),
-        out: Path = typer.Option(..., "--out", help="Field image: .mha, .nii.gz, .nii or .nrrd (3 float32 components, mm LPS)."),
-        volume_ml: float | None = typer.Option(None, "--volume-ml", callback=bounded(0, MAX_LUNGS_ML, "mL", low_open=True), help="Absolute volume of the model's lungs together (mL)."),
-        scan: int | None = typer.Option(None, "--scan", help="Input scan K of the fit (0 = rest): its volume, in its own frame."),
-        inverse: bool = typer.Option(False, "--inverse", help="Write the resampling field (ITK/elastix convention) instead of the forward one."),
-        out_reg: Path | None = typer.Option(None, "--out-reg", help="Also write the field as a DICOM Deformable Spatial Registration object (fixed: --reference, a DICOM CT series; docs/RADIOTHERAPY.md)."),
-        moving: Path | None = typer.Option(None, "--moving", help="With --out-reg: the moving state's DICOM series (e.g. a phase of 'warp --phases'), of --reference's patient and Frame of Reference."),
-        node_mm: float = typer.Option(D.NODE_SPACING_MM, "--node-mm", callback=bounded(0, D.MAX_NODE_MM, "mm", low_open=True), help="Lattice spacing (mm) at which the interior field is evaluated."),
-        grid: Path | None = typer.Option(None, "--grid", help="Write the field on this image's grid instead of --reference's (e.g. the target scan's, so an inhaled lung is not cropped); same LPS world."),
-        no_rigid: bool = typer.Option(False, "--no-rigid", help="With --scan: leave the fit's alignment of that scan out (the field stays in the model's frame)."),
-        rigid_structure: str | None = typer.Option(None, "--rigid-structure", help="With --rtstruct: this ROI (e.g. GTV) moves rigidly, keeping its volume."),
-        rtstruct: Path | None = typer.Option(None, "--rtstruct", help="RTSTRUCT holding --rigid-structure, drawn on the reference's frame."),
-        rigid_mask: Path | None = typer.Option(None, "--rigid-mask", help="A mask (non-zero voxels, in the reference's LPS world) that moves rigidly."),
-        rigid_border_mm: float = typer.Option(10.0, "--rigid-border-mm", callback=bounded(0, 100, "mm", low_open=True), help="Width (mm) over which the rigid motion is blended back into the field."),
-    ) -> None:
+    @takes(DvfOptions)
+    def dvf_command(opts: DvfOptions) -> None:
         """Displacement field of the model at a breathing state (docs/RADIOTHERAPY.md).
 
         Forward (default): a point at x in the reference is at x + u(x) at that state, as 'lungdeform
         track' moves it. --inverse: for each point y at that state, y + w(y) in the reference."""
 
-        write_suffix(out)
-        check_output(out, [model, reference, grid, rtstruct, rigid_mask])
-        if out_reg is not None:
-            check_output(out_reg, [model, reference, grid, rtstruct, rigid_mask, moving, out], option="--out-reg")
-        rigid = RigidOptions.of(rigid_structure, rtstruct, rigid_mask, rigid_border_mm)
-        m = load_model(model)
-        state = without_alignment(pick_state(m, volume_ml, scan), no_rigid)
-        series = _registration_series(reference, moving, inverse, state) if out_reg else None
-        image = read_image(reference if grid is None else grid)
-        region = rigid_region(rigid, D.Grid.of(image))
+        write_suffix(opts.out)
+        check_output(opts.out, [opts.model, opts.reference, opts.grid, *opts.rigid.inputs])
+        if opts.out_reg is not None:
+            check_output(opts.out_reg, [opts.model, opts.reference, opts.grid, *opts.rigid.inputs, opts.moving, opts.out], option="--out-reg")
+        rigid = RigidOptions.of(opts.rigid)
+        m = load_model(opts.model)
+        state = without_alignment(pick_state(m, opts.volume_ml, opts.scan), opts.no_rigid)
+        series = _registration_series(opts.reference, opts.moving, opts.inverse, state) if opts.out_reg else None
+        image = read_image(opts.reference if opts.grid is None else opts.grid)
+        region = rigid_region(rigid, D.Grid.of(image), ("--reference", opts.reference))
         note = extrapolation_note(m, [state.delta_ml])
         if note:
             typer.echo(f"note: {note}")
         say("evaluating the field")
         result = D.displacement_field(m, D.Grid.of(image), state.delta_ml, alignment=state.alignment,
-                                      inverse=inverse, spacing_mm=node_mm)
+                                      inverse=opts.inverse, spacing_mm=opts.node_mm)
         lines = field_lines(result) + apply_rigid(result, D.Grid.of(image), region, rigid)
-        write_image(out, result.field, image.spacing, image.origin, image.direction)
-        typer.echo(f"{'inverse' if inverse else 'forward'} field at {state.source}")
+        write_image(opts.out, result.field, image.spacing, image.origin, image.direction)
+        typer.echo(f"{'inverse' if opts.inverse else 'forward'} field at {state.source}")
         for line in lines:
             typer.echo(line)
-        typer.echo(f"wrote {out}")
+        typer.echo(f"wrote {opts.out}")
         if series is not None:
-            write_registration(out_reg, result.field, image, *series, description=f"lungdeform {state.source}")
-            typer.echo(f"wrote {out_reg}")
+            write_registration(opts.out_reg, result.field, image, *series, description=f"lungdeform {state.source}")
+            typer.echo(f"wrote {opts.out_reg}")
 
 
 def _registration_series(reference: Path, moving: Path | None, inverse: bool, state):

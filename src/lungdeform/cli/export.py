@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 import typer
 
@@ -14,54 +16,61 @@ from lungdeform.playback import markers as M
 from lungdeform.playback import schedule as S
 from lungdeform.playback.trajectory import read_markers_csv
 
-from .common import bounded, check_cycles, check_output, check_tidal_ml, read_curve, tidal_option
+from .common import bounded, check_cycles, check_output, check_tidal_ml, read_curve, takes, tidal_option
+
+
+@dataclass(frozen=True, kw_only=True)
+class ExportOptions:
+    """The options of ``lungdeform export`` (:func:`register`)."""
+
+    model: Annotated[Path, typer.Argument(help="Model file (.npz) written by build, fit or demo.")]
+    fmt: Annotated[str, typer.Option("--format", help="glb (glTF 2.0 binary, morph targets) or pvd (VTK .pvd + .vtp).")]
+    out: Annotated[Path, typer.Option("--out", help="Output file (.glb or .pvd; frames go beside a .pvd), or an existing folder (MODEL's name is used).")]
+    curve: Annotated[Path | None, typer.Option("--curve", help="Breathing curve CSV (t_s, volume_ml, …) from 'lungdeform breathe'.")] = None
+    preset: Annotated[str | None, typer.Option("--preset", help="Breathing preset of the PV model, simulated: normal, deep, copd, restrictive, dyspnoea or pneumothorax (not with --curve).")] = None
+    cycles: Annotated[int | None, typer.Option("--cycles", help="With --preset: whole breaths played (default 1).")] = None
+    markers: Annotated[Path | None, typer.Option("--markers", help="Markers CSV: x_mm,y_mm,z_mm[,label] (LPS, end-exhale); they move with the lung's interior field; glb only.")] = None
+    tidal_ml: Annotated[float | None, typer.Option("--tidal-ml", callback=tidal_option, help="Tidal volume, both lungs (mL): of the plain cycle (default 500), or the --preset rescaled to it (same shape; default the preset's).")] = None
+    period_s: Annotated[float | None, typer.Option("--period", callback=bounded(0, 60, "s", low_open=True), help="Plain cycle only (no --curve, no --preset): period (s), default 4.")] = None
+    fps: Annotated[float, typer.Option("--fps", callback=bounded(0, 1000, "Hz", low_open=True), help="pvd only: frames per second of the time series.")] = 10.0
 
 
 def register(apps) -> None:
     @apps.root.command("export")
-    def export_command(
-        model: Path = typer.Argument(..., help="Model file (.npz) written by build, fit or demo."),
-        fmt: str = typer.Option(..., "--format", help="glb (glTF 2.0 binary, morph targets) or pvd (VTK .pvd + .vtp)."),
-        out: Path = typer.Option(..., "--out", help="Output file (.glb or .pvd; frames go beside a .pvd), or an existing folder (MODEL's name is used)."),
-        curve: Path | None = typer.Option(None, "--curve", help="Breathing curve CSV (t_s, volume_ml, …) from 'lungdeform breathe'."),
-        preset: str | None = typer.Option(None, "--preset", help="Breathing preset of the PV model, simulated: normal, deep, copd, restrictive, dyspnoea or pneumothorax (not with --curve)."),
-        cycles: int | None = typer.Option(None, "--cycles", help="With --preset: whole breaths played (default 1)."),
-        markers: Path | None = typer.Option(None, "--markers", help="Markers CSV: x_mm,y_mm,z_mm[,label] (LPS, end-exhale); they move with the lung's interior field; glb only."),
-        tidal_ml: float | None = typer.Option(None, "--tidal-ml", callback=tidal_option, help="Tidal volume, both lungs (mL): of the plain cycle (default 500), or the --preset rescaled to it (same shape; default the preset's)."),
-        period_s: float | None = typer.Option(None, "--period", callback=bounded(0, 60, "s", low_open=True), help="Plain cycle only (no --curve, no --preset): period (s), default 4."),
-        fps: float = typer.Option(10.0, "--fps", callback=bounded(0, 1000, "Hz", low_open=True), help="pvd only: frames per second of the time series."),
-    ) -> None:
+    @takes(ExportOptions)
+    def export_command(opts: ExportOptions) -> None:
         """Export MODEL for engines (glb: one mesh, morph targets, breathing animation) or ParaView (pvd)."""
 
-        kind = fmt.strip().lower()
+        kind = opts.fmt.strip().lower()
         if kind not in ("glb", "pvd"):
-            raise InputError(f"--format must be glb or pvd, got {fmt!r}")
-        if markers is not None and kind != "glb":
+            raise InputError(f"--format must be glb or pvd, got {opts.fmt!r}")
+        if opts.markers is not None and kind != "glb":
             raise InputError("--markers applies to --format glb only")
+        out = opts.out
         if out.is_dir():  # an existing folder: the file goes inside it, named after the model
-            out = out / f"{Path(model).stem}.{kind}"
+            out = out / f"{Path(opts.model).stem}.{kind}"
         out_path = out if out.suffix.lower() == f".{kind}" else out.with_name(f"{out.name}.{kind}")
-        check_output(out_path, [model, curve, markers])
-        if curve is not None and preset is not None:
+        check_output(out_path, [opts.model, opts.curve, opts.markers])
+        if opts.curve is not None and opts.preset is not None:
             raise InputError("--curve and --preset are mutually exclusive: give one breathing curve")
-        if curve is not None and (tidal_ml, period_s, cycles) != (None, None, None):
+        if opts.curve is not None and (opts.tidal_ml, opts.period_s, opts.cycles) != (None, None, None):
             raise InputError("--tidal-ml, --period and --cycles do not apply to --curve (the curve file sets them)")
-        if preset is not None and period_s is not None:
+        if opts.preset is not None and opts.period_s is not None:
             raise InputError("--period applies to the plain cycle; a --preset has its own period")
 
-        check_cycles(cycles, preset)
-        check_tidal_ml(tidal_ml)
-        if preset is not None:
-            chosen = get_preset(preset)  # an unknown name: InputError listing the names
-        m = load_model(model)
-        if curve is not None:
-            trace = read_curve(curve, m)
-        elif preset is not None:
-            params, _curve, trace = S.preset_trace(chosen, cycles or 1, tidal_ml)
-            typer.echo(f"preset {chosen.name}: {cycles or 1} × {params.period_s:g} s, PV model end-exhale "
+        check_cycles(opts.cycles, opts.preset)
+        check_tidal_ml(opts.tidal_ml)
+        if opts.preset is not None:
+            chosen = get_preset(opts.preset)  # an unknown name: InputError listing the names
+        m = load_model(opts.model)
+        if opts.curve is not None:
+            trace = read_curve(opts.curve, m)
+        elif opts.preset is not None:
+            params, _curve, trace = S.preset_trace(chosen, opts.cycles or 1, opts.tidal_ml)
+            typer.echo(f"preset {chosen.name}: {opts.cycles or 1} × {params.period_s:g} s, PV model end-exhale "
                        f"{trace.shifted_ml:.0f} mL; playing the volume above it")
         else:
-            given = {"tidal_ml": tidal_ml, "period_s": period_s}
+            given = {"tidal_ml": opts.tidal_ml, "period_s": opts.period_s}
             trace = S.plain_cycle(**{k: v for k, v in given.items() if v is not None})  # defaults 500 mL, 4 s
         shares = S.lung_shares(m)
         typer.echo(f"curve: {trace.source}, {trace.t_s[-1]:.2f} s, {len(trace.t_s)} samples, "
@@ -69,9 +78,9 @@ def register(apps) -> None:
                    + ", ".join(f"{k} {v:.2f}" for k, v in shares.items()))
         if kind == "glb":
             anchors = None
-            if markers is not None:
-                pts, labels = read_markers_csv(markers)
-                anchors = M.marker_anchors(m, pts, labels, source=str(markers))
+            if opts.markers is not None:
+                pts, labels = read_markers_csv(opts.markers)
+                anchors = M.marker_anchors(m, pts, labels, source=str(opts.markers))
                 shown = [f"{a['label']} in {a['lung']}" + ("" if a["inside"] else f" ({a['distance_mm']:.0f} mm outside)")
                          for a in anchors[:6]]
                 typer.echo(f"markers: {len(anchors)} ({'; '.join(shown)}{' …' if len(anchors) > 6 else ''}), "
@@ -81,7 +90,7 @@ def register(apps) -> None:
                        f"{sum(l.n_vertices for l in m.lungs.values())} vertices, 5 morph targets per lung, "
                        "animation 'breathing')")
         else:
-            E.export_pvd(m, out_path, trace, fps=fps)
+            E.export_pvd(m, out_path, trace, fps=opts.fps)
             frames = out_path.parent / f"{out_path.stem}_frames"
             size = sum(f.stat().st_size for f in frames.iterdir())
             typer.echo(f"wrote {out_path} and {len(list(frames.iterdir()))} frames in {frames} ({size / 1e6:.1f} MB)")

@@ -12,7 +12,9 @@ signal at ``t_s + H`` with its interval, the gating window known at ``t_s`` and 
 from __future__ import annotations
 
 import sys
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 import typer
 
@@ -22,41 +24,43 @@ from lungdeform.breathing.stream import MAX_PREDICT_MS, StreamingVolumeEstimator
 from lungdeform.breathing.trace import read_trace
 from lungdeform.errors import InputError
 
-from .common import MAX_LUNGS_ML, bounded, tidal_option
+from .common import MAX_LUNGS_ML, bounded, takes, tidal_option
+
+
+@dataclass(frozen=True, kw_only=True)
+class StreamOptions:
+    """The options of ``lungdeform stream`` (:func:`register`)."""
+
+    source: Annotated[str, typer.Argument(help="A trace file to replay, or - to read 't_s,amplitude' lines from stdin.")] = "-"
+    predict_ms: Annotated[float, typer.Option("--predict-ms", callback=bounded(0, MAX_PREDICT_MS, "ms"), help=f"Play the volume predicted this many ms ahead (0-{MAX_PREDICT_MS:g}).")] = 0.0
+    tidal_volume_ml: Annotated[float, typer.Option("--tidal-volume-ml", callback=tidal_option, help="Volume of one breath (mL).")] = 500.0
+    v_ee_ml: Annotated[float, typer.Option("--v-ee-ml", callback=bounded(0, MAX_LUNGS_ML, "mL"), help="End-exhale lung volume (mL); 0: volumes above end-exhale.")] = 2400.0
+    window_s: Annotated[float, typer.Option("--window-s", callback=bounded(0, 3600, "s", low_open=True), help="Calibration window (s): two or more breaths.")] = 10.0
+    gate: Annotated[bool, typer.Option("--gate", help="Add the beam decision for t_s + H (needs --predict-ms H) "
+        "with the prediction's interval.")] = False
+    window: Annotated[str, typer.Option("--window", help="With --gate: the gating window KIND:PERCENT.")] = "end-exhale:30"
+    confident: Annotated[bool, typer.Option("--confident", help="With --gate: the whole interval must be inside.")] = False
+    coverage: Annotated[float, typer.Option("--coverage", callback=bounded(0, 1, low_open=True, high_open=True), help="With --gate: the interval's coverage (0-1).")] = 0.9
 
 
 def register(apps) -> None:
     @apps.root.command("stream")
-    def stream(
-        source: str = typer.Argument("-", help="A trace file to replay, or - to read 't_s,amplitude' lines from stdin."),
-        predict_ms: float = typer.Option(0.0, "--predict-ms", callback=bounded(0, MAX_PREDICT_MS, "ms"),
-                                         help=f"Play the volume predicted this many ms ahead (0-{MAX_PREDICT_MS:g})."),
-        tidal_volume_ml: float = typer.Option(500.0, "--tidal-volume-ml", callback=tidal_option,
-                                              help="Volume of one breath (mL)."),
-        v_ee_ml: float = typer.Option(2400.0, "--v-ee-ml", callback=bounded(0, MAX_LUNGS_ML, "mL"),
-                                      help="End-exhale lung volume (mL); 0: volumes above end-exhale."),
-        window_s: float = typer.Option(10.0, "--window-s", callback=bounded(0, 3600, "s", low_open=True),
-                                       help="Calibration window (s): two or more breaths."),
-        gate: bool = typer.Option(False, "--gate", help="Add the beam decision for t_s + H (needs --predict-ms H) "
-                                                        "with the prediction's interval."),
-        window: str = typer.Option("end-exhale:30", "--window", help="With --gate: the gating window KIND:PERCENT."),
-        confident: bool = typer.Option(False, "--confident", help="With --gate: the whole interval must be inside."),
-        coverage: float = typer.Option(0.9, "--coverage", callback=bounded(0, 1, low_open=True, high_open=True), help="With --gate: the interval's coverage (0-1)."),
-    ):
+    @takes(StreamOptions)
+    def stream(opts: StreamOptions) -> None:
         """Volume per sample from a live breathing signal (stdin) or a recorded trace, optionally predicted ahead."""
 
-        rule = GateRule(parse_window(window), confident, interval=IntervalConfig(coverage=coverage)) if gate else None
-        if gate and predict_ms <= 0:
+        rule = GateRule(parse_window(opts.window), opts.confident, interval=IntervalConfig(coverage=opts.coverage)) if opts.gate else None
+        if opts.gate and opts.predict_ms <= 0:
             raise InputError("--gate needs --predict-ms H > 0: the beam's latency, the time its decision is for")
-        est = StreamingVolumeEstimator(tidal_volume_ml=tidal_volume_ml, v_ee_ml=v_ee_ml, window_s=window_s,
-                                       predict_ms=predict_ms, gate=rule)
-        if source == "-":
+        est = StreamingVolumeEstimator(tidal_volume_ml=opts.tidal_volume_ml, v_ee_ml=opts.v_ee_ml, window_s=opts.window_s,
+                                       predict_ms=opts.predict_ms, gate=rule)
+        if opts.source == "-":
             samples = stream_lines(sys.stdin, est)
         else:
-            samples = _replay(Path(source), est)
-        typer.echo("t_s,volume_ml,ahead_s" + (",predicted,lo,hi,window_low,window_high,beam" if gate else ""))
+            samples = _replay(Path(opts.source), est)
+        typer.echo("t_s,volume_ml,ahead_s" + (",predicted,lo,hi,window_low,window_high,beam" if opts.gate else ""))
         for s in samples:
-            typer.echo(f"{s.t_s:.6g},{s.volume_ml:.3f},{s.ahead_s:g}" + (_gate_cells(s.gate) if gate else ""))
+            typer.echo(f"{s.t_s:.6g},{s.volume_ml:.3f},{s.ahead_s:g}" + (_gate_cells(s.gate) if opts.gate else ""))
             sys.stdout.flush()
 
 

@@ -7,14 +7,16 @@ Writes lung surfaces deformed by the model itself from the shipped real lung sha
 from __future__ import annotations
 
 import shlex
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 import typer
 
 from lungdeform.cohort.synthetic import SyntheticLungSpec, synthetic_cohort, write_cohort
 from lungdeform.errors import InputError
 
-from .common import bounded, output_dir, say
+from .common import bounded, output_dir, say, takes
 
 
 def _floats(text: str, option: str) -> list[float]:
@@ -27,35 +29,41 @@ def _floats(text: str, option: str) -> list[float]:
     return values
 
 
+@dataclass(frozen=True, kw_only=True)
+class SynthCohortOptions:
+    """The options of ``lungdeform synth-cohort`` (:func:`register`)."""
+
+    out: Annotated[Path, typer.Option("--out", help="Output folder: surfaces/, landmarks/, truth/, manifest.csv, truth.json.")]
+    subjects: Annotated[int, typer.Option("--subjects", help="Number of subjects (one left and one right lung each).")] = 4
+    noise_mm: Annotated[float, typer.Option("--noise-mm", callback=bounded(0, 50, "mm"), help="SD of Gaussian noise along the vertex normal of the larger-volume surfaces, mm.")] = 0.0
+    seed: Annotated[int, typer.Option("--seed", help="Seed of every random draw (constants, shape scale, noise, landmarks).")] = 0
+    volumes: Annotated[str, typer.Option("--volumes", help="Volume changes above end-exhale, mL, increasing, comma-separated.")] = "300,500"
+    law: Annotated[str, typer.Option("--law", help="'exact': each surface encloses exactly V_EE + ΔV; 'linear': p + (ΔV/ΔV1)·u, the fit's playback.")] = "exact"
+    spread: Annotated[float, typer.Option("--spread", callback=bounded(0, 2), help="Log-normal SD of c1…c6 around Table I.")] = 0.2
+    shape_spread: Annotated[float, typer.Option("--shape-spread", callback=bounded(0, 0.9), help="Anisotropic scale of each shape, uniform in 1 ± this, per axis.")] = 0.1
+    landmarks: Annotated[int, typer.Option("--landmarks", help="Surface landmarks per lung at their true positions (0: none).")] = 50
+    table_shift_mm: Annotated[float, typer.Option("--table-shift-mm", callback=bounded(0, 200, "mm"), help="SD per axis of a known random translation of each larger-volume scan, mm (tests --align joint).")] = 0.0
+
+
 def register(apps) -> None:
     @apps.root.command("synth-cohort")
-    def synth_cohort_command(
-        out: Path = typer.Option(..., "--out", help="Output folder: surfaces/, landmarks/, truth/, manifest.csv, truth.json."),
-        subjects: int = typer.Option(4, "--subjects", help="Number of subjects (one left and one right lung each)."),
-        noise_mm: float = typer.Option(0.0, "--noise-mm", callback=bounded(0, 50, "mm"), help="SD of Gaussian noise along the vertex normal of the larger-volume surfaces, mm."),
-        seed: int = typer.Option(0, "--seed", help="Seed of every random draw (constants, shape scale, noise, landmarks)."),
-        volumes: str = typer.Option("300,500", "--volumes", help="Volume changes above end-exhale, mL, increasing, comma-separated."),
-        law: str = typer.Option("exact", "--law", help="'exact': each surface encloses exactly V_EE + ΔV; 'linear': p + (ΔV/ΔV1)·u, the fit's playback."),
-        spread: float = typer.Option(0.2, "--spread", callback=bounded(0, 2), help="Log-normal SD of c1…c6 around Table I."),
-        shape_spread: float = typer.Option(0.1, "--shape-spread", callback=bounded(0, 0.9), help="Anisotropic scale of each shape, uniform in 1 ± this, per axis."),
-        landmarks: int = typer.Option(50, "--landmarks", help="Surface landmarks per lung at their true positions (0: none)."),
-        table_shift_mm: float = typer.Option(0.0, "--table-shift-mm", callback=bounded(0, 200, "mm"), help="SD per axis of a known random translation of each larger-volume scan, mm (tests --align joint)."),
-    ) -> None:
+    @takes(SynthCohortOptions)
+    def synth_cohort_command(opts: SynthCohortOptions) -> None:
         """Generate a synthetic cohort with known constants, volumes and noise (truth.json)."""
 
-        deltas = _floats(volumes, "--volumes")
-        spec = SyntheticLungSpec(noise_mm=noise_mm, law=law, landmarks=landmarks, table_shift_mm=table_shift_mm)
-        lungs = synthetic_cohort(subjects, delta_ml=deltas, spec=spec, seed=seed, spread=spread,
-                                 shape_spread=shape_spread, progress=say)
-        folder = output_dir(out)  # after the checks of every other option: bad input leaves no folder
-        info = write_cohort(lungs, folder, seed=seed, progress=say)
+        deltas = _floats(opts.volumes, "--volumes")
+        spec = SyntheticLungSpec(noise_mm=opts.noise_mm, law=opts.law, landmarks=opts.landmarks, table_shift_mm=opts.table_shift_mm)
+        lungs = synthetic_cohort(opts.subjects, delta_ml=deltas, spec=spec, seed=opts.seed, spread=opts.spread,
+                                 shape_spread=opts.shape_spread, progress=say)
+        folder = output_dir(opts.out)  # after the checks of every other option: bad input leaves no folder
+        info = write_cohort(lungs, folder, seed=opts.seed, progress=say)
         typer.echo(f"{'subject':<10} {'side':<6} {'source':<22} {'V_EE mL':>8}  c1…c9")
         for lung in lungs:
             cs = " ".join(f"{c:.3f}" for c in lung.constants)
             typer.echo(f"{lung.subject:<10} {lung.side:<6} {lung.source:<22} {lung.volume_ee_ml:8.1f}  {cs}")
         typer.echo(f"wrote {info['rows']} surfaces for {len(lungs)} lungs under {folder}")
         typer.echo(f"wrote {info['manifest']} and {info['truth']}")
-        how = "joint" if table_shift_mm > 0 else "none"
+        how = "joint" if opts.table_shift_mm > 0 else "none"
 
         typer.echo(f"fit with: lungdeform cohort {shlex.quote(str(info['manifest']))} --out OUT --align {how} "
                    f"(the files are in one frame{'' if how == 'none' else ' up to the table shifts'})")

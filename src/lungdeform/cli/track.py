@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 import typer
@@ -13,8 +15,10 @@ from lungdeform.errors import InputError
 from lungdeform.geometry.moments import solid_moments
 from lungdeform.io.dicom.rtstruct import (
     build_rtstruct,
+    check_ct_is_scan,
     check_roi_name,
     check_structure_on_ct,
+    check_structure_on_scan,
     read_ct_series,
     save_rtstruct,
 )
@@ -25,7 +29,7 @@ from lungdeform.playback import structures as R
 from lungdeform.playback import trajectory as T
 from lungdeform.playback.displacement_field import scan_state, volume_state
 
-from .common import check_cycles, check_output, check_tidal_ml, output_dir, read_curve, without_alignment
+from .common import check_cycles, check_output, check_tidal_ml, output_dir, read_curve, takes, without_alignment
 
 #: Bounds on the schedule: frames per second, preset cycles, and points × frames (rows of trajectories.csv)
 MAX_FPS = 1000.0
@@ -33,78 +37,84 @@ MAX_CYCLES = 100
 MAX_POINT_FRAMES = 5_000_000
 
 
+@dataclass(frozen=True, kw_only=True)
+class TrackOptions:
+    """The options of ``lungdeform track`` (:func:`register`)."""
+
+    model: Annotated[Path, typer.Argument(help="Model file (.npz) written by fit, build or demo.")]
+    points: Annotated[Path | None, typer.Option("--points", help="Points to track, mm LPS of the end-exhale scan: CSV x_mm,y_mm,z_mm[,label] or an elastix 'point' file.")] = None
+    out: Annotated[Path, typer.Option("--out", help="Output folder: trajectories.csv, points.json, motion.png.")]
+    volume_ml: Annotated[list[float], typer.Option("--volume-ml", help="Absolute volume of the model's lungs together (mL); repeat for several.")] = field(default_factory=list)
+    curve: Annotated[Path | None, typer.Option("--curve", help="Breathing curve CSV (t_s, volume_ml, …) from 'lungdeform breathe'.")] = None
+    preset: Annotated[str | None, typer.Option("--preset", help="Breathing preset of the PV model: normal, deep, copd, restrictive, dyspnoea or pneumothorax.")] = None
+    cycles: Annotated[int | None, typer.Option("--cycles", help="With --preset: whole breaths (default 1).")] = None
+    tidal_ml: Annotated[float | None, typer.Option("--tidal-ml", help="Tidal volume, both lungs (mL): of the plain cycle (default 500) or the --preset rescaled to it.")] = None
+    fps: Annotated[float, typer.Option("--fps", help="Frames per second sampled from a curve, preset or plain cycle.")] = 25.0
+    lung: Annotated[str | None, typer.Option("--lung", help="Put every point in this lung (default: the lung containing it, else the nearest).")] = None
+    skip_invalid: Annotated[bool, typer.Option("--skip-invalid", help="Track the valid rows of a points CSV, leaving out (and listing) rows without finite x_mm,y_mm,z_mm; by default such a row is an error.")] = False
+    rtstruct: Annotated[Path | None, typer.Option("--rtstruct", help="DICOM RTSTRUCT file (instead of --points): track the contour points of --structure.")] = None
+    structure: Annotated[str | None, typer.Option("--structure", help="With --rtstruct: the ROI name (e.g. GTV).")] = None
+    phases: Annotated[int | None, typer.Option("--phases", help="With --curve, --preset or the plain cycle: this many states evenly over one breath instead of frames at --fps.")] = None
+    out_rtstruct: Annotated[Path | None, typer.Option("--out-rtstruct", help="Write the moved structure, one ROI per volume or phase (NAME@TAG), as an RTSTRUCT on --reference-ct.")] = None
+    reference_ct: Annotated[Path | None, typer.Option("--reference-ct", help="With --out-rtstruct: the DICOM CT series (folder) the structure was drawn on.")] = None
+    scan: Annotated[int | None, typer.Option("--scan", help="Input scan K of the fit (0 = rest): its volume, in its own frame (the fit's alignment undone), as 'dvf --scan K'.")] = None
+    no_rigid: Annotated[bool, typer.Option("--no-rigid", help="With --scan: leave the fit's alignment out (positions in the model's frame).")] = False
+
+
 def register(apps) -> None:
     @apps.root.command("track")
-    def track_command(
-        model: Path = typer.Argument(..., help="Model file (.npz) written by fit, build or demo."),
-        points: Path | None = typer.Option(None, "--points", help="Points to track, mm LPS of the end-exhale scan: CSV x_mm,y_mm,z_mm[,label] or an elastix 'point' file."),
-        out: Path = typer.Option(..., "--out", help="Output folder: trajectories.csv, points.json, motion.png."),
-        volume_ml: list[float] = typer.Option([], "--volume-ml", help="Absolute volume of the model's lungs together (mL); repeat for several."),
-        curve: Path | None = typer.Option(None, "--curve", help="Breathing curve CSV (t_s, volume_ml, …) from 'lungdeform breathe'."),
-        preset: str | None = typer.Option(None, "--preset", help="Breathing preset of the PV model: normal, deep, copd, restrictive, dyspnoea or pneumothorax."),
-        cycles: int | None = typer.Option(None, "--cycles", help="With --preset: whole breaths (default 1)."),
-        tidal_ml: float | None = typer.Option(None, "--tidal-ml", help="Tidal volume, both lungs (mL): of the plain cycle (default 500) or the --preset rescaled to it."),
-        fps: float = typer.Option(25.0, "--fps", help="Frames per second sampled from a curve, preset or plain cycle."),
-        lung: str | None = typer.Option(None, "--lung", help="Put every point in this lung (default: the lung containing it, else the nearest)."),
-        skip_invalid: bool = typer.Option(False, "--skip-invalid", help="Track the valid rows of a points CSV, leaving out (and listing) rows without finite x_mm,y_mm,z_mm; by default such a row is an error."),
-        rtstruct: Path | None = typer.Option(None, "--rtstruct", help="DICOM RTSTRUCT file (instead of --points): track the contour points of --structure."),
-        structure: str | None = typer.Option(None, "--structure", help="With --rtstruct: the ROI name (e.g. GTV)."),
-        phases: int | None = typer.Option(None, "--phases", help="With --curve, --preset or the plain cycle: this many states evenly over one breath instead of frames at --fps."),
-        out_rtstruct: Path | None = typer.Option(None, "--out-rtstruct", help="Write the moved structure, one ROI per volume or phase (NAME@TAG), as an RTSTRUCT on --reference-ct."),
-        reference_ct: Path | None = typer.Option(None, "--reference-ct", help="With --out-rtstruct: the DICOM CT series (folder) the structure was drawn on."),
-        scan: int | None = typer.Option(None, "--scan", help="Input scan K of the fit (0 = rest): its volume, in its own frame (the fit's alignment undone), as 'dvf --scan K'."),
-        no_rigid: bool = typer.Option(False, "--no-rigid", help="With --scan: leave the fit's alignment out (positions in the model's frame)."),
-    ) -> None:
+    @takes(TrackOptions)
+    def track_command(opts: TrackOptions) -> None:
         """Move interior points with the model: positions at given volumes or over a breathing curve.
 
         Without --volume-ml, --curve or --preset: one plain 500 mL, 4 s cosine breath."""
 
 
-        _check_schedule(volume_ml, curve, preset, cycles, tidal_ml, fps)
-        _check_scan(scan, no_rigid, volume_ml or curve or preset, phases)
-        _check_structure_options(points, rtstruct, structure, out_rtstruct, reference_ct, phases,
-                                 volume_ml or ([] if scan is None else [scan]))
-        _check_out_rtstruct(out_rtstruct, model, points, rtstruct, curve)
-        check_output(out, [model, points, rtstruct, curve, reference_ct], folder=True,
+        _check_schedule(opts.volume_ml, opts.curve, opts.preset, opts.cycles, opts.tidal_ml, opts.fps)
+        _check_scan(opts.scan, opts.no_rigid, opts.volume_ml or opts.curve or opts.preset, opts.phases)
+        _check_structure_options(opts.points, opts.rtstruct, opts.structure, opts.out_rtstruct, opts.reference_ct, opts.phases,
+                                 opts.volume_ml or ([] if opts.scan is None else [opts.scan]))
+        _check_out_rtstruct(opts.out_rtstruct, opts.model, opts.points, opts.rtstruct, opts.curve)
+        check_output(opts.out, [opts.model, opts.points, opts.rtstruct, opts.curve, opts.reference_ct], folder=True,
                      writes=("trajectories.csv", "points.json", "motion.png", "structure_motion.csv"))
-        m = load_model(model)
-        tracked = R.read_structure(rtstruct, structure) if rtstruct is not None else None
-        ct = _reference_ct(tracked, rtstruct, out_rtstruct, reference_ct)
+        m = load_model(opts.model)
+        tracked = R.read_structure(opts.rtstruct, opts.structure) if opts.rtstruct is not None else None
+        ct = _reference_ct(tracked, opts.rtstruct, opts.out_rtstruct, opts.reference_ct, (m, opts.scan, opts.no_rigid))
         if tracked is not None:
-            pts, labels, source = tracked.points, tracked.labels, str(rtstruct)
+            pts, labels, source = tracked.points, tracked.labels, str(opts.rtstruct)
         else:
-            (pts, labels), source = _read_points(points, skip_invalid), str(points)
-        placement = T.place_points(m, pts, lung, source=source)
-        frames, tags, matrix = _frames(m, dict(volume_ml=volume_ml, scan=scan, no_rigid=no_rigid, phases=phases,
-                                               curve=curve, preset=preset, cycles=cycles, tidal_ml=tidal_ml, fps=fps),
+            (pts, labels), source = _read_points(opts.points, opts.skip_invalid), str(opts.points)
+        placement = T.place_points(m, pts, opts.lung, source=source)
+        frames, tags, matrix = _frames(m, dict(volume_ml=opts.volume_ml, scan=opts.scan, no_rigid=opts.no_rigid, phases=opts.phases,
+                                               curve=opts.curve, preset=opts.preset, cycles=opts.cycles, tidal_ml=opts.tidal_ml, fps=opts.fps),
                                        len(pts), source)
         _check_rows(len(pts), len(frames.delta_ml), source)
-        for name in [f"{structure}@{tag}" for tag in tags] + [f"ITV_{structure}"] if out_rtstruct is not None else []:
-            check_roi_name(name, str(rtstruct))  # the ROI names, before the surfaces are moved
+        for name in [f"{opts.structure}@{tag}" for tag in tags] + [f"ITV_{opts.structure}"] if opts.out_rtstruct is not None else []:
+            check_roi_name(name, str(opts.rtstruct))  # the ROI names, before the surfaces are moved
         note = T.extrapolation_note(m, frames.delta_ml)
         if note:
             typer.echo(f"note: {note}")
         positions = _in_frame(T.point_trajectories(m, pts, placement, frames.delta_ml), matrix)
         built = None
-        if out_rtstruct is not None:  # made and checked (names, extent on the CT) before any output
+        if opts.out_rtstruct is not None:  # made and checked (names, extent on the CT) before any output
             surfaces = [(n, _in_frame(v, matrix), f, k) for n, v, f, k in
-                        R.moved_surfaces(m, tracked, frames.delta_ml, tags, lung, source=f"{rtstruct} {structure}")]
+                        R.moved_surfaces(m, tracked, frames.delta_ml, tags, opts.lung, source=f"{opts.rtstruct} {opts.structure}")]
             motion = R.motion_table(surfaces)
-            surfaces.append(R.itv_surface(surfaces, structure))  # the union over the states
-            built = build_rtstruct(ct, surfaces, label=f"{structure} moved", source=str(rtstruct))
-        folder = output_dir(out)
-        meta = {"model": str(model), "schedule": frames.source, "end_exhale_ml": T.end_exhale_ml(m), **T.interior_meta(m)}
+            surfaces.append(R.itv_surface(surfaces, opts.structure))  # the union over the states
+            built = build_rtstruct(ct, surfaces, label=f"{opts.structure} moved", source=str(opts.rtstruct))
+        folder = output_dir(opts.out)
+        meta = {"model": str(opts.model), "schedule": frames.source, "end_exhale_ml": T.end_exhale_ml(m), **T.interior_meta(m)}
         paths = T.write_trajectories(folder, pts, labels, placement, positions, frames.delta_ml, frames.t_s, meta=meta)
         if built is not None:
-            save_rtstruct(out_rtstruct, built[0])
-            typer.echo(f"wrote {out_rtstruct}: " + ", ".join(f"{k} ({n} contours)" for k, n in built[1].items()))
-            paths["motion"] = write_bytes(folder / "structure_motion.csv", R.motion_csv({structure: motion}))
-            _print_motion(structure, motion, surfaces[-1])
+            save_rtstruct(opts.out_rtstruct, built[0])
+            typer.echo(f"wrote {opts.out_rtstruct}: " + ", ".join(f"{k} ({n} contours)" for k, n in built[1].items()))
+            paths["motion"] = write_bytes(folder / "structure_motion.csv", R.motion_csv({opts.structure: motion}))
+            _print_motion(opts.structure, motion, surfaces[-1])
         typer.echo(f"{len(pts)} point(s), {len(frames.delta_ml)} frame(s): {frames.source}")
         if tracked is None:
             _print_points(labels, placement, T.motion_summary(positions, pts), paths)
         else:
-            _print_structure(structure, placement, T.motion_summary(positions, pts))
+            _print_structure(opts.structure, placement, T.motion_summary(positions, pts))
         typer.echo(f"wrote {paths['csv']}, {paths['json']}, {paths['png']}")
 
 
@@ -153,18 +163,37 @@ def _check_rows(points: int, frames: float, source: str) -> None:
                          "trajectories; lower --fps, or give --phases or --volume-ml")
 
 
-def _reference_ct(tracked, rtstruct, out_rtstruct, reference_ct):
+def _reference_ct(tracked, rtstruct, out_rtstruct, reference_ct, state):
     """The reference CT (None without --out-rtstruct), read and the structure checked on it before
-    anything is written; warnings (another study; no frame of reference at all) on stderr."""
+    anything is written; warnings (another study; no frame of reference at all) on stderr.
+    ``state`` = ``(model, --scan, --no-rigid)``: with ``--scan K`` the CT must be the scan whose
+    frame the contours are in (:func:`_check_scan_ct`)."""
     if tracked is not None and not tracked.roi.frame_uid and out_rtstruct is None:
         typer.echo(f"warning: {rtstruct}: structure {tracked.roi.name!r} has no Frame of Reference UID: nothing shows "
                    "it was drawn in the frame of the model's end-exhale scan", err=True)
     if out_rtstruct is None:
         return None
     ct = read_ct_series(reference_ct)
+    if state[1] is not None and _check_scan_ct(ct, tracked, rtstruct, *state):
+        return ct
     for line in check_structure_on_ct(tracked.roi, ct, str(rtstruct)):
         typer.echo(f"warning: {line}", err=True)
     return ct
+
+
+def _check_scan_ct(ct, tracked, rtstruct, m, scan: int, no_rigid: bool) -> bool:
+    """With ``--scan K``: ``ct`` must be the fitted scan whose frame the contours are in (the model's
+    provenance ``scans``, :func:`~lungdeform.io.dicom.rtstruct.check_ct_is_scan`): scan K where the
+    fit aligned it (its alignment undone), else scan K or, with --no-rigid, scan 0 (the model's
+    frame). True when the structure was checked here instead (drawn on scan 0, written on scan K's
+    CT in another frame: :func:`~lungdeform.io.dicom.rtstruct.check_structure_on_scan`)."""
+    scans = (m.provenance or {}).get("scans")
+    aligned = scan_state(m, scan).alignment is not None
+    check_ct_is_scan(ct, scans, 0 if aligned and no_rigid else scan)
+    if aligned and not no_rigid:
+        check_structure_on_scan(tracked.roi, scans, str(rtstruct))
+        return True
+    return False
 
 
 def _check_out_rtstruct(out_rtstruct: Path | None, *inputs: Path | None) -> None:

@@ -5,38 +5,47 @@ The work is :mod:`lungdeform.validate.gating` (protocol, metrics.json layout and
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 import typer
 
-from lungdeform.breathing.gating import GateRule, parse_window
+from lungdeform.breathing.gating import GateRule, RiskControl, parse_window
 from lungdeform.breathing.predict_interval import IntervalConfig
 from lungdeform.validate.gating import STRATEGIES, GatingConfig, validate_gating
 
-from .common import STRICT_EXIT, bounded, check_output, figure_or_na, say
+from .common import STRICT_EXIT, bounded, check_output, figure_or_na, say, takes
+
+
+@dataclass(frozen=True, kw_only=True)
+class GatingOptions:
+    """The options of ``lungdeform validate gating`` (:func:`register`)."""
+
+    data: Annotated[Path, typer.Option("--data", help="Folder searched for .vxp / .csv breathing traces.")]
+    out: Annotated[Path, typer.Option("--out", help="Output folder: metrics.json and plots/.")]
+    latency_ms: Annotated[float, typer.Option("--latency-ms", callback=bounded(0, 10000, "ms", low_open=True), help="Latency between decision and beam (ms).")] = 300.0
+    window: Annotated[str, typer.Option("--window", help="Gating window KIND:PERCENT, KIND end-exhale or end-inhale.")] = "end-exhale:30"
+    confident: Annotated[bool, typer.Option("--confident", help="model_intervals: the whole interval must be inside the window.")] = False
+    coverage: Annotated[float, typer.Option("--coverage", callback=bounded(0, 1, low_open=True, high_open=True), help="Coverage of the prediction intervals (0-1).")] = 0.9
+    target_error: Annotated[float, typer.Option("--target-error", callback=bounded(0, 1, low_open=True, high_open=True), help="Tolerated beam-on error (0-1): the window-probability threshold "
+        "adapts online so the realised beam-on error tends to it.")] = 0.05
+    min_probability: Annotated[float | None, typer.Option("--min-probability", callback=bounded(0, 1, low_open=True, high_open=True), help="Fix the window-probability threshold (0-1) instead of "
+        "adapting it to --target-error.")] = None
+    strict: Annotated[bool, typer.Option("--strict", help="Exit with code 3 when a target is not met (for CI).")] = False
 
 
 def register(apps) -> None:
     @apps.validate.command("gating")
-    def gating(
-        data: Path = typer.Option(..., "--data", help="Folder searched for .vxp / .csv breathing traces."),
-        out: Path = typer.Option(..., "--out", help="Output folder: metrics.json and plots/."),
-        latency_ms: float = typer.Option(300.0, "--latency-ms", callback=bounded(0, 10000, "ms", low_open=True), help="Latency between decision and beam (ms)."),
-        window: str = typer.Option("end-exhale:30", "--window",
-                                   help="Gating window KIND:PERCENT, KIND end-exhale or end-inhale."),
-        confident: bool = typer.Option(False, "--confident",
-                                       help="model_intervals: the whole interval must be inside the window."),
-        coverage: float = typer.Option(0.9, "--coverage", callback=bounded(0, 1, low_open=True, high_open=True), help="Coverage of the prediction intervals (0-1)."),
-        min_probability: float = typer.Option(0.5, "--min-probability", callback=bounded(0, 1, low_open=True, high_open=True),
-                                              help="model_intervals without --confident: the predicted "
-                                                   "probability of the window needed (0-1)."),
-        strict: bool = typer.Option(False, "--strict", help="Exit with code 3 when a target is not met (for CI)."),
-    ):
+    @takes(GatingOptions)
+    def gating(opts: GatingOptions) -> None:
         """Gate a beam on each trace: no compensation, linear, model, model with intervals and an oracle."""
-        check_output(out, [data], folder=True)
-        rule = GateRule(parse_window(window), confident, min_probability, IntervalConfig(coverage=coverage))
-        config = GatingConfig(latency_ms=latency_ms, rule=rule)
-        m = validate_gating(data, out, config, progress=say)
+        check_output(opts.out, [opts.data], folder=True)
+        risk = RiskControl(target_error=opts.target_error) if opts.min_probability is None else None
+        rule = GateRule(parse_window(opts.window), opts.confident, 0.5 if opts.min_probability is None else opts.min_probability,
+                        IntervalConfig(coverage=opts.coverage), risk)
+        config = GatingConfig(latency_ms=opts.latency_ms, rule=rule)
+        m = validate_gating(opts.data, opts.out, config, progress=say)
         for name, err in m["errors"].items():
             typer.echo(f"skipped {name}: {err}", err=True)
         typer.echo(f"{m['n_traces']} traces, window {m['window']}, latency {m['latency_ms']:g} ms; medians over traces:")
@@ -49,12 +58,19 @@ def register(apps) -> None:
         typer.echo(f"  at linear's duty cycle: model_intervals beam-on error "
                    f"{figure_or_na(mt['model_intervals_beam_on_error'], 3)} (linear "
                    f"{figure_or_na(mt['linear_beam_on_error'], 3)})")
+        lo = m["leave_one_trace_out"]
+        if lo is not None:
+            typer.echo(f"  leave-one-trace-out (step chosen on the other traces): model_intervals duty "
+                       f"{figure_or_na(lo['summary']['duty_cycle'], 3)}, beam-on error "
+                       f"{figure_or_na(lo['summary']['beam_on_error'], 3)} (target {lo['target_error']:g}); step "
+                       f"chosen on all traces {lo['gamma_all']:g}, default {lo['gamma_default']:g}")
         t = m["targets"]
         for key, text in (("error_vs_none", "beam-on error <= 0.5 x none's"),
                           ("duty_vs_none", "duty cycle >= 0.9 x none's"),
                           ("better_than_linear", "better than linear at equal or higher duty"),
+                          ("better_than_linear_same_rule", "better than linear_intervals (same rule) on both"),
                           ("better_than_linear_at_matched_duty", "better than linear at linear's duty")):
             typer.echo(f"target model_intervals {text}: {'met' if t[key]['met'] else 'not met'}")
-        typer.echo(f"wrote {Path(out) / 'metrics.json'} and {len(m['plots'])} plots in {Path(out) / 'plots'}")
-        if strict and not all(v["met"] for v in t.values()):
+        typer.echo(f"wrote {Path(opts.out) / 'metrics.json'} and {len(m['plots'])} plots in {Path(opts.out) / 'plots'}")
+        if opts.strict and not all(v["met"] for v in t.values()):
             raise typer.Exit(STRICT_EXIT)

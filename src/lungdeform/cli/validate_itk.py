@@ -7,7 +7,9 @@ options, prints the table, the protocols and the targets with pass/fail, and pic
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 import typer
 
@@ -23,31 +25,37 @@ from .common import (
     print_fit_table,
     print_fit_warnings,
     say,
+    takes,
 )
+
+
+@dataclass(frozen=True, kw_only=True)
+class ItkPairOptions:
+    """The options of ``lungdeform validate itk-pair`` (:func:`register`)."""
+
+    data: Annotated[Path, typer.Option("--data", help="Folder with the ITK right-lung pair (or its parent).")]
+    out: Annotated[Path, typer.Option("--out", help="Output folder: metrics.json, model.npz, report.html.")]
+    grid: Annotated[bool, typer.Option("--grid/--no-grid", help="Also run the grid mode for comparison.")] = True
+    stiffness: Annotated[bool, typer.Option("--stiffness/--no-stiffness", help="Also fit a stiffness field (the paper's uniform model is then reported as model_uniform_stiffness).")] = True
+    evaluations: Annotated[int, typer.Option("--evaluations", help="Optimiser budget.")] = 300
+    landmark_fit: Annotated[bool, typer.Option("--landmark-fit/--no-landmark-fit", help="With the landmarks: the model's interior landmark correction, and the landmark-informed comparison fits (slower), scored held out (k-fold).")] = True
+    folds: Annotated[int, typer.Option("--folds", help="Folds of the landmark cross-validation.")] = 5
+    direction_degree: Annotated[int, typer.Option("--direction-degree", help=DIRECTION_DEGREE_HELP)] = 3
+    strict: Annotated[bool, typer.Option("--strict", help="Exit with code 3 when a target is not met (for CI).")] = False
 
 
 def register(apps) -> None:
     @apps.validate.command("itk-pair")
-    def itk_pair_command(
-        data: Path = typer.Option(..., "--data", help="Folder with the ITK right-lung pair (or its parent)."),
-        out: Path = typer.Option(..., "--out", help="Output folder: metrics.json, model.npz, report.html."),
-        grid: bool = typer.Option(True, "--grid/--no-grid", help="Also run the grid mode for comparison."),
-        stiffness: bool = typer.Option(True, "--stiffness/--no-stiffness", help="Also fit a stiffness field (the paper's uniform model is then reported as model_uniform_stiffness)."),
-        evaluations: int = typer.Option(300, "--evaluations", help="Optimiser budget."),
-        landmark_fit: bool = typer.Option(True, "--landmark-fit/--no-landmark-fit",
-                                          help="With the landmarks: the model's interior landmark correction, and the landmark-informed comparison fits (slower), scored held out (k-fold)."),
-        folds: int = typer.Option(5, "--folds", help="Folds of the landmark cross-validation."),
-        direction_degree: int = typer.Option(3, "--direction-degree", help=DIRECTION_DEGREE_HELP),
-        strict: bool = typer.Option(False, "--strict", help="Exit with code 3 when a target is not met (for CI)."),
-    ) -> None:
+    @takes(ItkPairOptions)
+    def itk_pair_command(opts: ItkPairOptions) -> None:
         """Fit the model to the ITK right lung (3.36 → 3.97 L) and compare with baselines."""
-        check_output(out, [data], folder=True)
+        check_output(opts.out, [opts.data], folder=True)
 
-        files = find_pair(data)
+        files = find_pair(opts.data)
         with option_names(FIT_OPTIONS):
-            config = pair_config(grid=grid, stiffness=stiffness, max_evaluations=evaluations,
-                                 landmark_fit=landmark_fit, folds=folds, direction_degree=direction_degree)
-            folder = output_dir(out)
+            config = pair_config(grid=opts.grid, stiffness=opts.stiffness, max_evaluations=opts.evaluations,
+                                 landmark_fit=opts.landmark_fit, folds=opts.folds, direction_degree=opts.direction_degree)
+            folder = output_dir(opts.out)
             metrics = run_itk_pair(files, folder, config, progress=say)
         print_fit_table(metrics)
         print_fit_warnings(metrics)
@@ -58,5 +66,5 @@ def register(apps) -> None:
         for name, ok in metrics["targets_met"].items():
             typer.echo(f"target {name}: {'met' if ok else 'NOT met'}")
         typer.echo(f"wrote {folder / 'metrics.json'}, {folder / 'model.npz'}, {folder / 'report.html'}")
-        if strict and not all(metrics["targets_met"].values()):
+        if opts.strict and not all(metrics["targets_met"].values()):
             raise typer.Exit(STRICT_EXIT)

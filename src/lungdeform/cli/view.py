@@ -11,7 +11,9 @@ from __future__ import annotations
 import ipaddress
 import sys
 import webbrowser
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 import typer
 
@@ -22,7 +24,7 @@ from lungdeform.errors import InputError
 from lungdeform.playback.server import ServerLog, ViewerServer, model_glb
 from lungdeform.playback.tracefeed import LiveFeed, check_view_options, live_json, view_trace_json
 
-from .common import bounded
+from .common import bounded, takes
 
 
 def _port_option(value: int) -> int:
@@ -32,52 +34,57 @@ def _port_option(value: int) -> int:
     return value
 
 
+@dataclass(frozen=True, kw_only=True)
+class ViewOptions:
+    """The options of ``lungdeform view`` (:func:`register`)."""
+
+    model: Annotated[Path, typer.Argument(help="Model file (.npz) or an exported .glb.")]
+    host: Annotated[str, typer.Option("--host", help="Address to bind (loopback by default).")] = "127.0.0.1"
+    port: Annotated[int, typer.Option("--port", callback=_port_option, help="Port (0 picks a free one).")] = 8765
+    curve: Annotated[Path | None, typer.Option("--curve", help="Breathing curve CSV for a model file.")] = None
+    markers: Annotated[Path | None, typer.Option("--markers", help="Markers CSV (x_mm,y_mm,z_mm[,label]) for a model file.")] = None
+    trace: Annotated[Path | None, typer.Option("--trace", help="Breathing trace to play (.vxp or marker .csv) "
+        "through the streaming volume estimator, or - for live 't_s,amplitude' lines on stdin.")] = None
+    predict_ms: Annotated[float, typer.Option("--predict-ms", callback=bounded(0, MAX_PREDICT_MS, "ms"), help="With --trace: show the volume predicted this many ms ahead "
+        f"(0-{MAX_PREDICT_MS:g}), compensating that display latency.")] = 0.0
+    window: Annotated[str | None, typer.Option("--window", help="With --predict-ms: the gating window KIND:PERCENT "
+        "(default end-exhale:30).")] = None
+    confident: Annotated[bool, typer.Option("--confident", help="With --predict-ms: beam on only when the whole "
+        "interval is inside the window.")] = False
+    coverage: Annotated[float | None, typer.Option("--coverage", callback=bounded(0, 1, low_open=True, high_open=True), help="With --predict-ms: the interval's coverage "
+        "(0-1, default 0.9).")] = None
+    open_browser: Annotated[bool, typer.Option("--open", help="Open the default web browser.")] = False
+
+
 def register(apps) -> None:
     @apps.root.command("view")
-    def view_command(
-        model: Path = typer.Argument(..., help="Model file (.npz) or an exported .glb."),
-        host: str = typer.Option("127.0.0.1", "--host", help="Address to bind (loopback by default)."),
-        port: int = typer.Option(8765, "--port", callback=_port_option, help="Port (0 picks a free one)."),
-        curve: Path | None = typer.Option(None, "--curve", help="Breathing curve CSV for a model file."),
-        markers: Path | None = typer.Option(None, "--markers", help="Markers CSV (x_mm,y_mm,z_mm[,label]) for a model file."),
-        trace: Path | None = typer.Option(None, "--trace", help="Breathing trace to play (.vxp or marker .csv) "
-                                          "through the streaming volume estimator, or - for live 't_s,amplitude' lines on stdin."),
-        predict_ms: float = typer.Option(0.0, "--predict-ms", callback=bounded(0, MAX_PREDICT_MS, "ms"),
-                                         help="With --trace: show the volume predicted this many ms ahead "
-                                              f"(0-{MAX_PREDICT_MS:g}), compensating that display latency."),
-        window: str | None = typer.Option(None, "--window", help="With --predict-ms: the gating window KIND:PERCENT "
-                                                                   "(default end-exhale:30)."),
-        confident: bool = typer.Option(False, "--confident", help="With --predict-ms: beam on only when the whole "
-                                                                  "interval is inside the window."),
-        coverage: float | None = typer.Option(None, "--coverage", callback=bounded(0, 1, low_open=True, high_open=True), help="With --predict-ms: the interval's coverage "
-                                                                       "(0-1, default 0.9)."),
-        open_browser: bool = typer.Option(False, "--open", help="Open the default web browser."),
-    ) -> None:
+    @takes(ViewOptions)
+    def view_command(opts: ViewOptions) -> None:
         """Show both lungs breathing in the browser (three.js, deformation on the GPU, WebXR)."""
 
 
         rule = None
-        if window is not None or confident or coverage is not None:
+        if opts.window is not None or opts.confident or opts.coverage is not None:
             try:
-                interval = IntervalConfig(coverage=0.9 if coverage is None else coverage)
+                interval = IntervalConfig(coverage=0.9 if opts.coverage is None else opts.coverage)
             except InputError as exc:
                 raise InputError(f"--coverage: {exc}") from None
-            rule = GateRule(parse_window(window or "end-exhale:30"), confident, interval=interval)
-        check_view_options(model, trace, curve, predict_ms, rule)  # before the model is exported
-        live = LiveFeed(predict_ms, rule) if str(trace) == "-" else None
-        feed = live_json(live) if live is not None else view_trace_json(model, trace, curve, predict_ms, rule)
-        glb = model_glb(model, curve, markers)
+            rule = GateRule(parse_window(opts.window or "end-exhale:30"), opts.confident, interval=interval)
+        check_view_options(opts.model, opts.trace, opts.curve, opts.predict_ms, rule)  # before the model is exported
+        live = LiveFeed(opts.predict_ms, rule) if str(opts.trace) == "-" else None
+        feed = live_json(live) if live is not None else view_trace_json(opts.model, opts.trace, opts.curve, opts.predict_ms, rule)
+        glb = model_glb(opts.model, opts.curve, opts.markers)
         # /presets.json: lungdeform.breathing.presets; /trace.json: the trace; /live: the live feed
-        server = ViewerServer(glb, host=host, port=port, trace=feed, live=live,
+        server = ViewerServer(glb, host=opts.host, port=opts.port, trace=feed, live=live,
                               report=ServerLog(errors=lambda line: typer.echo(line, err=True)))
         try:
-            exposed = not ipaddress.ip_address(host).is_loopback
+            exposed = not ipaddress.ip_address(opts.host).is_loopback
         except ValueError:
-            exposed = host != "localhost"
+            exposed = opts.host != "localhost"
         if exposed:
-            typer.echo(f"warning: serving on {host}, reachable from other machines", err=True)
-        typer.echo(f"viewer for {model} at {server.url}  (Ctrl-C to stop)")
-        if open_browser:
+            typer.echo(f"warning: serving on {opts.host}, reachable from other machines", err=True)
+        typer.echo(f"viewer for {opts.model} at {server.url}  (Ctrl-C to stop)")
+        if opts.open_browser:
             webbrowser.open(server.url)
         try:
             if live is None:

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 import typer
@@ -19,6 +21,7 @@ from lungdeform.playback.trajectory import extrapolation_note
 
 from .common import (
     MAX_LUNGS_ML,
+    RigidFlags,
     RigidOptions,
     apply_rigid,
     bounded,
@@ -28,6 +31,7 @@ from .common import (
     read_curve,
     rigid_region,
     say,
+    takes,
     without_alignment,
 )
 
@@ -38,77 +42,83 @@ def phase_path(out: Path, index: int) -> Path:
     return out.with_name(f"{out.name[:-len(suffix)]}_phase{index:02d}{suffix}")
 
 
+@dataclass(frozen=True, kw_only=True)
+class WarpOptions:
+    """The options of ``lungdeform warp`` (:func:`register`)."""
+
+    image: Annotated[Path, typer.Argument(help="Image in the model's frame (the end-exhale scan or its mask).")]
+    model: Annotated[Path, typer.Argument(help="Model file (.npz) written by fit, build or demo.")]
+    out: Annotated[Path, typer.Option("--out", help="Output image (.mha, .nii.gz, .nii, .nrrd); with --phases: OUT_phase00 …. A folder (a name without suffix): DICOM CT series, with --phases one per phase in OUT/phase00 … OUT/phase90.")]
+    volume_ml: Annotated[float | None, typer.Option("--volume-ml", callback=bounded(0, MAX_LUNGS_ML, "mL", low_open=True), help="Absolute volume of the model's lungs together (mL).")] = None
+    scan: Annotated[int | None, typer.Option("--scan", help="Input scan K of the fit (0 = rest): its volume, in its own frame.")] = None
+    curve: Annotated[Path | None, typer.Option("--curve", help="Breathing curve CSV (t_s, volume_ml, …); with --phases.")] = None
+    phases: Annotated[int | None, typer.Option("--phases", help="With --curve: this many images evenly over one breathing cycle.")] = None
+    label: Annotated[bool, typer.Option("--label", help="A label image: nearest-neighbour, values kept.")] = False
+    node_mm: Annotated[float, typer.Option("--node-mm", callback=bounded(0, D.MAX_NODE_MM, "mm", low_open=True), help="Lattice spacing (mm) of the interior field.")] = D.NODE_SPACING_MM
+    density: Annotated[bool, typer.Option("--density", help="Conserve mass: HU + 1000 scaled by the Jacobian determinant of the resampling field, so an inhaled lung gets darker (docs/RADIOTHERAPY.md, \"Density and projections\").")] = False
+    lung_mask: Annotated[list[Path] | None, typer.Option("--lung-mask", help="With --density: the lung mask on IMAGE's grid (non-zero = lung; repeat for left and right): lung voxels are resampled from lung tissue only and the chest wall from the rest, so each keeps its mass (docs/RADIOTHERAPY.md, \"Density and projections\").")] = None
+    projections: Annotated[str | None, typer.Option("--projections", help="With --phases and an image-file --out: also OUT_mip, OUT_aip, OUT_minip (maximum, mean, minimum over the phases); e.g. mip,aip,minip.")] = None
+    rigid: RigidFlags = RigidFlags()
+    grid: Annotated[Path | None, typer.Option("--grid", help="Write on this image's grid instead of IMAGE's (e.g. the target scan's, so an inhaled lung is not cropped); same LPS world.")] = None
+    no_rigid: Annotated[bool, typer.Option("--no-rigid", help="With --scan: leave the fit's alignment of that scan out (the image stays in the model's frame).")] = False
+
+
 def register(apps) -> None:
     @apps.root.command("warp")
-    def warp_command(
-        image: Path = typer.Argument(..., help="Image in the model's frame (the end-exhale scan or its mask)."),
-        model: Path = typer.Argument(..., help="Model file (.npz) written by fit, build or demo."),
-        out: Path = typer.Option(..., "--out", help="Output image (.mha, .nii.gz, .nii, .nrrd); with --phases: OUT_phase00 …. A folder (a name without suffix): DICOM CT series, with --phases one per phase in OUT/phase00 … OUT/phase90."),
-        volume_ml: float | None = typer.Option(None, "--volume-ml", callback=bounded(0, MAX_LUNGS_ML, "mL", low_open=True), help="Absolute volume of the model's lungs together (mL)."),
-        scan: int | None = typer.Option(None, "--scan", help="Input scan K of the fit (0 = rest): its volume, in its own frame."),
-        curve: Path | None = typer.Option(None, "--curve", help="Breathing curve CSV (t_s, volume_ml, …); with --phases."),
-        phases: int | None = typer.Option(None, "--phases", help="With --curve: this many images evenly over one breathing cycle."),
-        label: bool = typer.Option(False, "--label", help="A label image: nearest-neighbour, values kept."),
-        node_mm: float = typer.Option(D.NODE_SPACING_MM, "--node-mm", callback=bounded(0, D.MAX_NODE_MM, "mm", low_open=True), help="Lattice spacing (mm) of the interior field."),
-        density: bool = typer.Option(False, "--density", help="Conserve mass: HU + 1000 scaled by the Jacobian determinant of the resampling field, so an inhaled lung gets darker (docs/RADIOTHERAPY.md, \"Density and projections\")."),
-        projections: str | None = typer.Option(None, "--projections", help="With --phases and an image-file --out: also OUT_mip, OUT_aip, OUT_minip (maximum, mean, minimum over the phases); e.g. mip,aip,minip."),
-        rigid_structure: str | None = typer.Option(None, "--rigid-structure", help="With --rtstruct: this ROI (e.g. GTV) moves rigidly, keeping its volume (docs/RADIOTHERAPY.md, \"A rigid tumour\")."),
-        rtstruct: Path | None = typer.Option(None, "--rtstruct", help="RTSTRUCT holding --rigid-structure, drawn on IMAGE's frame."),
-        rigid_mask: Path | None = typer.Option(None, "--rigid-mask", help="A mask (non-zero voxels, in IMAGE's LPS world) that moves rigidly; instead of --rigid-structure."),
-        rigid_border_mm: float = typer.Option(10.0, "--rigid-border-mm", callback=bounded(0, 100, "mm", low_open=True), help="Width (mm) over which the rigid motion is blended back into the field."),
-        grid: Path | None = typer.Option(None, "--grid", help="Write on this image's grid instead of IMAGE's (e.g. the target scan's, so an inhaled lung is not cropped); same LPS world."),
-        no_rigid: bool = typer.Option(False, "--no-rigid", help="With --scan: leave the fit's alignment of that scan out (the image stays in the model's frame)."),
-    ) -> None:
+    @takes(WarpOptions)
+    def warp_command(opts: WarpOptions) -> None:
         """Resample IMAGE at a breathing state of MODEL on IMAGE's own grid (docs/RADIOTHERAPY.md)."""
 
-        inputs = [image, model, curve, rtstruct, rigid_mask, grid]
-        rigid = RigidOptions.of(rigid_structure, rtstruct, rigid_mask, rigid_border_mm)
-        kinds = M.parse_projections(projections)
-        if out.is_dir() and any(out.name.lower().endswith(x) for x in WRITE_SUFFIXES):
-            check_output(out)  # an existing folder named like an image file: refused
-        dicom = DS.is_series_output(out)
-        DS.check_series_output(out) if dicom else write_suffix(out)
-        check_output(out, inputs, folder=dicom, whole=dicom)
-        _check_combinations(out, dicom, dict(label=label, density=density, kinds=kinds, phases=phases, curve=curve,
-                                             state=volume_ml is not None or scan is not None, grid=grid))
-        m = load_model(model)
-        if curve is not None:
-            states, period = D.phase_states(read_curve(curve, m), phases)
-            typer.echo(f"{len(states)} phase(s) over a cycle of {period:.2f} s of {curve}")
-            paths = [Path(DS.phase_folder(i, len(states))) if dicom else phase_path(out, i) for i in range(len(states))]
-            paths += [projection_path(out, k) for k in kinds]
+        inputs = [opts.image, opts.model, opts.curve, *opts.rigid.inputs, opts.grid, *(opts.lung_mask or [])]
+        rigid = RigidOptions.of(opts.rigid)
+        kinds = M.parse_projections(opts.projections)
+        if opts.out.is_dir() and any(opts.out.name.lower().endswith(x) for x in WRITE_SUFFIXES):
+            check_output(opts.out)  # an existing folder named like an image file: refused
+        dicom = DS.is_series_output(opts.out)
+        DS.check_series_output(opts.out) if dicom else write_suffix(opts.out)
+        check_output(opts.out, inputs, folder=dicom, whole=dicom)
+        _check_combinations(opts.out, dicom, dict(label=opts.label, density=opts.density, kinds=kinds, phases=opts.phases, curve=opts.curve,
+                                             state=opts.volume_ml is not None or opts.scan is not None, grid=opts.grid,
+                                             lung=bool(opts.lung_mask)))
+        m = load_model(opts.model)
+        if opts.curve is not None:
+            states, period = D.phase_states(read_curve(opts.curve, m), opts.phases)
+            typer.echo(f"{len(states)} phase(s) over a cycle of {period:.2f} s of {opts.curve}")
+            paths = [Path(DS.phase_folder(i, len(states))) if dicom else phase_path(opts.out, i) for i in range(len(states))]
+            paths += [projection_path(opts.out, k) for k in kinds]
             for path in [] if dicom else paths:
                 check_output(path, inputs)
         else:
-            states, paths = [without_alignment(pick_state(m, volume_ml, scan), no_rigid)], [Path() if dicom else out]
-        img = read_image(image)
-        target = img if grid is None else read_image(grid)
-        region = rigid_region(rigid, D.Grid.of(target))
+            states, paths = [without_alignment(pick_state(m, opts.volume_ml, opts.scan), opts.no_rigid)], [Path() if dicom else opts.out]
+        img = read_image(opts.image)
+        lungs = read_lungs(opts.lung_mask, img)
+        target = img if opts.grid is None else read_image(opts.grid)
+        region = rigid_region(rigid, D.Grid.of(target), ("IMAGE", opts.image))
         projector = M.Projector() if kinds else None
-        header = DS.study_header(image) if dicom else None
+        header = DS.study_header(opts.image) if dicom else None
         note = extrapolation_note(m, [s.delta_ml for s in states])
         if note:
             typer.echo(f"note: {note}")
         # the whole set or nothing: a DICOM folder renamed at the end, image files renamed together
-        with atomic_dir(out) if dicom else atomic_paths(paths, [write_suffix(p) for p in paths]) as tmp:
+        with atomic_dir(opts.out) if dicom else atomic_paths(paths, [write_suffix(p) for p in paths]) as tmp:
             for i, (state, path) in enumerate(zip(states, paths)):
                 say(f"resampling at {state.source}")
                 result = D.displacement_field(m, D.Grid.of(target), state.delta_ml, alignment=state.alignment,
-                                              inverse=True, spacing_mm=node_mm)
+                                              inverse=True, spacing_mm=opts.node_mm)
                 lines = field_lines(result) + apply_rigid(result, D.Grid.of(target), region, rigid)
-                warped, more = _resampled(img, target, result, (label, density))
+                warped, more = _resampled(img, target, result, (opts.label, opts.density), lungs)
                 lines += more
                 if projector is not None:
                     projector.add(warped.array)
                 if dicom:
-                    temporal = (i, len(states)) if curve is not None else None
+                    temporal = (i, len(states)) if opts.curve is not None else None
                     _write_series(tmp / path, warped, header, temporal)
                 else:
                     write_image(tmp[i], warped.array, warped.spacing, warped.origin, warped.direction)
                 typer.echo(f"{state.source}:")
                 for line in lines:
                     typer.echo(f"  {line}")
-                typer.echo(f"wrote {out / path if dicom else path}")
+                typer.echo(f"wrote {opts.out / path if dicom else path}")
             for n, kind in enumerate(kinds):
                 write_image(tmp[len(states) + n], M.as_pixel_type(projector.result(kind), img.array.dtype),
                             target.spacing, target.origin, target.direction)
@@ -128,6 +138,8 @@ def _check_combinations(out: Path, dicom: bool, given: dict) -> None:
         raise InputError("--curve with --volume-ml or --scan: give one breathing state or one curve")
     if given["density"] and given["label"]:
         raise InputError("--density scales CT numbers; a --label image has none")
+    if given["lung"] and not given["density"]:
+        raise InputError("--lung-mask goes with --density (it says which voxels are lung tissue)")
     if given["kinds"] and given["phases"] is None:
         raise InputError("--projections needs --curve and --phases (the phases it projects)")
     if given["kinds"] and dicom:
@@ -142,21 +154,53 @@ def projection_path(out: Path, kind: str) -> Path:
     return out.with_name(f"{out.name[:-len(suffix)]}_{kind}{suffix}")
 
 
-def _resampled(img: Image, target: Image, result, kind: tuple[bool, bool]) -> tuple[Image, list[str]]:
+def read_lungs(paths: list[Path] | None, img: Image) -> np.ndarray | None:
+    """``(z, y, x) bool``: the union of the ``--lung-mask`` images' non-zero voxels, each on IMAGE's
+    own grid (the tissue partition is of IMAGE's voxels: a mask on another grid is refused, not
+    resampled); None without one."""
+    if not paths:
+        return None
+    lungs = np.zeros(img.array.shape, bool)
+    for path in paths:
+        m = read_image(path)
+        same = (m.array.shape == img.array.shape and np.allclose(m.spacing, img.spacing, atol=1e-4)
+                and np.allclose(m.origin, img.origin, atol=1e-3)
+                and np.allclose(np.reshape(m.direction, (3, 3)), np.reshape(img.direction, (3, 3)), atol=1e-6))
+        if not same:
+            raise InputError(f"--lung-mask {path}: its grid ({m.array.shape[::-1]} voxels of {np.round(m.spacing, 4)} mm "
+                             f"at {np.round(m.origin, 3)}) is not IMAGE's ({img.array.shape[::-1]} of "
+                             f"{np.round(img.spacing, 4)} mm at {np.round(img.origin, 3)}); give the mask segmented on IMAGE")
+        lungs |= m.array != 0
+    if not lungs.any():
+        raise InputError(f"--lung-mask {', '.join(map(str, paths))}: no non-zero voxel (no lung)")
+    return lungs
+
+
+def _resampled(img: Image, target: Image, result, kind: tuple[bool, bool], lungs=None) -> tuple[Image, list[str]]:
     """IMAGE resampled through the inverse field on ``target``'s grid; ``kind`` = (label, density):
-    with density its HU scaled to conserve mass (:func:`lungdeform.playback.density.conserve_mass`)
-    and the mass before and after in a line."""
+    with density its HU scaled to conserve mass (:func:`lungdeform.playback.density.conserve_mass`),
+    with ``lungs`` (the ``--lung-mask`` voxels) lung and the rest resampled each from its own tissue
+    (:func:`lungdeform.playback.density.resample_by_tissue`), and the masses before and after in lines."""
     label, density = kind
-    warped = resample_image(img, result.field, label=label, grid=None if target is img else target)
+    other = None if target is img else target
     if not density:
-        return warped, []
+        return resample_image(img, result.field, label=label, grid=other), []
+    if lungs is None:  # in float32: an integer image resampled in its own type is truncated toward zero
+        as_float = Image(img.array.astype(np.float32), img.spacing, img.origin, img.direction, img.source)
+        hu, at_state = resample_image(as_float, result.field, default=float(np.min(img.array)), grid=other).array, None
+    else:
+        hu, at_state = M.resample_by_tissue(img, lungs, result.field, grid=other)
     jac = D.jacobian_determinant(result.field, target.spacing, target.direction)
-    hu = M.as_pixel_type(M.conserve_mass(warped.array, jac), img.array.dtype)
+    hu = M.as_pixel_type(M.conserve_mass(hu, jac), img.array.dtype)
     voxel = [float(abs(np.linalg.det(np.reshape(g.direction, (3, 3)))) * np.prod(g.spacing)) / 1000.0 for g in (img, target)]
     before, after = M.mass_g(img.array, voxel[0]), M.mass_g(hu, voxel[1])
-    line = (f"density: HU scaled by the Jacobian (mass conserved); mass of the image {before / 1000:.3f} kg "
-            f"→ {after / 1000:.3f} kg ({100 * (after / before - 1):+.2f} %; tissue leaving the grid counts)")
-    return Image(hu, warped.spacing, warped.origin, warped.direction, img.source), [line]
+    lines = [(f"density: HU scaled by the Jacobian (mass conserved); mass of the image {before / 1000:.3f} kg "
+              f"→ {after / 1000:.3f} kg ({100 * (after / before - 1):+.2f} %; tissue leaving the grid counts)")]
+    if at_state is not None:
+        b, a = M.mass_g(img.array, voxel[0], lungs), M.mass_g(hu, voxel[1], at_state)
+        lines.append(f"lungs (--lung-mask, at this state by nearest neighbour): {lungs.sum() * voxel[0]:.0f} mL → "
+                     f"{at_state.sum() * voxel[1]:.0f} mL, mass {b:.1f} g → {a:.1f} g ({100 * (a / b - 1):+.2f} %)")
+    return Image(hu, target.spacing, target.origin, target.direction, img.source), lines
 
 
 def _write_series(folder: Path, image, header, temporal) -> None:

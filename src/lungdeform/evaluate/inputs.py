@@ -27,8 +27,10 @@ from lungdeform.geometry.mesh import Surface, winding_numbers
 from lungdeform.io import mask as M
 from lungdeform.io import meshfile as lio
 from lungdeform.io.dicom.fourdct import frame_of_reference, read_phases
+from lungdeform.io.dicom.guard import is_dicom_file
+from lungdeform.io.dicom.series import dicom_series_files, series_identity
 from lungdeform.io.grid import Image
-from lungdeform.io.image import is_image_path, read_image
+from lungdeform.io.image import IMAGE_SUFFIXES, is_image_path, read_image
 from lungdeform.io.landmarks import read_elastix_points
 from lungdeform.progress import Progress, silent
 from lungdeform.segment.ct import archive_in, is_archive, read_ct
@@ -68,6 +70,11 @@ class ReadInputs:
         For a 4-D CT (:mod:`lungdeform.fit.cycle`): ``phases`` (label, volume mL, in phase order),
         ``frame_of_reference`` (the UID all phases share, or None) and ``hysteresis`` (one dict per
         exhale-branch phase, :class:`~lungdeform.fit.cycle.HysteresisPair`); None otherwise.
+    scans : list of dict
+        Each input's identity (:func:`scan_identity`), in fit order: its ``source``, its image
+        ``grid`` (None for a mesh) and, for a DICOM series, its patient, study, series and Frame of
+        Reference. The model records them, so that ``track --scan K --out-rtstruct`` can check that
+        its ``--reference-ct`` is scan K's (:func:`lungdeform.io.dicom.rtstruct.check_ct_is_scan`).
     """
 
     surfaces: list[Surface]
@@ -80,6 +87,7 @@ class ReadInputs:
     notes: list[str] = field(default_factory=list)
     paths: list[str] = field(default_factory=list)
     cycle: dict | None = None
+    scans: list[dict] = field(default_factory=list)
 
 
 def read_inputs(inputs: FitInputs, side_check: bool = True,
@@ -91,8 +99,10 @@ def read_inputs(inputs: FitInputs, side_check: bool = True,
     cycle = None
     if len(inputs.paths) == 1:  # one 4-D CT folder: its phases, in the order of their volumes
         paths, read, notes4d, cycle = read_fourdct(Path(inputs.paths[0]), inputs.side, say)
+        series = cycle.pop("series")
     else:
         paths, read, notes4d = list(inputs.paths), [], []
+        series = [_dicom_files_of(Path(p)) for p in inputs.paths]
         first_image = None  # every image is checked against the first one's spacing as soon as it is read
         for p in inputs.paths:
             say(f"reading {p}")
@@ -117,8 +127,31 @@ def read_inputs(inputs: FitInputs, side_check: bool = True,
         for p, pts, image, surface in zip(inputs.landmarks, landmarks, images, surfaces):
             check_landmarks(pts, image, p)
             warnings += landmark_mask_warnings(pts, image, surface, p)
+    scans = [scan_identity(str(p), image, files) for p, image, files in zip(paths, images, series)]
     return ReadInputs(surfaces, [r[1] for r in read], images, volumes, given, landmarks, warnings, notes,
-                      [str(p) for p in paths], cycle)
+                      [str(p) for p in paths], cycle, scans)
+
+
+def _dicom_files_of(path: Path):
+    """The files of the DICOM series an input path names (a folder or one of its files), or None
+    when it is no DICOM series (an image file, a mesh, an archive)."""
+    if path.is_dir() or (not path.name.lower().endswith(IMAGE_SUFFIXES) and is_dicom_file(path)):
+        try:
+            return dicom_series_files(path)
+        except ReadError:
+            return None  # e.g. a dataset folder holding one archive: read as such, no series identity
+    return None
+
+
+def scan_identity(source: str, image: Image | None, files) -> dict:
+    """One input's identity: ``source``, ``grid`` (``size`` x y z voxels, ``spacing`` mm, ``origin``
+    mm LPS, ``direction`` row-major (3, 3); None for a mesh) and, when ``files`` are the DICOM series
+    it was read from, ``patient_id``, ``study_uid``, ``series_uid`` and ``frame_of_reference``
+    (:func:`lungdeform.io.dicom.series.series_identity`)."""
+    grid = None if image is None else {
+        "size": [int(n) for n in np.asarray(image.array).shape[::-1]], "spacing": np.asarray(image.spacing, float).tolist(),
+        "origin": np.asarray(image.origin, float).tolist(), "direction": np.asarray(image.direction, float).ravel().tolist()}
+    return {"source": source, "grid": grid, **(series_identity(files) if files else {})}
 
 
 def read_fourdct(folder: Path, side: str, progress) -> tuple[list[str], list[tuple], list[str], dict]:
@@ -128,7 +161,8 @@ def read_fourdct(folder: Path, side: str, progress) -> tuple[list[str], list[tup
     volume; equal volumes kept, in phase order, :func:`lungdeform.fit.cycle.volume_order`). A phase
     of exactly the end-exhale volume is no target (the model cannot move at zero volume change):
     left out, noted, still measured in the hysteresis. The notes give the phase order and each
-    phase's volume (mL); ``cycle``: :attr:`ReadInputs.cycle`."""
+    phase's volume (mL); ``cycle``: :attr:`ReadInputs.cycle`, with ``"series"`` (each phase's files, in
+    fit order) that :func:`read_inputs` takes out for :attr:`ReadInputs.scans`."""
 
     progress(f"reading the 4-D CT {folder}")
     phases = read_phases(folder)
@@ -151,7 +185,7 @@ def read_fourdct(folder: Path, side: str, progress) -> tuple[list[str], list[tup
     pairs = hysteresis([ph.label for ph in phases], [r[0] for r in read], volumes)
     cycle = {"phases": [{"label": ph.label, "volume_ml": v} for ph, v in zip(phases, volumes)],
              "frame_of_reference": frame_of_reference([ph.files for ph in phases]),
-             "hysteresis": [p.as_dict() for p in pairs]}
+             "hysteresis": [p.as_dict() for p in pairs], "series": [phases[i].files for i in order]}
     return [phases[i].image.source for i in order], [read[i] for i in order], notes, cycle
 
 

@@ -256,7 +256,7 @@ def write_outputs(out: Path, run: FitRun, metrics: dict) -> None:
         lung = replace(lung, landmarks=landmarks, landmark_correction=held.interior["correction"],
                        landmark_smoothing=held.interior["smoothing"])
     model = Model({inputs.side: lung}, provenance(run.config.command, inputs=metrics["inputs"],
-                                                  volumes_ml=placed.volumes_ml, fit=fit.as_dict(),
+                                                  volumes_ml=placed.volumes_ml, fit=fit.as_dict(), scans=run.read.scans,
                                                   alignment=placed.alignments, fit_kind=metrics["headline_fit"],
                                                   interior_correction=held.interior is not None))
     save_model(out / "model.npz", model)

@@ -32,8 +32,12 @@ from .mesh import Surface, as_faces, as_vertices, face_areas
 
 
 @numba.njit(cache=True, inline="always")
-def _closest_on_segment(px, py, pz, ax, ay, az, bx, by, bz):
-    """Closest point of segment ab to p and its squared distance (a == b allowed)."""
+def _closest_on_segment(p, a, b):
+    """Closest point of segment ab to p and its squared distance (a == b allowed); points as
+    tuples ``(x, y, z)``."""
+    px, py, pz = p
+    ax, ay, az = a
+    bx, by, bz = b
     ux, uy, uz = bx - ax, by - ay, bz - az
     uu = ux * ux + uy * uy + uz * uz
     t = 0.0
@@ -44,12 +48,12 @@ def _closest_on_segment(px, py, pz, ax, ay, az, bx, by, bz):
 
 
 @numba.njit(cache=True)
-def _closest_on_degenerate(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
-    """Closest point of a zero-area triangle (its corners on a line or at one point): the nearest of
-    its three edges as segments."""
-    x1, y1, z1, e1 = _closest_on_segment(px, py, pz, ax, ay, az, bx, by, bz)
-    x2, y2, z2, e2 = _closest_on_segment(px, py, pz, bx, by, bz, cx, cy, cz)
-    x3, y3, z3, e3 = _closest_on_segment(px, py, pz, cx, cy, cz, ax, ay, az)
+def _closest_on_degenerate(p, a, b, c):
+    """Closest point of a zero-area triangle abc (its corners on a line or at one point) to p: the
+    nearest of its three edges as segments."""
+    x1, y1, z1, e1 = _closest_on_segment(p, a, b)
+    x2, y2, z2, e2 = _closest_on_segment(p, b, c)
+    x3, y3, z3, e3 = _closest_on_segment(p, c, a)
     if e1 <= e2 and e1 <= e3:
         return x1, y1, z1
     if e2 <= e3:
@@ -58,13 +62,18 @@ def _closest_on_degenerate(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
 
 
 @numba.njit(cache=True, inline="always")
-def _closest_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
-    """Closest point of triangle abc to p, on scalars (no allocation in the hot loop)."""
+def _closest_on_triangle(p, a, b, c):
+    """Closest point of triangle abc to p, points as tuples ``(x, y, z)`` of scalars (no allocation
+    in the hot loop)."""
+    px, py, pz = p
+    ax, ay, az = a
+    bx, by, bz = b
+    cx, cy, cz = c
     abx, aby, abz = bx - ax, by - ay, bz - az
     acx, acy, acz = cx - ax, cy - ay, cz - az
     nx, ny, nz = aby * acz - abz * acy, abz * acx - abx * acz, abx * acy - aby * acx
     if nx == 0.0 and ny == 0.0 and nz == 0.0:  # zero area (collinear or coincident corners)
-        return _closest_on_degenerate(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz)
+        return _closest_on_degenerate(p, a, b, c)
     apx, apy, apz = px - ax, py - ay, pz - az
     d1 = abx * apx + aby * apy + abz * apz
     d2 = acx * apx + acy * apy + acz * apz
@@ -95,7 +104,7 @@ def _closest_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
         return bx + t * (cx - bx), by + t * (cy - by), bz + t * (cz - bz)
     denom = va + vb + vc  # = |ab × ac|²: zero only for a zero-area triangle (rounding)
     if denom == 0.0:
-        return _closest_on_degenerate(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz)
+        return _closest_on_degenerate(p, a, b, c)
     v = vb / denom
     w = vc / denom
     return ax + abx * v + acx * w, ay + aby * v + acy * w, az + abz * v + acz * w
@@ -143,7 +152,12 @@ def _gap2(p, lo, h, a):
 
 
 @numba.njit(cache=True, parallel=True)
-def _closest_kernel(points, bound, vertices, faces, boxes, lo, h, dims, ptr, items):
+def _closest_kernel(points, bound, mesh, grid):
+    """``(distance, closest, face)`` of ``points : (n, 3)`` within ``bound : (n,)`` (their nearest-
+    vertex distances) on ``mesh = (vertices, faces, boxes)``, triangles binned in ``grid = (lo, h,
+    dims, ptr, items)`` (:func:`_grid_fill`)."""
+    vertices, faces, boxes = mesh
+    lo, h, dims, ptr, items = grid
     n = points.shape[0]
     dist2 = np.empty(n)
     closest = np.zeros((n, 3))
@@ -177,9 +191,9 @@ def _closest_kernel(points, bound, vertices, faces, boxes, lo, h, dims, ptr, ite
                             continue
                         a_, b_, c_ = faces[f, 0], faces[f, 1], faces[f, 2]
                         qx, qy, qz = _closest_on_triangle(
-                            px, py, pz, vertices[a_, 0], vertices[a_, 1], vertices[a_, 2],
-                            vertices[b_, 0], vertices[b_, 1], vertices[b_, 2],
-                            vertices[c_, 0], vertices[c_, 1], vertices[c_, 2])
+                            (px, py, pz), (vertices[a_, 0], vertices[a_, 1], vertices[a_, 2]),
+                            (vertices[b_, 0], vertices[b_, 1], vertices[b_, 2]),
+                            (vertices[c_, 0], vertices[c_, 1], vertices[c_, 2]))
                         d = (px - qx) ** 2 + (py - qy) ** 2 + (pz - qz) ** 2
                         if d <= best:
                             best = d
@@ -236,8 +250,8 @@ class SurfaceDistance:
         if not np.all(np.isfinite(pts)):
             raise InputError("points contain NaN or infinity")
         bound, _ = self._tree.query(pts, workers=-1)
-        return _closest_kernel(pts, bound, self.vertices, self.faces, self._boxes, self._lo, self._h,
-                               self._dims, self._ptr, self._items)
+        return _closest_kernel(pts, bound, (self.vertices, self.faces, self._boxes),
+                               (self._lo, self._h, self._dims, self._ptr, self._items))
 
     def distance(self, points) -> np.ndarray:
         """``(k,) float`` mm: exact unsigned distance of each point to the surface."""

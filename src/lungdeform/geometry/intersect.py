@@ -91,8 +91,13 @@ def _register(cell_lo, cell_hi, dims, total):
 
 
 @numba.njit(cache=True)
-def _narrow(v, faces, lo, hi, origin, h, dims, face, key, limit):
-    """Count crossing face pairs over the runs of equal cell key; keep the first ``limit``."""
+def _narrow(mesh, grid, cells, limit):
+    """Count crossing face pairs over the runs of equal cell key; keep the first ``limit``. ``mesh`` =
+    ``(v, faces, lo, hi)`` (the faces' bounding-box corners ``lo, hi : (m, 3)``), ``grid`` = ``(origin,
+    h, dims)``, ``cells`` = ``(face, key)`` the face of each cell entry and its cell, sorted by cell."""
+    v, faces, lo, hi = mesh
+    origin, h, dims = grid
+    face, key = cells
     pairs = np.empty((limit, 2), np.int64)
     count = 0
     n = len(key)
@@ -174,7 +179,7 @@ def self_intersections(vertices: np.ndarray, faces: np.ndarray, limit: int = 100
     face, key = _register(cell_lo, cell_hi, dims, total)
     order = np.argsort(key, kind="stable")
     kept = 4 * len(f) + 16  # beyond this many crossings all are counted, none found local
-    count, pairs = _narrow(v, f, lo, hi, origin, h, dims, face[order], key[order], kept)
+    count, pairs = _narrow((v, f, lo, hi), (origin, h, dims), (face[order], key[order]), kept)
     if local_rings > 0 and len(pairs):
         far = ~_within_rings(f, len(v), pairs, local_rings)
         count, pairs = count - len(pairs) + int(far.sum()), pairs[far]

@@ -119,6 +119,17 @@ class InteriorField:
         v = self.surface(points)
         return v if self.landmark is None else np.ascontiguousarray(v + self.landmark(points))
 
+    def along_rows(self, starts, step, counts) -> np.ndarray:
+        """:meth:`displacement` at the points of straight rows, ``(Σ counts, 3) float`` mm per unit, row
+        ``r`` the points ``starts[r] + a·step`` (``a = 0 … counts[r] − 1``; ``starts : (r, 3)`` mm LPS,
+        ``step`` (3,) mm), row after row: a surface map alone by its row kernel
+        (:meth:`~lungdeform.interior.surface_map.SurfaceMapField.along_rows`), any other field point by point."""
+        if isinstance(self.surface, SurfaceMapField) and self.landmark is None:
+            return self.surface.along_rows(starts, step, counts)
+        s0, n = as_vertices(starts, "starts"), np.asarray(counts, dtype=np.int64).reshape(-1)
+        a = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
+        return self.displacement(np.repeat(s0, n, axis=0) + a[:, None] * np.asarray(step, float).reshape(3))
+
     @cached_property
     def radial(self) -> RadialSum | None:
         """Surface field plus correction as one :class:`~lungdeform.interior.sliding.RadialSum` when

@@ -190,6 +190,9 @@ def read_image(path, *, max_voxels=None) -> Image:
     ``diag(1, -1, 1)``, origin ``(-213.1, 206.9, -220.1)`` LPS: the same voxels land on the same
     points), and tested in tests/io/test_image.py. So no conversion is done here.
 
+    Voxels: a float image holding NaN or ±inf is refused (:class:`ReadError` naming the file and the
+    first such voxel).
+
     DICOM: a folder, a parent folder of one series, or one file of a series
     (:func:`~lungdeform.io.dicom.series.dicom_series_files`), its slices checked (:func:`~lungdeform.io.dicom.series.dicom_series_geometry`: one
     orientation, evenly spaced, no gantry tilt). Every header is checked before any voxel is read:
@@ -223,13 +226,64 @@ def read_image(path, *, max_voxels=None) -> Image:
             f"{p}: expected a 3-D scalar image, got {img.GetDimension()}-D with "
             f"{img.GetNumberOfComponentsPerPixel()} components per voxel"
         )
+    array = sitk.GetArrayFromImage(img)
+    _check_finite(array, p)
+    if array.dtype.kind == "f" and p.name.lower().endswith((".nii", ".nii.gz")):
+        _check_nifti_voxels(p)  # ITK reads a NaN or inf NIfTI voxel as 0: looked for in the file itself
     return Image(
-        array=sitk.GetArrayFromImage(img),
+        array=array,
         spacing=np.array(img.GetSpacing()),
         origin=np.array(img.GetOrigin()),
         direction=np.array(img.GetDirection()).reshape(3, 3),
         source=str(p),
     )
+
+
+def _check_finite(array: np.ndarray, p: Path) -> None:
+    """ReadError naming ``p`` when a float image holds NaN or ±inf voxels: no CT number or mask
+    value is, and each consumer would coerce them silently (a NaN voxel fails every threshold, so
+    it left a hole in a mask, and went through a warp into its output)."""
+    if array.dtype.kind != "f":
+        return
+    bad = ~np.isfinite(array)
+    if bad.any():
+        k, j, i = (int(v[0]) for v in np.nonzero(bad))
+        raise ReadError(f"{p}: {int(bad.sum())} voxel(s) are not finite (NaN or inf), the first at index (x, y, z) "
+                        f"({i}, {j}, {k}) = {array[k, j, i]}; a CT or mask holds finite numbers only")
+
+
+#: NIfTI-1 float datatypes (header byte 70): float32, float64
+_NIFTI_FLOATS = {16: "f4", 64: "f8"}
+
+
+def _check_nifti_voxels(p: Path) -> None:
+    """ReadError naming ``p`` when the float voxels of a NIfTI-1 file hold NaN or ±inf. ITK's NIfTI
+    reader returns such voxels as 0 (measured with SimpleITK 2.x: NaN and inf written, 0.0 read), so
+    a NaN region of a CT would read as 0 HU, soft tissue, without a word; the file's own bytes are
+    scanned instead (after ITK read it: the header is sound)."""
+    opener = gzip.open if p.name.lower().endswith(".gz") else open
+    with opener(p, "rb") as fh:
+        raw = fh.read(348)
+        endian = next((e for e in "<>" if len(raw) == 348 and struct.unpack(e + "i", raw[:4])[0] == 348), None)
+        if endian is None:
+            return
+        dims = struct.unpack(endian + "8h", raw[40:56])
+        code = _NIFTI_FLOATS.get(struct.unpack(endian + "h", raw[70:72])[0])
+        if code is None:
+            return
+        dtype = np.dtype(endian + code)
+        fh.seek(int(struct.unpack(endian + "f", raw[108:112])[0]))
+        total, seen, chunk = int(np.prod(dims[1:1 + max(dims[0], 1)], dtype=np.int64)), 0, 1 << 22
+        while seen < total:
+            block = np.frombuffer(fh.read(min(chunk, total - seen) * dtype.itemsize), dtype)
+            if block.size == 0:
+                return
+            bad = np.flatnonzero(~np.isfinite(block))
+            if bad.size:
+                i, j, k = np.unravel_index(seen + int(bad[0]), (dims[1], max(dims[2], 1), max(dims[3], 1)), order="F")
+                raise ReadError(f"{p}: voxel (x, y, z) ({i}, {j}, {k}) is {block[bad[0]]} in the file (ITK would read it "
+                                "as 0); a CT or mask holds finite numbers only")
+            seen += block.size
 
 
 def write_suffix(path) -> str:
@@ -277,13 +331,30 @@ def resample_image(image: Image, field, *, label: bool = False, default: float |
     Outside the image: ``default`` (0 for labels, else the image's minimum, e.g. air in a CT)."""
     img = to_sitk(image.array, image.spacing, image.origin, image.direction)
     g = image if grid is None else grid
+    fill = (0.0 if label else float(np.min(image.array))) if default is None else float(default)
+    out = _resample(img, field, g, sitk.sitkNearestNeighbor if label else sitk.sitkLinear, fill, image.source)
+    return Image(sitk.GetArrayFromImage(out), g.spacing, g.origin, g.direction, image.source)
+
+
+def resample_channels(image: Image, channels, field, *, grid: Image | None = None) -> np.ndarray:
+    """``channels : (z, y, x, c)`` values on ``image``'s grid resampled together, linearly, as
+    :func:`resample_image` does (one pass: the field is interpolated once for all ``c``): ``(z', y',
+    x', c) float32`` on ``grid``'s grid (``image``'s without one); 0 outside the image."""
+    a = np.asarray(channels, np.float32)
+    if a.ndim != 4 or a.shape[:3] != image.array.shape:
+        raise InputError(f"{image.source}: channels of shape {a.shape}, expected {image.array.shape} + (c,)")
+    img = to_sitk(a, image.spacing, image.origin, image.direction)
+    g = image if grid is None else grid
+    return sitk.GetArrayFromImage(_resample(img, field, g, sitk.sitkLinear, 0.0, image.source)).reshape(
+        tuple(g.array.shape if hasattr(g, "array") else g.shape) + (a.shape[3],))
+
+
+def _resample(img: sitk.Image, field, g, interpolator, fill: float, source: str) -> sitk.Image:
+    """``img`` resampled on ``g``'s grid through ``field : (z, y, x, 3)`` mm LPS on that grid."""
     shape = tuple(g.array.shape) if hasattr(g, "array") else tuple(g.shape)
     f = np.asarray(field, np.float64)
     if f.shape != shape + (3,):
-        raise InputError(f"{image.source}: the field has shape {f.shape}, the output grid {shape} (+ 3 components)")
+        raise InputError(f"{source}: the field has shape {f.shape}, the output grid {shape} (+ 3 components)")
     target = to_sitk(np.zeros(shape, np.uint8), g.spacing, g.origin, g.direction)
     transform = sitk.DisplacementFieldTransform(to_sitk(f, g.spacing, g.origin, g.direction))
-    fill = (0.0 if label else float(np.min(image.array))) if default is None else float(default)
-    out = sitk.Resample(img, target, transform, sitk.sitkNearestNeighbor if label else sitk.sitkLinear, fill,
-                        img.GetPixelID())
-    return Image(sitk.GetArrayFromImage(out), g.spacing, g.origin, g.direction, image.source)
+    return sitk.Resample(img, target, transform, interpolator, fill, img.GetPixelID())

@@ -15,6 +15,21 @@ multiplies it by ``det ∇φ(y) = det(I + ∇w(y))``:
 Then ``Σ (HU + 1000) · dV`` over a region equals the same sum over its preimage (change of variables),
 up to interpolation and the discrete Jacobian. Arrays: images ``(z, y, x)``, fields ``(z, y, x, 3)
 float32`` mm LPS, as in :mod:`lungdeform.playback.displacement_field`.
+
+**Which density is pulled back** (:func:`resample_by_tissue`, ``warp --density --lung-mask``). The
+formula above is exact for the continuous density ``ρ``; a CT gives it at voxel centres, and
+``HU_ref(φ(y))`` between them is a reconstruction. Trilinear interpolation of the whole image smears
+the lung surface (≈ −780 HU against ≈ 0 HU of the chest wall) over one voxel, so a state's lung
+voxel whose source falls within half a voxel of the surface takes chest-wall density (on average a
+quarter of the contrast over that half-voxel layer): the lungs gain 2–5 % of their mass and the wall
+loses it (docs/RADIOTHERAPY.md, "Measured: mass"). With the lung mask ``m`` the reconstruction is
+piecewise, the surface being the mask's voxel faces: lung ``ρ_L = interp(ρ·m) / interp(m)`` (only lung
+voxels enter, normalised convolution), the rest ``ρ_R = interp(ρ·(1 − m)) / interp(1 − m)``, and the
+state's voxel ``y`` takes ``ρ_L`` when the mask resampled by nearest neighbour (what ``warp --label``
+writes) puts it in the lung, ``ρ_R`` otherwise. The nearest-neighbour mask is the pull-back of the union
+of the lung voxels' cubes, so ``Σ_lung det ∇φ · dV`` is the reference lung volume (no bias, unlike a
+threshold of the linearly resampled mask, which cuts corners), and both sides conserve their mass.
+Voxels whose interpolation stencil holds no lung voxel are the ordinary linear resampling.
 """
 
 from __future__ import annotations
@@ -22,6 +37,8 @@ from __future__ import annotations
 import numpy as np
 
 from lungdeform.errors import InputError
+from lungdeform.io.grid import Image
+from lungdeform.io.image import resample_channels, resample_image
 
 #: CT number of air (HU): zero density.
 AIR_HU = -1000.0
@@ -39,6 +56,38 @@ def conserve_mass(hu, jacobian) -> np.ndarray:
     if hu.shape != j.shape:
         raise InputError(f"mass conservation: the image has shape {hu.shape}, the Jacobian {j.shape}")
     return ((hu.astype(np.float32) - np.float32(AIR_HU)) * j.astype(np.float32) + np.float32(AIR_HU)).astype(np.float32)
+
+
+def resample_by_tissue(image: Image, lung, field, grid: Image | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``image`` (HU) resampled through the inverse ``field : (z, y, x, 3)`` mm LPS on ``grid``'s
+    grid (its own without one) with the lung surface kept sharp (module docstring): returns
+    ``(hu, lung_at_state)``, the ``(z, y, x) float32`` HU before the Jacobian scaling
+    (:func:`conserve_mass`) and the ``(z, y, x) bool`` lung at the state (the mask resampled by nearest
+    neighbour). ``lung : (z, y, x) bool`` is the lung mask on ``image``'s own grid. Arithmetic in
+    float32: an integer image resampled as it is would be truncated toward zero (+0.5 HU in the lungs,
+    +0.2 % of their mass)."""
+    m = np.asarray(lung)
+    if m.shape != image.array.shape:
+        raise InputError(f"lung mask: shape {m.shape}, the image {image.source} {image.array.shape}; "
+                         "give the mask on the image's own grid")
+    m = m.astype(bool)
+    rho = image.array.astype(np.float32) - np.float32(AIR_HU)
+    # one linear pass over (ρ·m, m, ρ, 1): the lung's share, its fraction in each stencil, the whole
+    # image, and 1 where the source point lies in the image (0 outside, where the ordinary resampling
+    # fills with the image's minimum, air in a CT)
+    ones = np.ones_like(rho)
+    lung_rho, f, all_rho, seen = np.moveaxis(resample_channels(
+        image, np.stack([np.where(m, rho, np.float32(0)), m.astype(np.float32), rho, ones], axis=-1), field,
+        grid=grid), -1, 0)
+    all_rho = all_rho + (1 - seen) * np.float32(float(np.min(image.array)) - AIR_HU)
+    at_state = resample_image(Image(m.astype(np.uint8), image.spacing, image.origin, image.direction, image.source),
+                              field, label=True, default=0, grid=grid).array > 0
+    rest = 1.0 - f
+    with np.errstate(divide="ignore", invalid="ignore"):
+        in_lung = lung_rho / f
+        in_rest = np.where(rest > 1e-6, (all_rho - lung_rho) / rest, all_rho)
+    out = np.where(at_state & (f > 1e-6), in_lung, in_rest) + np.float32(AIR_HU)
+    return out.astype(np.float32), at_state
 
 
 def mass_g(hu, voxel_ml: float, mask=None) -> float:

@@ -86,12 +86,13 @@ class Grid:
                     np.asarray(image.direction, float).reshape(3, 3))
 
     def world(self, ijk) -> np.ndarray:
-        """``ijk : (n, 3)`` (i, j, k) index → ``(n, 3) float`` mm LPS."""
-        return (np.asarray(ijk, float) * self.spacing) @ self.direction.T + self.origin
+        """``ijk : (n, 3)`` (i, j, k) index → ``(n, 3) float`` mm LPS (``einsum``, not a BLAS product:
+        an ``(n, 3) × (3, 3)`` product gains nothing from BLAS threads, which spin against numba's)."""
+        return np.einsum("na,ra->nr", np.asarray(ijk, float) * self.spacing, self.direction) + self.origin
 
     def index(self, points) -> np.ndarray:
         """``points : (n, 3)`` mm LPS → ``(n, 3) float`` continuous (i, j, k) index."""
-        return ((np.asarray(points, float) - self.origin) @ self.direction) / self.spacing
+        return np.einsum("nr,ra->na", np.asarray(points, float) - self.origin, self.direction) / self.spacing
 
 
 @dataclass(frozen=True, eq=False)
@@ -212,6 +213,25 @@ def surface_peak(model, scales: dict) -> float:
                for n, lung in model.lungs.items())
 
 
+def active_values(interior, grid: Grid, lat: Lattice, active: np.ndarray) -> np.ndarray:
+    """``(n, 3) float`` mm per unit, the lattice's nodes in C order: the ``interior`` field's displacement
+    at the nodes where ``active : (nz, ny, nx) bool``, zero elsewhere; each lattice row evaluated as
+    one straight row from its first to its last active node
+    (:meth:`~lungdeform.interior.field.InteriorField.along_rows`)."""
+    nz, ny, nx = active.shape
+    k, j = np.nonzero(active.any(axis=2))
+    first = np.argmax(active[k, j], axis=1)
+    counts = nx - np.argmax(active[k, j, ::-1], axis=1) - first
+    starts = grid.world(np.stack([first, j, k], axis=1) * lat.stride + lat.lo)
+    step = grid.direction[:, 0] * (grid.spacing[0] * lat.stride[0])
+    out = np.zeros((nz * ny * nx, 3))
+    if len(k):
+        rank = np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
+        out[np.repeat((k * ny + j) * nx + first, counts) + rank] = interior.along_rows(starts, step, counts)
+        out[~active.ravel()] = 0.0
+    return out
+
+
 def lattice_field(model, grid: Grid, scales: dict, *, spacing_mm: float = NODE_SPACING_MM,
                   base_margin_mm: float = BASE_MARGIN_MM, reach_mm: float = 0.0):
     """The forward deformation on the lattice: ``(Lattice, u (z, y, x, 3) float mm, info)`` over the
@@ -238,10 +258,7 @@ def lattice_field(model, grid: Grid, scales: dict, *, spacing_mm: float = NODE_S
         d = outside_distance(lung.surface, pts, ins3, node_mm, margin)
         ins = ins3.ravel()
         active = ins | (d < margin)
-        f = np.zeros_like(pts)
-        if active.any():
-            f[active] = scales[name] * lung.interior.displacement(pts[active])
-        fields.append(f)
+        fields.append(scales[name] * active_values(lung.interior, grid, lat, active.reshape(shape3)))
         inside.append(ins)
         dist.append(d)
         evaluated += int(active.sum())
@@ -270,10 +287,10 @@ def upsample(lat: Lattice, values: np.ndarray, grid: Grid, matrix=None) -> np.nd
     axes = [V.axis_weights(grid.shape[2 - a], int(lat.lo[a]), int(lat.stride[a]), int(lat.dims[a]),
                            lat.box[0][a], lat.box[1][a]) for a in (2, 1, 0)]  # k, j, i
     const, steps = _affine_steps(grid, matrix)
-    out = np.zeros(tuple(grid.shape) + (3,), np.float32)
+    out = V.zeroed(tuple(grid.shape) + (3,))
     nz, ny, nx = grid.shape
     ranges = np.array([k0, k1, j0, j1, i0, i1] if matrix is None else [0, nz, 0, ny, 0, nx], np.int64)
-    return V.fill_field(out, c, *axes[0], *axes[1], *axes[2], const, steps, False, ranges)
+    return V.fill_field(out, c, (axes[0], axes[1], axes[2]), (const, steps), ranges)
 
 
 def sample(lat: Lattice, values: np.ndarray, grid: Grid, points) -> np.ndarray:
@@ -303,8 +320,8 @@ def add_affine(field: np.ndarray, grid: Grid, matrix) -> np.ndarray:
     nz, ny, nx = grid.shape
     none = [(np.full(n, -1, np.int64), np.zeros(n, np.float32)) for n in (nz, ny, nx)]
     const, steps = _affine_steps(grid, matrix)
-    return V.fill_field(field, np.zeros((1, 1, 1, 3), np.float32), *none[0], *none[1], *none[2], const, steps,
-                        True, np.array([0, nz, 0, ny, 0, nx], np.int64))
+    return V.fill_field(field, np.zeros((1, 1, 1, 3), np.float32), (none[0], none[1], none[2]),
+                        (const, steps), np.array([0, nz, 0, ny, 0, nx], np.int64))
 
 
 def _inverse_axes(spacing, direction) -> np.ndarray:

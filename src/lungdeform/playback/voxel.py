@@ -7,15 +7,30 @@ module only holds the loops that touch every voxel, so that no full-grid tempora
 - :func:`fill_field`: trilinear interpolation of lattice nodes to every voxel of a box plus an
   affine displacement at every voxel, in one pass (the lattice weights per index are precomputed
   along each axis, :func:`axis_weights`; per voxel row one bilinear row of nodes, then one lerp a
-  voxel);
+  voxel), added into a zeroed output and skipping the voxels it would leave at 0;
 - :func:`jacobian_pass`: ``det(I + ∇u)`` by central differences in physical units (one-sided at the
-  array's edges, as ``numpy.gradient``), written out or reduced to min, max and folded count.
+  array's edges, as ``numpy.gradient``), written out or reduced to min, max and folded count; 1
+  without arithmetic where nothing within a voxel moves.
 """
 
 from __future__ import annotations
 
+import mmap
+
 import numba
 import numpy as np
+
+
+def zeroed(shape) -> np.ndarray:
+    """``numpy.zeros(shape, float32)`` in its own anonymous memory map, which the kernel zero-fills a
+    4 KiB page at a time as it is first written. ``numpy.zeros`` asks for transparent huge pages for
+    a large array, and where memory is fragmented the kernel compacts memory at each first write:
+    the same fill and Jacobian pass of the bench field took 0.38–0.90 s of system time that way,
+    0.21–0.25 s this way (2 shared cores, load 14; docs/RADIOTHERAPY.md)."""
+    size = int(np.prod(shape, dtype=np.int64)) * 4
+    if size == 0:
+        return np.zeros(shape, np.float32)
+    return np.frombuffer(mmap.mmap(-1, size), np.float32).reshape(shape)
 
 
 def axis_weights(n_out: int, lo: int, stride: int, nodes: int, box_lo: int, box_hi: int):
@@ -44,24 +59,34 @@ def _row(values, k0, fz, j0, fy, buf):
 
 
 @numba.njit(cache=True, parallel=True)
-def fill_field(out, values, nodes_k, frac_k, nodes_j, frac_j, nodes_i, frac_i, const, steps, add, ranges):
-    """Write (or, with ``add``, add) into ``out : (z, y, x, 3) float32`` at voxels ``ranges`` (k0, k1,
-    j0, j1, i0, i1): the lattice ``values : (nz, ny, nx, 3) float32`` interpolated trilinearly where
-    all three axes' nodes (:func:`axis_weights`) are ≥ 0 (else 0), plus ``const + steps @ (i, j, k)``
-    (``const`` (3,) mm, ``steps`` (3, 3) mm per voxel, column a along index axis a). Separable: per
-    voxel row one bilinear lattice row (:func:`_row`, into a buffer per z-slice), then one lerp per voxel."""
+def fill_field(out, values, axes, affine_part, ranges):
+    """Add into ``out : (z, y, x, 3) float32`` at voxels ``ranges`` (k0, k1, j0, j1, i0, i1): the
+    lattice ``values : (nz, ny, nx, 3) float32`` interpolated trilinearly where all three axes' nodes
+    are ≥ 0 (else 0), plus ``const + steps @ (i, j, k)``. ``axes`` = the ``(nodes, frac)`` pairs
+    (:func:`axis_weights`) of axes k, j, i; ``affine_part`` = ``(const (3,) mm, steps (3, 3) mm per
+    voxel)``, column a of ``steps`` along index axis a. Separable: per voxel row one bilinear lattice
+    row (:func:`_row`, into a buffer per z-slice), then one lerp per voxel. A voxel that would get
+    exactly 0 (outside the lattice, or between two row nodes that do not move, and no affine part)
+    is not touched: a fresh ``numpy.zeros`` output is written, and paged in, only where the field moves."""
+    (nodes_k, frac_k), (nodes_j, frac_j), (nodes_i, frac_i) = axes
+    const, steps = affine_part
     last = values.shape[2] - 1
     affine = np.any(const != 0) or np.any(steps != 0)
     for k in numba.prange(ranges[0], ranges[1]):
         row = np.empty((values.shape[2], 3), np.float32)
+        still = np.ones(values.shape[2], np.bool_)
         for j in range(ranges[2], ranges[3]):
             lattice = nodes_k[k] >= 0 and nodes_j[j] >= 0
             if lattice:
                 _row(values, nodes_k[k], frac_k[k], nodes_j[j], frac_j[j], row)
+                for n in range(values.shape[2]):
+                    still[n] = row[n, 0] == 0 and row[n, 1] == 0 and row[n, 2] == 0
             for i in range(ranges[4], ranges[5]):
                 n0 = nodes_i[i]
                 inside = lattice and n0 >= 0
                 n1 = min(n0 + 1, last)
+                if not affine and not (inside and not (still[n0] and still[n1])):
+                    continue
                 f = frac_i[i]
                 for c in range(3):
                     x = 0.0
@@ -69,57 +94,105 @@ def fill_field(out, values, nodes_k, frac_k, nodes_j, frac_j, nodes_i, frac_i, c
                         x = row[n0, c] * (1 - f) + row[n1, c] * f
                     if affine:
                         x += const[c] + steps[c, 0] * i + steps[c, 1] * j + steps[c, 2] * k
-                    if add:
-                        out[k, j, i, c] += x
-                    else:
-                        out[k, j, i, c] = x
+                    out[k, j, i, c] += x
     return out
 
 
 @numba.njit(cache=True, inline="always")
 def _grad_row(f, k, j, i, near, inv, c):
-    """Row ``c`` of ``I + ∇u`` at voxel (k, j, i): ``(∂u_c/∂x_r + δ_cr for r = 0, 1, 2)``; the
-    differences central, one-sided at the array's edges (``near`` = the neighbours' indices and the
-    index steps between them, :func:`_det_at`)."""
-    kl, kh, jl, jh, il, ih, sk, sj, si = near
-    di = (np.float64(f[k, j, ih, c]) - np.float64(f[k, j, il, c])) / si
-    dj = (np.float64(f[k, jh, i, c]) - np.float64(f[k, jl, i, c])) / sj
-    dk = (np.float64(f[kh, j, i, c]) - np.float64(f[kl, j, i, c])) / sk
+    """Row ``c`` of ``I + ∇u`` at voxel (k, j, i): ``(∂u_c/∂x_r + δ_cr for r = 0, 1, 2)``; ``near`` =
+    the neighbours' indices and the reciprocal index steps between them (:func:`_det_row`)."""
+    kl, kh, jl, jh, il, ih, rk, rj, ri = near
+    di = (np.float64(f[k, j, ih, c]) - np.float64(f[k, j, il, c])) * ri
+    dj = (np.float64(f[k, jh, i, c]) - np.float64(f[k, jl, i, c])) * rj
+    dk = (np.float64(f[kh, j, i, c]) - np.float64(f[kl, j, i, c])) * rk
     return (di * inv[0, 0] + dj * inv[0, 1] + dk * inv[0, 2] + (c == 0),
             di * inv[1, 0] + dj * inv[1, 1] + dk * inv[1, 2] + (c == 1),
             di * inv[2, 0] + dj * inv[2, 1] + dk * inv[2, 2] + (c == 2))
 
 
 @numba.njit(cache=True, inline="always")
-def _det_at(f, k, j, i, inv):
-    """``det(I + ∇u)`` at voxel (k, j, i); ``inv[r, a] = ∂index_a / ∂x_r`` (a = i, j, k)."""
-    kl, kh = max(k - 1, 0), min(k + 1, f.shape[0] - 1)
-    jl, jh = max(j - 1, 0), min(j + 1, f.shape[1] - 1)
-    il, ih = max(i - 1, 0), min(i + 1, f.shape[2] - 1)
-    near = (kl, kh, jl, jh, il, ih, max(kh - kl, 1), max(jh - jl, 1), max(ih - il, 1))
+def _det_near(f, k, j, i, near, inv):
     a11, a12, a13 = _grad_row(f, k, j, i, near, inv, 0)
     a21, a22, a23 = _grad_row(f, k, j, i, near, inv, 1)
     a31, a32, a33 = _grad_row(f, k, j, i, near, inv, 2)
     return a11 * (a22 * a33 - a23 * a32) - a12 * (a21 * a33 - a23 * a31) + a13 * (a21 * a32 - a22 * a31)
 
 
+@numba.njit(cache=True)
+def _det_row(f, k, j, box_i, inv, dets):
+    """Write into ``dets[i − i0]`` ``det(I + ∇u)`` at the voxels (k, j, i) for i in ``box_i`` (i0, i1) of
+    ``f : (z, y, x, 3)``; ``inv[r, a] = ∂index_a / ∂x_r`` (a = i, j, k). The differences central,
+    one-sided at the array's edges (as ``numpy.gradient``): over 2 index steps or 1, so multiplying
+    by the halves and wholes below is exact division; the row's inner voxels in one branch-free loop."""
+    nz, ny, nx = f.shape[0], f.shape[1], f.shape[2]
+    kl, kh, jl, jh = max(k - 1, 0), min(k + 1, nz - 1), max(j - 1, 0), min(j + 1, ny - 1)
+    rk, rj = 0.5 if kh - kl == 2 else 1.0, 0.5 if jh - jl == 2 else 1.0
+    i0, i1 = box_i
+    lo, hi = max(i0, 1), min(i1, nx - 1)
+    for i in range(lo, hi):
+        dets[i - i0] = _det_near(f, k, j, i, (kl, kh, jl, jh, i - 1, i + 1, rk, rj, 0.5), inv)
+    for i in range(i0, i1):
+        if lo <= i < hi:
+            continue
+        il, ih = max(i - 1, 0), min(i + 1, nx - 1)
+        dets[i - i0] = _det_near(f, k, j, i, (kl, kh, jl, jh, il, ih, rk, rj, 0.5 if ih - il == 2 else 1.0), inv)
+    return dets
+
+
+@numba.njit(cache=True, parallel=True)
+def _row_spans(f, ranges):
+    """Per voxel row (k, j) of ``f : (z, y, x, 3)`` within one voxel of the box ``ranges`` (k0, k1, j0,
+    j1, i0, i1): ``(first, last) (z, y) int64``, its first and last voxel within one voxel of
+    ``[i0, i1)`` with a non-zero displacement (first > last: none; rows beyond the box: none)."""
+    nz, ny, nx = f.shape[0], f.shape[1], f.shape[2]
+    lo, hi = max(ranges[4] - 1, 0), min(ranges[5] + 1, nx)
+    first, last = np.full((nz, ny), hi, np.int64), np.full((nz, ny), lo - 1, np.int64)
+    for k in numba.prange(max(ranges[0] - 1, 0), min(ranges[1] + 1, nz)):
+        for j in range(max(ranges[2] - 1, 0), min(ranges[3] + 1, ny)):
+            for i in range(lo, hi):
+                if f[k, j, i, 0] != 0 or f[k, j, i, 1] != 0 or f[k, j, i, 2] != 0:
+                    first[k, j] = i
+                    break
+            for i in range(hi - 1, first[k, j], -1):
+                if f[k, j, i, 0] != 0 or f[k, j, i, 1] != 0 or f[k, j, i, 2] != 0:
+                    last[k, j] = i
+                    break
+            last[k, j] = max(last[k, j], first[k, j]) if first[k, j] < hi else lo - 1
+    return first, last
+
+
 @numba.njit(cache=True, parallel=True)
 def jacobian_pass(f, inv, ranges, out):
-    """Per z-slice ``(min, max, folded count)`` of :func:`_det_at` over the voxels ``ranges`` (k0, k1,
+    """Per z-slice ``(min, max, folded count)`` of :func:`_det_row` over the voxels ``ranges`` (k0, k1,
     j0, j1, i0, i1) of ``f : (z, y, x, 3)``; each determinant also written to ``out`` (same z, y, x
-    shape) unless ``out`` is empty. Returns ``(n, 3) float`` rows, one per slice."""
+    shape) unless ``out`` is empty. A voxel more than one voxel from every non-zero displacement in
+    its row and the four rows beside it (:func:`_row_spans`) has every difference 0: its determinant
+    is exactly 1, without arithmetic. Returns ``(n, 3) float`` rows, one per slice."""
+    nz, ny = f.shape[0], f.shape[1]
     nk = ranges[1] - ranges[0]
     rows = np.empty((max(nk, 0), 3))
     write = out.size > 0
+    i0, i1 = ranges[4], ranges[5]
+    first, last = _row_spans(f, ranges)
     for s in numba.prange(nk):
         k = ranges[0] + s
+        dets = np.empty(max(i1 - i0, 0))
         lo, hi, folded = np.inf, -np.inf, 0
         for j in range(ranges[2], ranges[3]):
-            for i in range(ranges[4], ranges[5]):
-                d = _det_at(f, k, j, i, inv)
-                lo, hi = min(lo, d), max(hi, d)
-                folded += d <= 0.0
-                if write:
-                    out[k, j, i] = d
+            kl, kh, jl, jh = max(k - 1, 0), min(k + 1, nz - 1), max(j - 1, 0), min(j + 1, ny - 1)
+            a = min(first[k, j], first[kl, j], first[kh, j], first[k, jl], first[k, jh]) - 1
+            b = max(last[k, j], last[kl, j], last[kh, j], last[k, jl], last[k, jh]) + 2
+            a, b = max(a, i0), max(min(b, i1), max(a, i0))
+            if a > i0 or b < i1:
+                lo, hi = min(lo, 1.0), max(hi, 1.0)
+            if a < b:
+                _det_row(f, k, j, (a, b), inv, dets)
+                for d in dets[:b - a]:
+                    lo, hi = min(lo, d), max(hi, d)
+                    folded += d <= 0.0
+            if write:
+                out[k, j, i0:i1] = 1.0
+                out[k, j, a:b] = dets[:b - a]
         rows[s, 0], rows[s, 1], rows[s, 2] = lo, hi, folded
     return rows

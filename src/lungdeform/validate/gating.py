@@ -14,7 +14,11 @@ unit as :func:`lungdeform.breathing.trace.read_trace` gives it, inhale positive)
    - ``model``: the model's (:class:`lungdeform.breathing.predict.BlendPredictor`) prediction inside;
    - ``model_intervals``: the model with its conformal predictive distribution
      (:mod:`lungdeform.breathing.predict_interval`): the predicted probability of the window at least
-     ``min_probability`` (0.5); with ``confident``, instead the whole ``coverage`` interval inside;
+     a threshold adapted online to the tolerated beam-on error (``rule.risk``, α = 0.05;
+     :class:`lungdeform.breathing.gating.RiskThreshold`), or fixed at ``min_probability`` without
+     ``risk``; with ``confident``, instead the whole ``coverage`` interval inside;
+   - ``linear_intervals``: the linear baseline under the same intervals and the same rule (the
+     comparison of the two predictors with everything else equal);
    - ``oracle``: the true ``x(t_i + latency)`` inside (knows the future: the ceiling);
 
 3. scored for every ``t_i`` at least ``warm_s`` (30 s) after the first sample with ``t_i + latency``
@@ -27,6 +31,12 @@ Also, per trace, ``matched``: the beam-on error of the model-with-intervals gate
 strategy's duty cycle (its samples of highest predicted window probability, as many as linear's
 beam-on samples; chosen after the fact: a comparison of the two trade-offs, not a gate).
 
+``leave_one_trace_out`` (with the adaptive rule): the check of the threshold's step γ, its only setting
+besides the clinical α. For each trace, γ of :data:`GAMMA_GRID` is chosen on the other traces (the
+highest median duty cycle among the steps whose median beam-on error is at most α) and scored on that
+trace, replaying :class:`lungdeform.breathing.gating.RiskThreshold` on the recorded window
+probabilities (the predictor never sees the beam, so the replay is what the live gate would decide).
+
 ``metrics.json``: ``{"traces": {NAME: {"none": {"duty_cycle", "beam_on_error", "residual_rms"}, …,
 "matched": {…}}}, "summary": {STRATEGY: {…}}, "targets": {…}, "errors": {…}, …}``.
 """
@@ -34,13 +44,20 @@ beam-on samples; chosen after the fact: a comparison of the two trade-offs, not 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from lungdeform.atomic import write_json
-from lungdeform.breathing.gating import BeamGate, GateRule, distance_outside, gate_point
+from lungdeform.breathing.gating import (
+    BeamGate,
+    GateRule,
+    RiskControl,
+    RiskThreshold,
+    distance_outside,
+    gate_point,
+)
 from lungdeform.breathing.predict import baseline_linear, check_horizon
 from lungdeform.breathing.trace import read_trace
 from lungdeform.errors import InputError, LungdeformError
@@ -48,12 +65,14 @@ from lungdeform.plot.figure import new_figure, save_png
 
 from .breathing import trace_files
 
-STRATEGIES = ("none", "linear", "model", "model_intervals", "oracle")
+STRATEGIES = ("none", "linear", "model", "model_intervals", "linear_intervals", "oracle")
 METRICS = ("duty_cycle", "beam_on_error", "residual_rms")
 WARM_S = 30.0
 #: must show: model_intervals beam-on error ≤ this × none's, at a duty cycle ≥ DUTY_FLOOR × none's
 TARGET_ERROR_OVER_NONE = 0.5
 TARGET_DUTY_OVER_NONE = 0.9
+#: the adaptive threshold's steps γ among which leave-one-trace-out chooses (the check of the default)
+GAMMA_GRID = (0.002, 0.005, 0.01, 0.02, 0.05)
 
 
 @dataclass(frozen=True)
@@ -77,21 +96,76 @@ def gate_decisions(t_s, x, config: GatingConfig) -> dict:
     t, v = np.asarray(t_s, float), np.asarray(x, float)
     lat = check_horizon(config.latency_ms / 1000.0)
     gate = BeamGate(lat, config.rule)
-    lin = baseline_linear(lat, dt_s=float(np.median(np.diff(t))))
+    dt = float(np.median(np.diff(t)))
+    lin = baseline_linear(lat, dt_s=dt)
+    lin_gate = BeamGate(lat, config.rule, point=baseline_linear(lat, dt_s=dt))
     n = t.size
-    win, prob = np.empty((n, 2)), np.empty(n)
+    win, prob, top = np.empty((n, 2)), np.empty(n), np.empty(n)
     dec = {k: np.zeros(n, bool) for k in STRATEGIES}
     for i in range(n):
         g = gate.update(t[i], v[i])
         win[i], prob[i] = g.window, g.probability
+        top[i] = gate.predictor.probability_below(math.inf)
         dec["none"][i] = gate_point(g.window, v[i])
         dec["linear"][i] = gate_point(g.window, lin.update(t[i], v[i]))
         dec["model"][i] = gate_point(g.window, g.predicted)
         dec["model_intervals"][i] = g.beam_on
+        dec["linear_intervals"][i] = lin_gate.update(t[i], v[i]).beam_on
     truth = np.interp(t + lat, t, v)
     truth[t + lat > t[-1]] = np.nan
     dec["oracle"] = (win[:, 0] <= truth) & (truth <= win[:, 1])
-    return {"window": win, "truth": truth, "probability": prob, **dec}
+    return {"window": win, "truth": truth, "probability": prob, "highest": top, **dec}
+
+
+def replay_threshold(t_s, x, decisions: dict, latency_s: float, control: RiskControl) -> np.ndarray:
+    """The adaptive gate's decisions ``(n,) bool`` with another ``control``, replayed on the recorded
+    window probabilities of :func:`gate_decisions` (``probability``, ``highest``, ``window``): the
+    predictor and its distribution never see the beam, so this is what :class:`BeamGate` would decide
+    (tests check it equals the live gate for the default control)."""
+    gate = RiskThreshold(latency_s, control)
+    on = np.zeros(len(t_s), bool)
+    for i, (ti, xi) in enumerate(zip(t_s, x)):
+        gate.observe(ti, xi)
+        on[i] = gate.decide(ti, decisions["probability"][i], decisions["highest"][i], tuple(decisions["window"][i]))
+    return on
+
+
+def _or_one(error: float | None) -> float:
+    """A beam-on error for ranking: a gate never on (None) counts as always wrong."""
+    return 1.0 if error is None else float(error)
+
+
+def _pick_gamma(rows: dict, names, alpha: float) -> float:
+    """The γ of GAMMA_GRID with the highest median duty cycle over ``names`` among those whose median
+    beam-on error is at most ``alpha``; none such: the lowest median beam-on error."""
+    def key(g):
+        duty = np.median([rows[n][g]["duty_cycle"] for n in names])
+        err = np.median([_or_one(rows[n][g]["beam_on_error"]) for n in names])
+        return (err <= alpha, duty if err <= alpha else -err)
+    return max(GAMMA_GRID, key=key)
+
+
+def leave_one_trace_out(scores: dict, config: GatingConfig) -> dict | None:
+    """Leave-one-trace-out check of the adaptive threshold's step γ (the only setting it has besides
+    the clinical α): for each trace, γ of :data:`GAMMA_GRID` chosen on the other traces
+    (:func:`_pick_gamma`), scored on that trace. None without the adaptive rule or with one trace."""
+    risk = config.rule.risk
+    if risk is None or config.rule.confident or len(scores) < 2:
+        return None
+    lat = config.latency_ms / 1000.0
+    rows = {}
+    for name, r in scores.items():
+        t, x = r["_trace"]
+        d, ok = r["_decisions"], r["_scored"]
+        rows[name] = {g: gate_metrics(replay_threshold(t, x, d, lat, replace(risk, gamma=g))[ok], d["truth"][ok],
+                                      d["window"][ok]) for g in GAMMA_GRID}
+    held = {}
+    for name in rows:
+        g = _pick_gamma(rows, [n for n in rows if n != name], risk.target_error)
+        held[name] = {"gamma": g, **{m: rows[name][g][m] for m in ("duty_cycle", "beam_on_error")}}
+    med = {m: float(np.median([_or_one(h[m]) for h in held.values()])) for m in ("duty_cycle", "beam_on_error")}
+    return {"traces": held, "summary": med, "gamma_grid": list(GAMMA_GRID), "gamma_all": _pick_gamma(rows, list(rows), risk.target_error),
+            "gamma_default": risk.gamma, "target_error": risk.target_error}
 
 
 def gate_metrics(on: np.ndarray, truth: np.ndarray, window: np.ndarray) -> dict:
@@ -128,7 +202,7 @@ def score_trace(t_s, x, config: GatingConfig) -> dict:
                       "model_intervals_beam_on_error": matched_error(d["probability"][ok], d["truth"][ok],
                                                                      d["window"][ok], n_lin)}
     out["n_scored"] = int(ok.sum())
-    out["_decisions"] = d
+    out["_decisions"], out["_scored"] = d, ok
     return out
 
 
@@ -144,7 +218,8 @@ def summary(traces: dict) -> dict:
 
 
 def targets(s: dict) -> dict:
-    """The must-show comparisons on the medians: against no compensation and against linear."""
+    """The must-show comparisons on the medians: against no compensation and against linear (its point
+    gate; the linear baseline under the same intervals and rule; and at linear's duty cycle)."""
     none, mi, lin = s["none"], s["model_intervals"], s["linear"]
 
     def le(a, b, f=1.0):
@@ -161,6 +236,11 @@ def targets(s: dict) -> dict:
                                and le(lin["duty_cycle"], mi["duty_cycle"]),
                                "beam_on_error": [mi["beam_on_error"], lin["beam_on_error"]],
                                "duty_cycle": [mi["duty_cycle"], lin["duty_cycle"]]},
+        "better_than_linear_same_rule": {
+            "met": le(mi["beam_on_error"], s["linear_intervals"]["beam_on_error"])
+            and le(s["linear_intervals"]["duty_cycle"], mi["duty_cycle"]),
+            "beam_on_error": [mi["beam_on_error"], s["linear_intervals"]["beam_on_error"]],
+            "duty_cycle": [mi["duty_cycle"], s["linear_intervals"]["duty_cycle"]]},
         "better_than_linear_at_matched_duty": {
             "met": le(s["matched"]["model_intervals_beam_on_error"], s["matched"]["linear_beam_on_error"]),
             "beam_on_error": [s["matched"]["model_intervals_beam_on_error"], s["matched"]["linear_beam_on_error"]]},
@@ -234,8 +314,10 @@ def validate_gating(data: Path, out: Path, config: GatingConfig | None = None, p
     traces = {n: {k: v for k, v in r.items() if not k.startswith("_")} for n, r in scores.items()}
     s = summary(traces)
     metrics = {"traces": traces, "summary": s, "targets": targets(s), "n_traces": len(traces),
+               "leave_one_trace_out": leave_one_trace_out(scores, config),
                "errors": errors, "latency_ms": config.latency_ms, "window": config.rule.window.text,
                "confident": config.rule.confident, "min_probability": config.rule.min_probability,
+               "target_error": None if config.rule.risk is None else config.rule.risk.target_error,
                "coverage": config.rule.interval.coverage, "plots": files, "protocol": protocol(config)}
     write_json(Path(out) / "metrics.json", metrics, strict=True)
     return metrics

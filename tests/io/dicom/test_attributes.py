@@ -66,3 +66,34 @@ def test_decimal_keeps_the_places_asked_for_while_they_fit():
     # long for that falls back to significant digits within 16 bytes
     assert decimal(-166.0, places=6) == "-166.000000" and decimal(4.800000190734863, 6) == "4.8"
     assert decimal(-123456789.123456, places=6) == "-123456789.123"  # 12 significant digits
+
+
+def test_declare_charset_says_utf8_only_for_text_that_is_not_ascii(tmp_path):
+    # why: a CT phase or REG copied a Latin-1 source's "Müller^Jürgen" without SpecificCharacterSet,
+    # so the file held bytes outside the default repertoire (dciodvfy: an error). Truth: pydicom's
+    # own bytes on disk are the UTF-8 encoding once it is declared; ASCII text declares nothing
+    import io
+
+    from pydicom import dcmread
+    from pydicom.dataset import FileMetaDataset
+    from pydicom.uid import ExplicitVRLittleEndian
+
+    from lungdeform.io.dicom.attributes import declare_charset
+
+    plain = Dataset()
+    plain.PatientName = "Doe^Jane"
+    declare_charset(plain)
+    assert "SpecificCharacterSet" not in plain
+    ds = Dataset()
+    ds.PatientName, ds.PatientID = "Doe^Jane", "1"
+    item = Dataset()
+    item.ROIName = "Tumör"  # in a sequence: the walk goes into it
+    ds.StructureSetROISequence = Sequence([item])
+    declare_charset(ds)
+    assert ds.SpecificCharacterSet == "ISO_IR 192"
+    ds.file_meta = FileMetaDataset()
+    ds.file_meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    buf = io.BytesIO()
+    ds.save_as(buf)
+    assert "Tumör".encode() in buf.getvalue()
+    assert dcmread(io.BytesIO(buf.getvalue()), force=True).StructureSetROISequence[0].ROIName == "Tumör"

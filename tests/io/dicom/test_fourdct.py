@@ -3,6 +3,8 @@ percentages or TemporalPositionIndex, ordered, and refused when they cannot be t
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import SimpleITK as sitk
@@ -195,3 +197,17 @@ def test_frame_of_reference_shared_by_every_phase(tmp_path, rng):
     write_cycle(tmp_path / "b", rng, [1.0, 1.1])
     files = [sorted(str(f) for f in (tmp_path / "b" / f"phase{p}").iterdir()) for p in range(2)]
     assert frame_of_reference(files) is None
+
+
+@pytest.mark.parametrize("keyword", ["StudyInstanceUID", "FrameOfReferenceUID", "SeriesInstanceUID"])
+def test_a_slice_whose_uid_is_no_dicom_uid_is_refused_by_the_one_walk(tmp_path, rng, keyword):
+    # why: the folder's UIDs go into the fitted model's record of its scans and into every series
+    # derived from it; a value that is no DICOM UID (letters; a leading zero) is refused on read, as
+    # the other readers refuse it (lungdeform.io.dicom.attributes.require), naming the file
+    write_4dct(tmp_path, rng, 3)
+    files = _phase_files(tmp_path, 0) + _phase_files(tmp_path, 1) + _phase_files(tmp_path, 2)
+    with warnings.catch_warnings():  # pydicom's warning on writing it: the bad value is on purpose
+        warnings.simplefilter("ignore")
+        _retag(files, **{keyword: "1.2.03.abc"})
+    with pytest.raises(ReadError, match=rf"phase0[/\\]\S+\.dcm: {keyword} '1\.2\.03\.abc' is not a DICOM UID"):
+        read_phases(tmp_path)

@@ -2,9 +2,10 @@
 
 Reading: :func:`require` checks that a dataset holds the attributes a reader needs, each readable,
 and that those holding UIDs are DICOM UIDs (:data:`UID`); a :class:`~lungdeform.errors.ReadError`
-names the file and the attributes. Every pydicom reader of this package calls it
+names the file and the attributes. Every reader of this package calls it
 (:mod:`~lungdeform.io.dicom.rtstruct`, :mod:`~lungdeform.io.dicom.series`,
-:mod:`~lungdeform.io.dicom.registration`).
+:mod:`~lungdeform.io.dicom.registration`, and :mod:`~lungdeform.io.dicom.fourdct` on the
+attributes GDCM read of each file, :func:`as_dataset`).
 
 Writing: :func:`decimal` formats a number as a Decimal String of at most 16 bytes (PS3.5 6.2, DS;
 Eclipse refuses longer ones) and :func:`check_dataset` walks a dataset, its sequences included,
@@ -39,16 +40,17 @@ def _first_line(exc: BaseException) -> str:
     return text.splitlines()[0][:200] if text else "no detail"
 
 
-def require(ds: Dataset, keys, where, purpose: str) -> None:
+def require(ds: Dataset, keys, where, purpose: str, optional=()) -> None:
     """:class:`ReadError` naming ``where`` (the file) when ``ds`` lacks any of ``keys`` (absent or
-    empty), when one cannot be read (pydicom converts on first access), or when one of the UID
-    attributes among them (:data:`_UID_KEYS`) is not a DICOM UID; ``purpose`` ends the message
-    ("which an RTSTRUCT needs")."""
+    empty), when one of ``keys`` or ``optional`` cannot be read (pydicom converts on first access),
+    or when one of the UID attributes among them (:data:`_UID_KEYS`) is not a DICOM UID (an
+    ``optional`` one only when present); ``purpose`` ends the message ("which an RTSTRUCT needs")."""
     try:  # a value pydicom cannot convert raises on first access
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             missing = [k for k in keys if not ds.get(k)]
-            uids = {k: str(ds.get(k, "")) for k in keys if k in _UID_KEYS and k not in missing}
+            given = [k for k in optional if ds.get(k)]
+            uids = {k: str(ds.get(k, "")) for k in (*keys, *given) if k in _UID_KEYS and k not in missing}
     except Exception as exc:  # any conversion failure becomes one clear line
         raise ReadError(f"{where}: unreadable DICOM attribute ({type(exc).__name__}: {_first_line(exc)})") from exc
     if missing:
@@ -56,6 +58,18 @@ def require(ds: Dataset, keys, where, purpose: str) -> None:
     for key, uid in uids.items():
         if not UID.fullmatch(uid):
             raise ReadError(f"{where}: {key} {uid[:70]!r} is not a DICOM UID (digits and dots, at most 64 characters)")
+
+
+def as_dataset(values: dict[str, str]) -> Dataset:
+    """A dataset of ``{keyword: text}`` (attributes another reader gave as strings, e.g. GDCM's),
+    the empty ones left out, so that :func:`require` checks them as it checks a pydicom dataset."""
+    ds = Dataset()
+    with warnings.catch_warnings():  # a malformed value is require()'s to refuse, not pydicom's to warn of
+        warnings.simplefilter("ignore")
+        for key, text in values.items():
+            if text:
+                setattr(ds, key, text)
+    return ds
 
 
 def decimal(value: float, digits: int = 12, places: int | None = None) -> str:
@@ -73,6 +87,23 @@ def decimal(value: float, digits: int = 12, places: int | None = None) -> str:
         if len(text) <= 16:
             return text
     raise InputError(f"{value!r} cannot be written as a DICOM decimal string of 16 bytes")
+
+
+#: Text value representations, whose characters SpecificCharacterSet (0008,0005) governs (PS3.5 6.1.2.3)
+TEXT_VRS = ("SH", "LO", "ST", "LT", "UT", "UC", "PN")
+
+
+def declare_charset(ds: Dataset) -> None:
+    """Set ``ds.SpecificCharacterSet`` to ``ISO_IR 192`` (UTF-8) when a text value of ``ds`` or its
+    sequences is not ASCII (a patient name copied from a Latin-1 source, ``Müller``), so that pydicom
+    writes it as UTF-8 and says so; without it the file would hold bytes outside the default
+    repertoire, which dciodvfy and planning systems refuse or garble (PS3.5 6.1.2.3)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        texts = [e.value for e in ds.iterall() if e.VR in TEXT_VRS and e.value is not None]
+    values = [v for t in texts for v in (t if isinstance(t, (list, tuple, MultiValue)) else [t])]
+    if not all(str(v).isascii() for v in values):
+        ds.SpecificCharacterSet = "ISO_IR 192"
 
 
 def type2_defaults(ds: Dataset, keys) -> None:

@@ -38,6 +38,7 @@ import SimpleITK as sitk
 from lungdeform.errors import ReadError
 from lungdeform.io.grid import Image, check_grid, quiet_itk
 
+from .attributes import as_dataset, require
 from .guard import check_dicom_file, is_dicom_file
 from .slices import GEOMETRY_TAGS, SliceGeometry, check_orientations, check_slices, check_spacing
 
@@ -46,6 +47,9 @@ PHASE_TAGS = (("0020|9128", "TemporalPositionIndex"), ("0020|0100", "TemporalPos
               ("0018|1060", "TriggerTime"), ("0008|0032", "AcquisitionTime"))
 #: The tags that must agree across the whole folder: one patient, one study, one frame of reference.
 SAME_TAGS = (("0010|0020", "PatientID"), ("0020|000d", "StudyInstanceUID"), ("0020|0052", "FrameOfReferenceUID"))
+#: The UIDs every slice's header is checked for (:func:`~lungdeform.io.dicom.attributes.require`): the
+#: series that groups slices into phases required, the study and frame of reference valid when given.
+UID_TAGS = (("0020|000e", "SeriesInstanceUID"), ("0020|000d", "StudyInstanceUID"), ("0020|0052", "FrameOfReferenceUID"))
 _READ_TAGS = (("0020|000e", "0008|103e") + GEOMETRY_TAGS + tuple(t for t, _ in PHASE_TAGS)
               + tuple(t for t, _ in SAME_TAGS))
 _PERCENT = re.compile(r"(\d+(?:\.\d+)?)\s*%|\bphase[\s_:=-]*(\d+(?:\.\d+)?)", re.I)
@@ -251,6 +255,8 @@ def read_phases(folder, *, max_voxels=None) -> list[Phase]:
         info = _slice_tags(f)
         if info is None:
             raise ReadError(f"{folder}: {f} is not a readable DICOM image")
+        require(as_dataset({name: info[tag] for tag, name in UID_TAGS}), ("SeriesInstanceUID",), f,
+                "which tells the phases of a 4-D CT apart", optional=("StudyInstanceUID", "FrameOfReferenceUID"))
         infos.append((f, info))
     if not infos:
         raise ReadError(f"{folder}: no DICOM files in this folder or its subfolders")
@@ -291,5 +297,6 @@ def frame_of_reference(files_per_phase) -> str | None:
             ds = pydicom.dcmread(files[0], stop_before_pixels=True, specific_tags=["FrameOfReferenceUID"])
         except (OSError, pydicom.errors.InvalidDicomError) as exc:
             raise ReadError(f"{files[0]}: cannot read its FrameOfReferenceUID ({exc})") from exc
+        require(ds, (), files[0], "which a 4-D CT's phases share", optional=("FrameOfReferenceUID",))
         uids.add(str(ds.get("FrameOfReferenceUID", "") or "").strip())
     return uids.pop() if len(uids) == 1 and "" not in uids else None

@@ -44,7 +44,7 @@ from lungdeform import __version__
 from lungdeform.atomic import atomic_path
 from lungdeform.errors import InputError
 
-from .attributes import check_dataset, decimal, type2_defaults
+from .attributes import check_dataset, decimal, declare_charset, type2_defaults
 from .rtstruct import CTSeries
 
 #: Deformable Spatial Registration Storage
@@ -170,6 +170,7 @@ def build_registration(field, grid, fixed: CTSeries, moving: CTSeries | None = N
     items.append(_registration_item(moving, str(source), grid_item))
     ds.DeformableRegistrationSequence = Sequence(items)
     _references(ds, fixed, moving)
+    declare_charset(ds)  # a patient name that is not ASCII: UTF-8, declared
     check_dataset(ds, "REG")
     return ds
 

@@ -33,7 +33,7 @@ from lungdeform.atomic import atomic_path
 from lungdeform.errors import InputError, ReadError
 from lungdeform.geometry.contours import contours_to_mesh, section_mesh
 
-from .attributes import check_dataset, require
+from .attributes import check_dataset, declare_charset, require
 from .series import dicom_series_files
 
 #: RT Structure Set Storage
@@ -43,8 +43,6 @@ STUDY_SOP_CLASS = "1.2.840.10008.3.1.2.3.1"
 #: ROI colours (RGB) given in turn
 COLOURS = ((255, 0, 0), (0, 160, 255), (0, 200, 0), (255, 160, 0), (200, 0, 255), (255, 255, 0),
            (0, 255, 200), (255, 80, 160), (120, 120, 255), (160, 255, 80))
-#: Text value representations (checked for non-ASCII characters before writing)
-_TEXT_VRS = ("SH", "LO", "ST", "LT", "UT", "UC", "PN")
 #: Study and patient attributes copied from the CT into the structure set
 _COPIED = ("PatientName", "PatientID", "PatientBirthDate", "PatientSex", "StudyInstanceUID", "StudyDate",
            "StudyTime", "StudyID", "AccessionNumber", "ReferringPhysicianName", "StudyDescription")
@@ -291,37 +289,118 @@ def _check_slice_positions(levels: np.ndarray, path) -> None:
                         "contours on missing slices would be lost")
 
 
-def check_structure_on_ct(structure: Structure, ct: CTSeries, source: str) -> list[str]:
+def check_structure_on_ct(structure: Structure, ct: CTSeries, source: str, option: str = "--reference-ct") -> list[str]:
     """Refuse (:class:`InputError` naming ``source``, the structure and the cause) a structure that
     cannot be written on ``ct``: another patient (PatientID, when both give one), another Frame of
     Reference than the CT's (its coordinates mean nothing there), slices it is drawn on that the CT
     lacks (when it references slices of this series), or contours beyond the CT's first or last
-    slice. Returns warnings: the same Frame of Reference in another study."""
+    slice. Returns warnings: the same Frame of Reference in another study. ``option`` names the CT
+    in messages (``--reference-ct``, ``--reference``)."""
     name = f"{source}: structure {structure.name!r}"
     frame, study = str(ct.header.FrameOfReferenceUID), str(ct.header.StudyInstanceUID)
     patient = str(ct.header.get("PatientID", "")).strip()
     if structure.patient_id and patient and structure.patient_id != patient:
-        raise InputError(f"{name} belongs to patient {structure.patient_id!r}, --reference-ct {ct.source} to "
+        raise InputError(f"{name} belongs to patient {structure.patient_id!r}, {option} {ct.source} to "
                          f"patient {patient!r}: not the same patient")
     if not structure.frame_uid:
-        raise InputError(f"{name} has no Frame of Reference UID: cannot check it is drawn on --reference-ct {ct.source}")
+        raise InputError(f"{name} has no Frame of Reference UID: cannot check it is drawn on {option} {ct.source}")
     if structure.frame_uid != frame:
         also = f"; study {structure.study_uid} against {study}" if structure.study_uid and structure.study_uid != study else ""
-        raise InputError(f"{name} is in Frame of Reference {structure.frame_uid}, --reference-ct {ct.source} in "
+        raise InputError(f"{name} is in Frame of Reference {structure.frame_uid}, {option} {ct.source} in "
                          f"{frame}{also}: not the CT it was drawn on")
     ours = structure.image_uids & set(ct.sop_uids)
     lost = structure.image_uids - set(ct.sop_uids)
     if ours and lost:
-        raise InputError(f"{name} is drawn on {len(lost)} slice(s) that --reference-ct {ct.source} lacks "
+        raise InputError(f"{name} is drawn on {len(lost)} slice(s) that {option} {ct.source} lacks "
                          f"(e.g. SOP Instance UID {min(lost)}): missing slices")
-    check_within_slices(ct, name, np.concatenate([c for c in structure.contours if len(c)]))
+    check_within_slices(ct, name, np.concatenate([c for c in structure.contours if len(c)]), option)
     if structure.study_uid and structure.study_uid != study:
-        return [f"{name} is in study {structure.study_uid}, --reference-ct {ct.source} in study {study} "
+        return [f"{name} is in study {structure.study_uid}, {option} {ct.source} in study {study} "
                 "(the same Frame of Reference): check that this is the planning CT it was drawn on"]
     return []
 
 
-def check_within_slices(ct: CTSeries, name: str, points) -> None:
+def check_ct_is_scan(ct: CTSeries, scans, k: int) -> None:
+    """Refuse (:class:`InputError` naming ``--reference-ct`` and the mismatch) a CT that is not
+    scan ``k`` of a fit: ``scans`` the model's provenance ``scans`` (one identity per fitted scan,
+    :func:`lungdeform.evaluate.inputs.scan_identity`). Its patient (when both give one) and Frame of
+    Reference (when scan ``k`` was a DICOM series) must be scan ``k``'s, and its slices must span scan
+    ``k``'s image box (each face within the larger of the two voxel sizes and 0.5 mm; a mask
+    segmented with ``--downsample`` spans the same box). Contours in scan ``k``'s frame written on
+    another CT would be a wrong answer: positions meaningful in one frame, labelled with another."""
+    where = f"--reference-ct {ct.source}"
+    if not scans or not 0 <= k < len(scans) or not isinstance(scans[k], dict):
+        raise InputError(f"{where}: the model records no identity of scan {k} (fitted before lungdeform recorded "
+                         f"its scans): cannot check that this CT is scan {k}'s; fit again, or give --volume-ml")
+    scan = scans[k]
+    what = f"scan {k} ({scan.get('source', '?')})"
+    if not scan.get("frame_of_reference") and not scan.get("grid"):
+        raise InputError(f"{where}: {what} was neither a DICOM series nor an image (a mesh?): nothing to check "
+                         f"that this CT is scan {k}'s against; give --volume-ml")
+    patient = str(ct.header.get("PatientID", "") or "").strip()
+    if scan.get("patient_id") and patient and scan["patient_id"] != patient:
+        raise InputError(f"{where}: patient {patient!r}, {what} patient {scan['patient_id']!r}: not scan {k}'s series")
+    frame = str(ct.header.FrameOfReferenceUID)
+    if scan.get("frame_of_reference") and scan["frame_of_reference"] != frame:
+        raise InputError(f"{where}: Frame of Reference {frame}, {what} {scan['frame_of_reference']}: not scan {k}'s "
+                         "series (its contours would be written in another frame)")
+    if scan.get("grid"):
+        _check_box(ct, scan["grid"], where, what)
+
+
+def check_structure_on_scan(structure: Structure, scans, source: str) -> None:
+    """Refuse (:class:`InputError` naming ``source`` and the structure) a structure that is not drawn
+    on scan 0 of a fit (``scans``, as :func:`check_ct_is_scan`): another patient, or another Frame
+    of Reference than scan 0's; a scan 0 that was no DICOM series has no frame to check it against,
+    refused too. For ``track --scan K`` where the fit aligned scan K: the structure is drawn in the
+    model's frame (scan 0's), its moved contours are written in scan K's, on scan K's CT."""
+    name = f"{source}: structure {structure.name!r}"
+    scan = scans[0] if scans and isinstance(scans[0], dict) else {}
+    if scan.get("patient_id") and structure.patient_id and scan["patient_id"] != structure.patient_id:
+        raise InputError(f"{name} belongs to patient {structure.patient_id!r}, scan 0 of the fit "
+                         f"({scan.get('source', '?')}) to patient {scan['patient_id']!r}: not the same patient")
+    if not scan.get("frame_of_reference"):
+        raise InputError(f"{name}: scan 0 of the fit ({scan.get('source', '?')}) was no DICOM series, so nothing shows "
+                         "the structure is drawn on it; give --no-rigid, or fit DICOM series")
+    if structure.frame_uid != scan["frame_of_reference"]:
+        raise InputError(f"{name} is in Frame of Reference {structure.frame_uid or '(none)'}, scan 0 of the fit "
+                         f"({scan.get('source', '?')}) in {scan['frame_of_reference']}: not drawn on the model's scan")
+
+
+def _ct_box(ct: CTSeries) -> tuple[np.ndarray, float]:
+    """``((2, 3) lowest and highest voxel-centre corner mm LPS, largest voxel size mm)`` of ``ct``."""
+    h = ct.header
+    require(h, ("PixelSpacing", "Rows", "Columns"), ct.source, "which the check against the fitted scan needs")
+    iop = np.asarray([float(v) for v in h.ImageOrientationPatient], float).reshape(2, 3)
+    dy, dx = _numbers(h, "PixelSpacing", 2, ct.source)  # row spacing, column spacing
+    rows, cols = int(h.Rows), int(h.Columns)
+    corners = [o + i * (cols - 1) * dx * iop[0] + j * (rows - 1) * dy * iop[1]
+               for o in (ct.origins[0], ct.origins[-1]) for i in (0, 1) for j in (0, 1)]
+    step = float(np.median(np.diff(ct.levels))) if len(ct.levels) > 1 else 0.0
+    return np.array([np.min(corners, 0), np.max(corners, 0)]), max(dx, dy, step)
+
+
+def _span(box: np.ndarray) -> str:
+    """``"(x0..x1, y0..y1, z0..z1) mm"`` of a (2, 3) box."""
+    return "(" + ", ".join(f"{lo:.1f}..{hi:.1f}" for lo, hi in zip(box[0], box[1])) + ") mm"
+
+
+def _check_box(ct: CTSeries, grid: dict, where: str, what: str) -> None:
+    """InputError when ``ct``'s voxel-centre box differs from that of the recorded ``grid``."""
+    size, spacing = np.asarray(grid["size"], float), np.asarray(grid["spacing"], float)
+    origin, direction = np.asarray(grid["origin"], float), np.asarray(grid["direction"], float).reshape(3, 3)
+    idx = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], float) * (size - 1)
+    corners = origin + (idx * spacing) @ direction.T
+    box = np.array([corners.min(0), corners.max(0)])
+    ours, voxel = _ct_box(ct)
+    tol = max(voxel, float(spacing.max())) + 0.5
+    off = np.abs(ours - box)
+    if off.max() > tol:
+        raise InputError(f"{where}: its slices span {_span(ours)} LPS, {what} spans {_span(box)}: not scan "
+                         f"{what.split()[1]}'s series (another grid, {off.max():.1f} mm off)")
+
+
+def check_within_slices(ct: CTSeries, name: str, points, option: str = "--reference-ct") -> None:
     """Refuse (:class:`InputError` naming ``name``) ``points : (n, 3)`` mm reaching a slice spacing
     or more beyond the first or last slice of ``ct``: a slice there would cut it, and the CT has
     none, so its contours there would be lost (a surface through contours on the end slice closes
@@ -331,7 +410,7 @@ def check_within_slices(ct: CTSeries, name: str, points) -> None:
     step = float(np.median(np.diff(levels))) if len(levels) > 1 else 0.0
     if not (h.min() > levels[0] - step - 1e-6 and h.max() < levels[-1] + step + 1e-6):
         raise InputError(f"{name} reaches {h.min():.1f} to {h.max():.1f} mm along the slice normal, beyond the "
-                         f"slices of --reference-ct {ct.source} ({levels[0]:.1f} to {levels[-1]:.1f} mm, "
+                         f"slices of {option} {ct.source} ({levels[0]:.1f} to {levels[-1]:.1f} mm, "
                          f"{step:.2f} mm apart): its contours there would be lost")
 
 
@@ -361,14 +440,8 @@ def build_rtstruct(ct: CTSeries, surfaces: list, *, label: str = "lungdeform",
         contours = _slice_contours(ct, v, f)
         counts[name] = len(contours)
         _add_roi(ds, number, name, kind, COLOURS[(number - 1) % len(COLOURS)], contours, ct)
-    if not all(_ascii(e.value) for e in ds.iterall() if e.VR in _TEXT_VRS):
-        ds.SpecificCharacterSet = "ISO_IR 192"  # UTF-8: a name that is not ASCII round-trips
+    declare_charset(ds)  # UTF-8 when a name that is not ASCII: it round-trips
     return ds, counts
-
-
-def _ascii(value) -> bool:
-    values = value if isinstance(value, (list, tuple, MultiValue)) else [value]
-    return all(str(v).isascii() for v in values)
 
 
 def write_rtstruct(path, ct: CTSeries, surfaces: list, *, label: str = "lungdeform") -> dict:

@@ -54,7 +54,7 @@ from pydicom.uid import PYDICOM_IMPLEMENTATION_UID, ExplicitVRLittleEndian, gene
 from lungdeform.errors import InputError, ReadError
 from lungdeform.io.grid import Image, check_grid, quiet_itk
 
-from .attributes import check_dataset, decimal, require, type2_defaults
+from .attributes import check_dataset, decimal, declare_charset, require, type2_defaults
 from .guard import check_dicom_file, is_dicom_file
 from .slices import GEOMETRY_TAGS, SliceGeometry, check_slices, check_spacing
 
@@ -172,6 +172,26 @@ def read_series(path, max_voxels=None) -> sitk.Image:
         img = reader.Execute()
     check_spacing(img.GetSpacing()[2], geometry, path)
     return img
+
+
+def series_identity(files) -> dict[str, str]:
+    """What tells one DICOM series from another, read from the first of its ``files`` (pydicom,
+    header only): ``{"patient_id", "study_uid", "series_uid", "frame_of_reference"}`` (``""`` where
+    the file has none). A model records it per fitted scan, so that an output later said to be on
+    scan K's series can be checked against it (:func:`lungdeform.io.dicom.rtstruct.check_ct_is_scan`).
+    :class:`ReadError` naming the file when it cannot be read, lacks a SeriesInstanceUID or holds a
+    UID that is not one (:func:`~lungdeform.io.dicom.attributes.require`)."""
+    first = str(next(iter(files)))
+    try:
+        ds = pydicom.dcmread(first, stop_before_pixels=True)
+    except (InvalidDicomError, OSError, EOFError, ValueError) as exc:
+        raise ReadError(f"{first}: not a readable DICOM slice ({exc})") from exc
+    require(ds, ("SeriesInstanceUID",), first, "which a fitted scan's record needs",
+            optional=("StudyInstanceUID", "FrameOfReferenceUID"))
+    return {"patient_id": str(ds.get("PatientID", "") or "").strip(),
+            "study_uid": str(ds.get("StudyInstanceUID", "") or "").strip(),
+            "series_uid": str(ds.SeriesInstanceUID).strip(),
+            "frame_of_reference": str(ds.get("FrameOfReferenceUID", "") or "").strip()}
 
 
 def study_header(source=None) -> Dataset:
@@ -324,6 +344,7 @@ def _write_slice(path: Path, series: Dataset, pixels: np.ndarray, k: int, positi
     ds.SOPInstanceUID, ds.InstanceNumber = meta.MediaStorageSOPInstanceUID, k + 1
     ds.ImagePositionPatient = [decimal(x, places=6) for x in position]
     ds.PixelData = np.ascontiguousarray(pixels, dtype="<i2").tobytes()
+    declare_charset(ds)  # a Latin-1 patient name of the source, written as UTF-8 and declared
     check_dataset(ds, str(path))
     ds.save_as(path, enforce_file_format=True)
     return str(ds.SOPInstanceUID)

@@ -1,0 +1,154 @@
+"""The radiotherapy workflow (docs/RADIOTHERAPY.md) on DICOM that no lungdeform code wrote.
+
+Input (tests/vendor_dicom.py, plain pydicom): the chest phantom of tests/segment/test_lungs.py as a
+vendor-like CT export — random file names without a suffix in random order, InstanceNumber unrelated
+to position, Rescale slope 0.5 / intercept −1100 over 12-bit unsigned pixels, private tags, a Latin-1
+patient name, every third file implicit VR, a localizer and a second (thicker) series in the same
+folder — and an RTSTRUCT in the style of a planning system (a 10 mm spherical GTV, one contour per
+slice in random order, an empty External ROI, a POINT marker). Then: segment → build → ``warp
+--phases 10`` (DICOM) → ``fit`` on the 10 phases → ``track --scan K --out-rtstruct`` on each phase's
+series with the foreign RTSTRUCT → ``dvf --out-reg``; dciodvfy on an RTSTRUCT, a CT phase and the REG.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import warnings
+
+import numpy as np
+import pydicom
+import pytest
+import SimpleITK as sitk
+
+from lungdeform.cli.main import main
+from lungdeform.io.dicom.rtstruct import read_ct_series, read_rtstruct
+from lungdeform.io.image import read_image
+from tests.io.dicom_support import dciodvfy
+from tests.segment.test_lungs import phantom
+from tests.vendor_dicom import FRAME_UID, PATIENT, write_planning_rtstruct, write_vendor_ct
+
+GTV, RADIUS = np.array([-45.0, -8.0, 10.0]), 10.0  # mm LPS: inside the phantom's right lung
+
+pytestmark = pytest.mark.slow
+
+
+def _curve(path):
+    t = np.linspace(0, 8, 161)  # two 4 s breaths of 300 mL (both lungs) from end-exhale
+    path.write_text("t_s,volume_ml\n" + "".join(f"{a:.3f},{150 * (1 - np.cos(np.pi * a / 2)):.3f}\n" for a in t))
+    return path
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    """The workflow up to the fit, once for the module: its folder and what each step gave."""
+    rng = np.random.default_rng(20261127)
+    d = tmp_path_factory.mktemp("vendor")
+    image, truth = phantom(rng, gap_mm=10.0)
+    ct = write_vendor_ct(d / "export", image, rng)
+    write_planning_rtstruct(d / "plan_rs", ct, image, GTV, RADIUS, rng)  # no suffix, as exported
+    assert main(["segment", str(d / "export"), "--out", str(d / "seg")]) == 0
+    assert main(["build", str(d / "seg" / "left_lung.nii.gz"), str(d / "seg" / "right_lung.nii.gz"),
+                 "--target-vertices", "600", "--out", str(d / "model.npz")]) == 0
+    assert main(["warp", str(d / "export"), str(d / "model.npz"), "--curve", str(_curve(d / "c.csv")),
+                 "--phases", "10", "--node-mm", "12", "--out", str(d / "4dct")]) == 0
+    assert main(["fit", str(d / "4dct"), "--side", "right", "--out", str(d / "fit"), "--no-baselines",
+                 "--no-stiffness", "--direction-degree", "0", "--evaluations", "10"]) == 0
+    metrics = json.loads((d / "fit" / "metrics.json").read_text())
+    # scan K of the fit is the phase of this label: "…4dct [30%]" → 4dct/phase30
+    phases = [d / "4dct" / f"phase{int(float(p.rsplit('[', 1)[1].rstrip('%]'))):02d}" for p in metrics["inputs"]]
+    return {"dir": d, "image": image, "truth": truth, "ct": ct, "phases": phases}
+
+
+def test_the_vendor_export_reads_as_the_volume_it_holds(run):
+    # truth: the phantom's HU (slope and intercept applied, slices ordered by position whatever the
+    # file order, names and InstanceNumbers, the localizer and the thicker series left out), and
+    # the segmented right lung against the phantom's analytic one; the export itself is legal DICOM
+    img = read_image(run["dir"] / "export")
+    assert img.array.shape == run["image"].array.shape
+    assert np.array_equal(img.array.astype(float), np.asarray(run["image"].array, float))
+    assert np.allclose(img.origin, run["image"].origin) and np.allclose(img.spacing, run["image"].spacing)
+    seg = read_image(run["dir"] / "seg" / "right_lung.nii.gz").array > 0
+    truth = run["truth"]["right"]
+    assert 2 * (seg & truth).sum() / (seg.sum() + truth.sum()) > 0.95
+    for f in (run["ct"]["files"][0], run["ct"]["files"][1], run["dir"] / "plan_rs"):  # one explicit, one implicit VR
+        assert dciodvfy(f)[0] == []
+
+
+def test_track_on_every_phase_with_the_foreign_rtstruct(run, capsys):
+    # every fitted scan K is the phase series it was read from, so `track --scan K --out-rtstruct
+    # --reference-ct 4dct/phaseNN` is accepted and writes the GTV in the vendor's Frame of Reference on
+    # that phase's slices. Truth: at scan 0 (the 0 % phase, the rest) the GTV is where the planner
+    # drew it (each contour a circle of the sphere's radius at its slice, within 0.5 mm); the
+    # largest phase moves it; every contour references a slice of its phase; dciodvfy: 0 errors
+    d = run["dir"]
+    centroids = []
+    for k, phase in enumerate(run["phases"]):
+        rs = d / f"gtv_scan{k}.dcm"
+        assert main(["track", str(d / "fit" / "model.npz"), "--rtstruct", str(d / "plan_rs"), "--structure", "GTV",
+                     "--scan", str(k), "--out", str(d / f"track{k}"), "--out-rtstruct", str(rs),
+                     "--reference-ct", str(phase)]) == 0, capsys.readouterr().err
+        moved = read_rtstruct(rs)[f"GTV@scan{k}"]
+        assert moved.frame_uid == FRAME_UID and moved.patient_id == PATIENT["PatientID"]
+        assert moved.image_uids <= set(read_ct_series(phase).sop_uids)
+        pts = np.concatenate(moved.contours)
+        centroids.append(pts.mean(axis=0))
+        if k == 0:
+            assert phase.name == "phase00"
+            for c in moved.contours:
+                r = np.sqrt(max(RADIUS ** 2 - (c[0, 2] - GTV[2]) ** 2, 0.0))
+                assert np.abs(np.linalg.norm(c[:, :2] - GTV[:2], axis=1) - r).max() < 0.5
+    assert np.linalg.norm(centroids[-1] - centroids[0]) > 1.0  # the largest volume moves the GTV
+    rs = d / f"gtv_scan{len(run['phases']) - 1}.dcm"
+    assert pydicom.dcmread(rs).SpecificCharacterSet == "ISO_IR 192"  # Müller, as UTF-8
+    for f in (rs, min(run["phases"][-1].iterdir())):
+        assert dciodvfy(f)[0] == [], f
+
+
+def test_reg_from_the_rest_phase_to_the_largest(run):
+    # dvf --out-reg with the rest phase fixed and the largest phase moving: both keep the vendor's
+    # patient and frame; the raw VectorGridData equals the .mha field; dciodvfy: 0 errors
+    d = run["dir"]
+    k = len(run["phases"]) - 1
+    assert main(["dvf", str(d / "fit" / "model.npz"), "--reference", str(run["phases"][0]), "--scan", str(k),
+                 "--node-mm", "12", "--out", str(d / "dvf.mha"), "--out-reg", str(d / "reg.dcm"),
+                 "--moving", str(run["phases"][k])]) == 0
+    reg = pydicom.dcmread(d / "reg.dcm")
+    assert reg.FrameOfReferenceUID == FRAME_UID and reg.PatientID == PATIENT["PatientID"]
+    g = reg.DeformableRegistrationSequence[-1].DeformableRegistrationGridSequence[0]
+    nx, ny, nz = (int(n) for n in g.GridDimensions)
+    u = np.frombuffer(g.VectorGridData, "<f4").reshape(nz, ny, nx, 3)
+    assert np.abs(u - sitk.GetArrayFromImage(sitk.ReadImage(str(d / "dvf.mha")))).max() < 0.01
+    assert np.abs(u).max() > 1.0
+    assert dciodvfy(d / "reg.dcm")[0] == []
+
+
+def test_an_rtstruct_written_by_rt_utils(run, tmp_path, capsys):
+    # another library's RTSTRUCT (rt-utils: a mask turned into polygons by OpenCV, on the main series
+    # copied apart, as rt-utils reads every file of its folder): read, tracked on the rest phase and
+    # written; truth: the polygons trace the 10 mm ball's boundary pixels (2 mm), so every written
+    # point lies 7 to 11 mm from its centre
+    rt_utils = pytest.importorskip("rt_utils", reason="rt-utils not installed (pip install rt-utils; optional)")
+    clean = tmp_path / "main_series"
+    clean.mkdir()
+    for f in run["ct"]["files"]:
+        shutil.copy(f, clean / (f.rsplit("/", 1)[-1] + ".dcm"))
+    img = run["image"]
+    k, j, i = np.meshgrid(*(np.arange(n) for n in img.array.shape), indexing="ij")
+    p = np.stack([i, j, k], -1) * img.spacing + img.origin
+    ball = np.linalg.norm(p - GTV, axis=-1) <= RADIUS  # (z, y, x) → rt-utils' (rows, columns, slices)
+    with warnings.catch_warnings():  # rt-utils 1.2.7 uses pydicom attributes pydicom 3 deprecates
+        warnings.simplefilter("ignore", DeprecationWarning)
+        rt = rt_utils.RTStructBuilder.create_new(dicom_series_path=str(clean))
+        rt.add_roi(mask=np.transpose(ball, (1, 2, 0)), name="GTV")
+        rt.save(str(tmp_path / "rtu.dcm"))
+    capsys.readouterr()
+    d = run["dir"]
+    assert pydicom.dcmread(tmp_path / "rtu.dcm").ReferencedFrameOfReferenceSequence[0].FrameOfReferenceUID == FRAME_UID
+    assert main(["track", str(d / "fit" / "model.npz"), "--rtstruct", str(tmp_path / "rtu.dcm"), "--structure", "GTV",
+                 "--scan", "0", "--out", str(tmp_path / "t"), "--out-rtstruct", str(tmp_path / "out.dcm"),
+                 "--reference-ct", str(run["phases"][0])]) == 0, capsys.readouterr().err
+    pts = np.concatenate(read_rtstruct(tmp_path / "out.dcm")["GTV@scan0"].contours)
+    r = np.linalg.norm(pts - GTV, axis=1)
+    assert r.min() > 7.0 and r.max() < 11.0
+    assert dciodvfy(tmp_path / "out.dcm")[0] == []
