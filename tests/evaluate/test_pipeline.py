@@ -69,16 +69,72 @@ def test_prior_refused_with_a_sliding_interior_asked_or_resolved():
     check_prior(FitConfig(interior="sliding"), None, "sliding")  # no prior: nothing to refuse
 
 
-def test_fit_result_scale_at_is_the_volume_in_units():
+def test_fit_outcome_scale_at_is_the_volume_in_units():
     # truth: s = (V - V_EE) / unit_ml, and positions_at moves by s times the displacement
     from types import SimpleNamespace
 
     import numpy as np
 
-    from lungdeform.fit.fitting import FitResult
+    from lungdeform.fit.fitting import FitOutcome
 
     fit = SimpleNamespace(volume_ee_ml=2000.0, unit_ml=400.0, displacement=np.ones((2, 3)))
-    assert FitResult.scale_at(fit, 2600.0) == 1.5 and FitResult.scale_at(fit, 2000.0) == 0.0
-    fit.scale_at = lambda v: FitResult.scale_at(fit, v)
+    assert FitOutcome.scale_at(fit, 2600.0) == 1.5 and FitOutcome.scale_at(fit, 2000.0) == 0.0
+    fit.scale_at = lambda v: FitOutcome.scale_at(fit, v)
     surface = SimpleNamespace(vertices=np.zeros((2, 3)))
-    np.testing.assert_array_equal(FitResult.positions_at(fit, surface, 2200.0), np.full((2, 3), 0.5))
+    np.testing.assert_array_equal(FitOutcome.positions_at(fit, surface, 2200.0), np.full((2, 3), 0.5))
+
+
+def test_metrics_json_is_fit_metrics_of_the_run_outcome(tmp_path, monkeypatch):
+    # run_fit writes and returns the metrics built once from its typed outcome: the FitRun handed to
+    # write_outputs is captured, and fit_metrics of it, through the same strict JSON writer, gives
+    # metrics.json byte for byte (every key, value and the order); the builder mutates nothing, so a
+    # second call is a fresh, equal dict. Truth for the failure state: 5 evaluations cannot pay for one
+    # finite-difference Jacobian of the least-squares search (9), so the fit stops on its budget and
+    # metrics.json says success false with that reason as its message.
+    import json
+    from dataclasses import FrozenInstanceError
+
+    import pytest
+
+    from lungdeform.atomic import write_json, write_text
+    from lungdeform.evaluate import pipeline as P
+    from lungdeform.evaluate.outcome import FitRun
+    from lungdeform.fit.config import FitConfig, FitInputs
+    from lungdeform.io.meshfile import write_mesh
+    from lungdeform.model.lung import BuildSettings, build_lung
+    from tests.cli.test_fit import TRUE
+    from tests.conftest import ellipsoid_lung
+
+    lung = ellipsoid_lung("right")
+    model = build_lung(lung, "right", constants=TRUE, settings=BuildSettings(200.0, 200.0))
+    a = write_mesh(tmp_path / "ee.ply", lung.vertices, lung.faces)
+    b = write_mesh(tmp_path / "ei.ply", lung.vertices + model.displacement, lung.faces)
+    runs, write_outputs = [], P.write_outputs
+    monkeypatch.setattr(P, "write_outputs",
+                        lambda out, run, metrics: (runs.append(run), write_outputs(out, run, metrics)))
+    # the report (matplotlib, seconds) is tested in tests/cli/test_fit.py; metrics.json is written before it
+    monkeypatch.setattr(P, "write_report", lambda path, **_: write_text(path, "<html></html>"))
+    out = tmp_path / "out"
+    returned = P.run_fit(FitInputs([a, b], "right"), out, FitConfig(max_evaluations=5, baselines=False))
+
+    (run,) = runs
+    assert isinstance(run, FitRun)
+    with pytest.raises(FrozenInstanceError):
+        run.fits = None
+    built = P.fit_metrics(run)
+    assert built is not returned and built == P.fit_metrics(run)
+    write_json(tmp_path / "built.json", built, strict=True, default=P._json)
+    assert (tmp_path / "built.json").read_text() == (out / "metrics.json").read_text()
+    written = json.loads((out / "metrics.json").read_text())
+    assert list(returned) == list(written)
+    headline = list(written["targets"][run.placed.targets[-1].name])  # every method, at the top level too
+    assert list(written) == ["inputs", "side", "volumes_ml", "volumes_given_ml", "warnings", "notes",
+                             "model_mesh_vertices", "alignment", "targets", *headline, "protocols", "headline_fit",
+                             "interior_correction", "fit", "bounding_box", "alignment_choice", "interior",
+                             "seconds", "baseline_seconds", "model_seconds"]
+    assert list(written["fit"]) == list(run.fits.named()) == ["optimizer"]  # no grid, no landmark fit asked
+    fit = written["fit"]["optimizer"]
+    assert fit["success"] is False and fit["message"] == run.fits.optimizer.failure
+    assert "evaluation budget" in fit["message"]
+    assert written["alignment_choice"] == {"asked": "auto", "used": run.config.align, "why": run.alignment.why}
+    assert written["model_seconds"] == written["seconds"] - written["baseline_seconds"]

@@ -29,8 +29,28 @@ def test_grid_mode_and_failure_state(truth):
     tg = Target(target, lung.volume_ml + 200.0, name="t")
     g = fit_lung(lung, "right", [tg], FitSettings(mode="grid", initial=TRUE + 0.02, grid_span=0.03))
     assert g.success and g.objective_mm <= g.history[0]
+    # converged: no failure, and the message says how (the grid's own words)
+    assert g.failure is None and g.message == g.convergence and g.convergence.startswith("grid converged after")
+    # 5 evaluations cannot pay for one finite-difference Jacobian of the least-squares search (8 free
+    # parameters: 9 evaluations): it stops on its budget, and says so as its failure
     short = fit_lung(lung, "right", [tg], FitSettings(max_evaluations=5))
-    assert not short.success and "evaluations" in short.message
+    assert not short.success and short.failure is not None and "evaluation budget" in short.failure
+    assert short.message == short.failure and short.convergence == ""
+    # metrics.json keeps its two leaves, derived from the failure state
+    assert (short.as_dict()["success"], short.as_dict()["message"]) == (False, short.failure)
+    assert (g.as_dict()["success"], g.as_dict()["message"]) == (True, g.convergence)
+
+
+def test_old_name_fit_result_fails_with_one_line_naming_fit_outcome():
+    # one name per meaning (0.8): FitResult is FitOutcome, no alias; the old name fails naming the new one
+    import lungdeform.fit
+    import lungdeform.fit.fitting
+
+    for module in (lungdeform.fit, lungdeform.fit.fitting):
+        with pytest.raises(ImportError, match=rf"^{module.__name__}\.FitResult was renamed "
+                                              rf"{module.__name__}\.FitOutcome in 0\.8"):
+            exec(f"from {module.__name__} import FitResult", {})
+        assert not hasattr(module, "not_a_name")
 
 
 def test_least_squares_joint_translation_recovers_a_known_shift(truth):

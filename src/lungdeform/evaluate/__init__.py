@@ -1,7 +1,8 @@
 """A fit run and its measurement: inputs to a saved model, compared methods, held-out landmarks, reports.
 
 Owns: :mod:`~lungdeform.evaluate.pipeline` (inputs to a saved model and its metrics: read, place,
-fit, measure, write), :mod:`~lungdeform.evaluate.inputs` (reading and checking the inputs: meshes,
+fit, measure, write), :mod:`~lungdeform.evaluate.outcome` (what a run gave, typed: the fits, the
+scores, the run; the metrics are built once from it), :mod:`~lungdeform.evaluate.inputs` (reading and checking the inputs: meshes,
 masks, CTs through :mod:`lungdeform.segment`, 4-D CT phases, landmarks),
 :mod:`~lungdeform.evaluate.placement` (the model mesh and the targets in its frame),
 :mod:`~lungdeform.evaluate.baselines` (the comparison methods, calibrated mask-only maps, and the one

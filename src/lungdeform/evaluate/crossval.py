@@ -26,7 +26,7 @@ from lungdeform.progress import Progress, silent
 from .folds import landmark_folds
 
 if TYPE_CHECKING:
-    from lungdeform.fit.fitting import FitResult
+    from lungdeform.fit.fitting import FitOutcome
     from lungdeform.fit.objective import Target
     from lungdeform.geometry.mesh import Surface
 
@@ -37,7 +37,7 @@ class LandmarkCV:
 
     Attributes
     ----------
-    final : FitResult
+    final : FitOutcome
         The fit on all landmarks (the model a user keeps; its landmark error is in-sample).
     predicted : dict[int, (m, 3) float]
         Per target index: every landmark's position predicted by the fold that did **not** see
@@ -48,7 +48,7 @@ class LandmarkCV:
         c1…c9 fitted in each fold (their spread shows how well the landmarks pin them down).
     """
 
-    final: FitResult
+    final: FitOutcome
     predicted: dict
     fold: np.ndarray
     fold_constants: np.ndarray

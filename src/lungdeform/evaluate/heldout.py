@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lungdeform.fit.config import FitConfig
-from lungdeform.fit.fitting import FitResult, FitSettings
+from lungdeform.fit.fitting import FitOutcome, FitSettings
 from lungdeform.fit.objective import LandmarkTerm
 from lungdeform.interior.field import correction_per_unit
 from lungdeform.progress import Progress, silent
@@ -51,7 +51,7 @@ class HeldOut:
     surface_unit: np.ndarray | None = None
 
 
-def held_out_landmarks(placed: Placement, landmarks, fit: FitResult, side: str, config: FitConfig, folds,
+def held_out_landmarks(placed: Placement, landmarks, fit: FitOutcome, side: str, config: FitConfig, folds,
                        progress: Progress | None = None, surface_field=None) -> HeldOut:
     """The landmark step for the surface ``fit`` of the model mesh in ``placed``: ``landmarks : (m, 3)``
     mm are the end-exhale ones (None: no landmarks), ``folds`` their k-fold split
@@ -83,7 +83,7 @@ def held_out_landmarks(placed: Placement, landmarks, fit: FitResult, side: str, 
     return HeldOut(weights, cv, cv_stiff, interior, surface_unit)
 
 
-def _landmark_fit(placed: Placement, landmarks: LandmarkTerm, fit: FitResult, side: str, config: FitConfig, folds, *,
+def _landmark_fit(placed: Placement, landmarks: LandmarkTerm, fit: FitOutcome, side: str, config: FitConfig, folds, *,
                   stiffness: bool, progress) -> LandmarkCV:
     """The cross-validated landmark-informed fit of c1…c9 (optionally with a stiffness field),
     started from the surface ``fit``."""

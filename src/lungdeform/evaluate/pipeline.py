@@ -22,14 +22,16 @@ and runs these steps, each a function of its own:
    (:mod:`lungdeform.interior.field`) of the headline ``model`` and, with ``landmark_comparisons``,
    the landmark-informed fits of c1…c9;
 6. every method, the baselines and references measured on every target with the same metrics, crop
-   faces left out (:mod:`lungdeform.evaluate.scoring`), gathered in the metrics dictionary (:func:`fit_metrics`);
+   faces left out (:mod:`lungdeform.evaluate.scoring`). Steps 1 to 6 are :func:`fit_pipeline`; what they
+   give is one frozen :class:`~lungdeform.evaluate.outcome.FitRun`, from which the metrics dictionary
+   is built once (:func:`fit_metrics`; nothing is added to it afterwards);
 7. ``model.npz`` (docs/MODEL_FORMAT.md), ``metrics.json`` and ``report.html`` written (:func:`write_outputs`).
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -38,7 +40,7 @@ from lungdeform.atomic import atomic_path, jsonable, write_json
 from lungdeform.errors import InputError
 from lungdeform.fit.config import CROP_LIMIT, FitConfig, FitInputs
 from lungdeform.fit.cycle import choose_alignment
-from lungdeform.fit.fitting import DIRECTION_HI, DIRECTION_LO, FitSettings, fit_lung, to_lung_model
+from lungdeform.fit.fitting import DIRECTION_HI, DIRECTION_LO, FitOutcome, FitSettings, fit_lung, to_lung_model
 from lungdeform.fit.refinement import refine_displacement
 from lungdeform.fit.registration import surface_map_field
 from lungdeform.geometry.mesh import Surface
@@ -48,8 +50,9 @@ from lungdeform.model.lung import Model
 from lungdeform.progress import Progress, silent
 
 from .folds import landmark_folds
-from .heldout import HeldOut, held_out_landmarks
+from .heldout import held_out_landmarks
 from .inputs import ReadInputs, read_inputs
+from .outcome import AlignmentChoice, FitRun, Fits
 from .placement import Placement, place_targets, shift_targets
 from .report import write_report
 from .scoring import bounding_boxes, protocols, score_targets
@@ -58,7 +61,8 @@ from .scoring import bounding_boxes, protocols, score_targets
 def run_fit(inputs: FitInputs, out: Path, config: FitConfig = FitConfig(), *,
             progress: Progress | None = None, prior: MotionPrior | None = None) -> dict:
     """Run the whole pipeline (module docstring) on ``inputs``; write model.npz, metrics.json and
-    report.html in the folder ``out`` (created if missing); return the metrics dictionary.
+    report.html in the folder ``out`` (created if missing); return the metrics dictionary, built
+    once from the run's outcome (:func:`fit_pipeline`, :func:`fit_metrics`).
 
     Without landmarks (or with ``config.landmark_fit`` False) the headline ``model`` is the
     surface-only fit. With landmarks and ``landmark_fit`` it is the same surface fit whose interior
@@ -72,9 +76,19 @@ def run_fit(inputs: FitInputs, out: Path, config: FitConfig = FitConfig(), *,
     line of text per step. ``prior``: a population motion prior (:mod:`lungdeform.interior.motion_prior`)
     folded into the correspondence field (``config.interior == "correspondence"`` only)."""
 
+    run = fit_pipeline(inputs, config, progress=progress, prior=prior)
+    metrics = fit_metrics(run)
+    write_outputs(Path(out), run, metrics)
+    return metrics
+
+
+def fit_pipeline(inputs: FitInputs, config: FitConfig = FitConfig(), *, progress: Progress | None = None,
+                 prior: MotionPrior | None = None) -> FitRun:
+    """Steps 1 to 6 of the pipeline (module docstring) on ``inputs``, nothing written: the run's
+    outcome (:class:`~lungdeform.evaluate.outcome.FitRun`); ``progress`` and ``prior`` as in :func:`run_fit`."""
+
     say = progress or silent
     check_prior(config, prior)  # an explicit sliding interior: refused before any reading
-    asked_align = config.align
     t_start = time.perf_counter()
     read = read_inputs(inputs, config.side_check, say)
     # the landmark folds, split (and folds checked) once, before any fitting
@@ -83,34 +97,23 @@ def run_fit(inputs: FitInputs, out: Path, config: FitConfig = FitConfig(), *,
     frame_uid = None if read.cycle is None else read.cycle["frame_of_reference"]
     align, why = choose_alignment(config.align, frame_uid)
     say(f"alignment: {align} ({why})")
+    alignment = AlignmentChoice(config.align, align, why)
     config = replace(config, align=align)  # "auto" resolved once, on the inputs read
     placed = place_targets(read, read.paths, inputs.landmarks, config.align, say)
     kind = interior_kind(placed, config)  # resolved once ("auto": on the crop faces), then passed on
     check_prior(config, prior, kind)
     if kind == "sliding" and config.interior == "auto":
         say("interior: the sliding field (cropped scans)")
-    fits, placed, warnings = fit_surfaces(placed, read, inputs.side, config, say)
-    fits["optimizer"] = refine_surface(placed, fits["optimizer"], config, say)
+    fit, grid, placed, warnings = fit_surfaces(placed, read, inputs.side, config, say)
+    fit = refine_surface(placed, fit, config, say)
     landmarks = read.landmarks[0] if read.landmarks is not None else None
-    surface_field = interior_surface(placed, fits["optimizer"], inputs.side, kind, prior, say,
-                                     whole=read.surfaces[0])
-    held = held_out_landmarks(placed, landmarks, fits["optimizer"], inputs.side, config, folds, say, surface_field)
-    if held.cv is not None:
-        fits["landmarks"] = held.cv.final
-    per_target, predictions, skipped, baseline_seconds = score_targets(placed, landmarks, fits, held, config, folds, say)
-    run = FitRun(inputs, read, placed, fits, held, surface_field)
-    metrics = fit_metrics(run, config, per_target, skipped, read.warnings + placed.warnings + warnings)
-    metrics["alignment_choice"] = {"asked": asked_align, "used": align, "why": why}
-    if read.cycle is not None:
-        metrics["cycle"] = read.cycle
-    metrics["interior"] = {"surface_part": "sliding" if surface_field is None else "correspondence",
-                           "asked": config.interior, "prior": None if prior is None else prior.as_dict()}
-    metrics["seconds"] = time.perf_counter() - t_start
-    # the model's own fit, the baselines and landmark-informed references (timed apart) left out
-    metrics["baseline_seconds"] = baseline_seconds
-    metrics["model_seconds"] = metrics["seconds"] - baseline_seconds
-    write_outputs(Path(out), run, config, metrics, predictions)
-    return metrics
+    surface_field = interior_surface(placed, fit, inputs.side, kind, prior, say, whole=read.surfaces[0])
+    held = held_out_landmarks(placed, landmarks, fit, inputs.side, config, folds, say, surface_field)
+    fits = Fits(fit, grid, None if held.cv is None else held.cv.final)
+    scores = score_targets(placed, landmarks, fits, held, config, folds, say)
+    return FitRun(inputs, config, read, placed, fits, held, scores, alignment,
+                  tuple(read.warnings + placed.warnings + warnings), time.perf_counter() - t_start,
+                  surface_field, prior)
 
 
 def interior_kind(placed: Placement, config: FitConfig) -> str:
@@ -156,10 +159,10 @@ def interior_surface(placed: Placement, fit, side: str, kind: str, prior: Motion
 
 
 def fit_surfaces(placed: Placement, read: ReadInputs, side: str, config: FitConfig,
-                 progress: Progress | None = None) -> tuple[dict, Placement, list[str]]:
-    """The surface fits of the model mesh to the placed targets: ``(fits, placement, warnings)``;
-    ``fits["optimizer"]`` is the headline fit (``config.mode``), ``fits["grid"]`` the paper's grid
-    search (with ``config.grid``); with ``align="joint"`` the placement returned has every target
+                 progress: Progress | None = None) -> tuple[FitOutcome, FitOutcome | None, Placement, list[str]]:
+    """The surface fits of the model mesh to the placed targets: ``(fit, grid, placement, warnings)``;
+    ``fit`` is the headline fit (``config.mode``), ``grid`` the paper's grid search (with
+    ``config.grid``, else None); with ``align="joint"`` the placement returned has every target
     moved by its fitted translation. A warning when c1…c6 end on the bound of the search."""
 
     say = progress or silent
@@ -176,11 +179,9 @@ def fit_surfaces(placed: Placement, read: ReadInputs, side: str, config: FitConf
         values = ", ".join(f"{n} = {fit.constants[int(n[1:]) - 1]:g}" for n in at_bound)
         warnings.append(f"{', '.join(at_bound)} ended on the bound of the search ({values}): "
                         "the surfaces may not be one lung at two volumes, or the alignment is off")
-    fits = {"optimizer": fit}
-    if config.grid:
-        fits["grid"] = fit_lung(placed.rest, side, placed.targets, FitSettings(mode="grid", grid_span=0.1),
-                                keep=placed.keep, progress=say)
-    return fits, placed, warnings
+    grid = (fit_lung(placed.rest, side, placed.targets, FitSettings(mode="grid", grid_span=0.1), keep=placed.keep,
+                     progress=say) if config.grid else None)
+    return fit, grid, placed, warnings
 
 
 def refine_surface(placed: Placement, fit, config: FitConfig, progress: Progress | None = None):
@@ -198,85 +199,63 @@ def refine_surface(placed: Placement, fit, config: FitConfig, progress: Progress
     return replace(fit, displacement=ref.displacement, refinement=ref)
 
 
-@dataclass(frozen=True, eq=False)
-class FitRun:
-    """What one run of :func:`run_fit` gave, before it is measured and written.
+def fit_metrics(run: FitRun) -> dict:
+    """The metrics dictionary (``metrics.json``), built once from the run's outcome: inputs, volumes,
+    warnings, alignment, every method's metrics per target (the last, largest-volume target's also
+    at the top level), the protocols, the fits, the landmark cross-validation, the bounding boxes,
+    the alignment choice, the 4-D CT's cycle, the interior and the timings."""
 
-    Attributes
-    ----------
-    inputs : FitInputs
-        What the run was given.
-    read : ReadInputs
-        The inputs read and checked (:func:`lungdeform.evaluate.inputs.read_inputs`).
-    placed : Placement
-        The model mesh and the targets in its frame (after a joint alignment, moved by it).
-    fits : dict[str, FitResult]
-        ``"optimizer"`` (the headline, refined), ``"grid"`` and ``"landmarks"`` when run.
-    held : HeldOut
-        What landmarks give, held out (:func:`lungdeform.evaluate.heldout.held_out_landmarks`).
-    surface_field : SurfaceMapField or None
-        The surface-map interior field (None: the sliding field).
-    """
-
-    inputs: FitInputs
-    read: ReadInputs
-    placed: Placement
-    fits: dict
-    held: HeldOut
-    surface_field: object = None
-
-    @property
-    def landmarks(self):
-        """The end-exhale landmarks ``(m, 3)`` mm, or None."""
-        return self.read.landmarks[0] if self.read.landmarks is not None else None
+    read, placed, fits, held, config = run.read, run.placed, run.fits, run.held, run.config
+    fit, per_target, skipped = fits.optimizer, run.scores.per_target, run.scores.skipped
+    return {"inputs": list(read.paths), "side": run.inputs.side, "volumes_ml": placed.volumes_ml,
+            "volumes_given_ml": read.given_ml, "warnings": list(run.warnings), "notes": read.notes,
+            "model_mesh_vertices": placed.rest.n_vertices, "alignment": placed.alignments,
+            "targets": per_target,
+            **({"skipped": skipped} if skipped else {}),
+            **per_target[placed.targets[-1].name],  # the headline: the last, largest-volume target
+            "protocols": protocols(fit, held, config, fits.grid is not None),
+            "headline_fit": "optimizer",  # the key in metrics["fit"] of the saved constants
+            "interior_correction": held.interior is not None,
+            "fit": {name: ({**r.as_dict(), "uniform_objective_rms_mm": r.uniform_objective_mm} if name == "optimizer"
+                           else r.as_dict()) for name, r in fits.named().items()},
+            **({"landmark_cv": landmark_cv_metrics(run)} if held.interior is not None else {}),
+            "bounding_box": bounding_boxes(placed.rest, fit, read.surfaces, placed.volumes_ml),
+            "alignment_choice": run.alignment.as_dict(),
+            **({"cycle": read.cycle} if read.cycle is not None else {}),
+            "interior": {"surface_part": "sliding" if run.surface_field is None else "correspondence",
+                         "asked": config.interior, "prior": None if run.prior is None else run.prior.as_dict()},
+            "seconds": run.seconds,
+            # the model's own fit, the baselines and landmark-informed references (timed apart) left out
+            "baseline_seconds": run.scores.baseline_seconds,
+            "model_seconds": run.model_seconds}
 
 
-def fit_metrics(run: FitRun, config: FitConfig, per_target: dict, skipped: dict, warnings: list[str]) -> dict:
-    """The metrics dictionary (``metrics.json``, less ``seconds``): inputs, volumes, warnings,
-    alignment, every method's metrics per target (the last, largest-volume target's also at the
-    top level), the protocols, the fits and the landmark cross-validation."""
-
-    inputs, read, placed, fits, held = run.inputs, run.read, run.placed, run.fits, run.held
-    fit = fits["optimizer"]
-    metrics = {"inputs": list(read.paths), "side": inputs.side, "volumes_ml": placed.volumes_ml,
-               "volumes_given_ml": read.given_ml, "warnings": warnings, "notes": read.notes,
-               "model_mesh_vertices": placed.rest.n_vertices, "alignment": placed.alignments,
-               "targets": per_target}
-    if skipped:
-        metrics["skipped"] = skipped
-    metrics.update(per_target[placed.targets[-1].name])  # the headline: the last, largest-volume target
-    metrics["protocols"] = protocols(fit, held, config, "grid" in fits)
-    metrics["headline_fit"] = "optimizer"  # the key in metrics["fit"] of the saved constants
-    metrics["interior_correction"] = held.interior is not None
-    metrics["fit"] = {k: r.as_dict() for k, r in fits.items()}
-    metrics["fit"]["optimizer"]["uniform_objective_rms_mm"] = fit.uniform_objective_mm
-    if held.interior is not None:
-        metrics["landmark_cv"] = {"folds": config.folds, "landmarks": int(len(read.landmarks[0])), "seed": 0,
-                                  "landmark_weight": config.landmark_weight,
-                                  "interior_smoothing_mm": held.interior["smoothing"]}
-        if held.cv is not None:
-            metrics["landmark_cv"].update(fold_constants=held.cv.fold_constants.tolist(),
-                                          fold_constants_spread=held.cv.fold_constants.std(axis=0).tolist())
-    metrics["bounding_box"] = bounding_boxes(placed.rest, fit, read.surfaces, placed.volumes_ml)
-    return metrics
+def landmark_cv_metrics(run: FitRun) -> dict:
+    """``metrics["landmark_cv"]`` (with the interior landmark correction): the folds, landmark count,
+    seed, landmark weight and the correction's smoothing; with the landmark-informed fits, the
+    c1…c9 of each fold and their spread."""
+    held, config = run.held, run.config
+    cv = {} if held.cv is None else {"fold_constants": held.cv.fold_constants.tolist(),
+                                     "fold_constants_spread": held.cv.fold_constants.std(axis=0).tolist()}
+    return {"folds": config.folds, "landmarks": int(len(run.read.landmarks[0])), "seed": 0,
+            "landmark_weight": config.landmark_weight, "interior_smoothing_mm": held.interior["smoothing"], **cv}
 
 
-def write_outputs(out: Path, run: FitRun, config: FitConfig, metrics: dict, predictions: dict) -> None:
+def write_outputs(out: Path, run: FitRun, metrics: dict) -> None:
     """Write ``model.npz`` (the headline fit, with the interior correction when there is one, at the
-    end-exhale landmarks, and the surface-map field when there is one), ``metrics.json`` and
-    ``report.html`` in ``out``."""
+    end-exhale landmarks, and the surface-map field when there is one), ``metrics.json`` (``metrics``,
+    :func:`fit_metrics` of ``run``) and ``report.html`` in ``out``."""
 
     inputs, placed, fits, held, landmarks = run.inputs, run.placed, run.fits, run.held, run.landmarks
-    surface_field = run.surface_field
     out.mkdir(parents=True, exist_ok=True)
-    fit, keep = fits["optimizer"], placed.keep
+    fit, keep = fits.optimizer, placed.keep
     # the crop faces (image boundary, motion never fitted) do not drive the interior field
     lung = replace(to_lung_model(placed.rest, inputs.side, fit), interior_vertices=None if keep.all() else keep.copy(),
-                   interior_map=surface_field)
+                   interior_map=run.surface_field)
     if held.interior is not None:
         lung = replace(lung, landmarks=landmarks, landmark_correction=held.interior["correction"],
                        landmark_smoothing=held.interior["smoothing"])
-    model = Model({inputs.side: lung}, provenance(config.command, inputs=metrics["inputs"],
+    model = Model({inputs.side: lung}, provenance(run.config.command, inputs=metrics["inputs"],
                                                   volumes_ml=placed.volumes_ml, fit=fit.as_dict(), scans=run.read.scans,
                                                   alignment=placed.alignments, fit_kind=metrics["headline_fit"],
                                                   interior_correction=held.interior is not None))
@@ -284,8 +263,8 @@ def write_outputs(out: Path, run: FitRun, config: FitConfig, metrics: dict, pred
     if landmarks is not None and held.surface_unit is not None:
         write_landmark_motion(out / "landmarks.npz", placed, fit, landmarks, held.surface_unit)
     write_json(out / "metrics.json", metrics, strict=True, default=_json)
-    write_report(out / "report.html", rest=placed.rest, targets=placed.targets, fits=fits, predictions=predictions,
-                 metrics=metrics, headline=metrics["headline_fit"], keep=keep)
+    write_report(out / "report.html", rest=placed.rest, targets=placed.targets, fits=fits.named(),
+                 predictions=run.scores.predictions, metrics=metrics, headline=metrics["headline_fit"], keep=keep)
 
 
 def write_landmark_motion(path: Path, placed: Placement, fit, landmarks, surface_unit) -> Path:

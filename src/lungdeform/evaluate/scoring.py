@@ -16,20 +16,21 @@ import time
 import numpy as np
 
 from lungdeform.fit.config import FitConfig
-from lungdeform.fit.fitting import FitResult
+from lungdeform.fit.fitting import FitOutcome
 from lungdeform.fit.objective import Target
 from lungdeform.geometry.distance import SurfaceDistance
 from lungdeform.progress import Progress, silent
 
 from . import baselines as B
 from .heldout import HeldOut
+from .outcome import Fits, Scores
 from .placement import Placement
 
 #: The baselines from the surfaces only, in the order they are reported.
 SURFACE_BASELINES = ("no_motion", "affine", "apex_scaling", "cpd")
 
 
-def protocols(fit: FitResult, held: HeldOut, config: FitConfig, grid: bool) -> dict[str, str]:
+def protocols(fit: FitOutcome, held: HeldOut, config: FitConfig, grid: bool) -> dict[str, str]:
     """Per method reported, what it saw and how its landmark error was measured (``metrics["protocols"]``);
     ``fit`` is the surface fit, ``held`` the landmark step, ``grid``: a grid fit is reported."""
 
@@ -92,12 +93,12 @@ def surface_name(held: HeldOut) -> str:
     return "model_surface_only" if held.interior is not None else "model"
 
 
-def model_methods(ti: int, target: Target, fits: dict, held: HeldOut, rest, landmarks=None) -> dict:
+def model_methods(ti: int, target: Target, fits: Fits, held: HeldOut, rest, landmarks=None) -> dict:
     """The fitted models' predictions of target ``ti``: name → ``(predicted vertices (n, 3) mm,
-    landmark predictions (m, 3) mm or None: moved by the sliding operator)``; ``fits``: name →
-    FitResult; ``landmarks : (m, 3)`` mm the end-exhale ones."""
+    landmark predictions (m, 3) mm or None: moved by the sliding operator)``; ``fits``: the run's
+    fits; ``landmarks : (m, 3)`` mm the end-exhale ones."""
 
-    fit = fits["optimizer"]
+    fit = fits.optimizer
     s = fit.scale_at(target.volume_ml)
     methods = {}
     if held.interior is not None:
@@ -118,8 +119,8 @@ def model_methods(ti: int, target: Target, fits: dict, held: HeldOut, rest, land
         methods["model_paper_directions"] = (rest.vertices + s * fit.paper_displacement, None)
     if fit.uniform_displacement is not None:
         methods["model_uniform_stiffness"] = (rest.vertices + s * fit.uniform_displacement, None)
-    if "grid" in fits:
-        methods["model_grid"] = (fits["grid"].positions_at(rest, target.volume_ml), None)
+    if fits.grid is not None:
+        methods["model_grid"] = (fits.grid.positions_at(rest, target.volume_ml), None)
     return methods
 
 
@@ -143,12 +144,12 @@ def baseline_methods(target: Target, placed: Placement, landmarks, landmarks_tar
     return methods
 
 
-def score_targets(placed: Placement, landmarks, fits: dict, held: HeldOut, config: FitConfig, folds,
-                  progress: Progress | None = None):
-    """Every method measured on every target: ``(metrics per target name → method name → metrics
-    dict, predictions (target name, method name) → (vertices, per-vertex error, landmark errors),
-    skipped baselines name → reason, seconds spent computing the baselines and references)``.
-    ``landmarks : (m, 3)`` mm: the end-exhale ones, or None."""
+def score_targets(placed: Placement, landmarks, fits: Fits, held: HeldOut, config: FitConfig, folds,
+                  progress: Progress | None = None) -> Scores:
+    """Every method measured on every target (:class:`~lungdeform.evaluate.outcome.Scores`: metrics
+    per target name → method name → metrics dict, predictions (target name, method name) →
+    (vertices, per-vertex error, landmark errors), skipped baselines name → reason, seconds spent
+    computing the baselines and references). ``landmarks : (m, 3)`` mm: the end-exhale ones, or None."""
 
     say = progress or silent
     rest, keep = placed.rest, placed.keep
@@ -170,7 +171,7 @@ def score_targets(placed: Placement, landmarks, fits: dict, held: HeldOut, confi
             per[name] = m.as_dict()
             predictions[(tg.name, name)] = (x, per_vertex, lm_err)
         per_target[tg.name] = per
-    return per_target, predictions, skipped, baseline_seconds
+    return Scores(per_target, predictions, skipped, baseline_seconds)
 
 
 def bounding_boxes(rest, fit, surfaces, vols):

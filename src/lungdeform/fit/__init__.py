@@ -25,7 +25,7 @@ from .fitting import (
     DIRECTION_LO,
     MODES,
     UNUSABLE_MM,
-    FitResult,
+    FitOutcome,
     FitSettings,
     fit_lung,
     to_lung_model,
@@ -36,10 +36,18 @@ __all__ = [
     "DIRECTION_BOUNDS",
     "DIRECTION_HI",
     "DIRECTION_LO",
-    "FitResult",
+    "FitOutcome",
     "FitSettings",
     "MODES",
     "UNUSABLE_MM",
     "fit_lung",
     "to_lung_model",
 ]
+
+
+def __getattr__(name: str):
+    """``lungdeform.fit.FitResult`` (≤ 0.7) fails with one line naming ``FitOutcome`` (as
+    :func:`lungdeform.fit.fitting.__getattr__`); other names are missing as usual."""
+    if name == "FitResult":
+        raise ImportError("lungdeform.fit.FitResult was renamed lungdeform.fit.FitOutcome in 0.8 (docs/CHANGELOG.md)")
+    raise AttributeError(f"module 'lungdeform.fit' has no attribute {name!r}")

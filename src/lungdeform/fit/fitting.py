@@ -4,7 +4,7 @@
 :class:`lungdeform.fit.objective.LungFitter`: the area-weighted RMS forward symmetric surface distance
 between the predicted surface ``p + s·u`` and the targets in ``fit_on`` (the model's form, the
 evaluation of one candidate and the landmark term are documented in :mod:`lungdeform.fit.objective`).
-It returns a :class:`FitResult` with an explicit failure state; :func:`to_lung_model` turns it into
+It returns a :class:`FitOutcome` with an explicit failure state; :func:`to_lung_model` turns it into
 a model-file ready :class:`lungdeform.model.lung.LungModel`.
 
 Search modes (:mod:`lungdeform.fit.search`): ``"least_squares"`` (the default ``"optimizer"``; c3 held
@@ -64,7 +64,7 @@ DEFAULT_OPTIMIZER = "least_squares"
 
 
 @dataclass(frozen=True, eq=False)
-class FitResult:
+class FitOutcome:
     """Outcome of :func:`fit_lung`.
 
     Attributes
@@ -96,8 +96,17 @@ class FitResult:
         Per target name: forward symmetric distances (mm) of the fit samples.
     objective_mm : float
         Final objective (area-weighted RMS symmetric distance over ``fit_on``), mm.
+    failure : str or None
+        The failure state: None when the search converged; otherwise why it did not, in one line
+        (its evaluation budget spent, the grid still improving after its last cycle, Powell's own
+        reason). A failed search still returns the best point it evaluated: usable, not a minimum.
+    convergence : str
+        With ``failure`` None, how the search converged in its own words (``"converged"``,
+        ``"least squares converged (…)"``, ``"grid converged after 4 cycles"``); ``""`` otherwise.
     success : bool
+        Property: ``failure is None`` (``metrics.json``'s ``success``).
     message : str
+        Property: ``failure``, or ``convergence`` when it converged (``metrics.json``'s ``message``).
     mode : str
     evaluations : int
     seconds : float
@@ -140,8 +149,8 @@ class FitResult:
     rays: RayHits
     residuals: dict
     objective_mm: float
-    success: bool
-    message: str
+    failure: str | None
+    convergence: str
     mode: str
     evaluations: int
     seconds: float
@@ -157,6 +166,16 @@ class FitResult:
     landmarks_used: int = 0
     translations: np.ndarray | None = None
     refinement: Refinement | None = None
+
+    @property
+    def success(self) -> bool:
+        """Whether the search converged (no :attr:`failure`)."""
+        return self.failure is None
+
+    @property
+    def message(self) -> str:
+        """How the search stopped: :attr:`failure`, or :attr:`convergence` when it converged."""
+        return self.convergence if self.failure is None else self.failure
 
     def scale_at(self, volume_ml: float) -> float:
         """The model's scale ``s = (V − V_EE) / unit_ml`` (units) at lung volume ``volume_ml`` (mL)."""
@@ -200,7 +219,7 @@ class FitSettings:
         Half-width around the start that the grid scans per constant (step 0.01).
     translate : bool
         Least squares only: fit a translation of each target in ``fit_on`` jointly with the
-        constants (:attr:`FitResult.translations`).
+        constants (:attr:`FitOutcome.translations`).
     direction_degree : int
         > 0: after the constants (and stiffness), fit a smooth correction of that polynomial degree
         to the directions (:mod:`lungdeform.fit.direction_correction`), kept only if it lowers the objective.
@@ -225,7 +244,7 @@ class FitSettings:
 
 def fit_lung(surface: Surface, side: str, targets: Sequence[Target], settings: FitSettings = FitSettings(), *,
              landmarks: LandmarkTerm | None = None, fit_on=None, keep=None,
-             progress: Progress | None = None) -> FitResult:
+             progress: Progress | None = None) -> FitOutcome:
     """Fit c1…c9 (and optionally a stiffness field) of one lung; see the module docstring.
 
     ``settings``: the search (:class:`FitSettings`). ``landmarks``: the optional landmark term of
@@ -234,8 +253,8 @@ def fit_lung(surface: Surface, side: str, targets: Sequence[Target], settings: F
     figure. ``fit_on`` and ``keep``: the targets in the objective and the model vertices measured
     (:class:`~lungdeform.fit.objective.LungFitter`).
     Raises :class:`InputError` for bad input; a fit whose objective is not finite raises
-    :class:`ConvergenceError`; a search that stops on its evaluation budget returns
-    ``success=False`` with the reason in ``message``.
+    :class:`ConvergenceError`; a search that stops on its evaluation budget returns its best point
+    with the reason in :attr:`FitOutcome.failure` (``success`` False).
     """
     if settings.mode not in MODES:
         raise InputError(f"mode must be one of {', '.join(MODES)}, got {settings.mode!r}")
@@ -257,14 +276,15 @@ def fit_lung(surface: Surface, side: str, targets: Sequence[Target], settings: F
 class _Found:
     """The best point of a search (:func:`_search`): c1…c6 ``x`` (clipped to the bounds), its
     objective (mm), the least-squares mode's c7…c9 ``force`` and per-target ``shifts`` (else
-    None), and whether the search converged (``success``, ``message``)."""
+    None), and its stop: ``failure`` (None: it converged, then ``convergence`` says how), as in
+    :class:`FitOutcome`."""
 
     x: np.ndarray
     objective: float
     force: np.ndarray | None
     shifts: np.ndarray | None
-    success: bool
-    message: str
+    failure: str | None
+    convergence: str
 
 
 def _search(fitter: LungFitter, side: str, settings: FitSettings, start_c: np.ndarray, history: list, say) -> _Found:
@@ -311,12 +331,12 @@ def _search(fitter: LungFitter, side: str, settings: FitSettings, start_c: np.nd
     best_x = np.clip(x, lo, hi)
     if force is None and seen["f"] < best:  # never return a point worse than one already evaluated
         best_x, best = seen["x"], seen["f"]
-    return _Found(best_x, best, force, shifts, success, message)
+    return _Found(best_x, best, force, shifts, None if success else message, message if success else "")
 
 
 def _finish(fitter: LungFitter, side: str, found: _Found, settings: FitSettings, history: list, t0: float,
-            say) -> FitResult:
-    """The :class:`FitResult` of the search's best point: the stiffness field (optional), the
+            say) -> FitOutcome:
+    """The :class:`FitOutcome` of the search's best point: the stiffness field (optional), the
     direction correction (optional) and the inverse force of the final evaluation."""
 
     best_x, best, force, shifts = found.x, found.objective, found.force, found.shifts
@@ -341,12 +361,12 @@ def _finish(fitter: LungFitter, side: str, found: _Found, settings: FitSettings,
                                          directions=correction.directions)
     w = np.where(parts["hits"].valid & fitter.keep, fitter.areas, 0.0)
     f_inv, c_inv = fitter.inverse_parts(np.nan_to_num(parts["hits"].distance), w)
-    return FitResult(
+    return FitOutcome(
         constants=parts["constants"], stiffness=fitter.stiffness, displacement=parts["u"],
         unit_ml=fitter.delta_ml, volume_ee_ml=fitter.v_ee, calibration_ml=fitter.delta_ml,
         directions=parts["directions"], force=parts["force"], inverse_force=f_inv,
         force_constants_inverse=c_inv, rays=parts["hits"], residuals=parts["residuals"],
-        objective_mm=obj, success=found.success, message=found.message, mode=settings.method,
+        objective_mm=obj, failure=found.failure, convergence=found.convergence, mode=settings.method,
         evaluations=fitter.evaluations, seconds=time.perf_counter() - t0, history=np.asarray(history),
         stiffness_fitted=log_e is not None, uniform_displacement=uniform_u,
         uniform_objective_mm=uniform_obj, surface_rms_mm=parts["surface_rms"],
@@ -379,7 +399,16 @@ def _correct_directions(fitter: LungFitter, parts: dict, c_dir, shifts, degree: 
     return replace(best, start_objective_mm=first.start_objective_mm), log_e
 
 
-def to_lung_model(surface: Surface, side: str, result: FitResult, gravity="supine", d_min: float = 1.0) -> LungModel:
+def __getattr__(name: str):
+    """``FitResult`` (≤ 0.7) fails with one line naming :class:`FitOutcome` (an ImportError, so that
+    ``from lungdeform.fit.fitting import FitResult`` shows it too, as :mod:`lungdeform.plot` does for
+    its moved names); other names are missing as usual."""
+    if name == "FitResult":
+        raise ImportError(f"{__name__}.FitResult was renamed {__name__}.FitOutcome in 0.8 (docs/CHANGELOG.md)")
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def to_lung_model(surface: Surface, side: str, result: FitOutcome, gravity="supine", d_min: float = 1.0) -> LungModel:
     """A :class:`LungModel` (model-file ready) whose displacement is the fitted ``u``.
 
     The force basis is recomputed with the fitted stiffness; the stored displacement is the

@@ -21,7 +21,7 @@ Pipeline for one candidate c1…c6 (:meth:`LungFitter.evaluate`):
    is the same linear model as ``f ≈ c7·x̂ + c8·ŷ + c9·ẑ`` pushed through the solver but does not
    amplify the ray noise by the sparse differentiation of step 3; the paper's reading (least
    squares on the inverse force ``f / max f``) is also computed and reported
-   (:attr:`lungdeform.fit.fitting.FitResult.force_constants_inverse`). Misses have zero weight;
+   (:attr:`lungdeform.fit.fitting.FitOutcome.force_constants_inverse`). Misses have zero weight;
 5. forward check: ``F`` from the fitted c7…c9, ``u = k·F·d`` calibrated to the exact target volume,
    predicted surface ``p + s·u`` measured against every target by the exact symmetric surface
    distance (:mod:`lungdeform.geometry.distance`).

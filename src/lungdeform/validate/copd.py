@@ -223,15 +223,15 @@ def run_lung(files, side: str, out: Path, config: FitConfig, mask_rows=None, *,
     exp_mask, insp_mask, exp_lm, insp_lm = files
     with atomic_dir(out) as tmp:  # the lung's folder is complete, with its digest, or absent
         inputs = FitInputs([exp_mask, insp_mask], side, landmarks=[exp_lm, insp_lm], splits=splits)
-        metrics = run_fit(inputs, tmp, config,
-                          progress=progress)
-        metrics["seconds"] = time.perf_counter() - t0
+        fitted = run_fit(inputs, tmp, config, progress=progress)
+        seconds = time.perf_counter() - t0
         if isinstance(mask_rows, dict):
-            metrics["mask_baselines"] = mask_rows
+            masks = {"mask_baselines": mask_rows}
         else:  # computed after the fit (which split the masks first, into the same cache), timed apart
-            get = mask_rows if mask_rows is not None else CaseBaselines(files, splits)
-            metrics["mask_baselines"], metrics["mask_baselines_seconds"] = get(side)
-        metrics["settings_digest"] = digest
+            rows, rows_seconds = (mask_rows if mask_rows is not None else CaseBaselines(files, splits))(side)
+            masks = {"mask_baselines": rows, "mask_baselines_seconds": rows_seconds}
+        # the fit's metrics with the whole lung's time, its mask-only baselines and the digest
+        metrics = {**fitted, "seconds": seconds, **masks, "settings_digest": digest}
         write_json(tmp / "metrics.json", metrics, strict=True, default=str)
     return metrics, True
 

@@ -79,12 +79,12 @@ def run_itk_pair(files, out: Path, config: FitConfig | None = None, *,
     targets (:func:`targets_met`); rewrite ``out/metrics.json`` with them; return the metrics."""
 
     fixed, moving, lm_fixed, lm_moving = files
-    metrics = run_fit(FitInputs([fixed, moving], "right", landmarks=[lm_fixed, lm_moving]), out,
-                      pair_config() if config is None else config, progress=progress)
+    fitted = run_fit(FitInputs([fixed, moving], "right", landmarks=[lm_fixed, lm_moving]), out,
+                     pair_config() if config is None else config, progress=progress)
     rate, faces = rays_per_second(itk_right_lung(), RAYS)
-    metrics["ray_throughput"] = {"rays_per_s": rate, "rays": RAYS, "faces": faces,
-                                 "surface": "embedded itk_right_lung"}
-    metrics["targets_met"] = targets_met(metrics)
+    metrics = {**fitted, "ray_throughput": {"rays_per_s": rate, "rays": RAYS, "faces": faces,
+                                            "surface": "embedded itk_right_lung"},
+               "targets_met": targets_met(fitted)}
     write_json(Path(out) / "metrics.json", metrics, strict=True, default=str)
     return metrics
 
