@@ -35,6 +35,7 @@ from lungdeform.geometry.contours import contours_to_mesh, section_mesh
 
 from .attributes import check_dataset, declare_charset, require
 from .series import dicom_series_files
+from .slices import check_gaps
 
 #: RT Structure Set Storage
 RTSTRUCT_SOP_CLASS = "1.2.840.10008.5.1.4.1.1.481.3"
@@ -216,8 +217,9 @@ def read_ct_series(path) -> CTSeries:
     Refused with :class:`ReadError` naming the file: a slice pydicom cannot read, an
     ImageOrientationPatient that is not two unit, orthogonal vectors (or differs between slices), an
     ImagePositionPatient that is not three finite numbers, a missing UID or one Frame of Reference
-    differing between slices; naming the folder: two slices at one position, or slice positions
-    not evenly spaced (a gap twice the others is a missing slice: contours there would be lost)."""
+    differing between slices; naming the folder: two slices at one position, slices missing or
+    unevenly spaced (:func:`lungdeform.io.dicom.slices.check_gaps`, the check every series reader
+    makes: contours on a missing slice would be lost)."""
     files = dicom_series_files(path)
     with warnings.catch_warnings():  # pydicom's warnings on values it still reads: checked below
         warnings.simplefilter("ignore")
@@ -236,7 +238,7 @@ def read_ct_series(path) -> CTSeries:
     uids = [slices[i]["uid"] for i in order]
     if len(set(uids)) < len(uids):
         raise ReadError(f"{path}: two slices share one SOP Instance UID")
-    _check_slice_positions(origins[order] @ normal, path)
+    check_gaps(tuple(str(files[i]) for i in order), origins[order] @ normal, path)
     head = slices[order[0]]["header"]
     return CTSeries(head, uids, str(head.SOPClassUID), origins[order], normal, str(path))
 
@@ -268,25 +270,6 @@ def _numbers(h: Dataset, key: str, count: int, f) -> np.ndarray:
     if values.shape != (count,) or not np.all(np.isfinite(values)):
         raise ReadError(f"{f}: {key} must be {count} finite numbers, got {values.tolist()[:8]}")
     return values
-
-
-def _check_slice_positions(levels: np.ndarray, path) -> None:
-    """Slices at distinct positions along their normal, evenly spaced (within 1 % and 0.01 mm)."""
-    if len(levels) < 2:
-        return
-    gaps = np.diff(levels)
-    if gaps.min() < 1e-3:
-        i = int(np.argmin(gaps))
-        raise ReadError(f"{path}: two slices at the same position ({levels[i]:.3f} mm along the slice normal)")
-    step = float(np.median(gaps))
-    bad = np.flatnonzero(np.abs(gaps - step) > 0.01 * step + 0.01)
-    if len(bad):
-        i = bad[np.argmax(np.abs(gaps[bad] - step))]
-        missing = max(round(gaps[i] / step) - 1, 0)
-        hint = f"{missing} slice(s) missing there?" if missing else "slices of uneven spacing"
-        raise ReadError(f"{path}: slice positions not evenly spaced: {gaps[i]:.3f} mm between the slices at "
-                        f"{levels[i]:.3f} and {levels[i + 1]:.3f} mm, {step:.3f} mm elsewhere ({hint}); "
-                        "contours on missing slices would be lost")
 
 
 def check_structure_on_ct(structure: Structure, ct: CTSeries, source: str, option: str = "--reference-ct") -> list[str]:

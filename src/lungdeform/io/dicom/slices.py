@@ -130,7 +130,7 @@ def check_slices(slices: list[tuple[str, dict[str, str]]], where) -> SliceGeomet
     z = ipp @ normal
     if len(z) < 2:
         return SliceGeometry(files, z, 0.0)
-    _check_gaps(files, z, where)
+    check_gaps(files, z, where)
     _check_tilt(files, ipp, normal, where)
     return SliceGeometry(files, z, float(np.median(np.diff(z))))
 
@@ -154,8 +154,10 @@ def _check_pixels(slices: list[tuple[str, dict[str, str]]], where) -> None:
                                 f"({first.get(tag, '')!r}); the slices of one series must share one grid")
 
 
-def _check_gaps(files: tuple[str, ...], z: np.ndarray, where) -> None:
-    """ReadError for two slices at one position, uneven gaps or a missing slice (sorted positions ``z``)."""
+def check_gaps(files: tuple[str, ...], z: np.ndarray, where) -> None:
+    """ReadError for two slices at one position, uneven gaps or a missing slice (``z``: the slices'
+    sorted positions along their normal, mm; ``files`` in the same order; ``where`` begins the
+    message). The one spacing check of every series reader (image, 4-D CT, RTSTRUCT's reference CT)."""
     gaps = np.diff(z)
     same = np.flatnonzero(gaps <= GAP_TOL_MM)
     if same.size:
