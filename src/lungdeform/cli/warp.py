@@ -196,7 +196,11 @@ def _resampled(img: Image, target: Image, result, kind: tuple[bool, bool], lungs
     before, after = M.mass_g(img.array, voxel[0]), M.mass_g(hu, voxel[1])
     lines = [(f"density: HU scaled by the Jacobian (mass conserved); mass of the image {before / 1000:.3f} kg "
               f"→ {after / 1000:.3f} kg ({100 * (after / before - 1):+.2f} %; tissue leaving the grid counts)")]
-    if at_state is not None:
+    if at_state is None:  # said, not silent: the lungs' own mass is off by the edge voxels' mixing
+        lines.append("note: without --lung-mask, voxels at the lung's edge mix in chest-wall density (the lungs "
+                     "gain about 2 % of mass at +500 mL); give the lung mask to keep it within 1 % "
+                     "(docs/RADIOTHERAPY.md, \"Density and projections\")")
+    else:
         b, a = M.mass_g(img.array, voxel[0], lungs), M.mass_g(hu, voxel[1], at_state)
         lines.append(f"lungs (--lung-mask, at this state by nearest neighbour): {lungs.sum() * voxel[0]:.0f} mL → "
                      f"{at_state.sum() * voxel[1]:.0f} mL, mass {b:.1f} g → {a:.1f} g ({100 * (a / b - 1):+.2f} %)")
