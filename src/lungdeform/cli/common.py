@@ -20,10 +20,9 @@ import typer
 from lungdeform.atomic import write_json
 from lungdeform.constants import GRAVITY
 from lungdeform.errors import InputError
-from lungdeform.io.dicom.guard import is_dicom_file
 from lungdeform.io.dicom.rtstruct import check_structure_on_ct, read_ct_series
 from lungdeform.io.grid import MAX_VOXELS, MAX_VOXELS_ENV, voxel_limit
-from lungdeform.io.image import IMAGE_SUFFIXES, read_image, resample_image
+from lungdeform.io.image import is_dicom_series_path, read_image, resample_image
 from lungdeform.playback import rigid as RG
 from lungdeform.playback.displacement_field import FieldResult, State, scan_state, volume_state
 from lungdeform.playback.schedule import check_reachable, read_volume_csv
@@ -414,12 +413,6 @@ class RigidOptions:
         return self.name if self.name is not None else str(self.mask)
 
 
-def is_dicom_path(path) -> bool:
-    """Whether an image path names a DICOM series: a folder, or a DICOM file without an image suffix."""
-    p = Path(path)
-    return p.is_dir() or (not p.name.lower().endswith(IMAGE_SUFFIXES) and is_dicom_file(p))
-
-
 def rigid_region(options: RigidOptions | None, grid, reference: tuple[str, Path] | None = None) -> np.ndarray | None:
     """``(z, y, x) bool`` on ``grid``: the structure's voxels (inside its closed surface through the
     contours) or the mask's non-zero voxels (a mask on another grid of the same LPS world taken by
@@ -430,7 +423,7 @@ def rigid_region(options: RigidOptions | None, grid, reference: tuple[str, Path]
         return None
     if options.name is not None:
         s = read_structure(options.rtstruct, options.name)
-        if reference is not None and is_dicom_path(reference[1]):
+        if reference is not None and is_dicom_series_path(reference[1]):
             ct = read_ct_series(reference[1])
             for line in check_structure_on_ct(s.roi, ct, str(options.rtstruct), option=reference[0]):
                 typer.echo(f"warning: {line}", err=True)

@@ -27,10 +27,9 @@ from lungdeform.geometry.mesh import Surface, winding_numbers
 from lungdeform.io import mask as M
 from lungdeform.io import meshfile as lio
 from lungdeform.io.dicom.fourdct import frame_of_reference, read_phases
-from lungdeform.io.dicom.guard import is_dicom_file
 from lungdeform.io.dicom.series import dicom_series_files, series_identity
 from lungdeform.io.grid import Image
-from lungdeform.io.image import IMAGE_SUFFIXES, is_image_path, read_image
+from lungdeform.io.image import is_dicom_series_path, is_image_path, read_image
 from lungdeform.io.landmarks import read_elastix_points
 from lungdeform.progress import Progress, silent
 from lungdeform.segment.ct import archive_in, is_archive, read_ct
@@ -135,7 +134,7 @@ def read_inputs(inputs: FitInputs, side_check: bool = True,
 def _dicom_files_of(path: Path):
     """The files of the DICOM series an input path names (a folder or one of its files), or None
     when it is no DICOM series (an image file, a mesh, an archive)."""
-    if path.is_dir() or (not path.name.lower().endswith(IMAGE_SUFFIXES) and is_dicom_file(path)):
+    if is_dicom_series_path(path):
         try:
             return dicom_series_files(path)
         except ReadError:

@@ -39,6 +39,13 @@ _META_GEOMETRY = {"Offset": "n", "Origin": "n", "Position": "n", "ElementSpacing
                   "CenterOfRotation": "n", "TransformMatrix": "nn", "Rotation": "nn", "Orientation": "nn"}
 
 
+def is_dicom_series_path(path) -> bool:
+    """True for a path that names a DICOM series: a directory, or a DICOM file without an image suffix
+    (:data:`IMAGE_SUFFIXES`); how :func:`read_image` tells a series from an image file."""
+    p = Path(path)
+    return p.is_dir() or (not p.name.lower().endswith(IMAGE_SUFFIXES) and is_dicom_file(p))
+
+
 def is_image_path(path) -> bool:
     """True for a directory (DICOM), a DICOM file, or a file with an image suffix (:data:`IMAGE_SUFFIXES`)."""
     p = Path(path)
@@ -207,7 +214,7 @@ def read_image(path, *, max_voxels=None) -> Image:
     try:
         if not p.is_dir() and p.stat().st_size == 0:
             raise ReadError(f"{p}: file is empty")
-        if p.is_dir() or (not p.name.lower().endswith(IMAGE_SUFFIXES) and is_dicom_file(p)):
+        if is_dicom_series_path(p):
             img = read_series(p, max_voxels)
         else:
             if not p.name.lower().endswith(IMAGE_SUFFIXES):
