@@ -328,7 +328,7 @@ def check_ct_is_scan(ct: CTSeries, scans, k: int) -> None:
         raise InputError(f"{where}: Frame of Reference {frame}, {what} {scan['frame_of_reference']}: not scan {k}'s "
                          "series (its contours would be written in another frame)")
     if scan.get("grid"):
-        _check_box(ct, scan["grid"], where, what)
+        _check_box(ct, scan["grid"], where, (what, k))
 
 
 def check_structure_on_scan(structure: Structure, scans, source: str) -> None:
@@ -368,8 +368,10 @@ def _span(box: np.ndarray) -> str:
     return "(" + ", ".join(f"{lo:.1f}..{hi:.1f}" for lo, hi in zip(box[0], box[1])) + ") mm"
 
 
-def _check_box(ct: CTSeries, grid: dict, where: str, what: str) -> None:
-    """InputError when ``ct``'s voxel-centre box differs from that of the recorded ``grid``."""
+def _check_box(ct: CTSeries, grid: dict, where: str, scan: tuple[str, int]) -> None:
+    """InputError when ``ct``'s voxel-centre box differs from that of the recorded ``grid`` of
+    ``scan`` = ``(its description, its index k)``."""
+    what, k = scan
     size, spacing = np.asarray(grid["size"], float), np.asarray(grid["spacing"], float)
     origin, direction = np.asarray(grid["origin"], float), np.asarray(grid["direction"], float).reshape(3, 3)
     idx = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], float) * (size - 1)
@@ -380,7 +382,7 @@ def _check_box(ct: CTSeries, grid: dict, where: str, what: str) -> None:
     off = np.abs(ours - box)
     if off.max() > tol:
         raise InputError(f"{where}: its slices span {_span(ours)} LPS, {what} spans {_span(box)}: not scan "
-                         f"{what.split()[1]}'s series (another grid, {off.max():.1f} mm off)")
+                         f"{k}'s series (another grid, {off.max():.1f} mm off)")
 
 
 def check_within_slices(ct: CTSeries, name: str, points, option: str = "--reference-ct") -> None:
