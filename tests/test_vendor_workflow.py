@@ -103,6 +103,11 @@ def test_track_on_every_phase_with_the_foreign_rtstruct(run, capsys):
     assert pydicom.dcmread(rs).SpecificCharacterSet == "ISO_IR 192"  # Müller, as UTF-8
     for f in (rs, min(run["phases"][-1].iterdir())):
         assert dciodvfy(f)[0] == [], f
+    # the moved GTV keeps the planner's RT ROI Interpreted Type; the ITV's is empty (Type 2), since
+    # DICOM has no defined term for an ITV: dciodvfy then warns of no undefined interpreted type
+    written = read_rtstruct(rs)
+    assert written[f"GTV@scan{len(run['phases']) - 1}"].kind == "GTV" and written["ITV_GTV"].kind == ""
+    assert not [w for w in dciodvfy(rs)[1] if "Interpreted" in w]
 
 
 def test_reg_from_the_rest_phase_to_the_largest(run):

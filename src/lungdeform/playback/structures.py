@@ -53,7 +53,7 @@ def read_structure(path, name: str) -> TrackedStructure:
     s = pick_structure(read_rois(path), name, str(path))
     v, f = structure_mesh(s, str(path))  # every contour checked before its points are used
     pts = structure_points(s)
-    return TrackedStructure(name, s.kind or "ORGAN", pts, [f"{name}:{i + 1}" for i in range(len(pts))], v, f, s)
+    return TrackedStructure(name, s.kind, pts, [f"{name}:{i + 1}" for i in range(len(pts))], v, f, s)
 
 
 def phase_frames(trace, phases: int) -> tuple[FrameSchedule, list[str]]:
@@ -81,12 +81,14 @@ def moved_surfaces(model, structure: TrackedStructure, delta_ml, tags: list[str]
 
 
 def itv_surface(surfaces: list[tuple], name: str, voxel_mm: float = ITV_VOXEL_MM) -> tuple:
-    """``(ITV_NAME, vertices (n, 3) float mm LPS, faces, "ITV")``: the internal target volume, the union
+    """``(ITV_NAME, vertices (n, 3) float mm LPS, faces, "")``: the internal target volume, the union
     of the regions ``surfaces`` (``(name, vertices, faces, kind)`` per state, :func:`moved_surfaces`)
     enclose. Each region is filled on a common grid of ``voxel_mm`` voxels (voxel centres inside the
     surface), the union grown by one voxel so that it holds every state's surface (the mesh through
     the voxels' faces lies half a voxel in, its smoothing a little more), and meshed
-    (:func:`lungdeform.io.mask.mask_to_surface`)."""
+    (:func:`lungdeform.io.mask.mask_to_surface`). Its RT ROI Interpreted Type is empty: DICOM
+    (PS3.3 C.8.8.8) has no defined term for an ITV, and a defined one (GTV, CTV) would say what it
+    is not; its name says ITV."""
     pts = np.concatenate([np.asarray(s[1], float) for s in surfaces])
     lo = pts.min(axis=0) - 4 * voxel_mm
     shape = tuple(int(n) for n in (np.ceil((pts.max(axis=0) + 4 * voxel_mm - lo) / voxel_mm) + 1)[::-1])
@@ -96,7 +98,7 @@ def itv_surface(surfaces: list[tuple], name: str, voxel_mm: float = ITV_VOXEL_MM
         union |= surface_mask(s[1], s[2], grid)
     union = ndimage.binary_dilation(union, structure=np.ones((3, 3, 3), bool))
     surface = mask_to_surface(Image(union.astype(np.uint8), grid.spacing, grid.origin, grid.direction, f"ITV of {name}"))
-    return (f"ITV_{name}", surface.vertices, surface.faces, "ITV")
+    return (f"ITV_{name}", surface.vertices, surface.faces, "")
 
 
 def motion_table(surfaces: list[tuple]) -> list[dict]:

@@ -431,7 +431,7 @@ def build_rtstruct(ct: CTSeries, surfaces: list, *, label: str = "lungdeform",
 
 def write_rtstruct(path, ct: CTSeries, surfaces: list, *, label: str = "lungdeform") -> dict:
     """Write ``surfaces`` — ``(name, vertices (n, 3) float mm LPS, faces (m, 3) int)`` each, or
-    ``(name, vertices, faces, kind)`` with an RT ROI interpreted type (GTV, ITV, ORGAN …) — as an
+    ``(name, vertices, faces, kind)`` with an RT ROI interpreted type (GTV, ORGAN …; empty when none applies) — as an
     RTSTRUCT referencing ``ct``, every contour a section of the surface by one slice plane.
     Atomic. Returns ``{name: number of contours}``. A surface reaching beyond the slices, or a
     name DICOM cannot hold, is refused before anything is written (:func:`build_rtstruct`)."""
