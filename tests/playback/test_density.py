@@ -143,3 +143,41 @@ def test_lung_mask_must_be_on_the_image_grid():
     img, lung, w = _affine_phantom((8, 9, 10), (2.0, 2.0, 2.0), np.eye(3))
     with pytest.raises(InputError, match="lung mask"):
         M.resample_by_tissue(img, lung[:-1], w)
+
+
+def test_model_lung_mask_is_the_voxel_centres_inside_the_rest_surfaces():
+    # why: without --lung-mask, warp --density partitions IMAGE's voxels by the model's lungs at rest;
+    # the mask must be exactly the voxel centres inside each rest surface, on a grid with an oblique
+    # direction and anisotropic voxels (the frame: index → LPS through spacing and direction), checked
+    # against an independent point-in-mesh test (the generalised winding number, > 0.5 inside), and
+    # each lung filled on its own box of voxels must land at its own place in the whole grid
+    from lungdeform.geometry.mesh import winding_numbers
+    from tests.browser.support import two_lungs
+    model = two_lungs(2)
+    rot = Rotation.from_rotvec([0.05, -0.08, 0.3]).as_matrix()
+    spacing = np.array([6.0, 5.0, 8.0])
+    shape = (40, 52, 70)  # (z, y, x): 420 × 260 × 320 mm, about the lungs' centre (0, 0, 0)
+    origin = -rot @ ((np.array(shape[::-1]) - 1) / 2 * spacing)
+    img = Image(np.zeros(shape, np.int16), spacing, origin, rot, "oblique")
+    mask = M.model_lung_mask(model, img)
+    grid = D.Grid.of(img)
+    k, j, i = np.indices(shape)
+    centres = grid.world(np.stack([i.ravel(), j.ravel(), k.ravel()], axis=1))
+    truth = np.zeros(len(centres), bool)
+    for lung in model.lungs.values():
+        truth |= winding_numbers(centres, lung.surface.vertices, lung.surface.faces) > 0.5
+    assert mask.sum() > 1000 and np.array_equal(mask, truth.reshape(shape))
+    # its volume is the model's rest volume up to voxel counting (2 % on these 6 × 5 × 8 mm voxels)
+    rest = sum(lung.volume_ee_ml for lung in model.lungs.values())
+    assert mask.sum() * np.prod(spacing) / 1000 == pytest.approx(rest, rel=0.02)
+
+
+def test_model_lung_mask_refuses_an_image_that_crops_the_lungs():
+    # why: a grid that holds only part of a lung (another scan, a cropped field of view) would give a
+    # mask cut at its edge, silently wrong for the mass; refused, naming the lung and IMAGE
+    from tests.browser.support import two_lungs
+    model = two_lungs(2)  # lungs at x = ±90 mm, semi-axes 60, 80, 110 mm: x from −150 to 150 mm
+    img = Image(np.zeros((60, 40, 40), np.int16), np.array([5.0, 5.0, 5.0]), np.array([-100.0, -100.0, -150.0]),
+                np.eye(3), "cropped")
+    with pytest.raises(InputError, match="the model's left lung at rest spans .* beyond IMAGE cropped's box"):
+        M.model_lung_mask(model, img)

@@ -56,7 +56,8 @@ class WarpOptions:
     label: Annotated[bool, typer.Option("--label", help="A label image: nearest-neighbour, values kept.")] = False
     node_mm: Annotated[float, typer.Option("--node-mm", callback=bounded(0, D.MAX_NODE_MM, "mm", low_open=True), help="Lattice spacing (mm) of the interior field.")] = D.NODE_SPACING_MM
     density: Annotated[bool, typer.Option("--density", help="Conserve mass: HU + 1000 scaled by the Jacobian determinant of the resampling field, so an inhaled lung gets darker (docs/RADIOTHERAPY.md, \"Density and projections\").")] = False
-    lung_mask: Annotated[list[Path] | None, typer.Option("--lung-mask", help="With --density: the lung mask on IMAGE's grid (non-zero = lung; repeat for left and right): lung voxels are resampled from lung tissue only and the chest wall from the rest, so each keeps its mass (docs/RADIOTHERAPY.md, \"Density and projections\").")] = None
+    lung_mask: Annotated[list[Path] | None, typer.Option("--lung-mask", help="With --density: the lung mask on IMAGE's grid (non-zero = lung; repeat for left and right): lung voxels are resampled from lung tissue only and the chest wall from the rest, so each keeps its mass (docs/RADIOTHERAPY.md, \"Density and projections\"). Without it the model's own lungs at rest, rasterised on IMAGE's grid, stand in (less exact along the surface).")] = None
+    no_lung_mask: Annotated[bool, typer.Option("--no-lung-mask", help="With --density: no lung mask at all, the whole image resampled linearly (the lung's edge voxels mix in chest-wall density: the lungs gain about 1.6 % of mass at +500 mL on POPI), as --density did before the model's mask became its default.")] = False
     projections: Annotated[str | None, typer.Option("--projections", help="With --phases and an image-file --out: also OUT_mip, OUT_aip, OUT_minip (maximum, mean, minimum over the phases); e.g. mip,aip,minip.")] = None
     rigid: RigidFlags = RigidFlags()
     grid: Annotated[Path | None, typer.Option("--grid", help="Write on this image's grid instead of IMAGE's (e.g. the target scan's, so an inhaled lung is not cropped); same LPS world.")] = None
@@ -79,7 +80,7 @@ def register(apps) -> None:
         check_output(opts.out, inputs, folder=dicom, whole=dicom)
         _check_combinations(opts.out, dicom, dict(label=opts.label, density=opts.density, kinds=kinds, phases=opts.phases, curve=opts.curve,
                                              state=opts.volume_ml is not None or opts.scan is not None, grid=opts.grid,
-                                             lung=bool(opts.lung_mask)))
+                                             lung=bool(opts.lung_mask), no_lung=opts.no_lung_mask))
         m = load_model(opts.model)
         if opts.curve is not None:
             states, period = D.phase_states(read_curve(opts.curve, m), opts.phases)
@@ -91,7 +92,7 @@ def register(apps) -> None:
         else:
             states, paths = [without_alignment(pick_state(m, opts.volume_ml, opts.scan), opts.no_rigid)], [Path() if dicom else opts.out]
         img = read_image(opts.image)
-        lungs = read_lungs(opts.lung_mask, img)
+        lungs = _lungs(opts, m, img)
         target = img if opts.grid is None else read_image(opts.grid)
         region = rigid_region(rigid, D.Grid.of(target), ("IMAGE", opts.image))
         projector = M.Projector() if kinds else None
@@ -140,6 +141,10 @@ def _check_combinations(out: Path, dicom: bool, given: dict) -> None:
         raise InputError("--density scales CT numbers; a --label image has none")
     if given["lung"] and not given["density"]:
         raise InputError("--lung-mask goes with --density (it says which voxels are lung tissue)")
+    if given["no_lung"] and not given["density"]:
+        raise InputError("--no-lung-mask goes with --density (it says how CT numbers are resampled)")
+    if given["no_lung"] and given["lung"]:
+        raise InputError("--lung-mask with --no-lung-mask: give one (the mask, or the whole image resampled linearly)")
     if given["kinds"] and given["phases"] is None:
         raise InputError("--projections needs --curve and --phases (the phases it projects)")
     if given["kinds"] and dicom:
@@ -152,6 +157,36 @@ def projection_path(out: Path, kind: str) -> Path:
     """``OUT_kind`` with OUT's own suffix: ``ct.mha`` → ``ct_mip.mha``."""
     suffix = write_suffix(out)
     return out.with_name(f"{out.name[:-len(suffix)]}_{kind}{suffix}")
+
+
+#: How the output names the mask that :func:`_lungs` made from the model.
+MODEL_MASK = "the model's lungs at rest, rasterised"
+
+
+@dataclass(frozen=True)
+class Lungs:
+    """The lung voxels of IMAGE for ``--density`` (``mask : (z, y, x) bool`` on IMAGE's grid) and which
+    mask they are (``name``: ``--lung-mask`` or :data:`MODEL_MASK`)."""
+
+    mask: np.ndarray
+    name: str
+
+
+def _lungs(opts: WarpOptions, model, img: Image) -> Lungs | None:
+    """The lung mask ``--density`` resamples by (:func:`lungdeform.playback.density.resample_by_tissue`):
+    ``--lung-mask``'s, else the model's rest lungs rasterised on IMAGE's grid
+    (:func:`lungdeform.playback.density.model_lung_mask`: IMAGE is the model's rest scan, whatever
+    the state and its alignment); None without --density or with ``--no-lung-mask``."""
+    if not opts.density or opts.no_lung_mask:
+        return None
+    if opts.lung_mask:
+        return Lungs(read_lungs(opts.lung_mask, img), "--lung-mask")
+    mask = M.model_lung_mask(model, img)
+    voxel_ml = float(abs(np.linalg.det(np.reshape(img.direction, (3, 3)))) * np.prod(img.spacing)) / 1000.0
+    rest = sum(lung.volume_ee_ml for lung in model.lungs.values())
+    typer.echo(f"lung mask for --density: {MODEL_MASK} on IMAGE's grid ({mask.sum() * voxel_ml:.0f} mL against the "
+               f"model's {rest:.0f} mL; --lung-mask with the segmented lungs is more exact)")
+    return Lungs(mask, MODEL_MASK)
 
 
 def read_lungs(paths: list[Path] | None, img: Image) -> np.ndarray | None:
@@ -179,7 +214,7 @@ def read_lungs(paths: list[Path] | None, img: Image) -> np.ndarray | None:
 def _resampled(img: Image, target: Image, result, kind: tuple[bool, bool], lungs=None) -> tuple[Image, list[str]]:
     """IMAGE resampled through the inverse field on ``target``'s grid; ``kind`` = (label, density):
     with density its HU scaled to conserve mass (:func:`lungdeform.playback.density.conserve_mass`),
-    with ``lungs`` (the ``--lung-mask`` voxels) lung and the rest resampled each from its own tissue
+    with ``lungs`` (:class:`Lungs`, :func:`_lungs`) lung and the rest resampled each from its own tissue
     (:func:`lungdeform.playback.density.resample_by_tissue`), and the masses before and after in lines."""
     label, density = kind
     other = None if target is img else target
@@ -189,7 +224,7 @@ def _resampled(img: Image, target: Image, result, kind: tuple[bool, bool], lungs
         as_float = Image(img.array.astype(np.float32), img.spacing, img.origin, img.direction, img.source)
         hu, at_state = resample_image(as_float, result.field, default=float(np.min(img.array)), grid=other).array, None
     else:
-        hu, at_state = M.resample_by_tissue(img, lungs, result.field, grid=other)
+        hu, at_state = M.resample_by_tissue(img, lungs.mask, result.field, grid=other)
     jac = D.jacobian_determinant(result.field, target.spacing, target.direction)
     hu = M.as_pixel_type(M.conserve_mass(hu, jac), img.array.dtype)
     voxel = [float(abs(np.linalg.det(np.reshape(g.direction, (3, 3)))) * np.prod(g.spacing)) / 1000.0 for g in (img, target)]
@@ -197,12 +232,12 @@ def _resampled(img: Image, target: Image, result, kind: tuple[bool, bool], lungs
     lines = [(f"density: HU scaled by the Jacobian (mass conserved); mass of the image {before / 1000:.3f} kg "
               f"→ {after / 1000:.3f} kg ({100 * (after / before - 1):+.2f} %; tissue leaving the grid counts)")]
     if at_state is None:  # said, not silent: the lungs' own mass is off by the edge voxels' mixing
-        lines.append("note: without --lung-mask, voxels at the lung's edge mix in chest-wall density (the lungs "
-                     "gain about 2 % of mass at +500 mL); give the lung mask to keep it within 1 % "
+        lines.append("note: --no-lung-mask: voxels at the lung's edge mix in chest-wall density (the lungs "
+                     "gain about 1.6 % of mass at +500 mL on POPI); without it a lung mask keeps that within 1 % "
                      "(docs/RADIOTHERAPY.md, \"Density and projections\")")
     else:
-        b, a = M.mass_g(img.array, voxel[0], lungs), M.mass_g(hu, voxel[1], at_state)
-        lines.append(f"lungs (--lung-mask, at this state by nearest neighbour): {lungs.sum() * voxel[0]:.0f} mL → "
+        b, a = M.mass_g(img.array, voxel[0], lungs.mask), M.mass_g(hu, voxel[1], at_state)
+        lines.append(f"lungs ({lungs.name}, at this state by nearest neighbour): {lungs.mask.sum() * voxel[0]:.0f} mL → "
                      f"{at_state.sum() * voxel[1]:.0f} mL, mass {b:.1f} g → {a:.1f} g ({100 * (a / b - 1):+.2f} %)")
     return Image(hu, target.spacing, target.origin, target.direction, img.source), lines
 

@@ -30,6 +30,14 @@ writes) puts it in the lung, ``ρ_R`` otherwise. The nearest-neighbour mask is t
 of the lung voxels' cubes, so ``Σ_lung det ∇φ · dV`` is the reference lung volume (no bias, unlike a
 threshold of the linearly resampled mask, which cuts corners), and both sides conserve their mass.
 Voxels whose interpolation stencil holds no lung voxel are the ordinary linear resampling.
+
+**Which mask** (:func:`model_lung_mask`, ``warp --density`` without ``--lung-mask``). The segmented
+lungs on the image's grid are the exact partition; without them the model's own lungs at rest stand
+in: the image's voxels whose centres lie inside the model's rest surfaces. The model is played on the
+image as its rest scan, so the rest surfaces lie in the image's LPS world whatever state (and fitted
+alignment of scan K, which moves only the output grid) is asked for. The rest surface is a smoothed
+mesh through the segmentation's voxel faces, so its voxels differ from the segmentation's along the
+surface (docs/RADIOTHERAPY.md, "Density and projections", for what that costs).
 """
 
 from __future__ import annotations
@@ -39,6 +47,9 @@ import numpy as np
 from lungdeform.errors import InputError
 from lungdeform.io.grid import Image
 from lungdeform.io.image import resample_channels, resample_image
+
+from .displacement_field import Grid
+from .rigid import surface_mask
 
 #: CT number of air (HU): zero density.
 AIR_HU = -1000.0
@@ -88,6 +99,37 @@ def resample_by_tissue(image: Image, lung, field, grid: Image | None = None) -> 
         in_rest = np.where(rest > 1e-6, (all_rho - lung_rho) / rest, all_rho)
     out = np.where(at_state & (f > 1e-6), in_lung, in_rest) + np.float32(AIR_HU)
     return out.astype(np.float32), at_state
+
+
+def model_lung_mask(model, image: Image) -> np.ndarray:
+    """``(z, y, x) bool``: the voxels of ``image``'s grid whose centres lie inside any of ``model``'s
+    lungs at rest (its rest surfaces, mm LPS, in the image's world: the model's rest scan; module
+    docstring). :class:`InputError` when a lung's rest surface reaches beyond the image's box (its
+    voxels' outer faces) by more than half a voxel: the image is not the model's rest scan, or crops
+    its lungs, and a mask cut at the edge would be wrong without a word. (A lung that the segmentation
+    cut at the grid's edge, as POPI's at its bottom slice, meshes through those voxels' outer faces,
+    its smoothing a little beyond: 0.1 mm on POPI.)"""
+    grid = Grid.of(image)
+    size = np.array(grid.shape[::-1], int)  # (i, j, k)
+    mask = np.zeros(grid.shape, bool)
+    for side, lung in model.lungs.items():
+        v = np.asarray(lung.surface.vertices, float)
+        ijk = grid.index(v)
+        lo, hi = ijk.min(axis=0), ijk.max(axis=0)
+        if np.any(lo < -1.0) or np.any(hi > size):
+            raise InputError(f"--density: the model's {side} lung at rest spans {np.round(v.min(axis=0), 1).tolist()} to "
+                             f"{np.round(v.max(axis=0), 1).tolist()} mm LPS, beyond IMAGE {image.source}'s box "
+                             f"({size.tolist()} voxels of {np.round(grid.spacing, 3).tolist()} mm at "
+                             f"{np.round(grid.origin, 1).tolist()}): IMAGE is not the model's rest scan or crops its "
+                             "lungs; give --lung-mask (the lungs segmented on IMAGE) or --no-lung-mask")
+        # only the lung's box of voxels is filled: a sub-grid whose voxel (0, 0, 0) is the box's first
+        i0, i1 = np.maximum(np.floor(lo).astype(int), 0), np.minimum(np.ceil(hi).astype(int) + 1, size)
+        sub = Grid(tuple(int(n) for n in (i1 - i0)[::-1]), grid.spacing, grid.world(i0), grid.direction)
+        mask[i0[2]:i1[2], i0[1]:i1[1], i0[0]:i1[0]] |= surface_mask(v, lung.surface.faces, sub)
+    if not mask.any():
+        raise InputError(f"--density: no voxel centre of IMAGE {image.source} lies inside the model's lungs at rest "
+                         "(voxels larger than the lungs?); give --lung-mask or --no-lung-mask")
+    return mask
 
 
 def mass_g(hu, voxel_ml: float, mask=None) -> float:
