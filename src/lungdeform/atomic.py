@@ -17,6 +17,7 @@ import re
 import shutil
 import tempfile
 import uuid
+import zipfile
 from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import Iterator
@@ -167,6 +168,20 @@ def replace_dir(src, dst) -> None:
 def write_bytes(path, data: bytes) -> Path:
     with atomic_path(path) as tmp:
         tmp.write_bytes(data)
+    return Path(path)
+
+
+def write_npz(path, arrays: dict, *, compress: bool = False) -> Path:
+    """Write ``arrays`` (name → array) as a NumPy ``.npz`` archive (what :func:`numpy.load` reads,
+    as :func:`numpy.savez` writes it), atomically. Every zip member and the archive are closed by
+    ``with`` blocks, so an exception (a signal) part way leaves no archive half-closed for the
+    garbage collector, which ``numpy.savez`` does (its clean-up then fails on the closed file)."""
+    method = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
+    with (atomic_path(path) as tmp, open(tmp, "wb") as fh,
+          zipfile.ZipFile(fh, "w", compression=method, allowZip64=True) as archive):
+        for name, value in arrays.items():
+            with archive.open(f"{name}.npy", "w", force_zip64=True) as member:
+                np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
     return Path(path)
 
 

@@ -236,3 +236,38 @@ def test_takes_refuses_an_option_given_twice():
 
     with pytest.raises(TypeError, match="name given twice"):
         common.takes(Twice)
+
+
+def test_an_output_folder_that_takes_no_file_is_refused_before_any_work(tmp_path, monkeypatch, capsys):
+    # why: `dvf --out u.mha --out-reg /proc/reg.dcm` wrote u.mha and then failed on the REG (and
+    # `track --out-rtstruct` likewise left its trajectories): an output's folder is now tried with a
+    # temporary file before any work, so the refusal comes first and nothing is written
+    import errno
+    import tempfile
+
+    from lungdeform.cli.common import check_output
+    from lungdeform.cli.main import main
+    from lungdeform.io.modelfile import save_model
+    from tests.browser.support import two_lungs
+    real = tempfile.NamedTemporaryFile
+    locked = tmp_path / "locked"
+    locked.mkdir()
+
+    def refusing(*args, dir=None, **kwargs):  # noqa: A002 - tempfile's own name
+        if dir is not None and Path(dir) == locked:
+            raise PermissionError(errno.EACCES, "Permission denied", str(locked))
+        return real(*args, dir=dir, **kwargs)
+
+    monkeypatch.setattr(tempfile, "NamedTemporaryFile", refusing)
+    with pytest.raises(InputError, match=r"--out-reg .*reg\.dcm: cannot write in .*locked \(Permission denied\)"):
+        check_output(locked / "reg.dcm", option="--out-reg")
+    with pytest.raises(InputError, match="cannot write in"):
+        check_output(locked / "new" / "deeper" / "u.mha")  # the nearest existing folder is tried
+    assert check_output(tmp_path / "fine.mha") == tmp_path / "fine.mha"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["locked"]  # the probe leaves nothing
+    save_model(tmp_path / "m.npz", two_lungs(2))
+    rc = main(["dvf", str(tmp_path / "m.npz"), "--reference", str(tmp_path / "m.npz"), "--volume-ml", "100",
+               "--out", str(tmp_path / "u.mha"), "--out-reg", str(locked / "reg.dcm")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "cannot write in" in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "u.mha").exists()

@@ -90,3 +90,40 @@ def test_a_killed_runs_leftovers_are_removed_by_the_next_run(files, tmp_path):  
     assert main(["dvf", str(d / "model.npz"), "--reference", str(d / "ref.nii.gz"), "--volume-ml", str(ee + 200),
                  "--out", str(tmp_path / "u.mha")]) == 0
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["4dct", "u.mha", live.name])
+
+
+
+def test_a_signal_while_the_model_file_is_zipped_exits_with_one_line(tmp_path):
+    # why: SIGTERM arriving while numpy's savez closed a zip member made zipfile's own clean-up raise
+    # ValueError ("seek of closed file") on the way out, which hid the signal: exit 1 and tracebacks
+    # (a new user's review). Now a signal inside zipfile is sent again a moment later, where it
+    # unwinds cleanly: exit 143 and one line with no model file, or, when the save had ended by
+    # then, the whole model file; never a traceback and never a broken file
+    import numpy as np
+
+    from lungdeform.io.image import write_image
+    from lungdeform.io.modelfile import load_model
+    z, y, x = np.mgrid[:30, :30, :30]
+    mask = (((x - 14.5) / 10) ** 2 + ((y - 14.5) / 8) ** 2 + ((z - 14.5) / 12) ** 2 <= 1).astype(np.uint8)
+    write_image(tmp_path / "lung.nii.gz", mask, [4.0, 4.0, 4.0], [0.0, 0.0, 0.0], np.eye(3))
+    out = tmp_path / "m.npz"
+    code = (  # the signal sent from inside the third zip member's close (compiled as zipfile's own code,
+        # where a signal lands while a member is written), as the review reproduced it
+        "import os, signal, sys, zipfile\n"
+        "ns = {'real': zipfile._ZipWriteFile.close, 'calls': [], 'os': os, 'signal': signal}\n"
+        "exec(compile('def close(self):\\n'\n"
+        "             '    calls.append(1)\\n'\n"
+        "             '    if len(calls) == 3: os.kill(os.getpid(), signal.SIGTERM)\\n'\n"
+        "             '    return real(self)\\n', zipfile.__file__, 'exec'), ns)\n"
+        "zipfile._ZipWriteFile.close = ns['close']\n"
+        "from lungdeform.cli.main import main\n"
+        f"sys.exit(main(['build', {str(tmp_path / 'lung.nii.gz')!r}, '--side', 'right', '--target-vertices', '300',"
+        f" '--out', {str(out)!r}]))\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=False)
+    assert "Traceback" not in proc.stderr and "Exception ignored" not in proc.stderr, proc.stderr
+    if proc.returncode == 143:
+        assert proc.stderr.strip().splitlines()[-1] == "terminated", proc.stderr
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["lung.nii.gz"]
+    else:  # the save ended before the signal came again: a complete model, then the default action
+        assert proc.returncode in (0, -signal.SIGTERM), proc.stderr
+        assert list(load_model(out).names) == ["right"]

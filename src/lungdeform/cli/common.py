@@ -9,6 +9,7 @@ import os
 import platform
 import re
 import sys
+import tempfile
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -141,12 +142,16 @@ def check_output(out: Path, inputs=(), *, folder: bool = False, writes=(), whole
     a path under a regular file; a file output (``folder`` False) that is an existing folder, or a
     folder output that is an existing file; one of ``inputs`` (None entries skipped) itself, or, for
     a folder, an input at a name the command writes in it (``writes``) or anywhere in it when the
-    folder is replaced as a whole (``whole``). Returns ``out`` as a :class:`Path`."""
+    folder is replaced as a whole (``whole``); a folder that takes no new file (read-only, no
+    permission, a pseudo file system), tried with a temporary file in the nearest existing folder
+    above ``out``, so that a command writing several outputs does not fail at the last one. Returns
+    ``out`` as a :class:`Path`."""
     out = Path(out)
     for above in out.parents:
         if above.exists():
             if not above.is_dir():
                 raise InputError(f"{option} {out}: {above} is a file, not a folder")
+            _check_writable(out, above, option)
             break
     if out.exists() and out.is_dir() != folder:
         raise InputError(f"{option} {out}: an existing {'file' if folder else 'folder'} where a "
@@ -157,6 +162,15 @@ def check_output(out: Path, inputs=(), *, folder: bool = False, writes=(), whole
         if inside or any(_same_path(given, t) for t in targets):
             raise InputError(f"{option} {out} would overwrite the input {given}; give another output path")
     return out
+
+
+def _check_writable(out: Path, folder: Path, option: str) -> None:
+    """Refuse ``out`` when ``folder`` (its nearest existing folder) takes no new file."""
+    try:
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".lungdeform-probe-"):
+            pass
+    except OSError as exc:
+        raise InputError(f"{option} {out}: cannot write in {folder} ({exc.strerror or exc})") from None
 
 
 def _same_path(a: Path, b: Path) -> bool:

@@ -127,15 +127,10 @@ def _run_app(app, argv) -> int:
         if exc.code is None:
             return 0
         if signalled:  # typer turns the KeyboardInterrupt into exit 130 without a word
-            typer.echo("terminated", err=True)
-            return 143
+            return _stopped(signalled[0] == signal.SIGTERM)
         return exc.code if isinstance(exc.code, int) else 1
-    except Terminated:
-        typer.echo("terminated", err=True)
-        return 143
-    except KeyboardInterrupt:
-        typer.echo("interrupted", err=True)
-        return 130
+    except KeyboardInterrupt as exc:
+        return _stopped(isinstance(exc, Terminated))
     except LungdeformError as exc:
         typer.echo(f"error: {_one_line(exc)}", err=True)
         return 2
@@ -143,7 +138,32 @@ def _run_app(app, argv) -> int:
         where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
         typer.echo(f"error: {where}{exc.strerror or exc}", err=True)
         return 2
+    except Exception as exc:
+        stop = _interruption(exc)
+        if stop is None:
+            raise
+        return _stopped(isinstance(stop, Terminated))  # clean-up code raised while the signal unwound
     return 0
+
+
+def _stopped(terminated: bool) -> int:
+    """Say how the command was stopped (one line on stderr); the exit code of a process killed by
+    SIGTERM (143) or SIGINT (130)."""
+    typer.echo("terminated" if terminated else "interrupted", err=True)
+    return 143 if terminated else 130
+
+
+def _interruption(exc: BaseException) -> KeyboardInterrupt | None:
+    """The KeyboardInterrupt (or :class:`Terminated`) ``exc`` was raised while handling, if any: a
+    library's clean-up (zipfile closing a half-written member, say) can raise its own error on the
+    way out, which would otherwise hide the signal behind a traceback."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
 
 
 class Terminated(KeyboardInterrupt):
@@ -158,19 +178,19 @@ def signals_interrupt():
     callback from compiled code, where an exception is printed and dropped, is sent again a little
     later. The previous handlers are put back after. Only in the main thread (where Python delivers
     signals); elsewhere nothing changes."""
-    signalled: list[int] = []  # yielded: holds SIGTERM once it came
+    signalled: list[int] = []  # yielded: the signals that came (SIGTERM, SIGINT)
     if threading.current_thread() is not threading.main_thread():
         yield signalled
         return
 
     def handler(signum, frame):
-        if _in_c_callback(frame):  # an exception there is printed and dropped: ask again a little later
+        if _in_c_callback(frame):  # an exception there is dropped or breaks clean-up: ask again a little later
             threading.Timer(0.05, os.kill, (os.getpid(), signum)).start()
             return
+        signalled.append(signum)
         if signum == signal.SIGINT:
             raise KeyboardInterrupt()
         signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a second SIGTERM does not cut the clean-up short
-        signalled.append(signum)
         raise Terminated()
 
     handled = [signal.SIGTERM]
@@ -185,10 +205,13 @@ def signals_interrupt():
 
 
 def _in_c_callback(frame) -> bool:
-    """Whether ``frame`` runs inside a Python callback called from compiled code (llvmlite's object
-    cache during a numba compilation), where an exception cannot propagate."""
+    """Whether ``frame`` runs where an exception must not be raised: inside a Python callback called
+    from compiled code (llvmlite's object cache during a numba compilation), where it cannot
+    propagate, or inside :mod:`zipfile` writing a member (numpy's ``savez`` of a model file), whose
+    clean-up then fails ("seek of closed file") and hides the signal behind a traceback."""
     while frame is not None:
-        if "llvmlite" in frame.f_code.co_filename:
+        name = frame.f_code.co_filename
+        if "llvmlite" in name or os.path.basename(name) == "zipfile.py" or f"{os.sep}zipfile{os.sep}" in name:
             return True
         frame = frame.f_back
     return False

@@ -50,7 +50,7 @@ from typing import Sequence
 import numpy as np
 
 from lungdeform import __version__, data
-from lungdeform.atomic import atomic_path, write_json, write_text
+from lungdeform.atomic import write_json, write_npz, write_text
 from lungdeform.constants import table_constants
 from lungdeform.errors import InputError, ReadError
 from lungdeform.fit.fitting import DIRECTION_HI, DIRECTION_LO
@@ -431,11 +431,9 @@ def write_cohort(lungs: Sequence[SyntheticLung], out, *, seed: int | None = None
                 count += 1
             rows.append(row)
             count += 1
-        with atomic_path(out / files["arrays"]) as tmp:
-            with open(tmp, "wb") as fh:
-                np.savez(fh, vertices=lung.rest.vertices, faces=lung.rest.faces, displacement=lung.displacement,
-                         scales=lung.scales, noise=lung.noise, landmark_index=lung.landmark_index,
-                         constants=lung.constants)
+        write_npz(out / files["arrays"], {"vertices": lung.rest.vertices, "faces": lung.rest.faces,
+                                          "displacement": lung.displacement, "scales": lung.scales, "noise": lung.noise,
+                                          "landmark_index": lung.landmark_index, "constants": lung.constants})
         count += 1
         records.append(truth_record(lung, files))
         say(f"wrote {stem}")

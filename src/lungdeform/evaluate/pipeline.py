@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lungdeform.atomic import atomic_path, jsonable, write_json
+from lungdeform.atomic import jsonable, write_json, write_npz
 from lungdeform.errors import InputError
 from lungdeform.fit.config import CROP_LIMIT, FitConfig, FitInputs
 from lungdeform.fit.cycle import choose_alignment
@@ -277,9 +277,7 @@ def write_landmark_motion(path: Path, placed: Placement, fit, landmarks, surface
     arrays = {"landmarks": np.asarray(landmarks, float), "observed": np.stack([np.asarray(a, float) for a in placed.landmarks]),
               "surface_only": np.stack([landmarks + s * surface_unit for s in scales]),
               "volumes_ml": np.array([tg.volume_ml for tg in placed.targets]), "centroid": centroid, "scale": scale}
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, **arrays)
+    write_npz(path, arrays)
     return path
 
 

@@ -55,7 +55,7 @@ from pathlib import Path
 import numpy as np
 
 from lungdeform import __version__
-from lungdeform.atomic import atomic_path, finite_json
+from lungdeform.atomic import finite_json, write_npz
 from lungdeform.errors import InputError, ModelFileError
 from lungdeform.geometry.frame import LungFrame
 from lungdeform.geometry.mesh import Surface
@@ -132,10 +132,7 @@ def save_model(path, model: Model) -> Path:
     for name, lung in model.lungs.items():
         for key, value in lung_arrays(lung).items():
             arrays[f"lung/{name}/{key}"] = value
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez_compressed(fh, **arrays)
-    return path
+    return write_npz(path, arrays, compress=True)
 
 
 def load_model(path) -> Model:
