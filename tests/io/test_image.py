@@ -370,3 +370,35 @@ def test_non_finite_voxels_are_refused_naming_the_first(tmp_path, suffix, value)
     a[2, 3, 1] = -1000.5  # the same file finite: read as written
     sitk.WriteImage(sitk.GetImageFromArray(a), str(path))
     assert read_image(path).array[2, 3, 1] == -1000.5
+
+
+def test_a_nifti_whose_qform_and_sform_disagree_is_refused(tmp_path):
+    # why: ITK picks one of the two transforms without a word (here the qform: the image read 0.05 mm
+    # off the sform); two frames 5 mm apart in one file is a patient placed in two places, so it is
+    # refused, naming both codes and the distance. Truth: nibabel's own affines of the same header
+    # (an independent reader), a rotated anisotropic grid, a negative qfac, float32 rounding allowed
+    import nibabel as nib
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(11)
+    arr = (rng.random((12, 14, 9)) > 0.5).astype(np.uint8)
+    aff = np.eye(4)
+    aff[:3, :3] = Rotation.from_euler("xyz", [10, -20, 35], degrees=True).as_matrix() @ np.diag([0.8, 0.9, -2.5])
+    aff[:3, 3] = [-100.0, 50.0, 30.0]
+    for shift, refused in ((0.0, False), (0.05, False), (5.0, True)):
+        img = nib.Nifti1Image(arr, aff)
+        q = aff.copy()
+        q[:3, 3] += [0.0, shift, 0.0]
+        img.set_qform(q, code=1)
+        img.set_sform(aff, code=2)
+        path = tmp_path / f"m{shift}.nii.gz"
+        nib.save(img, path)
+        header = nib.load(path).header
+        assert header["pixdim"][0] == -1  # the flipped axis is stored as qfac
+        apart = np.abs(header.get_qform()[:3, 3] - header.get_sform()[:3, 3]).max()
+        assert apart == pytest.approx(shift, abs=1e-4)
+        if refused:
+            with pytest.raises(ReadError, match=r"qform \(code 1\) and sform \(code 2\) place the image 5\.00 mm apart"):
+                read_image(path)
+        else:
+            assert read_image(path).array.shape == arr.shape[::-1]

@@ -93,7 +93,9 @@ def _check_nrrd_numbers(p: Path, head: bytes) -> None:
 
 def _check_nifti_numbers(p: Path) -> None:
     """Refuse a NIfTI-1 header whose voxel size (pixdim), qform (quatern, qoffset; when its code is
-    set) or sform (srow; when its code is set) holds NaN or infinity, before ITK builds its grid."""
+    set) or sform (srow; when its code is set) holds NaN or infinity, before ITK builds its grid,
+    or whose qform and sform (both set) disagree by more than :data:`NIFTI_FORMS_TOLERANCE_MM`:
+    ITK would pick one of them without a word."""
     try:
         if p.name.lower().endswith(".gz"):
             with gzip.open(p, "rb") as fh:
@@ -121,6 +123,35 @@ def _check_nifti_numbers(p: Path) -> None:
     for key, values in fields.items():
         if not np.isfinite(values).all():
             raise ReadError(f"{p}: NIfTI header field {key} holds {values.tolist()}: not finite")
+    if qform > 0 and sform > 0:
+        dims = np.maximum(np.array(struct.unpack(endian + "3h", raw[42:48]), float) - 1, 0)
+        corners = np.array([[i, j, k] for i in (0, dims[0]) for j in (0, dims[1]) for k in (0, dims[2])])
+        q_affine = _nifti_qform(fields["quatern"], fields["qoffset"], floats(76, 4))
+        s_affine = np.stack([fields["srow_x"], fields["srow_y"], fields["srow_z"]])
+        apart = np.abs((corners @ q_affine[:, :3].T + q_affine[:, 3]) - (corners @ s_affine[:, :3].T + s_affine[:, 3])).max()
+        if apart > NIFTI_FORMS_TOLERANCE_MM:
+            raise ReadError(f"{p}: the NIfTI header's qform (code {qform}) and sform (code {sform}) place the image "
+                            f"{apart:.2f} mm apart at a corner of its grid: which is the patient's frame is ambiguous "
+                            "and lungdeform does not guess; write the file with one transform, or both the same")
+
+
+#: How far (mm, at any corner of the grid) a NIfTI's qform and sform may place a voxel apart: their
+#: float32 rounding, far below a voxel; more is two different frames in one file.
+NIFTI_FORMS_TOLERANCE_MM = 0.1
+
+
+def _nifti_qform(quatern, qoffset, pixdim) -> np.ndarray:
+    """``(3, 4) float``: voxel index → mm (the file's RAS) of a NIfTI-1 qform: the rotation of the
+    quaternion ``(b, c, d)`` (``a`` from unit length), the voxel sizes ``pixdim[1:4]`` with the
+    last negated when ``qfac = pixdim[0]`` is −1, then ``qoffset`` (NIfTI-1 standard, nifti1.h)."""
+    b, c, d = (float(v) for v in quatern)
+    a = np.sqrt(max(0.0, 1.0 - (b * b + c * c + d * d)))
+    rotation = np.array([[a * a + b * b - c * c - d * d, 2 * (b * c - a * d), 2 * (b * d + a * c)],
+                         [2 * (b * c + a * d), a * a + c * c - b * b - d * d, 2 * (c * d - a * b)],
+                         [2 * (b * d - a * c), 2 * (c * d + a * b), a * a + d * d - b * b - c * c]])
+    qfac = -1.0 if pixdim[0] < 0 else 1.0
+    scale = np.array([pixdim[1], pixdim[2], qfac * pixdim[3]], float)
+    return np.column_stack([rotation * scale, np.asarray(qoffset, float)])
 
 
 def _check_header(p: Path, max_voxels=None) -> None:
