@@ -243,3 +243,15 @@ def test_build_mask_holding_both_lungs(tmp_path, capsys):
     assert model.lungs["left"].volume_ee_ml == pytest.approx(left.sum() * voxel_ml, rel=0.05)
     assert main(["build", str(path), "--target-vertices", "1500", "--out", str(tmp_path / "both.npz")]) == 0
     assert sorted(load_model(tmp_path / "both.npz").names) == ["left", "right"]
+
+
+def test_stl_that_welds_into_a_pinch_exits_2_with_one_line(tmp_path, capsys):
+    # an STL from another program whose float32 corners weld two vertices into one: refused, one line
+    from tests.geometry.test_remesh import touching_poles
+    from tests.io.test_meshfile import write_soup_stl
+
+    v, f = touching_poles()
+    stl = write_soup_stl(tmp_path / "welded.stl", v[f])
+    out = tmp_path / "m.npz"
+    _fails(["build", str(stl), "--side", "left", "--out", str(out)], capsys, "welded.stl", "not 2-manifold")
+    assert not out.exists()
