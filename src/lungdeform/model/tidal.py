@@ -45,6 +45,15 @@ def tidal_split(volumes_ml: dict[str, float], tidal_ml: float) -> dict[str, floa
     return {side: tidal_ml * v / total for side, v in volumes_ml.items()}
 
 
+def split_rule(sides: list[str]) -> str:
+    """How :func:`tidal_split` shares the tidal volume between ``sides``, in words (recorded in a
+    built model's provenance as ``tidal_split``)."""
+    if len(sides) == 1 and sides[0] in ONE_LUNG_SHARE:
+        return (f"one lung: the {sides[0]} lung's usual share of both lungs, "
+                f"{ONE_LUNG_SHARE[sides[0]]:.1%} ({ONE_LUNG_SOURCE})")
+    return "in proportion to the lungs' end-exhale volumes"
+
+
 def played_shares(calibration_ml: dict[str, float], tidal_ml=None) -> dict[str, float]:
     """``{lung: share}`` of a both-lung volume change that each lung plays (module docstring):
     ``calibration_ml / tidal_ml`` when ``tidal_ml`` (the model's recorded both-lung tidal volume,
