@@ -268,8 +268,8 @@ def test_one_lung_takes_its_share_and_says_so(tmp_path, lung_files, capsys):
     out = tmp_path / "m.npz"
     assert main(["build", str(lung_files[1]), "--side", "right", "--out", str(out)]) == 0
     lines = [ln for ln in capsys.readouterr().out.splitlines() if "one lung" in ln]
-    assert lines == ["right: one lung: its share 53.6% of --tidal-ml 500 mL = 268 mL "
-                     "(Yamada et al., Respiration 2020;99:598, supine CT volumes; docs/DEFAULTS.md)"]
+    assert lines == [("right: one lung: its share 53.6% of --tidal-ml 500 mL = 268 mL "
+                      "(Yamada et al., Respiration 2020;99:598, supine CT volumes; docs/DEFAULTS.md)")]
     m = load_model(out)
     lung = m.lungs["right"]
     assert lung.calibration_ml == pytest.approx(268.0)

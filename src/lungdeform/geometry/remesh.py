@@ -39,7 +39,6 @@ from .mesh import (
     unique_edges,
 )
 
-
 #: Where cleanup splits a vertex shared by two sheets, each copy moves this fraction of the way from
 #: the shared position towards the mean of its own sheet's neighbours (about 0.1 mm at a 5 mm edge):
 #: enough to be a distinct position in any file, far below the surface's resolution.
