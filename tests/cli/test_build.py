@@ -30,7 +30,8 @@ def test_build_two_lungs_guesses_sides(tmp_path, lung_files, capsys):
     assert m.lungs["left"].surface.vertices[:, 0].mean() > 0
     # both lungs together are calibrated at the 500 mL tidal volume
     assert sum(l.calibration_ml for l in m.lungs.values()) == pytest.approx(500.0)
-    assert "model written to" in capsys.readouterr().out
+    out_text = capsys.readouterr().out
+    assert "model written to" in out_text and "one lung" not in out_text
 
 
 def test_build_options(tmp_path, lung_files):
@@ -41,7 +42,8 @@ def test_build_options(tmp_path, lung_files):
     lung = load_model(out).lungs["left"]
     assert np.allclose(lung.gravity, [0, 0, -1])
     assert lung.stiffness.min() == pytest.approx(0.5) and lung.stiffness.max() == pytest.approx(1.5)
-    assert lung.calibration_ml == pytest.approx(300.0)
+    # a lone left lung: its side's usual share (46.4 %) of the both-lung 300 mL
+    assert lung.calibration_ml == pytest.approx(0.464 * 300.0)
 
 
 def _fails(args, capsys, *needles):
@@ -243,3 +245,35 @@ def test_build_mask_holding_both_lungs(tmp_path, capsys):
     assert model.lungs["left"].volume_ee_ml == pytest.approx(left.sum() * voxel_ml, rel=0.05)
     assert main(["build", str(path), "--target-vertices", "1500", "--out", str(tmp_path / "both.npz")]) == 0
     assert sorted(load_model(tmp_path / "both.npz").names) == ["left", "right"]
+
+
+def test_stl_that_welds_into_a_pinch_exits_2_with_one_line(tmp_path, capsys):
+    # an STL from another program whose float32 corners weld two vertices into one: refused, one line
+    from tests.geometry.test_remesh import touching_poles
+    from tests.io.test_meshfile import write_soup_stl
+
+    v, f = touching_poles()
+    stl = write_soup_stl(tmp_path / "welded.stl", v[f])
+    out = tmp_path / "m.npz"
+    _fails(["build", str(stl), "--side", "left", "--out", str(out)], capsys, "welded.stl", "not 2-manifold")
+    assert not out.exists()
+
+
+def test_one_lung_takes_its_share_and_says_so(tmp_path, lung_files, capsys):
+    # a lone lung does not breathe the whole (both-lung) tidal volume: the right lung takes 53.6 % of
+    # 500 mL, recorded as its calibration, played as 53.6 % of a both-lung breath, and said in one line
+    from lungdeform.playback.schedule import lung_shares
+    from lungdeform.playback.trajectory import lung_scales
+
+    out = tmp_path / "m.npz"
+    assert main(["build", str(lung_files[1]), "--side", "right", "--out", str(out)]) == 0
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if "one lung" in ln]
+    assert lines == [("right: one lung: its share 53.6% of --tidal-ml 500 mL = 268 mL "
+                      "(Yamada et al., Respiration 2020;99:598, supine CT volumes; docs/DEFAULTS.md)")]
+    m = load_model(out)
+    lung = m.lungs["right"]
+    assert lung.calibration_ml == pytest.approx(268.0)
+    assert lung_shares(m) == pytest.approx({"right": 0.536})
+    # truth, measured on the mesh: at the peak of a 500 mL breath the lung holds V_EE + 268 mL
+    (scale,) = lung_scales(m, [500.0])["right"]
+    assert lung.surface_at(scale=scale).volume_ml == pytest.approx(lung.volume_ee_ml + 268.0, abs=1e-6)

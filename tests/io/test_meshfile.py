@@ -279,3 +279,39 @@ def test_load_unknown_and_missing(tmp_path):
         load(tmp_path / "a.txt")
     with pytest.raises(ReadError, match="no such file"):
         load(tmp_path / "nothing.nii.gz")
+
+
+def test_stl_writer_refuses_vertices_it_would_weld(tmp_path):
+    # two vertices 1e-7 mm apart are one float32 position: the STL would read back welded, as
+    # another (here pinched) surface, so writing it is refused; OBJ keeps float64 and round-trips
+    from tests.geometry.test_remesh import touching_poles
+
+    v, f = touching_poles()
+    with pytest.raises(MeshError, match=r"poles\.stl: 2 vertices share a float32 position"):
+        write_mesh(tmp_path / "poles.stl", v, f)
+    assert not (tmp_path / "poles.stl").exists()
+    back, _ = load_surface(write_mesh(tmp_path / "poles.obj", v, f))
+    assert len(back.vertices) == len(v)
+
+
+def test_welded_stl_from_elsewhere_is_refused_in_one_line(tmp_path):
+    # another program's STL of the same surface: its reader welds the two poles into a pinch
+    from tests.geometry.test_remesh import touching_poles
+
+    v, f = touching_poles()
+    path = tmp_path / "other.stl"
+    write_soup_stl(path, v[f])
+    with pytest.raises(MeshError, match=r"other\.stl: surface is not 2-manifold") as info:
+        load_surface(path)
+    assert "\n" not in str(info.value)
+
+
+def write_soup_stl(path, triangles):
+    """A binary STL of ``triangles : (m, 3, 3)`` mm as any program writes it (float32 corners,
+    zero normals), without lungdeform's checks."""
+    import struct
+
+    rec = np.zeros(len(triangles), dtype=[("n", "<f4", 3), ("v", "<f4", (3, 3)), ("a", "<u2")])
+    rec["v"] = triangles
+    path.write_bytes(b"other".ljust(80, b" ") + struct.pack("<I", len(rec)) + rec.tobytes())
+    return path

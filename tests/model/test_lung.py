@@ -6,7 +6,7 @@ import pytest
 from lungdeform.errors import InputError
 from lungdeform.model.force import field_basis
 from lungdeform.model.graph import spring_graph
-from lungdeform.model.lung import BuildSettings, build_lung
+from lungdeform.model.lung import BuildSettings, build_lung, build_model
 from lungdeform.model.solve import push
 from lungdeform.model.transfer import local_transfer
 
@@ -153,3 +153,19 @@ def test_a_reoriented_model_drops_its_interior_map(model):
     turned = mapped.oriented("prone")
     assert turned.interior_map is None
     assert not np.allclose(turned.interior.displacement(q), mapped.interior_map(q))
+
+
+def test_a_lone_lung_is_calibrated_at_its_share_two_lungs_at_all(left_lung, right_lung):
+    # truth: the surface at each lung's calibration encloses V_EE + its part, measured on the mesh; a
+    # lone left lung takes 46.4 % of 500 mL (its side's usual share), two lungs all 500 mL by volume
+    one = build_model({"left": left_lung}, tidal_ml=500.0, default="paper")
+    lung = one.lungs["left"]
+    assert lung.calibration_ml == pytest.approx(0.464 * 500.0)
+    grown = lung.surface_at(scale=lung.calibration_ml / lung.unit_ml).volume_ml
+    assert grown == pytest.approx(lung.volume_ee_ml + 232.0, rel=1e-9)
+    assert one.provenance["tidal_ml"] == 500.0 and "46.4%" in one.provenance["tidal_split"]
+    two = build_model({"left": left_lung, "right": right_lung}, tidal_ml=500.0, default="paper")
+    total = left_lung.volume_ml + right_lung.volume_ml
+    for side, s in (("left", left_lung), ("right", right_lung)):
+        assert two.lungs[side].calibration_ml == pytest.approx(500.0 * s.volume_ml / total, rel=1e-12)
+    assert sum(l.calibration_ml for l in two.lungs.values()) == pytest.approx(500.0, rel=1e-12)

@@ -159,3 +159,18 @@ def test_markers_csv_names_invalid_rows_by_file_line(tmp_path):
     path.write_text("x_mm,y_mm,z_mm\nnan,0,0\n")  # nothing valid left
     with pytest.raises(ReadError, match="no marker rows with finite"):
         read_markers_csv(path, skip_invalid=True)
+
+
+def test_one_lung_range_is_the_both_lung_breath_it_was_built_for():
+    # a lone left lung built for 500 mL (both lungs) is calibrated at its 46.4 %, 232 mL: a 500 mL breath
+    # is inside its range, 1.5 × 500 mL is the edge; the lung plays 46.4 % of ΔV (measured on the mesh)
+    from lungdeform.model.lung import build_model
+    from tests.conftest import ellipsoid_lung
+
+    m = build_model({"left": ellipsoid_lung("left", 2)}, tidal_ml=500.0, default="paper")
+    assert extrapolation_note(m, [0.0, 500.0]) is None
+    assert extrapolation_note(m, [0.0, 750.0]) is None
+    assert "(0 to 500 mL)" in extrapolation_note(m, [0.0, 751.0])
+    lung = m.lungs["left"]
+    (s,) = lung_scales(m, [500.0])["left"]
+    assert lung.surface_at(scale=s).volume_ml == pytest.approx(lung.volume_ee_ml + 0.464 * 500.0, abs=1e-6)

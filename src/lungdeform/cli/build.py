@@ -15,6 +15,7 @@ from lungdeform.io.modelfile import provenance, save_model
 from lungdeform.model.lung import BuildSettings, build_model
 from lungdeform.model.population import resolve_default
 from lungdeform.model.stiffness import parse_stiffness
+from lungdeform.model.tidal import ONE_LUNG_SHARE, ONE_LUNG_SOURCE
 from lungdeform.segment.split import load_lungs
 
 from .common import (
@@ -44,7 +45,7 @@ class BuildOptions:
     target_vertices: Annotated[Optional[int], typer.Option("--target-vertices", help="Decimate mask surfaces to about this many vertices.")] = None
     side_check: Annotated[bool, typer.Option("--side-check/--no-side-check", help=SIDE_CHECK_HELP)] = True
     orientation: Annotated[str, typer.Option("--orientation", help="supine, prone, upright, left-decubitus, right-decubitus, or a gravity vector 'x,y,z' (LPS).")] = "supine"
-    tidal_ml: Annotated[float, typer.Option("--tidal-ml", callback=tidal_option, help="Tidal volume for both lungs together (mL); calibration is exact there.")] = 500.0
+    tidal_ml: Annotated[float, typer.Option("--tidal-ml", callback=tidal_option, help="Tidal volume for both lungs together (mL); calibration is exact there. Two lungs share it by end-exhale volume; one lung alone takes its side's usual share (right 53.6 %, left 46.4 %; docs/DEFAULTS.md).")] = 500.0
     stiffness: Annotated[str, typer.Option("--stiffness", help="uniform | gradient:DEPENDENT,NONDEPENDENT | sphere:X,Y,Z,RADIUS,E (mm, LPS).")] = "uniform"
     solver: Annotated[str, typer.Option("--solver", help="Linear solver: bicgstab, gmres or direct.")] = "bicgstab"
     d_min: Annotated[float, typer.Option("--d-min", callback=bounded(0, 100, "mm", low_open=True), help="Minimum transfer distance (mm).")] = 1.0
@@ -98,6 +99,9 @@ def register(apps) -> None:
         for sd, lung in model.lungs.items():
             typer.echo(f"{sd}: {lung.n_vertices} vertices, V_EE {lung.volume_ee_ml:.0f} mL, "
                        f"calibrated at +{lung.calibration_ml:.0f} mL")
+            if len(model.lungs) == 1:  # a lone lung does not breathe the whole tidal volume
+                typer.echo(f"{sd}: one lung: its share {ONE_LUNG_SHARE[sd]:.1%} of --tidal-ml {opts.tidal_ml:g} mL "
+                           f"= {lung.calibration_ml:.0f} mL ({ONE_LUNG_SOURCE}; docs/DEFAULTS.md)")
         typer.echo(f"constants: {chosen.name} ({chosen.provenance.get('source', chosen.name)})")
         typer.echo(f"model written to {path}")
 

@@ -9,6 +9,13 @@
   non-manifold fins and pinches removed, so that :func:`lungdeform.geometry.mesh.check_surface` passes;
   :func:`largest_surface_piece` keeps the largest connected piece.
 
+Every surface these return has its vertices at distinct single-precision (float32) positions
+(:func:`float32_coincident` is 0): STL stores float32 triangle corners and its readers weld equal
+positions, so two vertices at one float32 position would read back as one, and a surface that is
+manifold in memory as a non-manifold one. Vertices that share a float32 position are merged before
+cleanup; where cleanup gives two sheets touching at a vertex their own copies of it, each copy is
+moved :data:`SHEET_SEPARATION` of the way towards its own sheet's neighbours.
+
 Arrays: ``vertices : (n, 3) float`` in mm (LPS world for surfaces made from images), ``faces :
 (m, 3) int`` vertex indices.
 """
@@ -31,6 +38,11 @@ from .mesh import (
     orientation_consistent,
     unique_edges,
 )
+
+#: Where cleanup splits a vertex shared by two sheets, each copy moves this fraction of the way from
+#: the shared position towards the mean of its own sheet's neighbours (about 0.1 mm at a 5 mm edge):
+#: enough to be a distinct position in any file, far below the surface's resolution.
+SHEET_SEPARATION = 0.02
 
 
 # =========================================================================== smoothing
@@ -107,6 +119,8 @@ def decimate(
         try:
             v, f, notes = clean_mesh(np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int64))
             check_surface(v, f, source="decimated surface")
+            if n := float32_coincident(v):
+                raise MeshError(f"decimated surface: {n} vertices share a float32 position (touching sheets)")
         except MeshError as exc:
             errors.append(str(exc))
             continue
@@ -117,26 +131,37 @@ def decimate(
     raise MeshError(f"decimation to {target_vertices} vertices gave no valid surface ({errors[0]})")
 
 
+def float32_coincident(vertices: np.ndarray) -> int:
+    """How many of ``vertices : (n, 3) float`` mm lie at a float32 position another one has too
+    (the vertices an STL file would weld into fewer; 0 for every surface this module returns)."""
+    _, counts = np.unique(np.asarray(vertices, dtype=np.float32) + np.float32(0.0), axis=0, return_counts=True)
+    return int(counts[counts > 1].sum())
+
+
 def clean_mesh(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """Repair what decimation leaves behind, keeping the surface closed.
 
-    Vertices at identical positions are merged first. Then, in a loop until nothing changes:
+    Vertices at one float32 position (identical, or closer than single precision resolves) are
+    merged first. Then, in a loop until nothing changes:
     faces with a repeated corner (removed: their real edges cancel); zero-area faces (a cap is
     fixed by flipping its longest edge, a needle by collapsing its shortest edge); duplicate
     faces (a two-sided fin: every copy removed, which keeps the rest closed); edges with 4+ faces
     (two sheets touching along an edge: each sheet gets its own copies of the edge's ends);
     pinched vertices (split into one vertex per fan). Finally tiny holes are fanned shut and
-    all but the largest piece dropped; the split copies share positions but not topology.
-    Returns ``(vertices, faces, notes)``.
+    all but the largest piece dropped. A split vertex's copies are moved apart, each
+    :data:`SHEET_SEPARATION` of the way towards its own sheet, so that no two vertices share a
+    float32 position (module docstring). Returns ``(vertices, faces, notes)``.
     """
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
     counts = {"degenerate": 0, "flat": 0, "merged": 0, "fin": 0, "nonmanifold": 0, "pinched": 0}
-    # merge identical positions (once: splitting pinches below makes deliberate copies)
-    uniq, inverse = np.unique(v + 0.0, axis=0, return_inverse=True)
-    if len(uniq) < len(v):
-        counts["merged"] += len(v) - len(uniq)
-        v, f = uniq, inverse.reshape(-1)[f]
+    # merge vertices at one float32 position (a file that stores float32 would weld them anyway;
+    # once: splitting pinches below makes copies, moved apart)
+    _, first, inverse = np.unique(v.astype(np.float32) + np.float32(0.0), axis=0, return_index=True,
+                                  return_inverse=True)
+    if len(first) < len(v):
+        counts["merged"] += len(v) - len(first)
+        v, f = v[first], inverse.reshape(-1)[f]
     for _ in range(5):
         v, f = _clean_pass(v, f, counts)
         # keep the largest piece; removing fins may have opened small holes: fan them shut and
@@ -247,7 +272,8 @@ def _split_pinched(v: np.ndarray, f: np.ndarray, pinched: np.ndarray, heavy: set
     """Give each extra fan of faces around a vertex its own copy of the vertex.
 
     Faces around ``p`` are linked when they share an edge ``(p, q)`` that is not in ``heavy``
-    (sorted vertex pairs of edges with more than two faces).
+    (sorted vertex pairs of edges with more than two faces). Where ``p`` is split, every copy (the
+    original too) moves :data:`SHEET_SEPARATION` of the way towards its own fan's neighbours.
     """
 
     v = list(v)
@@ -263,11 +289,18 @@ def _split_pinched(v: np.ndarray, f: np.ndarray, pinched: np.ndarray, heavy: set
                 if common:
                     link[a, b] = 1
         n, lab = connected_components(link.tocsr(), directed=False)
-        for c in range(1, n):
-            new = len(v)
-            v.append(v[p])
-            for r in rows[lab == c]:
-                f[r][f[r] == p] = new
+        if n < 2:
+            continue
+        shared = np.array(v[p], dtype=np.float64)
+        for c in range(n):
+            idx = p if c == 0 else len(v)
+            if c:
+                v.append(shared)
+                for r in rows[lab == c]:
+                    f[r][f[r] == p] = idx
+            # each copy a step into its own sheet: the sheets no longer touch (module docstring)
+            ring = sorted(set().union(*(others[k] for k in np.nonzero(lab == c)[0])))
+            v[idx] = shared + SHEET_SEPARATION * (np.mean([v[q] for q in ring], axis=0) - shared)
     return np.array(v), f
 
 

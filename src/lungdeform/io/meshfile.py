@@ -43,8 +43,9 @@ import numpy as np
 import trimesh
 
 from lungdeform.atomic import write_bytes
-from lungdeform.errors import InputError, LungdeformError, ReadError
+from lungdeform.errors import InputError, LungdeformError, MeshError, ReadError
 from lungdeform.geometry.mesh import Surface, SurfaceReport, as_faces, as_vertices, check_surface
+from lungdeform.geometry.remesh import float32_coincident
 from lungdeform.io import image as _image
 from lungdeform.io import mask as _mask
 from lungdeform.io import vtk as vtkio
@@ -125,7 +126,8 @@ def load_surface(
 def write_mesh(path, vertices, faces) -> Path:
     """Write a triangle mesh by suffix, atomically (temp file in the same folder, then rename).
 
-    ``vertices : (n, 3) float`` (written as float32 in STL, float64 elsewhere),
+    ``vertices : (n, 3) float`` (written as float32 in STL, float64 elsewhere; STL refuses, with
+    :class:`MeshError`, vertices that share a float32 position, which its readers would weld),
     ``faces : (m, 3) int``. Formats: binary STL, OBJ, binary PLY, legacy binary VTK POLYDATA,
     VTK XML PolyData (inline base64) and OFF. Returns the path.
     """
@@ -137,6 +139,12 @@ def write_mesh(path, vertices, faces) -> Path:
         raise InputError(f"{p}: cannot write '{suffix}' (supported: {', '.join(WRITE_SUFFIXES)})")
     v = as_vertices(vertices)
     f = as_faces(faces, len(v))
+    if suffix == ".stl" and (n := float32_coincident(v[np.unique(f)])):
+        # STL keeps float32 triangle corners and readers weld equal ones: refuse, not a file that
+        # reads back as another surface
+        raise MeshError(f"{p}: {n} vertices share a float32 position with another, so STL (float32 corners, "
+                        "welded on reading) would not read back as this surface; write OBJ, PLY or VTP, "
+                        "or clean the mesh (lungdeform.geometry.remesh.clean_mesh)")
     data = writer(v, f)
     write_bytes(p, data)
     return p

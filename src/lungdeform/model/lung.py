@@ -36,6 +36,7 @@ from .population import PopulationDefault, resolve_default
 from .response import ResponseSolver
 from .solve import LinearSolver
 from .stiffness import as_moduli, uniform
+from .tidal import split_rule, tidal_split
 
 
 @dataclass(frozen=True, eq=False)
@@ -351,27 +352,28 @@ def build_model(
 ) -> Model:
     """Build one model per side from ``{side: surface}``.
 
-    The tidal volume (mL, both lungs together) is split between the lungs in proportion to their
-    end-exhale volumes; each lung is calibrated exactly at its share (which replaces
-    ``settings.calibration_ml``; ``settings``: :class:`BuildSettings`). Other keyword arguments go
+    The tidal volume (mL, both lungs together) is split between the lungs by
+    :func:`lungdeform.model.tidal.tidal_split`: two lungs in proportion to their end-exhale volumes,
+    a lone lung its side's usual share of both (right 53.6 %, left 46.4 %); each lung is calibrated
+    exactly at its part (which replaces ``settings.calibration_ml``; ``settings``:
+    :class:`BuildSettings`). The provenance records ``tidal_ml`` (both lungs), which playback
+    divides by (:func:`lungdeform.model.tidal.played_shares`). Other keyword arguments go
     to :func:`build_lung` (``gravity``, ``default``). The
     provenance records the default the lungs were built with (``"default"``: name and digest).
     """
-    if not tidal_ml > 0:
-        raise InputError(f"tidal_ml must be > 0 mL, got {tidal_ml!r}")
+    parts = tidal_split({side: s.volume_ml for side, s in surfaces.items()}, tidal_ml)
     chosen = resolve_default(kwargs.pop("default", None))
-    total = sum(s.volume_ml for s in surfaces.values())
     lungs = {}
     for side, surface in surfaces.items():
-        share = tidal_ml * surface.volume_ml / total
         lungs[side] = build_lung(
             surface, side,
             constants=None if constants is None else constants.get(side),
             stiffness=None if stiffness is None else stiffness.get(side),
-            settings=replace(settings, calibration_ml=share), default=chosen, progress=progress, **kwargs,
+            settings=replace(settings, calibration_ml=parts[side]), default=chosen, progress=progress, **kwargs,
         )
     prov = dict(provenance or {})
     prov.setdefault("tidal_ml", tidal_ml)
+    prov.setdefault("tidal_split", split_rule(list(surfaces)))
     if constants is None or len(constants) < len(surfaces):
         prov.setdefault("default", chosen.record())
     return Model(lungs, prov)

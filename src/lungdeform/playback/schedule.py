@@ -1,8 +1,9 @@
 """The breathing schedule a lung model plays: the volume of both lungs over time, and each lung's share.
 
 A :class:`VolumeTrace` holds ``t_s : (k,) float`` (s, from 0, strictly increasing) and
-``volume_ml : (k,) float`` (mL, both lungs together, above end-exhale). :func:`lung_shares` splits
-that volume between the lungs in proportion to their ``calibration_ml``; each lung then plays
+``volume_ml : (k,) float`` (mL, both lungs together, above end-exhale). :func:`lung_shares` gives
+each lung its share of that volume (its ``calibration_ml`` over the both-lung tidal volume the model
+was built for: a lone lung plays its side's share, not the whole breath); each lung then plays
 ``V_EE + share · ΔV(t)`` exactly (:mod:`lungdeform.playback.export` for surfaces, :mod:`lungdeform.playback.trajectory`
 for interior points).
 
@@ -30,6 +31,7 @@ from lungdeform.breathing.pv import BreathingCurve, scaled_to_tidal_volume, simu
 from lungdeform.constants import STEPS_PER_S, TIDAL_VOLUME_ML
 from lungdeform.errors import InputError, LungdeformError, ReadError
 from lungdeform.model.lung import Model
+from lungdeform.model.tidal import played_shares
 
 
 @dataclass(frozen=True)
@@ -214,7 +216,9 @@ def check_reachable(trace: VolumeTrace, model: Model) -> None:
 
 
 def lung_shares(model: Model) -> dict[str, float]:
-    """Each lung's share of the total volume change, in proportion to its ``calibration_ml``."""
+    """Each lung's share of the total (both-lung) volume change: its ``calibration_ml`` over the
+    both-lung tidal volume the model was built for (provenance ``tidal_ml``; a lone lung built for
+    500 mL plays its 46–54 % of a 500 mL breath), else in proportion to ``calibration_ml`` (a fit)
+    (:func:`lungdeform.model.tidal.played_shares`)."""
     cal = {k: lung.calibration_ml for k, lung in model.lungs.items()}
-    total = sum(cal.values())
-    return {k: c / total for k, c in cal.items()}
+    return played_shares(cal, (model.provenance or {}).get("tidal_ml"))

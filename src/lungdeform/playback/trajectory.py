@@ -153,7 +153,9 @@ def trace_frames(trace, fps: float) -> FrameSchedule:
 def extrapolation_note(model, delta_ml) -> str | None:
     """A note when ``delta_ml : (f,)`` mL leaves the model's range (below end-exhale by more than
     1 mL, or above 1.5 × the volume change it was fitted for): the motion there is extrapolated."""
-    fitted = sum(lung.calibration_ml for lung in model.lungs.values())  # the volume change the model was made for
+    # the both-lung volume change the model was made for (each lung at its calibration_ml)
+    shares = lung_shares(model)
+    fitted = max(lung.calibration_ml / shares[k] for k, lung in model.lungs.items())
     dv = np.asarray(delta_ml, float)
     if dv.min() < -1.0 or dv.max() > 1.5 * fitted:
         return (f"volumes from {dv.min():+.0f} to {dv.max():+.0f} mL about end-exhale, outside the model's "

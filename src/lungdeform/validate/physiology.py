@@ -1,6 +1,7 @@
 """The physiology of a tidal breath, measured on a model (docs/DEFAULTS.md "Physiology").
 
-:func:`tidal_motion` plays a model to ``+tidal_ml`` (both lungs together, each lung its share, exactly)
+:func:`tidal_motion` plays a model to ``+tidal_ml`` (both lungs together, each lung its share, exactly;
+:func:`lungdeform.model.tidal.tidal_split`)
 and measures, per lung:
 
 - ``mean_abs_mm`` ``(LR, AP, SI)``: the mean |displacement| of its vertices along each LPS axis;
@@ -22,6 +23,7 @@ import numpy as np
 
 from lungdeform.errors import InputError
 from lungdeform.model.lung import Model
+from lungdeform.model.tidal import tidal_split
 
 #: Lowest fraction of a lung's height searched for its base.
 BASE_FRACTION = 0.2
@@ -34,10 +36,11 @@ def tidal_motion(model: Model, tidal_ml: float = 500.0) -> dict:
     """Per lung, the motion at ``+tidal_ml`` mL (both lungs) above end-exhale (module docstring)."""
     if not (np.isfinite(tidal_ml) and tidal_ml > 0):
         raise InputError(f"tidal_ml must be > 0 mL, got {tidal_ml!r}")
-    total = sum(lung.volume_ee_ml for lung in model.lungs.values())
+    # each lung its part as a build splits it (a lone lung: its side's usual share)
+    parts = tidal_split({name: lung.volume_ee_ml for name, lung in model.lungs.items()}, tidal_ml)
     out = {}
     for name, lung in model.lungs.items():
-        share = tidal_ml * lung.volume_ee_ml / total
+        share = parts[name]
         p = lung.surface.vertices
         u = lung.surface_at(lung.volume_ee_ml + share, exact=True).vertices - p
         z = p[:, 2]
