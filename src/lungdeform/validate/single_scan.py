@@ -172,7 +172,7 @@ def best_translation(vertices, faces, keep, target: Target, iterations: int = 50
     own = SurfaceDistance(vertices, faces)
     pts, tpts = vertices[np.asarray(keep, bool)], tgt.vertices[kt]
     share = len(pts) / (len(pts) + len(tpts))
-    full = [_Side(to_target, pts, 1.0, share, face_normals(tgt.vertices, to_target.faces)),
+    full = [_Side(to_target, pts, 1.0, share, face_normals(to_target.vertices, to_target.faces)),
             _Side(own, tpts, -1.0, 1.0 - share, face_normals(own.vertices, own.faces))]
     coarse = [_Side(s.distance, s.points[thinned(len(s.points), COARSE_POINTS, seed=k)], s.sign, s.weight, s.normals)
               for k, s in enumerate(full)]
