@@ -231,6 +231,8 @@ def _descend(sides, t, tol: float, iterations: int) -> np.ndarray:
             continue
         best, plain = (t, energy, step), False
         move = np.linalg.lstsq(gauss, step, rcond=None)[0]
+        if np.linalg.norm(move) < np.linalg.norm(step):  # the curvature (trace 1) lacks a direction: plain step
+            move = step
         t = t + move
         if np.linalg.norm(move) < tol:
             return t
