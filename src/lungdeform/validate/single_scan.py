@@ -157,11 +157,11 @@ def best_translation(vertices, faces, keep, target: Target, iterations: int = 50
     """``t : (3,) float`` mm: the translation of the surface ``(vertices (n, 3) mm, faces)`` that
     minimises its symmetric closest-point distance to ``target`` (kept vertices on both sides): the
     fixed point of iterated closest points, where the mean residual of both directions (pooled) is
-    zero, to within :data:`TOLERANCE_MM` (or after ``iterations`` exact steps).
+    zero, to within :data:`TOLERANCE_MM` (its last step; or after ``iterations`` exact steps).
     ``target_distance``: a prepared :class:`SurfaceDistance` of ``target.surface`` (reused).
 
     Plain iterated closest points creeps along the directions the surfaces slide in (on the COPDgene
-    lungs it had not converged after 50 steps, up to 0.6 mm short), so each step here is a Gauss-
+    lungs it had stopped at 50 steps, up to 0.8 mm short of it), so each step here is a Gauss-
     Newton step on the mean squared closest-point distance (point-to-plane: :func:`_evaluate`; same
     fixed point), coarse to fine: first on a seeded subsample (:data:`COARSE_POINTS` per side, each
     side weighted as all its points), then on all points (:func:`_descend`)."""
