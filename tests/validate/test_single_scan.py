@@ -6,9 +6,11 @@ import numpy as np
 import pytest
 
 from lungdeform.fit.objective import Target
+from lungdeform.geometry.distance import SurfaceDistance
 from lungdeform.geometry.mesh import Surface, icosphere
 from lungdeform.validate.physiology import DIAPHRAGM_CM_PER_L, tidal_motion
 from lungdeform.validate.single_scan import (
+    COARSE_POINTS,
     LungPair,
     SingleScanConfig,
     best_translation,
@@ -31,6 +33,57 @@ def test_best_translation_recovers_a_shift():
     b = _sphere(50.0, shift, subdivisions=5)
     t = best_translation(a.vertices, a.faces, np.ones(a.n_vertices, bool), Target(b, b.volume_ml))
     assert np.allclose(t, shift, atol=0.05)
+
+
+def _ellipsoid(axes, centre=(0.0, 0.0, 0.0), subdivisions=5):
+    s = icosphere(subdivisions, 1.0)
+    return Surface(s.vertices * np.asarray(axes, float) + centre, s.faces, "ellipsoid")
+
+
+def _plain_icp(vertices, faces, keep, target, tol=1e-6, iterations=1000):
+    # the reference: iterated closest points with exact closest points on all kept vertices, each step the
+    # mean residual of both directions (pooled), run until the step is 1e-6 mm
+    to_target = SurfaceDistance(target.surface.vertices, target.surface.faces)
+    own = SurfaceDistance(vertices, faces)
+    pts, tpts = vertices[keep], target.surface.vertices[target.keep]
+    t = np.zeros(3)
+    for _ in range(iterations):
+        _, a, _ = to_target.query(pts + t)
+        _, b, _ = own.query(tpts - t)
+        step = np.concatenate([a - (pts + t), tpts - (b + t)]).mean(axis=0)
+        t = t + step
+        if np.linalg.norm(step) < tol:
+            return t
+    raise AssertionError("the plain reference did not converge")
+
+
+def test_best_translation_recovers_a_known_translation_exactly():
+    # an ellipsoid (more vertices than the coarse stage keeps, so both stages run) and its copy moved by a
+    # known t: the distance is zero there and nowhere else, so t is the answer, to the stopping tolerance
+    a = _ellipsoid((60.0, 45.0, 90.0))
+    assert a.n_vertices > COARSE_POINTS
+    shift = np.array([4.0, -9.0, 13.0])
+    b = Surface(a.vertices + shift, a.faces, "moved")
+    t = best_translation(a.vertices, a.faces, np.ones(a.n_vertices, bool), Target(b, b.volume_ml))
+    assert np.linalg.norm(t - shift) < 1e-3
+
+
+def test_best_translation_is_the_plain_icp_fixed_point():
+    # a randomly deformed ellipsoid against another ellipsoid, moved, its top cropped (not measured): the
+    # coarse-to-fine Gauss-Newton answer is the fixed point plain iterated closest points converges to
+    rng = np.random.default_rng(7)
+    a = _ellipsoid((60.0, 45.0, 90.0))
+    k, phase = rng.normal(0.0, 0.06, (3, 3)), rng.uniform(0.0, 2 * np.pi, 3)
+    bumps = 3.0 * np.sin(a.vertices @ k + phase)
+    a = Surface(a.vertices + bumps, a.faces, "deformed")
+    b = _ellipsoid((63.0, 44.0, 95.0), centre=(2.0, -6.0, 9.0))
+    keep_b = b.vertices[:, 2] < 9.0 + 70.0
+    keep_a = rng.random(a.n_vertices) < 0.5
+    target = Target(b, b.volume_ml, keep_b)
+    t = best_translation(a.vertices, a.faces, keep_a, target)
+    ref = _plain_icp(a.vertices, a.faces, keep_a, target)
+    assert np.linalg.norm(ref) > 5.0  # a real move, not the start
+    assert np.linalg.norm(t - ref) < 1e-3
 
 
 def test_isotropic_row_is_exact_on_a_sphere():
