@@ -28,7 +28,8 @@ map, :mod:`lungdeform.interior.surface_map`): ``interior_map_linear (3, 4)`` mm 
 ``interior_map_warp (3, 4)``, ``interior_map_centers (k, 3)`` mm LPS, ``interior_map_weights (k, 3)``
 mm per unit and ``interior_map_width_mm``; all five or none.
 
-Loading checks the schema name and version, that every key is present, and every shape;
+Loading checks that the file is a zip archive (not text, an image or a pickle), the schema name and
+version, that every key is present, and every shape;
 that every array holds values of its kind (real numbers, finite, where numbers belong: no complex,
 text or objects; integer faces; one value where one belongs), and that the provenance is a JSON
 object whose ``volumes_ml`` are finite numbers and whose alignment matrices are 4 × 4.
