@@ -100,3 +100,26 @@ def test_breathe_fit_progress_only_when_verbose(tmp_path, rng, capsys):
     assert "fits on" not in err and all(ln.startswith("note: ") for ln in err.strip().splitlines())
     assert main(["--verbose", "breathe", "--fit", str(trace), "--out", str(tmp_path / "b")]) == 0
     assert "fits on" in capsys.readouterr().err
+
+
+def test_breathe_tidal_ml_and_its_old_name(tmp_path, rng, capsys):
+    # --tidal-ml, as in build, export and track; the old --tidal-volume-ml still works (hidden from
+    # the help, a note on stderr) and calibrates the same (truth: metrics.json records the volume used)
+    trace = _synthetic_trace(tmp_path / "synthetic.csv", rng)
+    for option, out in (("--tidal-ml", "new"), ("--tidal-volume-ml", "old")):
+        assert main(["breathe", "--fit", str(trace), "--out", str(tmp_path / out), option, "600"]) == 0
+        assert json.loads((tmp_path / out / "metrics.json").read_text())["tidal_volume_ml"] == 600.0
+    err = capsys.readouterr().err
+    assert err.count("note: --tidal-volume-ml is now --tidal-ml (the old name still works)") == 1
+    assert main(["breathe", "--fit", str(trace), "--out", str(tmp_path / "both"), "--tidal-ml", "600",
+                 "--tidal-volume-ml", "600"]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == [
+        "error: --tidal-volume-ml is the old name of --tidal-ml: give one of them"]
+    # a preset has its own tidal volume: the option used to be ignored there without a word
+    assert main(["breathe", "--preset", "normal", "--out", str(tmp_path / "p"), "--tidal-ml", "600"]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == [
+        "error: --tidal-ml applies to --fit (the calibration); a --preset has its own tidal volume"]
+    assert not (tmp_path / "p").exists() and not (tmp_path / "both").exists()
+    assert main(["breathe", "--help"]) == 0
+    shown = capsys.readouterr().out
+    assert "--tidal-ml" in shown and "--tidal-volume-ml" not in shown

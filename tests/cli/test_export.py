@@ -239,3 +239,38 @@ def test_bench_viewer_bad_vertices(capsys):
     assert main(["bench", "viewer", "--vertices", "10", "--frames", "1"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--vertices must be at least 1000" in err[0]
+
+
+@pytest.mark.parametrize("kind, name, message", [
+    # a suffix that contradicts --format used to be kept and .glb appended (e3.pvd.glb, exit 0)
+    ("glb", "e3.pvd", "--out {out}: --format glb writes a .glb file, not .pvd; name it e3.glb or give --format pvd"),
+    ("pvd", "e3.glb", "--out {out}: --format pvd writes a .pvd file, not .glb; name it e3.pvd or give --format glb"),
+    ("glb", "e3.v2", "--out {out}: --format glb writes a .glb file, but the name ends in .v2; name it e3.v2.glb"),
+])
+def test_export_refuses_an_out_suffix_that_contradicts_the_format(model_file, tmp_path, capsys, kind, name, message):
+    out = tmp_path / name
+    assert main(["export", str(model_file), "--format", kind, "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["error: " + message.format(out=out)]
+    assert list(tmp_path.iterdir()) == []  # refused before any work: nothing written, nothing renamed
+
+
+def test_export_appends_the_suffix_to_a_bare_name(model_file, tmp_path, capsys):
+    # a name without a suffix gets the format's (docs/VIEWER.md), and the line says the file written
+    assert main(["export", str(model_file), "--format", "glb", "--out", str(tmp_path / "lungs")]) == 0
+    assert f"wrote {tmp_path / 'lungs.glb'}" in capsys.readouterr().out
+    assert [p.name for p in tmp_path.iterdir()] == ["lungs.glb"]
+
+
+@pytest.mark.parametrize("make, message", [
+    (lambda p: p.mkdir(), "{p}: is a folder, not a model file (give the .npz that build, fit or demo wrote)"),
+    (lambda p: p.write_text("hello\n"), "{p}: not a lungdeform model file (not a NumPy .npz archive: not a zip file)"),
+    (lambda p: np.savez(p, a=np.zeros(2)),
+     "{p}: not a lungdeform model file (a NumPy .npz archive without the 'schema' member; it holds 'a')"),
+])
+def test_export_names_what_the_model_argument_is(tmp_path, capsys, make, message):
+    # a new user's wrong MODEL: one line, exit 2, saying what the file is rather than a wrong guess
+    bad = tmp_path / "bad.npz"
+    make(bad)
+    assert main(["export", str(bad), "--format", "glb", "--out", str(tmp_path / "x.glb")]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == ["error: " + message.format(p=bad)]

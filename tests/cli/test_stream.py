@@ -82,3 +82,22 @@ def test_gate_prints_the_beam_with_the_interval_and_needs_a_latency(tmp_path, ca
     assert main(["stream", str(path), "--gate"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--predict-ms" in err[0]
+
+
+def test_stream_tidal_ml_and_its_old_name(tmp_path, capsys):
+    # --tidal-ml names the volume of one breath, as in build, export and track; the old name
+    # --tidal-volume-ml still works (hidden). Truth: with --v-ee-ml 0 the volume is tidal × the
+    # calibrated fraction, so 600 mL gives 1.2 × the default 500 mL's volumes, sample by sample
+    t = np.arange(0, 30, 0.1)
+    path = write_marker_csv(tmp_path / "b.csv", t * 1000, 8 * breath(t))
+    rows = {}
+    for args in ((), ("--tidal-ml", "600"), ("--tidal-volume-ml", "600")):
+        assert main(["stream", str(path), "--v-ee-ml", "0", *args]) == 0
+        captured = capsys.readouterr()
+        rows[args[:1]] = np.array([float(line.split(",")[1]) for line in captured.out.split()[1:]])
+        assert ("note: --tidal-volume-ml is now --tidal-ml" in captured.err) == (args[:1] == ("--tidal-volume-ml",))
+    assert np.ptp(rows[()]) > 100
+    np.testing.assert_allclose(rows[("--tidal-ml",)], 1.2 * rows[()], rtol=1e-9, atol=1e-3)
+    np.testing.assert_array_equal(rows[("--tidal-volume-ml",)], rows[("--tidal-ml",)])
+    assert main(["stream", "--help"]) == 0
+    assert "--tidal-volume-ml" not in capsys.readouterr().out

@@ -458,3 +458,18 @@ def test_track_scan_refuses_a_ct_that_is_not_scan_ks(scan_files, tmp_path, capsy
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and message in err[0], err
     assert not out.exists() and not rs.exists()
+
+
+@pytest.mark.parametrize("make, message", [
+    (lambda p: p.mkdir(), ("{p}: is a folder, not a points file (give a CSV x_mm,y_mm,z_mm[,label] or an elastix "
+                           "'point' file)")),
+    (lambda p: p.write_text(""), ("{p}: the points file is empty (expected a CSV with header x_mm,y_mm,z_mm[,label] "
+                                  "or an elastix 'point' file)")),
+])
+def test_track_names_a_points_folder_or_an_empty_points_file(model_file, tmp_path, capsys, make, message):
+    # they used to say "no such points file" (the folder exists) and "markers need a header" (empty)
+    points = tmp_path / "points.csv"
+    make(points)
+    assert main(["track", str(model_file), "--points", str(points), "--out", str(tmp_path / "o")]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == ["error: " + message.format(p=points)]
+    assert not (tmp_path / "o").exists()

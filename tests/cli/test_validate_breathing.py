@@ -157,3 +157,17 @@ def test_validate_breathing_all_scores_nan(tmp_path, rng, capsys, monkeypatch):
     text = capsys.readouterr().out
     assert "median held-out RMS: PV n/a %, Lujan n/a %, Fourier per cycle n/a %" in text
     assert "white-noise floor n/a %" in text
+
+
+def test_validate_breathing_tidal_ml_and_its_old_name(tmp_path, capsys):
+    # --tidal-ml as in breathe, build, export and track; --tidal-volume-ml is kept, hidden, and
+    # the two together are refused before any work (nothing written)
+    (tmp_path / "data").mkdir()
+    assert main(["validate", "breathing", "--data", str(tmp_path / "data"), "--out", str(tmp_path / "out"),
+                 "--tidal-ml", "600", "--tidal-volume-ml", "600"]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == [
+        "error: --tidal-volume-ml is the old name of --tidal-ml: give one of them"]
+    assert not (tmp_path / "out").exists()
+    assert main(["validate", "breathing", "--help"]) == 0
+    shown = capsys.readouterr().out
+    assert "--tidal-ml" in shown and "--tidal-volume-ml" not in shown

@@ -340,3 +340,31 @@ def test_absurd_displacement_is_refused(tmp_path, model):
     np.savez(bad, **data)
     with pytest.raises(ModelFileError, match="more than 1000 mm: not a breathing lung"):
         load_model(bad)
+
+
+def test_model_file_says_what_a_wrong_file_is(tmp_path, model):
+    # a new user's mistakes, each named for what it is (truth: the bytes written here): a text file or
+    # a PNG is not a zip (it used to be called "Python objects", numpy's guess for any non-zip file),
+    # a pickle is a pickle, a folder is a folder (it used to be "no such model file"), and an .npz
+    # of other arrays lacks the 'schema' member (it used to say "schema None")
+    (tmp_path / "bad.npz").write_text("x_mm,y_mm,z_mm\n1,2,3\n")
+    (tmp_path / "scan.png").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(32))
+    (tmp_path / "p.npz").write_bytes(b"\x80\x04\x95" + bytes(16))
+    (tmp_path / "folder.npz").mkdir()
+    np.savez(tmp_path / "other.npz", a=np.zeros(3), b=np.ones(2))
+    data = dict(np.load(save_model(tmp_path / "m.npz", Model({"left": model}))))
+    np.savez(tmp_path / "renamed.npz", **dict(data, schema=np.array("someone.else")))
+    cases = {
+        "bad.npz": "bad.npz: not a lungdeform model file (not a NumPy .npz archive: not a zip file)",
+        "scan.png": "scan.png: not a lungdeform model file (not a NumPy .npz archive: not a zip file)",
+        "p.npz": "p.npz: not a lungdeform model file (a Python pickle, not a NumPy .npz archive)",
+        "folder.npz": "folder.npz: is a folder, not a model file (give the .npz that build, fit or demo wrote)",
+        "other.npz": "other.npz: not a lungdeform model file (a NumPy .npz archive without the 'schema' member; "
+                     "it holds 'a', 'b')",
+        "renamed.npz": "renamed.npz: not a lungdeform model file (its 'schema' member is 'someone.else', "
+                       "expected 'lungdeform.model')",
+    }
+    for name, message in cases.items():
+        with pytest.raises(ModelFileError) as info:
+            load_model(tmp_path / name)
+        assert str(info.value) == f"{tmp_path / name}{message[len(name):]}", name

@@ -152,3 +152,10 @@ def test_curve_below_what_the_lungs_can_reach_names_its_line(tmp_path):
     # a trace not read from a file names its sample and time instead
     with pytest.raises(InputError, match=r"sample 2 \(t 1 s\)"):
         S.check_reachable(S.VolumeTrace(np.array([0.0, 1.0]), np.array([0.0, -0.6 * vee]), "made"), model)
+
+
+def test_curve_that_is_a_folder(tmp_path):
+    # the path exists: named as a folder, not as missing
+    with pytest.raises(ReadError) as info:
+        S.read_volume_csv(tmp_path)
+    assert str(info.value) == f"{tmp_path}: is a folder, not a curve file (give the curve.csv that breathe wrote)"

@@ -174,3 +174,37 @@ def test_one_lung_range_is_the_both_lung_breath_it_was_built_for():
     lung = m.lungs["left"]
     (s,) = lung_scales(m, [500.0])["left"]
     assert lung.surface_at(scale=s).volume_ml == pytest.approx(lung.volume_ee_ml + 0.464 * 500.0, abs=1e-6)
+
+
+def test_points_file_that_is_a_folder_or_empty(tmp_path):
+    # a folder is named as one (it used to be "no such points file" though the path exists); an empty
+    # or blank file is named as empty (it used to say "markers need a header"), and a CSV read as
+    # points to track speaks of points, as the same reader does of markers for export --markers
+    from lungdeform.errors import ReadError
+    from lungdeform.playback.trajectory import read_markers_csv
+
+    (tmp_path / "d").mkdir()
+    (tmp_path / "empty.csv").write_text("")
+    (tmp_path / "blank.csv").write_text("\n  \n")
+    (tmp_path / "nohead.csv").write_text("a,b\n1,2\n")
+    expected = {
+        "d": "is a folder, not a points file (give a CSV x_mm,y_mm,z_mm[,label] or an elastix 'point' file)",
+        "empty.csv": "the points file is empty (expected a CSV with header x_mm,y_mm,z_mm[,label] or an "
+                     "elastix 'point' file)",
+        "blank.csv": "the points file is empty (expected a CSV with header x_mm,y_mm,z_mm[,label] or an "
+                     "elastix 'point' file)",
+        "nohead.csv": "points need a header with x_mm,y_mm,z_mm[,label]",
+    }
+    for name, message in expected.items():
+        with pytest.raises(ReadError) as info:
+            read_points(tmp_path / name)
+        assert str(info.value) == f"{tmp_path / name}: {message}"
+    with pytest.raises(ReadError) as info:
+        read_markers_csv(tmp_path / "empty.csv")
+    assert str(info.value) == f"{tmp_path / 'empty.csv'}: the markers file is empty (expected a CSV with header " \
+                              "x_mm,y_mm,z_mm[,label])"
+    with pytest.raises(ReadError) as info:
+        read_markers_csv(tmp_path / "d")
+    assert str(info.value) == f"{tmp_path / 'd'}: is a folder, not a markers file (give a CSV x_mm,y_mm,z_mm[,label])"
+    (tmp_path / "p.csv").write_text("x_mm,y_mm,z_mm\n1,2,3\n")
+    assert read_points(tmp_path / "p.csv")[1] == ["point 1"]  # numbered as the elastix reader numbers them

@@ -16,7 +16,7 @@ import typer
 from lungdeform.breathing.run import check_sample_rate, run_fit, run_preset
 from lungdeform.errors import InputError
 
-from .common import bounded, check_output, say, tidal_option
+from .common import bounded, check_output, renamed_tidal_ml, say, tidal_option
 
 #: The files breathe writes in ``--out``.
 BREATHE_FILES = ("curve.csv", "metrics.json", "volume.png", "pv_loop.png", "residuals.png")
@@ -30,13 +30,17 @@ def register(apps) -> None:
         fit: Path = typer.Option(None, "--fit", help="A trace to fit: RPM .vxp or marker .csv."),
         cycles: int = typer.Option(3, "--cycles", help="Preset: number of breathing cycles."),
         fs: float = typer.Option(50.0, "--fs", callback=bounded(0, 10000, "Hz", low_open=True), help="Preset: output sample rate (Hz)."),
-        tidal_volume_ml: float = typer.Option(500.0, "--tidal-volume-ml", callback=tidal_option, help="Fit: calibration tidal volume."),
+        tidal_ml: float = typer.Option(None, "--tidal-ml", callback=tidal_option, help="Fit: calibration tidal volume, both lungs (mL; default 500)."),
+        tidal_volume_ml: float = typer.Option(None, "--tidal-volume-ml", hidden=True, callback=tidal_option),
         train_fraction: float = typer.Option(0.5, "--train-fraction", callback=bounded(0, 1, low_open=True, high_open=True), help="Fit: share of cycles fitted."),
     ):
         """Breathing curve (volume, flow, pressure) from a preset or fitted to a trace."""
 
         if (preset is None) == (fit is None):
             raise InputError("breathe: give exactly one of --preset NAME or --fit TRACE")
+        if preset is not None and (tidal_ml, tidal_volume_ml) != (None, None):
+            raise InputError("--tidal-ml applies to --fit (the calibration); a --preset has its own tidal volume")
+        tidal = renamed_tidal_ml(tidal_ml, tidal_volume_ml)
         check_output(out, [fit], folder=True, writes=BREATHE_FILES)
         if preset is not None:
             if cycles < 1:
@@ -49,7 +53,7 @@ def register(apps) -> None:
             typer.echo(f"preset {m['preset']['name']}: V_T {m['tidal_volume_ml']:.0f} mL, "
                        f"period {m['preset']['params']['period_s']:.2f} s, {settled}")
         else:
-            m = run_fit(fit, out, tidal_volume_ml, train_fraction, progress=say)
+            m = run_fit(fit, out, tidal, train_fraction, progress=say)
             for fix in m.get("fixes", []):
                 typer.echo(f"note: {fix}", err=True)
             typer.echo(f"{m['trace']}: held-out RMS % of p2p: PV {m['model_rms_percent']:.2f}, "

@@ -261,6 +261,18 @@ def check_tidal_ml(value: float | None, option: str = "--tidal-ml") -> None:
                          f"breathing ≈ 500, a vital capacity 3000–6000), got {value:g}")
 
 
+def renamed_tidal_ml(tidal_ml: float | None, old: float | None, default: float = 500.0) -> float:
+    """The tidal volume (mL) of a command whose ``--tidal-volume-ml`` is now ``--tidal-ml`` (as in build,
+    export, track): the old name still works, hidden from the help, with a note on stderr; both
+    together are refused. Neither: ``default``."""
+    if old is None:
+        return default if tidal_ml is None else tidal_ml
+    if tidal_ml is not None:
+        raise InputError("--tidal-volume-ml is the old name of --tidal-ml: give one of them")
+    typer.echo("note: --tidal-volume-ml is now --tidal-ml (the old name still works)", err=True)
+    return old
+
+
 def check_cycles(cycles: int | None, preset: str | None) -> None:
     """Refuse ``--cycles`` without ``--preset`` or below 1 (export, track)."""
     if cycles is not None and preset is None:

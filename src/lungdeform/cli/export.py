@@ -25,7 +25,7 @@ class ExportOptions:
 
     model: Annotated[Path, typer.Argument(help="Model file (.npz) written by build, fit or demo.")]
     fmt: Annotated[str, typer.Option("--format", help="glb (glTF 2.0 binary, morph targets) or pvd (VTK .pvd + .vtp).")]
-    out: Annotated[Path, typer.Option("--out", help="Output file (.glb or .pvd; frames go beside a .pvd), or an existing folder (MODEL's name is used).")]
+    out: Annotated[Path, typer.Option("--out", help="Output file ending in .glb or .pvd as --format says (a name without a suffix gets it; another suffix is refused; frames go beside a .pvd), or an existing folder (MODEL's name is used).")]
     curve: Annotated[Path | None, typer.Option("--curve", help="Breathing curve CSV (t_s, volume_ml, …) from 'lungdeform breathe'.")] = None
     preset: Annotated[str | None, typer.Option("--preset", help="Breathing preset of the PV model, simulated: normal, deep, copd, restrictive, dyspnoea or pneumothorax (not with --curve).")] = None
     cycles: Annotated[int | None, typer.Option("--cycles", help="With --preset: whole breaths played (default 1).")] = None
@@ -49,7 +49,7 @@ def register(apps) -> None:
         out = opts.out
         if out.is_dir():  # an existing folder: the file goes inside it, named after the model
             out = out / f"{Path(opts.model).stem}.{kind}"
-        out_path = out if out.suffix.lower() == f".{kind}" else out.with_name(f"{out.name}.{kind}")
+        out_path = _out_path(out, kind)
         check_output(out_path, [opts.model, opts.curve, opts.markers])
         if opts.curve is not None and opts.preset is not None:
             raise InputError("--curve and --preset are mutually exclusive: give one breathing curve")
@@ -94,3 +94,18 @@ def register(apps) -> None:
             frames = out_path.parent / f"{out_path.stem}_frames"
             size = sum(f.stat().st_size for f in frames.iterdir())
             typer.echo(f"wrote {out_path} and {len(list(frames.iterdir()))} frames in {frames} ({size / 1e6:.1f} MB)")
+
+
+def _out_path(out: Path, kind: str) -> Path:
+    """The file ``--out`` names for ``--format kind``: ``.kind`` appended to a name without a suffix;
+    a name ending in another suffix (``e3.pvd`` with ``--format glb``) is refused, not renamed."""
+    if out.suffix.lower() == f".{kind}":
+        return out
+    if not out.suffix:
+        return out.with_name(f"{out.name}.{kind}")
+    other = {"glb": "pvd", "pvd": "glb"}[kind]
+    if out.suffix.lower() == f".{other}":
+        raise InputError(f"--out {out}: --format {kind} writes a .{kind} file, not .{other}; name it "
+                         f"{out.with_suffix(f'.{kind}').name} or give --format {other}")
+    raise InputError(f"--out {out}: --format {kind} writes a .{kind} file, but the name ends in {out.suffix}; "
+                     f"name it {out.name}.{kind}")

@@ -31,7 +31,7 @@ def register(apps) -> None:
         target_vertices: int = typer.Option(20000, "--target-vertices", help="Vertex budget per surface."),
         downsample: int = typer.Option(1, "--downsample", help="In-plane block-mean factor before segmenting (speed)."),
     ) -> None:
-        """Segment the lungs (no learned weights), or split a both-lung mask: masks, volumes.json, overlay.png, surfaces."""
+        """Segment the lungs (no learned weights), or split a both-lung mask: masks, volumes.json, overlay.png (--surfaces: STL surfaces too)."""
 
 
         fmt = fmt.lower().lstrip(".")

@@ -24,7 +24,7 @@ from lungdeform.breathing.stream import MAX_PREDICT_MS, StreamingVolumeEstimator
 from lungdeform.breathing.trace import read_trace
 from lungdeform.errors import InputError
 
-from .common import MAX_LUNGS_ML, bounded, takes, tidal_option
+from .common import MAX_LUNGS_ML, bounded, renamed_tidal_ml, takes, tidal_option
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -33,7 +33,8 @@ class StreamOptions:
 
     source: Annotated[str, typer.Argument(help="A trace file to replay, or - to read 't_s,amplitude' lines from stdin.")] = "-"
     predict_ms: Annotated[float, typer.Option("--predict-ms", callback=bounded(0, MAX_PREDICT_MS, "ms"), help=f"Play the volume predicted this many ms ahead (0-{MAX_PREDICT_MS:g}).")] = 0.0
-    tidal_volume_ml: Annotated[float, typer.Option("--tidal-volume-ml", callback=tidal_option, help="Volume of one breath (mL).")] = 500.0
+    tidal_ml: Annotated[float | None, typer.Option("--tidal-ml", callback=tidal_option, help="Volume of one breath (mL; default 500).")] = None
+    tidal_volume_ml: Annotated[float | None, typer.Option("--tidal-volume-ml", hidden=True, callback=tidal_option)] = None
     v_ee_ml: Annotated[float, typer.Option("--v-ee-ml", callback=bounded(0, MAX_LUNGS_ML, "mL"), help="End-exhale lung volume (mL); 0: volumes above end-exhale.")] = 2400.0
     window_s: Annotated[float, typer.Option("--window-s", callback=bounded(0, 3600, "s", low_open=True), help="Calibration window (s): two or more breaths.")] = 10.0
     gate: Annotated[bool, typer.Option("--gate", help="Add the beam decision for t_s + H (needs --predict-ms H) "
@@ -52,7 +53,7 @@ def register(apps) -> None:
         rule = GateRule(parse_window(opts.window), opts.confident, interval=IntervalConfig(coverage=opts.coverage)) if opts.gate else None
         if opts.gate and opts.predict_ms <= 0:
             raise InputError("--gate needs --predict-ms H > 0: the beam's latency, the time its decision is for")
-        est = StreamingVolumeEstimator(tidal_volume_ml=opts.tidal_volume_ml, v_ee_ml=opts.v_ee_ml, window_s=opts.window_s,
+        est = StreamingVolumeEstimator(tidal_volume_ml=renamed_tidal_ml(opts.tidal_ml, opts.tidal_volume_ml), v_ee_ml=opts.v_ee_ml, window_s=opts.window_s,
                                        predict_ms=opts.predict_ms, gate=rule)
         if opts.source == "-":
             samples = stream_lines(sys.stdin, est)

@@ -14,7 +14,7 @@ import typer
 from lungdeform.breathing.holdout import MODELS
 from lungdeform.validate.breathing import validate_breathing
 
-from .common import STRICT_EXIT, bounded, check_output, figure_or_na, say, tidal_option
+from .common import STRICT_EXIT, bounded, check_output, figure_or_na, renamed_tidal_ml, say, tidal_option
 
 
 def register(apps) -> None:
@@ -22,14 +22,16 @@ def register(apps) -> None:
     def breathing(
         data: Path = typer.Option(..., "--data", help="Folder searched for .vxp / .csv traces."),
         out: Path = typer.Option(..., "--out", help="Output folder for metrics.json."),
-        tidal_volume_ml: float = typer.Option(500.0, "--tidal-volume-ml", callback=tidal_option),
+        tidal_ml: float = typer.Option(None, "--tidal-ml", callback=tidal_option, help="Calibration tidal volume, both lungs (mL; default 500)."),
+        tidal_volume_ml: float = typer.Option(None, "--tidal-volume-ml", hidden=True, callback=tidal_option),
         train_fraction: float = typer.Option(0.5, "--train-fraction", callback=bounded(0, 1, low_open=True, high_open=True)),
         strict: bool = typer.Option(False, "--strict", help="Exit with code 3 when the median target is not met (for CI)."),
     ):
         """Fit the PV driver to every breathing trace; held-out RMS against Lujan and Fourier."""
+        tidal = renamed_tidal_ml(tidal_ml, tidal_volume_ml)
         check_output(out, [data], folder=True)
 
-        m = validate_breathing(data, out, tidal_volume_ml, train_fraction, progress=say)
+        m = validate_breathing(data, out, tidal, train_fraction, progress=say)
         for name, r in m["traces"].items():
             typer.echo(f"{name}: PV {r['model_rms_percent']:.2f} %  Lujan {r['lujan_rms_percent']:.2f} %  "
                        f"Fourier/cycle {r['fourier_rms_percent']:.2f} %")

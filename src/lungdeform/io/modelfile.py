@@ -28,7 +28,8 @@ map, :mod:`lungdeform.interior.surface_map`): ``interior_map_linear (3, 4)`` mm 
 ``interior_map_warp (3, 4)``, ``interior_map_centers (k, 3)`` mm LPS, ``interior_map_weights (k, 3)``
 mm per unit and ``interior_map_width_mm``; all five or none.
 
-Loading checks the schema name and version, that every key is present, and every shape;
+Loading checks that the file is a zip archive (not text, an image or a pickle), the schema name and
+version, that every key is present, and every shape;
 that every array holds values of its kind (real numbers, finite, where numbers belong: no complex,
 text or objects; integer faces; one value where one belongs), and that the provenance is a JSON
 object whose ``volumes_ml`` are finite numbers and whose alignment matrices are 4 × 4.
@@ -138,10 +139,13 @@ def save_model(path, model: Model) -> Path:
 def load_model(path) -> Model:
     """Read a model file; raise :class:`ModelFileError` naming the file and the problem."""
     path = Path(path)
+    if path.is_dir():
+        raise ModelFileError(f"{path}: is a folder, not a model file (give the .npz that build, fit or demo wrote)")
     if not path.is_file():
         raise ModelFileError(f"{path}: no such model file")
     if path.stat().st_size == 0:
         raise ModelFileError(f"{path}: file is empty")
+    _check_container(path)
     try:
         with open(path, "rb") as fh:  # our handle: numpy leaks its own when the zip is unreadable
             z = np.load(fh, allow_pickle=False)
@@ -157,8 +161,12 @@ def load_model(path) -> Model:
     except (OSError, zipfile.BadZipFile, EOFError, zlib.error, RuntimeError, NotImplementedError,
             MemoryError) as exc:  # a damaged archive: bad deflate data, "encrypted", odd zip versions, huge shapes
         raise ModelFileError(f"{path}: not a lungdeform model file (damaged archive: {exc})") from exc
-    if str(data.get("schema", "")) != SCHEMA:
-        raise ModelFileError(f"{path}: not a lungdeform model file (schema {data.get('schema')!r})")
+    if "schema" not in data:
+        raise ModelFileError(f"{path}: not a lungdeform model file (a NumPy .npz archive without the 'schema' "
+                             f"member; it holds {_listed(data)})")
+    if str(data["schema"]) != SCHEMA:
+        raise ModelFileError(f"{path}: not a lungdeform model file (its 'schema' member is {str(data['schema'])!r}, "
+                             f"expected {SCHEMA!r})")
     try:
         version = int(data.get("schema_version", -1))
     except (TypeError, ValueError) as exc:
@@ -180,6 +188,34 @@ def load_model(path) -> Model:
     except (TypeError, ValueError, IndexError) as exc:  # arrays of the wrong dtype (text, objects) or size
         raise ModelFileError(f"{path}: damaged lung arrays ({exc})") from exc
     return Model(lungs, provenance)
+
+
+#: The first bytes of a zip archive (an ``.npz``; an empty zip starts with the end record) and of an ``.npy``.
+_ZIP_MAGIC = (b"PK\x03\x04", b"PK\x05\x06")
+_NPY_MAGIC = b"\x93NUMPY"
+
+
+def _check_container(path: Path) -> None:
+    """ModelFileError when ``path`` does not start as a zip archive (an ``.npz``) or a lone ``.npy``
+    array: a text file, an image or a pickle is named as not an archive, before numpy reads it."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(6)
+    except OSError as exc:
+        raise ModelFileError(f"{path}: cannot read the model file ({exc})") from exc
+    if head.startswith(_ZIP_MAGIC) or head.startswith(_NPY_MAGIC):
+        return
+    if head[:1] == b"\x80":  # a pickle's protocol byte: np.load would unpickle it, and refuses
+        raise ModelFileError(f"{path}: not a lungdeform model file (a Python pickle, not a NumPy .npz archive)")
+    raise ModelFileError(f"{path}: not a lungdeform model file (not a NumPy .npz archive: not a zip file)")
+
+
+def _listed(data: dict) -> str:
+    """The members of an archive, for a message: the first few names and how many."""
+    if not data:
+        return "no members"
+    names = sorted(data)
+    return ", ".join(repr(n) for n in names[:4]) + (f", … ({len(names)} members)" if len(names) > 4 else "")
 
 
 def _check_members(path: Path, data: dict) -> None:

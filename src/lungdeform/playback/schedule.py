@@ -140,6 +140,8 @@ def preset_trace(preset, cycles: int = 1, tidal_ml: float | None = None, rate_hz
 def read_volume_csv(path) -> VolumeTrace:
     """Read a breathing curve CSV (header with ``t_s`` and ``volume_ml``); see the module docstring."""
     path = Path(path)
+    if path.is_dir():
+        raise ReadError(f"{path}: is a folder, not a curve file (give the curve.csv that breathe wrote)")
     if not path.is_file():
         raise ReadError(f"{path}: no such curve file")
     try:  # utf-8-sig: spreadsheet "CSV UTF-8" exports start with a byte-order mark

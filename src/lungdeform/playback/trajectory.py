@@ -227,40 +227,51 @@ def read_points(path, *, skip_invalid: bool = False, skipped: list[int] | None =
     ``skipped`` apply to a CSV as in :func:`read_markers_csv`."""
 
     path = Path(path)
+    if path.is_dir():
+        raise ReadError(f"{path}: is a folder, not a points file (give a CSV x_mm,y_mm,z_mm[,label] or an "
+                        "elastix 'point' file)")
     if not path.is_file():
         raise ReadError(f"{path}: no such points file")
     try:
         first = next((line.strip().lower() for line in path.read_text(encoding="utf-8-sig").splitlines() if line.strip()), "")
     except (OSError, UnicodeDecodeError) as exc:
         raise ReadError(f"{path}: cannot read points ({exc})") from exc
+    if not first:
+        raise ReadError(f"{path}: the points file is empty (expected a CSV with header x_mm,y_mm,z_mm[,label] "
+                        "or an elastix 'point' file)")
     if first == "index":
         raise ReadError(f"{path}: an elastix 'index' point file holds voxel indices of an image; give the points "
                         f"in world mm ('point' file or a CSV x_mm,y_mm,z_mm)")
     if first == "point":
         pts = read_elastix_points(path)
         return pts, [f"point {i + 1}" for i in range(len(pts))]
-    return read_markers_csv(path, skip_invalid=skip_invalid, skipped=skipped)
+    return read_markers_csv(path, skip_invalid=skip_invalid, skipped=skipped, noun="point")
 
 
-def read_markers_csv(path, *, skip_invalid: bool = False,
-                     skipped: list[int] | None = None) -> tuple[np.ndarray, list[str]]:
+def read_markers_csv(path, *, skip_invalid: bool = False, skipped: list[int] | None = None,
+                     noun: str = "marker") -> tuple[np.ndarray, list[str]]:
     """Markers CSV: header ``x_mm,y_mm,z_mm[,label]`` (LPS mm, end-exhale).
 
     A row whose coordinates are not finite numbers (NaN, inf, text, missing) is refused with
     :class:`ReadError` naming its 1-based line in the file (the first few, and how many), unless
     ``skip_invalid``: then the valid rows are kept and the lines left out are appended to
-    ``skipped`` (when given) for the caller to report. Returns ``(points (q, 3) float mm, labels)``.
+    ``skipped`` (when given) for the caller to report. ``noun`` (``"marker"`` or ``"point"``) names the
+    rows in messages and in the default labels (``marker 1``, …). Returns ``(points (q, 3) float mm, labels)``.
     """
     path = Path(path)
+    if path.is_dir():
+        raise ReadError(f"{path}: is a folder, not a {noun}s file (give a CSV x_mm,y_mm,z_mm[,label])")
     try:
         with open(path, newline="", encoding="utf-8-sig") as fh:  # -sig: a spreadsheet's byte-order mark
             reader = csv.reader(fh)
             rows = [(reader.line_num, r) for r in reader if r and any(c.strip() for c in r)]
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
-        raise ReadError(f"{path}: cannot read markers ({exc})") from exc
-    header = [h.strip() for h in rows[0][1]] if rows else []
+        raise ReadError(f"{path}: cannot read {noun}s ({exc})") from exc
+    if not rows:
+        raise ReadError(f"{path}: the {noun}s file is empty (expected a CSV with header x_mm,y_mm,z_mm[,label])")
+    header = [h.strip() for h in rows[0][1]]
     if not {"x_mm", "y_mm", "z_mm"} <= set(header):
-        raise ReadError(f"{path}: markers need a header with x_mm,y_mm,z_mm[,label]")
+        raise ReadError(f"{path}: {noun}s need a header with x_mm,y_mm,z_mm[,label]")
     cols = [header.index(c) for c in ("x_mm", "y_mm", "z_mm")]
     il = header.index("label") if "label" in header else None
     pts, labels, bad = [], [], []
@@ -270,13 +281,13 @@ def read_markers_csv(path, *, skip_invalid: bool = False,
             bad.append(lineno)
             continue
         pts.append(xyz)
-        labels.append(r[il].strip() if il is not None and il < len(r) else f"marker {k}")
+        labels.append(r[il].strip() if il is not None and il < len(r) else f"{noun} {k}")
     if bad and not skip_invalid:
         shown = ", ".join(map(str, bad[:5])) + (", …" if len(bad) > 5 else "")
         raise ReadError(f"{path}: {len(bad)} row(s) without finite numbers in x_mm,y_mm,z_mm, at line(s) "
                         f"{shown} (skip_invalid, track --skip-invalid, keeps the other rows)")
     if not pts:
-        raise ReadError(f"{path}: no marker rows with finite x_mm,y_mm,z_mm")
+        raise ReadError(f"{path}: no {noun} rows with finite x_mm,y_mm,z_mm")
     if skipped is not None:
         skipped.extend(bad)
     return np.array(pts), labels
