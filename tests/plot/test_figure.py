@@ -65,7 +65,12 @@ def _figures(rng):
                                                           10.0 ** -np.arange(8.0), 10.0 ** -np.arange(8.0),
                                                           tol=1e-6, n_nodes=100, title="t"), (800, 550)),
         "grouped_bars": (lambda: grouped_bars({"left": {"a": 1.0, "b": 2.0, "c": np.nan},
-                                               "right": {"a": 1.5, "b": 3.0}}, title="t", ylabel="mm"), (550, 352)),
+                                               "right": {"a": 1.5, "b": 3.0}}, title="t", ylabel="mm"), (550, 374)),
+        # 30 groups (validate single-scan's per-axis figure of ten lungs): the legend under the axes in
+        # 4 columns, 8 rows; inside the axes it did not fit and matplotlib warned (an error here)
+        "grouped_bars_30": (lambda: grouped_bars({f"copd{k} {r}": {"LR": 1.0, "AP": 2.0, "SI": 3.0}
+                                                  for k in range(10) for r in ("observed", "default", "paper")},
+                                                 title="t", ylabel="mm"), (550, 528)),
     }
 
 

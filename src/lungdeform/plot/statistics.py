@@ -112,10 +112,14 @@ def scatter_grid(panels: Sequence[ScatterPanel], colours: dict[str, str], *, row
 
 def grouped_bars(values: dict[str, dict[str, float]], *, title: str, ylabel: str) -> Figure:
     """Bars of ``values[group][series]`` (e.g. lung → method → mean landmark error, mm): one
-    cluster per series, one bar per group in it; missing or non-finite values are left out."""
+    cluster per series, one bar per group in it; missing or non-finite values are left out. The
+    legend sits under the axes in up to four columns, the figure as tall as its rows need (30 groups
+    did not fit a legend inside the axes: matplotlib's layout gave up with a warning)."""
     groups = list(values)
     series = list(dict.fromkeys(s for g in groups for s in values[g]))
-    fig = new_figure(max(5.0, 0.75 * len(series) + 2.0), 3.2, layout="constrained")
+    columns = min(max(len(groups), 1), 4)  # the legend under the axes, its rows given their own height
+    legend_rows = -(-len(groups) // columns)
+    fig = new_figure(max(5.0, 0.75 * len(series) + 2.0), 3.2 + 0.2 * legend_rows, layout="constrained")
     ax = fig.add_subplot()
     width = 0.8 / max(len(groups), 1)
     x = np.arange(len(series))
@@ -125,5 +129,5 @@ def grouped_bars(values: dict[str, dict[str, float]], *, title: str, ylabel: str
     ax.set_xticks(x, series, rotation=30, ha="right", fontsize=8)
     ax.set_ylabel(ylabel)
     ax.set_title(title, fontsize=9)
-    ax.legend(fontsize=8)
+    fig.legend(loc="outside lower center", ncol=columns, fontsize=7)
     return fig
