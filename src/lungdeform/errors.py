@@ -7,6 +7,7 @@ Every message should name the parameter or file at fault and what was expected.
 from __future__ import annotations
 
 import importlib
+from pathlib import Path
 
 
 class LungdeformError(Exception):
@@ -59,3 +60,15 @@ def require(module: str, feature: str, package: str | None = None):
         raise MissingDependencyError(
             f"{feature} needs the optional package '{pkg}': pip install {pkg}"
         ) from exc
+
+
+def require_file(path, what: str, hint: str = "", error: type[ReadError] = ReadError) -> Path:
+    """``path`` as a :class:`~pathlib.Path` when it names an existing file; else ``error`` naming it:
+    a folder (``PATH: is a folder, not a WHAT file (HINT)``) or nothing there (``PATH: no such WHAT
+    file``)."""
+    p = Path(path)
+    if p.is_dir():
+        raise error(f"{p}: is a folder, not a {what} file" + (f" ({hint})" if hint else ""))
+    if not p.is_file():
+        raise error(f"{p}: no such {what} file")
+    return p

@@ -57,7 +57,7 @@ import numpy as np
 
 from lungdeform import __version__
 from lungdeform.atomic import finite_json, write_npz
-from lungdeform.errors import InputError, ModelFileError
+from lungdeform.errors import InputError, ModelFileError, require_file
 from lungdeform.geometry.frame import LungFrame
 from lungdeform.geometry.mesh import Surface
 from lungdeform.interior.surface_map import SurfaceMapField
@@ -138,11 +138,7 @@ def save_model(path, model: Model) -> Path:
 
 def load_model(path) -> Model:
     """Read a model file; raise :class:`ModelFileError` naming the file and the problem."""
-    path = Path(path)
-    if path.is_dir():
-        raise ModelFileError(f"{path}: is a folder, not a model file (give the .npz that build, fit or demo wrote)")
-    if not path.is_file():
-        raise ModelFileError(f"{path}: no such model file")
+    path = require_file(path, "model", "give the .npz that build, fit or demo wrote", ModelFileError)
     if path.stat().st_size == 0:
         raise ModelFileError(f"{path}: file is empty")
     _check_container(path)

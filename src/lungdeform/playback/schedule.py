@@ -22,14 +22,13 @@ from __future__ import annotations
 import csv
 import math
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
 from lungdeform.breathing.presets import get_preset
 from lungdeform.breathing.pv import BreathingCurve, scaled_to_tidal_volume, simulate
 from lungdeform.constants import STEPS_PER_S, TIDAL_VOLUME_ML
-from lungdeform.errors import InputError, LungdeformError, ReadError
+from lungdeform.errors import InputError, LungdeformError, ReadError, require_file
 from lungdeform.model.lung import Model
 from lungdeform.model.tidal import played_shares
 
@@ -139,11 +138,7 @@ def preset_trace(preset, cycles: int = 1, tidal_ml: float | None = None, rate_hz
 
 def read_volume_csv(path) -> VolumeTrace:
     """Read a breathing curve CSV (header with ``t_s`` and ``volume_ml``); see the module docstring."""
-    path = Path(path)
-    if path.is_dir():
-        raise ReadError(f"{path}: is a folder, not a curve file (give the curve.csv that breathe wrote)")
-    if not path.is_file():
-        raise ReadError(f"{path}: no such curve file")
+    path = require_file(path, "curve", "give the curve.csv that breathe wrote")
     try:  # utf-8-sig: spreadsheet "CSV UTF-8" exports start with a byte-order mark
         with open(path, newline="", encoding="utf-8-sig") as fh:
             text = fh.read()

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from lungdeform.atomic import write_bytes
-from lungdeform.errors import InputError, ReadError
+from lungdeform.errors import InputError, ReadError, require_file
 from lungdeform.geometry.distance import point_to_surface
 from lungdeform.geometry.mesh import as_vertices, winding_numbers
 from lungdeform.interior.field import KIND_TEXT
@@ -226,12 +226,7 @@ def read_points(path, *, skip_invalid: bool = False, skipped: list[int] | None =
     (``point`` header, world mm). Returns ``(points (q, 3) float mm, labels)``. ``skip_invalid`` and
     ``skipped`` apply to a CSV as in :func:`read_markers_csv`."""
 
-    path = Path(path)
-    if path.is_dir():
-        raise ReadError(f"{path}: is a folder, not a points file (give a CSV x_mm,y_mm,z_mm[,label] or an "
-                        "elastix 'point' file)")
-    if not path.is_file():
-        raise ReadError(f"{path}: no such points file")
+    path = require_file(path, "points", "give a CSV x_mm,y_mm,z_mm[,label] or an elastix 'point' file")
     try:
         first = next((line.strip().lower() for line in path.read_text(encoding="utf-8-sig").splitlines() if line.strip()), "")
     except (OSError, UnicodeDecodeError) as exc:
