@@ -182,9 +182,8 @@ def _lungs(opts: WarpOptions, model, img: Image) -> Lungs | None:
     if opts.lung_mask:
         return Lungs(read_lungs(opts.lung_mask, img), "--lung-mask")
     mask = M.model_lung_mask(model, img)
-    voxel_ml = float(abs(np.linalg.det(np.reshape(img.direction, (3, 3)))) * np.prod(img.spacing)) / 1000.0
     rest = sum(lung.volume_ee_ml for lung in model.lungs.values())
-    typer.echo(f"lung mask for --density: {MODEL_MASK} on IMAGE's grid ({mask.sum() * voxel_ml:.0f} mL against the "
+    typer.echo(f"lung mask for --density: {MODEL_MASK} on IMAGE's grid ({mask.sum() * img.voxel_ml:.0f} mL against the "
                f"model's {rest:.0f} mL; --lung-mask with the segmented lungs is more exact)")
     return Lungs(mask, MODEL_MASK)
 
@@ -227,7 +226,7 @@ def _resampled(img: Image, target: Image, result, kind: tuple[bool, bool], lungs
         hu, at_state = M.resample_by_tissue(img, lungs.mask, result.field, grid=other)
     jac = D.jacobian_determinant(result.field, target.spacing, target.direction)
     hu = M.as_pixel_type(M.conserve_mass(hu, jac), img.array.dtype)
-    voxel = [float(abs(np.linalg.det(np.reshape(g.direction, (3, 3)))) * np.prod(g.spacing)) / 1000.0 for g in (img, target)]
+    voxel = [img.voxel_ml, target.voxel_ml]
     before, after = M.mass_g(img.array, voxel[0]), M.mass_g(hu, voxel[1])
     lines = [(f"density: HU scaled by the Jacobian (mass conserved); mass of the image {before / 1000:.3f} kg "
               f"→ {after / 1000:.3f} kg ({100 * (after / before - 1):+.2f} %; tissue leaving the grid counts)")]

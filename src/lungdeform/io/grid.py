@@ -72,6 +72,11 @@ class Image:
         """``(n, 3)`` voxel indices (i=x, j=y, k=z) -> ``(n, 3) float`` mm LPS."""
         return index_to_world(ijk, self.spacing, self.origin, self.direction)
 
+    @property
+    def voxel_ml(self) -> float:
+        """The volume of one voxel, mL (the direction is orthonormal: spacing alone)."""
+        return float(np.prod(self.spacing)) / 1000.0
+
 
 def index_to_world(ijk, spacing, origin, direction) -> np.ndarray:
     """World points ``(n, 3) float`` mm LPS of voxel indices ``ijk : (n, 3) float`` (i, j, k).

@@ -103,10 +103,6 @@ class LungSegmentation:
 
 
 # =========================================================================== steps
-def _voxel_ml(image: Image) -> float:
-    return float(np.prod(image.spacing)) / 1000.0
-
-
 def inside_body_air(ct: np.ndarray, air_hu: float) -> np.ndarray:
     """``(z, y, x) bool``: voxels below ``air_hu`` not connected (6-conn., 3-D) to the in-plane border."""
     air = ct < air_hu
@@ -357,7 +353,7 @@ def segment_lungs(
         return _segment_transposed(image, perm, options)
     ct = np.asarray(image.array)
     sp = np.asarray(image.spacing, float)
-    vml = _voxel_ml(image)
+    vml = image.voxel_ml
     timings, t0 = {}, time.perf_counter()
     # axial slices with the head at the top index: flip a feet-up stack into head-up order for the scan
     head_up = image.direction[2, 2] > 0

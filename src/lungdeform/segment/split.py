@@ -88,7 +88,7 @@ class LungSplit:
     def volumes_ml(self) -> dict[str, float]:
         """``{"left": mL, "right": mL}``."""
         counts = np.bincount(self.labels.ravel(), minlength=3)
-        return {sd: float(counts[k]) * _voxel_ml(self.image) for k, sd in ((1, "left"), (2, "right"))}
+        return {sd: float(counts[k]) * self.image.voxel_ml for k, sd in ((1, "left"), (2, "right"))}
 
     def mask(self, side: str) -> Image:
         """The ``side`` lung as a uint8 0/1 :class:`Image` on the mask's grid."""
@@ -97,10 +97,6 @@ class LungSplit:
         im = self.image
         return Image((self.labels == SIDES.index(side) + 1).astype(np.uint8), im.spacing, im.origin,
                      im.direction, f"{im.source} ({side} lung of the split)")
-
-
-def _voxel_ml(image: Image) -> float:
-    return float(np.prod(image.spacing)) / 1000.0
 
 
 def is_binary_mask(image: Image) -> bool:
@@ -199,7 +195,7 @@ def _find_lungs(image: Image, max_erosions: int, min_part: float) -> LungSplit |
     left_id = 1 if cx[0] > cx[1] else 2
     labels[parts == left_id] = 1
     labels[parts == 3 - left_id] = 2
-    specks_ml = speck_voxels * _voxel_ml(image)
+    specks_ml = speck_voxels * image.voxel_ml
     split = LungSplit(labels, image, erosions > 0, erosions, n_specks, specks_ml, ())
     return LungSplit(labels, image, erosions > 0, erosions, n_specks, specks_ml, _split_notes(split))
 
@@ -378,7 +374,7 @@ def mask_segmentation(image: Image) -> LungSegmentation:
     split = require_split(image)
     lm, rm = split.labels == 1, split.labels == 2
     v = split.volumes_ml
-    vol = {**v, "airway": 0.0, "removed": 0.0, "candidate": float(np.count_nonzero(image.array)) * _voxel_ml(image)}
+    vol = {**v, "airway": 0.0, "removed": 0.0, "candidate": float(np.count_nonzero(image.array)) * image.voxel_ml}
     desc = f"Input is a lung mask, not a CT: no airway removal. {' '.join(split.notes)}"
     details = {"input": "binary mask holding both lungs", "split": {
         "touching": split.touching, "erosions": split.erosions, "specks": split.n_specks,
