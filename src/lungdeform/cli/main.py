@@ -174,9 +174,9 @@ class Terminated(KeyboardInterrupt):
 def signals_interrupt():
     """While the command runs, SIGTERM raises :class:`Terminated` (a KeyboardInterrupt) instead of
     killing the process outright, and Ctrl-C (SIGINT, unless the process was started with it
-    ignored) raises KeyboardInterrupt as Python's own handler does. Either one arriving inside a
-    callback from compiled code, where an exception is printed and dropped, is sent again a little
-    later. The previous handlers are put back after. Only in the main thread (where Python delivers
+    ignored) raises KeyboardInterrupt as Python's own handler does. Either one arriving where an
+    exception must not be raised (:func:`_no_raise_here`: a callback from compiled code, zipfile
+    writing a member) is sent again a little later. The previous handlers are put back after. Only in the main thread (where Python delivers
     signals); elsewhere nothing changes."""
     signalled: list[int] = []  # yielded: the signals that came (SIGTERM, SIGINT)
     if threading.current_thread() is not threading.main_thread():
@@ -184,7 +184,7 @@ def signals_interrupt():
         return
 
     def handler(signum, frame):
-        if _in_c_callback(frame):  # an exception there is dropped or breaks clean-up: ask again a little later
+        if _no_raise_here(frame):  # an exception there is dropped or breaks clean-up: ask again a little later
             threading.Timer(0.05, os.kill, (os.getpid(), signum)).start()
             return
         signalled.append(signum)
@@ -204,7 +204,7 @@ def signals_interrupt():
             signal.signal(signum, before)
 
 
-def _in_c_callback(frame) -> bool:
+def _no_raise_here(frame) -> bool:
     """Whether ``frame`` runs where an exception must not be raised: inside a Python callback called
     from compiled code (llvmlite's object cache during a numba compilation), where it cannot
     propagate, or inside :mod:`zipfile` writing a member (numpy's ``savez`` of a model file), whose
