@@ -19,7 +19,7 @@ with warnings.catch_warnings():  # numpy 1.24–1.26 warn on looking np.bool up
     if not hasattr(np, "bool"):  # Debian's Blender 3.4 glTF add-on still uses np.bool (gone in numpy 1.24)
         np.bool = bool
 
-import bpy  # noqa: E402  (first: as a module, bpy sets up addon_utils and bmesh)
+import bpy  # noqa: I001, E402  (first: as a module, bpy sets up addon_utils and bmesh)
 import addon_utils  # noqa: E402
 import bmesh  # noqa: E402
 
@@ -46,7 +46,7 @@ for o in meshes:
                              "shape_keys": [k.name for k in keys], "modifiers": [m.type for m in o.modifiers],
                              "volume_mm3": [], "world_m": []}
 for t in times:
-    frame = int(round(t * per_s))
+    frame = round(t * per_s)
     out["frames"].append(frame)
     scene.frame_set(frame)
     depsgraph = bpy.context.evaluated_depsgraph_get()

@@ -333,3 +333,13 @@ def test_export_usd_without_usd_core(model_file, tmp_path, capsys, monkeypatch):
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["error: USD export needs usd-core, the optional extra 'usd': pip install 'lungdeform[usd]'"]
     assert not out.exists()
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--vertices", "10"], "--vertices must be at least 1000"),
+    (["--repeats", "0"], "--repeats must be >= 1"),
+])
+def test_bench_export_bad_options(capsys, args, message):
+    assert main(["bench", "export", *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0]

@@ -63,7 +63,7 @@ def y_up_m(lps_mm: np.ndarray) -> np.ndarray:
 def run_usd_playback(path: Path, tmp_path: Path, codes=CODES) -> dict:
     out = tmp_path / f"{path.name}.json"
     res = subprocess.run([sys.executable, str(HERE / "usd_playback.py"), str(path), str(out), *map(str, codes)],
-                         capture_output=True, text=True, encoding="utf-8", errors="replace", timeout=600)
+                         capture_output=True, text=True, encoding="utf-8", errors="replace", timeout=600, check=False)
     assert res.returncode == 0, res.stderr[-3000:]
     return json.loads(out.read_text())
 
@@ -161,7 +161,7 @@ def test_usd_core_plays_what_lungdeform_plays(lungs, tmp_path, suffix, baked):
     assert errors == [], errors
     expect = played_lps_mm(lungs, trace, np.array(CODES) / 30.0)
     worst = {}
-    for name, lung in lungs.lungs.items():
+    for name in lungs.lungs:
         pts = np.array(got["meshes"][name]["points_m"])
         worst[name] = np.abs(pts - y_up_m(expect[name])).max()
         assert worst[name] < 1e-6
@@ -250,7 +250,7 @@ def run_blender(command: list[str], path: Path, tmp_path: Path, rate: str, times
     out = tmp_path / f"{path.name}.blender.json"
     res = subprocess.run([*command, str(REPO / "tests" / "browser" / "blender_import.py"), "--", str(path), str(out),
                           rate, *map(str, times)], capture_output=True, text=True, encoding="utf-8",
-                         errors="replace", timeout=600)
+                         errors="replace", timeout=600, check=False)
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
     if not out.exists():
         return json.loads(next(ln for ln in res.stdout.splitlines() if ln.startswith("RESULT "))[7:])

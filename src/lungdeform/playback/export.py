@@ -125,7 +125,7 @@ def frame_times(trace: VolumeTrace, fps: float) -> np.ndarray:
     if not (np.isfinite(fps) and fps > 0):
         raise InputError(f"fps must be > 0, got {fps}")
     duration = float(trace.t_s[-1] - trace.t_s[0])
-    n = max(int(round(duration * fps)), 1) + 1
+    n = max(round(duration * fps), 1) + 1
     return np.linspace(trace.t_s[0], trace.t_s[-1], n)
 
 

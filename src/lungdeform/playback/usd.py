@@ -142,7 +142,7 @@ def _extent(pxr, lo: np.ndarray, hi: np.ndarray):
     return pxr.Vt.Vec3fArray([pxr.Gf.Vec3f(*map(float, lo)), pxr.Gf.Vec3f(*map(float, hi))])
 
 
-def _stage_metadata(pxr, stage, model: Model, frames: UsdFrames, trace: VolumeTrace, baked: bool) -> None:
+def _stage_metadata(pxr, stage, frames: UsdFrames, trace: VolumeTrace, baked: bool) -> None:
     UsdGeom = pxr.UsdGeom
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
     UsdGeom.SetStageMetersPerUnit(stage, 1.0)
@@ -260,7 +260,7 @@ def usd_stage(model: Model, trace: VolumeTrace | None = None, *, fps: float | No
     weights = lung_weights(model, frames)
     shares = lung_shares(model)
     stage = pxr.Usd.Stage.CreateInMemory()
-    _stage_metadata(pxr, stage, model, frames, trace, baked)
+    _stage_metadata(pxr, stage, frames, trace, baked)
     root = (pxr.UsdGeom.Xform if baked else pxr.UsdSkel.Root).Define(stage, ROOT).GetPrim()
     stage.SetDefaultPrim(root)
     pxr.Usd.ModelAPI(root).SetKind(pxr.Kind.Tokens.component)
@@ -283,9 +283,9 @@ def _write_layer(pxr, stage, path: Path) -> None:
 
 
 def _package_usdz(pxr, stage, stem: str, usdz: Path) -> None:
-    """Write the stage as ``<stem>.usdc`` in a temporary folder and package it into ``usdz`` with
-    usd-core's ARKit packager."""
-    with tempfile.TemporaryDirectory(prefix=".lungdeform-usdz-", dir=usdz.parent) as tmp:
+    """Write the stage as ``<stem>.usdc`` in a temporary folder (the system's, removed after) and package
+    it into ``usdz`` with usd-core's ARKit packager."""
+    with tempfile.TemporaryDirectory(prefix="lungdeform-usdz-") as tmp:
         usdc = Path(tmp) / f"{stem}.usdc"
         _write_layer(pxr, stage, usdc)
         try:
