@@ -6,8 +6,9 @@ default :func:`lungdeform.playback.schedule.plain_cycle`: one 4 s breath, 121 fr
 :data:`FORMATS` is written ``repeats`` times to a temporary folder, the formats interleaved within
 each repeat so that a busy machine slows them alike. The yardstick is the glb
 (:func:`lungdeform.playback.export.export_glb`, what engines load today): each format's bytes and
-median seconds are reported with their ratio to the glb's. Issue 38's targets: the blend-shape USDZ
-at most 1.5 × the glb's bytes, and its export time for 1,000,000 vertices within 2 × the glb's.
+median seconds are reported with their ratio to the glb's. Targets (docs/VIEWER.md, "OpenUSD and
+USDZ"): the blend-shape USDZ at most 1.5 × the glb's bytes, and its export time for 1,000,000
+vertices within 2 × the glb's.
 
 Record per model: ``model``, ``vertices`` (both lungs), ``frames``, ``curve``, and ``formats``: per
 format ``bytes``, ``seconds`` (median), ``seconds_all``, ``bytes_ratio_to_glb``, ``seconds_ratio_to_glb``.
