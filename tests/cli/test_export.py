@@ -211,7 +211,7 @@ def test_export_bad_model_and_curve(model_file, tmp_path, capsys):
     assert not (tmp_path / "x.glb").exists()
 
 
-@pytest.mark.parametrize("kind", ["glb", "pvd"])
+@pytest.mark.parametrize("kind", ["glb", "pvd", "usdz"])
 def test_export_refuses_a_curve_the_lungs_cannot_reach(model_file, tmp_path, capsys, kind):
     # ΔV -2900 mL on these lungs (V_EE about 2 × 1.3 L) would empty them: the CSV line is named, exit 2,
     # nothing written (it used to export a lung of negative volume)
