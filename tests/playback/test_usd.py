@@ -257,9 +257,10 @@ def run_blender(command: list[str], path: Path, tmp_path: Path, rate: str, times
     return json.loads(out.read_text())
 
 
-@pytest.mark.parametrize("baked", [False, True], ids=["blend-shapes", "baked"])
+@pytest.mark.parametrize("suffix, baked", [(".usdc", False), (".usdz", False), (".usdc", True)],
+                         ids=["usdc-blend-shapes", "usdz-blend-shapes", "usdc-baked"])
 @pytest.mark.parametrize("which", ["blender", "bpy"])
-def test_usd_in_blender(lungs, tmp_path, which, baked):
+def test_usd_in_blender(lungs, tmp_path, which, suffix, baked):
     # Blender's USD importer (headless), frames at the file's time codes: every vertex's world position
     # (Blender is Z up: world = LPS / 1000 after its Y-up conversion) within 1e-4 m of lungdeform's playback
     commands = dict(_blender_commands())
@@ -267,7 +268,7 @@ def test_usd_in_blender(lungs, tmp_path, which, baked):
         pytest.skip("Debian's blender is not installed (make test installs it as root)" if which == "blender" else
                     f"{BPY_PYTHON} missing: Blender as a module (bpy, requirements-blender.lock; make test installs it)")
     trace = S.plain_cycle(500, 4.0)
-    path = U.export_usd(lungs, tmp_path / "demo.usdc", trace, baked=baked)
+    path = U.export_usd(lungs, tmp_path / f"demo{suffix}", trace, baked=baked)
     times = np.array(CODES) / 30.0
     got = run_blender(commands[which], path, tmp_path, "30", times)
     if not got["usd_built"]:
