@@ -7,6 +7,8 @@ PYTHON ?= $(shell command -v python3.11 || command -v python3.12 || command -v p
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
+BLENDER_VENV := .venv-blender
+BLENDER_STAMP := $(BLENDER_VENV)/.installed
 DEMO_OUT ?= demo-out
 
 .PHONY: demo test install clean fuzz
@@ -24,7 +26,7 @@ $(STAMP): pyproject.toml requirements.lock
 demo: $(STAMP)
 	$(BIN)/lungdeform demo --out $(DEMO_OUT)
 
-test: $(STAMP) viewer-deps $(VIEWER_BUNDLE) dicom3tools
+test: $(STAMP) viewer-deps $(VIEWER_BUNDLE) dicom3tools blender $(BLENDER_STAMP)
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
 
 # --- fuzzing: every file reader under atheris (coverage guided; a seeded random-mutation fuzzer when
@@ -73,9 +75,26 @@ dicom3tools:
 	  else echo "/usr/bin/dciodvfy missing and not root: the DICOM conformance tests will skip"; fi; \
 	fi
 
+# Blender for the importer tests (tests/playback/test_export.py, test_usd.py): Debian's blender (3.4.1,
+# glTF importer; built without USD) with python3-numpy, installed as root when /usr/bin/blender is
+# missing; and Blender as a Python module (bpy from PyPI, with its USD importer) in .venv-blender/
+# (pinned in requirements-blender.lock). Without them those tests skip, naming what is missing.
+.PHONY: blender
+blender:
+	@if [ ! -x /usr/bin/blender ] || { command -v dpkg >/dev/null && ! dpkg -s python3-numpy >/dev/null 2>&1; }; then \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	    apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends blender python3-numpy; \
+	  else echo "/usr/bin/blender missing and not root: the Blender glTF test will skip"; fi; \
+	fi
+
+$(BLENDER_STAMP): requirements-blender.lock
+	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info[:2] == (3, 11) else 1)' && \
+	  $(PYTHON) -m venv $(BLENDER_VENV) && $(BLENDER_VENV)/bin/python -m pip install -q -r requirements-blender.lock && \
+	  touch $(BLENDER_STAMP) || echo "bpy (Blender as a module) needs Python 3.11: the Blender USD tests will skip"
+
 $(VIEWER_BUNDLE): $(VIEWER_SRC) | $(VIEWER_STAMP)
 	@if [ -d viewer/node_modules ]; then cd viewer && npm run build; \
 	else echo "viewer/node_modules missing: keeping the committed viewer bundle"; fi
 
 clean:
-	rm -rf $(VENV) $(DEMO_OUT) $(FUZZ_OUT) build src/*.egg-info .pytest_cache
+	rm -rf $(VENV) $(BLENDER_VENV) $(DEMO_OUT) $(FUZZ_OUT) build src/*.egg-info .pytest_cache

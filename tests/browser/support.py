@@ -34,6 +34,16 @@ def two_lungs(subdivisions: int = 3):
     return Model(lungs, {"source": "test ellipsoids", "subdivisions": subdivisions})
 
 
+@lru_cache(maxsize=1)
+def embedded_lungs():
+    """The embedded demo lungs (Coronacases 001, about 3,000 vertices each) built as ``lungdeform demo``
+    builds them (population default, supine), cached for the session."""
+    from lungdeform.data import default_lungs
+    from lungdeform.model.lung import build_model
+
+    return build_model(default_lungs())
+
+
 def node_modules_or_skip(*packages: str) -> Path:
     """The viewer's folder if node and its node_modules (with ``packages``) are installed, else skip."""
     if shutil.which("node") is None:

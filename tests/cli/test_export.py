@@ -168,8 +168,11 @@ def test_export_pvd(model_file, tmp_path, capsys):
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--format", "obj"], "--format must be glb or pvd"),
+    (["--format", "obj"], "--format must be one of glb, usd, usdc, usda, usdz, pvd"),
     (["--format", "pvd", "--markers", "m.csv"], "--markers applies to --format glb only"),
+    (["--format", "usdz", "--markers", "m.csv"], "--markers applies to --format glb only"),
+    (["--format", "glb", "--baked"], "--baked applies to the USD formats (usd, usdc, usda, usdz) only"),
+    (["--format", "glb", "--fps", "30"], "--fps does not apply to --format glb"),
     (["--format", "glb", "--curve", "c.csv", "--preset", "normal"], "--curve and --preset are mutually exclusive"),
     (["--format", "glb", "--curve", "c.csv", "--tidal-ml", "600"], "do not apply to --curve"),
     (["--format", "glb", "--preset", "normal", "--period", "3"], "a --preset has its own period"),
@@ -208,7 +211,7 @@ def test_export_bad_model_and_curve(model_file, tmp_path, capsys):
     assert not (tmp_path / "x.glb").exists()
 
 
-@pytest.mark.parametrize("kind", ["glb", "pvd"])
+@pytest.mark.parametrize("kind", ["glb", "pvd", "usdz"])
 def test_export_refuses_a_curve_the_lungs_cannot_reach(model_file, tmp_path, capsys, kind):
     # ΔV -2900 mL on these lungs (V_EE about 2 × 1.3 L) would empty them: the CSV line is named, exit 2,
     # nothing written (it used to export a lung of negative volume)
@@ -246,6 +249,7 @@ def test_bench_viewer_bad_vertices(capsys):
     ("glb", "e3.pvd", "--out {out}: --format glb writes a .glb file, not .pvd; name it e3.glb or give --format pvd"),
     ("pvd", "e3.glb", "--out {out}: --format pvd writes a .pvd file, not .glb; name it e3.pvd or give --format glb"),
     ("glb", "e3.v2", "--out {out}: --format glb writes a .glb file, but the name ends in .v2; name it e3.v2.glb"),
+    ("usdz", "e3.usdc", "--out {out}: --format usdz writes a .usdz file, not .usdc; name it e3.usdz or give --format usdc"),
 ])
 def test_export_refuses_an_out_suffix_that_contradicts_the_format(model_file, tmp_path, capsys, kind, name, message):
     out = tmp_path / name
@@ -274,3 +278,68 @@ def test_export_names_what_the_model_argument_is(tmp_path, capsys, make, message
     make(bad)
     assert main(["export", str(bad), "--format", "glb", "--out", str(tmp_path / "x.glb")]) == 2
     assert capsys.readouterr().err.strip().splitlines() == ["error: " + message.format(p=bad)]
+
+
+# --------------------------------------------------------------------------- USD
+@pytest.mark.parametrize("kind", ["usd", "usdc", "usda", "usdz"])
+def test_export_usd_formats(model_file, tmp_path, capsys, kind):
+    # each --format writes its suffix; what the file holds is tested in tests/playback/test_usd.py
+    pxr = pytest.importorskip("pxr", reason="usd-core is not installed (pip install 'lungdeform[usd]')")
+    out = tmp_path / "lungs"
+    assert main(["export", str(model_file), "--format", kind, "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    path = tmp_path / f"lungs.{kind}"
+    assert f"wrote {path}" in printed and "time codes 0…120 at 30 per second" in printed
+    stage = pxr.Usd.Stage.Open(str(path))
+    assert stage.GetDefaultPrim().GetTypeName() == "SkelRoot" and stage.GetTimeCodesPerSecond() == 30
+    assert [p.name for p in tmp_path.iterdir()] == [path.name]
+
+
+def test_export_usd_preset_uneven_curve_and_baked(model_file, tmp_path, capsys, monkeypatch):
+    pxr = pytest.importorskip("pxr", reason="usd-core is not installed (pip install 'lungdeform[usd]')")
+    from lungdeform.playback import usd as U
+
+    # a preset plays on its own frames (n = ceil(D·66.67) intervals): fps = n / D
+    out = tmp_path / "copd.usdc"
+    assert main(["export", str(model_file), "--format", "usdc", "--out", str(out), "--preset", "copd"]) == 0
+    period = get_preset("copd").params.period_s
+    n = math.ceil(period * STEPS_PER_S - 1e-9)
+    stage = pxr.Usd.Stage.Open(str(out))
+    assert stage.GetEndTimeCode() == n and stage.GetTimeCodesPerSecond() == pytest.approx(n / period)
+    capsys.readouterr()
+    # an uneven curve is resampled at 30 per second, and the CLI says so
+    curve = tmp_path / "c.csv"
+    curve.write_text("t_s,volume_ml\n0,0\n0.4,120\n1.5,400\n3,0\n")
+    assert main(["export", str(model_file), "--format", "usda", "--out", str(tmp_path / "c.usda"),
+                 "--curve", str(curve)]) == 0
+    assert "curve resampled (its samples are not evenly spaced): 91 frames at 30 per second" in capsys.readouterr().out
+    # --baked past the size threshold warns on stderr, and still writes the file
+    monkeypatch.setattr(U, "BAKED_WARN_BYTES", 1000)
+    out = tmp_path / "b.usdz"
+    assert main(["export", str(model_file), "--format", "usdz", "--out", str(out), "--baked", "--fps", "10"]) == 0
+    captured = capsys.readouterr()
+    assert "curve resampled (--fps 10): 41 frames at 10 per second" in captured.out
+    assert captured.err.startswith("warning: the baked file will be about ") and out.is_file()
+    assert "points at every time code (baked)" in captured.out
+
+
+def test_export_usd_without_usd_core(model_file, tmp_path, capsys, monkeypatch):
+    # the optional extra is named in one line, exit 2, before any work
+    import sys
+
+    monkeypatch.setitem(sys.modules, "pxr", None)
+    out = tmp_path / "x.usdz"
+    assert main(["export", str(model_file), "--format", "usdz", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["error: USD export needs usd-core, the optional extra 'usd': pip install 'lungdeform[usd]'"]
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--vertices", "10"], "--vertices must be at least 1000"),
+    (["--repeats", "0"], "--repeats must be >= 1"),
+])
+def test_bench_export_bad_options(capsys, args, message):
+    assert main(["bench", "export", *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0]

@@ -1,4 +1,5 @@
-"""``lungdeform export``: a model file as glTF 2.0 binary (3-D engines) or a VTK time series (ParaView)."""
+"""``lungdeform export``: a model file as glTF 2.0 binary (3-D engines), OpenUSD / USDZ (Apple AR, Omniverse,
+Houdini, Blender) or a VTK time series (ParaView)."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from lungdeform.io.modelfile import load_model
 from lungdeform.playback import export as E
 from lungdeform.playback import markers as M
 from lungdeform.playback import schedule as S
+from lungdeform.playback import usd as U
 from lungdeform.playback.trajectory import read_markers_csv
 
 from .common import bounded, check_cycles, check_output, check_tidal_ml, read_curve, takes, tidal_option
@@ -24,28 +26,35 @@ class ExportOptions:
     """The options of ``lungdeform export`` (:func:`register`)."""
 
     model: Annotated[Path, typer.Argument(help="Model file (.npz) written by build, fit or demo.")]
-    fmt: Annotated[str, typer.Option("--format", help="glb (glTF 2.0 binary, morph targets) or pvd (VTK .pvd + .vtp).")]
-    out: Annotated[Path, typer.Option("--out", help="Output file ending in .glb or .pvd as --format says (a name without a suffix gets it; another suffix is refused; frames go beside a .pvd), or an existing folder (MODEL's name is used).")]
+    fmt: Annotated[str, typer.Option("--format", help="glb (glTF 2.0 binary, morph targets), usd, usdc, usda or usdz (OpenUSD: one blend shape per lung; usdz for Apple AR) or pvd (VTK .pvd + .vtp).")]
+    out: Annotated[Path, typer.Option("--out", help="Output file ending in .glb, .usd, .usdc, .usda, .usdz or .pvd as --format says (a name without a suffix gets it; another suffix is refused; frames go beside a .pvd), or an existing folder (MODEL's name is used).")]
     curve: Annotated[Path | None, typer.Option("--curve", help="Breathing curve CSV (t_s, volume_ml, …) from 'lungdeform breathe'.")] = None
     preset: Annotated[str | None, typer.Option("--preset", help="Breathing preset of the PV model, simulated: normal, deep, copd, restrictive, dyspnoea or pneumothorax (not with --curve).")] = None
     cycles: Annotated[int | None, typer.Option("--cycles", help="With --preset: whole breaths played (default 1).")] = None
     markers: Annotated[Path | None, typer.Option("--markers", help="Markers CSV: x_mm,y_mm,z_mm[,label] (LPS, end-exhale); they move with the lung's interior field; glb only.")] = None
     tidal_ml: Annotated[float | None, typer.Option("--tidal-ml", callback=tidal_option, help="Tidal volume, both lungs (mL): of the plain cycle (default 500), or the --preset rescaled to it (same shape; default the preset's).")] = None
     period_s: Annotated[float | None, typer.Option("--period", callback=bounded(0, 60, "s", low_open=True), help="Plain cycle only (no --curve, no --preset): period (s), default 4.")] = None
-    fps: Annotated[float, typer.Option("--fps", callback=bounded(0, 1000, "Hz", low_open=True), help="pvd only: frames per second of the time series.")] = 10.0
+    fps: Annotated[float | None, typer.Option("--fps", callback=bounded(0, 1000, "Hz", low_open=True), help="pvd: frames per second of the time series (default 10). USD: time codes per second, the curve resampled at it (default: the curve's own samples when evenly spaced, else 30).")] = None
+    baked: Annotated[bool, typer.Option("--baked", help="USD only: time-sampled points at every frame (a vertex cache) instead of blend shapes.")] = False
 
 
 def register(apps) -> None:
     @apps.root.command("export")
     @takes(ExportOptions)
     def export_command(opts: ExportOptions) -> None:
-        """Export MODEL for engines (glb: one mesh, morph targets, breathing animation) or ParaView (pvd)."""
+        """Export MODEL for engines (glb: morph targets; usd/usdc/usda/usdz: blend shapes, or --baked points) or ParaView (pvd)."""
 
         kind = opts.fmt.strip().lower()
-        if kind not in ("glb", "pvd"):
-            raise InputError(f"--format must be glb or pvd, got {opts.fmt!r}")
+        if kind not in FORMATS:
+            raise InputError(f"--format must be one of {', '.join(FORMATS)}, got {opts.fmt!r}")
         if opts.markers is not None and kind != "glb":
             raise InputError("--markers applies to --format glb only")
+        if opts.baked and kind not in USD_KINDS:
+            raise InputError(f"--baked applies to the USD formats ({', '.join(USD_KINDS)}) only")
+        if opts.fps is not None and kind == "glb":
+            raise InputError("--fps does not apply to --format glb (it plays the curve's own samples)")
+        if kind in USD_KINDS:
+            U.require_usd()  # a missing extra is said before any work
         out = opts.out
         if out.is_dir():  # an existing folder: the file goes inside it, named after the model
             out = out / f"{Path(opts.model).stem}.{kind}"
@@ -77,23 +86,51 @@ def register(apps) -> None:
                    f"ΔV {trace.volume_ml.min():.0f}…{trace.volume_ml.max():.0f} mL split "
                    + ", ".join(f"{k} {v:.2f}" for k, v in shares.items()))
         if kind == "glb":
-            anchors = None
-            if opts.markers is not None:
-                pts, labels = read_markers_csv(opts.markers)
-                anchors = M.marker_anchors(m, pts, labels, source=str(opts.markers))
-                shown = [f"{a['label']} in {a['lung']}" + ("" if a["inside"] else f" ({a['distance_mm']:.0f} mm outside)")
-                         for a in anchors[:6]]
-                typer.echo(f"markers: {len(anchors)} ({'; '.join(shown)}{' …' if len(anchors) > 6 else ''}), "
-                           "moving with each lung's interior field")
-            E.export_glb(m, out_path, trace, anchors)
-            typer.echo(f"wrote {out_path} ({out_path.stat().st_size / 1e6:.2f} MB: "
-                       f"{sum(l.n_vertices for l in m.lungs.values())} vertices, 5 morph targets per lung, "
-                       "animation 'breathing')")
+            _write_glb(opts, m, out_path, trace)
+        elif kind in USD_KINDS:
+            _write_usd(opts, m, out_path, trace)
         else:
-            E.export_pvd(m, out_path, trace, fps=opts.fps)
+            E.export_pvd(m, out_path, trace, fps=10.0 if opts.fps is None else opts.fps)
             frames = out_path.parent / f"{out_path.stem}_frames"
             size = sum(f.stat().st_size for f in frames.iterdir())
             typer.echo(f"wrote {out_path} and {len(list(frames.iterdir()))} frames in {frames} ({size / 1e6:.1f} MB)")
+
+
+#: ``--format`` values; each writes a file with that suffix.
+FORMATS = ("glb", "usd", "usdc", "usda", "usdz", "pvd")
+USD_KINDS = ("usd", "usdc", "usda", "usdz")
+
+
+def _write_glb(opts: ExportOptions, m, out_path: Path, trace) -> None:
+    anchors = None
+    if opts.markers is not None:
+        pts, labels = read_markers_csv(opts.markers)
+        anchors = M.marker_anchors(m, pts, labels, source=str(opts.markers))
+        shown = [f"{a['label']} in {a['lung']}" + ("" if a["inside"] else f" ({a['distance_mm']:.0f} mm outside)")
+                 for a in anchors[:6]]
+        typer.echo(f"markers: {len(anchors)} ({'; '.join(shown)}{' …' if len(anchors) > 6 else ''}), "
+                   "moving with each lung's interior field")
+    E.export_glb(m, out_path, trace, anchors)
+    typer.echo(f"wrote {out_path} ({out_path.stat().st_size / 1e6:.2f} MB: "
+               f"{sum(l.n_vertices for l in m.lungs.values())} vertices, 5 morph targets per lung, "
+               "animation 'breathing')")
+
+
+def _write_usd(opts: ExportOptions, m, out_path: Path, trace) -> None:
+    frames = U.usd_frames(trace, opts.fps)
+    n = len(frames.t_s)
+    if frames.resampled:
+        why = f"--fps {opts.fps:g}" if opts.fps is not None else "its samples are not evenly spaced"
+        typer.echo(f"curve resampled ({why}): {n} frames at {frames.fps:g} per second")
+    size = U.baked_bytes(m, U.lung_weights(m, frames), out_path.suffix) if opts.baked else 0
+    if size > U.BAKED_WARN_BYTES:
+        typer.echo(f"warning: the baked file will be about {size / 1e6:.0f} MB ({n} frames of every vertex); the "
+                   "blend-shape file (no --baked) plays the same motion from one offset per vertex", err=True)
+    U.export_usd(m, out_path, trace, fps=opts.fps, baked=opts.baked)
+    motion = "points at every time code (baked)" if opts.baked else "one blend shape per lung, its weight at every time code"
+    typer.echo(f"wrote {out_path} ({out_path.stat().st_size / 1e6:.2f} MB: "
+               f"{sum(l.n_vertices for l in m.lungs.values())} vertices, {motion}; time codes 0…{n - 1} "
+               f"at {frames.fps:g} per second, Y up, metres)")
 
 
 def _out_path(out: Path, kind: str) -> Path:
@@ -103,8 +140,8 @@ def _out_path(out: Path, kind: str) -> Path:
         return out
     if not out.suffix:
         return out.with_name(f"{out.name}.{kind}")
-    other = {"glb": "pvd", "pvd": "glb"}[kind]
-    if out.suffix.lower() == f".{other}":
+    other = out.suffix.lower()[1:]
+    if other in FORMATS:
         raise InputError(f"--out {out}: --format {kind} writes a .{kind} file, not .{other}; name it "
                          f"{out.with_suffix(f'.{kind}').name} or give --format {other}")
     raise InputError(f"--out {out}: --format {kind} writes a .{kind} file, but the name ends in {out.suffix}; "

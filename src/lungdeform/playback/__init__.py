@@ -2,7 +2,8 @@
 
 Owns: :mod:`~lungdeform.playback.schedule` (the volume over time an export plays: a curve CSV, a
 simulated preset, a plain cycle), :mod:`~lungdeform.playback.export` (glTF 2.0 with morph targets,
-ParaView series), :mod:`~lungdeform.playback.markers` (markers carried in a glb),
+ParaView series), :mod:`~lungdeform.playback.usd` (OpenUSD / USDZ: one blend shape per lung, or baked points;
+usd-core, the optional extra ``usd``), :mod:`~lungdeform.playback.markers` (markers carried in a glb),
 :mod:`~lungdeform.playback.trajectory` (where interior points go as the model breathes),
 :mod:`~lungdeform.playback.displacement_field` (the motion as a displacement-field image on a reference grid, docs/RADIOTHERAPY.md;
 its per-voxel numba passes in :mod:`~lungdeform.playback.voxel`),

@@ -96,9 +96,37 @@ MARKER_MOTION = ("a marker of lung L at morph weight λ of L's target 0 ('tidal'
                  "(mm, LPS; interior field of lungdeform.interior); re-oriented playback (targets 1-4) has "
                  "no exact marker motion")
 TARGET_NAMES = ("tidal", "basis_1", "basis_x", "basis_y", "basis_z")
-#: Root-node rotation (x, y, z, w) taking LPS to glTF: (x, y, z) → (x, z, −y); a −90° turn about x.
+#: The one rotation from patient LPS to an engine's Y-up frame: (x, y, z) → (x, z, −y), a −90° turn about x
+#: (head up, anterior toward +Z). glTF applies it on the root node (:data:`LPS_TO_GLTF_ROTATION`); USD
+#: applies it to the vertex data (:func:`lps_to_y_up_m`, :mod:`lungdeform.playback.usd`).
+LPS_TO_Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+#: :data:`LPS_TO_Y_UP` as the root-node quaternion (x, y, z, w) of the glTF export.
 LPS_TO_GLTF_ROTATION = (-np.sqrt(0.5), 0.0, 0.0, np.sqrt(0.5))
 MM_TO_M = 0.001
+
+
+def lps_to_y_up_m(points_mm: np.ndarray) -> np.ndarray:
+    """``points_mm : (n, 3) float`` mm, LPS (positions or displacements) as ``(n, 3) float`` metres in the
+    Y-up frame of glTF and USD: ``(X, Y, Z) = 0.001 · (x, z, −y)`` (:data:`LPS_TO_Y_UP`)."""
+    return np.ascontiguousarray((MM_TO_M * np.asarray(points_mm, float)) @ LPS_TO_Y_UP.T)
+
+
+def lung_normals(name: str, lung: LungModel) -> np.ndarray:
+    """``(n, 3) float`` unit end-exhale vertex normals of ``lung`` (LPS); a vertex on no face is refused."""
+    nrm = vertex_normals(lung.surface.vertices, lung.surface.faces)
+    if np.any(np.linalg.norm(nrm, axis=1) < 0.5):
+        raise LungdeformError(f"lung '{name}' has vertices with no faces (zero normals)")
+    return nrm
+
+
+def frame_times(trace: VolumeTrace, fps: float) -> np.ndarray:
+    """``(k,) float`` s: evenly spaced frames over the whole trace, at about ``fps`` frames per second
+    (``round(duration·fps)`` intervals, at least 1), first and last on the trace's ends."""
+    if not (np.isfinite(fps) and fps > 0):
+        raise InputError(f"fps must be > 0, got {fps}")
+    duration = float(trace.t_s[-1] - trace.t_s[0])
+    n = max(round(duration * fps), 1) + 1
+    return np.linspace(trace.t_s[0], trace.t_s[-1], n)
 
 
 # --------------------------------------------------------------------------- morph targets
@@ -162,9 +190,7 @@ class _Blob:
 def _primitive(blob: _Blob, name: str, lung: LungModel, targets: np.ndarray, material: int) -> g.Primitive:
     """The lung's triangle primitive: vertex attributes, indices and morph targets in ``blob``."""
     p, f = lung.surface.vertices, lung.surface.faces
-    nrm = vertex_normals(p, f)
-    if np.any(np.linalg.norm(nrm, axis=1) < 0.5):
-        raise LungdeformError(f"lung '{name}' has vertices with no faces (zero normals)")
+    nrm = lung_normals(name, lung)
     attrs = g.Attributes(
         POSITION=blob.add(p.astype(np.float32), g.VEC3, g.ARRAY_BUFFER, minmax=True),
         NORMAL=blob.add(nrm.astype(np.float32), g.VEC3, g.ARRAY_BUFFER),
@@ -278,14 +304,11 @@ def export_pvd(model: Model, path, trace: VolumeTrace | None = None, fps: float 
     ParaView). The frames folder is written beside the ``.pvd`` in a temporary folder and renamed
     into place; the ``.pvd`` is written last, atomically."""
     path = Path(path)
-    if not fps > 0:
-        raise InputError(f"fps must be > 0, got {fps}")
     trace = trace or plain_cycle()
+    times = frame_times(trace, fps)
+    n = len(times)
     say = progress or silent
     shares = lung_shares(model)
-    duration = float(trace.t_s[-1] - trace.t_s[0])
-    n = max(int(round(duration * fps)), 1) + 1
-    times = np.linspace(trace.t_s[0], trace.t_s[-1], n)
     dv = trace.sample(times)
     frames_name = f"{path.stem}_frames"
     entries = []
