@@ -179,11 +179,12 @@ def test_track_rtstruct_writes_one_roi_per_volume(model_file, gtv_files, tmp_pat
 
 
 def test_track_rtstruct_phases(model_file, gtv_files, tmp_path):
-    # --phases 3 over the plain cycle: three ROIs GTV@phase00 … 02 (phase 0 at end-exhale: where drawn)
+    # --phases 3 over the plain cycle: three ROIs GTV@phase00 … 02 (--phase-zero end-exhale: phase 0 at
+    # the end-exhale scan, where drawn; by default phase 0 is end-inhale, test_phases.py)
     ct_dir, gtv = gtv_files
     rs = tmp_path / "p.dcm"
     assert main(["track", str(model_file), "--rtstruct", str(gtv), "--structure", "GTV", "--out", str(tmp_path / "o"),
-                 "--phases", "3", "--out-rtstruct", str(rs), "--reference-ct", str(ct_dir)]) == 0
+                 "--phases", "3", "--phase-zero", "end-exhale", "--out-rtstruct", str(rs), "--reference-ct", str(ct_dir)]) == 0
     moved = read_rtstruct(rs)
     assert list(moved) == ["GTV@phase00", "GTV@phase01", "GTV@phase02", "ITV_GTV"]
     rest = np.concatenate(moved["GTV@phase00"].contours)
@@ -203,7 +204,7 @@ def test_track_rtstruct_itv_holds_every_phase_and_the_motion_table_is_the_centro
     ct_dir, gtv = gtv_files
     out, rs = tmp_path / "o", tmp_path / "p.dcm"
     assert main(["track", str(model_file), "--rtstruct", str(gtv), "--structure", "GTV", "--out", str(out),
-                 "--phases", "4", "--out-rtstruct", str(rs), "--reference-ct", str(ct_dir)]) == 0
+                 "--phases", "4", "--phase-zero", "end-exhale", "--out-rtstruct", str(rs), "--reference-ct", str(ct_dir)]) == 0
     assert "ITV_GTV" in capsys.readouterr().out
     moved = read_rtstruct(rs)
     v, f = contours_to_mesh(moved["ITV_GTV"].contours)

@@ -454,7 +454,7 @@ def test_warp_projections_and_a_rigid_mask(files, tmp_path, capsys):
     (["--lung-mask", "nowhere.mha"], "--lung-mask goes with --density"),
     (["--no-lung-mask"], "--no-lung-mask goes with --density"),
     (["--density", "--no-lung-mask", "--lung-mask", "nowhere.mha"], "--lung-mask with --no-lung-mask"),
-    (["--projections", "mip"], "--projections needs --curve and --phases"),
+    (["--projections", "mip"], "--projections needs --phases N"),
     (["--rigid-structure", "GTV"], "--rigid-structure and --rtstruct go together"),
     (["--rigid-mask", "nowhere.mha", "--rigid-border-mm", "0"], "--rigid-border-mm must be"),
 ])
