@@ -180,6 +180,10 @@ def _forward_volume(mask, field: np.ndarray, grid: Grid) -> float:
 
 #: About this many samples of a rigid structure's inside fit its rigid motion under a point field.
 RIGID_SAMPLES = 50_000
+#: A rigid structure's points are rigid this far (mm) outside its surface, as :func:`rigidify` makes one
+#: voxel beyond the region rigid: the surface through a structure's contours lies within a quarter of
+#: its 0.5 mm pixels of them (:mod:`lungdeform.geometry.contours`), so the contour points stay rigid.
+RIGID_REACH_MM = 0.5
 
 
 @dataclass(frozen=True, eq=False)
@@ -213,10 +217,11 @@ class RigidRegion:
         return [best_rigid(self.samples, m - self.samples) for m in np.asarray(moved_samples, float)]
 
     def weights(self, points) -> np.ndarray:
-        """``(n,) float`` β: 1 inside the structure, fading to 0 at ``border_mm`` outside it."""
+        """``(n,) float`` β: 1 inside the structure and up to :data:`RIGID_REACH_MM` outside it, fading
+        to 0 at ``border_mm`` beyond that."""
         p = np.asarray(points, float)
         inside = winding_numbers(p, self.vertices, self.faces) > 0.5
-        d = np.where(inside, 0.0, point_to_surface(p, self.vertices, self.faces))
+        d = np.where(inside, 0.0, np.maximum(point_to_surface(p, self.vertices, self.faces) - RIGID_REACH_MM, 0.0))
         return fade(d, self.border_mm)
 
     def applied(self, points, elastic: np.ndarray, motions: list[RigidMotion]) -> np.ndarray:
