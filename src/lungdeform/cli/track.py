@@ -96,7 +96,7 @@ def register(apps) -> None:
                                                phase=opts.phase, zero=opts.phase_zero),
                                        len(pts), source)
         rigid = None if opts.rigid_structure is None else R.rigid_structure(
-            opts.rtstruct, opts.rigid_structure, opts.rigid_border_mm, tracked if opts.rigid_structure == opts.structure else None)
+            m, opts.rtstruct, opts.rigid_structure, opts.rigid_border_mm, tracked if opts.rigid_structure == opts.structure else None)
         _check_rows(len(pts), len(frames.delta_ml), source)
         for name in [f"{opts.structure}@{tag}" for tag in tags] + [f"ITV_{opts.structure}"] if opts.out_rtstruct is not None else []:
             check_roi_name(name, str(opts.rtstruct))  # the ROI names, before the surfaces are moved

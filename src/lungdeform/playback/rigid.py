@@ -179,7 +179,7 @@ def _forward_volume(mask, field: np.ndarray, grid: Grid) -> float:
 
 
 #: About this many samples of a rigid structure's inside fit its rigid motion under a point field.
-RIGID_SAMPLES = 50_000
+RIGID_SAMPLES = 10_000
 #: A rigid structure's points are rigid this far (mm) outside its surface, as :func:`rigidify` makes one
 #: voxel beyond the region rigid: the surface through a structure's contours lies within a quarter of
 #: its 0.5 mm pixels of them (:mod:`lungdeform.geometry.contours`), so the contour points stay rigid.
@@ -193,12 +193,14 @@ class RigidRegion:
     in a field (``dvf|warp --rigid-structure``): at each state its inside moves by its best rigid
     motion under the model's forward point field (:func:`best_rigid` of :attr:`samples`, the voxel
     centres inside it on a regular grid of about :data:`RIGID_SAMPLES`), blended back to the field
-    over ``border_mm`` outside it by the smoothstep of the distance to its surface."""
+    over ``border_mm`` outside it by the smoothstep of the distance to its surface. ``placement``:
+    the lung of each sample (:func:`lungdeform.playback.trajectory.place_points`), once placed."""
 
     name: str
     vertices: np.ndarray
     faces: np.ndarray
     border_mm: float = BORDER_MM
+    placement: object = None
 
     @cached_property
     def samples(self) -> np.ndarray:

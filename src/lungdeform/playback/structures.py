@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import csv
 import io
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import ndimage
@@ -81,11 +81,13 @@ def moved_surfaces(model, structure: TrackedStructure, delta_ml, tags: list[str]
     return [(f"{structure.name}@{tag}", moved[i], structure.faces, structure.kind) for i, tag in enumerate(tags)]
 
 
-def rigid_structure(path, name: str, border_mm: float, tracked: TrackedStructure | None = None) -> RigidRegion:
+def rigid_structure(model, path, name: str, border_mm: float, tracked: TrackedStructure | None = None) -> RigidRegion:
     """The structure ``name`` of the RTSTRUCT ``path`` (``tracked`` when it is the one already read) as a
-    :class:`~lungdeform.playback.rigid.RigidRegion` blended over ``border_mm``."""
+    :class:`~lungdeform.playback.rigid.RigidRegion` blended over ``border_mm``, its samples placed in
+    ``model``'s lungs."""
     s = tracked if tracked is not None else read_structure(path, name)
-    return RigidRegion(name, s.vertices, s.faces, float(border_mm))
+    region = RigidRegion(name, s.vertices, s.faces, float(border_mm))
+    return replace(region, placement=place_points(model, region.samples, source=f"{path} rigid structure {name}"))
 
 
 def moved_points(model, points, placement, delta_ml, rigid: RigidRegion | None = None) -> np.ndarray:
@@ -97,7 +99,9 @@ def moved_points(model, points, placement, delta_ml, rigid: RigidRegion | None =
     elastic = point_trajectories(model, points, placement, delta_ml)
     if rigid is None:
         return elastic
-    inner = place_points(model, rigid.samples, source=f"rigid structure {rigid.name}")
+    inner = rigid.placement
+    if inner is None:
+        inner = place_points(model, rigid.samples, source=f"rigid structure {rigid.name}")
     motions = rigid.motions(point_trajectories(model, rigid.samples, inner, delta_ml))
     return rigid.applied(points, elastic, motions)
 
