@@ -498,7 +498,8 @@ def test_track_rigid_structure_moves_the_gtv_as_warp_keeps_it_in_the_image(model
     rows = _rows(tmp_path / "rg" / "trajectories.csv")
     pos = np.array([[float(r[k]) for k in ("x_mm", "y_mm", "z_mm")] for r in rows]).reshape(4, -1, 3)
     drawn = read_structure(gtv, "GTV").points
-    pairs = lambda p: np.linalg.norm(p[:, None] - p[None], axis=-1)  # noqa: E731
+    def pairs(p):
+        return np.linalg.norm(p[:, None] - p[None], axis=-1)
     for k in range(4):
         assert np.abs(pairs(pos[k]) - pairs(drawn)).max() < 3e-4  # trajectories.csv: 4 decimals
     vol = {kind: [float(r["volume_ml"]) for r in _rows(tmp_path / kind / "structure_motion.csv")] for kind in ("el", "rg")}

@@ -24,7 +24,8 @@ def test_the_coarse_grid_spans_the_same_box_at_most_the_given_spacing():
     c = coarse_grid(GRID, 3.0)
     assert np.all(c.spacing <= 3.0 + 1e-12) and c.shape == (18, 21, 21)
     assert c.spacing == pytest.approx([3.0, 3.0, 50 / 17])
-    last = lambda g: g.world(np.array(g.shape[::-1], float) - 1)  # noqa: E731
+    def last(g):
+        return g.world(np.array(g.shape[::-1], float) - 1)
     assert np.allclose(c.origin, GRID.origin) and np.allclose(last(c), last(GRID), atol=1e-9)
     assert np.allclose(c.direction, GRID.direction)
     assert coarse_grid(GRID, 2.4).shape[0] == 21 and coarse_grid(GRID, 0.5) is GRID

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -100,7 +100,8 @@ def register(apps) -> None:
         )
         model = build_model(surfaces, tidal_ml=opts.tidal_ml, stiffness=stiff, gravity=gravity,
                             settings=BuildSettings(solver=opts.solver, d_min=opts.d_min), provenance=prov, default=chosen,
-                            progress=say, scan=scan)
+                            progress=say)
+        model = replace(model, scan=scan)  # the surfaces are that scan
         path = save_model(opts.out, model)
         shares = lung_shares(model)
         for sd, lung in model.lungs.items():

@@ -117,8 +117,7 @@ def register(apps) -> None:
                 "scan_ml": T.scan_ml(m), "scan_state": m.scan.record(), **T.interior_meta(m),
                 **({} if rigid is None else {"rigid_structure": rigid.name, "rigid_border_mm": rigid.border_mm})}
         ee = None if m.scan.is_end_exhale else R.moved_points(m, pts, placement, [0.0], rigid)[0]
-        paths = T.write_trajectories(folder, pts, labels, placement, positions, frames.delta_ml, frames.t_s, meta=meta,
-                                     end_exhale=ee)
+        paths = T.write_trajectories(folder, pts, labels, placement, positions, frames, meta=meta, end_exhale=ee)
         if built is not None:
             save_rtstruct(opts.out_rtstruct, built[0])
             typer.echo(f"wrote {opts.out_rtstruct}: " + ", ".join(f"{k} ({n} contours)" for k, n in built[1].items()))

@@ -354,7 +354,6 @@ def build_model(
     provenance: dict | None = None,
     progress: Progress | None = None,
     settings: BuildSettings = BuildSettings(),
-    scan: ScanState | None = None,
     **kwargs,
 ) -> Model:
     """Build one model per side from ``{side: surface}``.
@@ -367,7 +366,7 @@ def build_model(
     divides by (:func:`lungdeform.model.tidal.played_shares`). Other keyword arguments go
     to :func:`build_lung` (``gravity``, ``default``). The
     provenance records the default the lungs were built with (``"default"``: name and digest).
-    ``scan``: the breathing state of the scan the surfaces are (default end-exhale).
+    The model's scan is end-exhale (``dataclasses.replace(model, scan=…)`` says otherwise).
     """
     parts = tidal_split({side: s.volume_ml for side, s in surfaces.items()}, tidal_ml)
     chosen = resolve_default(kwargs.pop("default", None))
@@ -384,4 +383,4 @@ def build_model(
     prov.setdefault("tidal_split", split_rule(list(surfaces)))
     if constants is None or len(constants) < len(surfaces):
         prov.setdefault("default", chosen.record())
-    return Model(lungs, prov, scan or ScanState())
+    return Model(lungs, prov)

@@ -48,7 +48,7 @@ class PhaseSchedule:
 
     def percent(self, i: int) -> int:
         """Phase ``i``'s whole percentage of the cycle (the name of a DICOM phase folder)."""
-        return int(round(100.0 * i / self.count))
+        return round(100.0 * i / self.count)
 
 
 def check_zero(zero: str) -> str:
@@ -146,7 +146,7 @@ def scan_phase_text(trace, schedule: PhaseSchedule, scan) -> str:
     n = schedule.count
     parts = []
     for pct, how in passes:
-        i = int(round(pct / 100.0 * n)) % n
+        i = round(pct / 100.0 * n) % n
         exact = abs(pct - 100.0 * i / n) < 0.5 or abs(pct - 100.0 * i / n) > 99.5
         parts.append(f"{pct:.0f} % of the cycle ({how}): {'' if exact else 'nearest '}phase {i} of {n} "
                      f"({schedule.percent(i)} %)")

@@ -209,19 +209,21 @@ def motion_summary(positions: np.ndarray, points) -> dict:
             "max_excursion_mm": excursion.tolist()}
 
 
-def write_trajectories(out: Path, points, labels, placement: PointPlacement, positions, delta_ml,
-                       t_s=None, *, meta: dict | None = None, end_exhale=None) -> dict[str, Path]:
+def write_trajectories(out: Path, points, labels, placement: PointPlacement, positions, frames: FrameSchedule,
+                       *, meta: dict | None = None, end_exhale=None) -> dict[str, Path]:
     """Write ``trajectories.csv`` (one row per frame and point: ``t_s`` (blank without times),
     ``delta_ml``, point, label, lung, ``x_mm, y_mm, z_mm`` and the displacement ``dx_mm, dy_mm,
     dz_mm``, LPS), ``points.json`` (placement and :func:`motion_summary` per point, plus ``meta``)
     and ``motion.png`` (displacement along LR, AP, SI against time or volume) into ``out``, each
-    atomically. ``positions : (f, q, 3)`` mm; ``delta_ml : (f,)`` mL of both lungs above end-exhale;
+    atomically. ``positions : (f, q, 3)`` mm at the ``frames`` (:class:`FrameSchedule`: ``delta_ml``
+    mL of both lungs above end-exhale, ``t_s`` s or None);
     ``points`` are the positions at the model's scan (``scan_mm``), ``end_exhale : (q, 3)`` mm at
     end-exhale (``end_exhale_mm``; default ``points``: an end-exhale scan)."""
     q = as_vertices(points, "points")
     ee = q if end_exhale is None else np.asarray(end_exhale, float)
+    t_s = frames.t_s
     pos = np.asarray(positions, float)
-    dv = np.asarray(delta_ml, float)
+    dv = np.asarray(frames.delta_ml, float)
     disp = pos - q[None]
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
