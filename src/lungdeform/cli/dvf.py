@@ -20,20 +20,22 @@ from lungdeform.playback import displacement_field as D
 from lungdeform.playback.field_grid import REG_SPACING_MM, coarse_grid, coarsened, interpolation_error
 from lungdeform.playback.trajectory import extrapolation_note
 
-from .breath import BreathFlags, breath_states, check_breath
 from .common import (
     MAX_LUNGS_ML,
+    BreathFlags,
     RigidFlags,
     RigidOptions,
     apply_rigid,
     bounded,
+    breath_states,
+    check_breath,
     check_output,
     field_lines,
+    phase_path,
     rigid_region,
     say,
     takes,
 )
-from .warp import phase_path
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -100,7 +102,7 @@ def register(apps) -> None:
                 typer.echo(f"wrote {fields[n]}")
                 if series:
                     _write_reg(tmp[len(fields) + n], (result.field, grid), series[n], opts.reg_spacing_mm,
-                               f"lungdeform {state.source}")
+                               _description(state))
                     typer.echo(f"wrote {regs[n]}")
 
 
@@ -114,6 +116,12 @@ def _output_paths(out: Path, out_reg: Path | None, breath, phase: int | None) ->
     regs = [] if out_reg is None else [out_reg.with_name(f"{out_reg.stem}_phase{i:02d}{out_reg.suffix}")
                                        for i in breath.indices]
     return fields, regs
+
+
+def _description(state) -> str:
+    """The REG's SeriesDescription: the state in short and its volume above end-exhale
+    (``lungdeform phase 5 of 10, +0 mL above end-exhale``; ``volume 3968 mL``, ``scan 1 of the fit``)."""
+    return f"lungdeform {state.source.split(' (')[0].split(' at t =')[0]}, {state.delta_ml:+.0f} mL above end-exhale"
 
 
 def _moving(moving: Path | None, breath, n: int) -> Path | None:

@@ -28,8 +28,17 @@ from lungdeform.playback import trajectory as T
 from lungdeform.playback.displacement_field import scan_state, volume_state
 from lungdeform.playback.phases import PHASE_ZERO_HELP, check_zero, phase_schedule, scan_phase_text
 
-from .breath import BREATH_HINT, breath_trace
-from .common import bounded, check_cycles, check_output, check_tidal_ml, output_dir, takes, without_alignment
+from .common import (
+    BREATH_HINT,
+    bounded,
+    breath_trace,
+    check_cycles,
+    check_output,
+    check_tidal_ml,
+    output_dir,
+    takes,
+    without_alignment,
+)
 
 #: Bounds on the schedule: frames per second, preset cycles, and points × frames (rows of trajectories.csv)
 MAX_FPS = 1000.0

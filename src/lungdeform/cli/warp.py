@@ -19,25 +19,23 @@ from lungdeform.playback import density as M
 from lungdeform.playback import displacement_field as D
 from lungdeform.playback.trajectory import extrapolation_note
 
-from .breath import BREATH_HINT, BreathFlags, breath_states, check_breath
 from .common import (
+    BREATH_HINT,
     MAX_LUNGS_ML,
+    BreathFlags,
     RigidFlags,
     RigidOptions,
     apply_rigid,
     bounded,
+    breath_states,
+    check_breath,
     check_output,
     field_lines,
+    phase_path,
     rigid_region,
     say,
     takes,
 )
-
-
-def phase_path(out: Path, index: int) -> Path:
-    """``OUT_phaseNN`` with OUT's own suffix: ``ct.mha`` → ``ct_phase03.mha``."""
-    suffix = write_suffix(out)
-    return out.with_name(f"{out.name[:-len(suffix)]}_phase{index:02d}{suffix}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -126,7 +124,7 @@ def register(apps) -> None:
 
 def _check_combinations(out: Path, dicom: bool, given: dict) -> None:
     """Refuse, before any work, options that do not go together (``given``: label, density, kinds,
-    phases, phase, grid, lung, no_lung; the breath's own options: :func:`lungdeform.cli.breath.check_breath`)."""
+    phases, phase, grid, lung, no_lung; the breath's own options: :func:`lungdeform.cli.common.check_breath`)."""
     if dicom and given["label"]:
         raise InputError(f"--out {out}: a label image is not written as a DICOM CT series; use .mha, .nii.gz or .nrrd")
     if given["density"] and given["label"]:
