@@ -277,3 +277,21 @@ def test_one_lung_takes_its_share_and_says_so(tmp_path, lung_files, capsys):
     # truth, measured on the mesh: at the peak of a 500 mL breath the lung holds V_EE + 268 mL
     (scale,) = lung_scales(m, [500.0])["right"]
     assert lung.surface_at(scale=scale).volume_ml == pytest.approx(lung.volume_ee_ml + 268.0, abs=1e-6)
+
+
+def test_build_records_the_scans_breathing_state(tmp_path, lung_files, capsys):
+    # why: a planning CT at end-inhale is said to be one; the model file keeps it (an end-inhale
+    # scan 500 mL above end-exhale at the default --tidal-ml), build says both volumes, and a state
+    # that is none of the accepted ones is refused before any surface is read, naming the option
+    out = tmp_path / "m.npz"
+    assert main(["build", *map(str, lung_files), "--scan-state", "end-inhale", "--out", str(out)]) == 0
+    m = load_model(out)
+    assert (m.scan.name, m.scan.above_ee_ml) == ("end-inhale", 500.0)
+    scan = sum(lung.volume_ee_ml for lung in m.lungs.values())
+    text = capsys.readouterr().out
+    assert (f"scan: end-inhale, 500 mL above end-exhale: the lungs together {scan:.0f} mL at the scan, "
+            f"{scan - 500:.0f} mL at end-exhale") in text
+    assert main(["build", *map(str, lung_files), "--scan-state", "0.4", "--tidal-ml", "600", "--out", str(out)]) == 0
+    assert load_model(out).scan.above_ee_ml == pytest.approx(240.0)
+    _fails(["build", str(tmp_path / "missing.stl"), "--scan-state", "inhaled", "--out", str(tmp_path / "x.npz")],
+           capsys, "--scan-state must be end-exhale, end-inhale, mid")

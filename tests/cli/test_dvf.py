@@ -1,6 +1,7 @@
 """``lungdeform dvf`` on a small synthetic model and image (the fixture is shared with test_warp)."""
 
 import numpy as np
+import pydicom
 import pytest
 import SimpleITK as sitk
 
@@ -121,3 +122,98 @@ def test_track_scan_is_in_the_frame_and_state_of_dvf_scan(files, tmp_path, capsy
                  "--out", str(tmp_path / "y")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2 and "--no-rigid applies to --scan" in err[0] and "--scan names one state" in err[1]
+
+
+def _state_lines(text: str) -> list[str]:
+    """The phase lines a command printed: ``phase i of N (P %) at t = … s (+X mL above end-exhale)``."""
+    return [ln.split(":", 1)[0].split(" field at ")[-1] for ln in text.splitlines()
+            if ln.lstrip().startswith(("phase ", "forward field at phase", "inverse field at phase"))]
+
+
+def test_dvf_phases_are_warps_phases_one_field_and_one_coarse_reg_each(files, tmp_path, capsys):
+    # why: one breath through every command (no volumes added by hand): `dvf --phases N` gives the
+    # states of `warp --phases N` and `track --phases N` phase for phase (the same printed states,
+    # track's delta_ml), and its inverse fields reproduce warp's phase images (SimpleITK's linear
+    # resampling of the source through each field against warp's output: ≤ 1 HU after rounding).
+    # An end-inhale model: phase 0 is the scan (a zero field). Each phase's REG holds the forward
+    # field sampled on a grid of at most 3 mm in-plane (the field's 2.4 mm; its 8 mm slices kept): exactly the
+    # coarsened .mha), references that phase's series of the 4-D CT, and passes dciodvfy
+    from lungdeform.io.image import write_image
+    from lungdeform.model.lung import Model
+    from lungdeform.model.scan_state import ScanState
+    from lungdeform.playback.displacement_field import Grid
+    from lungdeform.playback.field_grid import coarse_grid, coarsened
+    from tests.io.dicom_support import dciodvfy
+    d, m = files
+    model = tmp_path / "ei.npz"
+    save_model(model, Model(m.lungs, m.provenance, ScanState("end-inhale", 500.0)))
+    ref = read_image(d / "ref.nii.gz")
+    hu = (np.repeat(np.repeat(ref.array, 2, axis=1), 2, axis=2).astype(np.int16) * 400 - 1000).astype(np.int16)
+    spacing = np.asarray(ref.spacing) * [0.5, 0.5, 1.0]
+    write_image(tmp_path / "ct.mha", hu, spacing, ref.origin, ref.direction)
+    from lungdeform.io.dicom import series as DS
+    from lungdeform.io.grid import Image
+    DS.write_ct_series(tmp_path / "src", Image(hu, spacing, ref.origin, ref.direction), DS.study_header(), description="CT")
+    phases = ["--phases", "4"]
+    assert main(["warp", str(tmp_path / "ct.mha"), str(model), *phases, "--out", str(tmp_path / "w.mha")]) == 0
+    assert main(["warp", str(tmp_path / "src"), str(model), *phases, "--out", str(tmp_path / "4dct")]) == 0
+    warped = _state_lines(capsys.readouterr().out)
+    assert main(["dvf", str(model), "--reference", str(tmp_path / "src"), *phases, "--out", str(tmp_path / "u.mha"),
+                 "--out-reg", str(tmp_path / "reg.dcm"), "--moving", str(tmp_path / "4dct")]) == 0
+    text = capsys.readouterr().out
+    assert _state_lines(text) == warped[:4] and len(warped) == 8
+    assert "the scan (end-inhale, 500 mL above end-exhale) is at 0 % of the cycle" in text
+    assert text.count("trilinear interpolation of it differs from the full field by at most") == 4
+    assert main(["dvf", str(model), "--reference", str(tmp_path / "ct.mha"), *phases, "--inverse",
+                 "--out", str(tmp_path / "w_inv.mha")]) == 0
+    capsys.readouterr()
+    src = sitk.ReadImage(str(tmp_path / "ct.mha"), sitk.sitkFloat32)
+    grid = Grid.of(read_image(tmp_path / "ct.mha"))
+    for k in range(4):
+        u = sitk.GetArrayFromImage(sitk.ReadImage(str(tmp_path / f"u_phase{k:02d}.mha")))
+        if k == 0:  # end-inhale: the scan itself
+            assert np.abs(u).max() == 0.0
+        field = sitk.ReadImage(str(tmp_path / f"w_inv_phase{k:02d}.mha"), sitk.sitkVectorFloat64)
+        out = sitk.Resample(src, src, sitk.DisplacementFieldTransform(field), sitk.sitkLinear, -1000.0)
+        mine = read_image(tmp_path / f"w_phase{k:02d}.mha").array.astype(float)
+        assert np.abs(np.round(sitk.GetArrayFromImage(out)) - mine).max() <= 1.0
+        reg = pydicom.dcmread(tmp_path / f"reg_phase{k:02d}.dcm")
+        item = reg.DeformableRegistrationSequence[-1]
+        g = item.DeformableRegistrationGridSequence[0]
+        nx, ny, nz = g.GridDimensions
+        assert [float(x) for x in g.GridResolution][2] == 8.0 and max(g.GridResolution[:2]) <= 3.0 and (nx, ny) == (121, 73)
+        raw = np.frombuffer(g.VectorGridData, "<f4").reshape(nz, ny, nx, 3)
+        assert np.array_equal(raw, coarsened(u, grid, coarse_grid(grid, 3.0)))
+        folder = tmp_path / "4dct" / DS.phase_folder(k, 4)
+        uids = {pydicom.dcmread(p, stop_before_pixels=True).SOPInstanceUID for p in folder.iterdir()}
+        assert {r.ReferencedSOPInstanceUID for r in item.ReferencedImageSequence} == uids
+    assert dciodvfy(tmp_path / "reg_phase02.dcm")[0] == []
+    # one phase: the same field as in the set; track's frames are the same states
+    assert main(["dvf", str(model), "--reference", str(tmp_path / "src"), *phases, "--phase", "2",
+                 "--out", str(tmp_path / "u2.mha")]) == 0
+    assert np.array_equal(sitk.GetArrayFromImage(sitk.ReadImage(str(tmp_path / "u2.mha"))),
+                          sitk.GetArrayFromImage(sitk.ReadImage(str(tmp_path / "u_phase02.mha"))))
+    (tmp_path / "p.csv").write_text("x_mm,y_mm,z_mm\n90,0,-40\n")
+    assert main(["track", str(model), "--points", str(tmp_path / "p.csv"), *phases, "--out", str(tmp_path / "t")]) == 0
+    rows = (tmp_path / "t" / "trajectories.csv").read_text().splitlines()[1:]
+    assert [f"{float(r.split(',')[1]):+.0f} mL" for r in rows] == [ln.rsplit("(", 1)[1].split(" above")[0] for ln in warped[:4]]
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["--curve", "c.csv"], "--curve goes with --phases N"),
+    (["--phases", "4", "--phase", "4"], "--phase must be 0 to 3"),
+    (["--phases", "4", "--volume-ml", "4000"], "--phases with --volume-ml or --scan"),
+    (["--phases", "4", "--tidal-ml", "600", "--curve", "c.csv"], "--tidal-ml applies to --preset or the plain cycle"),
+    (["--phases", "4", "--preset", "normal", "--curve", "c.csv"], "--curve and --preset are mutually exclusive"),
+    (["--phases", "4", "--phase-zero", "peak"], "--phase-zero must be one of end-inhale, end-exhale, start"),
+    ([], "give --volume-ml, --scan or --phases N (states over a breath: --curve CSV ('lungdeform breathe"),
+])
+def test_dvf_breath_options_that_do_not_go_together_are_one_line(files, tmp_path, capsys, args, needle):
+    d, _ = files
+    (tmp_path / "c.csv").write_text("t_s,volume_ml\n0,0\n2,500\n4,0\n")
+    args = [str(tmp_path / a) if a == "c.csv" else a for a in args]
+    assert main(["dvf", str(d / "model.npz"), "--reference", str(d / "ref.nii.gz"), *args,
+                 "--out", str(tmp_path / "u.mha")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and needle in err[0], err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.csv"]

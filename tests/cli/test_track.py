@@ -179,11 +179,12 @@ def test_track_rtstruct_writes_one_roi_per_volume(model_file, gtv_files, tmp_pat
 
 
 def test_track_rtstruct_phases(model_file, gtv_files, tmp_path):
-    # --phases 3 over the plain cycle: three ROIs GTV@phase00 … 02 (phase 0 at end-exhale: where drawn)
+    # --phases 3 over the plain cycle: three ROIs GTV@phase00 … 02 (--phase-zero end-exhale: phase 0 at
+    # the end-exhale scan, where drawn; by default phase 0 is end-inhale, test_phases.py)
     ct_dir, gtv = gtv_files
     rs = tmp_path / "p.dcm"
     assert main(["track", str(model_file), "--rtstruct", str(gtv), "--structure", "GTV", "--out", str(tmp_path / "o"),
-                 "--phases", "3", "--out-rtstruct", str(rs), "--reference-ct", str(ct_dir)]) == 0
+                 "--phases", "3", "--phase-zero", "end-exhale", "--out-rtstruct", str(rs), "--reference-ct", str(ct_dir)]) == 0
     moved = read_rtstruct(rs)
     assert list(moved) == ["GTV@phase00", "GTV@phase01", "GTV@phase02", "ITV_GTV"]
     rest = np.concatenate(moved["GTV@phase00"].contours)
@@ -203,7 +204,7 @@ def test_track_rtstruct_itv_holds_every_phase_and_the_motion_table_is_the_centro
     ct_dir, gtv = gtv_files
     out, rs = tmp_path / "o", tmp_path / "p.dcm"
     assert main(["track", str(model_file), "--rtstruct", str(gtv), "--structure", "GTV", "--out", str(out),
-                 "--phases", "4", "--out-rtstruct", str(rs), "--reference-ct", str(ct_dir)]) == 0
+                 "--phases", "4", "--phase-zero", "end-exhale", "--out-rtstruct", str(rs), "--reference-ct", str(ct_dir)]) == 0
     assert "ITV_GTV" in capsys.readouterr().out
     moved = read_rtstruct(rs)
     v, f = contours_to_mesh(moved["ITV_GTV"].contours)
@@ -473,3 +474,49 @@ def test_track_names_a_points_folder_or_an_empty_points_file(model_file, tmp_pat
     assert main(["track", str(model_file), "--points", str(points), "--out", str(tmp_path / "o")]) == 2
     assert capsys.readouterr().err.strip().splitlines() == ["error: " + message.format(p=points)]
     assert not (tmp_path / "o").exists()
+
+
+def test_track_rigid_structure_moves_the_gtv_as_warp_keeps_it_in_the_image(model_file, gtv_files, tmp_path, capsys):
+    # why: warp --rigid-structure GTV keeps the tumour rigid in the image while track let the same
+    # GTV grow with the lung; with --rigid-structure its contours move by one rigid motion per state.
+    # Truths: every pair of GTV contour points keeps its distance at every phase (rigid); its volume
+    # stays the drawn one (structure_motion.csv, within 1 %) where the elastic GTV grows; at end-inhale
+    # (phase 0) its centroid is that of the GTV's voxel mask (as float, resampled linearly: partial
+    # voxels) warped with --rigid-structure GTV on the CT grid (2 mm voxels: within 0.3 mm), which
+    # keeps the mask's volume (2 %) as track keeps the structure's
+    from lungdeform.io.image import read_image, write_image
+    from lungdeform.playback.displacement_field import Grid
+    from lungdeform.playback.rigid import surface_mask
+    from lungdeform.playback.structures import read_structure
+    ct_dir, gtv = gtv_files
+    base = ["track", str(model_file), "--rtstruct", str(gtv), "--structure", "GTV", "--phases", "4",
+            "--reference-ct", str(ct_dir)]
+    assert main([*base, "--out", str(tmp_path / "el"), "--out-rtstruct", str(tmp_path / "el.dcm")]) == 0
+    assert main([*base, "--rigid-structure", "GTV", "--out", str(tmp_path / "rg"),
+                 "--out-rtstruct", str(tmp_path / "rg.dcm")]) == 0
+    assert "GTV: rigid" in capsys.readouterr().out
+    rows = _rows(tmp_path / "rg" / "trajectories.csv")
+    pos = np.array([[float(r[k]) for k in ("x_mm", "y_mm", "z_mm")] for r in rows]).reshape(4, -1, 3)
+    drawn = read_structure(gtv, "GTV").points
+    def pairs(p):
+        return np.linalg.norm(p[:, None] - p[None], axis=-1)
+    for k in range(4):
+        assert np.abs(pairs(pos[k]) - pairs(drawn)).max() < 3e-4  # trajectories.csv: 4 decimals
+    vol = {kind: [float(r["volume_ml"]) for r in _rows(tmp_path / kind / "structure_motion.csv")] for kind in ("el", "rg")}
+    assert max(abs(v / vol["rg"][2] - 1) for v in vol["rg"]) < 0.01  # phase 2: end-exhale, the scan
+    assert max(vol["el"]) / vol["el"][2] > 1.03, vol
+    ct = read_image(ct_dir)
+    s = read_structure(gtv, "GTV")
+    mask = surface_mask(s.vertices, s.faces, Grid.of(ct)).astype(np.float32)
+    write_image(tmp_path / "gtv.nii.gz", mask, ct.spacing, ct.origin, ct.direction)
+    assert main(["warp", str(tmp_path / "gtv.nii.gz"), str(model_file), "--phases", "4", "--phase", "0",
+                 "--rigid-structure", "GTV", "--rtstruct", str(gtv), "--out", str(tmp_path / "w.nii.gz")]) == 0
+    w = read_image(tmp_path / "w.nii.gz")
+    k, j, i = np.nonzero(w.array)
+    weight = w.array[k, j, i].astype(float)
+    centre = (Grid.of(w).world(np.stack([i, j, k], axis=1)) * weight[:, None]).sum(axis=0) / weight.sum()
+    row = _rows(tmp_path / "rg" / "structure_motion.csv")[0]
+    assert row["state"] == "phase00"
+    track_centre = np.array([float(row[f"centroid_{a}_mm"]) for a in "xyz"])
+    assert np.linalg.norm(centre - track_centre) < 0.3, (centre, track_centre)
+    assert weight.sum() == pytest.approx(mask.sum(), rel=0.02)  # the image keeps the mask's volume, as track its own

@@ -44,6 +44,22 @@ def test_warp_phases_over_a_curve(files, tmp_path):
     assert names == ["ct_phase00.mha", "ct_phase01.mha"]
 
 
+def test_warp_preset_phases_are_the_phases_of_track_preset(files, tmp_path, capsys):
+    # why: warp takes --preset as track does (no curve written by hand); given the same preset the
+    # two commands play the same states, phase for phase (track's delta_ml, warp's printed states)
+    d, _ = files
+    assert main(["warp", str(d / "ref.nii.gz"), str(d / "model.npz"), "--preset", "deep", "--phases", "3",
+                 "--label", "--out", str(tmp_path / "w.mha")]) == 0
+    text = capsys.readouterr().out
+    states = [ln.rsplit("(", 1)[1].split(" above")[0] for ln in text.splitlines() if ln.startswith("phase ")]
+    assert len(states) == 3 and "preset" in text and "deep" in text
+    (tmp_path / "p.csv").write_text("x_mm,y_mm,z_mm\n90,0,-40\n")
+    assert main(["track", str(d / "model.npz"), "--points", str(tmp_path / "p.csv"), "--preset", "deep", "--phases", "3",
+                 "--out", str(tmp_path / "t")]) == 0
+    rows = (tmp_path / "t" / "trajectories.csv").read_text().splitlines()[1:]
+    assert [f"{float(r.split(',')[1]):+.0f} mL" for r in rows] == states
+
+
 def _curve(path):
     t = np.linspace(0, 8, 161)
     path.write_text("t_s,volume_ml\n" + "".join(f"{a:.3f},{250 * (1 - np.cos(np.pi * a / 2)):.3f}\n" for a in t))
@@ -454,7 +470,7 @@ def test_warp_projections_and_a_rigid_mask(files, tmp_path, capsys):
     (["--lung-mask", "nowhere.mha"], "--lung-mask goes with --density"),
     (["--no-lung-mask"], "--no-lung-mask goes with --density"),
     (["--density", "--no-lung-mask", "--lung-mask", "nowhere.mha"], "--lung-mask with --no-lung-mask"),
-    (["--projections", "mip"], "--projections needs --curve and --phases"),
+    (["--projections", "mip"], "--projections needs --phases N"),
     (["--rigid-structure", "GTV"], "--rigid-structure and --rtstruct go together"),
     (["--rigid-mask", "nowhere.mha", "--rigid-border-mm", "0"], "--rigid-border-mm must be"),
 ])

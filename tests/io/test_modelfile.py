@@ -41,7 +41,7 @@ def test_schema_1_files_keep_their_thin_plate_interior(tmp_path, model, rng):
     path = save_model(tmp_path / "m.npz", Model({"left": model}))
     with np.load(path) as z:
         data = {k: z[k] for k in z.files}
-    assert int(data["schema_version"]) == SCHEMA_VERSION == 4
+    assert int(data["schema_version"]) == SCHEMA_VERSION == 5
     np.savez(tmp_path / "v1.npz", **dict(data, schema_version=np.array(1)))
     old, new = load_model(tmp_path / "v1.npz").lungs["left"], load_model(path).lungs["left"]
     assert (old.interior_kind, new.interior_kind) == ("thin_plate", "sliding")
@@ -368,3 +368,26 @@ def test_model_file_says_what_a_wrong_file_is(tmp_path, model):
         with pytest.raises(ModelFileError) as info:
             load_model(tmp_path / name)
         assert str(info.value) == f"{tmp_path / name}{message[len(name):]}", name
+
+
+def test_the_scans_breathing_state_is_kept_and_older_files_are_end_exhale(tmp_path, model):
+    # why: schema 5 records where the scan lies in the breath (an end-inhale scan is played out
+    # below it); a version-4 file has no such keys and is an end-exhale scan; a version-5 file with
+    # one key of the two, or a state that is not one, is refused naming the file
+    from lungdeform.model.scan_state import ScanState
+    path = save_model(tmp_path / "m.npz", Model({"left": model}, {}, ScanState("end-inhale", 500.0)))
+    assert load_model(path).scan == ScanState("end-inhale", 500.0)
+    with np.load(path) as z:
+        data = {k: z[k] for k in z.files}
+    old = {k: v for k, v in data.items() if not k.startswith("scan_")}
+    np.savez(tmp_path / "v4.npz", **dict(old, schema_version=np.array(4)))
+    assert load_model(tmp_path / "v4.npz").scan == ScanState()
+    np.savez(tmp_path / "half.npz", **{k: v for k, v in data.items() if k != "scan_above_ee_ml"})
+    with pytest.raises(ModelFileError, match="half.npz: schema 5 needs both scan_state and scan_above_ee_ml"):
+        load_model(tmp_path / "half.npz")
+    for key, value, needle in (("scan_state", np.array("deep"), "scan state must be one of"),
+                               ("scan_above_ee_ml", np.array(-1.0), "above end-exhale must be 0 to"),
+                               ("scan_above_ee_ml", np.array("x"), "holds <U1 values")):
+        np.savez(tmp_path / "bad.npz", **dict(data, **{key: value}))
+        with pytest.raises(ModelFileError, match=needle):
+            load_model(tmp_path / "bad.npz")

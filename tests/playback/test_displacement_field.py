@@ -141,12 +141,14 @@ def test_aligned_field_lands_in_the_scan_frame(model, forward):
 
 
 def test_phase_states_span_one_cycle():
-    # a 4 s cosine breath repeated three times: N phases over one 4 s period, end-exhale first
+    # a 4 s cosine breath repeated three times: N phases over one 4 s period, end-inhale first (as
+    # 4-D CT numbers phases: 0 % end-inhale, 50 % end-exhale), or from the first sample on request
     t = np.linspace(0, 12, 601)
     trace = VolumeTrace(t, 250 * (1 - np.cos(2 * np.pi * t / 4.0)))
     states, period = D.phase_states(trace, 4)
     assert period == pytest.approx(4.0, rel=0.02)
-    assert [round(s.delta_ml) for s in states] == pytest.approx([0, 250, 500, 250], abs=6)
+    assert [round(s.delta_ml) for s in states] == pytest.approx([500, 250, 0, 250], abs=6)
+    assert [round(s.delta_ml) for s in D.phase_states(trace, 4, "start")[0]] == pytest.approx([0, 250, 500, 250], abs=6)
 
 
 def test_lattice_field_against_the_dense_exact_field(model, forward, rng):

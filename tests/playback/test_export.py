@@ -310,3 +310,34 @@ def test_provenance_with_nan_exports_as_strict_json(tmp_path):
     assert fit.get("landmark_rms_in_fit_mm") is None and fit["objective"] == 1.5
     back = load_model(save_model(tmp_path / "nan.npz", nan_model))
     assert back.provenance["fit"]["landmark_rms_in_fit_mm"] is None
+
+
+def test_an_end_inhale_model_is_exported_at_end_exhale_with_its_scan_weight(model, tmp_path):
+    # why: a glb's POSITION is end-exhale and its weights start there (viewers play 0 … 1); a model
+    # built from an end-inhale scan is written moved down to end-exhale, exactly by the volume cubic:
+    # truths: POSITION encloses the scan's volume less the lung's share of 500 mL; POSITION plus
+    # scan_weight times target 0 is the scan; the animation's volumes are the curve's above end-exhale
+    from lungdeform.model.lung import Model
+    from lungdeform.model.scan_state import ScanState
+    inhaled = Model(model.lungs, model.provenance, ScanState("end-inhale", 500.0))
+    trace = S.plain_cycle(500, 4.0)
+    pts = np.array([[90.0, 0.0, 0.0], [-90.0, 10.0, 20.0]])
+    doc, blob = _glb_json(E.glb_bytes(inhaled, trace, M.marker_anchors(inhaled, pts)))
+    assert doc["extras"]["lungdeform"]["scan_state"]["above_end_exhale_ml"] == 500.0
+    weight = {m["name"]: m["extras"]["lungdeform"]["scan_weight"] for m in doc["meshes"]}
+    for p, marker in zip(pts, doc["extras"]["lungdeform"]["markers"]):  # moved down with their lung
+        at_scan = np.add(marker["position_mm"], weight[marker["lung"]] * np.asarray(marker["tidal_mm"]))
+        np.testing.assert_allclose(at_scan, p, atol=1e-9)
+    shares = S.lung_shares(inhaled)
+    for mesh in doc["meshes"]:
+        lung, ex = inhaled.lungs[mesh["name"]], mesh["extras"]["lungdeform"]
+        prim = mesh["primitives"][0]
+        pos = _accessor(doc, blob, prim["attributes"]["POSITION"]).astype(float)
+        t0 = _accessor(doc, blob, prim["targets"][0]["POSITION"]).astype(float)
+        ee_ml = lung.volume_ee_ml - shares[mesh["name"]] * 500.0
+        assert signed_volume(pos, lung.surface.faces) / 1000 == pytest.approx(ee_ml, rel=1e-5)
+        assert ex["volume_ee_ml"] == pytest.approx(ee_ml, rel=1e-9) and ex["scan_weight"] > 0
+        np.testing.assert_allclose(pos + ex["scan_weight"] * t0, lung.surface.vertices, atol=2e-3)
+        ch = next(c for c in doc["animations"][0]["channels"] if doc["nodes"][c["target"]["node"]]["name"] == mesh["name"])
+        w = _accessor(doc, blob, doc["animations"][0]["samplers"][ch["sampler"]]["output"]).reshape(-1, 5)
+        assert w[0, 0] == pytest.approx(0.0, abs=1e-7) and w[60, 0] == pytest.approx(ex["scan_weight"], rel=1e-5)

@@ -208,3 +208,35 @@ def test_points_file_that_is_a_folder_or_empty(tmp_path):
     assert str(info.value) == f"{tmp_path / 'd'}: is a folder, not a markers file (give a CSV x_mm,y_mm,z_mm[,label])"
     (tmp_path / "p.csv").write_text("x_mm,y_mm,z_mm\n1,2,3\n")
     assert read_points(tmp_path / "p.csv")[1] == ["point 1"]  # numbered as the elastix reader numbers them
+
+
+def test_an_end_inhale_model_breathes_out_below_its_scan():
+    # why: an end-inhale scan lies S = 500 mL above end-exhale; every state is a volume above
+    # end-exhale and each lung moves from its scan by its share of ΔV − S. Truths: at ΔV = S the
+    # points stay where drawn (the scan); the end-inhale model at ΔV is the same lungs read as an
+    # end-exhale scan at ΔV − S (one field, its origin moved); at ΔV = 0 each lung's surface encloses
+    # exactly its scan volume less its share of S (the volume measured from the moved vertices)
+    from lungdeform.geometry.mesh import signed_volume
+    from lungdeform.model.lung import Model
+    from lungdeform.model.scan_state import ScanState
+    from lungdeform.playback.trajectory import scan_ml, volumes_in_words
+    ee = two_lungs(2)
+    inhaled = Model(ee.lungs, ee.provenance, ScanState("end-inhale", 500.0))
+    pts = np.array([[90.0, 0, 0], [-90.0, 10, -20]])
+    place = place_points(inhaled, pts)
+    moved = point_trajectories(inhaled, pts, place, [500.0, 250.0, 0.0])
+    assert moved[0] == pytest.approx(pts, abs=1e-12)
+    assert moved == pytest.approx(point_trajectories(ee, pts, place, [0.0, -250.0, -500.0]), abs=1e-12)
+    assert np.all(np.linalg.norm(moved[2] - pts, axis=1) > 1.0)
+    shares = lung_shares(inhaled)
+    for name, s in lung_scales(inhaled, [0.0]).items():
+        lung = inhaled.lungs[name]
+        v = signed_volume(lung.positions_at(s[0]), lung.surface.faces) / 1000
+        assert v == pytest.approx(lung.volume_ee_ml - shares[name] * 500.0, rel=1e-9)
+    assert end_exhale_ml(inhaled) == pytest.approx(scan_ml(inhaled) - 500.0)
+    assert "the scan" in volumes_in_words(inhaled) and "end-inhale" in volumes_in_words(inhaled)
+    # an absolute volume keeps its meaning: the scan's own volume is the scan, 500 mL above end-exhale
+    frames = volume_frames(inhaled, [scan_ml(inhaled), scan_ml(inhaled) - 500.0])
+    assert frames.delta_ml == pytest.approx([500.0, 0.0])
+    # within the breath (0 to 500 mL above end-exhale) nothing is extrapolated, also below the scan
+    assert extrapolation_note(inhaled, [0.0, 250.0, 500.0]) is None

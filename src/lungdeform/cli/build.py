@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -14,8 +14,12 @@ from lungdeform.geometry.frame import resolve_sides
 from lungdeform.io.modelfile import provenance, save_model
 from lungdeform.model.lung import BuildSettings, build_model
 from lungdeform.model.population import resolve_default
+from lungdeform.model.scan_state import HELP as SCAN_STATE_HELP
+from lungdeform.model.scan_state import parse_scan_state
 from lungdeform.model.stiffness import parse_stiffness
 from lungdeform.model.tidal import ONE_LUNG_SHARE, ONE_LUNG_SOURCE
+from lungdeform.playback.schedule import lung_shares
+from lungdeform.playback.trajectory import end_exhale_ml, scan_ml
 from lungdeform.segment.split import load_lungs
 
 from .common import (
@@ -50,6 +54,7 @@ class BuildOptions:
     solver: Annotated[str, typer.Option("--solver", help="Linear solver: bicgstab, gmres or direct.")] = "bicgstab"
     d_min: Annotated[float, typer.Option("--d-min", callback=bounded(0, 100, "mm", low_open=True), help="Minimum transfer distance (mm).")] = 1.0
     constants: Annotated[str, typer.Option("--constants", help=CONSTANTS_HELP)] = "population"
+    scan_state: Annotated[str, typer.Option("--scan-state", help=SCAN_STATE_HELP)] = "end-exhale"
 
 
 def register(apps) -> None:
@@ -59,6 +64,7 @@ def register(apps) -> None:
         """Build a breathing lung model from one or two lung surfaces."""
 
         check_tidal_ml(opts.tidal_ml)  # before the (slow) reading, with the options' own names
+        scan = parse_scan_state(opts.scan_state, opts.tidal_ml)
         check_output(opts.out, opts.sources)
         if opts.solver not in SOLVERS:
             raise InputError(f"--solver must be one of {', '.join(SOLVERS)}, got {opts.solver!r}")
@@ -95,13 +101,19 @@ def register(apps) -> None:
         model = build_model(surfaces, tidal_ml=opts.tidal_ml, stiffness=stiff, gravity=gravity,
                             settings=BuildSettings(solver=opts.solver, d_min=opts.d_min), provenance=prov, default=chosen,
                             progress=say)
+        model = replace(model, scan=scan)  # the surfaces are that scan
         path = save_model(opts.out, model)
+        shares = lung_shares(model)
         for sd, lung in model.lungs.items():
-            typer.echo(f"{sd}: {lung.n_vertices} vertices, V_EE {lung.volume_ee_ml:.0f} mL, "
-                       f"calibrated at +{lung.calibration_ml:.0f} mL")
+            at_scan = "" if scan.is_end_exhale else f" (at the scan {lung.volume_ee_ml:.0f} mL)"
+            typer.echo(f"{sd}: {lung.n_vertices} vertices, V_EE {lung.volume_ee_ml - shares[sd] * scan.above_ee_ml:.0f} mL"
+                       f"{at_scan}, calibrated at +{lung.calibration_ml:.0f} mL")
             if len(model.lungs) == 1:  # a lone lung does not breathe the whole tidal volume
                 typer.echo(f"{sd}: one lung: its share {ONE_LUNG_SHARE[sd]:.1%} of --tidal-ml {opts.tidal_ml:g} mL "
                            f"= {lung.calibration_ml:.0f} mL ({ONE_LUNG_SOURCE}; docs/DEFAULTS.md)")
+        if not scan.is_end_exhale:  # the rest surfaces are that scan; the breath reaches below it
+            typer.echo(f"scan: {scan.describe()}: the lungs together {scan_ml(model):.0f} mL at the scan, "
+                       f"{end_exhale_ml(model):.0f} mL at end-exhale; the model breathes out below the scan and in above it")
         typer.echo(f"constants: {chosen.name} ({chosen.provenance.get('source', chosen.name)})")
         typer.echo(f"model written to {path}")
 

@@ -32,7 +32,7 @@ class ExportOptions:
     preset: Annotated[str | None, typer.Option("--preset", help="Breathing preset of the PV model, simulated: normal, deep, copd, restrictive, dyspnoea or pneumothorax (not with --curve).")] = None
     cycles: Annotated[int | None, typer.Option("--cycles", help="With --preset: whole breaths played (default 1).")] = None
     markers: Annotated[Path | None, typer.Option("--markers", help="Markers CSV: x_mm,y_mm,z_mm[,label] (LPS, end-exhale); they move with the lung's interior field; glb only.")] = None
-    tidal_ml: Annotated[float | None, typer.Option("--tidal-ml", callback=tidal_option, help="Tidal volume, both lungs (mL): of the plain cycle (default 500), or the --preset rescaled to it (same shape; default the preset's).")] = None
+    tidal_ml: Annotated[float | None, typer.Option("--tidal-ml", callback=tidal_option, help="Tidal volume, both lungs (mL): of the plain cycle (default the model's own, else 500), or the --preset rescaled to it (same shape; default the preset's).")] = None
     period_s: Annotated[float | None, typer.Option("--period", callback=bounded(0, 60, "s", low_open=True), help="Plain cycle only (no --curve, no --preset): period (s), default 4.")] = None
     fps: Annotated[float | None, typer.Option("--fps", callback=bounded(0, 1000, "Hz", low_open=True), help="pvd: frames per second of the time series (default 10). USD: time codes per second, the curve resampled at it (default: the curve's own samples when evenly spaced, else 30).")] = None
     baked: Annotated[bool, typer.Option("--baked", help="USD only: time-sampled points at every frame (a vertex cache) instead of blend shapes.")] = False
@@ -78,10 +78,13 @@ def register(apps) -> None:
             params, _curve, trace = S.preset_trace(chosen, opts.cycles or 1, opts.tidal_ml)
             typer.echo(f"preset {chosen.name}: {opts.cycles or 1} × {params.period_s:g} s, PV model end-exhale "
                        f"{trace.shifted_ml:.0f} mL; playing the volume above it")
-        else:
-            given = {"tidal_ml": opts.tidal_ml, "period_s": opts.period_s}
-            trace = S.plain_cycle(**{k: v for k, v in given.items() if v is not None})  # defaults 500 mL, 4 s
+        else:  # the model's own tidal volume (500 mL for a fit), 4 s, unless given
+            given = {"tidal_ml": opts.tidal_ml or (m.provenance or {}).get("tidal_ml"), "period_s": opts.period_s}
+            trace = S.plain_cycle(**{k: v for k, v in given.items() if v is not None})
         shares = S.lung_shares(m)
+        if not m.scan.is_end_exhale:  # the lungs are written at end-exhale, where the weights start
+            typer.echo(f"the model's scan: {m.scan.describe()}; written at end-exhale, the scan at each lung's "
+                       "morph weight 'scan_weight' (mesh extras)")
         typer.echo(f"curve: {trace.source}, {trace.t_s[-1]:.2f} s, {len(trace.t_s)} samples, "
                    f"ΔV {trace.volume_ml.min():.0f}…{trace.volume_ml.max():.0f} mL split "
                    + ", ".join(f"{k} {v:.2f}" for k, v in shares.items()))

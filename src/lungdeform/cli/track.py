@@ -10,7 +10,6 @@ import numpy as np
 import typer
 
 from lungdeform.atomic import write_bytes
-from lungdeform.breathing.presets import get_preset
 from lungdeform.errors import InputError
 from lungdeform.geometry.moments import solid_moments
 from lungdeform.io.dicom.rtstruct import (
@@ -24,12 +23,22 @@ from lungdeform.io.dicom.rtstruct import (
 )
 from lungdeform.io.dicom.series import MAX_PHASES
 from lungdeform.io.modelfile import load_model
-from lungdeform.playback import schedule as S
 from lungdeform.playback import structures as R
 from lungdeform.playback import trajectory as T
 from lungdeform.playback.displacement_field import scan_state, volume_state
+from lungdeform.playback.phases import PHASE_ZERO_HELP, check_zero, phase_schedule, scan_phase_text
 
-from .common import check_cycles, check_output, check_tidal_ml, output_dir, read_curve, takes, without_alignment
+from .common import (
+    BREATH_HINT,
+    bounded,
+    breath_trace,
+    check_cycles,
+    check_output,
+    check_tidal_ml,
+    output_dir,
+    takes,
+    without_alignment,
+)
 
 #: Bounds on the schedule: frames per second, preset cycles, and points × frames (rows of trajectories.csv)
 MAX_FPS = 1000.0
@@ -42,19 +51,23 @@ class TrackOptions:
     """The options of ``lungdeform track`` (:func:`register`)."""
 
     model: Annotated[Path, typer.Argument(help="Model file (.npz) written by fit, build or demo.")]
-    points: Annotated[Path | None, typer.Option("--points", help="Points to track, mm LPS of the end-exhale scan: CSV x_mm,y_mm,z_mm[,label] or an elastix 'point' file.")] = None
+    points: Annotated[Path | None, typer.Option("--points", help="Points to track, mm LPS of the scan the model was built from: CSV x_mm,y_mm,z_mm[,label] or an elastix 'point' file.")] = None
     out: Annotated[Path, typer.Option("--out", help="Output folder: trajectories.csv, points.json, motion.png.")]
     volume_ml: Annotated[list[float], typer.Option("--volume-ml", help="Absolute volume of the model's lungs together (mL); repeat for several.")] = field(default_factory=list)
     curve: Annotated[Path | None, typer.Option("--curve", help="Breathing curve CSV (t_s, volume_ml, …) from 'lungdeform breathe'.")] = None
     preset: Annotated[str | None, typer.Option("--preset", help="Breathing preset of the PV model: normal, deep, copd, restrictive, dyspnoea or pneumothorax.")] = None
     cycles: Annotated[int | None, typer.Option("--cycles", help="With --preset: whole breaths (default 1).")] = None
-    tidal_ml: Annotated[float | None, typer.Option("--tidal-ml", help="Tidal volume, both lungs (mL): of the plain cycle (default 500) or the --preset rescaled to it.")] = None
+    tidal_ml: Annotated[float | None, typer.Option("--tidal-ml", help="Tidal volume, both lungs (mL): of the plain cycle (default the model's own, else 500) or the --preset rescaled to it.")] = None
     fps: Annotated[float, typer.Option("--fps", help="Frames per second sampled from a curve, preset or plain cycle.")] = 25.0
     lung: Annotated[str | None, typer.Option("--lung", help="Put every point in this lung (default: the lung containing it, else the nearest).")] = None
     skip_invalid: Annotated[bool, typer.Option("--skip-invalid", help="Track the valid rows of a points CSV, leaving out (and listing) rows without finite x_mm,y_mm,z_mm; by default such a row is an error.")] = False
     rtstruct: Annotated[Path | None, typer.Option("--rtstruct", help="DICOM RTSTRUCT file (instead of --points): track the contour points of --structure.")] = None
     structure: Annotated[str | None, typer.Option("--structure", help="With --rtstruct: the ROI name (e.g. GTV).")] = None
-    phases: Annotated[int | None, typer.Option("--phases", help="With --curve, --preset or the plain cycle: this many states evenly over one breath instead of frames at --fps.")] = None
+    phases: Annotated[int | None, typer.Option("--phases", help="With --curve, --preset or the plain cycle: this many states evenly over one breath instead of frames at --fps (phase 0 end-inhale).")] = None
+    phase: Annotated[int | None, typer.Option("--phase", help="With --phases N: only phase K (0 to N-1) of them.")] = None
+    phase_zero: Annotated[str, typer.Option("--phase-zero", help=PHASE_ZERO_HELP)] = "end-inhale"
+    rigid_structure: Annotated[str | None, typer.Option("--rigid-structure", help="With --rtstruct: this ROI (e.g. GTV, usually --structure itself) moves rigidly, keeping its volume, as 'warp --rigid-structure' keeps it in the image; points near it follow its motion over --rigid-border-mm (docs/RADIOTHERAPY.md, \"A rigid tumour\").")] = None
+    rigid_border_mm: Annotated[float, typer.Option("--rigid-border-mm", callback=bounded(0, 100, "mm", low_open=True), help="With --rigid-structure: width (mm) over which its rigid motion is blended back into the field.")] = 10.0
     out_rtstruct: Annotated[Path | None, typer.Option("--out-rtstruct", help="Write the moved structure, one ROI per volume or phase (NAME@TAG), as an RTSTRUCT on --reference-ct.")] = None
     reference_ct: Annotated[Path | None, typer.Option("--reference-ct", help="With --out-rtstruct: the DICOM CT series (folder) the structure was drawn on.")] = None
     scan: Annotated[int | None, typer.Option("--scan", help="Input scan K of the fit (0 = rest): its volume, in its own frame (the fit's alignment undone), as 'dvf --scan K'.")] = None
@@ -67,10 +80,12 @@ def register(apps) -> None:
     def track_command(opts: TrackOptions) -> None:
         """Move interior points with the model: positions at given volumes or over a breathing curve.
 
-        Without --volume-ml, --curve or --preset: one plain 500 mL, 4 s cosine breath."""
+        Without --volume-ml, --curve or --preset: one plain 4 s cosine breath of the model's tidal volume (500 mL)."""
 
 
         _check_schedule(opts.volume_ml, opts.curve, opts.preset, opts.cycles, opts.tidal_ml, opts.fps)
+        _check_phase(opts.phases, opts.phase, opts.phase_zero)
+        _check_rigid(opts.rigid_structure, opts.rtstruct)
         _check_scan(opts.scan, opts.no_rigid, opts.volume_ml or opts.curve or opts.preset, opts.phases)
         _check_structure_options(opts.points, opts.rtstruct, opts.structure, opts.out_rtstruct, opts.reference_ct, opts.phases,
                                  opts.volume_ml or ([] if opts.scan is None else [opts.scan]))
@@ -86,35 +101,46 @@ def register(apps) -> None:
             (pts, labels), source = _read_points(opts.points, opts.skip_invalid), str(opts.points)
         placement = T.place_points(m, pts, opts.lung, source=source)
         frames, tags, matrix = _frames(m, dict(volume_ml=opts.volume_ml, scan=opts.scan, no_rigid=opts.no_rigid, phases=opts.phases,
-                                               curve=opts.curve, preset=opts.preset, cycles=opts.cycles, tidal_ml=opts.tidal_ml, fps=opts.fps),
+                                               curve=opts.curve, preset=opts.preset, cycles=opts.cycles, tidal_ml=opts.tidal_ml, fps=opts.fps,
+                                               phase=opts.phase, zero=opts.phase_zero),
                                        len(pts), source)
+        rigid = None if opts.rigid_structure is None else R.rigid_structure(
+            m, opts.rtstruct, opts.rigid_structure, opts.rigid_border_mm, tracked if opts.rigid_structure == opts.structure else None)
         _check_rows(len(pts), len(frames.delta_ml), source)
         for name in [f"{opts.structure}@{tag}" for tag in tags] + [f"ITV_{opts.structure}"] if opts.out_rtstruct is not None else []:
             check_roi_name(name, str(opts.rtstruct))  # the ROI names, before the surfaces are moved
         note = T.extrapolation_note(m, frames.delta_ml)
         if note:
             typer.echo(f"note: {note}")
-        positions = _in_frame(T.point_trajectories(m, pts, placement, frames.delta_ml), matrix)
+        positions = _in_frame(R.moved_points(m, pts, placement, frames.delta_ml, rigid), matrix)
         built = None
         if opts.out_rtstruct is not None:  # made and checked (names, extent on the CT) before any output
             surfaces = [(n, _in_frame(v, matrix), f, k) for n, v, f, k in
-                        R.moved_surfaces(m, tracked, frames.delta_ml, tags, opts.lung, source=f"{opts.rtstruct} {opts.structure}")]
+                        R.moved_surfaces(m, tracked, frames.delta_ml, tags, opts.lung, source=f"{opts.rtstruct} {opts.structure}",
+                                         rigid=rigid)]
             motion = R.motion_table(surfaces)
             surfaces.append(R.itv_surface(surfaces, opts.structure))  # the union over the states
             built = build_rtstruct(ct, surfaces, label=f"{opts.structure} moved", source=str(opts.rtstruct))
         folder = output_dir(opts.out)
-        meta = {"model": str(opts.model), "schedule": frames.source, "end_exhale_ml": T.end_exhale_ml(m), **T.interior_meta(m)}
-        paths = T.write_trajectories(folder, pts, labels, placement, positions, frames.delta_ml, frames.t_s, meta=meta)
+        meta = {"model": str(opts.model), "schedule": frames.source, "end_exhale_ml": T.end_exhale_ml(m),
+                "scan_ml": T.scan_ml(m), "scan_state": m.scan.record(), **T.interior_meta(m),
+                **({} if rigid is None else {"rigid_structure": rigid.name, "rigid_border_mm": rigid.border_mm})}
+        ee = None if m.scan.is_end_exhale else R.moved_points(m, pts, placement, [0.0], rigid)[0]
+        paths = T.write_trajectories(folder, pts, labels, placement, positions, frames, meta=meta, end_exhale=ee)
         if built is not None:
             save_rtstruct(opts.out_rtstruct, built[0])
             typer.echo(f"wrote {opts.out_rtstruct}: " + ", ".join(f"{k} ({n} contours)" for k, n in built[1].items()))
             paths["motion"] = write_bytes(folder / "structure_motion.csv", R.motion_csv({opts.structure: motion}))
             _print_motion(opts.structure, motion, surfaces[-1])
         typer.echo(f"{len(pts)} point(s), {len(frames.delta_ml)} frame(s): {frames.source}")
+        if rigid is not None:
+            typer.echo(f"  {rigid.name}: rigid (its best rigid motion under the field at each state, blended back over "
+                       f"{rigid.border_mm:g} mm), as 'warp --rigid-structure {rigid.name}' moves it")
+        origin = "end-exhale" if m.scan.is_end_exhale else f"the scan ({m.scan.describe()})"
         if tracked is None:
-            _print_points(labels, placement, T.motion_summary(positions, pts), paths)
+            _print_points(labels, placement, T.motion_summary(positions, pts), paths, origin)
         else:
-            _print_structure(opts.structure, placement, T.motion_summary(positions, pts))
+            _print_structure(opts.structure, placement, T.motion_summary(positions, pts), origin)
         typer.echo(f"wrote {paths['csv']}, {paths['json']}, {paths['png']}")
 
 
@@ -140,9 +166,15 @@ def _frames(m, given: dict, points: int, source: str):
         for v in given["volume_ml"]:  # finite, and a volume the lungs reach (as dvf and warp check it)
             volume_state(m, v)
         return T.volume_frames(m, given["volume_ml"]), R.volume_tags(given["volume_ml"]), None
-    trace = _trace(m, given["curve"], given["preset"], given["cycles"], given["tidal_ml"])
+    trace = breath_trace(m, given["curve"], given["preset"], given["cycles"], given["tidal_ml"])
     if given["phases"] is not None:
-        return (*R.phase_frames(trace, given["phases"]), None)
+        frames, tags = R.phase_frames(trace, given["phases"], given["zero"])
+        typer.echo(scan_phase_text(trace, phase_schedule(trace, given["phases"], given["zero"]), m.scan))
+        if given["phase"] is not None:  # one phase of the breath, tagged as in the whole set
+            k = given["phase"]
+            frames = T.FrameSchedule(frames.delta_ml[k:k + 1], frames.t_s[k:k + 1], f"{frames.source}, phase {k}")
+            tags = tags[k:k + 1]
+        return frames, tags, None
     _check_rows(points, (trace.t_s[-1] - trace.t_s[0]) * given["fps"] + 1, source)  # before the frames are made
     return T.trace_frames(trace, given["fps"]), [], None
 
@@ -209,6 +241,21 @@ def _check_out_rtstruct(out_rtstruct: Path | None, *inputs: Path | None) -> None
     check_output(out_rtstruct, inputs, option="--out-rtstruct")  # also a path under a regular file
 
 
+def _check_phase(phases, phase, zero: str) -> None:
+    """--phase K of --phases N; --phase-zero one of its names."""
+    check_zero(zero)
+    if phase is not None and phases is None:
+        raise InputError(f"--phase goes with --phases N (the phases of {BREATH_HINT})")
+    if phase is not None and not 0 <= phase < phases:
+        raise InputError(f"--phase must be 0 to {phases - 1} (a phase of --phases {phases}), got {phase}")
+
+
+def _check_rigid(name, rtstruct) -> None:
+    """--rigid-structure names a ROI of --rtstruct."""
+    if name is not None and rtstruct is None:
+        raise InputError("--rigid-structure names a structure of --rtstruct: give --rtstruct and --structure")
+
+
 def _check_scan(scan, no_rigid: bool, other_schedule, phases) -> None:
     """--scan alone (no other schedule, no --phases); --no-rigid only with it."""
     if scan is not None and (other_schedule or phases is not None):
@@ -261,31 +308,22 @@ def _read_points(points: Path, skip_invalid: bool):
     return pts, labels
 
 
-def _print_structure(name: str, placement, summary: dict) -> None:
-    """One line for a tracked structure: its points, lungs, how many inside, its largest motion."""
+def _print_structure(name: str, placement, summary: dict, origin: str = "end-exhale") -> None:
+    """One line for a tracked structure: its points, lungs, how many inside, its largest motion
+    (from ``origin``, the scan's state in words)."""
     lungs = ", ".join(sorted(set(placement.lungs.tolist())))
     typer.echo(f"  {name}: {len(placement.lungs)} contour point(s) in the {lungs} lung(s), "
-               f"{int(placement.inside.sum())} inside; largest excursion from end-exhale "
+               f"{int(placement.inside.sum())} inside; largest excursion from {origin} "
                f"{max(summary['max_excursion_mm']):.1f} mm")
 
 
-def _trace(m, curve: Path | None, preset: str | None, cycles: int | None, tidal_ml: float | None):
-    """The volume trace the options name: ``--curve``, ``--preset`` or the plain cycle."""
-    if curve is not None:
-        return read_curve(curve, m)
-    if preset is not None:
-        _params, _curve, trace = S.preset_trace(get_preset(preset), cycles or 1, tidal_ml)
-        return trace
-    return S.plain_cycle(**({} if tidal_ml is None else {"tidal_ml": tidal_ml}))
-
-
-def _print_points(labels, placement, summary: dict, paths: dict) -> None:
+def _print_points(labels, placement, summary: dict, paths: dict, origin: str = "end-exhale") -> None:
     """One line per point (the first 20): its lung, inside or how far outside, its motion."""
     for j, label in enumerate(labels[:20]):
         where = "inside" if placement.inside[j] else f"outside by {placement.distance_mm[j]:.1f} mm"
         ptp = " ".join(f"{a} {summary['peak_to_peak_mm'][a][j]:.1f}" for a in T.AXES)
-        # peak-to-peak alone reads 0 for a single --volume-ml: also the excursion from end-exhale
+        # peak-to-peak alone reads 0 for a single --volume-ml: also the excursion from the scan
         typer.echo(f"  {label}: {placement.lungs[j]} lung ({where}); peak-to-peak mm {ptp}; "
-                   f"largest excursion from end-exhale {summary['max_excursion_mm'][j]:.1f} mm")
+                   f"largest excursion from {origin} {summary['max_excursion_mm'][j]:.1f} mm")
     if len(labels) > 20:
         typer.echo(f"  … {len(labels) - 20} more in {paths['json']}")

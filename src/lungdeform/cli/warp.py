@@ -1,4 +1,4 @@
-"""``lungdeform warp``: an end-exhale image resampled at a breathing state of the model (synthetic 4-D CT)."""
+"""``lungdeform warp``: the image the model was built from resampled at a breathing state of the model (synthetic 4-D CT)."""
 
 from __future__ import annotations
 
@@ -20,39 +20,34 @@ from lungdeform.playback import displacement_field as D
 from lungdeform.playback.trajectory import extrapolation_note
 
 from .common import (
+    BREATH_HINT,
     MAX_LUNGS_ML,
+    BreathFlags,
     RigidFlags,
     RigidOptions,
     apply_rigid,
     bounded,
+    breath_states,
+    check_breath,
     check_output,
     field_lines,
-    pick_state,
-    read_curve,
+    phase_path,
     rigid_region,
     say,
     takes,
-    without_alignment,
 )
-
-
-def phase_path(out: Path, index: int) -> Path:
-    """``OUT_phaseNN`` with OUT's own suffix: ``ct.mha`` → ``ct_phase03.mha``."""
-    suffix = write_suffix(out)
-    return out.with_name(f"{out.name[:-len(suffix)]}_phase{index:02d}{suffix}")
 
 
 @dataclass(frozen=True, kw_only=True)
 class WarpOptions:
     """The options of ``lungdeform warp`` (:func:`register`)."""
 
-    image: Annotated[Path, typer.Argument(help="Image in the model's frame (the end-exhale scan or its mask).")]
+    image: Annotated[Path, typer.Argument(help="Image in the model's frame (the scan the model was built from, or its mask).")]
     model: Annotated[Path, typer.Argument(help="Model file (.npz) written by fit, build or demo.")]
     out: Annotated[Path, typer.Option("--out", help="Output image (.mha, .nii.gz, .nii, .nrrd); with --phases: OUT_phase00 …. A folder (a name without suffix): DICOM CT series, with --phases one per phase in OUT/phase00 … OUT/phase90.")]
     volume_ml: Annotated[float | None, typer.Option("--volume-ml", callback=bounded(0, MAX_LUNGS_ML, "mL", low_open=True), help="Absolute volume of the model's lungs together (mL).")] = None
     scan: Annotated[int | None, typer.Option("--scan", help="Input scan K of the fit (0 = rest): its volume, in its own frame.")] = None
-    curve: Annotated[Path | None, typer.Option("--curve", help="Breathing curve CSV (t_s, volume_ml, …); with --phases.")] = None
-    phases: Annotated[int | None, typer.Option("--phases", help="With --curve: this many images evenly over one breathing cycle.")] = None
+    breath: BreathFlags = BreathFlags()
     label: Annotated[bool, typer.Option("--label", help="A label image: nearest-neighbour, values kept.")] = False
     node_mm: Annotated[float, typer.Option("--node-mm", callback=bounded(0, D.MAX_NODE_MM, "mm", low_open=True), help="Lattice spacing (mm) of the interior field.")] = D.NODE_SPACING_MM
     density: Annotated[bool, typer.Option("--density", help="Conserve mass: HU + 1000 scaled by the Jacobian determinant of the resampling field, so an inhaled lung gets darker (docs/RADIOTHERAPY.md, \"Density and projections\").")] = False
@@ -70,7 +65,7 @@ def register(apps) -> None:
     def warp_command(opts: WarpOptions) -> None:
         """Resample IMAGE at a breathing state of MODEL on IMAGE's own grid (docs/RADIOTHERAPY.md)."""
 
-        inputs = [opts.image, opts.model, opts.curve, *opts.rigid.inputs, opts.grid, *(opts.lung_mask or [])]
+        inputs = [opts.image, opts.model, *opts.breath.inputs, *opts.rigid.inputs, opts.grid, *(opts.lung_mask or [])]
         rigid = RigidOptions.of(opts.rigid)
         kinds = M.parse_projections(opts.projections)
         if opts.out.is_dir() and any(opts.out.name.lower().endswith(x) for x in WRITE_SUFFIXES):
@@ -78,19 +73,20 @@ def register(apps) -> None:
         dicom = DS.is_series_output(opts.out)
         DS.check_series_output(opts.out) if dicom else write_suffix(opts.out)
         check_output(opts.out, inputs, folder=dicom, whole=dicom)
-        _check_combinations(opts.out, dicom, dict(label=opts.label, density=opts.density, kinds=kinds, phases=opts.phases, curve=opts.curve,
-                                             state=opts.volume_ml is not None or opts.scan is not None, grid=opts.grid,
+        check_breath(opts.breath, opts.volume_ml is not None or opts.scan is not None)
+        _check_combinations(opts.out, dicom, dict(label=opts.label, density=opts.density, kinds=kinds, phases=opts.breath.phases,
+                                             phase=opts.breath.phase, grid=opts.grid,
                                              lung=bool(opts.lung_mask), no_lung=opts.no_lung_mask))
         m = load_model(opts.model)
-        if opts.curve is not None:
-            states, period = D.phase_states(read_curve(opts.curve, m), opts.phases)
-            typer.echo(f"{len(states)} phase(s) over a cycle of {period:.2f} s of {opts.curve}")
-            paths = [Path(DS.phase_folder(i, len(states))) if dicom else phase_path(opts.out, i) for i in range(len(states))]
+        breath = breath_states(m, opts.breath, (opts.volume_ml, opts.scan, opts.no_rigid))
+        states = breath.states
+        if breath.count is not None and opts.breath.phase is None:  # every phase: one output each
+            paths = [Path(DS.phase_folder(i, breath.count)) if dicom else phase_path(opts.out, i) for i in breath.indices]
             paths += [projection_path(opts.out, k) for k in kinds]
             for path in [] if dicom else paths:
                 check_output(path, inputs)
         else:
-            states, paths = [without_alignment(pick_state(m, opts.volume_ml, opts.scan), opts.no_rigid)], [Path() if dicom else opts.out]
+            paths = [Path() if dicom else opts.out]
         img = read_image(opts.image)
         lungs = _lungs(opts, m, img)
         target = img if opts.grid is None else read_image(opts.grid)
@@ -112,7 +108,7 @@ def register(apps) -> None:
                 if projector is not None:
                     projector.add(warped.array)
                 if dicom:
-                    temporal = (i, len(states)) if opts.curve is not None else None
+                    temporal = None if breath.count is None else (breath.indices[i], breath.count)
                     _write_series(tmp / path, warped, header, temporal)
                 else:
                     write_image(tmp[i], warped.array, warped.spacing, warped.origin, warped.direction)
@@ -128,15 +124,9 @@ def register(apps) -> None:
 
 def _check_combinations(out: Path, dicom: bool, given: dict) -> None:
     """Refuse, before any work, options that do not go together (``given``: label, density, kinds,
-    phases, curve, state (--volume-ml or --scan), grid)."""
+    phases, phase, grid, lung, no_lung; the breath's own options: :func:`lungdeform.cli.common.check_breath`)."""
     if dicom and given["label"]:
         raise InputError(f"--out {out}: a label image is not written as a DICOM CT series; use .mha, .nii.gz or .nrrd")
-    if (given["curve"] is None) != (given["phases"] is None):
-        raise InputError("--curve and --phases go together")
-    if given["phases"] is not None:
-        D.check_phases(given["phases"])
-    if given["curve"] is not None and given["state"]:
-        raise InputError("--curve with --volume-ml or --scan: give one breathing state or one curve")
     if given["density"] and given["label"]:
         raise InputError("--density scales CT numbers; a --label image has none")
     if given["lung"] and not given["density"]:
@@ -145,8 +135,8 @@ def _check_combinations(out: Path, dicom: bool, given: dict) -> None:
         raise InputError("--no-lung-mask goes with --density (it says how CT numbers are resampled)")
     if given["no_lung"] and given["lung"]:
         raise InputError("--lung-mask with --no-lung-mask: give one (the mask, or the whole image resampled linearly)")
-    if given["kinds"] and given["phases"] is None:
-        raise InputError("--projections needs --curve and --phases (the phases it projects)")
+    if given["kinds"] and (given["phases"] is None or given["phase"] is not None):
+        raise InputError(f"--projections needs --phases N without --phase (the phases it projects, of {BREATH_HINT})")
     if given["kinds"] and dicom:
         raise InputError(f"--out {out}: --projections are written as image files; give --out OUT.mha")
     if dicom and given["grid"] is not None:

@@ -1,17 +1,20 @@
 """The model file: a versioned ``.npz`` (numpy zip) holding everything playback needs.
 
-Schema ``lungdeform.model``, version 4 (documented in docs/MODEL_FORMAT.md). Top-level keys:
+Schema ``lungdeform.model``, version 5 (documented in docs/MODEL_FORMAT.md). Top-level keys:
 
 =================  ==================  =====================================================
 key                type                meaning
 =================  ==================  =====================================================
 schema             str                 ``"lungdeform.model"``
-schema_version     int                 4 (1 to 3 are read too)
+schema_version     int                 5 (1 to 4 are read too)
 lungs              (k,) str            lung names (``"left"``, ``"right"``)
 provenance         str (JSON)          sources, settings, software version, creation time
+scan_state         str                 the scan's breathing state (:mod:`lungdeform.model.scan_state`)
+scan_above_ee_ml   float               mL of both lungs the scan lies above end-exhale
 =================  ==================  =====================================================
 
-Per lung, under ``lung/<name>/``: ``side`` str; ``vertices (n, 3) float64`` mm LPS (end-exhale p);
+Per lung, under ``lung/<name>/``: ``side`` str; ``vertices (n, 3) float64`` mm LPS (the scan's surface p:
+end-exhale unless ``scan_above_ee_ml`` > 0);
 ``faces (m, 3) int32`` (outward); ``constants (9,)`` c1…c9; ``stiffness (n,)``;
 ``frame_axes (3, 3)`` (rows: lung X, Y, Z in LPS); ``frame_lower (3,)``, ``frame_upper (3,)``
 (end-exhale box, lung-frame mm); ``directions (n, 3)`` unit, LPS; ``force_basis (4, n)``
@@ -33,7 +36,10 @@ version, that every key is present, and every shape;
 that every array holds values of its kind (real numbers, finite, where numbers belong: no complex,
 text or objects; integer faces; one value where one belongs), and that the provenance is a JSON
 object whose ``volumes_ml`` are finite numbers and whose alignment matrices are 4 × 4.
-Each version changed only how interior points move (:attr:`LungModel.interior_kind`). Version 4 adds
+Version 5 adds the scan's breathing state (``scan_state``, ``scan_above_ee_ml``): the surfaces may be
+an end-inhale or mid-ventilation scan, which an older reader would play as end-exhale (breathing
+further in from an inhaled scan), so it refuses the file instead; files of versions 1 to 4 are
+end-exhale scans. Versions 2 to 4 changed only how interior points move (:attr:`LungModel.interior_kind`). Version 4 adds
 the optional surface-to-surface map (an older reader would play such a lung's interior differently,
 so it refuses the file instead). Version 3:
 the landmark correction is the sliding correction (:func:`lungdeform.interior.sliding.sliding_correction`,
@@ -62,13 +68,15 @@ from lungdeform.geometry.frame import LungFrame
 from lungdeform.geometry.mesh import Surface
 from lungdeform.interior.surface_map import SurfaceMapField
 from lungdeform.model.lung import LungModel, Model
+from lungdeform.model.scan_state import ScanState
 
 SCHEMA = "lungdeform.model"
 #: Largest displacement (mm) a lung may have at its calibration volume: far beyond any breath.
 MAX_TIDAL_DISPLACEMENT_MM = 1000.0
-SCHEMA_VERSION = 4
-#: Schema versions this lungdeform reads: they differ only in their interior field (module docstring).
-READABLE_VERSIONS = (1, 2, 3, 4)
+SCHEMA_VERSION = 5
+#: Schema versions this lungdeform reads: 1 to 4 differ only in their interior field, 5 adds the scan's
+#: breathing state (module docstring).
+READABLE_VERSIONS = (1, 2, 3, 4, 5)
 
 _OPTIONAL = ("landmarks", "landmark_correction", "landmark_smoothing")
 #: The surface-to-surface map's arrays (:class:`~lungdeform.interior.surface_map.SurfaceMapField`).
@@ -78,11 +86,11 @@ _PER_LUNG = ("side", "vertices", "faces", "constants", "stiffness", "frame_axes"
              "displacement", "unit_ml", "calibration_ml", "d_min", "volume_ee_ml", "volume_poly")
 #: The kind of each member's values (numpy dtype kinds): real floating point (finite) unless named here.
 _KINDS = {"schema": "U", "schema_version": "iu", "lungs": "U", "provenance": "U", "side": "U", "faces": "iu",
-          "interior_vertices": "b", "interior_kind": "U"}
+          "interior_vertices": "b", "interior_kind": "U", "scan_state": "U", "scan_above_ee_ml": "f"}
 _KIND_NAMES = {"U": "text", "iu": "integer", "b": "bool", "f": "real floating point"}
 #: Members that hold one value (shape ``()``).
 _SCALARS = ("schema", "schema_version", "provenance", "side", "unit_ml", "calibration_ml", "d_min", "volume_ee_ml",
-            "landmark_smoothing", "interior_kind", "interior_map_width_mm")
+            "landmark_smoothing", "interior_kind", "interior_map_width_mm", "scan_state", "scan_above_ee_ml")
 
 
 def lung_arrays(lung: LungModel) -> dict[str, np.ndarray]:
@@ -129,6 +137,8 @@ def save_model(path, model: Model) -> Path:
         "schema_version": np.array(SCHEMA_VERSION),
         "lungs": np.array(model.names),
         "provenance": np.array(json.dumps(finite_json(model.provenance), default=str, allow_nan=False)),
+        "scan_state": np.array(model.scan.name),
+        "scan_above_ee_ml": np.array(float(model.scan.above_ee_ml)),
     }
     for name, lung in model.lungs.items():
         for key, value in lung_arrays(lung).items():
@@ -183,7 +193,21 @@ def load_model(path) -> Model:
         lungs = {name: _lung(path, name, data, version) for name in names}
     except (TypeError, ValueError, IndexError) as exc:  # arrays of the wrong dtype (text, objects) or size
         raise ModelFileError(f"{path}: damaged lung arrays ({exc})") from exc
-    return Model(lungs, provenance)
+    return Model(lungs, provenance, _scan_state(path, data, version))
+
+
+def _scan_state(path: Path, data: dict, version: int) -> ScanState:
+    """The scan's breathing state: both keys in a version-5 file, end-exhale in older ones."""
+    present = [k for k in ("scan_state", "scan_above_ee_ml") if k in data]
+    if version < 5 and not present:
+        return ScanState()
+    if len(present) != 2:
+        raise ModelFileError(f"{path}: schema {version} needs both scan_state and scan_above_ee_ml, "
+                             f"found {', '.join(present) or 'neither'}")
+    try:
+        return ScanState(str(data["scan_state"]), float(data["scan_above_ee_ml"]))
+    except InputError as exc:
+        raise ModelFileError(f"{path}: {exc}") from exc
 
 
 #: The first bytes of a zip archive (an ``.npz``; an empty zip starts with the end record) and of an ``.npy``.

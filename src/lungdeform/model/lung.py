@@ -34,6 +34,7 @@ from .displacement import Playback, calibrate, scale_for_volume, volume_polynomi
 from .force import field_basis, force_weights
 from .population import PopulationDefault, resolve_default
 from .response import ResponseSolver
+from .scan_state import ScanState
 from .solve import LinearSolver
 from .stiffness import as_moduli, uniform
 from .tidal import split_rule, tidal_split
@@ -128,7 +129,9 @@ class LungModel:
 
     @property
     def volume_ee_ml(self) -> float:
-        """End-exhale volume V_EE, mL."""
+        """Volume of the rest surface (the scan the lung was built from), mL: the end-exhale volume V_EE
+        of the paper and of every fit; for a model whose scan lies above end-exhale
+        (:attr:`Model.scan`) the volume at that scan."""
         return self.surface.volume_ml
 
     @cached_property
@@ -322,10 +325,13 @@ def _calibrated(surface: Surface, raw: np.ndarray, calibration_ml: float, unit_m
 
 @dataclass(frozen=True, eq=False)
 class Model:
-    """One or two lungs with provenance (what was built from what, with which settings)."""
+    """One or two lungs with provenance (what was built from what, with which settings) and the
+    breathing state of the scan their rest surfaces are (``scan``, :mod:`lungdeform.model.scan_state`;
+    default end-exhale)."""
 
     lungs: dict[str, LungModel]
     provenance: dict = field(default_factory=dict)
+    scan: ScanState = field(default_factory=ScanState)
 
     def __post_init__(self):
         if not self.lungs:
@@ -336,7 +342,7 @@ class Model:
         return list(self.lungs)
 
     def oriented(self, gravity) -> "Model":
-        return Model({k: v.oriented(gravity) for k, v in self.lungs.items()}, dict(self.provenance))
+        return Model({k: v.oriented(gravity) for k, v in self.lungs.items()}, dict(self.provenance), self.scan)
 
 
 def build_model(
@@ -360,6 +366,7 @@ def build_model(
     divides by (:func:`lungdeform.model.tidal.played_shares`). Other keyword arguments go
     to :func:`build_lung` (``gravity``, ``default``). The
     provenance records the default the lungs were built with (``"default"``: name and digest).
+    The model's scan is end-exhale (``dataclasses.replace(model, scan=…)`` says otherwise).
     """
     parts = tidal_split({side: s.volume_ml for side, s in surfaces.items()}, tidal_ml)
     chosen = resolve_default(kwargs.pop("default", None))

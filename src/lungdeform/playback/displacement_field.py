@@ -36,14 +36,14 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from lungdeform.breathing.cycles import dominant_period
-from lungdeform.errors import FoldError, InputError, LungdeformError
+from lungdeform.errors import FoldError, InputError
 from lungdeform.geometry.distance import SurfaceDistance
 from lungdeform.geometry.mesh import inside_by_parity
 
 from . import voxel as V
+from .phases import phase_schedule
 from .schedule import MIN_VOLUME_FRACTION, lung_shares
-from .trajectory import lung_scales
+from .trajectory import above_end_exhale, lung_scales, volumes_in_words
 
 #: Lattice spacing (mm) at which the interior field is evaluated before trilinear interpolation.
 NODE_SPACING_MM = 4.0
@@ -477,19 +477,19 @@ class State:
 
 
 def volume_state(model, volume_ml: float) -> State:
-    """The state at an absolute volume ``volume_ml`` (mL, both lungs together), in the model's frame."""
+    """The state at an absolute volume ``volume_ml`` (mL, both lungs together), in the model's frame;
+    its ``delta_ml`` above end-exhale, wherever the model's scan lies (:mod:`lungdeform.model.scan_state`)."""
     if not (np.isfinite(volume_ml) and volume_ml > 0):
         raise InputError(f"--volume-ml must be > 0 mL, got {volume_ml}")
-    v_ee = sum(lung.volume_ee_ml for lung in model.lungs.values())
-    delta = float(volume_ml) - v_ee
+    delta = above_end_exhale(model, volume_ml)
     for side, share in lung_shares(model).items():
-        ee = model.lungs[side].volume_ee_ml
+        ee = model.lungs[side].volume_ee_ml - share * model.scan.above_ee_ml  # the lung's own end-exhale
         lung_ml = ee + share * delta
         if not MIN_VOLUME_FRACTION * ee <= lung_ml <= MAX_GROWTH * ee:
             raise InputError(f"--volume-ml {volume_ml:g} mL takes the {side} lung to {lung_ml:.0f} mL, outside "
                              f"{MIN_VOLUME_FRACTION:g} to {MAX_GROWTH:g} times its end-exhale {ee:.0f} mL: no lung "
-                             f"reaches that (the model's lungs together: end-exhale {v_ee:.0f} mL)")
-    return State(delta, None, f"volume {volume_ml:g} mL (end-exhale {v_ee:.0f} mL)")
+                             f"reaches that (the model's lungs together: {volumes_in_words(model)})")
+    return State(delta, None, f"volume {volume_ml:g} mL ({delta:+.0f} mL above end-exhale; {volumes_in_words(model)})")
 
 
 def scan_state(model, scan: int) -> State:
@@ -513,7 +513,8 @@ def scan_state(model, scan: int) -> State:
             matrix = None if np.allclose(matrix, np.eye(4), atol=1e-12) else matrix
     delta = float(vols[k]) - float(vols[0])
     moved = "" if matrix is None else f", its alignment {np.round(matrix[:3, 3], 2).tolist()} mm undone"
-    return State(delta, matrix, f"scan {k} of the fit ({vols[k]:.0f} mL, {delta:+.0f} mL from scan 0{moved})")
+    return State(delta + model.scan.above_ee_ml, matrix,
+                 f"scan {k} of the fit ({vols[k]:.0f} mL, {delta:+.0f} mL from scan 0{moved})")
 
 
 def check_phases(phases: int) -> None:
@@ -522,21 +523,14 @@ def check_phases(phases: int) -> None:
         raise InputError(f"--phases must be 1 to {MAX_PHASES} (states over one breathing cycle), got {phases}")
 
 
-def phase_states(trace, phases: int) -> tuple[list[State], float]:
+def phase_states(trace, phases: int, zero: str = "end-inhale") -> tuple[list[State], float]:
     """``phases`` states evenly over one breathing cycle of a volume ``trace``
-    (:class:`~lungdeform.playback.schedule.VolumeTrace`, mL above end-exhale): from its first sample
-    over one period (:func:`lungdeform.breathing.cycles.dominant_period`; the whole trace when it is
-    shorter than two periods or has no clear one). Returns ``(states, period_s)``."""
+    (:class:`~lungdeform.playback.schedule.VolumeTrace`, mL above end-exhale), phase 0 at ``zero``
+    (end-inhale by default, as 4-D CT numbers phases: :func:`lungdeform.playback.phases.phase_schedule`).
+    Returns ``(states, period_s)``."""
     check_phases(phases)
-    t = np.asarray(trace.t_s, float)
-    span = float(t[-1] - t[0])
-    try:
-        period = float(dominant_period(t, trace.volume_ml))
-    except LungdeformError:
-        period = span
-    if not (np.isfinite(period) and 0 < period <= span / 2):
-        period = span
-    times = t[0] + period * np.arange(int(phases)) / int(phases)
-    states = [State(float(v), None, f"phase {i} of {phases} at t = {ti:.3g} s ({v:+.0f} mL)")
-              for i, (ti, v) in enumerate(zip(times, trace.sample(times)))]
-    return states, period
+    sched = phase_schedule(trace, phases, zero)
+    states = [State(float(v), None, f"phase {i} of {phases} ({sched.percent(i)} %) at t = {ti:.3g} s "
+                                    f"({v:+.0f} mL above end-exhale)")
+              for i, (ti, v) in enumerate(zip(sched.t_s, sched.delta_ml))]
+    return states, sched.period_s

@@ -9,7 +9,10 @@ Topology is written once; positions move by morph targets (displacements), never
   glTF ``(X, Y, Z) = 0.001 · (x, z, −y)``. Vertex data stay in LPS mm, so every number in the
   ``extras`` (gravity vectors, frame boxes) is in the same frame as the vertices.
 - One child node and mesh per lung (``left``, ``right``), one triangle primitive each:
-  ``POSITION`` (end-exhale p, mm), ``NORMAL`` (unit, end-exhale), ``_STIFFNESS`` (SCALAR, relative
+  ``POSITION`` (end-exhale p, mm: a model built from a scan above end-exhale, e.g. end-inhale, is
+  moved down to end-exhale by the exact volume cubic, and the mesh extras' ``scan_weight`` is the
+  weight of target 0 at which it is the scan; the asset extras' ``scan_state`` says where the scan
+  lies, :mod:`lungdeform.model.scan_state`), ``NORMAL`` (unit, end-exhale), ``_STIFFNESS`` (SCALAR, relative
   Young's modulus), ``_FORCE_BASIS`` (VEC4: elastostatic force for the fields 1, x̂, ŷ, ẑ), and
   ``indices`` (uint32). Morph targets have ``POSITION`` only (normals change little: the tidal
   displacement is a few mm on a 100–300 mm lung).
@@ -62,6 +65,7 @@ The displacement and volume math (targets, volume tensors, exact weights for a v
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -71,7 +75,7 @@ from lungdeform import __version__
 from lungdeform.atomic import atomic_dir, finite_json, write_bytes
 from lungdeform.constants import GRAVITY
 from lungdeform.errors import InputError, LungdeformError
-from lungdeform.geometry.mesh import vertex_normals
+from lungdeform.geometry.mesh import Surface, vertex_normals
 from lungdeform.io.vtk import vtp_bytes
 from lungdeform.model.displacement import (
     calibration_units,
@@ -259,6 +263,9 @@ def _asset_extras(model: Model, trace: VolumeTrace, lungs_meta: list[dict], mark
         "curve": {"source": trace.source, "shifted_ml": trace.shifted_ml,
                   "t_s": trace.t_s.tolist(), "volume_ml": trace.volume_ml.tolist(),
                   "meaning": "volume of both lungs above end-exhale; each lung takes 'share' of it"},
+        "scan_state": {**model.scan.record(),
+                       "meaning": "the breathing state of the scan the model was built from; POSITION is end-exhale, "
+                                  "the scan is each lung's target-0 weight 'scan_weight'"},
         "lungs": [m["lung"] for m in lungs_meta],
         "markers": markers or [],
         "marker_motion": MARKER_MOTION,
@@ -267,10 +274,32 @@ def _asset_extras(model: Model, trace: VolumeTrace, lungs_meta: list[dict], mark
     }}
 
 
+def at_end_exhale(model: Model, markers: list[dict] | None = None) -> tuple[dict[str, LungModel], list[dict] | None, dict]:
+    """The model's lungs moved from their scan to end-exhale (each by its share of the scan's height
+    above end-exhale, :mod:`lungdeform.model.scan_state`; exact by the volume cubic), the markers
+    (:func:`lungdeform.playback.markers.marker_anchors`, at the scan) moved with them, and per lung the
+    weight of target 0 at which the mesh is the scan (0 for an end-exhale scan: nothing moves)."""
+    shares = lung_shares(model)
+    lungs, weights = {}, {}
+    for name, lung in model.lungs.items():
+        down = scale_for_volume(lung.volume_poly, -shares[name] * model.scan.above_ee_ml)  # units, <= 0
+        lungs[name] = lung if down == 0 else replace(
+            lung, surface=Surface(lung.positions_at(down), lung.surface.faces, f"{lung.surface.name} at end-exhale"))
+        weights[name] = -down / lung_units(lung)
+    if markers:
+        markers = [{**m, "position_mm": (np.asarray(m["position_mm"], float)
+                                         - weights[m["lung"]] * np.asarray(m["tidal_mm"], float)).tolist()}
+                   for m in markers]
+    return lungs, markers, weights
+
+
 def glb_bytes(model: Model, trace: VolumeTrace | None = None, markers: list[dict] | None = None) -> bytes:
-    """The model as a glTF 2.0 binary (see the module docstring for the layout)."""
+    """The model as a glTF 2.0 binary (see the module docstring for the layout). A model whose scan
+    lies above end-exhale is written at end-exhale (:func:`at_end_exhale`): POSITION, the markers and
+    the animation's weights start there, and each lung's ``scan_weight`` says where the scan is."""
     trace = trace or plain_cycle()
     shares = lung_shares(model)
+    lungs, markers, scan_weights = at_end_exhale(model, markers)
     gl = g.GLTF2(asset=g.Asset(version="2.0", generator=f"lungdeform {__version__}"))
     gl.buffers, gl.bufferViews, gl.accessors = [g.Buffer()], [], []
     blob = _Blob(gl)
@@ -278,8 +307,9 @@ def glb_bytes(model: Model, trace: VolumeTrace | None = None, markers: list[dict
     gl.meshes, gl.materials = [], []
     times = blob.add(trace.t_s.astype(np.float32), g.SCALAR, minmax=True)
     anim = g.Animation(name="breathing", samplers=[], channels=[])
-    lungs_meta = [_add_lung(gl, blob, anim, times, name, lung, shares[name], trace)
-                  for name, lung in model.lungs.items()]
+    lungs_meta = [_add_lung(gl, blob, anim, times, name, lung, shares[name], trace) for name, lung in lungs.items()]
+    for name, meta in zip(lungs, lungs_meta):  # the mesh's own extras dict: where the scan is
+        meta["scan_weight"] = scan_weights[name]
     gl.animations = [anim]
     gl.scenes = [g.Scene(name="lungs", nodes=[0])]
     gl.scene = 0
@@ -314,7 +344,7 @@ def export_pvd(model: Model, path, trace: VolumeTrace | None = None, fps: float 
     entries = []
     with atomic_dir(path.parent / frames_name) as tmp_dir:  # folder mode follows the umask
         for part, (name, lung) in enumerate(model.lungs.items()):
-            lam = tidal_weights(lung, shares[name] * dv)
+            lam = tidal_weights(lung, shares[name] * (dv - model.scan.above_ee_ml))  # from the scan, p
             tidal = tidal_displacement(lung.displacement, lung_units(lung))
             p, f = lung.surface.vertices, lung.surface.faces
             stiff = lung.stiffness.astype(np.float32)

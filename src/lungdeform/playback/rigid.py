@@ -19,12 +19,15 @@ Arrays: fields ``(z, y, x, 3) float32`` mm LPS, masks ``(z, y, x) bool`` on the 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from types import SimpleNamespace
 
 import numpy as np
 from scipy import ndimage
 
 from lungdeform.errors import FoldError, InputError
+from lungdeform.geometry.distance import point_to_surface
+from lungdeform.geometry.mesh import winding_numbers
 
 from .displacement_field import Grid, Lattice, fade, inside_lattice, jacobian_determinant, jacobian_range
 
@@ -173,3 +176,60 @@ def _forward_volume(mask, field: np.ndarray, grid: Grid) -> float:
     box = tuple(slice(a, b) for a, b in zip(lo, hi))
     jac = jacobian_determinant(field[box], grid.spacing, grid.direction)
     return float(jac[mask[box]].sum() * np.prod(grid.spacing) / 1000.0)
+
+
+#: About this many samples of a rigid structure's inside fit its rigid motion under a point field.
+RIGID_SAMPLES = 10_000
+#: A rigid structure's points are rigid this far (mm) outside its surface, as :func:`rigidify` makes one
+#: voxel beyond the region rigid: the surface through a structure's contours lies within a quarter of
+#: its 0.5 mm pixels of them (:mod:`lungdeform.geometry.contours`), so the contour points stay rigid.
+RIGID_REACH_MM = 0.5
+
+
+@dataclass(frozen=True, eq=False)
+class RigidRegion:
+    """A structure (closed surface ``vertices (n, 3)`` mm LPS of the model's scan, ``faces``) that moves
+    rigidly with points (``lungdeform track --rigid-structure``), as :func:`rigidify` keeps it rigid
+    in a field (``dvf|warp --rigid-structure``): at each state its inside moves by its best rigid
+    motion under the model's forward point field (:func:`best_rigid` of :attr:`samples`, the voxel
+    centres inside it on a regular grid of about :data:`RIGID_SAMPLES`), blended back to the field
+    over ``border_mm`` outside it by the smoothstep of the distance to its surface. ``placement``:
+    the lung of each sample (:func:`lungdeform.playback.trajectory.place_points`), once placed."""
+
+    name: str
+    vertices: np.ndarray
+    faces: np.ndarray
+    border_mm: float = BORDER_MM
+    placement: object = None
+
+    @cached_property
+    def samples(self) -> np.ndarray:
+        """``(k, 3) float`` mm LPS: points of a regular grid inside the surface."""
+        lo, hi = self.vertices.min(axis=0), self.vertices.max(axis=0)
+        step = max(float(np.prod(hi - lo) / RIGID_SAMPLES) ** (1.0 / 3.0), 0.1)
+        shape = tuple(int(n) for n in (np.ceil((hi - lo) / step).astype(int) + 1)[::-1])
+        grid = Grid(shape, np.full(3, step), lo, np.eye(3))
+        k, j, i = np.nonzero(surface_mask(self.vertices, self.faces, grid))
+        if len(k) < 4:
+            raise InputError(f"rigid structure {self.name!r}: too small to fit a rigid motion ({len(k)} samples inside)")
+        return grid.world(np.stack([i, j, k], axis=1))
+
+    def motions(self, moved_samples: np.ndarray) -> list[RigidMotion]:
+        """Per state the best rigid motion of :attr:`samples` moved to ``moved_samples : (f, k, 3)`` mm."""
+        return [best_rigid(self.samples, m - self.samples) for m in np.asarray(moved_samples, float)]
+
+    def weights(self, points) -> np.ndarray:
+        """``(n,) float`` β: 1 inside the structure and up to :data:`RIGID_REACH_MM` outside it, fading
+        to 0 at ``border_mm`` beyond that."""
+        p = np.asarray(points, float)
+        inside = winding_numbers(p, self.vertices, self.faces) > 0.5
+        d = np.where(inside, 0.0, np.maximum(point_to_surface(p, self.vertices, self.faces) - RIGID_REACH_MM, 0.0))
+        return fade(d, self.border_mm)
+
+    def applied(self, points, elastic: np.ndarray, motions: list[RigidMotion]) -> np.ndarray:
+        """``(f, n, 3)`` mm: ``points (n, 3)`` moved to ``elastic (f, n, 3)`` by the field, made rigid
+        by ``motions`` (one per state, :meth:`motions`) where :meth:`weights` says."""
+        p = np.asarray(points, float)
+        beta = self.weights(p)[None, :, None]
+        rigid = np.stack([p + m.displacement(p) for m in motions])
+        return elastic + beta * (rigid - elastic)

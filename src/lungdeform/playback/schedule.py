@@ -193,21 +193,21 @@ def check_reachable(trace: VolumeTrace, model: Model) -> None:
     volume (each lung plays ``V_EE + share · ΔV``, :func:`lung_shares`), naming the first such sample:
     its line in the curve file when the trace was read from one. Raises :class:`InputError`."""
     shares = lung_shares(model)
+    # each lung's own end-exhale volume: its scan's, less its share of the scan's height above end-exhale
+    ee = {side: lung.volume_ee_ml - shares[side] * model.scan.above_ee_ml for side, lung in model.lungs.items()}
     # the ΔV (both lungs) that takes each lung to the bound; the least negative is reached first
-    bounds = {side: -(1.0 - MIN_VOLUME_FRACTION) * lung.volume_ee_ml / shares[side]
-              for side, lung in model.lungs.items()}
+    bounds = {side: -(1.0 - MIN_VOLUME_FRACTION) * ee[side] / shares[side] for side in model.lungs}
     worst = max(bounds, key=bounds.get)
     below = np.nonzero(np.asarray(trace.volume_ml) < bounds[worst])[0]
     if not len(below):
         return
     i = int(below[0])
     where = f"line {int(trace.lines[i])}" if trace.lines is not None else f"sample {i + 1} (t {trace.t_s[i]:g} s)"
-    lung = model.lungs[worst]
     dv = float(trace.volume_ml[i])
     raise InputError(
         f"{trace.source} {where}: volume_ml {dv + trace.shifted_ml:g} mL (ΔV {dv:.0f} mL above end-exhale, "
-        f"both lungs) takes the {worst} lung to {lung.volume_ee_ml + shares[worst] * dv:.0f} mL, below "
-        f"{MIN_VOLUME_FRACTION:.0%} of its end-exhale {lung.volume_ee_ml:.0f} mL: no lung reaches that "
+        f"both lungs) takes the {worst} lung to {ee[worst] + shares[worst] * dv:.0f} mL, below "
+        f"{MIN_VOLUME_FRACTION:.0%} of its end-exhale {ee[worst]:.0f} mL: no lung reaches that "
         f"({len(below)} such rows; volume_ml is the volume of both lungs above end-exhale)"
     )
 

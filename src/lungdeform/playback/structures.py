@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import csv
 import io
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import ndimage
@@ -22,8 +22,9 @@ from lungdeform.io.dicom.rtstruct import Structure, pick_structure, read_rois, s
 from lungdeform.io.grid import Image
 from lungdeform.io.mask import mask_to_surface
 
-from .displacement_field import Grid, phase_states
-from .rigid import surface_mask
+from .displacement_field import Grid, check_phases
+from .phases import phase_schedule
+from .rigid import RigidRegion, surface_mask
 from .trajectory import FrameSchedule, place_points, point_trajectories
 
 #: Voxel size (mm) of the grid the ITV's union is filled on.
@@ -56,14 +57,13 @@ def read_structure(path, name: str) -> TrackedStructure:
     return TrackedStructure(name, s.kind, pts, [f"{name}:{i + 1}" for i in range(len(pts))], v, f, s)
 
 
-def phase_frames(trace, phases: int) -> tuple[FrameSchedule, list[str]]:
-    """``phases`` frames evenly over one breathing cycle of ``trace`` (as ``warp --phases``,
-    :func:`lungdeform.playback.displacement_field.phase_states`) and their tags ``phase00`` …"""
-    states, period = phase_states(trace, phases)
-    t_s = float(trace.t_s[0]) + period * np.arange(len(states)) / len(states)
-    delta = np.array([s.delta_ml for s in states])
-    source = f"{len(states)} phase(s) over a cycle of {period:.2f} s of {trace.source}"
-    return FrameSchedule(delta, t_s, source), [f"phase{i:02d}" for i in range(len(states))]
+def phase_frames(trace, phases: int, zero: str = "end-inhale") -> tuple[FrameSchedule, list[str]]:
+    """``phases`` frames evenly over one breathing cycle of ``trace`` from phase 0 at ``zero`` (as
+    ``warp --phases``, :func:`lungdeform.playback.phases.phase_schedule`) and their tags ``phase00`` …"""
+    check_phases(phases)
+    sched = phase_schedule(trace, phases, zero)
+    source = f"{sched.count} phase(s) over a cycle of {sched.period_s:.2f} s of {trace.source} (phase 0 at {zero})"
+    return FrameSchedule(sched.delta_ml, sched.t_s, source), [f"phase{i:02d}" for i in range(sched.count)]
 
 
 def volume_tags(volumes_ml) -> list[str]:
@@ -72,12 +72,38 @@ def volume_tags(volumes_ml) -> list[str]:
 
 
 def moved_surfaces(model, structure: TrackedStructure, delta_ml, tags: list[str], lung: str | None = None,
-                   source: str = "structure") -> list[tuple]:
+                   source: str = "structure", rigid: RigidRegion | None = None) -> list[tuple]:
     """``(NAME@TAG, vertices (n, 3) float mm LPS, faces, kind)`` per state ``delta_ml : (f,)`` mL
-    above end-exhale: the structure's surface moved by the model's interior field."""
+    above end-exhale: the structure's surface moved by the model's interior field (made rigid over
+    ``rigid``, :func:`moved_points`)."""
     placement = place_points(model, structure.vertices, lung, source=source)
-    moved = point_trajectories(model, structure.vertices, placement, delta_ml)
+    moved = moved_points(model, structure.vertices, placement, delta_ml, rigid)
     return [(f"{structure.name}@{tag}", moved[i], structure.faces, structure.kind) for i, tag in enumerate(tags)]
+
+
+def rigid_structure(model, path, name: str, border_mm: float, tracked: TrackedStructure | None = None) -> RigidRegion:
+    """The structure ``name`` of the RTSTRUCT ``path`` (``tracked`` when it is the one already read) as a
+    :class:`~lungdeform.playback.rigid.RigidRegion` blended over ``border_mm``, its samples placed in
+    ``model``'s lungs."""
+    s = tracked if tracked is not None else read_structure(path, name)
+    region = RigidRegion(name, s.vertices, s.faces, float(border_mm))
+    return replace(region, placement=place_points(model, region.samples, source=f"{path} rigid structure {name}"))
+
+
+def moved_points(model, points, placement, delta_ml, rigid: RigidRegion | None = None) -> np.ndarray:
+    """``(f, q, 3)`` mm LPS: ``points (q, 3)`` at ``delta_ml : (f,)`` mL above end-exhale by the
+    model's interior field (:func:`~lungdeform.playback.trajectory.point_trajectories`), and with
+    ``rigid`` that structure's best rigid motion under the same field blended in
+    (:class:`~lungdeform.playback.rigid.RigidRegion`): ``track --rigid-structure`` as ``warp
+    --rigid-structure``."""
+    elastic = point_trajectories(model, points, placement, delta_ml)
+    if rigid is None:
+        return elastic
+    inner = rigid.placement
+    if inner is None:
+        inner = place_points(model, rigid.samples, source=f"rigid structure {rigid.name}")
+    motions = rigid.motions(point_trajectories(model, rigid.samples, inner, delta_ml))
+    return rigid.applied(points, elastic, motions)
 
 
 def itv_surface(surfaces: list[tuple], name: str, voxel_mm: float = ITV_VOXEL_MM) -> tuple:

@@ -78,12 +78,13 @@ def place_points(model, points, lung: str | None = None, *, limit_mm: float = OU
 
 def lung_scales(model, delta_ml) -> dict[str, np.ndarray]:
     """Per lung, ``s : (f,) float`` units at which its volume is exactly ``V_EE + share·ΔV``, for
-    ``delta_ml : (f,)`` mL of both lungs above end-exhale
+    ``delta_ml : (f,)`` mL of both lungs above end-exhale (the lung moves from its scan, which lies
+    ``share · model.scan.above_ee_ml`` above its end-exhale ``V_EE``: :mod:`lungdeform.model.scan_state`)
     (:func:`lungdeform.model.displacement.scales_for_volumes` of each lung's share): the playback of
     ``lungdeform export`` (whose tidal weights :func:`lungdeform.playback.export.tidal_weights` are
     these over the calibration's units) and of ``lungdeform demo``."""
 
-    dv = np.asarray(delta_ml, float).ravel()
+    dv = np.asarray(delta_ml, float).ravel() - model.scan.above_ee_ml  # from the scan the lungs are
     if not np.all(np.isfinite(dv)):
         raise InputError("volumes must be finite mL")
     shares = lung_shares(model)
@@ -125,18 +126,39 @@ class FrameSchedule:
     source: str
 
 
-def end_exhale_ml(model) -> float:
-    """Volume of the model's lungs together at end-exhale, mL."""
+def scan_ml(model) -> float:
+    """Volume of the model's lungs together at its scan (their rest surfaces), mL."""
     return sum(lung.volume_ee_ml for lung in model.lungs.values())
+
+
+def end_exhale_ml(model) -> float:
+    """Volume of the model's lungs together at end-exhale, mL: the scan's less each lung's share of
+    the scan's height above end-exhale (:mod:`lungdeform.model.scan_state`)."""
+    shares = lung_shares(model)
+    return sum(lung.volume_ee_ml - shares[k] * model.scan.above_ee_ml for k, lung in model.lungs.items())
+
+
+def above_end_exhale(model, volume_ml: float) -> float:
+    """ΔV (mL of both lungs above end-exhale) of an absolute volume ``volume_ml`` of the model's lungs
+    together: its difference from the scan's volume plus the scan's height above end-exhale."""
+    return float(volume_ml) - scan_ml(model) + model.scan.above_ee_ml
+
+
+def volumes_in_words(model) -> str:
+    """The model's end-exhale volume, and where the scan lies when it is not end-exhale, in words:
+    ``end-exhale 5336 mL`` or ``end-exhale 4836 mL; the scan 5336 mL, end-inhale (500 mL above end-exhale)``."""
+    text = f"end-exhale {end_exhale_ml(model):.0f} mL"
+    if model.scan.is_end_exhale:
+        return text
+    return f"{text}; the scan {scan_ml(model):.0f} mL, {model.scan.describe()}"
 
 
 def volume_frames(model, volumes_ml) -> FrameSchedule:
     """One frame per absolute volume ``volumes_ml`` (mL, both lungs together; no times)."""
     if not all(np.isfinite(v) and v > 0 for v in volumes_ml):
         raise InputError(f"volumes_ml must be > 0 mL, got {volumes_ml}")
-    v_ee = end_exhale_ml(model)
-    delta = np.asarray(volumes_ml, float) - v_ee
-    source = f"volumes {', '.join(f'{v:g}' for v in volumes_ml)} mL (end-exhale {v_ee:.0f} mL)"
+    delta = np.array([above_end_exhale(model, v) for v in volumes_ml])
+    source = f"volumes {', '.join(f'{v:g}' for v in volumes_ml)} mL ({volumes_in_words(model)})"
     return FrameSchedule(delta, None, source)
 
 
@@ -187,16 +209,21 @@ def motion_summary(positions: np.ndarray, points) -> dict:
             "max_excursion_mm": excursion.tolist()}
 
 
-def write_trajectories(out: Path, points, labels, placement: PointPlacement, positions, delta_ml,
-                       t_s=None, *, meta: dict | None = None) -> dict[str, Path]:
+def write_trajectories(out: Path, points, labels, placement: PointPlacement, positions, frames: FrameSchedule,
+                       *, meta: dict | None = None, end_exhale=None) -> dict[str, Path]:
     """Write ``trajectories.csv`` (one row per frame and point: ``t_s`` (blank without times),
     ``delta_ml``, point, label, lung, ``x_mm, y_mm, z_mm`` and the displacement ``dx_mm, dy_mm,
     dz_mm``, LPS), ``points.json`` (placement and :func:`motion_summary` per point, plus ``meta``)
     and ``motion.png`` (displacement along LR, AP, SI against time or volume) into ``out``, each
-    atomically. ``positions : (f, q, 3)`` mm; ``delta_ml : (f,)`` mL of both lungs above end-exhale."""
+    atomically. ``positions : (f, q, 3)`` mm at the ``frames`` (:class:`FrameSchedule`: ``delta_ml``
+    mL of both lungs above end-exhale, ``t_s`` s or None);
+    ``points`` are the positions at the model's scan (``scan_mm``), ``end_exhale : (q, 3)`` mm at
+    end-exhale (``end_exhale_mm``; default ``points``: an end-exhale scan)."""
     q = as_vertices(points, "points")
+    ee = q if end_exhale is None else np.asarray(end_exhale, float)
+    t_s = frames.t_s
     pos = np.asarray(positions, float)
-    dv = np.asarray(delta_ml, float)
+    dv = np.asarray(frames.delta_ml, float)
     disp = pos - q[None]
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
@@ -208,10 +235,10 @@ def write_trajectories(out: Path, points, labels, placement: PointPlacement, pos
                         *(f"{x:.4f}" for x in pos[f, j]), *(f"{x:.4f}" for x in disp[f, j])])
     paths = {"csv": write_bytes(Path(out) / "trajectories.csv", buf.getvalue().encode())}
     summary = motion_summary(pos, q)
-    info = {"frame": "LPS mm, the end-exhale scan of the model", "frames": int(len(pos)),
+    info = {"frame": "LPS mm, the scan the model was built from", "frames": int(len(pos)),
             "points": [{"point": j + 1, "label": labels[j], "lung": str(placement.lungs[j]),
                         "inside": bool(placement.inside[j]), "distance_to_surface_mm": float(placement.distance_mm[j]),
-                        "end_exhale_mm": q[j].tolist(),
+                        "scan_mm": q[j].tolist(), "end_exhale_mm": ee[j].tolist(),
                         "peak_to_peak_mm": {a: summary["peak_to_peak_mm"][a][j] for a in AXES},
                         "max_excursion_mm": summary["max_excursion_mm"][j]} for j in range(len(q))],
             **(meta or {})}
