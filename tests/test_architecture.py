@@ -17,7 +17,7 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / "src" / "lungdeform"
 REPO = PACKAGE.parents[1]
 #: optional dependencies: the only imports allowed inside functions
-OPTIONAL = {"distributed", "dask", "fcntl"}  # fcntl: POSIX only (the cohort lock)
+OPTIONAL = {"distributed", "dask", "fcntl", "itk"}  # fcntl: POSIX only (the cohort lock); itk: the bench extra
 MAX_FUNCTION_LINES = 80
 #: Parameters a function may take (``self``/``cls`` not counted; ``*args`` and ``**kwargs`` count one each).
 MAX_PARAMETERS = 8

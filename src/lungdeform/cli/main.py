@@ -54,6 +54,7 @@ COMMAND_MODULES = [
     "lungdeform.cli.dvf",
     "lungdeform.cli.warp",
     "lungdeform.cli.bench_dvf",
+    "lungdeform.cli.bench_fit",
 ]
 
 
