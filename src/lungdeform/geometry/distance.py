@@ -264,6 +264,23 @@ class SurfaceDistance:
         return self.query(points)[0]
 
 
+def barycentric(points, a, b, c) -> np.ndarray:
+    """``(k, 3) float``: the barycentric coordinates of ``points : (k, 3)`` in the triangles with corners
+    ``a, b, c : (k, 3)`` (mm; a point off a triangle's plane is projected onto it); a zero-area
+    triangle gives (1, 0, 0)."""
+    v0, v1, v2 = b - a, c - a, np.asarray(points, float) - a
+    d00 = np.einsum("ij,ij->i", v0, v0)
+    d01 = np.einsum("ij,ij->i", v0, v1)
+    d11 = np.einsum("ij,ij->i", v1, v1)
+    d20 = np.einsum("ij,ij->i", v2, v0)
+    d21 = np.einsum("ij,ij->i", v2, v1)
+    den = d00 * d11 - d01 * d01
+    den = np.where(np.abs(den) > 1e-18, den, 1.0)
+    v = (d11 * d20 - d01 * d21) / den
+    w = (d00 * d21 - d01 * d20) / den
+    return np.stack([1.0 - v - w, v, w], axis=1)
+
+
 def point_to_surface(points, vertices, faces) -> np.ndarray:
     """One-shot: exact distances ``(k,) float`` mm from ``points`` to the surface (vertices, faces)."""
     return SurfaceDistance(vertices, faces).distance(points)
