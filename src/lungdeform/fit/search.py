@@ -125,8 +125,9 @@ def least_squares_search(fitter: LungFitter, x0: np.ndarray, force0, *, lo, hi, 
     c, f, sh = unpack(theta)
     if res.status > 0:
         return c, f, sh, obj, True, f"least squares converged ({res.message})"
-    return c, f, sh, obj, False, (f"least squares stopped on its evaluation budget ({max_evaluations} evaluations, "
-                                  f"{res.nfev} iterations of {n_free + 1}): not converged")
+    return c, f, sh, obj, False, (f"least squares stopped on its evaluation budget ({max_evaluations} evaluations: "
+                                  f"{res.nfev} iterations, the most at {n_free + 1} per iteration; "
+                                  f"{fitter.evaluations} evaluated): not converged")
 
 
 #: Step of the forward differences of the displacement ``u`` (not of the residuals), relative to
