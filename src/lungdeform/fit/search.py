@@ -50,9 +50,7 @@ GAUGE = 2
 def least_squares_search(fitter: LungFitter, x0: np.ndarray, force0, *, lo, hi, translate: bool,
                          max_evaluations: int, history: list):
     """Trust-region least squares (scipy ``least_squares``, ``trf``) on the per-point residual vector
-    (:meth:`LungFitter.residuals`, :meth:`LungFitter.residual_vector`), its Jacobian through the
-    closest points of one evaluation (:func:`_jacobian`; until 0.8 finite differences of the
-    residuals, one forward evaluation per free constant per iteration).
+    (:meth:`LungFitter.residual_vector`), its Jacobian from one evaluation's closest points (:func:`_jacobian`).
 
     Free: c1, c2, c4, c5, c6 (c3 held at its start: directions are normalised, so c1, c3, c5 are
     defined only up to a common factor, a zero singular value; the ratios c1/c3 and c5/c3 are what
