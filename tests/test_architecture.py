@@ -17,7 +17,8 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / "src" / "lungdeform"
 REPO = PACKAGE.parents[1]
 #: optional dependencies: the only imports allowed inside functions
-OPTIONAL = {"distributed", "dask", "fcntl", "pxr"}  # fcntl: POSIX only (the cohort lock); pxr: usd-core, the extra "usd"
+#: fcntl: POSIX only (the cohort lock); pxr: usd-core, the extra "usd"; itk: itk-elastix, the extra "bench"
+OPTIONAL = {"distributed", "dask", "fcntl", "pxr", "itk"}
 MAX_FUNCTION_LINES = 80
 #: Parameters a function may take (``self``/``cls`` not counted; ``*args`` and ``**kwargs`` count one each).
 MAX_PARAMETERS = 8

@@ -55,6 +55,7 @@ COMMAND_MODULES = [
     "lungdeform.cli.warp",
     "lungdeform.cli.bench_dvf",
     "lungdeform.cli.bench_export",
+    "lungdeform.cli.bench_fit",
 ]
 
 

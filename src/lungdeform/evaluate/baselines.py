@@ -39,7 +39,7 @@ from skimage.measure import marching_cubes
 from lungdeform.errors import ConvergenceError, InputError
 from lungdeform.fit import registration
 from lungdeform.fit.cpd import deformable_cpd
-from lungdeform.geometry.distance import SurfaceDistance, symmetric_distance
+from lungdeform.geometry.distance import SurfaceDistance, barycentric, symmetric_distance
 from lungdeform.geometry.mesh import Surface, as_vertices, farthest_points, thinned
 from lungdeform.interior.interpolate import interpolation_weights
 from lungdeform.interior.sliding import surface_weights
@@ -146,20 +146,8 @@ def affine_fit(surface: Surface, target: Surface, icp: IcpSettings = IcpSettings
 
 
 def _barycentric_source(moved, rest, faces, face, points):
-    a, b, c = (moved[faces[face, k]] for k in range(3))
-    v0, v1, v2 = b - a, c - a, points - a
-    d00 = np.einsum("ij,ij->i", v0, v0)
-    d01 = np.einsum("ij,ij->i", v0, v1)
-    d11 = np.einsum("ij,ij->i", v1, v1)
-    d20 = np.einsum("ij,ij->i", v2, v0)
-    d21 = np.einsum("ij,ij->i", v2, v1)
-    den = d00 * d11 - d01 * d01
-    den = np.where(np.abs(den) > 1e-18, den, 1.0)
-    v = (d11 * d20 - d01 * d21) / den
-    w = (d00 * d21 - d01 * d20) / den
-    u = 1.0 - v - w
-    ra, rb, rc = (rest[faces[face, k]] for k in range(3))
-    return u[:, None] * ra + v[:, None] * rb + w[:, None] * rc
+    weights = barycentric(points, *(moved[faces[face, k]] for k in range(3)))
+    return sum(weights[:, k, None] * rest[faces[face, k]] for k in range(3))
 
 
 def cpd_deformable(surface: Surface, target: Surface, settings: CpdSettings = CpdSettings(), *, keep=None,

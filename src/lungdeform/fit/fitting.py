@@ -213,8 +213,10 @@ class FitSettings:
     fit_stiffness : bool
         Also fit a stiffness field (:mod:`lungdeform.fit.expandability`), kept only if it lowers the objective.
     max_evaluations : int
-        Budget of forward model evaluations (the least-squares mode counts those of its
-        finite-difference Jacobians).
+        Budget of forward model evaluations. The least-squares mode takes at most
+        ``max_evaluations // (free constants + 1)`` iterations, the budget of its finite-difference
+        Jacobians until 0.8; its Jacobian now costs one evaluation
+        (:func:`lungdeform.fit.search.least_squares_search`), so it evaluates far fewer.
     grid_span : float
         Half-width around the start that the grid scans per constant (step 0.01).
     translate : bool

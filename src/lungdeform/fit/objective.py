@@ -49,7 +49,7 @@ import numpy as np
 
 from lungdeform.constants import gravity_vector
 from lungdeform.errors import InputError, LungdeformError
-from lungdeform.geometry.distance import SurfaceDistance, vertex_areas
+from lungdeform.geometry.distance import SurfaceDistance, barycentric, vertex_areas
 from lungdeform.geometry.frame import lung_frame
 from lungdeform.geometry.mesh import Surface, as_vertices, thinned
 from lungdeform.interior.sliding import checked_operator, surface_weights
@@ -153,6 +153,11 @@ def least_squares_constants(fields: np.ndarray, values: np.ndarray, weights: np.
     sw = np.sqrt(w[m])
     c, *_ = np.linalg.lstsq(a[m] * sw[:, None], b[m] * sw, rcond=None)
     return c
+
+
+def _unit(v: np.ndarray, length: np.ndarray) -> np.ndarray:
+    """``v : (k, 3)`` divided by ``length : (k,)`` (its norm), rows of length 0 left 0."""
+    return np.where(length[:, None] > 0, v / np.where(length > 0, length, 1.0)[:, None], 0.0)
 
 
 def _sample(surface: Surface, keep: np.ndarray, count: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -376,6 +381,62 @@ class LungFitter:
             scale = np.sqrt(self.landmark_weight / (len(errs) * len(self.lm_rest)))
             parts += [e * scale for e in errs]
         return np.concatenate(parts), residuals, surface_ms, lm_ms
+
+    def residual_jacobian(self, u: np.ndarray, du: np.ndarray, shifts=None) -> tuple[np.ndarray, np.ndarray]:
+        """The Jacobian of :meth:`residual_vector` at the displacement ``u : (n, 3)`` mm per unit, one
+        forward evaluation (counted in :attr:`evaluations`): ``(J (r, p), J_shift (r, 3·len(fit_on)))``
+        for parameters that move ``u`` by ``du : (n, 3, p)`` (mm per unit per parameter) and for the
+        translation of each target in ``fit_on`` (in that order, x y z each).
+
+        Every residual is a distance between a point and a surface, so its derivative is the unit
+        vector from the closest point times the motion of the two (the envelope theorem: the
+        closest point's own motion along the surface does not change the distance to first order):
+        a model vertex ``x_v = p_v + s·u_v`` against the target, ``ĝ · s·∂u_v``; a target sample
+        against the model surface, ``−ĝ · s·Σ_c b_c ∂u_c`` over the corners of the face of its closest
+        point (barycentric ``b``); a landmark, ``s·M ∂u`` (its sliding interpolation). A distance of 0
+        has no direction: its row is 0."""
+        self.evaluations += 1
+        sh = np.zeros((len(self.targets), 3)) if shifts is None else np.asarray(shifts, float)
+        du = np.asarray(du, float)
+        keep = np.flatnonzero(self.keep)
+        norm = np.sqrt(2.0 * len(self.fit_on))
+        col = {i: c for c, i in enumerate(self.fit_on)}
+        rows_p, rows_t = [], []
+        for i in self.fit_on:
+            pt = self.prepared[i]
+            s = (pt.target.volume_ml - self.v_ee) / self.delta_ml
+            x = self.p + s * u
+            # model vertices → target surface
+            dist, closest, _ = pt.distance.query(x[keep] - sh[i])
+            g = _unit(x[keep] - sh[i] - closest, dist)
+            fa = np.sqrt(self.areas[keep] / self.areas[keep].sum()) / norm
+            rows_p.append(fa[:, None] * s * np.einsum("kc,kcp->kp", g, du[keep]))
+            t = np.zeros((len(keep), 3 * len(self.fit_on)))
+            t[:, 3 * col[i]:3 * col[i] + 3] = -fa[:, None] * g
+            rows_t.append(t)
+            # target samples → model surface
+            q = pt.samples + sh[i]
+            dist, closest, face = SurfaceDistance(x, self.surface.faces).query(q)
+            g = _unit(q - closest, dist)
+            corners = self.surface.faces[face]  # (k, 3)
+            b = barycentric(closest, *(x[corners[:, c]] for c in range(3)))
+            moved = np.einsum("kv,kvcp->kcp", b, du[corners])
+            fb = np.sqrt(pt.sample_weights / pt.sample_weights.sum()) / norm
+            rows_p.append(-fb[:, None] * s * np.einsum("kc,kcp->kp", g, moved))
+            t = np.zeros((len(q), 3 * len(self.fit_on)))
+            t[:, 3 * col[i]:3 * col[i] + 3] = fb[:, None] * g
+            rows_t.append(t)
+        if self.lm_targets:
+            scale = np.sqrt(self.landmark_weight / (len(self.lm_targets) * len(self.lm_rest)))
+            m = len(self.lm_rest)
+            moved = np.stack([self.lm_matrix @ du[keep][..., k] for k in range(du.shape[2])], axis=2)  # (m, 3, p)
+            for i in self.lm_targets:
+                s = (self.targets[i].volume_ml - self.v_ee) / self.delta_ml
+                rows_p.append(scale * s * moved.reshape(3 * m, -1))
+                t = np.zeros((3 * m, 3 * len(self.fit_on)))
+                t[:, 3 * col[i]:3 * col[i] + 3] = -scale * np.tile(np.eye(3), (m, 1))
+                rows_t.append(t)
+        return np.concatenate(rows_p), np.concatenate(rows_t)
 
     def directions(self, c_dir: np.ndarray) -> np.ndarray:
         """Unit directions ``(n, 3)`` from c1…c6 ``c_dir (6,)`` (step 1)."""

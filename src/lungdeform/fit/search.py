@@ -49,8 +49,8 @@ GAUGE = 2
 
 def least_squares_search(fitter: LungFitter, x0: np.ndarray, force0, *, lo, hi, translate: bool,
                          max_evaluations: int, history: list):
-    """Trust-region least squares (scipy ``least_squares``, ``trf``, finite differences) on the
-    per-point residual vector (:meth:`LungFitter.residuals`, :meth:`LungFitter.residual_vector`).
+    """Trust-region least squares (scipy ``least_squares``, ``trf``) on the per-point residual vector
+    (:meth:`LungFitter.residual_vector`), its Jacobian from one evaluation's closest points (:func:`_jacobian`).
 
     Free: c1, c2, c4, c5, c6 (c3 held at its start: directions are normalised, so c1, c3, c5 are
     defined only up to a common factor, a zero singular value; the ratios c1/c3 and c5/c3 are what
@@ -110,9 +110,12 @@ def least_squares_search(fitter: LungFitter, x0: np.ndarray, force0, *, lo, hi, 
             best["f"], best["theta"] = v, theta.copy()
         return r
 
+    def jac(theta):
+        return _jacobian(fitter, unpack, theta, scale, lo, hi, translate, size["n"])
+
     n_free = len(theta0)
     max_nfev = max(1, int(max_evaluations) // (n_free + 1))
-    res = optimize.least_squares(resid, theta0, bounds=(lo, hi), x_scale=scale, diff_step=1e-3, method="trf",
+    res = optimize.least_squares(resid, theta0, jac=jac, bounds=(lo, hi), x_scale=scale, method="trf",
                                  ftol=1e-6, xtol=1e-6, gtol=1e-8, max_nfev=max_nfev)
     theta, obj = res.x, float(np.sqrt(np.sum(res.fun**2)))
     if best["f"] < obj:  # never return a point worse than one already evaluated
@@ -120,8 +123,37 @@ def least_squares_search(fitter: LungFitter, x0: np.ndarray, force0, *, lo, hi, 
     c, f, sh = unpack(theta)
     if res.status > 0:
         return c, f, sh, obj, True, f"least squares converged ({res.message})"
-    return c, f, sh, obj, False, (f"least squares stopped on its evaluation budget ({max_evaluations} evaluations, "
-                                  f"{res.nfev} iterations of {n_free + 1}): not converged")
+    return c, f, sh, obj, False, (f"least squares stopped on its evaluation budget ({max_evaluations} evaluations: "
+                                  f"{res.nfev} iterations, the most at {n_free + 1} per iteration; "
+                                  f"{fitter.evaluations} evaluated): not converged")
+
+
+#: Step of the forward differences of the displacement ``u`` (not of the residuals), relative to
+#: each free constant's scale: ``u`` is smooth in the constants, so a small step is accurate.
+U_STEP = 1e-6
+
+
+def _jacobian(fitter: LungFitter, unpack, theta, scale, lo, hi, translate: bool, rows) -> np.ndarray:
+    """The Jacobian of the least-squares residuals at ``theta`` (:func:`least_squares_search`): the
+    displacement's derivative in each free constant by a forward difference of ``u`` alone (no
+    distance is measured), then the residuals' derivatives through the closest points of one forward
+    evaluation (:meth:`LungFitter.residual_jacobian`); the translations' columns exactly. Zeros
+    (``rows`` of them) where ``theta`` gives no usable model (never an accepted point)."""
+    n_const = len(theta) - (3 * len(fitter.fit_on) if translate else 0)
+    c, f, sh = unpack(theta)
+    u = fitter.displacement(fitter.directions(c), f)
+    if u is None:
+        return np.zeros((rows, len(theta)))
+    du = np.zeros(u.shape + (n_const,))
+    for k in range(n_const):
+        h = U_STEP * scale[k] * (1.0 if theta[k] + U_STEP * scale[k] <= hi[k] else -1.0)
+        step = theta.copy()
+        step[k] += h
+        ck, fk, _ = unpack(step)
+        uk = fitter.displacement(fitter.directions(ck), fk)
+        du[..., k] = 0.0 if uk is None else (uk - u) / h
+    jp, jt = fitter.residual_jacobian(u, du, sh)
+    return np.hstack([jp, jt]) if translate else jp
 
 
 def from_unbounded(z: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:

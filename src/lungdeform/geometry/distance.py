@@ -205,6 +205,10 @@ def _closest_kernel(points, bound, mesh, grid):
     return np.sqrt(dist2), closest, face
 
 
+#: Fewest query points for which the nearest-vertex bound is found with every core (scipy's threads).
+THREADED_QUERY = 50_000
+
+
 class SurfaceDistance:
     """Exact distances from points to one triangle surface; build once, query many times.
 
@@ -249,13 +253,32 @@ class SurfaceDistance:
             return np.zeros(0), np.zeros((0, 3)), np.zeros(0, np.int64)
         if not np.all(np.isfinite(pts)):
             raise InputError("points contain NaN or infinity")
-        bound, _ = self._tree.query(pts, workers=-1)
+        # threads only for a large query: scipy starts and joins its workers on every call, which
+        # cost a fit's objective (6000 and 3000 points, hundreds of calls) more than they saved
+        bound, _ = self._tree.query(pts, workers=-1 if len(pts) >= THREADED_QUERY else 1)
         return _closest_kernel(pts, bound, (self.vertices, self.faces, self._boxes),
                                (self._lo, self._h, self._dims, self._ptr, self._items))
 
     def distance(self, points) -> np.ndarray:
         """``(k,) float`` mm: exact unsigned distance of each point to the surface."""
         return self.query(points)[0]
+
+
+def barycentric(points, a, b, c) -> np.ndarray:
+    """``(k, 3) float``: the barycentric coordinates of ``points : (k, 3)`` in the triangles with corners
+    ``a, b, c : (k, 3)`` (mm; a point off a triangle's plane is projected onto it); a zero-area
+    triangle gives (1, 0, 0)."""
+    v0, v1, v2 = b - a, c - a, np.asarray(points, float) - a
+    d00 = np.einsum("ij,ij->i", v0, v0)
+    d01 = np.einsum("ij,ij->i", v0, v1)
+    d11 = np.einsum("ij,ij->i", v1, v1)
+    d20 = np.einsum("ij,ij->i", v2, v0)
+    d21 = np.einsum("ij,ij->i", v2, v1)
+    den = d00 * d11 - d01 * d01
+    den = np.where(np.abs(den) > 1e-18, den, 1.0)
+    v = (d11 * d20 - d01 * d21) / den
+    w = (d00 * d21 - d01 * d20) / den
+    return np.stack([1.0 - v - w, v, w], axis=1)
 
 
 def point_to_surface(points, vertices, faces) -> np.ndarray:

@@ -297,8 +297,9 @@ def non_manifold_vertices(faces: np.ndarray, n_vertices: int) -> np.ndarray:
     g = sparse.csr_matrix(
         (np.ones(int(same.sum())), (c[:-1][same], c[1:][same])), shape=(3 * m, 3 * m)
     )
-    _, labels = connected_components(g, directed=False)
-    fans = np.unique(np.stack([faces.ravel(), labels]), axis=1)[0]
+    count, labels = connected_components(g, directed=False)
+    # the distinct (vertex, fan) pairs, as one int64 key each (faster than unique(axis=1))
+    fans = np.unique(faces.ravel().astype(np.int64) * np.int64(count) + labels) // np.int64(count)
     per_vertex = np.bincount(fans, minlength=n_vertices)
     return np.nonzero(per_vertex > 1)[0].astype(np.int64)
 

@@ -39,6 +39,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numba
 import numpy as np
 from scipy import ndimage as ndi
 
@@ -228,22 +229,52 @@ def _two_seeds_grown(separated, m, shape, box, min_fraction):
 
 
 def _grow_back(mask: np.ndarray, seeds: np.ndarray) -> np.ndarray:
-    """Geodesic growth of the labelled ``seeds`` (int, 0 = none) inside ``mask``, one in-plane/6-conn
-    step at a time for every label in turn, until no voxel changes. Returns the labels on ``mask``."""
-    out = np.where(mask, seeds, 0)
-    while True:
-        free = mask & (out == 0)
-        if not free.any():
-            break
-        changed = False
-        for k in np.unique(out[out > 0]):
-            add = ndi.binary_dilation(out == k, structure=_SIX) & free
-            if add.any():
-                out[add] = k
-                free &= ~add
-                changed = True
-        if not changed:
-            break
+    """Geodesic growth of the labelled ``seeds`` (int, 0 = none) inside ``mask``, one 6-connected step
+    at a time for every label in turn (lowest first), until no voxel changes. Returns the labels on
+    ``mask``. One breadth-first pass (:func:`_grow_kernel`): each step a label claims the free mask
+    voxels beside those it claimed in the step before, exactly what dilating the whole label by one
+    voxel each step claimed (until 0.8: ``scipy.ndimage.binary_dilation`` of every label every step)."""
+    out = np.ascontiguousarray(np.where(mask, seeds, 0), np.int32)
+    labels = int(out.max()) if out.size else 0
+    if labels > 0:
+        _grow_kernel(np.ascontiguousarray(mask, np.bool_), out, labels)
+    return out
+
+
+@numba.njit(cache=True)
+def _grow_kernel(mask, out, labels):
+    """In place on ``out : (z, y, x) int32`` (labels 1…``labels``, 0 free): the growth of :func:`_grow_back`."""
+    nz, ny, nx = mask.shape
+    flat_mask, flat = mask.ravel(), out.ravel()
+    buf = np.empty(flat.size, np.int64)  # every voxel enters a front at most once
+    start, end = np.zeros(labels + 1, np.int64), np.zeros(labels + 1, np.int64)
+    pos = 0
+    for k in range(1, labels + 1):
+        start[k] = pos
+        for i in range(flat.size):
+            if flat[i] == k:
+                buf[pos] = i
+                pos += 1
+        end[k] = pos
+    grew = True
+    while grew:
+        grew = False
+        for k in range(1, labels + 1):
+            first = pos
+            for m in range(start[k], end[k]):
+                i = buf[m]
+                z, rem = divmod(i, ny * nx)
+                y, x = divmod(rem, nx)
+                for dz, dy, dx in ((-1, 0, 0), (1, 0, 0), (0, -1, 0), (0, 1, 0), (0, 0, -1), (0, 0, 1)):
+                    zz, yy, xx = z + dz, y + dy, x + dx
+                    if 0 <= zz < nz and 0 <= yy < ny and 0 <= xx < nx:
+                        j = (zz * ny + yy) * nx + xx
+                        if flat_mask[j] and flat[j] == 0:
+                            flat[j] = k
+                            buf[pos] = j
+                            pos += 1
+            start[k], end[k] = first, pos
+            grew = grew or pos > first
     return out
 
 
