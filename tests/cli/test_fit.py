@@ -396,8 +396,9 @@ def test_a_full_cycle_4dct_is_fitted_with_its_hysteresis(tmp_path, rng, capsys):
 def test_popi_ten_phase_full_cycle_4dct_goes_through_fit(data_dir, tmp_path, capsys):
     # the README workflow on the POPI phase-00 CT: segment → build → warp --phases 10 over a 4 s,
     # 500 mL cosine breath (the CT downsampled 2 × 2 × 2 to 256 × 256 × 71, a 12 mm field lattice, to
-    # keep this short) → fit on the 10-phase folder, inhale and exhale. Truth: phase00 is the source
-    # (+0 mL, the smallest: end-exhale) and 50 % the largest; the warp is a function of volume only
+    # keep this short) → fit on the 10-phase folder, inhale and exhale. Truth: phases count from
+    # end-inhale (docs/RADIOTHERAPY.md), so 0 % is the largest (+500 mL) and 50 % the source scan at
+    # end-exhale (+0 mL), the smallest; the warp is a function of volume only
     # (no hysteresis), so each exhale phase matches the inhale phase of similar volume within about a
     # voxel; every phase keeps POPI's Frame of Reference, so no alignment is fitted
     from tests.cli.test_warp import _curve
@@ -416,10 +417,10 @@ def test_popi_ten_phase_full_cycle_4dct_goes_through_fit(data_dir, tmp_path, cap
     assert f"alignment: none (every phase shares one DICOM Frame of Reference ({head.FrameOfReferenceUID})" in text
     m = json.loads((out / "metrics.json").read_text())
     labels = [p.rsplit("[", 1)[1].rstrip("]") for p in m["inputs"]]
-    assert labels[0] == "0%" and labels[-1] == "50%" and sorted(labels) == sorted(f"{10 * i}%" for i in range(10))
+    assert labels[0] == "50%" and labels[-1] == "0%" and sorted(labels) == sorted(f"{10 * i}%" for i in range(10))
     assert np.all(np.diff(m["volumes_ml"]) >= 0)
     pairs = m["cycle"]["hysteresis"]
-    assert [p["exhale"] for p in pairs] == ["60%", "70%", "80%", "90%"]
+    assert [p["exhale"] for p in pairs] == ["10%", "20%", "30%", "40%"]
     assert all(p["mean_mm"] < 1.0 and p["p95_mm"] < 2.5 for p in pairs)
     assert sum(f"hysteresis: exhale {p['exhale']} " in text for p in pairs) == 4
     assert all(per["model"]["surface_mean_mm"] < 2.0 for per in m["targets"].values())
