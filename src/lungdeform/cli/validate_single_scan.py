@@ -13,6 +13,7 @@ from typing import Optional
 import typer
 
 from lungdeform.errors import InputError
+from lungdeform.geometry.regions import REGIONS
 from lungdeform.model.population import resolve_default, save_default
 from lungdeform.validate.single_scan import SingleScanConfig, learn_from_folders, run_single_scan
 from lungdeform.validate.single_scan_report import row_names
@@ -46,6 +47,9 @@ def print_table(result: dict) -> None:
             f"{_fmt(s[r]['surface_vs_isotropic'])} / {_fmt(s[r]['landmark_vs_isotropic'])}" for r in rows))
     typer.echo(f"landmark medians over the {s['n_lungs_landmarks']} lungs with landmarks; "
                f"* cut by the field of view ({s['n_lungs_cut']}: the cut left out of the surface distance)")
+    typer.echo("median distance per surface region (mm; docs/DEFAULTS.md):")
+    for region in REGIONS:
+        typer.echo(f"{region:16s} " + " ".join(f"{_fmt(s[r]['regions_mm'][region]):>15s}" for r in rows))
     for name, d in result["defaults"].items():
         typer.echo(f"default for {name}: {d['how']} ({d['name']}, {d['digest']})")
 
