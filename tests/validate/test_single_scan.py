@@ -11,6 +11,7 @@ from lungdeform.geometry.mesh import Surface, icosphere
 from lungdeform.validate.physiology import DIAPHRAGM_CM_PER_L, tidal_motion
 from lungdeform.validate.single_scan import (
     COARSE_POINTS,
+    FittedLung,
     LungPair,
     SingleScanConfig,
     Training,
@@ -196,3 +197,34 @@ def test_folders_with_and_without_landmarks_and_a_plugged_in_row(tmp_path):
     assert s["isotropic"]["landmark_mean_mm"] is not None and s["subsets"]["no_landmarks"]["n_lungs"] == 2
     text = (tmp_path / "out" / "report.html").read_text()
     assert text.count("<img") == 4 and "median distance per region" in text and "cut: exp j-low" in text
+
+
+def test_leave_one_out_learns_from_the_defaults_own_other_subjects(tmp_path):
+    # truth: a default learned from s1 and s2 (their scans' digests in its provenance) scores s1 with a default
+    # learned from s2's lungs alone (not from s3, which it never saw: c1…c9 are then s2's median, here its
+    # constants exactly), and s3 with the default as it is
+    from lungdeform.model.population import PopulationDefault
+    from lungdeform.validate.single_scan import _defaults_for, _learned_from
+    from lungdeform.validate.subjects import Subject
+
+    sphere = _sphere(40.0, np.zeros(3))
+    subjects, pairs, fits = [], {}, {}
+    for k, name in enumerate(("s1", "s2", "s3")):
+        scan = tmp_path / f"{name}.nii"
+        scan.write_bytes(name.encode())
+        subjects.append(Subject(name, None, (scan, scan)))
+        c = np.array([1.0 + k, 2, 0.39, 1, 1, 3, 0.5, 0.3, 1])
+        for side in ("left", "right"):
+            pairs[(name, side)] = LungPair(name, side, sphere, np.ones(sphere.n_vertices, bool),
+                                           Target(sphere, sphere.volume_ml), sphere.volume_ml + 100.0)
+            fits[(name, side)] = FittedLung(c, np.ones(sphere.n_vertices), np.zeros((sphere.n_vertices, 3)),
+                                            np.zeros((sphere.n_vertices, 3)), np.ones(sphere.n_vertices), np.zeros(3),
+                                            1.0, 100.0)
+    base = PopulationDefault("mine", {"left": np.ones(9), "right": np.ones(9)},
+                             provenance={"subject_digests": {"a": subjects[0].digest, "b": subjects[1].digest}})
+    learned_from = _learned_from(subjects, base, True)
+    assert learned_from == {"s1", "s2"} and _learned_from(subjects, base, False) == set()
+    chosen = _defaults_for(subjects, base, learned_from, pairs, fits, lambda m: None)
+    assert chosen["s3"][0] is base and chosen["s2"][0] is not base
+    assert np.allclose(chosen["s1"][0].constants["left"], [2.0, 2, 0.39, 1, 1, 3, 0.5, 0.3, 1])
+    assert np.allclose(chosen["s2"][0].constants["left"], [1.0, 2, 0.39, 1, 1, 3, 0.5, 0.3, 1])

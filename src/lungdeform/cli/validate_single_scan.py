@@ -73,14 +73,16 @@ def register(apps) -> None:
                                                                "several folders."),
         out: Path = typer.Option(..., "--out", help="Output folder: metrics.json, report.html."),
         default: Optional[str] = typer.Option(None, "--default", help="The default scored as 'default': "
-                                              "'population', 'paper' or a learned default file (JSON). Without "
-                                              "it: the shipped default, learned leave one subject out for the "
-                                              "subjects it was learned from."),
+                                              "'population' or 'paper' (as they are, for every lung) or a learned "
+                                              "default file (JSON). Without it: the shipped default. The shipped "
+                                              "default and a file are learned anew without each subject they saw, "
+                                              "from their other subjects (leave one subject out)."),
         with_fitted: bool = typer.Option(False, "--with-fitted", help="Add the two-scan fit of each lung (a "
                                                                        "ceiling; slower)."),
         train: Optional[list[Path]] = typer.Option(None, "--train", help="Folder of further two-volume subjects, "
                                                    "not scored, that a leave-one-subject-out default also learns "
-                                                   "from (e.g. the COPDgene folder when DIR is the ITK pair)."),
+                                                   "from when the default saw them (e.g. the COPDgene folder when DIR "
+                                                   "is the ITK pair)."),
         cache: Optional[Path] = typer.Option(None, "--cache", help=CACHE_HELP + " Default: OUT."),
     ) -> None:
         """Build each lung from its smaller-volume scan alone, predict the larger volume from that volume

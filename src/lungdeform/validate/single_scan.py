@@ -14,9 +14,9 @@ scored with the cut left out of the surface distance):
    further rows plug in through :attr:`SingleScanConfig.rows`):
 
    - ``default``: :func:`~lungdeform.model.lung.build_lung` with the population default
-     (:mod:`lungdeform.model.population`): the shipped one, except for a subject the shipped default
-     was learned from, which gets a default learned without it (leave one subject out, from the
-     other subjects of the folders: :func:`lungdeform.cohort.default.learn_default`);
+     (:mod:`lungdeform.model.population`): the shipped one (or a learned default file), except for a
+     subject it was learned from, which gets a default learned without it (leave one subject out,
+     from the default's other subjects among those read: :func:`lungdeform.cohort.default.learn_default`);
    - ``paper``: the same with Table I;
    - ``isotropic``: scaling about the solid's centroid to the volume;
    - ``fitted`` (``with_fitted``): the two-scan fit of that lung (c1…c9, a translation, the
@@ -64,7 +64,7 @@ from lungdeform.geometry.distance import symmetric_distance
 from lungdeform.geometry.mesh import Surface
 from lungdeform.geometry.regions import REGIONS, region_means, region_shares, surface_regions
 from lungdeform.model.lung import LungModel, build_lung
-from lungdeform.model.population import PopulationDefault, paper_default, resolve_default
+from lungdeform.model.population import NAMES, PopulationDefault, paper_default, resolve_default
 from lungdeform.progress import Progress, silent
 from lungdeform.segment.split import SplitCache
 
@@ -80,8 +80,6 @@ __all__ = ["AXES", "COARSE_POINTS", "FIT_EVALUATIONS", "ROWS", "ROW_PREDICTORS",
            "sample_of", "score", "summarise"]
 
 AXES = ("LR", "AP", "SI")
-#: The figures a row reports that are summarised as medians.
-FIGURES = ("surface_mean_mm", "landmark_mean_mm")
 
 
 def score(pair: LungPair, vertices, landmarks=None, regions=None) -> dict:
@@ -164,9 +162,11 @@ ROWS = tuple(ROW_PREDICTORS)
 @dataclass(frozen=True)
 class SingleScanConfig:
     """How :func:`run_single_scan` runs: ``default`` (None: the shipped default, leave one subject out
-    for the subjects it was learned from; else a name or file for every lung, as it is),
+    for the subjects it was learned from; a learned default file: the same for the subjects it was
+    learned from; ``"population"`` or ``"paper"``: that default for every lung, as it is),
     ``with_fitted`` (add the ``fitted`` row), ``train`` (folders of further subjects, not scored,
-    that a leave-one-subject-out default also learns from: the ITK pair is one subject), ``cache``
+    that a leave-one-subject-out default also learns from when the default was learned from them),
+    ``cache``
     (where the fits and the lungs as read are kept: ``fits/``, ``pairs/``; None: the output folder)
     and ``rows`` (further rows, ``(name, predictor)``, scored after :data:`ROW_PREDICTORS`; a row
     that needs the other subjects' fits sets ``needs_fits``)."""
@@ -179,30 +179,29 @@ class SingleScanConfig:
     needs_fits: bool = False
 
 
-def _defaults_for(subjects, given: PopulationDefault | None, seen: set[str], pairs, fits,
+def _defaults_for(subjects, base: PopulationDefault, learned_from: set[str], pairs, fits,
                   say) -> dict[str, tuple[PopulationDefault, str]]:
-    """Per subject: ``(the default that scores it, how it was chosen)``: ``given`` for all, else the
-    shipped default, learned anew without each subject in ``seen`` (those it was learned from)."""
-    if given is not None:
-        return {s.name: (given, f"given: {given.name}") for s in subjects}
-    shipped = resolve_default(None)
+    """Per scored subject: ``(the default that scores it, how it was chosen)``: ``base`` as it is,
+    except for a subject in ``learned_from`` (the subjects, of those read, that ``base`` was learned
+    from), which gets a default learned anew from ``base``'s other subjects (leave one subject out)."""
     out = {}
     for s in subjects:
-        if s.name not in seen:
-            out[s.name] = (shipped, "shipped")
+        if s.name not in learned_from:
+            out[s.name] = (base, "as it is (it did not see this subject)")
             continue
-        train = [sample_of(pairs[k], fits[k]) for k in pairs if k[0] != s.name]
-        say(f"{s.name}: learning a default without it ({len(train)} lungs of the other subjects)")
-        out[s.name] = (learn_default(train, name=f"population without {s.name}"),
-                       "leave one subject out (the shipped default saw this subject)")
+        train = [sample_of(pairs[k], fits[k]) for k in pairs if k[0] != s.name and k[0] in learned_from]
+        say(f"{s.name}: learning a default without it ({len(train)} lungs of {base.name!r}'s other subjects)")
+        out[s.name] = (learn_default(train, name=f"{base.name} without {s.name}"),
+                       f"leave one subject out: learned from {base.name!r}'s other {len(learned_from) - 1} subjects")
     return out
 
 
-def _seen_by_shipped(subjects, given: PopulationDefault | None) -> set[str]:
-    """The subjects the shipped default was learned from (none when a default is given)."""
-    if given is not None:
+def _learned_from(subjects, base: PopulationDefault, loso: bool) -> set[str]:
+    """The names of ``subjects`` that ``base`` was learned from (by the digest of their smaller-volume
+    scan, :attr:`PopulationDefault.provenance` ``subject_digests``); none when not ``loso``."""
+    if not loso:
         return set()
-    digests = set(resolve_default(None).provenance.get("subject_digests", {}).values())
+    digests = set(base.provenance.get("subject_digests", {}).values())
     return {s.name for s in subjects if s.digest in digests}
 
 
@@ -228,12 +227,13 @@ def read_folders(folders, cache: Path | None, say, what: str = "reading both sca
     return pairs, subjects, where
 
 
-def _check_leave_one_out(seen: set[str], names: set[str]) -> None:
-    """ReadError, before any fit, when a subject the shipped default saw has fewer than two others to learn from."""
-    for name in sorted(seen):
-        if len(names - {name}) < 2:
-            raise ReadError(f"{name}: the shipped default was learned from this subject; leaving it out needs "
-                            "at least two other subjects (add folders of them with --train, or give --default)")
+def _check_leave_one_out(scored: set[str], learned_from: set[str]) -> None:
+    """ReadError, before any fit, when a scored subject the default saw has fewer than two of the
+    default's other subjects to learn from."""
+    for name in sorted(scored):
+        if len(learned_from - {name}) < 2:
+            raise ReadError(f"{name}: the default was learned from this subject; leaving it out needs at least two "
+                            "of its other subjects (add folders of them with --train, or give --default population)")
 
 
 def run_single_scan(data, out: Path, config: SingleScanConfig = SingleScanConfig(), *,
@@ -243,19 +243,22 @@ def run_single_scan(data, out: Path, config: SingleScanConfig = SingleScanConfig
     say = progress or silent
     folders = [data] if isinstance(data, (str, Path)) else list(data)
     cache = Path(out) if config.cache is None else Path(config.cache)
-    given = None if config.default is None else resolve_default(config.default)  # refused before any reading
+    base = resolve_default(config.default)  # refused before any reading
+    loso = config.default is None or config.default not in NAMES  # the shipped default, or a learned file
     pairs, subjects, where = read_folders(folders, cache, say)
-    seen = _seen_by_shipped(subjects, given)
-    fits, extra = {}, {}
-    if config.with_fitted or seen or config.needs_fits:
+    fits, extra, more = {}, {}, []
+    if config.with_fitted or loso or config.needs_fits:
         extra, more, _ = read_folders(config.train, cache, say, "reading both scans (training only)")
         if set(where) & {s.name for s in more}:
             raise ReadError(f"subject {min(set(where) & {s.name for s in more})!r} is both scored and in --train")
-        _check_leave_one_out(seen, {k[0] for k in {**pairs, **extra}})
+    scored, learned_from = _learned_from(subjects, base, loso), _learned_from([*subjects, *more], base, loso)
+    if config.with_fitted or scored or config.needs_fits:
+        _check_leave_one_out(scored, learned_from)
         for key, pair in {**pairs, **extra}.items():
-            say(f"{key[0]} {key[1]}: two-scan fit (for leave-one-subject-out learning and the fitted row)")
-            fits[key] = cached_fit(pair, cache / "fits")
-    chosen = _defaults_for(subjects, given, seen, {**pairs, **extra}, fits, say)
+            if config.with_fitted or config.needs_fits or key[0] in learned_from:
+                say(f"{key[0]} {key[1]}: two-scan fit (for leave-one-subject-out learning and the fitted row)")
+                fits[key] = cached_fit(pair, cache / "fits")
+    chosen = _defaults_for(subjects, base, learned_from, {**pairs, **extra}, fits, say)
     predictors = {**{k: v for k, v in ROW_PREDICTORS.items() if k != "fitted" or config.with_fitted},
                   **dict(config.rows)}
     lungs = {}
