@@ -71,9 +71,14 @@ def test_inputs_checked_before_out_and_a_skipped_case_is_said(tmp_path, capsys):
     data = phantom_case(tmp_path / "data", n=2)
     phantom_case(tmp_path / "data", n=4)
     (data / "copd4_insp_landmarks.txt").unlink()
+    assert main(["validate", "copd", "--data", str(data), "--out", str(tmp_path / "fit"), "--cases", "2,4"]) == 2
+    assert "case 4 is missing copd4_insp_landmarks.txt" in _one_error_line(capsys)
+    # the manifest takes any two-volume subject, landmarks optional: copd4 is kept, without landmarks, and said
     assert main(["validate", "copd", "--data", str(data), "--out", str(out), "--manifest-only"]) == 0
     err = capsys.readouterr().err.strip().splitlines()
-    assert err == [f"warning: {data}: copd4 skipped: it lacks copd4_insp_landmarks.txt"], err
-    assert [r.split(",")[0] for r in (out / "manifest.csv").read_text().splitlines()[1:]] == ["copd2", "copd2"]
+    assert err == [f"warning: {data}: copd4: lacks copd4_insp_landmarks.txt (its landmarks are not used)"], err
+    rows = [r.split(",") for r in (out / "manifest.csv").read_text().splitlines()[1:]]
+    assert [r[0] for r in rows] == ["copd2", "copd2", "copd4", "copd4"]
+    assert rows[0][4].endswith("copd2_exp_landmarks.txt") and rows[2][4] == rows[3][4] == ""
     assert main(["validate", "copd", "--data", str(data), "--out", str(data), "--manifest-only"]) == 2
     assert "would overwrite the input" in _one_error_line(capsys)

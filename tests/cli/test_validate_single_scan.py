@@ -1,6 +1,11 @@
 """``lungdeform validate single-scan`` and ``learn-default``: bad input exits 2 with one line and no output."""
 
+import pytest
+
 from lungdeform.cli.main import main
+from lungdeform.geometry.regions import REGIONS
+from tests.validate.test_copd import phantom_case
+from tests.validate.test_lung_pair import _cut_folder
 
 
 def test_folder_without_subjects(tmp_path, capsys):
@@ -45,3 +50,30 @@ def test_build_with_paper_constants_records_it(tmp_path, capsys):
     assert load_model(out).provenance["default"]["name"] == "paper"
     assert main(["build", str(path), "--side", "left", "--out", str(out), "--constants", "x"]) == 2
     assert "--constants must be one of" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_two_folders_one_without_landmarks_print_every_lung_and_the_regions(tmp_path, capsys):
+    # truth: two folders (a COPDgene-named phantom with landmarks, .mha masks without and cut by the field
+    # of view): every lung on its own line, the cut ones marked, '-' for a landmark error that does not
+    # exist, the medians over 4 lungs (landmarks over 2) and one line per surface region; a subject lacking
+    # its second landmark file is said, and scored on the surface
+    a, b = tmp_path / "a", tmp_path / "b"
+    a.mkdir()
+    b.mkdir()
+    phantom_case(a, n=2)
+    _cut_folder(b)
+    (b / "cut_exp_landmarks.txt").write_text("point\n0\n")
+    out = tmp_path / "out"
+    assert main(["validate", "single-scan", "--data", str(a), "--data", str(b), "--out", str(out),
+                 "--default", "population", "--cache", str(tmp_path / "cache")]) == 0
+    captured = capsys.readouterr()
+    assert captured.err.strip().splitlines() == [
+        f"warning: {b}: cut: lacks cut_insp_landmarks.txt (its landmarks are not used)"]
+    lines = captured.out.splitlines()
+    cut = [ln for ln in lines if ln.startswith("cut/left*")]
+    assert len(cut) == 1 and cut[0].split()[2:4] == ["/", "-"]  # surface / no landmark error
+    assert any(ln.startswith("median (4)") for ln in lines)
+    assert "landmark medians over the 2 lungs with landmarks; * cut by the field of view (2:" in captured.out
+    assert [ln.split()[0] for ln in lines if ln.split() and ln.split()[0] in REGIONS] == list(REGIONS)
+    assert len(list((tmp_path / "cache" / "pairs").iterdir())) == 4 and not (out / "pairs").exists()

@@ -11,14 +11,19 @@ from lungdeform.geometry.mesh import Surface, icosphere
 from lungdeform.validate.physiology import DIAPHRAGM_CM_PER_L, tidal_motion
 from lungdeform.validate.single_scan import (
     COARSE_POINTS,
+    FittedLung,
     LungPair,
     SingleScanConfig,
+    Training,
     best_translation,
     isotropic,
     run_single_scan,
     score,
+    summarise,
 )
 from tests.conftest import require_path
+from tests.validate.test_copd import phantom_case
+from tests.validate.test_lung_pair import _cut_folder
 
 
 def _sphere(radius, centre, subdivisions=4):
@@ -123,11 +128,103 @@ def test_itk_pair_rows_and_layout(data_dir, tmp_path):
     folder = require_path(data_dir, "itk-right-lung-two-volumes")
     m = run_single_scan(folder, tmp_path, SingleScanConfig(default="population"))
     row = m["lungs"]["itk/right"]
-    assert set(row) == {"default", "paper", "isotropic"}
-    for r in row.values():
-        assert set(r) >= {"surface_mean_mm", "landmark_mean_mm", "translation_mm", "landmark_motion_mm"}
-    assert m["summary"]["n_lungs"] == 1
+    assert set(row) == {"default", "paper", "isotropic", "lung_info", "region_shares"}
+    assert row["lung_info"] == {"landmarks": True, "cut": ["exp i-high", "insp i-high"],
+                                "folder": "itk-right-lung-two-volumes"}  # the ITK crop cuts its medial face
+    for r in (row[k] for k in ("default", "paper", "isotropic")):
+        assert set(r) >= {"surface_mean_mm", "landmark_mean_mm", "translation_mm", "landmark_motion_mm", "regions_mm"}
+    assert m["summary"]["n_lungs"] == 1 and m["summary"]["n_lungs_landmarks"] == 1
     assert row["default"]["surface_mean_mm"] < row["paper"]["surface_mean_mm"]
     assert row["default"]["landmark_mean_mm"] < row["paper"]["landmark_mean_mm"]
     assert json.loads((tmp_path / "metrics.json").read_text())["summary"]["default"]["surface_mean_mm"] > 0
     assert (tmp_path / "report.html").stat().st_size > 1000
+
+
+def _lung(surface, landmark, folder="a", cut=(), rows=("default", "isotropic")):
+    return {**{r: {"surface_mean_mm": surface * (1.0 if r == "default" else 2.0),
+                   "landmark_mean_mm": None if landmark is None else landmark * (1.0 if r == "default" else 2.0),
+                   "regions_mm": {"apex": surface, "base": None, "costal": surface, "mediastinal": surface}}
+              for r in rows},
+            "lung_info": {"landmarks": landmark is not None, "cut": list(cut), "folder": folder}}
+
+
+def test_summary_counts_every_lung_and_the_landmarks_over_those_with_them():
+    # truth, by hand: surfaces 1, 2, 3, 10 (median 2.5), landmarks only on the first two (median of 5 and 7);
+    # the ratios to isotropic (twice the default here) are 0.5; a region without values is None; the subsets
+    # split the same lungs by landmarks, cut and folder
+    lungs = {"s1/left": _lung(1.0, 5.0), "s1/right": _lung(2.0, 7.0), "s2/left": _lung(3.0, None, "b", ("exp j-low",)),
+             "s3/left": _lung(10.0, None, "b")}
+    s = summarise(lungs)
+    assert (s["n_lungs"], s["n_lungs_landmarks"], s["n_lungs_cut"], s["cut_lungs"]) == (4, 2, 1, ["s2/left"])
+    d = s["default"]
+    assert (d["surface_mean_mm"], d["landmark_mean_mm"], d["surface_mean_mm_landmark_lungs"]) == (2.5, 6.0, 1.5)
+    assert (d["n_lungs"], d["n_lungs_landmarks"]) == (4, 2)
+    assert d["surface_vs_isotropic"] == 0.5 and d["landmark_vs_isotropic"] == 0.5
+    assert d["regions_mm"] == {"apex": 2.5, "base": None, "costal": 2.5, "mediastinal": 2.5}
+    subsets = s["subsets"]
+    assert set(subsets) == {"landmarks", "no_landmarks", "uncut", "folder a", "folder b"}
+    assert subsets["no_landmarks"]["default"]["surface_mean_mm"] == 6.5
+    assert subsets["no_landmarks"]["default"]["landmark_mean_mm"] is None
+    assert subsets["uncut"]["n_lungs"] == 3 and subsets["folder a"]["default"]["landmark_mean_mm"] == 6.0
+
+
+@pytest.mark.slow
+def test_folders_with_and_without_landmarks_and_a_plugged_in_row(tmp_path):
+    # truth: two folders, one of COPDgene-named subjects with landmarks, one of .mha masks without (its
+    # lungs cut by the field of view): every lung is scored (4), the landmarks on the two that have them;
+    # a row plugged in through the config is scored like the others (here the isotropic prediction under
+    # another name: the same figures); report.html carries the per-lung and per-region figures
+    a, b = tmp_path / "a", tmp_path / "b"
+    a.mkdir()
+    b.mkdir()
+    phantom_case(a, n=2)
+    _cut_folder(b)
+    seen = []
+
+    def again(pair, training):
+        seen.append(isinstance(training, Training) and training.default.name == "population")
+        return isotropic(pair)
+
+    config = SingleScanConfig(default="population", rows=(("again", again),))
+    m = run_single_scan([a, b], tmp_path / "out", config)
+    s = m["summary"]
+    assert sorted(m["lungs"]) == ["copd2/left", "copd2/right", "cut/left", "cut/right"]
+    assert (s["n_lungs"], s["n_lungs_landmarks"], s["n_lungs_cut"]) == (4, 2, 2) and seen == [True] * 4
+    for k, v in m["lungs"].items():
+        assert (v["default"]["landmark_mean_mm"] is None) == k.startswith("cut")
+        assert v["again"]["surface_mean_mm"] == v["isotropic"]["surface_mean_mm"]
+        assert set(v["default"]["regions_mm"]) == {"apex", "base", "costal", "mediastinal"}
+    assert s["isotropic"]["landmark_mean_mm"] is not None and s["subsets"]["no_landmarks"]["n_lungs"] == 2
+    text = (tmp_path / "out" / "report.html").read_text()
+    assert text.count("<img") == 4 and "median distance per region" in text and "cut: exp j-low" in text
+
+
+def test_leave_one_out_learns_from_the_defaults_own_other_subjects(tmp_path):
+    # truth: a default learned from s1 and s2 (their scans' digests in its provenance) scores s1 with a default
+    # learned from s2's lungs alone (not from s3, which it never saw: c1…c9 are then s2's median, here its
+    # constants exactly), and s3 with the default as it is
+    from lungdeform.model.population import PopulationDefault
+    from lungdeform.validate.single_scan import _defaults_for, _learned_from
+    from lungdeform.validate.subjects import Subject
+
+    sphere = _sphere(40.0, np.zeros(3))
+    subjects, pairs, fits = [], {}, {}
+    for k, name in enumerate(("s1", "s2", "s3")):
+        scan = tmp_path / f"{name}.nii"
+        scan.write_bytes(name.encode())
+        subjects.append(Subject(name, None, (scan, scan)))
+        c = np.array([1.0 + k, 2, 0.39, 1, 1, 3, 0.5, 0.3, 1])
+        for side in ("left", "right"):
+            pairs[(name, side)] = LungPair(name, side, sphere, np.ones(sphere.n_vertices, bool),
+                                           Target(sphere, sphere.volume_ml), sphere.volume_ml + 100.0)
+            fits[(name, side)] = FittedLung(c, np.ones(sphere.n_vertices), np.zeros((sphere.n_vertices, 3)),
+                                            np.zeros((sphere.n_vertices, 3)), np.ones(sphere.n_vertices), np.zeros(3),
+                                            1.0, 100.0)
+    base = PopulationDefault("mine", {"left": np.ones(9), "right": np.ones(9)},
+                             provenance={"subject_digests": {"a": subjects[0].digest, "b": subjects[1].digest}})
+    learned_from = _learned_from(subjects, base, True)
+    assert learned_from == {"s1", "s2"} and _learned_from(subjects, base, False) == set()
+    chosen = _defaults_for(subjects, base, learned_from, pairs, fits, lambda m: None)
+    assert chosen["s3"][0] is base and chosen["s2"][0] is not base
+    assert np.allclose(chosen["s1"][0].constants["left"], [2.0, 2, 0.39, 1, 1, 3, 0.5, 0.3, 1])
+    assert np.allclose(chosen["s2"][0].constants["left"], [1.0, 2, 0.39, 1, 1, 3, 0.5, 0.3, 1])

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import typer
 
+from lungdeform.errors import InputError
 from lungdeform.validate.copd import (
     COHORT_OPTIONS,
     TABLE_ROWS,
@@ -19,8 +20,8 @@ from lungdeform.validate.copd import (
     incomplete_cases,
     parse_cases,
     run_copd,
-    write_cohort_manifest,
 )
+from lungdeform.validate.subjects import find_subjects, incomplete_subjects, write_cohort_manifest
 
 from .common import FIT_OPTIONS, check_output, option_names, output_dir, say
 
@@ -50,7 +51,9 @@ def register(apps) -> None:
     @apps.validate.command("copd")
     def copd_command(
         data: Path = typer.Option(..., "--data", help="Folder with copdN_{exp,insp}_mask.nii.gz and "
-                                                        "copdN_{exp,insp}_landmarks.txt."),
+                                                        "copdN_{exp,insp}_landmarks.txt (with --manifest-only: any "
+                                                        "folder of NAME_exp_mask / NAME_insp_mask pairs, landmarks "
+                                                        "optional)."),
         out: Path = typer.Option(..., "--out", help="Output folder: copdN/<side>/ per lung, metrics.json, "
                                                       "report.html."),
         cases: str = typer.Option(None, "--cases", help="Case numbers to run, e.g. 1,3 (default: every case found)."),
@@ -66,12 +69,12 @@ def register(apps) -> None:
             config = copd_config(evaluations)
             wanted = parse_cases(cases)
             check_output(out, [data], folder=True, writes=COPD_FILES)
-            found = find_cases(data, wanted)  # a bad data folder leaves no output folder
+            if manifest_only:
+                _write_manifest(_manifest_subjects(data, wanted), out, evaluations)
+                return
+            find_cases(data, wanted)  # a bad data folder leaves no output folder
             for name, missing in incomplete_cases(data, wanted).items():
                 typer.echo(f"warning: {data}: {name} skipped: it lacks {', '.join(missing)}", err=True)
-            if manifest_only:
-                _write_manifest(found, out, evaluations)
-                return
             folder = output_dir(out)
             result = run_copd(data, folder, config, wanted, progress=say)
         print_table(result)
@@ -80,9 +83,27 @@ def register(apps) -> None:
         typer.echo(f"wrote {folder / 'metrics.json'}, {folder / 'report.html'}")
 
 
+def _manifest_subjects(data: Path, wanted: list[int] | None):
+    """The two-volume subjects of ``data`` (:func:`lungdeform.validate.subjects.find_subjects`; a subject
+    lacking a file named, one line each), or the cases ``copdN`` numbered in ``wanted``, all of which
+    must be there (a bad data folder leaves no output folder)."""
+    found = find_subjects(data)
+    lacking = incomplete_subjects(data)
+    if wanted is not None:
+        names = {s.name for s in found}
+        for n in wanted:
+            if f"copd{n}" not in names:
+                raise InputError(f"{data}: case {n} is missing (no copd{n}_exp_mask and copd{n}_insp_mask)")
+        found = [s for s in found if s.name in {f"copd{n}" for n in wanted}]
+        lacking = {k: v for k, v in lacking.items() if k in {s.name for s in found}}
+    for name, lacks in lacking.items():
+        typer.echo(f"warning: {data}: {name}: lacks {'; '.join(lacks)}", err=True)
+    return found
+
+
 def _write_manifest(found, out: Path, evaluations: int) -> None:
-    """``--manifest-only``: OUT/manifest.csv for ``lungdeform cohort`` of the cases ``found``
-    (:func:`lungdeform.validate.copd.find_cases`), and the command that fits it."""
+    """``--manifest-only``: OUT/manifest.csv for ``lungdeform cohort`` of the subjects ``found``
+    (:func:`lungdeform.validate.subjects.find_subjects`), and the command that fits it."""
     path = write_cohort_manifest(found, output_dir(out) / "manifest.csv")
     budget = [] if evaluations == 300 else ["--evaluations", str(evaluations)]
     command = ["lungdeform", "cohort", str(path), "--out", str(Path(out) / "cohort"), *COHORT_OPTIONS, *budget]

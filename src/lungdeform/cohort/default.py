@@ -13,7 +13,8 @@ mirror image of a right one (:mod:`lungdeform.model.population`):
    vertex weighted by its share of the lung's motion (``|F|·area``, normalised per lung, so every
    lung counts once), with a ridge of :data:`RIDGE` × the mean diagonal. Scored leave one subject
    out it did not generalise (docs/DEFAULTS.md), so :data:`DEGREE` is 0;
-3. the interior prior (:mod:`lungdeform.interior.prior`), mm per mL: each training lung built with
+3. the interior prior (:mod:`lungdeform.interior.prior`), mm per mL, from the training lungs with
+   landmarks (none without any): each such lung built with
    1.–2. (:func:`lungdeform.model.lung.build_lung`) and its landmarks moved to the larger volume; the
    residuals (observed, in the frame of that lung's own two-scan fit, minus predicted), in mm, fitted
    by ``ΔV·(β₀ + B q̂)`` in weighted least squares (every lung weighted once, whatever its landmark
@@ -65,9 +66,9 @@ class DefaultSample:
         Its fitted unit directions (direction correction included), LPS.
     force : (n,) float
         Its fitted elastostatic force ``F`` (relative units), for the weights.
-    landmarks : (m, 3) float
-        End-exhale landmarks, mm LPS.
-    landmarks_target : (m, 3) float
+    landmarks : (m, 3) float or None
+        End-exhale landmarks, mm LPS (None: a lung without landmarks, which the interior prior does not see).
+    landmarks_target : (m, 3) float or None
         The same landmarks at the larger volume, mm, moved into the end-exhale frame by the fit's translation.
     delta_ml : float
         The volume change between the two scans, mL.
@@ -79,9 +80,13 @@ class DefaultSample:
     constants: np.ndarray
     directions: np.ndarray
     force: np.ndarray
-    landmarks: np.ndarray
-    landmarks_target: np.ndarray
+    landmarks: np.ndarray | None
+    landmarks_target: np.ndarray | None
     delta_ml: float
+
+    @property
+    def has_landmarks(self) -> bool:
+        return self.landmarks is not None and len(self.landmarks) > 0
 
 
 def pooled_constants(samples: Sequence[DefaultSample]) -> np.ndarray:
@@ -126,7 +131,7 @@ def learn_default(samples: Sequence[DefaultSample], name: str = "population", pr
     c = pooled_constants(samples)
     corr = pooled_correction(samples, c, degree) if degree > 0 else None
     partial = PopulationDefault(name, {"left": c, "right": c}, degree if corr is not None else 0, corr)
-    prior = pooled_prior(samples, partial)
+    prior = pooled_prior(samples, partial) if any(s.has_landmarks for s in samples) else None
     prov = {"lungs": [f"{s.subject}/{s.side}" for s in samples],
             "subjects": sorted({s.subject for s in samples}), "method": "lungdeform.cohort.default", **(provenance or {})}
     return replace(partial, interior_prior=prior, provenance=prov)
@@ -134,9 +139,10 @@ def learn_default(samples: Sequence[DefaultSample], name: str = "population", pr
 
 def pooled_prior(samples: Sequence[DefaultSample], default: PopulationDefault,
                  ridge: float = PRIOR_RIDGE) -> np.ndarray:
-    """``(4, 3)`` mm per mL: the interior prior of ``default`` (module docstring, step 3)."""
+    """``(4, 3)`` mm per mL: the interior prior of ``default`` (module docstring, step 3), from the
+    samples with landmarks."""
     xs, ys, ws = [], [], []
-    for smp in samples:
+    for smp in (s for s in samples if s.has_landmarks):
         lung = build_lung(smp.surface, smp.side, default=default, settings=BuildSettings(smp.delta_ml))
         moved = lung.points_at(smp.landmarks, lung.volume_ee_ml + smp.delta_ml, exact=True)
         q = normalised(smp.landmarks, *lung_normaliser(smp.surface), smp.side)

@@ -27,10 +27,8 @@ files' contents, the fit settings, the calibrated baselines' constants) is not f
 from __future__ import annotations
 
 import base64
-import csv
 import hashlib
 import html
-import io
 import json
 import re
 import time
@@ -52,6 +50,8 @@ from lungdeform.plot.figure import png_bytes
 from lungdeform.plot.statistics import grouped_bars
 from lungdeform.progress import Progress, silent
 from lungdeform.segment.split import SIDES, SplitCache, landmarks_of_side, require_split
+
+from . import subjects
 
 COMMAND = "validate copd"
 FILES = ("copd{n}_exp_mask.nii.gz", "copd{n}_insp_mask.nii.gz", "copd{n}_exp_landmarks.txt",
@@ -120,17 +120,14 @@ COHORT_OPTIONS = ("--align", "joint", "--stiffness")
 
 
 def cohort_manifest(found: dict[str, tuple[Path, ...]]) -> str:
-    """The text of a cohort manifest (:mod:`lungdeform.cohort.manifest`) for the cases ``found``
-    (:func:`find_cases`): per case two rows, expiration then inspiration, side ``both`` (each mask
-    is split into its lungs), ``volume_ml`` empty (measured; row order = end-exhale first), the
-    phase's landmarks; absolute paths, so the manifest may be written anywhere."""
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")  # quotes a path holding a comma, as the manifest reader expects
-    w.writerow(["subject", "side", "volume_ml", "path", "landmarks"])
-    for name, (exp_mask, insp_mask, exp_lm, insp_lm) in found.items():
-        for mask, lm in ((exp_mask, exp_lm), (insp_mask, insp_lm)):
-            w.writerow([name, "both", "", str(Path(mask).resolve()), str(Path(lm).resolve())])
-    return buf.getvalue()
+    """The text of a cohort manifest (:func:`lungdeform.validate.subjects.cohort_manifest`) for the cases
+    ``found`` (:func:`find_cases`): per case two rows, expiration then inspiration, side ``both``."""
+    return subjects.cohort_manifest(as_subjects(found))
+
+
+def as_subjects(found: dict[str, tuple[Path, ...]]) -> list[subjects.Subject]:
+    """The cases ``found`` (:func:`find_cases`) as :class:`lungdeform.validate.subjects.Subject`."""
+    return [subjects.Subject(name, None, (f[0], f[1]), (f[2], f[3])) for name, f in found.items()]
 
 
 def write_cohort_manifest(found: dict[str, tuple[Path, ...]], path: Path) -> Path:
