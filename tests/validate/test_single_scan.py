@@ -123,7 +123,8 @@ def test_itk_pair_rows_and_layout(data_dir, tmp_path):
     folder = require_path(data_dir, "itk-right-lung-two-volumes")
     m = run_single_scan(folder, tmp_path, SingleScanConfig(default="population"))
     row = m["lungs"]["itk/right"]
-    assert set(row) == {"default", "paper", "isotropic"}
+    assert set(row) == {"default", "paper", "isotropic", "dome", "dome_scaling"}
+    assert row["dome"]["dome_mm"] == row["dome_scaling"]["dome_mm"] > 0  # measured from the two masks
     for r in row.values():
         assert set(r) >= {"surface_mean_mm", "landmark_mean_mm", "translation_mm", "landmark_motion_mm"}
     assert m["summary"]["n_lungs"] == 1

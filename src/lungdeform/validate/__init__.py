@@ -10,7 +10,8 @@ lung, with calibrated mask-only baselines), :mod:`~lungdeform.validate.breathing
 cycles of a folder of recorded traces), :mod:`~lungdeform.validate.prediction` (live breathing
 prediction and its intervals scored on recorded traces), :mod:`~lungdeform.validate.gating` (amplitude
 gating of a beam simulated on recorded traces), :mod:`~lungdeform.validate.single_scan` (the defaults scored
-from one scan, leave one subject out; learning a default from data folders) and
+from one scan, leave one subject out; learning a default from data folders; its rows given the dome
+excursion: :mod:`~lungdeform.validate.dome_rows`) and
 :mod:`~lungdeform.validate.physiology` (a tidal breath's motion: base SI against AP, diaphragm per litre).
 
 May import: everything below it (:mod:`lungdeform.cohort`, :mod:`lungdeform.fit`, …); never the CLI.

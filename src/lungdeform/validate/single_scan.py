@@ -15,6 +15,9 @@ COPDgene layout, :func:`lungdeform.validate.copd.find_cases`, both lungs; or the
      other subjects in the folder: :func:`lungdeform.cohort.default.learn_default`);
    - ``paper``: the same with Table I;
    - ``isotropic``: scaling about the solid's centroid to the volume;
+   - ``dome``, ``dome_scaling``: given also the dome excursion measured from the two masks, the default
+     split to move the dome that far, and the fair baseline scaling given the same number
+     (:mod:`lungdeform.validate.dome_rows`);
    - ``fitted`` (``with_fitted``): the two-scan fit of that lung (c1…c9, a translation, the
      direction correction; uniform stiffness), a ceiling;
 
@@ -62,10 +65,10 @@ from lungdeform.plot.statistics import grouped_bars
 from lungdeform.progress import Progress, silent
 from lungdeform.segment.split import SIDES, SplitCache
 
-from . import copd, itk_pair
+from . import copd, dome_rows, itk_pair
 
-#: The rows, in report order.
-ROWS = ("default", "paper", "isotropic", "fitted")
+#: The rows, in report order (``dome``, ``dome_scaling``: :mod:`lungdeform.validate.dome_rows`).
+ROWS = ("default", "dome", "dome_scaling", "paper", "isotropic", "fitted")
 AXES = ("LR", "AP", "SI")
 #: The two-scan fit of a training (and ``fitted``) lung: optimiser budget.
 FIT_EVALUATIONS = 300
@@ -431,7 +434,7 @@ def _score_lung(pair: LungPair, default: PopulationDefault, fit: FittedLung | No
     seconds = time.perf_counter() - t0
     rows = {"default": score(pair, *modelled(pair, lung)),
             "paper": score(pair, *modelled(pair, build_lung(pair.rest, pair.side, default=paper_default()))),
-            "isotropic": score(pair, *isotropic(pair))}
+            "isotropic": score(pair, *isotropic(pair)), **dome_rows.scored_rows(pair, default, score)}
     if fit is not None:
         rows["fitted"] = score(pair, *modelled(pair, fitted_model(pair, fit)))
     return rows, seconds
