@@ -30,6 +30,7 @@ from .common import (
     takes,
     tidal_option,
 )
+from .dome import BREATHING_HELP, DOME_MM_HELP, dome_lines, dome_request
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -50,6 +51,8 @@ class BuildOptions:
     solver: Annotated[str, typer.Option("--solver", help="Linear solver: bicgstab, gmres or direct.")] = "bicgstab"
     d_min: Annotated[float, typer.Option("--d-min", callback=bounded(0, 100, "mm", low_open=True), help="Minimum transfer distance (mm).")] = 1.0
     constants: Annotated[str, typer.Option("--constants", help=CONSTANTS_HELP)] = "population"
+    dome_mm: Annotated[Optional[str], typer.Option("--dome-mm", help=DOME_MM_HELP)] = None
+    breathing: Annotated[Optional[str], typer.Option("--breathing", help=BREATHING_HELP)] = None
 
 
 def register(apps) -> None:
@@ -59,6 +62,7 @@ def register(apps) -> None:
         """Build a breathing lung model from one or two lung surfaces."""
 
         check_tidal_ml(opts.tidal_ml)  # before the (slow) reading, with the options' own names
+        dome = dome_request(opts.dome_mm, opts.breathing)
         check_output(opts.out, opts.sources)
         if opts.solver not in SOLVERS:
             raise InputError(f"--solver must be one of {', '.join(SOLVERS)}, got {opts.solver!r}")
@@ -94,7 +98,7 @@ def register(apps) -> None:
         )
         model = build_model(surfaces, tidal_ml=opts.tidal_ml, stiffness=stiff, gravity=gravity,
                             settings=BuildSettings(solver=opts.solver, d_min=opts.d_min), provenance=prov, default=chosen,
-                            progress=say)
+                            progress=say, dome=dome)
         path = save_model(opts.out, model)
         for sd, lung in model.lungs.items():
             typer.echo(f"{sd}: {lung.n_vertices} vertices, V_EE {lung.volume_ee_ml:.0f} mL, "
@@ -102,6 +106,8 @@ def register(apps) -> None:
             if len(model.lungs) == 1:  # a lone lung does not breathe the whole tidal volume
                 typer.echo(f"{sd}: one lung: its share {ONE_LUNG_SHARE[sd]:.1%} of --tidal-ml {opts.tidal_ml:g} mL "
                            f"= {lung.calibration_ml:.0f} mL ({ONE_LUNG_SOURCE}; docs/DEFAULTS.md)")
+        for line in dome_lines(model.provenance.get("dome"), {sd: lg.calibration_ml for sd, lg in model.lungs.items()}):
+            typer.echo(line)
         typer.echo(f"constants: {chosen.name} ({chosen.provenance.get('source', chosen.name)})")
         typer.echo(f"model written to {path}")
 
