@@ -15,8 +15,9 @@ displacement at ``ΔV`` is
 - ``(a, b)``: fixed by two conditions: the volume of ``p + u`` is ``V(p) + ΔV`` exactly (the cubic of
   :mod:`lungdeform.model.displacement`), and the dome of ``p + u``, measured as two masks are measured
   (:func:`lungdeform.geometry.dome.dome_weights`), has descended ``E`` relative to the apex (to
-  :data:`TOLERANCE_MM`). The Lagrangian reading of the excursion (linear in ``(a, b)``) gives the first
-  split; each further step moves its target by what the measurement still misses.
+  :data:`TOLERANCE_MM`, or :data:`ACCEPT_MM` where the measurement jumps). The Lagrangian reading of the
+  excursion (linear in ``(a, b)``) gives the first split; each further step moves its target by what the
+  measurement still misses, then bisects.
 
 So the stretch takes the difference between the excursion asked for and the one the default would give,
 and the default's pattern carries the volume. Leave one subject out on the COPDgene lungs, given the
@@ -49,14 +50,18 @@ from .displacement import MM3_PER_ML, volume_tensors
 #: Power of the depth below the apex in the head–foot stretch (:func:`stretch_mode`; 1: an affine
 #: stretch. Scored 1, 1.5, 2, 3: 3.82, 3.80, 3.79, 3.79 mm, docs/DEFAULTS.md).
 STRETCH_POWER = 2.0
-#: How close (mm) the measured excursion of the built lung comes to the one asked for.
+#: How close (mm) the measured excursion of the built lung comes to the one asked for, where the
+#: measurement allows (it jumps by up to ~0.1 mm as faces enter and leave the underside).
 TOLERANCE_MM = 0.05
-#: Steps of the split before it gives up.
-MAX_STEPS = 30
+#: The split is refused (does not converge) when the nearest it comes is farther than this, mm.
+ACCEPT_MM = 0.25
+#: Fixed-point steps of the split before bisection; steps in all before it gives up.
+FIXED_STEPS = 6
+MAX_STEPS = 40
 #: ``--breathing``: dome excursion, mm per litre inspired by both lungs (docs/DEFAULTS.md, "Dome excursion").
 BREATHING = {"chest": 8.0, "mixed": 16.6, "belly": 25.0}
 #: Share of the surface's area that may turn over beyond what turns over under the default alone.
-FOLDED_SHARE = 1e-3
+FOLDED_SHARE = 0.01
 #: Largest ``--dome-mm`` taken at all, mm: a diaphragm moves up to about 10 cm in a maximal breath.
 MAX_DOME_MM = 150.0
 
@@ -147,17 +152,44 @@ def dome_split(vertices, faces, default_displacement, excursion_mm: float, delta
     slopes = np.array([w0.excursion(m) for m in modes])  # Lagrangian excursion per unit weight
     tensors = volume_tensors(v, f, modes)
     measured = _measure(v, f, modes[0], w0.height_mm, name)
-    goal = e_mm
-    for step in range(1, MAX_STEPS + 1):
+
+    def trial(goal: float):
         x = _on_volume(tensors, slopes, goal, delta_ml * MM3_PER_ML, name)
         u = np.tensordot(x, modes, axes=1)
-        got = _measure(v, f, u, w0.height_mm, name)
-        if abs(got - e_mm) <= TOLERANCE_MM:
-            _check_unfolded(v, f, u, modes[0], e_mm, name)
-            return DomeSplit(np.ascontiguousarray(u), x, got, measured, step)
-        goal += e_mm - got
-    raise LungdeformError(f"{name}: the split for a dome excursion of {e_mm:g} mm did not converge in {MAX_STEPS} "
-                          f"steps (last {got:.2f} mm)")
+        return _measure(v, f, u, w0.height_mm, name), x, u
+
+    got, x, u, steps = _search(trial, e_mm)
+    if abs(got - e_mm) > ACCEPT_MM:
+        raise LungdeformError(f"{name}: the split for a dome excursion of {e_mm:g} mm did not converge in {steps} "
+                              f"steps (nearest {got:.2f} mm)")
+    _check_unfolded(v, f, u, modes[0], e_mm, name)
+    return DomeSplit(np.ascontiguousarray(u), x, got, measured, steps)
+
+
+def _search(trial, e_mm: float):
+    """``(got, x, u, steps)``: the trial (``trial(goal) -> (measured mm, weights, displacement)``) whose measured
+    excursion is nearest ``e_mm``. First fixed-point steps (each goal moved by what the last measurement
+    missed); where the measurement jumps (faces entering and leaving the underside) and they do not settle
+    within :data:`TOLERANCE_MM`, bisection between the nearest goals measured below and above."""
+    seen = []  # (goal, got, x, u)
+    goal = e_mm
+    for _ in range(FIXED_STEPS):
+        seen.append((goal, *trial(goal)))
+        if abs(seen[-1][1] - e_mm) <= TOLERANCE_MM:
+            return (*seen[-1][1:], len(seen))
+        goal += e_mm - seen[-1][1]
+    while len(seen) < MAX_STEPS:
+        below = [t for t in seen if t[1] < e_mm]
+        above = [t for t in seen if t[1] > e_mm]
+        if not below or not above:  # not bracketed yet: step on past the target
+            goal = seen[-1][0] + 2.0 * (e_mm - seen[-1][1])
+        else:
+            goal = 0.5 * (max(below, key=lambda t: t[1])[0] + min(above, key=lambda t: t[1])[0])
+        seen.append((goal, *trial(goal)))
+        if abs(seen[-1][1] - e_mm) <= TOLERANCE_MM:
+            break
+    best = min(seen, key=lambda t: abs(t[1] - e_mm))
+    return (*best[1:], len(seen))
 
 
 def _measure(v, f, u, height0: float, name: str) -> float:

@@ -14,8 +14,9 @@ volume from the smaller scan, that volume and ``E``:
   remaining volume equally).
 
 A lung whose apex or dome the scan cut off (:func:`~lungdeform.geometry.dome.dome_weights` refuses it) gets
-neither row; one whose dome rose (``E < 0``, not modelled) or whose ``E`` the volume cannot produce gets no
-``dome`` row. Each row records the ``dome_mm`` it was given.
+neither row; one whose dome rose (``E < 0``, not modelled), whose ``E`` the volume cannot produce, or whose
+split does not converge gets no ``dome`` row (a "–" in the tables). Each row records the ``dome_mm`` it was
+given.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from lungdeform.errors import InputError
+from lungdeform.errors import InputError, LungdeformError
 from lungdeform.geometry.dome import dome_excursion, dome_weights
 from lungdeform.geometry.mesh import Surface
 from lungdeform.geometry.moments import solid_moments
@@ -68,7 +69,7 @@ def dome_predictions(pair, default: PopulationDefault) -> dict:
         lung = build_lung(pair.rest, pair.side, default=default, settings=BuildSettings(calibration_ml=delta, dome_mm=e))
         out["dome"] = (lung.surface_at(pair.volume_ml, exact=True).vertices,
                        lung.points_at(pair.landmarks_rest, pair.volume_ml, exact=True))
-    except InputError:
+    except LungdeformError:  # refused (InputError) or not converged: no dome row for this lung ("–" in the table)
         pass
     out["dome_scaling"] = dome_scaling(pair.rest, pair.volume_ml, e, pair.landmarks_rest)
     return out
