@@ -7,6 +7,7 @@ import pytest
 
 from lungdeform.cli.main import main
 from lungdeform.data import default_lungs
+from lungdeform.geometry.dome import dome_weights
 from lungdeform.io.meshfile import write_mesh
 from lungdeform.io.modelfile import load_model
 from lungdeform.model.dome import ACCEPT_MM, BREATHING
@@ -32,7 +33,12 @@ def test_build_records_the_dome_it_was_told(tmp_path, left_lung, capsys):
     assert load_model(out).provenance["dome"]["asked_mm"] == {"left": 4.5}
     assert main(["build", str(left_lung), "--side", "left", "--out", str(out), "--breathing", "belly",
                  "--tidal-ml", "400"]) == 0
-    assert load_model(out).provenance["dome"]["asked_mm"] == {"left": BREATHING["belly"] * 0.4}
+    m = load_model(out)  # the lone left lung takes 46.4 % of 400 mL; E = κ·ΔV/F
+    lung = m.lungs["left"]
+    footprint = dome_weights(lung.surface.vertices, lung.surface.faces).footprint_mm2
+    assert lung.calibration_ml == pytest.approx(0.464 * 400.0)
+    assert m.provenance["dome"]["asked_mm"]["left"] == pytest.approx(BREATHING["belly"] * lung.calibration_ml * 1000
+                                                                     / footprint, abs=1e-3)
 
 
 @pytest.mark.parametrize("args, message", [
@@ -55,12 +61,13 @@ def test_build_refuses_what_is_not_a_dome_excursion(tmp_path, left_lung, capsys,
 
 
 def test_demo_with_chest_breathing(tmp_path, capsys):
-    # the embedded lungs breathing with the chest: each dome 8 mm per litre × 0.5 L, said and recorded
+    # the embedded lungs breathing with the chest: each floor sweeps 30 % of its lung's share, said and recorded
     out = tmp_path / "demo"
     assert main(["demo", "--out", str(out), "--breathing", "chest", "--duration", "0.5"]) == 0
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["dome"]["asked_mm"] == {"left": 4.0, "right": 4.0}
+    assert summary["dome"]["share"] == BREATHING["chest"] and set(summary["dome"]["asked_mm"]) == {"left", "right"}
     text = capsys.readouterr().out
-    assert "left: dome excursion 4.0 mm" in text and "right: dome excursion 4.0 mm" in text
+    for side, mm in summary["dome"]["asked_mm"].items():
+        assert 2.0 < mm < 5.0 and f"{side}: dome excursion {summary['dome']['measured_mm'][side]:.1f} mm" in text
     assert main(["demo", "--out", str(tmp_path / "d2"), "--dome-mm", "-1"]) == 2
     assert not (tmp_path / "d2").exists()

@@ -86,14 +86,18 @@ def test_what_the_volume_cannot_produce_is_refused():
 
 
 def test_breathing_shorthand_and_sides():
-    # --breathing: mm per litre inspired (both lungs) × the tidal volume; --dome-mm per side or for both
-    per = DomeRequest.breathing("mixed").per_lung(["left", "right"], 500.0)
-    assert per == {"left": BREATHING["mixed"] / 2, "right": BREATHING["mixed"] / 2}
-    assert DomeRequest(mm={"both": 7.0}).per_lung(["right"], 300.0) == {"right": 7.0}
+    # --breathing: the floor sweeps a share κ of each lung's volume change, E = κ·ΔV/F (F its footprint);
+    # --dome-mm per side or for both
+    lung = _lung()
+    footprint = dome_weights(lung.vertices, lung.faces).footprint_mm2
+    per = DomeRequest.breathing("mixed").per_lung({"left": lung}, {"left": 200.0})
+    assert per["left"] == pytest.approx(BREATHING["mixed"] * 200.0 * 1000.0 / footprint, rel=1e-12)
+    assert DomeRequest(mm={"both": 7.0}).per_lung({"right": lung}, {"right": 300.0}) == {"right": 7.0}
     with pytest.raises(InputError, match="no dome excursion given for the left lung"):
-        DomeRequest(mm={"right": 7.0}).per_lung(["left", "right"], 500.0)
+        DomeRequest(mm={"right": 7.0}).per_lung({"left": lung, "right": lung}, {"left": 1.0, "right": 1.0})
     with pytest.raises(InputError, match="breathing must be one of chest, mixed, belly"):
         DomeRequest.breathing("deep")
+    assert 0 < BREATHING["chest"] < BREATHING["mixed"] < BREATHING["belly"] < 1  # each producible (κ < 1)
 
 
 def test_build_with_a_dome_and_without():
@@ -114,7 +118,9 @@ def test_build_with_a_dome_and_without():
             units = lung.calibration_ml / lung.unit_ml
             got = np.polyval(lung.volume_poly[::-1], units) - lung.volume_poly[0]
             assert got / 1000.0 == pytest.approx(lung.calibration_ml, rel=1e-9)
-            assert rec["asked_mm"][side] == BREATHING[name] / 2
+            footprint = dome_weights(lung.surface.vertices, lung.surface.faces).footprint_mm2
+            assert rec["asked_mm"][side] == pytest.approx(BREATHING[name] * lung.calibration_ml * 1000 / footprint,
+                                                          abs=1e-3)
             assert rec["measured_mm"][side] == pytest.approx(rec["asked_mm"][side], abs=ACCEPT_MM + 1e-3)
     # the diaphragm does more of a belly breath: its base descends further, its front moves less
     for side in ("left", "right"):

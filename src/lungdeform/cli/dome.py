@@ -11,7 +11,7 @@ DOME_MM_HELP = ("How far the diaphragm dome descends relative to the apex over t
                 "both domes, or 'left=MM,right=MM'. The breath is split so that each dome moves that far, the "
                 "rest of the lung following the default's pattern. Default: the default's own.")
 BREATHING_HELP = ("A breathing pattern for a scene without a measurement: "
-                  + ", ".join(f"{k} ({v:g} mm of dome excursion per litre inspired)" for k, v in BREATHING.items())
+                  + ", ".join(f"{k} (the dome sweeps {v:.0%} of each lung's breath)" for k, v in BREATHING.items())
                   + " (docs/DEFAULTS.md 'Dome excursion'). Not with --dome-mm.")
 
 

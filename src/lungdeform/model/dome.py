@@ -29,8 +29,9 @@ apex, the floor descending ``E`` over the lung's footprint ``F`` (the underside'
 than ``ΔV`` would leave the rest of the lung shrinking (on the COPDgene lungs ``E·F`` was 0.27–0.69 of
 ``ΔV``). So is a split that folds the surface.
 
-The shorthand ``--breathing`` (:data:`BREATHING`): the excursion per litre inspired (both lungs), times the
-breath's tidal volume. Sources in docs/DEFAULTS.md.
+The shorthand ``--breathing`` (:data:`BREATHING`): the diaphragm's share ``κ`` of each lung's volume change,
+``E = κ·ΔV/F``: always producible (``κ < 1``), and scaled to the lung's own footprint. Values and sources in
+docs/DEFAULTS.md.
 """
 
 from __future__ import annotations
@@ -58,8 +59,10 @@ ACCEPT_MM = 0.25
 #: Fixed-point steps of the split before bisection; steps in all before it gives up.
 FIXED_STEPS = 6
 MAX_STEPS = 40
-#: ``--breathing``: dome excursion, mm per litre inspired by both lungs (docs/DEFAULTS.md, "Dome excursion").
-BREATHING = {"chest": 8.0, "mixed": 16.6, "belly": 25.0}
+#: ``--breathing``: the share of each lung's volume change its floor sweeps, ``κ = E·F/ΔV`` (docs/DEFAULTS.md,
+#: "Dome excursion": chest the lowest measured on the shared subjects, mixed the abdominal share of quiet
+#: breathing, belly nearly all of the breath).
+BREATHING = {"chest": 0.3, "mixed": 0.64, "belly": 0.9}
 #: Share of the surface's area that may turn over beyond what turns over under the default alone.
 FOLDED_SHARE = 0.01
 #: Largest ``--dome-mm`` taken at all, mm: a diaphragm moves up to about 10 cm in a maximal breath.
@@ -235,41 +238,42 @@ class DomeRequest:
     Attributes
     ----------
     mm : dict side → float or None
-        Each lung's dome excursion over the breath, mm (a key ``"both"`` for every lung); None with
-        ``per_litre_mm``.
-    per_litre_mm : float or None
-        mm per litre inspired by both lungs (``--breathing``); each dome then moves this × the tidal volume.
+        Each lung's dome excursion over the breath, mm (a key ``"both"`` for every lung); None with ``share``.
+    share : float or None
+        ``κ`` of :data:`BREATHING` (``--breathing``): each lung's floor sweeps this share of its volume change.
     source : str
         Where the number came from, as the provenance records it.
     """
 
     mm: dict | None = None
-    per_litre_mm: float | None = None
+    share: float | None = None
     source: str = "given"
 
     def __post_init__(self):
-        if (self.mm is None) == (self.per_litre_mm is None):
-            raise InputError("a dome request needs exactly one of mm and per_litre_mm")
+        if (self.mm is None) == (self.share is None):
+            raise InputError("a dome request needs exactly one of mm and share")
         if self.mm is not None:
             object.__setattr__(self, "mm", {k: check_excursion(v, f"dome excursion ({k})") for k, v in self.mm.items()})
-        else:
-            check_excursion(self.per_litre_mm, "dome excursion per litre")
+        elif not (math.isfinite(self.share) and 0.0 <= self.share < 1.0):
+            raise InputError(f"the diaphragm's share of the breath must be in [0, 1), got {self.share!r}")
 
     @classmethod
     def breathing(cls, name: str) -> DomeRequest:
         """The shorthand ``name`` of :data:`BREATHING` (InputError listing them for another name)."""
         if name not in BREATHING:
             raise InputError(f"breathing must be one of {', '.join(BREATHING)}, got {name!r}")
-        return cls(per_litre_mm=BREATHING[name], source=f"breathing {name} ({BREATHING[name]:g} mm per litre inspired)")
+        return cls(share=BREATHING[name], source=f"breathing {name} (the floor sweeps {BREATHING[name]:.0%} of the breath)")
 
-    def per_lung(self, sides, tidal_ml: float) -> dict:
-        """``{side: mm}`` for the lungs ``sides`` of a breath of ``tidal_ml`` (both lungs, mL)."""
+    def per_lung(self, surfaces: dict, delta_ml: dict) -> dict:
+        """``{side: mm}`` for the lungs ``surfaces`` (side → surface, mm LPS) whose volume changes over the breath
+        are ``delta_ml`` (side → mL)."""
         if self.mm is None:
-            return {s: check_excursion(self.per_litre_mm * tidal_ml / 1000.0) for s in sides}
-        missing = [s for s in sides if s not in self.mm and "both" not in self.mm]
+            return {s: self.share * delta_ml[s] * MM3_PER_ML / dome_weights(x.vertices, x.faces, name=x.name).footprint_mm2
+                    for s, x in surfaces.items()}
+        missing = [s for s in surfaces if s not in self.mm and "both" not in self.mm]
         if missing:
             raise InputError(f"no dome excursion given for the {missing[0]} lung (give it as {missing[0]}=MM)")
-        return {s: self.mm.get(s, self.mm.get("both")) for s in sides}
+        return {s: self.mm.get(s, self.mm.get("both")) for s in surfaces}
 
 
 def split_record(request: DomeRequest, asked: dict, lungs: dict) -> dict:
@@ -282,5 +286,5 @@ def split_record(request: DomeRequest, asked: dict, lungs: dict) -> dict:
         moved = rest.vertices + lung.displacement * (lung.calibration_ml / lung.unit_ml)
         measured[side] = round(dome_weights(moved, rest.faces).height_mm
                                - dome_weights(rest.vertices, rest.faces).height_mm, 3)
-    return {"source": request.source, "per_litre_mm": request.per_litre_mm, "asked_mm": asked,
+    return {"source": request.source, "share": request.share, "asked_mm": {k: round(v, 3) for k, v in asked.items()},
             "measured_mm": measured, "definition": "lungdeform.geometry.dome (docs/DEFAULTS.md, Dome excursion)"}

@@ -381,7 +381,7 @@ def build_model(
     parts = tidal_split({side: s.volume_ml for side, s in surfaces.items()}, tidal_ml)
     chosen = resolve_default(kwargs.pop("default", None))
     dome: DomeRequest | None = kwargs.pop("dome", None)
-    domes = {} if dome is None else dome.per_lung(list(surfaces), tidal_ml)
+    domes = {} if dome is None else dome.per_lung(surfaces, parts)
     lungs = {}
     for side, surface in surfaces.items():
         lungs[side] = build_lung(
