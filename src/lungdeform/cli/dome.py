@@ -46,4 +46,4 @@ def dome_lines(record: dict | None, volumes_ml: dict) -> list[str]:
     if not record:
         return []
     return [f"{side}: dome excursion {record['measured_mm'][side]:.1f} mm relative to the apex over +{ml:.0f} mL "
-            f"(asked {record['asked_mm'][side]:g} mm: {record['source']})" for side, ml in volumes_ml.items()]
+            f"(asked {record['asked_mm'][side]:.1f} mm: {record['source']})" for side, ml in volumes_ml.items()]

@@ -112,7 +112,7 @@ def _snapshot(out: Path, model, scales: dict, v_total: np.ndarray, chosen, orien
     exhale = [(lung.surface.vertices, lung.surface.faces) for lung in model.lungs.values()]
     layers = [(inhale, "#d9534f", 1.0), (exhale, "#4a7ab5", 1.0)]
     dome = model.provenance.get("dome")
-    told = (f"\n{dome['source']}: dome excursion " + ", ".join(f"{k} {v:g} mm" for k, v in dome["asked_mm"].items())
+    told = (f"\n{dome['source']}: dome excursion " + ", ".join(f"{k} {v:.1f} mm" for k, v in dome["asked_mm"].items())
             if dome else "")
     return Path(save_png(snapshot(layers, views=("anterior", "lateral-right"),
                                   title=f"end-exhale (blue) inside end-inhale +{v_total[peak]:.0f} mL (red rim), "
