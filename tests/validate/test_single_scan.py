@@ -128,10 +128,10 @@ def test_itk_pair_rows_and_layout(data_dir, tmp_path):
     folder = require_path(data_dir, "itk-right-lung-two-volumes")
     m = run_single_scan(folder, tmp_path, SingleScanConfig(default="population"))
     row = m["lungs"]["itk/right"]
-    assert set(row) == {"default", "paper", "isotropic", "lung_info", "region_shares"}
+    assert set(row) == {"default", "dome", "dome_scaling", "paper", "isotropic", "lung_info", "region_shares"}
     assert row["lung_info"] == {"landmarks": True, "cut": ["exp i-high", "insp i-high"],
                                 "folder": "itk-right-lung-two-volumes"}  # the ITK crop cuts its medial face
-    for r in (row[k] for k in ("default", "paper", "isotropic")):
+    for r in (row[k] for k in ("default", "dome", "dome_scaling", "paper", "isotropic")):
         assert set(r) >= {"surface_mean_mm", "landmark_mean_mm", "translation_mm", "landmark_motion_mm", "regions_mm"}
     assert m["summary"]["n_lungs"] == 1 and m["summary"]["n_lungs_landmarks"] == 1
     assert row["default"]["surface_mean_mm"] < row["paper"]["surface_mean_mm"]

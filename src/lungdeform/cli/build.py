@@ -34,6 +34,7 @@ from .common import (
     takes,
     tidal_option,
 )
+from .dome import BREATHING_HELP, DOME_MM_HELP, dome_lines, dome_request
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -55,6 +56,8 @@ class BuildOptions:
     d_min: Annotated[float, typer.Option("--d-min", callback=bounded(0, 100, "mm", low_open=True), help="Minimum transfer distance (mm).")] = 1.0
     constants: Annotated[str, typer.Option("--constants", help=CONSTANTS_HELP)] = "population"
     scan_state: Annotated[str, typer.Option("--scan-state", help=SCAN_STATE_HELP)] = "end-exhale"
+    dome_mm: Annotated[Optional[str], typer.Option("--dome-mm", help=DOME_MM_HELP)] = None
+    breathing: Annotated[Optional[str], typer.Option("--breathing", help=BREATHING_HELP)] = None
 
 
 def register(apps) -> None:
@@ -65,6 +68,7 @@ def register(apps) -> None:
 
         check_tidal_ml(opts.tidal_ml)  # before the (slow) reading, with the options' own names
         scan = parse_scan_state(opts.scan_state, opts.tidal_ml)
+        dome = dome_request(opts.dome_mm, opts.breathing)
         check_output(opts.out, opts.sources)
         if opts.solver not in SOLVERS:
             raise InputError(f"--solver must be one of {', '.join(SOLVERS)}, got {opts.solver!r}")
@@ -100,7 +104,7 @@ def register(apps) -> None:
         )
         model = build_model(surfaces, tidal_ml=opts.tidal_ml, stiffness=stiff, gravity=gravity,
                             settings=BuildSettings(solver=opts.solver, d_min=opts.d_min), provenance=prov, default=chosen,
-                            progress=say)
+                            progress=say, dome=dome)
         model = replace(model, scan=scan)  # the surfaces are that scan
         path = save_model(opts.out, model)
         shares = lung_shares(model)
@@ -114,6 +118,8 @@ def register(apps) -> None:
         if not scan.is_end_exhale:  # the rest surfaces are that scan; the breath reaches below it
             typer.echo(f"scan: {scan.describe()}: the lungs together {scan_ml(model):.0f} mL at the scan, "
                        f"{end_exhale_ml(model):.0f} mL at end-exhale; the model breathes out below the scan and in above it")
+        for line in dome_lines(model.provenance.get("dome"), {sd: lg.calibration_ml for sd, lg in model.lungs.items()}):
+            typer.echo(line)
         typer.echo(f"constants: {chosen.name} ({chosen.provenance.get('source', chosen.name)})")
         typer.echo(f"model written to {path}")
 

@@ -10,6 +10,7 @@ from lungdeform.errors import InputError
 from lungdeform.playback.demo import run_demo
 
 from .common import CONSTANTS_HELP, check_number, check_tidal_ml, parse_orientation, say, tidal_option
+from .dome import BREATHING_HELP, DOME_MM_HELP, dome_lines, dome_request
 
 #: Longest playback the demo writes (s): its ParaView series is 20 files (~2.7 MB) per second.
 MAX_DURATION_S = 300.0
@@ -24,13 +25,16 @@ def register(apps) -> None:
         tidal_ml: float | None = typer.Option(None, "--tidal-ml", callback=tidal_option, help="Tidal volume, both lungs (mL); default the preset's."),
         orientation: str = typer.Option("supine", "--orientation", help="supine, prone, upright, left-decubitus, right-decubitus or 'x,y,z'."),
         constants: str = typer.Option("population", "--constants", help=CONSTANTS_HELP),
+        dome_mm: str | None = typer.Option(None, "--dome-mm", help=DOME_MM_HELP),
+        breathing: str | None = typer.Option(None, "--breathing", help=BREATHING_HELP),
     ):
         """Build both embedded lungs (population default, supine) and play one breath of a PV-model preset."""
 
         check_tidal_ml(tidal_ml)
+        dome = dome_request(dome_mm, breathing)
         gravity = parse_orientation(orientation)
         r = run_demo(out, preset=preset, duration_s=duration_s, tidal_ml=tidal_ml,
-                     orientation=gravity, constants=constants, progress=say)
+                     orientation=gravity, constants=constants, dome=dome, progress=say)
         b = r.summary_data["breathing"]
         typer.echo(f"breathing: preset '{b['preset']}' ({b['description']}), {r.summary_data['duration_s']:g} s "
                    f"at {r.summary_data['frames_per_second']:.2f} frames/s, {r.summary_data['tidal_ml']:g} mL")
@@ -40,6 +44,9 @@ def register(apps) -> None:
                        f"peak {max(vols):.0f} mL (+{max(vols) - lung['volume_ee_ml']:.0f}), "
                        f"max volume error {lung['max_volume_error_percent']:.2g} % "
                        f"(linear reading {lung['linear_reading_max_error_percent']:.3f} %)")
+        shares = {name: lung["tidal_share_ml"] for name, lung in r.summary_data["lungs"].items()}
+        for line in dome_lines(r.summary_data.get("dome"), shares):
+            typer.echo(line)
         typer.echo(f"model:       {r.model}")
         typer.echo(f"time series: {r.series}")
         typer.echo(f"summary:     {r.summary}")

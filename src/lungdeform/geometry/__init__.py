@@ -7,8 +7,9 @@ face pairs that cross), :mod:`~lungdeform.geometry.remesh` (Taubin smoothing,
 decimation, clean-up), :mod:`~lungdeform.geometry.distance` (exact point-to-triangle distance, surface
 distance statistics), :mod:`~lungdeform.geometry.contours` (a surface through planar contours,
 mesh–plane sections), :mod:`~lungdeform.geometry.frame` (the per-side lung frame of Sec. IV-B, the
-side check) and :mod:`~lungdeform.geometry.regions` (a lung surface's apex, base, costal and
-mediastinal regions).
+side check), :mod:`~lungdeform.geometry.regions` (a lung surface's apex, base, costal and
+mediastinal regions) and :mod:`~lungdeform.geometry.dome` (the diaphragm dome's height and its excursion
+relative to the apex).
 
 May import: the package root's core modules (``errors``, ``constants``, ``atomic``) only.
 """

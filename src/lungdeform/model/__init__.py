@@ -6,7 +6,8 @@ Owns: :mod:`~lungdeform.model.graph` (spring-node graph, Sec. III-E), :mod:`~lun
 :mod:`~lungdeform.model.response` (force → response, the one entry point every caller uses),
 :mod:`~lungdeform.model.force` (applied force (18)), :mod:`~lungdeform.model.direction` (directions
 (15)–(17)), :mod:`~lungdeform.model.displacement` (``u = k·F·d``, (1), exact volume calibration,
-playback), :mod:`~lungdeform.model.population` (the default an unfitted model takes its constants
+playback), :mod:`~lungdeform.model.dome` (a displacement split so that the diaphragm dome moves as
+told), :mod:`~lungdeform.model.population` (the default an unfitted model takes its constants
 from: Table I or the shipped population default, docs/DEFAULTS.md) and :mod:`~lungdeform.model.lung`
 (:class:`LungModel` and :class:`Model`, the bundles a viewer or exporter plays).
 

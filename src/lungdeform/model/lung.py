@@ -30,7 +30,8 @@ from lungdeform.progress import Progress, silent
 
 from .direction import corrected_directions, polynomial_basis
 from .direction import directions as direction_field
-from .displacement import Playback, calibrate, scale_for_volume, volume_polynomial
+from .displacement import Playback, calibrate, calibration_units, scale_for_volume, volume_polynomial
+from .dome import DomeRequest, check_feasible, dome_split, split_record
 from .force import field_basis, force_weights
 from .population import PopulationDefault, resolve_default
 from .response import ResponseSolver
@@ -209,7 +210,8 @@ class LungModel:
         (:meth:`LungFrame.supported`), then exact volume calibration. No new solve. A fitted
         direction correction (:mod:`lungdeform.fit.direction_correction`) and landmark correction
         belong to the scans' posture: the new directions are the paper's (15)–(17) and the
-        landmark correction and the interior map are dropped."""
+        landmark correction and the interior map are dropped. So is a dome split
+        (:attr:`BuildSettings.dome_mm`): the new displacement is the default's."""
         g = gravity_vector(gravity)
         w = force_weights(self.frame, g, self.constants)
         d = direction_field(self.frame.supported(g), self.surface.vertices, self.constants)
@@ -228,12 +230,15 @@ class BuildSettings:
     unit_ml : ΔV: the displacement is mm per this many mL.
     solver : 'bicgstab' | 'gmres' | 'direct' | callable, the linear solver of the force fixed point.
     d_min : the smallest distance (mm) of the force response.
+    dome_mm : the diaphragm dome's excursion relative to the apex (mm) at ``calibration_ml``
+        (:mod:`lungdeform.model.dome`); None: the default's own.
     """
 
     calibration_ml: float = TIDAL_VOLUME_ML
     unit_ml: float = 1.0
     solver: str | LinearSolver = "bicgstab"
     d_min: float = 1.0
+    dome_mm: float | None = None
 
 
 def build_lung(
@@ -262,7 +267,9 @@ def build_lung(
     gravity : str or (3,) float
         'supine', 'prone', 'upright', 'left-decubitus', 'right-decubitus' or an LPS vector.
     settings : BuildSettings
-        Calibration volume, displacement unit (mL), linear solver, d_min.
+        Calibration volume, displacement unit (mL), linear solver, d_min, and the dome excursion: given,
+        the displacement is split between the default's pattern and a head–foot stretch so that the dome
+        descends that far at the calibration volume (:func:`lungdeform.model.dome.dome_split`).
     default : PopulationDefault, 'population', 'paper', path or None
         Where c1…c9 and the direction correction come from when ``constants`` is not given
         (:mod:`lungdeform.model.population`; None: the shipped population default).
@@ -273,6 +280,8 @@ def build_lung(
     c = chosen.constants_for(side) if chosen is not None else np.asarray(constants, dtype=float)
     if c.shape != (9,) or not np.all(np.isfinite(c)):
         raise InputError(f"constants must be 9 finite values c1…c9, got shape {c.shape}")
+    if settings.dome_mm is not None:  # an excursion the volume cannot produce: said before the slow part
+        check_feasible(surface.vertices, surface.faces, settings.dome_mm, calibration_ml, f"{side} lung")
     n = surface.n_vertices
     e = uniform(n) if stiffness is None else as_moduli(stiffness, n)
     g = gravity_vector(gravity)
@@ -289,6 +298,11 @@ def build_lung(
         d = corrected_directions(d, polynomial_basis(xyz, chosen.direction_degree), corr)
     raw = (force_weights(frame, g, c) @ basis)[:, None] * d
     u = _calibrated(surface, raw, calibration_ml, unit_ml, gravity)
+    if settings.dome_mm is not None:
+        say(f"{side}: splitting the breath for a dome excursion of {settings.dome_mm:g} mm")
+        units = calibration_units(calibration_ml, unit_ml)
+        u = dome_split(p, surface.faces, u * units, settings.dome_mm, calibration_ml,
+                       name=f"{side} lung").displacement / units
     inner = None if chosen is None else default_interior(surface, side, u, chosen, unit_ml, g)
     return LungModel(side, surface, c, e, frame, d, basis, g, u, float(unit_ml),
                      float(calibration_ml), float(d_min), interior_map=inner)
@@ -367,18 +381,26 @@ def build_model(
     to :func:`build_lung` (``gravity``, ``default``). The
     provenance records the default the lungs were built with (``"default"``: name and digest).
     The model's scan is end-exhale (``dataclasses.replace(model, scan=…)`` says otherwise).
+    A keyword ``dome`` (:class:`lungdeform.model.dome.DomeRequest`): each lung's dome excursion over the
+    breath; the provenance records it (``"dome"``: asked, where it came from, measured on the built lungs).
+    Without it the lungs are built as before and the provenance has no ``"dome"``.
     """
     parts = tidal_split({side: s.volume_ml for side, s in surfaces.items()}, tidal_ml)
     chosen = resolve_default(kwargs.pop("default", None))
+    dome: DomeRequest | None = kwargs.pop("dome", None)
+    domes = {} if dome is None else dome.per_lung(surfaces, parts)
     lungs = {}
     for side, surface in surfaces.items():
         lungs[side] = build_lung(
             surface, side,
             constants=None if constants is None else constants.get(side),
             stiffness=None if stiffness is None else stiffness.get(side),
-            settings=replace(settings, calibration_ml=parts[side]), default=chosen, progress=progress, **kwargs,
+            settings=replace(settings, calibration_ml=parts[side], dome_mm=domes.get(side, settings.dome_mm)),
+            default=chosen, progress=progress, **kwargs,
         )
     prov = dict(provenance or {})
+    if dome is not None:
+        prov.setdefault("dome", split_record(dome, domes, lungs))
     prov.setdefault("tidal_ml", tidal_ml)
     prov.setdefault("tidal_split", split_rule(list(surfaces)))
     if constants is None or len(constants) < len(surfaces):

@@ -30,6 +30,7 @@ from lungdeform.data import default_lungs
 from lungdeform.errors import InputError
 from lungdeform.io.modelfile import save_model
 from lungdeform.model.displacement import enclosed_volume_ml, volume_change_ml
+from lungdeform.model.dome import DomeRequest
 from lungdeform.model.lung import build_model
 from lungdeform.model.population import PopulationDefault, resolve_default
 from lungdeform.plot.figure import save_png
@@ -41,6 +42,8 @@ from .schedule import lung_shares, preset_trace
 from .trajectory import lung_scales
 
 DEFAULT_PRESET = "normal"
+#: Frames per second of the demo's ParaView series.
+SERIES_FPS = 10.0
 
 
 @dataclass(frozen=True)
@@ -108,9 +111,12 @@ def _snapshot(out: Path, model, scales: dict, v_total: np.ndarray, chosen, orien
               for name, lung in model.lungs.items()]
     exhale = [(lung.surface.vertices, lung.surface.faces) for lung in model.lungs.values()]
     layers = [(inhale, "#d9534f", 1.0), (exhale, "#4a7ab5", 1.0)]
+    dome = model.provenance.get("dome")
+    told = (f"\n{dome['source']}: dome excursion " + ", ".join(f"{k} {v:.1f} mm" for k, v in dome["asked_mm"].items())
+            if dome else "")
     return Path(save_png(snapshot(layers, views=("anterior", "lateral-right"),
                                   title=f"end-exhale (blue) inside end-inhale +{v_total[peak]:.0f} mL (red rim), "
-                                        f"preset {chosen.name}, {orientation}"), out / "snapshot.png"))
+                                        f"preset {chosen.name}, {orientation}{told}"), out / "snapshot.png"))
 
 
 def run_demo(
@@ -120,8 +126,8 @@ def run_demo(
     duration_s: float | None = None,
     tidal_ml: float | None = None,
     orientation="supine",
-    series_fps: float = 10.0,
     constants=None,
+    dome: DomeRequest | None = None,
     progress: Progress | None = None,
 ) -> DemoResult:
     """Build the default lungs and play ``preset`` (one period unless ``duration_s``) into ``out``.
@@ -131,17 +137,18 @@ def run_demo(
     not exist; a previous demo there is replaced only at the end. An ``out`` holding anything but
     a demo's files (:data:`DEMO_FILES`) is refused (:class:`InputError`) rather than replaced.
     ``constants``: the default the lungs are built with (:func:`lungdeform.model.population.resolve_default`:
-    None or ``"population"``, ``"paper"``, a file).
+    None or ``"population"``, ``"paper"``, a file). ``dome``: how far each dome descends over the breath
+    (:class:`lungdeform.model.dome.DomeRequest`, ``--dome-mm`` / ``--breathing``); None: the default's own.
     """
 
     say = progress or silent
     chosen = get_preset(preset)
-    posture = Posture(orientation, resolve_default(constants))
+    posture = Posture(orientation, resolve_default(constants), dome)
     params, _curve, trace = preset_trace(chosen, 1, tidal_ml, STEPS_PER_S, duration_s=duration_s)
     out = Path(out)
     check_replaceable(out)
     with atomic_dir(out) as tmp:
-        result = _run_into(tmp, chosen, params, trace, tidal_ml, posture, series_fps, say)
+        result = _run_into(tmp, chosen, params, trace, tidal_ml, posture, SERIES_FPS, say)
     final = {k: out / getattr(result, k).relative_to(tmp) for k in ("model", "series", "summary", "snapshot")}
     return dataclasses.replace(result, **final)
 
@@ -164,10 +171,12 @@ def check_replaceable(out: Path) -> None:
 
 @dataclass(frozen=True)
 class Posture:
-    """How the demo's lungs are built: the ``orientation`` (gravity) and the ``default`` (c1…c9, directions)."""
+    """How the demo's lungs are built: the ``orientation`` (gravity), the ``default`` (c1…c9, directions) and
+    the ``dome`` request (None: the default's own)."""
 
     orientation: object
     default: PopulationDefault
+    dome: DomeRequest | None = None
 
 
 def _run_into(out: Path, chosen, params, trace, tidal_ml, posture: Posture, series_fps, say) -> DemoResult:
@@ -177,7 +186,7 @@ def _run_into(out: Path, chosen, params, trace, tidal_ml, posture: Posture, seri
     say("loading the embedded default lungs (Coronacases 001, CC BY 4.0)")
     orientation = posture.orientation
     model = build_model(default_lungs(), tidal_ml=tidal, gravity=orientation, default=posture.default, progress=say,
-                        provenance={"command": "demo", "source": "embedded Coronacases 001 lungs",
+                        dome=posture.dome, provenance={"command": "demo", "source": "embedded Coronacases 001 lungs",
                                     "orientation": str(orientation), "breathing": f"preset {chosen.name}"})
     model_path = save_model(out / "model.npz", model)
     say(f"playing the '{chosen.name}' preset ({tidal:g} mL, {params.period_s:g} s per breath) for "
@@ -187,6 +196,8 @@ def _run_into(out: Path, chosen, params, trace, tidal_ml, posture: Posture, seri
     per_lung = {name: _lung_summary(lung, shares[name] * trace.volume_ml, scales[name])
                 for name, lung in model.lungs.items()}
     summary = _summary(chosen, params, trace, tidal, orientation, per_lung)
+    if "dome" in model.provenance:  # the dome excursion asked and measured (--dome-mm, --breathing)
+        summary["dome"] = model.provenance["dome"]
     summary_path = write_json(out / "summary.json", summary)
     series_path = _write_series(out, model, trace, series_fps, say)
     png = _snapshot(out, model, scales, trace.volume_ml, chosen, orientation)

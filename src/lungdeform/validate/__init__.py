@@ -11,7 +11,8 @@ cycles of a folder of recorded traces), :mod:`~lungdeform.validate.prediction` (
 prediction and its intervals scored on recorded traces), :mod:`~lungdeform.validate.gating` (amplitude
 gating of a beam simulated on recorded traces), :mod:`~lungdeform.validate.single_scan` (the defaults scored
 from one scan, leave one subject out; learning a default from data folders; its report:
-:mod:`~lungdeform.validate.single_scan_report`), :mod:`~lungdeform.validate.subjects` (two-volume subject
+:mod:`~lungdeform.validate.single_scan_report`; its rows given the dome excursion:
+:mod:`~lungdeform.validate.dome_rows`), :mod:`~lungdeform.validate.subjects` (two-volume subject
 folders, their cohort manifest), :mod:`~lungdeform.validate.lung_pair` (one lung at two volumes, a cut
 left out), :mod:`~lungdeform.validate.fitted_lung` (its two-scan fit, cached),
 :mod:`~lungdeform.validate.translation` (the best translation a prediction is scored after) and

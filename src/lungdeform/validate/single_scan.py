@@ -19,6 +19,9 @@ scored with the cut left out of the surface distance):
      from the default's other subjects among those read: :func:`lungdeform.cohort.default.learn_default`);
    - ``paper``: the same with Table I;
    - ``isotropic``: scaling about the solid's centroid to the volume;
+   - ``dome``, ``dome_scaling``: given also the dome excursion measured from the two masks, the default
+     split to move the dome that far, and the fair baseline scaling given the same number
+     (:mod:`lungdeform.validate.dome_rows`);
    - ``fitted`` (``with_fitted``): the two-scan fit of that lung (c1…c9, a translation, the
      direction correction; uniform stiffness), a ceiling;
 
@@ -68,6 +71,7 @@ from lungdeform.model.population import NAMES, PopulationDefault, paper_default,
 from lungdeform.progress import Progress, silent
 from lungdeform.segment.split import SplitCache
 
+from .dome_rows import dome_row, dome_scaling_row
 from .fitted_lung import FIT_EVALUATIONS, FittedLung, cached_fit, fit_pair, fitted_model, sample_of
 from .lung_pair import LungPair, cached_pair, isotropic_vertices, lung_sides, read_pair
 from .single_scan_report import row_names, write_report
@@ -153,9 +157,9 @@ def fitted_row(pair: LungPair, training: Training):
     return None if training.own_fit is None else modelled(pair, fitted_model(pair, training.own_fit))
 
 
-#: The rows, in report order.
-ROW_PREDICTORS: dict[str, Predictor] = {"default": default_row, "paper": paper_row, "isotropic": isotropic_row,
-                                        "fitted": fitted_row}
+#: The rows, in report order (``dome``, ``dome_scaling``: :mod:`lungdeform.validate.dome_rows`).
+ROW_PREDICTORS: dict[str, Predictor] = {"default": default_row, "dome": dome_row, "dome_scaling": dome_scaling_row,
+                                        "paper": paper_row, "isotropic": isotropic_row, "fitted": fitted_row}
 ROWS = tuple(ROW_PREDICTORS)
 
 
