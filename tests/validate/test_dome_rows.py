@@ -9,8 +9,8 @@ from lungdeform.geometry.dome import dome_weights
 from lungdeform.geometry.mesh import Surface
 from lungdeform.model.dome import TOLERANCE_MM
 from lungdeform.model.population import resolve_default
-from lungdeform.validate.dome_rows import dome_predictions, measured_excursion, scored_rows
-from lungdeform.validate.single_scan import LungPair, score
+from lungdeform.validate.dome_rows import dome_row, dome_scaling_row, measured_excursion
+from lungdeform.validate.single_scan import LungPair, Training, score
 from tests.model.test_dome import _lung
 
 
@@ -32,19 +32,16 @@ def test_dome_scaling_is_exact_for_a_lung_that_scaled():
     pair = _pair(np.array([sxy, sxy, sz]))
     e = measured_excursion(pair.rest, pair.keep, pair.target)
     assert e == pytest.approx((sz - 1) * dome_weights(pair.rest.vertices, pair.rest.faces).height_mm, rel=1e-9)
-    preds = dome_predictions(pair, resolve_default("population"))
-    row = score(pair, *preds["dome_scaling"])
+    row = score(pair, *dome_scaling_row(pair, Training(resolve_default("population"))))
     assert row["surface_mean_mm"] < 0.05 and row["landmark_mean_mm"] < 0.05
 
 
 def test_dome_row_moves_the_dome_as_measured():
-    # the dome row's prediction has the larger volume and, measured on it, the excursion of the two scans;
-    # every row records the excursion it was given
+    # the dome row's prediction has the larger volume and, measured on it, the excursion of the two scans
     pair = _pair(np.array([1.06, 1.06, 1.08]))
-    rows = scored_rows(pair, resolve_default("population"), lambda p, v, lm: {"vertices": v})
+    v, landmarks = dome_row(pair, Training(resolve_default("population")))
     e = measured_excursion(pair.rest, pair.keep, pair.target)
-    assert set(rows) == {"dome", "dome_scaling"} and rows["dome"]["dome_mm"] == e
-    v = rows["dome"]["vertices"]
+    assert landmarks.shape == (3, 3)
     got = dome_weights(v, pair.rest.faces).height_mm - dome_weights(pair.rest.vertices, pair.rest.faces).height_mm
     assert got == pytest.approx(e, abs=TOLERANCE_MM)
     assert Surface(v, pair.rest.faces).volume_ml == pytest.approx(pair.volume_ml, rel=1e-9)
@@ -58,4 +55,5 @@ def test_no_rows_when_the_scan_cut_the_dome_off():
     cut = LungPair(pair.subject, pair.side, pair.rest, pair.keep, Target(pair.target.surface, pair.target.volume_ml, keep),
                    pair.volume_ml, pair.landmarks_rest, pair.landmarks_target)
     assert measured_excursion(cut.rest, cut.keep, cut.target) is None
-    assert dome_predictions(cut, resolve_default("population")) == {}
+    training = Training(resolve_default("population"))
+    assert dome_row(cut, training) is None and dome_scaling_row(cut, training) is None
