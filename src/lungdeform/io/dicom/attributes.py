@@ -8,16 +8,20 @@ names the file and the attributes. Every reader of this package calls it
 attributes GDCM read of each file, :func:`as_dataset`).
 
 Writing: :func:`decimal` formats a number as a Decimal String of at most 16 bytes (PS3.5 6.2, DS;
-Eclipse refuses longer ones) and :func:`check_dataset` walks a dataset, its sequences included,
-before it is saved: every value within its VR's limits (:data:`MAX_BYTES`: DS 16, IS 12, UI 64
-bytes, ...), every UI a UID. A value outside them is a bug of the writer, refused with
-:class:`~lungdeform.errors.InputError` naming the attribute, never written.
+Eclipse refuses longer ones); :func:`fit_text` makes every text value lungdeform derives (a
+structure set label, a series description, a ROI name ``GTV_β肿瘤@phase03``) fit its VR: characters
+the VR cannot hold replaced, cut on a character boundary to the VR's length in bytes of UTF-8 (what
+dciodvfy counts; never inside a combining sequence), kept unique. :func:`check_dataset` walks a
+dataset, its sequences included, before it is saved: every value within its VR's limits
+(:data:`MAX_BYTES`: DS 16, IS 12, UI 64 bytes, ...), every UI a UID. A value outside them is a bug
+of the writer, refused with :class:`~lungdeform.errors.InputError` naming the attribute, never written.
 """
 
 from __future__ import annotations
 
 import math
 import re
+import unicodedata
 import warnings
 
 from pydicom.dataset import Dataset
@@ -104,6 +108,59 @@ def declare_charset(ds: Dataset) -> None:
     values = [v for t in texts for v in (t if isinstance(t, (list, tuple, MultiValue)) else [t])]
     if not all(str(v).isascii() for v in values):
         ds.SpecificCharacterSet = "ISO_IR 192"
+
+
+#: Characters a short text value (SH, LO, PN, CS) cannot hold: the backslash (it separates values)
+#: and every control character (PS3.5 6.2; ESC only begins an ISO 2022 escape, never in UTF-8)
+_NOT_IN_TEXT = re.compile(r"[\\\x00-\x1f\x7f-\x9f]")
+#: Characters that join what follows to what precedes them: a cut never falls before one
+_JOINERS = {"\u200c", "\u200d", "\u034f"}
+
+
+def text_boundary(text: str, i: int) -> bool:
+    """Whether ``text`` may be cut before index ``i`` without splitting a user-perceived character: not
+    before a combining mark (``e`` + U+0301), a variation selector or a joiner, nor after a joiner."""
+    if i <= 0 or i >= len(text):
+        return True
+    ch, before = text[i], text[i - 1]
+    return not (unicodedata.combining(ch) or unicodedata.category(ch) in ("Mn", "Me", "Mc")
+                or "\ufe00" <= ch <= "\ufe0f" or "\U000e0100" <= ch <= "\U000e01ef"
+                or ch in _JOINERS or before in _JOINERS)
+
+
+def cut_text(text: str, limit: int) -> str:
+    """The longest start of ``text`` whose UTF-8 encoding is at most ``limit`` bytes and that ends on
+    a character boundary (:func:`text_boundary`), trailing spaces removed (DICOM's padding)."""
+    if len(text.encode("utf-8")) <= limit:
+        return text.rstrip(" ")
+    size, i = 0, 0
+    while i < len(text) and size + len(text[i].encode("utf-8")) <= limit:
+        size += len(text[i].encode("utf-8"))
+        i += 1
+    while i > 0 and not text_boundary(text, i):
+        i -= 1
+    return text[:i].rstrip(" ")
+
+
+def fit_text(text: str, vr: str, *, keep: str = "", taken=()) -> str:
+    """``text`` followed by ``keep`` as one value of VR ``vr`` (SH, LO, ST …, :data:`MAX_BYTES`):
+    characters the VR cannot hold (:data:`_NOT_IN_TEXT`) become ``_``; ``text`` is cut
+    (:func:`cut_text`) so that the whole fits the VR's length in bytes of UTF-8 with ``keep`` (a phase
+    tag ``@phase03``) whole at its end; when the result is one of ``taken`` (values already given, e.g.
+    the other ROI names of a structure set) a ``~2``, ``~3`` … goes before ``keep`` until it is not.
+    ASCII text within the limit comes back as it is."""
+    limit = MAX_BYTES[vr]
+    clean = (lambda t: _NOT_IN_TEXT.sub("_", str(t))) if vr in ("SH", "LO", "PN", "CS", "AE") else str
+    text, keep = clean(text), clean(keep)
+    if len(keep.encode("utf-8")) > limit // 2:  # a tag longer than half the value: cut it too
+        keep = cut_text(keep, limit // 2)
+    value = cut_text(text, limit - len(keep.encode("utf-8"))) + keep
+    n = 1
+    while value in taken:
+        n += 1
+        mark = f"~{n}{keep}"
+        value = cut_text(text, limit - len(mark.encode("utf-8"))) + mark
+    return value
 
 
 def type2_defaults(ds: Dataset, keys) -> None:
