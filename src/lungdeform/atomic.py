@@ -1,8 +1,11 @@
 """Atomic file and folder writes: write to a temporary file (folder) beside the target, then rename.
 
 A failure (an exception, Ctrl-C, SIGTERM: the CLI turns it into Ctrl-C) leaves no half-written
-output: the temporary file or folder is removed and any previous file or folder at the target is
-untouched. Temporary names carry the writer's process id, so what a killed run left (SIGKILL, a
+output: the temporary file or folder is removed, any previous file or folder at the target is
+untouched, and the folders created to hold it are removed again (:func:`make_parent`,
+:func:`remove_made`). A command writing several outputs into one folder stages them
+(:func:`staged_dir`): they appear together at the end, or not at all; :func:`made_folder` is for
+long runs that keep what they finished (resumable), and remove only the empty folders they made. Temporary names carry the writer's process id, so what a killed run left (SIGKILL, a
 power cut) is recognised and removed by the next write to the same target (:func:`remove_stale`).
 Files and folders get the ordinary permissions of the umask (not the 0600/0700 of :mod:`tempfile`).
 """
@@ -27,16 +30,73 @@ import numpy as np
 from lungdeform.errors import ReadError
 
 
-def make_parent(path) -> None:
-    """Create ``path``'s folder (and its parents). A path under a regular file is refused with an
-    :class:`OSError` naming ``path`` and the file in its way (``mkdir`` says only "File exists")."""
+def make_parent(path) -> list[Path]:
+    """Create ``path``'s folder (and its parents); returns the folders it created, the deepest last
+    (:func:`remove_made` takes them away again after a failure). A path under a regular file is
+    refused with an :class:`OSError` naming ``path`` and the file in its way (``mkdir`` says only
+    "File exists")."""
     path = Path(path)
+    missing = []
     for above in path.parents:
         if above.exists():
             if not above.is_dir():
                 raise NotADirectoryError(errno.ENOTDIR, f"{above} is a file, not a folder", str(path))
             break
+        missing.append(above)
     path.parent.mkdir(parents=True, exist_ok=True)
+    return missing[::-1]
+
+
+def remove_made(folders) -> None:
+    """Remove ``folders`` (made by :func:`make_parent` or :func:`made_folder`, the deepest last) that
+    are still empty, the deepest first: a failed run leaves no folder it created."""
+    for folder in reversed(list(folders)):
+        try:
+            Path(folder).rmdir()
+        except OSError:  # not empty (something else is in it now), or gone: left as it is
+            break
+
+
+@contextmanager
+def made_folder(path) -> Iterator[Path]:
+    """The folder ``path``, created with the parents it lacks for the block; when the block fails (an
+    exception, Ctrl-C) the folders this created are removed while empty, so a refused run leaves no
+    folder behind, while a long run that finished part of its work (a case folder, complete) keeps it
+    and resumes from it. Every output inside is written atomically by its own writer."""
+    path = Path(path)
+    made = make_parent(path / "_")
+    try:
+        yield path
+    except BaseException:
+        remove_made(made)
+        raise
+
+
+@contextmanager
+def staged_dir(path) -> Iterator[Path]:
+    """Yield a hidden folder beside ``path`` for every output a command writes into the folder
+    ``path``; at the end of the block they appear there together: the hidden folder renamed to
+    ``path`` when ``path`` does not exist (:func:`atomic_dir`), else each of its entries moved into
+    ``path`` (a file of the same name replaced, other files of ``path`` kept). On a failure (an
+    exception, Ctrl-C, SIGTERM) the hidden folder is removed and ``path`` is as it was: not created
+    when it did not exist, its files untouched."""
+    path = Path(path)
+    if not path.exists():
+        with atomic_dir(path) as tmp:
+            yield tmp
+        return
+    remove_stale(path)
+    try:
+        tmp = Path(tempfile.mkdtemp(prefix=_prefix(path), suffix=".partial", dir=path.parent))
+    except OSError as exc:  # name the output the user asked for, not the hidden temporary folder
+        raise OSError(exc.errno, exc.strerror, str(path)) from exc
+    try:
+        yield tmp
+        for entry in sorted(tmp.iterdir()):
+            target = path / entry.name
+            replace_dir(entry, target) if entry.is_dir() else os.replace(entry, target)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 @contextmanager
@@ -46,12 +106,13 @@ def atomic_path(path, suffix: str | None = None) -> Iterator[Path]:
     ``suffix`` (default: the target's own) keeps writers that choose a format by file name happy.
     """
     path = Path(path)
-    make_parent(path)
+    made = make_parent(path)
     remove_stale(path)
     try:
         fd, tmp = tempfile.mkstemp(prefix=_prefix(path), suffix=path.suffix if suffix is None else suffix,
                                    dir=path.parent)
     except OSError as exc:  # name the output the user asked for, not the hidden temporary file
+        remove_made(made)
         raise OSError(exc.errno, exc.strerror, str(path)) from exc
     os.close(fd)
     try:
@@ -60,6 +121,7 @@ def atomic_path(path, suffix: str | None = None) -> Iterator[Path]:
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
+        remove_made(made)  # the folders made for it: a failed write leaves none
         raise
 
 
@@ -132,11 +194,12 @@ def atomic_dir(path) -> Iterator[Path]:
     success it is renamed to ``path`` (:func:`replace_dir`), so that ``path`` holds the whole set or
     its previous content; on failure (an exception, Ctrl-C) it is removed."""
     path = Path(path)
-    make_parent(path)
+    made = make_parent(path)
     remove_stale(path)
     try:
         tmp = Path(tempfile.mkdtemp(prefix=_prefix(path), suffix=".partial", dir=path.parent))
     except OSError as exc:  # name the output the user asked for, not the hidden temporary folder
+        remove_made(made)
         raise OSError(exc.errno, exc.strerror, str(path)) from exc
     try:
         os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp creates 0700
@@ -144,6 +207,7 @@ def atomic_dir(path) -> Iterator[Path]:
         replace_dir(tmp, path)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
+        remove_made(made)  # the folders made for it (a case folder above a lung's): a failed run leaves none
         raise
 
 

@@ -8,6 +8,7 @@ from typing import Annotated
 
 import typer
 
+from lungdeform.atomic import atomic_paths
 from lungdeform.errors import InputError
 from lungdeform.io.dicom.guard import is_dicom_file
 from lungdeform.io.dicom.registration import check_pair, write_registration
@@ -21,9 +22,11 @@ from .common import (
     MAX_LUNGS_ML,
     RigidFlags,
     RigidOptions,
+    SeriesFlags,
     apply_rigid,
     bounded,
     check_output,
+    dicom_input,
     field_lines,
     pick_state,
     rigid_region,
@@ -49,6 +52,7 @@ class DvfOptions:
     grid: Annotated[Path | None, typer.Option("--grid", help="Write the field on this image's grid instead of --reference's (e.g. the target scan's, so an inhaled lung is not cropped); same LPS world.")] = None
     no_rigid: Annotated[bool, typer.Option("--no-rigid", help="With --scan: leave the fit's alignment of that scan out (the field stays in the model's frame).")] = False
     rigid: RigidFlags = RigidFlags()
+    dicom: SeriesFlags = SeriesFlags()  # --series / --series-description: which CT series of --reference's folder
 
 
 def register(apps) -> None:
@@ -67,9 +71,11 @@ def register(apps) -> None:
         rigid = RigidOptions.of(opts.rigid)
         m = load_model(opts.model)
         state = without_alignment(pick_state(m, opts.volume_ml, opts.scan), opts.no_rigid)
-        series = _registration_series(opts.reference, opts.moving, opts.inverse, state) if opts.out_reg else None
-        image = read_image(opts.reference if opts.grid is None else opts.grid)
-        region = rigid_region(rigid, D.Grid.of(image), ("--reference", opts.reference))
+        choice = opts.dicom.choice()
+        dicom_input(opts.reference, choice, "--reference")
+        series = _registration_series((opts.reference, choice), opts.moving, opts.inverse, state) if opts.out_reg else None
+        image = read_image(opts.reference, series=choice) if opts.grid is None else read_image(opts.grid)
+        region = rigid_region(rigid, D.Grid.of(image), ("--reference", opts.reference), choice)
         note = extrapolation_note(m, [state.delta_ml])
         if note:
             typer.echo(f"note: {note}")
@@ -77,20 +83,24 @@ def register(apps) -> None:
         result = D.displacement_field(m, D.Grid.of(image), state.delta_ml, alignment=state.alignment,
                                       inverse=opts.inverse, spacing_mm=opts.node_mm)
         lines = field_lines(result) + apply_rigid(result, D.Grid.of(image), region, rigid)
-        write_image(opts.out, result.field, image.spacing, image.origin, image.direction)
+        outputs = [opts.out] + ([opts.out_reg] if series is not None else [])
+        with atomic_paths(outputs, [write_suffix(opts.out), None]) as tmp:  # the field and its REG together, or neither
+            write_image(tmp[0], result.field, image.spacing, image.origin, image.direction)
+            if series is not None:
+                write_registration(tmp[1], result.field, image, *series, description=f"lungdeform {state.source}")
         typer.echo(f"{'inverse' if opts.inverse else 'forward'} field at {state.source}")
         for line in lines:
             typer.echo(line)
-        typer.echo(f"wrote {opts.out}")
-        if series is not None:
-            write_registration(opts.out_reg, result.field, image, *series, description=f"lungdeform {state.source}")
-            typer.echo(f"wrote {opts.out_reg}")
+        for path in outputs:
+            typer.echo(f"wrote {path}")
 
 
-def _registration_series(reference: Path, moving: Path | None, inverse: bool, state):
-    """The fixed and moving series of ``--out-reg``, checked before the field is evaluated: the
-    REG holds the forward field (fixed → moving, docs/RADIOTHERAPY.md), so --inverse is refused; a
-    state in a fitted scan's own frame (an alignment) needs that scan's series as --moving."""
+def _registration_series(fixed: tuple, moving: Path | None, inverse: bool, state):
+    """The fixed and moving series of ``--out-reg`` (``fixed`` = (--reference, its --series choice)),
+    checked before the field is evaluated: the REG holds the forward field (fixed → moving,
+    docs/RADIOTHERAPY.md), so --inverse is refused; a state in a fitted scan's own frame (an
+    alignment) needs that scan's series as --moving."""
+    reference, choice = fixed
     if inverse:
         raise InputError("--out-reg holds the forward field (fixed → moving, DICOM's resampling direction); "
                          "drop --inverse")
@@ -98,7 +108,7 @@ def _registration_series(reference: Path, moving: Path | None, inverse: bool, st
         raise InputError(f"--out-reg needs --reference to be a DICOM CT series (the fixed one), got {reference}")
     if moving is None and state.alignment is not None:
         raise InputError("--out-reg: this state lies in a fitted scan's own frame; give that scan's series as --moving")
-    fixed = read_ct_series(reference)
+    fixed_ct = read_ct_series(reference, choice)
     mov = None if moving is None else read_ct_series(moving)
-    check_pair(fixed, mov)
-    return fixed, mov
+    check_pair(fixed_ct, mov)
+    return fixed_ct, mov

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated
@@ -9,14 +10,13 @@ from typing import Annotated
 import numpy as np
 import typer
 
-from lungdeform.atomic import write_bytes
+from lungdeform.atomic import atomic_path, staged_dir, write_bytes
 from lungdeform.breathing.presets import get_preset
 from lungdeform.errors import InputError
 from lungdeform.geometry.moments import solid_moments
 from lungdeform.io.dicom.rtstruct import (
     build_rtstruct,
     check_ct_is_scan,
-    check_roi_name,
     check_structure_on_ct,
     check_structure_on_scan,
     read_ct_series,
@@ -29,7 +29,16 @@ from lungdeform.playback import structures as R
 from lungdeform.playback import trajectory as T
 from lungdeform.playback.displacement_field import scan_state, volume_state
 
-from .common import check_cycles, check_output, check_tidal_ml, output_dir, read_curve, takes, without_alignment
+from .common import (
+    SeriesFlags,
+    check_cycles,
+    check_output,
+    check_tidal_ml,
+    dicom_input,
+    read_curve,
+    takes,
+    without_alignment,
+)
 
 #: Bounds on the schedule: frames per second, preset cycles, and points × frames (rows of trajectories.csv)
 MAX_FPS = 1000.0
@@ -59,6 +68,7 @@ class TrackOptions:
     reference_ct: Annotated[Path | None, typer.Option("--reference-ct", help="With --out-rtstruct: the DICOM CT series (folder) the structure was drawn on.")] = None
     scan: Annotated[int | None, typer.Option("--scan", help="Input scan K of the fit (0 = rest): its volume, in its own frame (the fit's alignment undone), as 'dvf --scan K'.")] = None
     no_rigid: Annotated[bool, typer.Option("--no-rigid", help="With --scan: leave the fit's alignment out (positions in the model's frame).")] = False
+    dicom: SeriesFlags = SeriesFlags()  # --series / --series-description: which CT series of --reference-ct's folder
 
 
 def register(apps) -> None:
@@ -77,9 +87,13 @@ def register(apps) -> None:
         _check_out_rtstruct(opts.out_rtstruct, opts.model, opts.points, opts.rtstruct, opts.curve)
         check_output(opts.out, [opts.model, opts.points, opts.rtstruct, opts.curve, opts.reference_ct], folder=True,
                      writes=("trajectories.csv", "points.json", "motion.png", "structure_motion.csv"))
+        series = opts.dicom.choice()
+        dicom_input(opts.reference_ct, series, "--reference-ct")
         m = load_model(opts.model)
         tracked = R.read_structure(opts.rtstruct, opts.structure) if opts.rtstruct is not None else None
-        ct = _reference_ct(tracked, opts.rtstruct, opts.out_rtstruct, opts.reference_ct, (m, opts.scan, opts.no_rigid))
+        for line in tracked.skipped if tracked is not None else ():  # contours enclosing no area: skipped, said
+            typer.echo(f"note: {line}")
+        ct = _reference_ct(tracked, opts.rtstruct, opts.out_rtstruct, (opts.reference_ct, series), (m, opts.scan, opts.no_rigid))
         if tracked is not None:
             pts, labels, source = tracked.points, tracked.labels, str(opts.rtstruct)
         else:
@@ -89,8 +103,6 @@ def register(apps) -> None:
                                                curve=opts.curve, preset=opts.preset, cycles=opts.cycles, tidal_ml=opts.tidal_ml, fps=opts.fps),
                                        len(pts), source)
         _check_rows(len(pts), len(frames.delta_ml), source)
-        for name in [f"{opts.structure}@{tag}" for tag in tags] + [f"ITV_{opts.structure}"] if opts.out_rtstruct is not None else []:
-            check_roi_name(name, str(opts.rtstruct))  # the ROI names, before the surfaces are moved
         note = T.extrapolation_note(m, frames.delta_ml)
         if note:
             typer.echo(f"note: {note}")
@@ -102,13 +114,16 @@ def register(apps) -> None:
             motion = R.motion_table(surfaces)
             surfaces.append(R.itv_surface(surfaces, opts.structure))  # the union over the states
             built = build_rtstruct(ct, surfaces, label=f"{opts.structure} moved", source=str(opts.rtstruct))
-        folder = output_dir(opts.out)
         meta = {"model": str(opts.model), "schedule": frames.source, "end_exhale_ml": T.end_exhale_ml(m), **T.interior_meta(m)}
-        paths = T.write_trajectories(folder, pts, labels, placement, positions, frames.delta_ml, frames.t_s, meta=meta)
+        with ExitStack() as stack:  # every output staged, and renamed into place together at the end
+            folder = stack.enter_context(staged_dir(opts.out))
+            written = T.write_trajectories(folder, pts, labels, placement, positions, frames.delta_ml, frames.t_s, meta=meta)
+            if built is not None:
+                save_rtstruct(stack.enter_context(atomic_path(opts.out_rtstruct)), built[0])
+                written["motion"] = write_bytes(folder / "structure_motion.csv", R.motion_csv({opts.structure: motion}))
+        paths = {key: opts.out / Path(path).name for key, path in written.items()}
         if built is not None:
-            save_rtstruct(opts.out_rtstruct, built[0])
             typer.echo(f"wrote {opts.out_rtstruct}: " + ", ".join(f"{k} ({n} contours)" for k, n in built[1].items()))
-            paths["motion"] = write_bytes(folder / "structure_motion.csv", R.motion_csv({opts.structure: motion}))
             _print_motion(opts.structure, motion, surfaces[-1])
         typer.echo(f"{len(pts)} point(s), {len(frames.delta_ml)} frame(s): {frames.source}")
         if tracked is None:
@@ -163,9 +178,10 @@ def _check_rows(points: int, frames: float, source: str) -> None:
                          "trajectories; lower --fps, or give --phases or --volume-ml")
 
 
-def _reference_ct(tracked, rtstruct, out_rtstruct, reference_ct, state):
-    """The reference CT (None without --out-rtstruct), read and the structure checked on it before
-    anything is written; warnings (another study; no frame of reference at all) on stderr.
+def _reference_ct(tracked, rtstruct, out_rtstruct, reference_ct: tuple, state):
+    """The reference CT (None without --out-rtstruct; ``reference_ct`` = (--reference-ct, its --series
+    choice)), read and the structure checked on it before anything is written; warnings (another
+    study; no frame of reference at all) on stderr.
     ``state`` = ``(model, --scan, --no-rigid)``: with ``--scan K`` the CT must be the scan whose
     frame the contours are in (:func:`_check_scan_ct`)."""
     if tracked is not None and not tracked.roi.frame_uid and out_rtstruct is None:
@@ -173,7 +189,7 @@ def _reference_ct(tracked, rtstruct, out_rtstruct, reference_ct, state):
                    "it was drawn in the frame of the model's end-exhale scan", err=True)
     if out_rtstruct is None:
         return None
-    ct = read_ct_series(reference_ct)
+    ct = read_ct_series(*reference_ct)
     if state[1] is not None and _check_scan_ct(ct, tracked, rtstruct, *state):
         return ct
     for line in check_structure_on_ct(tracked.roi, ct, str(rtstruct)):
