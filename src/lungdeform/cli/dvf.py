@@ -73,6 +73,7 @@ def register(apps) -> None:
         state = without_alignment(pick_state(m, opts.volume_ml, opts.scan), opts.no_rigid)
         choice = opts.dicom.choice()
         dicom_input(opts.reference, choice, "--reference")
+        dicom_input(opts.moving if opts.out_reg else None, None, "--moving")
         series = _registration_series((opts.reference, choice), opts.moving, opts.inverse, state) if opts.out_reg else None
         image = read_image(opts.reference, series=choice) if opts.grid is None else read_image(opts.grid)
         region = rigid_region(rigid, D.Grid.of(image), ("--reference", opts.reference), choice)

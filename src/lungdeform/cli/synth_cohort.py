@@ -17,7 +17,7 @@ from lungdeform.atomic import staged_dir
 from lungdeform.cohort.synthetic import SyntheticLungSpec, synthetic_cohort, write_cohort
 from lungdeform.errors import InputError
 
-from .common import bounded, say, takes
+from .common import bounded, check_output, say, takes
 
 
 def _floats(text: str, option: str) -> list[float]:
@@ -52,6 +52,7 @@ def register(apps) -> None:
     def synth_cohort_command(opts: SynthCohortOptions) -> None:
         """Generate a synthetic cohort with known constants, volumes and noise (truth.json)."""
 
+        check_output(opts.out, folder=True)  # a file or a folder that takes no file: refused before the work
         deltas = _floats(opts.volumes, "--volumes")
         spec = SyntheticLungSpec(noise_mm=opts.noise_mm, law=opts.law, landmarks=opts.landmarks, table_shift_mm=opts.table_shift_mm)
         lungs = synthetic_cohort(opts.subjects, delta_ml=deltas, spec=spec, seed=opts.seed, spread=opts.spread,

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated
@@ -10,7 +9,7 @@ from typing import Annotated
 import numpy as np
 import typer
 
-from lungdeform.atomic import atomic_path, staged_dir, write_bytes
+from lungdeform.atomic import staged_outputs, write_bytes
 from lungdeform.breathing.presets import get_preset
 from lungdeform.errors import InputError
 from lungdeform.geometry.moments import solid_moments
@@ -115,11 +114,11 @@ def register(apps) -> None:
             surfaces.append(R.itv_surface(surfaces, opts.structure))  # the union over the states
             built = build_rtstruct(ct, surfaces, label=f"{opts.structure} moved", source=str(opts.rtstruct))
         meta = {"model": str(opts.model), "schedule": frames.source, "end_exhale_ml": T.end_exhale_ml(m), **T.interior_meta(m)}
-        with ExitStack() as stack:  # every output staged, and renamed into place together at the end
-            folder = stack.enter_context(staged_dir(opts.out))
+        with staged_outputs() as staging:  # every output staged, and renamed into place together at the end
+            folder = staging.folder(opts.out)
             written = T.write_trajectories(folder, pts, labels, placement, positions, frames.delta_ml, frames.t_s, meta=meta)
             if built is not None:
-                save_rtstruct(stack.enter_context(atomic_path(opts.out_rtstruct)), built[0])
+                save_rtstruct(staging.file(opts.out_rtstruct), built[0])
                 written["motion"] = write_bytes(folder / "structure_motion.csv", R.motion_csv({opts.structure: motion}))
         paths = {key: opts.out / Path(path).name for key, path in written.items()}
         if built is not None:
