@@ -122,3 +122,26 @@ def test_fit_text_cuts_on_character_boundaries_within_the_vr():
     taken = {fit_text("肿瘤" * 20, "SH")}
     second = fit_text("肿瘤" * 21, "SH", taken=taken)
     assert second not in taken and second.endswith("~2") and len(second.encode()) <= 16
+
+
+def test_a_latin1_value_that_fits_only_in_latin1_keeps_latin1():
+    # a copied Latin-1 description of 40 "Ü" is 40 bytes in ISO_IR 100 but 80 in UTF-8, over LO's 64:
+    # declared as UTF-8 the valid source would be refused; Latin-1 is declared instead and the value
+    # fits (measured in the declared character set). Text Latin-1 cannot hold stays UTF-8.
+    from lungdeform.io.dicom.attributes import declare_charset
+
+    ds = Dataset()
+    ds.StudyDescription, ds.PatientName = "Ü" * 40, "Müller^Jürgen"
+    declare_charset(ds)
+    assert ds.SpecificCharacterSet == "ISO_IR 100"
+    check_dataset(ds)
+    short = Dataset()
+    short.PatientName = "Müller^Jürgen"
+    declare_charset(short)
+    assert short.SpecificCharacterSet == "ISO_IR 192"  # fits in UTF-8: UTF-8, as before
+    mixed = Dataset()
+    mixed.StudyDescription, mixed.SeriesDescription = "Ü" * 40, "肿瘤"
+    declare_charset(mixed)
+    assert mixed.SpecificCharacterSet == "ISO_IR 192"
+    with pytest.raises(InputError, match="StudyDescription .* longer than 64 bytes"):
+        check_dataset(mixed)

@@ -99,15 +99,39 @@ TEXT_VRS = ("SH", "LO", "ST", "LT", "UT", "UC", "PN")
 
 def declare_charset(ds: Dataset) -> None:
     """Set ``ds.SpecificCharacterSet`` to ``ISO_IR 192`` (UTF-8) when a text value of ``ds`` or its
-    sequences is not ASCII (a patient name copied from a Latin-1 source, ``Müller``), so that pydicom
-    writes it as UTF-8 and says so; without it the file would hold bytes outside the default
-    repertoire, which dciodvfy and planning systems refuse or garble (PS3.5 6.1.2.3)."""
+    sequences is not ASCII (a patient name copied from a Latin-1 source, ``Müller``; a ROI name in
+    Chinese), so that pydicom writes it as UTF-8 and says so; without it the file would hold bytes
+    outside the default repertoire, which dciodvfy and planning systems refuse or garble (PS3.5
+    6.1.2.3). ``ISO_IR 100`` (Latin-1) instead when every text is Latin-1 and a value copied from a
+    Latin-1 source fits its VR's bytes in Latin-1 only (a 64-character description with umlauts):
+    a valid source is not refused for its re-encoding."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        texts = [e.value for e in ds.iterall() if e.VR in TEXT_VRS and e.value is not None]
-    values = [v for t in texts for v in (t if isinstance(t, (list, tuple, MultiValue)) else [t])]
-    if not all(str(v).isascii() for v in values):
-        ds.SpecificCharacterSet = "ISO_IR 192"
+        texts = [(e.VR, e.value) for e in ds.iterall() if e.VR in TEXT_VRS and e.value is not None]
+    values = [(vr, str(v)) for vr, t in texts for v in (t if isinstance(t, (list, tuple, MultiValue)) else [t])]
+    if all(v.isascii() for _, v in values):
+        return
+    overflow = any(len(part.encode("utf-8")) > MAX_BYTES.get(vr, 1 << 30)
+                   for vr, v in values for part in (v.split("=") if vr == "PN" else [v]))
+    latin1 = all(_encodes(v, "latin-1") for _, v in values)
+    ds.SpecificCharacterSet = "ISO_IR 100" if overflow and latin1 else "ISO_IR 192"
+
+
+def _encodes(text: str, codec: str) -> bool:
+    try:
+        text.encode(codec)
+    except UnicodeEncodeError:
+        return False
+    return True
+
+
+def _codec(ds: Dataset, default: str = "utf-8") -> str:
+    """The codec of ``ds``'s declared SpecificCharacterSet as lungdeform writes it: Latin-1 for
+    ``ISO_IR 100``, else UTF-8 (ASCII text is the same in both)."""
+    charset = ds.get("SpecificCharacterSet")
+    if charset is None:
+        return default
+    return "latin-1" if str(charset).strip() == "ISO_IR 100" else "utf-8"
 
 
 #: Characters a short text value (SH, LO, PN, CS) cannot hold: the backslash (it separates values)
@@ -176,14 +200,15 @@ def check_dataset(ds: Dataset, where: str = "dataset") -> None:
     bytes, every UI value a UID (:data:`UID`); :class:`InputError` naming ``where`` and the attribute."""
     with warnings.catch_warnings():  # pydicom's own warnings on such values: refused here instead
         warnings.simplefilter("ignore")
-        _walk(ds, where)
+        _walk(ds, where, _codec(ds))
 
 
-def _walk(ds: Dataset, where: str) -> None:
+def _walk(ds: Dataset, where: str, codec: str) -> None:
+    """:func:`check_dataset` of ``ds``, its text measured in bytes of ``codec`` (the declared character set's)."""
     for elem in ds:
         if elem.VR == "SQ":
             for i, item in enumerate(elem.value):
-                _walk(item, f"{where}: {elem.keyword}[{i}]")
+                _walk(item, f"{where}: {elem.keyword}[{i}]", codec)
             continue
         limit = MAX_BYTES.get(elem.VR)
         if limit is None or elem.value is None:
@@ -193,7 +218,7 @@ def _walk(ds: Dataset, where: str) -> None:
             text = v.original_string if getattr(v, "original_string", None) is not None else v
             text = text.decode("latin-1") if isinstance(text, bytes) else str(text)
             parts = text.split("=") if elem.VR == "PN" else [text]
-            if any(len(part.encode("utf-8")) > limit for part in parts):
+            if any(len(part.encode(codec, errors="replace")) > limit for part in parts):
                 raise InputError(f"{where}: {elem.keyword or elem.tag} value {text[:40]!r} is longer than "
                                  f"{limit} bytes, the limit of VR {elem.VR}")
             if elem.VR == "UI" and text and not UID.fullmatch(text):

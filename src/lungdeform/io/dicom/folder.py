@@ -189,7 +189,8 @@ def _dicomdir_files(path: Path) -> tuple[list[str], list[str]]:
         if not ref:
             continue
         parts = [str(p) for p in (ref if isinstance(ref, (list, tuple, pydicom.multival.MultiValue)) else [ref])]
-        f = _case_insensitive(path.parent, parts)
+        inside = all(p not in ("", ".", "..") and "/" not in p and "\\" not in p for p in parts)  # never above it
+        f = _case_insensitive(path.parent, parts) if inside else None
         (found.append(str(f)) if f is not None else missing.append("/".join(parts)))
     return sorted(dict.fromkeys(found)), missing
 
@@ -223,7 +224,10 @@ def _object(f: str):
     try:
         with warnings.catch_warnings():  # values pydicom still reads (a VR mismatch): not the user's concern
             warnings.simplefilter("ignore")
-            ds = pydicom.dcmread(f, stop_before_pixels=True, specific_tags=list(_TAGS))
+            try:
+                ds = pydicom.dcmread(f, stop_before_pixels=True, specific_tags=list(_TAGS))
+            except pydicom.errors.InvalidDicomError:  # no preamble (GDCM reads such files): its header checked above
+                ds = pydicom.dcmread(f, stop_before_pixels=True, specific_tags=list(_TAGS), force=True)
             meta = getattr(ds, "file_meta", None)
             sop = str(ds.get("SOPClassUID", "") or (meta.get("MediaStorageSOPClassUID", "") if meta else "")).strip()
             modality = str(ds.get("Modality", "") or "").strip().upper()
