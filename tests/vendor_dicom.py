@@ -151,15 +151,7 @@ def write_planning_rtstruct(path, ct: dict, image, centre, radius: float, rng) -
     ds.StructureSetLabel, ds.StructureSetName = "Plan1", "Thorax Plan 1"
     now = _dt.datetime(2026, 3, 2, 9, 30)
     ds.StructureSetDate, ds.StructureSetTime = now.strftime("%Y%m%d"), now.strftime("%H%M%S")
-    refs = [_image_ref(u) for u in ct["sop_uids"]]
-    series = Dataset()
-    series.SeriesInstanceUID, series.ContourImageSequence = SERIES_UID, Sequence(refs)
-    study = Dataset()
-    study.ReferencedSOPClassUID, study.ReferencedSOPInstanceUID = "1.2.840.10008.3.1.2.3.1", STUDY_UID
-    study.RTReferencedSeriesSequence = Sequence([series])
-    frame = Dataset()
-    frame.FrameOfReferenceUID, frame.RTReferencedStudySequence = FRAME_UID, Sequence([study])
-    ds.ReferencedFrameOfReferenceSequence = Sequence([frame])
+    ds.ReferencedFrameOfReferenceSequence = _frame_chain(ct["sop_uids"])
     z = origin[2] + np.arange(len(ct["sop_uids"])) * spacing[2]
     gtv = [(k, _circle(centre, radius, z[k])) for k in np.flatnonzero(np.abs(z - centre[2]) < radius)]
     gtv = [gtv[i] for i in rng.permutation(len(gtv))]
@@ -170,6 +162,18 @@ def write_planning_rtstruct(path, ct: dict, image, centre, radius: float, rng) -
         _roi(ds, number, name, kind, contours, ct["sop_uids"])
     ds.save_as(path, enforce_file_format=True)
     return Path(path)
+
+
+def _frame_chain(sop_uids) -> Sequence:
+    """ReferencedFrameOfReferenceSequence → study → series → every image of the main series."""
+    series = Dataset()
+    series.SeriesInstanceUID, series.ContourImageSequence = SERIES_UID, Sequence([_image_ref(u) for u in sop_uids])
+    study = Dataset()
+    study.ReferencedSOPClassUID, study.ReferencedSOPInstanceUID = "1.2.840.10008.3.1.2.3.1", STUDY_UID
+    study.RTReferencedSeriesSequence = Sequence([series])
+    frame = Dataset()
+    frame.FrameOfReferenceUID, frame.RTReferencedStudySequence = FRAME_UID, Sequence([study])
+    return Sequence([frame])
 
 
 def _image_ref(uid: str) -> Dataset:
@@ -337,15 +341,7 @@ def write_structure_set(path, ct: dict, image, rng, centre=(-45.0, -8.0, 10.0), 
     ds.SpecificCharacterSet = "ISO_IR 192"
     ds.OperatorsName, ds.StructureSetLabel, ds.StructureSetName = "Planner^Paula", "Plan1", "Thorax Plan 1"
     ds.StructureSetDate, ds.StructureSetTime = "20260302", "093000"
-    refs = [_image_ref(u) for u in ct["sop_uids"]]
-    series = Dataset()
-    series.SeriesInstanceUID, series.ContourImageSequence = SERIES_UID, Sequence(refs)
-    study = Dataset()
-    study.ReferencedSOPClassUID, study.ReferencedSOPInstanceUID = "1.2.840.10008.3.1.2.3.1", STUDY_UID
-    study.RTReferencedSeriesSequence = Sequence([series])
-    frame = Dataset()
-    frame.FrameOfReferenceUID, frame.RTReferencedStudySequence = FRAME_UID, Sequence([study])
-    ds.ReferencedFrameOfReferenceSequence = Sequence([frame])
+    ds.ReferencedFrameOfReferenceSequence = _frame_chain(ct["sop_uids"])
     z = origin[2] + np.arange(len(ct["sop_uids"])) * spacing[2]
     centre = np.asarray(centre, float)
     on = np.flatnonzero(np.abs(z - centre[2]) < radius)
