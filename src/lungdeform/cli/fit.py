@@ -86,6 +86,9 @@ def register(apps) -> None:
             except ValueError:
                 raise InputError(f"--volumes must be numbers in mL separated by commas, got {opts.volumes!r}") from None
         series = opts.dicom.choice(several_only=True)
+        if series is not None and len(opts.inputs) == 1:
+            raise InputError(f"{series}: one input is a 4-D CT folder, whose series are its phases; --series and "
+                             "--series-description choose among the series of an input folder of two or more inputs")
         for path in opts.inputs if len(opts.inputs) > 1 else []:  # one folder is a 4-D CT: its phases are its series
             dicom_input(path, series)
         with option_names(FIT_OPTIONS):
