@@ -157,8 +157,8 @@ def test_track_on_every_phase_with_the_planning_systems_structure_set(run, capsy
                      "--structure", GTV_NAME, "--scan", str(k), "--out", str(d / f"track{k}"), "--out-rtstruct", str(rs),
                      "--reference-ct", str(d / "4d"), "--series-description", f"phase {percent}%"]) == 0, \
             capsys.readouterr().err
-        printed = capsys.readouterr().out
-        skipped = [ln for ln in printed.splitlines() if "encloses no area: skipped" in ln]
+        said = capsys.readouterr().err  # what was done to the input: on stderr, once every check passed
+        skipped = [ln for ln in said.splitlines() if "encloses no area: skipped" in ln]
         assert len(skipped) == 4 and all(f"structure '{GTV_NAME}': contour" in ln for ln in skipped)
         moved = read_rtstruct(rs)
         assert list(moved) == [f"{GTV_NAME}@scan{k}", f"ITV_{GTV_NAME}"]

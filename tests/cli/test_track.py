@@ -314,6 +314,9 @@ def test_track_rtstruct_names(model_file, gtv_files, tmp_path, capsys):
     rois = pydicom.dcmread(rs).StructureSetROISequence
     assert [str(r.ROIName) for r in rois] == [long_name[:56] + "@phase00", long_name[:56] + "@phase01", f"ITV_{long_name}"]
     assert [r.get("ROIDescription") for r in rois] == [f"{long_name}@phase00", f"{long_name}@phase01", None]
+    err = capsys.readouterr().err.strip().splitlines()  # the two names cut, each said once
+    assert len(err) == 2 and all(ln.startswith(f"note: ROI name '{long_name}@phase0") for ln in err)
+    assert f"written as '{long_name[:56]}@phase00', the whole name in ROIDescription" in err[0]
 
 
 #: Structure names as planning systems in other languages write them (issue 36): Chinese with Greek,

@@ -502,7 +502,7 @@ def rigid_region(options: RigidOptions | None, grid, reference: tuple[str, Path]
     if options.name is not None:
         s = read_structure(options.rtstruct, options.name)
         for line in s.skipped:  # contours enclosing no area (a tool's tips): skipped, said
-            typer.echo(f"note: {line}")
+            typer.echo(f"note: {line}", err=True)
         if reference is not None and is_dicom_series_path(reference[1]):
             ct = read_ct_series(reference[1], series)
             for line in check_structure_on_ct(s.roi, ct, str(options.rtstruct), option=reference[0]):

@@ -90,8 +90,6 @@ def register(apps) -> None:
         dicom_input(opts.reference_ct, series, "--reference-ct")
         m = load_model(opts.model)
         tracked = R.read_structure(opts.rtstruct, opts.structure) if opts.rtstruct is not None else None
-        for line in tracked.skipped if tracked is not None else ():  # contours enclosing no area: skipped, said
-            typer.echo(f"note: {line}")
         ct = _reference_ct(tracked, opts.rtstruct, opts.out_rtstruct, (opts.reference_ct, series), (m, opts.scan, opts.no_rigid))
         if tracked is not None:
             pts, labels, source = tracked.points, tracked.labels, str(opts.rtstruct)
@@ -114,6 +112,7 @@ def register(apps) -> None:
             surfaces.append(R.itv_surface(surfaces, opts.structure))  # the union over the states
             built = build_rtstruct(ct, surfaces, label=f"{opts.structure} moved", source=str(opts.rtstruct))
         meta = {"model": str(opts.model), "schedule": frames.source, "end_exhale_ml": T.end_exhale_ml(m), **T.interior_meta(m)}
+        _say_fixed(tracked, surfaces if built is not None else [], built)
         with staged_outputs() as staging:  # every output staged, and renamed into place together at the end
             folder = staging.folder(opts.out)
             written = T.write_trajectories(folder, pts, labels, placement, positions, frames.delta_ml, frames.t_s, meta=meta)
@@ -130,6 +129,17 @@ def register(apps) -> None:
         else:
             _print_structure(opts.structure, placement, T.motion_summary(positions, pts))
         typer.echo(f"wrote {paths['csv']}, {paths['json']}, {paths['png']}")
+
+
+def _say_fixed(tracked, surfaces: list, built) -> None:
+    """What was done to the input, once every check has passed (stderr, ``note:``): each contour left
+    out because it encloses no area, each ROI name cut to fit a ROI Name (its whole in ROIDescription)."""
+    for line in tracked.skipped if tracked is not None else ():
+        typer.echo(f"note: {line}", err=True)
+    for (name, *_rest), written in zip(surfaces, built[1] if built is not None else ()):
+        if written != name:
+            typer.echo(f"note: ROI name {name!r} ({len(name.encode())} bytes of UTF-8) is longer than a ROI Name holds "
+                       f"(64 bytes): written as {written!r}, the whole name in ROIDescription", err=True)
 
 
 def _print_motion(name: str, motion: list[dict], itv) -> None:
