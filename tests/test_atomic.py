@@ -177,11 +177,10 @@ def test_outputs_appear_together_even_when_the_renaming_is_interrupted(tmp_path,
         return real(a, b)
 
     monkeypatch.setattr(os, "rename", interrupted)
-    with pytest.raises(KeyboardInterrupt):
-        with staged_outputs() as staging:
-            staging.file(tmp_path / "old.txt").write_text("new")
-            (staging.folder(tmp_path / "out") / "a.csv").write_text("a")
-            staging.file(tmp_path / "sub" / "rs.dcm").write_bytes(b"rs")
+    with pytest.raises(KeyboardInterrupt), staged_outputs() as staging:
+        staging.file(tmp_path / "old.txt").write_text("new")
+        (staging.folder(tmp_path / "out") / "a.csv").write_text("a")
+        staging.file(tmp_path / "sub" / "rs.dcm").write_bytes(b"rs")
     monkeypatch.setattr(os, "rename", real)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["old.txt"]
     assert (tmp_path / "old.txt").read_text() == "previous"
@@ -202,19 +201,15 @@ def test_a_failed_write_leaves_no_folder_it_made(tmp_path):
     # folder). Truth: after the failure only what was there before
     from lungdeform.atomic import made_folder
 
-    with pytest.raises(RuntimeError):
-        with atomic_path(tmp_path / "a" / "b" / "c.txt") as tmp:
-            tmp.write_text("x")
-            raise RuntimeError("refused")
-    with pytest.raises(RuntimeError):
-        with atomic_dir(tmp_path / "d" / "e"):
-            raise RuntimeError("refused")
-    with pytest.raises(RuntimeError):
-        with made_folder(tmp_path / "f" / "g"):
-            raise RuntimeError("refused")
+    with pytest.raises(RuntimeError), atomic_path(tmp_path / "a" / "b" / "c.txt") as tmp:
+        tmp.write_text("x")
+        raise RuntimeError("refused")
+    with pytest.raises(RuntimeError), atomic_dir(tmp_path / "d" / "e"):
+        raise RuntimeError("refused")
+    with pytest.raises(RuntimeError), made_folder(tmp_path / "f" / "g"):
+        raise RuntimeError("refused")
     assert list(tmp_path.iterdir()) == []
-    with pytest.raises(RuntimeError):  # a long run that finished part of its work keeps it
-        with made_folder(tmp_path / "f") as f:
-            write_text(f / "case1" / "metrics.json", "{}")
-            raise RuntimeError("case 2 refused")
+    with pytest.raises(RuntimeError), made_folder(tmp_path / "f") as f:  # a long run keeps what it finished
+        write_text(f / "case1" / "metrics.json", "{}")
+        raise RuntimeError("case 2 refused")
     assert (tmp_path / "f" / "case1" / "metrics.json").exists()

@@ -164,13 +164,12 @@ def _tiny_series(folder, series_uid, n=4):
 def test_dicom_series_files_choices(tmp_path):
     from pathlib import Path
 
+    from lungdeform.io.dicom.folder import SeriesChoice
     from lungdeform.io.dicom.guard import is_dicom_file
     from lungdeform.io.dicom.series import dicom_series_files
 
     # one folder, a CT of 4 slices and another of 2 (issue 36: two candidate CT series are refused,
     # naming both, never the larger taken without a word); a SeriesChoice picks one
-    from lungdeform.io.dicom.folder import SeriesChoice
-
     _tiny_series(tmp_path / "ct", "1.2.826.0.1.3680043.2.1125.7.11", 4)
     _tiny_series(tmp_path / "ct", "1.2.826.0.1.3680043.2.1125.7.12", 2)
     with pytest.raises(ReadError, match=r"ct: holds 2 CT series \(1.2.826.0.1.3680043.2.1125.7.11 '' \(4 CT image\(s\)\); "

@@ -100,9 +100,9 @@ def test_a_dicomdir_is_followed(export, tmp_path):
 def _series_folder(cd, modality: str) -> str:
     """The SE* folder of the media export ``cd`` that holds the object of ``modality``."""
     for f in cd.rglob("*"):
-        if f.is_file() and f.name not in ("DICOMDIR", "README.TXT"):
-            if pydicom.dcmread(f, stop_before_pixels=True).Modality == modality:
-                return f.parent.name
+        if (f.is_file() and f.name not in ("DICOMDIR", "README.TXT")
+                and pydicom.dcmread(f, stop_before_pixels=True).Modality == modality):
+            return f.parent.name
     raise AssertionError(modality)
 
 

@@ -197,10 +197,10 @@ def test_contours_enclosing_no_area_are_skipped_and_named(tmp_path):
     assert s.numbers == (1, 3, 5, 7, 9) and len(s.contours) == 5
     assert lines == [f"{path}: structure 'GTV': contour 2 (2 point(s)) on the slice at z = 6.00 mm encloses no area: skipped",
                      f"{path}: structure 'GTV': contour 4 (1 point(s)) on the slice at z = 0.00 mm encloses no area: skipped",
-                     f"{path}: structure 'GTV': contour 6 (3 points, 2 distinct) on the slice at z = 2.00 mm encloses no "
-                     "area: skipped",
-                     f"{path}: structure 'GTV': contour 8 (3 points on a line) on the slice at z = -2.00 mm encloses no "
-                     "area: skipped"]
+                     (f"{path}: structure 'GTV': contour 6 (3 points, 2 distinct) on the slice at z = 2.00 mm encloses no "
+                      "area: skipped"),
+                     (f"{path}: structure 'GTV': contour 8 (3 points on a line) on the slice at z = -2.00 mm encloses no "
+                      "area: skipped")]
     v, f = structure_mesh(s, str(path))
     (tmp_path / "clean").mkdir()
     clean_v, clean_f = _mesh_of(_rs(tmp_path / "clean", [(1, "GTV", rings)]))
