@@ -155,3 +155,61 @@ def test_write_npz_reads_back_as_numpy_writes_it_and_an_exception_leaves_nothing
     with pytest.raises(KeyboardInterrupt):
         write_npz(tmp_path / "cut.npz", arrays)
     assert not [p for p in tmp_path.iterdir() if "cut" in p.name]
+
+
+def test_outputs_appear_together_even_when_the_renaming_is_interrupted(tmp_path, monkeypatch):
+    # why (issue 36): files renamed one by one at the end left the first ones when a signal came
+    # between two renames (warp --phases to .mha after SIGTERM: ct_phase00 … left). Truth: an
+    # interruption at the third rename puts every target back as it was (the previous file of the
+    # same name restored, the new folder gone) and leaves no temporary name
+    import os
+
+    from lungdeform.atomic import staged_outputs
+
+    (tmp_path / "old.txt").write_text("previous")
+    calls = {"n": 0}
+    real = os.rename
+
+    def interrupted(a, b):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise KeyboardInterrupt
+        return real(a, b)
+
+    monkeypatch.setattr(os, "rename", interrupted)
+    with pytest.raises(KeyboardInterrupt), staged_outputs() as staging:
+        staging.file(tmp_path / "old.txt").write_text("new")
+        (staging.folder(tmp_path / "out") / "a.csv").write_text("a")
+        staging.file(tmp_path / "sub" / "rs.dcm").write_bytes(b"rs")
+    monkeypatch.setattr(os, "rename", real)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["old.txt"]
+    assert (tmp_path / "old.txt").read_text() == "previous"
+    # uninterrupted: all three, an existing folder's own files kept
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "mine.txt").write_text("kept")
+    with staged_outputs() as staging:
+        staging.file(tmp_path / "old.txt").write_text("new")
+        (staging.folder(tmp_path / "out") / "a.csv").write_text("a")
+        staging.file(tmp_path / "sub" / "rs.dcm").write_bytes(b"rs")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["old.txt", "out", "sub"]
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["a.csv", "mine.txt"]
+    assert (tmp_path / "old.txt").read_text() == "new" and (tmp_path / "sub" / "rs.dcm").read_bytes() == b"rs"
+
+
+def test_a_failed_write_leaves_no_folder_it_made(tmp_path):
+    # why (issue 36): a refused run left the empty folders made for its output (validate copd's case
+    # folder). Truth: after the failure only what was there before
+    from lungdeform.atomic import made_folder
+
+    with pytest.raises(RuntimeError), atomic_path(tmp_path / "a" / "b" / "c.txt") as tmp:
+        tmp.write_text("x")
+        raise RuntimeError("refused")
+    with pytest.raises(RuntimeError), atomic_dir(tmp_path / "d" / "e"):
+        raise RuntimeError("refused")
+    with pytest.raises(RuntimeError), made_folder(tmp_path / "f" / "g"):
+        raise RuntimeError("refused")
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(RuntimeError), made_folder(tmp_path / "f") as f:  # a long run keeps what it finished
+        write_text(f / "case1" / "metrics.json", "{}")
+        raise RuntimeError("case 2 refused")
+    assert (tmp_path / "f" / "case1" / "metrics.json").exists()

@@ -151,15 +151,7 @@ def write_planning_rtstruct(path, ct: dict, image, centre, radius: float, rng) -
     ds.StructureSetLabel, ds.StructureSetName = "Plan1", "Thorax Plan 1"
     now = _dt.datetime(2026, 3, 2, 9, 30)
     ds.StructureSetDate, ds.StructureSetTime = now.strftime("%Y%m%d"), now.strftime("%H%M%S")
-    refs = [_image_ref(u) for u in ct["sop_uids"]]
-    series = Dataset()
-    series.SeriesInstanceUID, series.ContourImageSequence = SERIES_UID, Sequence(refs)
-    study = Dataset()
-    study.ReferencedSOPClassUID, study.ReferencedSOPInstanceUID = "1.2.840.10008.3.1.2.3.1", STUDY_UID
-    study.RTReferencedSeriesSequence = Sequence([series])
-    frame = Dataset()
-    frame.FrameOfReferenceUID, frame.RTReferencedStudySequence = FRAME_UID, Sequence([study])
-    ds.ReferencedFrameOfReferenceSequence = Sequence([frame])
+    ds.ReferencedFrameOfReferenceSequence = _frame_chain(ct["sop_uids"])
     z = origin[2] + np.arange(len(ct["sop_uids"])) * spacing[2]
     gtv = [(k, _circle(centre, radius, z[k])) for k in np.flatnonzero(np.abs(z - centre[2]) < radius)]
     gtv = [gtv[i] for i in rng.permutation(len(gtv))]
@@ -170,6 +162,18 @@ def write_planning_rtstruct(path, ct: dict, image, centre, radius: float, rng) -
         _roi(ds, number, name, kind, contours, ct["sop_uids"])
     ds.save_as(path, enforce_file_format=True)
     return Path(path)
+
+
+def _frame_chain(sop_uids) -> Sequence:
+    """ReferencedFrameOfReferenceSequence → study → series → every image of the main series."""
+    series = Dataset()
+    series.SeriesInstanceUID, series.ContourImageSequence = SERIES_UID, Sequence([_image_ref(u) for u in sop_uids])
+    study = Dataset()
+    study.ReferencedSOPClassUID, study.ReferencedSOPInstanceUID = "1.2.840.10008.3.1.2.3.1", STUDY_UID
+    study.RTReferencedSeriesSequence = Sequence([series])
+    frame = Dataset()
+    frame.FrameOfReferenceUID, frame.RTReferencedStudySequence = FRAME_UID, Sequence([study])
+    return Sequence([frame])
 
 
 def _image_ref(uid: str) -> Dataset:
@@ -196,7 +200,7 @@ def _roi(ds: Dataset, number: int, name: str, kind: str, contours, sop_uids) -> 
         for i, (k, pts) in enumerate(contours, start=1):
             c = Dataset()
             c.ContourImageSequence = Sequence([_image_ref(sop_uids[k])])
-            c.ContourGeometricType = "POINT" if len(pts) == 1 else "CLOSED_PLANAR"
+            c.ContourGeometricType = "POINT" if kind == "MARKER" else "CLOSED_PLANAR"  # a tool's 1-point tip too
             c.NumberOfContourPoints, c.ContourNumber = len(pts), i
             c.ContourData = [f"{x:.2f}" for x in np.asarray(pts, float).ravel()]
             rc.ContourSequence.append(c)
@@ -205,3 +209,172 @@ def _roi(ds: Dataset, number: int, name: str, kind: str, contours, sop_uids) -> 
     obs.ObservationNumber, obs.ReferencedROINumber, obs.RTROIInterpretedType = number, number, kind
     obs.ROIInterpreter = ""
     ds.RTROIObservationsSequence.append(obs)
+
+
+# --- the rest of an export (issue 36): what a planning system writes beside the CT --------------------
+
+RTPLAN_SOP_CLASS, RTDOSE_SOP_CLASS = "1.2.840.10008.5.1.4.1.1.481.5", "1.2.840.10008.5.1.4.1.1.481.2"
+REG_SOP_CLASS, KO_SOP_CLASS = "1.2.840.10008.5.1.4.1.1.66.1", "1.2.840.10008.5.1.4.1.1.88.59"
+#: The objects :func:`write_export_extras` writes: file name → what lungdeform says it ignored
+EXTRAS = {"RS_plan.dcm": "RTSTRUCT", "RP_plan.dcm": "RTPLAN", "RD_plan.dcm": "RTDOSE grid", "RE_rigid.dcm": "REG",
+          "KO_selection.dcm": "KO", "README.txt": "no DICOM", "Thumbs.db": "no DICOM"}
+
+
+def _object(sop_class: str, uid: str, modality: str, series: int) -> FileDataset:
+    ds = FileDataset("", Dataset(), file_meta=_meta(sop_class, uid, False), preamble=b"\0" * 128)
+    _common(ds)
+    for key in ("PatientPosition", "BodyPartExamined"):
+        del ds[key]
+    ds.Modality, ds.SOPClassUID, ds.SOPInstanceUID = modality, sop_class, uid
+    ds.SeriesInstanceUID, ds.SeriesNumber, ds.InstanceNumber = f"{ROOT}.2.{series}", series, 1
+    ds.ContentDate, ds.ContentTime = "20260302", "093000"
+    ds.ContentLabel, ds.ContentDescription, ds.ContentCreatorName = modality, "", ""
+    return ds
+
+
+def write_rtplan(path) -> Path:
+    """A minimal RT Plan (no pixels): a label, one fraction group, one beam."""
+    ds = _object(RTPLAN_SOP_CLASS, f"{ROOT}.6.1", "RTPLAN", 10)
+    ds.RTPlanLabel, ds.RTPlanName, ds.RTPlanDate, ds.RTPlanTime = "Lung1", "Lung SBRT", "20260302", "093000"
+    ds.RTPlanGeometry, ds.ApprovalStatus = "PATIENT", "UNAPPROVED"
+    beam = Dataset()
+    beam.BeamNumber, beam.BeamName, beam.BeamType, beam.RadiationType = 1, "AP", "STATIC", "PHOTON"
+    ds.BeamSequence = Sequence([beam])
+    ds.save_as(path, enforce_file_format=True)
+    return Path(path)
+
+
+def write_rtdose(path, image) -> Path:
+    """An RT Dose grid (an image: multi-frame, Modality RTDOSE) over ``image``'s box at 4 mm."""
+    ds = _object(RTDOSE_SOP_CLASS, f"{ROOT}.7.1", "RTDOSE", 11)
+    ds.DoseUnits, ds.DoseType, ds.DoseSummationType = "GY", "PHYSICAL", "PLAN"
+    nz, ny, nx = (max(2, n // 2) for n in image.array.shape)
+    ds.Rows, ds.Columns, ds.NumberOfFrames = ny, nx, nz
+    ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, "MONOCHROME2"
+    ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 32, 32, 31, 0
+    ds.ImagePositionPatient = [f"{x:.2f}" for x in image.origin]
+    ds.ImageOrientationPatient = ["1", "0", "0", "0", "1", "0"]
+    step = 2 * np.asarray(image.spacing, float)
+    ds.PixelSpacing = [f"{step[1]:g}", f"{step[0]:g}"]
+    ds.GridFrameOffsetVector = [f"{k * step[2]:g}" for k in range(nz)]
+    ds.FrameIncrementPointer, ds.DoseGridScaling = 0x3004000C, "1e-4"
+    ds.PixelData = (np.arange(nz * ny * nx, dtype="<u4") % 50000).tobytes()
+    ds.save_as(path, enforce_file_format=True)
+    return Path(path)
+
+
+def write_rigid_registration(path) -> Path:
+    """A Spatial Registration (REG, no pixels): the CT's frame onto itself."""
+    ds = _object(REG_SOP_CLASS, f"{ROOT}.8.1", "REG", 12)
+    item = Dataset()
+    item.FrameOfReferenceUID = FRAME_UID
+    matrix = Dataset()
+    matrix.FrameOfReferenceTransformationMatrixType = "RIGID"
+    matrix.FrameOfReferenceTransformationMatrix = [str(x) for x in np.eye(4).ravel().astype(int)]
+    reg = Dataset()
+    reg.MatrixRegistrationSequence = Sequence([Dataset()])
+    reg.MatrixRegistrationSequence[0].MatrixSequence = Sequence([matrix])
+    item.MatrixRegistrationSequence = reg.MatrixRegistrationSequence
+    ds.RegistrationSequence = Sequence([item])
+    ds.save_as(path, enforce_file_format=True)
+    return Path(path)
+
+
+def write_key_object(path) -> Path:
+    """A Key Object Selection document (KO, no pixels), as PACS exports add them."""
+    ds = _object(KO_SOP_CLASS, f"{ROOT}.9.1", "KO", 13)
+    code = Dataset()
+    code.CodeValue, code.CodingSchemeDesignator, code.CodeMeaning = "113000", "DCM", "Of Interest"
+    ds.ConceptNameCodeSequence, ds.ValueType = Sequence([code]), "CONTAINER"
+    ds.save_as(path, enforce_file_format=True)
+    return Path(path)
+
+
+def write_export_extras(folder, image, rois_ct: dict, rng, gtv=((-45.0, -8.0, 10.0), 10.0)) -> dict:
+    """Beside the CT of :func:`write_vendor_ct` in ``folder``: the structure set of
+    :func:`write_structure_set` (``rois_ct``: its ``ct`` argument; ``gtv``: its GTV's centre mm LPS
+    and radius mm), an RT Plan, an RT Dose grid, a rigid REG, a KO, a README and a ``Thumbs.db``
+    (:data:`EXTRAS`). Returns ``{name: path}``."""
+    folder = Path(folder)
+    out = {"RS_plan.dcm": write_structure_set(folder / "RS_plan.dcm", rois_ct, image, rng, *gtv),
+           "RP_plan.dcm": write_rtplan(folder / "RP_plan.dcm"), "RD_plan.dcm": write_rtdose(folder / "RD_plan.dcm", image),
+           "RE_rigid.dcm": write_rigid_registration(folder / "RE_rigid.dcm"),
+           "KO_selection.dcm": write_key_object(folder / "KO_selection.dcm")}
+    (folder / "README.txt").write_text("Export of plan Lung1 (Thorax). Do not edit.\n")
+    (folder / "Thumbs.db").write_bytes(b"\xd0\xcf\x11\xe0\xa1\xb1\x1a\xe1" + bytes(rng.integers(0, 256, 504, dtype=np.uint8)))
+    out.update({"README.txt": folder / "README.txt", "Thumbs.db": folder / "Thumbs.db"})
+    return out
+
+
+def write_dicomdir_export(files, dest) -> Path:
+    """The DICOM ``files`` as a media export (PS3.10): pydicom's File-set writes them under ``dest``
+    (``PT000000/ST000000/SE000000/IM000000`` …) with a DICOMDIR at the top; a README beside it."""
+    from pydicom.fileset import FileSet
+
+    fs = FileSet()
+    try:
+        for f in files:
+            fs.add(str(f))
+        dest = Path(dest)
+        dest.mkdir(parents=True, exist_ok=True)
+        fs.write(str(dest))
+    finally:  # the File-set's staging folder, removed now (left to the garbage collector it warns)
+        fs._stage["t"].cleanup()
+    (dest / "README.TXT").write_text("Patient CD. Open DICOMDIR with a DICOM viewer.\n")
+    return dest / "DICOMDIR"
+
+
+#: The ROIs of :func:`write_structure_set` tracked and checked by the tests: (name, kind)
+GTV_NAME = "GTV_β肿瘤"
+
+
+def write_structure_set(path, ct: dict, image, rng, centre=(-45.0, -8.0, 10.0), radius: float = 10.0) -> Path:
+    """A structure set of 30 ROIs as planning systems and mask-to-contour tools leave them, on the series
+    :func:`write_vendor_ct` wrote (``ct`` its return value): ROI names in several scripts
+    (SpecificCharacterSet ISO_IR 192); "External" and four more without contours; three POINT ROIs;
+    :data:`GTV_NAME` a sphere of ``radius`` mm about ``centre`` (mm LPS) with a mask-to-contour tool's
+    leftovers: a 2-point tip on the slice above it, a 1-point tip and a repeated-point contour on
+    slices it covers, and a zero-area (collinear) contour; 21 organ-like balls elsewhere, 4 mm to 8 mm."""
+    origin, spacing = np.asarray(image.origin, float), np.asarray(image.spacing, float)
+    uid = f"{ROOT}.5.2"
+    ds = _object(RTSTRUCT_SOP_CLASS, uid, "RTSTRUCT", 14)
+    ds.SpecificCharacterSet = "ISO_IR 192"
+    ds.OperatorsName, ds.StructureSetLabel, ds.StructureSetName = "Planner^Paula", "Plan1", "Thorax Plan 1"
+    ds.StructureSetDate, ds.StructureSetTime = "20260302", "093000"
+    ds.ReferencedFrameOfReferenceSequence = _frame_chain(ct["sop_uids"])
+    z = origin[2] + np.arange(len(ct["sop_uids"])) * spacing[2]
+    centre = np.asarray(centre, float)
+    on = np.flatnonzero(np.abs(z - centre[2]) < radius)
+    gtv = [(k, _circle(centre, radius, z[k])) for k in on]
+    mid, top = int(on[len(on) // 2]), int(on[-1]) + 1
+    gtv += [(top, np.array([[centre[0], centre[1], z[top]], [centre[0] + 0.7, centre[1], z[top]]])),  # 2-point tip
+            (mid, np.array([[centre[0] + radius - 0.5, centre[1], z[mid]]])),  # 1-point tip
+            (int(on[1]), np.array([[centre[0], centre[1] + 2, z[on[1]]], [centre[0] + 1, centre[1] + 2, z[on[1]]],
+                                   [centre[0], centre[1] + 2, z[on[1]]]])),  # a repeated point: no area
+            (int(on[2]), np.array([[centre[0] + t, centre[1] - 3, z[on[2]]] for t in (0.0, 0.5, 1.0)]))]  # collinear
+    gtv = [gtv[i] for i in rng.permutation(len(gtv))]
+    rois = [(1, "External", "EXTERNAL", []), (2, GTV_NAME, "GTV", gtv),
+            (3, "Marker", "MARKER", [(int(on[0]), centre[None])])]
+    names = ["Lunge_links", "Lunge_rechts", "肺_右", "肺_左", "Καρδιά", "Οισοφάγος", "القلب", "الحبل_الشوكي",
+             "e\u0301sophage", "Trache\u0301e", "PTV", "CTV", "Rib_1", "Rib_2", "Rib_3", "Bronchus", "Aorta",
+             "Vena_cava", "Liver_dome", "Stomach", "Scapula_L", "Empty_1", "Empty_2", "Empty_3", "Empty_4",
+             "Point_A", "Point_B"]
+    far = origin + (np.array(image.array.shape[::-1]) - 1) * spacing
+    margin = np.minimum(12.0, (far - origin) / 4)
+    box_lo, box_hi = origin + margin, far - margin
+    for n, name in enumerate(names, start=4):
+        if name.startswith("Empty"):
+            rois.append((n, name, "ORGAN", []))
+            continue
+        c = rng.uniform(box_lo, box_hi)
+        k = int(np.argmin(np.abs(z - c[2])))
+        if name.startswith("Point"):
+            rois.append((n, name, "MARKER", [(k, np.array([[c[0], c[1], z[k]]]))]))
+            continue
+        r = rng.uniform(4.0, 8.0)
+        rois.append((n, name, "ORGAN", [(j, _circle(c, r, z[j])) for j in np.flatnonzero(np.abs(z - c[2]) < r)]))
+    ds.StructureSetROISequence, ds.ROIContourSequence, ds.RTROIObservationsSequence = Sequence(), Sequence(), Sequence()
+    for number, name, kind, contours in rois:
+        _roi(ds, number, name, kind, contours, ct["sop_uids"])
+    ds.save_as(path, enforce_file_format=True)
+    return Path(path)

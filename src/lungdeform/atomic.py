@@ -1,8 +1,12 @@
 """Atomic file and folder writes: write to a temporary file (folder) beside the target, then rename.
 
 A failure (an exception, Ctrl-C, SIGTERM: the CLI turns it into Ctrl-C) leaves no half-written
-output: the temporary file or folder is removed and any previous file or folder at the target is
-untouched. Temporary names carry the writer's process id, so what a killed run left (SIGKILL, a
+output: the temporary file or folder is removed, any previous file or folder at the target is
+untouched, and the folders created to hold it are removed again (:func:`make_parent`,
+:func:`remove_made`). A command writing several outputs stages them (:func:`staged_outputs`,
+:func:`staged_dir`, :func:`atomic_paths`): they appear together at the end, or not at all, also when
+the renaming itself is interrupted (:func:`commit_all`); :func:`made_folder` is for
+long runs that keep what they finished (resumable), and remove only the empty folders they made. Temporary names carry the writer's process id, so what a killed run left (SIGKILL, a
 power cut) is recognised and removed by the next write to the same target (:func:`remove_stale`).
 Files and folders get the ordinary permissions of the umask (not the 0600/0700 of :mod:`tempfile`).
 """
@@ -18,7 +22,7 @@ import shutil
 import tempfile
 import uuid
 import zipfile
-from contextlib import ExitStack, contextmanager
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
@@ -27,16 +31,155 @@ import numpy as np
 from lungdeform.errors import ReadError
 
 
-def make_parent(path) -> None:
-    """Create ``path``'s folder (and its parents). A path under a regular file is refused with an
-    :class:`OSError` naming ``path`` and the file in its way (``mkdir`` says only "File exists")."""
+def make_parent(path) -> list[Path]:
+    """Create ``path``'s folder (and its parents); returns the folders it created, the deepest last
+    (:func:`remove_made` takes them away again after a failure). A path under a regular file is
+    refused with an :class:`OSError` naming ``path`` and the file in its way (``mkdir`` says only
+    "File exists")."""
     path = Path(path)
+    missing = []
     for above in path.parents:
         if above.exists():
             if not above.is_dir():
                 raise NotADirectoryError(errno.ENOTDIR, f"{above} is a file, not a folder", str(path))
             break
+        missing.append(above)
     path.parent.mkdir(parents=True, exist_ok=True)
+    return missing[::-1]
+
+
+def remove_made(folders) -> None:
+    """Remove ``folders`` (made by :func:`make_parent` or :func:`made_folder`, the deepest last) that
+    are still empty, the deepest first: a failed run leaves no folder it created."""
+    for folder in reversed(list(folders)):
+        try:
+            Path(folder).rmdir()
+        except OSError:  # not empty (something else is in it now), or gone: left as it is
+            break
+
+
+@contextmanager
+def made_folder(path) -> Iterator[Path]:
+    """The folder ``path``, created with the parents it lacks for the block; when the block fails (an
+    exception, Ctrl-C) the folders this created are removed while empty, so a refused run leaves no
+    folder behind, while a long run that finished part of its work (a case folder, complete) keeps it
+    and resumes from it. Every output inside is written atomically by its own writer."""
+    path = Path(path)
+    made = make_parent(path / "_")
+    try:
+        yield path
+    except BaseException:
+        remove_made(made)
+        raise
+
+
+class Staging:
+    """The outputs of one command, written to hidden temporary names beside their targets and renamed
+    into place together by :func:`staged_outputs` (:meth:`commit`), or all removed (:meth:`discard`)."""
+
+    def __init__(self):
+        self._files: list[tuple[Path, Path]] = []  # (temporary, target)
+        self._folders: list[tuple[Path, Path]] = []
+        self._made: list[Path] = []
+
+    def file(self, path, suffix: str | None = None) -> Path:
+        """A temporary file beside ``path`` (the target's suffix, or ``suffix``) that becomes ``path``."""
+        path = Path(path)
+        self._made += make_parent(path)
+        remove_stale(path)
+        try:
+            fd, tmp = tempfile.mkstemp(prefix=_prefix(path), suffix=path.suffix if suffix is None else suffix,
+                                       dir=path.parent)
+        except OSError as exc:  # name the output the user asked for, not the hidden temporary file
+            raise OSError(exc.errno, exc.strerror, str(path)) from exc
+        os.close(fd)
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp creates 0600; give the file ordinary permissions
+        self._files.append((Path(tmp), path))
+        return Path(tmp)
+
+    def folder(self, path) -> Path:
+        """A temporary folder beside ``path`` for what a command writes into the folder ``path``: it
+        becomes ``path`` when ``path`` does not exist, else each of its entries moves into ``path``
+        (a file of the same name replaced, the folder's other files kept)."""
+        path = Path(path)
+        if path.exists() and not path.is_dir():
+            raise NotADirectoryError(errno.ENOTDIR, f"{path} is a file, not a folder", str(path))
+        self._made += make_parent(path)
+        remove_stale(path)
+        try:
+            tmp = Path(tempfile.mkdtemp(prefix=_prefix(path), suffix=".partial", dir=path.parent))
+        except OSError as exc:
+            raise OSError(exc.errno, exc.strerror, str(path)) from exc
+        os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp creates 0700
+        self._folders.append((tmp, path))
+        return tmp
+
+    def commit(self) -> None:
+        """Rename every output into place, all or none (:func:`commit_all`)."""
+        moves = list(self._files)
+        for tmp, path in self._folders:
+            moves += [(tmp, path)] if not path.exists() else [(e, path / e.name) for e in sorted(tmp.iterdir())]
+        commit_all(moves)
+        for tmp, path in self._folders:
+            if tmp.exists():
+                shutil.rmtree(tmp, ignore_errors=True)
+
+    def discard(self) -> None:
+        """Remove every temporary output and the folders made for them."""
+        for tmp, _ in self._files:
+            tmp.unlink(missing_ok=True)
+        for tmp, _ in self._folders:
+            shutil.rmtree(tmp, ignore_errors=True)
+        remove_made(self._made)
+
+
+@contextmanager
+def staged_outputs() -> Iterator[Staging]:
+    """A :class:`Staging` for the outputs of one command: each written to its temporary name
+    (:meth:`Staging.file`, :meth:`Staging.folder`); when the block ends they appear together, and on
+    a failure (an exception, Ctrl-C, SIGTERM, also while they are being renamed) none does and every
+    target is as it was (:func:`commit_all`)."""
+    staging = Staging()
+    try:
+        yield staging
+        staging.commit()
+    except BaseException:
+        staging.discard()
+        raise
+
+
+def commit_all(moves) -> None:
+    """Rename each ``(temporary, target)`` of ``moves``, all or none: a target that exists is moved
+    aside first and removed at the end; when a rename fails or is interrupted, the targets renamed
+    so far go back to their temporary names and the ones moved aside are put back."""
+    done, aside = [], []
+    try:
+        for tmp, target in moves:
+            target = Path(target)
+            if target.exists() or target.is_symlink():
+                old = target.parent / f"{_prefix(target)}{uuid.uuid4().hex[:8]}.old"
+                os.rename(target, old)
+                aside.append((old, target))
+            os.rename(tmp, target)
+            done.append((tmp, target))
+    except BaseException:
+        for tmp, target in reversed(done):
+            os.rename(target, tmp)
+        for old, target in reversed(aside):
+            os.rename(old, target)
+        raise
+    for old, _ in aside:
+        old.unlink() if old.is_symlink() or not old.is_dir() else shutil.rmtree(old, ignore_errors=True)
+
+
+@contextmanager
+def staged_dir(path) -> Iterator[Path]:
+    """Yield a hidden folder beside ``path`` for every output a command writes into the folder
+    ``path`` (:meth:`Staging.folder`); at the end of the block they appear there together. On a
+    failure (an exception, Ctrl-C, SIGTERM) nothing appears and ``path`` is as it was: not created
+    when it did not exist, its files untouched."""
+    with staged_outputs() as staging:
+        yield staging.folder(path)
 
 
 @contextmanager
@@ -46,12 +189,13 @@ def atomic_path(path, suffix: str | None = None) -> Iterator[Path]:
     ``suffix`` (default: the target's own) keeps writers that choose a format by file name happy.
     """
     path = Path(path)
-    make_parent(path)
+    made = make_parent(path)
     remove_stale(path)
     try:
         fd, tmp = tempfile.mkstemp(prefix=_prefix(path), suffix=path.suffix if suffix is None else suffix,
                                    dir=path.parent)
     except OSError as exc:  # name the output the user asked for, not the hidden temporary file
+        remove_made(made)
         raise OSError(exc.errno, exc.strerror, str(path)) from exc
     os.close(fd)
     try:
@@ -60,6 +204,7 @@ def atomic_path(path, suffix: str | None = None) -> Iterator[Path]:
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
+        remove_made(made)  # the folders made for it: a failed write leaves none
         raise
 
 
@@ -69,8 +214,8 @@ def atomic_paths(paths, suffixes=None) -> Iterator[list[Path]]:
     ``suffix`` per path); once the block has written them all each replaces its target, and on a
     failure all are removed: a set of files (the phases of a 4-D CT) appears whole or not at all."""
     suffixes = [None] * len(paths) if suffixes is None else list(suffixes)
-    with ExitStack() as stack:
-        yield [stack.enter_context(atomic_path(p, x)) for p, x in zip(paths, suffixes)]
+    with staged_outputs() as staging:  # renamed all or none, also when interrupted while renaming
+        yield [staging.file(p, x) for p, x in zip(paths, suffixes)]
 
 
 def _prefix(path: Path) -> str:
@@ -132,11 +277,12 @@ def atomic_dir(path) -> Iterator[Path]:
     success it is renamed to ``path`` (:func:`replace_dir`), so that ``path`` holds the whole set or
     its previous content; on failure (an exception, Ctrl-C) it is removed."""
     path = Path(path)
-    make_parent(path)
+    made = make_parent(path)
     remove_stale(path)
     try:
         tmp = Path(tempfile.mkdtemp(prefix=_prefix(path), suffix=".partial", dir=path.parent))
     except OSError as exc:  # name the output the user asked for, not the hidden temporary folder
+        remove_made(made)
         raise OSError(exc.errno, exc.strerror, str(path)) from exc
     try:
         os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp creates 0700
@@ -144,6 +290,7 @@ def atomic_dir(path) -> Iterator[Path]:
         replace_dir(tmp, path)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
+        remove_made(made)  # the folders made for it (a case folder above a lung's): a failed run leaves none
         raise
 
 

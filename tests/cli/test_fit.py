@@ -424,3 +424,14 @@ def test_popi_ten_phase_full_cycle_4dct_goes_through_fit(data_dir, tmp_path, cap
     assert all(p["mean_mm"] < 1.0 and p["p95_mm"] < 2.5 for p in pairs)
     assert sum(f"hysteresis: exhale {p['exhale']} " in text for p in pairs) == 4
     assert all(per["model"]["surface_mean_mm"] < 2.0 for per in m["targets"].values())
+
+
+def test_series_with_one_4dct_folder_is_refused(tmp_path, capsys):
+    # --series chooses among an input folder's CT series; one input is a 4-D CT whose series are its
+    # phases: an option that would be ignored is refused, before any work
+    (tmp_path / "4d").mkdir()
+    assert main(["fit", str(tmp_path / "4d"), "--side", "right", "--out", str(tmp_path / "o"),
+                 "--series-description", "phase 30%"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--series-description 'phase 30%': one input is a 4-D CT folder" in err[0]
+    assert not (tmp_path / "o").exists()

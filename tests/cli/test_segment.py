@@ -149,8 +149,10 @@ def test_dicom_ambiguous_or_missing_series_one_error_line(tmp_path, rng, run, ca
     _dicom_phantom(tmp_path / "two" / "phase50", rng)
     (tmp_path / "empty").mkdir()
     (tmp_path / "fake.dcm").write_text("not dicom")
-    cases = {tmp_path / "two": "its subfolders hold 2 series (phase00 (50 files); phase50 (50 files))",
-             tmp_path / "empty": "no DICOM series in this directory or its subfolders",
+    cases = {tmp_path / "two": ("holds 2 CT series (phase00: 1.2.826.0.1.3680043.2.1125.1.99 '' (50 CT image(s)); "
+                                "phase50: 1.2.826.0.1.3680043.2.1125.1.99 '' (50 CT image(s))): which one is meant "
+                                "cannot be told; choose one with --series UID or --series-description TEXT"),
+             tmp_path / "empty": "no DICOM image series (found: nothing)",
              tmp_path / "fake.dcm": "not a readable DICOM image slice"}
     for path, message in cases.items():
         out = tmp_path / "out"
@@ -175,3 +177,19 @@ def test_binary_mask_of_both_lungs_gives_left_and_right(tmp_path, run, capsys):
         assert (got & truth).sum() / truth.sum() > 0.99 and abs(int(got.sum()) - int(truth.sum())) < 0.03 * truth.sum()
     report = json.loads((out / "volumes.json").read_text())
     assert report["details"]["split"]["touching"] is True
+
+
+def test_a_failure_at_the_last_output_writes_nothing(tmp_path, run, capsys, monkeypatch):
+    # issue 36: outputs were written one by one, so a failure at volumes.json (the last) left the
+    # masks and the overlay. Truth: staged, they appear together or not at all: no --out folder
+    from lungdeform.cli import segment as cli_segment
+
+    image, _left, _right = two_lungs()
+    _write_ct(image, tmp_path / "both.nii.gz")
+
+    def failing(path, data):
+        raise OSError(28, "No space left on device (simulated)", str(path))
+
+    monkeypatch.setattr(cli_segment, "write_bytes", failing)
+    assert run(["segment", str(tmp_path / "both.nii.gz"), "--out", str(tmp_path / "o")]) != 0
+    assert not (tmp_path / "o").exists() and not [p for p in tmp_path.iterdir() if p.name.startswith(".")]

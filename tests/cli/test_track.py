@@ -5,8 +5,10 @@ from __future__ import annotations
 import csv
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
+import pydicom
 import pytest
 import trimesh
 
@@ -15,7 +17,7 @@ from lungdeform.io.dicom.rtstruct import read_ct_series, read_rtstruct, write_rt
 from lungdeform.io.modelfile import save_model
 from lungdeform.playback.trajectory import lung_scales
 from tests.browser.support import two_lungs
-from tests.io.dicom_support import patch_element, write_ct_series
+from tests.io.dicom_support import dciodvfy, patch_element, write_ct_series
 
 
 @pytest.fixture(scope="module")
@@ -295,7 +297,8 @@ def test_track_rtstruct_of_another_frame_of_reference(model_file, gtv_files, tmp
 
 def test_track_rtstruct_names(model_file, gtv_files, tmp_path, capsys):
     # a non-ASCII structure name is written as UTF-8 (SpecificCharacterSet ISO_IR 192) and reads back
-    # the same; a name whose NAME@TAG exceeds DICOM's 64 characters is refused before any output
+    # the same; a name whose NAME@TAG exceeds a ROI Name's 64 bytes is no refusal (issue 36): written
+    # cut on a character boundary with its tag whole, its whole name in ROIDescription
     ct_dir, _gtv = gtv_files
     s = trimesh.creation.icosphere(3, radius=10.0)
     ct = read_ct_series(ct_dir)
@@ -308,10 +311,75 @@ def test_track_rtstruct_names(model_file, gtv_files, tmp_path, capsys):
     rs.unlink()
     shutil.rmtree(out)
     code, out, rs = _run_rtstruct(model_file, tmp_path / "in.dcm", ct_dir, tmp_path, long_name)
-    err = capsys.readouterr().err.strip().splitlines()
-    assert code == 2 and len(err) == 1 and f"in.dcm: ROI name '{long_name}@phase00': 68 characters, longer than" in err[0]
+    assert code == 0, capsys.readouterr().err
+    rois = pydicom.dcmread(rs).StructureSetROISequence
+    assert [str(r.ROIName) for r in rois] == [long_name[:56] + "@phase00", long_name[:56] + "@phase01", f"ITV_{long_name}"]
+    assert [r.get("ROIDescription") for r in rois] == [f"{long_name}@phase00", f"{long_name}@phase01", None]
+    err = capsys.readouterr().err.strip().splitlines()  # the two names cut, each said once
+    assert len(err) == 2 and all(ln.startswith(f"note: ROI name '{long_name}@phase0") for ln in err)
+    assert f"written as '{long_name[:56]}@phase00', the whole name in ROIDescription" in err[0]
+
+
+#: Structure names as planning systems in other languages write them (issue 36): Chinese with Greek,
+#: Greek, Arabic, combining characters (e + U+0301, decomposed), and one whose NAME@TAG is 63 bytes
+NON_ASCII_NAMES = ("GTV_β肿瘤", "Όγκος_δεξιά", "ورم_الرئة", "Tume\u0301fie\u0301_G", "肿瘤肿瘤肿瘤肿瘤肿瘤肿瘤肿瘤肿瘤肿瘤")
+
+
+@pytest.mark.parametrize("name", NON_ASCII_NAMES)
+def test_track_non_ascii_names_round_trip(model_file, gtv_files, tmp_path, capsys, name):
+    # the issue's case: "GTV_β肿瘤" was tracked, then refused at the end (StructureSetLabel "GTV_β肿瘤
+    # moved" is 20 bytes of UTF-8, SH holds 16), leaving motion.png, points.json and trajectories.csv.
+    # Truth: the same names come out (ROI Name, as pydicom and rt-utils read them back: NAME@TAG and
+    # ITV_NAME), every derived value within its VR (the label cut on a character boundary), and
+    # dciodvfy (dicom3tools) finds 0 errors
+    ct_dir, _gtv = gtv_files
+    s = trimesh.creation.icosphere(3, radius=10.0)
+    write_rtstruct(tmp_path / "in.dcm", read_ct_series(ct_dir), [(name, s.vertices + GTV_CENTRE, s.faces, "GTV")])
+    code, out, rs = _run_rtstruct(model_file, tmp_path / "in.dcm", ct_dir, tmp_path, name)
+    assert code == 0, capsys.readouterr().err
+    want = [f"{name}@phase00", f"{name}@phase01", f"ITV_{name}"]
+    assert all(len(w.encode()) <= 64 for w in want)  # these fit a ROI Name whole
+    ds = pydicom.dcmread(rs)
+    assert ds.SpecificCharacterSet == "ISO_IR 192"
+    assert [str(r.ROIName) for r in ds.StructureSetROISequence] == want == list(read_rtstruct(rs))
+    label = str(ds.StructureSetLabel)
+    assert len(label.encode()) <= 16 and f"{name} moved".startswith(label) and label
+    errors, _warnings = dciodvfy(rs)
+    assert errors == [], errors
+    rt_utils = pytest.importorskip("rt_utils", reason="rt-utils not installed (pip install rt-utils; optional)")
+    import warnings
+
+    with warnings.catch_warnings():  # rt-utils 1.2.7 uses pydicom attributes pydicom 3 deprecates
+        warnings.simplefilter("ignore", DeprecationWarning)
+        rt = rt_utils.RTStructBuilder.create_from(dicom_series_path=str(ct_dir), rt_struct_path=str(rs))
+        assert rt.get_roi_names() == want
+        assert rt.get_roi_mask_by_name(want[0]).sum() > 100  # its contours, rasterised by rt-utils
+    assert {p.name for p in out.iterdir()} == {"trajectories.csv", "points.json", "motion.png", "structure_motion.csv"}
+
+
+def test_track_failing_at_its_last_output_writes_nothing(model_file, gtv_files, tmp_path, capsys, monkeypatch):
+    # issue 36: a run that failed writing the RTSTRUCT (its last output) left motion.png, points.json
+    # and trajectories.csv behind. Truth: the outputs are staged and appear together; a failure at
+    # the last one leaves neither the folder (not there before) nor any file, nor a hidden temporary
+    from lungdeform.cli import track as cli_track
+    from lungdeform.errors import InputError
+
+    ct_dir, gtv = gtv_files
+
+    def failing(path, ds):
+        Path(path).write_bytes(b"half")  # a writer that fails half way
+        raise InputError(f"{path}: disk full (simulated)")
+
+    monkeypatch.setattr(cli_track, "save_rtstruct", failing)
+    code, out, rs = _run_rtstruct(model_file, gtv, ct_dir, tmp_path)
+    assert code == 2 and "disk full (simulated)" in capsys.readouterr().err
     assert not out.exists() and not rs.exists()
-    assert not out.exists() and not rs.exists()
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+    # into an existing folder: its own files kept, none of the run's added
+    out.mkdir()
+    (out / "mine.txt").write_text("kept")
+    code, out, rs = _run_rtstruct(model_file, gtv, ct_dir, tmp_path)
+    assert code == 2 and sorted(p.name for p in out.iterdir()) == ["mine.txt"]
 
 
 def test_track_out_rtstruct_must_not_overwrite_an_input(model_file, gtv_files, tmp_path, capsys):

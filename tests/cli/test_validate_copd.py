@@ -82,3 +82,28 @@ def test_inputs_checked_before_out_and_a_skipped_case_is_said(tmp_path, capsys):
     assert rows[0][4].endswith("copd2_exp_landmarks.txt") and rows[2][4] == rows[3][4] == ""
     assert main(["validate", "copd", "--data", str(data), "--out", str(data), "--manifest-only"]) == 2
     assert "would overwrite the input" in _one_error_line(capsys)
+
+
+@pytest.mark.parametrize("damage, message", [
+    ("landmarks", "landmark"),  # the inspiration file holds one row fewer
+    ("nan", "non-finite"),  # a NaN landmark
+])
+def test_a_refused_case_leaves_no_folder(tmp_path, capsys, damage, message):
+    # issue 36: a refused run left an empty case folder OUT/copdN in --out (and --out itself). Truth:
+    # after the refusal (exit 2, one line) --out does not exist, as before the run
+    from lungdeform.io.landmarks import read_elastix_points, write_elastix_points
+
+    (tmp_path / "data").mkdir()
+    data = phantom_case(tmp_path / "data", n=3)
+    insp = data / "copd3_insp_landmarks.txt"
+    pts = read_elastix_points(insp)
+    if damage == "landmarks":
+        write_elastix_points(insp, pts[:-1])
+    else:
+        lines = insp.read_text().splitlines()
+        lines[3] = "nan " + " ".join(lines[3].split()[1:])  # the second point's x
+        insp.write_text("\n".join(lines) + "\n")
+    out = tmp_path / "out"
+    assert main(["validate", "copd", "--data", str(data), "--out", str(out), "--evaluations", "2"]) == 2
+    assert message in _one_error_line(capsys).lower()
+    assert not out.exists()

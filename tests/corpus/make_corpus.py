@@ -176,7 +176,8 @@ def _rtstruct_files() -> dict[str, bytes]:
                                                           for k in range(150)])]),
         "degenerate_contour.dcm": rtstruct_bytes([(1, "GTV", _gtv()[:2] + [line] + _gtv()[3:])]),
         "tilted_contour.dcm": rtstruct_bytes([(1, "GTV", tilted)]),
-        "two_point_contour.dcm": rtstruct_bytes([(1, "GTV", _gtv()[:4] + [_gtv()[4][:2]])]),
+        # every contour a tip of 1 or 2 points (each skipped: it encloses no area), so no region is left
+        "only_tips.dcm": rtstruct_bytes([(1, "GTV", [c[:1 + k % 2] for k, c in enumerate(_gtv())])]),
         "open_contour.dcm": rtstruct_bytes([(1, "GTV", _gtv(), "OPEN_PLANAR")]),
         "huge_coordinate.dcm": rtstruct_bytes([(1, "GTV", _gtv()[:4] + [_gtv()[4] * 1e30])]),
         # cut where the ROIs begin: read as a structure set without structures

@@ -39,7 +39,7 @@ def test_read_image_errors(tmp_path):
     (tmp_path / "junk.mha").write_bytes(b"\x00\x01junk" * 50)
     with pytest.raises(ReadError, match=r"junk\.mha: cannot read image"):
         read_image(tmp_path / "junk.mha")
-    with pytest.raises(ReadError, match="no DICOM series"):
+    with pytest.raises(ReadError, match="no DICOM image series"):
         read_image(tmp_path)  # a directory without DICOM files
 
 
@@ -164,13 +164,18 @@ def _tiny_series(folder, series_uid, n=4):
 def test_dicom_series_files_choices(tmp_path):
     from pathlib import Path
 
+    from lungdeform.io.dicom.folder import SeriesChoice
     from lungdeform.io.dicom.guard import is_dicom_file
     from lungdeform.io.dicom.series import dicom_series_files
 
-    # one folder, a CT of 4 slices and a 2-slice scout: the CT is the series (largest)
+    # one folder, a CT of 4 slices and another of 2 (issue 36: two candidate CT series are refused,
+    # naming both, never the larger taken without a word); a SeriesChoice picks one
     _tiny_series(tmp_path / "ct", "1.2.826.0.1.3680043.2.1125.7.11", 4)
     _tiny_series(tmp_path / "ct", "1.2.826.0.1.3680043.2.1125.7.12", 2)
-    files = dicom_series_files(tmp_path / "ct")
+    with pytest.raises(ReadError, match=r"ct: holds 2 CT series \(1.2.826.0.1.3680043.2.1125.7.11 '' \(4 CT image\(s\)\); "
+                                        r"1.2.826.0.1.3680043.2.1125.7.12 '' \(2 CT image\(s\)\)\)"):
+        dicom_series_files(tmp_path / "ct")
+    files = dicom_series_files(tmp_path / "ct", SeriesChoice(uid="1.2.826.0.1.3680043.2.1125.7.11"))
     assert len(files) == 4 and all(Path(f).name.startswith("11_") for f in files)
     # one file of the scout: its own series, not the largest
     assert len(dicom_series_files(tmp_path / "ct" / "12_000.dcm")) == 2
@@ -180,7 +185,7 @@ def test_dicom_series_files_choices(tmp_path):
     # two series of the same size in one folder (the phases of a 4-D CT): ambiguous, refused
     _tiny_series(tmp_path / "4d", "1.2.826.0.1.3680043.2.1125.7.21", 3)
     _tiny_series(tmp_path / "4d", "1.2.826.0.1.3680043.2.1125.7.22", 3)
-    with pytest.raises(ReadError, match=r"4d: holds 2 DICOM series, 2 of them with 3 files .*ambiguous"):
+    with pytest.raises(ReadError, match=r"4d: holds 2 CT series .*which one is meant cannot be told"):
         dicom_series_files(tmp_path / "4d")
 
 

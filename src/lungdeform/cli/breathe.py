@@ -13,6 +13,7 @@ from pathlib import Path
 
 import typer
 
+from lungdeform.atomic import staged_dir
 from lungdeform.breathing.run import check_sample_rate, run_fit, run_preset
 from lungdeform.errors import InputError
 
@@ -46,14 +47,16 @@ def register(apps) -> None:
             if cycles < 1:
                 raise InputError(f"--cycles must be >= 1, got {cycles}")
             check_sample_rate(preset, fs, name="--fs")  # the option's name in the message
-            m = run_preset(preset, out, cycles, fs)
+            with staged_dir(out) as staged:  # curve, metrics and figures together at the end, or none
+                m = run_preset(preset, staged, cycles, fs)
             ee = m["end_expiratory_above_relaxation_ml"]
             settled = (f"air trapping {ee:.0f} mL" if ee > -1.0 else
                        f"active expiration to {-ee:.0f} mL below the relaxation volume")
             typer.echo(f"preset {m['preset']['name']}: V_T {m['tidal_volume_ml']:.0f} mL, "
                        f"period {m['preset']['params']['period_s']:.2f} s, {settled}")
         else:
-            m = run_fit(fit, out, tidal, train_fraction, progress=say)
+            with staged_dir(out) as staged:
+                m = run_fit(fit, staged, tidal, train_fraction, progress=say)
             for fix in m.get("fixes", []):
                 typer.echo(f"note: {fix}", err=True)
             typer.echo(f"{m['trace']}: held-out RMS % of p2p: PV {m['model_rms_percent']:.2f}, "

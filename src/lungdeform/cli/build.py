@@ -28,6 +28,7 @@ from .common import (
     bounded,
     check_output,
     check_tidal_ml,
+    dicom_input,
     option_names,
     parse_orientation,
     say,
@@ -79,6 +80,8 @@ def register(apps) -> None:
         loaded = []
         # --side once per source also picks that lung of a mask holding both lungs in one label
         per_source = opts.side if opts.side and len(opts.side) == len(opts.sources) else [None] * len(opts.sources)
+        for src in opts.sources:  # a DICOM folder: what it holds besides the image series, said
+            dicom_input(src)
         for src, src_side in zip(opts.sources, per_source):
             got, notes = load_lungs(src, src_side, labels=opts.labels, units=opts.units, repair=opts.repair,
                                     target_vertices=opts.target_vertices, progress=say)

@@ -22,6 +22,8 @@ from lungdeform.atomic import write_json
 from lungdeform.breathing.presets import get_preset
 from lungdeform.constants import GRAVITY, TIDAL_VOLUME_ML
 from lungdeform.errors import InputError
+from lungdeform.io.dicom import folder as DF
+from lungdeform.io.dicom.folder import SeriesChoice
 from lungdeform.io.dicom.rtstruct import check_structure_on_ct, read_ct_series
 from lungdeform.io.grid import MAX_VOXELS, MAX_VOXELS_ENV, voxel_limit
 from lungdeform.io.image import is_dicom_series_path, read_image, resample_image, write_suffix
@@ -403,6 +405,54 @@ def without_alignment(state: State, no_rigid: bool) -> State:
     return State(state.delta_ml, None, f"{state.source}; its alignment left out (--no-rigid: the model's frame)")
 
 
+# --series UID / --series-description TEXT: which CT series of a folder that holds several
+
+SERIES_HELP = "Where a DICOM folder holds several CT series: the SeriesInstanceUID of the one to read (the refusal lists them)."
+SERIES_DESCRIPTION_HELP = ("Where a DICOM folder holds several CT series: the SeriesDescription of the one to read "
+                           "(equal ignoring case, else the one that contains it).")
+
+
+@dataclass(frozen=True, kw_only=True)
+class SeriesFlags:
+    """``--series`` / ``--series-description`` (an option group of :func:`takes`): which CT series to read
+    of a DICOM folder that holds several (other reconstructions, the phases of a 4-D CT)."""
+
+    series: Annotated[str | None, typer.Option("--series", help=SERIES_HELP)] = None
+    series_description: Annotated[str | None, typer.Option("--series-description", help=SERIES_DESCRIPTION_HELP)] = None
+
+    def choice(self, several_only: bool = False) -> SeriesChoice | None:
+        """The :class:`~lungdeform.io.dicom.folder.SeriesChoice` given, None without; both refused."""
+        return series_choice(self.series, self.series_description, several_only)
+
+
+def series_choice(uid: str | None, description: str | None, several_only: bool = False) -> SeriesChoice | None:
+    """``--series`` / ``--series-description`` as a :class:`~lungdeform.io.dicom.folder.SeriesChoice`
+    (None when neither is given; both together, or an empty one, refused)."""
+    if uid is not None and description is not None:
+        raise InputError("--series and --series-description both choose the series: give one")
+    for option, value in (("--series", uid), ("--series-description", description)):
+        if value is not None and not value.strip():
+            raise InputError(f"{option} is empty; give the series' {'UID' if option == '--series' else 'description'}")
+    if uid is None and description is None:
+        return None
+    return SeriesChoice(uid, description, several_only)
+
+
+def dicom_input(path: Path | None, series: SeriesChoice | None = None, option: str = "") -> None:
+    """For an input that is a DICOM folder: refuse it now, before any work, when the series to read
+    cannot be told (several CT series and no ``--series``; :func:`lungdeform.io.dicom.folder.pick`),
+    and say in one line (``note:``) what else it holds that is left out: an RTSTRUCT, RTPLAN,
+    RTDOSE, a DICOMDIR followed, localizers, other series, files that are no DICOM."""
+    if path is None or not Path(path).is_dir():
+        return
+    found = DF.survey(path)
+    if not found.series and all(what == "no DICOM" for _, what in found.ignored):
+        return  # no DICOM here (an archive, a dataset folder): its reader says what it makes of it
+    line = DF.ignored_line(found, [DF.pick(found, series)])
+    if line:
+        typer.echo(f"note: {option + ' ' if option else ''}{line}")
+
+
 # --rigid-structure NAME --rtstruct FILE / --rigid-mask MASK of dvf and warp: a tumour that moves
 # rigidly (lungdeform.playback.rigid)
 
@@ -449,18 +499,22 @@ class RigidOptions:
         return self.name if self.name is not None else str(self.mask)
 
 
-def rigid_region(options: RigidOptions | None, grid, reference: tuple[str, Path] | None = None) -> np.ndarray | None:
+def rigid_region(options: RigidOptions | None, grid, reference: tuple[str, Path] | None = None,
+                 series: SeriesChoice | None = None) -> np.ndarray | None:
     """``(z, y, x) bool`` on ``grid``: the structure's voxels (inside its closed surface through the
     contours) or the mask's non-zero voxels (a mask on another grid of the same LPS world taken by
     nearest neighbour); None without options. ``reference`` = ``(option, path)``: the image whose
     world ``grid`` is in; when it is a DICOM series the structure must be drawn on it (patient,
-    Frame of Reference, extent: :func:`lungdeform.io.dicom.rtstruct.check_structure_on_ct`)."""
+    Frame of Reference, extent: :func:`lungdeform.io.dicom.rtstruct.check_structure_on_ct`), ``series``
+    the series of it that was read (``--series``)."""
     if options is None:
         return None
     if options.name is not None:
         s = read_structure(options.rtstruct, options.name)
+        for line in s.skipped:  # contours enclosing no area (a tool's tips): skipped, said
+            typer.echo(f"note: {line}", err=True)
         if reference is not None and is_dicom_series_path(reference[1]):
-            ct = read_ct_series(reference[1])
+            ct = read_ct_series(reference[1], series)
             for line in check_structure_on_ct(s.roi, ct, str(options.rtstruct), option=reference[0]):
                 typer.echo(f"warning: {line}", err=True)
         region = RG.surface_mask(s.vertices, s.faces, grid)

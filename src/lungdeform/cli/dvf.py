@@ -25,11 +25,13 @@ from .common import (
     BreathFlags,
     RigidFlags,
     RigidOptions,
+    SeriesFlags,
     apply_rigid,
     bounded,
     breath_states,
     check_breath,
     check_output,
+    dicom_input,
     field_lines,
     phase_path,
     rigid_region,
@@ -56,6 +58,7 @@ class DvfOptions:
     rigid: RigidFlags = RigidFlags()
     breath: BreathFlags = BreathFlags()
     reg_spacing_mm: Annotated[float, typer.Option("--reg-spacing-mm", callback=bounded(0, 20, "mm"), help="With --out-reg: the REG's grid, the field's grid coarsened to nodes at most this far apart (a REG on a 512 x 512 x 141 grid is 443 MB; planning systems interpolate it trilinearly), its interpolation error against the full field printed; 0 keeps the field's own grid (--grid IMAGE chooses that).")] = REG_SPACING_MM
+    dicom: SeriesFlags = SeriesFlags()  # --series / --series-description: which CT series of --reference's folder
 
 
 def register(apps) -> None:
@@ -79,12 +82,16 @@ def register(apps) -> None:
         fields, regs = _output_paths(opts.out, opts.out_reg, breath, opts.breath.phase)
         for path in fields + regs:
             check_output(path, [*inputs, opts.moving], option="--out" if path in fields else "--out-reg")
+        choice = opts.dicom.choice()
+        dicom_input(opts.reference, choice, "--reference")
         movings = [_moving(opts.moving, breath, n) for n in range(len(breath.states))]
-        series = [_registration_series(opts.reference, mov, opts.inverse, state)
+        for moving in dict.fromkeys(movings if opts.out_reg else []):  # each phase's series once
+            dicom_input(moving, None, "--moving")
+        series = [_registration_series((opts.reference, choice), mov, opts.inverse, state)
                   for mov, state in zip(movings, breath.states)] if opts.out_reg else []
-        image = read_image(opts.reference if opts.grid is None else opts.grid)
+        image = read_image(opts.reference, series=choice) if opts.grid is None else read_image(opts.grid)
         grid = D.Grid.of(image)
-        region = rigid_region(rigid, grid, ("--reference", opts.reference))
+        region = rigid_region(rigid, grid, ("--reference", opts.reference), choice)
         note = extrapolation_note(m, [state.delta_ml for state in breath.states])
         if note:
             typer.echo(f"note: {note}")
@@ -99,11 +106,13 @@ def register(apps) -> None:
                 typer.echo(f"{'inverse' if opts.inverse else 'forward'} field at {state.source}")
                 for line in lines:
                     typer.echo(line)
-                typer.echo(f"wrote {fields[n]}")
                 if series:
                     _write_reg(tmp[len(fields) + n], (result.field, grid), series[n], opts.reg_spacing_mm,
                                _description(state))
-                    typer.echo(f"wrote {regs[n]}")
+        for n in range(len(breath.states)):  # said once all are in place
+            typer.echo(f"wrote {fields[n]}")
+            if series:
+                typer.echo(f"wrote {regs[n]}")
 
 
 def _output_paths(out: Path, out_reg: Path | None, breath, phase: int | None) -> tuple[list[Path], list[Path]]:
@@ -160,10 +169,12 @@ def _write_reg(path: Path, full: tuple, series: tuple, spacing_mm: float, descri
                f"over the {err.moving} voxels that move; --reg-spacing-mm 0 keeps the full grid)")
 
 
-def _registration_series(reference: Path, moving: Path | None, inverse: bool, state):
-    """The fixed and moving series of ``--out-reg``, checked before the field is evaluated: the
-    REG holds the forward field (fixed → moving, docs/RADIOTHERAPY.md), so --inverse is refused; a
-    state in a fitted scan's own frame (an alignment) needs that scan's series as --moving."""
+def _registration_series(fixed: tuple, moving: Path | None, inverse: bool, state):
+    """The fixed and moving series of ``--out-reg`` (``fixed`` = (--reference, its --series choice)),
+    checked before the field is evaluated: the REG holds the forward field (fixed → moving,
+    docs/RADIOTHERAPY.md), so --inverse is refused; a state in a fitted scan's own frame (an
+    alignment) needs that scan's series as --moving."""
+    reference, choice = fixed
     if inverse:
         raise InputError("--out-reg holds the forward field (fixed → moving, DICOM's resampling direction); "
                          "drop --inverse")
@@ -171,7 +182,7 @@ def _registration_series(reference: Path, moving: Path | None, inverse: bool, st
         raise InputError(f"--out-reg needs --reference to be a DICOM CT series (the fixed one), got {reference}")
     if moving is None and state.alignment is not None:
         raise InputError("--out-reg: this state lies in a fitted scan's own frame; give that scan's series as --moving")
-    fixed = read_ct_series(reference)
+    fixed_ct = read_ct_series(reference, choice)
     mov = None if moving is None else read_ct_series(moving)
-    check_pair(fixed, mov)
-    return fixed, mov
+    check_pair(fixed_ct, mov)
+    return fixed_ct, mov

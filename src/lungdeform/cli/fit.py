@@ -13,6 +13,7 @@ from typing import Annotated
 
 import typer
 
+from lungdeform.atomic import staged_dir
 from lungdeform.errors import InputError
 from lungdeform.evaluate.pipeline import check_prior, run_fit
 from lungdeform.fit.config import FitConfig, FitInputs
@@ -23,8 +24,10 @@ from .common import (
     DIRECTION_DEGREE_HELP,
     FIT_OPTIONS,
     SIDE_CHECK_HELP,
+    SeriesFlags,
     bounded,
     check_output,
+    dicom_input,
     option_names,
     print_fit_table,
     print_fit_warnings,
@@ -67,6 +70,7 @@ class FitOptions:
     refine_mm: Annotated[float, typer.Option("--refine-mm", callback=bounded(0, 100, "mm"), help="Finest smoothing width (mm) of the surface refinement, which brings "
         "the fitted displacement onto the target surfaces (docs/FITTING.md); "
         "0: none (the fitted k·F·d only).")] = 5.0
+    dicom: SeriesFlags = SeriesFlags()  # --series / --series-description: in every input folder holding several CT series
 
 
 def register(apps) -> None:
@@ -81,8 +85,14 @@ def register(apps) -> None:
                 vols = [float(v) for v in opts.volumes.split(",")]
             except ValueError:
                 raise InputError(f"--volumes must be numbers in mL separated by commas, got {opts.volumes!r}") from None
+        series = opts.dicom.choice(several_only=True)
+        if series is not None and len(opts.inputs) == 1:
+            raise InputError(f"{series}: one input is a 4-D CT folder, whose series are its phases; --series and "
+                             "--series-description choose among the series of an input folder of two or more inputs")
+        for path in opts.inputs if len(opts.inputs) > 1 else []:  # one folder is a 4-D CT: its phases are its series
+            dicom_input(path, series)
         with option_names(FIT_OPTIONS):
-            fit_inputs = FitInputs(opts.inputs, opts.side, vols, opts.landmarks)
+            fit_inputs = FitInputs(opts.inputs, opts.side, vols, opts.landmarks, series=series)
             config = FitConfig(grid=opts.grid, stiffness=opts.stiffness, baselines=opts.baselines, max_evaluations=opts.evaluations,
                                landmark_fit=opts.landmark_fit, folds=opts.folds, align=opts.align, direction_degree=opts.direction_degree,
                                landmark_comparisons=opts.landmark_comparisons, side_check=opts.side_check, interior=opts.interior,
@@ -91,7 +101,8 @@ def register(apps) -> None:
             check_prior(config, prior)
             # created by run_fit once the inputs are read: a bad input leaves no folder
             folder = check_output(opts.out, [*opts.inputs, *(opts.landmarks or []), opts.motion_prior], folder=True, writes=FIT_FILES)
-            m = run_fit(fit_inputs, folder, config, progress=say, prior=prior)
+            with staged_dir(folder) as staged:  # model, metrics and report appear together at the end, or none
+                m = run_fit(fit_inputs, staged, config, progress=say, prior=prior)
         for text in m.get("notes") or []:
             typer.echo(f"note: {text}")
         choice = m["alignment_choice"]

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import typer
 
-from lungdeform.atomic import jsonable, write_bytes
+from lungdeform.atomic import jsonable, staged_dir, write_bytes
 from lungdeform.errors import InputError
 from lungdeform.io.mask import extract_surface
 from lungdeform.io.meshfile import write_mesh
@@ -16,7 +16,7 @@ from lungdeform.segment import ct as C
 from lungdeform.segment import lungs as S
 from lungdeform.segment import split as L
 
-from .common import check_output, output_dir, say
+from .common import SERIES_DESCRIPTION_HELP, SERIES_HELP, check_output, dicom_input, say, series_choice
 
 MASK_FORMATS = ("nii.gz", "mha")
 
@@ -30,6 +30,8 @@ def register(apps) -> None:
         surfaces: bool = typer.Option(False, "--surfaces/--no-surfaces", help="Also build left/right lung surfaces (STL) with lungdeform.io.mask."),
         target_vertices: int = typer.Option(20000, "--target-vertices", help="Vertex budget per surface."),
         downsample: int = typer.Option(1, "--downsample", help="In-plane block-mean factor before segmenting (speed)."),
+        series: str = typer.Option(None, "--series", help=SERIES_HELP),
+        series_description: str = typer.Option(None, "--series-description", help=SERIES_DESCRIPTION_HELP),
     ) -> None:
         """Segment the lungs (no learned weights), or split a both-lung mask: masks, volumes.json, overlay.png (--surfaces: STL surfaces too)."""
 
@@ -41,8 +43,10 @@ def register(apps) -> None:
             raise InputError(f"--downsample must be ≥ 1, got {downsample}")
         check_output(out, [ct], folder=True, writes=[*(f"{s}_lung.{fmt}" for s in ("left", "right")),
                                                       "left_lung.stl", "right_lung.stl", "overlay.png", "volumes.json"])
+        choice = series_choice(series, series_description)
+        dicom_input(ct, choice)  # what a DICOM folder holds besides the CT, said; several CT series refused
         t0 = time.perf_counter()
-        image = L.read_ct_or_mask(ct)  # a binary mask holding both lungs is split, not segmented
+        image = L.read_ct_or_mask(ct, series=choice)  # a binary mask holding both lungs is split, not segmented
         t_read = time.perf_counter() - t0
         image, seg = L.segment_ct_or_mask(image, downsample, progress=say)
         t_seg = time.perf_counter() - t0 - t_read
@@ -55,28 +59,27 @@ def register(apps) -> None:
                 meshes[side] = res.surface
                 surf_info[side] = {"vertices": int(len(res.surface.vertices)), "faces": int(len(res.surface.faces)),
                                    "notes": list(res.notes)}
-        out = output_dir(out)
-        written = []
-        for side in ("left", "right"):
-            written.append(C.write_mask(seg.mask_image(side), out / f"{side}_lung.{fmt}"))
-        written.append(S.overlay_png(seg, out / "overlay.png"))
-        if meshes:
+        names = [f"{side}_lung.{fmt}" for side in ("left", "right")] + ["overlay.png"] + \
+                [f"{side}_lung.stl" for side in meshes] + ["volumes.json"]
+        with staged_dir(out) as folder:  # every output appears at the end, together, or none does
+            for side in ("left", "right"):
+                C.write_mask(seg.mask_image(side), folder / f"{side}_lung.{fmt}")
+            S.overlay_png(seg, folder / "overlay.png")
             for side, surf in meshes.items():
-                written.append(write_mesh(out / f"{side}_lung.stl", surf.vertices, surf.faces))
-        elapsed = time.perf_counter() - t0
-        report = {
-            "source": str(ct),
-            "grid": {"shape_zyx": list(image.array.shape), "spacing_xyz_mm": image.spacing.tolist(),
-                     "downsample": downsample},
-            "volumes_ml": seg.volumes_ml,
-            "airway_removal": seg.airway_removal,
-            "details": seg.details,
-            "surfaces": surf_info,
-            "timings_s": {"read": t_read, "segment": t_seg, "total": elapsed},
-        }
-        path = out / "volumes.json"
-        write_bytes(path, (json.dumps(report, indent=2, default=jsonable) + "\n").encode())
-        written.append(path)
+                write_mesh(folder / f"{side}_lung.stl", surf.vertices, surf.faces)
+            elapsed = time.perf_counter() - t0
+            report = {
+                "source": str(ct),
+                "grid": {"shape_zyx": list(image.array.shape), "spacing_xyz_mm": image.spacing.tolist(),
+                         "downsample": downsample},
+                "volumes_ml": seg.volumes_ml,
+                "airway_removal": seg.airway_removal,
+                "details": seg.details,
+                "surfaces": surf_info,
+                "timings_s": {"read": t_read, "segment": t_seg, "total": elapsed},
+            }
+            write_bytes(folder / "volumes.json", (json.dumps(report, indent=2, default=jsonable) + "\n").encode())
+        written = [out / name for name in names]
         v = seg.volumes_ml
         typer.echo(f"left lung {v['left']:.0f} mL, right lung {v['right']:.0f} mL, "
                    f"airways removed {v['removed']:.0f} mL (tree {v['airway']:.0f} mL); {elapsed:.1f} s")

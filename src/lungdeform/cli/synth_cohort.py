@@ -13,10 +13,11 @@ from typing import Annotated
 
 import typer
 
+from lungdeform.atomic import staged_dir
 from lungdeform.cohort.synthetic import SyntheticLungSpec, synthetic_cohort, write_cohort
 from lungdeform.errors import InputError
 
-from .common import bounded, output_dir, say, takes
+from .common import bounded, check_output, say, takes
 
 
 def _floats(text: str, option: str) -> list[float]:
@@ -51,12 +52,16 @@ def register(apps) -> None:
     def synth_cohort_command(opts: SynthCohortOptions) -> None:
         """Generate a synthetic cohort with known constants, volumes and noise (truth.json)."""
 
+        check_output(opts.out, folder=True)  # a file or a folder that takes no file: refused before the work
         deltas = _floats(opts.volumes, "--volumes")
         spec = SyntheticLungSpec(noise_mm=opts.noise_mm, law=opts.law, landmarks=opts.landmarks, table_shift_mm=opts.table_shift_mm)
         lungs = synthetic_cohort(opts.subjects, delta_ml=deltas, spec=spec, seed=opts.seed, spread=opts.spread,
                                  shape_spread=opts.shape_spread, progress=say)
-        folder = output_dir(opts.out)  # after the checks of every other option: bad input leaves no folder
-        info = write_cohort(lungs, folder, seed=opts.seed, progress=say)
+        folder = opts.out
+        with staged_dir(folder) as staged:  # every file appears at the end, together, or none does
+            info = write_cohort(lungs, staged, seed=opts.seed, progress=say)
+        info = {k: (folder / Path(v).relative_to(staged) if isinstance(v, Path) and Path(v).is_relative_to(staged) else v)
+                for k, v in info.items()}
         typer.echo(f"{'subject':<10} {'side':<6} {'source':<22} {'V_EE mL':>8}  c1…c9")
         for lung in lungs:
             cs = " ".join(f"{c:.3f}" for c in lung.constants)

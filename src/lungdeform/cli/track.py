@@ -9,13 +9,12 @@ from typing import Annotated
 import numpy as np
 import typer
 
-from lungdeform.atomic import write_bytes
+from lungdeform.atomic import staged_outputs, write_bytes
 from lungdeform.errors import InputError
 from lungdeform.geometry.moments import solid_moments
 from lungdeform.io.dicom.rtstruct import (
     build_rtstruct,
     check_ct_is_scan,
-    check_roi_name,
     check_structure_on_ct,
     check_structure_on_scan,
     read_ct_series,
@@ -30,12 +29,13 @@ from lungdeform.playback.phases import PHASE_ZERO_HELP, check_zero, phase_schedu
 
 from .common import (
     BREATH_HINT,
+    SeriesFlags,
     bounded,
     breath_trace,
     check_cycles,
     check_output,
     check_tidal_ml,
-    output_dir,
+    dicom_input,
     takes,
     without_alignment,
 )
@@ -72,6 +72,7 @@ class TrackOptions:
     reference_ct: Annotated[Path | None, typer.Option("--reference-ct", help="With --out-rtstruct: the DICOM CT series (folder) the structure was drawn on.")] = None
     scan: Annotated[int | None, typer.Option("--scan", help="Input scan K of the fit (0 = rest): its volume, in its own frame (the fit's alignment undone), as 'dvf --scan K'.")] = None
     no_rigid: Annotated[bool, typer.Option("--no-rigid", help="With --scan: leave the fit's alignment out (positions in the model's frame).")] = False
+    dicom: SeriesFlags = SeriesFlags()  # --series / --series-description: which CT series of --reference-ct's folder
 
 
 def register(apps) -> None:
@@ -92,9 +93,11 @@ def register(apps) -> None:
         _check_out_rtstruct(opts.out_rtstruct, opts.model, opts.points, opts.rtstruct, opts.curve)
         check_output(opts.out, [opts.model, opts.points, opts.rtstruct, opts.curve, opts.reference_ct], folder=True,
                      writes=("trajectories.csv", "points.json", "motion.png", "structure_motion.csv"))
+        series = opts.dicom.choice()
+        dicom_input(opts.reference_ct, series, "--reference-ct")
         m = load_model(opts.model)
         tracked = R.read_structure(opts.rtstruct, opts.structure) if opts.rtstruct is not None else None
-        ct = _reference_ct(tracked, opts.rtstruct, opts.out_rtstruct, opts.reference_ct, (m, opts.scan, opts.no_rigid))
+        ct = _reference_ct(tracked, opts.rtstruct, opts.out_rtstruct, (opts.reference_ct, series), (m, opts.scan, opts.no_rigid))
         if tracked is not None:
             pts, labels, source = tracked.points, tracked.labels, str(opts.rtstruct)
         else:
@@ -104,11 +107,10 @@ def register(apps) -> None:
                                                curve=opts.curve, preset=opts.preset, cycles=opts.cycles, tidal_ml=opts.tidal_ml, fps=opts.fps,
                                                phase=opts.phase, zero=opts.phase_zero),
                                        len(pts), source)
+        rigid_read = tracked if opts.rigid_structure in (None, opts.structure) else R.read_structure(opts.rtstruct, opts.rigid_structure)
         rigid = None if opts.rigid_structure is None else R.rigid_structure(
-            m, opts.rtstruct, opts.rigid_structure, opts.rigid_border_mm, tracked if opts.rigid_structure == opts.structure else None)
+            m, opts.rtstruct, opts.rigid_structure, opts.rigid_border_mm, rigid_read)
         _check_rows(len(pts), len(frames.delta_ml), source)
-        for name in [f"{opts.structure}@{tag}" for tag in tags] + [f"ITV_{opts.structure}"] if opts.out_rtstruct is not None else []:
-            check_roi_name(name, str(opts.rtstruct))  # the ROI names, before the surfaces are moved
         note = T.extrapolation_note(m, frames.delta_ml)
         if note:
             typer.echo(f"note: {note}")
@@ -121,16 +123,20 @@ def register(apps) -> None:
             motion = R.motion_table(surfaces)
             surfaces.append(R.itv_surface(surfaces, opts.structure))  # the union over the states
             built = build_rtstruct(ct, surfaces, label=f"{opts.structure} moved", source=str(opts.rtstruct))
-        folder = output_dir(opts.out)
         meta = {"model": str(opts.model), "schedule": frames.source, "end_exhale_ml": T.end_exhale_ml(m),
                 "scan_ml": T.scan_ml(m), "scan_state": m.scan.record(), **T.interior_meta(m),
                 **({} if rigid is None else {"rigid_structure": rigid.name, "rigid_border_mm": rigid.border_mm})}
         ee = None if m.scan.is_end_exhale else R.moved_points(m, pts, placement, [0.0], rigid)[0]
-        paths = T.write_trajectories(folder, pts, labels, placement, positions, frames, meta=meta, end_exhale=ee)
+        _say_fixed([tracked, rigid_read], surfaces if built is not None else [], built)
+        with staged_outputs() as staging:  # every output staged, and renamed into place together at the end
+            folder = staging.folder(opts.out)
+            written = T.write_trajectories(folder, pts, labels, placement, positions, frames, meta=meta, end_exhale=ee)
+            if built is not None:
+                save_rtstruct(staging.file(opts.out_rtstruct), built[0])
+                written["motion"] = write_bytes(folder / "structure_motion.csv", R.motion_csv({opts.structure: motion}))
+        paths = {key: opts.out / Path(path).name for key, path in written.items()}
         if built is not None:
-            save_rtstruct(opts.out_rtstruct, built[0])
             typer.echo(f"wrote {opts.out_rtstruct}: " + ", ".join(f"{k} ({n} contours)" for k, n in built[1].items()))
-            paths["motion"] = write_bytes(folder / "structure_motion.csv", R.motion_csv({opts.structure: motion}))
             _print_motion(opts.structure, motion, surfaces[-1])
         typer.echo(f"{len(pts)} point(s), {len(frames.delta_ml)} frame(s): {frames.source}")
         if rigid is not None:
@@ -142,6 +148,18 @@ def register(apps) -> None:
         else:
             _print_structure(opts.structure, placement, T.motion_summary(positions, pts), origin)
         typer.echo(f"wrote {paths['csv']}, {paths['json']}, {paths['png']}")
+
+
+def _say_fixed(read: list, surfaces: list, built) -> None:
+    """What was done to the input, once every check has passed (stderr, ``note:``): each contour left
+    out because it encloses no area (of each structure ``read``: --structure's, --rigid-structure's;
+    None where not given), each ROI name cut to fit a ROI Name (its whole in ROIDescription)."""
+    for line in dict.fromkeys(line for s in read if s is not None for line in s.skipped):
+        typer.echo(f"note: {line}", err=True)
+    for (name, *_rest), written in zip(surfaces, built[1] if built is not None else ()):
+        if written != name:
+            typer.echo(f"note: ROI name {name!r} ({len(name.encode())} bytes of UTF-8) is longer than a ROI Name holds "
+                       f"(64 bytes): written as {written!r}, the whole name in ROIDescription", err=True)
 
 
 def _print_motion(name: str, motion: list[dict], itv) -> None:
@@ -195,9 +213,10 @@ def _check_rows(points: int, frames: float, source: str) -> None:
                          "trajectories; lower --fps, or give --phases or --volume-ml")
 
 
-def _reference_ct(tracked, rtstruct, out_rtstruct, reference_ct, state):
-    """The reference CT (None without --out-rtstruct), read and the structure checked on it before
-    anything is written; warnings (another study; no frame of reference at all) on stderr.
+def _reference_ct(tracked, rtstruct, out_rtstruct, reference_ct: tuple, state):
+    """The reference CT (None without --out-rtstruct; ``reference_ct`` = (--reference-ct, its --series
+    choice)), read and the structure checked on it before anything is written; warnings (another
+    study; no frame of reference at all) on stderr.
     ``state`` = ``(model, --scan, --no-rigid)``: with ``--scan K`` the CT must be the scan whose
     frame the contours are in (:func:`_check_scan_ct`)."""
     if tracked is not None and not tracked.roi.frame_uid and out_rtstruct is None:
@@ -205,7 +224,7 @@ def _reference_ct(tracked, rtstruct, out_rtstruct, reference_ct, state):
                    "it was drawn in the frame of the model's end-exhale scan", err=True)
     if out_rtstruct is None:
         return None
-    ct = read_ct_series(reference_ct)
+    ct = read_ct_series(*reference_ct)
     if state[1] is not None and _check_scan_ct(ct, tracked, rtstruct, *state):
         return ct
     for line in check_structure_on_ct(tracked.roi, ct, str(rtstruct)):

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import typer
 
+from lungdeform.atomic import made_folder
 from lungdeform.errors import InputError
 from lungdeform.validate.copd import (
     COHORT_OPTIONS,
@@ -23,7 +24,7 @@ from lungdeform.validate.copd import (
 )
 from lungdeform.validate.subjects import find_subjects, incomplete_subjects, write_cohort_manifest
 
-from .common import FIT_OPTIONS, check_output, option_names, output_dir, say
+from .common import FIT_OPTIONS, check_output, option_names, say
 
 #: The files validate copd writes in ``--out`` (beside a folder per case).
 COPD_FILES = ("metrics.json", "report.html", "manifest.csv")
@@ -75,8 +76,8 @@ def register(apps) -> None:
             find_cases(data, wanted)  # a bad data folder leaves no output folder
             for name, missing in incomplete_cases(data, wanted).items():
                 typer.echo(f"warning: {data}: {name} skipped: it lacks {', '.join(missing)}", err=True)
-            folder = output_dir(out)
-            result = run_copd(data, folder, config, wanted, progress=say)
+            with made_folder(out) as folder:  # a refused run leaves no folder; a finished lung is kept (resumed)
+                result = run_copd(data, folder, config, wanted, progress=say)
         print_table(result)
         done = result["refitted"]
         typer.echo(f"fitted {len(done)} lung(s) this run" + (f" ({', '.join(done)})" if done else " (all resumed)"))
@@ -104,7 +105,7 @@ def _manifest_subjects(data: Path, wanted: list[int] | None):
 def _write_manifest(found, out: Path, evaluations: int) -> None:
     """``--manifest-only``: OUT/manifest.csv for ``lungdeform cohort`` of the subjects ``found``
     (:func:`lungdeform.validate.subjects.find_subjects`), and the command that fits it."""
-    path = write_cohort_manifest(found, output_dir(out) / "manifest.csv")
+    path = write_cohort_manifest(found, Path(out) / "manifest.csv")  # its folder made by the atomic write
     budget = [] if evaluations == 300 else ["--evaluations", str(evaluations)]
     command = ["lungdeform", "cohort", str(path), "--out", str(Path(out) / "cohort"), *COHORT_OPTIONS, *budget]
     typer.echo(f"wrote {path}")

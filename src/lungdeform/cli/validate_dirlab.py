@@ -10,7 +10,7 @@ from lungdeform.errors import InputError
 from lungdeform.validate.dirlab import MODELS, default_models
 from lungdeform.validate.dirlab_experiment import DirlabRun, run_dirlab, write_metrics
 
-from .common import check_output, output_dir
+from .common import check_output
 
 
 def register(apps) -> None:
@@ -38,7 +38,7 @@ def register(apps) -> None:
             typer.echo(f"note: {n}")
         typer.echo(f"magnitude set by one scalar per phase: {run.summary['magnitude_one_scalar']}")
         typer.echo(f"direction constant: {run.summary['direction_constant']}")
-        path = write_metrics(run, output_dir(out))
+        path = write_metrics(run, out)  # an atomic write: its folder made for it, or none
         typer.echo(f"wrote {path} ({len(run.results)} case(s), {run.elapsed_s:.2f} s)")
 
 

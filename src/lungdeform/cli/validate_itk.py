@@ -13,6 +13,7 @@ from typing import Annotated
 
 import typer
 
+from lungdeform.atomic import staged_dir
 from lungdeform.validate.itk_pair import find_pair, pair_config, run_itk_pair
 
 from .common import (
@@ -21,7 +22,6 @@ from .common import (
     STRICT_EXIT,
     check_output,
     option_names,
-    output_dir,
     print_fit_table,
     print_fit_warnings,
     say,
@@ -55,8 +55,9 @@ def register(apps) -> None:
         with option_names(FIT_OPTIONS):
             config = pair_config(grid=opts.grid, stiffness=opts.stiffness, max_evaluations=opts.evaluations,
                                  landmark_fit=opts.landmark_fit, folds=opts.folds, direction_degree=opts.direction_degree)
-            folder = output_dir(opts.out)
-            metrics = run_itk_pair(files, folder, config, progress=say)
+            folder = opts.out
+            with staged_dir(folder) as staged:  # metrics, model and report together at the end, or none
+                metrics = run_itk_pair(files, staged, config, progress=say)
         print_fit_table(metrics)
         print_fit_warnings(metrics)
         for name, text in metrics.get("protocols", {}).items():

@@ -25,11 +25,13 @@ from .common import (
     BreathFlags,
     RigidFlags,
     RigidOptions,
+    SeriesFlags,
     apply_rigid,
     bounded,
     breath_states,
     check_breath,
     check_output,
+    dicom_input,
     field_lines,
     phase_path,
     rigid_region,
@@ -57,6 +59,7 @@ class WarpOptions:
     rigid: RigidFlags = RigidFlags()
     grid: Annotated[Path | None, typer.Option("--grid", help="Write on this image's grid instead of IMAGE's (e.g. the target scan's, so an inhaled lung is not cropped); same LPS world.")] = None
     no_rigid: Annotated[bool, typer.Option("--no-rigid", help="With --scan: leave the fit's alignment of that scan out (the image stays in the model's frame).")] = False
+    dicom: SeriesFlags = SeriesFlags()  # --series / --series-description: which CT series of IMAGE's folder
 
 
 def register(apps) -> None:
@@ -87,12 +90,14 @@ def register(apps) -> None:
                 check_output(path, inputs)
         else:
             paths = [Path() if dicom else opts.out]
-        img = read_image(opts.image)
+        series = opts.dicom.choice()
+        dicom_input(opts.image, series, "IMAGE")
+        img = read_image(opts.image, series=series)
         lungs = _lungs(opts, m, img)
         target = img if opts.grid is None else read_image(opts.grid)
-        region = rigid_region(rigid, D.Grid.of(target), ("IMAGE", opts.image))
+        region = rigid_region(rigid, D.Grid.of(target), ("IMAGE", opts.image), series)
         projector = M.Projector() if kinds else None
-        header = DS.study_header(opts.image) if dicom else None
+        header = DS.study_header(opts.image, series) if dicom else None
         note = extrapolation_note(m, [s.delta_ml for s in states])
         if note:
             typer.echo(f"note: {note}")
@@ -235,7 +240,7 @@ def _write_series(folder: Path, image, header, temporal) -> None:
     """One DICOM CT series: a phase ``"<source description> phase 30%"`` of a 4-D CT, or one state."""
     base = header.get("SeriesDescription", "")
     if temporal is None:
-        description, number = f"{base} lungdeform warp".strip(), 100
+        description, number = DS.state_description(base), 100
     else:
         description, number = DS.phase_description(base, *temporal), 100 + temporal[0]
     DS.write_ct_series(folder, Image(image.array, image.spacing, image.origin, image.direction), header,

@@ -101,12 +101,12 @@ def read_inputs(inputs: FitInputs, side_check: bool = True,
         series = cycle.pop("series")
     else:
         paths, read, notes4d = list(inputs.paths), [], []
-        series = [_dicom_files_of(Path(p)) for p in inputs.paths]
+        series = [_dicom_files_of(Path(p), inputs.series) for p in inputs.paths]
         first_image = None  # every image is checked against the first one's spacing as soon as it is read
         for p in inputs.paths:
             say(f"reading {p}")
             read.append(read_input(Path(p), inputs.side, progress=say, spacing_like=first_image,
-                                   splits=inputs.splits))
+                                   splits=inputs.splits, series=inputs.series))
             if first_image is None and read[-1][2] is not None:
                 first_image = (p, read[-1][2])
     surfaces, images = [r[0] for r in read], [r[3] for r in read]
@@ -131,12 +131,12 @@ def read_inputs(inputs: FitInputs, side_check: bool = True,
                       [str(p) for p in paths], cycle, scans)
 
 
-def _dicom_files_of(path: Path):
-    """The files of the DICOM series an input path names (a folder or one of its files), or None
-    when it is no DICOM series (an image file, a mesh, an archive)."""
+def _dicom_files_of(path: Path, series=None):
+    """The files of the DICOM series an input path names (a folder or one of its files; ``series``
+    chooses among several), or None when it is no DICOM series (an image file, a mesh, an archive)."""
     if is_dicom_series_path(path):
         try:
-            return dicom_series_files(path)
+            return dicom_series_files(path, series)
         except ReadError:
             return None  # e.g. a dataset folder holding one archive: read as such, no series identity
     return None
@@ -164,7 +164,8 @@ def read_fourdct(folder: Path, side: str, progress) -> tuple[list[str], list[tup
     fit order) that :func:`read_inputs` takes out for :attr:`ReadInputs.scans`."""
 
     progress(f"reading the 4-D CT {folder}")
-    phases = read_phases(folder)
+    ignored: list[str] = []
+    phases = read_phases(folder, ignored=ignored)
     read, first = [], None
     for ph in phases:
         progress(f"segmenting phase {ph.label}")
@@ -175,7 +176,7 @@ def read_fourdct(folder: Path, side: str, progress) -> tuple[list[str], list[tup
     tied = [i for i in order[1:] if volumes[i] <= volumes[order[0]]]
     order = [i for i in order if i not in tied]
     by_phase = ", ".join(f"{ph.label} {v:.1f} mL" for ph, v in zip(phases, volumes))
-    notes = [f"{folder}: 4-D CT of {len(phases)} phases; {side} lung by phase: {by_phase}",
+    notes = ignored + [f"{folder}: 4-D CT of {len(phases)} phases; {side} lung by phase: {by_phase}",
              (f"{folder}: phases fitted in the order of their volume (end-exhale first; a phase of equal volume on "
               f"the other branch is a second target at that volume): {', '.join(phases[i].label for i in order)}")]
     notes += [f"{folder}: phase {phases[i].label} has the end-exhale volume ({volumes[i]:.1f} mL): not a target"
@@ -189,14 +190,15 @@ def read_fourdct(folder: Path, side: str, progress) -> tuple[list[str], list[tup
 
 
 def read_input(path: Path, side: str, *, progress: Progress | None = None, spacing_like=None,
-               splits: SplitCache | None = None):
+               splits: SplitCache | None = None, series=None):
     """``(dense Surface, crop planes, spacing or None, image or None, split or None)`` for one input
     path; ``split`` (:class:`~lungdeform.segment.split.LungSplit`) when the input was a mask holding
     both lungs in one label, ``image`` then its ``side`` lung.
 
     ``spacing_like``: ``(path, spacing (3,) mm)`` of an image read before; an image of another
     spacing is refused as soon as it is read, before the (slow) segmentation and surface. ``splits``:
-    where a mask holding both lungs is split (:class:`~lungdeform.segment.split.SplitCache`)."""
+    where a mask holding both lungs is split (:class:`~lungdeform.segment.split.SplitCache`); ``series``:
+    which CT series of a DICOM folder holding several (:class:`~lungdeform.io.dicom.folder.SeriesChoice`)."""
 
     path = Path(path)
     if not path.exists():
@@ -204,12 +206,12 @@ def read_input(path: Path, side: str, *, progress: Progress | None = None, spaci
 
     path = archive_in(path)  # a dataset folder holding one archive: that archive
     if is_archive(path):  # a zipped or tarred DICOM series (or image): a CT
-        image = read_ct(path)
+        image = read_ct(path, series=series)
     elif not is_image_path(path):
         surface, _ = lio.load_surface(path, name=path.name)
         return surface, [], None, None, None
     else:
-        image = read_image(path)
+        image = read_image(path, series=series)
     return image_input(image, path, side, progress=progress, spacing_like=spacing_like, splits=splits)
 
 

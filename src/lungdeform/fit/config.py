@@ -15,6 +15,7 @@ import numpy as np
 
 from lungdeform.errors import InputError
 from lungdeform.geometry.frame import SIDES
+from lungdeform.io.dicom.folder import SeriesChoice
 from lungdeform.model.direction import MAX_DEGREE
 from lungdeform.segment.split import SplitCache
 
@@ -49,6 +50,9 @@ class FitInputs:
     splits : SplitCache, or None
         Where a mask holding both lungs is split (:class:`~lungdeform.segment.split.SplitCache`): a
         caller fitting both lungs of the same masks passes one, so that each mask is split once.
+    series : SeriesChoice, or None
+        Which CT series to read of an input DICOM folder holding several
+        (:class:`~lungdeform.io.dicom.folder.SeriesChoice`, ``fit --series``).
     """
 
     paths: Sequence[Path | str]
@@ -56,6 +60,7 @@ class FitInputs:
     volumes_ml: Sequence[float] | None = None
     landmarks: Sequence[Path | str] | None = None
     splits: SplitCache | None = field(default=None, compare=False, repr=False)
+    series: SeriesChoice | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "paths", tuple(self.paths))

@@ -63,13 +63,15 @@ def _frame(normal: np.ndarray) -> np.ndarray:
     return np.stack([u, np.cross(normal, u), normal])
 
 
-def check_contours(contours, name: str = "structure", source: str | None = None) -> list[np.ndarray]:
+def check_contours(contours, name: str = "structure", source: str | None = None, numbers=None) -> list[np.ndarray]:
     """``contours`` as ``(k, 3) float`` arrays after the checks a surface through them needs, each
     refused with :class:`InputError` naming ``source`` (the file, if given), ``name`` (e.g.
-    ``"structure 'GTV'"``) and the contour (1-based, in the order given): at most :data:`MAX_CONTOURS` contours and
+    ``"structure 'GTV'"``) and the contour (1-based, in the order given, or ``numbers[i]``: its number
+    in the file when some were left out, :func:`enclosing`): at most :data:`MAX_CONTOURS` contours and
     :data:`MAX_POINTS` points, each of 3 or more finite points within :data:`MAX_COORD_MM`."""
     pre = f"{source}: " if source else ""
     contours = [np.asarray(c, float) for c in contours]
+    numbers = list(numbers) if numbers is not None else list(range(1, len(contours) + 1))
     if not contours:
         raise InputError(f"{pre}{name}: no contours")
     if len(contours) > MAX_CONTOURS:
@@ -78,25 +80,63 @@ def check_contours(contours, name: str = "structure", source: str | None = None)
     total = sum(len(c) for c in contours)
     if total > MAX_POINTS:
         raise InputError(f"{pre}{name}: {total} contour points, more than {MAX_POINTS}")
-    for k, c in enumerate(contours, start=1):
-        if c.ndim != 2 or c.shape[1] != 3:
-            raise InputError(f"{pre}contour {k} of {name}: not a list of (x, y, z) points")
-        if not np.all(np.isfinite(c)):
-            raise InputError(f"{pre}contour {k} of {name} has non-finite coordinates")
+    for k, c in zip(numbers, contours):
+        _check_points(c, f"{pre}contour {k} of {name}")
         if len(c) < 3:
             raise InputError(f"{pre}contour {k} of {name} has {len(c)} point(s); a closed contour needs 3 or more")
-        if np.abs(c).max() > MAX_COORD_MM:
-            raise InputError(f"{pre}contour {k} of {name} has a coordinate of {np.abs(c).max():.3g} mm, beyond "
-                             f"{MAX_COORD_MM:g} mm")
     return contours
 
 
-def _heights(local: list[np.ndarray], name: str, pre: str) -> np.ndarray:
+def _check_points(c: np.ndarray, what: str) -> None:
+    """Refuse a contour ``c`` that is no list of finite (x, y, z) points within :data:`MAX_COORD_MM`."""
+    if c.ndim != 2 or c.shape[1] != 3:
+        raise InputError(f"{what}: not a list of (x, y, z) points")
+    if not np.all(np.isfinite(c)):
+        raise InputError(f"{what} has non-finite coordinates")
+    if c.size and np.abs(c).max() > MAX_COORD_MM:
+        raise InputError(f"{what} has a coordinate of {np.abs(c).max():.3g} mm, beyond {MAX_COORD_MM:g} mm")
+
+
+#: A contour enclosing less than this (mm²) encloses no area: its points on a line (float rounding)
+MIN_AREA_MM2 = 1e-6
+
+
+def enclosing(contours, name: str = "structure", source: str | None = None) -> tuple[list[int], list[str]]:
+    """``(indices of the contours that enclose an area, one line per contour that does not)``.
+
+    A contour encloses no area when it has fewer than 3 distinct points (a mask-to-contour tool's tip
+    of 1 or 2 points, a repeated point) or its points lie on a line (area under :data:`MIN_AREA_MM2`):
+    planning systems and 3D Slicer skip such a contour, and so does lungdeform, saying so (``source``,
+    ``name``, the contour's number, 1-based in the order given, and its slice: z mm LPS). What is really
+    broken is still refused (:class:`InputError`): a contour that is no list of points, a NaN or a
+    coordinate beyond :data:`MAX_COORD_MM`."""
+    pre = f"{source}: " if source else ""
+    keep, lines = [], []
+    for i, c in enumerate(np.asarray(c, float) for c in contours):
+        _check_points(c, f"{pre}contour {i + 1} of {name}")
+        distinct = len(np.unique(np.round(c, 6), axis=0)) if len(c) else 0
+        if distinct >= 3 and _area(c) >= MIN_AREA_MM2:
+            keep.append(i)
+            continue
+        why = (f"{len(c)} point(s)" if len(c) < 3 else f"{len(c)} points, {distinct} distinct" if distinct < 3
+               else f"{len(c)} points on a line")
+        at = f" on the slice at z = {c[:, 2].mean():.2f} mm" if len(c) else ""
+        lines.append(f"{pre}{name}: contour {i + 1} ({why}){at} encloses no area: skipped")
+    return keep, lines
+
+
+def _area(c: np.ndarray) -> float:
+    """Area (mm²) of the planar polygon ``c : (k, 3)``: half the length of its Newell vector."""
+    q = np.roll(c, -1, axis=0)
+    return 0.5 * float(np.linalg.norm(np.cross(c, q).sum(axis=0)))
+
+
+def _heights(local: list[np.ndarray], name: str, pre: str, numbers: list[int]) -> np.ndarray:
     """Each contour's height along the frame's normal; every contour must lie flat in its plane
-    (within :data:`PLANE_TOL_MM`) and have an area."""
+    (within :data:`PLANE_TOL_MM`) and have an area (``numbers``: each contour's number in messages)."""
     heights = np.array([c[:, 2].mean() for c in local])
-    for k, c in enumerate(local, start=1):
-        off = float(np.abs(c[:, 2] - heights[k - 1]).max())
+    for i, (k, c) in enumerate(zip(numbers, local)):
+        off = float(np.abs(c[:, 2] - heights[i]).max())
         if off > PLANE_TOL_MM:
             raise InputError(f"{pre}contour {k} of {name} is not on a slice parallel to the others (its points up to "
                              f"{off:.2f} mm off its plane)")
@@ -105,7 +145,7 @@ def _heights(local: list[np.ndarray], name: str, pre: str) -> np.ndarray:
         if not area > 0:
             raise InputError(f"{pre}contour {k} of {name} is degenerate (no area)")
     seen: dict[bytes, int] = {}
-    for k, c in enumerate(local, start=1):  # on one slice, a repeated contour would cancel it by parity
+    for k, c in zip(numbers, local):  # on one slice, a repeated contour would cancel it by parity
         key = np.round(np.asarray(contours_key(c)), 3).tobytes()
         if key in seen:
             raise InputError(f"{pre}contour {k} of {name} repeats contour {seen[key]} (on one slice they cancel)")
@@ -144,19 +184,22 @@ def _slice_levels(heights: np.ndarray, name: str, pre: str = "") -> tuple[np.nda
     return levels, step
 
 
-def contours_to_mesh(contours, name: str = "structure", source: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+def contours_to_mesh(contours, name: str = "structure", source: str | None = None,
+                     numbers=None) -> tuple[np.ndarray, np.ndarray]:
     """A closed surface ``(vertices (n, 3) float mm, faces (m, 3) int)`` through parallel planar
     ``contours`` (each ``(k, 3) float`` mm, k >= 3, on evenly spaced slices). Polygons on one slice
     are combined by parity (a hole drawn inside an outline is a hole); contours on a slice that
     enclose no pixel centre (smaller than a pixel) count as the pixel at each one's centre. Every
     bound and check of
     :func:`check_contours`, :func:`_heights` and :func:`_slice_levels` is an :class:`InputError`
-    naming ``source`` (the file, if given), ``name`` and the contour."""
+    naming ``source`` (the file, if given), ``name`` and the contour (``numbers[i]``: the number of
+    contour ``i`` in the file, when contours that enclose no area were left out first, :func:`enclosing`)."""
     pre = f"{source}: " if source else ""
-    contours = check_contours(contours, name, source)
-    frame = _frame(plane_normal(max(contours, key=len), f"{pre}contour {_longest(contours)} of {name}"))
+    contours = check_contours(contours, name, source, numbers)
+    numbers = list(numbers) if numbers is not None else list(range(1, len(contours) + 1))
+    frame = _frame(plane_normal(max(contours, key=len), f"{pre}contour {numbers[_longest(contours) - 1]} of {name}"))
     local = [c @ frame.T for c in contours]
-    heights = _heights(local, name, pre)
+    heights = _heights(local, name, pre, numbers)
     levels, step = _slice_levels(heights, name, pre)
     allp = np.concatenate(local)
     lo, hi = allp[:, :2].min(axis=0), allp[:, :2].max(axis=0)

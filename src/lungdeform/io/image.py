@@ -219,7 +219,7 @@ def _check_text_header(p: Path, name: str, head: bytes) -> None:
                         "pattern; lungdeform reads LOCAL data, LIST or one data file")
 
 
-def read_image(path, *, max_voxels=None) -> Image:
+def read_image(path, *, max_voxels=None, series=None, ignored: list | None = None) -> Image:
     """Read a 3-D image with SimpleITK: NIfTI, MetaImage (.mha/.mhd), NRRD, or a DICOM directory.
 
     Frame: ITK reports every format in LPS. For NIfTI this means ITK has already negated the
@@ -236,7 +236,10 @@ def read_image(path, *, max_voxels=None) -> Image:
     orientation, evenly spaced, no gantry tilt). Every header is checked before any voxel is read:
     a grid over ``max_voxels`` (:func:`~lungdeform.io.grid.voxel_limit`) and grid numbers that are not finite are
     refused. Raises :class:`ReadError` naming the path when it is missing, empty, unreadable,
-    ambiguous (several series) or not 3-D scalar.
+    ambiguous (several series) or not 3-D scalar. A DICOM folder as exports come is read
+    (:mod:`~lungdeform.io.dicom.folder`: its RTSTRUCT, RTPLAN, RTDOSE, localizer, non-DICOM files left
+    out); ``series`` (:class:`~lungdeform.io.dicom.folder.SeriesChoice`) chooses among several CT
+    series, and ``ignored``, when given, gets the line naming what else the folder held.
     """
 
     p = Path(path)
@@ -246,7 +249,7 @@ def read_image(path, *, max_voxels=None) -> Image:
         if not p.is_dir() and p.stat().st_size == 0:
             raise ReadError(f"{p}: file is empty")
         if is_dicom_series_path(p):
-            img = read_series(p, max_voxels)
+            img = read_series(p, max_voxels, series, ignored)
         else:
             if not p.name.lower().endswith(IMAGE_SUFFIXES):
                 raise ReadError(f"{p}: unknown image format (supported: {', '.join(IMAGE_SUFFIXES)}, "

@@ -18,7 +18,14 @@ import numpy as np
 from scipy import ndimage
 
 from lungdeform.geometry.moments import solid_moments
-from lungdeform.io.dicom.rtstruct import Structure, pick_structure, read_rois, structure_mesh, structure_points
+from lungdeform.io.dicom.rtstruct import (
+    Structure,
+    enclosing_contours,
+    pick_structure,
+    read_rois,
+    structure_mesh,
+    structure_points,
+)
 from lungdeform.io.grid import Image
 from lungdeform.io.mask import mask_to_surface
 
@@ -35,7 +42,8 @@ ITV_VOXEL_MM = 0.5
 class TrackedStructure:
     """A structure read for tracking: ``points : (q, 3) float`` mm LPS (its contour points) with
     ``labels`` (``NAME:i``), its closed surface ``vertices : (n, 3) float`` mm, ``faces``, and the
-    ROI as read (``roi``: frame of reference, referenced slices)."""
+    ROI as read (``roi``: frame of reference, referenced slices); ``skipped``: one line per contour
+    left out because it encloses no area (:func:`lungdeform.io.dicom.rtstruct.enclosing_contours`)."""
 
     name: str
     kind: str
@@ -44,17 +52,19 @@ class TrackedStructure:
     vertices: np.ndarray
     faces: np.ndarray
     roi: Structure | None = None
+    skipped: tuple = ()
 
 
 def read_structure(path, name: str) -> TrackedStructure:
-    """The structure ``name`` of the RTSTRUCT file ``path``, its points and closed surface. Refused
-    (:class:`lungdeform.errors.InputError` naming the file and the structure): a name no ROI or two
-    ROIs carry, a contour that is not finite, flat or closed, a stack with gaps or beyond the
-    bounds of :mod:`lungdeform.geometry.contours`."""
-    s = pick_structure(read_rois(path), name, str(path))
+    """The structure ``name`` of the RTSTRUCT file ``path``, its points and closed surface; contours
+    that enclose no area (tips of 1 or 2 points, a repeated point, a line) are left out, one line
+    each in ``skipped``. Refused (:class:`lungdeform.errors.InputError` naming the file and the
+    structure): a name no ROI or two ROIs carry, no contour enclosing an area, a contour that is not
+    finite, flat or closed, a stack with gaps or beyond the bounds of :mod:`lungdeform.geometry.contours`."""
+    s, skipped = enclosing_contours(pick_structure(read_rois(path), name, str(path)), str(path))
     v, f = structure_mesh(s, str(path))  # every contour checked before its points are used
     pts = structure_points(s)
-    return TrackedStructure(name, s.kind, pts, [f"{name}:{i + 1}" for i in range(len(pts))], v, f, s)
+    return TrackedStructure(name, s.kind, pts, [f"{name}:{i + 1}" for i in range(len(pts))], v, f, s, tuple(skipped))
 
 
 def phase_frames(trace, phases: int, zero: str = "end-inhale") -> tuple[FrameSchedule, list[str]]:

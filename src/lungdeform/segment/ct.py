@@ -84,7 +84,7 @@ def archive_in(path) -> Path:
     return archives[0]
 
 
-def read_ct(path, workdir=None) -> Image:
+def read_ct(path, workdir=None, series=None) -> Image:
     """Read a CT: NIfTI/MHA/NRRD file, a DICOM directory, or a .tar.gz/.zip of a DICOM series or of
     one image file (or a folder that holds only such an archive, :func:`archive_in`: the archive is
     read, and named as the source).
@@ -92,7 +92,8 @@ def read_ct(path, workdir=None) -> Image:
     DICOM series are checked for even slice spacing (by :func:`~lungdeform.io.image.read_image`:
     :func:`lungdeform.io.dicom.slices.check_slices`). The image must
     look like HU (some voxels below −500): otherwise :class:`InputError`. Archives are extracted
-    into a temporary folder (inside ``workdir`` if given) that is removed afterwards.
+    into a temporary folder (inside ``workdir`` if given) that is removed afterwards. ``series``
+    (:class:`~lungdeform.io.dicom.folder.SeriesChoice`) chooses among several CT series of a folder.
     """
     path = Path(path)
     if not path.exists():
@@ -105,12 +106,12 @@ def read_ct(path, workdir=None) -> Image:
                 if len(images) == 1:  # one NIfTI/MHA/NRRD file in the archive
                     img = read_image(images[0])
                 else:
-                    img = read_image(folder)
+                    img = read_image(folder, series=series)
             except ReadError as exc:  # name the archive, not the temporary folder (gone by now)
                 raise ReadError(f"{path}: {str(exc).replace(str(folder), 'in the archive')}") from exc
         img = Image(img.array, img.spacing, img.origin, img.direction, source=str(path))
     else:
-        img = read_image(path)
+        img = read_image(path, series=series)
     check_ct(img)
     return img
 

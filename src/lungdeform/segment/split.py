@@ -382,9 +382,10 @@ def mask_segmentation(image: Image) -> LungSegmentation:
     return LungSegmentation(lm, rm, np.zeros_like(lm), image, vol, desc, details)
 
 
-def read_ct_or_mask(path) -> Image:
-    """A CT (:func:`lungdeform.segment.ct.read_ct`) or, for an image file holding a binary mask, that
-    mask (``lungdeform segment`` then splits it: :func:`segment_ct_or_mask`)."""
+def read_ct_or_mask(path, series=None) -> Image:
+    """A CT (:func:`lungdeform.segment.ct.read_ct`; ``series``: which CT series of a DICOM folder
+    holding several, :class:`~lungdeform.io.dicom.folder.SeriesChoice`) or, for an image file holding
+    a binary mask, that mask (``lungdeform segment`` then splits it: :func:`segment_ct_or_mask`)."""
     p = Path(path)
     if p.is_file() and p.name.lower().endswith(IMAGE_SUFFIXES):
         image = read_image(p)
@@ -392,7 +393,7 @@ def read_ct_or_mask(path) -> Image:
             return image
         check_ct(image)
         return image
-    return read_ct(p)
+    return read_ct(p, series=series)
 
 
 def segment_ct_or_mask(image: Image, downsample: int = 1,

@@ -97,3 +97,51 @@ def test_declare_charset_says_utf8_only_for_text_that_is_not_ascii(tmp_path):
     ds.save_as(buf)
     assert "Tumör".encode() in buf.getvalue()
     assert dcmread(io.BytesIO(buf.getvalue()), force=True).StructureSetROISequence[0].ROIName == "Tumör"
+
+
+def test_fit_text_cuts_on_character_boundaries_within_the_vr():
+    # why: a StructureSetLabel (SH) derived from "GTV_β肿瘤 moved" was 20 bytes of UTF-8, refused at
+    # the end of a track run (issue 36). Truth: the UTF-8 length of the result (what dciodvfy counts)
+    # is within the VR's bytes, the result is a prefix of the text that decodes (no half character)
+    # and never ends before a combining mark (e + U+0301 stays é), a variation selector or a joiner
+    from lungdeform.io.dicom.attributes import fit_text
+
+    assert fit_text("GTV", "SH") == "GTV"  # ASCII within the limit: as it is
+    assert fit_text("GTV_β肿瘤 moved", "SH") == "GTV_β肿瘤 mov"  # 16 bytes: 4 + 2 + 3 + 3 + 4
+    assert len("GTV_β肿瘤 mov".encode()) == 16
+    for text in ("肿瘤" * 20, "όγκος" * 10, "ورم_رئوي" * 8, "e\u0301" * 30, "x\u200dy " * 20, "a\ufe0f" * 40):
+        for vr in ("SH", "LO"):
+            out = fit_text(text, vr)
+            assert len(out.encode()) <= {"SH": 16, "LO": 64}[vr] and text.startswith(out) and out
+            rest = text[len(out):]
+            assert not rest or not (rest[0] in "\u0301\u200d\ufe0f" or out.endswith("\u200d")), (text, out)
+    # a tag kept whole at the end, the base cut; control characters and the backslash replaced
+    assert fit_text("β" * 40, "LO", keep="@phase03") == "β" * 28 + "@phase03"
+    assert fit_text("a\\b\tc", "LO") == "a_b_c"
+    # kept unique among values already taken
+    taken = {fit_text("肿瘤" * 20, "SH")}
+    second = fit_text("肿瘤" * 21, "SH", taken=taken)
+    assert second not in taken and second.endswith("~2") and len(second.encode()) <= 16
+
+
+def test_a_latin1_value_that_fits_only_in_latin1_keeps_latin1():
+    # a copied Latin-1 description of 40 "Ü" is 40 bytes in ISO_IR 100 but 80 in UTF-8, over LO's 64:
+    # declared as UTF-8 the valid source would be refused; Latin-1 is declared instead and the value
+    # fits (measured in the declared character set). Text Latin-1 cannot hold stays UTF-8.
+    from lungdeform.io.dicom.attributes import declare_charset
+
+    ds = Dataset()
+    ds.StudyDescription, ds.PatientName = "Ü" * 40, "Müller^Jürgen"
+    declare_charset(ds)
+    assert ds.SpecificCharacterSet == "ISO_IR 100"
+    check_dataset(ds)
+    short = Dataset()
+    short.PatientName = "Müller^Jürgen"
+    declare_charset(short)
+    assert short.SpecificCharacterSet == "ISO_IR 192"  # fits in UTF-8: UTF-8, as before
+    mixed = Dataset()
+    mixed.StudyDescription, mixed.SeriesDescription = "Ü" * 40, "肿瘤"
+    declare_charset(mixed)
+    assert mixed.SpecificCharacterSet == "ISO_IR 192"
+    with pytest.raises(InputError, match="StudyDescription .* longer than 64 bytes"):
+        check_dataset(mixed)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
+import pydicom
 import pytest
 import SimpleITK as sitk
 
@@ -51,7 +52,7 @@ def test_one_phase_and_no_dicom_refused(tmp_path, rng):
     with pytest.raises(ReadError, match="one phase only"):
         read_phases(tmp_path / "one")
     (tmp_path / "empty").mkdir()
-    with pytest.raises(ReadError, match="no DICOM files"):
+    with pytest.raises(ReadError, match="no DICOM CT images"):
         read_phases(tmp_path / "empty")
     (tmp_path / "bad").mkdir()
     (tmp_path / "bad" / "x.dcm").write_bytes(b"\0" * 200)
@@ -211,3 +212,30 @@ def test_a_slice_whose_uid_is_no_dicom_uid_is_refused_by_the_one_walk(tmp_path, 
         _retag(files, **{keyword: "1.2.03.abc"})
     with pytest.raises(ReadError, match=rf"phase0[/\\]\S+\.dcm: {keyword} '1\.2\.03\.abc' is not a DICOM UID"):
         read_phases(tmp_path)
+
+
+def test_a_phase_exported_twice_is_refused_naming_both(tmp_path, rng):
+    # issue 36: a 4-D CT whose 0 % and 50 % phases were byte-identical was fitted with only an
+    # "optimizer did not converge" warning. Truth: the same voxels under another series (new UIDs),
+    # or one SOP instance in two phases, are one phase twice: refused naming both; phases that only
+    # look alike (one voxel differs) are different phases and read
+    cts = [phase_ct(1.0 + 0.06 * p, rng) for p in range(4)]
+    cts[2] = cts[0].copy()
+    for p, ct in enumerate(cts):
+        write_slices(tmp_path / "twice" / f"p{p}", ct, {"0008|103e": f"CT {25 * p}%"}, f"1.2.3.{p + 1}")
+    with pytest.raises(ReadError, match=r"twice: phase 50% repeats phase 0%: identical pixel data .*a phase exported twice"):
+        read_phases(tmp_path / "twice")
+    cts[2][5, 10, 10] += 1  # one voxel differs: phases that look alike
+    for p, ct in enumerate(cts):
+        write_slices(tmp_path / "alike" / f"p{p}", ct, {"0008|103e": f"CT {25 * p}%"}, f"1.2.3.{p + 1}")
+    assert [ph.label for ph in read_phases(tmp_path / "alike")] == ["0%", "25%", "50%", "75%"]
+    # the same SOP instances under a second series (a phase copied into another series): refused before reading
+    for p in range(2):
+        write_slices(tmp_path / "shared" / f"p{p}", cts[p], {"0008|103e": f"CT {50 * p}%"}, f"1.2.3.{p + 1}")
+    for p in range(2):  # each slice's own SOP instance UID, the same in both phases
+        for n, f in enumerate(sorted((tmp_path / "shared" / f"p{p}").iterdir())):
+            ds = pydicom.dcmread(f)
+            ds.SOPInstanceUID = ds.file_meta.MediaStorageSOPInstanceUID = f"1.2.3.9.{n + 1}"
+            ds.save_as(f)
+    with pytest.raises(ReadError, match=r"shared: phase 50% repeats phase 0%: .* are one SOP instance \(1\.2\.3\.9\.1\)"):
+        read_phases(tmp_path / "shared")

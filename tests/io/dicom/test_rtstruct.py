@@ -179,6 +179,39 @@ def test_a_degenerate_contour_names_file_and_structure(tmp_path):
         _mesh_of(path)
 
 
+def test_contours_enclosing_no_area_are_skipped_and_named(tmp_path):
+    # issue 36: rt-utils' GTV on a real CT was refused for "contour 8 … has 2 point(s)"; planning
+    # systems and Slicer skip a contour that encloses no area. Truth: with the tips (1 and 2 points),
+    # a repeated-point contour and a collinear one removed, the surface is that of the five circles
+    # alone; each removed contour is named once (structure, its number in the file, its slice);
+    # what is broken (NaN) is still refused, and a structure of tips only is refused
+    from lungdeform.io.dicom.rtstruct import enclosing_contours
+
+    rings = [circle(z) for z in (-4.0, -2.0, 0.0, 2.0, 4.0)]
+    tip2 = np.array([[90.0, 0.0, 6.0], [90.5, 0.0, 6.0]])
+    tip1 = np.array([[95.0, 0.0, 0.0]])
+    repeated = np.array([[90.0, 2.0, 2.0], [91.0, 2.0, 2.0], [90.0, 2.0, 2.0]])
+    collinear = np.array([[90.0 + t, -3.0, -2.0] for t in (0.0, 0.5, 1.0)])
+    path = _rs(tmp_path, [(1, "GTV", [rings[0], tip2, rings[1], tip1, rings[2], repeated, rings[3], collinear, rings[4]])])
+    s, lines = enclosing_contours(pick_structure(read_rois(path), "GTV", str(path)), str(path))
+    assert s.numbers == (1, 3, 5, 7, 9) and len(s.contours) == 5
+    assert lines == [f"{path}: structure 'GTV': contour 2 (2 point(s)) on the slice at z = 6.00 mm encloses no area: skipped",
+                     f"{path}: structure 'GTV': contour 4 (1 point(s)) on the slice at z = 0.00 mm encloses no area: skipped",
+                     (f"{path}: structure 'GTV': contour 6 (3 points, 2 distinct) on the slice at z = 2.00 mm encloses no "
+                      "area: skipped"),
+                     (f"{path}: structure 'GTV': contour 8 (3 points on a line) on the slice at z = -2.00 mm encloses no "
+                      "area: skipped")]
+    v, f = structure_mesh(s, str(path))
+    (tmp_path / "clean").mkdir()
+    clean_v, clean_f = _mesh_of(_rs(tmp_path / "clean", [(1, "GTV", rings)]))
+    assert np.allclose(v, clean_v) and np.array_equal(f, clean_f)
+    bad = [rings[0], tip2 * np.array([1.0, np.nan, 1.0]), rings[1]]
+    with pytest.raises(InputError, match=r"rs.dcm: contour 2 of structure 'GTV' has non-finite coordinates$"):
+        enclosing_contours(pick_structure(read_rois(_rs(tmp_path, [(1, "GTV", bad)])), "GTV", "rs.dcm"), "rs.dcm")
+    with pytest.raises(InputError, match=r"rs.dcm: structure 'GTV': none of its 2 contour\(s\) encloses an area"):
+        enclosing_contours(pick_structure(read_rois(_rs(tmp_path, [(1, "GTV", [tip1, tip2])])), "GTV", "rs.dcm"), "rs.dcm")
+
+
 def test_duplicate_roi_names_are_ambiguous(tmp_path):
     # two ROIs named GTV: the dict reader silently took the second; picking the name now fails,
     # naming both ROI numbers; the other names stay usable
@@ -254,20 +287,26 @@ def test_structure_against_the_reference_ct(tmp_path):
     assert not (tmp_path / "far.dcm").exists()
 
 
-def test_names_round_trip_or_are_refused(ct, tmp_path):
+def test_names_round_trip_or_are_fitted(ct, tmp_path):
     # a non-ASCII ROI name was written without SpecificCharacterSet and read back mangled; it is
-    # written as UTF-8 (ISO_IR 192) now, and an ASCII file stays without the attribute; a name over
-    # DICOM's 64 characters, or with a backslash, is refused before anything is written
+    # written as UTF-8 (ISO_IR 192) now, and an ASCII file stays without the attribute. A name DICOM's
+    # ROI Name (LO, 64 bytes) cannot hold is never a refusal (issue 36): a name over 64 bytes is cut
+    # on a character boundary, its state tag kept whole, its whole kept in ROIDescription; a
+    # backslash (DICOM's value separator) becomes "_"; two names cut alike are kept apart
     v, f = _sphere()
     write_rtstruct(tmp_path / "a.dcm", ct, [("Tumör é 肺", v, f)])
     assert pydicom.dcmread(tmp_path / "a.dcm").SpecificCharacterSet == "ISO_IR 192"
     assert list(read_rtstruct(tmp_path / "a.dcm")) == ["Tumör é 肺"]
     write_rtstruct(tmp_path / "b.dcm", ct, [("GTV", v, f)])
     assert "SpecificCharacterSet" not in pydicom.dcmread(tmp_path / "b.dcm")
-    for name, message in (("G" * 65, "65 characters, longer than DICOM's 64"), ("GTV\\2", "a backslash")):
-        with pytest.raises(InputError, match=message):
-            write_rtstruct(tmp_path / "c.dcm", ct, [(name, v, f)])
-    assert not (tmp_path / "c.dcm").exists()
+    long_tag = "肺" * 30 + "@phase03"  # 98 bytes of UTF-8
+    counts = write_rtstruct(tmp_path / "c.dcm", ct, [("G" * 65, v, f), ("G" * 66, v, f), ("GTV\\2", v, f),
+                                                    (long_tag, v, f)])
+    rois = pydicom.dcmread(tmp_path / "c.dcm").StructureSetROISequence
+    names = [str(r.ROIName) for r in rois]
+    assert names == ["G" * 64, "G" * 62 + "~2", "GTV_2", "肺" * 18 + "@phase03"] == list(counts)
+    assert all(len(n.encode()) <= 64 for n in names)
+    assert [r.get("ROIDescription") for r in rois] == ["G" * 65, "G" * 66, "GTV\\2", long_tag]
 
 
 def test_a_latin1_patient_name_is_rewritten_as_utf8(tmp_path):

@@ -8,16 +8,20 @@ names the file and the attributes. Every reader of this package calls it
 attributes GDCM read of each file, :func:`as_dataset`).
 
 Writing: :func:`decimal` formats a number as a Decimal String of at most 16 bytes (PS3.5 6.2, DS;
-Eclipse refuses longer ones) and :func:`check_dataset` walks a dataset, its sequences included,
-before it is saved: every value within its VR's limits (:data:`MAX_BYTES`: DS 16, IS 12, UI 64
-bytes, ...), every UI a UID. A value outside them is a bug of the writer, refused with
-:class:`~lungdeform.errors.InputError` naming the attribute, never written.
+Eclipse refuses longer ones); :func:`fit_text` makes every text value lungdeform derives (a
+structure set label, a series description, a ROI name ``GTV_β肿瘤@phase03``) fit its VR: characters
+the VR cannot hold replaced, cut on a character boundary to the VR's length in bytes of UTF-8 (what
+dciodvfy counts; never inside a combining sequence), kept unique. :func:`check_dataset` walks a
+dataset, its sequences included, before it is saved: every value within its VR's limits
+(:data:`MAX_BYTES`: DS 16, IS 12, UI 64 bytes, ...), every UI a UID. A value outside them is a bug
+of the writer, refused with :class:`~lungdeform.errors.InputError` naming the attribute, never written.
 """
 
 from __future__ import annotations
 
 import math
 import re
+import unicodedata
 import warnings
 
 from pydicom.dataset import Dataset
@@ -95,15 +99,92 @@ TEXT_VRS = ("SH", "LO", "ST", "LT", "UT", "UC", "PN")
 
 def declare_charset(ds: Dataset) -> None:
     """Set ``ds.SpecificCharacterSet`` to ``ISO_IR 192`` (UTF-8) when a text value of ``ds`` or its
-    sequences is not ASCII (a patient name copied from a Latin-1 source, ``Müller``), so that pydicom
-    writes it as UTF-8 and says so; without it the file would hold bytes outside the default
-    repertoire, which dciodvfy and planning systems refuse or garble (PS3.5 6.1.2.3)."""
+    sequences is not ASCII (a patient name copied from a Latin-1 source, ``Müller``; a ROI name in
+    Chinese), so that pydicom writes it as UTF-8 and says so; without it the file would hold bytes
+    outside the default repertoire, which dciodvfy and planning systems refuse or garble (PS3.5
+    6.1.2.3). ``ISO_IR 100`` (Latin-1) instead when every text is Latin-1 and a value copied from a
+    Latin-1 source fits its VR's bytes in Latin-1 only (a 64-character description with umlauts):
+    a valid source is not refused for its re-encoding."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        texts = [e.value for e in ds.iterall() if e.VR in TEXT_VRS and e.value is not None]
-    values = [v for t in texts for v in (t if isinstance(t, (list, tuple, MultiValue)) else [t])]
-    if not all(str(v).isascii() for v in values):
-        ds.SpecificCharacterSet = "ISO_IR 192"
+        texts = [(e.VR, e.value) for e in ds.iterall() if e.VR in TEXT_VRS and e.value is not None]
+    values = [(vr, str(v)) for vr, t in texts for v in (t if isinstance(t, (list, tuple, MultiValue)) else [t])]
+    if all(v.isascii() for _, v in values):
+        return
+    overflow = any(len(part.encode("utf-8")) > MAX_BYTES.get(vr, 1 << 30)
+                   for vr, v in values for part in (v.split("=") if vr == "PN" else [v]))
+    latin1 = all(_encodes(v, "latin-1") for _, v in values)
+    ds.SpecificCharacterSet = "ISO_IR 100" if overflow and latin1 else "ISO_IR 192"
+
+
+def _encodes(text: str, codec: str) -> bool:
+    try:
+        text.encode(codec)
+    except UnicodeEncodeError:
+        return False
+    return True
+
+
+def _codec(ds: Dataset, default: str = "utf-8") -> str:
+    """The codec of ``ds``'s declared SpecificCharacterSet as lungdeform writes it: Latin-1 for
+    ``ISO_IR 100``, else UTF-8 (ASCII text is the same in both)."""
+    charset = ds.get("SpecificCharacterSet")
+    if charset is None:
+        return default
+    return "latin-1" if str(charset).strip() == "ISO_IR 100" else "utf-8"
+
+
+#: Characters a short text value (SH, LO, PN, CS) cannot hold: the backslash (it separates values)
+#: and every control character (PS3.5 6.2; ESC only begins an ISO 2022 escape, never in UTF-8)
+_NOT_IN_TEXT = re.compile(r"[\\\x00-\x1f\x7f-\x9f]")
+#: Characters that join what follows to what precedes them: a cut never falls before one
+_JOINERS = {"\u200c", "\u200d", "\u034f"}
+
+
+def text_boundary(text: str, i: int) -> bool:
+    """Whether ``text`` may be cut before index ``i`` without splitting a user-perceived character: not
+    before a combining mark (``e`` + U+0301), a variation selector or a joiner, nor after a joiner."""
+    if i <= 0 or i >= len(text):
+        return True
+    ch, before = text[i], text[i - 1]
+    return not (unicodedata.combining(ch) or unicodedata.category(ch) in ("Mn", "Me", "Mc")
+                or "\ufe00" <= ch <= "\ufe0f" or "\U000e0100" <= ch <= "\U000e01ef"
+                or ch in _JOINERS or before in _JOINERS)
+
+
+def cut_text(text: str, limit: int) -> str:
+    """The longest start of ``text`` whose UTF-8 encoding is at most ``limit`` bytes and that ends on
+    a character boundary (:func:`text_boundary`), trailing spaces removed (DICOM's padding)."""
+    if len(text.encode("utf-8")) <= limit:
+        return text.rstrip(" ")
+    size, i = 0, 0
+    while i < len(text) and size + len(text[i].encode("utf-8")) <= limit:
+        size += len(text[i].encode("utf-8"))
+        i += 1
+    while i > 0 and not text_boundary(text, i):
+        i -= 1
+    return text[:i].rstrip(" ")
+
+
+def fit_text(text: str, vr: str, *, keep: str = "", taken=()) -> str:
+    """``text`` followed by ``keep`` as one value of VR ``vr`` (SH, LO, ST …, :data:`MAX_BYTES`):
+    characters the VR cannot hold (:data:`_NOT_IN_TEXT`) become ``_``; ``text`` is cut
+    (:func:`cut_text`) so that the whole fits the VR's length in bytes of UTF-8 with ``keep`` (a phase
+    tag ``@phase03``) whole at its end; when the result is one of ``taken`` (values already given, e.g.
+    the other ROI names of a structure set) a ``~2``, ``~3`` … goes before ``keep`` until it is not.
+    ASCII text within the limit comes back as it is."""
+    limit = MAX_BYTES[vr]
+    clean = (lambda t: _NOT_IN_TEXT.sub("_", str(t))) if vr in ("SH", "LO", "PN", "CS", "AE") else str
+    text, keep = clean(text), clean(keep)
+    if len(keep.encode("utf-8")) > limit // 2:  # a tag longer than half the value: cut it too
+        keep = cut_text(keep, limit // 2)
+    value = cut_text(text, limit - len(keep.encode("utf-8"))) + keep
+    n = 1
+    while value in taken:
+        n += 1
+        mark = f"~{n}{keep}"
+        value = cut_text(text, limit - len(mark.encode("utf-8"))) + mark
+    return value
 
 
 def type2_defaults(ds: Dataset, keys) -> None:
@@ -119,14 +200,15 @@ def check_dataset(ds: Dataset, where: str = "dataset") -> None:
     bytes, every UI value a UID (:data:`UID`); :class:`InputError` naming ``where`` and the attribute."""
     with warnings.catch_warnings():  # pydicom's own warnings on such values: refused here instead
         warnings.simplefilter("ignore")
-        _walk(ds, where)
+        _walk(ds, where, _codec(ds))
 
 
-def _walk(ds: Dataset, where: str) -> None:
+def _walk(ds: Dataset, where: str, codec: str) -> None:
+    """:func:`check_dataset` of ``ds``, its text measured in bytes of ``codec`` (the declared character set's)."""
     for elem in ds:
         if elem.VR == "SQ":
             for i, item in enumerate(elem.value):
-                _walk(item, f"{where}: {elem.keyword}[{i}]")
+                _walk(item, f"{where}: {elem.keyword}[{i}]", codec)
             continue
         limit = MAX_BYTES.get(elem.VR)
         if limit is None or elem.value is None:
@@ -136,7 +218,7 @@ def _walk(ds: Dataset, where: str) -> None:
             text = v.original_string if getattr(v, "original_string", None) is not None else v
             text = text.decode("latin-1") if isinstance(text, bytes) else str(text)
             parts = text.split("=") if elem.VR == "PN" else [text]
-            if any(len(part.encode("utf-8")) > limit for part in parts):
+            if any(len(part.encode(codec, errors="replace")) > limit for part in parts):
                 raise InputError(f"{where}: {elem.keyword or elem.tag} value {text[:40]!r} is longer than "
                                  f"{limit} bytes, the limit of VR {elem.VR}")
             if elem.VR == "UI" and text and not UID.fullmatch(text):

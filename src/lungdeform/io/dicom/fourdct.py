@@ -5,6 +5,10 @@ phase (the usual export) or as one series whose slices repeat each position once
 files may lie in the folder itself or in its subfolders. Phases are told apart and ordered by the
 first of these that every phase has and no two phases share (docs/FITTING.md, "4-D CT input"):
 
+What exports hold besides the phases (an RTSTRUCT, RTPLAN, RTDOSE, DICOMDIR, localizers, files that are
+no DICOM) is left out (:mod:`~lungdeform.io.dicom.folder`), and so is a series that carries no phase
+key while the phases do (an average or MIP reconstruction), each named in a line the caller says.
+
 1. a phase percentage in SeriesDescription (0008,103E): ``"CT 30%"``, ``"Gated 40.0%"``,
    ``"T=50%"``, ``"phase 20"``;
 2. TemporalPositionIndex (0020,9128);
@@ -26,7 +30,7 @@ x y z mm, origin mm LPS, direction columns in LPS), read by SimpleITK from its f
 
 from __future__ import annotations
 
-import os
+import hashlib
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,7 +43,7 @@ from lungdeform.errors import ReadError
 from lungdeform.io.grid import Image, check_grid, quiet_itk
 
 from .attributes import as_dataset, require
-from .guard import check_dicom_file, is_dicom_file
+from .folder import candidates, ignored_line, survey
 from .slices import GEOMETRY_TAGS, SliceGeometry, check_orientations, check_slices, check_spacing
 
 #: The tags that may tell phases apart, in order of preference after the SeriesDescription percentage.
@@ -50,11 +54,9 @@ SAME_TAGS = (("0010|0020", "PatientID"), ("0020|000d", "StudyInstanceUID"), ("00
 #: The UIDs every slice's header is checked for (:func:`~lungdeform.io.dicom.attributes.require`): the
 #: series that groups slices into phases required, the study and frame of reference valid when given.
 UID_TAGS = (("0020|000e", "SeriesInstanceUID"), ("0020|000d", "StudyInstanceUID"), ("0020|0052", "FrameOfReferenceUID"))
-_READ_TAGS = (("0020|000e", "0008|103e") + GEOMETRY_TAGS + tuple(t for t, _ in PHASE_TAGS)
+_READ_TAGS = (("0020|000e", "0008|103e", "0008|0018") + GEOMETRY_TAGS + tuple(t for t, _ in PHASE_TAGS)
               + tuple(t for t, _ in SAME_TAGS))
 _PERCENT = re.compile(r"(\d+(?:\.\d+)?)\s*%|\bphase[\s_:=-]*(\d+(?:\.\d+)?)", re.I)
-#: Files looked at at most (a 4-D CT of 10 phases × 200 slices is 2000): do not crawl a disk.
-MAX_FILES = 20000
 
 
 @dataclass(frozen=True, eq=False)
@@ -79,15 +81,10 @@ class Phase:
     image: Image
 
 
-def _slice_info(path: str) -> dict[str, str] | None:
-    """The tags of :data:`_READ_TAGS` of one DICOM file (stripped strings), or None if it is not a DICOM image;
-    :class:`ReadError` for a damaged one (:func:`~lungdeform.io.dicom.guard.check_dicom_file`)."""
-    check_dicom_file(path)
-    return _slice_tags(path)
-
-
 def _slice_tags(path: str) -> dict[str, str] | None:
-    """:func:`_slice_info` of a file already checked (GDCM reads its header only)."""
+    """The tags of :data:`_READ_TAGS` of one DICOM file already checked
+    (:func:`~lungdeform.io.dicom.guard.check_dicom_file`; GDCM reads its header only, stripped strings),
+    or None if it is not a DICOM image."""
     reader = sitk.ImageFileReader()
     reader.SetFileName(path)
     reader.SetImageIO("GDCMImageIO")
@@ -101,18 +98,16 @@ def _slice_tags(path: str) -> dict[str, str] | None:
     return info
 
 
-def _dicom_files(folder: Path) -> list[str]:
-    """DICOM files in ``folder`` and its subfolders (sorted, at most :data:`MAX_FILES`)."""
-    found = []
-    for root, dirs, files in os.walk(folder):
-        dirs.sort()
-        for name in sorted(files):
-            p = Path(root) / name
-            if name.upper() != "DICOMDIR" and is_dicom_file(p):
-                found.append(str(p))
-        if len(found) > MAX_FILES:
-            raise ReadError(f"{folder}: more than {MAX_FILES} DICOM files; give the folder of one 4-D CT")
-    return found
+def _image_files(folder: Path, ignored: list | None) -> list[str]:
+    """The files of the CT image series in ``folder`` (:func:`~lungdeform.io.dicom.folder.candidates`:
+    its RTSTRUCT, RTPLAN, RTDOSE, DICOMDIR, localizers and non-DICOM files left out, a line naming
+    them added to ``ignored``)."""
+    found = survey(folder)
+    pool = candidates(found)
+    line = ignored_line(found, pool)
+    if ignored is not None and line:
+        ignored.append(line)
+    return [f for series in pool for f in series.files]
 
 
 def _number(tag: str, value: str) -> float | None:
@@ -181,15 +176,40 @@ def _split_series(folder: Path, files: list[tuple[str, dict]]) -> list[list[tupl
                     f"{', '.join(n for _, n in PHASE_TAGS)} in every slice; the phases cannot be told apart")
 
 
-def _order(folder: Path, groups: list[list[tuple[str, dict]]]) -> list[tuple[float, str, list]]:
+def _order(folder: Path, groups: list[list[tuple[str, dict]]], aside: list) -> list[tuple[float, str, list]]:
     """``[(key, label, files)]`` of the phases, ordered by the first key of the module docstring that
-    every phase has and no two share; :class:`ReadError` naming the folder when none does."""
-    for kind in ("percent",) + tuple(t for t, _ in PHASE_TAGS):
+    every phase has and no two share; failing that, by the key that two or more phases have (no two
+    the same) while the other series lack it entirely (an average or MIP series beside the phases):
+    those are set aside, a line naming them added to ``aside``. :class:`ReadError` naming the folder
+    when no key tells two or more phases apart."""
+    kinds = ("percent",) + tuple(t for t, _ in PHASE_TAGS)
+    best = None
+    for kind in kinds:
         keys = [_group_key(folder, g, kind) for g in groups]
-        if None not in keys and len({k for k, _ in keys}) == len(keys):
+        have = [i for i, k in enumerate(keys) if k is not None]
+        if len({keys[i][0] for i in have}) != len(have) or len(have) < 2:
+            continue
+        if len(have) == len(groups):
             return sorted(((k, label, g) for (k, label), g in zip(keys, groups)), key=lambda x: x[0])
-    raise ReadError(f"{folder}: {len(groups)} phases (DICOM series) that cannot be told apart: no phase percentage "
-                    f"in SeriesDescription, nor {', '.join(n for _, n in PHASE_TAGS)} that differs between them")
+        if all(_lacks(groups[i], kind) for i in range(len(groups)) if keys[i] is None) and (
+                best is None or len(have) > len(best[1])):
+            best = (keys, have)
+    if best is None:
+        raise ReadError(f"{folder}: {len(groups)} phases (DICOM series) that cannot be told apart: no phase percentage "
+                        f"in SeriesDescription, nor {', '.join(n for _, n in PHASE_TAGS)} that differs between them")
+    keys, have = best
+    left = [g for i, g in enumerate(groups) if i not in have]
+    named = ", ".join(f"{g[0][1]['0020|000e']} {g[0][1]['0008|103e']!r} ({len(g)} slices)" for g in left)
+    aside.append(f"{folder}: set aside {len(left)} series that carry no phase ({named}): not a phase of the 4-D CT "
+                 "(an average or MIP reconstruction?)")
+    return sorted(((keys[i][0], keys[i][1], groups[i]) for i in have), key=lambda x: x[0])
+
+
+def _lacks(files: list[tuple[str, dict]], kind: str) -> bool:
+    """Whether no file of one series gives a value of ``kind`` (a percentage, or the tag)."""
+    if kind == "percent":
+        return all(_percent(info["0008|103e"]) is None for _, info in files)
+    return all(_number(kind, info[kind]) is None for _, info in files)
 
 
 def _phase_geometry(folder: Path, label: str, files: list[tuple[str, dict]], max_voxels=None) -> SliceGeometry:
@@ -236,20 +256,23 @@ def _check_one_study(folder: Path, infos: list[tuple[str, dict]]) -> None:
                                 "frame of reference")
 
 
-def read_phases(folder, *, max_voxels=None) -> list[Phase]:
+def read_phases(folder, *, max_voxels=None, ignored: list | None = None) -> list[Phase]:
     """Every phase of the 4-D CT in ``folder`` (module docstring), in phase order.
 
-    Raises :class:`ReadError` naming the folder when it is missing, holds no DICOM image, slices of
-    more than one patient, study or frame of reference, fewer than two phases, phases that cannot be
-    told apart, a phase whose slices are no regular grid (:func:`~lungdeform.io.dicom.slices.check_slices`)
-    or a phase over the grid cap (``max_voxels``, :func:`~lungdeform.io.grid.voxel_limit`).
+    The folder may hold what exports hold besides the phases (an RTSTRUCT, an RTPLAN, an RTDOSE, a
+    DICOMDIR, localizers, files that are no DICOM; an average or MIP series without a phase): they are
+    left out, and ``ignored``, when given, gets the lines naming them. Raises :class:`ReadError`
+    naming the folder when it is missing, holds no DICOM image, slices of more than one patient,
+    study or frame of reference, fewer than two phases, phases that cannot be told apart, a phase that
+    repeats another (one SOP instance in two phases, or identical pixel data: a phase exported twice),
+    a phase whose slices are no regular grid (:func:`~lungdeform.io.dicom.slices.check_slices`) or a
+    phase over the grid cap (``max_voxels``, :func:`~lungdeform.io.grid.voxel_limit`).
     """
     folder = Path(folder)
     if not folder.is_dir():
         raise ReadError(f"{folder}: not a folder (a 4-D CT is one DICOM folder holding all phases)")
-    files = _dicom_files(folder)
-    for f in files:  # every file's element headers first (cheap): GDCM reads none of a folder with a damaged one
-        check_dicom_file(f)
+    lines: list[str] = []
+    files = _image_files(folder, lines)  # every file's element headers checked there (cheap) before GDCM reads any
     infos = []
     for f in files:
         info = _slice_tags(f)
@@ -259,7 +282,8 @@ def read_phases(folder, *, max_voxels=None) -> list[Phase]:
                 "which tells the phases of a 4-D CT apart", optional=("StudyInstanceUID", "FrameOfReferenceUID"))
         infos.append((f, info))
     if not infos:
-        raise ReadError(f"{folder}: no DICOM files in this folder or its subfolders")
+        raise ReadError(f"{folder}: no DICOM CT images in this folder or its subfolders"
+                        + (f" ({lines[0].split(': ', 1)[-1]})" if lines else ""))
     _check_one_study(folder, infos)
     series: dict[str, list] = {}
     for f, info in infos:
@@ -267,25 +291,60 @@ def read_phases(folder, *, max_voxels=None) -> list[Phase]:
     groups = [g for s in series.values() for g in _split_series(folder, s)]
     if len(groups) < 2:
         raise ReadError(f"{folder}: holds one phase only ({len(infos)} slices of one series); a 4-D CT needs two or more")
+    order = _order(folder, groups, lines)
+    _check_shared_instances(folder, order)
     ordered = [(key, label, _phase_geometry(folder, label, files, max_voxels))
-               for key, label, files in _order(folder, groups)]  # every phase checked before any is read
-    return [Phase(label, float(key), geometry.files, _read_phase(folder, label, geometry))
-            for key, label, geometry in ordered]
+               for key, label, files in order]  # every phase checked before any is read
+    phases = [Phase(label, float(key), geometry.files, _read_phase(folder, label, geometry))
+              for key, label, geometry in ordered]
+    _check_repeated_pixels(folder, phases)
+    if ignored is not None:
+        ignored += lines
+    return phases
+
+
+def _check_shared_instances(folder: Path, order: list[tuple[float, str, list]]) -> None:
+    """ReadError naming both phases and the files when one SOP Instance UID is in two phases: one
+    image instance exported into two phases (a phase exported twice)."""
+    seen: dict[str, tuple[str, str]] = {}
+    for _key, label, files in order:
+        for f, info in files:
+            uid = info.get("0008|0018", "")
+            if uid and uid in seen and seen[uid][0] != label:
+                raise ReadError(f"{folder}: phase {label} repeats phase {seen[uid][0]}: {f} and {seen[uid][1]} are one "
+                                f"SOP instance ({uid}); a phase exported twice? A 4-D CT's phases are different images")
+            seen.setdefault(uid, (label, f)) if uid else None
+
+
+def _check_repeated_pixels(folder: Path, phases: list[Phase]) -> None:
+    """ReadError naming both phases when two phases hold identical pixel data (the same voxels on the
+    same grid, in HU): a phase exported twice, which a fit would take for a breathing state. Phases
+    that only look alike (any voxel differs) pass."""
+    seen: dict[bytes, Phase] = {}
+    for ph in phases:
+        a = np.ascontiguousarray(ph.image.array)
+        key = hashlib.sha256(repr((a.shape, a.dtype.str, ph.image.origin.tolist(), ph.image.spacing.tolist())).encode()
+                             + a.tobytes()).digest()
+        if key in seen and np.array_equal(seen[key].image.array, a):
+            other = seen[key]
+            raise ReadError(f"{folder}: phase {ph.label} repeats phase {other.label}: identical pixel data "
+                            f"({len(ph.files)} slices from {ph.files[0]}, {len(other.files)} from {other.files[0]}); a phase "
+                            "exported twice? A 4-D CT's phases are different breathing states")
+        seen.setdefault(key, ph)
 
 
 def is_fourdct(path) -> bool:
-    """True when ``path`` is a folder holding two or more DICOM series, or one series that repeats
-    slice positions: what :func:`read_phases` reads (cheap: the series of the folder's files only)."""
+    """True when ``path`` is a folder holding two or more CT image series (RTSTRUCT, RTDOSE, localizers
+    and the like do not count, :func:`~lungdeform.io.dicom.folder.candidates`), or one series that
+    repeats slice positions: what :func:`read_phases` reads (cheap: the headers only)."""
     p = Path(path)
     if not p.is_dir():
         return False
-    files = _dicom_files(p)
-    series: dict[str, list] = {}
-    for f in files:
-        info = _slice_info(f)
-        if info is not None:
-            series.setdefault(info["0020|000e"], []).append(_position(info))
-    return len(series) >= 2 or any(len(set(v)) < len(v) for v in series.values())
+    pool = candidates(survey(p))
+    if len(pool) >= 2:
+        return True
+    positions = [_position(info) for f in (pool[0].files if pool else ()) if (info := _slice_tags(f)) is not None]
+    return len(set(positions)) < len(positions)
 
 
 def frame_of_reference(files_per_phase) -> str | None:

@@ -44,7 +44,7 @@ from lungdeform import __version__
 from lungdeform.atomic import atomic_path
 from lungdeform.errors import InputError
 
-from .attributes import check_dataset, decimal, declare_charset, type2_defaults
+from .attributes import check_dataset, decimal, declare_charset, fit_text, type2_defaults
 from .rtstruct import CTSeries
 
 #: Deformable Spatial Registration Storage
@@ -155,7 +155,7 @@ def build_registration(field, grid, fixed: CTSeries, moving: CTSeries | None = N
     now = _dt.datetime.now()
     ds.SOPClassUID, ds.SOPInstanceUID = REG_SOP_CLASS, meta.MediaStorageSOPInstanceUID
     ds.Modality, ds.SeriesInstanceUID, ds.SeriesNumber, ds.InstanceNumber = "REG", generate_uid(), 901, 1
-    ds.SeriesDescription, ds.ContentLabel = description[:64], "LUNGDEFORM_DVF"
+    ds.SeriesDescription, ds.ContentLabel = fit_text(description, "LO"), "LUNGDEFORM_DVF"
     ds.ContentDate, ds.ContentTime = now.strftime("%Y%m%d"), now.strftime("%H%M%S")
     ds.FrameOfReferenceUID = fixed.header.FrameOfReferenceUID
     ds.PositionReferenceIndicator = fixed.header.get("PositionReferenceIndicator", "")

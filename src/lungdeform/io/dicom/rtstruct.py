@@ -17,6 +17,7 @@ of the referenced series, as planning systems expect. See docs/RADIOTHERAPY.md.
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import warnings
 from dataclasses import dataclass, field
@@ -31,9 +32,10 @@ from pydicom.uid import PYDICOM_IMPLEMENTATION_UID, ExplicitVRLittleEndian, gene
 
 from lungdeform.atomic import atomic_path
 from lungdeform.errors import InputError, ReadError
-from lungdeform.geometry.contours import contours_to_mesh, section_mesh
+from lungdeform.geometry.contours import contours_to_mesh, enclosing, section_mesh
 
-from .attributes import check_dataset, declare_charset, require
+from .attributes import check_dataset, declare_charset, fit_text, require
+from .folder import SeriesChoice
 from .series import dicom_series_files
 from .slices import check_gaps
 
@@ -56,7 +58,8 @@ class Structure:
     them); ``frame_uid`` the Frame of Reference UID it is drawn in, ``study_uid`` the structure
     set's study, ``image_uids`` the SOP Instance UIDs of the slices its contours reference,
     ``types`` each contour's ContourGeometricType ('' when absent), ``patient_id`` the structure set's
-    PatientID ('' when absent)."""
+    PatientID ('' when absent), ``numbers`` each contour's number in the file (1-based; empty: 1, 2 …
+    in order) once contours that enclose no area were left out (:func:`enclosing_contours`)."""
 
     name: str
     number: int
@@ -68,6 +71,7 @@ class Structure:
     image_uids: frozenset = frozenset()
     types: tuple = ()
     patient_id: str = ""
+    numbers: tuple = ()
 
 
 @dataclass(frozen=True, eq=False)
@@ -198,21 +202,44 @@ def structure_points(structure: Structure) -> np.ndarray:
     return np.ascontiguousarray(np.concatenate(structure.contours))
 
 
+def enclosing_contours(structure: Structure, source: str | None = None) -> tuple[Structure, list[str]]:
+    """``(the structure with only its contours that enclose an area, one line per contour left out)``:
+    a contour of fewer than 3 distinct points (a mask-to-contour tool's tip of 1 or 2 points, a
+    repeated point) or of points on a line is skipped, as planning systems and 3D Slicer skip it
+    (:func:`lungdeform.geometry.contours.enclosing`; the lines name ``source``, the structure, the
+    contour's number in the file and its slice). Refused (:class:`InputError`): a NaN or a coordinate
+    beyond reach in any contour, and a structure none of whose contours encloses an area."""
+    name = f"structure {structure.name!r}"
+    keep, lines = enclosing(structure.contours, name, source)
+    if not keep:
+        pre = f"{source}: " if source else ""
+        raise InputError(f"{pre}{name}: none of its {len(structure.contours)} contour(s) encloses an area (points, "
+                         "tips or lines only): no region to move")
+    numbers = structure.numbers or tuple(range(1, len(structure.contours) + 1))
+    types = structure.types or ("",) * len(structure.contours)
+    kept = dataclasses.replace(structure, contours=[structure.contours[i] for i in keep],
+                               types=tuple(types[i] for i in keep), numbers=tuple(numbers[i] for i in keep))
+    return kept, lines
+
+
 def structure_mesh(structure: Structure, source: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     """A closed surface through the structure's contours: ``(vertices (n, 3) float mm, faces)``.
     Every contour must be CLOSED_PLANAR (or untyped), and pass the checks of
-    :func:`lungdeform.geometry.contours.contours_to_mesh`; errors name ``source`` (the file), the
-    structure and the contour (1-based, in file order)."""
+    :func:`lungdeform.geometry.contours.contours_to_mesh` (contours that enclose no area are left out
+    first by :func:`enclosing_contours`); errors name ``source`` (the file), the structure and the
+    contour (1-based, in file order)."""
     name, pre = f"structure {structure.name!r}", f"{source}: " if source else ""
-    for k, kind in enumerate(structure.types, start=1):
+    numbers = structure.numbers or tuple(range(1, len(structure.contours) + 1))
+    for k, kind in zip(numbers, structure.types):
         if kind not in ("", "CLOSED_PLANAR"):
             raise InputError(f"{pre}contour {k} of {name} is {kind}, not CLOSED_PLANAR: it encloses no region")
-    return contours_to_mesh(structure.contours, name=name, source=source)
+    return contours_to_mesh(structure.contours, name=name, source=source, numbers=numbers)
 
 
-def read_ct_series(path) -> CTSeries:
+def read_ct_series(path, series: SeriesChoice | None = None) -> CTSeries:
     """The slices of the DICOM CT series ``path`` names (a folder or one of its files, as
-    :func:`lungdeform.io.dicom.series.dicom_series_files`), sorted along their normal.
+    :func:`lungdeform.io.dicom.series.dicom_series_files`; ``series`` chooses among several), sorted
+    along their normal.
 
     Refused with :class:`ReadError` naming the file: a slice pydicom cannot read, an
     ImageOrientationPatient that is not two unit, orthogonal vectors (or differs between slices), an
@@ -220,7 +247,7 @@ def read_ct_series(path) -> CTSeries:
     differing between slices; naming the folder: two slices at one position, slices missing or
     unevenly spaced (:func:`lungdeform.io.dicom.slices.check_gaps`, the check every series reader
     makes: contours on a missing slice would be lost)."""
-    files = dicom_series_files(path)
+    files = dicom_series_files(path, series)
     with warnings.catch_warnings():  # pydicom's warnings on values it still reads: checked below
         warnings.simplefilter("ignore")
         slices = [_ct_slice(f) for f in files]
@@ -399,32 +426,31 @@ def check_within_slices(ct: CTSeries, name: str, points, option: str = "--refere
                          f"{step:.2f} mm apart): its contours there would be lost")
 
 
-def check_roi_name(name: str, source: str | None = None) -> None:
-    """Refuse a ROI name DICOM cannot hold (a Long String): more than 64 characters, a backslash
-    or a control character; the message names ``source`` (the structure's file) if given."""
-    pre = f"{source}: " if source else ""
-    if len(name) > 64:
-        raise InputError(f"{pre}ROI name {name!r}: {len(name)} characters, longer than DICOM's 64 (a Long String)")
-    if "\\" in name or any(ord(ch) < 32 or ord(ch) == 127 for ch in name):
-        raise InputError(f"{pre}ROI name {name!r}: a backslash or control character, which DICOM names cannot hold")
+def roi_name(name: str, taken=()) -> str:
+    """The ROI Name (LO: 64 bytes of UTF-8, no backslash or control character) written for the
+    structure ``name``: ``name`` itself when it fits, else cut on a character boundary with its state
+    tag (what follows the last ``@``: ``@phase03``) kept whole, and unique among ``taken``
+    (:func:`~lungdeform.io.dicom.attributes.fit_text`); a cut name's whole is kept in ROIDescription."""
+    base, at, tag = name.rpartition("@")
+    return fit_text(base, "LO", keep=at + tag, taken=taken) if at else fit_text(name, "LO", taken=taken)
 
 
 def build_rtstruct(ct: CTSeries, surfaces: list, *, label: str = "lungdeform",
                    source: str | None = None) -> tuple[FileDataset, dict]:
     """The RTSTRUCT dataset of ``surfaces`` (see :func:`write_rtstruct`) and ``{name: number of
-    contours}``, every name and extent checked (:func:`check_roi_name`,
-    :func:`check_within_slices`) before anything is written; errors name ``source`` if given."""
+    contours}`` (the names as written, :func:`roi_name`), every extent checked
+    (:func:`check_within_slices`) before anything is written; errors name ``source`` if given."""
     for surf in surfaces:
-        check_roi_name(surf[0], source)
         check_within_slices(ct, f"{source}: ROI {surf[0]!r}" if source else f"ROI {surf[0]!r}", surf[1])
     ds = _base_dataset(ct, label)
-    counts = {}
+    counts: dict[str, int] = {}
     for number, surf in enumerate(surfaces, start=1):
         name, v, f = surf[:3]
         kind = surf[3] if len(surf) > 3 else "ORGAN"
         contours = _slice_contours(ct, v, f)
-        counts[name] = len(contours)
-        _add_roi(ds, number, name, kind, COLOURS[(number - 1) % len(COLOURS)], contours, ct)
+        written = roi_name(name, counts)
+        counts[written] = len(contours)
+        _add_roi(ds, number, (written, name), kind, COLOURS[(number - 1) % len(COLOURS)], contours, ct)
     declare_charset(ds)  # UTF-8 when a name that is not ASCII: it round-trips
     return ds, counts
 
@@ -433,8 +459,9 @@ def write_rtstruct(path, ct: CTSeries, surfaces: list, *, label: str = "lungdefo
     """Write ``surfaces`` — ``(name, vertices (n, 3) float mm LPS, faces (m, 3) int)`` each, or
     ``(name, vertices, faces, kind)`` with an RT ROI interpreted type (GTV, ORGAN …; empty when none applies) — as an
     RTSTRUCT referencing ``ct``, every contour a section of the surface by one slice plane.
-    Atomic. Returns ``{name: number of contours}``. A surface reaching beyond the slices, or a
-    name DICOM cannot hold, is refused before anything is written (:func:`build_rtstruct`)."""
+    Atomic. Returns ``{name as written: number of contours}`` (a name longer than a ROI Name holds is
+    cut, :func:`roi_name`). A surface reaching beyond the slices is refused before anything is
+    written (:func:`build_rtstruct`)."""
     ds, counts = build_rtstruct(ct, surfaces, label=label)
     save_rtstruct(path, ds)
     return counts
@@ -449,13 +476,16 @@ def save_rtstruct(path, ds: FileDataset) -> None:
 
 
 def _slice_contours(ct: CTSeries, vertices, faces) -> list[tuple[int, np.ndarray]]:
-    """``(slice index, (k, 3) float mm)`` for each polygon where a slice plane cuts the surface."""
+    """``(slice index, (k, 3) float mm)`` for each polygon where a slice plane cuts the surface, those
+    that enclose no area left out (a plane through a pole of the surface cuts it in one point, which
+    :func:`lungdeform.geometry.contours.enclosing` tells, as every reader would skip it)."""
     out = []
     h = np.asarray(vertices, float) @ ct.normal
     for k, origin in enumerate(ct.origins):
         level = origin @ ct.normal
         if h.min() <= level <= h.max():
-            out += [(k, c) for c in section_mesh(vertices, faces, origin, ct.normal)]
+            polygons = section_mesh(vertices, faces, origin, ct.normal)
+            out += [(k, polygons[i]) for i in enclosing(polygons)[0]]
     return out
 
 
@@ -473,11 +503,11 @@ def _base_dataset(ct: CTSeries, label: str) -> FileDataset:
         setattr(ds, key, ct.header.get(key, ""))
     ds.SOPClassUID, ds.SOPInstanceUID = RTSTRUCT_SOP_CLASS, meta.MediaStorageSOPInstanceUID
     ds.Modality, ds.SeriesInstanceUID, ds.SeriesNumber, ds.InstanceNumber = "RTSTRUCT", generate_uid(), 900, 1
-    ds.Manufacturer, ds.SeriesDescription = "lungdeform", label[:64]
+    ds.Manufacturer, ds.SeriesDescription = "lungdeform", fit_text(label, "LO")
     ds.FrameOfReferenceUID = ct.header.FrameOfReferenceUID
     ds.PositionReferenceIndicator = ct.header.get("PositionReferenceIndicator", "")
     ds.OperatorsName = ""  # Type 2 (RT Series module): not known here
-    ds.StructureSetLabel = label[:16]
+    ds.StructureSetLabel = fit_text(label, "SH")  # SH: 16 bytes, cut on a character boundary
     ds.StructureSetDate, ds.StructureSetTime = now.strftime("%Y%m%d"), now.strftime("%H%M%S")
     series = Dataset()
     series.SeriesInstanceUID = ct.header.SeriesInstanceUID
@@ -499,12 +529,15 @@ def _image_ref(ct: CTSeries, k: int) -> Dataset:
     return ref
 
 
-def _add_roi(ds: FileDataset, number: int, name: str, kind: str, colour, contours, ct: CTSeries) -> None:
-    """One ROI: its name (StructureSetROISequence), colour and CLOSED_PLANAR contours, each
+def _add_roi(ds: FileDataset, number: int, names: tuple[str, str], kind: str, colour, contours, ct: CTSeries) -> None:
+    """One ROI: its name (StructureSetROISequence; ``names`` = (as written, whole): the whole in
+    ROIDescription, ST, when the name had to be cut), colour and CLOSED_PLANAR contours, each
     referencing its slice (ROIContourSequence), and its interpreted type (RTROIObservationsSequence)."""
     roi = Dataset()
     roi.ROINumber, roi.ReferencedFrameOfReferenceUID = number, ct.header.FrameOfReferenceUID
-    roi.ROIName, roi.ROIGenerationAlgorithm = name, "AUTOMATIC"
+    roi.ROIName, roi.ROIGenerationAlgorithm = names[0], "AUTOMATIC"
+    if names[0] != names[1]:
+        roi.ROIDescription = fit_text(names[1], "ST")
     ds.StructureSetROISequence.append(roi)
     rc = Dataset()
     rc.ROIDisplayColor, rc.ReferencedROINumber = list(colour), number

@@ -1,8 +1,9 @@
 """A DICOM CT series: found in a folder, its slices checked and read; an image written as one.
 
-Reading: :func:`dicom_series_files` picks the series a path names (a folder, a parent folder of one
-series, or one file), every file checked by :func:`~lungdeform.io.dicom.guard.check_dicom_file`
-first; :func:`dicom_series_geometry` checks its slices
+Reading: :func:`dicom_series_files` picks the series a path names (a folder as exports come, its
+RTSTRUCT, RTPLAN, RTDOSE, DICOMDIR, localizer and non-DICOM files told apart and named:
+:mod:`~lungdeform.io.dicom.folder`; a parent folder of one series; or one file), every file
+checked by :func:`~lungdeform.io.dicom.guard.check_dicom_file` first; :func:`dicom_series_geometry` checks its slices
 (:func:`~lungdeform.io.dicom.slices.check_slices`) and :func:`read_series` reads it with SimpleITK
 (:func:`lungdeform.io.image.read_image` is the entry point for every format).
 
@@ -40,7 +41,6 @@ Voxels are stored as int16 with RescaleSlope/RescaleIntercept (:func:`rescale`).
 from __future__ import annotations
 
 import datetime as _dt
-import os
 import re
 from pathlib import Path
 
@@ -54,8 +54,9 @@ from pydicom.uid import PYDICOM_IMPLEMENTATION_UID, ExplicitVRLittleEndian, gene
 from lungdeform.errors import InputError, ReadError
 from lungdeform.io.grid import Image, check_grid, quiet_itk
 
-from .attributes import check_dataset, decimal, declare_charset, require, type2_defaults
-from .guard import check_dicom_file, is_dicom_file
+from .attributes import check_dataset, decimal, declare_charset, fit_text, require, type2_defaults
+from .folder import SeriesChoice, ignored_line, pick, survey
+from .guard import is_dicom_file
 from .slices import GEOMETRY_TAGS, SliceGeometry, check_slices, check_spacing
 
 #: CT Image Storage
@@ -73,64 +74,33 @@ TYPE2_KEYS = ("PatientName", "PatientID", "PatientBirthDate", "PatientSex", "Stu
 MAX_PHASES = 100
 
 
-def _series_in(folder: Path) -> list[tuple[str, tuple[str, ...]]]:
-    """``[(series UID, file names)]`` of the DICOM series directly in ``folder``, largest first
-    (every DICOM file of the folder checked first, :func:`check_dicom_file`)."""
+def dicom_series_files(path, series: SeriesChoice | None = None, ignored: list | None = None) -> list[str]:
+    """The files of the DICOM image series that ``path`` names.
 
-    with os.scandir(folder) as entries:
-        for entry in sorted(entries, key=lambda e: e.name):
-            if entry.is_file() and is_dicom_file(entry.path):
-                check_dicom_file(entry.path)
-    reader = sitk.ImageSeriesReader
-    with quiet_itk():
-        ids = reader.GetGDCMSeriesIDs(str(folder))
-        series = [(sid, tuple(reader.GetGDCMSeriesFileNames(str(folder), sid))) for sid in ids]
-    return sorted(series, key=lambda s: -len(s[1]))
-
-
-def dicom_series_files(path) -> list[str]:
-    """The files of the DICOM series that ``path`` names, in slice order.
-
-    ``path`` may be a folder holding the series (the largest series in it is taken, but two or more
-    series of that size, e.g. the phases of a 4-D CT, are refused as ambiguous), a parent folder
-    whose subfolders hold exactly one series, or one file of the series (its series is read from
-    its folder). Raises :class:`ReadError` naming the path when there is no series, or more than
-    one to choose from.
+    ``path`` may be a folder (its image series told from every other object of an export:
+    :func:`~lungdeform.io.dicom.folder.survey`; a DICOMDIR followed; a folder holding no DICOM file
+    itself looked into), or one file of the series (its series is read from its folder). The series
+    is the folder's one candidate, or the one ``series`` names
+    (:func:`~lungdeform.io.dicom.folder.pick`); ``ignored``, when given, gets the line that names
+    what else the folder held (:func:`~lungdeform.io.dicom.folder.ignored_line`). Raises
+    :class:`ReadError` naming the path when there is no series, or more than one to choose from.
     """
     p = Path(path)
     if p.is_file():
-        folder = p.parent
+        found = survey(p.parent)
         target = p.resolve()
-        for sid, files in _series_in(folder):
-            if any(Path(f).resolve() == target for f in files):
-                return list(files)
-        raise ReadError(f"{p}: not a readable DICOM image slice (no DICOM series in {folder} contains it)")
-    series = _series_in(p)
-    where = p
-    if not series:  # a parent folder (patient/study/series exports): look one or more levels down
-        found, visited = [], 0
-        for root, dirs, _files in os.walk(p):
-            dirs.sort()
-            if Path(root) != p:
-                found += [(Path(root), sid, files) for sid, files in _series_in(Path(root))]
-            visited += 1
-            if len(found) > 20 or visited > 2000:  # enough to say it is ambiguous; do not crawl a disk
-                break
-        if not found:
-            raise ReadError(f"{p}: no DICOM series in this directory or its subfolders")
-        if len(found) > 1:
-            listed = "; ".join(f"{d.relative_to(p)} ({len(files)} files)" for d, _, files in found[:6])
-            raise ReadError(f"{p}: holds no DICOM series itself, and its subfolders hold {len(found)}"
-                            f"{'+' if len(found) > 20 else ''} series ({listed}); give the folder of one")
-        where, sid, files = found[0]
-        series = [(sid, files)]
-    if len(series) > 1 and len(series[1][1]) == len(series[0][1]):
-        n_same = sum(len(f) == len(series[0][1]) for _, f in series)
-        raise ReadError(f"{where}: holds {len(series)} DICOM series, {n_same} of them with {len(series[0][1])} "
-                        "files (e.g. the phases of a 4-D CT): ambiguous; put the series you want in a folder "
-                        "of its own")
-    return list(series[0][1])
-
+        for s in found.series:
+            if any(Path(f).resolve() == target for f in s.files):
+                return list(s.files)
+        what = dict(found.ignored).get(p.name)
+        raise ReadError(f"{p}: not a readable DICOM image slice" + (f" (it is {what})" if what else
+                                                                    f" (no DICOM series in {p.parent} contains it)"))
+    found = survey(p)
+    chosen = pick(found, series)
+    line = ignored_line(found, [chosen])
+    if ignored is not None and line:
+        ignored.append(line)
+    return list(chosen.files)
 
 
 def dicom_series_geometry(files, where, max_voxels=None) -> SliceGeometry:
@@ -161,11 +131,12 @@ def dicom_series_geometry(files, where, max_voxels=None) -> SliceGeometry:
 
 
 
-def read_series(path, max_voxels=None) -> sitk.Image:
-    """The DICOM series ``path`` names (:func:`dicom_series_files`) read by SimpleITK, after every
-    header is checked (:func:`dicom_series_geometry`) and ITK's slice spacing is compared with the
-    slices' own (:func:`~lungdeform.io.dicom.slices.check_spacing`)."""
-    geometry = dicom_series_geometry(dicom_series_files(path), path, max_voxels)
+def read_series(path, max_voxels=None, series: SeriesChoice | None = None, ignored: list | None = None) -> sitk.Image:
+    """The DICOM series ``path`` names (:func:`dicom_series_files`: ``series`` chooses one, ``ignored``
+    gets what else the folder held) read by SimpleITK, after every header is checked
+    (:func:`dicom_series_geometry`) and ITK's slice spacing is compared with the slices' own
+    (:func:`~lungdeform.io.dicom.slices.check_spacing`)."""
+    geometry = dicom_series_geometry(dicom_series_files(path, series, ignored), path, max_voxels)
     reader = sitk.ImageSeriesReader()
     reader.SetFileNames(list(geometry.files))
     with quiet_itk():
@@ -194,17 +165,18 @@ def series_identity(files) -> dict[str, str]:
             "frame_of_reference": str(ds.get("FrameOfReferenceUID", "") or "").strip()}
 
 
-def study_header(source=None) -> Dataset:
+def study_header(source=None, series: SeriesChoice | None = None) -> Dataset:
     """The patient, study and frame-of-reference attributes (:data:`STUDY_KEYS`) and the
     SeriesDescription of the DICOM series ``source`` names (a folder or one of its files), or
     new Study and Frame of Reference UIDs when ``source`` is None or not DICOM. Call it once for
     all the phases of a 4-D CT, so that they share one study and one frame of reference. A DICOM
     source without a valid StudyInstanceUID or FrameOfReferenceUID is refused with
-    :class:`ReadError` (:func:`~lungdeform.io.dicom.attributes.require`): its phases keep them."""
+    :class:`ReadError` (:func:`~lungdeform.io.dicom.attributes.require`): its phases keep them.
+    ``series`` chooses among several series of the folder (:func:`dicom_series_files`)."""
     head = Dataset()
     p = None if source is None else Path(source)
     if p is not None and (p.is_dir() or is_dicom_file(p)):
-        first = dicom_series_files(p)[0]
+        first = dicom_series_files(p, series)[0]
         try:
             src = pydicom.dcmread(first, stop_before_pixels=True)
         except (InvalidDicomError, OSError, EOFError, ValueError) as exc:
@@ -219,7 +191,7 @@ def study_header(source=None) -> Dataset:
         head.StudyDate, head.StudyTime = now.strftime("%Y%m%d"), now.strftime("%H%M%S")
     head.FrameOfReferenceUID = head.get("FrameOfReferenceUID") or generate_uid()
     if not head.get("SeriesDescription"):
-        head.SeriesDescription = "" if p is None else re.sub(r"(\.nii)?\.[^.]+$", "", p.name)
+        head.SeriesDescription = "" if p is None else fit_text(re.sub(r"(\.nii)?\.[^.]+$", "", p.name), "LO")
     return head
 
 
@@ -249,9 +221,15 @@ def phase_folder(index: int, count: int) -> str:
 
 
 def phase_description(base: str, index: int, count: int) -> str:
-    """``"<base> phase 30%"`` (the percentage a 4-D CT reader sorts by), at most 64 characters."""
+    """``"<base> phase 30%"`` (the percentage a 4-D CT reader sorts by): ``base`` cut on a character
+    boundary so that the whole fits a SeriesDescription (LO, 64 bytes of UTF-8), the tag whole."""
     tag = f"phase {100 * index / count:.4g}%"
-    return f"{str(base)[:63 - len(tag)]} {tag}".strip()
+    return fit_text(str(base), "LO", keep=f" {tag}").strip()
+
+
+def state_description(base: str) -> str:
+    """``"<base> lungdeform warp"``, ``base`` cut so that the whole fits a SeriesDescription (LO)."""
+    return fit_text(str(base), "LO", keep=" lungdeform warp").strip()
 
 
 def rescale(array) -> tuple[np.ndarray, float, float]:
@@ -315,7 +293,7 @@ def _series_dataset(shape, spacing, direction, header: Dataset, description: str
         ds.pop("Laterality", None)
     now = _dt.datetime.now()
     ds.SOPClassUID, ds.Modality, ds.SeriesInstanceUID = CT_SOP_CLASS, "CT", generate_uid()
-    ds.SeriesNumber, ds.SeriesDescription = int(series_number), description[:64]
+    ds.SeriesNumber, ds.SeriesDescription = int(series_number), fit_text(description, "LO")
     ds.SeriesDate, ds.SeriesTime, ds.ContentDate = now.strftime("%Y%m%d"), now.strftime("%H%M%S"), now.strftime("%Y%m%d")
     ds.ImageType, ds.Manufacturer = ["DERIVED", "SECONDARY", "AXIAL"], "lungdeform"
     ds.DerivationDescription = "resampled through a lungdeform breathing-model displacement field"
