@@ -7,6 +7,7 @@ import pytest
 
 from lungdeform.cohort.default import DefaultSample, learn_default, pooled_constants
 from lungdeform.errors import InputError
+from lungdeform.interior.prior import taper_weights
 from lungdeform.model.lung import BuildSettings, build_lung
 from lungdeform.model.population import paper_default
 from tests.conftest import ellipsoid_lung
@@ -15,7 +16,8 @@ from tests.conftest import ellipsoid_lung
 def _samples(offset_per_ml, rng):
     """Four synthetic lungs (two subjects × two sides) moved by one default with known constants, their
     landmarks at +dv moved by that model plus ``offset_per_ml (3,)`` mm per mL (a known interior prior
-    with no linear part, in the mirrored lung frame)."""
+    with no linear part, in the mirrored lung frame) tapered to zero at the surface as a built lung
+    plays a prior (:class:`lungdeform.interior.prior.TaperedPrior`)."""
     c = np.array([0.1, 1.5, 0.4, 1.0, 1.2, 2.5, 0.3, 0.33, 1.0])
     truth = replace(paper_default(), name="truth", constants={"left": c, "right": c})
     out = []
@@ -26,8 +28,10 @@ def _samples(offset_per_ml, rng):
             q = s.vertices.mean(axis=0) + rng.normal(scale=15.0, size=(40, 3))
             moved = lung.points_at(q, lung.volume_ee_ml + dv, exact=True)
             mirror = np.array([-1.0, 1, 1]) if side == "left" else np.ones(3)
+            fade = taper_weights(q, s)[:, None]
+            assert 0 < fade.min() < 1 == fade.max()  # landmarks within the taper and deeper than it
             out.append(DefaultSample(subject, side, s, c * [1, 1, 1, 1, 1, 1, 2, 2, 2], lung.directions, lung.force,
-                                     q, moved + dv * offset_per_ml * mirror, dv))
+                                     q, moved + dv * fade * offset_per_ml * mirror, dv))
     return c, out
 
 

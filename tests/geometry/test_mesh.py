@@ -220,3 +220,17 @@ def test_inside_by_parity_is_the_winding_number_test_and_the_sphere():
     r = np.linalg.norm(q - [5.0, -3.0, 40.0], axis=1)
     clear = np.abs(r - 20.0) > 0.3
     assert np.array_equal(inside[clear], r[clear] < 20.0) and 0 < inside.sum() < len(q)
+
+
+def test_inside_nodes_is_the_parity_test_on_a_grid():
+    # why: the row-parity voxelisation (one pass over the triangles) must answer exactly as the
+    # per-point parity test at every node of a grid, here an oblique sphere in node units
+    from lungdeform.geometry.mesh import icosphere, inside_by_parity, inside_nodes
+    s = icosphere(3, 7.3, center=(10.2, 8.7, 6.1))
+    dims = (21, 18, 14)  # (nx, ny, nz): the sphere crosses the grid's last faces
+    inside = inside_nodes(s.vertices, s.faces, dims)
+    assert inside.shape == (14, 18, 21)
+    k, j, i = np.meshgrid(*(np.arange(n) for n in dims[::-1]), indexing="ij")
+    nodes = np.stack([i.ravel(), j.ravel(), k.ravel()], axis=1).astype(float) + [0.0, 1e-5 * np.pi, 1e-5 * np.e]
+    assert np.array_equal(inside.ravel(), inside_by_parity(nodes, s.vertices, s.faces))
+    assert 0 < inside.sum() < inside.size

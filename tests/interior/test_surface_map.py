@@ -72,3 +72,21 @@ def test_rows_equal_the_point_evaluation(rng, width):
                                atol=1e-12 * np.abs(f.weights).sum())
     with pytest.raises(InputError, match="counts"):
         f.along_rows(starts, step, counts[:-1])
+
+
+def test_a_tapered_prior_adds_on_top_in_rows_and_points(left_lung, rng):
+    # why: the prior on top of a map is added by __call__ and by along_rows alike (the displacement
+    # field evaluates rows, track evaluates points): both must be the map plus w(δ)(M q + b)
+    from lungdeform.interior.prior import TaperedPrior
+    f = _field(rng)
+    prior = TaperedPrior(0.01 * rng.normal(size=(3, 4)), left_lung.vertices, left_lung.faces)
+    g = f.with_prior(prior)
+    starts = left_lung.vertices.mean(axis=0) + rng.normal(scale=30.0, size=(20, 3))
+    step = np.array([2.0, 0.5, -1.0])
+    counts = rng.integers(0, 40, size=20)
+    a = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+    q = np.repeat(starts, counts, axis=0) + a[:, None] * step
+    expected = _dense(f, q) + prior.weights(q)[:, None] * (q @ prior.affine[:, :3].T + prior.affine[:, 3])
+    np.testing.assert_allclose(g(q), expected, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(g.along_rows(starts, step, counts), expected, rtol=0, atol=1e-10)
+    assert 0 < prior.weights(q).max() and f.prior is None and g.with_prior(None).prior is None

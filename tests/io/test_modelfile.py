@@ -41,7 +41,7 @@ def test_schema_1_files_keep_their_thin_plate_interior(tmp_path, model, rng):
     path = save_model(tmp_path / "m.npz", Model({"left": model}))
     with np.load(path) as z:
         data = {k: z[k] for k in z.files}
-    assert int(data["schema_version"]) == SCHEMA_VERSION == 5
+    assert int(data["schema_version"]) == SCHEMA_VERSION == 6
     np.savez(tmp_path / "v1.npz", **dict(data, schema_version=np.array(1)))
     old, new = load_model(tmp_path / "v1.npz").lungs["left"], load_model(path).lungs["left"]
     assert (old.interior_kind, new.interior_kind) == ("thin_plate", "sliding")
@@ -302,16 +302,54 @@ def test_raw_zip_members_raise_model_file_error(tmp_path, model):
 
 
 def test_population_default_model_round_trips(tmp_path, left_lung, right_lung):
-    # a model built with the population default carries its interior (extension + prior) as an
-    # interior map: saved and read back, a point inside moves the same, and the default is recorded
+    # a model built with the population default carries its interior (extension + tapered prior) as an
+    # interior map: saved and read back, points inside move the same, the prior is kept apart from the
+    # map's affine part (schema 6), and the default is recorded
     from lungdeform.model.lung import build_model
 
     m = build_model({"left": left_lung, "right": right_lung})
-    back = load_model(save_model(tmp_path / "m.npz", m))
-    q = left_lung.vertices.mean(axis=0)[None]
-    assert back.lungs["left"].interior_map is not None
-    np.testing.assert_allclose(back.lungs["left"].interior.displacement(q), m.lungs["left"].interior.displacement(q))
+    path = save_model(tmp_path / "m.npz", m)
+    back = load_model(path)
+    q = left_lung.vertices.mean(axis=0) + np.linspace(-30, 30, 7)[:, None] * [1.0, 0.5, 1.5]
+    a, b = m.lungs["left"].interior_map, back.lungs["left"].interior_map
+    assert b is not None and b.prior is not None and b.prior.width_mm == a.prior.width_mm
+    np.testing.assert_array_equal(b.prior.affine, a.prior.affine)
+    np.testing.assert_allclose(back.lungs["left"].interior.displacement(q), m.lungs["left"].interior.displacement(q),
+                               rtol=0, atol=1e-12)
+    with np.load(path) as z:
+        assert z["lung/left/interior_map_prior"].shape == (3, 4) and float(z["lung/left/interior_map_prior_taper_mm"]) > 0
     assert back.provenance["default"] == m.provenance["default"]
+
+
+def test_schema_5_lungs_built_with_a_prior_have_it_unfolded_and_tapered(tmp_path, left_lung, rng):
+    # why: before schema 6 a built lung's population prior was folded into the map's affine part, where
+    # it moved the lung's own surface (a warped lung breathed ~56 % of the model's volume). Read now,
+    # such a lung plays as one built today (truth: the lung built here, saved with the prior folded in
+    # as 0.9 saved it); a version-5 map that is not its displacement's extension (a fit's registration)
+    # is read as made
+    from dataclasses import replace
+
+    from lungdeform.model.lung import build_model
+
+    m = build_model({"left": left_lung})
+    path = save_model(tmp_path / "m.npz", m)
+    with np.load(path) as z:
+        data = {k: z[k] for k in z.files}
+    folded = data.pop("lung/left/interior_map_prior")
+    data.pop("lung/left/interior_map_prior_taper_mm")
+    data["lung/left/interior_map_linear"] = data["lung/left/interior_map_linear"] + folded
+    np.savez(tmp_path / "v5.npz", **dict(data, schema_version=np.array(5)))
+    old, new = load_model(tmp_path / "v5.npz").lungs["left"], m.lungs["left"]
+    np.testing.assert_allclose(old.interior_map.prior.affine, new.interior_map.prior.affine, rtol=0, atol=1e-12)
+    q = left_lung.vertices.mean(axis=0) + rng.normal(scale=25.0, size=(30, 3))
+    np.testing.assert_allclose(old.interior.displacement(q), new.interior.displacement(q), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(old.interior.displacement(left_lung.vertices), new.interior.displacement(left_lung.vertices),
+                               rtol=0, atol=1e-9)
+    fit_like = replace(new, interior_map=_interior_map(rng, new))
+    with np.load(save_model(tmp_path / "f.npz", Model({"left": fit_like}))) as z:
+        np.savez(tmp_path / "f5.npz", **dict({k: z[k] for k in z.files}, schema_version=np.array(5)))
+    kept = load_model(tmp_path / "f5.npz").lungs["left"].interior_map
+    assert kept.prior is None and np.array_equal(kept.linear, fit_like.interior_map.linear)
 
 
 @pytest.mark.parametrize("key, value, what", [("side", "lefty", "side is 'lefty'"), ("unit_ml", 0.0, "unit_ml is 0.0"),
@@ -383,7 +421,7 @@ def test_the_scans_breathing_state_is_kept_and_older_files_are_end_exhale(tmp_pa
     np.savez(tmp_path / "v4.npz", **dict(old, schema_version=np.array(4)))
     assert load_model(tmp_path / "v4.npz").scan == ScanState()
     np.savez(tmp_path / "half.npz", **{k: v for k, v in data.items() if k != "scan_above_ee_ml"})
-    with pytest.raises(ModelFileError, match="half.npz: schema 5 needs both scan_state and scan_above_ee_ml"):
+    with pytest.raises(ModelFileError, match="half.npz: schema 6 needs both scan_state and scan_above_ee_ml"):
         load_model(tmp_path / "half.npz")
     for key, value, needle in (("scan_state", np.array("deep"), "scan state must be one of"),
                                ("scan_above_ee_ml", np.array(-1.0), "above end-exhale must be 0 to"),

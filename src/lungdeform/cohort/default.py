@@ -17,7 +17,8 @@ mirror image of a right one (:mod:`lungdeform.model.population`):
    landmarks (none without any): each such lung built with
    1.–2. (:func:`lungdeform.model.lung.build_lung`) and its landmarks moved to the larger volume; the
    residuals (observed, in the frame of that lung's own two-scan fit, minus predicted), in mm, fitted
-   by ``ΔV·(β₀ + B q̂)`` in weighted least squares (every lung weighted once, whatever its landmark
+   by ``ΔV·w(q)·(β₀ + B q̂)``, ``w`` the taper a built lung plays the prior with (zero at the surface:
+   :class:`lungdeform.interior.prior.TaperedPrior`), in weighted least squares (every lung weighted once, whatever its landmark
    count; ``ΔV`` its volume change, mL), with a ridge on ``B`` of :data:`PRIOR_RIDGE` × the mean
    diagonal. Fitting in mm, not in mm per mL, keeps a lung with a small volume change from
    dominating the fit with its noise (scored leave one subject out: docs/DEFAULTS.md).
@@ -36,7 +37,7 @@ from lungdeform.errors import InputError
 from lungdeform.geometry.distance import vertex_areas
 from lungdeform.geometry.frame import frame_axes, lung_frame
 from lungdeform.geometry.mesh import Surface
-from lungdeform.interior.prior import lung_normaliser, mirror, normalised
+from lungdeform.interior.prior import lung_normaliser, mirror, normalised, taper_weights
 from lungdeform.model.direction import directions as paper_directions
 from lungdeform.model.direction import polynomial_basis
 from lungdeform.model.lung import BuildSettings, build_lung
@@ -146,7 +147,8 @@ def pooled_prior(samples: Sequence[DefaultSample], default: PopulationDefault,
         lung = build_lung(smp.surface, smp.side, default=default, settings=BuildSettings(smp.delta_ml))
         moved = lung.points_at(smp.landmarks, lung.volume_ee_ml + smp.delta_ml, exact=True)
         q = normalised(smp.landmarks, *lung_normaliser(smp.surface), smp.side)
-        xs.append(smp.delta_ml * np.c_[np.ones(len(q)), q])  # the prior per mL, times this lung's change
+        fade = taper_weights(smp.landmarks, smp.surface)[:, None]  # as a built lung plays the prior
+        xs.append(smp.delta_ml * fade * np.c_[np.ones(len(q)), q])  # the prior per mL, times this lung's change
         ys.append((np.asarray(smp.landmarks_target, float) - moved) * mirror(smp.side))
         ws.append(np.full(len(q), 1.0 / len(q)))  # every lung counts once
     x, y, w = np.vstack(xs), np.vstack(ys), np.concatenate(ws)

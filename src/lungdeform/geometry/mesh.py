@@ -210,6 +210,42 @@ def inside_by_parity(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray
     return _parity_kernel(q, tri, boxes)
 
 
+def inside_nodes(coords, faces, dims) -> np.ndarray:
+    """``(nz, ny, nx) bool``: the nodes ``(i, j, k)`` (integers, ``i < nx``, ``j < ny``, ``k < nz``) of a
+    regular grid inside a closed surface whose vertices lie at ``coords : (n, 3)`` in node units
+    (continuous ``(i, j, k)``; ``dims = (nx, ny, nz)``), by the parity of a ray along each row (axis
+    ``i``) crossing the triangles: one pass over the triangles, each visiting only the rows its
+    ``(j, k)`` projection covers. The rays are shifted by 10⁻⁵ node so that none runs exactly through
+    a vertex or an edge."""
+    nx, ny, nz = (int(n) for n in dims)
+    c = np.array(coords, dtype=float).reshape(-1, 3)
+    c[:, 1] += 1.0e-5 * np.pi
+    c[:, 2] += 1.0e-5 * np.e
+    t = c[np.asarray(faces, np.int64)]  # (m, 3 corners, 3)
+    jlo = np.maximum(np.ceil(t[:, :, 1].min(axis=1)), 0).astype(int)
+    jhi = np.minimum(np.floor(t[:, :, 1].max(axis=1)), ny - 1).astype(int)
+    klo = np.maximum(np.ceil(t[:, :, 2].min(axis=1)), 0).astype(int)
+    khi = np.minimum(np.floor(t[:, :, 2].max(axis=1)), nz - 1).astype(int)
+    nj, nk = np.maximum(jhi - jlo + 1, 0), np.maximum(khi - klo + 1, 0)
+    tri = np.repeat(np.arange(len(t)), nj * nk)
+    r = np.arange(len(tri)) - np.repeat(np.cumsum(nj * nk) - nj * nk, nj * nk)  # rank within a triangle
+    j = jlo[tri] + r % nj[tri]
+    k = klo[tri] + r // np.maximum(nj[tri], 1)
+    a, b, cc = t[tri, 0], t[tri, 1], t[tri, 2]
+    # barycentric coordinates of the row (j, k) in the triangle's (j, k) projection
+    det = (b[:, 1] - a[:, 1]) * (cc[:, 2] - a[:, 2]) - (cc[:, 1] - a[:, 1]) * (b[:, 2] - a[:, 2])
+    ok = det != 0
+    det = np.where(ok, det, 1.0)
+    l1 = ((j - a[:, 1]) * (cc[:, 2] - a[:, 2]) - (cc[:, 1] - a[:, 1]) * (k - a[:, 2])) / det
+    l2 = ((b[:, 1] - a[:, 1]) * (k - a[:, 2]) - (j - a[:, 1]) * (b[:, 2] - a[:, 2])) / det
+    hit = ok & (l1 > 0) & (l2 > 0) & (l1 + l2 < 1)
+    x = (a[:, 0] + l1 * (b[:, 0] - a[:, 0]) + l2 * (cc[:, 0] - a[:, 0]))[hit]
+    first = np.clip(np.floor(x).astype(int) + 1, 0, nx)  # the first node past the crossing
+    counts = np.zeros((nz, ny, nx + 1), np.int32)
+    np.add.at(counts, (k[hit], j[hit], first), 1)
+    return (np.cumsum(counts, axis=2)[:, :, :nx] % 2).astype(bool)
+
+
 def bounding_box(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(min, max)``, each ``(3,) float`` in the frame of ``vertices``."""
     return vertices.min(axis=0), vertices.max(axis=0)

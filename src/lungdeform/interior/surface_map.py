@@ -9,9 +9,12 @@ surface onto a larger one with strong smoothness (:mod:`lungdeform.fit.registrat
     v(q) = L [q; 1] + Σ_j exp(−|W [q; 1] − c_j|² / (2 w²)) g_j,
 
 with ``L (3, 4)`` the affine part of the displacement per unit (``(A − I | t) / s_target``, plus any
-population prior folded in: :mod:`lungdeform.interior.motion_prior`), ``c_j (k, 3)`` mm the Gaussian
+motion prior of a fit folded in: :mod:`lungdeform.interior.motion_prior`), ``c_j (k, 3)`` mm the Gaussian
 centres (the affine image of the end-exhale surface points), ``g_j (k, 3)`` mm per unit their
-weights and ``w`` mm the kernel width. The field is linear in ``s`` like every interior field, so a
+weights and ``w`` mm the kernel width. A built model's map (:func:`surface_extension`) adds the
+population default's interior prior tapered to zero at the surface (``prior``,
+:class:`lungdeform.interior.prior.TaperedPrior`), so that on the surface the field is the surface's
+own motion. The field is linear in ``s`` like every interior field, so a
 point's displacement per unit is computed once and playback costs three multiply-adds per point.
 Measured on the DIR-Lab COPDgene masks in docs/FITTING.md ("Interior from the surfaces alone").
 """
@@ -26,6 +29,8 @@ from scipy.spatial.distance import cdist
 
 from lungdeform.errors import InputError
 from lungdeform.geometry.mesh import as_vertices
+
+from .prior import TaperedPrior
 
 
 def _affine(matrix, name: str) -> np.ndarray:
@@ -51,6 +56,8 @@ class SurfaceMapField:
         Gaussian weights, mm per unit.
     width_mm : float
         Kernel width ``w``, mm.
+    prior : TaperedPrior or None
+        An interior prior added on top, zero on the lung's surface (mm per unit); None: none.
     """
 
     linear: np.ndarray
@@ -58,6 +65,7 @@ class SurfaceMapField:
     centers: np.ndarray
     weights: np.ndarray
     width_mm: float
+    prior: TaperedPrior | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "linear", _affine(self.linear, "linear"))
@@ -70,6 +78,8 @@ class SurfaceMapField:
         object.__setattr__(self, "centers", c)
         object.__setattr__(self, "weights", g)
         object.__setattr__(self, "width_mm", float(self.width_mm))
+        if self.prior is not None and not isinstance(self.prior, TaperedPrior):
+            raise InputError(f"prior must be a TaperedPrior or None, got {type(self.prior).__name__}")
 
     def __call__(self, points) -> np.ndarray:
         """``v : (q, 3) float`` mm per unit at ``points : (q, 3)`` mm LPS."""
@@ -77,6 +87,8 @@ class SurfaceMapField:
         out = np.ascontiguousarray(q @ self.linear[:, :3].T + self.linear[:, 3])
         y = np.ascontiguousarray(q @ self.warp[:, :3].T + self.warp[:, 3])
         _gauss_sum(y, self.centers, self.weights, 1.0 / (2.0 * self.width_mm**2), out)
+        if self.prior is not None:
+            out += self.prior(q)
         return out
 
     def along_rows(self, starts, step, counts) -> np.ndarray:
@@ -96,11 +108,18 @@ class SurfaceMapField:
         linear = (np.einsum("rb,ab->ra", s0, lin) + self.linear[:, 3], lin @ st)
         gauss = (self.centers, self.weights, 1.0 / (2.0 * self.width_mm**2))
         _gauss_rows(np.einsum("rb,ab->ra", s0, warp) + self.warp[:, 3], warp @ st, offsets, gauss, linear, out)
+        if self.prior is not None and len(out):
+            a = np.arange(len(out)) - np.repeat(offsets[:-1], n)
+            out += self.prior(np.repeat(s0, n, axis=0) + a[:, None] * st)
         return out
 
     def with_linear(self, extra) -> "SurfaceMapField":
         """A new field whose affine part per unit has ``extra : (3, 4)`` (mm per unit) added."""
         return replace(self, linear=self.linear + _affine(extra, "extra"))
+
+    def with_prior(self, prior: TaperedPrior | None) -> "SurfaceMapField":
+        """A new field with ``prior`` (:class:`~lungdeform.interior.prior.TaperedPrior`) added on top (None: without one)."""
+        return replace(self, prior=prior)
 
 
 @numba.njit(cache=True, parallel=True)

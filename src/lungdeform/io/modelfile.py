@@ -1,12 +1,12 @@
 """The model file: a versioned ``.npz`` (numpy zip) holding everything playback needs.
 
-Schema ``lungdeform.model``, version 5 (documented in docs/MODEL_FORMAT.md). Top-level keys:
+Schema ``lungdeform.model``, version 6 (documented in docs/MODEL_FORMAT.md). Top-level keys:
 
 =================  ==================  =====================================================
 key                type                meaning
 =================  ==================  =====================================================
 schema             str                 ``"lungdeform.model"``
-schema_version     int                 5 (1 to 4 are read too)
+schema_version     int                 6 (1 to 5 are read too)
 lungs              (k,) str            lung names (``"left"``, ``"right"``)
 provenance         str (JSON)          sources, settings, software version, creation time
 scan_state         str                 the scan's breathing state (:mod:`lungdeform.model.scan_state`)
@@ -29,14 +29,22 @@ motion drives the interior field (the crop faces left out). Optional (an older l
 was made with; absent: ``"sliding"``). Optional (a fit whose interior follows a surface-to-surface
 map, :mod:`lungdeform.interior.surface_map`): ``interior_map_linear (3, 4)`` mm per unit,
 ``interior_map_warp (3, 4)``, ``interior_map_centers (k, 3)`` mm LPS, ``interior_map_weights (k, 3)``
-mm per unit and ``interior_map_width_mm``; all five or none.
+mm per unit and ``interior_map_width_mm``; all five or none. Optional with them (a lung built with
+a population default's interior prior): ``interior_map_prior (3, 4)`` mm per unit and
+``interior_map_prior_taper_mm``, the prior tapered to zero at the lung's surface
+(:class:`lungdeform.interior.prior.TaperedPrior`, over the lung's own ``vertices``); both or none.
 
 Loading checks that the file is a zip archive (not text, an image or a pickle), the schema name and
 version, that every key is present, and every shape;
 that every array holds values of its kind (real numbers, finite, where numbers belong: no complex,
 text or objects; integer faces; one value where one belongs), and that the provenance is a JSON
 object whose ``volumes_ml`` are finite numbers and whose alignment matrices are 4 × 4.
-Version 5 adds the scan's breathing state (``scan_state``, ``scan_above_ee_ml``): the surfaces may be
+Version 6 keeps a built lung's interior prior apart from its surface map, tapered to zero at the
+surface; before it the prior was folded into ``interior_map_linear`` and moved the lung's own surface
+(a warped lung breathed about 56 % of the model's volume). A version-5 or older lung whose map is the
+surface extension of its own displacement (a lung built with a population default) is read with
+the folded prior split off and tapered (:func:`lungdeform.model.lung.unfolded_prior`); any other map
+(a fit's) is read as made. Version 5 adds the scan's breathing state (``scan_state``, ``scan_above_ee_ml``): the surfaces may be
 an end-inhale or mid-ventilation scan, which an older reader would play as end-exhale (breathing
 further in from an inhaled scan), so it refuses the file instead; files of versions 1 to 4 are
 end-exhale scans. Versions 2 to 4 changed only how interior points move (:attr:`LungModel.interior_kind`). Version 4 adds
@@ -66,21 +74,24 @@ from lungdeform.atomic import finite_json, write_npz
 from lungdeform.errors import InputError, ModelFileError, require_file
 from lungdeform.geometry.frame import LungFrame
 from lungdeform.geometry.mesh import Surface
+from lungdeform.interior.prior import TaperedPrior
 from lungdeform.interior.surface_map import SurfaceMapField
-from lungdeform.model.lung import LungModel, Model
+from lungdeform.model.lung import LungModel, Model, unfolded_prior
 from lungdeform.model.scan_state import ScanState
 
 SCHEMA = "lungdeform.model"
 #: Largest displacement (mm) a lung may have at its calibration volume: far beyond any breath.
 MAX_TIDAL_DISPLACEMENT_MM = 1000.0
-SCHEMA_VERSION = 5
+SCHEMA_VERSION = 6
 #: Schema versions this lungdeform reads: 1 to 4 differ only in their interior field, 5 adds the scan's
-#: breathing state (module docstring).
-READABLE_VERSIONS = (1, 2, 3, 4, 5)
+#: breathing state, 6 the tapered interior prior (module docstring).
+READABLE_VERSIONS = (1, 2, 3, 4, 5, 6)
 
 _OPTIONAL = ("landmarks", "landmark_correction", "landmark_smoothing")
 #: The surface-to-surface map's arrays (:class:`~lungdeform.interior.surface_map.SurfaceMapField`).
 _MAP = ("linear", "warp", "centers", "weights", "width_mm")
+#: The tapered interior prior on top of the map (:class:`~lungdeform.interior.prior.TaperedPrior`).
+_MAP_PRIOR = ("prior", "prior_taper_mm")
 _PER_LUNG = ("side", "vertices", "faces", "constants", "stiffness", "frame_axes", "frame_lower",
              "frame_upper", "directions", "force_basis", "gravity", "force_weights",
              "displacement", "unit_ml", "calibration_ml", "d_min", "volume_ee_ml", "volume_poly")
@@ -90,7 +101,8 @@ _KINDS = {"schema": "U", "schema_version": "iu", "lungs": "U", "provenance": "U"
 _KIND_NAMES = {"U": "text", "iu": "integer", "b": "bool", "f": "real floating point"}
 #: Members that hold one value (shape ``()``).
 _SCALARS = ("schema", "schema_version", "provenance", "side", "unit_ml", "calibration_ml", "d_min", "volume_ee_ml",
-            "landmark_smoothing", "interior_kind", "interior_map_width_mm", "scan_state", "scan_above_ee_ml")
+            "landmark_smoothing", "interior_kind", "interior_map_width_mm", "interior_map_prior_taper_mm",
+            "scan_state", "scan_above_ee_ml")
 
 
 def lung_arrays(lung: LungModel) -> dict[str, np.ndarray]:
@@ -124,6 +136,11 @@ def lung_arrays(lung: LungModel) -> dict[str, np.ndarray]:
         out["interior_kind"] = np.array(lung.interior_kind)
     if lung.interior_map is not None:
         out.update({f"interior_map_{k}": np.asarray(getattr(lung.interior_map, k)) for k in _MAP})
+        prior = lung.interior_map.prior
+        if prior is not None:  # its depth is the lung's own: it is read back over these vertices
+            if not np.array_equal(prior.vertices, lung.surface.vertices):
+                raise InputError(f"lung '{lung.side}': its interior prior tapers over another surface than the lung's")
+            out.update(interior_map_prior=prior.affine, interior_map_prior_taper_mm=np.array(prior.width_mm))
     return out
 
 
@@ -343,22 +360,29 @@ def _lung(path: Path, name: str, data: dict, version: int = SCHEMA_VERSION) -> L
             landmarks=opt.get("landmarks"), landmark_correction=opt.get("landmark_correction"),
             landmark_smoothing=float(opt.get("landmark_smoothing", 0.0)),
             interior_vertices=data.get(prefix + "interior_vertices"), interior_kind=kind,
-            interior_map=_interior_map(data, prefix),
+            interior_map=_interior_map(data, prefix, surface, a["displacement"], version),
         )
     except InputError as exc:
         raise ModelFileError(f"{path}: lung '{name}' {exc}") from exc
 
 
-def _interior_map(data: dict, prefix: str) -> SurfaceMapField | None:
-    """The lung's surface-to-surface map, or None; InputError (named by the caller) when partial or malformed."""
+def _interior_map(data: dict, prefix: str, surface: Surface, displacement, version: int) -> SurfaceMapField | None:
+    """The lung's surface-to-surface map with its tapered prior, or None; InputError (named by the
+    caller) when partial or malformed. A map of a version-5 or older file had a built lung's prior
+    folded in: split off and tapered (:func:`lungdeform.model.lung.unfolded_prior`)."""
     keys = [prefix + "interior_map_" + k for k in _MAP]
     present = [k for k in keys if k in data]
-    if not present:
+    extra = [k for k in (prefix + "interior_map_" + k for k in _MAP_PRIOR) if k in data]
+    if not present and not extra:
         return None
-    if len(present) != len(keys):
-        raise InputError(f"has only part of the interior map ({', '.join(k[len(prefix):] for k in present)})")
+    if len(present) != len(keys) or len(extra) not in (0, len(_MAP_PRIOR)):
+        raise InputError(f"has only part of the interior map ({', '.join(k[len(prefix):] for k in present + extra)})")
     linear, warp, centers, weights, width = (np.asarray(data[k]) for k in keys)
-    return SurfaceMapField(linear, warp, centers, weights, float(width))
+    field = SurfaceMapField(linear, warp, centers, weights, float(width))
+    if extra:
+        affine, taper_mm = (np.asarray(data[k]) for k in extra)
+        return field.with_prior(TaperedPrior(affine, surface.vertices, surface.faces, float(taper_mm)))
+    return unfolded_prior(field, surface, displacement) if version < 6 else field
 
 
 def provenance(command: str, **extra) -> dict:

@@ -24,7 +24,7 @@ from lungdeform.errors import InputError, LungdeformError
 from lungdeform.geometry.frame import LungFrame, lung_frame
 from lungdeform.geometry.mesh import Surface
 from lungdeform.interior.field import KINDS, LandmarkCorrection, interior_field
-from lungdeform.interior.prior import lung_normaliser, prior_affine
+from lungdeform.interior.prior import TaperedPrior, lung_normaliser, prior_affine
 from lungdeform.interior.surface_map import SurfaceMapField, surface_extension
 from lungdeform.progress import Progress, silent
 
@@ -312,13 +312,40 @@ def default_interior(surface: Surface, side: str, displacement: np.ndarray, defa
                      unit_ml: float, gravity) -> SurfaceMapField | None:
     """The interior of a lung built with ``default``: its ``displacement (n, 3)`` (mm per unit) carried
     inside (:func:`lungdeform.interior.surface_map.surface_extension`) plus the default's interior
-    prior (mm per mL × ``unit_ml``); None (the sliding interior) when the default has no prior or
+    prior (mm per mL × ``unit_ml``) tapered to zero at the surface
+    (:class:`lungdeform.interior.prior.TaperedPrior`), so that the lung the interior carries has the
+    surface's shape and volume; None (the sliding interior) when the default has no prior or
     ``gravity`` is not the posture it was learned in."""
     prior = default.prior_for(gravity)
     if prior is None:
         return None
     inner = surface_extension(surface.vertices, displacement)
-    return inner.with_linear(prior_affine(prior, *lung_normaliser(surface), side) * float(unit_ml))
+    affine = prior_affine(prior, *lung_normaliser(surface), side) * float(unit_ml)
+    return inner.with_prior(TaperedPrior(affine, surface.vertices, surface.faces))
+
+
+def unfolded_prior(field: SurfaceMapField, surface: Surface, displacement) -> SurfaceMapField:
+    """The interior map of a lung read from a model file older than schema 6, made as it is now.
+
+    A lung built with a population default had its interior prior folded into the affine part of the
+    surface extension of its ``displacement (n, 3)`` (mm per unit), where it moved the lung's own
+    surface (the warped lung breathed about 56 % of the model's volume, docs/MODEL_FORMAT.md). When
+    ``field`` is that extension (an identity warp, the extension's centres, width and weights), the
+    same map with the folded part split off and tapered (:class:`~lungdeform.interior.prior.TaperedPrior`);
+    any other map (a fit's registration of two surfaces) is returned unchanged."""
+    if field.prior is not None or not np.array_equal(field.warp, np.c_[np.eye(3), np.zeros(3)]):
+        return field
+    ext = surface_extension(surface.vertices, displacement)
+    scale = float(np.abs(ext.weights).max(initial=0.0))
+    same = (ext.centers.shape == field.centers.shape and np.allclose(ext.centers, field.centers, rtol=0, atol=1e-9)
+            and ext.width_mm == field.width_mm
+            and np.allclose(ext.weights, field.weights, rtol=1e-6, atol=1e-9 * scale))
+    if not same:
+        return field
+    folded = field.linear - ext.linear
+    if not np.any(np.abs(folded) > 1e-9 * max(float(np.abs(ext.linear).max()), 1e-300)):
+        return field
+    return ext.with_prior(TaperedPrior(folded, surface.vertices, surface.faces))
 
 
 def _calibrated(surface: Surface, raw: np.ndarray, calibration_ml: float, unit_ml: float, gravity):

@@ -38,7 +38,7 @@ from scipy import ndimage
 
 from lungdeform.errors import FoldError, InputError
 from lungdeform.geometry.distance import SurfaceDistance
-from lungdeform.geometry.mesh import inside_by_parity
+from lungdeform.geometry.mesh import inside_by_parity, inside_nodes
 
 from . import voxel as V
 from .phases import phase_schedule
@@ -145,35 +145,9 @@ def extension_margin(peak_mm: float, base_mm: float = BASE_MARGIN_MM) -> float:
 
 def inside_lattice(surface, grid: Grid, lat: Lattice) -> np.ndarray:
     """``(nz, ny, nx) bool``: lattice nodes inside a closed ``surface`` (mm LPS), by the parity of a
-    ray along each lattice row (index axis i) crossing the triangles; the rays are shifted by
-    10⁻⁵ node so that none runs exactly through a vertex or an edge."""
-    nx, ny, nz = (int(n) for n in lat.dims)
-    c = (grid.index(surface.vertices) - lat.lo) / lat.stride  # (n, 3) lattice (i, j, k)
-    c[:, 1] += 1.0e-5 * np.pi
-    c[:, 2] += 1.0e-5 * np.e
-    t = c[surface.faces]  # (m, 3 corners, 3)
-    jlo = np.maximum(np.ceil(t[:, :, 1].min(axis=1)), 0).astype(int)
-    jhi = np.minimum(np.floor(t[:, :, 1].max(axis=1)), ny - 1).astype(int)
-    klo = np.maximum(np.ceil(t[:, :, 2].min(axis=1)), 0).astype(int)
-    khi = np.minimum(np.floor(t[:, :, 2].max(axis=1)), nz - 1).astype(int)
-    nj, nk = np.maximum(jhi - jlo + 1, 0), np.maximum(khi - klo + 1, 0)
-    tri = np.repeat(np.arange(len(t)), nj * nk)
-    r = np.arange(len(tri)) - np.repeat(np.cumsum(nj * nk) - nj * nk, nj * nk)  # rank within a triangle
-    j = jlo[tri] + r % nj[tri]
-    k = klo[tri] + r // np.maximum(nj[tri], 1)
-    a, b, cc = t[tri, 0], t[tri, 1], t[tri, 2]
-    # barycentric coordinates of the row (j, k) in the triangle's (j, k) projection
-    det = (b[:, 1] - a[:, 1]) * (cc[:, 2] - a[:, 2]) - (cc[:, 1] - a[:, 1]) * (b[:, 2] - a[:, 2])
-    ok = det != 0
-    det = np.where(ok, det, 1.0)
-    l1 = ((j - a[:, 1]) * (cc[:, 2] - a[:, 2]) - (cc[:, 1] - a[:, 1]) * (k - a[:, 2])) / det
-    l2 = ((b[:, 1] - a[:, 1]) * (k - a[:, 2]) - (j - a[:, 1]) * (b[:, 2] - a[:, 2])) / det
-    hit = ok & (l1 > 0) & (l2 > 0) & (l1 + l2 < 1)
-    x = (a[:, 0] + l1 * (b[:, 0] - a[:, 0]) + l2 * (cc[:, 0] - a[:, 0]))[hit]
-    first = np.clip(np.floor(x).astype(int) + 1, 0, nx)  # the first node past the crossing
-    counts = np.zeros((nz, ny, nx + 1), np.int32)
-    np.add.at(counts, (k[hit], j[hit], first), 1)
-    return (np.cumsum(counts, axis=2)[:, :, :nx] % 2).astype(bool)
+    ray along each lattice row (index axis i) crossing the triangles
+    (:func:`lungdeform.geometry.mesh.inside_nodes`)."""
+    return inside_nodes((grid.index(surface.vertices) - lat.lo) / lat.stride, surface.faces, lat.dims)
 
 
 def outside_distance(surface, points, inside: np.ndarray, node_mm, reach_mm: float) -> np.ndarray:
