@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lungdeform import blas
 from lungdeform.fit.config import FitConfig
 from lungdeform.fit.fitting import FitOutcome, FitSettings
 from lungdeform.fit.objective import LandmarkTerm
@@ -57,10 +58,18 @@ def held_out_landmarks(placed: Placement, landmarks, fit: FitOutcome, side: str,
     """The landmark step for the surface ``fit`` of the model mesh in ``placed``: ``landmarks : (m, 3)``
     mm are the end-exhale ones (None: no landmarks), ``folds`` their k-fold split
     (:func:`lungdeform.interior.field.landmark_folds`; None without ``landmark_fit``).
-    ``surface_field``: the interior field's surface part when it is a correspondence field (None: sliding)."""
+    ``surface_field``: the interior field's surface part when it is a correspondence field (None: sliding).
+    Its dense solves run the BLAS on one thread (:func:`lungdeform.blas.limited`)."""
 
     if landmarks is None:
         return HeldOut()
+    with blas.limited():
+        return _held_out_landmarks(placed, landmarks, fit, side, config, folds, progress, surface_field)
+
+
+def _held_out_landmarks(placed: Placement, landmarks, fit: FitOutcome, side: str, config: FitConfig, folds,
+                        progress, surface_field) -> HeldOut:
+    """:func:`held_out_landmarks` with ``landmarks`` given."""
     say = progress or silent
     # the landmark correction's solvers (one dense solve per candidate smoothing), with landmark_fit
     solvers = (correction_solvers(placed.rest.vertices[placed.keep], placed.rest.vertex_normals[placed.keep], landmarks)

@@ -61,12 +61,15 @@ class Scores:
         Baselines not computed, name → reason.
     baseline_seconds : float
         Seconds spent on the baselines and landmark-informed references.
+    baseline_cpu_seconds : float
+        The same, CPU seconds of the process (every thread; robust to the machine's load).
     """
 
     per_target: dict
     predictions: dict
     skipped: dict
     baseline_seconds: float
+    baseline_cpu_seconds: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -27,6 +27,7 @@ from pycpd.emregistration import EMRegistration
 from scipy.linalg import lapack
 from scipy.spatial.distance import cdist
 
+from lungdeform import blas
 from lungdeform.errors import InputError
 
 
@@ -114,8 +115,12 @@ def deformable_cpd(x, y, *, alpha: float, beta: float, w: float, max_iterations:
     ``x : (N, D)`` (same unit as both; ``y + G W`` with ``G = exp(−|y_i − y_j|² / (2 beta²))``), with
     pycpd's meanings of ``alpha`` (smoothness), ``beta`` (kernel width), ``w`` (outlier weight),
     ``max_iterations`` and ``tolerance`` (on the change of σ²). ``rank_tolerance``: the M-step through
-    a low-rank factor of ``G`` (module docstring); None: the dense solve."""
-    reg = FastDeformable(X=np.ascontiguousarray(x, float), Y=np.ascontiguousarray(y, float), alpha=alpha, beta=beta,
-                         w=w, max_iterations=max_iterations, tolerance=tolerance, rank_tolerance=rank_tolerance)
-    reg.register()
+    a low-rank factor of ``G`` (module docstring); None: the dense solve. The BLAS runs one thread
+    inside (:func:`lungdeform.blas.limited`: ``(M, M)`` and ``(M, N)`` products, threads that spin on a
+    busy machine)."""
+    with blas.limited():
+        reg = FastDeformable(X=np.ascontiguousarray(x, float), Y=np.ascontiguousarray(y, float), alpha=alpha,
+                             beta=beta, w=w, max_iterations=max_iterations, tolerance=tolerance,
+                             rank_tolerance=rank_tolerance)
+        reg.register()
     return np.asarray(reg.W, float)
