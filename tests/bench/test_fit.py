@@ -52,6 +52,11 @@ def test_bench_fit_records_both_sides(tmp_path):
     assert r["case"] == "phantom" and r["threads"] == 2 and r["itk_threader"].lower() == "pool"
     assert len(r["model_seconds"]) == len(r["elastix_seconds"]) == 1
     assert r["ratio"] == pytest.approx(r["model_median_s"] / r["elastix_median_s"])
+    # CPU seconds beside the wall ones: positive, one per repeat, their medians' ratio
+    assert len(r["model_cpu_seconds"]) == len(r["elastix_cpu_seconds"]) == 1
+    assert r["model_cpu_median_s"] > 0 and r["elastix_cpu_median_s"] > 0
+    assert r["cpu_ratio"] == pytest.approx(r["model_cpu_median_s"] / r["elastix_cpu_median_s"])
+    assert r["blas_threads"].startswith("at most 2 ")
     assert set(r["model_surface_mean_mm"]) == {"left", "right"}
     assert all(0 < v < 1.5 for v in r["model_surface_mean_mm"].values())
     unregistered = F.warped_surface_distance(np.asarray(read_image(case.exp_mask).array, np.float32), case.insp_mask)
@@ -71,6 +76,7 @@ def test_bench_fit_command_runs_validate_copds_fit(tmp_path, monkeypatch, capsys
         return {"case": case.name, "repeats": 1, "threads": 2, "itk_threader": "Pool", "model_seconds": [3.0],
                 "elastix_seconds": [60.0], "model_median_s": 3.0, "elastix_median_s": 60.0, "ratio": 0.05,
                 "model_surface_mean_mm": {"left": 1.0, "right": 0.9}, "elastix_surface_mean_mm": {"left": 1.2, "right": 1.1},
+                "model_cpu_median_s": 2.5, "elastix_cpu_median_s": 100.0, "cpu_ratio": 0.025, "blas_threads": "2",
                 "elastix_schedule": {"resolutions": None, "iterations": None},
                 "load_average_1min": {"start": 1.0, "end": 1.0}}
 
@@ -87,7 +93,8 @@ def test_bench_fit_command_runs_validate_copds_fit(tmp_path, monkeypatch, capsys
     assert seen["case"].name == "copd3" and seen["case"].exp_mask == data / "copd3_exp_mask.nii.gz"
     assert seen["config"] == copd_config(40) and seen["settings"].schedule == F.ElastixSchedule()
     assert json.loads(out.read_text())["results"][0]["ratio"] == 0.05
-    assert "ratio model / elastix: 0.050" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "ratio model / elastix: 0.050" in printed and "ratio 0.025" in printed
 
 
 def test_bench_fit_refuses_a_bad_case(tmp_path, capsys):

@@ -131,7 +131,7 @@ def test_metrics_json_is_fit_metrics_of_the_run_outcome(tmp_path, monkeypatch):
     assert list(written) == ["inputs", "side", "volumes_ml", "volumes_given_ml", "warnings", "notes",
                              "model_mesh_vertices", "alignment", "targets", *headline, "protocols", "headline_fit",
                              "interior_correction", "fit", "bounding_box", "alignment_choice", "interior",
-                             "seconds", "baseline_seconds", "model_seconds"]
+                             "seconds", "baseline_seconds", "baseline_cpu_seconds", "model_seconds"]
     assert list(written["fit"]) == list(run.fits.named()) == ["optimizer"]  # no grid, no landmark fit asked
     fit = written["fit"]["optimizer"]
     assert fit["success"] is False and fit["message"] == run.fits.optimizer.failure

@@ -182,6 +182,28 @@ def test_correction_solver_equals_the_dense_field(rng):
         sliding_correction(s.vertices, n, q[[0, 1, 2, 1]], values[:4])
 
 
+def test_correction_solvers_for_smoothings_and_their_surface_weights(rng):
+    # dense references: each solver of for_smoothings (shared blocks) predicts as the field solved
+    # directly through the subset at its smoothing; its surface_weights are sliding_weights from the
+    # (thinned) surface to the anchors, the same interpolant (same system, same columns)
+    from lungdeform.interior.sliding import CorrectionSolver, sliding_correction, sliding_weights
+
+    s = _blob()
+    n = s.vertex_normals
+    q = rng.uniform(-20, 20, size=(15, 3))
+    values = rng.normal(size=(15, 3))
+    train, test = rng.permutation(15)[:10], np.arange(15)[:5]
+    solvers = CorrectionSolver.for_smoothings(s.vertices, n, q, (30.0, 300.0), max_points=250, seed=1)
+    assert sorted(solvers) == [30.0, 300.0]
+    u = rng.normal(size=s.vertices.shape)
+    for lam, solver in solvers.items():
+        ref = sliding_correction(s.vertices, n, q[train], values[train], smoothing=lam, max_points=250, seed=1)
+        assert solver.predict(train, values[train], test) == pytest.approx(ref(q[test]), abs=1e-9)
+        w = sliding_weights(s.vertices, n, q, smoothing=lam, max_points=250, seed=1)
+        assert solver.surface_weights() @ u == pytest.approx(w @ u, abs=1e-9)
+    assert np.abs(solvers[30.0].predict(train, values[train], test) - solvers[300.0].predict(train, values[train], test)).max() > 1e-3
+
+
 def test_correction_matches_the_documented_formula(rng):
     # dense reference written from docs/MODEL_FORMAT.md ("landmark correction"), independently of
     # the module: kernel −r per component at the landmarks, −r n_j at the surface, zero normal data

@@ -18,10 +18,15 @@ inspiration, both lungs in one label, landmarks), in one run:
   each lung's surface extracted as the fit extracts it (:func:`warped_surface_distance`).
 
 Both run with the same number of threads: ITK's pool threader (global default threader and thread
-count) and numba's thread count; NumPy's BLAS keeps its own default (every core). Each is run once
-untimed on a small phantom first (:func:`write_phantom_case`: imports, compiled kernels, ITK's
-lazily loaded modules; the fit without its baselines and with at most 20 evaluations, elastix on its
-finest resolution at 5 iterations), then ``repeats`` times; the figure is the ratio of the medians.
+count), numba's thread count and the BLAS of NumPy and SciPy (each bundles its own OpenBLAS; bounded
+by :func:`lungdeform.blas.limited`, inside which the fit's dense steps bound themselves to one).
+Each is run once untimed on a small phantom first (:func:`write_phantom_case`: imports, compiled
+kernels, ITK's lazily loaded modules; the fit without its baselines and with at most 20
+evaluations, elastix on its finest resolution at 5 iterations), then ``repeats`` times; the figure
+is the ratio of the medians. Each side's CPU time (the process's, every thread: user +
+system) is recorded too, and its ratio: on a shared machine the wall times of both grow with the
+load, their CPU times much less (a thread waiting for a core costs no CPU; one spinning at a
+barrier does).
 """
 
 from __future__ import annotations
@@ -37,6 +42,7 @@ import numba
 import numpy as np
 import SimpleITK as sitk
 
+from lungdeform import blas
 from lungdeform.errors import InputError
 from lungdeform.evaluate.pipeline import run_fit
 from lungdeform.fit.config import FitConfig, FitInputs
@@ -160,6 +166,13 @@ def set_threads(threads: int) -> str:
     return str(mt.ThreaderTypeToString(mt.GetGlobalDefaultThreader()))
 
 
+def blas_threads(threads: int):
+    """``(context manager, description)``: inside it, the BLAS libraries loaded (NumPy's and SciPy's
+    OpenBLAS) use at most ``threads`` threads (:func:`lungdeform.blas.limited`; the fit's dense steps
+    bound themselves to one inside it)."""
+    return blas.limited(int(threads)), f"at most {int(threads)} per library (the fit's dense steps 1)"
+
+
 def _itk_image(itk, image: sitk.Image):
     out = itk.GetImageFromArray(np.ascontiguousarray(sitk.GetArrayViewFromImage(image), dtype=np.float32))
     out.SetSpacing(image.GetSpacing())
@@ -175,11 +188,12 @@ def smoothed_mask(path: Path, sigma_mm: float = SMOOTH_SIGMA_MM) -> sitk.Image:
 
 
 def elastix_register(fixed: Path, moving: Path, threads: int, schedule: ElastixSchedule = ElastixSchedule()):
-    """``(seconds, warped (z, y, x) float32 on the fixed grid)``: the mask ``moving`` registered onto
-    ``fixed`` by elastix with :class:`ElastixSchedule`'s Par0011 maps, both smoothed
-    (:func:`smoothed_mask`); the seconds count reading, smoothing and registering."""
+    """``(seconds, cpu_seconds, warped (z, y, x) float32 on the fixed grid)``: the mask ``moving``
+    registered onto ``fixed`` by elastix with :class:`ElastixSchedule`'s Par0011 maps, both smoothed
+    (:func:`smoothed_mask`); the seconds (wall, and the process's CPU) count reading, smoothing and
+    registering."""
     itk = _itk()
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)
         f, m = (_itk_image(itk, smoothed_mask(p)) for p in (fixed, moving))
@@ -190,8 +204,8 @@ def elastix_register(fixed: Path, moving: Path, threads: int, schedule: ElastixS
             params.AddParameterMap(pm)
         warped, _ = itk.elastix_registration_method(f, m, parameter_object=params, log_to_console=False,
                                                     number_of_threads=int(threads))
-    seconds = time.perf_counter() - t0
-    return seconds, np.asarray(itk.array_from_image(warped), np.float32)
+    seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
+    return seconds, cpu, np.asarray(itk.array_from_image(warped), np.float32)
 
 
 def warped_surface_distance(warped: np.ndarray, reference: Path) -> dict[str, float]:
@@ -211,20 +225,22 @@ def warped_surface_distance(warped: np.ndarray, reference: Path) -> dict[str, fl
     return out
 
 
-def model_fit(case: CaseFiles, config: FitConfig, work: Path) -> tuple[float, dict[str, float]]:
-    """``(seconds, {side: model surface mean distance mm})``: both lungs of ``case`` fitted with
-    ``config`` into ``work/<side>`` (one :class:`~lungdeform.segment.split.SplitCache` for the two),
-    timed as ``validate copd``'s ``model_fit_seconds`` (module docstring)."""
+def model_fit(case: CaseFiles, config: FitConfig, work: Path) -> tuple[float, float, dict[str, float]]:
+    """``(seconds, cpu_seconds, {side: model surface mean distance mm})``: both lungs of ``case``
+    fitted with ``config`` into ``work/<side>`` (one :class:`~lungdeform.segment.split.SplitCache` for
+    the two), timed as ``validate copd``'s ``model_fit_seconds`` (module docstring), wall and the
+    process's CPU, the baselines' left out of each."""
     splits = SplitCache()
-    seconds, surface = 0.0, {}
+    seconds, cpu, surface = 0.0, 0.0, {}
     for side in SIDES:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         inputs = FitInputs([case.exp_mask, case.insp_mask], side, landmarks=[case.exp_landmarks, case.insp_landmarks],
                            splits=splits)
         metrics = run_fit(inputs, work / side, config)
         seconds += time.perf_counter() - t0 - float(metrics["baseline_seconds"])
+        cpu += time.process_time() - c0 - float(metrics["baseline_cpu_seconds"])
         surface[side] = float(metrics["model"]["surface_mean_mm"])
-    return seconds, surface
+    return seconds, cpu, surface
 
 
 @dataclass(frozen=True)
@@ -239,40 +255,50 @@ class BenchSettings:
 
 def bench_fit(case: CaseFiles, config: FitConfig, settings: BenchSettings = BenchSettings(), *,
               progress=None) -> dict:
-    """Both sides on ``case`` (module docstring): the times of each repeat, their medians, the ratio
-    model / elastix, what each achieved (per lung, in the last repeat), the threads, threader and
-    the 1-minute load average at the start and the end."""
+    """Both sides on ``case`` (module docstring): the times of each repeat (wall and CPU), their
+    medians, the ratios model / elastix, what each achieved (per lung, in the last repeat), the
+    threads, threader, BLAS threads and the 1-minute load average at the start and the end."""
     if not (isinstance(settings.repeats, int) and settings.repeats >= 1):
         raise InputError(f"repeats must be a whole number >= 1, got {settings.repeats!r}")
     if not (isinstance(settings.threads, int) and settings.threads >= 1):
         raise InputError(f"threads must be a whole number >= 1, got {settings.threads!r}")
-    say = progress or (lambda _m: None)
     threader = set_threads(settings.threads)
+    limit, blas = blas_threads(settings.threads)
     load = [os.getloadavg()[0]]
-    with tempfile.TemporaryDirectory(prefix="lungdeform-bench-fit-") as tmp:
-        work = Path(tmp)
-        say("warm-up on a phantom (untimed)")
-        phantom = write_phantom_case(work / "phantom")
-        model_fit(phantom, replace(config, baselines=False, max_evaluations=min(config.max_evaluations, 20)),
-                  work / "warm")
-        elastix_register(phantom.insp_mask, phantom.exp_mask, settings.threads, ElastixSchedule(1, 5))
-        model_s, elastix_s, surface, ssd = [], [], {}, {}
-        for k in range(settings.repeats):
-            say(f"repeat {k + 1}/{settings.repeats}: the model's fit of both lungs")
-            seconds, surface = model_fit(case, config, work / f"fit{k}")
-            model_s.append(seconds)
-            say(f"repeat {k + 1}/{settings.repeats}: elastix Par0011 (affine, then B-spline)")
-            seconds, warped = elastix_register(case.insp_mask, case.exp_mask, settings.threads, settings.schedule)
-            elastix_s.append(seconds)
-            ssd = warped_surface_distance(warped, case.insp_mask)
-        load.append(os.getloadavg()[0])
-    med_model, med_elastix = float(np.median(model_s)), float(np.median(elastix_s))
+    with limit, tempfile.TemporaryDirectory(prefix="lungdeform-bench-fit-") as tmp:
+        runs = _timed_runs(case, config, settings, Path(tmp), progress or (lambda _m: None))
+    load.append(os.getloadavg()[0])
+    med = {k: float(np.median(runs[k])) for k in ("model", "elastix", "model_cpu", "elastix_cpu")}
     return {"case": case.name, "repeats": settings.repeats, "threads": settings.threads, "itk_threader": threader,
-            "model_seconds": model_s, "elastix_seconds": elastix_s, "model_median_s": med_model,
-            "elastix_median_s": med_elastix, "ratio": med_model / med_elastix,
-            "model_surface_mean_mm": surface, "elastix_surface_mean_mm": ssd,
+            "blas_threads": blas, "model_seconds": runs["model"], "elastix_seconds": runs["elastix"],
+            "model_median_s": med["model"], "elastix_median_s": med["elastix"], "ratio": med["model"] / med["elastix"],
+            "model_cpu_seconds": runs["model_cpu"], "elastix_cpu_seconds": runs["elastix_cpu"],
+            "model_cpu_median_s": med["model_cpu"], "elastix_cpu_median_s": med["elastix_cpu"],
+            "cpu_ratio": med["model_cpu"] / med["elastix_cpu"],
+            "model_surface_mean_mm": runs["surface"], "elastix_surface_mean_mm": runs["ssd"],
             "elastix_schedule": {"resolutions": settings.schedule.resolutions, "iterations": settings.schedule.iterations},
             "load_average_1min": {"start": load[0], "end": load[1]}}
+
+
+def _timed_runs(case: CaseFiles, config: FitConfig, settings: BenchSettings, work: Path, say) -> dict:
+    """The warm-up on a phantom, then ``settings.repeats`` runs of each side: per side the wall and
+    CPU seconds of every repeat, and what each achieved in the last."""
+    say("warm-up on a phantom (untimed)")
+    phantom = write_phantom_case(work / "phantom")
+    model_fit(phantom, replace(config, baselines=False, max_evaluations=min(config.max_evaluations, 20)), work / "warm")
+    elastix_register(phantom.insp_mask, phantom.exp_mask, settings.threads, ElastixSchedule(1, 5))
+    runs: dict = {"model": [], "elastix": [], "model_cpu": [], "elastix_cpu": [], "surface": {}, "ssd": {}}
+    for k in range(settings.repeats):
+        say(f"repeat {k + 1}/{settings.repeats}: the model's fit of both lungs")
+        seconds, cpu, runs["surface"] = model_fit(case, config, work / f"fit{k}")
+        runs["model"].append(seconds)
+        runs["model_cpu"].append(cpu)
+        say(f"repeat {k + 1}/{settings.repeats}: elastix Par0011 (affine, then B-spline)")
+        seconds, cpu, warped = elastix_register(case.insp_mask, case.exp_mask, settings.threads, settings.schedule)
+        runs["elastix"].append(seconds)
+        runs["elastix_cpu"].append(cpu)
+        runs["ssd"] = warped_surface_distance(warped, case.insp_mask)
+    return runs
 
 
 def write_phantom_case(folder: Path, spacing_mm: float = 4.0) -> CaseFiles:

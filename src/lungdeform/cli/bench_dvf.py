@@ -33,6 +33,8 @@ def register(apps) -> None:
         typer.echo(f"grid {' x '.join(map(str, r['shape_zyx']))} voxels: field {r['field_seconds']:.2f} s "
                    f"({r['nodes_evaluated']} of {r['nodes']} lattice nodes evaluated), trilinear resampling "
                    f"{r['resample_seconds']:.2f} s ({r['threads']} threads): ratio {r['ratio']:.1f}x")
+        typer.echo(f"CPU seconds (the process, every thread): field {r['field_cpu_seconds']:.2f}, resampling "
+                   f"{r['resample_cpu_seconds']:.2f}: ratio {r['cpu_ratio']:.1f}x")
         typer.echo(f"Jacobian determinant {r['jacobian_min']:.3f} to {r['jacobian_max']:.3f}, margin "
                    f"{r['margin_mm']:.0f} mm, lattice {node_mm:g} mm, its error {r['lattice_error_mm']:.3f} mm")
         if json_path:

@@ -37,7 +37,7 @@ def register(apps) -> None:
         data: Path = typer.Option(..., "--data", help="Folder with copdN_{exp,insp}_mask.nii.gz and copdN_{exp,insp}_landmarks.txt (validate copd's)."),
         case: Optional[str] = typer.Option(None, "--case", help="Case to run, e.g. copd1 or 1 (default: the first found)."),
         repeats: int = typer.Option(3, "--repeats", min=1, help="Timed runs of each, after one untimed warm-up on a phantom (the medians are compared)."),
-        threads: int = typer.Option(os.cpu_count() or 1, "--threads", min=1, help="Threads for both: ITK's pool threader and numba."),
+        threads: int = typer.Option(os.cpu_count() or 1, "--threads", min=1, help="Threads for both: ITK's pool threader, numba and the BLAS (NumPy's, SciPy's)."),
         evaluations: int = typer.Option(300, "--evaluations", min=1, help="The fit's optimiser budget per lung (validate copd's default)."),
         elastix_resolutions: Optional[int] = typer.Option(None, "--elastix-resolutions", min=1, max=5, hidden=True, help="Quick check only: the last N of Par0011's 5 resolutions."),
         elastix_iterations: Optional[int] = typer.Option(None, "--elastix-iterations", min=1, hidden=True, help="Quick check only: at most N iterations per resolution."),
@@ -59,6 +59,8 @@ def register(apps) -> None:
                    f"({', '.join(f'{t:.1f}' for t in r['elastix_seconds'])}); warped-mask symmetric surface distance "
                    f"{', '.join(f'{k} {v:.2f}' for k, v in r['elastix_surface_mean_mm'].items())} mm")
         typer.echo(f"  ratio model / elastix: {r['ratio']:.3f}")
+        typer.echo(f"  CPU seconds (the process, every thread): model {r['model_cpu_median_s']:.1f}, elastix "
+                   f"{r['elastix_cpu_median_s']:.1f}; ratio {r['cpu_ratio']:.3f}; BLAS threads {r['blas_threads']}")
         if r["elastix_schedule"] != {"resolutions": None, "iterations": None}:
             typer.echo(f"  (elastix schedule cut for a quick check: {r['elastix_schedule']})")
         if json_path:

@@ -107,9 +107,10 @@ def correction_solvers(points, normals, landmarks, candidates=CORRECTION_SMOOTHI
                        seed: int = 0) -> dict[float, CorrectionSolver]:
     """One :class:`~lungdeform.interior.sliding.CorrectionSolver` per candidate surface smoothing (mm): the
     sliding landmark correction from the surface ``points : (k, 3)`` mm (unit ``normals``) through
-    any subset of ``landmarks : (m, 3)`` mm, each factorised once."""
-    return {float(lam): CorrectionSolver(points, normals, landmarks, smoothing=float(lam), max_points=MAX_SURFACE_POINTS,
-                                         seed=seed) for lam in candidates}
+    any subset of ``landmarks : (m, 3)`` mm, each solved once (what does not depend on the smoothing
+    formed once for all, :meth:`~lungdeform.interior.sliding.CorrectionSolver.for_smoothings`)."""
+    return CorrectionSolver.for_smoothings(points, normals, landmarks, [float(lam) for lam in candidates],
+                                           max_points=MAX_SURFACE_POINTS, seed=seed)
 
 
 def _solver_predictor(solvers: dict):

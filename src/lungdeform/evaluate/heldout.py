@@ -14,10 +14,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lungdeform import blas
 from lungdeform.fit.config import FitConfig
 from lungdeform.fit.fitting import FitOutcome, FitSettings
 from lungdeform.fit.objective import LandmarkTerm
 from lungdeform.interior.field import correction_per_unit
+from lungdeform.interior.sliding import SMOOTHING_MM
 from lungdeform.progress import Progress, silent
 
 from . import baselines as B
@@ -56,14 +58,27 @@ def held_out_landmarks(placed: Placement, landmarks, fit: FitOutcome, side: str,
     """The landmark step for the surface ``fit`` of the model mesh in ``placed``: ``landmarks : (m, 3)``
     mm are the end-exhale ones (None: no landmarks), ``folds`` their k-fold split
     (:func:`lungdeform.interior.field.landmark_folds`; None without ``landmark_fit``).
-    ``surface_field``: the interior field's surface part when it is a correspondence field (None: sliding)."""
+    ``surface_field``: the interior field's surface part when it is a correspondence field (None: sliding).
+    Its dense solves run the BLAS on one thread (:func:`lungdeform.blas.limited`)."""
 
     if landmarks is None:
         return HeldOut()
+    with blas.limited():
+        return _held_out_landmarks(placed, landmarks, fit, side, config, folds, progress, surface_field)
+
+
+def _held_out_landmarks(placed: Placement, landmarks, fit: FitOutcome, side: str, config: FitConfig, folds,
+                        progress, surface_field) -> HeldOut:
+    """:func:`held_out_landmarks` with ``landmarks`` given."""
     say = progress or silent
-    # the sliding interpolation from the kept model vertices to the landmarks: one dense solve,
-    # shared by every landmark-informed fit (rows per fold) and by the metrics of every method
-    weights = B.landmark_matrix(placed.rest, landmarks, placed.keep)
+    # the landmark correction's solvers (one dense solve per candidate smoothing), with landmark_fit
+    solvers = (correction_solvers(placed.rest.vertices[placed.keep], placed.rest.vertex_normals[placed.keep], landmarks)
+               if config.landmark_fit else {})
+    # the sliding interpolation from the kept model vertices to the landmarks, shared by every
+    # landmark-informed fit (rows per fold) and by the metrics of every method: one dense solve, or
+    # the by-product of the correction's solve at the same smoothing (the same system, the same columns)
+    weights = (solvers[SMOOTHING_MM].surface_weights() if SMOOTHING_MM in solvers
+               else B.landmark_matrix(placed.rest, landmarks, placed.keep))
     unit = weights @ fit.displacement[placed.keep] if surface_field is None else surface_field(landmarks)
     surface_unit = None if surface_field is None else unit
     if not config.landmark_fit:
@@ -78,8 +93,7 @@ def held_out_landmarks(placed: Placement, landmarks, fit: FitOutcome, side: str,
             say("landmark-informed fit with a stiffness field (cross-validated)")
             cv_stiff = _landmark_fit(placed, term, fit, side, config, folds, stiffness=True, progress=say)
     say("interior landmark correction (cross-validated)")
-    interior = interior_correction(fit, landmarks, placed.landmarks, placed.targets, folds, placed.keep, unit,
-                                   placed.rest)
+    interior = interior_correction(fit, landmarks, placed.landmarks, placed.targets, folds, unit, solvers)
     return HeldOut(weights, cv, cv_stiff, interior, surface_unit)
 
 
@@ -94,18 +108,18 @@ def _landmark_fit(placed: Placement, landmarks: LandmarkTerm, fit: FitOutcome, s
                                     keep=placed.keep, progress=progress)
 
 
-def interior_correction(fit, landmarks, aligned, targets, folds, keep, unit, rest) -> dict:
+def interior_correction(fit, landmarks, aligned, targets, folds, unit, solvers) -> dict:
     """The interior field's landmark correction for ``fit`` (:mod:`lungdeform.interior.field`): held-out
     landmark positions per target (k-fold), and the correction and its smoothing from all landmarks.
     ``unit : (m, 3)`` mm per unit is the surface-driven part at the landmarks, the one the saved
     model plays back (the correspondence field, or the sliding interpolation from the kept vertices
     as the metrics' operator, :func:`lungdeform.evaluate.baselines.landmark_matrix`); the correction is
-    the sliding correction through the kept vertices of ``rest``."""
+    the sliding correction through the kept vertices of the model mesh: ``solvers``, its
+    :func:`~lungdeform.evaluate.folds.correction_solvers` through ``landmarks``."""
 
     observed = [np.asarray(a) - landmarks for a in aligned]
     scales = [fit.scale_at(tg.volume_ml) for tg in targets]
     correction = correction_per_unit(observed, scales, unit)
-    solvers = correction_solvers(rest.vertices[keep], rest.vertex_normals[keep], landmarks)
     return {"held_out": held_out_sliding(observed, scales, unit, folds, solvers),
             "correction": correction,
             "smoothing": select_correction_smoothing(solvers, np.arange(len(landmarks)), correction)}

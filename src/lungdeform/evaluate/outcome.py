@@ -60,13 +60,17 @@ class Scores:
     skipped : dict[str, str]
         Baselines not computed, name → reason.
     baseline_seconds : float
-        Seconds spent on the baselines and landmark-informed references.
+        Seconds spent on the baselines and landmark-informed references: computing their
+        predictions and measuring them (surface distances, landmark errors).
+    baseline_cpu_seconds : float
+        The same, CPU seconds of the process (every thread; robust to the machine's load).
     """
 
     per_target: dict
     predictions: dict
     skipped: dict
     baseline_seconds: float
+    baseline_cpu_seconds: float = 0.0
 
 
 @dataclass(frozen=True)

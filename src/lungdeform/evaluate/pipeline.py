@@ -227,6 +227,7 @@ def fit_metrics(run: FitRun) -> dict:
             "seconds": run.seconds,
             # the model's own fit, the baselines and landmark-informed references (timed apart) left out
             "baseline_seconds": run.scores.baseline_seconds,
+            "baseline_cpu_seconds": run.scores.baseline_cpu_seconds,
             "model_seconds": run.model_seconds}
 
 

@@ -149,29 +149,33 @@ def score_targets(placed: Placement, landmarks, fits: Fits, held: HeldOut, confi
     """Every method measured on every target (:class:`~lungdeform.evaluate.outcome.Scores`: metrics
     per target name → method name → metrics dict, predictions (target name, method name) →
     (vertices, per-vertex error, landmark errors), skipped baselines name → reason, seconds spent
-    computing the baselines and references). ``landmarks : (m, 3)`` mm: the end-exhale ones, or None."""
+    computing and measuring the baselines and references, wall and CPU). ``landmarks : (m, 3)`` mm:
+    the end-exhale ones, or None."""
 
     say = progress or silent
-    rest, keep = placed.rest, placed.keep
-    per_target, predictions, skipped, baseline_seconds = {}, {}, {}, 0.0
+    per_target, predictions, skipped, baseline_seconds, baseline_cpu = {}, {}, {}, 0.0, 0.0
     for ti, tg in enumerate(placed.targets):
         td = SurfaceDistance(tg.surface.vertices, tg.surface.faces)
         lmt = placed.landmarks[ti] if landmarks is not None else None
-        methods = model_methods(ti, tg, fits, held, rest, landmarks)
+        per = {}
+
+        def record(methods: dict) -> None:
+            for name, (x, held_out) in methods.items():
+                pairs = None if landmarks is None else B.LandmarkPairs(landmarks, lmt, held.matrix, held_out)
+                m, per_vertex, lm_err = B.measure(placed.rest, x, tg.surface, keep=placed.keep, keep_target=tg.keep,
+                                                  landmarks=pairs, target_distance=td)
+                per[name] = m.as_dict()
+                predictions[(tg.name, name)] = (x, per_vertex, lm_err)
+
+        record(model_methods(ti, tg, fits, held, placed.rest, landmarks))
         if config.baselines:
             say("baselines")
-            t0 = time.perf_counter()
-            methods.update(baseline_methods(tg, placed, landmarks, lmt, held, folds, config.landmark_weight, skipped))
+            t0, c0 = time.perf_counter(), time.process_time()  # the baselines' time: computing and measuring them
+            record(baseline_methods(tg, placed, landmarks, lmt, held, folds, config.landmark_weight, skipped))
             baseline_seconds += time.perf_counter() - t0
-        per = {}
-        for name, (x, held_out) in methods.items():
-            pairs = None if landmarks is None else B.LandmarkPairs(landmarks, lmt, held.matrix, held_out)
-            m, per_vertex, lm_err = B.measure(rest, x, tg.surface, keep=keep, keep_target=tg.keep,
-                                              landmarks=pairs, target_distance=td)
-            per[name] = m.as_dict()
-            predictions[(tg.name, name)] = (x, per_vertex, lm_err)
+            baseline_cpu += time.process_time() - c0
         per_target[tg.name] = per
-    return Scores(per_target, predictions, skipped, baseline_seconds)
+    return Scores(per_target, predictions, skipped, baseline_seconds, baseline_cpu)
 
 
 def bounding_boxes(rest, fit, surfaces, vols):

@@ -33,6 +33,9 @@ from .cpd import deformable_cpd
 #: CPD's smoothness weight and kernel width (mm; divided by the RMS radius of the larger surface).
 ALPHA = 1000.0
 BETA_MM = 80.0
+#: CPD's M-step through a pivoted-Cholesky factor of its kernel, stopped at this remaining diagonal
+#: (:func:`lungdeform.fit.cpd.deformable_cpd`): the map's points within 10⁻⁸ mm of the dense solve's.
+RANK_TOLERANCE = 1e-10
 #: Surface points per surface (a farthest-point subset, :func:`lungdeform.geometry.mesh.farthest_points`).
 POINTS = 1500
 #: How those points are chosen (recorded where a fit's settings are digested).
@@ -97,7 +100,7 @@ def register_points(affine: tuple[np.ndarray, np.ndarray], points_small, points_
     s = float(np.sqrt(np.mean(np.sum((big - c) ** 2, axis=1))))
     moved = as_vertices(points_small, "points_small") @ mat.T + t
     weights = deformable_cpd((big - c) / s, (moved - c) / s, alpha=alpha, beta=beta_mm / s, w=0.0,
-                             max_iterations=max_iterations, tolerance=tolerance)
+                             max_iterations=max_iterations, tolerance=tolerance, rank_tolerance=RANK_TOLERANCE)
     return SurfaceMap(np.c_[mat, t], moved, s * weights, float(beta_mm))
 
 

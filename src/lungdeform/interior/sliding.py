@@ -389,24 +389,77 @@ def sliding_correction(points, normals, anchors, values, *, smoothing: float = S
     return SlidingField(p, n, np.zeros_like(p), coef, center, scale, basis, q)
 
 
+@dataclass(frozen=True, eq=False)
+class _CorrectionBlocks:
+    """What a :class:`CorrectionSolver` needs that does not depend on the smoothing: the seeded subset
+    ``index`` of the surface points (all ``normals`` kept), the saddle matrix without smoothing, the
+    anchor blocks (:func:`_anchor_blocks`) and the checked ``anchors``."""
+
+    index: np.ndarray
+    normals: np.ndarray
+    kernel: np.ndarray
+    cross: np.ndarray
+    between: np.ndarray
+    anchors: np.ndarray
+
+    @staticmethod
+    def of(points, normals, anchors, max_points: int, seed: int) -> "_CorrectionBlocks":
+        p, n = _check(points, normals)
+        idx = thinned(len(p), max_points, seed)
+        q = _check_anchors(anchors)
+        kernel, center, scale, basis = _system(p[idx], n[idx], 0.0)
+        cross, between = _anchor_blocks(p[idx], n[idx], q, center, scale, basis)  # (k + r, 3a), (3a, 3a)
+        return _CorrectionBlocks(idx, n, kernel, cross, between, q)
+
+
 class CorrectionSolver:
     """:func:`sliding_correction` through any subset of one set of anchors, for cross-validation:
-    the surface system is factorised once, and each subset costs one solve of ``3 × subset`` size
-    (its Schur complement). ``predict(train, values, test)`` equals
-    ``sliding_correction(points, normals, anchors[train], values, smoothing=λ)(anchors[test])``."""
+    the surface system is solved once for every anchor column, and each subset costs one solve of
+    ``3 × subset`` size (its Schur complement). ``predict(train, values, test)`` equals
+    ``sliding_correction(points, normals, anchors[train], values, smoothing=λ)(anchors[test])``.
+    :meth:`for_smoothings` builds one per smoothing, sharing what does not depend on it;
+    :meth:`surface_weights` is :func:`sliding_weights` from the surface to the anchors, a by-product."""
 
     def __init__(self, points, normals, anchors, *, smoothing: float = SMOOTHING_MM,
                  max_points: int = MAX_POINTS, seed: int = 0):
-        p, n, idx, (m, center, scale, basis) = _prepared(points, normals, smoothing, max_points, seed)
-        q = _check_anchors(anchors)
-        self.cross, self.between = _anchor_blocks(p[idx], n[idx], q, center, scale, basis)  # (k + r, 3a), (3a, 3a)
-        self._m_cross = _solve(m, self.cross)  # the surface system, solved once for every anchor column
-        self.schur = self.between - self.cross.T @ self._m_cross
-        self.anchors = q
+        self._solve_surface(_CorrectionBlocks.of(points, normals, anchors, max_points, seed), _check_smoothing(smoothing))
+
+    @classmethod
+    def for_smoothings(cls, points, normals, anchors, smoothings, *, max_points: int = MAX_POINTS,
+                       seed: int = 0) -> "dict[float, CorrectionSolver]":
+        """One solver per surface smoothing (mm) in ``smoothings``, each as :class:`CorrectionSolver`
+        gives it: the kernel matrix, the polynomial basis and the anchor blocks formed once (they do
+        not depend on the smoothing), one dense solve per smoothing."""
+        lams = [_check_smoothing(lam) for lam in smoothings]
+        blocks = _CorrectionBlocks.of(points, normals, anchors, max_points, seed)
+        out = {}
+        for lam in lams:
+            out[lam] = cls.__new__(cls)
+            out[lam]._solve_surface(blocks, lam)
+        return out
+
+    def _solve_surface(self, blocks: "_CorrectionBlocks", smoothing: float) -> None:
+        k = len(blocks.index)
+        m = blocks.kernel.copy()
+        m[np.arange(k), np.arange(k)] += smoothing  # as _system(points, normals, smoothing)
+        self.cross, self.between, self.anchors, self.smoothing = blocks.cross, blocks.between, blocks.anchors, smoothing
+        self._m_cross = _solve(m, blocks.cross)  # the surface system, solved once for every anchor column
+        self.schur = blocks.between - blocks.cross.T @ self._m_cross
+        self._surface = (blocks.index, blocks.normals)
 
     @property
     def n_anchors(self) -> int:
         return len(self.anchors)
+
+    def surface_weights(self) -> SlidingWeights:
+        """:func:`sliding_weights` ``(points, normals, anchors, smoothing=λ)`` (same thinning): the sliding
+        interpolation from the surface points to the anchors, from the solve already done (the
+        anchor columns of the system are the interpolant's design at the anchors)."""
+        idx, n = self._surface
+        k, a = len(idx), self.n_anchors
+        full = np.zeros((3, a, len(n)))
+        full[:, :, idx] = self._m_cross[:k].T.reshape(3, a, k)
+        return SlidingWeights(full, n)
 
     def _rows(self, ids) -> np.ndarray:
         ids = np.asarray(ids, int).ravel()
@@ -416,12 +469,13 @@ class CorrectionSolver:
 
     def predict(self, train, values, test) -> np.ndarray:
         """``(len(test), 3) float`` mm: the correction through ``values : (len(train), 3)`` mm at the
-        anchors ``train`` (indices), at the anchors ``test``."""
+        anchors ``train`` (indices), at the anchors ``test``: ``β = S[tr, tr]⁻¹ v`` and, since the
+        surface unknowns are ``−M⁻¹ C[:, tr] β``, the test anchors' values ``S[te, tr] β`` (``S`` the
+        Schur complement ``B − Cᵀ M⁻¹ C``)."""
         tr, te = self._rows(train), self._rows(test)
         v = as_vertices(values, "values")
         if 3 * len(v) != len(tr):
             raise InputError(f"values: need one row per train anchor ({len(tr) // 3}), got {len(v)}")
         beta = _solve(self.schur[np.ix_(tr, tr)], v.T.ravel())
-        x = -self._m_cross[:, tr] @ beta
-        out = self.cross[:, te].T @ x + self.between[np.ix_(te, tr)] @ beta
+        out = self.schur[np.ix_(te, tr)] @ beta
         return np.ascontiguousarray(out.reshape(3, -1).T)
