@@ -32,16 +32,18 @@ def test_dome_scaling_is_exact_for_a_lung_that_scaled():
     pair = _pair(np.array([sxy, sxy, sz]))
     e = measured_excursion(pair.rest, pair.keep, pair.target)
     assert e == pytest.approx((sz - 1) * dome_weights(pair.rest.vertices, pair.rest.faces).height_mm, rel=1e-9)
-    row = score(pair, *dome_scaling_row(pair, Training(resolve_default("population"))))
+    vertices, landmarks, given = dome_scaling_row(pair, Training(resolve_default("population")))
+    assert given == {"dome_mm": e}
+    row = score(pair, vertices, landmarks)
     assert row["surface_mean_mm"] < 0.05 and row["landmark_mean_mm"] < 0.05
 
 
 def test_dome_row_moves_the_dome_as_measured():
     # the dome row's prediction has the larger volume and, measured on it, the excursion of the two scans
     pair = _pair(np.array([1.06, 1.06, 1.08]))
-    v, landmarks = dome_row(pair, Training(resolve_default("population")))
+    v, landmarks, given = dome_row(pair, Training(resolve_default("population")))
     e = measured_excursion(pair.rest, pair.keep, pair.target)
-    assert landmarks.shape == (3, 3)
+    assert landmarks.shape == (3, 3) and given == {"dome_mm": e}  # the row records the excursion it was given
     got = dome_weights(v, pair.rest.faces).height_mm - dome_weights(pair.rest.vertices, pair.rest.faces).height_mm
     assert got == pytest.approx(e, abs=TOLERANCE_MM)
     assert Surface(v, pair.rest.faces).volume_ml == pytest.approx(pair.volume_ml, rel=1e-9)

@@ -134,6 +134,7 @@ def test_itk_pair_rows_and_layout(data_dir, tmp_path):
     for r in (row[k] for k in ("default", "dome", "dome_scaling", "paper", "isotropic")):
         assert set(r) >= {"surface_mean_mm", "landmark_mean_mm", "translation_mm", "landmark_motion_mm", "regions_mm"}
     assert m["summary"]["n_lungs"] == 1 and m["summary"]["n_lungs_landmarks"] == 1
+    assert row["dome"]["dome_mm"] == row["dome_scaling"]["dome_mm"] > 0  # measured from the two masks
     assert row["default"]["surface_mean_mm"] < row["paper"]["surface_mean_mm"]
     assert row["default"]["landmark_mean_mm"] < row["paper"]["landmark_mean_mm"]
     assert json.loads((tmp_path / "metrics.json").read_text())["summary"]["default"]["surface_mean_mm"] > 0

@@ -16,7 +16,7 @@ volume from the smaller scan, that volume and ``E``:
 A lung whose apex or dome the scan cut off (:func:`~lungdeform.geometry.dome.dome_weights` refuses it) gets
 neither row; one whose dome rose (``E < 0``, not modelled), whose ``E`` the volume cannot produce, or whose
 split does not converge gets no ``dome`` row (a "–" in the tables). A lung without landmarks is scored on
-its surface.
+its surface. Each row records the ``dome_mm`` it was given.
 """
 
 from __future__ import annotations
@@ -69,11 +69,11 @@ def dome_row(pair, training):
         return None
     points = pair.landmarks_rest
     return (lung.surface_at(pair.volume_ml, exact=True).vertices,
-            None if points is None else lung.points_at(points, pair.volume_ml, exact=True))
+            None if points is None else lung.points_at(points, pair.volume_ml, exact=True), {"dome_mm": e})
 
 
 def dome_scaling_row(pair, training):
     """The ``dome_scaling`` row, a :data:`lungdeform.validate.single_scan.Predictor`: :func:`dome_scaling` by
     the excursion measured from the two masks; None when that cannot be measured."""
     e = measured_excursion(pair.rest, pair.keep, pair.target)
-    return None if e is None else dome_scaling(pair.rest, pair.volume_ml, e, pair.landmarks_rest)
+    return None if e is None else (*dome_scaling(pair.rest, pair.volume_ml, e, pair.landmarks_rest), {"dome_mm": e})

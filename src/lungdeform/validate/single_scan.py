@@ -133,8 +133,9 @@ class Training:
 
 
 #: A row: ``(vertices (n, 3), landmarks (m, 3) or None)`` mm of the lung at its larger volume, in the
-#: smaller-volume scan's frame, from the lung and what it may learn from; None when the row does not apply.
-Predictor = Callable[[LungPair, Training], "tuple[np.ndarray, np.ndarray | None] | None"]
+#: smaller-volume scan's frame, from the lung and what it may learn from, optionally followed by a dict of
+#: figures it was given (recorded in its row of ``metrics.json``); None when the row does not apply.
+Predictor = Callable[[LungPair, Training], "tuple | None"]
 
 
 def default_row(pair: LungPair, training: Training):
@@ -296,7 +297,9 @@ def score_lung(pair: LungPair, training: Training, predictors: Mapping[str, Pred
         got = predict(pair, training)
         seconds = time.perf_counter() - t0
         if got is not None:
-            rows[name] = {**score(pair, *got, regions=regions), "seconds": seconds}
+            vertices, landmarks, *given = got  # a row may add what it was given (``dome_mm``)
+            rows[name] = {**score(pair, vertices, landmarks, regions=regions), **(given[0] if given else {}),
+                          "seconds": seconds}
     rows["region_shares"] = region_shares(pair.rest.vertices, pair.rest.faces, regions)
     return rows
 
