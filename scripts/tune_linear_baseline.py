@@ -304,7 +304,7 @@ def main(argv=None) -> int:
     plain = Setting(2.0, "sliding", 30.0, 5.0, 0.0)
     scorer([plain])
     res = scorer.results
-    print(f"{len(res)} settings scored on {len(names)} traces, horizons {', '.join(map(str, HORIZONS_MS))} ms "
+    print(f"{len({s for k in ('stage1', 'stage2', 'stage3') for s in found[k]})} settings searched on {len(names)} traces, horizons {', '.join(map(str, HORIZONS_MS))} ms "
           "(criterion: geometric mean over traces and horizons of the ratio to no prediction; then the "
           "medians over traces per horizon)")
     for stage in ("stage1", "stage2", "stage3"):
@@ -316,7 +316,8 @@ def main(argv=None) -> int:
     print(_line(res, found["best"], names))
     print("linear_plain (the baseline of <= 0.7):")
     print(_line(res, plain, names))
-    loto = leave_one_trace_out(res, names)
+    searched = {s: res[s] for k in ("stage1", "stage2", "stage3") for s in found[k]}
+    loto = leave_one_trace_out(searched, names)
     held = np.median(np.array([v["ratios"] for v in loto.values()]), axis=0)
     picked = sorted({v["setting"].text for v in loto.values()})
     print(f"leave-one-trace-out: median ratio per horizon [{' '.join(f'{v:.3f}' for v in held)}]; settings picked: "
@@ -325,7 +326,8 @@ def main(argv=None) -> int:
            "criterion": "geometric mean over traces and horizons of RMS(linear) / RMS(none)",
            "stages": {k: [asdict(s) for s in found[k]] for k in ("stage1", "stage2", "stage3")},
            "best": asdict(found["best"]), "best_criterion": criterion(res[found["best"]], names),
-           "scored": [{"setting": asdict(s), "criterion": criterion(r, names), "ratios": r} for s, r in res.items()],
+           "scored": [{"setting": asdict(s), "criterion": criterion(r, names), "ratios": r} for s, r in res.items()
+                      if s in searched or s == plain],
            "leave_one_trace_out": {n: {"setting": asdict(v["setting"]), "ratios": v["ratios"]} for n, v in loto.items()},
            "leave_one_trace_out_medians": held.tolist()}
     args.out.write_text(json.dumps(doc, indent=1))
