@@ -7,7 +7,7 @@ and the full ``validate copd`` run takes hours on a loaded machine. This runs th
 the same landmarks and the same folds (:func:`lungdeform.evaluate.folds.landmark_folds`, 5 folds,
 seed 0), in minutes. The spline has a free affine part, so it is unchanged by a rigid motion of the
 inspiration landmarks: the alignment of the fit (apex, then the translation fitted with the model)
-does not enter, and the figures are ``validate copd``'s ``landmarks_tps`` row (checked on cases 1–3:
+does not enter, and the figures are ``validate copd``'s ``landmarks_tps`` row (checked on all ten lungs:
 equal to the printed precision).
 
 Usage (from the repository root)::
