@@ -27,8 +27,8 @@ def test_validate_breathing_schema(tmp_path, rng, capsys):
     assert set(m["traces"]) == {"a.csv", "b.csv"} and "short.csv" in m["errors"]
     for r in m["traces"].values():
         # the schema, and the variants that explain it
-        assert {"model_rms_percent", "lujan_rms_percent", "fourier_rms_percent"} <= set(r)
-        for key in ("shared_shape", "shared_shape_no_drift", "anchored", "per_cycle_refit",
+        assert {"model_rms_percent", "lujan_rms_percent", "fourier_insample_rms_percent"} <= set(r)
+        for key in ("shared_shape", "shared_shape_no_drift", "anchored", "per_cycle_refit_insample",
                     "percent_of_trace_range", "regular_cycles"):
             assert MODELS <= set(r[key]), key
         # truth: a regular synthetic breath with 0.05 mm noise on 12 mm: every model does well,
@@ -63,16 +63,18 @@ def test_validate_breathing_real_traces(data_dir, tmp_path):
     m = json.loads((out / "metrics.json").read_text())
     assert not m["median_model_rms_percent"] < m["target_median_model_rms_percent"]
     assert len(m["traces"]) == 16 and not m["errors"]
-    # The target (median < 5 %) is NOT met (measured ≈ 9 % of the breath amplitude; ≈ 4.8 % of
-    # the whole held-out range): the held-out cycles vary more than any shared shape can follow (see the
-    # report). What must hold under the same protocol and the same per-cycle freedom, per trace (a
-    # paired comparison): the PV driver beats the Lujan shape on most traces, and never by chance alone.
+    # The target (median < 5 %) is NOT met (measured 8.9 % of the breath amplitude, 4.5 % of
+    # the whole held-out range, with everything that feeds a fit taken from the training part; 9.1 %
+    # and 4.8 % in 0.7, whose cycles were found on the whole trace): the held-out cycles vary more than
+    # any shared shape can follow (see the report). What must hold under the same protocol and the
+    # same per-cycle freedom, per trace (a paired comparison): the PV driver beats the Lujan shape on
+    # most traces (14 of 16 measured), and never by chance alone.
     p = m["paired_model_vs_lujan"]
     assert p["traces_model_better"] >= 12 and p["median_difference_percent"] < 0
     # the variants order as their freedoms: anchored (0 fitted) > no drift (2) > drift (3) > refit (5)
     med = m["median_shared_shape"]["model"]
     assert m["median_anchored"]["model"] > m["median_shared_shape_no_drift"]["model"] > med
-    assert m["median_per_cycle_refit"]["model"] < med
+    assert m["in_sample"]["median_per_cycle_refit_insample"]["model"] < med
     # the white-noise floor is far below the error: noise does not limit it
     assert m["median_noise_floor_percent"] < 1.5
     # orientation: the three traces recorded upside down were turned (LT upper markers, RPM)
@@ -110,7 +112,9 @@ def test_validate_breathing_finds_variants_recursively(tmp_path, rng, capsys):
     assert set(m["traces"]) == {"rpm/s1/PT.VXP", "rpm/s2/PT.VXP", "201205101541-ABC-1-Q-64-6.CSV"}
     assert set(m["errors"]) == {"empty.csv", "header_only.csv", "one_breath.csv"}
     assert "file is empty" in m["errors"]["empty.csv"]
-    assert "no complete breathing cycle" in m["errors"]["one_breath.csv"]
+    # a 5 s trace split in time: its training half is too short to hold a breath, and says so
+    assert "training part (0.0–2.4 s)" in m["errors"]["one_breath.csv"]
+    assert "too short to hold one breathing cycle" in m["errors"]["one_breath.csv"]
     for r in m["traces"].values():
         assert r["model_rms_percent"] < 5.0  # regular synthetic breaths: every trace fits well
     err = capsys.readouterr().err
@@ -138,9 +142,9 @@ def test_validate_breathing_all_scores_nan(tmp_path, rng, capsys, monkeypatch):
 
     def nan_scores(*args, **kwargs):
         r = real(*args, **kwargs)
-        for key in ("model_rms_percent", "lujan_rms_percent", "fourier_rms_percent", "noise_floor_percent"):
+        for key in ("model_rms_percent", "lujan_rms_percent", "fourier_insample_rms_percent", "noise_floor_percent"):
             r[key] = float("nan")
-        for key in ("shared_shape", "shared_shape_no_drift", "anchored", "per_cycle_refit",
+        for key in ("shared_shape", "shared_shape_no_drift", "anchored", "per_cycle_refit_insample",
                     "percent_of_trace_range", "regular_cycles"):
             r[key].update({m: float("nan") for m in holdout.MODELS})
         return r
@@ -155,7 +159,7 @@ def test_validate_breathing_all_scores_nan(tmp_path, rng, capsys, monkeypatch):
     assert m["median_model_rms_percent"] is None and m["median_noise_floor_percent"] is None
     assert all(v is None for v in m["median_anchored"].values())
     text = capsys.readouterr().out
-    assert "median held-out RMS: PV n/a %, Lujan n/a %, Fourier per cycle n/a %" in text
+    assert "median held-out RMS: PV n/a %, Lujan n/a %, Fourier n/a %" in text
     assert "white-noise floor n/a %" in text
 
 

@@ -12,7 +12,8 @@ def test_validate_gating_prints_every_strategy_and_writes_metrics(tmp_path, rng,
     assert main(["validate", "gating", "--data", str(write_marker_folder(tmp_path / "data", rng)), "--out", str(out),
                  "--latency-ms", "200", "--window", "end-exhale:25", "--confident"]) == 0
     text = capsys.readouterr().out
-    for k in ("none", "linear", "model", "model_intervals", "linear_intervals", "oracle", "beam-on error"):
+    for k in ("none", "linear", "linear_plain", "model", "model_intervals", "linear_intervals", "oracle",
+              "beam-on error", "hindsight ranking, not a gate"):
         assert k in text
     doc = json.loads((out / "metrics.json").read_text())
     assert doc["latency_ms"] == 200 and doc["window"] == "end-exhale:25" and doc["confident"] is True

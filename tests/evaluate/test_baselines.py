@@ -122,3 +122,28 @@ def test_cpd_leaves_out_crop_faces():
     kept = measure(s, cpd_deformable(s, target, B.CpdSettings(samples=600), keep=~cap, keep_target=~cap), clean, keep=~cap)[0]
     chased = measure(s, cpd_deformable(s, target, B.CpdSettings(samples=600)), clean, keep=~cap)[0]
     assert kept.surface_mean_mm < 0.7 * chased.surface_mean_mm
+
+
+def test_baselines_align_themselves_whatever_frame_the_target_arrives_in():
+    # truth: a translated copy of the surface is found again by the translation ICP (from the
+    # centroids, 40 mm away), and a baseline's prediction does not depend on the frame the target was
+    # placed in (the model's alignment): moving the target by d moves every prediction by d exactly
+    s = ellipsoid_lung("right", 3)
+    shift = np.array([25.0, -30.0, 12.0])
+    assert B.best_translation(s, Surface(s.vertices + shift, s.faces)) == pytest.approx(shift, abs=1e-6)
+    c = s.vertices.mean(0)
+    target = Surface(c + (s.vertices - c) * np.array([1.04, 1.07, 1.1]) + [0.0, 0.0, -6.0], s.faces)
+    d = np.array([3.0, -8.0, 5.0])
+    moved = Surface(target.vertices + d, target.faces)
+    icp = B.IcpSettings(iterations=60, tol_mm=0.0)
+    # (equal up to ICP's own noise: its result moves by up to 0.02 mm when the input moves by 1e-9 mm,
+    # measured; a baseline that kept the placement's translation would be off by |d| = 9.9 mm)
+    for fn in (lambda t: no_motion(s) + B.best_translation(s, t, icp),
+               lambda t: B.self_aligned(s, apex_scaling(s, t.volume_ml), t, icp=icp),
+               lambda t: affine_fit(s, t, icp)[0]):
+        assert fn(moved) == pytest.approx(fn(target) + d, abs=0.05)
+    # its own translation serves each baseline better than none (here the target's centroid moved 6 mm):
+    # by the RMS surface distance, which the ICP minimises
+    m_own, _, _ = measure(s, no_motion(s) + B.best_translation(s, target), target)
+    m_none, _, _ = measure(s, no_motion(s), target)
+    assert m_own.surface_rms_mm < 0.95 * m_none.surface_rms_mm

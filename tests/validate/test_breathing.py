@@ -12,14 +12,14 @@ from lungdeform.validate.breathing import find_traces, score_traces, summarise, 
 from tests.breathing.test_trace import breath, write_marker_csv
 
 MODELS = ("model", "lujan", "fourier")
-VARIANTS = ("shared_shape", "shared_shape_no_drift", "anchored", "per_cycle_refit", "percent_of_trace_range",
+VARIANTS = ("shared_shape", "shared_shape_no_drift", "anchored", "per_cycle_refit_insample", "percent_of_trace_range",
             "regular_cycles")
 
 
 def _scores(model: float, lujan: float, noise: float = 0.5) -> dict:
     """A trace's scores as holdout.evaluate reports them (only the keys the summary reads)."""
     per = {"model": model, "lujan": lujan, "fourier": 1.0}
-    return {"model_rms_percent": model, "lujan_rms_percent": lujan, "fourier_rms_percent": 1.0,
+    return {"model_rms_percent": model, "lujan_rms_percent": lujan, "fourier_insample_rms_percent": 1.0,
             "noise_floor_percent": noise, **{v: dict(per) for v in VARIANTS}}
 
 
@@ -45,7 +45,7 @@ def test_summarise_medians_skip_undefined_and_pair_per_trace():
     assert m["median_model_rms_percent_regular_sessions"] == 3.0  # -N- and -NO- names: 4 and 2
     assert m["paired_model_vs_lujan"] == {"traces_model_better": 2, "traces": 3, "median_difference_percent": -2.0}
     assert m["n_traces"] == 3 and m["errors"] == {"bad.csv": "no cycle"}
-    assert "500 mL tidal volume" in m["protocol"] and "first 0.5 of the cycles" in m["protocol"]
+    assert "500 mL tidal volume" in m["protocol"] and "the first 0.5 of each trace's duration" in m["protocol"]
     for key in traces:
         traces[key]["noise_floor_percent"] = float("nan")
     assert summarise(traces, {}, 500.0, 0.5)["median_noise_floor_percent"] is None

@@ -44,7 +44,8 @@ def test_decisions_never_use_later_samples_except_the_oracle(rng):
     y = x.copy()
     y[500:] = rng.normal(0, 3.0, t.size - 500)
     a, b = G.gate_decisions(t, x, G.GatingConfig()), G.gate_decisions(t, y, G.GatingConfig())
-    for k in ("none", "linear", "model", "model_intervals", "linear_intervals"):
+    assert set(G.CAUSAL) == set(G.STRATEGIES) - {"oracle"}
+    for k in G.CAUSAL:
         assert np.array_equal(a[k][:500], b[k][:500])
     assert np.array_equal(a["window"][:500], b["window"][:500])
 
@@ -69,6 +70,43 @@ def test_leave_one_trace_out_picks_the_step_on_the_other_traces(rng):
     lo = G.leave_one_trace_out({"a": r, "b": r, "c": r}, cfg)
     assert {h["gamma"] for h in lo["traces"].values()} == {lo["gamma_all"]} and lo["gamma_all"] in G.GAMMA_GRID
     assert G.leave_one_trace_out({"a": r, "b": r}, G.GatingConfig(rule=GateRule(risk=None))) is None
+
+
+def test_threshold_at_linear_duty_is_learned_on_the_other_traces(rng):
+    # causality across traces: the threshold scored on a trace is chosen on the other traces only, so
+    # replacing that trace's data changes neither its threshold nor anyone's but its own figures; and
+    # on copies of one trace the threshold reaches the linear strategy's duty cycle there
+    cfg = G.GatingConfig()
+    t, x = _breath(rng, 90.0)
+    r = G.score_trace(t, x, cfg)
+    other = G.score_trace(*_breath(np.random.default_rng(7), 90.0), cfg)
+    a = G.linear_duty_causal({"a": r, "b": r, "c": r})
+    b = G.linear_duty_causal({"a": other, "b": r, "c": r})
+    assert a["traces"]["a"]["threshold"] == b["traces"]["a"]["threshold"]
+    lin = r["linear"]["duty_cycle"]
+    tau = a["traces"]["a"]["threshold"]
+    assert a["traces"]["a"]["duty_cycle"] >= lin  # the highest threshold whose duty reaches linear's
+    if tau < G.THRESHOLD_GRID[-1]:
+        nxt = G.THRESHOLD_GRID[G.THRESHOLD_GRID.index(tau) + 1]
+        prob = np.nan_to_num(r["_decisions"]["probability"][r["_scored"]], nan=-1.0)
+        assert np.mean(prob >= nxt) < lin
+    assert G.linear_duty_causal({"a": r}) is None
+
+
+def test_targets_use_causal_gates_only(rng):
+    # the hindsight ranking (oracle_matched) and the oracle are reported, never a target: changing the
+    # oracle's figures changes no target
+    t, x = _breath(rng, 90.0)
+    cfg = G.GatingConfig()
+    r = G.score_trace(t, x, cfg)
+    traces = {"a": {k: v for k, v in r.items() if not k.startswith("_")}}
+    s = G.summary(traces)
+    causal = G.linear_duty_causal({"a": r, "b": r})
+    before = G.targets(s, causal)
+    s["oracle"] = {"duty_cycle": 1.0, "beam_on_error": 1.0, "residual_rms": 9.0}
+    s["oracle_matched"] = {k: 0.0 for k in s["oracle_matched"]}
+    assert G.targets(s, causal) == before
+    assert "better_than_linear_at_linear_duty_causal" in before and not any("matched" in k for k in before)
 
 
 def test_confident_gate_is_stricter(rng):
@@ -99,11 +137,15 @@ def test_validate_gating_writes_the_layout_of_the_spec(tmp_path, rng):
 @pytest.mark.slow
 def test_shared_traces_meet_the_gating_targets(tmp_path, data_dir):
     # issue 28, on the shared traces (medians, 300 ms, end-exhale 30 %): model with intervals has at most
-    # half the beam-on error of no compensation at 0.9 × its duty cycle or more, and less beam-on error
-    # than the linear baseline at the linear baseline's duty cycle
+    # half the beam-on error of no compensation at 0.9 × its duty cycle or more
     m = G.validate_gating(require_path(data_dir, "breathing-traces"), tmp_path / "out")
     t = m["targets"]
     assert m["n_traces"] == 16 and t["error_vs_none"]["met"] and t["duty_vs_none"]["met"]
-    assert t["better_than_linear_at_matched_duty"]["met"]
-    # with the same intervals and the same adaptive rule, the model gates more and errs less than linear
+    # with the same intervals and the same adaptive rule, the model gates more and errs less than the
+    # tuned linear baseline (measured 0.465 / 0.044 against 0.459 / 0.056); at linear's duty cycle, with
+    # a fixed threshold learned on the other traces (causal), it errs less (0.047 against 0.057 at duty
+    # 0.468 against 0.467). Not met, and reported: its point gate's duty is below linear's
     assert t["better_than_linear_same_rule"]["met"]
+    assert t["better_than_linear_at_linear_duty_causal"]["met"]
+    assert not t["better_than_linear"]["met"]
+    assert "oracle_matched" in m["summary"] and not any("matched" in k for k in t)

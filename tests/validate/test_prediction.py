@@ -38,7 +38,7 @@ def test_validate_prediction_writes_the_metrics_of_the_spec(tmp_path, rng):
     doc = json.loads((out / "metrics.json").read_text())
     assert set(doc["traces"]) == {"201201010000-LAC-1-N-90-6.csv", "201201010001-LAC-1-N-90-6.csv"}
     row = doc["traces"]["201201010000-LAC-1-N-90-6.csv"]["horizon_ms"]["400"]
-    assert {"model_rms", "none_rms", "linear_rms"} <= set(row)
+    assert {"model_rms", "none_rms", "linear_rms", "linear_plain_rms"} <= set(row)
     assert row["model_rms"] / row["none_rms"] == pytest.approx(row["model_over_none"])
     assert doc["medians"]["400"]["model_over_none"] < 0.6 and m["n_quiet"] == 2
     # the 90 % intervals: coverage near nominal on a regular breath with white noise (60 s scored at
@@ -61,14 +61,23 @@ def test_bad_arguments_are_refused(tmp_path):
 
 @pytest.mark.realdata
 @pytest.mark.slow
-def test_shared_traces_meet_the_targets_and_the_baseline_is_as_strong_as_calibrated(tmp_path, data_dir):
-    # the calibration: the linear baseline's RMS over no prediction at 400 ms has a median of 0.76 over
-    # the 15 shared marker traces; ours must be at least as strong (a weak baseline would flatter the
-    # model). Targets: model <= 0.95 × linear at every horizon; quiet traces model <= 0.5 × none at 400 ms
+def test_shared_traces_against_a_tuned_baseline_and_the_plain_one(tmp_path, data_dir):
+    # the calibration: the untuned baseline's RMS over no prediction at 400 ms has a median of 0.76 over
+    # the 15 shared marker traces; linear_plain must be at least as strong (measured 0.739). The tuned
+    # baseline was searched on these traces (scripts/tune_linear_baseline.py), so it must be at least
+    # as strong as linear_plain at every horizon (median over traces; measured 0.693–0.749 against
+    # 0.727–0.781). Targets: model <= 0.95 x linear at every horizon is NOT met against the tuned
+    # baseline (measured 0.937–0.979: met at 400 and 500 ms only); the model still beats it on the
+    # median trace at every horizon; quiet traces model <= 0.5 x none at 400 ms; coverage 87–93 %
     folder = require_path(data_dir, "breathing-traces")
     m = V.validate_prediction(folder, tmp_path / "out")
-    markers = [r["horizon_ms"]["400"]["linear_over_none"] for n, r in m["traces"].items() if n.endswith(".csv")]
-    assert len(markers) == 15 and np.median(markers) <= 0.78
-    assert m["targets"]["model_over_linear_every_horizon"]["met"]
+    markers = [r["horizon_ms"]["400"]["linear_plain_over_none"] for n, r in m["traces"].items() if n.endswith(".csv")]
+    assert len(markers) == 15 and np.median(markers) <= 0.76
+    for h, med in m["medians"].items():
+        assert med["linear_over_none"] <= med["linear_plain_over_none"], h
+        assert med["model_over_linear"] < 1.0, h
+    assert not m["targets"]["model_over_linear_every_horizon"]["met"]
+    assert m["medians"]["400"]["model_over_linear"] <= 0.95 and m["medians"]["500"]["model_over_linear"] <= 0.95
+    assert all(med["model_over_linear_plain"] <= 0.95 for med in m["medians"].values())
     assert m["targets"]["quiet_model_over_none"]["met"]
     assert m["targets"]["coverage_every_horizon"]["met"]  # 90 % intervals cover 87–93 % at every horizon

@@ -151,14 +151,17 @@ def typical_excursion(signal, window: int) -> float:
     return float(np.median(v.max(axis=1) - v.min(axis=1)))
 
 
-def _breaths(t, s, fine, period: float, onset_level: float, threshold: float = 0.3):
+def _breaths(t, s, fine, period: float, onset_level: float, threshold: float = 0.3, excursion: float | None = None):
     """Breaths of a uniform signal: maxima found on the smoothed ``s`` (robust), then located on the
     less smoothed ``fine`` (accurate): each maximum within ±15 % of a period, and the inspiration
     onset before it, where ``fine`` last rises through ``onset_level`` of the excursion above the
-    preceding minimum (linear interpolation). Returns (peak indices (m,) int into ``fine``, onset
-    times (m−1,) s: onset j precedes peak j+1)."""
+    preceding minimum (linear interpolation). ``excursion``: the typical breath's (default that of
+    ``s``, :func:`typical_excursion`). Returns (peak indices (m,) int into ``fine``, onset times
+    (m−1,) s: onset j precedes peak j+1)."""
     dt = t[1] - t[0]
-    tp, kind = turning_points(s, threshold * typical_excursion(s, int(round(period / dt))))
+    if excursion is None:
+        excursion = typical_excursion(s, int(round(period / dt)))
+    tp, kind = turning_points(s, threshold * excursion)
     hw = max(1, int(round(0.15 * period / dt)))
     ipk = np.array([max(0, i - hw) + int(np.argmax(fine[max(0, i - hw): i + hw + 1])) for i in tp[kind == 1]],
                    dtype=int)
@@ -227,6 +230,28 @@ def _share(t, s, fine, period: float, onset_level: float) -> tuple[float, int]:
     return float(np.median(share)), int(share.size)
 
 @dataclass(frozen=True)
+class Detector:
+    """What :func:`cycle_anchors` learns of a trace before it splits it: ``period_s`` (s, the
+    :func:`dominant_period`) and ``excursion`` (trace unit, the :func:`typical_excursion` of the
+    detection signal). :func:`detector_of` measures them on one trace (a training part) so that
+    another part is split with them, without its own period or excursion."""
+
+    period_s: float
+    excursion: float
+
+
+def detector_of(trace: Trace) -> Detector:
+    """The :class:`Detector` of a uniform trace (InputError when it holds no breathing period)."""
+    t, a = trace.t_s, trace.amplitude
+    try:
+        period = dominant_period(t, a)
+    except InputError as exc:
+        raise InputError(f"{trace.source}: {exc}") from None
+    s, _ = _smoothed(a, period, 1.0 / trace.sample_interval_s)
+    return Detector(period, typical_excursion(s, int(round(period / (t[1] - t[0])))))
+
+
+@dataclass(frozen=True)
 class CycleAnchors:
     """Timing of complete breathing cycles.
 
@@ -248,7 +273,8 @@ class CycleAnchors:
         return CycleAnchors(self.starts_s[first: last + 1], self.peaks_s[first:last], self.source)
 
 
-def cycle_anchors(trace: Trace, use_marks: bool = False, onset_level: float = 0.05) -> CycleAnchors:
+def cycle_anchors(trace: Trace, use_marks: bool = False, onset_level: float = 0.05,
+                  detector: Detector | None = None) -> CycleAnchors:
     """Split a uniform, inhalation-positive trace into complete cycles: inspiration onsets and
     end-inhale peaks.
 
@@ -268,6 +294,8 @@ def cycle_anchors(trace: Trace, use_marks: bool = False, onset_level: float = 0.
     each peak the 'P' mark inside the cycle (the maximum where none). The RPM marks are placed at the
     amplitude extremes (so a cycle then starts at the start of the dwell, not at the onset), and
     they can be wrong (see :func:`mark_agreement`).
+    ``detector`` (:func:`detector_of` of another part of the recording, e.g. its training part):
+    the period and the typical excursion used instead of this trace's own.
     Raises InputError if the trace holds no complete cycle.
     """
     t, a = trace.t_s, trace.amplitude
@@ -290,15 +318,13 @@ def cycle_anchors(trace: Trace, use_marks: bool = False, onset_level: float = 0.
         return CycleAnchors(z, np.asarray(peaks), "recorded Z/P marks")
     if not np.allclose(np.diff(t), 1.0 / fs, rtol=1e-3):
         raise InputError(f"{trace.source}: cycle detection needs a uniform trace: resample() it first")
-    try:
-        period = dominant_period(t, a)
-    except InputError as exc:
-        raise InputError(f"{trace.source}: {exc}") from None
+    det = detector if detector is not None else detector_of(trace)
+    period = det.period_s
     if period * 1.5 > trace.duration_s:
         raise InputError(f"{trace.source}: trace of {trace.duration_s:.1f} s is too short to hold one "
                          f"breathing cycle (period ≈ {period:.1f} s)")
     s, fine = _smoothed(a, period, fs)
-    ipk, onsets = _breaths(t, s, fine, period, onset_level)
+    ipk, onsets = _breaths(t, s, fine, period, onset_level, excursion=det.excursion)
     if onsets.size < 2:
         raise InputError(f"{trace.source}: fewer than 2 inspiration onsets found: the trace holds no "
                          "complete breathing cycle")

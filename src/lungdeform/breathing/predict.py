@@ -15,10 +15,13 @@ does not enter the fit (amplitude drift is followed by the fits' forgetting).
 Predictors (one class each; :class:`BlendPredictor` is the model of ``lungdeform validate prediction``):
 
 - :class:`LastSample`: no prediction, ``x̂ = x(t)``;
-- :class:`LinearPredictor`: least squares with an intercept on the window. With ``train_s`` and
-  ``refit_s`` it is the online autoregressive baseline of the validation (the last 2 s of samples,
-  trained on the preceding 30 s, refitted every 5 s); the model's own linear part instead keeps every
-  pair with exponential forgetting (half-life ``half_life_s``) and a small ridge, refitted every second;
+- :class:`LinearPredictor`: least squares with an intercept on the window, trained on the pairs of
+  the last ``train_s`` seconds or on every pair with exponential forgetting (half-life
+  ``half_life_s``), with a ridge, refitted every ``refit_s``. The validation's online autoregressive
+  baseline is one (:func:`baseline_linear`, its settings searched on the shared traces as the
+  model's were: :data:`LINEAR_TUNED`; :func:`baseline_linear_plain`, the untuned one of ≤ 0.7: the
+  last 2 s of samples, trained on the preceding 30 s, refitted every 5 s); so is the model's own
+  linear part;
 - :class:`AnalogPredictor`: the cycle's shape and phase, learned from the patient's own earlier breaths
   (analog or nearest-neighbour forecasting): the ``k`` past windows most like the newest one, and
   what followed each of them ``h`` later, weighted by inverse distance. A linear model of the last
@@ -35,6 +38,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -285,27 +289,60 @@ class BlendPredictor:
         return float(self.weights @ preds)
 
 
+@dataclass(frozen=True)
+class LinearSettings:
+    """The settings of a :class:`LinearPredictor`: ``window_s`` s; the training memory, ``train_s`` s
+    of pairs, or (``train_s`` None) every pair with a forgetting half-life ``half_life_s`` s (None:
+    no forgetting); ``refit_s`` s between refits; ``ridge`` relative to the normal matrix's mean
+    diagonal."""
+
+    window_s: float = 2.0
+    train_s: float | None = None
+    half_life_s: float | None = 120.0
+    refit_s: float = 1.0
+    ridge: float = 1e-3
+
+    def predictor(self, horizon_s: float, dt_s: float = DT_S) -> LinearPredictor:
+        return LinearPredictor(horizon_s, self.window_s, train_s=self.train_s, refit_s=self.refit_s,
+                               half_life_s=self.half_life_s, ridge=self.ridge, dt_s=dt_s)
+
+
+#: The linear baseline, tuned: the settings chosen by the search of ``scripts/tune_linear_baseline.py``
+#: on the 16 shared breathing traces, as the model's were (docs/PREDICTION.md "The linear baseline, tuned").
+LINEAR_TUNED = LinearSettings(window_s=1.5, train_s=None, half_life_s=None, refit_s=0.5, ridge=1e-4)
+#: The untuned linear baseline of lungdeform ≤ 0.7 (``linear_plain``): the last 2 s of samples, trained
+#: on the preceding 30 s, refitted every 5 s, no ridge.
+LINEAR_PLAIN = LinearSettings(window_s=2.0, train_s=30.0, half_life_s=None, refit_s=5.0, ridge=0.0)
+
+
 def baseline_linear(horizon_s: float, dt_s: float = DT_S) -> LinearPredictor:
-    """The online linear autoregressive baseline: least squares with an intercept on the last 2 s of
-    samples (``dt_s``: the trace's sample interval), trained on the preceding 30 s, refitted every 5 s."""
-    return LinearPredictor(horizon_s, window_s=2.0, train_s=30.0, refit_s=5.0, half_life_s=None, ridge=0.0,
-                           dt_s=dt_s)
+    """The online linear autoregressive baseline, tuned (:data:`LINEAR_TUNED`): least squares with an
+    intercept on the window of samples (``dt_s``: the trace's sample interval)."""
+    return LINEAR_TUNED.predictor(horizon_s, dt_s)
+
+
+def baseline_linear_plain(horizon_s: float, dt_s: float = DT_S) -> LinearPredictor:
+    """The untuned linear baseline of lungdeform ≤ 0.7 (:data:`LINEAR_PLAIN`, ``linear_plain``)."""
+    return LINEAR_PLAIN.predictor(horizon_s, dt_s)
 
 
 #: name → factory(horizon_s) of the predictors the validation runs
-PREDICTORS = {"model": BlendPredictor, "none": LastSample, "linear": baseline_linear}
+PREDICTORS = {"model": BlendPredictor, "none": LastSample, "linear": baseline_linear,
+              "linear_plain": baseline_linear_plain}
+#: the predictors that read the trace's own sample interval (``dt_s``)
+TRACE_STEP = ("linear", "linear_plain")
 
 
 def predict_trace(t_s, x, horizon_s: float, predictor="model") -> np.ndarray:
     """Run a predictor over a whole recorded trace, sample by sample (causal): ``(n,)`` predictions of
     ``x(t_i + h)`` made at each ``t_i``. ``predictor``: a name of :data:`PREDICTORS` or a factory of
-    ``horizon_s``. The linear baseline reads the trace's own median sample interval."""
+    ``horizon_s``. The linear baselines (:data:`TRACE_STEP`) read the trace's own median sample interval."""
     t = np.asarray(t_s, float).ravel()
     v = np.asarray(x, float).ravel()
     if t.shape != v.shape or t.size < 2:
         raise InputError(f"t_s and x must be (n,) arrays of the same length >= 2, got {t.shape} and {v.shape}")
-    if predictor == "linear":
-        p = baseline_linear(horizon_s, dt_s=float(np.median(np.diff(t))))
+    if isinstance(predictor, str) and predictor in TRACE_STEP:
+        p = PREDICTORS[predictor](horizon_s, dt_s=float(np.median(np.diff(t))))
     else:
         p = (PREDICTORS[predictor] if isinstance(predictor, str) else predictor)(horizon_s)
     return np.array([p.update(ti, xi) for ti, xi in zip(t, v)])

@@ -29,6 +29,7 @@ from lungdeform.progress import Progress
 
 from . import inversion as inv
 from . import pv as br
+from .cycles import cycle_anchors
 from .holdout import calibrate, evaluate
 from .presets import Preset, get_preset
 from .stream import StreamingVolumeEstimator, offline_volume, replay, signal_delay_s
@@ -163,9 +164,9 @@ def run_fit(path: Path, out: Path, tidal_volume_ml: float, train_fraction: float
     trace = read_trace(path)
     res = evaluate(trace, tidal_volume_ml=tidal_volume_ml, train_fraction=train_fraction, progress=progress)
     curves = res.pop("_curves")
-    anchors = curves["anchors"]
-    # the whole trace, all cycles, for the curve the viewer plays back
+    # the whole trace, all cycles, for the curve the viewer plays back (no held-out score is made of it)
     tr = resample(trace, res["sample_rate_hz"])
+    anchors = cycle_anchors(tr)
     vol, _, _ = calibrate(tr, anchors.starts_s, tidal_volume_ml)
     full = inv.invert(tr.t_s, vol, anchors.starts_s, peaks_s=anchors.peaks_s,
                       settings=inv.InversionSettings(per_cycle_calibration=True))

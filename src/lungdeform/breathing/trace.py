@@ -274,17 +274,21 @@ def read_marker_csv(path, repair: bool = True, max_fix_fraction: float = 0.01, o
     return orient_inhale_positive(tr) if orient else tr
 
 
-def principal_motion(positions: np.ndarray) -> np.ndarray:
+def principal_motion(positions: np.ndarray, fit: np.ndarray | None = None) -> np.ndarray:
     """(n, 3) mm positions -> (n,) mm displacement along the first principal axis.
 
-    The sign is a first guess only (the end-exhale dwell at the low end: median below mean); the
-    readers settle it with :func:`orient_inhale_positive`, which uses timing, not levels (on the real
-    marker files this guess is wrong for 2 of 15)."""
+    ``fit : (n,) bool`` (default all rows): the rows whose mean and principal axis define the
+    projection (the held-out protocol of :mod:`lungdeform.breathing.holdout` passes its training
+    part). The sign is a first guess only (the end-exhale dwell at the low end: median below mean,
+    over the ``fit`` rows); the readers settle it with :func:`orient_inhale_positive`, which uses
+    timing, not levels (on the real marker files this guess is wrong for 2 of 15)."""
     x = np.asarray(positions, dtype=float)
-    xc = x - x.mean(axis=0)
-    _, _, vt = np.linalg.svd(xc, full_matrices=False)
-    s = xc @ vt[0]
-    if np.median(s) > np.mean(s):  # end-exhale dwell must sit at the low end
+    rows = x if fit is None else x[np.asarray(fit, bool)]
+    centre = rows.mean(axis=0)
+    _, _, vt = np.linalg.svd(rows - centre, full_matrices=False)
+    s = (x - centre) @ vt[0]
+    ref = s if fit is None else s[np.asarray(fit, bool)]
+    if np.median(ref) > np.mean(ref):  # end-exhale dwell must sit at the low end
         s = -s
     return s
 
@@ -406,21 +410,42 @@ def resample(trace: Trace, fs_hz: float, max_gap_s: float = 1.0) -> Trace:
 
 
 # --------------------------------------------------------------------------- orientation
+def _inspiratory_shares(t_s, amplitude) -> tuple[float, float, int] | None:
+    """:func:`lungdeform.breathing.cycles.inspiratory_shares` of a signal, None when it cannot say
+    (too short, flat, fewer than 3 breaths either way)."""
+    t = np.asarray(t_s, float)
+    if t.size < 16 or t[-1] - t[0] < 4 * CYCLE_RANGE_S[0]:
+        return None
+    try:
+        keep, flip, n = inspiratory_shares(t, amplitude, 0.05)
+    except InputError:
+        return None
+    return (keep, flip, n) if np.isfinite(keep) and np.isfinite(flip) else None
+
+
+def inhale_sign(t_s, amplitude) -> float:
+    """−1.0 when the signal ``amplitude (n,)`` at ``t_s (n,)`` s must be negated to be
+    inhalation-positive (the rule of the module doc), else 1.0 (also when it cannot say)."""
+    shares = _inspiratory_shares(t_s, amplitude)
+    return -1.0 if shares is not None and shares[1] < shares[0] else 1.0
+
+
 def orient_inhale_positive(trace: Trace) -> Trace:
     """The trace signed so that inhalation is positive (see the module doc), the decision in
     :attr:`Trace.fixes` when the sign changes. Too short or flat a trace is returned as it is."""
-    if trace.n < 16 or trace.duration_s < 4 * CYCLE_RANGE_S[0]:
+    shares = _inspiratory_shares(trace.t_s, trace.amplitude)
+    if shares is None or shares[1] >= shares[0]:
         return trace
-    try:
-        keep, flip, n = inspiratory_shares(trace.t_s, trace.amplitude, 0.05)
-    except InputError:
-        return trace
-    if not (np.isfinite(keep) and np.isfinite(flip)) or flip >= keep:
-        return trace
-    swap = {"P": "Z", "Z": "P"}
-    marks = np.array([swap.get(x, x) for x in trace.marks], dtype="<U1")
+    keep, flip, n = shares
     note = (f"amplitude negated so that inhalation is positive: inspiration took a median {keep:.0%} of "
             f"each of {n} breaths as recorded, {flip:.0%} negated (it is the shorter phase)")
     if (trace.marks != "").any():
         note += "; P/Z marks swapped with it (P = end-inhale)"
-    return replace(trace, amplitude=-trace.amplitude, marks=marks, fixes=trace.fixes + (note,))
+    return replace(negated(trace), fixes=trace.fixes + (note,))
+
+
+def negated(trace: Trace) -> Trace:
+    """The trace with its amplitude negated and its P/Z marks swapped (P stays end-inhale)."""
+    swap = {"P": "Z", "Z": "P"}
+    marks = np.array([swap.get(x, x) for x in trace.marks], dtype="<U1")
+    return replace(trace, amplitude=-trace.amplitude, marks=marks)

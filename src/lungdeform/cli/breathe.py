@@ -60,6 +60,7 @@ def register(apps) -> None:
             for fix in m.get("fixes", []):
                 typer.echo(f"note: {fix}", err=True)
             typer.echo(f"{m['trace']}: held-out RMS % of p2p: PV {m['model_rms_percent']:.2f}, "
-                       f"Lujan {m['lujan_rms_percent']:.2f}, Fourier per-cycle {m['fourier_rms_percent']:.2f}; "
+                       f"Lujan {m['lujan_rms_percent']:.2f}, Fourier {m['shared_shape']['fourier']:.2f} "
+                       f"(in-sample per-cycle Fourier fit {m['fourier_insample_rms_percent']:.2f}); "
                        f"stream latency {m['stream']['latency_per_sample_us_median']:.1f} µs/sample")
         typer.echo(f"wrote {out}/curve.csv, metrics.json, volume.png, pv_loop.png, residuals.png")

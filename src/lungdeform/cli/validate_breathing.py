@@ -34,21 +34,24 @@ def register(apps) -> None:
         m = validate_breathing(data, out, tidal, train_fraction, progress=say)
         for name, r in m["traces"].items():
             typer.echo(f"{name}: PV {r['model_rms_percent']:.2f} %  Lujan {r['lujan_rms_percent']:.2f} %  "
-                       f"Fourier/cycle {r['fourier_rms_percent']:.2f} %")
+                       f"Fourier {r['shared_shape']['fourier']:.2f} %  (in-sample per-cycle Fourier fit "
+                       f"{r['fourier_insample_rms_percent']:.2f} %)")
         for name, err in m["errors"].items():
             typer.echo(f"skipped {name}: {err}", err=True)
-        typer.echo(f"median held-out RMS: PV {figure_or_na(m['median_model_rms_percent'])} %, "
-                   f"Lujan {figure_or_na(m['median_lujan_rms_percent'])} %, "
-                   f"Fourier per cycle {figure_or_na(m['median_fourier_rms_percent'])} % (target PV < 5 %)")
 
         def f(d):
             return " / ".join(figure_or_na(d[k]) for k in MODELS) + " %"
 
-        typer.echo(f"medians PV / Lujan / Fourier: shared shape, no drift {f(m['median_shared_shape_no_drift'])}; "
-                   f"anchored {f(m['median_anchored'])}; per-cycle refit {f(m['median_per_cycle_refit'])}")
+        typer.echo(f"median held-out RMS: PV {figure_or_na(m['median_model_rms_percent'])} %, "
+                   f"Lujan {figure_or_na(m['median_lujan_rms_percent'])} %, "
+                   f"Fourier {figure_or_na(m['median_shared_shape']['fourier'])} % (target PV < 5 %)")
+        typer.echo(f"held-out medians PV / Lujan / Fourier: shared shape, no drift "
+                   f"{f(m['median_shared_shape_no_drift'])}; anchored {f(m['median_anchored'])}")
         typer.echo(f"  as % of each held-out trace's whole range {f(m['median_percent_of_trace_range'])}; "
                    f"regular cycles only {f(m['median_regular_cycles'])}; "
                    f"white-noise floor {figure_or_na(m['median_noise_floor_percent'])} %")
+        typer.echo(f"not held out (each held-out cycle fitted to itself): per-cycle refit "
+                   f"{f(m['in_sample']['median_per_cycle_refit_insample'])}")
         p = m["paired_model_vs_lujan"]
         typer.echo(f"  PV better than Lujan on {p['traces_model_better']} of {p['traces']} traces "
                    f"(median difference {p['median_difference_percent']:+.2f} points)")

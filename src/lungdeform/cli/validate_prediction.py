@@ -31,19 +31,22 @@ def register(apps) -> None:
                                      help="Prediction horizons in ms, comma-separated."),
         strict: bool = typer.Option(False, "--strict", help="Exit with code 3 when a target is not met (for CI)."),
     ):
-        """Predict each trace 100–500 ms ahead, causally; RMS against no prediction and a linear autoregression."""
+        """Predict each trace 100–500 ms ahead, causally; RMS against no prediction and linear autoregressions."""
         check_output(out, [data], folder=True)
 
         m = validate_prediction(data, out, _horizons(horizons), progress=say)
         for name, err in m["errors"].items():
             typer.echo(f"skipped {name}: {err}", err=True)
         typer.echo(f"{m['n_traces']} traces ({m['n_quiet']} quiet); medians of per-trace RMS ratios:")
-        typer.echo("  horizon   model/linear   model/none   linear/none   quiet model/none")
+        typer.echo("  horizon   model/linear   model/linear_plain   model/none   linear/none   linear_plain/none"
+                   "   quiet model/none")
         for h in m["horizons_ms"]:
             a, q = m["medians"][str(h)], m["quiet_medians"][str(h)]
-            cells = [figure_or_na(v, 3) for v in (a["model_over_linear"], a["model_over_none"],
-                                                    a["linear_over_none"], q["model_over_none"])]
-            typer.echo(f"  {h:>5} ms   {cells[0]:>12}   {cells[1]:>10}   {cells[2]:>11}   {cells[3]:>16}")
+            cells = [figure_or_na(v, 3) for v in (a["model_over_linear"], a["model_over_linear_plain"],
+                                                    a["model_over_none"], a["linear_over_none"],
+                                                    a["linear_plain_over_none"], q["model_over_none"])]
+            typer.echo(f"  {h:>5} ms   {cells[0]:>12}   {cells[1]:>18}   {cells[2]:>10}   {cells[3]:>11}"
+                       f"   {cells[4]:>17}   {cells[5]:>16}")
         typer.echo("90 % intervals, medians over traces (width: mean width / RMS of no prediction):")
         typer.echo("  horizon   coverage   width   linear coverage   linear width   score/linear")
         for h in m["horizons_ms"]:

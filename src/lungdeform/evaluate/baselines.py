@@ -2,12 +2,16 @@
 
 Every method here, like the model, maps the end-exhale mesh vertices ``p (n, 3)`` mm to predicted
 vertices at the larger volume (same faces), all in the end-exhale scan's frame after the rigid
-alignment. :func:`measure` then applies the same metrics to every method: exact symmetric surface
-distance to the target surface (area weighted; crop faces optionally left out) and landmark error
-after moving the end-exhale landmarks by the sliding interpolation of the method's surface
-displacement at the kept vertices (:mod:`lungdeform.interior.sliding`: the smoothest field with the
-surface's normal motion; one operator, :func:`landmark_matrix`, shared by all methods), or, for landmark-informed methods, from their
-held-out predictions.
+alignment. Each surface baseline aligns itself (since 0.8): it fits its own translation by iterative
+closest points started from the kept vertices' centroids (:func:`best_translation`; the affine fit's
+own twelve parameters include one), so it does not start from the alignment the model's fit chose
+(``--align joint`` fits a translation with the model's constants). :func:`measure` then applies the
+same metrics to every method: exact symmetric surface distance to the target surface (area
+weighted; crop faces optionally left out) and landmark error after moving the end-exhale landmarks
+by the sliding interpolation of the method's surface displacement at the kept vertices
+(:mod:`lungdeform.interior.sliding`: the smoothest field with the surface's normal motion, which
+reproduces a translation exactly; one operator, :func:`landmark_matrix`, shared by all methods),
+or, for landmark-informed methods, from their held-out predictions.
 
 Landmark-informed references (used only when corresponding landmarks are given, and scored on
 landmarks held out from their fit, k-fold, with the same folds as the landmark-informed model):
@@ -15,16 +19,19 @@ landmarks held out from their fit, k-fold, with the same folds as the landmark-i
 - :func:`affine_landmarks_cv`: the affine fit with the training landmarks added to its least
   squares (same weighting as the model's objective: surface mean square + landmark mean square);
 - :func:`landmark_tps_cv`: no surface at all, the thin-plate spline through the training
-  landmarks' displacements (what the landmarks alone predict).
+  landmarks' displacements (what the landmarks alone predict), its smoothing chosen, like the
+  model's landmark correction's, by cross-validation inside the training landmarks (since 0.8;
+  until then none).
 
 Baselines:
 
-- :func:`no_motion`: the end-exhale surface itself (after the rigid alignment);
+- :func:`no_motion`: the end-exhale surface itself, moved by its own best translation;
 - :func:`affine_fit`: the best affine map (12 parameters) by symmetric iterative closest points;
-- :func:`apex_scaling`: uniform scaling about the apex by ``(V / V_EE)^(1/3)`` (exact volume);
+- :func:`apex_scaling`: uniform scaling about the apex by ``(V / V_EE)^(1/3)`` (exact volume), then
+  its own best translation;
 - :func:`cpd_deformable`: non-physical deformable surface registration, Coherent Point Drift
-  (Myronenko & Song 2010) via ``pycpd`` (MIT), on coordinates normalised to unit RMS radius,
-  beta = 2, alpha = 2 (beta 0.2–1 gave tangential sliding of 15–30 mm on the ITK pair).
+  (Myronenko & Song 2010) on coordinates normalised to unit RMS radius, beta = 2, alpha = 2 (beta
+  0.2–1 gave tangential sliding of 15–30 mm on the ITK pair), after its own best translation.
 """
 
 from __future__ import annotations
@@ -43,6 +50,8 @@ from lungdeform.geometry.distance import SurfaceDistance, barycentric, symmetric
 from lungdeform.geometry.mesh import Surface, as_vertices, farthest_points, thinned
 from lungdeform.interior.interpolate import interpolation_weights
 from lungdeform.interior.sliding import surface_weights
+
+from .folds import select_smoothing
 
 
 def no_motion(surface: Surface) -> np.ndarray:
@@ -71,8 +80,9 @@ def _affine_lsq(src: np.ndarray, dst: np.ndarray, w: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class IcpSettings:
-    """The affine baseline's ICP (:func:`affine_fit`): ``samples`` target points, at most
-    ``iterations`` iterations, stopping when the objective improves by less than ``tol_mm``."""
+    """The ICP of the affine baseline and of every baseline's own translation (:func:`affine_fit`,
+    :func:`best_translation`): ``samples`` target points, at most ``iterations`` iterations,
+    stopping when the objective improves by less than ``tol_mm``."""
 
     samples: int = 6000
     iterations: int = 100
@@ -94,35 +104,30 @@ class CpdSettings:
     seed: int = 0
 
 
-def affine_fit(surface: Surface, target: Surface, icp: IcpSettings = IcpSettings(), *, keep=None, keep_target=None,
-               landmarks=None, landmarks_target=None, landmark_weight: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
-    """Best affine map of ``surface`` onto ``target`` (symmetric ICP with exact closest points, ``icp``).
+def _translation_lsq(src: np.ndarray, dst: np.ndarray, w: np.ndarray) -> np.ndarray:
+    m = np.vstack([np.eye(3), np.zeros((1, 3))])
+    m[3] = np.average(dst - src, axis=0, weights=w)
+    return m  # (4, 3): x' = [x 1] @ m
 
-    Returns ``(predicted vertices (n, 3) mm, matrix (4, 4))``. Each iteration pairs the moved
-    source vertices with their closest target points and target samples with their closest
-    points on the moved source (mapped back through barycentric coordinates), then solves the
-    12-parameter least squares. With ``landmarks`` / ``landmarks_target : (m, 3)`` mm the
-    landmark pairs join the least squares: the objective is the mean of the two one-sided surface
-    mean squares plus ``landmark_weight`` × the landmark mean square (the model's weighting).
-    """
-    samples, iterations, tol_mm = icp.samples, icp.iterations, icp.tol_mm
+
+def _kept(n: int, keep) -> np.ndarray:
+    return np.ones(n, bool) if keep is None else np.asarray(keep, bool)
+
+
+def _icp(surface: Surface, target: Surface, icp: IcpSettings, kept, lm_pairs, solve) -> np.ndarray:
+    """Symmetric ICP with exact closest points from the kept vertices' centroids: the ``(4, 3)`` map
+    ``x' = [x 1] @ m`` that ``solve(src, dst, weights)`` fits (affine or translation). ``kept``: the
+    ``(keep, keep_target)`` masks; ``lm_pairs``: ``(landmarks, targets, weight)`` joining the least squares."""
     p = surface.vertices
-    ks = np.ones(len(p), bool) if keep is None else np.asarray(keep, bool)
-    kt = np.ones(target.n_vertices, bool) if keep_target is None else np.asarray(keep_target, bool)
+    ks, kt = kept
     idx = np.nonzero(kt)[0]
-    idx = idx[thinned(len(idx), samples)]
+    idx = idx[thinned(len(idx), icp.samples)]
     tpts = target.vertices[idx]
     tdist = SurfaceDistance(target.vertices, target.faces)
-    if landmarks is not None:
-        lm_src = as_vertices(landmarks, "landmarks")
-        lm_dst = as_vertices(landmarks_target, "landmarks_target")
-        if lm_src.shape != lm_dst.shape:
-            raise InputError(f"landmarks {lm_src.shape} and landmarks_target {lm_dst.shape} must correspond row by row")
-    else:
-        lm_src = lm_dst = np.zeros((0, 3))
-    m = np.vstack([np.eye(3), np.zeros((1, 3))])
+    lm_src, lm_dst, landmark_weight = lm_pairs
+    m = np.vstack([np.eye(3), target.vertices[kt].mean(axis=0) - p[ks].mean(axis=0)])  # centroids together
     last = np.inf
-    for _ in range(iterations):
+    for _ in range(icp.iterations):
         cur = np.hstack([p, np.ones((len(p), 1))]) @ m
         _, c1, _ = tdist.query(cur[ks])
         sd = SurfaceDistance(cur, surface.faces)
@@ -133,12 +138,55 @@ def affine_fit(surface: Surface, target: Surface, icp: IcpSettings = IcpSettings
         dst = np.vstack([c1, tpts, lm_dst])
         w = np.concatenate([np.full(int(ks.sum()), 0.5 / max(ks.sum(), 1)), np.full(len(tpts), 0.5 / len(tpts)),
                             np.full(len(lm_src), float(landmark_weight) / max(len(lm_src), 1))])
-        m = _affine_lsq(src, dst, w)
+        m = solve(src, dst, w)
         err = float(np.sqrt(np.average(np.concatenate([np.linalg.norm(c1 - cur[ks], axis=1), d2]) ** 2,
                                        weights=w[: len(c1) + len(d2)])))
-        if abs(last - err) < tol_mm:
+        if abs(last - err) < icp.tol_mm:
             break
         last = err
+    return m
+
+
+def best_translation(surface: Surface, target: Surface, icp: IcpSettings = IcpSettings(), *, keep=None,
+                     keep_target=None) -> np.ndarray:
+    """``(3,)`` mm: the translation of ``surface`` onto ``target`` by symmetric ICP (exact closest
+    points, both ways, crop faces left out by ``keep``/``keep_target``), started from the kept
+    vertices' centroids: a baseline's own alignment, whatever frame the two arrive in."""
+    kept = (_kept(surface.n_vertices, keep), _kept(target.n_vertices, keep_target))
+    return _icp(surface, target, icp, kept, (np.zeros((0, 3)), np.zeros((0, 3)), 0.0), _translation_lsq)[3].copy()
+
+
+def self_aligned(surface: Surface, predicted, target: Surface, *, keep=None, keep_target=None,
+                 icp: IcpSettings = IcpSettings()) -> np.ndarray:
+    """``(n, 3)`` mm: a baseline's ``predicted`` vertices (``surface``'s faces) moved by their own
+    :func:`best_translation` onto ``target``."""
+    x = as_vertices(predicted, "predicted")
+    moved = Surface(x, surface.faces, surface.name)
+    return x + best_translation(moved, target, icp, keep=keep, keep_target=keep_target)
+
+
+def affine_fit(surface: Surface, target: Surface, icp: IcpSettings = IcpSettings(), *, keep=None, keep_target=None,
+               landmarks=None, landmarks_target=None, landmark_weight: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Best affine map of ``surface`` onto ``target`` (symmetric ICP with exact closest points, ``icp``,
+    started from the kept vertices' centroids).
+
+    Returns ``(predicted vertices (n, 3) mm, matrix (4, 4))``. Each iteration pairs the moved
+    source vertices with their closest target points and target samples with their closest
+    points on the moved source (mapped back through barycentric coordinates), then solves the
+    12-parameter least squares. With ``landmarks`` / ``landmarks_target : (m, 3)`` mm the
+    landmark pairs join the least squares: the objective is the mean of the two one-sided surface
+    mean squares plus ``landmark_weight`` × the landmark mean square (the model's weighting).
+    """
+    p = surface.vertices
+    if landmarks is not None:
+        lm_src = as_vertices(landmarks, "landmarks")
+        lm_dst = as_vertices(landmarks_target, "landmarks_target")
+        if lm_src.shape != lm_dst.shape:
+            raise InputError(f"landmarks {lm_src.shape} and landmarks_target {lm_dst.shape} must correspond row by row")
+    else:
+        lm_src = lm_dst = np.zeros((0, 3))
+    kept = (_kept(len(p), keep), _kept(target.n_vertices, keep_target))
+    m = _icp(surface, target, icp, kept, (lm_src, lm_dst, landmark_weight), _affine_lsq)
     mat = np.eye(4)
     mat[:3, :3] = m[:3].T
     mat[:3, 3] = m[3]
@@ -184,20 +232,25 @@ def cpd_deformable(surface: Surface, target: Surface, settings: CpdSettings = Cp
 
 
 def landmark_tps_cv(surface: Surface, landmarks, landmarks_target, folds) -> tuple[np.ndarray, np.ndarray]:
-    """Reference without surfaces: the thin-plate spline through the landmark displacements.
+    """Reference without surfaces: the thin-plate spline through the landmark displacements, its
+    smoothing chosen inside the training landmarks as the model's thin-plate landmark correction's
+    is (:func:`lungdeform.evaluate.folds.select_smoothing`: the grid
+    :data:`lungdeform.interior.field.SMOOTHING_MM2`, 5 inner folds).
 
     ``landmarks`` / ``landmarks_target : (m, 3)`` mm; ``folds``: index arrays (e.g.
-    :func:`lungdeform.interior.field.landmark_folds`). Returns ``(surface vertices moved by the spline of all
+    :func:`lungdeform.evaluate.folds.landmark_folds`). Returns ``(surface vertices moved by the spline of all
     landmarks (n, 3) mm, held-out predictions (m, 3) mm)``: each fold's landmarks are predicted by
-    the spline through the other folds only.
+    the spline through the other folds only, with the smoothing those chose.
     """
     a = as_vertices(landmarks, "landmarks")
     b = as_vertices(landmarks_target, "landmarks_target")
+    d = b - a
     held = np.full_like(a, np.nan)
     for test in folds:
         train = np.setdiff1d(np.arange(len(a)), test)
-        held[test] = a[test] + interpolation_weights(a[train], a[test]) @ (b[train] - a[train])
-    moved = surface.vertices + interpolation_weights(a, surface.vertices) @ (b - a)
+        lam = select_smoothing(a[train], d[train])
+        held[test] = a[test] + interpolation_weights(a[train], a[test], smoothing=lam) @ d[train]
+    moved = surface.vertices + interpolation_weights(a, surface.vertices, smoothing=select_smoothing(a, d)) @ d
     return moved, held
 
 

@@ -78,13 +78,14 @@ def protocols(fit: FitOutcome, held: HeldOut, config: FitConfig, grid: bool) -> 
                              "landmarks moved by the sliding interpolation of its surface")
     if config.baselines:
         for name in SURFACE_BASELINES:
-            out[name] = "baseline from the surfaces only; landmarks moved by the same sliding interpolation"
+            out[name] = ("baseline from the surfaces only, aligned by its own translation (ICP from the "
+                         "centroids; the affine fit's own); landmarks moved by the same sliding interpolation")
         if use_lm:
             out["affine_landmarks"] = ("reference: affine fitted on the surfaces and the training landmarks "
                                        "(same weighting and folds as the model); held-out landmark errors")
             out["landmarks_tps"] = ("reference without surfaces: thin-plate spline through the training "
-                                    "landmarks; held-out landmark errors; its surface is that spline applied "
-                                    "to the end-exhale surface")
+                                    "landmarks, its smoothing chosen by inner cross-validation on them; held-out "
+                                    "landmark errors; its surface is that spline applied to the end-exhale surface")
     return out
 
 
@@ -130,16 +131,19 @@ def baseline_methods(target: Target, placed: Placement, landmarks, landmarks_tar
     landmark-informed references on the same ``folds``), as in :func:`model_methods`. Every baseline
     runs (their packages are required), so nothing is added to ``skipped`` here."""
 
-    rest, keep = placed.rest, placed.keep
-    methods = {"no_motion": (B.no_motion(rest), None),
-               "affine": (B.affine_fit(rest, target.surface, keep=keep, keep_target=target.keep)[0], None),
-               "apex_scaling": (B.apex_scaling(rest, target.volume_ml), None)}
-    methods["cpd"] = (B.cpd_deformable(rest, target.surface, keep=keep, keep_target=target.keep), None)
+    rest, kw = placed.rest, {"keep": placed.keep, "keep_target": target.keep}
+    # each baseline aligns itself (its own translation, from the centroids), not by the model's alignment
+    shift = B.best_translation(rest, target.surface, **kw)
+    methods = {"no_motion": (B.no_motion(rest) + shift, None),
+               "affine": (B.affine_fit(rest, target.surface, **kw)[0], None),
+               "apex_scaling": (B.self_aligned(rest, B.apex_scaling(rest, target.volume_ml), target.surface, **kw),
+                                None),
+               "cpd": (B.cpd_deformable(rest.deformed(np.broadcast_to(shift, rest.vertices.shape)), target.surface,
+                                        **kw), None)}
     if held.interior is not None:
         methods["affine_landmarks"] = B.affine_landmarks_cv(rest, target.surface,
                                                             B.LandmarkPairs(landmarks, landmarks_target), folds,
-                                                            keep=keep, keep_target=target.keep,
-                                                            landmark_weight=landmark_weight)
+                                                            **kw, landmark_weight=landmark_weight)
         methods["landmarks_tps"] = B.landmark_tps_cv(rest, landmarks, landmarks_target, folds)
     return methods
 

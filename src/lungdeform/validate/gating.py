@@ -10,16 +10,18 @@ unit as :func:`lungdeform.breathing.trace.read_trace` gives it, inhale positive)
    the same run:
 
    - ``none``: no compensation, the newest sample ``x(t_i)`` inside the window;
-   - ``linear``: the online linear baseline's prediction of ``x(t_i + latency)`` inside;
+   - ``linear``: the online linear baseline's prediction of ``x(t_i + latency)`` inside (the tuned
+     baseline, :func:`lungdeform.breathing.predict.baseline_linear`); ``linear_plain``: the same with
+     the untuned baseline of 0.7 (:func:`lungdeform.breathing.predict.baseline_linear_plain`);
    - ``model``: the model's (:class:`lungdeform.breathing.predict.BlendPredictor`) prediction inside;
    - ``model_intervals``: the model with its conformal predictive distribution
      (:mod:`lungdeform.breathing.predict_interval`): the predicted probability of the window at least
      a threshold adapted online to the tolerated beam-on error (``rule.risk``, α = 0.05;
      :class:`lungdeform.breathing.gating.RiskThreshold`), or fixed at ``min_probability`` without
      ``risk``; with ``confident``, instead the whole ``coverage`` interval inside;
-   - ``linear_intervals``: the linear baseline under the same intervals and the same rule (the
+   - ``linear_intervals``: the tuned linear baseline under the same intervals and the same rule (the
      comparison of the two predictors with everything else equal);
-   - ``oracle``: the true ``x(t_i + latency)`` inside (knows the future: the ceiling);
+   - ``oracle``: the true ``x(t_i + latency)`` inside (knows the future: the ceiling, never a target);
 
 3. scored for every ``t_i`` at least ``warm_s`` (30 s) after the first sample with ``t_i + latency``
    inside the trace (linear interpolation), against the window of ``t_i``: the duty cycle (share of
@@ -27,9 +29,17 @@ unit as :func:`lungdeform.breathing.trace.read_trace` gives it, inhale positive)
    is outside the window) and the residual motion (RMS over beam-on samples of the distance outside
    the window, trace units). Summary: medians over traces.
 
-Also, per trace, ``matched``: the beam-on error of the model-with-intervals gate at the linear
-strategy's duty cycle (its samples of highest predicted window probability, as many as linear's
-beam-on samples; chosen after the fact: a comparison of the two trade-offs, not a gate).
+Every strategy but ``oracle`` decides at ``t_i`` from the samples up to ``t_i`` (tests check it), and
+so does every figure reported as a target. Two comparisons at the linear strategy's duty cycle:
+
+- ``linear_duty_causal`` (a target): the model's window probability against a fixed threshold
+  chosen on the *other* traces (leave one trace out), the highest of :data:`THRESHOLD_GRID` whose
+  median duty cycle over them is at least the linear strategy's median there; scored on the trace
+  left out. Nothing of that trace enters its threshold, and the threshold does not change during it.
+- ``oracle_matched`` (per trace; not a gate, never a target): the beam-on error of the model's
+  ``linear``-many samples of highest window probability, chosen after the fact with the whole
+  trace known (a hindsight ranking: a comparison of the two trade-off curves). Until 0.8 it was
+  ``matched`` and a target.
 
 ``leave_one_trace_out`` (with the adaptive rule): the check of the threshold's step γ, its only setting
 besides the clinical α. For each trace, γ of :data:`GAMMA_GRID` is chosen on the other traces (the
@@ -38,7 +48,8 @@ trace, replaying :class:`lungdeform.breathing.gating.RiskThreshold` on the recor
 probabilities (the predictor never sees the beam, so the replay is what the live gate would decide).
 
 ``metrics.json``: ``{"traces": {NAME: {"none": {"duty_cycle", "beam_on_error", "residual_rms"}, …,
-"matched": {…}}}, "summary": {STRATEGY: {…}}, "targets": {…}, "errors": {…}, …}``.
+"oracle_matched": {…}}}, "summary": {STRATEGY: {…}, "oracle_matched": {…}}, "linear_duty_causal":
+{…}, "leave_one_trace_out": {…}, "targets": {…}, "errors": {…}, …}``.
 """
 
 from __future__ import annotations
@@ -58,14 +69,16 @@ from lungdeform.breathing.gating import (
     distance_outside,
     gate_point,
 )
-from lungdeform.breathing.predict import baseline_linear, check_horizon
+from lungdeform.breathing.predict import baseline_linear, baseline_linear_plain, check_horizon
 from lungdeform.breathing.trace import read_trace
 from lungdeform.errors import InputError, LungdeformError
 from lungdeform.plot.figure import new_figure, save_png
 
 from .breathing import trace_files
 
-STRATEGIES = ("none", "linear", "model", "model_intervals", "linear_intervals", "oracle")
+STRATEGIES = ("none", "linear", "linear_plain", "model", "model_intervals", "linear_intervals", "oracle")
+#: the strategies that decide from the samples up to the decision only (all but the oracle)
+CAUSAL = tuple(k for k in STRATEGIES if k != "oracle")
 METRICS = ("duty_cycle", "beam_on_error", "residual_rms")
 WARM_S = 30.0
 #: must show: model_intervals beam-on error ≤ this × none's, at a duty cycle ≥ DUTY_FLOOR × none's
@@ -73,6 +86,8 @@ TARGET_ERROR_OVER_NONE = 0.5
 TARGET_DUTY_OVER_NONE = 0.9
 #: the adaptive threshold's steps γ among which leave-one-trace-out chooses (the check of the default)
 GAMMA_GRID = (0.002, 0.005, 0.01, 0.02, 0.05)
+#: the fixed window-probability thresholds among which ``linear_duty_causal`` chooses
+THRESHOLD_GRID = tuple(round(0.02 * k, 2) for k in range(1, 50))
 
 
 @dataclass(frozen=True)
@@ -97,7 +112,7 @@ def gate_decisions(t_s, x, config: GatingConfig) -> dict:
     lat = check_horizon(config.latency_ms / 1000.0)
     gate = BeamGate(lat, config.rule)
     dt = float(np.median(np.diff(t)))
-    lin = baseline_linear(lat, dt_s=dt)
+    lin, plain = baseline_linear(lat, dt_s=dt), baseline_linear_plain(lat, dt_s=dt)
     lin_gate = BeamGate(lat, config.rule, point=baseline_linear(lat, dt_s=dt))
     n = t.size
     win, prob, top = np.empty((n, 2)), np.empty(n), np.empty(n)
@@ -108,6 +123,7 @@ def gate_decisions(t_s, x, config: GatingConfig) -> dict:
         top[i] = gate.predictor.probability_below(math.inf)
         dec["none"][i] = gate_point(g.window, v[i])
         dec["linear"][i] = gate_point(g.window, lin.update(t[i], v[i]))
+        dec["linear_plain"][i] = gate_point(g.window, plain.update(t[i], v[i]))
         dec["model"][i] = gate_point(g.window, g.predicted)
         dec["model_intervals"][i] = g.beam_on
         dec["linear_intervals"][i] = lin_gate.update(t[i], v[i]).beam_on
@@ -179,8 +195,9 @@ def gate_metrics(on: np.ndarray, truth: np.ndarray, window: np.ndarray) -> dict:
             "residual_rms": float(np.sqrt(np.mean(out[on] ** 2))), "n_on": int(on.sum())}
 
 
-def matched_error(probability: np.ndarray, truth: np.ndarray, window: np.ndarray, n_on: int) -> float | None:
-    """Beam-on error of the ``n_on`` samples of highest predicted window probability (module doc)."""
+def oracle_matched_error(probability: np.ndarray, truth: np.ndarray, window: np.ndarray, n_on: int) -> float | None:
+    """Beam-on error of the ``n_on`` samples of highest predicted window probability, chosen with the
+    whole trace known (``oracle_matched``, module doc: a hindsight ranking, not a gate)."""
     if n_on <= 0:
         return None
     top = np.argsort(-np.nan_to_num(probability, nan=-1.0), kind="stable")[:n_on]
@@ -188,8 +205,8 @@ def matched_error(probability: np.ndarray, truth: np.ndarray, window: np.ndarray
 
 
 def score_trace(t_s, x, config: GatingConfig) -> dict:
-    """:func:`gate_decisions` scored (protocol step 3): ``{STRATEGY: metrics, "matched": …, "n_scored"}``
-    and ``"_decisions"`` (for the plots)."""
+    """:func:`gate_decisions` scored (protocol step 3): ``{STRATEGY: metrics, "oracle_matched": …,
+    "n_scored"}`` and ``"_decisions"``, ``"_scored"`` (for the plots and the leave-one-trace-out checks)."""
     t = np.asarray(t_s, float)
     if t.size < 2 or t[-1] - t[0] <= config.warm_s:
         raise InputError(f"trace of {t[-1] - t[0]:.1f} s is not longer than the {config.warm_s:g} s warm-up")
@@ -197,35 +214,69 @@ def score_trace(t_s, x, config: GatingConfig) -> dict:
     ok = (t >= t[0] + config.warm_s) & np.isfinite(d["truth"])
     out: dict = {k: gate_metrics(d[k][ok], d["truth"][ok], d["window"][ok]) for k in STRATEGIES}
     n_lin = out["linear"]["n_on"]
-    out["matched"] = {"linear_duty_cycle": out["linear"]["duty_cycle"],
-                      "linear_beam_on_error": out["linear"]["beam_on_error"],
-                      "model_intervals_beam_on_error": matched_error(d["probability"][ok], d["truth"][ok],
-                                                                     d["window"][ok], n_lin)}
+    out["oracle_matched"] = {"linear_duty_cycle": out["linear"]["duty_cycle"],
+                             "linear_beam_on_error": out["linear"]["beam_on_error"],
+                             "model_intervals_beam_on_error": oracle_matched_error(
+                                 d["probability"][ok], d["truth"][ok], d["window"][ok], n_lin)}
     out["n_scored"] = int(ok.sum())
     out["_decisions"], out["_scored"] = d, ok
     return out
 
 
+def _fixed_threshold_rows(scores: dict) -> dict:
+    """Per trace and threshold of :data:`THRESHOLD_GRID`: the metrics of the fixed rule
+    ``probability >= threshold`` on the recorded window probabilities (what the live gate with
+    ``--min-probability`` would decide: the predictor never sees the beam)."""
+    rows = {}
+    for name, r in scores.items():
+        d, ok = r["_decisions"], r["_scored"]
+        prob = np.nan_to_num(d["probability"][ok], nan=-1.0)
+        rows[name] = {tau: gate_metrics(prob >= tau, d["truth"][ok], d["window"][ok]) for tau in THRESHOLD_GRID}
+    return rows
+
+
+def linear_duty_causal(scores: dict) -> dict | None:
+    """The model at the linear strategy's duty cycle, causally (module doc): for each trace the
+    threshold chosen on the other traces, scored on it. None with fewer than two traces."""
+    if len(scores) < 2:
+        return None
+    rows = _fixed_threshold_rows(scores)
+    lin = {n: r["linear"]["duty_cycle"] for n, r in scores.items()}
+    held = {}
+    for name in rows:
+        others = [n for n in rows if n != name]
+        goal = float(np.median([lin[n] for n in others]))
+        ok = [tau for tau in THRESHOLD_GRID if np.median([rows[n][tau]["duty_cycle"] for n in others]) >= goal]
+        tau = max(ok) if ok else THRESHOLD_GRID[0]
+        held[name] = {"threshold": tau, **{m: rows[name][tau][m] for m in ("duty_cycle", "beam_on_error")}}
+    med = {m: float(np.median([_or_one(h[m]) for h in held.values()])) for m in ("duty_cycle", "beam_on_error")}
+    return {"traces": held, "summary": med, "threshold_grid": [THRESHOLD_GRID[0], THRESHOLD_GRID[-1]],
+            "linear": {m: float(np.median([_or_one(r["linear"][m]) for r in scores.values()]))
+                       for m in ("duty_cycle", "beam_on_error")}}
+
+
 def summary(traces: dict) -> dict:
-    """Median over traces of each metric of each strategy (None where no trace has it), and of matched."""
+    """Median over traces of each metric of each strategy (None where no trace has it), and of oracle_matched."""
     def med(vals):
         vals = [v for v in vals if v is not None and math.isfinite(v)]
         return float(np.median(vals)) if vals else None
 
     out = {k: {m: med([r[k][m] for r in traces.values()]) for m in METRICS} for k in STRATEGIES}
-    out["matched"] = {m: med([r["matched"][m] for r in traces.values()]) for m in next(iter(traces.values()))["matched"]}
+    first = next(iter(traces.values()))["oracle_matched"]
+    out["oracle_matched"] = {m: med([r["oracle_matched"][m] for r in traces.values()]) for m in first}
     return out
 
 
-def targets(s: dict) -> dict:
-    """The must-show comparisons on the medians: against no compensation and against linear (its point
-    gate; the linear baseline under the same intervals and rule; and at linear's duty cycle)."""
+def targets(s: dict, causal_matched: dict | None) -> dict:
+    """The must-show comparisons on the medians, each of causal gates only: against no compensation
+    and against linear (its point gate; the linear baseline under the same intervals and rule; and,
+    with two traces or more, at linear's duty cycle with a threshold learned on the other traces)."""
     none, mi, lin = s["none"], s["model_intervals"], s["linear"]
 
     def le(a, b, f=1.0):
         return a is not None and b is not None and a <= f * b
 
-    return {
+    out = {
         "error_vs_none": {"value": mi["beam_on_error"], "threshold": None if none["beam_on_error"] is None
                           else TARGET_ERROR_OVER_NONE * none["beam_on_error"],
                           "met": le(mi["beam_on_error"], none["beam_on_error"], TARGET_ERROR_OVER_NONE)},
@@ -241,10 +292,14 @@ def targets(s: dict) -> dict:
             and le(s["linear_intervals"]["duty_cycle"], mi["duty_cycle"]),
             "beam_on_error": [mi["beam_on_error"], s["linear_intervals"]["beam_on_error"]],
             "duty_cycle": [mi["duty_cycle"], s["linear_intervals"]["duty_cycle"]]},
-        "better_than_linear_at_matched_duty": {
-            "met": le(s["matched"]["model_intervals_beam_on_error"], s["matched"]["linear_beam_on_error"]),
-            "beam_on_error": [s["matched"]["model_intervals_beam_on_error"], s["matched"]["linear_beam_on_error"]]},
     }
+    if causal_matched is not None:
+        c, cl = causal_matched["summary"], causal_matched["linear"]
+        out["better_than_linear_at_linear_duty_causal"] = {
+            "met": le(c["beam_on_error"], cl["beam_on_error"]) and le(cl["duty_cycle"], c["duty_cycle"]),
+            "beam_on_error": [c["beam_on_error"], cl["beam_on_error"]],
+            "duty_cycle": [c["duty_cycle"], cl["duty_cycle"]]}
+    return out
 
 
 def protocol(config: GatingConfig) -> str:
@@ -313,8 +368,9 @@ def validate_gating(data: Path, out: Path, config: GatingConfig | None = None, p
     files = write_plots(scores, config, Path(out) / "plots")
     traces = {n: {k: v for k, v in r.items() if not k.startswith("_")} for n, r in scores.items()}
     s = summary(traces)
-    metrics = {"traces": traces, "summary": s, "targets": targets(s), "n_traces": len(traces),
-               "leave_one_trace_out": leave_one_trace_out(scores, config),
+    causal = linear_duty_causal(scores)
+    metrics = {"traces": traces, "summary": s, "targets": targets(s, causal), "n_traces": len(traces),
+               "linear_duty_causal": causal, "leave_one_trace_out": leave_one_trace_out(scores, config),
                "errors": errors, "latency_ms": config.latency_ms, "window": config.rule.window.text,
                "confident": config.rule.confident, "min_probability": config.rule.min_probability,
                "target_error": None if config.rule.risk is None else config.rule.risk.target_error,

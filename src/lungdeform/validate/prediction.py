@@ -6,14 +6,17 @@ Protocol, per trace (every ``.vxp`` and ``.csv`` trace the breathing commands re
 principal component in mm, the RPM amplitude in cm):
 
 1. each predictor of :data:`lungdeform.breathing.predict.PREDICTORS` (``model``, and the baselines
-   ``none``: the last sample, ``linear``: the online autoregression on the last 2 s trained on the
-   preceding 30 s) runs over the samples in order, causally, once per horizon ``h``;
+   ``none``: the last sample; ``linear``: the online autoregression with the settings searched on the
+   shared traces as the model's were, :data:`lungdeform.breathing.predict.LINEAR_TUNED`;
+   ``linear_plain``: the untuned one of ≤ 0.7, the last 2 s trained on the preceding 30 s) runs over
+   the samples in order, causally, once per horizon ``h``;
 2. the prediction made at a sample time ``t_i`` is scored against the trace at ``t_i + h`` (linear
    interpolation between samples), for every ``t_i`` at least ``warm_s`` (30 s) after the first
    sample and with ``t_i + h`` inside the trace: the first 30 s only warm the predictors up;
-3. per trace and horizon: the RMS of each predictor and the ratios model/linear, model/none,
-   linear/none; over traces, the median of each ratio (and over the quiet-breathing traces, tags N and
-   NO of the marker files' names, ``<date>-<marker>-1-<tag>-<seconds>-6.csv``).
+3. per trace and horizon: the RMS of each predictor and the ratios model/linear, model/linear_plain,
+   model/none, linear/none, linear_plain/none; over traces, the median of each ratio (and over the
+   quiet-breathing traces, tags N and NO of the marker files' names,
+   ``<date>-<marker>-1-<tag>-<seconds>-6.csv``).
 
 4. the model and the linear baseline also give 90 % prediction intervals
    (:class:`lungdeform.breathing.predict_interval.IntervalPredictor`, the same method for both); per
@@ -21,12 +24,15 @@ principal component in mm, the RPM amplitude in cm):
    (mean width over the RMS of no prediction), ``interval_score`` (Gneiting & Raftery 2007, trace units)
    and the same with the prefix ``linear_``; ``interval_score_over_linear``.
 
-Targets (medians of per-trace ratios): model ≤ 0.95 × linear at every horizon; on quiet traces at
-400 ms, model ≤ 0.5 × none; the median coverage within 0.87–0.93 at every horizon. ``metrics.json``::
+Targets (medians of per-trace ratios): model ≤ 0.95 × linear (the tuned baseline) at every horizon;
+on quiet traces at 400 ms, model ≤ 0.5 × none; the median coverage within 0.87–0.93 at every horizon.
+``metrics.json``::
 
     {"traces": {NAME: {"tag": …, "n_samples": …, "horizon_ms": {"400": {"model_rms": …, "none_rms": …,
-                "linear_rms": …, "model_over_linear": …, "coverage": …, "linear_coverage": …, …}, …}}},
-     "medians": {"400": {"model_over_linear": …, "model_over_none": …, "linear_over_none": …}, …},
+                "linear_rms": …, "linear_plain_rms": …, "model_over_linear": …, "coverage": …,
+                "linear_coverage": …, …}, …}}},
+     "medians": {"400": {"model_over_linear": …, "model_over_linear_plain": …, "model_over_none": …,
+                         "linear_over_none": …, "linear_plain_over_none": …}, …},
      "quiet_medians": {…}, "targets": {…}, "errors": {…}, "protocol": "…"}
 """
 
@@ -38,7 +44,15 @@ from pathlib import Path
 import numpy as np
 
 from lungdeform.atomic import write_json
-from lungdeform.breathing.predict import PREDICTORS, BlendPredictor, baseline_linear, predict_trace
+from lungdeform.breathing.predict import (
+    LINEAR_PLAIN,
+    LINEAR_TUNED,
+    PREDICTORS,
+    BlendPredictor,
+    LinearSettings,
+    baseline_linear,
+    predict_trace,
+)
 from lungdeform.breathing.predict_interval import IntervalConfig, interval_score, interval_trace
 from lungdeform.breathing.trace import read_trace
 from lungdeform.errors import InputError, LungdeformError
@@ -64,8 +78,9 @@ TARGET_COVERAGE = (0.87, 0.93)
 #: interval figures of each horizon whose medians over traces are reported
 INTERVAL_KEYS = ("coverage", "linear_coverage", "width_over_none_rms", "linear_width_over_none_rms",
                  "interval_score_over_linear")
-RATIOS = (("model_over_linear", "model", "linear"), ("model_over_none", "model", "none"),
-          ("linear_over_none", "linear", "none"))
+RATIOS = (("model_over_linear", "model", "linear"), ("model_over_linear_plain", "model", "linear_plain"),
+          ("model_over_none", "model", "none"), ("linear_over_none", "linear", "none"),
+          ("linear_plain_over_none", "linear_plain", "none"))
 
 
 def check_horizons(horizons_ms) -> tuple[int, ...]:
@@ -174,13 +189,22 @@ def targets(med: dict, quiet: dict) -> dict:
     }
 
 
+def linear_text(s: LinearSettings) -> str:
+    """A linear baseline's settings in words."""
+    forget = "" if s.half_life_s is None else f" with a forgetting half-life of {s.half_life_s:g} s"
+    memory = f"trained on the preceding {s.train_s:g} s" if s.train_s is not None else "trained on every pair" + forget
+    return f"window {s.window_s:g} s, {memory}, refitted every {s.refit_s:g} s, ridge {s.ridge:g}"
+
+
 def protocol(horizons_ms, warm_s: float) -> str:
     return (f"each predictor runs causally over the trace's samples; the prediction made at t_i is scored "
             f"against the trace at t_i + h (linear interpolation) for t_i >= t_0 + {warm_s:g} s; horizons "
             f"{', '.join(str(h) for h in horizons_ms)} ms; RMS in the trace's own unit; medians over traces of "
             f"per-trace ratios; quiet = marker sessions tagged {' or '.join(QUIET_TAGS)}; none = the last "
-            f"sample; linear = least squares with an intercept on the last 2 s of samples, trained on the "
-            f"preceding 30 s, refitted every 5 s; model = lungdeform.breathing.predict.BlendPredictor; "
+            f"sample; linear = least squares with an intercept on a window of samples, settings "
+            f"{linear_text(LINEAR_TUNED)} (searched on the 16 shared traces as the model's were: "
+            f"scripts/tune_linear_baseline.py); linear_plain = the untuned baseline of <= 0.7, "
+            f"{linear_text(LINEAR_PLAIN)}; model = lungdeform.breathing.predict.BlendPredictor; "
             f"intervals (model and linear) = lungdeform.breathing.predict_interval.IntervalPredictor at "
             f"coverage 0.9, scored on the same samples: coverage, mean width / RMS of none, interval score "
             f"(Gneiting & Raftery 2007)")
