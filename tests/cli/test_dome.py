@@ -1,4 +1,4 @@
-"""``build``/``demo`` ``--dome-mm`` and ``--breathing`` (cli/dome.py): recorded when given, refused with one
+"""``build``/``demo`` ``--dome-mm`` and ``--breathing`` (cli/common.py): recorded when given, refused with one
 line and exit 2 (nothing written) when not a dome excursion, or when the volume cannot produce it."""
 
 import json

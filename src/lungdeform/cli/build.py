@@ -23,19 +23,22 @@ from lungdeform.playback.trajectory import end_exhale_ml, scan_ml
 from lungdeform.segment.split import load_lungs
 
 from .common import (
+    BREATHING_HELP,
     CONSTANTS_HELP,
+    DOME_MM_HELP,
     SIDE_CHECK_HELP,
     bounded,
     check_output,
     check_tidal_ml,
     dicom_input,
+    dome_lines,
+    dome_request,
     option_names,
     parse_orientation,
     say,
     takes,
     tidal_option,
 )
-from .dome import BREATHING_HELP, DOME_MM_HELP, dome_lines, dome_request
 
 
 @dataclass(frozen=True, kw_only=True)

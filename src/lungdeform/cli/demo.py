@@ -9,8 +9,18 @@ import typer
 from lungdeform.errors import InputError
 from lungdeform.playback.demo import run_demo
 
-from .common import CONSTANTS_HELP, check_number, check_tidal_ml, parse_orientation, say, tidal_option
-from .dome import BREATHING_HELP, DOME_MM_HELP, dome_lines, dome_request
+from .common import (
+    BREATHING_HELP,
+    CONSTANTS_HELP,
+    DOME_MM_HELP,
+    check_number,
+    check_tidal_ml,
+    dome_lines,
+    dome_request,
+    parse_orientation,
+    say,
+    tidal_option,
+)
 
 #: Longest playback the demo writes (s): its ParaView series is 20 files (~2.7 MB) per second.
 MAX_DURATION_S = 300.0
