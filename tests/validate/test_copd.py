@@ -4,7 +4,6 @@ mask-only baselines on a two-lung phantom, and the real cases (slow, LUNGDEFORM_
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
