@@ -23,24 +23,18 @@ from __future__ import annotations
 
 import numpy as np
 
-from lungdeform.errors import InputError, LungdeformError
-from lungdeform.geometry.dome import dome_excursion, dome_weights
+from lungdeform.errors import LungdeformError
+from lungdeform.geometry.dome import dome_weights
 from lungdeform.geometry.mesh import Surface
 from lungdeform.geometry.moments import solid_moments
 from lungdeform.model.lung import BuildSettings, build_lung
 
+from .lung_pair import measured_excursion
+
+__all__ = ["ROWS", "dome_row", "dome_scaling", "dome_scaling_row", "measured_excursion"]
+
 #: The rows this module adds, in report order.
 ROWS = ("dome", "dome_scaling")
-
-
-def measured_excursion(rest: Surface, keep, target) -> float | None:
-    """``E`` mm from the smaller-volume ``rest`` (``keep (n,) bool``: its vertices off the crop faces) to the
-    larger-volume ``target`` (a :class:`lungdeform.fit.objective.Target`); None when the scans cut off the apex
-    or the dome."""
-    try:
-        return dome_excursion(rest, target.surface, keep_smaller=keep, keep_larger=target.keep)
-    except InputError:
-        return None
 
 
 def dome_scaling(rest: Surface, volume_ml: float, excursion_mm: float, points) -> tuple[np.ndarray, np.ndarray | None]:
@@ -58,7 +52,7 @@ def dome_row(pair, training):
     """The ``dome`` row, a :data:`lungdeform.validate.single_scan.Predictor`: the lung's default
     (``training.default``) split so that its dome descends the excursion measured from the two masks; None
     when that cannot be measured, when the volume cannot produce it or when the split does not converge."""
-    e = measured_excursion(pair.rest, pair.keep, pair.target)
+    e = pair.dome_mm
     if e is None:
         return None
     delta = pair.volume_ml - pair.rest.volume_ml
@@ -75,5 +69,5 @@ def dome_row(pair, training):
 def dome_scaling_row(pair, training):
     """The ``dome_scaling`` row, a :data:`lungdeform.validate.single_scan.Predictor`: :func:`dome_scaling` by
     the excursion measured from the two masks; None when that cannot be measured."""
-    e = measured_excursion(pair.rest, pair.keep, pair.target)
+    e = pair.dome_mm
     return None if e is None else (*dome_scaling(pair.rest, pair.volume_ml, e, pair.landmarks_rest), {"dome_mm": e})

@@ -40,6 +40,7 @@ from lungdeform.fit.align import CropPlane, RigidTransform, near_planes
 from lungdeform.fit.config import FitInputs
 from lungdeform.fit.objective import Target
 from lungdeform.geometry.distance import SurfaceDistance
+from lungdeform.geometry.dome import dome_excursion
 from lungdeform.geometry.frame import clear_side
 from lungdeform.geometry.mesh import Surface
 from lungdeform.geometry.moments import solid_moments
@@ -100,6 +101,22 @@ class LungPair:
     def target_distance(self) -> SurfaceDistance:
         """Exact distances to the larger-volume surface, built once for every row of the lung."""
         return SurfaceDistance(self.target.surface.vertices, self.target.surface.faces)
+
+    @cached_property
+    def dome_mm(self) -> float | None:
+        """The dome excursion measured from the two scans (:func:`measured_excursion`), once for every row
+        of the lung that is given it."""
+        return measured_excursion(self.rest, self.keep, self.target)
+
+
+def measured_excursion(rest: Surface, keep, target) -> float | None:
+    """``E`` mm from the smaller-volume ``rest`` (``keep (n,) bool``: its vertices off the crop faces) to the
+    larger-volume ``target`` (a :class:`lungdeform.fit.objective.Target`); None when the scans cut off the apex
+    or the dome."""
+    try:
+        return dome_excursion(rest, target.surface, keep_smaller=keep, keep_larger=target.keep)
+    except InputError:
+        return None
 
 
 def isotropic_vertices(rest: Surface, volume_ml: float, points=None) -> tuple[np.ndarray, np.ndarray | None]:
