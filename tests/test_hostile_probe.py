@@ -3,24 +3,15 @@
 
 from __future__ import annotations
 
-import importlib.util
 import signal
-import sys
-from pathlib import Path
 
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "hostile_probe.py"
-
+from tests.script_support import loaded_script
 
 @pytest.fixture(scope="module")
 def probe():
-    spec = importlib.util.spec_from_file_location("hostile_probe", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["hostile_probe"] = module  # dataclasses look their module up while the class is made
-    spec.loader.exec_module(module)
-    yield module
-    sys.modules.pop("hostile_probe", None)
+    yield from loaded_script("hostile_probe")
 
 
 def _case(probe, expect="refuse", **kw):

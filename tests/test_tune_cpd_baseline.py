@@ -6,27 +6,17 @@ end (every lung, every setting) and resumes without refitting a finished lung.""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from lungdeform.evaluate import baselines as B
-
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "tune_cpd_baseline.py"
-
+from tests.script_support import loaded_script
 
 @pytest.fixture(scope="module")
 def tune():
-    spec = importlib.util.spec_from_file_location("tune_cpd_baseline", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["tune_cpd_baseline"] = module
-    spec.loader.exec_module(module)
-    yield module
-    sys.modules.pop("tune_cpd_baseline", None)
+    yield from loaded_script("tune_cpd_baseline")
 
 
 def _lungs(table):

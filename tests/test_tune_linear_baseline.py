@@ -6,26 +6,16 @@ replay must be that predictor (a faster way to run it), or the search tuned some
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from lungdeform.breathing.predict import LINEAR_PLAIN, LINEAR_TUNED
-
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "tune_linear_baseline.py"
-
+from tests.script_support import loaded_script
 
 @pytest.fixture(scope="module")
 def tune():
-    spec = importlib.util.spec_from_file_location("tune_linear_baseline", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["tune_linear_baseline"] = module  # dataclasses look their module up while the class is made
-    spec.loader.exec_module(module)
-    yield module
-    sys.modules.pop("tune_linear_baseline", None)
+    yield from loaded_script("tune_linear_baseline")
 
 
 @pytest.mark.parametrize("setting", [("sliding", 15.0, 5.0, 0.0), ("sliding", 30.0, 0.5, 1e-3),
