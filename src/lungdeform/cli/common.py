@@ -596,10 +596,15 @@ def check_breath(flags: BreathFlags, state_given: bool) -> None:
     if state_given:
         raise InputError("--phases with --volume-ml or --scan: give one breathing state or the phases of one breath")
     check_phases(flags.phases)
-    if flags.phase is not None and not 0 <= flags.phase < flags.phases:
-        raise InputError(f"--phase must be 0 to {flags.phases - 1} (a phase of --phases {flags.phases}), got {flags.phase}")
+    check_phase_index(flags.phases, flags.phase)
     check_zero(flags.phase_zero)
     check_trace_options(flags.curve, flags.preset, flags.cycles, flags.tidal_ml)
+
+
+def check_phase_index(phases: int, phase: int | None) -> None:
+    """``--phase K`` (None: every phase) is one of the ``--phases N``: 0 to N − 1."""
+    if phase is not None and not 0 <= phase < phases:
+        raise InputError(f"--phase must be 0 to {phases - 1} (a phase of --phases {phases}), got {phase}")
 
 
 def check_trace_options(curve, preset, cycles, tidal_ml) -> None:

@@ -34,6 +34,7 @@ from .common import (
     breath_trace,
     check_cycles,
     check_output,
+    check_phase_index,
     check_tidal_ml,
     dicom_input,
     takes,
@@ -265,8 +266,8 @@ def _check_phase(phases, phase, zero: str) -> None:
     check_zero(zero)
     if phase is not None and phases is None:
         raise InputError(f"--phase goes with --phases N (the phases of {BREATH_HINT})")
-    if phase is not None and not 0 <= phase < phases:
-        raise InputError(f"--phase must be 0 to {phases - 1} (a phase of --phases {phases}), got {phase}")
+    if phase is not None:
+        check_phase_index(phases, phase)
 
 
 def _check_rigid(name, rtstruct) -> None:
