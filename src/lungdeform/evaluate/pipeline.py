@@ -74,7 +74,7 @@ def run_fit(inputs: FitInputs, out: Path, config: FitConfig = FitConfig(), *,
     the alignment asked, used and why; for a 4-D CT ``metrics["cycle"]`` its phases, Frame of
     Reference and hysteresis (:attr:`lungdeform.evaluate.inputs.ReadInputs.cycle`). ``progress``: called with one
     line of text per step. ``prior``: a population motion prior (:mod:`lungdeform.interior.motion_prior`)
-    folded into the correspondence field (``config.interior == "correspondence"`` only)."""
+    added to the correspondence field, tapered to zero at the surface (``config.interior == "correspondence"`` only)."""
 
     run = fit_pipeline(inputs, config, progress=progress, prior=prior)
     metrics = fit_metrics(run)
