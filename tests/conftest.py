@@ -17,6 +17,35 @@ def rng() -> np.random.Generator:
 
 
 @pytest.fixture(scope="session")
+def traces_validated(data_dir, tmp_path_factory):
+    """``run(command, *extra) -> (exit code, metrics dict, OUT)``: a ``lungdeform validate …`` command
+    (``DATA`` standing for the shared breathing traces, ``OUT`` for a fresh folder, ``extra`` options
+    appended) run once per session, whichever test asks first; its outputs are only read.
+
+    Why: the real-data tests of ``validate breathing``, ``gating`` and ``prediction`` and the test of
+    the documented tables (tests/test_docs_figures.py) read the same runs, a few minutes of CI each."""
+    import json
+    import shlex
+
+    from lungdeform.cli.main import main
+
+    traces = require_path(data_dir, "breathing-traces")
+    runs = {}
+
+    def run(command: str, *extra: str):
+        key = (command, *extra)
+        if key not in runs:
+            out = tmp_path_factory.mktemp("validated") / "out"
+            tokens = [traces.as_posix() if t == "DATA" else out.as_posix() if t == "OUT" else t for t in shlex.split(command)]
+            assert tokens[:2] == ["lungdeform", "validate"], command
+            code = main([*tokens[1:], *extra])
+            runs[key] = (code, json.loads((out / "metrics.json").read_text(encoding="utf-8")), out)
+        return runs[key]
+
+    return run
+
+
+@pytest.fixture(scope="session")
 def data_dir() -> Path:
     """``$LUNGDEFORM_DATA`` (the shared real-data folder), or skip."""
     value = os.environ.get("LUNGDEFORM_DATA")

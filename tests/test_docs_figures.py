@@ -4,9 +4,9 @@ compared with the document.
 Why (issue 39): a figure in the docs is only worth what the command behind it gives today; renamed
 keys, a changed baseline or protocol, and a table copied from an older run all drift silently. Each
 checked table follows a marker in the document, ``<!-- figures NAME: lungdeform … -->``, that names
-the command producing it; this test runs that command (on ``LUNGDEFORM_DATA``) and compares every
-figure of the table with the metrics it wrote, at the precision the table prints (about 4 minutes
-in all on the shared 2-core machine under load, most of it ``validate breathing``). The fit tables
+the command producing it; this test runs that command (on ``LUNGDEFORM_DATA``; the runs are shared
+with the real-data tests of each command, ``traces_validated`` in tests/conftest.py) and compares every
+figure of the table with the metrics it wrote, at the precision the table prints. The fit tables
 (``validate copd``: five cases, each a full fit of both lungs; ``validate itk-pair``: the 5-fold run
 with 300 evaluations) take too long for the suite; they carry no marker, and name their command
 beside them.
@@ -14,15 +14,11 @@ beside them.
 
 from __future__ import annotations
 
-import json
 import re
-import shlex
 from pathlib import Path
 
 import pytest
 
-from lungdeform.cli.main import main
-from tests.conftest import require_path
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"
 MARKER = re.compile(r"<!-- figures (?P<name>[\w-]+): (?P<command>lungdeform [^>]*?) -->")
@@ -61,13 +57,6 @@ def agrees(cell: str, value) -> bool:
     return value is not None and abs(round(float(value), decimals) - shown) < 0.5 * 10 ** -decimals + 1e-12
 
 
-def run_marked(command: str, data: Path, out: Path, *extra: str) -> dict:
-    """Run a marker's command with ``DATA`` and ``OUT`` filled in (and ``extra`` options); its metrics."""
-    tokens = [data.as_posix() if t == "DATA" else out.as_posix() if t == "OUT" else t for t in shlex.split(command)]
-    assert main([*tokens[1:], *extra]) in (0, 3)  # 3: --strict only; a target may be honestly unmet
-    return json.loads((out / "metrics.json").read_text(encoding="utf-8"))
-
-
 def test_every_marker_has_a_table_and_a_command_this_test_checks():
     # why: a marker this test does not know would be a table nobody checks
     found = {n for doc in DOCS.glob("*.md") for n in marked_tables(doc)}
@@ -83,10 +72,11 @@ PREDICTION_COLUMNS = ("model_over_linear", "model_over_linear_plain", "model_ove
 
 @pytest.mark.realdata
 @pytest.mark.slow
-def test_prediction_table_is_what_validate_prediction_gives(tmp_path, data_dir):
-    # the table of docs/PREDICTION.md, at two of its horizons (the others cost as much again each)
+def test_prediction_table_is_what_validate_prediction_gives(traces_validated):
+    # the table of docs/PREDICTION.md, every horizon (the run is shared with tests/validate/test_prediction.py)
     command, rows = marked_tables(DOCS / "PREDICTION.md")["prediction"]
-    m = run_marked(command, require_path(data_dir, "breathing-traces"), tmp_path / "out", "--horizons", "100,400")
+    code, m, _ = traces_validated(command)
+    assert code == 0
     checked = 0
     for row in rows:
         h = str(int(number(row[0])[0]))
@@ -96,15 +86,17 @@ def test_prediction_table_is_what_validate_prediction_gives(tmp_path, data_dir):
         for cell, value in zip(row[1:], values):
             assert agrees(cell, value), (h, cell, value)
             checked += 1
-    assert checked == 12
+    assert checked == 6 * len(rows) == 30
 
 
 @pytest.mark.realdata
 @pytest.mark.slow
-def test_gating_table_is_what_validate_gating_gives(tmp_path, data_dir):
+def test_gating_table_is_what_validate_gating_gives(traces_validated):
     # the default run's rows of docs/PREDICTION.md's gating table: every strategy, causal and oracle
+    # (the run is shared with tests/validate/test_gating.py)
     command, rows = marked_tables(DOCS / "PREDICTION.md")["gating"]
-    m = run_marked(command, require_path(data_dir, "breathing-traces"), tmp_path / "out")
+    code, m, _ = traces_validated(command)
+    assert code == 0
     names = [re.match(r"[\w]+", r[0]).group(0) for r in rows]
     assert set(names) == set(m["summary"]) - {"oracle_matched"}
     for name, row in zip(names, rows):
@@ -120,10 +112,13 @@ BREATHING_ROWS = {"shared shape": "median_shared_shape", "no drift": "median_sha
 
 @pytest.mark.realdata
 @pytest.mark.slow
-def test_breathing_table_is_what_validate_breathing_gives(tmp_path, data_dir):
+def test_breathing_table_is_what_validate_breathing_gives(traces_validated):
     # docs/METHOD_NOTES.md's held-out table: medians over the 16 traces, and the in-sample row apart
+    # (run with --strict, which changes only the exit code: 3, the target is not met; the run is
+    # shared with tests/cli/test_validate_breathing.py)
     command, rows = marked_tables(DOCS / "METHOD_NOTES.md")["breathing"]
-    m = run_marked(command, require_path(data_dir, "breathing-traces"), tmp_path / "out")
+    code, m, _ = traces_validated(command, "--strict")
+    assert code == 3
     seen = set()
     for row in rows:
         label = row[0].lower()

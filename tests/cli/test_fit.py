@@ -265,15 +265,17 @@ def test_correspondence_interior_and_motion_prior(tmp_path, capsys):
     # truth: the end-inhale lung is the end-exhale one expanded 15 % about its centroid, and so are
     # its interior landmarks; the correspondence interior (moment affine + smooth map) carries them
     # within a small fraction of their motion, the model file keeps the map, and a motion prior of a
-    # pure offset moves every surface-only prediction by exactly that offset (it is affine and folds
-    # into the field's affine part)
-    from lungdeform.interior.motion_prior import MotionPrior, save_prior
+    # pure offset moves every surface-only prediction by exactly that offset times the prior's taper
+    # at the landmark's depth, and leaves the model's surface where the field puts it (the taper is 0
+    # there: the lung keeps its surface and volume change)
+    from lungdeform.interior.motion_prior import MotionPrior, save_prior, taper_at
 
     lung = ellipsoid_lung("right")
     c = lung.vertices.mean(axis=0)
     a = write_mesh(tmp_path / "ee.ply", lung.vertices, lung.faces)
     b = write_mesh(tmp_path / "ei.ply", c + 1.15 * (lung.vertices - c), lung.faces)
     lm = c + np.random.default_rng(3).uniform(-1, 1, size=(12, 3)) * np.array([20.0, 35.0, 55.0])
+    lm = np.r_[lm, c + 0.97 * (lung.vertices[:: len(lung.vertices) // 4][:4] - c)]  # and 4 just below the surface
     la = write_elastix_points(tmp_path / "ee.txt", lm)
     lb = write_elastix_points(tmp_path / "ei.txt", c + 1.15 * (lm - c))
     common = ["--side", "right", "--evaluations", "40", "--no-baselines", "--no-stiffness", "--landmarks", str(la),
@@ -286,9 +288,14 @@ def test_correspondence_interior_and_motion_prior(tmp_path, capsys):
     assert load_model(tmp_path / "plain" / "model.npz").lungs["right"].interior_map is not None
     prior = save_prior(tmp_path / "prior.json", MotionPrior(np.r_[[[0.0, -3.0, 1.0]], np.zeros((3, 3))], ("x", "y")))
     assert main(["fit", str(a), str(b), "--out", str(tmp_path / "prior"), "--motion-prior", str(prior), *common]) == 0
+    plain, fitted = (load_model(tmp_path / k / "model.npz").lungs["right"] for k in ("plain", "prior"))
+    w = taper_at(lm, fitted.surface)
+    assert w.min() < 0.9 and w.max() > 0.5  # some landmarks in the taper, some deep: both are checked
     with np.load(tmp_path / "plain" / "landmarks.npz") as p0, np.load(tmp_path / "prior" / "landmarks.npz") as p1:
-        np.testing.assert_allclose(p1["surface_only"] - p0["surface_only"], np.broadcast_to([0.0, -3.0, 1.0], (1, 12, 3)),
+        np.testing.assert_allclose(p1["surface_only"] - p0["surface_only"], w[None, :, None] * [0.0, -3.0, 1.0],
                                    atol=1e-6)
+    v = fitted.surface.vertices
+    np.testing.assert_allclose(fitted.interior_map(v), plain.interior_map(v), atol=1e-9)
     capsys.readouterr()
     assert main(["fit", str(a), str(b), "--out", str(tmp_path / "o3"), "--motion-prior", str(prior),
                  "--interior", "sliding", *common]) == 2

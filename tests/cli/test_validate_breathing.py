@@ -9,7 +9,6 @@ import pytest
 
 from lungdeform.cli.main import main
 from tests.cli.test_breathe import _synthetic_trace
-from tests.conftest import require_path
 
 MODELS = {"model", "lujan", "fourier"}
 
@@ -53,14 +52,13 @@ def test_validate_breathing_bad_folders(tmp_path, capsys):
 
 @pytest.mark.realdata
 @pytest.mark.slow
-def test_validate_breathing_real_traces(data_dir, tmp_path):
-    # real data: the 16 shared traces (RPM + external markers), held-out cycles
-    traces = require_path(data_dir, "breathing-traces")
-    out = tmp_path / "val"
+def test_validate_breathing_real_traces(traces_validated):
+    # real data: the 16 shared traces (RPM + external markers), held-out cycles (the run is shared
+    # with tests/test_docs_figures.py, which checks docs/METHOD_NOTES.md's table against it)
     # --strict: the median target (< 5 %) is not met on the real traces, so exit code 3, with every
     # output written first
-    assert main(["validate", "breathing", "--data", str(traces), "--out", str(out), "--strict"]) == 3
-    m = json.loads((out / "metrics.json").read_text())
+    code, m, _ = traces_validated("lungdeform validate breathing --data DATA --out OUT", "--strict")
+    assert code == 3
     assert not m["median_model_rms_percent"] < m["target_median_model_rms_percent"]
     assert len(m["traces"]) == 16 and not m["errors"]
     # The target (median < 5 %) is NOT met (measured 8.9 % of the breath amplitude, 4.5 % of

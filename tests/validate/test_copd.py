@@ -152,10 +152,22 @@ def test_real_case_model_surface_below_no_motion(data_dir, tmp_path):
         assert row["model"]["surface_mean_mm"] < row["no_motion"]["surface_mean_mm"]
 
 
-def _landmark_file(folder, rng, offset, own):
-    # what a correspondence fit writes (lungdeform.evaluate.pipeline.write_landmark_motion): residual =
-    # a shared offset plus the subject's own part
+@pytest.fixture(scope="module")
+def big_lungs():
+    # a model of two 250 mm spheres about the origin: every landmark of _landmark_file lies deeper
+    # than the motion prior's taper (30 mm), so the prior plays at full weight there
+    from lungdeform.geometry.mesh import icosphere
+    from lungdeform.model.lung import build_model
+    return build_model({side: icosphere(3, 250.0) for side in ("left", "right")})
+
+
+def _landmark_file(folder, rng, offset, own, model):
+    # what a correspondence fit writes (lungdeform.evaluate.pipeline.write_landmark_motion, and the
+    # model file beside it, whose surface the prior tapers over): residual = a shared offset plus the
+    # subject's own part
+    from lungdeform.io.modelfile import save_model
     folder.mkdir(parents=True)
+    save_model(folder / "model.npz", model)
     pts = rng.normal(scale=30.0, size=(20, 3))
     pts -= pts.mean(axis=0)  # centred on the lung: a constant residual leaves the prior's linear part at 0
     surface_only = pts + rng.normal(size=(20, 3))
@@ -164,7 +176,7 @@ def _landmark_file(folder, rng, offset, own):
              scale=np.array([30.0, 30.0, 30.0]))
 
 
-def test_motion_prior_is_scored_leave_one_subject_out(tmp_path, rng):
+def test_motion_prior_is_scored_leave_one_subject_out(tmp_path, rng, big_lungs):
     # truth: every lung's residual is a shared offset (0, -5, 2) mm plus a subject's own offset; a case
     # is scored by the prior of the other cases only, so its own offset is never learned from it:
     # the error left on case A is |own_A - mean(own of the others)| exactly, and priors/A.json names
@@ -175,7 +187,8 @@ def test_motion_prior_is_scored_leave_one_subject_out(tmp_path, rng):
     for name, o in own.items():
         for side in ("left", "right"):
             mirrored = o * ([-1.0, 1.0, 1.0] if side == "left" else 1.0)
-            _landmark_file(tmp_path / name / side, rng, shared * ([-1.0, 1.0, 1.0] if side == "left" else 1.0), mirrored)
+            _landmark_file(tmp_path / name / side, rng, shared * ([-1.0, 1.0, 1.0] if side == "left" else 1.0), mirrored,
+                           big_lungs)
             cases.setdefault(name, {})[side] = {"model_surface_only": {"landmark_mean_mm": -1.0}}
     done = C.apply_loso_priors(tmp_path, cases)
     assert done["applied"]
@@ -190,9 +203,9 @@ def test_motion_prior_is_scored_leave_one_subject_out(tmp_path, rng):
     assert json.loads((tmp_path / "motion_prior.json").read_text())["subjects"] == sorted(own)
 
 
-def test_motion_prior_needs_two_cases(tmp_path, rng):
+def test_motion_prior_needs_two_cases(tmp_path, rng, big_lungs):
     # one case has no other subject to learn from: nothing is scored, and the rows stay as they were
-    _landmark_file(tmp_path / "copd1" / "left", rng, np.zeros(3), np.zeros(3))
+    _landmark_file(tmp_path / "copd1" / "left", rng, np.zeros(3), np.zeros(3), big_lungs)
     cases = {"copd1": {"left": {"model_surface_only": {"landmark_mean_mm": 4.0}}}}
     done = C.apply_loso_priors(tmp_path, cases)
     assert not done["applied"] and "at least 2 cases" in done["reason"]

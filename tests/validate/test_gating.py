@@ -9,7 +9,6 @@ from lungdeform.breathing.gating import GateRule
 from lungdeform.errors import InputError
 from lungdeform.validate import gating as G
 from tests.breathing.test_trace import breath, write_marker_csv
-from tests.conftest import require_path
 
 
 def _breath(rng, seconds=120.0):
@@ -135,10 +134,12 @@ def test_validate_gating_writes_the_layout_of_the_spec(tmp_path, rng):
 
 @pytest.mark.realdata
 @pytest.mark.slow
-def test_shared_traces_meet_the_gating_targets(tmp_path, data_dir):
+def test_shared_traces_meet_the_gating_targets(traces_validated):
     # issue 28, on the shared traces (medians, 300 ms, end-exhale 30 %): model with intervals has at most
-    # half the beam-on error of no compensation at 0.9 × its duty cycle or more
-    m = G.validate_gating(require_path(data_dir, "breathing-traces"), tmp_path / "out")
+    # half the beam-on error of no compensation at 0.9 × its duty cycle or more (the default run,
+    # shared with tests/test_docs_figures.py)
+    code, m, _ = traces_validated("lungdeform validate gating --data DATA --out OUT")
+    assert code == 0
     t = m["targets"]
     assert m["n_traces"] == 16 and t["error_vs_none"]["met"] and t["duty_vs_none"]["met"]
     # with the same intervals and the same adaptive rule, the model gates more and errs less than the

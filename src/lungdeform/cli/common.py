@@ -566,10 +566,11 @@ PRESETS_HELP = "normal, deep, copd, restrictive, dyspnoea or pneumothorax"
 
 @dataclass(frozen=True, kw_only=True)
 class BreathFlags:
-    """The breathing options of warp and dvf (an option group of :func:`lungdeform.cli.common.takes`)."""
+    """The breathing options of warp, dvf and track (an option group of :func:`lungdeform.cli.common.takes`;
+    track also samples a breath at ``--fps`` without ``--phases``)."""
 
-    curve: Annotated[Path | None, typer.Option("--curve", help="Breathing curve CSV (t_s, volume_ml above end-exhale, …; 'lungdeform breathe' writes one); with --phases.")] = None
-    preset: Annotated[str | None, typer.Option("--preset", help=f"Breathing preset of the PV model ({PRESETS_HELP}); with --phases.")] = None
+    curve: Annotated[Path | None, typer.Option("--curve", help="Breathing curve CSV (t_s, volume_ml above end-exhale, …; 'lungdeform breathe' writes one); with --phases (track: or frames at --fps).")] = None
+    preset: Annotated[str | None, typer.Option("--preset", help=f"Breathing preset of the PV model ({PRESETS_HELP}); with --phases (track: or frames at --fps).")] = None
     cycles: Annotated[int | None, typer.Option("--cycles", help="With --preset: whole breaths (default 1).")] = None
     tidal_ml: Annotated[float | None, typer.Option("--tidal-ml", callback=tidal_option, help="Tidal volume, both lungs (mL): of the plain cycle (default the model's own, else 500) or the --preset rescaled to it.")] = None
     phases: Annotated[int | None, typer.Option("--phases", help="This many states evenly over one breath of --curve, --preset or the plain cycle (phase 0 end-inhale).")] = None

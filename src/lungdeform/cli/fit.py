@@ -66,7 +66,7 @@ class FitOptions:
         "interpolation of the fitted surface's normal motion) or auto "
         "(correspondence unless the scans are cropped).")] = "auto"
     motion_prior: Annotated[Path | None, typer.Option("--motion-prior", help="A population motion prior (JSON, e.g. the motion_prior.json "
-        "of validate copd) folded into the correspondence field.")] = None
+        "of validate copd) added to the correspondence field, tapered to zero at the surface (30 mm).")] = None
     refine_mm: Annotated[float, typer.Option("--refine-mm", callback=bounded(0, 100, "mm"), help="Finest smoothing width (mm) of the surface refinement, which brings "
         "the fitted displacement onto the target surfaces (docs/FITTING.md); "
         "0: none (the fitted k·F·d only).")] = 5.0

@@ -25,17 +25,17 @@ from lungdeform.io.modelfile import load_model
 from lungdeform.playback import structures as R
 from lungdeform.playback import trajectory as T
 from lungdeform.playback.displacement_field import scan_state, volume_state
-from lungdeform.playback.phases import PHASE_ZERO_HELP, check_zero, phase_schedule, scan_phase_text
+from lungdeform.playback.phases import check_zero, phase_schedule, scan_phase_text
 
 from .common import (
     BREATH_HINT,
+    BreathFlags,
     SeriesFlags,
     bounded,
     breath_trace,
-    check_cycles,
     check_output,
     check_phase_index,
-    check_tidal_ml,
+    check_trace_options,
     dicom_input,
     takes,
     without_alignment,
@@ -55,18 +55,12 @@ class TrackOptions:
     points: Annotated[Path | None, typer.Option("--points", help="Points to track, mm LPS of the scan the model was built from: CSV x_mm,y_mm,z_mm[,label] or an elastix 'point' file.")] = None
     out: Annotated[Path, typer.Option("--out", help="Output folder: trajectories.csv, points.json, motion.png.")]
     volume_ml: Annotated[list[float], typer.Option("--volume-ml", help="Absolute volume of the model's lungs together (mL); repeat for several.")] = field(default_factory=list)
-    curve: Annotated[Path | None, typer.Option("--curve", help="Breathing curve CSV (t_s, volume_ml, …) from 'lungdeform breathe'.")] = None
-    preset: Annotated[str | None, typer.Option("--preset", help="Breathing preset of the PV model: normal, deep, copd, restrictive, dyspnoea or pneumothorax.")] = None
-    cycles: Annotated[int | None, typer.Option("--cycles", help="With --preset: whole breaths (default 1).")] = None
-    tidal_ml: Annotated[float | None, typer.Option("--tidal-ml", help="Tidal volume, both lungs (mL): of the plain cycle (default the model's own, else 500) or the --preset rescaled to it.")] = None
-    fps: Annotated[float, typer.Option("--fps", help="Frames per second sampled from a curve, preset or plain cycle.")] = 25.0
+    breath: BreathFlags = BreathFlags()  # --curve, --preset, --cycles, --tidal-ml, --phases, --phase, --phase-zero
+    fps: Annotated[float, typer.Option("--fps", help="Frames per second sampled from a curve, preset or plain cycle (without --phases).")] = 25.0
     lung: Annotated[str | None, typer.Option("--lung", help="Put every point in this lung (default: the lung containing it, else the nearest).")] = None
     skip_invalid: Annotated[bool, typer.Option("--skip-invalid", help="Track the valid rows of a points CSV, leaving out (and listing) rows without finite x_mm,y_mm,z_mm; by default such a row is an error.")] = False
     rtstruct: Annotated[Path | None, typer.Option("--rtstruct", help="DICOM RTSTRUCT file (instead of --points): track the contour points of --structure.")] = None
     structure: Annotated[str | None, typer.Option("--structure", help="With --rtstruct: the ROI name (e.g. GTV).")] = None
-    phases: Annotated[int | None, typer.Option("--phases", help="With --curve, --preset or the plain cycle: this many states evenly over one breath instead of frames at --fps (phase 0 end-inhale).")] = None
-    phase: Annotated[int | None, typer.Option("--phase", help="With --phases N: only phase K (0 to N-1) of them.")] = None
-    phase_zero: Annotated[str, typer.Option("--phase-zero", help=PHASE_ZERO_HELP)] = "end-inhale"
     rigid_structure: Annotated[str | None, typer.Option("--rigid-structure", help="With --rtstruct: this ROI (e.g. GTV, usually --structure itself) moves rigidly, keeping its volume, as 'warp --rigid-structure' keeps it in the image; points near it follow its motion over --rigid-border-mm (docs/RADIOTHERAPY.md, \"A rigid tumour\").")] = None
     rigid_border_mm: Annotated[float, typer.Option("--rigid-border-mm", callback=bounded(0, 100, "mm", low_open=True), help="With --rigid-structure: width (mm) over which its rigid motion is blended back into the field.")] = 10.0
     out_rtstruct: Annotated[Path | None, typer.Option("--out-rtstruct", help="Write the moved structure, one ROI per volume or phase (NAME@TAG), as an RTSTRUCT on --reference-ct.")] = None
@@ -85,14 +79,14 @@ def register(apps) -> None:
         Without --volume-ml, --curve or --preset: one plain 4 s cosine breath of the model's tidal volume (500 mL)."""
 
 
-        _check_schedule(opts.volume_ml, opts.curve, opts.preset, opts.cycles, opts.tidal_ml, opts.fps)
-        _check_phase(opts.phases, opts.phase, opts.phase_zero)
+        _check_schedule(opts.volume_ml, opts.breath, opts.fps)
+        _check_phase(opts.breath.phases, opts.breath.phase, opts.breath.phase_zero)
         _check_rigid(opts.rigid_structure, opts.rtstruct)
-        _check_scan(opts.scan, opts.no_rigid, opts.volume_ml or opts.curve or opts.preset, opts.phases)
-        _check_structure_options(opts.points, opts.rtstruct, opts.structure, opts.out_rtstruct, opts.reference_ct, opts.phases,
+        _check_scan(opts.scan, opts.no_rigid, opts.volume_ml or opts.breath.curve or opts.breath.preset, opts.breath.phases)
+        _check_structure_options(opts.points, opts.rtstruct, opts.structure, opts.out_rtstruct, opts.reference_ct, opts.breath.phases,
                                  opts.volume_ml or ([] if opts.scan is None else [opts.scan]))
-        _check_out_rtstruct(opts.out_rtstruct, opts.model, opts.points, opts.rtstruct, opts.curve)
-        check_output(opts.out, [opts.model, opts.points, opts.rtstruct, opts.curve, opts.reference_ct], folder=True,
+        _check_out_rtstruct(opts.out_rtstruct, opts.model, opts.points, opts.rtstruct, opts.breath.curve)
+        check_output(opts.out, [opts.model, opts.points, opts.rtstruct, opts.breath.curve, opts.reference_ct], folder=True,
                      writes=("trajectories.csv", "points.json", "motion.png", "structure_motion.csv"))
         series = opts.dicom.choice()
         dicom_input(opts.reference_ct, series, "--reference-ct")
@@ -104,9 +98,9 @@ def register(apps) -> None:
         else:
             (pts, labels), source = _read_points(opts.points, opts.skip_invalid), str(opts.points)
         placement = T.place_points(m, pts, opts.lung, source=source)
-        frames, tags, matrix = _frames(m, dict(volume_ml=opts.volume_ml, scan=opts.scan, no_rigid=opts.no_rigid, phases=opts.phases,
-                                               curve=opts.curve, preset=opts.preset, cycles=opts.cycles, tidal_ml=opts.tidal_ml, fps=opts.fps,
-                                               phase=opts.phase, zero=opts.phase_zero),
+        frames, tags, matrix = _frames(m, dict(volume_ml=opts.volume_ml, scan=opts.scan, no_rigid=opts.no_rigid, phases=opts.breath.phases,
+                                               curve=opts.breath.curve, preset=opts.breath.preset, cycles=opts.breath.cycles, tidal_ml=opts.breath.tidal_ml, fps=opts.fps,
+                                               phase=opts.breath.phase, zero=opts.breath.phase_zero),
                                        len(pts), source)
         rigid_read = tracked if opts.rigid_structure in (None, opts.structure) else R.read_structure(opts.rtstruct, opts.rigid_structure)
         rigid = None if opts.rigid_structure is None else R.rigid_structure(
@@ -284,19 +278,20 @@ def _check_scan(scan, no_rigid: bool, other_schedule, phases) -> None:
         raise InputError("--no-rigid applies to --scan (the fit's alignment of that scan)")
 
 
-def _check_schedule(volume_ml, curve, preset, cycles, tidal_ml, fps) -> None:
-    """One volume schedule at most, and its options in range."""
-    given = [name for name, v in (("--volume-ml", volume_ml or None), ("--curve", curve), ("--preset", preset)) if v]
+def _check_schedule(volume_ml, breath: BreathFlags, fps) -> None:
+    """One volume schedule at most (``--volume-ml`` or the breath of ``breath``,
+    :func:`~lungdeform.cli.common.check_trace_options`), and its options in range."""
+    given = [name for name, v in (("--volume-ml", volume_ml or None), ("--curve", breath.curve),
+                                  ("--preset", breath.preset)) if v]
     if len(given) > 1:
         raise InputError(f"{' and '.join(given)} are mutually exclusive: give one volume schedule")
-    check_cycles(cycles, preset)
-    check_tidal_ml(tidal_ml)
-    if tidal_ml is not None and (volume_ml or curve is not None):
+    check_trace_options(breath.curve, breath.preset, breath.cycles, breath.tidal_ml)
+    if breath.tidal_ml is not None and volume_ml:
         raise InputError("--tidal-ml applies to --preset or the plain cycle")
     if not (np.isfinite(fps) and 0 < fps <= MAX_FPS):
         raise InputError(f"--fps must be > 0 and at most {MAX_FPS}, got {fps}")
-    if cycles is not None and cycles > MAX_CYCLES:
-        raise InputError(f"--cycles must be at most {MAX_CYCLES}, got {cycles}")
+    if breath.cycles is not None and breath.cycles > MAX_CYCLES:
+        raise InputError(f"--cycles must be at most {MAX_CYCLES}, got {breath.cycles}")
 
 
 def _check_structure_options(points, rtstruct, structure, out_rtstruct, reference_ct, phases, volume_ml) -> None:

@@ -115,7 +115,7 @@ class FitRun:
     surface_field : SurfaceMapField or None
         The surface-map interior field (None: the sliding field).
     prior : MotionPrior or None
-        The population motion prior folded into ``surface_field``.
+        The population motion prior added to ``surface_field``, tapered to zero at the surface.
     """
 
     inputs: FitInputs

@@ -74,7 +74,7 @@ def run_fit(inputs: FitInputs, out: Path, config: FitConfig = FitConfig(), *,
     the alignment asked, used and why; for a 4-D CT ``metrics["cycle"]`` its phases, Frame of
     Reference and hysteresis (:attr:`lungdeform.evaluate.inputs.ReadInputs.cycle`). ``progress``: called with one
     line of text per step. ``prior``: a population motion prior (:mod:`lungdeform.interior.motion_prior`)
-    folded into the correspondence field (``config.interior == "correspondence"`` only)."""
+    added to the correspondence field, tapered to zero at the surface (``config.interior == "correspondence"`` only)."""
 
     run = fit_pipeline(inputs, config, progress=progress, prior=prior)
     metrics = fit_metrics(run)
@@ -140,7 +140,7 @@ def interior_surface(placed: Placement, fit, side: str, kind: str, prior: Motion
                      progress: Progress | None = None, *, whole: Surface | None = None):
     """The correspondence field (mm per unit) of the end-exhale surface onto the model's
     largest-volume target (:func:`lungdeform.fit.registration.surface_map_field`), with ``prior``
-    folded in; None for the sliding interior (``kind``, :func:`interior_kind`; a prior with it is
+    on top, tapered to zero at the model mesh (:meth:`~lungdeform.interior.motion_prior.MotionPrior.tapered`); None for the sliding interior (``kind``, :func:`interior_kind`; a prior with it is
     refused by :func:`check_prior`). ``whole``: the end-exhale surface at full resolution, in the
     model's frame (the model mesh is its decimation); default the model mesh."""
     say = progress or silent
@@ -155,7 +155,8 @@ def interior_surface(placed: Placement, fit, side: str, kind: str, prior: Motion
     field = surface_map_field(placed.rest if whole is None else whole, placed.targets[i].surface, scales[i])
     if prior is None:
         return field
-    return field.with_linear(prior.affine(*lung_normaliser(placed.rest), side) / scales[i])
+    # tapered to zero on the model's surface, so the lung keeps the field's surface and volume change
+    return field.with_prior(prior.tapered(placed.rest, side, 1.0 / scales[i]))
 
 
 def fit_surfaces(placed: Placement, read: ReadInputs, side: str, config: FitConfig,

@@ -3,7 +3,7 @@
 Owns: :mod:`~lungdeform.interior.interpolate` (thin-plate splines), :mod:`~lungdeform.interior.sliding`
 (the sliding interpolation of the surface's normal motion, and the landmark correction that keeps it),
 :mod:`~lungdeform.interior.surface_map` (the field of a smooth surface-to-surface map: affine plus
-Gaussian radial part, with any population prior folded into its affine part; the surface extension
+Gaussian radial part, with any population prior on top, tapered to zero at the surface; the surface extension
 of a built model; the interior kind ``"correspondence"``), :mod:`~lungdeform.interior.prior` (an affine
 prior in the lung-normalised frame), :mod:`~lungdeform.interior.motion_prior` (that prior learned
 across subjects, saved and read) and :mod:`~lungdeform.interior.field` (the interior field a lung

@@ -30,7 +30,7 @@ was made with; absent: ``"sliding"``). Optional (a fit whose interior follows a 
 map, :mod:`lungdeform.interior.surface_map`): ``interior_map_linear (3, 4)`` mm per unit,
 ``interior_map_warp (3, 4)``, ``interior_map_centers (k, 3)`` mm LPS, ``interior_map_weights (k, 3)``
 mm per unit and ``interior_map_width_mm``; all five or none. Optional with them (a lung built with
-a population default's interior prior): ``interior_map_prior (3, 4)`` mm per unit and
+a population default's interior prior, or fitted with a motion prior): ``interior_map_prior (3, 4)`` mm per unit and
 ``interior_map_prior_taper_mm``, the prior tapered to zero at the lung's surface
 (:class:`lungdeform.interior.prior.TaperedPrior`, over the lung's own ``vertices``); both or none.
 

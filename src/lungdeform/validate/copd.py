@@ -45,9 +45,10 @@ from lungdeform.evaluate import baselines as B
 from lungdeform.evaluate.pipeline import run_fit
 from lungdeform.fit import registration
 from lungdeform.fit.config import FitConfig, FitInputs
-from lungdeform.interior.motion_prior import RIDGE, PriorSample, learn_motion_prior, save_prior
+from lungdeform.interior.motion_prior import RIDGE, PriorSample, learn_motion_prior, save_prior, taper_at
 from lungdeform.io.image import read_image
 from lungdeform.io.landmarks import read_elastix_points
+from lungdeform.io.modelfile import load_model
 from lungdeform.plot.figure import png_bytes
 from lungdeform.plot.statistics import grouped_bars
 from lungdeform.progress import Progress, silent
@@ -315,13 +316,18 @@ def run_copd(data: Path, out: Path, config: FitConfig | None = None, cases=None,
 
 def prior_sample(folder: Path, subject: str, side: str) -> PriorSample | None:
     """A lung's :class:`~lungdeform.interior.motion_prior.PriorSample` from its fit's ``landmarks.npz``
-    (the largest-volume target), or None when the fit wrote none (a sliding interior)."""
+    (the largest-volume target), with the taper at each landmark's depth below the fitted model's
+    surface (``model.npz``: the surface the prior is played over), or None when the fit wrote none (a
+    sliding interior)."""
     path = folder / "landmarks.npz"
     if not path.is_file():
         return None
+    surface = load_model(folder / "model.npz").lungs[side].surface
     with np.load(path) as z:
         i = int(np.argmax(z["volumes_ml"]))
-        return PriorSample(subject, side, z["centroid"], z["scale"], z["landmarks"], z["observed"][i] - z["surface_only"][i])
+        points = z["landmarks"]
+        return PriorSample(subject, side, z["centroid"], z["scale"], points, z["observed"][i] - z["surface_only"][i],
+                           taper_at(points, surface))
 
 
 def apply_loso_priors(out: Path, cases: dict) -> dict:
@@ -341,7 +347,7 @@ def apply_loso_priors(out: Path, cases: dict) -> dict:
             smp = samples[(name, side)]
             if smp is None:
                 continue
-            moved = smp.residual - prior.displacement(smp.points, smp.centroid, smp.scale, side)
+            moved = smp.residual - smp.taper[:, None] * prior.displacement(smp.points, smp.centroid, smp.scale, side)
             row["model_surface_noprior"] = row.pop("model_surface_only")
             row["model_surface_only"] = {"landmark_mean_mm": float(np.linalg.norm(moved, axis=1).mean())}
     save_prior(out / "motion_prior.json", learn_motion_prior([v for v in samples.values() if v is not None]))
