@@ -96,7 +96,7 @@ class CpdSettings:
     radius), ``w`` (outlier weight), ``max_iterations`` and ``tolerance``.
 
     ``beta`` and ``w`` were searched leave one subject out on the 10 DIR-Lab COPDgene lungs, as the
-    model's settings were (issue 39; docs/FITTING.md "DIR-Lab COPDgene, five subjects"):
+    model's settings were (docs/FITTING.md "DIR-Lab COPDgene, five subjects"):
     ``scripts/tune_cpd_baseline.py --data $LUNGDEFORM_DATA/dirlab-copd-lung-masks --out cpd_search.json``,
     β ∈ {1, 2, 4, 8, 16, 32, 64, 128} × w ∈ {0, 0.05}. The folds picked β 32 (three of five cases, w 0 in
     two of them), β 8 and β 4; β 32, w 0 is that majority (until 0.8 pycpd's usual β 2, w 0.05)."""
