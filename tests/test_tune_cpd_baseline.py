@@ -1,8 +1,10 @@
 """scripts/tune_cpd_baseline.py: the search of the CPD surface baseline's β and w, leave one
 subject out (issue 39: every baseline tuned with the same effort as the model).
 
-Checked here: the leave-one-subject-out choice never sees the scored case, and the script runs end to
-end (every lung, every setting) and resumes without refitting a finished lung."""
+Checked here: the leave-one-subject-out choice never sees the scored case, an earlier search's figures
+are kept only when the CPD settings it did not search agree, and the script runs end to end (every lung,
+every setting) and resumes without refitting a finished lung, running only the settings a widened grid
+adds."""
 
 from __future__ import annotations
 
@@ -38,11 +40,26 @@ def test_leave_one_subject_out_never_sees_the_scored_case(tune):
     assert set(loso["copd2"]) == {"setting", "copd2/left", "copd2/right"}
 
 
+def test_an_earlier_search_is_reused_only_where_it_measured_the_same_cpd(tune, monkeypatch):
+    # truth by construction: figures measured with other samples (a CPD setting the search does not
+    # vary) are not this search's; with the same fixed settings, the settings in both grids are kept,
+    # one the grid dropped is left out, whatever default beta and w the earlier run had
+    monkeypatch.setattr(tune, "BETAS", (2.0, 4.0))
+    monkeypatch.setattr(tune, "WS", (0.0,))
+    cpd = {"samples": 1500, "alpha": 2.0, "beta": 2.0, "w": 0.05}
+    row = {"2,0": {"landmark_mean_mm": 3.0}, "2,0.2": {"landmark_mean_mm": 4.0}}
+    doc = {"grid": {"cpd": cpd}, "lungs": {"copd1/left": row}}
+    now = {"cpd": {**cpd, "beta": 8.0, "w": 0.0}}
+    assert tune.reusable(doc, now) == {"copd1/left": {"2,0": {"landmark_mean_mm": 3.0}}}
+    assert tune.reusable(doc, {"cpd": {**cpd, "samples": 600}}) == {}
+    assert tune.reusable({}, now) == {}
+
+
 @pytest.mark.slow
 def test_search_on_a_phantom_scores_the_pipelines_baseline(tune, tmp_path, monkeypatch):
-    # the script end to end on a two-lung phantom (the real search takes hours): every lung, every
-    # setting, finite figures, nothing left out with one case, and a finished lung is not refitted;
-    # a one-by-two grid and a small CPD keep it short
+    # the script end to end on a two-lung phantom (the real search takes ~15 minutes): every lung,
+    # every setting, finite figures, nothing left out with one case, a finished lung is not refitted,
+    # and a widened grid runs only its new settings; a one-by-two grid and a small CPD keep it short
     from tests.validate.test_copd import phantom_case
 
     data = tmp_path / "data"
@@ -56,10 +73,20 @@ def test_search_on_a_phantom_scores_the_pipelines_baseline(tune, tmp_path, monke
     assert tune.main(["--data", str(data), "--out", str(out)]) == 0
     doc = json.loads(out.read_text())
     assert set(doc["lungs"]) == {"copd1/left", "copd1/right"}
+    names = {tune.setting_name(B.CpdSettings().beta, w) for w in (B.CpdSettings().w, 0.2)}
     for row in doc["lungs"].values():
-        assert set(row) == {"2,0.05", "2,0.2"}
+        assert set(row) == names
         assert all(np.isfinite(v["landmark_mean_mm"]) and v["surface_mean_mm"] >= 0 for v in row.values())
     assert doc["leave_one_subject_out"] == {}  # one case: nothing to leave out
-    # resumable: a second run reads the lungs back instead of fitting them again
+    # widened: a second run with one more beta runs that beta only, keeping the figures measured
+    runs = []
+    scored = B.cpd_deformable
+    monkeypatch.setattr(B, "cpd_deformable", lambda *a, **k: runs.append(a[2].beta) or scored(*a, **k))
+    monkeypatch.setattr(tune, "BETAS", (B.CpdSettings().beta, 0.5))
+    assert tune.main(["--data", str(data), "--out", str(out)]) == 0
+    assert runs == [0.5] * 4  # two lungs, two w each
+    wider = json.loads(out.read_text())
+    assert all(wider["lungs"][k][n] == doc["lungs"][k][n] for k in doc["lungs"] for n in names)
+    # resumable: a third run reads the lungs back instead of fitting them again
     monkeypatch.setattr(tune, "lung_scores", lambda *a, **k: pytest.fail("refitted a finished lung"))
     assert tune.main(["--data", str(data), "--out", str(out)]) == 0

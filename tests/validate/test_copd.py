@@ -137,6 +137,22 @@ def test_run_copd_structure_and_resume(tmp_path):
     assert C.run_copd(data, out, other, [1])["refitted"] == ["copd1/left", "copd1/right"]
 
 
+def test_settings_digest_follows_the_cpd_baselines_settings(tmp_path, monkeypatch):
+    # truth (issue 39): the `cpd` rows are part of a finished lung's metrics, so a run with other CPD
+    # settings must not read an earlier run's lung back; the same settings give the same digest
+    from dataclasses import replace
+
+    files = [tmp_path / "a.nii.gz", tmp_path / "b.nii.gz"]
+    for i, f in enumerate(files):
+        f.write_bytes(bytes([i]) * 16)
+    config = FitConfig(max_evaluations=8, align="joint", folds=3, command=C.COMMAND)
+    before = C.settings_digest(files, "left", config)
+    assert C.settings_digest(files, "left", config) == before
+    untuned = replace(C.B.CpdSettings(), beta=2.0, w=0.05)
+    monkeypatch.setattr(C.B, "CpdSettings", lambda: untuned)
+    assert C.settings_digest(files, "left", config) != before
+
+
 @pytest.mark.slow
 @pytest.mark.realdata
 def test_real_case_model_surface_below_no_motion(data_dir, tmp_path):

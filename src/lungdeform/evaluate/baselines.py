@@ -93,12 +93,18 @@ class IcpSettings:
 class CpdSettings:
     """The CPD baseline (:func:`cpd_deformable`): ``samples`` vertices of each surface (drawn with
     ``seed``); pycpd's ``alpha`` (smoothness), ``beta`` (kernel width, relative to the lung's RMS
-    radius), ``w`` (outlier weight), ``max_iterations`` and ``tolerance``."""
+    radius), ``w`` (outlier weight), ``max_iterations`` and ``tolerance``.
+
+    ``beta`` and ``w`` were searched leave one subject out on the 10 DIR-Lab COPDgene lungs, as the
+    model's settings were (docs/FITTING.md "DIR-Lab COPDgene, five subjects"):
+    ``scripts/tune_cpd_baseline.py --data $LUNGDEFORM_DATA/dirlab-copd-lung-masks --out cpd_search.json``,
+    β ∈ {1, 2, 4, 8, 16, 32, 64, 128} × w ∈ {0, 0.05}. The folds picked β 32 (three of five cases, w 0 in
+    two of them), β 8 and β 4; β 32, w 0 is that majority (until 0.8 pycpd's usual β 2, w 0.05)."""
 
     samples: int = 1500
     alpha: float = 2.0
-    beta: float = 2.0
-    w: float = 0.05
+    beta: float = 32.0
+    w: float = 0.0
     max_iterations: int = 100
     tolerance: float = 1e-5
     seed: int = 0

@@ -23,7 +23,8 @@ statistics of c1…c9 against Table I; :data:`COHORT_OPTIONS` are the cohort opt
 :func:`copd_config`): ``lungdeform validate copd --data DIR --out OUT --manifest-only``.
 
 A lung whose ``metrics.json`` records the same settings digest (:func:`settings_digest`: the input
-files' contents, the fit settings, the calibrated baselines' constants) is not fitted again.
+files' contents, the fit settings, the CPD baseline's settings, the calibrated baselines' constants) is
+not fitted again.
 """
 
 from __future__ import annotations
@@ -140,14 +141,15 @@ def write_cohort_manifest(found: dict[str, tuple[Path, ...]], path: Path) -> Pat
 
 
 def settings_digest(files, side: str, config: FitConfig) -> str:
-    """SHA-256 (hex, 16 digits) of the input files' bytes, the side, the fit settings and the
-    calibrated baselines' constants: equal digests mean an equal fit."""
+    """SHA-256 (hex, 16 digits) of the input files' bytes, the side, the fit settings, the CPD
+    baseline's settings and the calibrated baselines' constants: equal digests mean an equal fit."""
     h = hashlib.sha256()
     for p in files:
         h.update(Path(p).read_bytes())
     mask = [B.MASK_CPD_POINTS, B.MASK_CPD_SIGMA, B.MASK_CPD_ALPHA, B.MASK_CPD_BETA_MM, B.MASK_CPD_SAMPLING,
             registration.SAMPLING]
-    h.update(json.dumps({"side": side, "config": asdict(config), "mask_baselines": mask}, sort_keys=True).encode())
+    settings = {"side": side, "config": asdict(config), "cpd": asdict(B.CpdSettings()), "mask_baselines": mask}
+    h.update(json.dumps(settings, sort_keys=True).encode())
     return h.hexdigest()[:16]
 
 
