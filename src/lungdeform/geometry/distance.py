@@ -246,22 +246,46 @@ class SurfaceDistance:
         self._ptr, self._items = _grid_fill(self.vertices, self.faces, lo, h, self._dims)
         self._boxes = np.hstack([e.min(axis=1), e.max(axis=1)])  # (m, 6) each face's bounding box
 
-    def query(self, points) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(distance (k,) mm, closest (k, 3) mm, face (k,) int)`` for ``points : (k, 3)``."""
+    def query(self, points, bound=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(distance (k,) mm, closest (k, 3) mm, face (k,) int)`` for ``points : (k, 3)``.
+
+        ``bound : (k,) float`` mm, optional: the caller's upper bound on each point's distance (for
+        example the distance to a node known to lie on the other side of the surface), used instead
+        of the nearest vertex's; a point with no triangle within its bound (a bound too small, or not
+        finite) is searched again from its nearest vertex, so the answer is exact either way."""
         pts = as_vertices(points, "points")
         if len(pts) == 0:
             return np.zeros(0), np.zeros((0, 3)), np.zeros(0, np.int64)
         if not np.all(np.isfinite(pts)):
             raise InputError("points contain NaN or infinity")
+        if bound is None:
+            return self._search(pts, self._vertex_bound(pts))
+        b = np.asarray(bound, dtype=np.float64).reshape(-1)
+        if len(b) != len(pts):
+            raise InputError(f"bound: need one upper bound (mm) per point ({len(pts)}), got {len(b)}")
+        bad = ~(np.isfinite(b) & (b >= 0.0))
+        if bad.any():
+            b = b.copy()
+            b[bad] = self._vertex_bound(pts[bad])
+        dist, closest, face = self._search(pts, b)
+        miss = np.flatnonzero(face < 0)
+        if len(miss):
+            dist[miss], closest[miss], face[miss] = self._search(pts[miss], self._vertex_bound(pts[miss]))
+        return dist, closest, face
+
+    def _vertex_bound(self, pts: np.ndarray) -> np.ndarray:
+        """``(k,) float`` mm: each point's distance to the nearest vertex (an upper bound on its distance)."""
         # threads only for a large query: scipy starts and joins its workers on every call, which
         # cost a fit's objective (6000 and 3000 points, hundreds of calls) more than they saved
-        bound, _ = self._tree.query(pts, workers=-1 if len(pts) >= THREADED_QUERY else 1)
+        return self._tree.query(pts, workers=-1 if len(pts) >= THREADED_QUERY else 1)[0]
+
+    def _search(self, pts: np.ndarray, bound: np.ndarray):
         return _closest_kernel(pts, bound, (self.vertices, self.faces, self._boxes),
                                (self._lo, self._h, self._dims, self._ptr, self._items))
 
-    def distance(self, points) -> np.ndarray:
-        """``(k,) float`` mm: exact unsigned distance of each point to the surface."""
-        return self.query(points)[0]
+    def distance(self, points, bound=None) -> np.ndarray:
+        """``(k,) float`` mm: exact unsigned distance of each point to the surface (``bound``: :meth:`query`)."""
+        return self.query(points, bound)[0]
 
 
 def barycentric(points, a, b, c) -> np.ndarray:

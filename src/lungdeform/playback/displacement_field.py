@@ -153,14 +153,15 @@ def inside_lattice(surface, grid: Grid, lat: Lattice) -> np.ndarray:
 def outside_distance(surface, points, inside: np.ndarray, node_mm, reach_mm: float) -> np.ndarray:
     """``(n,) float`` mm: 0 inside, the exact distance to ``surface`` for outside lattice ``points :
     (n, 3)`` within about ``reach_mm`` of it (``inside : (nz, ny, nx) bool``, nodes ``node_mm`` (3,) mm
-    apart along (i, j, k)), inf farther (found from the distance to the nearest inside node)."""
+    apart along (i, j, k)), inf farther (found from the distance to the nearest inside node, which also
+    bounds the search: the segment to it crosses the surface)."""
     if not inside.any():
         return np.full(len(points), np.inf)
     near = ndimage.distance_transform_edt(~inside, sampling=np.asarray(node_mm, float)[::-1]).ravel()
     band = (near > 0) & (near < reach_mm + float(np.max(node_mm)))
     d = np.where(inside.ravel(), 0.0, np.inf)
     if band.any():
-        d[band] = SurfaceDistance(surface.vertices, surface.faces).distance(points[band])
+        d[band] = SurfaceDistance(surface.vertices, surface.faces).distance(points[band], near[band] * (1 + 1e-9) + 1e-9)
     return d
 
 
