@@ -59,7 +59,7 @@ def _row(values, k0, fz, j0, fy, buf):
 
 
 @numba.njit(cache=True, parallel=True)
-def fill_field(out, values, axes, affine_part, ranges):
+def fill_field(out, values, axes, affine_part, ranges, spans):
     """Add into ``out : (z, y, x, 3) float32`` at voxels ``ranges`` (k0, k1, j0, j1, i0, i1): the
     lattice ``values : (nz, ny, nx, 3) float32`` interpolated trilinearly where all three axes' nodes
     are ≥ 0 (else 0), plus ``const + steps @ (i, j, k)``. ``axes`` = the ``(nodes, frac)`` pairs
@@ -67,15 +67,19 @@ def fill_field(out, values, axes, affine_part, ranges):
     voxel)``, column a of ``steps`` along index axis a. Separable: per voxel row one bilinear lattice
     row (:func:`_row`, into a buffer per z-slice), then one lerp per voxel. A voxel that would get
     exactly 0 (outside the lattice, or between two row nodes that do not move, and no affine part)
-    is not touched: a fresh ``numpy.zeros`` output is written, and paged in, only where the field moves."""
+    is not touched: a fresh ``numpy.zeros`` output is written, and paged in, only where the field moves.
+    ``spans`` = ``(first, last)``, ``(z, y) int64`` each: per voxel row the first and last voxel this
+    pass touched, widened in place (rows it leaves alone keep theirs; see :func:`no_spans`)."""
     (nodes_k, frac_k), (nodes_j, frac_j), (nodes_i, frac_i) = axes
     const, steps = affine_part
+    first, final = spans
     last = values.shape[2] - 1
     affine = np.any(const != 0) or np.any(steps != 0)
     for k in numba.prange(ranges[0], ranges[1]):
         row = np.empty((values.shape[2], 3), np.float32)
         still = np.ones(values.shape[2], np.bool_)
         for j in range(ranges[2], ranges[3]):
+            touched_lo, touched_hi = ranges[5], ranges[4] - 1
             lattice = nodes_k[k] >= 0 and nodes_j[j] >= 0
             if lattice:
                 _row(values, nodes_k[k], frac_k[k], nodes_j[j], frac_j[j], row)
@@ -87,6 +91,7 @@ def fill_field(out, values, axes, affine_part, ranges):
                 n1 = min(n0 + 1, last)
                 if not affine and not (inside and not (still[n0] and still[n1])):
                     continue
+                touched_lo, touched_hi = min(touched_lo, i), i
                 f = frac_i[i]
                 for c in range(3):
                     x = 0.0
@@ -95,7 +100,24 @@ def fill_field(out, values, axes, affine_part, ranges):
                     if affine:
                         x += const[c] + steps[c, 0] * i + steps[c, 1] * j + steps[c, 2] * k
                     out[k, j, i, c] += x
+            if touched_lo <= touched_hi:
+                first[k, j], final[k, j] = min(first[k, j], touched_lo), max(final[k, j], touched_hi)
     return out
+
+
+def no_spans(shape) -> tuple[np.ndarray, np.ndarray]:
+    """Row spans ``(first, last)`` of a field of ``shape`` (z, y, x[, 3]) that is zero everywhere (first > last
+    in every row): to be widened by :func:`fill_field` and :func:`widen_spans`, read by :func:`jacobian_pass`."""
+    nz, ny, nx = shape[:3]
+    return np.full((nz, ny), nx, np.int64), np.full((nz, ny), -1, np.int64)
+
+
+def widen_spans(spans, flat: np.ndarray, shape) -> None:
+    """Widen, in place, the row ``spans`` (:func:`no_spans`) of a field of ``shape`` (z, y, x[, 3]) to the
+    voxels ``flat : (p,) int`` (flat indices over z, y, x)."""
+    k, j, i = np.unravel_index(np.asarray(flat, np.int64), tuple(shape[:3]))
+    np.minimum.at(spans[0], (k, j), i)
+    np.maximum.at(spans[1], (k, j), i)
 
 
 @numba.njit(cache=True, inline="always")
@@ -141,7 +163,7 @@ def _det_row(f, k, j, box_i, inv, dets):
 
 
 @numba.njit(cache=True, parallel=True)
-def _row_spans(f, ranges):
+def row_spans(f, ranges):
     """Per voxel row (k, j) of ``f : (z, y, x, 3)`` within one voxel of the box ``ranges`` (k0, k1, j0,
     j1, i0, i1): ``(first, last) (z, y) int64``, its first and last voxel within one voxel of
     ``[i0, i1)`` with a non-zero displacement (first > last: none; rows beyond the box: none)."""
@@ -163,18 +185,20 @@ def _row_spans(f, ranges):
 
 
 @numba.njit(cache=True, parallel=True)
-def jacobian_pass(f, inv, ranges, out):
+def jacobian_pass(f, inv, ranges, out, spans):
     """Per z-slice ``(min, max, folded count)`` of :func:`_det_row` over the voxels ``ranges`` (k0, k1,
     j0, j1, i0, i1) of ``f : (z, y, x, 3)``; each determinant also written to ``out`` (same z, y, x
     shape) unless ``out`` is empty. A voxel more than one voxel from every non-zero displacement in
-    its row and the four rows beside it (:func:`_row_spans`) has every difference 0: its determinant
-    is exactly 1, without arithmetic. Returns ``(n, 3) float`` rows, one per slice."""
+    its row and the four rows beside it has every difference 0: its determinant is exactly 1, without
+    arithmetic; ``spans`` = ``(first, last) (z, y) int64``, per row a span of voxels outside which
+    the row is zero (:func:`row_spans` measures it; :func:`fill_field` records the voxels it wrote, so
+    that the field need not be read twice). Returns ``(n, 3) float`` rows, one per slice."""
     nz, ny = f.shape[0], f.shape[1]
     nk = ranges[1] - ranges[0]
     rows = np.empty((max(nk, 0), 3))
     write = out.size > 0
     i0, i1 = ranges[4], ranges[5]
-    first, last = _row_spans(f, ranges)
+    first, last = spans
     for s in numba.prange(nk):
         k = ranges[0] + s
         dets = np.empty(max(i1 - i0, 0))
