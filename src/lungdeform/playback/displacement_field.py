@@ -443,7 +443,8 @@ def displacement_field(model, grid: Grid, delta_ml: float, *, alignment=None, in
         field = upsample(lat, part, grid, a, spans)
     else:
         rot = np.eye(3) if a is None else np.linalg.inv(a)[:3, :3]
-        field = upsample(lat, u @ rot.T, grid, None if a is None else np.linalg.inv(a), spans)
+        part = u if a is None else np.einsum("...b,ab->...a", u, rot)  # not BLAS: (n, 3) × (3, 3) (Grid.world)
+        field = upsample(lat, part, grid, None if a is None else np.linalg.inv(a), spans)
         V.widen_spans(spans, refine(field, model, grid, lat, u, scales, rot), grid.shape)
     lo, hi, folded = jacobian_range(field, grid, lat.box, spans)
     if folded:
