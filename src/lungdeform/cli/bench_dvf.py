@@ -31,7 +31,8 @@ def register(apps) -> None:
         say(f"building the embedded lungs' model and a {'x'.join(map(str, zyx))} grid")
         r = bench_dvf(zyx, repeats, node_mm)
         typer.echo(f"grid {' x '.join(map(str, r['shape_zyx']))} voxels: field {r['field_seconds']:.2f} s "
-                   f"({r['nodes_evaluated']} of {r['nodes']} lattice nodes evaluated), trilinear resampling "
+                   f"({r['field_threads']} threads; {r['nodes_evaluated']} of {r['nodes']} lattice nodes evaluated), "
+                   f"trilinear resampling "
                    f"{r['resample_seconds']:.2f} s ({r['threads']} threads): ratio {r['ratio']:.1f}x")
         typer.echo(f"CPU seconds (the process, every thread): field {r['field_cpu_seconds']:.2f}, resampling "
                    f"{r['resample_cpu_seconds']:.2f}: ratio {r['cpu_ratio']:.1f}x")

@@ -121,28 +121,32 @@ def widen_spans(spans, flat: np.ndarray, shape) -> None:
 
 
 @numba.njit(cache=True, inline="always")
-def _grad_row(f, k, j, i, near, inv, c):
+def _grad_row(f, k, j, i, near, inv, c, diagonal):
     """Row ``c`` of ``I + ∇u`` at voxel (k, j, i): ``(∂u_c/∂x_r + δ_cr for r = 0, 1, 2)``; ``near`` =
-    the neighbours' indices and the reciprocal index steps between them (:func:`_det_row`)."""
+    the neighbours' indices and the reciprocal index steps between them (:func:`_det_row`);
+    ``diagonal``: ``inv`` is diagonal (index axes along x, y, z), so its zero terms are left out
+    (the same numbers: a product with 0 adds nothing)."""
     kl, kh, jl, jh, il, ih, rk, rj, ri = near
     di = (np.float64(f[k, j, ih, c]) - np.float64(f[k, j, il, c])) * ri
     dj = (np.float64(f[k, jh, i, c]) - np.float64(f[k, jl, i, c])) * rj
     dk = (np.float64(f[kh, j, i, c]) - np.float64(f[kl, j, i, c])) * rk
+    if diagonal:
+        return di * inv[0, 0] + (c == 0), dj * inv[1, 1] + (c == 1), dk * inv[2, 2] + (c == 2)
     return (di * inv[0, 0] + dj * inv[0, 1] + dk * inv[0, 2] + (c == 0),
             di * inv[1, 0] + dj * inv[1, 1] + dk * inv[1, 2] + (c == 1),
             di * inv[2, 0] + dj * inv[2, 1] + dk * inv[2, 2] + (c == 2))
 
 
 @numba.njit(cache=True, inline="always")
-def _det_near(f, k, j, i, near, inv):
-    a11, a12, a13 = _grad_row(f, k, j, i, near, inv, 0)
-    a21, a22, a23 = _grad_row(f, k, j, i, near, inv, 1)
-    a31, a32, a33 = _grad_row(f, k, j, i, near, inv, 2)
+def _det_near(f, k, j, i, near, inv, diagonal):
+    a11, a12, a13 = _grad_row(f, k, j, i, near, inv, 0, diagonal)
+    a21, a22, a23 = _grad_row(f, k, j, i, near, inv, 1, diagonal)
+    a31, a32, a33 = _grad_row(f, k, j, i, near, inv, 2, diagonal)
     return a11 * (a22 * a33 - a23 * a32) - a12 * (a21 * a33 - a23 * a31) + a13 * (a21 * a32 - a22 * a31)
 
 
 @numba.njit(cache=True)
-def _det_row(f, k, j, box_i, inv, dets):
+def _det_row(f, k, j, box_i, inv, dets, diagonal):
     """Write into ``dets[i − i0]`` ``det(I + ∇u)`` at the voxels (k, j, i) for i in ``box_i`` (i0, i1) of
     ``f : (z, y, x, 3)``; ``inv[r, a] = ∂index_a / ∂x_r`` (a = i, j, k). The differences central,
     one-sided at the array's edges (as ``numpy.gradient``): over 2 index steps or 1, so multiplying
@@ -152,13 +156,18 @@ def _det_row(f, k, j, box_i, inv, dets):
     rk, rj = 0.5 if kh - kl == 2 else 1.0, 0.5 if jh - jl == 2 else 1.0
     i0, i1 = box_i
     lo, hi = max(i0, 1), min(i1, nx - 1)
-    for i in range(lo, hi):
-        dets[i - i0] = _det_near(f, k, j, i, (kl, kh, jl, jh, i - 1, i + 1, rk, rj, 0.5), inv)
+    if diagonal:  # the flag a constant in each loop, so that the compiler drops the other branch
+        for i in range(lo, hi):
+            dets[i - i0] = _det_near(f, k, j, i, (kl, kh, jl, jh, i - 1, i + 1, rk, rj, 0.5), inv, True)
+    else:
+        for i in range(lo, hi):
+            dets[i - i0] = _det_near(f, k, j, i, (kl, kh, jl, jh, i - 1, i + 1, rk, rj, 0.5), inv, False)
     for i in range(i0, i1):
         if lo <= i < hi:
             continue
         il, ih = max(i - 1, 0), min(i + 1, nx - 1)
-        dets[i - i0] = _det_near(f, k, j, i, (kl, kh, jl, jh, il, ih, rk, rj, 0.5 if ih - il == 2 else 1.0), inv)
+        dets[i - i0] = _det_near(f, k, j, i, (kl, kh, jl, jh, il, ih, rk, rj, 0.5 if ih - il == 2 else 1.0), inv,
+                                 diagonal)
     return dets
 
 
@@ -199,6 +208,7 @@ def jacobian_pass(f, inv, ranges, out, spans):
     write = out.size > 0
     i0, i1 = ranges[4], ranges[5]
     first, last = spans
+    diagonal = inv[0, 1] == 0 and inv[0, 2] == 0 and inv[1, 0] == 0 and inv[1, 2] == 0 and inv[2, 0] == 0 and inv[2, 1] == 0
     for s in numba.prange(nk):
         k = ranges[0] + s
         dets = np.empty(max(i1 - i0, 0))
@@ -211,7 +221,7 @@ def jacobian_pass(f, inv, ranges, out, spans):
             if a > i0 or b < i1:
                 lo, hi = min(lo, 1.0), max(hi, 1.0)
             if a < b:
-                _det_row(f, k, j, (a, b), inv, dets)
+                _det_row(f, k, j, (a, b), inv, dets, diagonal)
                 for d in dets[:b - a]:
                     lo, hi = min(lo, d), max(hi, d)
                     folded += d <= 0.0
