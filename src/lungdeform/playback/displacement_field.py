@@ -161,7 +161,8 @@ def outside_distance(surface, points, inside: np.ndarray, node_mm, reach_mm: flo
     band = (near > 0) & (near < reach_mm + float(np.max(node_mm)))
     d = np.where(inside.ravel(), 0.0, np.inf)
     if band.any():
-        d[band] = SurfaceDistance(surface.vertices, surface.faces).distance(points[band], near[band] * (1 + 1e-9) + 1e-9)
+        bound = near[band] * (1 + 1e-9) + 1e-9
+        d[band] = SurfaceDistance(surface.vertices, surface.faces).distance(points[band], bound)
     return d
 
 

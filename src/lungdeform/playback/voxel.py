@@ -208,7 +208,8 @@ def jacobian_pass(f, inv, ranges, out, spans):
     write = out.size > 0
     i0, i1 = ranges[4], ranges[5]
     first, last = spans
-    diagonal = inv[0, 1] == 0 and inv[0, 2] == 0 and inv[1, 0] == 0 and inv[1, 2] == 0 and inv[2, 0] == 0 and inv[2, 1] == 0
+    diagonal = (inv[0, 1] == 0 and inv[0, 2] == 0 and inv[1, 0] == 0 and inv[1, 2] == 0
+                and inv[2, 0] == 0 and inv[2, 1] == 0)
     for s in numba.prange(nk):
         k = ranges[0] + s
         dets = np.empty(max(i1 - i0, 0))
