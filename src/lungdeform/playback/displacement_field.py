@@ -157,8 +157,16 @@ def outside_distance(surface, points, inside: np.ndarray, node_mm, reach_mm: flo
     bounds the search: the segment to it crosses the surface)."""
     if not inside.any():
         return np.full(len(points), np.inf)
-    near = ndimage.distance_transform_edt(~inside, sampling=np.asarray(node_mm, float)[::-1]).ravel()
-    band = (near > 0) & (near < reach_mm + float(np.max(node_mm)))
+    sampling = np.asarray(node_mm, float)[::-1]
+    reach = reach_mm + float(np.max(node_mm))
+    # the transform only over the inside nodes' box plus the reach: every node beyond is farther
+    pad = np.ceil(reach / sampling).astype(int)
+    idx = np.nonzero(inside)
+    crop = tuple(slice(max(int(a.min()) - p, 0), int(a.max()) + p + 1) for a, p in zip(idx, pad))
+    near = np.full(inside.shape, np.inf)
+    near[crop] = ndimage.distance_transform_edt(~inside[crop], sampling=sampling)
+    near = near.ravel()
+    band = (near > 0) & (near < reach)
     d = np.where(inside.ravel(), 0.0, np.inf)
     if band.any():
         bound = near[band] * (1 + 1e-9) + 1e-9
