@@ -36,8 +36,11 @@ def bench_grid(model, shape=(150, 512, 512), spacing=(0.8, 0.8, 2.5)) -> D.Grid:
 
 
 def _median_time(fn, repeats: int) -> tuple[float, float]:
-    """The medians over ``repeats`` calls of ``fn``: wall seconds, and the process's CPU seconds (every
-    thread: user + system; a thread waiting for a busy core costs none)."""
+    """The medians over ``repeats`` calls of ``fn`` after one untimed warm-up call (the field's first
+    call loads the compiled kernels and builds the tapered prior's depth grids, once a model): wall
+    seconds, and the process's CPU seconds (every thread: user + system; a thread waiting for a busy
+    core costs none)."""
+    fn()
     wall, cpu = [], []
     for _ in range(repeats):
         t0, c0 = time.perf_counter(), time.process_time()

@@ -18,7 +18,7 @@ def register(apps) -> None:
     @apps.bench.command("dvf")
     def dvf(
         shape: str = typer.Option("150,512,512", "--shape", help="Grid size z,y,x (voxels)."),
-        repeats: int = typer.Option(3, "--repeats", help="Timed runs of each (the median is reported)."),
+        repeats: int = typer.Option(3, "--repeats", help="Timed runs of each, after a warm-up (the median)."),
         node_mm: float = typer.Option(4.0, "--node-mm", callback=bounded(0, D.MAX_NODE_MM, "mm", low_open=True), help="Lattice spacing (mm) of the interior field."),
         json_path: Optional[Path] = typer.Option(None, "--json", help="Write results here."),
     ):
