@@ -57,3 +57,5 @@ def test_bench_dvf_small_grid(tmp_path, capsys):
     assert r["cpu_ratio"] == r["field_cpu_seconds"] / r["resample_cpu_seconds"] and r["field_cpu_seconds"] > 0
     printed = capsys.readouterr().out
     assert "ratio" in printed and "CPU seconds" in printed
+    # the threads of each, so that the comparison's fairness can be read off the output
+    assert f"({r['field_threads']} threads;" in printed and f"({r['threads']} threads)" in printed

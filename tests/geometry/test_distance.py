@@ -58,6 +58,39 @@ def test_matches_brute_force(rng):
     assert d == pytest.approx(_brute(pts, s.vertices, s.faces), abs=1e-9)
 
 
+def test_long_triangles_match_brute_force(rng):
+    # triangles binned once by their box centres: slivers reaching far beyond their cell (the grid's
+    # overhang) must still be found, near and far; the face returned holds the closest point
+    s = icosphere(2, 30.0)
+    v = s.vertices * rng.uniform(0.8, 1.2, size=(len(s.vertices), 1))
+    slivers = np.array([[-60.0, 0, 0], [60, 0.5, 0], [0, 0, 0.4], [0, -70, 5], [0.3, 70, 5], [0, 0, 45]])
+    vv = np.vstack([v, slivers])
+    ff = np.vstack([s.faces, len(v) + np.array([[0, 1, 2], [3, 4, 5]])])
+    pts = np.vstack([rng.normal(size=(50, 3)) * 20, rng.normal(size=(50, 3)) * 80])
+    d, closest, face = SurfaceDistance(vv, ff).query(pts)
+    assert d == pytest.approx(_brute(pts, vv, ff), abs=1e-9)
+    on_face = [np.linalg.norm(np.array(_closest_on_triangle(tuple(p), *(tuple(vv[k]) for k in ff[i]))) - p)
+               for p, i in zip(pts, face)]
+    assert np.linalg.norm(closest - pts, axis=1) == pytest.approx(d, abs=1e-9)
+    assert on_face == pytest.approx(d, abs=1e-9)
+
+
+def test_caller_bound_is_exact_either_way(rng):
+    # a bound is only where the search starts: a loose one, one too small (nothing within it: searched
+    # again from the nearest vertex), and a missing one (NaN, inf, negative) all give the dense reference
+    s = icosphere(2, 30.0)
+    pts = rng.normal(size=(40, 3)) * 30
+    sd = SurfaceDistance(s.vertices, s.faces)
+    exact = _brute(pts, s.vertices, s.faces)
+    for bound in (exact * 1.5 + 1.0, exact * 0.2, np.full(len(pts), np.nan), np.full(len(pts), np.inf),
+                  np.where(np.arange(len(pts)) % 2 == 0, -1.0, exact + 3.0)):
+        d, closest, face = sd.query(pts, bound)
+        assert d == pytest.approx(exact, abs=1e-9)
+        assert np.all(face >= 0)
+    with pytest.raises(InputError, match="bound"):
+        sd.query(pts, exact[:-1])
+
+
 def test_concentric_spheres_radius_difference():
     # outer sphere vertices to the inner sphere: the radius difference, up to the inner mesh's
     # faceting (sagitta of an edge ≈ e²/8r ≈ 0.03 mm here)

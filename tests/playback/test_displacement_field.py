@@ -10,6 +10,7 @@ from lungdeform.geometry.mesh import winding_numbers
 from lungdeform.io.image import to_sitk
 from lungdeform.model.lung import Model
 from lungdeform.playback import displacement_field as D
+from lungdeform.playback import voxel as V
 from lungdeform.playback.schedule import VolumeTrace
 from tests.browser.support import two_lungs
 
@@ -248,3 +249,27 @@ def test_zeroed_is_a_writable_zero_float32_array():
     assert not a.any()
     a[1, 2, 3] = (1.0, 2.0, 3.0)
     assert a.sum() == 6.0 and zeroed((0, 4, 5, 3)).shape == (0, 4, 5, 3)
+
+
+def test_spans_the_fill_records_give_the_jacobian_of_the_field(rng):
+    # the fill records per voxel row the span it wrote, and the Jacobian pass reads those spans instead
+    # of scanning the field: over a lattice that moves only in part of its box, plus voxels changed
+    # afterwards (as refine does, recorded by widen_spans), the range must equal the reference's
+    # (numpy.gradient's determinant over the box) and the range from the spans measured on the field
+    grid = D.Grid((14, 20, 22), np.array([0.9, 1.1, 2.5]), np.zeros(3), np.eye(3))
+    lat = D.lattice(grid, np.array([3.0, 2.0, 5.0]), np.array([17.0, 18.0, 25.0]), 3.0)
+    vals = np.zeros(tuple(lat.dims[::-1]) + (3,))
+    vals[1:3, 1:4, 2:4] = rng.normal(scale=0.4, size=(2, 3, 2, 3))
+    spans = V.no_spans(grid.shape)
+    field = D.upsample(lat, vals, grid, None, spans)
+    flat = np.ravel_multi_index(([4, 9], [16, 15], [5, 18]), grid.shape)  # two voxels far from the moving part
+    field.reshape(-1, 3)[flat] += np.float32([[0.0, 0.0, -6.0], [0.3, 0.0, 0.0]])  # the first folds k = 3
+    V.widen_spans(spans, flat, grid.shape)
+    d = [np.gradient(field.astype(float), axis=ax) for ax in (2, 1, 0)]
+    ref = np.linalg.det(np.eye(3) + np.einsum("azyxc,ra->zyxcr", np.stack(d), grid.direction / grid.spacing))
+    (i0, j0, k0), (i1, j1, k1) = lat.box
+    sub = ref[k0:k1, j0:j1, i0:i1]
+    recorded = D.jacobian_range(field, grid, lat.box, spans)
+    assert recorded == D.jacobian_range(field, grid, lat.box)
+    assert recorded[:2] == pytest.approx((sub.min(), sub.max()), abs=1e-5) and recorded[2] == int((sub <= 0).sum())
+    assert recorded[0] < 0 < recorded[2] and recorded[1] > 2.0  # set by the voxels changed after the fill

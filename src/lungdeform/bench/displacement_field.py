@@ -6,13 +6,16 @@ end-inhale of a tidal breath (:func:`lungdeform.playback.displacement_field.disp
 yardstick in the same run, SimpleITK's linear resampling of a float32 image of that grid through a
 rigid shift. The ratio of the two median times is the figure (docs/RADIOTHERAPY.md); the ratio of
 their CPU times (the process's, every thread) is recorded beside it, as the figure on a loaded
-machine, where the wall times of both grow with the load.
+machine, where the wall times of both grow with the load. Both run on the same number of threads by
+default (SimpleITK's global default and numba's, each the number of cores; ``threads`` and
+``field_threads`` record them).
 """
 
 from __future__ import annotations
 
 import time
 
+import numba
 import numpy as np
 import SimpleITK as sitk
 
@@ -33,8 +36,11 @@ def bench_grid(model, shape=(150, 512, 512), spacing=(0.8, 0.8, 2.5)) -> D.Grid:
 
 
 def _median_time(fn, repeats: int) -> tuple[float, float]:
-    """The medians over ``repeats`` calls of ``fn``: wall seconds, and the process's CPU seconds (every
-    thread: user + system; a thread waiting for a busy core costs none)."""
+    """The medians over ``repeats`` calls of ``fn`` after one untimed warm-up call (the field's first
+    call loads the compiled kernels and builds the tapered prior's depth grids, once a model): wall
+    seconds, and the process's CPU seconds (every thread: user + system; a thread waiting for a busy
+    core costs none)."""
+    fn()
     wall, cpu = [], []
     for _ in range(repeats):
         t0, c0 = time.perf_counter(), time.process_time()
@@ -65,4 +71,5 @@ def bench_dvf(shape=(150, 512, 512), repeats: int = 3, node_mm: float = D.NODE_S
             "resample_cpu_seconds": resample_cpu, "cpu_ratio": field_cpu / resample_cpu, "jacobian_min": r.jacobian_min,
             "jacobian_max": r.jacobian_max, "margin_mm": r.info["margin_mm"], "nodes": r.info["nodes"],
             "nodes_evaluated": r.info["nodes_evaluated"], "lattice_error_mm": r.info["lattice_error_mm"],
-            "node_mm": float(node_mm), "threads": sitk.ProcessObject.GetGlobalDefaultNumberOfThreads()}
+            "node_mm": float(node_mm), "threads": sitk.ProcessObject.GetGlobalDefaultNumberOfThreads(),
+            "field_threads": numba.get_num_threads()}

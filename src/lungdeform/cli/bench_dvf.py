@@ -18,7 +18,7 @@ def register(apps) -> None:
     @apps.bench.command("dvf")
     def dvf(
         shape: str = typer.Option("150,512,512", "--shape", help="Grid size z,y,x (voxels)."),
-        repeats: int = typer.Option(3, "--repeats", help="Timed runs of each (the median is reported)."),
+        repeats: int = typer.Option(3, "--repeats", help="Timed runs of each, after a warm-up (the median)."),
         node_mm: float = typer.Option(4.0, "--node-mm", callback=bounded(0, D.MAX_NODE_MM, "mm", low_open=True), help="Lattice spacing (mm) of the interior field."),
         json_path: Optional[Path] = typer.Option(None, "--json", help="Write results here."),
     ):
@@ -31,7 +31,8 @@ def register(apps) -> None:
         say(f"building the embedded lungs' model and a {'x'.join(map(str, zyx))} grid")
         r = bench_dvf(zyx, repeats, node_mm)
         typer.echo(f"grid {' x '.join(map(str, r['shape_zyx']))} voxels: field {r['field_seconds']:.2f} s "
-                   f"({r['nodes_evaluated']} of {r['nodes']} lattice nodes evaluated), trilinear resampling "
+                   f"({r['field_threads']} threads; {r['nodes_evaluated']} of {r['nodes']} lattice nodes evaluated), "
+                   f"trilinear resampling "
                    f"{r['resample_seconds']:.2f} s ({r['threads']} threads): ratio {r['ratio']:.1f}x")
         typer.echo(f"CPU seconds (the process, every thread): field {r['field_cpu_seconds']:.2f}, resampling "
                    f"{r['resample_cpu_seconds']:.2f}: ratio {r['cpu_ratio']:.1f}x")

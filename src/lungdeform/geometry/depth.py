@@ -88,6 +88,7 @@ def depth_grid(vertices, faces, reach_mm: float, spacing_mm: float = DEPTH_SPACI
     to_in = ndimage.distance_transform_edt(~inside.reshape(shape)).ravel() * spacing_mm
     near = np.where(inside, to_out < reach_mm + floor, to_in < 2.0 * floor)
     if near.any():
-        measured = SurfaceDistance(v, f).distance(nodes[near])
+        bound = np.where(inside, to_out, to_in)[near] * (1 + 1e-9) + 1e-9  # the segment to that node crosses
+        measured = SurfaceDistance(v, f).distance(nodes[near], bound)
         depth[near] = np.where(inside[near], np.minimum(measured, reach_mm), -np.minimum(measured, floor))
     return DepthGrid(origin, float(spacing_mm), depth.reshape(tuple(dims[::-1])), float(reach_mm))

@@ -3,13 +3,17 @@
 A k-d tree to the nearest *vertex* is not a surface distance (LIBRARIES.md: off by up to 9.7 mm on
 a real lung). Here the distance from a point to a triangle surface is exact:
 
-1. the nearest vertex (k-d tree) gives an upper bound ``r`` on the distance;
-2. a triangle closer than ``r`` overlaps the cube of half-side ``r`` around the point, so only
-   triangles binned (by bounding box, in a uniform grid) in the cells of that cube are candidates;
+1. the nearest vertex (k-d tree), or the caller's own bound, gives an upper bound ``r`` on the distance;
+2. a triangle closer than ``r`` has its bounding box within ``r`` of the point; each triangle is
+   binned once, in the cell of a uniform grid that holds its box's centre (a loose grid: a box
+   reaches at most the grid's overhang beyond its cell), so only the cells within ``r`` plus the
+   overhang hold candidates;
 3. the exact closest point on each candidate triangle (Ericson, *Real-Time Collision Detection*
    5.1.5, written afresh here) in a numba kernel, parallel over the points; the smallest wins. Cells
-   and triangles whose bounding box lies farther than the best distance found so far are skipped
-   (they cannot hold a nearer point).
+   whose triangles' union box, and triangles whose own box, lie farther than the best distance found
+   so far are skipped (they cannot hold a nearer point). Binning each triangle once halved the
+   kernel's time on the lattice of ``lungdeform bench dvf`` (a box checked once, not in each of the
+   2–3 cells it overlaps).
 
 Symmetric surface distance between surfaces A and B: distances of A's sample points to B and of
 B's sample points to A, pooled. Statistics are *area-weighted* (each vertex carries a third of the
@@ -112,52 +116,63 @@ def _closest_on_triangle(p, a, b, c):
 
 @numba.njit(cache=True)
 def _grid_fill(vertices, faces, lo, h, dims):
+    """Bin each face once, in the cell of its bounding box's centre (a loose grid): ``(ptr (cells + 1,),
+    order (m,) face per slot, cell by cell, records (m, 15) per slot the face's bounding box (lo, hi)
+    and its corners a, b, c, content (cells, 6) the union of the cell's faces' boxes (empty: +inf, −inf),
+    overhang mm)``, overhang the farthest any face's box reaches beyond its cell (≥ 0)."""
     m = faces.shape[0]
-    cmin = np.empty((m, 3), np.int64)
-    cmax = np.empty((m, 3), np.int64)
-    total = 0
+    n_cells = dims[0] * dims[1] * dims[2]
+    cell = np.empty(m, np.int64)
+    box = np.empty((m, 6))
+    counts = np.zeros(n_cells + 1, np.int64)
     for f in range(m):
+        idx = np.empty(3, np.int64)
         for k in range(3):
             a = vertices[faces[f, 0], k]
             b = vertices[faces[f, 1], k]
             c = vertices[faces[f, 2], k]
-            cmin[f, k] = min(max(int((min(a, b, c) - lo[k]) / h), 0), dims[k] - 1)
-            cmax[f, k] = min(max(int((max(a, b, c) - lo[k]) / h), 0), dims[k] - 1)
-        total += (cmax[f, 0] - cmin[f, 0] + 1) * (cmax[f, 1] - cmin[f, 1] + 1) * (cmax[f, 2] - cmin[f, 2] + 1)
-    n_cells = dims[0] * dims[1] * dims[2]
-    counts = np.zeros(n_cells + 1, np.int64)
-    for f in range(m):
-        for i in range(cmin[f, 0], cmax[f, 0] + 1):
-            for j in range(cmin[f, 1], cmax[f, 1] + 1):
-                for k in range(cmin[f, 2], cmax[f, 2] + 1):
-                    counts[(i * dims[1] + j) * dims[2] + k + 1] += 1
+            box[f, k], box[f, 3 + k] = min(a, b, c), max(a, b, c)
+            idx[k] = min(max(int(((box[f, k] + box[f, 3 + k]) / 2 - lo[k]) / h), 0), dims[k] - 1)
+        cell[f] = (idx[0] * dims[1] + idx[1]) * dims[2] + idx[2]
+        counts[cell[f] + 1] += 1
     ptr = np.cumsum(counts)
     fill = ptr[:-1].copy()
-    items = np.empty(total, np.int64)
+    order = np.empty(m, np.int64)
+    records = np.empty((m, 15))
+    content = np.empty((n_cells, 6))
+    content[:, :3], content[:, 3:] = np.inf, -np.inf
+    overhang = 0.0
     for f in range(m):
-        for i in range(cmin[f, 0], cmax[f, 0] + 1):
-            for j in range(cmin[f, 1], cmax[f, 1] + 1):
-                for k in range(cmin[f, 2], cmax[f, 2] + 1):
-                    c = (i * dims[1] + j) * dims[2] + k
-                    items[fill[c]] = f
-                    fill[c] += 1
-    return ptr, items
+        c = cell[f]
+        slot = fill[c]
+        fill[c] += 1
+        order[slot] = f
+        ijk = (c // (dims[1] * dims[2]), (c // dims[2]) % dims[1], c % dims[2])
+        for k in range(3):
+            records[slot, k], records[slot, 3 + k] = box[f, k], box[f, 3 + k]
+            content[c, k], content[c, 3 + k] = min(content[c, k], box[f, k]), max(content[c, 3 + k], box[f, 3 + k])
+            overhang = max(overhang, lo[k] + ijk[k] * h - box[f, k], box[f, 3 + k] - (lo[k] + (ijk[k] + 1) * h))
+            for v in range(3):
+                records[slot, 6 + 3 * v + k] = vertices[faces[f, v], k]
+    return ptr, order, records, content, overhang
 
 
 @numba.njit(cache=True, inline="always")
-def _gap2(p, lo, h, a):
-    """Squared distance along one axis from coordinate ``p`` to grid cell ``a`` (``[lo + a·h, lo + (a+1)·h]``)."""
-    g = max(lo + a * h - p, p - (lo + (a + 1) * h), 0.0)
-    return g * g
+def _box_gap2(px, py, pz, box):
+    """Squared distance from the point ``(px, py, pz)`` to the box ``box[:6]`` = (lo x, y, z, hi x, y, z)."""
+    gx = max(box[0] - px, px - box[3], 0.0)
+    gy = max(box[1] - py, py - box[4], 0.0)
+    gz = max(box[2] - pz, pz - box[5], 0.0)
+    return gx * gx + gy * gy + gz * gz
 
 
 @numba.njit(cache=True, parallel=True)
-def _closest_kernel(points, bound, mesh, grid):
-    """``(distance, closest, face)`` of ``points : (n, 3)`` within ``bound : (n,)`` (their nearest-
-    vertex distances) on ``mesh = (vertices, faces, boxes)``, triangles binned in ``grid = (lo, h,
-    dims, ptr, items)`` (:func:`_grid_fill`)."""
-    vertices, faces, boxes = mesh
-    lo, h, dims, ptr, items = grid
+def _closest_kernel(points, bound, grid):
+    """``(distance, closest, face)`` of ``points : (n, 3)`` within ``bound : (n,)`` (upper bounds on
+    their distances) on the faces binned in ``grid = (lo, h, dims, ptr, order, records, content,
+    overhang)`` (:func:`_grid_fill`): the cells within the bound plus the overhang, those whose
+    faces' union box is within the best distance so far, and their faces whose own box is."""
+    lo, h, dims, ptr, order, rec, content, overhang = grid
     n = points.shape[0]
     dist2 = np.empty(n)
     closest = np.zeros((n, 3))
@@ -166,41 +181,32 @@ def _closest_kernel(points, bound, mesh, grid):
         px, py, pz = points[i, 0], points[i, 1], points[i, 2]
         r = bound[i]
         best = r * r * (1.0 + 1e-12) + 1e-12
-        i0 = min(max(int((px - r - lo[0]) / h), 0), dims[0] - 1)
-        i1 = min(max(int((px + r - lo[0]) / h), 0), dims[0] - 1)
-        j0 = min(max(int((py - r - lo[1]) / h), 0), dims[1] - 1)
-        j1 = min(max(int((py + r - lo[1]) / h), 0), dims[1] - 1)
-        k0 = min(max(int((pz - r - lo[2]) / h), 0), dims[2] - 1)
-        k1 = min(max(int((pz + r - lo[2]) / h), 0), dims[2] - 1)
+        reach = r + overhang
+        i0 = min(max(int((px - reach - lo[0]) / h), 0), dims[0] - 1)
+        i1 = min(max(int((px + reach - lo[0]) / h), 0), dims[0] - 1)
+        j0 = min(max(int((py - reach - lo[1]) / h), 0), dims[1] - 1)
+        j1 = min(max(int((py + reach - lo[1]) / h), 0), dims[1] - 1)
+        k0 = min(max(int((pz - reach - lo[2]) / h), 0), dims[2] - 1)
+        k1 = min(max(int((pz + reach - lo[2]) / h), 0), dims[2] - 1)
         for a in range(i0, i1 + 1):
-            ga = _gap2(px, lo[0], h, a)
             for b in range(j0, j1 + 1):
-                gb = ga + _gap2(py, lo[1], h, b)
-                if gb > best:  # the cells no nearer than the best so far hold no nearer triangle
-                    continue
                 for c in range(k0, k1 + 1):
-                    if gb + _gap2(pz, lo[2], h, c) > best:
-                        continue
                     cell = (a * dims[1] + b) * dims[2] + c
+                    if ptr[cell] == ptr[cell + 1] or _box_gap2(px, py, pz, content[cell]) > best:
+                        continue  # no face, or none nearer than the best so far
                     for m in range(ptr[cell], ptr[cell + 1]):
-                        f = items[m]
-                        gx = max(boxes[f, 0] - px, px - boxes[f, 3], 0.0)
-                        gy = max(boxes[f, 1] - py, py - boxes[f, 4], 0.0)
-                        gz = max(boxes[f, 2] - pz, pz - boxes[f, 5], 0.0)
-                        if gx * gx + gy * gy + gz * gz > best:  # its bounding box is farther
+                        if _box_gap2(px, py, pz, rec[m]) > best:  # its bounding box is farther
                             continue
-                        a_, b_, c_ = faces[f, 0], faces[f, 1], faces[f, 2]
-                        qx, qy, qz = _closest_on_triangle(
-                            (px, py, pz), (vertices[a_, 0], vertices[a_, 1], vertices[a_, 2]),
-                            (vertices[b_, 0], vertices[b_, 1], vertices[b_, 2]),
-                            (vertices[c_, 0], vertices[c_, 1], vertices[c_, 2]))
+                        qx, qy, qz = _closest_on_triangle((px, py, pz), (rec[m, 6], rec[m, 7], rec[m, 8]),
+                                                          (rec[m, 9], rec[m, 10], rec[m, 11]),
+                                                          (rec[m, 12], rec[m, 13], rec[m, 14]))
                         d = (px - qx) ** 2 + (py - qy) ** 2 + (pz - qz) ** 2
                         if d <= best:
                             best = d
                             closest[i, 0] = qx
                             closest[i, 1] = qy
                             closest[i, 2] = qz
-                            face[i] = f
+                            face[i] = order[m]
         dist2[i] = best
     return np.sqrt(dist2), closest, face
 
@@ -212,9 +218,9 @@ THREADED_QUERY = 50_000
 class SurfaceDistance:
     """Exact distances from points to one triangle surface; build once, query many times.
 
-    Triangles are binned by their bounding boxes into a uniform grid (cell about twice the median
-    edge); a query scans the cells within its nearest-vertex distance, an upper bound on the true
-    distance, so no closer triangle can be missed.
+    Triangles are binned once, by the centres of their bounding boxes, into a uniform grid (cell about
+    twice the median edge); a query scans the cells within its nearest-vertex distance (an upper bound
+    on the true distance) plus the farthest a box overhangs its cell, so no closer triangle can be missed.
 
     Parameters
     ----------
@@ -240,28 +246,48 @@ class SurfaceDistance:
         span = self.vertices[used].max(axis=0) + 1e-6 - lo
         h = max(2.0 * float(np.median(edge)), 1e-6)
         h = max(h, float(np.prod(span) / self.MAX_CELLS) ** (1.0 / 3.0))
-        self._lo = lo
-        self._h = h
-        self._dims = np.maximum(np.ceil(span / h).astype(np.int64), 1)
-        self._ptr, self._items = _grid_fill(self.vertices, self.faces, lo, h, self._dims)
-        self._boxes = np.hstack([e.min(axis=1), e.max(axis=1)])  # (m, 6) each face's bounding box
+        dims = np.maximum(np.ceil(span / h).astype(np.int64), 1)
+        self._grid = (lo, h, dims) + _grid_fill(self.vertices, self.faces, lo, h, dims)
 
-    def query(self, points) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(distance (k,) mm, closest (k, 3) mm, face (k,) int)`` for ``points : (k, 3)``."""
+    def query(self, points, bound=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(distance (k,) mm, closest (k, 3) mm, face (k,) int)`` for ``points : (k, 3)``.
+
+        ``bound : (k,) float`` mm, optional: the caller's upper bound on each point's distance (for
+        example the distance to a node known to lie on the other side of the surface), used instead
+        of the nearest vertex's; a point with no triangle within its bound (a bound too small, or not
+        finite) is searched again from its nearest vertex, so the answer is exact either way."""
         pts = as_vertices(points, "points")
         if len(pts) == 0:
             return np.zeros(0), np.zeros((0, 3)), np.zeros(0, np.int64)
         if not np.all(np.isfinite(pts)):
             raise InputError("points contain NaN or infinity")
+        if bound is None:
+            return self._search(pts, self._vertex_bound(pts))
+        b = np.asarray(bound, dtype=np.float64).reshape(-1)
+        if len(b) != len(pts):
+            raise InputError(f"bound: need one upper bound (mm) per point ({len(pts)}), got {len(b)}")
+        bad = ~(np.isfinite(b) & (b >= 0.0))
+        if bad.any():
+            b = b.copy()
+            b[bad] = self._vertex_bound(pts[bad])
+        dist, closest, face = self._search(pts, b)
+        miss = np.flatnonzero(face < 0)
+        if len(miss):
+            dist[miss], closest[miss], face[miss] = self._search(pts[miss], self._vertex_bound(pts[miss]))
+        return dist, closest, face
+
+    def _vertex_bound(self, pts: np.ndarray) -> np.ndarray:
+        """``(k,) float`` mm: each point's distance to the nearest vertex (an upper bound on its distance)."""
         # threads only for a large query: scipy starts and joins its workers on every call, which
         # cost a fit's objective (6000 and 3000 points, hundreds of calls) more than they saved
-        bound, _ = self._tree.query(pts, workers=-1 if len(pts) >= THREADED_QUERY else 1)
-        return _closest_kernel(pts, bound, (self.vertices, self.faces, self._boxes),
-                               (self._lo, self._h, self._dims, self._ptr, self._items))
+        return self._tree.query(pts, workers=-1 if len(pts) >= THREADED_QUERY else 1)[0]
 
-    def distance(self, points) -> np.ndarray:
-        """``(k,) float`` mm: exact unsigned distance of each point to the surface."""
-        return self.query(points)[0]
+    def _search(self, pts: np.ndarray, bound: np.ndarray):
+        return _closest_kernel(pts, bound, self._grid)
+
+    def distance(self, points, bound=None) -> np.ndarray:
+        """``(k,) float`` mm: exact unsigned distance of each point to the surface (``bound``: :meth:`query`)."""
+        return self.query(points, bound)[0]
 
 
 def barycentric(points, a, b, c) -> np.ndarray:

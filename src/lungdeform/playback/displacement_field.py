@@ -153,14 +153,24 @@ def inside_lattice(surface, grid: Grid, lat: Lattice) -> np.ndarray:
 def outside_distance(surface, points, inside: np.ndarray, node_mm, reach_mm: float) -> np.ndarray:
     """``(n,) float`` mm: 0 inside, the exact distance to ``surface`` for outside lattice ``points :
     (n, 3)`` within about ``reach_mm`` of it (``inside : (nz, ny, nx) bool``, nodes ``node_mm`` (3,) mm
-    apart along (i, j, k)), inf farther (found from the distance to the nearest inside node)."""
+    apart along (i, j, k)), inf farther (found from the distance to the nearest inside node, which also
+    bounds the search: the segment to it crosses the surface)."""
     if not inside.any():
         return np.full(len(points), np.inf)
-    near = ndimage.distance_transform_edt(~inside, sampling=np.asarray(node_mm, float)[::-1]).ravel()
-    band = (near > 0) & (near < reach_mm + float(np.max(node_mm)))
+    sampling = np.asarray(node_mm, float)[::-1]
+    reach = reach_mm + float(np.max(node_mm))
+    # the transform only over the inside nodes' box plus the reach: every node beyond is farther
+    pad = np.ceil(reach / sampling).astype(int)
+    idx = np.nonzero(inside)
+    crop = tuple(slice(max(int(a.min()) - p, 0), int(a.max()) + p + 1) for a, p in zip(idx, pad))
+    near = np.full(inside.shape, np.inf)
+    near[crop] = ndimage.distance_transform_edt(~inside[crop], sampling=sampling)
+    near = near.ravel()
+    band = (near > 0) & (near < reach)
     d = np.where(inside.ravel(), 0.0, np.inf)
     if band.any():
-        d[band] = SurfaceDistance(surface.vertices, surface.faces).distance(points[band])
+        bound = near[band] * (1 + 1e-9) + 1e-9
+        d[band] = SurfaceDistance(surface.vertices, surface.faces).distance(points[band], bound)
     return d
 
 
@@ -253,10 +263,11 @@ def _affine_steps(grid: Grid, matrix) -> tuple[np.ndarray, np.ndarray]:
     return b @ grid.origin + m[:3, 3], (b @ grid.direction) * grid.spacing
 
 
-def upsample(lat: Lattice, values: np.ndarray, grid: Grid, matrix=None) -> np.ndarray:
+def upsample(lat: Lattice, values: np.ndarray, grid: Grid, matrix=None, spans=None) -> np.ndarray:
     """``(z, y, x, 3) float32`` on the whole ``grid``: lattice ``values : (nz, ny, nx, 3)`` interpolated
     trilinearly over the lattice's box, zero beyond, plus (``matrix``, 4×4 mm LPS) the displacement
-    ``x → M x − x`` at every voxel; one fused pass (:func:`lungdeform.playback.voxel.fill_field`)."""
+    ``x → M x − x`` at every voxel; one fused pass (:func:`lungdeform.playback.voxel.fill_field`), which
+    records in ``spans`` (:func:`lungdeform.playback.voxel.no_spans`, if given) the voxels it wrote."""
     (i0, j0, k0), (i1, j1, k1) = lat.box
     c = np.ascontiguousarray(values, np.float32)
     axes = [V.axis_weights(grid.shape[2 - a], int(lat.lo[a]), int(lat.stride[a]), int(lat.dims[a]),
@@ -265,7 +276,8 @@ def upsample(lat: Lattice, values: np.ndarray, grid: Grid, matrix=None) -> np.nd
     out = V.zeroed(tuple(grid.shape) + (3,))
     nz, ny, nx = grid.shape
     ranges = np.array([k0, k1, j0, j1, i0, i1] if matrix is None else [0, nz, 0, ny, 0, nx], np.int64)
-    return V.fill_field(out, c, (axes[0], axes[1], axes[2]), (const, steps), ranges)
+    return V.fill_field(out, c, (axes[0], axes[1], axes[2]), (const, steps), ranges,
+                        V.no_spans(grid.shape) if spans is None else spans)
 
 
 def sample(lat: Lattice, values: np.ndarray, grid: Grid, points) -> np.ndarray:
@@ -296,7 +308,7 @@ def add_affine(field: np.ndarray, grid: Grid, matrix) -> np.ndarray:
     none = [(np.full(n, -1, np.int64), np.zeros(n, np.float32)) for n in (nz, ny, nx)]
     const, steps = _affine_steps(grid, matrix)
     return V.fill_field(field, np.zeros((1, 1, 1, 3), np.float32), (none[0], none[1], none[2]),
-                        (const, steps), np.array([0, nz, 0, ny, 0, nx], np.int64))
+                        (const, steps), np.array([0, nz, 0, ny, 0, nx], np.int64), V.no_spans(grid.shape))
 
 
 def _inverse_axes(spacing, direction) -> np.ndarray:
@@ -310,17 +322,21 @@ def jacobian_determinant(field: np.ndarray, spacing, direction) -> np.ndarray:
     f = np.ascontiguousarray(field, np.float32)
     nz, ny, nx = f.shape[:3]
     out = np.empty((nz, ny, nx), np.float32)
-    V.jacobian_pass(f, _inverse_axes(spacing, direction), np.array([0, nz, 0, ny, 0, nx], np.int64), out)
+    ranges = np.array([0, nz, 0, ny, 0, nx], np.int64)
+    V.jacobian_pass(f, _inverse_axes(spacing, direction), ranges, out, V.row_spans(f, ranges))
     return out
 
 
-def jacobian_range(field: np.ndarray, grid: Grid, box=None) -> tuple[float, float, int]:
+def jacobian_range(field: np.ndarray, grid: Grid, box=None, spans=None) -> tuple[float, float, int]:
     """``(min, max, folded voxels)`` of :func:`jacobian_determinant` over ``field`` on ``grid`` (only the
     voxel ``box`` ``((i0, j0, k0), (i1, j1, k1))`` when given: a rigid field elsewhere), in one fused
-    pass without the determinant image."""
+    pass without the determinant image. ``spans``: the voxels written per row, as :func:`upsample`
+    records them (:func:`lungdeform.playback.voxel.jacobian_pass`); measured from ``field`` if None."""
     (i0, j0, k0), (i1, j1, k1) = box if box is not None else ((0, 0, 0), tuple(grid.shape[::-1]))
-    rows = V.jacobian_pass(np.ascontiguousarray(field, np.float32), _inverse_axes(grid.spacing, grid.direction),
-                           np.array([k0, k1, j0, j1, i0, i1], np.int64), np.empty((0, 0, 0), np.float32))
+    f = np.ascontiguousarray(field, np.float32)
+    ranges = np.array([k0, k1, j0, j1, i0, i1], np.int64)
+    rows = V.jacobian_pass(f, _inverse_axes(grid.spacing, grid.direction), ranges, np.empty((0, 0, 0), np.float32),
+                           V.row_spans(f, ranges) if spans is None else spans)
     if not len(rows):
         return 1.0, 1.0, 0
     return float(rows[:, 0].min()), float(rows[:, 1].max()), int(rows[:, 2].sum())
@@ -375,14 +391,18 @@ def near_landmarks(model, grid: Grid, radius_mm: float = REFINE_RADIUS_MM):
     return out
 
 
-def refine(field: np.ndarray, model, grid: Grid, lat: Lattice, u: np.ndarray, scales: dict, rotation) -> None:
+def refine(field: np.ndarray, model, grid: Grid, lat: Lattice, u: np.ndarray, scales: dict, rotation) -> np.ndarray:
     """Replace, in place, the lattice field near the landmarks (:func:`near_landmarks`) by the exact
-    interior field (blended by the weight), rotated by ``rotation`` (3, 3) as the rest of ``field``."""
+    interior field (blended by the weight), rotated by ``rotation`` (3, 3) as the rest of ``field``.
+    Returns the flat voxel indices (z, y, x) it changed, ``(p,) int``."""
     flat_field = field.reshape(-1, 3)
+    touched = [np.zeros(0, np.int64)]
     for name, (flat, pts, w) in near_landmarks(model, grid).items():
         exact = scales[name] * model.lungs[name].interior.displacement(pts)
         delta = (exact - sample(lat, u, grid, pts)) * w[:, None]
         flat_field[flat] += (delta @ np.asarray(rotation, float).T).astype(np.float32)
+        touched.append(np.asarray(flat, np.int64))
+    return np.concatenate(touched)
 
 
 @dataclass(frozen=True, eq=False)
@@ -423,17 +443,19 @@ def displacement_field(model, grid: Grid, delta_ml: float, *, alignment=None, in
                                  reach_mm=_reach(model, None if a is None else np.linalg.inv(a)))
     info["lattice_error_mm"] = lattice_error(model, lat, u, grid, scales)
     info["scales"] = scales
+    spans = V.no_spans(grid.shape)  # the voxels written, so that the Jacobian's pass reads only those
     if inverse:
         w, info["inversion_residual_mm"] = invert(lat, u, grid)
         nodes = grid.world(lat.ijk())
         rigid = np.eye(4) if a is None else a
         part = sample(lat, w, grid, nodes @ rigid[:3, :3].T + rigid[:3, 3]).reshape(u.shape)
-        field = upsample(lat, part, grid, a)
+        field = upsample(lat, part, grid, a, spans)
     else:
         rot = np.eye(3) if a is None else np.linalg.inv(a)[:3, :3]
-        field = upsample(lat, u @ rot.T, grid, None if a is None else np.linalg.inv(a))
-        refine(field, model, grid, lat, u, scales, rot)
-    lo, hi, folded = jacobian_range(field, grid, lat.box)
+        part = u if a is None else np.einsum("...b,ab->...a", u, rot)  # not BLAS: (n, 3) × (3, 3) (Grid.world)
+        field = upsample(lat, part, grid, None if a is None else np.linalg.inv(a), spans)
+        V.widen_spans(spans, refine(field, model, grid, lat, u, scales, rot), grid.shape)
+    lo, hi, folded = jacobian_range(field, grid, lat.box, spans)
     if folded:
         raise FoldError(f"the displacement field folds at {folded} voxel(s) (Jacobian determinant down to "
                         f"{lo:.3g}); not written")

@@ -59,7 +59,7 @@ def _row(values, k0, fz, j0, fy, buf):
 
 
 @numba.njit(cache=True, parallel=True)
-def fill_field(out, values, axes, affine_part, ranges):
+def fill_field(out, values, axes, affine_part, ranges, spans):
     """Add into ``out : (z, y, x, 3) float32`` at voxels ``ranges`` (k0, k1, j0, j1, i0, i1): the
     lattice ``values : (nz, ny, nx, 3) float32`` interpolated trilinearly where all three axes' nodes
     are ≥ 0 (else 0), plus ``const + steps @ (i, j, k)``. ``axes`` = the ``(nodes, frac)`` pairs
@@ -67,15 +67,19 @@ def fill_field(out, values, axes, affine_part, ranges):
     voxel)``, column a of ``steps`` along index axis a. Separable: per voxel row one bilinear lattice
     row (:func:`_row`, into a buffer per z-slice), then one lerp per voxel. A voxel that would get
     exactly 0 (outside the lattice, or between two row nodes that do not move, and no affine part)
-    is not touched: a fresh ``numpy.zeros`` output is written, and paged in, only where the field moves."""
+    is not touched: a fresh ``numpy.zeros`` output is written, and paged in, only where the field moves.
+    ``spans`` = ``(first, last)``, ``(z, y) int64`` each: per voxel row the first and last voxel this
+    pass touched, widened in place (rows it leaves alone keep theirs; see :func:`no_spans`)."""
     (nodes_k, frac_k), (nodes_j, frac_j), (nodes_i, frac_i) = axes
     const, steps = affine_part
+    first, final = spans
     last = values.shape[2] - 1
     affine = np.any(const != 0) or np.any(steps != 0)
     for k in numba.prange(ranges[0], ranges[1]):
         row = np.empty((values.shape[2], 3), np.float32)
         still = np.ones(values.shape[2], np.bool_)
         for j in range(ranges[2], ranges[3]):
+            touched_lo, touched_hi = ranges[5], ranges[4] - 1
             lattice = nodes_k[k] >= 0 and nodes_j[j] >= 0
             if lattice:
                 _row(values, nodes_k[k], frac_k[k], nodes_j[j], frac_j[j], row)
@@ -87,6 +91,7 @@ def fill_field(out, values, axes, affine_part, ranges):
                 n1 = min(n0 + 1, last)
                 if not affine and not (inside and not (still[n0] and still[n1])):
                     continue
+                touched_lo, touched_hi = min(touched_lo, i), i
                 f = frac_i[i]
                 for c in range(3):
                     x = 0.0
@@ -95,32 +100,53 @@ def fill_field(out, values, axes, affine_part, ranges):
                     if affine:
                         x += const[c] + steps[c, 0] * i + steps[c, 1] * j + steps[c, 2] * k
                     out[k, j, i, c] += x
+            if touched_lo <= touched_hi:
+                first[k, j], final[k, j] = min(first[k, j], touched_lo), max(final[k, j], touched_hi)
     return out
 
 
+def no_spans(shape) -> tuple[np.ndarray, np.ndarray]:
+    """Row spans ``(first, last)`` of a field of ``shape`` (z, y, x[, 3]) that is zero everywhere (first > last
+    in every row): to be widened by :func:`fill_field` and :func:`widen_spans`, read by :func:`jacobian_pass`."""
+    nz, ny, nx = shape[:3]
+    return np.full((nz, ny), nx, np.int64), np.full((nz, ny), -1, np.int64)
+
+
+def widen_spans(spans, flat: np.ndarray, shape) -> None:
+    """Widen, in place, the row ``spans`` (:func:`no_spans`) of a field of ``shape`` (z, y, x[, 3]) to the
+    voxels ``flat : (p,) int`` (flat indices over z, y, x)."""
+    k, j, i = np.unravel_index(np.asarray(flat, np.int64), tuple(shape[:3]))
+    np.minimum.at(spans[0], (k, j), i)
+    np.maximum.at(spans[1], (k, j), i)
+
+
 @numba.njit(cache=True, inline="always")
-def _grad_row(f, k, j, i, near, inv, c):
+def _grad_row(f, k, j, i, near, inv, c, diagonal):
     """Row ``c`` of ``I + ∇u`` at voxel (k, j, i): ``(∂u_c/∂x_r + δ_cr for r = 0, 1, 2)``; ``near`` =
-    the neighbours' indices and the reciprocal index steps between them (:func:`_det_row`)."""
+    the neighbours' indices and the reciprocal index steps between them (:func:`_det_row`);
+    ``diagonal``: ``inv`` is diagonal (index axes along x, y, z), so its zero terms are left out
+    (the same numbers: a product with 0 adds nothing)."""
     kl, kh, jl, jh, il, ih, rk, rj, ri = near
     di = (np.float64(f[k, j, ih, c]) - np.float64(f[k, j, il, c])) * ri
     dj = (np.float64(f[k, jh, i, c]) - np.float64(f[k, jl, i, c])) * rj
     dk = (np.float64(f[kh, j, i, c]) - np.float64(f[kl, j, i, c])) * rk
+    if diagonal:
+        return di * inv[0, 0] + (c == 0), dj * inv[1, 1] + (c == 1), dk * inv[2, 2] + (c == 2)
     return (di * inv[0, 0] + dj * inv[0, 1] + dk * inv[0, 2] + (c == 0),
             di * inv[1, 0] + dj * inv[1, 1] + dk * inv[1, 2] + (c == 1),
             di * inv[2, 0] + dj * inv[2, 1] + dk * inv[2, 2] + (c == 2))
 
 
 @numba.njit(cache=True, inline="always")
-def _det_near(f, k, j, i, near, inv):
-    a11, a12, a13 = _grad_row(f, k, j, i, near, inv, 0)
-    a21, a22, a23 = _grad_row(f, k, j, i, near, inv, 1)
-    a31, a32, a33 = _grad_row(f, k, j, i, near, inv, 2)
+def _det_near(f, k, j, i, near, inv, diagonal):
+    a11, a12, a13 = _grad_row(f, k, j, i, near, inv, 0, diagonal)
+    a21, a22, a23 = _grad_row(f, k, j, i, near, inv, 1, diagonal)
+    a31, a32, a33 = _grad_row(f, k, j, i, near, inv, 2, diagonal)
     return a11 * (a22 * a33 - a23 * a32) - a12 * (a21 * a33 - a23 * a31) + a13 * (a21 * a32 - a22 * a31)
 
 
 @numba.njit(cache=True)
-def _det_row(f, k, j, box_i, inv, dets):
+def _det_row(f, k, j, box_i, inv, dets, diagonal):
     """Write into ``dets[i − i0]`` ``det(I + ∇u)`` at the voxels (k, j, i) for i in ``box_i`` (i0, i1) of
     ``f : (z, y, x, 3)``; ``inv[r, a] = ∂index_a / ∂x_r`` (a = i, j, k). The differences central,
     one-sided at the array's edges (as ``numpy.gradient``): over 2 index steps or 1, so multiplying
@@ -130,18 +156,23 @@ def _det_row(f, k, j, box_i, inv, dets):
     rk, rj = 0.5 if kh - kl == 2 else 1.0, 0.5 if jh - jl == 2 else 1.0
     i0, i1 = box_i
     lo, hi = max(i0, 1), min(i1, nx - 1)
-    for i in range(lo, hi):
-        dets[i - i0] = _det_near(f, k, j, i, (kl, kh, jl, jh, i - 1, i + 1, rk, rj, 0.5), inv)
+    if diagonal:  # the flag a constant in each loop, so that the compiler drops the other branch
+        for i in range(lo, hi):
+            dets[i - i0] = _det_near(f, k, j, i, (kl, kh, jl, jh, i - 1, i + 1, rk, rj, 0.5), inv, True)
+    else:
+        for i in range(lo, hi):
+            dets[i - i0] = _det_near(f, k, j, i, (kl, kh, jl, jh, i - 1, i + 1, rk, rj, 0.5), inv, False)
     for i in range(i0, i1):
         if lo <= i < hi:
             continue
         il, ih = max(i - 1, 0), min(i + 1, nx - 1)
-        dets[i - i0] = _det_near(f, k, j, i, (kl, kh, jl, jh, il, ih, rk, rj, 0.5 if ih - il == 2 else 1.0), inv)
+        dets[i - i0] = _det_near(f, k, j, i, (kl, kh, jl, jh, il, ih, rk, rj, 0.5 if ih - il == 2 else 1.0), inv,
+                                 diagonal)
     return dets
 
 
 @numba.njit(cache=True, parallel=True)
-def _row_spans(f, ranges):
+def row_spans(f, ranges):
     """Per voxel row (k, j) of ``f : (z, y, x, 3)`` within one voxel of the box ``ranges`` (k0, k1, j0,
     j1, i0, i1): ``(first, last) (z, y) int64``, its first and last voxel within one voxel of
     ``[i0, i1)`` with a non-zero displacement (first > last: none; rows beyond the box: none)."""
@@ -163,18 +194,22 @@ def _row_spans(f, ranges):
 
 
 @numba.njit(cache=True, parallel=True)
-def jacobian_pass(f, inv, ranges, out):
+def jacobian_pass(f, inv, ranges, out, spans):
     """Per z-slice ``(min, max, folded count)`` of :func:`_det_row` over the voxels ``ranges`` (k0, k1,
     j0, j1, i0, i1) of ``f : (z, y, x, 3)``; each determinant also written to ``out`` (same z, y, x
     shape) unless ``out`` is empty. A voxel more than one voxel from every non-zero displacement in
-    its row and the four rows beside it (:func:`_row_spans`) has every difference 0: its determinant
-    is exactly 1, without arithmetic. Returns ``(n, 3) float`` rows, one per slice."""
+    its row and the four rows beside it has every difference 0: its determinant is exactly 1, without
+    arithmetic; ``spans`` = ``(first, last) (z, y) int64``, per row a span of voxels outside which
+    the row is zero (:func:`row_spans` measures it; :func:`fill_field` records the voxels it wrote, so
+    that the field need not be read twice). Returns ``(n, 3) float`` rows, one per slice."""
     nz, ny = f.shape[0], f.shape[1]
     nk = ranges[1] - ranges[0]
     rows = np.empty((max(nk, 0), 3))
     write = out.size > 0
     i0, i1 = ranges[4], ranges[5]
-    first, last = _row_spans(f, ranges)
+    first, last = spans
+    diagonal = (inv[0, 1] == 0 and inv[0, 2] == 0 and inv[1, 0] == 0 and inv[1, 2] == 0
+                and inv[2, 0] == 0 and inv[2, 1] == 0)
     for s in numba.prange(nk):
         k = ranges[0] + s
         dets = np.empty(max(i1 - i0, 0))
@@ -187,7 +222,7 @@ def jacobian_pass(f, inv, ranges, out):
             if a > i0 or b < i1:
                 lo, hi = min(lo, 1.0), max(hi, 1.0)
             if a < b:
-                _det_row(f, k, j, (a, b), inv, dets)
+                _det_row(f, k, j, (a, b), inv, dets, diagonal)
                 for d in dets[:b - a]:
                     lo, hi = min(lo, d), max(hi, d)
                     folded += d <= 0.0
