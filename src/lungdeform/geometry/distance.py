@@ -205,6 +205,25 @@ def _closest_kernel(points, bound, mesh, grid):
     return np.sqrt(dist2), closest, face
 
 
+@numba.njit(cache=True, parallel=True)
+def _face_bound(points, vertices, faces, hint):
+    """``(n,)`` mm: the exact distance of each of ``points : (n, 3)`` to its face ``hint[i]`` of
+    ``(vertices, faces)``, an upper bound on its distance to the surface; infinity where ``hint[i] < 0``."""
+    n = points.shape[0]
+    out = np.full(n, np.inf)
+    for i in numba.prange(n):
+        f = hint[i]
+        if f < 0:
+            continue
+        a_, b_, c_ = faces[f, 0], faces[f, 1], faces[f, 2]
+        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        qx, qy, qz = _closest_on_triangle(
+            (px, py, pz), (vertices[a_, 0], vertices[a_, 1], vertices[a_, 2]),
+            (vertices[b_, 0], vertices[b_, 1], vertices[b_, 2]), (vertices[c_, 0], vertices[c_, 1], vertices[c_, 2]))
+        out[i] = np.sqrt((px - qx) ** 2 + (py - qy) ** 2 + (pz - qz) ** 2)
+    return out
+
+
 #: Fewest query points for which the nearest-vertex bound is found with every core (scipy's threads).
 THREADED_QUERY = 50_000
 
@@ -233,7 +252,7 @@ class SurfaceDistance:
         if not np.all(np.isfinite(self.vertices)):
             raise InputError("vertices contain NaN or infinity")
         used = np.flatnonzero(np.bincount(self.faces.ravel(), minlength=len(self.vertices)))  # = np.unique, O(n)
-        self._tree = cKDTree(self.vertices[used])
+        self._used = used
         e = self.vertices[self.faces]
         edge = np.linalg.norm(e - np.roll(e, 1, axis=1), axis=2)
         lo = self.vertices[used].min(axis=0) - 1e-6
@@ -246,18 +265,48 @@ class SurfaceDistance:
         self._ptr, self._items = _grid_fill(self.vertices, self.faces, lo, h, self._dims)
         self._boxes = np.hstack([e.min(axis=1), e.max(axis=1)])  # (m, 6) each face's bounding box
 
-    def query(self, points) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(distance (k,) mm, closest (k, 3) mm, face (k,) int)`` for ``points : (k, 3)``."""
+    @cached_property
+    def _tree(self) -> cKDTree:
+        """The k-d tree of the surface's vertices (built on the first query that needs it)."""
+        return cKDTree(self.vertices[self._used])
+
+    def query(self, points, hint=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(distance (k,) mm, closest (k, 3) mm, face (k,) int)`` for ``points : (k, 3)``.
+
+        ``hint : (k,) int``, optional: a face of this surface per point (−1: none), for example each
+        point's closest face in an earlier query on a surface of the same faces whose vertices have
+        moved a little. The distance to it is an upper bound on the point's distance as good as the
+        nearest vertex's (it replaces the k-d tree's) and usually much tighter, so the search scans
+        fewer cells; the answer is the same exact distance either way (a tie between two faces at
+        the same distance may name the other face)."""
         pts = as_vertices(points, "points")
         if len(pts) == 0:
             return np.zeros(0), np.zeros((0, 3)), np.zeros(0, np.int64)
         if not np.all(np.isfinite(pts)):
             raise InputError("points contain NaN or infinity")
-        # threads only for a large query: scipy starts and joins its workers on every call, which
-        # cost a fit's objective (6000 and 3000 points, hundreds of calls) more than they saved
-        bound, _ = self._tree.query(pts, workers=-1 if len(pts) >= THREADED_QUERY else 1)
+        bound = self._bound(pts, hint)
         return _closest_kernel(pts, bound, (self.vertices, self.faces, self._boxes),
                                (self._lo, self._h, self._dims, self._ptr, self._items))
+
+    def _bound(self, pts: np.ndarray, hint) -> np.ndarray:
+        """``(k,)`` mm upper bounds on the distances of ``pts``: the hinted faces' distances, the
+        nearest vertex's where there is no hint (:meth:`query`)."""
+        if hint is None:
+            missing = np.arange(len(pts))
+            bound = np.empty(len(pts))
+        else:
+            hint = np.asarray(hint)
+            if hint.shape != (len(pts),) or not np.issubdtype(hint.dtype, np.integer) or (
+                    len(hint) and (hint.min() < -1 or hint.max() >= len(self.faces))):
+                raise InputError(f"hint must be ({len(pts)},) face indices of this surface (or -1), got shape "
+                                 f"{hint.shape}, dtype {hint.dtype}")
+            bound = _face_bound(pts, self.vertices, self.faces, np.ascontiguousarray(hint, np.int64))
+            missing = np.flatnonzero(hint < 0)
+        if len(missing):
+            # threads only for a large query: scipy starts and joins its workers on every call, which
+            # cost a fit's objective (6000 and 3000 points, hundreds of calls) more than they saved
+            bound[missing] = self._tree.query(pts[missing], workers=-1 if len(missing) >= THREADED_QUERY else 1)[0]
+        return bound
 
     def distance(self, points) -> np.ndarray:
         """``(k,) float`` mm: exact unsigned distance of each point to the surface."""
