@@ -42,7 +42,7 @@ def _figures(rng):
         "snapshot": (lambda: snapshot([([(v, f)], "#4a7ab5", 1.0)], views=("anterior", "superior")), (924, 528)),
         "error_map": (lambda: error_map(v, f, err, title="t"), (1188, 418)),
         "error_maps": (lambda: error_maps([(v, err), (v * 1.1, err), (v, 2 * err)], f, row_titles=["a", "b", "c"]),
-                       (912, 764)),
+                       (912, 788)),
         "cumulative_errors": (lambda: cumulative_errors({"a": err, "b": 2 * err}), (810, 373)),
         "cumulative_panels": (lambda: cumulative_panels({"p": {"a": err}, "q": {"a": err, "b": 2 * err}, "r": {}}),
                               (1312, 552)),

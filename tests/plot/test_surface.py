@@ -98,3 +98,12 @@ def test_merge_surfaces_renumbers_faces():
     a, b = _square(0.0, 0.0), _square(20.0, 0.0)
     v, f = merge_surfaces([a, b])
     assert v.shape == (8, 3) and f.tolist() == [[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]]
+
+
+def test_error_maps_of_many_rows_say_their_common_size_instead_of_ticks():
+    # truth: three 10 mm squares side by side in rows; panels are the largest extent × 1.06 (10.6 mm)
+    # across and up; from three rows on no ticks, the size in the title
+    v, f = _square(0.0, 0.0)
+    fig = error_maps([(v, np.full(4, 1.0))] * 3, f, views=("anterior",), title="t")
+    assert fig._suptitle.get_text() == "t; every panel 11 × 11 mm"
+    assert all(len(ax.get_xticks()) == 0 and len(ax.get_yticks()) == 0 for ax in fig.axes[:3])

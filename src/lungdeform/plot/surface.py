@@ -73,11 +73,13 @@ def _draw_faces(ax, polygons: np.ndarray, rgb: np.ndarray, alpha: float = 1.0) -
 
 
 def _frame_views(axes: np.ndarray, extents: list[tuple[np.ndarray, np.ndarray]], views: Sequence[str],
-                 row_titles: Sequence[str | None] | None = None) -> None:
+                 row_titles: Sequence[str | None] | None = None) -> np.ndarray:
     """Same mm per inch in every panel of ``axes : (rows, len(views))`` (the largest extent across and
     up; ``extents`` row by row), each panel centred on its surface; axes named by the patient direction
     they point to (the bottom row and the left column, every row and column showing the same views),
-    each column's view on the top row, ``row_titles`` on the left column."""
+    each column's view on the top row, ``row_titles`` on the left column; from three rows on, no
+    ticks (each costs matplotlib a Tick object per panel, most of a 4-D CT's error map). Returns ``(2,)``
+    mm: half of every panel's width and height."""
     half = np.max([0.5 * (hi - lo) for lo, hi in extents], axis=0) * 1.06
     rows = axes.shape[0]
     for k, (ax, (lo, hi)) in enumerate(zip(axes.ravel(), extents)):
@@ -91,11 +93,16 @@ def _frame_views(axes: np.ndarray, extents: list[tuple[np.ndarray, np.ndarray]],
         name = [row_titles[r]] if row_titles is not None and c == 0 and row_titles[r] else []
         ax.set_title(": ".join(name + ([view] if r == 0 else [])), fontsize=9 if rows > 1 else None)
         if r == rows - 1:
-            ax.set_xlabel(f"mm, toward {across} →", fontsize=8)
+            ax.set_xlabel(f"{'' if rows > 2 else 'mm, '}toward {across} →", fontsize=8)
         if c == 0:
-            ax.set_ylabel(f"mm, toward {upward} →", fontsize=8)
-        ax.tick_params(labelsize=7)
-        ax.locator_params(nbins=5)
+            ax.set_ylabel(f"{'' if rows > 2 else 'mm, '}toward {upward} →", fontsize=8)
+        if rows > 2:  # small multiples: no ticks (each panel is centred on its own surface, all to one scale)
+            ax.set_xticks([])
+            ax.set_yticks([])
+        else:
+            ax.tick_params(labelsize=7)
+            ax.locator_params(nbins=5)
+    return half
 
 
 def _extent(polygons: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -163,8 +170,8 @@ def error_maps(rows: Sequence[tuple[np.ndarray, np.ndarray]], faces: np.ndarray,
     mm LPS, error (n,) mm)`` of ``rows`` (surfaces of the same ``faces (m, 3)``, e.g. the predicted
     surface at each target of a 4-D CT), named by ``row_titles``; one colour scale ``[0, vmax]``
     (default: the 98th percentile of every row's errors) and one colour bar, the same mm per inch in
-    every panel. Laid out in inches (:func:`lungdeform.plot.figure.grid_figure`), smaller panels from
-    three rows on."""
+    every panel. Laid out in inches (:func:`lungdeform.plot.figure.grid_figure`), smaller panels and no
+    ticks from three rows on (the panels' common scale is then said in the title)."""
     faces = np.asarray(faces)
     errors = [np.asarray(e, float) for _, e in rows]
     finite = np.concatenate([e[np.isfinite(e)] for e in errors] + [np.zeros(0)])
@@ -173,7 +180,7 @@ def error_maps(rows: Sequence[tuple[np.ndarray, np.ndarray]], faces: np.ndarray,
     vmax = vmax if vmax > 0 else 1.0
     many = len(rows) > 2
     cell = Cell(2.6, 2.6, left=0.6, bottom=0.25, top=0.3) if many else Cell(3.2, 3.4, left=0.6, bottom=0.5, top=0.35)
-    fig, axes = grid_figure(len(rows), len(views), cell, right_in=1.2, top_in=0.4 if title else 0.1,
+    fig, axes = grid_figure(len(rows), len(views), cell, right_in=1.2, top_in=0.4 if title or many else 0.1,
                             dpi=80 if many else 90)
     extents = []
     for r, ((vertices, _), error) in enumerate(zip(rows, errors)):
@@ -182,7 +189,7 @@ def error_maps(rows: Sequence[tuple[np.ndarray, np.ndarray]], faces: np.ndarray,
             polygons, cosine, index = project(vertices, faces, view)
             _draw_faces(ax, polygons, shade(error_colours(face_error[index], vmax), cosine, ambient=0.55))
             extents.append(_extent(polygons))
-    _frame_views(axes, extents, views, row_titles)
+    half = _frame_views(axes, extents, views, row_titles)
     over = finite.size and finite.max() > vmax
     top, bottom = axes[0, -1].get_position(), axes[-1, -1].get_position()
     w = fig.get_figwidth()
@@ -190,6 +197,9 @@ def error_maps(rows: Sequence[tuple[np.ndarray, np.ndarray]], faces: np.ndarray,
     cax = fig.add_axes((top.x1 + 0.25 / w, top.y1 - h, 0.18 / w, h))
     fig.colorbar(ScalarMappable(Normalize(0.0, vmax), colormaps["viridis"]), cax=cax, label=label,
                  extend="max" if over else "neither")
+    if many:  # no ticks: the panels' common size said instead
+        width, height = 2.0 * half
+        title = f"{title + '; ' if title else ''}every panel {width:.0f} × {height:.0f} mm"
     if title:
         fig.suptitle(title, fontsize=10, y=1.0 - 0.08 / fig.get_figheight(), va="top")
     return fig
