@@ -32,10 +32,12 @@ def cumulative_panels(panels: dict[str | None, dict[str, np.ndarray]], *,
     clean = {t: {n: np.sort(np.asarray(e, float)[np.isfinite(np.asarray(e, float))]) for n, e in errors.items()}
              for t, errors in panels.items()}
     last = list(clean.values())[-1] if clean else {}
-    colour_rank = {n: k for k, n in enumerate(sorted((n for n in last if last[n].size), key=lambda n: np.median(last[n])))}
+    order = sorted((n for n in last if last[n].size), key=lambda n: np.median(last[n]))
+    colour_rank = {n: k for k, n in enumerate(order)}
     cols = 1 if len(clean) == 1 else 2
     rows = -(-len(clean) // cols)
-    cell = Cell(5.4, 3.3, left=0.7, right=2.9, bottom=0.55, top=0.3) if cols == 1 else Cell(4.2, 2.6, right=3.3, top=0.3)
+    one = Cell(5.4, 3.3, left=0.7, right=2.9, bottom=0.55, top=0.3)
+    cell = one if cols == 1 else Cell(4.2, 2.6, right=3.3, top=0.3)
     fig, axes = grid_figure(rows, cols, cell, dpi=90 if cols == 1 else 80)
     for ax, (title, errors) in zip(axes.ravel(), clean.items()):
         _cumulative_panel(ax, errors, colour_rank, 8 if cols == 1 else 7)
