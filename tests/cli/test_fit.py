@@ -397,6 +397,9 @@ def test_a_full_cycle_4dct_is_fitted_with_its_hysteresis(tmp_path, rng, capsys):
     assert any("80% has the end-exhale volume" in n for n in m["notes"])
     report = (out / "report.html").read_text(encoding="utf-8")
     assert "Alignment: <b>none</b>" in report and "<td>60%</td>" in report and "<h2>Hysteresis" in report
+    # every target's error map in one figure, its distributions in another (a row, a panel per target):
+    # six PNGs whatever the number of phases
+    assert report.count("data:image/png;base64,") == 6 and "(one row per target)" in report
 
 
 @pytest.mark.realdata

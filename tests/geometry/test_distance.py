@@ -91,6 +91,27 @@ def test_caller_bound_is_exact_either_way(rng):
         sd.query(pts, exact[:-1])
 
 
+def test_face_distance_bounds_give_the_same_exact_distances(rng):
+    # dense reference: a face's distance only bounds the search (any face's distance is an upper
+    # bound), so the distances equal the brute force's whatever the faces: the right ones, random
+    # ones, none (-1: infinity, searched from the nearest vertex)
+    s = icosphere(2, 30.0)
+    pts = rng.normal(size=(60, 3)) * 25
+    sd = SurfaceDistance(s.vertices, s.faces)
+    truth = _brute(pts, s.vertices, s.faces)
+    _, _, faces = sd.query(pts)
+    moved = SurfaceDistance(s.vertices * 1.05, s.faces)  # the same faces, the vertices moved
+    for hint in (faces, rng.integers(-1, len(s.faces), len(pts))):
+        d, closest, face = sd.query(pts, sd.face_distance(pts, hint))
+        assert d == pytest.approx(truth, abs=1e-9)
+        assert np.linalg.norm(pts - closest, axis=1) == pytest.approx(truth, abs=1e-9)
+        assert moved.query(pts, moved.face_distance(pts, hint))[0] == pytest.approx(_brute(pts, s.vertices * 1.05, s.faces), abs=1e-9)
+    with pytest.raises(InputError, match="faces must be"):
+        sd.face_distance(pts, np.full(len(pts), len(s.faces)))
+    with pytest.raises(InputError, match="faces must be"):
+        sd.face_distance(pts, faces[:-1])
+
+
 def test_concentric_spheres_radius_difference():
     # outer sphere vertices to the inner sphere: the radius difference, up to the inner mesh's
     # faceting (sagitta of an edge ≈ e²/8r ≈ 0.03 mm here)

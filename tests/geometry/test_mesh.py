@@ -7,6 +7,7 @@ from lungdeform.errors import InputError, MeshError, UnitsError
 from lungdeform.geometry.mesh import (
     Surface,
     check_surface,
+    distinct,
     icosphere,
     non_manifold_vertices,
     signed_volume,
@@ -234,3 +235,10 @@ def test_inside_nodes_is_the_parity_test_on_a_grid():
     nodes = np.stack([i.ravel(), j.ravel(), k.ravel()], axis=1).astype(float) + [0.0, 1e-5 * np.pi, 1e-5 * np.e]
     assert np.array_equal(inside.ravel(), inside_by_parity(nodes, s.vertices, s.faces))
     assert 0 < inside.sum() < inside.size
+
+
+def test_distinct_is_numpys_unique(rng):
+    # reference: np.unique (sorted distinct values), on large keys with repeats, small ints, one value, none
+    for values in (rng.integers(0, 2**40, 5000).repeat(2), rng.integers(-3, 4, (20, 3)), np.array([7]),
+                   np.zeros(0, np.int64)):
+        assert np.array_equal(distinct(values), np.unique(values))

@@ -12,12 +12,13 @@ from matplotlib.image import imread
 
 from lungdeform.plot.breathing import breathing_volume, pv_loop, residuals
 from lungdeform.plot.figure import save_png
-from lungdeform.plot.fit import bounding_box, cumulative_errors, direction_field, fit_history, ray_histogram
+from lungdeform.plot.fit import (bounding_box, cumulative_errors, cumulative_panels, direction_field, fit_history,
+                                 ray_histogram)
 from lungdeform.plot.motion import motion
 from lungdeform.plot.paper import circular_figure, convergence_figure, planar_figure
 from lungdeform.plot.segmentation import label_overlay
 from lungdeform.plot.statistics import ScatterPanel, StripPanel, grouped_bars, scatter_grid, strip_boxes
-from lungdeform.plot.surface import error_map, snapshot
+from lungdeform.plot.surface import error_map, error_maps, snapshot
 from tests.conftest import ellipsoid_lung
 
 
@@ -39,10 +40,14 @@ def _figures(rng):
     groups = [rng.normal(1, 0.1, 5), rng.normal(2, 0.1, 4)]
     return {
         "snapshot": (lambda: snapshot([([(v, f)], "#4a7ab5", 1.0)], views=("anterior", "superior")), (924, 528)),
-        "error_map": (lambda: error_map(v, f, err, title="t"), (1080, 414)),
-        "cumulative_errors": (lambda: cumulative_errors({"a": err, "b": 2 * err}), (810, 378)),
+        "error_map": (lambda: error_map(v, f, err, title="t"), (1188, 418)),
+        "error_maps": (lambda: error_maps([(v, err), (v * 1.1, err), (v, 2 * err)], f, row_titles=["a", "b", "c"]),
+                       (912, 788)),
+        "cumulative_errors": (lambda: cumulative_errors({"a": err, "b": 2 * err}), (810, 373)),
+        "cumulative_panels": (lambda: cumulative_panels({"p": {"a": err}, "q": {"a": err, "b": 2 * err}, "r": {}}),
+                              (1312, 552)),
         "ray_histogram": (lambda: ray_histogram(np.array([1, 3, 2]), np.array([-1.0, 0, 1, 2])), (560, 280)),
-        "bounding_box": (lambda: bounding_box(bb), (880, 320)),
+        "bounding_box": (lambda: bounding_box(bb), (960, 320)),
         "direction_field": (lambda: direction_field(v, lung.vertices / 100.0, err), (880, 400)),
         "fit_history": (lambda: fit_history({"optimizer": np.linspace(3, 1, 20)}), (560, 280)),
         "label_overlay": (lambda: label_overlay([(ct, lab, 1.0, "axial"), (ct, lab, 1.5, "coronal")], "t"),

@@ -9,7 +9,7 @@ from matplotlib import colormaps
 from matplotlib.image import imread
 
 from lungdeform.plot.figure import save_png
-from lungdeform.plot.surface import error_colours, error_map, merge_surfaces, project, shade, snapshot
+from lungdeform.plot.surface import error_colours, error_map, error_maps, merge_surfaces, project, shade, snapshot
 
 
 def _square(x0: float, y: float, size: float = 10.0) -> tuple[np.ndarray, np.ndarray]:
@@ -37,6 +37,21 @@ def test_error_map_colours_each_face_by_its_error(tmp_path):
     viridis = colormaps["viridis"]
     for x, value in ((5.0, 1.0), (25.0, 3.0)):
         assert _pixel(path, fig.axes[0], x + 2.0, 3.0) == pytest.approx(viridis(value / 4.0)[:3], abs=2 / 255)
+
+
+def test_error_maps_one_row_per_surface_on_one_scale(tmp_path):
+    # truth: the same square at two targets, 1 mm then 3 mm from it everywhere; with no vmax the scale
+    # is the 98th percentile of both rows (3 mm), so row 1 shows viridis at 1/3 and row 2 its top;
+    # one colour bar for the figure (two panels and the bar)
+    v, f = _square(0.0, 0.0)
+    fig = error_maps([(v, np.full(4, 1.0)), (v + [0.0, 0.0, 5.0], np.full(4, 3.0))], f, views=("anterior",),
+                     row_titles=["inhale", "exhale"])
+    path = save_png(fig, tmp_path / "maps.png")
+    viridis = colormaps["viridis"]
+    assert len(fig.axes) == 3
+    assert _pixel(path, fig.axes[0], 7.0, 3.0) == pytest.approx(viridis(1.0 / 3.0)[:3], abs=2 / 255)
+    assert _pixel(path, fig.axes[1], 7.0, 8.0) == pytest.approx(viridis(1.0)[:3], abs=2 / 255)
+    assert fig.axes[0].get_title() == "inhale: anterior" and fig.axes[1].get_title() == "exhale"
 
 
 def test_error_colours_scale_clip_and_mark_missing():
@@ -83,3 +98,12 @@ def test_merge_surfaces_renumbers_faces():
     a, b = _square(0.0, 0.0), _square(20.0, 0.0)
     v, f = merge_surfaces([a, b])
     assert v.shape == (8, 3) and f.tolist() == [[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]]
+
+
+def test_error_maps_of_many_rows_say_their_common_size_instead_of_ticks():
+    # truth: three 10 mm squares side by side in rows; panels are the largest extent × 1.06 (10.6 mm)
+    # across and up; from three rows on no ticks, the size in the title
+    v, f = _square(0.0, 0.0)
+    fig = error_maps([(v, np.full(4, 1.0))] * 3, f, views=("anterior",), title="t")
+    assert fig._suptitle.get_text() == "t; every panel 11 × 11 mm"
+    assert all(len(ax.get_xticks()) == 0 and len(ax.get_yticks()) == 0 for ax in fig.axes[:3])

@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lungdeform import blas
 from lungdeform.atomic import jsonable, write_json, write_npz
 from lungdeform.errors import InputError
 from lungdeform.fit.config import CROP_LIMIT, FitConfig, FitInputs
@@ -85,9 +86,17 @@ def run_fit(inputs: FitInputs, out: Path, config: FitConfig = FitConfig(), *,
 def fit_pipeline(inputs: FitInputs, config: FitConfig = FitConfig(), *, progress: Progress | None = None,
                  prior: MotionPrior | None = None) -> FitRun:
     """Steps 1 to 6 of the pipeline (module docstring) on ``inputs``, nothing written: the run's
-    outcome (:class:`~lungdeform.evaluate.outcome.FitRun`); ``progress`` and ``prior`` as in :func:`run_fit`."""
+    outcome (:class:`~lungdeform.evaluate.outcome.FitRun`); ``progress`` and ``prior`` as in :func:`run_fit`.
+    The BLAS libraries run on one thread inside it (:func:`lungdeform.blas.limited`): its dense products
+    are small (a least-squares Jacobian of about 10 000 × 10, systems of a few thousand rows), and
+    threads on a busy machine spin at their barriers (an SVD of the Jacobian: 29 ms CPU with the
+    default threads under load, 2 ms with one)."""
 
-    say = progress or silent
+    with blas.limited():  # the whole fit's dense steps on one BLAS thread (lungdeform.blas)
+        return _fit_pipeline(inputs, config, progress or silent, prior)
+
+
+def _fit_pipeline(inputs: FitInputs, config: FitConfig, say: Progress, prior: MotionPrior | None) -> FitRun:
     check_prior(config, prior)  # an explicit sliding interior: refused before any reading
     t_start = time.perf_counter()
     read = read_inputs(inputs, config.side_check, say)

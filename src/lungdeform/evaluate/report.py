@@ -3,7 +3,8 @@
 The alignment used and, for a 4-D CT, the hysteresis table (:mod:`lungdeform.fit.cycle`) come
 first. Plots (drawn by :mod:`lungdeform.plot`): the error colour map on the predicted surface (shaded,
 from the front, the lateral side and the back; colour = distance of each model vertex to the target
-surface, mm, one scale); the cumulative distribution of those distances per method (median marked);
+surface, mm, one scale); the cumulative distribution of those distances per method (median marked),
+each one figure with a row (a panel) per target;
 the ray hit-distance histogram; bounding-box dimensions and volume / box-volume against volume
 (paper Fig. 4); the fitted direction field (arrows in two views); the fit history.
 """
@@ -18,8 +19,8 @@ import numpy as np
 
 from lungdeform.atomic import write_bytes
 from lungdeform.plot.figure import png_bytes
-from lungdeform.plot.fit import bounding_box, cumulative_errors, direction_field, fit_history, ray_histogram
-from lungdeform.plot.surface import error_map
+from lungdeform.plot.fit import bounding_box, cumulative_panels, direction_field, fit_history, ray_histogram
+from lungdeform.plot.surface import error_maps
 
 
 def _png(fig) -> str:
@@ -63,6 +64,25 @@ def _cycle(metrics: dict) -> str:
                   f"<th>max mm</th></tr>{rows}</table>")
 
 
+def _error_figures(faces, predictions, metrics, measured, grey: str) -> list[str]:
+    """The error colour map of the model and the cumulative distributions of every method, one
+    figure each with a row (a panel) per target (:func:`lungdeform.plot.surface.error_maps`,
+    :func:`lungdeform.plot.fit.cumulative_panels`): a 4-D CT's phases side by side on one colour scale,
+    two PNGs whatever the number of targets."""
+    names = list(metrics["targets"])
+    label = names[0] if len(names) == 1 else None
+    rows = [(predictions[(t, "model")][0], np.where(measured, predictions[(t, "model")][1], np.nan)) for t in names]
+    what = f"model: distance of each vertex to {label}" if label else "model: distance of each vertex to its target"
+    maps = error_maps(rows, faces, views=error_views(metrics["side"]), title=f"{what}{grey}",
+                      row_titles=None if label else names)
+    panels = {f"distance of each predicted vertex to {t}" if label else t:
+              {name: predictions[(t, name)][1][measured] for name in metrics["targets"][t]} for t in names}
+    curves = cumulative_panels(panels, ylabel="fraction of measured vertices")
+    plural = "" if label else " (one row per target)"
+    return [_img(_png(maps), f"Error colour map (model){plural}"),
+            _img(_png(curves), f"Error distributions (cumulative){plural.replace('row', 'panel')}")]
+
+
 def write_report(path, *, rest, targets, fits, predictions, metrics, headline: str = "optimizer",
                  keep=None) -> Path:
     """Write the HTML report atomically; returns the path. ``headline``: the key of ``fits`` whose
@@ -88,15 +108,7 @@ def write_report(path, *, rest, targets, fits, predictions, metrics, headline: s
             f"<li><b>{html.escape(k)}</b>: {html.escape(v)}</li>" for k, v in protocols.items()) + "</ul>")
     for tname, per in metrics["targets"].items():
         parts.append(f"<h2>Target {html.escape(tname)}</h2>{_table(per)}")
-        errs = {name: predictions[(tname, name)][1][measured] for name in per}
-        x, e, _ = predictions[(tname, "model")]
-        parts.append(_img(_png(error_map(x, rest.faces, np.where(measured, e, np.nan),
-                                         views=error_views(metrics["side"]),
-                                         title=f"model: distance of each vertex to {tname}{grey}")),
-                          "Error colour map (model)"))
-        parts.append(_img(_png(cumulative_errors(errs, ylabel="fraction of measured vertices",
-                                                 title=f"distance of each predicted vertex to {tname}")),
-                          "Error distributions (cumulative)"))
+    parts += _error_figures(rest.faces, predictions, metrics, measured, grey)
     fit = fits.get(headline, fits["optimizer"])
     parts.append(_img(_png(ray_histogram(*fit.rays.histogram())), "Ray hit distances (fitted directions)"))
     parts.append(f"<p>Rays: {html.escape(str(fit.rays.summary()))}</p>")

@@ -289,6 +289,7 @@ class LungFitter:
             self._set_landmarks(landmarks.rest, landmarks.targets, landmarks.weight, landmarks.matrix)
         self.set_stiffness(uniform(self.n) if stiffness is None else as_moduli(stiffness, self.n))
         self.evaluations = 0
+        self._last: dict = {}  # each kind of distance query: its last points, model and answer (:meth:`_query`)
 
     def _set_landmarks(self, rest, observed, weight, matrix=None) -> None:
         self.landmark_weight = float(weight)
@@ -407,7 +408,7 @@ class LungFitter:
             s = (pt.target.volume_ml - self.v_ee) / self.delta_ml
             x = self.p + s * u
             # model vertices → target surface
-            dist, closest, _ = pt.distance.query(x[keep] - sh[i])
+            dist, closest, _ = self._query(pt, x[keep] - sh[i])
             g = _unit(x[keep] - sh[i] - closest, dist)
             fa = np.sqrt(self.areas[keep] / self.areas[keep].sum()) / norm
             rows_p.append(fa[:, None] * s * np.einsum("kc,kcp->kp", g, du[keep]))
@@ -416,7 +417,7 @@ class LungFitter:
             rows_t.append(t)
             # target samples → model surface
             q = pt.samples + sh[i]
-            dist, closest, face = SurfaceDistance(x, self.surface.faces).query(q)
+            dist, closest, face = self._query(pt, q, x)
             g = _unit(q - closest, dist)
             corners = self.surface.faces[face]  # (k, 3)
             b = barycentric(closest, *(x[corners[:, c]] for c in range(3)))
@@ -495,9 +496,25 @@ class LungFitter:
     def _two_sided(self, positions: np.ndarray, pt: _PreparedTarget, shift=None):
         """Distances (mm) model → target and target samples → model, the target moved by ``shift``."""
         t = np.zeros(3) if shift is None else np.asarray(shift, float)
-        a_to_b = pt.distance.distance(positions[self.keep] - t)
-        b_to_a = SurfaceDistance(positions, self.surface.faces).distance(pt.samples + t)
+        a_to_b = self._query(pt, positions[self.keep] - t)[0]
+        b_to_a = self._query(pt, pt.samples + t, positions)[0]
         return a_to_b, b_to_a, self.areas[self.keep], pt.sample_weights
+
+    def _query(self, pt: _PreparedTarget, points: np.ndarray, model: np.ndarray | None = None):
+        """``(distance, closest, face)`` of ``points`` on target ``pt``'s surface, or with ``model : (n, 3)``
+        on the model surface of those vertices (the model's faces). The same query as the last of its kind
+        (the same points and model: the Jacobian at the point just evaluated) returns the last answer; any
+        other starts from the closest faces of the last (candidates move little between evaluations, so
+        each face found last time bounds the search tightly; exact distances either way,
+        :meth:`lungdeform.geometry.distance.SurfaceDistance.query`)."""
+        key = (id(pt), model is None)
+        last = self._last.get(key)
+        if last is not None and np.array_equal(last[0], points) and (model is None or np.array_equal(last[1], model)):
+            return last[2]
+        surface = pt.distance if model is None else SurfaceDistance(model, self.surface.faces)
+        out = surface.query(points, None if last is None else surface.face_distance(points, last[2][2]))
+        self._last[key] = (points.copy(), None if model is None else model.copy(), out)
+        return out
 
     def inverse_parts(self, force_obs: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(f (n,) normalised by max |f|, c7…c9 (3,))``: inverse force and its paper-style fit."""

@@ -211,6 +211,25 @@ def _closest_kernel(points, bound, grid):
     return np.sqrt(dist2), closest, face
 
 
+@numba.njit(cache=True, parallel=True)
+def _face_bound(points, vertices, faces, hint):
+    """``(n,)`` mm: the exact distance of each of ``points : (n, 3)`` to its face ``hint[i]`` of
+    ``(vertices, faces)``, an upper bound on its distance to the surface; infinity where ``hint[i] < 0``."""
+    n = points.shape[0]
+    out = np.full(n, np.inf)
+    for i in numba.prange(n):
+        f = hint[i]
+        if f < 0:
+            continue
+        a_, b_, c_ = faces[f, 0], faces[f, 1], faces[f, 2]
+        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        qx, qy, qz = _closest_on_triangle(
+            (px, py, pz), (vertices[a_, 0], vertices[a_, 1], vertices[a_, 2]),
+            (vertices[b_, 0], vertices[b_, 1], vertices[b_, 2]), (vertices[c_, 0], vertices[c_, 1], vertices[c_, 2]))
+        out[i] = np.sqrt((px - qx) ** 2 + (py - qy) ** 2 + (pz - qz) ** 2)
+    return out
+
+
 #: Fewest query points for which the nearest-vertex bound is found with every core (scipy's threads).
 THREADED_QUERY = 50_000
 
@@ -239,7 +258,7 @@ class SurfaceDistance:
         if not np.all(np.isfinite(self.vertices)):
             raise InputError("vertices contain NaN or infinity")
         used = np.flatnonzero(np.bincount(self.faces.ravel(), minlength=len(self.vertices)))  # = np.unique, O(n)
-        self._tree = cKDTree(self.vertices[used])
+        self._used = used
         e = self.vertices[self.faces]
         edge = np.linalg.norm(e - np.roll(e, 1, axis=1), axis=2)
         lo = self.vertices[used].min(axis=0) - 1e-6
@@ -248,6 +267,25 @@ class SurfaceDistance:
         h = max(h, float(np.prod(span) / self.MAX_CELLS) ** (1.0 / 3.0))
         dims = np.maximum(np.ceil(span / h).astype(np.int64), 1)
         self._grid = (lo, h, dims) + _grid_fill(self.vertices, self.faces, lo, h, dims)
+
+    @cached_property
+    def _tree(self) -> cKDTree:
+        """The k-d tree of the surface's vertices (built on the first query that needs it: a query
+        whose every point has a bound of its own needs none)."""
+        return cKDTree(self.vertices[self._used])
+
+    def face_distance(self, points, faces) -> np.ndarray:
+        """``(k,) float`` mm: the exact distance of each of ``points : (k, 3)`` to its face ``faces[i]``
+        of this surface (infinity where ``faces[i]`` is −1), an upper bound on its distance to the
+        surface: a ``bound`` for :meth:`query`, e.g. from each point's closest face in an earlier query
+        on a surface of the same faces whose vertices moved a little."""
+        pts = as_vertices(points, "points")
+        f = np.asarray(faces)
+        if f.shape != (len(pts),) or not np.issubdtype(f.dtype, np.integer) or (
+                len(f) and (f.min() < -1 or f.max() >= len(self.faces))):
+            raise InputError(f"faces must be ({len(pts)},) face indices of this surface (or -1), got shape "
+                             f"{f.shape}, dtype {f.dtype}")
+        return _face_bound(pts, self.vertices, self.faces, np.ascontiguousarray(f, np.int64))
 
     def query(self, points, bound=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(distance (k,) mm, closest (k, 3) mm, face (k,) int)`` for ``points : (k, 3)``.

@@ -306,11 +306,19 @@ def face_components(faces: np.ndarray) -> tuple[int, np.ndarray]:
     return len(uniq), relabelled
 
 
+def distinct(values: np.ndarray) -> np.ndarray:
+    """The distinct values of an integer array, sorted (``np.unique(values)``), found by a sort:
+    NumPy 2's ``np.unique`` hashes, about 60 times slower on the 384 000 edge keys of a lung surface
+    (256 ms against 4 ms CPU measured here)."""
+    s = np.sort(np.asarray(values).ravel())
+    return s[np.r_[True, s[1:] != s[:-1]]] if s.size else s
+
+
 def orientation_consistent(faces: np.ndarray) -> bool:
     """True when every directed edge occurs once: neighbouring faces wind the same way."""
     f = np.asarray(faces, dtype=np.int64)
     keys = _edge_keys(f.ravel(), np.roll(f, -1, axis=1).ravel())
-    return len(np.unique(keys)) == len(keys)
+    return len(distinct(keys)) == len(keys)
 
 
 def non_manifold_vertices(faces: np.ndarray, n_vertices: int) -> np.ndarray:
@@ -335,7 +343,7 @@ def non_manifold_vertices(faces: np.ndarray, n_vertices: int) -> np.ndarray:
     )
     count, labels = connected_components(g, directed=False)
     # the distinct (vertex, fan) pairs, as one int64 key each (faster than unique(axis=1))
-    fans = np.unique(faces.ravel().astype(np.int64) * np.int64(count) + labels) // np.int64(count)
+    fans = distinct(faces.ravel().astype(np.int64) * np.int64(count) + labels) // np.int64(count)
     per_vertex = np.bincount(fans, minlength=n_vertices)
     return np.nonzero(per_vertex > 1)[0].astype(np.int64)
 
@@ -417,7 +425,7 @@ def _check_physical(v, f, source: str) -> None:
     """Refuse NaN, infinite or non-physical coordinates (beyond :data:`PHYSICAL_BOUND_MM`) of the
     vertices the faces use, naming the first such vertex: before any other check, which they
     would confuse."""
-    used = np.unique(f)
+    used = distinct(f)
     if not np.isfinite(v[used]).all():
         raise MeshError(f"{source}: vertex coordinates contain NaN or infinity")
     beyond = np.abs(v[used]) > PHYSICAL_BOUND_MM

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 from matplotlib.figure import Figure
 
-from .figure import new_figure
+from .figure import Cell, grid_figure
 
 #: line styles after the ten colours of the default cycle are used up
 _STYLES = ("-", "--", ":", "-.")
@@ -17,12 +17,46 @@ def cumulative_errors(errors: dict[str, np.ndarray], *, xlabel: str = "distance 
                       ylabel: str = "fraction of vertices", title: str | None = None) -> Figure:
     """One cumulative distribution per method (``name → errors (k,) mm``; NaN left out), the median
     of each marked by a dot and given in the legend, methods in order of their median. The x axis runs
-    to the largest 99th percentile."""
-    fig = new_figure(9.0, 4.2, dpi=90, layout="constrained")
-    ax = fig.subplots()
-    clean = {name: np.sort(e[np.isfinite(e)]) for name, e in ((n, np.asarray(e, float)) for n, e in errors.items())}
+    to the largest 99th percentile. One panel of :func:`cumulative_panels`."""
+    return cumulative_panels({title: errors}, xlabel=xlabel, ylabel=ylabel)
+
+
+def cumulative_panels(panels: dict[str | None, dict[str, np.ndarray]], *,
+                      xlabel: str = "distance to the target surface (mm)",
+                      ylabel: str = "fraction of vertices") -> Figure:
+    """Small multiples of :func:`cumulative_errors`, one figure: a panel per ``title → {name → errors
+    (k,) mm}`` (e.g. one per target of a 4-D CT; a title of None: no title), two panels a row from two
+    on, each with its own legend (methods in order of their median there); a method keeps its colour
+    in every panel (its rank in the last panel, the headline target). Laid out in inches
+    (:func:`lungdeform.plot.figure.grid_figure`)."""
+    clean = {t: {n: np.sort(np.asarray(e, float)[np.isfinite(np.asarray(e, float))]) for n, e in errors.items()}
+             for t, errors in panels.items()}
+    last = list(clean.values())[-1] if clean else {}
+    order = sorted((n for n in last if last[n].size), key=lambda n: np.median(last[n]))
+    colour_rank = {n: k for k, n in enumerate(order)}
+    cols = 1 if len(clean) == 1 else 2
+    rows = -(-len(clean) // cols)
+    one = Cell(5.4, 3.3, left=0.7, right=2.9, bottom=0.55, top=0.3)
+    cell = one if cols == 1 else Cell(4.2, 2.6, right=3.3, top=0.3)
+    fig, axes = grid_figure(rows, cols, cell, dpi=90 if cols == 1 else 80)
+    for ax, (title, errors) in zip(axes.ravel(), clean.items()):
+        _cumulative_panel(ax, errors, colour_rank, 8 if cols == 1 else 7)
+        ax.set_xlabel(xlabel, fontsize=None if cols == 1 else 8)
+        ax.set_ylabel(ylabel, fontsize=None if cols == 1 else 8)
+        if title:
+            ax.set_title(title, fontsize=None if cols == 1 else 9)
+    for ax in axes.ravel()[len(clean):]:
+        ax.set_visible(False)
+    return fig
+
+
+def _cumulative_panel(ax, clean: dict[str, np.ndarray], colour_rank: dict[str, int], fontsize: float) -> None:
+    """One panel of :func:`cumulative_panels`: the sorted, finite ``clean`` errors (mm) per method."""
     ranked = sorted((name for name in clean if clean[name].size), key=lambda name: np.median(clean[name]))
-    for k, name in enumerate(ranked):
+    extra = len(colour_rank)
+    for name in ranked:
+        k = colour_rank.get(name)
+        k, extra = (extra, extra + 1) if k is None else (k, extra)
         e = clean[name]
         colour, style = f"C{k % 10}", _STYLES[(k // 10) % len(_STYLES)]
         med = float(np.median(e))
@@ -33,21 +67,16 @@ def cumulative_errors(errors: dict[str, np.ndarray], *, xlabel: str = "distance 
     ax.axhline(0.5, color="0.75", linewidth=0.8, zorder=0)
     ax.set_xlim(0.0, max(hi, 1e-3) * 1.05)
     ax.set_ylim(0.0, 1.01)
-    ax.set_xlabel(xlabel)
-    ax.set_ylabel(ylabel)
     ax.grid(alpha=0.3)
     if ranked:
-        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, title="method (dot: median)",
-                  title_fontsize=8)
-    if title:
-        ax.set_title(title)
-    return fig
+        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=fontsize, title="method (dot: median)",
+                  title_fontsize=fontsize)
 
 
 def ray_histogram(counts: np.ndarray, edges: np.ndarray) -> Figure:
     """Counts of rays per bin of signed hit distance along the fitted direction (mm)."""
-    fig = new_figure(7.0, 3.5, dpi=80, layout="constrained")
-    ax = fig.subplots()
+    fig, axes = grid_figure(1, 1, Cell(6.0, 2.75, left=0.8, bottom=0.6, top=0.15))
+    ax = axes[0, 0]
     ax.stairs(counts, edges, fill=True)
     ax.set_xlabel("signed ray hit distance along d (mm)")
     ax.set_ylabel("rays")
@@ -57,8 +86,8 @@ def ray_histogram(counts: np.ndarray, edges: np.ndarray) -> Figure:
 def bounding_box(bb: dict) -> Figure:
     """Bounding-box dimensions (mm) and volume / box volume against lung volume (mL), model lines and
     observed dots (paper Fig. 4). ``bb``: ``{"model"|"observed": [{"volume_ml", "dims_mm", "ratio"}, …]}``."""
-    fig = new_figure(11.0, 4.0, dpi=80, layout="constrained")
-    a1, a2 = fig.subplots(1, 2)
+    fig, axes = grid_figure(1, 2, Cell(3.6, 3.25, left=0.8, right=1.6, bottom=0.6, top=0.15))
+    a1, a2 = axes[0]
     for key, style in (("model", "-"), ("observed", "o")):
         rows = bb[key]
         v = [r["volume_ml"] for r in rows]
@@ -82,8 +111,8 @@ def direction_field(points: np.ndarray, directions: np.ndarray, magnitude: np.nd
     """Arrows of unit ``directions (n, 3)`` at ``points (n, 3)`` mm LPS in a coronal and a sagittal
     projection (arrow length: the projected direction), coloured by ``magnitude (n,)`` (mm per unit);
     at most about 600 arrows."""
-    fig = new_figure(11.0, 5.0, dpi=80, layout="constrained")
-    axes = fig.subplots(1, 2)
+    fig, grid = grid_figure(1, 2, Cell(4.1, 4.1, left=0.8, right=0.1, bottom=0.6, top=0.3), right_in=1.0)
+    axes = grid[0]
     step = max(1, len(points) // 600)
     p, d, m = points[::step], directions[::step], magnitude[::step]
     # a unit direction is drawn 5 % of the lung's largest extent long (its projection shorter)
@@ -96,14 +125,17 @@ def direction_field(points: np.ndarray, directions: np.ndarray, magnitude: np.nd
         ax.set_ylabel("z (mm, toward head)")
         ax.set_title(title)
         ax.set_aspect("equal")
-    fig.colorbar(q, ax=axes, label="|u| per unit (mm)", shrink=0.8)
+    box = axes[-1].get_position()
+    cax = fig.add_axes((box.x1 + 0.15 / fig.get_figwidth(), box.y0 + 0.1 * box.height, 0.15 / fig.get_figwidth(),
+                        0.8 * box.height))
+    fig.colorbar(q, cax=cax, label="|u| per unit (mm)")
     return fig
 
 
 def fit_history(history: dict[str, np.ndarray]) -> Figure:
     """Best objective so far (RMS symmetric distance, mm) against evaluations, one line per fit."""
-    fig = new_figure(7.0, 3.5, dpi=80, layout="constrained")
-    ax = fig.subplots()
+    fig, axes = grid_figure(1, 1, Cell(6.0, 2.75, left=0.8, bottom=0.6, top=0.15))
+    ax = axes[0, 0]
     for name, h in history.items():
         ax.plot(np.arange(1, len(h) + 1), h, label=name)
     ax.set_xlabel("objective evaluations")

@@ -18,7 +18,7 @@ from matplotlib.collections import PolyCollection
 from matplotlib.colors import Normalize, to_rgb
 from matplotlib.figure import Figure
 
-from .figure import new_figure
+from .figure import Cell, grid_figure, new_figure
 
 #: view name → (direction from the patient to the viewer, image right, image up), unit vectors in LPS
 VIEWS = {
@@ -72,20 +72,37 @@ def _draw_faces(ax, polygons: np.ndarray, rgb: np.ndarray, alpha: float = 1.0) -
     ax.add_collection(PolyCollection(polygons, facecolors=rgba, edgecolors=edges, linewidths=1.0))
 
 
-def _frame_views(axes, extents: list[tuple[np.ndarray, np.ndarray]], views: Sequence[str]) -> None:
-    """Same mm per inch in every panel (the largest extent across and up), each panel centred on its
-    surface; axes named by the patient direction they point to."""
+def _frame_views(axes: np.ndarray, extents: list[tuple[np.ndarray, np.ndarray]], views: Sequence[str],
+                 row_titles: Sequence[str | None] | None = None) -> np.ndarray:
+    """Same mm per inch in every panel of ``axes : (rows, len(views))`` (the largest extent across and
+    up; ``extents`` row by row), each panel centred on its surface; axes named by the patient direction
+    they point to (the bottom row and the left column, every row and column showing the same views),
+    each column's view on the top row, ``row_titles`` on the left column; from three rows on, no
+    ticks (each costs matplotlib a Tick object per panel, most of a 4-D CT's error map). Returns ``(2,)``
+    mm: half of every panel's width and height."""
     half = np.max([0.5 * (hi - lo) for lo, hi in extents], axis=0) * 1.06
-    for ax, (lo, hi), view in zip(axes, extents, views):
+    rows = axes.shape[0]
+    for k, (ax, (lo, hi)) in enumerate(zip(axes.ravel(), extents)):
+        r, c = divmod(k, len(views))
+        view = views[c]
         mid = 0.5 * (lo + hi)
         ax.set_xlim(mid[0] - half[0], mid[0] + half[0])
         ax.set_ylim(mid[1] - half[1], mid[1] + half[1])
         ax.set_aspect("equal")
         across, upward = VIEW_DIRECTIONS[view]
-        ax.set_title(view)
-        ax.set_xlabel(f"mm, toward {across} →", fontsize=8)
-        ax.set_ylabel(f"mm, toward {upward} →", fontsize=8)
-        ax.tick_params(labelsize=7)
+        name = [row_titles[r]] if row_titles is not None and c == 0 and row_titles[r] else []
+        ax.set_title(": ".join(name + ([view] if r == 0 else [])), fontsize=9 if rows > 1 else None)
+        if r == rows - 1:
+            ax.set_xlabel(f"{'' if rows > 2 else 'mm, '}toward {across} →", fontsize=8)
+        if c == 0:
+            ax.set_ylabel(f"{'' if rows > 2 else 'mm, '}toward {upward} →", fontsize=8)
+        if rows > 2:  # small multiples: no ticks (each panel is centred on its own surface, all to one scale)
+            ax.set_xticks([])
+            ax.set_yticks([])
+        else:
+            ax.tick_params(labelsize=7)
+            ax.locator_params(nbins=5)
+    return half
 
 
 def _extent(polygons: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -121,7 +138,7 @@ def snapshot(layers: Sequence[tuple[Sequence[tuple[np.ndarray, np.ndarray]], str
             a, b = _extent(polygons)
             lo, hi = np.minimum(lo, a), np.maximum(hi, b)
         extents.append((lo, hi))
-    _frame_views(axes, extents, views)
+    _frame_views(axes[None, :], extents, views)
     if title:
         fig.suptitle(title, fontsize=10)
     return fig
@@ -140,24 +157,49 @@ def error_map(vertices: np.ndarray, faces: np.ndarray, error: np.ndarray, *,
     """The surface rendered from ``views``, each face coloured by the mean ``error (n,) float`` (mm)
     of its three vertices and Lambert-shaded; one colour scale ``[0, vmax]`` (default: the 98th
     percentile, so that a few outliers do not wash it out) and one colour bar for all views.
-    ``vertices : (n, 3) float`` mm LPS, ``faces : (m, 3) int`` wound outward."""
-    error = np.asarray(error, float)
-    finite = error[np.isfinite(error)]
+    ``vertices : (n, 3) float`` mm LPS, ``faces : (m, 3) int`` wound outward. One row of
+    :func:`error_maps`."""
+    return error_maps([(vertices, error)], faces, views=views, vmax=vmax, title=title, label=label)
+
+
+def error_maps(rows: Sequence[tuple[np.ndarray, np.ndarray]], faces: np.ndarray, *,
+               views: Sequence[str] = ("anterior", "lateral-right", "posterior"), vmax: float | None = None,
+               title: str | None = None, label: str = "distance to the target surface (mm)",
+               row_titles: Sequence[str] | None = None) -> Figure:
+    """Small multiples of :func:`error_map`, one figure: one row of ``views`` per ``(vertices (n, 3)
+    mm LPS, error (n,) mm)`` of ``rows`` (surfaces of the same ``faces (m, 3)``, e.g. the predicted
+    surface at each target of a 4-D CT), named by ``row_titles``; one colour scale ``[0, vmax]``
+    (default: the 98th percentile of every row's errors) and one colour bar, the same mm per inch in
+    every panel. Laid out in inches (:func:`lungdeform.plot.figure.grid_figure`), smaller panels and no
+    ticks from three rows on (the panels' common scale is then said in the title)."""
+    faces = np.asarray(faces)
+    errors = [np.asarray(e, float) for _, e in rows]
+    finite = np.concatenate([e[np.isfinite(e)] for e in errors] + [np.zeros(0)])
     if vmax is None:
         vmax = float(np.percentile(finite, 98)) if finite.size else 1.0
     vmax = vmax if vmax > 0 else 1.0
-    face_error = error[np.asarray(faces)].mean(axis=1)
-    fig = new_figure(3.6 * len(views) + 1.2, 4.6, dpi=90, layout="constrained")
-    axes = fig.subplots(1, len(views), squeeze=False)[0]
+    many = len(rows) > 2
+    cell = Cell(2.6, 2.6, left=0.6, bottom=0.25, top=0.3) if many else Cell(3.2, 3.4, left=0.6, bottom=0.5, top=0.35)
+    fig, axes = grid_figure(len(rows), len(views), cell, right_in=1.2, top_in=0.4 if title or many else 0.1,
+                            dpi=80 if many else 90)
     extents = []
-    for ax, view in zip(axes, views):
-        polygons, cosine, index = project(vertices, faces, view)
-        _draw_faces(ax, polygons, shade(error_colours(face_error[index], vmax), cosine, ambient=0.55))
-        extents.append(_extent(polygons))
-    _frame_views(axes, extents, views)
+    for r, ((vertices, _), error) in enumerate(zip(rows, errors)):
+        face_error = error[faces].mean(axis=1)
+        for ax, view in zip(axes[r], views):
+            polygons, cosine, index = project(vertices, faces, view)
+            _draw_faces(ax, polygons, shade(error_colours(face_error[index], vmax), cosine, ambient=0.55))
+            extents.append(_extent(polygons))
+    half = _frame_views(axes, extents, views, row_titles)
     over = finite.size and finite.max() > vmax
-    fig.colorbar(ScalarMappable(Normalize(0.0, vmax), colormaps["viridis"]), ax=axes, shrink=0.85,
-                 label=label, extend="max" if over else "neither")
+    top, bottom = axes[0, -1].get_position(), axes[-1, -1].get_position()
+    w = fig.get_figwidth()
+    h = min(top.y1 - bottom.y0, 4.0 / fig.get_figheight())  # at most 4 inches tall, from the top row down
+    cax = fig.add_axes((top.x1 + 0.25 / w, top.y1 - h, 0.18 / w, h))
+    fig.colorbar(ScalarMappable(Normalize(0.0, vmax), colormaps["viridis"]), cax=cax, label=label,
+                 extend="max" if over else "neither")
+    if many:  # no ticks: the panels' common size said instead
+        width, height = 2.0 * half
+        title = f"{title + '; ' if title else ''}every panel {width:.0f} × {height:.0f} mm"
     if title:
-        fig.suptitle(title, fontsize=10)
+        fig.suptitle(title, fontsize=10, y=1.0 - 0.08 / fig.get_figheight(), va="top")
     return fig
