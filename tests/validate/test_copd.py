@@ -170,11 +170,11 @@ def test_real_case_model_surface_below_no_motion(data_dir, tmp_path):
 
 @pytest.fixture(scope="module")
 def big_lungs():
-    # a model of two 250 mm spheres about the origin: every landmark of _landmark_file lies deeper
-    # than the motion prior's taper (30 mm), so the prior plays at full weight there
+    # a model of two 90 mm spheres about the origin: every landmark of _landmark_file (within about
+    # 50 mm of it) lies deeper than the motion prior's taper (30 mm), so the prior plays at full weight there
     from lungdeform.geometry.mesh import icosphere
     from lungdeform.model.lung import build_model
-    return build_model({side: icosphere(3, 250.0) for side in ("left", "right")})
+    return build_model({side: icosphere(3, 90.0) for side in ("left", "right")})
 
 
 def _landmark_file(folder, rng, offset, own, model):
@@ -184,7 +184,7 @@ def _landmark_file(folder, rng, offset, own, model):
     from lungdeform.io.modelfile import save_model
     folder.mkdir(parents=True)
     save_model(folder / "model.npz", model)
-    pts = rng.normal(scale=30.0, size=(20, 3))
+    pts = rng.normal(scale=10.0, size=(20, 3))
     pts -= pts.mean(axis=0)  # centred on the lung: a constant residual leaves the prior's linear part at 0
     surface_only = pts + rng.normal(size=(20, 3))
     np.savez(folder / "landmarks.npz", landmarks=pts, observed=(surface_only + offset + own)[None],
