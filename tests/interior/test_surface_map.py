@@ -34,16 +34,6 @@ def test_zero_weights_leave_the_affine_part(rng):
     np.testing.assert_allclose(g(q), q @ f.linear[:, :3].T + f.linear[:, 3], atol=1e-12)
 
 
-def test_with_linear_adds_an_affine_displacement(rng):
-    # a prior folded in adds M q + b and leaves the original field unchanged (a new object)
-    f = _field(rng)
-    extra = rng.normal(size=(3, 4))
-    q = rng.normal(scale=50.0, size=(10, 3))
-    g = f.with_linear(extra)
-    np.testing.assert_allclose(g(q) - f(q), q @ extra[:, :3].T + extra[:, 3], atol=1e-10)
-    assert g is not f and np.allclose(f(q), _dense(f, q))
-
-
 @pytest.mark.parametrize("change, match", [({"linear": np.zeros((3, 3))}, "linear"),
                                            ({"warp": np.full((3, 4), np.nan)}, "warp"),
                                            ({"weights": np.zeros((4, 3))}, "weights"),

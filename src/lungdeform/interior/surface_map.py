@@ -8,11 +8,11 @@ surface onto a larger one with strong smoothness (:mod:`lungdeform.fit.registrat
 
     v(q) = L [q; 1] + Σ_j exp(−|W [q; 1] − c_j|² / (2 w²)) g_j,
 
-with ``L (3, 4)`` the affine part of the displacement per unit (``(A − I | t) / s_target``, plus any
-motion prior of a fit folded in: :mod:`lungdeform.interior.motion_prior`), ``c_j (k, 3)`` mm the Gaussian
-centres (the affine image of the end-exhale surface points), ``g_j (k, 3)`` mm per unit their
-weights and ``w`` mm the kernel width. A built model's map (:func:`surface_extension`) adds the
-population default's interior prior tapered to zero at the surface (``prior``,
+with ``L (3, 4)`` the affine part of the displacement per unit (``(A − I | t) / s_target``),
+``c_j (k, 3)`` mm the Gaussian centres (the affine image of the end-exhale surface points),
+``g_j (k, 3)`` mm per unit their weights and ``w`` mm the kernel width. A built model's map
+(:func:`surface_extension`) adds the population default's interior prior, and a fit's map its
+motion prior (:mod:`lungdeform.interior.motion_prior`), tapered to zero at the surface (``prior``,
 :class:`lungdeform.interior.prior.TaperedPrior`), so that on the surface the field is the surface's
 own motion. The field is linear in ``s`` like every interior field, so a
 point's displacement per unit is computed once and playback costs three multiply-adds per point.
@@ -112,10 +112,6 @@ class SurfaceMapField:
             a = np.arange(len(out)) - np.repeat(offsets[:-1], n)
             out += self.prior(np.repeat(s0, n, axis=0) + a[:, None] * st)
         return out
-
-    def with_linear(self, extra) -> "SurfaceMapField":
-        """A new field whose affine part per unit has ``extra : (3, 4)`` (mm per unit) added."""
-        return replace(self, linear=self.linear + _affine(extra, "extra"))
 
     def with_prior(self, prior: TaperedPrior | None) -> "SurfaceMapField":
         """A new field with ``prior`` (:class:`~lungdeform.interior.prior.TaperedPrior`) added on top (None: without one)."""
