@@ -141,10 +141,14 @@ def save_prior(path, prior: MotionPrior) -> Path:
 def load_prior(path) -> MotionPrior:
     """Read a prior written by :func:`save_prior`; :class:`ReadError` naming the file otherwise."""
     p = Path(path)
-    if _version(p) == 1:
+    try:
+        data = read_schema_json(p, SCHEMA, SCHEMA_VERSION, "motion prior")
+    except ReadError as exc:  # an older prior is named as such (read again only then)
+        if _version(p) != 1:
+            raise
         raise ReadError(f"{p}: a motion prior of schema version 1, learned without the surface taper that "
-                        f"version {SCHEMA_VERSION} plays; learn it again (lungdeform validate copd writes motion_prior.json)")
-    data = read_schema_json(p, SCHEMA, SCHEMA_VERSION, "motion prior")
+                        f"version {SCHEMA_VERSION} plays; learn it again (lungdeform validate copd writes "
+                        f"motion_prior.json)") from exc
     try:
         return MotionPrior(np.asarray(data["coefficients_mm"], float), tuple(data.get("subjects", ())),
                            float(data.get("ridge", RIDGE)))
