@@ -98,10 +98,8 @@ def register(apps) -> None:
         else:
             (pts, labels), source = _read_points(opts.points, opts.skip_invalid), str(opts.points)
         placement = T.place_points(m, pts, opts.lung, source=source)
-        frames, tags, matrix = _frames(m, dict(volume_ml=opts.volume_ml, scan=opts.scan, no_rigid=opts.no_rigid, phases=opts.breath.phases,
-                                               curve=opts.breath.curve, preset=opts.breath.preset, cycles=opts.breath.cycles, tidal_ml=opts.breath.tidal_ml, fps=opts.fps,
-                                               phase=opts.breath.phase, zero=opts.breath.phase_zero),
-                                       len(pts), source)
+        frames, tags, matrix = _frames(m, dict(volume_ml=opts.volume_ml, scan=opts.scan, no_rigid=opts.no_rigid, fps=opts.fps),
+                                       opts.breath, len(pts), source)
         rigid_read = tracked if opts.rigid_structure in (None, opts.structure) else R.read_structure(opts.rtstruct, opts.rigid_structure)
         rigid = None if opts.rigid_structure is None else R.rigid_structure(
             m, opts.rtstruct, opts.rigid_structure, opts.rigid_border_mm, rigid_read)
@@ -168,10 +166,10 @@ def _print_motion(name: str, motion: list[dict], itv) -> None:
                f"({far['distance_mm']:.1f} mm); {itv[0]} {itv_ml:.2f} mL (structure_motion.csv)")
 
 
-def _frames(m, given: dict, points: int, source: str):
+def _frames(m, given: dict, breath: BreathFlags, points: int, source: str):
     """``(frames, ROI tags, matrix)``: the states the options name (``given``: volume_ml, scan,
-    no_rigid, phases, curve, preset, cycles, tidal_ml, fps); ``matrix`` the 4×4 alignment (scan →
-    model frame) whose inverse puts positions in scan K's frame (``--scan``, as ``dvf --scan``), or None."""
+    no_rigid, fps; else the breath of ``breath``); ``matrix`` the 4×4 alignment (scan → model frame)
+    whose inverse puts positions in scan K's frame (``--scan``, as ``dvf --scan``), or None."""
     if given["scan"] is not None:
         state = without_alignment(scan_state(m, given["scan"]), given["no_rigid"])
         return T.FrameSchedule(np.array([state.delta_ml]), None, state.source), [f"scan{given['scan']}"], state.alignment
@@ -179,12 +177,12 @@ def _frames(m, given: dict, points: int, source: str):
         for v in given["volume_ml"]:  # finite, and a volume the lungs reach (as dvf and warp check it)
             volume_state(m, v)
         return T.volume_frames(m, given["volume_ml"]), R.volume_tags(given["volume_ml"]), None
-    trace = breath_trace(m, given["curve"], given["preset"], given["cycles"], given["tidal_ml"])
-    if given["phases"] is not None:
-        frames, tags = R.phase_frames(trace, given["phases"], given["zero"])
-        typer.echo(scan_phase_text(trace, phase_schedule(trace, given["phases"], given["zero"]), m.scan))
-        if given["phase"] is not None:  # one phase of the breath, tagged as in the whole set
-            k = given["phase"]
+    trace = breath_trace(m, breath.curve, breath.preset, breath.cycles, breath.tidal_ml)
+    if breath.phases is not None:
+        frames, tags = R.phase_frames(trace, breath.phases, breath.phase_zero)
+        typer.echo(scan_phase_text(trace, phase_schedule(trace, breath.phases, breath.phase_zero), m.scan))
+        if breath.phase is not None:  # one phase of the breath, tagged as in the whole set
+            k = breath.phase
             frames = T.FrameSchedule(frames.delta_ml[k:k + 1], frames.t_s[k:k + 1], f"{frames.source}, phase {k}")
             tags = tags[k:k + 1]
         return frames, tags, None
