@@ -68,22 +68,24 @@ def farthest_points(points, count: int) -> np.ndarray:
 
 @numba.njit(cache=True)
 def _farthest_kernel(p, count, start):  # pragma: no cover - compiled
+    # one pass per pick: each point's distance to the taken set lowered by the last pick, and the
+    # first point of largest distance found in the same pass (coordinates as contiguous rows)
     n = p.shape[0]
+    x, y, z = p[:, 0].copy(), p[:, 1].copy(), p[:, 2].copy()
     out = np.empty(count, np.int64)
-    d = np.empty(n)
-    for i in range(n):
-        d[i] = (p[i, 0] - p[start, 0]) ** 2 + (p[i, 1] - p[start, 1]) ** 2 + (p[i, 2] - p[start, 2]) ** 2
+    d = np.full(n, np.inf)
+    j = start
     out[0] = start
     for k in range(1, count):
-        j = 0
-        for i in range(1, n):
-            if d[i] > d[j]:
+        px, py, pz = x[j], y[j], z[j]
+        best = -1.0
+        for i in range(n):
+            di = min(d[i], (x[i] - px) ** 2 + (y[i] - py) ** 2 + (z[i] - pz) ** 2)
+            d[i] = di
+            if di > best:
+                best = di
                 j = i
         out[k] = j
-        for i in range(n):
-            e = (p[i, 0] - p[j, 0]) ** 2 + (p[i, 1] - p[j, 1]) ** 2 + (p[i, 2] - p[j, 2]) ** 2
-            if e < d[i]:
-                d[i] = e
     return out
 
 
