@@ -83,6 +83,18 @@ def _radial_sum(query, centres, weights):
     return out
 
 
+@numba.njit(cache=True, parallel=True)
+def _normal_kernel(p, n, out):  # pragma: no cover - compiled
+    """Fill ``out[:k, :k]`` with the sliding kernel ``−|p_i − p_j| (n_i · n_j)`` of ``p, n : (k, 3)``
+    (mm, unit normals): one row per parallel iteration, no ``(k, k)`` temporaries."""
+    for i in numba.prange(p.shape[0]):
+        x, y, z = p[i, 0], p[i, 1], p[i, 2]
+        u, v, w = n[i, 0], n[i, 1], n[i, 2]
+        for j in range(p.shape[0]):
+            dx, dy, dz = x - p[j, 0], y - p[j, 1], z - p[j, 2]
+            out[i, j] = -np.sqrt(dx * dx + dy * dy + dz * dz) * (u * n[j, 0] + v * n[j, 1] + w * n[j, 2])
+
+
 def _check(points, normals):
     p = as_vertices(points, "points")
     n = as_vertices(normals, "normals")
@@ -112,7 +124,7 @@ def _system(p: np.ndarray, n: np.ndarray, smoothing: float):
     center = p.mean(axis=0)
     scale = float(np.abs(p - center).max()) or 1.0
     a = np.empty((k + 12, k + 12))
-    a[:k, :k] = -cdist(p, p) * (n @ n.T)
+    _normal_kernel(p, n, a)
     a[np.arange(k), np.arange(k)] += smoothing
     x = np.hstack([np.ones((k, 1)), (p - center) / scale])  # (k, 4)
     poly = (n[:, :, None] * x[:, None, :]).reshape(k, 12)  # column 4c + l: n_c · x_l
