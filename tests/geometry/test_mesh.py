@@ -212,7 +212,7 @@ def test_farthest_points_even_deterministic_and_equivariant():
 @pytest.mark.parametrize("grid", [False, True])
 def test_farthest_points_equal_the_dense_greedy_reference(grid):
     # dense reference: the greedy rule written with NumPy (the full distance matrix, np.argmax's first
-    # maximum); the one-pass kernel picks the same points in the same order, ties included (a regular
+    # maximum); the pruned kernel picks the same points in the same order, ties included (a regular
     # grid has many equal distances)
     from lungdeform.geometry.mesh import _farthest_kernel
 
@@ -225,7 +225,8 @@ def test_farthest_points_equal_the_dense_greedy_reference(grid):
     for _ in range(149):
         ref.append(int(np.argmax(nearest)))
         nearest = np.minimum(nearest, dist[ref[-1]])
-    np.testing.assert_array_equal(_farthest_kernel(pts, 150, start), ref)
+    for cells in (1, 4, 16):  # one cell: no pruning; more: pruned to the cells within reach
+        np.testing.assert_array_equal(_farthest_kernel(pts, 150, start, cells), ref)
 
 def test_inside_by_parity_is_the_winding_number_test_and_the_sphere():
     # why: for a closed surface and points off it, the parity of a ray's crossings and the winding
