@@ -13,8 +13,8 @@ from lungdeform.fit.cpd import deformable_cpd
 @pytest.mark.parametrize("w, alpha, beta", [(0.05, 2.0, 2.0), (0.0, 1000.0, 0.8)])
 def test_same_weights_and_iterations_as_pycpd(w, alpha, beta):
     # truth: pycpd.DeformableRegistration, the iteration it replaces; the row scaling equals
-    # diag(P1) @ G exactly, so the weights agree to rounding (bit for bit here) whatever the
-    # settings (the baselines' w = 0.05, alpha = 2; the correspondence field's w = 0, alpha = 1000)
+    # diag(P1) @ G exactly and the shifted E-step gives the same posteriors, so the weights agree to
+    # rounding whatever the settings (the baselines' w = 0.05, alpha = 2; the correspondence field's w = 0, alpha = 1000)
     rng = np.random.default_rng(7)
     y = rng.normal(size=(120, 3))
     x = 1.1 * rng.normal(size=(140, 3)) + np.array([0.2, -0.1, 0.05])
