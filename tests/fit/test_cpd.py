@@ -13,8 +13,8 @@ from lungdeform.fit.cpd import deformable_cpd
 @pytest.mark.parametrize("w, alpha, beta", [(0.05, 2.0, 2.0), (0.0, 1000.0, 0.8)])
 def test_same_weights_and_iterations_as_pycpd(w, alpha, beta):
     # truth: pycpd.DeformableRegistration, the iteration it replaces; the row scaling equals
-    # diag(P1) @ G exactly, so the weights agree to rounding (bit for bit here) whatever the
-    # settings (the baselines' w = 0.05, alpha = 2; the correspondence field's w = 0, alpha = 1000)
+    # diag(P1) @ G exactly and the shifted E-step gives the same posteriors, so the weights agree to
+    # rounding whatever the settings (the baselines' w = 0.05, alpha = 2; the correspondence field's w = 0, alpha = 1000)
     rng = np.random.default_rng(7)
     y = rng.normal(size=(120, 3))
     x = 1.1 * rng.normal(size=(140, 3)) + np.array([0.2, -0.1, 0.05])
@@ -64,3 +64,34 @@ def test_first_variance_in_closed_form():
     rng = np.random.default_rng(1)
     x, y = rng.normal(size=(50, 3)) + 3.0, rng.normal(size=(40, 3))
     assert np.isclose(cpd.first_variance(x, y), pycpd.emregistration.initialize_sigma2(x, y), rtol=1e-12)
+
+
+@pytest.mark.parametrize("w, sigma2", [(0.0, 0.5), (0.05, 0.5), (0.0, 2e-3), (0.05, 2e-3)])
+def test_shifted_e_step_equals_pycpds_dense_posteriors(w, sigma2):
+    # truth: pycpd's own E-step (the dense (M, N) matrix P, unshifted); the shifted exponents give the
+    # same P1, Pt1 and P @ X to rounding, here too where a small sigma^2 underflows most of exp(-a)
+    rng = np.random.default_rng(11)
+    y = rng.normal(size=(90, 3))
+    x = y[rng.permutation(90)[:80]] + rng.normal(scale=0.05, size=(80, 3))
+    ref = pycpd.DeformableRegistration(X=x, Y=y, alpha=2.0, beta=2.0, w=w, sigma2=sigma2)
+    ref.expectation()
+    got = cpd.FastDeformable(X=x, Y=y, alpha=2.0, beta=2.0, w=w, max_iterations=1, tolerance=1e-6)
+    got.sigma2 = sigma2
+    got.expectation()
+    assert sigma2 > 1e-2 or np.mean(ref.P < 1e-300) > 0.5  # the small variance does underflow
+    np.testing.assert_allclose(got.P1, ref.P1, rtol=1e-10, atol=1e-300)
+    np.testing.assert_allclose(got.Pt1, ref.Pt1, rtol=1e-10)
+    np.testing.assert_allclose(got._px, ref.P @ x, rtol=1e-10, atol=1e-300)
+
+
+def test_e_step_of_a_column_far_from_every_point_is_its_limit():
+    # truth: exact arithmetic. With w = 0 every target point's posteriors sum to 1 however far it lies
+    # (sigma^2 so small that exp(-a) underflows to 0 for the whole column, where the unshifted E-step
+    # gave that point no weight at all): the nearest source point takes it
+    y = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    x = np.array([[0.01, 0, 0], [10, 0, 0]])
+    reg = cpd.FastDeformable(X=x, Y=y, alpha=2.0, beta=2.0, w=0.0, max_iterations=1, tolerance=1e-6)
+    reg.sigma2 = 1e-3
+    reg.expectation()
+    np.testing.assert_allclose(reg.Pt1, [1.0, 1.0], rtol=1e-12)
+    np.testing.assert_allclose(reg.P1, [1.0, 1.0, 0.0, 0.0], atol=1e-12)

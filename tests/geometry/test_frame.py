@@ -90,3 +90,22 @@ def test_resolve_sides_refuses_swapped_sides_by_parameter_name():
         resolve_sides([a, b], ["right", "left"], check=False)
     with pytest.raises(InputError, match="^sides: 1 given for 2 surfaces"):
         resolve_sides([a, b], ["left"], check=False)
+
+
+def test_hull_depth_equals_the_dense_plane_distances():
+    # dense reference: every point's signed distance to every facet plane of its hull (the (n, f)
+    # matrix), the depth being minus the largest, floored at 0; checked on a cube, whose depths are
+    # known: a point at (x, y, z) inside [0, 10]^3 lies min(x, 10 - x, y, ...) mm deep
+    from scipy.spatial import ConvexHull
+
+    from lungdeform.geometry.frame import _hull_depth
+
+    rng = np.random.default_rng(9)
+    corners = np.array([[i, j, k] for i in (0.0, 10.0) for j in (0.0, 10.0) for k in (0.0, 10.0)])
+    inside = rng.uniform(0.0, 10.0, size=(200, 3))
+    eq = ConvexHull(np.vstack([corners, inside])).equations
+    dense = np.maximum(-(inside @ eq[:, :3].T + eq[:, 3]).max(axis=1), 0.0)
+    got = _hull_depth(inside, np.ascontiguousarray(eq.T))
+    np.testing.assert_allclose(got, dense, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(got, np.minimum(inside, 10.0 - inside).min(axis=1), atol=1e-9)
+    assert _hull_depth(corners, np.ascontiguousarray(eq.T)).max() < 1e-9  # on the hull: depth 0

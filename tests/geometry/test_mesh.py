@@ -208,6 +208,26 @@ def test_farthest_points_even_deterministic_and_equivariant():
         farthest_points(pts, 0)
 
 
+
+@pytest.mark.parametrize("grid", [False, True])
+def test_farthest_points_equal_the_dense_greedy_reference(grid):
+    # dense reference: the greedy rule written with NumPy (the full distance matrix, np.argmax's first
+    # maximum); the pruned kernel picks the same points in the same order, ties included (a regular
+    # grid has many equal distances)
+    from lungdeform.geometry.mesh import _farthest_kernel
+
+    rng = np.random.default_rng(6)
+    pts = (np.stack(np.meshgrid(*[np.arange(8.0)] * 3), -1).reshape(-1, 3) if grid
+           else rng.normal(size=(700, 3)) * [40.0, 30.0, 60.0])
+    dist = np.sum((pts[:, None] - pts[None]) ** 2, axis=2)
+    start = int(np.argmax(np.sum((pts - pts.mean(axis=0)) ** 2, axis=1)))
+    ref, nearest = [start], dist[start].copy()
+    for _ in range(149):
+        ref.append(int(np.argmax(nearest)))
+        nearest = np.minimum(nearest, dist[ref[-1]])
+    for cells in (1, 4, 16):  # one cell: no pruning; more: pruned to the cells within reach
+        np.testing.assert_array_equal(_farthest_kernel(pts, 150, start, cells), ref)
+
 def test_inside_by_parity_is_the_winding_number_test_and_the_sphere():
     # why: for a closed surface and points off it, the parity of a ray's crossings and the winding
     # number > 0.5 are the same inside test; on a sphere both are |p − c| < r (up to the mesh's

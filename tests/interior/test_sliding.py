@@ -262,3 +262,20 @@ def test_fused_kernel_sum_equals_the_design_matrix(rng):
     both = InteriorField(surface, corr)
     assert both.radial.centres.shape[1] == s.n_vertices + 6  # the shared surface points merged
     assert both.displacement(x) == pytest.approx(surface(x) + corr(x), abs=1e-9)
+
+
+def test_correction_solver_without_smoothing_equals_the_dense_saddle_solve(rng):
+    # dense reference: the (k + 3a + r)^2 saddle system solved by LU (sliding_correction); the solver
+    # factors the projected surface block by Cholesky instead (positive definite on the polynomial
+    # block's null space), also at smoothing 0 where the kernel block alone is indefinite
+    from lungdeform.interior.sliding import CorrectionSolver, sliding_correction
+
+    s = _blob()
+    n = s.vertex_normals
+    q = rng.uniform(-20, 20, size=(12, 3))
+    values = rng.normal(size=(12, 3))
+    solver = CorrectionSolver.for_smoothings(s.vertices, n, q, (0.0,), max_points=200, seed=3)[0.0]
+    train, test = np.arange(12)[3:], np.arange(12)[:3]
+    ref = sliding_correction(s.vertices, n, q[train], values[train], smoothing=0.0, max_points=200, seed=3)
+    assert np.abs(ref(q[test])).max() > 1e-2  # the correction reaches the held-out anchors
+    assert solver.predict(train, values[train], test) == pytest.approx(ref(q[test]), abs=1e-9)

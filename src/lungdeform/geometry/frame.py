@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
@@ -110,6 +111,22 @@ def guess_sides(centroids_x: list[float]) -> list[str]:
 SIDE_SCORE_MIN = 0.03
 
 
+@numba.njit(cache=True, parallel=True)
+def _hull_depth(points, planes):  # pragma: no cover - compiled
+    """``(n,) float`` mm: how far each of ``points : (n, 3)`` mm lies inside the convex hull whose
+    facets are the columns of ``planes : (4, f)`` (Qhull's outward unit normal and offset, rows
+    ``n_x, n_y, n_z, d``): ``max(−max_f (n_f · p + d_f), 0)``; no ``(n, f)`` temporary."""
+    out = np.empty(points.shape[0])
+    nx, ny, nz, off = planes[0], planes[1], planes[2], planes[3]
+    for i in numba.prange(points.shape[0]):
+        x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        top = -np.inf
+        for f in range(nx.shape[0]):
+            top = max(top, nx[f] * x + ny[f] * y + nz[f] * z + off[f])
+        out[i] = max(-top, 0.0)
+    return out
+
+
 def side_from_shape(vertices: np.ndarray, faces: np.ndarray, max_points: int = 20000,
                     seed: int = 0) -> tuple[str, float]:
     """Which lung a closed surface is, from its shape: ``(side, score)``.
@@ -131,10 +148,7 @@ def side_from_shape(vertices: np.ndarray, faces: np.ndarray, max_points: int = 2
         raise InputError(f"the surface has no convex hull (flat or degenerate: {len(v)} vertices)") from exc
     pick = np.random.default_rng(seed).permutation(len(v))[:max_points]  # a seeded subset bounds the cost
     depth = np.zeros(len(v))
-    rows = max(1, 2 ** 22 // len(eq))  # at most 4 M distances (32 MB) per chunk
-    for start in range(0, len(pick), rows):
-        part = pick[start:start + rows]
-        depth[part] = np.maximum(-(v[part] @ eq[:, :3].T + eq[:, 3]).max(axis=1), 0.0)  # mm below the hull
+    depth[pick] = _hull_depth(np.ascontiguousarray(v[pick]), np.ascontiguousarray(eq.T))  # mm below the hull
     w = np.zeros(len(v))
     w[pick] = area[pick] * depth[pick]
     width = float(np.ptp(v[:, 0]))

@@ -63,27 +63,96 @@ def farthest_points(points, count: int) -> np.ndarray:
     if len(p) <= count:
         return np.arange(len(p))
     start = int(np.argmax(np.sum((p - p.mean(axis=0)) ** 2, axis=1)))
-    return np.sort(_farthest_kernel(p, int(count), start))
+    return np.sort(_farthest_kernel(p, int(count), start, FARTHEST_CELLS))
+
+
+#: Cells along the longest side of the bounding box of :func:`farthest_points`' grid.
+FARTHEST_CELLS = 16
 
 
 @numba.njit(cache=True)
-def _farthest_kernel(p, count, start):  # pragma: no cover - compiled
+def _grid(p, cells):  # pragma: no cover - compiled
+    """Points ``p : (n, 3)`` bucketed in a grid of cubes (side ``h``, ``cells`` along the longest side
+    of the bounding box): ``lo (3,)``, ``h``, ``size (3,)``, the offsets ``first (C + 1,)`` of each
+    cell's points in ``order (n,)`` (the original indices, ascending inside each cell), the occupied
+    cells, and the points' coordinates in that order as three contiguous rows."""
     n = p.shape[0]
-    out = np.empty(count, np.int64)
-    d = np.empty(n)
+    lo, size = np.empty(3), np.empty(3, np.int64)
+    ext = 0.0
+    for c in range(3):
+        lo[c] = p[:, c].min()
+        ext = max(ext, p[:, c].max() - lo[c])
+    h = max(ext / cells, 1e-300)
+    for c in range(3):
+        size[c] = int((p[:, c].max() - lo[c]) / h) + 1
+    cell = np.empty(n, np.int64)
     for i in range(n):
-        d[i] = (p[i, 0] - p[start, 0]) ** 2 + (p[i, 1] - p[start, 1]) ** 2 + (p[i, 2] - p[start, 2]) ** 2
+        a = min(int((p[i, 0] - lo[0]) / h), size[0] - 1)
+        b = min(int((p[i, 1] - lo[1]) / h), size[1] - 1)
+        cell[i] = (a * size[1] + b) * size[2] + min(int((p[i, 2] - lo[2]) / h), size[2] - 1)
+    first = np.zeros(size[0] * size[1] * size[2] + 1, np.int64)
+    for i in range(n):
+        first[cell[i] + 1] += 1
+    first = np.cumsum(first)
+    fill, order = first[:-1].copy(), np.empty(n, np.int64)
+    for i in range(n):  # in index order: ascending inside each cell
+        order[fill[cell[i]]] = i
+        fill[cell[i]] += 1
+    xyz = np.empty((3, n))
+    for t in range(n):
+        xyz[0, t], xyz[1, t], xyz[2, t] = p[order[t], 0], p[order[t], 1], p[order[t], 2]
+    return lo, h, size, first, order, np.nonzero(first[1:] > first[:-1])[0], xyz
+
+
+@numba.njit(cache=True)
+def _cell_top(d, order, a, b):  # pragma: no cover - compiled
+    """The largest of ``d[a:b]`` and the smallest original index holding it."""
+    best, arg = -1.0, -1
+    for t in range(a, b):
+        if d[t] > best or (d[t] == best and order[t] < arg):
+            best, arg = d[t], order[t]
+    return best, arg
+
+
+@numba.njit(cache=True)
+def _farthest_kernel(p, count, start, cells):  # pragma: no cover - compiled
+    """The greedy farthest-point picks from ``start`` (the first point of largest distance to those
+    taken, each time). Exact, pruned: a pick can only lower the distances of points nearer to it than
+    the largest distance so far, so only the grid cells (:func:`_grid`) within that reach, plus one
+    cell of margin, are visited; each cell keeps its largest distance and first index holding it."""
+    lo, h, size, first, order, occupied, xyz = _grid(p, cells)
+    d = np.full(p.shape[0], np.inf)
+    top, arg = np.full(len(first) - 1, np.inf), np.empty(len(first) - 1, np.int64)
+    for c in occupied:
+        arg[c] = order[first[c]]
+    out = np.empty(count, np.int64)
     out[0] = start
+    j = start
+    reach = np.inf
     for k in range(1, count):
-        j = 0
-        for i in range(1, n):
-            if d[i] > d[j]:
-                j = i
+        q = p[j]
+        span = np.empty((3, 2), np.int64)
+        for c in range(3):
+            r = np.sqrt(reach)  # inf at the first pick: every cell
+            span[c, 0] = 0 if r == np.inf else max(int((q[c] - r - lo[c]) / h) - 1, 0)
+            span[c, 1] = size[c] - 1 if r == np.inf else min(int((q[c] + r - lo[c]) / h) + 1, size[c] - 1)
+        for a in range(span[0, 0], span[0, 1] + 1):
+            for b in range(span[1, 0], span[1, 1] + 1):
+                for c in range(span[2, 0], span[2, 1] + 1):
+                    cell = (a * size[1] + b) * size[2] + c
+                    changed = False
+                    for t in range(first[cell], first[cell + 1]):
+                        e = (xyz[0, t] - q[0]) ** 2 + (xyz[1, t] - q[1]) ** 2 + (xyz[2, t] - q[2]) ** 2
+                        if e < d[t]:
+                            d[t] = e
+                            changed = True
+                    if changed:
+                        top[cell], arg[cell] = _cell_top(d, order, first[cell], first[cell + 1])
+        reach, j = -1.0, -1
+        for c in occupied:  # the largest distance; on a tie, the smallest index
+            if top[c] > reach or (top[c] == reach and arg[c] < j):
+                reach, j = top[c], arg[c]
         out[k] = j
-        for i in range(n):
-            e = (p[i, 0] - p[j, 0]) ** 2 + (p[i, 1] - p[j, 1]) ** 2 + (p[i, 2] - p[j, 2]) ** 2
-            if e < d[i]:
-                d[i] = e
     return out
 
 

@@ -45,6 +45,7 @@ from functools import cached_property
 
 import numba
 import numpy as np
+from scipy.linalg import lapack, solve_triangular
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
@@ -82,6 +83,18 @@ def _radial_sum(query, centres, weights):
     return out
 
 
+@numba.njit(cache=True, parallel=True)
+def _normal_kernel(p, n, out):  # pragma: no cover - compiled
+    """Fill ``out[:k, :k]`` with the sliding kernel ``−|p_i − p_j| (n_i · n_j)`` of ``p, n : (k, 3)``
+    (mm, unit normals): one row per parallel iteration, no ``(k, k)`` temporaries."""
+    for i in numba.prange(p.shape[0]):
+        x, y, z = p[i, 0], p[i, 1], p[i, 2]
+        u, v, w = n[i, 0], n[i, 1], n[i, 2]
+        for j in range(p.shape[0]):
+            dx, dy, dz = x - p[j, 0], y - p[j, 1], z - p[j, 2]
+            out[i, j] = -np.sqrt(dx * dx + dy * dy + dz * dz) * (u * n[j, 0] + v * n[j, 1] + w * n[j, 2])
+
+
 def _check(points, normals):
     p = as_vertices(points, "points")
     n = as_vertices(normals, "normals")
@@ -111,7 +124,7 @@ def _system(p: np.ndarray, n: np.ndarray, smoothing: float):
     center = p.mean(axis=0)
     scale = float(np.abs(p - center).max()) or 1.0
     a = np.empty((k + 12, k + 12))
-    a[:k, :k] = -cdist(p, p) * (n @ n.T)
+    _normal_kernel(p, n, a)
     a[np.arange(k), np.arange(k)] += smoothing
     x = np.hstack([np.ones((k, 1)), (p - center) / scale])  # (k, 4)
     poly = (n[:, :, None] * x[:, None, :]).reshape(k, 12)  # column 4c + l: n_c · x_l
@@ -390,15 +403,69 @@ def sliding_correction(points, normals, anchors, values, *, smoothing: float = S
 
 
 @dataclass(frozen=True, eq=False)
+class _Projected:
+    """The saddle system ``[[K + λI, B], [Bᵀ, 0]] [x; μ] = [C; D]`` (:func:`_system`'s, against the
+    anchor columns of :func:`_anchor_blocks`), solved through the null space of ``Bᵀ`` (``k × r``,
+    ``B = Q R``, reduced QR, ``P = I − Q Qᵀ``): ``x = Q y₁ + z`` with ``y₁ = R⁻ᵀ D`` and ``z = P z``,
+    ``P (K + λI) P z = d = P (C − K Q y₁)``. ``A(λ) = P K P + λ P + Q Qᵀ`` is positive definite (the
+    kernel ``−r`` is conditionally positive definite on the fields that the translations' constraint
+    ``Σ α_j n_j = 0`` annihilates, which ``P`` ensures; ``Q Qᵀ`` is the identity on ``B``'s range) and
+    maps both subspaces to themselves, so ``z = A(λ)⁻¹ d``: one Cholesky per smoothing, half the flops
+    of the saddle matrix's LU. The anchor block ``[C; D]ᵀ [x; μ] = e₁ᵀy₁ + y₁ᵀe₁ − y₁ᵀ(QᵀKQ + λI)y₁ +
+    GᵀG`` with ``e₁ = QᵀC`` and ``G = L⁻¹ d`` (``L Lᵀ = A(λ)``): one triangular solve for the Schur
+    complement, a second only for :meth:`CorrectionSolver.surface_weights` (``z = L⁻ᵀ G``)."""
+
+    kernel: np.ndarray
+    basis: np.ndarray
+    t11: np.ndarray
+    e1: np.ndarray
+    y1: np.ndarray
+    d: np.ndarray
+
+    @staticmethod
+    def of(saddle: np.ndarray, cross: np.ndarray, k: int) -> "_Projected":
+        q, r = np.linalg.qr(saddle[:k, k:])
+        kq = saddle[:k, :k] @ q  # (k, r)
+        y1 = solve_triangular(r, cross[k:], trans="T")  # Rᵀ y₁ = D
+        c = cross[:k] - kq @ y1
+        return _Projected(saddle[:k, :k], np.hstack([q, kq]), q.T @ kq, q.T @ cross[:k], y1, c - q @ (q.T @ c))
+
+    def factor(self, smoothing: float) -> np.ndarray:
+        """``L`` (lower) with ``L Lᵀ = A(λ) = K + λI + U W Uᵀ``, ``U = [Q, KQ]``,
+        ``W = [[QᵀKQ + (1 − λ)I, −I], [−I, 0]]`` (one rank-2r product: ``P K P + λ P + Q Qᵀ``)."""
+        r = len(self.t11)
+        w = np.zeros((2 * r, 2 * r))
+        w[:r, :r] = self.t11 + (1.0 - smoothing) * np.eye(r)
+        w[:r, r:] = w[r:, :r] = -np.eye(r)
+        a = self.kernel + (self.basis @ w) @ self.basis.T
+        a[np.diag_indices_from(a)] += smoothing
+        chol, info = lapack.dpotrf(a, lower=1, overwrite_a=1, clean=0)
+        if info != 0:
+            raise InputError("the sliding interpolation is singular (repeated points or a flat surface?)")
+        return chol
+
+    def quadratic(self, g: np.ndarray, smoothing: float) -> np.ndarray:
+        """``[C; D]ᵀ [x; μ]``, ``(3a, 3a)``, from ``G = L⁻¹ d`` (class docstring)."""
+        cross = self.e1.T @ self.y1
+        t11 = self.t11 + smoothing * np.eye(len(self.t11))
+        return cross + cross.T - self.y1.T @ t11 @ self.y1 + g.T @ g
+
+    def surface(self, chol: np.ndarray, g: np.ndarray) -> np.ndarray:
+        """``x : (k, 3a)``, the surface unknowns: ``Q y₁ + L⁻ᵀ G``."""
+        r = len(self.t11)
+        return self.basis[:, :r] @ self.y1 + solve_triangular(chol, g, lower=True, trans="T", check_finite=False)
+
+
+@dataclass(frozen=True, eq=False)
 class _CorrectionBlocks:
     """What a :class:`CorrectionSolver` needs that does not depend on the smoothing: the seeded subset
-    ``index`` of the surface points (all ``normals`` kept), the saddle matrix without smoothing, the
-    anchor blocks (:func:`_anchor_blocks`) and the checked ``anchors``."""
+    ``index`` of the surface points (all ``normals`` kept), the saddle system without smoothing in its
+    projected form (:class:`_Projected`), the anchor-anchor block (:func:`_anchor_blocks`) and the
+    checked ``anchors``."""
 
     index: np.ndarray
     normals: np.ndarray
-    kernel: np.ndarray
-    cross: np.ndarray
+    projected: _Projected
     between: np.ndarray
     anchors: np.ndarray
 
@@ -409,7 +476,7 @@ class _CorrectionBlocks:
         q = _check_anchors(anchors)
         kernel, center, scale, basis = _system(p[idx], n[idx], 0.0)
         cross, between = _anchor_blocks(p[idx], n[idx], q, center, scale, basis)  # (k + r, 3a), (3a, 3a)
-        return _CorrectionBlocks(idx, n, kernel, cross, between, q)
+        return _CorrectionBlocks(idx, n, _Projected.of(kernel, cross, len(idx)), between, q)
 
 
 class CorrectionSolver:
@@ -429,7 +496,7 @@ class CorrectionSolver:
                        seed: int = 0) -> "dict[float, CorrectionSolver]":
         """One solver per surface smoothing (mm) in ``smoothings``, each as :class:`CorrectionSolver`
         gives it: the kernel matrix, the polynomial basis and the anchor blocks formed once (they do
-        not depend on the smoothing), one dense solve per smoothing."""
+        not depend on the smoothing), one Cholesky factorisation per smoothing (:class:`_Projected`)."""
         lams = [_check_smoothing(lam) for lam in smoothings]
         blocks = _CorrectionBlocks.of(points, normals, anchors, max_points, seed)
         out = {}
@@ -439,13 +506,12 @@ class CorrectionSolver:
         return out
 
     def _solve_surface(self, blocks: "_CorrectionBlocks", smoothing: float) -> None:
-        k = len(blocks.index)
-        m = blocks.kernel.copy()
-        m[np.arange(k), np.arange(k)] += smoothing  # as _system(points, normals, smoothing)
-        self.cross, self.between, self.anchors, self.smoothing = blocks.cross, blocks.between, blocks.anchors, smoothing
-        self._m_cross = _solve(m, blocks.cross)  # the surface system, solved once for every anchor column
-        self.schur = blocks.between - blocks.cross.T @ self._m_cross
-        self._surface = (blocks.index, blocks.normals)
+        self.between, self.anchors, self.smoothing = blocks.between, blocks.anchors, smoothing
+        chol = blocks.projected.factor(smoothing)  # the surface system, factored once per smoothing
+        g = solve_triangular(chol, blocks.projected.d, lower=True, check_finite=False)
+        self.schur = blocks.between - blocks.projected.quadratic(g, smoothing)
+        # the surface unknowns of every anchor column (surface_weights), kept instead of the (k, k) factor
+        self._surface = (blocks.index, blocks.normals, blocks.projected.surface(chol, g))
 
     @property
     def n_anchors(self) -> int:
@@ -455,10 +521,10 @@ class CorrectionSolver:
         """:func:`sliding_weights` ``(points, normals, anchors, smoothing=λ)`` (same thinning): the sliding
         interpolation from the surface points to the anchors, from the solve already done (the
         anchor columns of the system are the interpolant's design at the anchors)."""
-        idx, n = self._surface
+        idx, n, x = self._surface
         k, a = len(idx), self.n_anchors
         full = np.zeros((3, a, len(n)))
-        full[:, :, idx] = self._m_cross[:k].T.reshape(3, a, k)
+        full[:, :, idx] = x.T.reshape(3, a, k)
         return SlidingWeights(full, n)
 
     def _rows(self, ids) -> np.ndarray:
