@@ -37,6 +37,7 @@ import numpy as np
 from scipy import ndimage
 
 from lungdeform.errors import FoldError, InputError
+from lungdeform.geometry.depth import crossing_bound
 from lungdeform.geometry.distance import SurfaceDistance
 from lungdeform.geometry.mesh import inside_by_parity, inside_nodes
 
@@ -169,8 +170,7 @@ def outside_distance(surface, points, inside: np.ndarray, node_mm, reach_mm: flo
     band = (near > 0) & (near < reach)
     d = np.where(inside.ravel(), 0.0, np.inf)
     if band.any():
-        bound = near[band] * (1 + 1e-9) + 1e-9
-        d[band] = SurfaceDistance(surface.vertices, surface.faces).distance(points[band], bound)
+        d[band] = SurfaceDistance(surface.vertices, surface.faces).distance(points[band], crossing_bound(near[band]))
     return d
 
 
