@@ -178,12 +178,9 @@ def blended_field(fields, inside, distance, margin: float) -> np.ndarray:
     """``u : (n, 3) float`` mm from per-lung displacements ``fields : list of (n, 3)`` mm, ``inside``
     and ``distance`` (list of (n,)): a lung's own field inside it; outside every lung each faded
     (:func:`fade`) and weighted by inverse squared distance, so the field is continuous at each surface."""
-    d = np.stack(distance)  # (L, n)
-    a = np.where(np.stack(inside), 1.0, fade(d, margin))
-    d = np.where(np.stack(inside), 0.0, np.minimum(d, 1e6))  # inf: beyond every margin, a = 0
-    phi = 1.0 / (d + 1e-6) ** 2
-    phi /= phi.sum(axis=0, keepdims=True)
-    return np.einsum("ln,lnc->nc", a * phi, np.stack(fields))
+    d = np.stack([np.asarray(x, float) for x in distance])  # (L, n)
+    f = np.stack([np.asarray(x, float) for x in fields])
+    return V.blend_nodes(f, np.stack(inside).astype(bool), d, float(margin), np.empty((d.shape[1], 3)))
 
 
 def state_scales(model, delta_ml: float) -> dict[str, float]:
