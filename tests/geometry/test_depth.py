@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from lungdeform.errors import InputError
-from lungdeform.geometry.depth import depth_grid
+from lungdeform.geometry.depth import crossing_bound, depth_grid
+from lungdeform.geometry.distance import SurfaceDistance
 from lungdeform.geometry.mesh import icosphere
 
 CENTER = np.array([12.0, -40.0, 100.0])
@@ -48,3 +49,17 @@ def test_bad_reach_is_refused():
     s = _sphere()
     with pytest.raises(InputError, match="reach_mm"):
         depth_grid(s.vertices, s.faces, reach_mm=0.0)
+
+
+def test_crossing_bound_never_cuts_the_closest_point(rng):
+    # why: the distance from a point to any point on the surface's other side bounds its distance to
+    # the surface from above (the segment crosses it); the bound must stay above it after rounding,
+    # and a search within it gives the exact (unbounded) distance, also when it is met exactly
+    s = _sphere()
+    d = rng.normal(size=(500, 3))
+    q = CENTER + d / np.linalg.norm(d, axis=1)[:, None] * rng.uniform(5.0, 55.0, size=(len(d), 1))
+    exact = SurfaceDistance(s.vertices, s.faces).distance(q)
+    bound = crossing_bound(exact)  # the tightest a caller can give: the distance itself
+    assert np.all(bound > exact) and np.all(bound - exact < 1e-6)
+    assert np.array_equal(SurfaceDistance(s.vertices, s.faces).distance(q, bound), exact)
+    assert crossing_bound([0.0]).tolist() == [1e-9]

@@ -104,6 +104,35 @@ def test_jacobian_of_a_linear_field_in_physical_units(rng):
     assert np.allclose(det, np.linalg.det(np.eye(3) + b), atol=1e-4)
 
 
+def test_blend_equals_its_array_form(rng):
+    # why: the fused node loop (voxel.blend_nodes) must give the numbers of the array form it replaced
+    # (fade, inverse squared distance normalised over the lungs, einsum), bit for bit, with nodes inside
+    # a lung, beyond every margin (inf) and in between, for one to three lungs
+    for lungs in (1, 2, 3):
+        n = 5000
+        f = [rng.normal(size=(n, 3)) * 5 for _ in range(lungs)]
+        inside = [rng.random(n) < 0.3 for _ in range(lungs)]
+        dist = [np.where(i, 0.0, np.where(rng.random(n) < 0.2, np.inf, rng.uniform(0, 60, n))) for i in inside]
+        d = np.stack(dist)
+        a = np.where(np.stack(inside), 1.0, D.fade(d, 38.0))
+        d = np.where(np.stack(inside), 0.0, np.minimum(d, 1e6))
+        phi = 1.0 / (d + 1e-6) ** 2
+        phi /= phi.sum(axis=0, keepdims=True)
+        assert np.array_equal(D.blended_field(f, inside, dist, 38.0), np.einsum("ln,lnc->nc", a * phi, np.stack(f)))
+
+
+def test_lattice_points_are_the_world_of_its_indices(rng):
+    # why: Lattice.points sums one term per index axis instead of Grid.world's product: the same
+    # points (exactly on an axis-aligned grid, to rounding on an oblique one)
+    q = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    oblique = D.Grid((40, 50, 60), np.array([0.7, 1.1, 2.5]), np.array([-10.3, 20.7, -30.1]), q)
+    for grid, tol in ((GRID, 0.0), (oblique, 1e-9)):
+        lat = D.lattice(grid, grid.world(np.array([3.0, 4, 2])), grid.world(np.array([50.0, 40, 30])), 4.0)
+        want = grid.world(lat.ijk())
+        assert lat.points(grid).shape == want.shape and len(want) == np.prod(lat.dims)
+        assert np.abs(lat.points(grid) - want).max() <= tol
+
+
 def test_lattice_is_exact_for_affine_values():
     # trilinear interpolation reproduces an affine function of the index exactly
     lat = D.lattice(GRID, np.array([-100.0, -50, -100]), np.array([100.0, 50, 100]), 10.0)

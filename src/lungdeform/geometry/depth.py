@@ -30,6 +30,17 @@ from .mesh import as_faces, as_vertices, inside_nodes
 
 #: Node step (mm) of :func:`depth_grid`.
 DEPTH_SPACING_MM = 2.0
+#: Relative and absolute widening (mm) of :func:`crossing_bound`: above the rounding of a distance transform.
+BOUND_SLACK = 1e-9
+
+
+def crossing_bound(node_distance) -> np.ndarray:
+    """``(n,) float`` mm: an upper bound on the surface distance of grid nodes whose distance to the
+    nearest node on the surface's other side is ``node_distance : (n,)`` mm (a distance transform's):
+    the segment to that node crosses the surface, so the surface lies no farther; widened by
+    :data:`BOUND_SLACK` (relative and mm) so that the transform's rounding cannot cut the closest
+    point off (:meth:`~lungdeform.geometry.distance.SurfaceDistance.distance`'s ``bound``)."""
+    return np.asarray(node_distance, float) * (1 + BOUND_SLACK) + BOUND_SLACK
 
 
 @dataclass(frozen=True, eq=False)
@@ -88,7 +99,7 @@ def depth_grid(vertices, faces, reach_mm: float, spacing_mm: float = DEPTH_SPACI
     to_in = ndimage.distance_transform_edt(~inside.reshape(shape)).ravel() * spacing_mm
     near = np.where(inside, to_out < reach_mm + floor, to_in < 2.0 * floor)
     if near.any():
-        bound = np.where(inside, to_out, to_in)[near] * (1 + 1e-9) + 1e-9  # the segment to that node crosses
+        bound = crossing_bound(np.where(inside, to_out, to_in)[near])
         measured = SurfaceDistance(v, f).distance(nodes[near], bound)
         depth[near] = np.where(inside[near], np.minimum(measured, reach_mm), -np.minimum(measured, floor))
     return DepthGrid(origin, float(spacing_mm), depth.reshape(tuple(dims[::-1])), float(reach_mm))

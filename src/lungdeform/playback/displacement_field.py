@@ -37,6 +37,7 @@ import numpy as np
 from scipy import ndimage
 
 from lungdeform.errors import FoldError, InputError
+from lungdeform.geometry.depth import crossing_bound
 from lungdeform.geometry.distance import SurfaceDistance
 from lungdeform.geometry.mesh import inside_by_parity, inside_nodes
 
@@ -113,6 +114,14 @@ class Lattice:
         k, j, i = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
         return np.stack([i.ravel(), j.ravel(), k.ravel()], axis=1).astype(float)
 
+    def points(self, grid: Grid) -> np.ndarray:
+        """``(n, 3) float`` mm LPS of the nodes on ``grid``, ordered as :meth:`ijk`: ``grid.world(ijk)``
+        (the same on an axis-aligned grid; on an oblique one to within rounding, 1e-13 mm), summed as
+        one term per index axis, without the ``(n, 3) × (3, 3)`` product (serial, 25 ms a lattice of 415k)."""
+        t = [((self.lo[a] + self.stride[a] * np.arange(self.dims[a])).astype(float) * grid.spacing[a])[:, None]
+             * grid.direction[:, a] for a in range(3)]  # (dims[a], 3) mm along index axis a
+        return ((t[0][None, None] + t[1][None, :, None]) + t[2][:, None, None] + grid.origin).reshape(-1, 3)
+
 
 def lattice(grid: Grid, lo_mm, hi_mm, spacing_mm: float = NODE_SPACING_MM) -> Lattice | None:
     """The :class:`Lattice` over the world box ``[lo_mm, hi_mm]`` (3,) mm LPS; its nodes may lie
@@ -169,8 +178,7 @@ def outside_distance(surface, points, inside: np.ndarray, node_mm, reach_mm: flo
     band = (near > 0) & (near < reach)
     d = np.where(inside.ravel(), 0.0, np.inf)
     if band.any():
-        bound = near[band] * (1 + 1e-9) + 1e-9
-        d[band] = SurfaceDistance(surface.vertices, surface.faces).distance(points[band], bound)
+        d[band] = SurfaceDistance(surface.vertices, surface.faces).distance(points[band], crossing_bound(near[band]))
     return d
 
 
@@ -178,12 +186,9 @@ def blended_field(fields, inside, distance, margin: float) -> np.ndarray:
     """``u : (n, 3) float`` mm from per-lung displacements ``fields : list of (n, 3)`` mm, ``inside``
     and ``distance`` (list of (n,)): a lung's own field inside it; outside every lung each faded
     (:func:`fade`) and weighted by inverse squared distance, so the field is continuous at each surface."""
-    d = np.stack(distance)  # (L, n)
-    a = np.where(np.stack(inside), 1.0, fade(d, margin))
-    d = np.where(np.stack(inside), 0.0, np.minimum(d, 1e6))  # inf: beyond every margin, a = 0
-    phi = 1.0 / (d + 1e-6) ** 2
-    phi /= phi.sum(axis=0, keepdims=True)
-    return np.einsum("ln,lnc->nc", a * phi, np.stack(fields))
+    d = np.stack([np.asarray(x, float) for x in distance])  # (L, n)
+    f = np.stack([np.asarray(x, float) for x in fields])
+    return V.blend_nodes(f, np.stack(inside).astype(bool), d, float(margin), np.empty((d.shape[1], 3)))
 
 
 def state_scales(model, delta_ml: float) -> dict[str, float]:
@@ -234,7 +239,7 @@ def lattice_field(model, grid: Grid, scales: dict, *, spacing_mm: float = NODE_S
         raise InputError(f"the field would take {nodes:.3g} lattice nodes (at most {MAX_LATTICE_NODES:.3g}): the "
                          f"state moves the lungs so far that the fade margin is {margin:.0f} mm; give a volume "
                          f"nearer the model's range or a coarser node spacing")
-    pts = grid.world(lat.ijk())
+    pts = lat.points(grid)
     shape3 = tuple(int(n) for n in lat.dims[::-1])
     node_mm = grid.spacing * lat.stride
     fields, inside, dist, evaluated = [], [], [], 0
@@ -293,7 +298,7 @@ def invert(lat: Lattice, u: np.ndarray, grid: Grid, iterations: int = INVERSE_IT
     """The inverse deformation on the lattice, ``(w (z, y, x, 3) float mm, residual_mm)``: ``w(y) =
     −u(y + w(y))`` by fixed-point iteration, ``u`` interpolated trilinearly between nodes;
     ``residual_mm`` the largest ``|w(y) + u(y + w(y))|`` left at any node."""
-    y = grid.world(lat.ijk())
+    y = lat.points(grid)
     w = np.zeros_like(y)
     for _ in range(int(iterations)):
         w = -sample(lat, u, grid, y + w)
@@ -446,7 +451,7 @@ def displacement_field(model, grid: Grid, delta_ml: float, *, alignment=None, in
     spans = V.no_spans(grid.shape)  # the voxels written, so that the Jacobian's pass reads only those
     if inverse:
         w, info["inversion_residual_mm"] = invert(lat, u, grid)
-        nodes = grid.world(lat.ijk())
+        nodes = lat.points(grid)
         rigid = np.eye(4) if a is None else a
         part = sample(lat, w, grid, nodes @ rigid[:3, :3].T + rigid[:3, 3]).reshape(u.shape)
         field = upsample(lat, part, grid, a, spans)

@@ -8,6 +8,8 @@ module only holds the loops that touch every voxel, so that no full-grid tempora
   affine displacement at every voxel, in one pass (the lattice weights per index are precomputed
   along each axis, :func:`axis_weights`; per voxel row one bilinear row of nodes, then one lerp a
   voxel), added into a zeroed output and skipping the voxels it would leave at 0;
+- :func:`blend_nodes`: the lungs' lattice fields blended into one (a lung's own field inside it,
+  outside each faded and weighted by inverse squared distance), one pass over the nodes;
 - :func:`jacobian_pass`: ``det(I + ∇u)`` by central differences in physical units (one-sided at the
   array's edges, as ``numpy.gradient``), written out or reduced to min, max and folded count; 1
   without arithmetic where nothing within a voxel moves.
@@ -58,6 +60,31 @@ def _row(values, k0, fz, j0, fy, buf):
     return buf
 
 
+@numba.njit(cache=True)
+def _lerp_row(out, k, j, row, still, axis_i, box_i):
+    """Add into ``out[k, j, i]`` for i in ``box_i`` (i0, i1) the lattice ``row : (nx, 3) float32``
+    (:func:`_row`) interpolated linearly (``axis_i`` = ``(nodes, frac)`` of axis i, :func:`axis_weights`:
+    node ``nodes[i]`` ≥ 0, fraction ``frac[i]``), skipping the voxels
+    between two ``still`` nodes (they would get exactly 0); the arithmetic of :func:`fill_field`'s
+    general loop without its affine part. Returns the first and last voxel touched (first > last: none)."""
+    nodes_i, frac_i = axis_i
+    i0, i1 = box_i
+    last = row.shape[0] - 1
+    lo, hi = i1, i0 - 1
+    for i in range(i0, i1):
+        n0 = nodes_i[i]
+        if n0 < 0:
+            continue
+        n1 = min(n0 + 1, last)
+        if still[n0] and still[n1]:
+            continue
+        lo, hi = min(lo, i), i
+        f = frac_i[i]
+        for c in range(3):
+            out[k, j, i, c] += row[n0, c] * (1 - f) + row[n1, c] * f
+    return lo, hi
+
+
 @numba.njit(cache=True, parallel=True)
 def fill_field(out, values, axes, affine_part, ranges, spans):
     """Add into ``out : (z, y, x, 3) float32`` at voxels ``ranges`` (k0, k1, j0, j1, i0, i1): the
@@ -85,23 +112,52 @@ def fill_field(out, values, axes, affine_part, ranges, spans):
                 _row(values, nodes_k[k], frac_k[k], nodes_j[j], frac_j[j], row)
                 for n in range(values.shape[2]):
                     still[n] = row[n, 0] == 0 and row[n, 1] == 0 and row[n, 2] == 0
+            if not affine:
+                if lattice:
+                    touched_lo, touched_hi = _lerp_row(out, k, j, row, still, (nodes_i, frac_i), (ranges[4], ranges[5]))
+                if touched_lo <= touched_hi:
+                    first[k, j], final[k, j] = min(first[k, j], touched_lo), max(final[k, j], touched_hi)
+                continue
             for i in range(ranges[4], ranges[5]):
                 n0 = nodes_i[i]
                 inside = lattice and n0 >= 0
                 n1 = min(n0 + 1, last)
-                if not affine and not (inside and not (still[n0] and still[n1])):
-                    continue
                 touched_lo, touched_hi = min(touched_lo, i), i
                 f = frac_i[i]
                 for c in range(3):
                     x = 0.0
                     if inside:
                         x = row[n0, c] * (1 - f) + row[n1, c] * f
-                    if affine:
-                        x += const[c] + steps[c, 0] * i + steps[c, 1] * j + steps[c, 2] * k
+                    x += const[c] + steps[c, 0] * i + steps[c, 1] * j + steps[c, 2] * k
                     out[k, j, i, c] += x
             if touched_lo <= touched_hi:
                 first[k, j], final[k, j] = min(first[k, j], touched_lo), max(final[k, j], touched_hi)
+    return out
+
+
+@numba.njit(cache=True, parallel=True)
+def blend_nodes(fields, inside, distance, margin, out):
+    """Write into ``out : (n, 3) float`` the blend of the per-lung node displacements ``fields : (L, n,
+    3)`` mm: weight ``a_l · φ_l / Σ φ``, ``a_l`` 1 inside lung l (``inside : (L, n) bool``) and else the
+    smoothstep ``1 − t²(3 − 2t)``, ``t = clip(d / margin, 0, 1)`` of its distance ``distance : (L, n)``
+    mm; ``φ_l = 1 / (d_l + 1e-6)²`` with ``d_l`` 0 inside and at most 1e6 mm (inf: beyond every margin).
+    The arithmetic of :func:`lungdeform.playback.displacement_field.blended_field`'s array form, in
+    the same order (the same numbers), without its (L, n) temporaries."""
+    nl, n = distance.shape
+    for p in numba.prange(n):
+        total = 0.0
+        for m in range(nl):
+            d = 0.0 if inside[m, p] else min(distance[m, p], 1e6)
+            total += 1.0 / ((d + 1e-6) * (d + 1e-6))
+        for c in range(3):
+            out[p, c] = 0.0
+        for m in range(nl):
+            d = 0.0 if inside[m, p] else min(distance[m, p], 1e6)
+            t = min(max(distance[m, p] / margin, 0.0), 1.0)
+            a = 1.0 if inside[m, p] else 1.0 - t * t * (3.0 - 2.0 * t)
+            w = a * (1.0 / ((d + 1e-6) * (d + 1e-6)) / total)
+            for c in range(3):
+                out[p, c] += w * fields[m, p, c]
     return out
 
 
@@ -145,6 +201,15 @@ def _det_near(f, k, j, i, near, inv, diagonal):
     return a11 * (a22 * a33 - a23 * a32) - a12 * (a21 * a33 - a23 * a31) + a13 * (a21 * a32 - a22 * a31)
 
 
+@numba.njit(cache=True, inline="always")
+def _det_edge(f, k, j, i, near_kj, inv, diagonal):
+    """``det(I + ∇u)`` at a row's end voxel (k, j, i): the difference along i one-sided at the array's
+    edge (as ``numpy.gradient``); ``near_kj`` = (kl, kh, jl, jh, rk, rj) as :func:`_det_row`."""
+    kl, kh, jl, jh, rk, rj = near_kj
+    il, ih = max(i - 1, 0), min(i + 1, f.shape[2] - 1)
+    return _det_near(f, k, j, i, (kl, kh, jl, jh, il, ih, rk, rj, 0.5 if ih - il == 2 else 1.0), inv, diagonal)
+
+
 @numba.njit(cache=True)
 def _det_row(f, k, j, box_i, inv, dets, diagonal):
     """Write into ``dets[i − i0]`` ``det(I + ∇u)`` at the voxels (k, j, i) for i in ``box_i`` (i0, i1) of
@@ -162,12 +227,10 @@ def _det_row(f, k, j, box_i, inv, dets, diagonal):
     else:
         for i in range(lo, hi):
             dets[i - i0] = _det_near(f, k, j, i, (kl, kh, jl, jh, i - 1, i + 1, rk, rj, 0.5), inv, False)
-    for i in range(i0, i1):
-        if lo <= i < hi:
-            continue
-        il, ih = max(i - 1, 0), min(i + 1, nx - 1)
-        dets[i - i0] = _det_near(f, k, j, i, (kl, kh, jl, jh, il, ih, rk, rj, 0.5 if ih - il == 2 else 1.0), inv,
-                                 diagonal)
+    for i in range(i0, min(lo, i1)):  # the voxels outside [lo, hi): at most one at each end of a row
+        dets[i - i0] = _det_edge(f, k, j, i, (kl, kh, jl, jh, rk, rj), inv, diagonal)
+    for i in range(max(hi, i0), i1):
+        dets[i - i0] = _det_edge(f, k, j, i, (kl, kh, jl, jh, rk, rj), inv, diagonal)
     return dets
 
 
@@ -223,7 +286,8 @@ def jacobian_pass(f, inv, ranges, out, spans):
                 lo, hi = min(lo, 1.0), max(hi, 1.0)
             if a < b:
                 _det_row(f, k, j, (a, b), inv, dets, diagonal)
-                for d in dets[:b - a]:
+                for m in range(b - a):
+                    d = dets[m]
                     lo, hi = min(lo, d), max(hi, d)
                     folded += d <= 0.0
             if write:
