@@ -7,6 +7,7 @@ from lungdeform.errors import InputError
 from lungdeform.geometry.distance import (
     SurfaceDistance,
     _closest_on_triangle,
+    _face_bound,
     distance_stats,
     point_to_surface,
     symmetric_distance,
@@ -14,6 +15,10 @@ from lungdeform.geometry.distance import (
     weighted_percentile,
 )
 from lungdeform.geometry.mesh import icosphere
+from lungdeform.geometry.remesh import decimate
+from lungdeform.io.image import read_image
+from lungdeform.io.mask import extract_surface
+from tests.conftest import require_path
 
 
 def _brute(points, v, f):
@@ -26,6 +31,75 @@ def _brute(points, v, f):
             best = min(best, float(np.linalg.norm(p - q)))
         out.append(best)
     return np.array(out)
+
+
+def _raster_rank(v, f):
+    # the order in which the raster-scan kernel (before the shell search) met the faces: by the cell of
+    # their box centre in a grid of side twice the median edge over the used vertices' box, then by index
+    used = np.unique(f)
+    lo = v[used].min(axis=0) - 1e-6
+    span = v[used].max(axis=0) + 1e-6 - lo
+    e = v[f]
+    h = max(2.0 * float(np.median(np.linalg.norm(e - np.roll(e, 1, axis=1), axis=2))), 1e-6,
+            float(np.prod(span) / SurfaceDistance.MAX_CELLS) ** (1 / 3))
+    dims = np.maximum(np.ceil(span / h).astype(np.int64), 1)
+    idx = np.clip(((e.min(axis=1) + e.max(axis=1)) / 2 - lo) / h, 0, dims - 1).astype(np.int64)
+    rank = np.empty(len(f), np.int64)
+    rank[np.argsort((idx[:, 0] * dims[1] + idx[:, 1]) * dims[2] + idx[:, 2], kind="stable")] = np.arange(len(f))
+    return rank
+
+
+def _dense_faces(points, v, f):
+    # dense reference with the raster scan's tie rule: every face's exact distance (the kernel's own
+    # per-face routine), the nearest; among equally near faces the one the raster scan met last
+    n, m = len(points), len(f)
+    d = _face_bound(np.repeat(points, m, axis=0), v, f, np.tile(np.arange(m), n)).reshape(n, m)
+    rank = _raster_rank(v, f)
+    best = d.min(axis=1)
+    face = np.array([c[np.argmax(rank[c])] for c in (np.flatnonzero(row == b) for row, b in zip(d, best))])
+    return best, face
+
+
+def _tie_points(v, f, rng):
+    # points with many exact ties: on the vertices (distance 0 to every face around them), off them
+    # along the axes, above edge midpoints, and a random cloud near and far
+    normal = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    at = v[np.unique(f)]
+    mid = (v[f[:, 0]] + v[f[:, 1]]) / 2
+    return np.vstack([at[:60], at[60:120] + [0.0, 0.0, 2.5], mid[:60] + 1.5 * normal[:60] / np.linalg.norm(
+        normal[:60], axis=1, keepdims=True), at[:40] + rng.normal(size=(40, 3)) * 8, rng.normal(size=(20, 3)) * 300])
+
+
+def test_ties_resolve_as_the_raster_scan(rng):
+    # a flat triangulated sheet (every point above a vertex is exactly as near to its six faces) and a
+    # sphere: the face returned is the dense reference's under the raster scan's tie rule (the face it
+    # chose is what the fit builds on: another choice moved copd1's fitted surface by 0.02 mm)
+    g = np.stack(np.meshgrid(np.arange(12.0), np.arange(9.0), indexing="ij"), axis=-1).reshape(-1, 2) * 4.0
+    sheet = np.column_stack([g, np.zeros(len(g))])
+    q = np.arange(12 * 9).reshape(12, 9)[:-1, :-1].ravel()
+    faces = np.vstack([np.column_stack([q, q + 9, q + 1]), np.column_stack([q + 1, q + 9, q + 10])])
+    sphere = icosphere(3, 30.0)
+    for v, f in ((sheet, faces), (sphere.vertices, sphere.faces)):
+        pts = _tie_points(v, f, rng)
+        d, _, face = SurfaceDistance(v, f).query(pts)
+        best, ref = _dense_faces(pts, v, f)
+        assert d == pytest.approx(best, abs=1e-9)
+        np.testing.assert_array_equal(face, ref)
+
+
+def test_real_lung_matches_dense_reference_and_its_ties(data_dir, rng):
+    # a real decimated lung (long slivers binned in every cell they meet, the rest once): distances
+    # and faces, ties included, equal the dense reference's, with no bound, a loose one and a tight one
+    image = read_image(require_path(data_dir, "itk-right-lung-two-volumes", "CT_3D_lung_fixed_mask.mha"))
+    v, f, _ = decimate(*(lambda s: (s.vertices, s.faces))(extract_surface(image).surface), 3000)
+    pts = _tie_points(v, f, rng)
+    best, ref = _dense_faces(pts, v, f)
+    sd = SurfaceDistance(v, f)
+    for bound in (None, best * 3.0 + 2.0, best):
+        d, closest, face = sd.query(pts, bound)
+        assert d == pytest.approx(best, abs=1e-9)
+        np.testing.assert_array_equal(face, ref)
+        assert np.linalg.norm(closest - pts, axis=1) == pytest.approx(d, abs=1e-9)
 
 
 def test_single_triangle_regions():

@@ -3,17 +3,23 @@
 A k-d tree to the nearest *vertex* is not a surface distance (LIBRARIES.md: off by up to 9.7 mm on
 a real lung). Here the distance from a point to a triangle surface is exact:
 
-1. the nearest vertex (k-d tree), or the caller's own bound, gives an upper bound ``r`` on the distance;
-2. a triangle closer than ``r`` has its bounding box within ``r`` of the point; each triangle is
-   binned once, in the cell of a uniform grid that holds its box's centre (a loose grid: a box
-   reaches at most the grid's overhang beyond its cell), so only the cells within ``r`` plus the
-   overhang hold candidates;
+1. each triangle is binned in a uniform grid (cell three times the median edge): once, in the cell
+   that holds its bounding box's centre (a loose grid), unless its box reaches more than a quarter
+   cell beyond that cell (the few long slivers of a decimated lung), then in every cell its box
+   meets; so a box reaches at most the grid's overhang (≤ a quarter cell) beyond a cell that holds it;
+2. a point's search visits its own cell, then the 26 around it, then the other cells within the best
+   distance found so far plus the overhang (a triangle nearer than that has its box there), skipping
+   a cell whose gap alone (from its index), or the union box of its triangles, is farther than the
+   best so far, and a triangle whose own box is. The first sweeps hold the nearest triangles of a
+   point near the surface, so the window shrinks early. The search starts from the caller's upper
+   bound ``r`` on the distance if given, else from the nearest triangle in those first 27 cells; a
+   point with none there (far from the surface) is searched again from its nearest vertex (k-d tree);
 3. the exact closest point on each candidate triangle (Ericson, *Real-Time Collision Detection*
-   5.1.5, written afresh here) in a numba kernel, parallel over the points; the smallest wins. Cells
-   whose triangles' union box, and triangles whose own box, lie farther than the best distance found
-   so far are skipped (they cannot hold a nearer point). Binning each triangle once halved the
-   kernel's time on the lattice of ``lungdeform bench dvf`` (a box checked once, not in each of the
-   2–3 cells it overlaps).
+   5.1.5, written afresh here) in a numba kernel, parallel over the points; the smallest wins.
+   Equally near triangles (a point nearest to an edge or a corner they share) are told apart by a
+   fixed rank, the order in which the earlier raster scan of a grid of twice the median edge met
+   them (the last one met won), so the face returned does not depend on the order of the visit or
+   on the grid (the fit builds on it: another tie rule moved copd1 left's fitted surface 0.02 mm).
 
 Symmetric surface distance between surfaces A and B: distances of A's sample points to B and of
 B's sample points to A, pooled. Statistics are *area-weighted* (each vertex carries a third of the
@@ -115,45 +121,86 @@ def _closest_on_triangle(p, a, b, c):
 
 
 @numba.njit(cache=True)
-def _grid_fill(vertices, faces, lo, h, dims):
-    """Bin each face once, in the cell of its bounding box's centre (a loose grid): ``(ptr (cells + 1,),
-    order (m,) face per slot, cell by cell, records (m, 15) per slot the face's bounding box (lo, hi)
-    and its corners a, b, c, content (cells, 6) the union of the cell's faces' boxes (empty: +inf, −inf),
-    overhang mm)``, overhang the farthest any face's box reaches beyond its cell (≥ 0)."""
+def _face_cells(vertices, faces, lo, h, dims):
+    """``(box (m, 6), cell (m,), reach (m,))``: each face's bounding box (lo, hi mm), the cell of the grid
+    ``(lo, h, dims)`` holding its centre and how far (mm, ≥ 0) the box reaches beyond that cell."""
     m = faces.shape[0]
-    n_cells = dims[0] * dims[1] * dims[2]
-    cell = np.empty(m, np.int64)
     box = np.empty((m, 6))
-    counts = np.zeros(n_cells + 1, np.int64)
+    cell = np.empty(m, np.int64)
+    reach = np.zeros(m)
     for f in range(m):
-        idx = np.empty(3, np.int64)
+        cell[f] = 0
         for k in range(3):
             a = vertices[faces[f, 0], k]
             b = vertices[faces[f, 1], k]
             c = vertices[faces[f, 2], k]
             box[f, k], box[f, 3 + k] = min(a, b, c), max(a, b, c)
-            idx[k] = min(max(int(((box[f, k] + box[f, 3 + k]) / 2 - lo[k]) / h), 0), dims[k] - 1)
-        cell[f] = (idx[0] * dims[1] + idx[1]) * dims[2] + idx[2]
-        counts[cell[f] + 1] += 1
+            i = min(max(int(((box[f, k] + box[f, 3 + k]) / 2 - lo[k]) / h), 0), dims[k] - 1)
+            reach[f] = max(reach[f], lo[k] + i * h - box[f, k], box[f, 3 + k] - (lo[k] + (i + 1) * h))
+            cell[f] = cell[f] * dims[k] + i
+    return box, cell, reach
+
+
+@numba.njit(cache=True, inline="always")
+def _cell_of(x, lo, h, n):
+    """The cell (``0 .. n − 1``, clipped; ``x`` may be infinite) of one axis of a grid that holds ``x`` mm."""
+    return int(min(max((x - lo) / h, 0.0), n - 1))
+
+
+@numba.njit(cache=True)
+def _grid_fill(vertices, faces, lo, h, dims, cap):
+    """Bin the faces in the grid ``(lo, h, dims)``: a face whose box reaches at most ``cap`` mm beyond
+    the cell of its centre in that cell only (a loose grid), a longer one in every cell its box meets
+    (so a few slivers do not widen every search). ``(ptr (cells + 1,), order (slots,) face per slot, cell
+    by cell, records (slots, 15) per slot the face's box (lo, hi) and its corners a, b, c, content
+    (cells, 6) the union of the cell's faces' boxes (empty: +inf, −inf), overhang mm)``, overhang the
+    farthest a once-binned face's box reaches beyond its cell (≥ 0)."""
+    m = faces.shape[0]
+    n_cells = dims[0] * dims[1] * dims[2]
+    box, cell, reach = _face_cells(vertices, faces, lo, h, dims)
+    counts = np.zeros(n_cells + 1, np.int64)
+    for f in range(m):
+        if reach[f] <= cap:
+            counts[cell[f] + 1] += 1
+            continue
+        a0, a1 = _cell_of(box[f, 0], lo[0], h, dims[0]), _cell_of(box[f, 3], lo[0], h, dims[0])
+        b0, b1 = _cell_of(box[f, 1], lo[1], h, dims[1]), _cell_of(box[f, 4], lo[1], h, dims[1])
+        c0, c1 = _cell_of(box[f, 2], lo[2], h, dims[2]), _cell_of(box[f, 5], lo[2], h, dims[2])
+        for a in range(a0, a1 + 1):
+            for b in range(b0, b1 + 1):
+                for c in range(c0, c1 + 1):
+                    counts[(a * dims[1] + b) * dims[2] + c + 1] += 1
     ptr = np.cumsum(counts)
     fill = ptr[:-1].copy()
-    order = np.empty(m, np.int64)
-    records = np.empty((m, 15))
+    order = np.empty(ptr[-1], np.int64)
+    records = np.empty((ptr[-1], 15))
     content = np.empty((n_cells, 6))
     content[:, :3], content[:, 3:] = np.inf, -np.inf
     overhang = 0.0
     for f in range(m):
-        c = cell[f]
-        slot = fill[c]
-        fill[c] += 1
-        order[slot] = f
-        ijk = (c // (dims[1] * dims[2]), (c // dims[2]) % dims[1], c % dims[2])
-        for k in range(3):
-            records[slot, k], records[slot, 3 + k] = box[f, k], box[f, 3 + k]
-            content[c, k], content[c, 3 + k] = min(content[c, k], box[f, k]), max(content[c, 3 + k], box[f, 3 + k])
-            overhang = max(overhang, lo[k] + ijk[k] * h - box[f, k], box[f, 3 + k] - (lo[k] + (ijk[k] + 1) * h))
-            for v in range(3):
-                records[slot, 6 + 3 * v + k] = vertices[faces[f, v], k]
+        a0, a1, b0, b1, c0, c1 = 0, 0, 0, 0, 0, 0
+        if reach[f] <= cap:
+            overhang = max(overhang, reach[f])
+            a0 = a1 = cell[f] // (dims[1] * dims[2])
+            b0 = b1 = (cell[f] // dims[2]) % dims[1]
+            c0 = c1 = cell[f] % dims[2]
+        else:
+            a0, a1 = _cell_of(box[f, 0], lo[0], h, dims[0]), _cell_of(box[f, 3], lo[0], h, dims[0])
+            b0, b1 = _cell_of(box[f, 1], lo[1], h, dims[1]), _cell_of(box[f, 4], lo[1], h, dims[1])
+            c0, c1 = _cell_of(box[f, 2], lo[2], h, dims[2]), _cell_of(box[f, 5], lo[2], h, dims[2])
+        for a in range(a0, a1 + 1):
+            for b in range(b0, b1 + 1):
+                for c in range(c0, c1 + 1):
+                    cc = (a * dims[1] + b) * dims[2] + c
+                    slot = fill[cc]
+                    fill[cc] += 1
+                    order[slot] = f
+                    for k in range(3):
+                        records[slot, k], records[slot, 3 + k] = box[f, k], box[f, 3 + k]
+                        content[cc, k] = min(content[cc, k], box[f, k])
+                        content[cc, 3 + k] = max(content[cc, 3 + k], box[f, 3 + k])
+                        for v in range(3):
+                            records[slot, 6 + 3 * v + k] = vertices[faces[f, v], k]
     return ptr, order, records, content, overhang
 
 
@@ -166,13 +213,19 @@ def _box_gap2(px, py, pz, box):
     return gx * gx + gy * gy + gz * gz
 
 
+@numba.njit(cache=True, inline="always")
+def _slab_gap2(x, lo, h, i, overhang):
+    """Squared distance (mm²) from ``x`` to cell ``i`` of one axis of a grid widened by ``overhang`` mm."""
+    g = max(lo + i * h - overhang - x, x - (lo + (i + 1) * h + overhang), 0.0)
+    return g * g
+
+
 @numba.njit(cache=True, parallel=True)
 def _closest_kernel(points, bound, grid):
     """``(distance, closest, face)`` of ``points : (n, 3)`` within ``bound : (n,)`` (upper bounds on
-    their distances) on the faces binned in ``grid = (lo, h, dims, ptr, order, records, content,
-    overhang)`` (:func:`_grid_fill`): the cells within the bound plus the overhang, those whose
-    faces' union box is within the best distance so far, and their faces whose own box is."""
-    lo, h, dims, ptr, order, rec, content, overhang = grid
+    their distances) on the faces binned in ``grid = (lo, h, dims, ptr, order, rank, records, content,
+    overhang)`` (:func:`_grid_fill`; rank: the tie-break order of each slot's face)."""
+    lo, h, dims, ptr, order, rank, rec, content, overhang = grid
     n = points.shape[0]
     dist2 = np.empty(n)
     closest = np.zeros((n, 3))
@@ -181,32 +234,47 @@ def _closest_kernel(points, bound, grid):
         px, py, pz = points[i, 0], points[i, 1], points[i, 2]
         r = bound[i]
         best = r * r * (1.0 + 1e-12) + 1e-12
-        reach = r + overhang
-        i0 = min(max(int((px - reach - lo[0]) / h), 0), dims[0] - 1)
-        i1 = min(max(int((px + reach - lo[0]) / h), 0), dims[0] - 1)
-        j0 = min(max(int((py - reach - lo[1]) / h), 0), dims[1] - 1)
-        j1 = min(max(int((py + reach - lo[1]) / h), 0), dims[1] - 1)
-        k0 = min(max(int((pz - reach - lo[2]) / h), 0), dims[2] - 1)
-        k1 = min(max(int((pz + reach - lo[2]) / h), 0), dims[2] - 1)
-        for a in range(i0, i1 + 1):
-            for b in range(j0, j1 + 1):
-                for c in range(k0, k1 + 1):
-                    cell = (a * dims[1] + b) * dims[2] + c
-                    if ptr[cell] == ptr[cell + 1] or _box_gap2(px, py, pz, content[cell]) > best:
-                        continue  # no face, or none nearer than the best so far
-                    for m in range(ptr[cell], ptr[cell + 1]):
-                        if _box_gap2(px, py, pz, rec[m]) > best:  # its bounding box is farther
-                            continue
-                        qx, qy, qz = _closest_on_triangle((px, py, pz), (rec[m, 6], rec[m, 7], rec[m, 8]),
-                                                          (rec[m, 9], rec[m, 10], rec[m, 11]),
-                                                          (rec[m, 12], rec[m, 13], rec[m, 14]))
-                        d = (px - qx) ** 2 + (py - qy) ** 2 + (pz - qz) ** 2
-                        if d <= best:
-                            best = d
-                            closest[i, 0] = qx
-                            closest[i, 1] = qy
-                            closest[i, 2] = qz
-                            face[i] = order[m]
+        wrank = -1
+        ci, cj, ck = _cell_of(px, lo[0], h, dims[0]), _cell_of(py, lo[1], h, dims[1]), _cell_of(pz, lo[2], h, dims[2])
+        for sweep in range(3):  # the point's cell, its neighbours, then the rest of the window
+            if best == np.inf and sweep == 2:
+                break  # no bound and no face near: left to the caller (a miss)
+            reach = np.sqrt(best) + overhang
+            i0, i1 = _cell_of(px - reach, lo[0], h, dims[0]), _cell_of(px + reach, lo[0], h, dims[0])
+            j0, j1 = _cell_of(py - reach, lo[1], h, dims[1]), _cell_of(py + reach, lo[1], h, dims[1])
+            k0, k1 = _cell_of(pz - reach, lo[2], h, dims[2]), _cell_of(pz + reach, lo[2], h, dims[2])
+            if sweep < 2:
+                i0, i1, j0, j1 = max(i0, ci - sweep), min(i1, ci + sweep), max(j0, cj - sweep), min(j1, cj + sweep)
+                k0, k1 = max(k0, ck - sweep), min(k1, ck + sweep)
+            for a in range(i0, i1 + 1):
+                ga = _slab_gap2(px, lo[0], h, a, overhang)
+                if ga > best:
+                    continue
+                for b in range(j0, j1 + 1):
+                    gb = ga + _slab_gap2(py, lo[1], h, b, overhang)
+                    if gb > best:
+                        continue
+                    inner = sweep > 0 and abs(a - ci) < sweep and abs(b - cj) < sweep
+                    for c in range(k0, k1 + 1):
+                        if inner and abs(c - ck) < sweep:
+                            continue  # seen in an earlier sweep
+                        cell = (a * dims[1] + b) * dims[2] + c
+                        if ptr[cell] == ptr[cell + 1] or _box_gap2(px, py, pz, content[cell]) > best:
+                            continue  # no face, or none nearer than the best so far
+                        for m in range(ptr[cell], ptr[cell + 1]):
+                            if _box_gap2(px, py, pz, rec[m]) > best:  # its bounding box is farther
+                                continue
+                            qx, qy, qz = _closest_on_triangle((px, py, pz), (rec[m, 6], rec[m, 7], rec[m, 8]),
+                                                              (rec[m, 9], rec[m, 10], rec[m, 11]),
+                                                              (rec[m, 12], rec[m, 13], rec[m, 14]))
+                            d = (px - qx) ** 2 + (py - qy) ** 2 + (pz - qz) ** 2
+                            if d < best or (d == best and rank[m] > wrank):
+                                best = d
+                                wrank = rank[m]
+                                closest[i, 0] = qx
+                                closest[i, 1] = qy
+                                closest[i, 2] = qz
+                                face[i] = order[m]
         dist2[i] = best
     return np.sqrt(dist2), closest, face
 
@@ -230,6 +298,24 @@ def _face_bound(points, vertices, faces, hint):
     return out
 
 
+@numba.njit(cache=True)
+def _tie_rank(vertices, faces, lo, h, dims):
+    """``(m,) int``: each face's rank among equally near faces (the higher wins): its position when the
+    faces are sorted by the cell of their box centre in the grid ``(lo, h, dims)``, then by index, the
+    order in which the raster-scan kernel before the shell search met them (the last met, nearest face
+    won), so that ties (a point nearest to an edge or corner shared by faces) resolve as they did."""
+    cell = _face_cells(vertices, faces, lo, h, dims)[1]
+    start = np.zeros(dims[0] * dims[1] * dims[2] + 1, np.int64)
+    for f in range(len(cell)):
+        start[cell[f] + 1] += 1
+    start = np.cumsum(start)
+    rank = np.empty(len(cell), np.int64)
+    for f in range(len(cell)):
+        rank[f] = start[cell[f]]
+        start[cell[f]] += 1
+    return rank
+
+
 #: Fewest query points for which the nearest-vertex bound is found with every core (scipy's threads).
 THREADED_QUERY = 50_000
 
@@ -237,9 +323,10 @@ THREADED_QUERY = 50_000
 class SurfaceDistance:
     """Exact distances from points to one triangle surface; build once, query many times.
 
-    Triangles are binned once, by the centres of their bounding boxes, into a uniform grid (cell about
-    twice the median edge); a query scans the cells within its nearest-vertex distance (an upper bound
-    on the true distance) plus the farthest a box overhangs its cell, so no closer triangle can be missed.
+    Triangles are binned by the centres of their bounding boxes (the long ones in every cell they
+    meet) into a uniform grid (cell three times the median edge); a query scans the cells within an
+    upper bound on its distance plus the farthest a box overhangs its cell, nearest cells first, so no
+    closer triangle can be missed (module docstring).
 
     Parameters
     ----------
@@ -249,6 +336,12 @@ class SurfaceDistance:
     """
 
     MAX_CELLS = 2_000_000
+    #: A face whose box reaches farther than this many cells beyond the cell of its centre is binned in
+    #: every cell it meets (a decimated lung has a few long slivers: 1 % of its faces reach 0.6 cell).
+    CAP = 0.25
+    #: Grid cell side in median edges: 3 cost the least kernel CPU on five of copd1 left's fit queries
+    #: (2: +21 %, 4: +32 %; a finer grid visits more empty cells, a coarser one tests more boxes).
+    CELL = 3.0
 
     def __init__(self, vertices, faces):
         self.vertices = as_vertices(vertices)
@@ -263,10 +356,16 @@ class SurfaceDistance:
         edge = np.linalg.norm(e - np.roll(e, 1, axis=1), axis=2)
         lo = self.vertices[used].min(axis=0) - 1e-6
         span = self.vertices[used].max(axis=0) + 1e-6 - lo
-        h = max(2.0 * float(np.median(edge)), 1e-6)
-        h = max(h, float(np.prod(span) / self.MAX_CELLS) ** (1.0 / 3.0))
-        dims = np.maximum(np.ceil(span / h).astype(np.int64), 1)
-        self._grid = (lo, h, dims) + _grid_fill(self.vertices, self.faces, lo, h, dims)
+        rank = _tie_rank(self.vertices, self.faces, lo, *self._cells(span, 2.0 * float(np.median(edge))))
+        h, dims = self._cells(span, self.CELL * float(np.median(edge)))
+        ptr, order, records, content, overhang = _grid_fill(self.vertices, self.faces, lo, h, dims, self.CAP * h)
+        rank = rank[order]
+        self._grid = (lo, h, dims, ptr, order, rank, records, content, overhang)
+
+    def _cells(self, span: np.ndarray, h: float) -> tuple[float, np.ndarray]:
+        """``(h mm, dims (3,) int)``: a grid of cells of side ``h`` (grown to at most MAX_CELLS cells) over ``span``."""
+        h = max(h, 1e-6, float(np.prod(span) / self.MAX_CELLS) ** (1.0 / 3.0))
+        return h, np.maximum(np.ceil(span / h).astype(np.int64), 1)
 
     @cached_property
     def _tree(self) -> cKDTree:
@@ -292,22 +391,21 @@ class SurfaceDistance:
 
         ``bound : (k,) float`` mm, optional: the caller's upper bound on each point's distance (for
         example the distance to a node known to lie on the other side of the surface), used instead
-        of the nearest vertex's; a point with no triangle within its bound (a bound too small, or not
-        finite) is searched again from its nearest vertex, so the answer is exact either way."""
+        of the nearest triangle in the point's cell and the 26 around it; a point with no triangle
+        within its bound (a bound too small, or not finite), or none in those cells, is searched again
+        from its nearest vertex, so the answer is exact either way."""
         pts = as_vertices(points, "points")
         if len(pts) == 0:
             return np.zeros(0), np.zeros((0, 3)), np.zeros(0, np.int64)
         if not np.all(np.isfinite(pts)):
             raise InputError("points contain NaN or infinity")
         if bound is None:
-            return self._search(pts, self._vertex_bound(pts))
-        b = np.asarray(bound, dtype=np.float64).reshape(-1)
-        if len(b) != len(pts):
-            raise InputError(f"bound: need one upper bound (mm) per point ({len(pts)}), got {len(b)}")
-        bad = ~(np.isfinite(b) & (b >= 0.0))
-        if bad.any():
-            b = b.copy()
-            b[bad] = self._vertex_bound(pts[bad])
+            b = np.full(len(pts), np.inf)
+        else:
+            b = np.asarray(bound, dtype=np.float64).reshape(-1)
+            if len(b) != len(pts):
+                raise InputError(f"bound: need one upper bound (mm) per point ({len(pts)}), got {len(b)}")
+            b = np.where(np.isfinite(b) & (b >= 0.0), b, np.inf)
         dist, closest, face = self._search(pts, b)
         miss = np.flatnonzero(face < 0)
         if len(miss):
