@@ -134,7 +134,18 @@ def test_run_copd_structure_and_resume(tmp_path):
     assert again["refitted"] == [] and again["cases"] == res["cases"]
     assert (out / "copd1" / "left" / "model.npz").stat().st_mtime_ns == stamp
     other = FitConfig(max_evaluations=9, align="joint", folds=3, command=C.COMMAND)
-    assert C.run_copd(data, out, other, [1])["refitted"] == ["copd1/left", "copd1/right"]
+    # the changed budget re-fits both lungs, here at once in two worker processes: the masks split
+    # once in this process, the case's wall time is the split and the slower lung (less its
+    # baselines), not more than the sum a serial run reports
+    third = C.run_copd(data, out, other, [1], workers=2)
+    assert third["refitted"] == ["copd1/left", "copd1/right"]
+    timing, rows = third["timing"]["copd1"], [third["cases"]["copd1"][s] for s in ("left", "right")]
+    slower = max(r["seconds"] - r["baseline_seconds"] for r in rows)
+    assert slower < timing["model_fit_wall_seconds"] < timing["model_fit_seconds"]
+    assert timing["model_fit_seconds"] == pytest.approx(
+        sum(r["seconds"] - r["baseline_seconds"] for r in rows) + timing["model_fit_wall_seconds"] - slower)
+    assert all(np.isfinite(r["model"]["surface_mean_mm"]) for r in rows)
+    assert "both lungs at once, wall" in (out / "report.html").read_text(encoding="utf-8")
 
 
 def test_settings_digest_follows_the_cpd_baselines_settings(tmp_path, monkeypatch):
