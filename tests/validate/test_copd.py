@@ -261,6 +261,28 @@ def test_cohort_manifest_reads_back_as_the_cases(tmp_path):
         assert job.landmarks == [data / f"copd{n}_exp_landmarks.txt", data / f"copd{n}_insp_landmarks.txt"]
 
 
+def test_an_interrupted_case_fitted_at_once_leaves_no_case_folder(tmp_path):
+    # why: with --workers 2 each worker made the case folder for its lung's hidden folder; stopped
+    # together, the one that made it could not remove it (the other's hidden folder was still in it)
+    # and an empty copd1/ was left. The parent makes it now, and removes it when the workers stop.
+    (tmp_path / "data").mkdir()
+    data = phantom_case(tmp_path / "data", n=1)
+    out = tmp_path / "out"
+
+    class Stopped:
+        count = 2
+
+        def map(self, fn, tasks):
+            for _files, _side, folder, *_ in tasks:
+                assert folder.parent.is_dir()  # made before the workers start
+            raise KeyboardInterrupt
+
+    config = FitConfig(max_evaluations=2, align="joint", folds=3, command=C.COMMAND)
+    with pytest.raises(KeyboardInterrupt):
+        C.fit_case_lungs("copd1", C.find_cases(data)["copd1"], out, config, Stopped())
+    assert not (out / "copd1").exists()
+
+
 def test_an_interrupted_lung_fit_leaves_no_folder(tmp_path, monkeypatch):
     # why: a fit stopped (SIGTERM, which the CLI turns into Ctrl-C) after run_fit wrote its files but
     # before the settings digest was added left a lung folder that looked finished; the lung is now

@@ -41,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lungdeform.atomic import atomic_dir, write_json, write_text
+from lungdeform.atomic import atomic_dir, made_folder, write_json, write_text
 from lungdeform.errors import InputError, ReadError
 from lungdeform.evaluate import baselines as B
 from lungdeform.evaluate.pipeline import run_fit
@@ -364,7 +364,8 @@ def fit_case_lungs(name: str, files, out: Path, config: FitConfig, workers: Lung
     rows.rows, rows.seconds = masks.rows, masks.seconds  # the workers need the rows, not the splits twice
     say(f"{name}: fitting the {' and '.join(todo)} lung{'s' if len(todo) > 1 else ''} in "
         f"{min(len(todo), workers.count)} worker process{'es' if min(len(todo), workers.count) > 1 else ''}")
-    finished = workers.map(_lung_task, [(files, side, folders[side], config, rows, splits) for side in todo])
+    with made_folder(out / name):  # made here, not by the first worker: an interrupted case leaves none
+        finished = workers.map(_lung_task, [(files, side, folders[side], config, rows, splits) for side in todo])
     for side, task in zip(todo, finished):
         lungs[side] = task.value
         say(f"{name} {side}: done in {task.seconds:.1f} s")
