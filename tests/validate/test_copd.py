@@ -145,6 +145,7 @@ def test_run_copd_structure_and_resume(tmp_path):
     assert timing["model_fit_seconds"] == pytest.approx(
         sum(r["seconds"] - r["baseline_seconds"] for r in rows) + timing["model_fit_wall_seconds"] - slower)
     assert all(np.isfinite(r["model"]["surface_mean_mm"]) for r in rows)
+    assert third["summary"]["model_fit_wall_seconds"] == timing["model_fit_wall_seconds"]
     assert "both lungs at once, wall" in (out / "report.html").read_text(encoding="utf-8")
 
 

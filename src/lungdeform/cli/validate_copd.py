@@ -81,6 +81,9 @@ def register(apps) -> None:
             with made_folder(out) as folder:  # a refused run leaves no folder; a finished lung is kept (resumed)
                 result = run_copd(data, folder, config, wanted, progress=say, workers=workers)
         print_table(result)
+        wall = result["summary"].get("model_fit_wall_seconds")
+        if wall is not None:
+            typer.echo(f"the model's fit of a case, both lungs at once: {wall:.1f} s wall (median over the cases)")
         done = result["refitted"]
         typer.echo(f"fitted {len(done)} lung(s) this run" + (f" ({', '.join(done)})" if done else " (all resumed)"))
         typer.echo(f"wrote {folder / 'metrics.json'}, {folder / 'report.html'}")
