@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lungdeform.atomic import write_json
 from lungdeform.evaluate import baselines as B
 from lungdeform.evaluate.inputs import read_inputs
 from lungdeform.evaluate.placement import place_targets
@@ -116,7 +117,7 @@ def main(argv=None) -> int:
                 continue
             print(f"{key}: {todo} CPD runs", file=sys.stderr, flush=True)
             lungs[key] = lung_scores(files, side, splits, lungs.get(key))
-            args.out.write_text(json.dumps({"grid": grid, "lungs": lungs}, indent=1))
+            write_json(args.out, {"grid": grid, "lungs": lungs}, indent=1)  # atomic: a killed run keeps the last lung
     default = setting_name(B.CpdSettings().beta, B.CpdSettings().w)
     med = {s: float(np.median([r[s]["landmark_mean_mm"] for r in lungs.values()])) for s in next(iter(lungs.values()))}
     print(f"{len(lungs)} lungs; median landmark error (mm) by beta,w: "
@@ -126,8 +127,8 @@ def main(argv=None) -> int:
     if held:
         print(f"leave one subject out: median {np.median(held):.2f} mm (default {default}: {med[default]:.2f}); "
               f"settings picked: {sorted({c['setting'] for c in loso.values()})}")
-    args.out.write_text(json.dumps({"grid": grid, "lungs": lungs, "median_by_setting": med,
-                                    "leave_one_subject_out": loso}, indent=1))
+    write_json(args.out, {"grid": grid, "lungs": lungs, "median_by_setting": med, "leave_one_subject_out": loso},
+               indent=1)
     return 0
 
 

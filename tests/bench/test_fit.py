@@ -50,6 +50,11 @@ def test_bench_fit_records_both_sides(tmp_path):
                        direction_degree=0)
     r = F.bench_fit(case, config, F.BenchSettings(1, 2, F.ElastixSchedule(1, 20)))
     assert r["case"] == "phantom" and r["threads"] == 2 and r["itk_threader"].lower() == "pool"
+    # with two threads the model's lungs were fitted at once in two worker processes: the same fits
+    # as one after the other in this process (the fit is deterministic)
+    assert r["model_workers"] == 2
+    _, _, serial = F.model_fit(case, config, tmp_path / "serial")
+    assert r["model_surface_mean_mm"] == serial
     assert len(r["model_seconds"]) == len(r["elastix_seconds"]) == 1
     assert r["ratio"] == pytest.approx(r["model_median_s"] / r["elastix_median_s"])
     # CPU seconds beside the wall ones: positive, one per repeat, their medians' ratio
@@ -73,7 +78,7 @@ def test_bench_fit_command_runs_validate_copds_fit(tmp_path, monkeypatch, capsys
 
     def fake(case, config, settings, progress=None):
         seen.update(case=case, config=config, settings=settings)
-        return {"case": case.name, "repeats": 1, "threads": 2, "itk_threader": "Pool", "model_seconds": [3.0],
+        return {"case": case.name, "repeats": 1, "threads": 2, "itk_threader": "Pool", "model_workers": 2, "model_seconds": [3.0],
                 "elastix_seconds": [60.0], "model_median_s": 3.0, "elastix_median_s": 60.0, "ratio": 0.05,
                 "model_surface_mean_mm": {"left": 1.0, "right": 0.9}, "elastix_surface_mean_mm": {"left": 1.2, "right": 1.1},
                 "model_cpu_median_s": 2.5, "elastix_cpu_median_s": 100.0, "cpu_ratio": 0.025, "blas_threads": "2",
@@ -92,9 +97,13 @@ def test_bench_fit_command_runs_validate_copds_fit(tmp_path, monkeypatch, capsys
                  "--evaluations", "40", "--json", str(out)]) == 0
     assert seen["case"].name == "copd3" and seen["case"].exp_mask == data / "copd3_exp_mask.nii.gz"
     assert seen["config"] == copd_config(40) and seen["settings"].schedule == F.ElastixSchedule()
+    assert seen["settings"].at_once and seen["settings"].workers == 2
     assert json.loads(out.read_text())["results"][0]["ratio"] == 0.05
     printed = capsys.readouterr().out
     assert "ratio model / elastix: 0.050" in printed and "ratio 0.025" in printed
+    assert "the model's lungs at once in 2 worker processes" in printed
+    main(["bench", "fit", "--data", str(data), "--case", "3", "--repeats", "1", "--threads", "2", "--one-lung-at-a-time"])
+    assert not seen["settings"].at_once and seen["settings"].workers == 0
 
 
 def test_bench_fit_refuses_a_bad_case(tmp_path, capsys):

@@ -134,7 +134,19 @@ def test_run_copd_structure_and_resume(tmp_path):
     assert again["refitted"] == [] and again["cases"] == res["cases"]
     assert (out / "copd1" / "left" / "model.npz").stat().st_mtime_ns == stamp
     other = FitConfig(max_evaluations=9, align="joint", folds=3, command=C.COMMAND)
-    assert C.run_copd(data, out, other, [1])["refitted"] == ["copd1/left", "copd1/right"]
+    # the changed budget re-fits both lungs, here at once in two worker processes: the masks split
+    # once in this process, the case's wall time is the split and the slower lung (less its
+    # baselines), not more than the sum a serial run reports
+    third = C.run_copd(data, out, other, [1], workers=2)
+    assert third["refitted"] == ["copd1/left", "copd1/right"]
+    timing, rows = third["timing"]["copd1"], [third["cases"]["copd1"][s] for s in ("left", "right")]
+    slower = max(r["seconds"] - r["baseline_seconds"] for r in rows)
+    assert slower < timing["model_fit_wall_seconds"] < timing["model_fit_seconds"]
+    assert timing["model_fit_seconds"] == pytest.approx(
+        sum(r["seconds"] - r["baseline_seconds"] for r in rows) + timing["model_fit_wall_seconds"] - slower)
+    assert all(np.isfinite(r["model"]["surface_mean_mm"]) for r in rows)
+    assert third["summary"]["model_fit_wall_seconds"] == timing["model_fit_wall_seconds"]
+    assert "both lungs at once, wall" in (out / "report.html").read_text(encoding="utf-8")
 
 
 def test_settings_digest_follows_the_cpd_baselines_settings(tmp_path, monkeypatch):
@@ -248,6 +260,28 @@ def test_cohort_manifest_reads_back_as_the_cases(tmp_path):
         assert job.ordered_by == "row" and job.volumes_ml is None
         assert job.inputs == [data / f"copd{n}_exp_mask.nii.gz", data / f"copd{n}_insp_mask.nii.gz"]
         assert job.landmarks == [data / f"copd{n}_exp_landmarks.txt", data / f"copd{n}_insp_landmarks.txt"]
+
+
+def test_an_interrupted_case_fitted_at_once_leaves_no_case_folder(tmp_path):
+    # why: with --workers 2 each worker made the case folder for its lung's hidden folder; stopped
+    # together, the one that made it could not remove it (the other's hidden folder was still in it)
+    # and an empty copd1/ was left. The parent makes it now, and removes it when the workers stop.
+    (tmp_path / "data").mkdir()
+    data = phantom_case(tmp_path / "data", n=1)
+    out = tmp_path / "out"
+
+    class Stopped:
+        count = 2
+
+        def map(self, fn, tasks):
+            for _files, _side, folder, *_ in tasks:
+                assert folder.parent.is_dir()  # made before the workers start
+            raise KeyboardInterrupt
+
+    config = FitConfig(max_evaluations=2, align="joint", folds=3, command=C.COMMAND)
+    with pytest.raises(KeyboardInterrupt):
+        C.fit_case_lungs("copd1", C.find_cases(data)["copd1"], out, config, Stopped())
+    assert not (out / "copd1").exists()
 
 
 def test_an_interrupted_lung_fit_leaves_no_folder(tmp_path, monkeypatch):

@@ -35,6 +35,7 @@ import os
 import tempfile
 import time
 import warnings
+from contextlib import nullcontext
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -45,13 +46,14 @@ import SimpleITK as sitk
 from lungdeform import blas
 from lungdeform.errors import InputError
 from lungdeform.evaluate.pipeline import run_fit
+from lungdeform.evaluate.workers import LungWorkers
 from lungdeform.fit.config import FitConfig, FitInputs
 from lungdeform.geometry.distance import symmetric_distance
 from lungdeform.io.grid import Image
 from lungdeform.io.image import read_image
 from lungdeform.io.landmarks import write_elastix_points
 from lungdeform.io.mask import mask_to_surface
-from lungdeform.segment.split import SIDES, SplitCache, require_split
+from lungdeform.segment.split import SIDES, SplitCache, find_lungs, require_split
 
 #: Gaussian (mm, standard deviation) that smooths both masks before elastix registers them.
 SMOOTH_SIGMA_MM = 1.5
@@ -225,32 +227,64 @@ def warped_surface_distance(warped: np.ndarray, reference: Path) -> dict[str, fl
     return out
 
 
-def model_fit(case: CaseFiles, config: FitConfig, work: Path) -> tuple[float, float, dict[str, float]]:
+def model_fit(case: CaseFiles, config: FitConfig, work: Path,
+              workers: LungWorkers | None = None) -> tuple[float, float, dict[str, float]]:
     """``(seconds, cpu_seconds, {side: model surface mean distance mm})``: both lungs of ``case``
     fitted with ``config`` into ``work/<side>`` (one :class:`~lungdeform.segment.split.SplitCache` for
-    the two), timed as ``validate copd``'s ``model_fit_seconds`` (module docstring), wall and the
-    process's CPU, the baselines' left out of each."""
+    the two), timed as ``validate copd``'s ``model_fit_seconds`` (module docstring), wall and CPU, the
+    baselines' left out of each. With ``workers`` (:class:`~lungdeform.evaluate.workers.LungWorkers`)
+    the two lungs are fitted at once, as ``validate copd --workers 2`` fits them: the masks split here
+    first, then the wall time is the split and the slower lung, the CPU time this process's and the
+    workers' (``model_fit_wall_seconds``, :func:`lungdeform.validate.copd.case_seconds`)."""
     splits = SplitCache()
+    if workers is not None:
+        return _model_fit_at_once(case, config, work, workers, splits)
     seconds, cpu, surface = 0.0, 0.0, {}
     for side in SIDES:
         t0, c0 = time.perf_counter(), time.process_time()
-        inputs = FitInputs([case.exp_mask, case.insp_mask], side, landmarks=[case.exp_landmarks, case.insp_landmarks],
-                           splits=splits)
-        metrics = run_fit(inputs, work / side, config)
+        metrics = _fit_side(case, side, config, work / side, splits)
         seconds += time.perf_counter() - t0 - float(metrics["baseline_seconds"])
         cpu += time.process_time() - c0 - float(metrics["baseline_cpu_seconds"])
         surface[side] = float(metrics["model"]["surface_mean_mm"])
     return seconds, cpu, surface
 
 
+def _model_fit_at_once(case: CaseFiles, config: FitConfig, work: Path, workers: LungWorkers,
+                       splits: SplitCache) -> tuple[float, float, dict[str, float]]:
+    """:func:`model_fit` with both lungs fitted at once by ``workers``."""
+    t0, c0 = time.perf_counter(), time.process_time()
+    for mask in (case.exp_mask, case.insp_mask):
+        find_lungs(read_image(mask), cache=splits)
+    split_seconds = time.perf_counter() - t0
+    done = workers.map(_fit_side, [(case, side, config, work / side, splits) for side in SIDES])
+    seconds = split_seconds + max(d.seconds - float(d.value["baseline_seconds"]) for d in done)
+    cpu = time.process_time() - c0 + sum(d.cpu_seconds - float(d.value["baseline_cpu_seconds"]) for d in done)
+    return seconds, cpu, {side: float(d.value["model"]["surface_mean_mm"]) for side, d in zip(SIDES, done)}
+
+
+def _fit_side(case: CaseFiles, side: str, config: FitConfig, folder: Path, splits: SplitCache) -> dict:
+    """One lung of ``case`` fitted into ``folder`` (:func:`lungdeform.evaluate.pipeline.run_fit`): its metrics."""
+    inputs = FitInputs([case.exp_mask, case.insp_mask], side, landmarks=[case.exp_landmarks, case.insp_landmarks],
+                       splits=splits)
+    return run_fit(inputs, folder, config)
+
+
 @dataclass(frozen=True)
 class BenchSettings:
     """``repeats`` timed runs of each (≥ 1) after one untimed warm-up on a phantom, ``threads`` for
-    both, elastix's ``schedule`` (:class:`ElastixSchedule`)."""
+    both, elastix's ``schedule`` (:class:`ElastixSchedule`); ``at_once``: with two threads or more,
+    the model's two lungs fitted at once in two worker processes of one thread each
+    (:func:`model_fit`), as ``validate copd --workers 2`` does; False: one after the other."""
 
     repeats: int = 3
     threads: int = os.cpu_count() or 1
     schedule: ElastixSchedule = ElastixSchedule()
+    at_once: bool = True
+
+    @property
+    def workers(self) -> int:
+        """Worker processes of the model's fit: 2 when ``at_once`` with 2 threads or more, else 0 (none: in this process)."""
+        return 2 if self.at_once and self.threads >= 2 else 0
 
 
 def bench_fit(case: CaseFiles, config: FitConfig, settings: BenchSettings = BenchSettings(), *,
@@ -265,11 +299,13 @@ def bench_fit(case: CaseFiles, config: FitConfig, settings: BenchSettings = Benc
     threader = set_threads(settings.threads)
     limit, blas = blas_threads(settings.threads)
     load = [os.getloadavg()[0]]
-    with limit, tempfile.TemporaryDirectory(prefix="lungdeform-bench-fit-") as tmp:
-        runs = _timed_runs(case, config, settings, Path(tmp), progress or (lambda _m: None))
+    with limit, tempfile.TemporaryDirectory(prefix="lungdeform-bench-fit-") as tmp, \
+            LungWorkers(settings.workers) if settings.workers else nullcontext() as workers:
+        runs = _timed_runs(case, config, settings, Path(tmp), progress or (lambda _m: None), workers)
     load.append(os.getloadavg()[0])
     med = {k: float(np.median(runs[k])) for k in ("model", "elastix", "model_cpu", "elastix_cpu")}
     return {"case": case.name, "repeats": settings.repeats, "threads": settings.threads, "itk_threader": threader,
+            "model_workers": settings.workers,
             "blas_threads": blas, "model_seconds": runs["model"], "elastix_seconds": runs["elastix"],
             "model_median_s": med["model"], "elastix_median_s": med["elastix"], "ratio": med["model"] / med["elastix"],
             "model_cpu_seconds": runs["model_cpu"], "elastix_cpu_seconds": runs["elastix_cpu"],
@@ -280,17 +316,19 @@ def bench_fit(case: CaseFiles, config: FitConfig, settings: BenchSettings = Benc
             "load_average_1min": {"start": load[0], "end": load[1]}}
 
 
-def _timed_runs(case: CaseFiles, config: FitConfig, settings: BenchSettings, work: Path, say) -> dict:
+def _timed_runs(case: CaseFiles, config: FitConfig, settings: BenchSettings, work: Path, say,
+                workers: LungWorkers | None) -> dict:
     """The warm-up on a phantom, then ``settings.repeats`` runs of each side: per side the wall and
     CPU seconds of every repeat, and what each achieved in the last."""
-    say("warm-up on a phantom (untimed)")
+    say("warm-up on a phantom (untimed)" + (f"; the model in {workers.count} worker processes" if workers else ""))
     phantom = write_phantom_case(work / "phantom")
-    model_fit(phantom, replace(config, baselines=False, max_evaluations=min(config.max_evaluations, 20)), work / "warm")
+    model_fit(phantom, replace(config, baselines=False, max_evaluations=min(config.max_evaluations, 20)), work / "warm",
+              workers)
     elastix_register(phantom.insp_mask, phantom.exp_mask, settings.threads, ElastixSchedule(1, 5))
     runs: dict = {"model": [], "elastix": [], "model_cpu": [], "elastix_cpu": [], "surface": {}, "ssd": {}}
     for k in range(settings.repeats):
         say(f"repeat {k + 1}/{settings.repeats}: the model's fit of both lungs")
-        seconds, cpu, runs["surface"] = model_fit(case, config, work / f"fit{k}")
+        seconds, cpu, runs["surface"] = model_fit(case, config, work / f"fit{k}", workers)
         runs["model"].append(seconds)
         runs["model_cpu"].append(cpu)
         say(f"repeat {k + 1}/{settings.repeats}: elastix Par0011 (affine, then B-spline)")

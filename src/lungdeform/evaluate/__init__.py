@@ -8,7 +8,8 @@ masks, CTs through :mod:`lungdeform.segment`, 4-D CT phases, landmarks),
 :mod:`~lungdeform.evaluate.baselines` (the comparison methods, calibrated mask-only maps, and the one
 set of metrics every method is measured with), :mod:`~lungdeform.evaluate.scoring` (every method
 measured on the targets, crop faces left out), :mod:`~lungdeform.evaluate.heldout` (what landmarks
-give, held out), :mod:`~lungdeform.evaluate.crossval` (the k-fold protocol of the landmark-informed
+give, held out), :mod:`~lungdeform.evaluate.workers` (worker processes fitting a subject's lungs at once),
+:mod:`~lungdeform.evaluate.crossval` (the k-fold protocol of the landmark-informed
 fit), :mod:`~lungdeform.evaluate.folds` (seeded landmark folds; the held-out choice of the landmark
 correction's smoothing) and :mod:`~lungdeform.evaluate.report` (the HTML report).
 

@@ -35,15 +35,17 @@ import html
 import json
 import re
 import time
+from contextlib import nullcontext
 from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 
-from lungdeform.atomic import atomic_dir, write_json, write_text
+from lungdeform.atomic import atomic_dir, made_folder, write_json, write_text
 from lungdeform.errors import InputError, ReadError
 from lungdeform.evaluate import baselines as B
 from lungdeform.evaluate.pipeline import run_fit
+from lungdeform.evaluate.workers import LungWorkers
 from lungdeform.fit import registration
 from lungdeform.fit.config import FitConfig, FitInputs
 from lungdeform.interior.motion_prior import RIDGE, PriorSample, learn_motion_prior, save_prior, taper_at
@@ -53,7 +55,7 @@ from lungdeform.io.modelfile import load_model
 from lungdeform.plot.figure import png_bytes
 from lungdeform.plot.statistics import grouped_bars
 from lungdeform.progress import Progress, silent
-from lungdeform.segment.split import SIDES, SplitCache, landmarks_of_side, require_split
+from lungdeform.segment.split import SIDES, SplitCache, find_lungs, landmarks_of_side, require_split
 
 from . import subjects
 
@@ -251,21 +253,29 @@ def lung_row(metrics: dict) -> dict:
     return row
 
 
-def case_seconds(case: dict) -> dict:
+def case_seconds(case: dict, split_seconds: float | None = None) -> dict:
     """A case's times (s): ``fit_seconds``, the sum of its lungs' fits (the whole pipeline, from
     reading the inputs to writing model.npz, metrics.json and report.html: :func:`run_lung`'s
     ``seconds``), ``model_fit_seconds``, the same less the pipeline's baselines and landmark-informed
     references (``baseline_seconds``, timed apart; so the writing of the outputs is included), and
-    ``mask_baselines_seconds``, its mask-only baselines (both lungs, once); None when not recorded."""
+    ``mask_baselines_seconds``, its mask-only baselines (both lungs, once); None when not recorded.
+    With ``split_seconds`` (the lungs fitted at once after the masks were split, :func:`fit_case_lungs`)
+    the sums include the split, and ``model_fit_wall_seconds`` is the wall time of the model's fit of
+    the case: the split, then the slower lung (less its baselines)."""
     masks = [r.get("mask_baselines_seconds") for r in case.values() if r.get("mask_baselines_seconds") is not None]
     model = [None if r.get("baseline_seconds") is None else r["seconds"] - r["baseline_seconds"] for r in case.values()]
-    return {"fit_seconds": float(sum(r["seconds"] for r in case.values())),
-            "model_fit_seconds": float(sum(model)) if model and None not in model else None,
-            "mask_baselines_seconds": float(max(masks)) if masks else None}
+    split = split_seconds or 0.0
+    out = {"fit_seconds": float(sum(r["seconds"] for r in case.values())) + split,
+           "model_fit_seconds": float(sum(model)) + split if model and None not in model else None,
+           "mask_baselines_seconds": float(max(masks)) if masks else None}
+    if split_seconds is not None:
+        out["model_fit_wall_seconds"] = split + max(model) if model and None not in model else None
+    return out
 
 
-def summarise(cases: dict) -> dict:
-    """Medians over the lungs of every figure of :func:`lung_row`, and ``n_lungs``."""
+def summarise(cases: dict, timing: dict | None = None) -> dict:
+    """Medians over the lungs of every figure of :func:`lung_row`, and ``n_lungs``; over the cases,
+    of their times (``timing``: per case :func:`case_seconds`, default computed from ``cases``)."""
     lungs = [row for case in cases.values() for row in case.values()]
     out: dict = {"n_lungs": len(lungs)}
     for row in lungs:
@@ -279,41 +289,94 @@ def summarise(cases: dict) -> dict:
             vals = [r[name][k] for r in lungs if name in r and r[name].get(k) is not None]
             figs[k] = float(np.median(vals)) if vals else None
     out["seconds"] = float(np.median([r["seconds"] for r in lungs])) if lungs else None
-    per_case = [case_seconds(c) for c in cases.values() if c]
-    for key in ("fit_seconds", "model_fit_seconds", "mask_baselines_seconds"):
-        vals = [t[key] for t in per_case if t[key] is not None]
+    per_case = list(timing.values()) if timing is not None else [case_seconds(c) for c in cases.values() if c]
+    for key in ("fit_seconds", "model_fit_seconds", "model_fit_wall_seconds", "mask_baselines_seconds"):
+        vals = [t[key] for t in per_case if t.get(key) is not None]
         out[key] = float(np.median(vals)) if vals else None
     return out
 
 
 def run_copd(data: Path, out: Path, config: FitConfig | None = None, cases=None, *,
-             progress: Progress | None = None) -> dict:
+             progress: Progress | None = None, workers: int = 1) -> dict:
     """Every case in ``data`` (:func:`find_cases`, ``cases`` a subset by number), both lungs, fitted
     (:func:`run_lung`) into ``out/copdN/<side>``; writes ``out/metrics.json`` (``cases``, ``summary``,
     ``refitted``: the lungs fitted this run, ``timing``: per case :func:`case_seconds`) and
-    ``out/report.html``; returns the metrics."""
+    ``out/report.html``; returns the metrics. ``workers`` ≥ 2: each case's two lungs are fitted at once
+    in two worker processes (:func:`fit_case_lungs`; more would idle)."""
     say = progress or silent
     config = copd_config() if config is None else config
     out = Path(out)
     found = find_cases(data, cases)
     result: dict = {"cases": {}, "refitted": [], "timing": {}, "settings": asdict(config)}
-    for name, files in found.items():
-        splits = SplitCache()  # each mask split once per case (by the first fit), not once per use
-        masks = CaseBaselines(files, splits)  # both lungs' mask-only baselines, once, after the first fit
-        for side in SIDES:
-            say(f"{name} {side}: fitting (or reading the finished fit)")
-            metrics, fitted = run_lung(files, side, out / name / side, config, masks,
-                                       progress=lambda m, n=name, s=side: say(f"{n} {s}: {m}"), splits=splits)
-            result["cases"].setdefault(name, {})[side] = lung_row(metrics)
-            if fitted:
-                result["refitted"].append(f"{name}/{side}")
-        result["timing"][name] = case_seconds(result["cases"][name])
+    with LungWorkers(min(workers, len(SIDES))) if workers > 1 else nullcontext() as pool:
+        for name, files in found.items():
+            if pool is None:
+                lungs, split_seconds = _fit_case_serial(name, files, out, config, say), None
+            else:
+                lungs, split_seconds = fit_case_lungs(name, files, out, config, pool, say)
+            for side, (metrics, fitted) in lungs.items():
+                result["cases"].setdefault(name, {})[side] = lung_row(metrics)
+                if fitted:
+                    result["refitted"].append(f"{name}/{side}")
+            result["timing"][name] = case_seconds(result["cases"][name], split_seconds)
     result["prior"] = apply_loso_priors(out, result["cases"])
-    result["summary"] = summarise(result["cases"])
+    result["summary"] = summarise(result["cases"], result["timing"])
     result["calibration_mm"] = dict(MASK_ROWS)
     write_json(out / "metrics.json", result, strict=True, default=str)
     write_report(out / "report.html", result)
     return result
+
+
+def _fit_case_serial(name: str, files, out: Path, config: FitConfig, say) -> dict[str, tuple[dict, bool]]:
+    """``{side: (metrics, fitted)}``: the two lungs of a case one after the other (:func:`run_lung`)."""
+    splits = SplitCache()  # each mask split once per case (by the first fit), not once per use
+    masks = CaseBaselines(files, splits)  # both lungs' mask-only baselines, once, after the first fit
+    lungs = {}
+    for side in SIDES:
+        say(f"{name} {side}: fitting (or reading the finished fit)")
+        lungs[side] = run_lung(files, side, out / name / side, config, masks,
+                               progress=lambda m, n=name, s=side: say(f"{n} {s}: {m}"), splits=splits)
+    return lungs
+
+
+def fit_case_lungs(name: str, files, out: Path, config: FitConfig, workers: LungWorkers,
+                   say=silent) -> tuple[dict[str, tuple[dict, bool]], float]:
+    """``({side: (metrics, fitted)}, split seconds)``: the two lungs of a case fitted at once by
+    ``workers`` (:class:`lungdeform.evaluate.workers.LungWorkers`), each as :func:`run_lung` fits it.
+    The parent first splits both masks (the seconds returned: the time a serial run counts in its
+    first lung's fit) and computes the mask-only baselines (timed apart, as in a serial run); the
+    workers get the splits, so neither splits again. A lung already finished with the same settings
+    is read back, not sent."""
+    folders = {side: out / name / side for side in SIDES}
+    done = {side: _done(folders[side], settings_digest(files, side, config)) for side in SIDES}
+    lungs = {side: (m, False) for side, m in done.items() if m is not None}
+    todo = [side for side in SIDES if done[side] is None]
+    if not todo:
+        return lungs, 0.0
+    say(f"{name}: splitting the masks")
+    t0 = time.perf_counter()
+    splits = SplitCache()
+    for mask in files[:2]:
+        find_lungs(read_image(mask), cache=splits)
+    split_seconds = time.perf_counter() - t0
+    masks = CaseBaselines(files, splits)
+    masks(todo[0])  # both lungs' rows, computed once here
+    rows = CaseBaselines(files)
+    rows.rows, rows.seconds = masks.rows, masks.seconds  # the workers need the rows, not the splits twice
+    say(f"{name}: fitting the {' and '.join(todo)} lung{'s' if len(todo) > 1 else ''} in "
+        f"{min(len(todo), workers.count)} worker process{'es' if min(len(todo), workers.count) > 1 else ''}")
+    with made_folder(out / name):  # made here, not by the first worker: an interrupted case leaves none
+        finished = workers.map(_lung_task, [(files, side, folders[side], config, rows, splits) for side in todo])
+    for side, task in zip(todo, finished):
+        lungs[side] = task.value
+        say(f"{name} {side}: done in {task.seconds:.1f} s")
+    return {side: lungs[side] for side in SIDES}, split_seconds
+
+
+def _lung_task(files, side: str, folder: Path, config: FitConfig, rows: "CaseBaselines",
+               splits: SplitCache) -> tuple[dict, bool]:
+    """:func:`run_lung` in a worker process (module-level, so that it pickles)."""
+    return run_lung(files, side, folder, config, rows, splits=splits)
 
 
 def prior_sample(folder: Path, subject: str, side: str) -> PriorSample | None:
@@ -374,12 +437,15 @@ def _table(rows: dict) -> str:
 
 def _timing_table(timing: dict) -> str:
     """HTML table: per case, the model's own fit and the whole fit pipeline (both lungs), and the
-    mask-only baselines, seconds."""
+    mask-only baselines, seconds; with the lungs fitted at once (``--workers``), the model's fit in wall time too."""
+    wall = any(t.get("model_fit_wall_seconds") is not None for t in timing.values())
+    extra = "<th>model's fit, both lungs at once, wall (s)</th>" if wall else ""
     lines = ["<tr><th>case</th><th>model's fit, both lungs (s)</th><th>fit pipeline with its baselines, "
-             "both lungs (s)</th><th>mask-only baselines (s)</th></tr>"]
+             f"both lungs (s)</th><th>mask-only baselines (s)</th>{extra}</tr>"]
     for name, t in timing.items():
+        cell = f"<td>{_cell(t.get('model_fit_wall_seconds'))}</td>" if wall else ""
         lines.append(f"<tr><td>{html.escape(name)}</td><td>{_cell(t.get('model_fit_seconds'))}</td>"
-                     f"<td>{_cell(t.get('fit_seconds'))}</td><td>{_cell(t.get('mask_baselines_seconds'))}</td></tr>")
+                     f"<td>{_cell(t.get('fit_seconds'))}</td><td>{_cell(t.get('mask_baselines_seconds'))}</td>{cell}</tr>")
     return "<h2>Time per case</h2><table border=1 cellspacing=0 cellpadding=3>" + "".join(lines) + "</table>"
 
 
