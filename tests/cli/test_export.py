@@ -343,3 +343,18 @@ def test_bench_export_bad_options(capsys, args, message):
     assert main(["bench", "export", *args]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0]
+
+
+@pytest.mark.parametrize("args", [["--tidal-ml", "9000"], ["--preset", "normal", "--tidal-ml", "9000"]])
+def test_export_refuses_a_tidal_volume_beyond_what_the_lungs_hold(model_file, tmp_path, capsys, args):
+    # why: a 9 L breath on these lungs (V_EE about 2 × 1.3 L, shared by calibration) takes each lung past
+    # 3 × its end-exhale volume (total lung capacity is about twice it): it used to export a lung blown
+    # up several times over without a word. Exit 2, one line naming the bound, nothing written;
+    # 2 L (each lung +0.8 of its volume) exports
+    out = tmp_path / "x.glb"
+    assert main(["export", str(model_file), "--format", "glb", "--out", str(out), *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "above 3 times its end-exhale" in err[0] and "9000 mL" in err[0], err
+    assert not out.exists() and list(tmp_path.iterdir()) == []
+    assert main(["export", str(model_file), "--format", "glb", "--out", str(out), *args[:-1], "2000"]) == 0
+    assert out.exists()

@@ -622,14 +622,17 @@ def breath_trace(model, curve: Path | None, preset: str | None, cycles: int | No
     """The volume trace (:class:`lungdeform.playback.schedule.VolumeTrace`, mL above end-exhale) the
     options name: ``--curve``, ``--preset`` (``cycles`` breaths, rescaled to ``tidal_ml``) or the plain
     cycle of ``tidal_ml``, by default the tidal volume the model was built for (provenance
-    ``tidal_ml``; 500 mL for a model without one, a fit)."""
+    ``tidal_ml``; 500 mL for a model without one, a fit). Each one the model's lungs can follow
+    (:func:`lungdeform.playback.schedule.check_reachable`: a --tidal-ml far beyond the lungs' size is refused)."""
     if curve is not None:
         return read_curve(curve, model)
     if preset is not None:
         _params, _curve, trace = S.preset_trace(get_preset(preset), cycles or 1, tidal_ml)
-        return trace
-    built = (model.provenance or {}).get("tidal_ml")
-    return S.plain_cycle(float(tidal_ml or built or TIDAL_VOLUME_ML))
+    else:
+        built = (model.provenance or {}).get("tidal_ml")
+        trace = S.plain_cycle(float(tidal_ml or built or TIDAL_VOLUME_ML))
+    check_reachable(trace, model)
+    return trace
 
 
 @dataclass(frozen=True)
