@@ -220,7 +220,10 @@ def _check_nifti_length(p: Path) -> None:
                 return  # NIfTI-2 or none at all: ITK says what is wrong with it
             dims = struct.unpack(endian + "8h", raw[40:56])
             bitpix = struct.unpack(endian + "h", raw[72:74])[0]
-            offset = int(struct.unpack(endian + "f", raw[108:112])[0])
+            offset = struct.unpack(endian + "f", raw[108:112])[0]
+            if not 0 <= offset < 2 ** 31:
+                return  # a vox_offset that is no offset: ITK says what is wrong with it
+            offset = int(offset)
             voxels = int(np.prod([max(d, 1) for d in dims[1:1 + min(max(dims[0], 1), 7)]], dtype=np.int64))
             need = max(offset, 348) + voxels * max(bitpix, 8) // 8
             have = len(raw) + _bytes_available(fh, need - len(raw))
