@@ -185,6 +185,8 @@ def _check_header(p: Path, max_voxels=None) -> None:
     _check_orthonormal(p, reader.GetDirection())
     if name.endswith((".nii", ".nii.gz")):
         _check_nifti_length(p)
+    if name.endswith(".mha"):
+        _check_meta_length(p, head, _voxel_bytes(reader))
 
 
 #: How far a direction matrix may be from orthonormal (largest entry of DᵀD − I): float32 headers and
@@ -254,12 +256,35 @@ def _check_inflate(p: Path, name: str, head: bytes, reader: sitk.ImageFileReader
         return
     if name.endswith(".nrrd") and re.search(rb"^data ?file:", head, re.M | re.I):
         return
-    bits = re.search(r"(\d+)-bit", sitk.GetPixelIDValueAsString(reader.GetPixelID()))
-    claimed = float(np.prod(reader.GetSize(), dtype=np.float64)) * reader.GetNumberOfComponents() * (
-        int(bits.group(1)) // 8 if bits else 1)
+    claimed = _voxel_bytes(reader)
     if claimed > MAX_INFLATE * p.stat().st_size:
         raise ReadError(f"{p}: header claims {'x'.join(map(str, reader.GetSize()))} voxels "
                         f"({claimed:.3g} bytes), more than the {p.stat().st_size}-byte file can hold: damaged header")
+
+
+def _voxel_bytes(reader: sitk.ImageFileReader) -> float:
+    """The bytes of voxel data the header (``reader``, information read) describes."""
+    bits = re.search(r"(\d+)-bit", sitk.GetPixelIDValueAsString(reader.GetPixelID()))
+    return float(np.prod(reader.GetSize(), dtype=np.float64)) * reader.GetNumberOfComponents() * (
+        int(bits.group(1)) // 8 if bits else 1)
+
+
+def _check_meta_length(p: Path, head: bytes, claimed: float) -> None:
+    """Refuse a single-file MetaImage (``ElementDataFile = LOCAL``) that ends before its voxels
+    (``claimed`` bytes, or its ``CompressedDataSize``): ITK's own refusal printed two lines of its
+    own and "No such file or directory", naming nothing that is wrong."""
+    end = re.search(rb"^\s*ElementDataFile\s*=[ \t]*LOCAL[ \t]*\r?\n", head, re.M)
+    if end is None:
+        return
+    if re.search(rb"^\s*CompressedData\s*=[ \t]*True", head[:end.end()], re.M | re.I):
+        size = re.search(rb"^\s*CompressedDataSize\s*=[ \t]*(\d+)", head[:end.end()], re.M)
+        if size is None:
+            return  # ITK inflates to the end of the file
+        claimed = float(size.group(1))
+    have = p.stat().st_size - end.end()
+    if have < claimed:
+        raise ReadError(f"{p}: truncated MetaImage file (it holds {have} of the {claimed:.0f} bytes of voxel data "
+                        "its header promises)")
 
 
 def _check_text_header(p: Path, name: str, head: bytes) -> None:
