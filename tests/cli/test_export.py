@@ -178,6 +178,8 @@ def test_export_pvd(model_file, tmp_path, capsys):
     (["--format", "glb", "--preset", "normal", "--period", "3"], "a --preset has its own period"),
     (["--format", "glb", "--cycles", "2"], "--cycles applies to --preset only"),
     (["--format", "glb", "--preset", "normal", "--cycles", "0"], "--cycles must be >= 1"),
+    # a million breaths simulated for hours without a word (track refused it already): one cap for both
+    (["--format", "pvd", "--preset", "normal", "--cycles", "1000000"], "--cycles must be at most 100"),
     (["--format", "glb", "--preset", "normal", "--tidal-ml", "-5"], "--tidal-ml must be a tidal volume in mL"),
     # a typo far above any vital capacity used to give lungs of hundreds of litres
     (["--format", "glb", "--tidal-ml", "500000"], "--tidal-ml must be a tidal volume in mL in (0, 10000]"),

@@ -287,12 +287,25 @@ def renamed_tidal_ml(tidal_ml: float | None, old: float | None, default: float =
     return old
 
 
+#: Most breaths a ``--cycles`` plays (export, track, breathe): 100 breaths of the slowest preset
+#: (12 s) are 20 minutes; a million ran for hours without a word.
+MAX_CYCLES = 100
+
+
 def check_cycles(cycles: int | None, preset: str | None) -> None:
-    """Refuse ``--cycles`` without ``--preset`` or below 1 (export, track)."""
+    """Refuse ``--cycles`` without ``--preset`` (export, track), or outside 1 to :data:`MAX_CYCLES`
+    (:func:`check_cycle_count`)."""
     if cycles is not None and preset is None:
         raise InputError("--cycles applies to --preset only")
+    check_cycle_count(cycles)
+
+
+def check_cycle_count(cycles: int | None) -> None:
+    """Refuse a ``--cycles`` below 1 or above :data:`MAX_CYCLES` (None passes)."""
     if cycles is not None and cycles < 1:
         raise InputError(f"--cycles must be >= 1, got {cycles}")
+    if cycles is not None and cycles > MAX_CYCLES:
+        raise InputError(f"--cycles must be at most {MAX_CYCLES}, got {cycles}")
 
 
 def read_curve(curve: Path, model):
