@@ -49,6 +49,21 @@ def test_dominant_period_ignores_drift_and_multiples(rng):
     assert dominant_period(t, a) == pytest.approx(5.4, rel=0.03)
 
 
+def test_a_signal_faster_than_any_breath_is_refused(rng):
+    # why: a 4 Hz oscillation sampled at 10 Hz (a vibrating marker, a signal of another kind) used to be
+    # read at a multiple of its period inside the breathing range (1.5 s) and fitted as 40 breaths a
+    # minute without a word. Truth: its autocorrelation rises again within 0.3 s, so it is refused; a
+    # breath of 5.4 s carrying a cardiac ripple (1.2 Hz, a tenth of its amplitude) and noise, and the
+    # fastest breathing kept (1.2 s, 50 a minute, panting), keep their periods
+    t = np.arange(0.0, 150.0, 0.1)
+    with pytest.raises(InputError, match=r"repeats every 0.2[0-9]* s, faster than any breath"):
+        dominant_period(t, 5 * np.sin(2 * np.pi * 4.0 * t) + rng.normal(0, 0.05, t.size))
+    ripple = breath(t, 5.4) + 0.1 * np.sin(2 * np.pi * 1.2 * t) + rng.normal(0, 0.02, t.size)
+    assert dominant_period(t, ripple) == pytest.approx(5.4, rel=0.03)
+    t = np.arange(0.0, 60.0, 0.04)
+    assert dominant_period(t, breath(t, 1.2) + rng.normal(0, 0.02, t.size)) == pytest.approx(1.2, rel=0.03)
+
+
 def test_turning_points_keep_breaths_and_drop_wiggles():
     # truth: 6 big oscillations (excursion 2) with 40 small wiggles (excursion 0.1) on top
     x = np.linspace(0, 6 * 2 * np.pi, 3000)

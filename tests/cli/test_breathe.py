@@ -65,6 +65,15 @@ def test_breathe_needs_one_source(tmp_path, capsys):
     assert len(err) == 1 and "unknown breathing preset 'zz'" in err[0]
 
 
+@pytest.mark.parametrize("cycles, message", [("0", "--cycles must be >= 1"), ("1000000", "--cycles must be at most 100")])
+def test_breathe_cycles_out_of_range(tmp_path, capsys, cycles, message):
+    # a million breaths ran for hours (killed after 300 s) without a word: refused at once, nothing written
+    assert main(["breathe", "--preset", "normal", "--cycles", cycles, "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0]
+    assert not (tmp_path / "o").exists()
+
+
 def test_breathe_preset_numbers_do_not_depend_on_fs(tmp_path, capsys):
     # truth: the preset's own tidal volume (500 mL). Measured on the output samples, 2 Hz (8 samples
     # per 4 s breath) used to report about 410 mL; the summary now comes from a fine run

@@ -107,6 +107,22 @@ def test_units_option_rescales(tmp_path):
     assert load_model(out).lungs["left"].volume_ee_ml == pytest.approx(s.volume_ml, rel=1e-5)
 
 
+def test_a_lung_too_small_for_its_breath_is_refused(tmp_path, capsys):
+    # why: a lung written in centimetres (45 × 70 × 110 mm semi-axes read as 4.5 × 7 × 11 "mm": 22 "mm"
+    # across, inside the 20–2000 mm size check) encloses 1.4 mL; its share of a 500 mL breath, 232 mL,
+    # is over 150 times its volume, past the 3 times no lung exceeds, and it used to build without a word (a
+    # model whose every state dvf, warp and track refuse). Exit 2, one line naming the file, no output;
+    # the same file with --units cm builds, the lung's volume 1000 times larger (the truth: mm³ = cm³/1000)
+    s = ellipsoid_lung("left")
+    cm = write_mesh(tmp_path / "cm.stl", s.vertices / 10, s.faces)
+    out = tmp_path / "m.npz"
+    err = _fails(["build", str(cm), "--side", "left", "--out", str(out)], capsys, "cm.stl", "past 3 times")
+    assert f"encloses {s.volume_ml / 1000:.4g} mL" in err
+    assert not out.exists() and not list(tmp_path.glob(".m.npz*"))
+    assert main(["build", str(cm), "--side", "left", "--units", "cm", "--out", str(out)]) == 0
+    assert load_model(out).lungs["left"].volume_ee_ml == pytest.approx(s.volume_ml, rel=1e-5)
+
+
 def test_truncated_mesh_and_empty_mask_exit_2(tmp_path, capsys):
     import SimpleITK as sitk
 
@@ -139,7 +155,9 @@ def test_swapped_sides_refused(tmp_path, lung_files, capsys):
     lab = np.zeros((24, 20, 40), np.uint8)
     for lobe, xc in ((1, 29.5), (3, 9.5)):  # index x grows to patient left (identity direction)
         lab[((k - 11.5) / 9) ** 2 + ((j - 9.5) / 7) ** 2 + ((i - xc) / 7) ** 2 <= 1] = lobe
-    sitk.WriteImage(sitk.GetImageFromArray(lab), str(tmp_path / "lobes.nii.gz"))
+    img = sitk.GetImageFromArray(lab)
+    img.SetSpacing((8.0, 8.0, 8.0))  # lungs of about 1 L each: a lung of 2 mL cannot breathe 500 mL
+    sitk.WriteImage(img, str(tmp_path / "lobes.nii.gz"))
     _fails(["build", str(tmp_path / "lobes.nii.gz"), "--labels", "left=3;right=1", "--out", str(out)], capsys,
            "the surface taken as left (lobes-left")
     assert main(["build", str(tmp_path / "lobes.nii.gz"), "--labels", "left=1;right=3", "--out", str(out)]) == 0

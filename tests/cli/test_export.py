@@ -178,6 +178,8 @@ def test_export_pvd(model_file, tmp_path, capsys):
     (["--format", "glb", "--preset", "normal", "--period", "3"], "a --preset has its own period"),
     (["--format", "glb", "--cycles", "2"], "--cycles applies to --preset only"),
     (["--format", "glb", "--preset", "normal", "--cycles", "0"], "--cycles must be >= 1"),
+    # a million breaths simulated for hours without a word (track refused it already): one cap for both
+    (["--format", "pvd", "--preset", "normal", "--cycles", "1000000"], "--cycles must be at most 100"),
     (["--format", "glb", "--preset", "normal", "--tidal-ml", "-5"], "--tidal-ml must be a tidal volume in mL"),
     # a typo far above any vital capacity used to give lungs of hundreds of litres
     (["--format", "glb", "--tidal-ml", "500000"], "--tidal-ml must be a tidal volume in mL in (0, 10000]"),
@@ -343,3 +345,18 @@ def test_bench_export_bad_options(capsys, args, message):
     assert main(["bench", "export", *args]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0]
+
+
+@pytest.mark.parametrize("args", [["--tidal-ml", "9000"], ["--preset", "normal", "--tidal-ml", "9000"]])
+def test_export_refuses_a_tidal_volume_beyond_what_the_lungs_hold(model_file, tmp_path, capsys, args):
+    # why: a 9 L breath on these lungs (V_EE about 2 × 1.3 L, shared by calibration) takes each lung past
+    # 3 × its end-exhale volume (total lung capacity is about twice it): it used to export a lung blown
+    # up several times over without a word. Exit 2, one line naming the bound, nothing written;
+    # 2 L (each lung +0.8 of its volume) exports
+    out = tmp_path / "x.glb"
+    assert main(["export", str(model_file), "--format", "glb", "--out", str(out), *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "above 3 times its end-exhale" in err[0] and "9000 mL" in err[0], err
+    assert not out.exists() and list(tmp_path.iterdir()) == []
+    assert main(["export", str(model_file), "--format", "glb", "--out", str(out), *args[:-1], "2000"]) == 0
+    assert out.exists()

@@ -407,3 +407,79 @@ def test_a_nifti_whose_qform_and_sform_disagree_is_refused(tmp_path):
                 read_image(path)
         else:
             assert read_image(path).array.shape == arr.shape[::-1]
+
+
+@pytest.mark.parametrize("suffix", [".nii", ".nii.gz"])
+def test_a_truncated_nifti_is_refused(tmp_path, suffix):
+    # why: ITK reads a NIfTI file that ends early without an error, its missing voxels as 0 (a mask cut
+    # in half read as half a lung). Truth: the intact file reads back the written voxels; the same bytes
+    # cut short (the file, or the gzip stream) are refused naming the file, whatever is cut
+    import gzip
+
+    import SimpleITK as sitk
+
+    rng = np.random.default_rng(5)
+    arr = (rng.random((10, 12, 14)) > 0.5).astype(np.uint8)
+    path = tmp_path / f"m{suffix}"
+    sitk.WriteImage(sitk.GetImageFromArray(arr), str(path))
+    np.testing.assert_array_equal(read_image(path).array, arr)
+    raw = gzip.decompress(path.read_bytes()) if suffix == ".nii.gz" else path.read_bytes()
+    assert len(raw) == 352 + arr.size  # header, extension flag, voxels: what the check counts
+    cut = tmp_path / f"cut{suffix}"
+    for size in (len(raw) - 1, len(raw) // 2, 400):  # the last voxel, half of them, all but a few
+        body = raw[:size]
+        cut.write_bytes(gzip.compress(body) if suffix == ".nii.gz" else body)
+        with pytest.raises(ReadError, match=rf"^{cut}: truncated NIfTI file \(it holds {size} of the {len(raw)} bytes"):
+            read_image(cut)
+    if suffix == ".nii.gz":  # the gzip stream itself cut short
+        cut.write_bytes(path.read_bytes()[:-40])
+        with pytest.raises(ReadError, match=rf"^{cut}: truncated NIfTI file \(its gzip stream is damaged\)"):
+            read_image(cut)
+
+
+def test_a_direction_that_is_not_a_rotation_is_refused(tmp_path):
+    # why: a MetaImage TransformMatrix with a shear (or a zero row) reads in ITK as it is written, and
+    # ITK's filters and NIfTI writer treat it as orthonormal: the voxels would land elsewhere without a
+    # word. Truth: a rotation and a reflection (DᵀD = I) read with their direction; a shear of 0.3 and a
+    # degenerate matrix are refused naming the file; float32-rounded cosines pass
+    import SimpleITK as sitk
+    from scipy.spatial.transform import Rotation
+
+    img = sitk.GetImageFromArray(np.ones((4, 5, 6), np.uint8))
+    rot = Rotation.from_euler("xyz", [10, -20, 35], degrees=True).as_matrix()
+    for name, d in (("rot", rot), ("mirror", np.diag([-1.0, 1.0, 1.0])), ("f32", rot.astype(np.float32))):
+        img.SetDirection(tuple(float(v) for v in np.asarray(d, float).ravel()))
+        sitk.WriteImage(img, str(tmp_path / f"{name}.mha"))
+        np.testing.assert_allclose(read_image(tmp_path / f"{name}.mha").direction, d, atol=1e-6)
+    text = (tmp_path / "rot.mha").read_bytes()
+    head, _, body = text.partition(b"ElementDataFile = LOCAL\n")
+    for name, matrix in (("shear", b"1 0 0 0.3 1 0 0 0 1"), ("flat", b"1 0 0 1 0 0 0 0 1")):
+        bad = tmp_path / f"{name}.mha"
+        lines = [ln if not ln.startswith(b"TransformMatrix") else b"TransformMatrix = " + matrix
+                 for ln in head.splitlines()]
+        bad.write_bytes(b"\n".join(lines) + b"\nElementDataFile = LOCAL\n" + body)
+        with pytest.raises(ReadError, match=rf"^{bad}: the header's direction matrix .* is not orthonormal"):
+            read_image(bad)
+
+
+@pytest.mark.parametrize("compress", [False, True])
+def test_a_truncated_metaimage_is_refused_in_one_line(tmp_path, compress):
+    # why: ITK refused a MetaImage cut short with "No such file or directory" and printed two lines of
+    # its own on stderr; the refusal now says what is wrong. Truth: the intact file reads back its
+    # voxels; the same file without its last byte, or half its voxel data, is refused naming the file
+    # and the byte counts of the header's own grid (or CompressedDataSize)
+    import SimpleITK as sitk
+
+    rng = np.random.default_rng(8)
+    arr = (rng.random((10, 12, 14)) > 0.5).astype(np.uint8)
+    path = tmp_path / "m.mha"
+    sitk.WriteImage(sitk.GetImageFromArray(arr), str(path), useCompression=compress)
+    np.testing.assert_array_equal(read_image(path).array, arr)
+    raw = path.read_bytes()
+    data = len(raw) - (raw.index(b"ElementDataFile = LOCAL\n") + len(b"ElementDataFile = LOCAL\n"))
+    assert compress or data == arr.size
+    cut = tmp_path / "cut.mha"
+    for drop in (1, data // 2):
+        cut.write_bytes(raw[:-drop])
+        with pytest.raises(ReadError, match=rf"^{cut}: truncated MetaImage file \(it holds {data - drop} of the {data} bytes"):
+            read_image(cut)

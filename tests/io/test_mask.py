@@ -127,6 +127,22 @@ def test_ct_is_not_a_mask():
         mask_to_surface(image)
 
 
+def test_a_probability_map_is_not_a_mask():
+    # why: a float mask of fractions (a probability map, or a binary mask resampled with linear
+    # interpolation) used to count every voxel above 0 as lung: the ball grew by the blur, without a
+    # word. Truth: the same ball as 0.0/1.0 floats (whole numbers) gives the uint8 ball's volume; a
+    # blurred copy (fractions at its rim) is refused naming the file and the fractions' range
+    from scipy.ndimage import gaussian_filter
+
+    image, _ = sphere_image(np.eye(3))
+    whole = mask_to_surface(Image(image.array.astype(np.float32), image.spacing, image.origin, image.direction,
+                                  "ball.nii.gz"))
+    assert whole.volume_ml == pytest.approx(mask_to_surface(image).volume_ml, rel=1e-9)
+    blurred = gaussian_filter(image.array.astype(np.float32), 1.5)
+    with pytest.raises(MaskError, match=r"^blur\.nii\.gz: \d+ voxel\(s\) hold fractions \(.*\.\..*\), not labels"):
+        mask_to_surface(Image(blurred, image.spacing, image.origin, image.direction, "blur.nii.gz"))
+
+
 # --------------------------------------------------------------------------- label groups
 def test_label_groups():
     assert label_groups(None) == {"": None}

@@ -154,6 +154,22 @@ def test_curve_below_what_the_lungs_can_reach_names_its_line(tmp_path):
         S.check_reachable(S.VolumeTrace(np.array([0.0, 1.0]), np.array([0.0, -0.6 * vee]), "made"), model)
 
 
+def test_curve_above_what_the_lungs_can_hold_names_its_line(tmp_path):
+    # Each lung plays V_EE + share·ΔV; ΔV = 2.2·(V_EE total) takes each lung to 3.2 times its end-exhale
+    # volume, above MAX_GROWTH (3: total lung capacity is about twice the end-exhale volume): refused at
+    # the first such row, line 3. 1.8·V_EE (2.8 times) is reachable, at the bound's either side
+    from tests.browser.support import two_lungs
+
+    model = two_lungs(2)
+    vee = sum(lung.volume_ee_ml for lung in model.lungs.values())
+    path = tmp_path / "big.csv"
+    path.write_text(f"t_s,volume_ml\n0,0\n1,{2.2 * vee:.1f}\n2,0\n")
+    with pytest.raises(InputError, match=rf"^{path} line 3: volume_ml .* above 3 times its end-exhale .*1 such rows"):
+        S.check_reachable(S.read_volume_csv(path), model)
+    path.write_text(f"t_s,volume_ml\n0,0\n1,{1.8 * vee:.1f}\n2,0\n")
+    S.check_reachable(S.read_volume_csv(path), model)
+
+
 def test_curve_that_is_a_folder(tmp_path):
     # the path exists: named as a folder, not as missing
     with pytest.raises(ReadError) as info:

@@ -82,6 +82,7 @@ def dominant_period(t_s, amplitude) -> float:
     if not ac[0] > 0:
         raise InputError("flat trace: no breathing motion")
     ac = ac / ac[0]
+    _check_not_faster_than_breathing(ac, lo, dt)
     pk, _ = find_peaks(ac[: hi + 2])
     pk = pk[(pk >= lo) & (pk <= hi) & (ac[pk] > 0)]
     if pk.size == 0:  # no periodicity at all: fall back to the strongest lag
@@ -91,6 +92,27 @@ def dominant_period(t_s, amplitude) -> float:
     y0, y1, y2 = ac[k - 1], ac[k], ac[k + 1]
     den = y0 - 2.0 * y1 + y2
     return (k + (0.5 * (y0 - y2) / den if den < 0 else 0.0)) * dt
+
+
+#: How far (of the autocorrelation at lag 0) the signal's autocorrelation must rise again, at a lag
+#: shorter than the shortest breath, for the signal to be repeating faster than anyone breathes.
+FAST_REPEAT_RISE = 0.5
+
+
+def _check_not_faster_than_breathing(ac, lo: int, dt: float) -> None:
+    """Refuse a signal (autocorrelation ``ac`` (n,), normalised to 1 at lag 0, sampled every ``dt`` s)
+    that repeats faster than the shortest breath (``lo`` samples, :data:`CYCLE_RANGE_S`): its
+    autocorrelation falls, rises again by :data:`FAST_REPEAT_RISE` and falls at a shorter lag. A breathing
+    trace's autocorrelation only falls until half its period (0.5 s at the fastest); a 4 Hz
+    oscillation (a tremor, a vibrating marker, a signal of another kind) would otherwise be read
+    at a multiple of its own period, at least 1 s, as a breathing rhythm it does not have."""
+    head = ac[: lo + 1]
+    pk, _ = find_peaks(head)  # maxima inside: a breath of just over lo samples still rises at lag lo
+    rise = head[pk] - np.minimum.accumulate(head)[pk]
+    if pk.size and rise.max() >= FAST_REPEAT_RISE:
+        lag = float(pk[int(np.argmax(rise >= FAST_REPEAT_RISE))] * dt)
+        raise InputError(f"the signal repeats every {lag:.2g} s, faster than any breath (at least "
+                         f"{CYCLE_RANGE_S[0]:g} s): not a breathing trace, or a vibration riding on one")
 
 
 def smooth(amplitude, fs_hz: float, cutoff_hz: float = 1.0) -> np.ndarray:

@@ -17,7 +17,7 @@ from lungdeform.atomic import staged_dir
 from lungdeform.breathing.run import check_sample_rate, run_fit, run_preset
 from lungdeform.errors import InputError
 
-from .common import bounded, check_output, renamed_tidal_ml, say, tidal_option
+from .common import bounded, check_cycle_count, check_output, renamed_tidal_ml, say, tidal_option
 
 #: The files breathe writes in ``--out``.
 BREATHE_FILES = ("curve.csv", "metrics.json", "volume.png", "pv_loop.png", "residuals.png")
@@ -44,8 +44,7 @@ def register(apps) -> None:
         tidal = renamed_tidal_ml(tidal_ml, tidal_volume_ml)
         check_output(out, [fit], folder=True, writes=BREATHE_FILES)
         if preset is not None:
-            if cycles < 1:
-                raise InputError(f"--cycles must be >= 1, got {cycles}")
+            check_cycle_count(cycles)
             check_sample_rate(preset, fs, name="--fs")  # the option's name in the message
             with staged_dir(out) as staged:  # curve, metrics and figures together at the end, or none
                 m = run_preset(preset, staged, cycles, fs)

@@ -17,8 +17,8 @@ from lungdeform.model.population import resolve_default
 from lungdeform.model.scan_state import HELP as SCAN_STATE_HELP
 from lungdeform.model.scan_state import parse_scan_state
 from lungdeform.model.stiffness import parse_stiffness
-from lungdeform.model.tidal import ONE_LUNG_SHARE, ONE_LUNG_SOURCE
-from lungdeform.playback.schedule import lung_shares
+from lungdeform.model.tidal import ONE_LUNG_SHARE, ONE_LUNG_SOURCE, tidal_split
+from lungdeform.playback.schedule import MAX_GROWTH, lung_shares
 from lungdeform.playback.trajectory import end_exhale_ml, scan_ml
 from lungdeform.segment.split import load_lungs
 
@@ -64,6 +64,20 @@ class BuildOptions:
     breathing: Annotated[Optional[str], typer.Option("--breathing", help=BREATHING_HELP)] = None
 
 
+def check_breath_fits(sources: dict, surfaces: dict, tidal_ml: float) -> None:
+    """Refuse, naming its file, a lung whose part of ``tidal_ml`` (mL, both lungs;
+    :func:`~lungdeform.model.tidal.tidal_split`) would take it past :data:`MAX_GROWTH` times its own
+    volume: no lung breathes that (total lung capacity is about twice the end-exhale volume), and
+    dvf, warp and track would refuse every state of the breath. Usually a surface in other units
+    (a lung in centimetres passes the size check at 20–40 "mm" across) or not a lung."""
+    parts = tidal_split({side: s.volume_ml for side, s in surfaces.items()}, tidal_ml)
+    for side, surface in surfaces.items():
+        if parts[side] > (MAX_GROWTH - 1.0) * surface.volume_ml:
+            raise InputError(f"{sources[side]}: the {side} lung encloses {surface.volume_ml:.4g} mL; its part "
+                             f"{parts[side]:.0f} mL of --tidal-ml {tidal_ml:g} would take it past {MAX_GROWTH:g} times "
+                             "that, which no lung breathes: is it in other units (--units cm or m) or not a lung?")
+
+
 def register(apps) -> None:
     @apps.root.command("build")
     @takes(BuildOptions)
@@ -101,6 +115,7 @@ def register(apps) -> None:
         if len(set(sides)) != len(sides):
             raise InputError(f"two surfaces for the same side: {', '.join(sides)}")
         surfaces = {sd: s for sd, (_, s) in zip(sides, loaded)}
+        check_breath_fits({sd: src for sd, (src, _) in zip(sides, loaded)}, surfaces, opts.tidal_ml)
         gravity = parse_orientation(opts.orientation)
         with option_names({"stiffness": "--stiffness"}):
             stiff = {sd: parse_stiffness(opts.stiffness, s.vertices, gravity_vector(gravity)) for sd, s in surfaces.items()}

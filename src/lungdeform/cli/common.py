@@ -287,12 +287,25 @@ def renamed_tidal_ml(tidal_ml: float | None, old: float | None, default: float =
     return old
 
 
+#: Most breaths a ``--cycles`` plays (export, track, breathe): 100 breaths of the slowest preset
+#: (12 s) are 20 minutes; a million ran for hours without a word.
+MAX_CYCLES = 100
+
+
 def check_cycles(cycles: int | None, preset: str | None) -> None:
-    """Refuse ``--cycles`` without ``--preset`` or below 1 (export, track)."""
+    """Refuse ``--cycles`` without ``--preset`` (export, track), or outside 1 to :data:`MAX_CYCLES`
+    (:func:`check_cycle_count`)."""
     if cycles is not None and preset is None:
         raise InputError("--cycles applies to --preset only")
+    check_cycle_count(cycles)
+
+
+def check_cycle_count(cycles: int | None) -> None:
+    """Refuse a ``--cycles`` below 1 or above :data:`MAX_CYCLES` (None passes)."""
     if cycles is not None and cycles < 1:
         raise InputError(f"--cycles must be >= 1, got {cycles}")
+    if cycles is not None and cycles > MAX_CYCLES:
+        raise InputError(f"--cycles must be at most {MAX_CYCLES}, got {cycles}")
 
 
 def read_curve(curve: Path, model):
@@ -622,14 +635,17 @@ def breath_trace(model, curve: Path | None, preset: str | None, cycles: int | No
     """The volume trace (:class:`lungdeform.playback.schedule.VolumeTrace`, mL above end-exhale) the
     options name: ``--curve``, ``--preset`` (``cycles`` breaths, rescaled to ``tidal_ml``) or the plain
     cycle of ``tidal_ml``, by default the tidal volume the model was built for (provenance
-    ``tidal_ml``; 500 mL for a model without one, a fit)."""
+    ``tidal_ml``; 500 mL for a model without one, a fit). Each one the model's lungs can follow
+    (:func:`lungdeform.playback.schedule.check_reachable`: a --tidal-ml far beyond the lungs' size is refused)."""
     if curve is not None:
         return read_curve(curve, model)
     if preset is not None:
         _params, _curve, trace = S.preset_trace(get_preset(preset), cycles or 1, tidal_ml)
-        return trace
-    built = (model.provenance or {}).get("tidal_ml")
-    return S.plain_cycle(float(tidal_ml or built or TIDAL_VOLUME_ML))
+    else:
+        built = (model.provenance or {}).get("tidal_ml")
+        trace = S.plain_cycle(float(tidal_ml or built or TIDAL_VOLUME_ML))
+    check_reachable(trace, model)
+    return trace
 
 
 @dataclass(frozen=True)

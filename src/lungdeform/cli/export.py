@@ -81,6 +81,7 @@ def register(apps) -> None:
         else:  # the model's own tidal volume (500 mL for a fit), 4 s, unless given
             given = {"tidal_ml": opts.tidal_ml or (m.provenance or {}).get("tidal_ml"), "period_s": opts.period_s}
             trace = S.plain_cycle(**{k: v for k, v in given.items() if v is not None})
+        S.check_reachable(trace, m)  # a --tidal-ml far beyond the lungs' size: refused (a --curve was checked)
         shares = S.lung_shares(m)
         if not m.scan.is_end_exhale:  # the lungs are written at end-exhale, where the weights start
             typer.echo(f"the model's scan: {m.scan.describe()}; written at end-exhale, the scan at each lung's "

@@ -41,9 +41,9 @@ from .common import (
     without_alignment,
 )
 
-#: Bounds on the schedule: frames per second, preset cycles, and points × frames (rows of trajectories.csv)
+#: Bounds on the schedule: frames per second and points × frames (rows of trajectories.csv); preset
+#: cycles: common.MAX_CYCLES
 MAX_FPS = 1000.0
-MAX_CYCLES = 100
 MAX_POINT_FRAMES = 5_000_000
 
 
@@ -288,8 +288,6 @@ def _check_schedule(volume_ml, breath: BreathFlags, fps) -> None:
         raise InputError("--tidal-ml applies to --preset or the plain cycle")
     if not (np.isfinite(fps) and 0 < fps <= MAX_FPS):
         raise InputError(f"--fps must be > 0 and at most {MAX_FPS}, got {fps}")
-    if breath.cycles is not None and breath.cycles > MAX_CYCLES:
-        raise InputError(f"--cycles must be at most {MAX_CYCLES}, got {breath.cycles}")
 
 
 def _check_structure_options(points, rtstruct, structure, out_rtstruct, reference_ct, phases, volume_ml) -> None:

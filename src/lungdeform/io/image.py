@@ -182,6 +182,69 @@ def _check_header(p: Path, max_voxels=None) -> None:
                         ("direction", reader.GetDirection())):
         if not np.isfinite(values).all():
             raise ReadError(f"{p}: the header's {key} {list(values)} is not finite")
+    _check_orthonormal(p, reader.GetDirection())
+    if name.endswith((".nii", ".nii.gz")):
+        _check_nifti_length(p)
+    if name.endswith(".mha"):
+        _check_meta_length(p, head, _voxel_bytes(reader))
+
+
+#: How far a direction matrix may be from orthonormal (largest entry of DᵀD − I): float32 headers and
+#: DICOM's six-decimal cosines are within 1e-5; a shear or a scaled axis is far beyond.
+ORTHONORMAL_TOLERANCE = 1e-3
+
+
+def _check_orthonormal(p: Path, direction) -> None:
+    """Refuse a header whose direction matrix (``direction``, n² numbers, ITK's) is not a rotation or
+    a reflection: a shear or a scaled axis is no voxel grid ITK resamples or a scanner writes, and
+    ITK's filters would treat it as orthonormal (and its NIfTI writer coerces it), placing voxels
+    elsewhere than the header says without a word."""
+    n = int(round(len(direction) ** 0.5))  # a 2-D or 4-D image: refused after reading, as not 3-D
+    d = np.asarray(direction, float).reshape(n, n)
+    off = float(np.abs(d.T @ d - np.eye(n)).max())
+    if off > ORTHONORMAL_TOLERANCE:
+        rows = "; ".join(" ".join(f"{v:g}" for v in row) for row in d)
+        raise ReadError(f"{p}: the header's direction matrix [{rows}] is not orthonormal (DᵀD differs from the "
+                        f"identity by {off:.3g}): a sheared or scaled grid; lungdeform reads rotations only")
+
+
+def _check_nifti_length(p: Path) -> None:
+    """Refuse a NIfTI-1 file (``.nii``, or its gzip stream for ``.nii.gz``) that ends before the voxels
+    its header promises (vox_offset plus dims × bitpix bytes): ITK reads a truncated file without an
+    error, the missing voxels as 0 (measured with SimpleITK 2.5: half a mask's .nii.gz read as the
+    other half of the lung gone). A gzip stream cut short is refused the same way."""
+    opener = gzip.open if p.name.lower().endswith(".gz") else open
+    try:
+        with opener(p, "rb") as fh:
+            raw = fh.read(348)
+            endian = next((e for e in "<>" if len(raw) == 348 and struct.unpack(e + "i", raw[:4])[0] == 348), None)
+            if endian is None:
+                return  # NIfTI-2 or none at all: ITK says what is wrong with it
+            dims = struct.unpack(endian + "8h", raw[40:56])
+            bitpix = struct.unpack(endian + "h", raw[72:74])[0]
+            offset = struct.unpack(endian + "f", raw[108:112])[0]
+            if not 0 <= offset < 2 ** 31:
+                return  # a vox_offset that is no offset: ITK says what is wrong with it
+            offset = int(offset)
+            voxels = int(np.prod([max(d, 1) for d in dims[1:1 + min(max(dims[0], 1), 7)]], dtype=np.int64))
+            need = max(offset, 348) + voxels * max(bitpix, 8) // 8
+            have = len(raw) + _bytes_available(fh, need - len(raw))
+    except (OSError, EOFError, zlib.error):
+        have, need = -1, 0
+    if have < need:
+        what = "its gzip stream is damaged" if have < 0 else f"it holds {have} of the {need} bytes its header promises"
+        raise ReadError(f"{p}: truncated NIfTI file ({what}); the missing voxels would read as 0")
+
+
+def _bytes_available(fh, want: int) -> int:
+    """How many of the next ``want`` bytes ``fh`` holds (read in 4 MiB blocks, stopping at ``want``)."""
+    got = 0
+    while got < want:
+        block = fh.read(min(1 << 22, want - got))
+        if not block:
+            break
+        got += len(block)
+    return got
 
 
 def _check_inflate(p: Path, name: str, head: bytes, reader: sitk.ImageFileReader) -> None:
@@ -193,12 +256,35 @@ def _check_inflate(p: Path, name: str, head: bytes, reader: sitk.ImageFileReader
         return
     if name.endswith(".nrrd") and re.search(rb"^data ?file:", head, re.M | re.I):
         return
-    bits = re.search(r"(\d+)-bit", sitk.GetPixelIDValueAsString(reader.GetPixelID()))
-    claimed = float(np.prod(reader.GetSize(), dtype=np.float64)) * reader.GetNumberOfComponents() * (
-        int(bits.group(1)) // 8 if bits else 1)
+    claimed = _voxel_bytes(reader)
     if claimed > MAX_INFLATE * p.stat().st_size:
         raise ReadError(f"{p}: header claims {'x'.join(map(str, reader.GetSize()))} voxels "
                         f"({claimed:.3g} bytes), more than the {p.stat().st_size}-byte file can hold: damaged header")
+
+
+def _voxel_bytes(reader: sitk.ImageFileReader) -> float:
+    """The bytes of voxel data the header (``reader``, information read) describes."""
+    bits = re.search(r"(\d+)-bit", sitk.GetPixelIDValueAsString(reader.GetPixelID()))
+    return float(np.prod(reader.GetSize(), dtype=np.float64)) * reader.GetNumberOfComponents() * (
+        int(bits.group(1)) // 8 if bits else 1)
+
+
+def _check_meta_length(p: Path, head: bytes, claimed: float) -> None:
+    """Refuse a single-file MetaImage (``ElementDataFile = LOCAL``) that ends before its voxels
+    (``claimed`` bytes, or its ``CompressedDataSize``): ITK's own refusal printed two lines of its
+    own and "No such file or directory", naming nothing that is wrong."""
+    end = re.search(rb"^\s*ElementDataFile\s*=[ \t]*LOCAL[ \t]*\r?\n", head, re.M)
+    if end is None:
+        return
+    if re.search(rb"^\s*CompressedData\s*=[ \t]*True", head[:end.end()], re.M | re.I):
+        size = re.search(rb"^\s*CompressedDataSize\s*=[ \t]*(\d+)", head[:end.end()], re.M)
+        if size is None:
+            return  # ITK inflates to the end of the file
+        claimed = float(size.group(1))
+    have = p.stat().st_size - end.end()
+    if have < claimed:
+        raise ReadError(f"{p}: truncated MetaImage file (it holds {have} of the {claimed:.0f} bytes of voxel data "
+                        "its header promises)")
 
 
 def _check_text_header(p: Path, name: str, head: bytes) -> None:

@@ -285,12 +285,25 @@ def _foreground(a: np.ndarray, labels, source: str, what: str) -> np.ndarray:
                     f"{source}: values {lo:g}..{hi:g} look like a CT, not a mask or label image; "
                     "segment the lungs first"
                 )
+            _refuse_fractions(a, source)
         fg = a != 0
     else:
         fg = np.isin(a, _as_labels(labels, "labels"))
     if not fg.any():
         raise MaskError(f"{source}: no foreground voxels for {what}")
     return fg
+
+
+def _refuse_fractions(a: np.ndarray, source: str) -> None:
+    """:class:`MaskError` naming ``source`` when the float array ``a`` holds values that are not whole
+    numbers: a probability map, or a mask resampled with linear interpolation, whose every voxel above
+    0 would otherwise count as lung (the lung grown by the blur, without a word). Which threshold is
+    meant is the user's to say."""
+    frac = a[a != np.rint(a)]
+    if frac.size:
+        raise MaskError(f"{source}: {frac.size} voxel(s) hold fractions ({float(frac.min()):g}..{float(frac.max()):g}), "
+                        "not labels: a probability map or a mask resampled with linear interpolation? threshold it "
+                        "first (e.g. at 0.5); lungdeform does not guess where the lung ends")
 
 
 def _prepared_mask(fg: np.ndarray, notes: list[str], ctx: _Context) -> tuple[np.ndarray, np.ndarray, int, int]:

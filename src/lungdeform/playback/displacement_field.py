@@ -43,7 +43,7 @@ from lungdeform.geometry.mesh import inside_by_parity, inside_nodes
 
 from . import voxel as V
 from .phases import phase_schedule
-from .schedule import MIN_VOLUME_FRACTION, lung_shares
+from .schedule import MAX_GROWTH, MIN_VOLUME_FRACTION, lung_shares
 from .trajectory import above_end_exhale, lung_scales, volumes_in_words
 
 #: Lattice spacing (mm) at which the interior field is evaluated before trilinear interpolation.
@@ -53,9 +53,6 @@ MAX_NODE_MM = 20.0
 #: Most lattice nodes a field is evaluated on (about 3 GB of working memory); a state that moves the
 #: lungs so far that the fade margin needs more is refused before anything is allocated.
 MAX_LATTICE_NODES = 40_000_000
-#: Largest volume of a lung, as a multiple of its end-exhale volume (total lung capacity is about
-#: twice the functional residual capacity): a state beyond it is refused as unreachable.
-MAX_GROWTH = 3.0
 #: Most phases over one breathing cycle (``--phases`` of warp and track).
 MAX_PHASES = 100
 #: Smallest fade margin outside the lungs (mm).

@@ -188,28 +188,39 @@ def read_volume_csv(path) -> VolumeTrace:
 MIN_VOLUME_FRACTION = 0.5
 
 
+#: The largest volume a lung can breathe up to, as a multiple of its end-exhale volume (total lung
+#: capacity is about twice the functional residual capacity, adult TLC ≈ 6 L, FRC ≈ 2.4–3 L): a
+#: state or a curve beyond it is refused as unreachable.
+MAX_GROWTH = 3.0
+
+
 def check_reachable(trace: VolumeTrace, model: Model) -> None:
     """Refuse a trace whose volume takes a lung below :data:`MIN_VOLUME_FRACTION` of its end-exhale
-    volume (each lung plays ``V_EE + share · ΔV``, :func:`lung_shares`), naming the first such sample:
-    its line in the curve file when the trace was read from one. Raises :class:`InputError`."""
+    volume, or above :data:`MAX_GROWTH` times it (each lung plays ``V_EE + share · ΔV``,
+    :func:`lung_shares`), naming the first such sample: its line in the curve file when the trace
+    was read from one. Raises :class:`InputError`."""
     shares = lung_shares(model)
     # each lung's own end-exhale volume: its scan's, less its share of the scan's height above end-exhale
     ee = {side: lung.volume_ee_ml - shares[side] * model.scan.above_ee_ml for side, lung in model.lungs.items()}
-    # the ΔV (both lungs) that takes each lung to the bound; the least negative is reached first
-    bounds = {side: -(1.0 - MIN_VOLUME_FRACTION) * ee[side] / shares[side] for side in model.lungs}
-    worst = max(bounds, key=bounds.get)
-    below = np.nonzero(np.asarray(trace.volume_ml) < bounds[worst])[0]
-    if not len(below):
-        return
-    i = int(below[0])
-    where = f"line {int(trace.lines[i])}" if trace.lines is not None else f"sample {i + 1} (t {trace.t_s[i]:g} s)"
-    dv = float(trace.volume_ml[i])
-    raise InputError(
-        f"{trace.source} {where}: volume_ml {dv + trace.shifted_ml:g} mL (ΔV {dv:.0f} mL above end-exhale, "
-        f"both lungs) takes the {worst} lung to {ee[worst] + shares[worst] * dv:.0f} mL, below "
-        f"{MIN_VOLUME_FRACTION:.0%} of its end-exhale {ee[worst]:.0f} mL: no lung reaches that "
-        f"({len(below)} such rows; volume_ml is the volume of both lungs above end-exhale)"
-    )
+    # the ΔV (both lungs) that takes each lung to a bound; the least negative (lowest positive) is reached first
+    low = {side: -(1.0 - MIN_VOLUME_FRACTION) * ee[side] / shares[side] for side in model.lungs}
+    high = {side: (MAX_GROWTH - 1.0) * ee[side] / shares[side] for side in model.lungs}
+    v = np.asarray(trace.volume_ml)
+    for bounds, pick, outside, words in ((low, max, v < max(low.values()), f"below {MIN_VOLUME_FRACTION:.0%} of"),
+                                         (high, min, v > min(high.values()), f"above {MAX_GROWTH:g} times")):
+        worst = pick(bounds, key=bounds.get)
+        rows = np.nonzero(outside)[0]
+        if not len(rows):
+            continue
+        i = int(rows[0])
+        where = f"line {int(trace.lines[i])}" if trace.lines is not None else f"sample {i + 1} (t {trace.t_s[i]:g} s)"
+        dv = float(v[i])
+        raise InputError(
+            f"{trace.source} {where}: volume_ml {dv + trace.shifted_ml:g} mL (ΔV {dv:.0f} mL above end-exhale, "
+            f"both lungs) takes the {worst} lung to {ee[worst] + shares[worst] * dv:.0f} mL, {words} "
+            f"its end-exhale {ee[worst]:.0f} mL: no lung reaches that "
+            f"({len(rows)} such rows; volume_ml is the volume of both lungs above end-exhale)"
+        )
 
 
 def lung_shares(model: Model) -> dict[str, float]:
