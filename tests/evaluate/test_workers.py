@@ -92,10 +92,15 @@ def test_an_interrupted_parent_leaves_no_half_written_folder(tmp_path):
         os.kill(os.getpid(), signal.SIGINT)
 
     timer = threading.Thread(target=interrupt_once_started, daemon=True)
-    with LungWorkers(1) as workers:
-        timer.start()
-        with pytest.raises(KeyboardInterrupt):
-            workers.map(_write_slowly, [(str(out), str(flag))])
+    # Ctrl-C as Python handles it (a test runner's worker process may ignore SIGINT)
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with LungWorkers(1) as workers:
+            timer.start()
+            with pytest.raises(KeyboardInterrupt):
+                workers.map(_write_slowly, [(str(out), str(flag))])
+    finally:
+        signal.signal(signal.SIGINT, previous)
     timer.join()
     half = flag.read_text()
     assert not os.path.exists(half) and not out.exists()

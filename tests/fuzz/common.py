@@ -552,9 +552,11 @@ def mutate(data: bytes, rnd: random.Random, corpus: list[bytes]) -> bytes:
 
 
 def mutate_loop(name: str, seeds: list[bytes], runs: int, seconds: float, seed: int = 0,
-                out: Path | None = None) -> Recorder:
-    """Seeded random-mutation fuzzing of one reader in this process; returns its recorder
-    (reproducers under ``out``, default ``$LUNGDEFORM_FUZZ_OUT``)."""
+                out: Path | None = None, at_least: int = 0) -> Recorder:
+    """Seeded random-mutation fuzzing of one reader in this process, ``runs`` inputs or ``seconds``,
+    whichever ends first, but at least ``at_least`` inputs however long they take (a loaded machine
+    must not cut a smoke run short); returns its recorder (reproducers under ``out``, default
+    ``$LUNGDEFORM_FUZZ_OUT``)."""
     rnd = random.Random(seed)
     if out is None and os.environ.get("LUNGDEFORM_FUZZ_OUT"):
         out = Path(os.environ["LUNGDEFORM_FUZZ_OUT"])
@@ -563,7 +565,7 @@ def mutate_loop(name: str, seeds: list[bytes], runs: int, seconds: float, seed: 
     for s in [b"", b"\x00" * 7, bytes(range(256))] + corpus:
         rec.run(s)
     end = time.monotonic() + seconds
-    while rec.executions < runs and time.monotonic() < end:
+    while rec.executions < runs and (time.monotonic() < end or rec.executions < at_least):
         rec.run(mutate(rnd.choice(corpus), rnd, corpus))
     rec.flush()
     rec.close()

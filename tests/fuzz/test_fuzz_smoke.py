@@ -11,6 +11,7 @@ from tests.fuzz import common
 
 RUNS = 400  # per reader; with the 2 s cap the whole smoke stays well under a minute
 SECONDS = 2.0
+AT_LEAST = 50  # inputs per reader however loaded the machine (45 ran in 2.4 s once under a load of 9)
 
 
 @pytest.mark.parametrize("reader", list(common.READERS))
@@ -18,8 +19,8 @@ def test_reader_raises_only_package_errors(reader, tmp_path):
     # why: a reader handed mutated bytes of a valid file must refuse them with a LungdeformError;
     # any other exception escaping it is a crash (recorded with the input that caused it).
     seeds = [p.read_bytes() for p in common.make_seeds(reader, tmp_path / "seeds")]
-    rec = common.mutate_loop(reader, seeds, RUNS, SECONDS, seed=1, out=tmp_path / "out")
-    assert rec.executions >= 50, rec.stats()
+    rec = common.mutate_loop(reader, seeds, RUNS, SECONDS, seed=1, out=tmp_path / "out", at_least=AT_LEAST)
+    assert rec.executions >= AT_LEAST, rec.stats()  # the loop ran (the seeds alone are 3 + a few)
     assert not rec.crashes, "\n".join(f"{c['key']}: {c['message']} ({c['reproducer']})" for c in rec.crashes.values())
 
 
