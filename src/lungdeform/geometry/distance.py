@@ -147,6 +147,18 @@ def _cell_of(x, lo, h, n):
     return int(min(max((x - lo) / h, 0.0), n - 1))
 
 
+@numba.njit(cache=True, inline="always")
+def _face_span(box, cell, once, lo, h, dims):
+    """``(a0, a1, b0, b1, c0, c1)``: the cells (inclusive ranges along x, y, z) a face of bounding box
+    ``box (6,)`` is binned in: ``once``, only ``cell``, the cell of its centre; else every cell its box meets."""
+    if once:
+        a, b, c = cell // (dims[1] * dims[2]), (cell // dims[2]) % dims[1], cell % dims[2]
+        return a, a, b, b, c, c
+    return (_cell_of(box[0], lo[0], h, dims[0]), _cell_of(box[3], lo[0], h, dims[0]),
+            _cell_of(box[1], lo[1], h, dims[1]), _cell_of(box[4], lo[1], h, dims[1]),
+            _cell_of(box[2], lo[2], h, dims[2]), _cell_of(box[5], lo[2], h, dims[2]))
+
+
 @numba.njit(cache=True)
 def _grid_fill(vertices, faces, lo, h, dims, cap):
     """Bin the faces in the grid ``(lo, h, dims)``: a face whose box reaches at most ``cap`` mm beyond
@@ -160,12 +172,7 @@ def _grid_fill(vertices, faces, lo, h, dims, cap):
     box, cell, reach = _face_cells(vertices, faces, lo, h, dims)
     counts = np.zeros(n_cells + 1, np.int64)
     for f in range(m):
-        if reach[f] <= cap:
-            counts[cell[f] + 1] += 1
-            continue
-        a0, a1 = _cell_of(box[f, 0], lo[0], h, dims[0]), _cell_of(box[f, 3], lo[0], h, dims[0])
-        b0, b1 = _cell_of(box[f, 1], lo[1], h, dims[1]), _cell_of(box[f, 4], lo[1], h, dims[1])
-        c0, c1 = _cell_of(box[f, 2], lo[2], h, dims[2]), _cell_of(box[f, 5], lo[2], h, dims[2])
+        a0, a1, b0, b1, c0, c1 = _face_span(box[f], cell[f], reach[f] <= cap, lo, h, dims)
         for a in range(a0, a1 + 1):
             for b in range(b0, b1 + 1):
                 for c in range(c0, c1 + 1):
@@ -178,16 +185,9 @@ def _grid_fill(vertices, faces, lo, h, dims, cap):
     content[:, :3], content[:, 3:] = np.inf, -np.inf
     overhang = 0.0
     for f in range(m):
-        a0, a1, b0, b1, c0, c1 = 0, 0, 0, 0, 0, 0
         if reach[f] <= cap:
             overhang = max(overhang, reach[f])
-            a0 = a1 = cell[f] // (dims[1] * dims[2])
-            b0 = b1 = (cell[f] // dims[2]) % dims[1]
-            c0 = c1 = cell[f] % dims[2]
-        else:
-            a0, a1 = _cell_of(box[f, 0], lo[0], h, dims[0]), _cell_of(box[f, 3], lo[0], h, dims[0])
-            b0, b1 = _cell_of(box[f, 1], lo[1], h, dims[1]), _cell_of(box[f, 4], lo[1], h, dims[1])
-            c0, c1 = _cell_of(box[f, 2], lo[2], h, dims[2]), _cell_of(box[f, 5], lo[2], h, dims[2])
+        a0, a1, b0, b1, c0, c1 = _face_span(box[f], cell[f], reach[f] <= cap, lo, h, dims)
         for a in range(a0, a1 + 1):
             for b in range(b0, b1 + 1):
                 for c in range(c0, c1 + 1):
