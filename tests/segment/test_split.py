@@ -168,3 +168,21 @@ def test_split_cache_splits_a_mask_once_and_only_through_the_cache(monkeypatch):
     assert L.find_lungs(image, cache=L.SplitCache()) is not first and len(calls) == 3
     assert L.find_lungs(image) is not first and len(calls) == 4
     np.testing.assert_array_equal(L.find_lungs(image).labels, first.labels)
+
+def test_split_files_splits_each_mask_file_once_ahead(tmp_path, monkeypatch):
+    # truth: a mask file split ahead through the cache is not split again when the fit reads it (the
+    # same file read anew); it is what one_lung then gets, the same split
+    from lungdeform.io.image import write_image
+
+    calls = []
+    real = L._find_lungs
+    monkeypatch.setattr(L, "_find_lungs", lambda *a: calls.append(1) or real(*a))
+    image, _, _ = two_lungs(bridge=False, source="both.nii.gz")
+    path = tmp_path / "both.nii.gz"
+    write_image(path, np.asarray(image.array), image.spacing, image.origin, image.direction)
+    cache = L.SplitCache()
+    cache.split_files([path])
+    assert len(calls) == 1 and len(cache) == 1
+    split = L.one_lung(read_image(path), "left", cache)[2]
+    assert split is not None and len(calls) == 1
+    np.testing.assert_array_equal(split.labels, real(read_image(path), L.MAX_EROSIONS, L.MIN_PART).labels)

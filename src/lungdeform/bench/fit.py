@@ -53,7 +53,7 @@ from lungdeform.io.grid import Image
 from lungdeform.io.image import read_image
 from lungdeform.io.landmarks import write_elastix_points
 from lungdeform.io.mask import mask_to_surface
-from lungdeform.segment.split import SIDES, SplitCache, find_lungs, require_split
+from lungdeform.segment.split import SIDES, SplitCache, require_split
 
 #: Gaussian (mm, standard deviation) that smooths both masks before elastix registers them.
 SMOOTH_SIGMA_MM = 1.5
@@ -253,8 +253,7 @@ def _model_fit_at_once(case: CaseFiles, config: FitConfig, work: Path, workers: 
                        splits: SplitCache) -> tuple[float, float, dict[str, float]]:
     """:func:`model_fit` with both lungs fitted at once by ``workers``."""
     t0, c0 = time.perf_counter(), time.process_time()
-    for mask in (case.exp_mask, case.insp_mask):
-        find_lungs(read_image(mask), cache=splits)
+    splits.split_files([case.exp_mask, case.insp_mask])
     split_seconds = time.perf_counter() - t0
     done = workers.map(_fit_side, [(case, side, config, work / side, splits) for side in SIDES])
     seconds = split_seconds + max(d.seconds - float(d.value["baseline_seconds"]) for d in done)

@@ -149,6 +149,13 @@ class SplitCache:
             self._splits[key] = _find_lungs(image, max_erosions, min_part)
         return self._splits[key]
 
+    def split_files(self, paths) -> None:
+        """Read each mask file of ``paths`` and split it now (:func:`find_lungs`; a mask that is not
+        both lungs in one label is kept as None), so that later reads of the same files find their
+        splits here (e.g. before a subject's two lungs are fitted in worker processes)."""
+        for path in paths:
+            find_lungs(read_image(path), cache=self)
+
     def __len__(self) -> int:
         return len(self._splits)
 

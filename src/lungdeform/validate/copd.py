@@ -55,7 +55,7 @@ from lungdeform.io.modelfile import load_model
 from lungdeform.plot.figure import png_bytes
 from lungdeform.plot.statistics import grouped_bars
 from lungdeform.progress import Progress, silent
-from lungdeform.segment.split import SIDES, SplitCache, find_lungs, landmarks_of_side, require_split
+from lungdeform.segment.split import SIDES, SplitCache, landmarks_of_side, require_split
 
 from . import subjects
 
@@ -356,8 +356,7 @@ def fit_case_lungs(name: str, files, out: Path, config: FitConfig, workers: Lung
     say(f"{name}: splitting the masks")
     t0 = time.perf_counter()
     splits = SplitCache()
-    for mask in files[:2]:
-        find_lungs(read_image(mask), cache=splits)
+    splits.split_files(files[:2])
     split_seconds = time.perf_counter() - t0
     masks = CaseBaselines(files, splits)
     masks(todo[0])  # both lungs' rows, computed once here
