@@ -185,6 +185,13 @@ class CaseBaselines:
     def __init__(self, files, splits: SplitCache | None = None):
         self.files, self.splits, self.rows, self.seconds = files, splits, None, None
 
+    def computed(self) -> "CaseBaselines":
+        """Itself with both lungs' rows computed now and its splits let go (what a worker process needs
+        is the rows; the splits travel to it once, apart)."""
+        self(SIDES[0])
+        self.splits = None
+        return self
+
     def __call__(self, side: str) -> tuple[dict, float]:
         if self.rows is None:
             t0 = time.perf_counter()
@@ -358,10 +365,7 @@ def fit_case_lungs(name: str, files, out: Path, config: FitConfig, workers: Lung
     splits = SplitCache()
     splits.split_files(files[:2])
     split_seconds = time.perf_counter() - t0
-    masks = CaseBaselines(files, splits)
-    masks(todo[0])  # both lungs' rows, computed once here
-    rows = CaseBaselines(files)
-    rows.rows, rows.seconds = masks.rows, masks.seconds  # the workers need the rows, not the splits twice
+    rows = CaseBaselines(files, splits).computed()  # both lungs' rows, once here; the workers get the splits apart
     say(f"{name}: fitting the {' and '.join(todo)} lung{'s' if len(todo) > 1 else ''} in "
         f"{min(len(todo), workers.count)} worker process{'es' if min(len(todo), workers.count) > 1 else ''}")
     with made_folder(out / name):  # made here, not by the first worker: an interrupted case leaves none
