@@ -13,7 +13,7 @@ from matplotlib.image import imread
 from lungdeform.plot.breathing import breathing_volume, pv_loop, residuals
 from lungdeform.plot.figure import save_png
 from lungdeform.plot.fit import (bounding_box, cumulative_errors, cumulative_panels, direction_field, fit_history,
-                                 ray_histogram)
+                                 ray_histogram, target_errors)
 from lungdeform.plot.motion import motion
 from lungdeform.plot.paper import circular_figure, convergence_figure, planar_figure
 from lungdeform.plot.segmentation import label_overlay
@@ -46,6 +46,8 @@ def _figures(rng):
         "cumulative_errors": (lambda: cumulative_errors({"a": err, "b": 2 * err}), (810, 373)),
         "cumulative_panels": (lambda: cumulative_panels({"p": {"a": err}, "q": {"a": err, "b": 2 * err}, "r": {}}),
                               (1312, 552)),
+        "target_errors": (lambda: target_errors({"p": {"a": err}, "q": {"a": err, "b": 2 * err}, "r": {"b": err}}),
+                          (1312, 316)),
         "ray_histogram": (lambda: ray_histogram(np.array([1, 3, 2]), np.array([-1.0, 0, 1, 2])), (560, 280)),
         "bounding_box": (lambda: bounding_box(bb), (960, 320)),
         "direction_field": (lambda: direction_field(v, lung.vertices / 100.0, err), (880, 400)),

@@ -3,8 +3,9 @@
 The alignment used and, for a 4-D CT, the hysteresis table (:mod:`lungdeform.fit.cycle`) come
 first. Plots (drawn by :mod:`lungdeform.plot`): the error colour map on the predicted surface (shaded,
 from the front, the lateral side and the back; colour = distance of each model vertex to the target
-surface, mm, one scale); the cumulative distribution of those distances per method (median marked),
-each one figure with a row (a panel) per target;
+surface, mm, one scale), a row per target; the cumulative distribution of those distances per method
+(median marked), a panel per target, or for three targets or more (a 4-D CT) the headline target's
+beside every target's median and 95th percentile;
 the ray hit-distance histogram; bounding-box dimensions and volume / box-volume against volume
 (paper Fig. 4); the fitted direction field (arrows in two views); the fit history.
 """
@@ -19,7 +20,7 @@ import numpy as np
 
 from lungdeform.atomic import write_bytes
 from lungdeform.plot.figure import png_bytes
-from lungdeform.plot.fit import bounding_box, cumulative_panels, direction_field, fit_history, ray_histogram
+from lungdeform.plot.fit import bounding_box, cumulative_panels, direction_field, fit_history, ray_histogram, target_errors
 from lungdeform.plot.surface import error_maps
 
 
@@ -65,10 +66,12 @@ def _cycle(metrics: dict) -> str:
 
 
 def _error_figures(faces, predictions, metrics, measured, grey: str) -> list[str]:
-    """The error colour map of the model and the cumulative distributions of every method, one
-    figure each with a row (a panel) per target (:func:`lungdeform.plot.surface.error_maps`,
-    :func:`lungdeform.plot.fit.cumulative_panels`): a 4-D CT's phases side by side on one colour scale,
-    two PNGs whatever the number of targets."""
+    """The error colour map of the model, one figure with a row per target
+    (:func:`lungdeform.plot.surface.error_maps`: a 4-D CT's phases side by side on one colour scale),
+    and the distributions of every method: a cumulative panel per target
+    (:func:`lungdeform.plot.fit.cumulative_panels`) up to two targets, from three on the headline
+    target's cumulative distribution beside every target's median and 95th percentile
+    (:func:`lungdeform.plot.fit.target_errors`): two PNGs whatever the number of targets."""
     names = list(metrics["targets"])
     label = names[0] if len(names) == 1 else None
     rows = [(predictions[(t, "model")][0], np.where(measured, predictions[(t, "model")][1], np.nan)) for t in names]
@@ -77,10 +80,13 @@ def _error_figures(faces, predictions, metrics, measured, grey: str) -> list[str
                       row_titles=None if label else names)
     panels = {f"distance of each predicted vertex to {t}" if label else t:
               {name: predictions[(t, name)][1][measured] for name in metrics["targets"][t]} for t in names}
-    curves = cumulative_panels(panels, ylabel="fraction of measured vertices")
-    plural = "" if label else " (one row per target)"
-    return [_img(_png(maps), f"Error colour map (model){plural}"),
-            _img(_png(curves), f"Error distributions (cumulative){plural.replace('row', 'panel')}")]
+    many = len(names) > 2
+    draw = target_errors if many else cumulative_panels
+    curves = draw(panels, ylabel="fraction of measured vertices")
+    what = ("headline target (cumulative) and every target (median, 95th percentile)" if many else
+            "cumulative" + ("" if label else ", one panel per target"))
+    return [_img(_png(maps), "Error colour map (model)" + ("" if label else " (one row per target)")),
+            _img(_png(curves), f"Error distributions ({what})")]
 
 
 def write_report(path, *, rest, targets, fits, predictions, metrics, headline: str = "optimizer",

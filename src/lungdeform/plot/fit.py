@@ -21,19 +21,33 @@ def cumulative_errors(errors: dict[str, np.ndarray], *, xlabel: str = "distance 
     return cumulative_panels({title: errors}, xlabel=xlabel, ylabel=ylabel)
 
 
+def _clean(panels: dict) -> dict:
+    """``title → {name → errors}`` with each ``errors`` sorted and its NaNs left out."""
+    return {t: {n: np.sort(np.asarray(e, float)[np.isfinite(np.asarray(e, float))]) for n, e in errors.items()}
+            for t, errors in panels.items()}
+
+
+def _colour_rank(clean: dict) -> dict[str, int]:
+    """A method's colour index in every panel: its rank by median in the last panel (the headline)."""
+    last = list(clean.values())[-1] if clean else {}
+    return {n: k for k, n in enumerate(sorted((n for n in last if last[n].size), key=lambda n: np.median(last[n])))}
+
+
+def _method_style(k: int) -> tuple[str, str]:
+    """The colour and line style of the method of colour index ``k``."""
+    return f"C{k % 10}", _STYLES[(k // 10) % len(_STYLES)]
+
+
 def cumulative_panels(panels: dict[str | None, dict[str, np.ndarray]], *,
                       xlabel: str = "distance to the target surface (mm)",
                       ylabel: str = "fraction of vertices") -> Figure:
     """Small multiples of :func:`cumulative_errors`, one figure: a panel per ``title → {name → errors
-    (k,) mm}`` (e.g. one per target of a 4-D CT; a title of None: no title), two panels a row from two
-    on, each with its own legend (methods in order of their median there); a method keeps its colour
-    in every panel (its rank in the last panel, the headline target). Laid out in inches
-    (:func:`lungdeform.plot.figure.grid_figure`)."""
-    clean = {t: {n: np.sort(np.asarray(e, float)[np.isfinite(np.asarray(e, float))]) for n, e in errors.items()}
-             for t, errors in panels.items()}
-    last = list(clean.values())[-1] if clean else {}
-    order = sorted((n for n in last if last[n].size), key=lambda n: np.median(last[n]))
-    colour_rank = {n: k for k, n in enumerate(order)}
+    (k,) mm}`` (a title of None: no title), two panels a row from two on, each with its own legend
+    (methods in order of their median there); a method keeps its colour in every panel (its rank in
+    the last panel, the headline target). Laid out in inches (:func:`lungdeform.plot.figure.grid_figure`).
+    For many targets :func:`target_errors` draws two panels instead of one each."""
+    clean = _clean(panels)
+    colour_rank = _colour_rank(clean)
     cols = 1 if len(clean) == 1 else 2
     rows = -(-len(clean) // cols)
     one = Cell(5.4, 3.3, left=0.7, right=2.9, bottom=0.55, top=0.3)
@@ -44,9 +58,45 @@ def cumulative_panels(panels: dict[str | None, dict[str, np.ndarray]], *,
         ax.set_xlabel(xlabel, fontsize=None if cols == 1 else 8)
         ax.set_ylabel(ylabel, fontsize=None if cols == 1 else 8)
         if title:
-            ax.set_title(title, fontsize=None if cols == 1 else 9)
+            ax.set_title(title, fontsize=None if cols == 1 else 9, y=1.0)
     for ax in axes.ravel()[len(clean):]:
         ax.set_visible(False)
+    return fig
+
+
+def target_errors(panels: dict[str, dict[str, np.ndarray]], *, xlabel: str = "distance to the target surface (mm)",
+                  ylabel: str = "fraction of vertices") -> Figure:
+    """The errors of many targets in two panels (a 4-D CT's phases): the cumulative distribution of each
+    method at the last target of ``panels`` (``title → {name → errors (k,) mm}``, the headline, as in
+    :func:`cumulative_panels`), and beside it each method's median (solid, dots) and 95th percentile
+    (dashed) at every target, targets along x in the order given; a method has the same colour in both."""
+    clean = _clean(panels)
+    colour_rank = _colour_rank(clean)
+    fig, axes = grid_figure(1, 2, Cell(4.2, 2.9, left=0.7, right=3.3, bottom=0.75, top=0.3), dpi=80)
+    headline, spread = axes[0]
+    box = spread.get_position()  # the second panel wider: its legend is two short lines
+    spread.set_position((box.x0, box.y0, box.width + 2.0 / fig.get_figwidth(), box.height))
+    title = list(clean)[-1]
+    _cumulative_panel(headline, clean[title], colour_rank, 7)
+    headline.set_xlabel(xlabel, fontsize=8)
+    headline.set_ylabel(ylabel, fontsize=8)
+    headline.set_title(f"at {title} (the last target)", fontsize=9, y=1.0)
+    x = np.arange(len(clean))
+    for name, k in colour_rank.items():
+        colour, _ = _method_style(k)
+        stats = np.array([np.percentile(e[name], (50, 95)) if e.get(name, np.zeros(0)).size else (np.nan, np.nan)
+                          for e in clean.values()])
+        spread.plot(x, stats[:, 0], "o-", color=colour, linewidth=1.4, markersize=3)
+        spread.plot(x, stats[:, 1], "--", color=colour, linewidth=1.0)
+    spread.plot([], [], "k-", label="median")
+    spread.plot([], [], "k--", label="95th percentile")
+    spread.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7)
+    spread.set_xticks(x, list(clean), rotation=45 if max(map(len, clean), default=0) > 3 else 0, fontsize=7)
+    spread.set_ylim(bottom=0.0)
+    spread.set_ylabel(xlabel, fontsize=8)
+    spread.set_xlabel("target", fontsize=8)
+    spread.set_title("every target", fontsize=9, y=1.0)
+    spread.grid(alpha=0.3)
     return fig
 
 
@@ -58,7 +108,7 @@ def _cumulative_panel(ax, clean: dict[str, np.ndarray], colour_rank: dict[str, i
         k = colour_rank.get(name)
         k, extra = (extra, extra + 1) if k is None else (k, extra)
         e = clean[name]
-        colour, style = f"C{k % 10}", _STYLES[(k // 10) % len(_STYLES)]
+        colour, style = _method_style(k)
         med = float(np.median(e))
         ax.step(np.r_[0.0, e], np.r_[0.0, np.arange(1, e.size + 1) / e.size], where="post", color=colour,
                 linestyle=style, linewidth=1.4, label=f"{name} (median {med:.2f} mm)")
