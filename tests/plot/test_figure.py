@@ -101,6 +101,20 @@ def test_no_pyplot_and_no_backend_choice():
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
+def test_png_bytes_are_matplotlibs_pixels_rgb_when_opaque(tmp_path):
+    # truth: matplotlib's own PNG writer (savefig) on the same figure: the same pixels; an opaque
+    # figure (every pixel's alpha 255 there) is written RGB, a transparent one keeps its alpha
+    fig = fit_history({"optimizer": np.linspace(3, 1, 20)})
+    ours = imread(io.BytesIO(png_bytes(fig)))
+    fig.savefig(tmp_path / "mpl.png", format="png", dpi="figure")
+    theirs = imread(tmp_path / "mpl.png")
+    assert ours.shape[2] == 3 and (theirs[..., 3] == 1.0).all()
+    assert np.array_equal(ours, theirs[..., :3])
+    fig.patch.set_alpha(0.0)
+    clear = imread(io.BytesIO(png_bytes(fig)))
+    assert clear.shape[2] == 4 and (clear[..., 3] < 1.0).any()
+
+
 def test_pixel_image_is_drawn_pixel_for_pixel_and_scaled_at_another_dpi(tmp_path, rng):
     # truth: the image's own pixels, at its place (top-left pixel (30, 20) of a 200 × 100 figure) at
     # the figure's dpi; saved at twice the dpi, each pixel becomes 2 × 2 at twice the offset; a
