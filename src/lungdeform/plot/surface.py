@@ -193,7 +193,7 @@ def panel_frames(extents: np.ndarray, box_px: tuple[float, float]) -> tuple[floa
     ``shape (h, w)`` pixels and ``origins : (p, 2) float`` mm (each image's top-left corner, so that
     it is centred on its surface)."""
     ext = np.asarray(extents, float).reshape(-1, 2, 2)
-    size = 2.0 * _half_size(ext)
+    size = np.maximum(2.0 * _half_size(ext), 1e-6)  # a surface of one point: a panel of a nanometre
     mm_per_pixel = float(np.max(size / np.asarray(box_px, float)))
     w, h = (max(round(float(n)), 1) for n in size / mm_per_pixel)
     origins = ext.mean(axis=1) + np.array([-0.5 * w, 0.5 * h]) * mm_per_pixel
