@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import io
 import subprocess
 import sys
 
@@ -11,7 +12,7 @@ import pytest
 from matplotlib.image import imread
 
 from lungdeform.plot.breathing import breathing_volume, pv_loop, residuals
-from lungdeform.plot.figure import save_png
+from lungdeform.plot.figure import PixelImage, new_figure, png_bytes, save_png
 from lungdeform.plot.fit import (bounding_box, cumulative_errors, cumulative_panels, direction_field, fit_history,
                                  ray_histogram, target_errors)
 from lungdeform.plot.motion import motion
@@ -100,3 +101,37 @@ def test_no_pyplot_and_no_backend_choice():
             "from lungdeform.plot.fit import fit_history; png_bytes(fit_history({'a': np.arange(3.0)})); "
             "assert 'matplotlib.pyplot' not in sys.modules, 'pyplot loaded'")
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_png_bytes_are_matplotlibs_pixels_rgb_when_opaque(tmp_path):
+    # truth: matplotlib's own PNG writer (savefig) on the same figure: the same pixels; an opaque
+    # figure (every pixel's alpha 255 there) is written RGB, a transparent one keeps its alpha
+    fig = fit_history({"optimizer": np.linspace(3, 1, 20)})
+    ours = imread(io.BytesIO(png_bytes(fig)))
+    fig.savefig(tmp_path / "mpl.png", format="png", dpi="figure")
+    theirs = imread(tmp_path / "mpl.png")
+    assert ours.shape[2] == 3 and (theirs[..., 3] == 1.0).all()
+    assert np.array_equal(ours, theirs[..., :3])
+    fig.patch.set_alpha(0.0)
+    clear = imread(io.BytesIO(png_bytes(fig)))
+    assert clear.shape[2] == 4 and (clear[..., 3] < 1.0).any()
+
+
+def test_pixel_image_is_drawn_pixel_for_pixel_and_scaled_at_another_dpi(tmp_path, rng):
+    # truth: the image's own pixels, at its place (top-left pixel (30, 20) of a 200 × 100 figure) at
+    # the figure's dpi; saved at twice the dpi, each pixel becomes 2 × 2 at twice the offset; a
+    # vector backend gets the image too
+    rgba = rng.integers(0, 256, (7, 11, 4)).astype(np.uint8)
+    rgba[..., 3] = 255
+    fig = new_figure(2.0, 1.0, dpi=100)
+    fig.add_artist(PixelImage(rgba, (30, 20), fig.dpi))
+    img = np.rint(imread(io.BytesIO(png_bytes(fig)))[..., :3] * 255)
+    assert np.array_equal(img[20:27, 30:41], rgba[..., :3])
+    assert (img[:20] == 255).all() and (img[27:] == 255).all()
+    fig.savefig(tmp_path / "x2.png", dpi=200)
+    big = np.rint(imread(tmp_path / "x2.png") * 255)
+    assert np.array_equal(big[40:54:2, 60:82:2, :3], rgba[..., :3]) and np.array_equal(big[41:54:2, 61:82:2, :3],
+                                                                                          rgba[..., :3])
+    svg = io.BytesIO()
+    fig.savefig(svg, format="svg")
+    assert b"<image" in svg.getvalue()

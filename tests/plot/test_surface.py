@@ -8,7 +8,7 @@ import pytest
 from matplotlib import colormaps
 from matplotlib.image import imread
 
-from lungdeform.plot.figure import save_png
+from lungdeform.plot.figure import PixelImage, save_png
 from lungdeform.plot.surface import error_colours, error_map, error_maps, merge_surfaces, project, shade, snapshot
 
 
@@ -100,10 +100,53 @@ def test_merge_surfaces_renumbers_faces():
     assert v.shape == (8, 3) and f.tolist() == [[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]]
 
 
-def test_error_maps_of_many_rows_say_their_common_size_instead_of_ticks():
+def test_error_maps_of_many_rows_say_their_common_size_instead_of_ticks(tmp_path):
     # truth: three 10 mm squares side by side in rows; panels are the largest extent × 1.06 (10.6 mm)
-    # across and up; from three rows on no ticks, the size in the title
+    # across and up; from three rows on no ticks, the size in the title; the panels are one image
+    # drawn on the figure (no Axes per panel: the only Axes is the colour bar) and the PNG shows each
+    # square at its panel's centre in its colour (1 mm on a 0…4 mm scale: viridis at 1/4)
     v, f = _square(0.0, 0.0)
-    fig = error_maps([(v, np.full(4, 1.0))] * 3, f, views=("anterior",), title="t")
+    fig = error_maps([(v, np.full(4, 1.0))] * 3, f, views=("anterior",), title="t", vmax=4.0)
     assert fig._suptitle.get_text() == "t; every panel 11 × 11 mm"
-    assert all(len(ax.get_xticks()) == 0 and len(ax.get_yticks()) == 0 for ax in fig.axes[:3])
+    assert len(fig.axes) == 1 and fig.axes[0].get_ylabel() == "distance to the target surface (mm)"
+    img = imread(save_png(fig, tmp_path / "maps.png"))
+    image, = (a for a in fig.artists if isinstance(a, PixelImage))
+    h, w = image._rgba.shape[:2]
+    c0, r0 = image._top_left
+    rows = r0 + h * np.array([1, 3, 5]) // 6  # the three panels' centres, one below the other
+    assert img[rows, c0 + w // 2, :3] == pytest.approx(np.tile(colormaps["viridis"](0.25)[:3], (3, 1)), abs=2 / 255)
+
+
+def _side_px(img: np.ndarray, rgb) -> float:
+    """The side (pixels) of a square drawn in colour ``rgb``: the root of the count of its pixels."""
+    return float(np.sqrt((np.abs(img[..., :3] - rgb) < 2.5 / 255).all(axis=2).sum()))
+
+
+@pytest.mark.parametrize("rows", [2, 3])
+def test_error_maps_draw_every_panel_to_the_same_mm_per_pixel(tmp_path, rows):
+    # truth: squares of 20, 40 and 10 mm in their own rows (errors 1, 2, 3 mm on a 0…4 mm scale, so
+    # viridis at 1/4, 1/2, 3/4; unshaded, facing the viewer): each panel is centred on its own square
+    # but all share one scale, the largest square's panel (40 × 1.06 mm) fitted to the panel box
+    # (2.6 inch at 80 dpi = 208 pixels from three rows on; else 3.2 inch at 90 dpi = 288 pixels
+    # across, the narrower side of its box): each square's side in pixels (the root of its fully
+    # covered pixels, short of the true side by at most the two partly covered edges) is its mm over
+    # that one mm per pixel
+    sides = [20.0, 40.0, 10.0][:rows]
+    surfaces = [(_square(0.0, 0.0, side)[0], np.full(4, k + 1.0)) for k, side in enumerate(sides)]
+    fig = error_maps(surfaces, _square(0.0, 0.0)[1], views=("anterior",), vmax=4.0)
+    img = imread(save_png(fig, tmp_path / "maps.png"))
+    img = img[:, : int(fig.axes[-1].get_position().x0 * img.shape[1])]  # the colour bar shows every colour: left out
+    mm_per_pixel = 40.0 * 1.06 / (208 if rows > 2 else 288)
+    for k, side in enumerate(sides):
+        assert side / mm_per_pixel - 2.0 <= _side_px(img, colormaps["viridis"]((k + 1) / 4.0)[:3]) <= side / mm_per_pixel + 1.0
+
+
+def test_error_maps_grey_where_the_error_is_missing(tmp_path):
+    # truth: a face whose vertices' errors are NaN (not measured) is grey 0.6, on every path: an Axes
+    # per panel (one row) and one image (three rows)
+    v, f = _square(0.0, 0.0, 20.0)
+    for rows in (1, 3):
+        fig = error_maps([(v, np.full(4, np.nan))] * rows, f, views=("anterior",), vmax=1.0)
+        img = imread(save_png(fig, tmp_path / f"grey{rows}.png"))
+        img = img[:, : int(fig.axes[-1].get_position().x0 * img.shape[1])]
+        assert _side_px(img, [0.6, 0.6, 0.6]) > 50

@@ -7,7 +7,9 @@ atomically and :func:`~lungdeform.plot.figure.png_bytes` returns its bytes. No p
 ``matplotlib.use``: nothing here keeps global state.
 
 Owns:
-- :mod:`~lungdeform.plot.figure`: a Figure on its own Agg canvas, PNG bytes and files;
+- :mod:`~lungdeform.plot.figure`: a Figure on its own Agg canvas, PNG bytes and files, an image drawn
+  pixel for pixel;
+- :mod:`~lungdeform.plot.raster`: flat triangles filled into an RGBA image, far first, anti-aliased (numba);
 - :mod:`~lungdeform.plot.surface`: lung surfaces by a small painter (:func:`snapshot`, :func:`error_map`);
 - :mod:`~lungdeform.plot.fit`: the fit report's plots (error distributions, ray hits, bounding boxes,
   the direction field, the search's history);
@@ -17,9 +19,9 @@ Owns:
 - :mod:`~lungdeform.plot.statistics`: cohort and per-method statistics (box-and-strip, scatter, bars);
 - :mod:`~lungdeform.plot.paper`: the paper's Figs. 7–9.
 
-May import: :mod:`lungdeform.atomic` only (and numpy, matplotlib): every layer above may draw. The
-package imports none of its modules: a caller imports the one it draws with, so only code that draws
-imports matplotlib.
+May import: :mod:`lungdeform.atomic` only (and numpy, numba, matplotlib and its Pillow): every layer
+above may draw. The package imports none of its modules: a caller imports the one it draws with, so
+only code that draws imports matplotlib.
 """
 
 #: The names of ``lungdeform/plot.py`` (≤ 0.7) → the module of the package that holds each now.

@@ -4,12 +4,14 @@ outside. Views are named in the patient frame (:data:`VIEWS`): ``anterior`` look
 front (patient left on the image right), ``posterior`` at the back, ``lateral-left`` /
 ``lateral-right`` from the sides, ``superior`` from above. Coordinates are mm, LPS (+x patient left,
 +y posterior, +z head). :func:`snapshot` draws layers of surfaces, :func:`error_map` one coloured by a
-per-vertex error.
+per-vertex error, its panels painted into images by :mod:`lungdeform.plot.raster` (one image
+for many rows: the figure's cost hardly grows with them).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from matplotlib import colormaps
@@ -17,8 +19,10 @@ from matplotlib.cm import ScalarMappable
 from matplotlib.collections import PolyCollection
 from matplotlib.colors import Normalize, to_rgb
 from matplotlib.figure import Figure
+from matplotlib.transforms import Affine2D
 
-from .figure import Cell, grid_figure, new_figure
+from .figure import Cell, PixelImage, grid_boxes, new_figure
+from .raster import paint
 
 #: view name → (direction from the patient to the viewer, image right, image up), unit vectors in LPS
 VIEWS = {
@@ -38,23 +42,33 @@ VIEW_DIRECTIONS = {
 }
 
 
-def project(vertices: np.ndarray, faces: np.ndarray, view: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def unit_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """``(m, 3) float``: each face's unit normal (by its winding; zero for a face of no area), of
+    ``vertices : (n, 3) float`` mm and ``faces : (m, 3) int``."""
+    v = np.asarray(vertices, float)
+    f = np.asarray(faces)
+    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    length = np.linalg.norm(n, axis=1)
+    return n / np.where(length > 0, length, 1.0)[:, None]
+
+
+def project(vertices: np.ndarray, faces: np.ndarray, view: str,
+            normals: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The faces of a closed surface that face the viewer of ``view``, far first (painter's order).
 
-    ``vertices : (n, 3) float`` mm LPS, ``faces : (m, 3) int`` wound outward. Returns ``polygons
+    ``vertices : (n, 3) float`` mm LPS, ``faces : (m, 3) int`` wound outward; ``normals : (m, 3)
+    float`` their :func:`unit_normals` if known (several views of one surface). Returns ``polygons
     (k, 3, 2) float`` (mm along the image right and up), ``cosine (k,) float`` in (0, 1] (the angle
     between each face's outward normal and the direction to the viewer: the headlight's Lambert term)
     and ``index (k,) int`` (which face of ``faces`` each polygon is)."""
     eye, right, up = (np.asarray(a) for a in VIEWS[view])
     v = np.asarray(vertices, float)
     f = np.asarray(faces)
-    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    length = np.linalg.norm(n, axis=1)
-    cosine = (n @ eye) / np.where(length > 0, length, 1.0)
+    cosine = (unit_normals(v, f) if normals is None else normals) @ eye
     facing = np.nonzero(cosine > 0)[0]
-    depth = v[f[facing]].mean(axis=1) @ eye
+    depth = (v @ eye)[f[facing]].sum(axis=1)  # three times the centroid's distance toward the viewer
     index = facing[np.argsort(depth, kind="stable")]  # far first
-    xy = np.stack([v @ right, v @ up], axis=1)
+    xy = v @ np.stack([right, up], axis=1)
     return xy[f[index]], np.clip(cosine[index], 0.0, 1.0), index
 
 
@@ -72,20 +86,24 @@ def _draw_faces(ax, polygons: np.ndarray, rgb: np.ndarray, alpha: float = 1.0) -
     ax.add_collection(PolyCollection(polygons, facecolors=rgba, edgecolors=edges, linewidths=1.0))
 
 
-def _frame_views(axes: np.ndarray, extents: list[tuple[np.ndarray, np.ndarray]], views: Sequence[str],
-                 row_titles: Sequence[str | None] | None = None) -> np.ndarray:
-    """Same mm per inch in every panel of ``axes : (rows, len(views))`` (the largest extent across and
-    up; ``extents`` row by row), each panel centred on its surface; axes named by the patient direction
-    they point to (the bottom row and the left column, every row and column showing the same views),
-    each column's view on the top row, ``row_titles`` on the left column; from three rows on, no
-    ticks (each costs matplotlib a Tick object per panel, most of a 4-D CT's error map). Returns ``(2,)``
-    mm: half of every panel's width and height."""
-    half = np.max([0.5 * (hi - lo) for lo, hi in extents], axis=0) * 1.06
+def _half_size(extents) -> np.ndarray:
+    """``(2,) float`` mm: half of every panel's width and height, the largest of ``extents`` (each
+    panel's surface's ``(lo (2,), hi (2,))`` mm) across and up, plus a 3 % margin on each side."""
+    return np.max([0.5 * (np.asarray(hi) - np.asarray(lo)) for lo, hi in extents], axis=0) * 1.06
+
+
+def _frame_views(axes: np.ndarray, mids: np.ndarray, half: np.ndarray, views: Sequence[str],
+                 row_titles: Sequence[str | None] | None = None) -> None:
+    """Every panel of ``axes : (rows, len(views))`` shows ``mids : (rows · len(views), 2) float`` mm
+    (row by row: each panel's surface's centre) ± ``half : (2,) float`` mm, so the same mm per inch in
+    every panel; axes named by the patient direction they point to (the bottom row and the left
+    column, every row and column showing the same views), each column's view on the top row,
+    ``row_titles`` on the left column; mm ticks (one or two rows: :func:`error_maps` shows more
+    rows as one image, :func:`_mosaic`)."""
     rows = axes.shape[0]
-    for k, (ax, (lo, hi)) in enumerate(zip(axes.ravel(), extents)):
+    for k, (ax, mid) in enumerate(zip(axes.ravel(), mids)):
         r, c = divmod(k, len(views))
         view = views[c]
-        mid = 0.5 * (lo + hi)
         ax.set_xlim(mid[0] - half[0], mid[0] + half[0])
         ax.set_ylim(mid[1] - half[1], mid[1] + half[1])
         ax.set_aspect("equal")
@@ -93,16 +111,11 @@ def _frame_views(axes: np.ndarray, extents: list[tuple[np.ndarray, np.ndarray]],
         name = [row_titles[r]] if row_titles is not None and c == 0 and row_titles[r] else []
         ax.set_title(": ".join(name + ([view] if r == 0 else [])), fontsize=9 if rows > 1 else None)
         if r == rows - 1:
-            ax.set_xlabel(f"{'' if rows > 2 else 'mm, '}toward {across} →", fontsize=8)
+            ax.set_xlabel(f"mm, toward {across} →", fontsize=8)
         if c == 0:
-            ax.set_ylabel(f"{'' if rows > 2 else 'mm, '}toward {upward} →", fontsize=8)
-        if rows > 2:  # small multiples: no ticks (each panel is centred on its own surface, all to one scale)
-            ax.set_xticks([])
-            ax.set_yticks([])
-        else:
-            ax.tick_params(labelsize=7)
-            ax.locator_params(nbins=5)
-    return half
+            ax.set_ylabel(f"mm, toward {upward} →", fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.locator_params(nbins=5)
 
 
 def _extent(polygons: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -138,7 +151,7 @@ def snapshot(layers: Sequence[tuple[Sequence[tuple[np.ndarray, np.ndarray]], str
             a, b = _extent(polygons)
             lo, hi = np.minimum(lo, a), np.maximum(hi, b)
         extents.append((lo, hi))
-    _frame_views(axes[None, :], extents, views)
+    _frame_views(axes[None, :], [0.5 * (lo + hi) for lo, hi in extents], _half_size(extents), views)
     if title:
         fig.suptitle(title, fontsize=10)
     return fig
@@ -149,6 +162,129 @@ def error_colours(values: np.ndarray, vmax: float, cmap: str = "viridis") -> np.
     NaN: grey)."""
     scale = colormaps[cmap].with_extremes(bad="0.6")
     return scale(Normalize(0.0, vmax, clip=True)(np.asarray(values, float)))[:, :3]
+
+
+@dataclass(frozen=True)
+class PanelImages:
+    """Panels painted to one scale (:func:`paint_panels`). ``images : (p, h, w, 4) uint8`` RGBA
+    (alpha: the covered fraction of each pixel), one per panel, row by row of the views;
+    ``origins : (p, 2) float`` mm, each image's top-left corner in its view's plane (x toward the
+    image right, y up); ``mm_per_pixel`` the same in every panel."""
+
+    images: np.ndarray
+    origins: np.ndarray
+    mm_per_pixel: float
+
+    @property
+    def size(self) -> np.ndarray:
+        """``(2,) float`` mm: every panel's width and height."""
+        return np.array(self.images.shape[2:0:-1], float) * self.mm_per_pixel
+
+    def extent(self, k: int) -> tuple[float, float, float, float]:
+        """Panel ``k``'s (left, right, bottom, top) in mm of its view's plane (``imshow``'s extent)."""
+        (x0, y1), (w, h) = self.origins[k], self.size
+        return x0, x0 + w, y1 - h, y1
+
+
+def panel_frames(extents: np.ndarray, box_px: tuple[float, float]) -> tuple[float, tuple[int, int], np.ndarray]:
+    """One scale for every panel: ``extents : (p, 2, 2) float`` mm (each panel's surface's lowest and
+    highest x, y in its view's plane), ``box_px`` the pixels (across, up) a panel may take. Returns
+    ``mm_per_pixel`` (the common panel size of :func:`_half_size` fitted in the box), the panels'
+    ``shape (h, w)`` pixels and ``origins : (p, 2) float`` mm (each image's top-left corner, so that
+    it is centred on its surface)."""
+    ext = np.asarray(extents, float).reshape(-1, 2, 2)
+    size = np.maximum(2.0 * _half_size(ext), 1e-6)  # a surface of one point: a panel of a nanometre
+    mm_per_pixel = float(np.max(size / np.asarray(box_px, float)))
+    w, h = (max(round(float(n)), 1) for n in size / mm_per_pixel)
+    origins = ext.mean(axis=1) + np.array([-0.5 * w, 0.5 * h]) * mm_per_pixel
+    return mm_per_pixel, (h, w), origins
+
+
+def paint_panels(rows: Sequence[tuple[np.ndarray, np.ndarray]], faces: np.ndarray, views: Sequence[str],
+                 vmax: float, box_px: tuple[float, float], supersample: int = 3) -> PanelImages:
+    """The error map's panels as images (:func:`lungdeform.plot.raster.paint`): for each ``(vertices
+    (n, 3) mm LPS, error (n,) mm)`` of ``rows`` and each view, the faces facing the viewer, coloured by
+    their vertices' mean error on ``[0, vmax]`` (NaN grey) and Lambert-shaded, far first; all panels
+    to the scale of :func:`panel_frames` in ``box_px`` pixels, ``supersample²`` samples a pixel."""
+    faces = np.asarray(faces)
+    drawn, extents = [], []
+    for vertices, error in rows:
+        face_error = np.asarray(error, float)[faces].mean(axis=1)
+        normals = unit_normals(vertices, faces)
+        for view in views:
+            polygons, cosine, index = project(vertices, faces, view, normals)
+            drawn.append((polygons, shade(error_colours(face_error[index], vmax), cosine, ambient=0.55)))
+            extents.append(_extent(polygons))
+    mm_per_pixel, shape, origins = panel_frames(extents, box_px)
+    images = np.empty((len(drawn), *shape, 4), np.uint8)
+    for k, ((polygons, rgb), origin) in enumerate(zip(drawn, origins)):
+        images[k] = np.rint(paint(polygons, rgb, origin, mm_per_pixel, shape, supersample) * 255.0)
+    return PanelImages(images, origins, mm_per_pixel)
+
+
+def _panel_axes(fig: Figure, boxes: np.ndarray, panels: PanelImages, views: Sequence[str],
+                row_titles: Sequence[str | None] | None) -> tuple[float, float, float]:
+    """Few rows: one Axes per panel (``boxes : (rows, cols, 4)`` inches of :func:`grid_boxes`), the
+    panel shown by ``imshow`` in mm, with ticks (:func:`_frame_views`). Returns the colour bar's
+    anchor: the right, top and bottom of the last column's panels (figure fractions)."""
+    size = np.array([fig.get_figwidth(), fig.get_figheight()] * 2)
+    axes = np.empty(boxes.shape[:2], dtype=object)
+    for k, box in enumerate(boxes.reshape(-1, 4)):
+        axes.flat[k] = ax = fig.add_axes(tuple(box / size))
+        ax.imshow(panels.images[k], extent=panels.extent(k), interpolation="nearest")
+    mids = panels.origins + np.array([0.5, -0.5]) * panels.size
+    _frame_views(axes, mids, 0.5 * panels.size, views, row_titles)
+    top, bottom = axes[0, -1].get_position(), axes[-1, -1].get_position()
+    return top.x1, top.y1, bottom.y0
+
+
+def _mosaic(fig: Figure, boxes: np.ndarray, panels: PanelImages, views: Sequence[str],
+            row_titles: Sequence[str | None] | None) -> tuple[float, float, float]:
+    """Many rows: every panel in one image drawn pixel for pixel (:class:`PixelImage`; each panel
+    centred in its box, ``boxes : (rows, cols, 4)`` inches of :func:`grid_boxes`), a frame around each,
+    titles and axis directions as text, on the figure itself (no Axes: no ticks, and none of an Axes'
+    cost). Returns the colour bar's anchor: the right, top and bottom of the last column's panels
+    (figure fractions)."""
+    dpi = fig.dpi
+    width, height = fig.get_figwidth() * dpi, fig.get_figheight() * dpi
+    h, w = panels.images.shape[1:3]
+    left = np.rint(boxes[..., 0] * dpi + 0.5 * (boxes[..., 2] * dpi - w)).astype(int)
+    top = np.rint(height - (boxes[..., 1] + boxes[..., 3]) * dpi + 0.5 * (boxes[..., 3] * dpi - h)).astype(int)
+    r0, c0 = top.min(), left.min()
+    image = np.zeros((top.max() + h - r0, left.max() + w - c0, 4), np.uint8)
+    for k, (r, c) in enumerate(zip(top.ravel() - r0, left.ravel() - c0)):
+        image[r:r + h, c:c + w] = panels.images[k]
+    fig.add_artist(PixelImage(image, (c0, r0), dpi))
+    # figure pixels at the figure's dpi, y down (scaled with the figure when drawn at another dpi)
+    pixels = Affine2D().scale(1.0 / dpi, -1.0 / dpi).translate(0.0, fig.get_figheight()) + fig.dpi_scale_trans
+    frames = [[(c, r), (c + w, r), (c + w, r + h), (c, r + h)] for r, c in zip(top.ravel(), left.ravel())]
+    fig.add_artist(PolyCollection(frames, facecolors="none", edgecolors="black", linewidths=0.8, transform=pixels))
+    _mosaic_labels(fig, pixels, top, left, (h, w), views, row_titles)
+    return (left[0, -1] + w) / width, 1.0 - top[0, -1] / height, 1.0 - (top[-1, -1] + h) / height
+
+
+def _mosaic_labels(fig: Figure, pixels, top: np.ndarray, left: np.ndarray, shape: tuple[int, int],
+                   views: Sequence[str], row_titles: Sequence[str | None] | None) -> None:
+    """The texts of :func:`_mosaic`, placed in figure pixels (the transform ``pixels``, y down): each
+    column's view on the top row, ``row_titles`` above the left column, the patient direction along
+    each axis under the bottom row and left of the left column, as an Axes would have them. ``top,
+    left : (rows, cols) int`` each panel's top-left pixel, ``shape (h, w)`` pixels."""
+    h, w = shape
+    pad = 6.0 / 72.0 * fig.dpi  # matplotlib's title and label padding, 6 points
+    for r in range(top.shape[0]):
+        for c, view in enumerate(views):
+            name = [row_titles[r]] if row_titles is not None and c == 0 and row_titles[r] else []
+            title = ": ".join(name + ([view] if r == 0 else []))
+            if title:
+                fig.text(left[r, c] + 0.5 * w, top[r, c] - pad, title, fontsize=9, ha="center", va="bottom",
+                         transform=pixels)
+    for c, view in enumerate(views):
+        fig.text(left[-1, c] + 0.5 * w, top[-1, c] + h + pad, f"toward {VIEW_DIRECTIONS[view][0]} →", fontsize=8,
+                 ha="center", va="top", transform=pixels)
+    upward = VIEW_DIRECTIONS[views[0]][1]
+    for r in range(top.shape[0]):
+        fig.text(left[r, 0] - pad, top[r, 0] + 0.5 * h, f"toward {upward} →", fontsize=8, rotation=90,
+                 ha="right", va="center", transform=pixels)
 
 
 def error_map(vertices: np.ndarray, faces: np.ndarray, error: np.ndarray, *,
@@ -169,10 +305,12 @@ def error_maps(rows: Sequence[tuple[np.ndarray, np.ndarray]], faces: np.ndarray,
     """Small multiples of :func:`error_map`, one figure: one row of ``views`` per ``(vertices (n, 3)
     mm LPS, error (n,) mm)`` of ``rows`` (surfaces of the same ``faces (m, 3)``, e.g. the predicted
     surface at each target of a 4-D CT), named by ``row_titles``; one colour scale ``[0, vmax]``
-    (default: the 98th percentile of every row's errors) and one colour bar, the same mm per inch in
-    every panel. Laid out in inches (:func:`lungdeform.plot.figure.grid_figure`), smaller panels and no
-    ticks from three rows on (the panels' common scale is then said in the title)."""
-    faces = np.asarray(faces)
+    (default: the 98th percentile of every row's errors) and one colour bar, the same mm per pixel in
+    every panel (:func:`paint_panels`: each panel an image, painted here, not one matplotlib path per
+    face). Laid out in inches (:func:`lungdeform.plot.figure.grid_boxes`); one or two rows: an Axes per
+    panel with mm ticks; from three rows on, smaller panels, all in one image on one Axes (no ticks:
+    the panels' common size is said in the title), so the figure costs about the same whatever the
+    number of rows."""
     errors = [np.asarray(e, float) for _, e in rows]
     finite = np.concatenate([e[np.isfinite(e)] for e in errors] + [np.zeros(0)])
     if vmax is None:
@@ -180,26 +318,28 @@ def error_maps(rows: Sequence[tuple[np.ndarray, np.ndarray]], faces: np.ndarray,
     vmax = vmax if vmax > 0 else 1.0
     many = len(rows) > 2
     cell = Cell(2.6, 2.6, left=0.6, bottom=0.25, top=0.3) if many else Cell(3.2, 3.4, left=0.6, bottom=0.5, top=0.35)
-    fig, axes = grid_figure(len(rows), len(views), cell, right_in=1.2, top_in=0.4 if title or many else 0.1,
-                            dpi=80 if many else 90)
-    extents = []
-    for r, ((vertices, _), error) in enumerate(zip(rows, errors)):
-        face_error = error[faces].mean(axis=1)
-        for ax, view in zip(axes[r], views):
-            polygons, cosine, index = project(vertices, faces, view)
-            _draw_faces(ax, polygons, shade(error_colours(face_error[index], vmax), cosine, ambient=0.55))
-            extents.append(_extent(polygons))
-    half = _frame_views(axes, extents, views, row_titles)
-    over = finite.size and finite.max() > vmax
-    top, bottom = axes[0, -1].get_position(), axes[-1, -1].get_position()
-    w = fig.get_figwidth()
-    h = min(top.y1 - bottom.y0, 4.0 / fig.get_figheight())  # at most 4 inches tall, from the top row down
-    cax = fig.add_axes((top.x1 + 0.25 / w, top.y1 - h, 0.18 / w, h))
-    fig.colorbar(ScalarMappable(Normalize(0.0, vmax), colormaps["viridis"]), cax=cax, label=label,
-                 extend="max" if over else "neither")
+    dpi = 80 if many else 90
+    width, height, boxes = grid_boxes(len(rows), len(views), cell, right_in=1.2,
+                                      top_in=0.4 if title or many else 0.1)
+    fig = new_figure(width, height, dpi=dpi)
+    panels = paint_panels([(v, e) for (v, _), e in zip(rows, errors)], faces, views, vmax,
+                          (cell.width * dpi, cell.height * dpi))
+    anchor = (_mosaic if many else _panel_axes)(fig, boxes, panels, views, row_titles)
+    _colour_bar(fig, anchor, vmax, bool(finite.size and finite.max() > vmax), label)
     if many:  # no ticks: the panels' common size said instead
-        width, height = 2.0 * half
-        title = f"{title + '; ' if title else ''}every panel {width:.0f} × {height:.0f} mm"
+        size = panels.size
+        title = f"{title + '; ' if title else ''}every panel {size[0]:.0f} × {size[1]:.0f} mm"
     if title:
         fig.suptitle(title, fontsize=10, y=1.0 - 0.08 / fig.get_figheight(), va="top")
     return fig
+
+
+def _colour_bar(fig: Figure, anchor: tuple[float, float, float], vmax: float, over: bool, label: str) -> None:
+    """The error maps' colour bar, 0.25 inch right of the last column's panels (``anchor``: their
+    right, top and bottom in figure fractions), from their top down, at most 4 inches tall."""
+    right, top, bottom = anchor
+    w = fig.get_figwidth()
+    h = min(top - bottom, 4.0 / fig.get_figheight())
+    cax = fig.add_axes((right + 0.25 / w, top - h, 0.18 / w, h))
+    fig.colorbar(ScalarMappable(Normalize(0.0, vmax), colormaps["viridis"]), cax=cax, label=label,
+                 extend="max" if over else "neither")
