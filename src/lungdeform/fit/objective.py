@@ -500,6 +500,12 @@ class LungFitter:
         b_to_a = self._query(pt, pt.samples + t, positions)[0]
         return a_to_b, b_to_a, self.areas[self.keep], pt.sample_weights
 
+    def target_query(self, target: int, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(distance (k,) mm, closest (k, 3) mm, face (k,) int)`` of ``points : (k, 3)`` mm (the fitted
+        surface's frame) on target ``target``'s surface: the query of :meth:`residual_vector`, so the
+        model's vertices at the displacement just evaluated (the same points) cost no search again."""
+        return self._query(self.prepared[target], np.ascontiguousarray(points, float))
+
     def _query(self, pt: _PreparedTarget, points: np.ndarray, model: np.ndarray | None = None):
         """``(distance, closest, face)`` of ``points`` on target ``pt``'s surface, or with ``model : (n, 3)``
         on the model surface of those vertices (the model's faces). The same query as the last of its kind
