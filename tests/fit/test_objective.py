@@ -168,6 +168,9 @@ def test_residual_jacobian_against_differences_of_the_residuals(truth):
             f[fi] += h
         du[..., k] = (u_of(c, f) - u_of(c0, force)) / h
     jp, jt = fitter.residual_jacobian(u_of(c0, force), du, shift)
+    # without the translation columns (a search that fits none): the same J, no J_shift
+    jp_only, none = fitter.residual_jacobian(u_of(c0, force), du, shift, translations=False)
+    assert none is None and np.array_equal(jp_only, jp)
     step = 1e-4
     for k, (ci, fi) in enumerate(params + [("t", a) for a in range(3)]):
         plus, minus = [], []

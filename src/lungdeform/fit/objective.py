@@ -91,7 +91,8 @@ class _PreparedTarget:
     distance: SurfaceDistance
     caster: RayCaster
     samples: np.ndarray  # (k, 3) target points used by the fit objective
-    sample_weights: np.ndarray
+    sample_weights: np.ndarray  # (k,) mm², their areas
+    root_weights: np.ndarray  # (k,) sqrt(sample_weights / their sum): the residuals' weights, once
 
 
 @dataclass(frozen=True, eq=False)
@@ -280,7 +281,10 @@ class LungFitter:
             k = np.ones(t.surface.n_vertices, bool) if t.keep is None else np.asarray(t.keep, bool)
             pts, w = _sample(t.surface, k, settings.samples, seed=i)
             self.prepared.append(_PreparedTarget(t, SurfaceDistance(t.surface.vertices, t.surface.faces),
-                                                 RayCaster(t.surface.vertices, t.surface.faces), pts, w))
+                                                 RayCaster(t.surface.vertices, t.surface.faces), pts, w,
+                                                 np.sqrt(w / w.sum())))
+        kept_areas = self.areas[self.keep]
+        self.root_areas = np.sqrt(kept_areas / kept_areas.sum())  # (kept,): the model vertices' residual weights
         self.calib = self.fit_on[0]
         self.delta_ml = vols[self.calib] - self.v_ee
         if landmarks is None:
@@ -371,9 +375,9 @@ class LungFitter:
         for i in self.fit_on:
             pt = self.prepared[i]
             s = (pt.target.volume_ml - self.v_ee) / self.delta_ml
-            a_to_b, b_to_a, wa, wb = self._two_sided(self.p + s * u, pt, sh[i])
+            a_to_b, b_to_a = self._two_sided(self.p + s * u, pt, sh[i])
             residuals[pt.target.name] = np.concatenate([a_to_b, b_to_a])
-            parts += [a_to_b * np.sqrt(wa / wa.sum()) / norm, b_to_a * np.sqrt(wb / wb.sum()) / norm]
+            parts += [a_to_b * self.root_areas / norm, b_to_a * pt.root_weights / norm]
         surface_ms = float(sum(np.sum(r**2) for r in parts))
         lm_ms = float("nan")
         if self.lm_targets:
@@ -383,11 +387,14 @@ class LungFitter:
             parts += [e * scale for e in errs]
         return np.concatenate(parts), residuals, surface_ms, lm_ms
 
-    def residual_jacobian(self, u: np.ndarray, du: np.ndarray, shifts=None) -> tuple[np.ndarray, np.ndarray]:
+    def residual_jacobian(self, u: np.ndarray, du: np.ndarray, shifts=None, *,
+                          translations: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
         """The Jacobian of :meth:`residual_vector` at the displacement ``u : (n, 3)`` mm per unit, one
         forward evaluation (counted in :attr:`evaluations`): ``(J (r, p), J_shift (r, 3·len(fit_on)))``
         for parameters that move ``u`` by ``du : (n, 3, p)`` (mm per unit per parameter) and for the
-        translation of each target in ``fit_on`` (in that order, x y z each).
+        translation of each target in ``fit_on`` (in that order, x y z each); ``J_shift`` None when
+        ``translations`` is False (a search without translations: its mostly-zero block grows with the
+        square of the targets, 4 MB per Jacobian for a 10-phase 4-D CT).
 
         Every residual is a distance between a point and a surface, so its derivative is the unit
         vector from the closest point times the motion of the two (the envelope theorem: the
@@ -402,7 +409,8 @@ class LungFitter:
         keep = np.flatnonzero(self.keep)
         norm = np.sqrt(2.0 * len(self.fit_on))
         col = {i: c for c, i in enumerate(self.fit_on)}
-        rows_p, rows_t = [], []
+        rows_p, rows_t, cols, lm_cols = [], [], [c for c in range(len(self.fit_on)) for _ in (0, 1)], []
+        fa, du_kept = self.root_areas / norm, du[keep]
         for i in self.fit_on:
             pt = self.prepared[i]
             s = (pt.target.volume_ml - self.v_ee) / self.delta_ml
@@ -410,11 +418,8 @@ class LungFitter:
             # model vertices → target surface
             dist, closest, _ = self._query(pt, x[keep] - sh[i])
             g = _unit(x[keep] - sh[i] - closest, dist)
-            fa = np.sqrt(self.areas[keep] / self.areas[keep].sum()) / norm
-            rows_p.append(fa[:, None] * s * np.einsum("kc,kcp->kp", g, du[keep]))
-            t = np.zeros((len(keep), 3 * len(self.fit_on)))
-            t[:, 3 * col[i]:3 * col[i] + 3] = -fa[:, None] * g
-            rows_t.append(t)
+            rows_p.append(fa[:, None] * s * np.einsum("kc,kcp->kp", g, du_kept))
+            rows_t.append(-fa[:, None] * g)
             # target samples → model surface
             q = pt.samples + sh[i]
             dist, closest, face = self._query(pt, q, x)
@@ -422,22 +427,30 @@ class LungFitter:
             corners = self.surface.faces[face]  # (k, 3)
             b = barycentric(closest, *(x[corners[:, c]] for c in range(3)))
             moved = np.einsum("kv,kvcp->kcp", b, du[corners])
-            fb = np.sqrt(pt.sample_weights / pt.sample_weights.sum()) / norm
+            fb = pt.root_weights / norm
             rows_p.append(-fb[:, None] * s * np.einsum("kc,kcp->kp", g, moved))
-            t = np.zeros((len(q), 3 * len(self.fit_on)))
-            t[:, 3 * col[i]:3 * col[i] + 3] = fb[:, None] * g
-            rows_t.append(t)
+            rows_t.append(fb[:, None] * g)
         if self.lm_targets:
             scale = np.sqrt(self.landmark_weight / (len(self.lm_targets) * len(self.lm_rest)))
             m = len(self.lm_rest)
-            moved = np.stack([self.lm_matrix @ du[keep][..., k] for k in range(du.shape[2])], axis=2)  # (m, 3, p)
+            moved = np.stack([self.lm_matrix @ du_kept[..., k] for k in range(du.shape[2])], axis=2)  # (m, 3, p)
             for i in self.lm_targets:
                 s = (self.targets[i].volume_ml - self.v_ee) / self.delta_ml
                 rows_p.append(scale * s * moved.reshape(3 * m, -1))
-                t = np.zeros((3 * m, 3 * len(self.fit_on)))
-                t[:, 3 * col[i]:3 * col[i] + 3] = -scale * np.tile(np.eye(3), (m, 1))
-                rows_t.append(t)
-        return np.concatenate(rows_p), np.concatenate(rows_t)
+                rows_t.append(-scale * np.tile(np.eye(3), (m, 1)))
+                lm_cols.append(col[i])
+        return np.concatenate(rows_p), (self._shift_block(rows_t, cols + lm_cols) if translations else None)
+
+    def _shift_block(self, blocks: list, cols: list) -> np.ndarray:
+        """``(r, 3·len(fit_on))``: the translation columns of :meth:`residual_jacobian`, block ``k``
+        (``(r_k, 3)``, its rows' derivatives in the translation of target ``fit_on[cols[k]]``) in that
+        target's three columns, zeros elsewhere."""
+        out = np.zeros((sum(len(b) for b in blocks), 3 * len(self.fit_on)))
+        start = 0
+        for b, c in zip(blocks, cols):
+            out[start:start + len(b), 3 * c:3 * c + 3] = b
+            start += len(b)
+        return out
 
     def directions(self, c_dir: np.ndarray) -> np.ndarray:
         """Unit directions ``(n, 3)`` from c1…c6 ``c_dir (6,)`` (step 1)."""
@@ -498,7 +511,7 @@ class LungFitter:
         t = np.zeros(3) if shift is None else np.asarray(shift, float)
         a_to_b = self._query(pt, positions[self.keep] - t)[0]
         b_to_a = self._query(pt, pt.samples + t, positions)[0]
-        return a_to_b, b_to_a, self.areas[self.keep], pt.sample_weights
+        return a_to_b, b_to_a
 
     def target_query(self, target: int, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(distance (k,) mm, closest (k, 3) mm, face (k,) int)`` of ``points : (k, 3)`` mm (the fitted
