@@ -5,6 +5,7 @@ import pytest
 
 from lungdeform.errors import InputError
 from lungdeform.geometry.distance import (
+    DistanceStack,
     SurfaceDistance,
     _closest_on_triangle,
     _edges_and_box,
@@ -219,6 +220,35 @@ def test_restricted_equals_measuring_with_the_masks(rng):
     assert len(twice.b_to_a) < len(direct.b_to_a) and np.array_equal(twice.a_to_b, direct.a_to_b)
     with pytest.raises(InputError, match="keep_a"):
         full.restricted(ka[:-1], kb)
+
+
+def test_stack_equals_each_surfaces_own_query_to_the_bit(rng):
+    # reference: each surface's own query (itself checked against the dense reference above). One
+    # kernel call over several surfaces gives the same distances, closest points and faces exactly,
+    # with and without the faces of an earlier query as bounds, for points near and far (far from a
+    # surface with no bound: searched again from its nearest vertex), in any order, a surface twice
+    surfaces = [icosphere(3, 30.0), icosphere(2, 20.0), Surface(icosphere(3, 40.0).vertices * [1.0, 0.8, 1.2],
+                                                                 icosphere(3).faces)]
+    sds = [SurfaceDistance(x.vertices, x.faces) for x in surfaces]
+    stack = DistanceStack(sds)
+    which = [2, 0, 1, 0]
+    pts = [rng.normal(size=(k, 3)) * sc for k, sc in ((50, 35.0), (40, 25.0), (30, 200.0), (0, 1.0))]
+    got = stack.query(which, pts)
+    hints = [rng.integers(-1, len(sds[w].faces), len(p)) for w, p in zip(which, pts)]
+    hinted = stack.query(which, [p * 1.01 for p in pts], hints)
+    for w, p, h, a, b in zip(which, pts, hints, got, hinted):
+        for x, y in zip(a, sds[w].query(p)):
+            assert np.array_equal(x, y)
+        bound = sds[w].face_distance(p * 1.01, h)
+        for x, y in zip(b, sds[w].query(p * 1.01, bound)):
+            assert np.array_equal(x, y)
+    assert stack.query([], []) == []
+    with pytest.raises(InputError, match="faces must be"):
+        stack.query([1], [pts[0]], [np.full(len(pts[0]), len(sds[1].faces))])
+    with pytest.raises(InputError, match="one per query"):
+        stack.query([3], [pts[0]])
+    with pytest.raises(InputError, match="NaN"):
+        stack.query([0], [np.full((2, 3), np.nan)])
 
 
 def test_concentric_spheres_radius_difference():

@@ -43,13 +43,14 @@ stiffness fit, their vertices do not enter the objective, and they carry no inte
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Sequence
 
 import numpy as np
 
 from lungdeform.constants import gravity_vector
 from lungdeform.errors import InputError, LungdeformError
-from lungdeform.geometry.distance import SurfaceDistance, barycentric, vertex_areas
+from lungdeform.geometry.distance import DistanceStack, SurfaceDistance, barycentric, vertex_areas
 from lungdeform.geometry.frame import lung_frame
 from lungdeform.geometry.mesh import Surface, as_vertices, thinned
 from lungdeform.interior.sliding import checked_operator, surface_weights
@@ -293,7 +294,7 @@ class LungFitter:
             self._set_landmarks(landmarks.rest, landmarks.targets, landmarks.weight, landmarks.matrix)
         self.set_stiffness(uniform(self.n) if stiffness is None else as_moduli(stiffness, self.n))
         self.evaluations = 0
-        self._last: dict = {}  # each kind of distance query: its last points, model and answer (:meth:`_query`)
+        self._last: dict = {}  # each kind of distance query: its last points, model and answer (:meth:`_queries`)
 
     def _set_landmarks(self, rest, observed, weight, matrix=None) -> None:
         self.landmark_weight = float(weight)
@@ -372,10 +373,8 @@ class LungFitter:
         sh = np.zeros((len(self.targets), 3)) if shifts is None else np.asarray(shifts, float)
         parts, residuals = [], {}
         norm = np.sqrt(2.0 * len(self.fit_on))
-        for i in self.fit_on:
+        for i, (a_to_b, _, _), (b_to_a, _, _) in zip(self.fit_on, *self._two_sided(u, sh)):
             pt = self.prepared[i]
-            s = (pt.target.volume_ml - self.v_ee) / self.delta_ml
-            a_to_b, b_to_a = self._two_sided(self.p + s * u, pt, sh[i])
             residuals[pt.target.name] = np.concatenate([a_to_b, b_to_a])
             parts += [a_to_b * self.root_areas / norm, b_to_a * pt.root_weights / norm]
         surface_ms = float(sum(np.sum(r**2) for r in parts))
@@ -411,18 +410,17 @@ class LungFitter:
         col = {i: c for c, i in enumerate(self.fit_on)}
         rows_p, rows_t, cols, lm_cols = [], [], [c for c in range(len(self.fit_on)) for _ in (0, 1)], []
         fa, du_kept = self.root_areas / norm, du[keep]
-        for i in self.fit_on:
+        for i, (dist, closest, _), on_model in zip(self.fit_on, *self._two_sided(u, sh)):
             pt = self.prepared[i]
-            s = (pt.target.volume_ml - self.v_ee) / self.delta_ml
+            s = self._scale(i)
             x = self.p + s * u
             # model vertices → target surface
-            dist, closest, _ = self._query(pt, x[keep] - sh[i])
             g = _unit(x[keep] - sh[i] - closest, dist)
             rows_p.append(fa[:, None] * s * np.einsum("kc,kcp->kp", g, du_kept))
             rows_t.append(-fa[:, None] * g)
             # target samples → model surface
             q = pt.samples + sh[i]
-            dist, closest, face = self._query(pt, q, x)
+            dist, closest, face = on_model
             g = _unit(q - closest, dist)
             corners = self.surface.faces[face]  # (k, 3)
             b = barycentric(closest, *(x[corners[:, c]] for c in range(3)))
@@ -506,34 +504,62 @@ class LungFitter:
                     residuals=ev.residuals, constants=np.concatenate([np.asarray(c_dir, float)[:6], c_force / scale]),
                     surface_rms=float(np.sqrt(ev.surface_ms)), landmark_rms=float(np.sqrt(ev.landmark_ms)))
 
-    def _two_sided(self, positions: np.ndarray, pt: _PreparedTarget, shift=None):
-        """Distances (mm) model → target and target samples → model, the target moved by ``shift``."""
-        t = np.zeros(3) if shift is None else np.asarray(shift, float)
-        a_to_b = self._query(pt, positions[self.keep] - t)[0]
-        b_to_a = self._query(pt, pt.samples + t, positions)[0]
-        return a_to_b, b_to_a
+    def _scale(self, target: int) -> float:
+        """The model's scale ``s`` (units of ``delta_ml``) at target ``target``'s volume."""
+        return (self.targets[target].volume_ml - self.v_ee) / self.delta_ml
+
+    def _two_sided(self, u: np.ndarray, shifts: np.ndarray) -> tuple[list, list]:
+        """For the displacement ``u : (n, 3)`` mm per unit, per target in ``fit_on`` (moved by ``shifts :
+        (k, 3)`` mm): ``(model vertices → target, target samples → model)``, each a list of
+        ``(distance, closest, face)`` (:meth:`_queries`: every target's in one search)."""
+        x = [self.p + self._scale(i) * u for i in self.fit_on]
+        to_target = self._queries([(i, xi[self.keep] - shifts[i], None) for i, xi in zip(self.fit_on, x)])
+        to_model = self._queries([(i, self.prepared[i].samples + shifts[i], xi) for i, xi in zip(self.fit_on, x)])
+        return to_target, to_model
 
     def target_query(self, target: int, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(distance (k,) mm, closest (k, 3) mm, face (k,) int)`` of ``points : (k, 3)`` mm (the fitted
         surface's frame) on target ``target``'s surface: the query of :meth:`residual_vector`, so the
         model's vertices at the displacement just evaluated (the same points) cost no search again."""
-        return self._query(self.prepared[target], np.ascontiguousarray(points, float))
+        return self._queries([(int(target), np.ascontiguousarray(points, float), None)])[0]
 
-    def _query(self, pt: _PreparedTarget, points: np.ndarray, model: np.ndarray | None = None):
-        """``(distance, closest, face)`` of ``points`` on target ``pt``'s surface, or with ``model : (n, 3)``
-        on the model surface of those vertices (the model's faces). The same query as the last of its kind
-        (the same points and model: the Jacobian at the point just evaluated) returns the last answer; any
-        other starts from the closest faces of the last (candidates move little between evaluations, so
-        each face found last time bounds the search tightly; exact distances either way,
-        :meth:`lungdeform.geometry.distance.SurfaceDistance.query`)."""
-        key = (id(pt), model is None)
-        last = self._last.get(key)
-        if last is not None and np.array_equal(last[0], points) and (model is None or np.array_equal(last[1], model)):
-            return last[2]
-        surface = pt.distance if model is None else SurfaceDistance(model, self.surface.faces)
-        out = surface.query(points, None if last is None else surface.face_distance(points, last[2][2]))
-        self._last[key] = (points.copy(), None if model is None else model.copy(), out)
+    def _queries(self, items: list) -> list:
+        """``(distance, closest, face)`` of each ``(target, points (k, 3), model)``: the points on target
+        ``target``'s surface, or with ``model : (n, 3)`` on the model surface of those vertices (the model's
+        faces). The same query as the last of its kind for that target (the same points and model: the
+        Jacobian at the point just evaluated) returns the last answer; the others are searched together,
+        one kernel call for the targets' surfaces and one for the models'
+        (:class:`lungdeform.geometry.distance.DistanceStack`), each started from the closest faces of its
+        last (candidates move little between evaluations, so each face found last time bounds the search
+        tightly; exact distances either way, :meth:`lungdeform.geometry.distance.SurfaceDistance.query`)."""
+        out, todo = [None] * len(items), {True: [], False: []}
+        for j, (i, points, model) in enumerate(items):
+            last = self._last.get((i, model is None))
+            if last is not None and np.array_equal(last[0], points) and (
+                    model is None or np.array_equal(last[1], model)):
+                out[j] = last[2]
+            else:
+                todo[model is None].append(j)
+        for on_target, js in todo.items():
+            if not js:
+                continue
+            hints = [self._last[(items[j][0], on_target)][2][2] if (items[j][0], on_target) in self._last else None
+                     for j in js]
+            if on_target:
+                stack, which = self._target_stack, [items[j][0] for j in js]
+            else:
+                stack = DistanceStack([SurfaceDistance(items[j][2], self.surface.faces) for j in js])
+                which = range(len(js))
+            for j, answer in zip(js, stack.query(which, [items[j][1] for j in js], hints)):
+                i, points, model = items[j]
+                self._last[(i, on_target)] = (points.copy(), None if model is None else model.copy(), answer)
+                out[j] = answer
         return out
+
+    @cached_property
+    def _target_stack(self) -> DistanceStack:
+        """Every target's surface in one :class:`~lungdeform.geometry.distance.DistanceStack` (built on first use)."""
+        return DistanceStack([pt.distance for pt in self.prepared])
 
     def inverse_parts(self, force_obs: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(f (n,) normalised by max |f|, c7…c9 (3,))``: inverse force and its paper-style fit."""
