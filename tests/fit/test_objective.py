@@ -168,6 +168,9 @@ def test_residual_jacobian_against_differences_of_the_residuals(truth):
             f[fi] += h
         du[..., k] = (u_of(c, f) - u_of(c0, force)) / h
     jp, jt = fitter.residual_jacobian(u_of(c0, force), du, shift)
+    # without the translation columns (a search that fits none): the same J, no J_shift
+    jp_only, none = fitter.residual_jacobian(u_of(c0, force), du, shift, translations=False)
+    assert none is None and np.array_equal(jp_only, jp)
     step = 1e-4
     for k, (ci, fi) in enumerate(params + [("t", a) for a in range(3)]):
         plus, minus = [], []
@@ -185,3 +188,23 @@ def test_residual_jacobian_against_differences_of_the_residuals(truth):
         assert np.linalg.norm(ref) > 1e-3
         assert np.linalg.norm(got - ref) < 0.02 * np.linalg.norm(ref)
         assert np.quantile(np.abs(got - ref), 0.95) < 1e-3 * max(1.0, np.abs(ref).max())
+
+
+def test_target_query_is_the_exact_query_and_reuses_the_objectives(truth):
+    # reference: a fresh search of the target's own SurfaceDistance. The fitter's query of the model's
+    # vertices at the displacement just evaluated returns what the objective found (no search again),
+    # and equals the fresh search; another set of points is searched (from the last faces) and is exact too
+    lung, model, target = truth
+    fitter = LungFitter(lung, "right", [Target(target, lung.volume_ml + 200.0, name="t")])
+    u = 0.9 * model.displacement
+    r, residuals, _, _ = fitter.residual_vector(u)
+    x = fitter.p + u
+    fresh = fitter.prepared[0].distance.query(x[fitter.keep])
+    got = fitter.target_query(0, x[fitter.keep])
+    assert got is fitter.target_query(0, x[fitter.keep])  # the same answer object: no new search
+    for a, b in zip(got, fresh):
+        assert np.array_equal(a, b)
+    assert np.array_equal(residuals["t"][:fitter.keep.sum()], fresh[0])
+    other = x[fitter.keep] + 0.5
+    for a, b in zip(fitter.target_query(0, other), fitter.prepared[0].distance.query(other)):
+        assert np.array_equal(a, b)

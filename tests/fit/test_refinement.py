@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from lungdeform.errors import InputError
-from lungdeform.fit.refinement import gaussian_smoother, refine_displacement
-from lungdeform.geometry.distance import symmetric_distance
+from lungdeform.fit.refinement import ITERATIONS, WIDTHS_MM, gaussian_smoother, refine_displacement
+from lungdeform.geometry.distance import SurfaceDistance, symmetric_distance
 from lungdeform.geometry.mesh import Surface, icosphere
 
 
@@ -61,6 +61,38 @@ def test_two_targets_are_fitted_jointly_linear_in_scale():
     assert np.median(radial) == pytest.approx(2.0, abs=0.05)
     for t, s in zip(targets, (1.0, 2.0)):
         assert _mean_distance(rest, ref.displacement, s, t) < 0.1
+
+
+def _one_by_one(p, u, targets, s, kept):
+    # the update of the module docstring written out target by target, every closest point searched
+    # afresh and every residual smoothed alone (how it was computed before the batching)
+    queries = [SurfaceDistance(t.vertices, t.faces) for t in targets]
+    for width in WIDTHS_MM:
+        smoother = gaussian_smoother(p, width)
+        weight = smoother @ kept.astype(float)
+        for _ in range(ITERATIONS):
+            step = np.zeros_like(u)
+            for query, st in zip(queries, s):
+                x = p + st * u
+                step += st * (smoother @ np.where(kept[:, None], query.query(x)[1] - x, 0.0))
+            u = u + step / np.maximum(weight, 1e-9)[:, None] / float(np.sum(np.square(s)))
+    return u
+
+
+def test_batched_targets_equal_one_by_one_to_the_bit():
+    # reference: the same update target by target with fresh searches; all targets smoothed in one
+    # sparse product and each search started from its last faces give the same numbers exactly
+    # (each column of the product sums in the same order; the bound only narrows an exact search)
+    rng = np.random.default_rng(7)
+    rest = icosphere(3, radius=50.0)
+    sphere = icosphere(4)
+    targets = [Surface(r * sphere.vertices * rng.uniform(0.95, 1.05, 3) + rng.normal(size=3), sphere.faces)
+               for r in (53.0, 56.0, 56.5, 60.0)]
+    s = np.array([0.4, 0.7, 0.75, 1.0])
+    u0 = 0.1 * rest.vertices + rng.normal(scale=0.5, size=rest.vertices.shape)
+    kept = rng.random(rest.n_vertices) < 0.9
+    ref = refine_displacement(rest.vertices, u0, targets, s, kept, finest_mm=5.0)
+    assert np.array_equal(ref.displacement, _one_by_one(rest.vertices, u0.copy(), targets, s, kept))
 
 
 def test_crop_vertices_follow_their_neighbours():

@@ -5,8 +5,10 @@ import pytest
 
 from lungdeform.errors import InputError
 from lungdeform.geometry.distance import (
+    DistanceStack,
     SurfaceDistance,
     _closest_on_triangle,
+    _edges_and_box,
     _face_bound,
     distance_stats,
     point_to_surface,
@@ -14,7 +16,7 @@ from lungdeform.geometry.distance import (
     vertex_areas,
     weighted_percentile,
 )
-from lungdeform.geometry.mesh import icosphere
+from lungdeform.geometry.mesh import Surface, icosphere
 from lungdeform.geometry.remesh import decimate
 from lungdeform.io.image import read_image
 from lungdeform.io.mask import extract_surface
@@ -184,6 +186,69 @@ def test_face_distance_bounds_give_the_same_exact_distances(rng):
         sd.face_distance(pts, np.full(len(pts), len(s.faces)))
     with pytest.raises(InputError, match="faces must be"):
         sd.face_distance(pts, faces[:-1])
+
+
+def test_edges_and_box_equal_numpys_bit_for_bit(rng):
+    # reference: the numpy the grid was sized with before (norm of e − roll(e), min/max over the used
+    # vertices); equal to the last bit, so the cell side, the grid and the tie ranks are unchanged.
+    # Moved, scaled and sheared spheres, and a surface that leaves vertices unused (they must not count)
+    s = icosphere(3, 30.0)
+    extra = rng.normal(size=(5, 3)) * 500.0  # unused, far outside the box
+    for k in range(20):
+        v = s.vertices @ (np.eye(3) + 0.3 * rng.normal(size=(3, 3))) + rng.normal(size=3) * 50
+        v = np.vstack([v, extra]) if k % 2 else v
+        e = v[s.faces]
+        edge, lo, hi = _edges_and_box(v, s.faces)
+        assert np.array_equal(edge, np.linalg.norm(e - np.roll(e, 1, axis=1), axis=2).ravel())
+        used = np.unique(s.faces)
+        assert np.array_equal(lo, v[used].min(axis=0)) and np.array_equal(hi, v[used].max(axis=0))
+
+
+def test_restricted_equals_measuring_with_the_masks(rng):
+    # reference: symmetric_distance measured with the masks; restricting the unmasked measurement
+    # gives the same distances, weights and indices exactly (each distance is its own point's query)
+    a, b = icosphere(2, 30.0), icosphere(3, 33.0)
+    b = Surface(b.vertices + rng.normal(size=3), b.faces)
+    ka, kb = rng.random(a.n_vertices) < 0.7, rng.random(b.n_vertices) < 0.6
+    full = symmetric_distance(a, b)
+    direct, cut = symmetric_distance(a, b, keep_a=ka, keep_b=kb), full.restricted(ka, kb)
+    for name in ("a_to_b", "b_to_a", "a_weights", "b_weights", "a_index", "b_index"):
+        assert np.array_equal(getattr(direct, name), getattr(cut, name)), name
+    assert cut.stats == direct.stats
+    assert full.restricted().stats == full.stats
+    twice = direct.restricted(np.ones(a.n_vertices, bool), kb & (rng.random(b.n_vertices) < 0.5))
+    assert len(twice.b_to_a) < len(direct.b_to_a) and np.array_equal(twice.a_to_b, direct.a_to_b)
+    with pytest.raises(InputError, match="keep_a"):
+        full.restricted(ka[:-1], kb)
+
+
+def test_stack_equals_each_surfaces_own_query_to_the_bit(rng):
+    # reference: each surface's own query (itself checked against the dense reference above). One
+    # kernel call over several surfaces gives the same distances, closest points and faces exactly,
+    # with and without the faces of an earlier query as bounds, for points near and far (far from a
+    # surface with no bound: searched again from its nearest vertex), in any order, a surface twice
+    surfaces = [icosphere(3, 30.0), icosphere(2, 20.0), Surface(icosphere(3, 40.0).vertices * [1.0, 0.8, 1.2],
+                                                                 icosphere(3).faces)]
+    sds = [SurfaceDistance(x.vertices, x.faces) for x in surfaces]
+    stack = DistanceStack(sds)
+    which = [2, 0, 1, 0]
+    pts = [rng.normal(size=(k, 3)) * sc for k, sc in ((50, 35.0), (40, 25.0), (30, 200.0), (0, 1.0))]
+    got = stack.query(which, pts)
+    hints = [rng.integers(-1, len(sds[w].faces), len(p)) for w, p in zip(which, pts)]
+    hinted = stack.query(which, [p * 1.01 for p in pts], hints)
+    for w, p, h, a, b in zip(which, pts, hints, got, hinted):
+        for x, y in zip(a, sds[w].query(p)):
+            assert np.array_equal(x, y)
+        bound = sds[w].face_distance(p * 1.01, h)
+        for x, y in zip(b, sds[w].query(p * 1.01, bound)):
+            assert np.array_equal(x, y)
+    assert stack.query([], []) == []
+    with pytest.raises(InputError, match="faces must be"):
+        stack.query([1], [pts[0]], [np.full(len(pts[0]), len(sds[1].faces))])
+    with pytest.raises(InputError, match="one per query"):
+        stack.query([3], [pts[0]])
+    with pytest.raises(InputError, match="NaN"):
+        stack.query([0], [np.full((2, 3), np.nan)])
 
 
 def test_concentric_spheres_radius_difference():

@@ -348,9 +348,12 @@ def measure(rest: Surface, predicted, target: Surface, *, keep=None, keep_target
         raise InputError(f"predicted must have shape {rest.vertices.shape}, got {x.shape}")
     pred = Surface(x, rest.faces, "predicted")
     td = target_distance or SurfaceDistance(target.vertices, target.faces)
-    sym = symmetric_distance(pred, target, keep_a=keep, keep_b=keep_target, b_distance=td)
-    all_ = symmetric_distance(pred, target, b_distance=td)
-    per_vertex = td.distance(x)
+    all_ = symmetric_distance(pred, target, b_distance=td)  # every vertex both ways, measured once
+    if (keep is not None and np.shape(keep) != (rest.n_vertices,)) or (
+            keep_target is not None and np.shape(keep_target) != (target.n_vertices,)):
+        raise InputError("keep / keep_target must be one boolean per vertex of rest / target")
+    sym = all_.restricted(keep, keep_target)
+    per_vertex = all_.a_to_b
     lm_err = np.zeros(0)
     if landmarks is not None:
         landmark_weights, landmarks_predicted = landmarks.weights, landmarks.predicted

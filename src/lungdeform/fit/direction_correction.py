@@ -89,7 +89,7 @@ def _correspondence(fitter: LungFitter, u, shifts):
         s = (pt.target.volume_ml - fitter.v_ee) / fitter.delta_ml
         t = np.zeros(3) if shifts is None else np.asarray(shifts[i], float)
         xi = fitter.p + s * u
-        _, closest, _ = pt.distance.query(xi[keep] - t)
+        _, closest, _ = fitter.target_query(i, xi[keep] - t)  # what the objective at u just found
         acc = np.zeros((fitter.n, 3))
         cnt = np.zeros(fitter.n)
         acc[keep] += closest + t - xi[keep]

@@ -43,13 +43,14 @@ stiffness fit, their vertices do not enter the objective, and they carry no inte
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Sequence
 
 import numpy as np
 
 from lungdeform.constants import gravity_vector
 from lungdeform.errors import InputError, LungdeformError
-from lungdeform.geometry.distance import SurfaceDistance, barycentric, vertex_areas
+from lungdeform.geometry.distance import DistanceStack, SurfaceDistance, barycentric, vertex_areas
 from lungdeform.geometry.frame import lung_frame
 from lungdeform.geometry.mesh import Surface, as_vertices, thinned
 from lungdeform.interior.sliding import checked_operator, surface_weights
@@ -91,7 +92,8 @@ class _PreparedTarget:
     distance: SurfaceDistance
     caster: RayCaster
     samples: np.ndarray  # (k, 3) target points used by the fit objective
-    sample_weights: np.ndarray
+    sample_weights: np.ndarray  # (k,) mm², their areas
+    root_weights: np.ndarray  # (k,) sqrt(sample_weights / their sum): the residuals' weights, once
 
 
 @dataclass(frozen=True, eq=False)
@@ -280,7 +282,10 @@ class LungFitter:
             k = np.ones(t.surface.n_vertices, bool) if t.keep is None else np.asarray(t.keep, bool)
             pts, w = _sample(t.surface, k, settings.samples, seed=i)
             self.prepared.append(_PreparedTarget(t, SurfaceDistance(t.surface.vertices, t.surface.faces),
-                                                 RayCaster(t.surface.vertices, t.surface.faces), pts, w))
+                                                 RayCaster(t.surface.vertices, t.surface.faces), pts, w,
+                                                 np.sqrt(w / w.sum())))
+        kept_areas = self.areas[self.keep]
+        self.root_areas = np.sqrt(kept_areas / kept_areas.sum())  # (kept,): the model vertices' residual weights
         self.calib = self.fit_on[0]
         self.delta_ml = vols[self.calib] - self.v_ee
         if landmarks is None:
@@ -289,7 +294,7 @@ class LungFitter:
             self._set_landmarks(landmarks.rest, landmarks.targets, landmarks.weight, landmarks.matrix)
         self.set_stiffness(uniform(self.n) if stiffness is None else as_moduli(stiffness, self.n))
         self.evaluations = 0
-        self._last: dict = {}  # each kind of distance query: its last points, model and answer (:meth:`_query`)
+        self._last: dict = {}  # each kind of distance query: its last points, model and answer (:meth:`_queries`)
 
     def _set_landmarks(self, rest, observed, weight, matrix=None) -> None:
         self.landmark_weight = float(weight)
@@ -368,12 +373,10 @@ class LungFitter:
         sh = np.zeros((len(self.targets), 3)) if shifts is None else np.asarray(shifts, float)
         parts, residuals = [], {}
         norm = np.sqrt(2.0 * len(self.fit_on))
-        for i in self.fit_on:
+        for i, (a_to_b, _, _), (b_to_a, _, _) in zip(self.fit_on, *self._two_sided(u, sh)):
             pt = self.prepared[i]
-            s = (pt.target.volume_ml - self.v_ee) / self.delta_ml
-            a_to_b, b_to_a, wa, wb = self._two_sided(self.p + s * u, pt, sh[i])
             residuals[pt.target.name] = np.concatenate([a_to_b, b_to_a])
-            parts += [a_to_b * np.sqrt(wa / wa.sum()) / norm, b_to_a * np.sqrt(wb / wb.sum()) / norm]
+            parts += [a_to_b * self.root_areas / norm, b_to_a * pt.root_weights / norm]
         surface_ms = float(sum(np.sum(r**2) for r in parts))
         lm_ms = float("nan")
         if self.lm_targets:
@@ -383,11 +386,14 @@ class LungFitter:
             parts += [e * scale for e in errs]
         return np.concatenate(parts), residuals, surface_ms, lm_ms
 
-    def residual_jacobian(self, u: np.ndarray, du: np.ndarray, shifts=None) -> tuple[np.ndarray, np.ndarray]:
+    def residual_jacobian(self, u: np.ndarray, du: np.ndarray, shifts=None, *,
+                          translations: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
         """The Jacobian of :meth:`residual_vector` at the displacement ``u : (n, 3)`` mm per unit, one
         forward evaluation (counted in :attr:`evaluations`): ``(J (r, p), J_shift (r, 3·len(fit_on)))``
         for parameters that move ``u`` by ``du : (n, 3, p)`` (mm per unit per parameter) and for the
-        translation of each target in ``fit_on`` (in that order, x y z each).
+        translation of each target in ``fit_on`` (in that order, x y z each); ``J_shift`` None when
+        ``translations`` is False (a search without translations: its mostly-zero block grows with the
+        square of the targets, 4 MB per Jacobian for a 10-phase 4-D CT).
 
         Every residual is a distance between a point and a surface, so its derivative is the unit
         vector from the closest point times the motion of the two (the envelope theorem: the
@@ -402,42 +408,47 @@ class LungFitter:
         keep = np.flatnonzero(self.keep)
         norm = np.sqrt(2.0 * len(self.fit_on))
         col = {i: c for c, i in enumerate(self.fit_on)}
-        rows_p, rows_t = [], []
-        for i in self.fit_on:
+        rows_p, rows_t, cols, lm_cols = [], [], [c for c in range(len(self.fit_on)) for _ in (0, 1)], []
+        fa, du_kept = self.root_areas / norm, du[keep]
+        for i, (dist, closest, _), on_model in zip(self.fit_on, *self._two_sided(u, sh)):
             pt = self.prepared[i]
-            s = (pt.target.volume_ml - self.v_ee) / self.delta_ml
+            s = self._scale(i)
             x = self.p + s * u
             # model vertices → target surface
-            dist, closest, _ = self._query(pt, x[keep] - sh[i])
             g = _unit(x[keep] - sh[i] - closest, dist)
-            fa = np.sqrt(self.areas[keep] / self.areas[keep].sum()) / norm
-            rows_p.append(fa[:, None] * s * np.einsum("kc,kcp->kp", g, du[keep]))
-            t = np.zeros((len(keep), 3 * len(self.fit_on)))
-            t[:, 3 * col[i]:3 * col[i] + 3] = -fa[:, None] * g
-            rows_t.append(t)
+            rows_p.append(fa[:, None] * s * np.einsum("kc,kcp->kp", g, du_kept))
+            rows_t.append(-fa[:, None] * g)
             # target samples → model surface
             q = pt.samples + sh[i]
-            dist, closest, face = self._query(pt, q, x)
+            dist, closest, face = on_model
             g = _unit(q - closest, dist)
             corners = self.surface.faces[face]  # (k, 3)
             b = barycentric(closest, *(x[corners[:, c]] for c in range(3)))
             moved = np.einsum("kv,kvcp->kcp", b, du[corners])
-            fb = np.sqrt(pt.sample_weights / pt.sample_weights.sum()) / norm
+            fb = pt.root_weights / norm
             rows_p.append(-fb[:, None] * s * np.einsum("kc,kcp->kp", g, moved))
-            t = np.zeros((len(q), 3 * len(self.fit_on)))
-            t[:, 3 * col[i]:3 * col[i] + 3] = fb[:, None] * g
-            rows_t.append(t)
+            rows_t.append(fb[:, None] * g)
         if self.lm_targets:
             scale = np.sqrt(self.landmark_weight / (len(self.lm_targets) * len(self.lm_rest)))
             m = len(self.lm_rest)
-            moved = np.stack([self.lm_matrix @ du[keep][..., k] for k in range(du.shape[2])], axis=2)  # (m, 3, p)
+            moved = np.stack([self.lm_matrix @ du_kept[..., k] for k in range(du.shape[2])], axis=2)  # (m, 3, p)
             for i in self.lm_targets:
                 s = (self.targets[i].volume_ml - self.v_ee) / self.delta_ml
                 rows_p.append(scale * s * moved.reshape(3 * m, -1))
-                t = np.zeros((3 * m, 3 * len(self.fit_on)))
-                t[:, 3 * col[i]:3 * col[i] + 3] = -scale * np.tile(np.eye(3), (m, 1))
-                rows_t.append(t)
-        return np.concatenate(rows_p), np.concatenate(rows_t)
+                rows_t.append(-scale * np.tile(np.eye(3), (m, 1)))
+                lm_cols.append(col[i])
+        return np.concatenate(rows_p), (self._shift_block(rows_t, cols + lm_cols) if translations else None)
+
+    def _shift_block(self, blocks: list, cols: list) -> np.ndarray:
+        """``(r, 3·len(fit_on))``: the translation columns of :meth:`residual_jacobian`, block ``k``
+        (``(r_k, 3)``, its rows' derivatives in the translation of target ``fit_on[cols[k]]``) in that
+        target's three columns, zeros elsewhere."""
+        out = np.zeros((sum(len(b) for b in blocks), 3 * len(self.fit_on)))
+        start = 0
+        for b, c in zip(blocks, cols):
+            out[start:start + len(b), 3 * c:3 * c + 3] = b
+            start += len(b)
+        return out
 
     def directions(self, c_dir: np.ndarray) -> np.ndarray:
         """Unit directions ``(n, 3)`` from c1…c6 ``c_dir (6,)`` (step 1)."""
@@ -493,28 +504,62 @@ class LungFitter:
                     residuals=ev.residuals, constants=np.concatenate([np.asarray(c_dir, float)[:6], c_force / scale]),
                     surface_rms=float(np.sqrt(ev.surface_ms)), landmark_rms=float(np.sqrt(ev.landmark_ms)))
 
-    def _two_sided(self, positions: np.ndarray, pt: _PreparedTarget, shift=None):
-        """Distances (mm) model → target and target samples → model, the target moved by ``shift``."""
-        t = np.zeros(3) if shift is None else np.asarray(shift, float)
-        a_to_b = self._query(pt, positions[self.keep] - t)[0]
-        b_to_a = self._query(pt, pt.samples + t, positions)[0]
-        return a_to_b, b_to_a, self.areas[self.keep], pt.sample_weights
+    def _scale(self, target: int) -> float:
+        """The model's scale ``s`` (units of ``delta_ml``) at target ``target``'s volume."""
+        return (self.targets[target].volume_ml - self.v_ee) / self.delta_ml
 
-    def _query(self, pt: _PreparedTarget, points: np.ndarray, model: np.ndarray | None = None):
-        """``(distance, closest, face)`` of ``points`` on target ``pt``'s surface, or with ``model : (n, 3)``
-        on the model surface of those vertices (the model's faces). The same query as the last of its kind
-        (the same points and model: the Jacobian at the point just evaluated) returns the last answer; any
-        other starts from the closest faces of the last (candidates move little between evaluations, so
-        each face found last time bounds the search tightly; exact distances either way,
-        :meth:`lungdeform.geometry.distance.SurfaceDistance.query`)."""
-        key = (id(pt), model is None)
-        last = self._last.get(key)
-        if last is not None and np.array_equal(last[0], points) and (model is None or np.array_equal(last[1], model)):
-            return last[2]
-        surface = pt.distance if model is None else SurfaceDistance(model, self.surface.faces)
-        out = surface.query(points, None if last is None else surface.face_distance(points, last[2][2]))
-        self._last[key] = (points.copy(), None if model is None else model.copy(), out)
+    def _two_sided(self, u: np.ndarray, shifts: np.ndarray) -> tuple[list, list]:
+        """For the displacement ``u : (n, 3)`` mm per unit, per target in ``fit_on`` (moved by ``shifts :
+        (k, 3)`` mm): ``(model vertices → target, target samples → model)``, each a list of
+        ``(distance, closest, face)`` (:meth:`_queries`: every target's in one search)."""
+        x = [self.p + self._scale(i) * u for i in self.fit_on]
+        to_target = self._queries([(i, xi[self.keep] - shifts[i], None) for i, xi in zip(self.fit_on, x)])
+        to_model = self._queries([(i, self.prepared[i].samples + shifts[i], xi) for i, xi in zip(self.fit_on, x)])
+        return to_target, to_model
+
+    def target_query(self, target: int, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(distance (k,) mm, closest (k, 3) mm, face (k,) int)`` of ``points : (k, 3)`` mm (the fitted
+        surface's frame) on target ``target``'s surface: the query of :meth:`residual_vector`, so the
+        model's vertices at the displacement just evaluated (the same points) cost no search again."""
+        return self._queries([(int(target), np.ascontiguousarray(points, float), None)])[0]
+
+    def _queries(self, items: list) -> list:
+        """``(distance, closest, face)`` of each ``(target, points (k, 3), model)``: the points on target
+        ``target``'s surface, or with ``model : (n, 3)`` on the model surface of those vertices (the model's
+        faces). The same query as the last of its kind for that target (the same points and model: the
+        Jacobian at the point just evaluated) returns the last answer; the others are searched together,
+        one kernel call for the targets' surfaces and one for the models'
+        (:class:`lungdeform.geometry.distance.DistanceStack`), each started from the closest faces of its
+        last (candidates move little between evaluations, so each face found last time bounds the search
+        tightly; exact distances either way, :meth:`lungdeform.geometry.distance.SurfaceDistance.query`)."""
+        out, todo = [None] * len(items), {True: [], False: []}
+        for j, (i, points, model) in enumerate(items):
+            last = self._last.get((i, model is None))
+            if last is not None and np.array_equal(last[0], points) and (
+                    model is None or np.array_equal(last[1], model)):
+                out[j] = last[2]
+            else:
+                todo[model is None].append(j)
+        for on_target, js in todo.items():
+            if not js:
+                continue
+            hints = [self._last[(items[j][0], on_target)][2][2] if (items[j][0], on_target) in self._last else None
+                     for j in js]
+            if on_target:
+                stack, which = self._target_stack, [items[j][0] for j in js]
+            else:
+                stack = DistanceStack([SurfaceDistance(items[j][2], self.surface.faces) for j in js])
+                which = range(len(js))
+            for j, answer in zip(js, stack.query(which, [items[j][1] for j in js], hints)):
+                i, points, model = items[j]
+                self._last[(i, on_target)] = (points.copy(), None if model is None else model.copy(), answer)
+                out[j] = answer
         return out
+
+    @cached_property
+    def _target_stack(self) -> DistanceStack:
+        """Every target's surface in one :class:`~lungdeform.geometry.distance.DistanceStack` (built on first use)."""
+        return DistanceStack([pt.distance for pt in self.prepared])
 
     def inverse_parts(self, force_obs: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(f (n,) normalised by max |f|, c7…c9 (3,))``: inverse force and its paper-style fit."""

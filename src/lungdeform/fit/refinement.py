@@ -70,6 +70,24 @@ def gaussian_smoother(points, width_mm: float) -> sp.csr_matrix:
     return sp.csr_matrix((np.concatenate([w, w, np.ones(n)]), (rows, cols)), shape=(n, n))
 
 
+class _ClosestPoints:
+    """Closest points on each of a few fixed surfaces (:class:`SurfaceDistance` ``queries``), each query
+    started from the closest faces of the last query on the same surface (the refinement moves the
+    vertices little between rounds, so their last faces bound the search tightly; the closest points are
+    exact either way, :meth:`lungdeform.geometry.distance.SurfaceDistance.query`)."""
+
+    def __init__(self, queries: list[SurfaceDistance]):
+        self.queries = queries
+        self.faces: list[np.ndarray | None] = [None] * len(queries)
+
+    def __call__(self, target: int, points: np.ndarray) -> np.ndarray:
+        """``(k, 3)`` mm: the closest point of each of ``points : (k, 3)`` mm on surface ``target``."""
+        query, last = self.queries[target], self.faces[target]
+        bound = None if last is None else query.face_distance(points, last)
+        _, closest, self.faces[target] = query.query(points, bound)
+        return closest
+
+
 def refine_displacement(rest_vertices, displacement, targets, scales, keep=None, *,
                         finest_mm: float = FINEST_MM, iterations: int = ITERATIONS) -> Refinement:
     """Refine ``displacement : (n, 3)`` mm per unit of a model whose end-exhale vertices are
@@ -90,18 +108,19 @@ def refine_displacement(rest_vertices, displacement, targets, scales, keep=None,
     kept = np.ones(len(p), bool) if keep is None else np.asarray(keep, bool)
     if kept.shape != (len(p),):
         raise InputError(f"keep must be one bool per vertex ({len(p)}), got shape {kept.shape}")
-    queries = [SurfaceDistance(t.vertices, t.faces) for t in targets]
+    closest = _ClosestPoints([SurfaceDistance(t.vertices, t.faces) for t in targets])
     widths = tuple(w for w in WIDTHS_MM if w >= finest_mm - 1e-9) or (float(finest_mm),)
     u = u0.copy()
     for width in widths:
         smoother = gaussian_smoother(p, width)
         weight = smoother @ kept.astype(float)
         for _ in range(int(iterations)):
+            x = [p + st * u for st in s]
+            r = np.hstack([np.where(kept[:, None], closest(t, xt) - xt, 0.0) for t, xt in enumerate(x)])
+            smoothed = smoother @ r  # (n, 3 × targets): every target's residual in one pass over the kernel
             step = np.zeros_like(u)
-            for query, st in zip(queries, s):
-                x = p + st * u
-                r = np.where(kept[:, None], query.query(x)[1] - x, 0.0)
-                step += st * (smoother @ r)
+            for t, st in enumerate(s):
+                step += st * smoothed[:, 3 * t:3 * t + 3]
             u = u + step / np.maximum(weight, 1e-9)[:, None] / float(np.sum(s ** 2))
     change = np.linalg.norm(u - u0, axis=1) * float(np.max(np.abs(s)))
     return Refinement(u, u0, widths, float(change.max()), float(change.mean()))

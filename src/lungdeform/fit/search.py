@@ -152,7 +152,7 @@ def _jacobian(fitter: LungFitter, unpack, theta, scale, lo, hi, translate: bool,
         ck, fk, _ = unpack(step)
         uk = fitter.displacement(fitter.directions(ck), fk)
         du[..., k] = 0.0 if uk is None else (uk - u) / h
-    jp, jt = fitter.residual_jacobian(u, du, sh)
+    jp, jt = fitter.residual_jacobian(u, du, sh, translations=translate)
     return np.hstack([jp, jt]) if translate else jp
 
 

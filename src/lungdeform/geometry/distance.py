@@ -15,7 +15,8 @@ a real lung). Here the distance from a point to a triangle surface is exact:
    bound ``r`` on the distance if given, else from the nearest triangle in those first 27 cells; a
    point with none there (far from the surface) is searched again from its nearest vertex (k-d tree);
 3. the exact closest point on each candidate triangle (Ericson, *Real-Time Collision Detection*
-   5.1.5, written afresh here) in a numba kernel, parallel over the points; the smallest wins.
+   5.1.5, written afresh here) in a numba kernel, parallel over the points (of one surface, or of
+   several surfaces in one call: :class:`DistanceStack`); the smallest wins.
    Equally near triangles (a point nearest to an edge or a corner they share) are told apart by a
    fixed rank, the order in which the earlier raster scan of a grid of twice the median edge met
    them (the last one met won), so the face returned does not depend on the order of the visit or
@@ -220,48 +221,67 @@ def _slab_gap2(x, lo, h, i, overhang):
     return g * g
 
 
+@numba.njit(cache=True, inline="always")
+def _hint_bound(px, py, pz, rec, slot, r):
+    """``min(r, d)`` mm, ``d`` the exact distance from ``(px, py, pz)`` to the face of the record ``rec[slot]``
+    (any ``slot < 0``: ``r``): the same numbers as :func:`_face_bound` (the same corners, the same routine)."""
+    if slot < 0:
+        return r
+    qx, qy, qz = _closest_on_triangle((px, py, pz), (rec[slot, 6], rec[slot, 7], rec[slot, 8]),
+                                      (rec[slot, 9], rec[slot, 10], rec[slot, 11]),
+                                      (rec[slot, 12], rec[slot, 13], rec[slot, 14]))
+    return min(r, np.sqrt((px - qx) ** 2 + (py - qy) ** 2 + (pz - qz) ** 2))
+
+
 @numba.njit(cache=True, parallel=True)
-def _closest_kernel(points, bound, grid):
+def _closest_kernel(points, bound, hint, which, grids):
     """``(distance, closest, face)`` of ``points : (n, 3)`` within ``bound : (n,)`` (upper bounds on
-    their distances) on the faces binned in ``grid = (lo, h, dims, ptr, order, rank, records, content,
-    overhang)`` (:func:`_grid_fill`; rank: the tie-break order of each slot's face)."""
-    lo, h, dims, ptr, order, rank, rec, content, overhang = grid
+    their distances) on the faces binned in grid ``which[i]`` of the stack ``grids`` (:func:`_stack`: per
+    grid ``lo (g, 3)``, ``h (g,)``, ``dims (g, 3)``, the offsets ``pbase``, ``cbase``, ``fbase (g,)`` of its
+    cells' slot pointers, its cells and its faces, ``overhang (g,)``; every grid's ``ptr`` (absolute slots),
+    ``order`` (each slot's face, of its own surface), ``rank`` (its tie-break order), ``records``,
+    ``content`` (:func:`_grid_fill`) and ``fslot`` (a slot of each face)). ``hint : (n,)``: a face of that
+    surface whose distance bounds the search too (−1: none)."""
+    lo, h, dims, pbase, cbase, fbase, overhang, ptr, order, rank, rec, content, fslot = grids
     n = points.shape[0]
     dist2 = np.empty(n)
     closest = np.zeros((n, 3))
     face = np.full(n, -1, np.int64)
     for i in numba.prange(n):
+        g = which[i]
         px, py, pz = points[i, 0], points[i, 1], points[i, 2]
-        r = bound[i]
+        r = _hint_bound(px, py, pz, rec, fslot[fbase[g] + hint[i]] if hint[i] >= 0 else -1, bound[i])
         best = r * r * (1.0 + 1e-12) + 1e-12
         wrank = -1
-        ci, cj, ck = _cell_of(px, lo[0], h, dims[0]), _cell_of(py, lo[1], h, dims[1]), _cell_of(pz, lo[2], h, dims[2])
+        lx, ly, lz, hg, ov, pb, cb = lo[g, 0], lo[g, 1], lo[g, 2], h[g], overhang[g], pbase[g], cbase[g]
+        nx, ny, nz = dims[g, 0], dims[g, 1], dims[g, 2]
+        ci, cj, ck = _cell_of(px, lx, hg, nx), _cell_of(py, ly, hg, ny), _cell_of(pz, lz, hg, nz)
         for sweep in range(3):  # the point's cell, its neighbours, then the rest of the window
             if best == np.inf and sweep == 2:
                 break  # no bound and no face near: left to the caller (a miss)
-            reach = np.sqrt(best) + overhang
-            i0, i1 = _cell_of(px - reach, lo[0], h, dims[0]), _cell_of(px + reach, lo[0], h, dims[0])
-            j0, j1 = _cell_of(py - reach, lo[1], h, dims[1]), _cell_of(py + reach, lo[1], h, dims[1])
-            k0, k1 = _cell_of(pz - reach, lo[2], h, dims[2]), _cell_of(pz + reach, lo[2], h, dims[2])
+            reach = np.sqrt(best) + ov
+            i0, i1 = _cell_of(px - reach, lx, hg, nx), _cell_of(px + reach, lx, hg, nx)
+            j0, j1 = _cell_of(py - reach, ly, hg, ny), _cell_of(py + reach, ly, hg, ny)
+            k0, k1 = _cell_of(pz - reach, lz, hg, nz), _cell_of(pz + reach, lz, hg, nz)
             if sweep < 2:
                 i0, i1, j0, j1 = max(i0, ci - sweep), min(i1, ci + sweep), max(j0, cj - sweep), min(j1, cj + sweep)
                 k0, k1 = max(k0, ck - sweep), min(k1, ck + sweep)
             for a in range(i0, i1 + 1):
-                ga = _slab_gap2(px, lo[0], h, a, overhang)
+                ga = _slab_gap2(px, lx, hg, a, ov)
                 if ga > best:
                     continue
                 for b in range(j0, j1 + 1):
-                    gb = ga + _slab_gap2(py, lo[1], h, b, overhang)
+                    gb = ga + _slab_gap2(py, ly, hg, b, ov)
                     if gb > best:
                         continue
                     inner = sweep > 0 and abs(a - ci) < sweep and abs(b - cj) < sweep
                     for c in range(k0, k1 + 1):
                         if inner and abs(c - ck) < sweep:
                             continue  # seen in an earlier sweep
-                        cell = (a * dims[1] + b) * dims[2] + c
-                        if ptr[cell] == ptr[cell + 1] or _box_gap2(px, py, pz, content[cell]) > best:
+                        cell = (a * ny + b) * nz + c
+                        if ptr[pb + cell] == ptr[pb + cell + 1] or _box_gap2(px, py, pz, content[cb + cell]) > best:
                             continue  # no face, or none nearer than the best so far
-                        for m in range(ptr[cell], ptr[cell + 1]):
+                        for m in range(ptr[pb + cell], ptr[pb + cell + 1]):
                             if _box_gap2(px, py, pz, rec[m]) > best:  # its bounding box is farther
                                 continue
                             qx, qy, qz = _closest_on_triangle((px, py, pz), (rec[m, 6], rec[m, 7], rec[m, 8]),
@@ -277,6 +297,23 @@ def _closest_kernel(points, bound, grid):
                                 face[i] = order[m]
         dist2[i] = best
     return np.sqrt(dist2), closest, face
+
+
+def _stack(grids: list) -> tuple:
+    """One stack (:func:`_closest_kernel`) of the grids ``(lo, h, dims, ptr, order, rank, records, content,
+    overhang, faces)`` of a few surfaces (:class:`SurfaceDistance`; ``faces``: its face count)."""
+    cells = np.array([len(g[7]) for g in grids], np.int64)
+    slots = np.array([len(g[4]) for g in grids], np.int64)
+    faces = np.array([g[9] for g in grids], np.int64)
+    base = [np.concatenate([[0], np.cumsum(x)[:-1]]).astype(np.int64) for x in (cells + 1, cells, faces, slots)]
+    fslot = np.empty(int(faces.sum()), np.int64)
+    for g, f0, s0 in zip(grids, base[2], base[3]):
+        fslot[f0 + g[4]] = s0 + np.arange(len(g[4]))  # a slot of each face (any: its record is the same)
+    return (np.array([g[0] for g in grids]), np.array([g[1] for g in grids]), np.array([g[2] for g in grids]),
+            base[0], base[1], base[2], np.array([g[8] for g in grids]),
+            np.concatenate([g[3] + s0 for g, s0 in zip(grids, base[3])]), np.concatenate([g[4] for g in grids]),
+            np.concatenate([g[5] for g in grids]), np.concatenate([g[6] for g in grids]),
+            np.concatenate([g[7] for g in grids]), fslot)
 
 
 @numba.njit(cache=True, parallel=True)
@@ -316,6 +353,29 @@ def _tie_rank(vertices, faces, lo, h, dims):
     return rank
 
 
+@numba.njit(cache=True)
+def _edges_and_box(vertices, faces):
+    """``(edge (3m,) mm, lo (3,) mm, hi (3,) mm)``: the length of every face's three edges (each edge
+    once per face it bounds) and the bounding box of the vertices the faces use, in one pass (the
+    grid's cell side and extent, :class:`SurfaceDistance`; numpy's ``norm(e − roll(e))`` and
+    ``min``/``max`` over the used vertices gave the same numbers at three times the cost)."""
+    m = faces.shape[0]
+    edge = np.empty(3 * m)
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    for f in range(m):
+        for k in range(3):
+            a, b = faces[f, k], faces[f, k - 1]  # k − 1 = −1: the face's last corner (numpy's roll by one)
+            dx = vertices[a, 0] - vertices[b, 0]
+            dy = vertices[a, 1] - vertices[b, 1]
+            dz = vertices[a, 2] - vertices[b, 2]
+            edge[3 * f + k] = np.sqrt(dx * dx + dy * dy + dz * dz)
+            for c in range(3):
+                lo[c] = min(lo[c], vertices[a, c])
+                hi[c] = max(hi[c], vertices[a, c])
+    return edge, lo, hi
+
+
 #: Fewest query points for which the nearest-vertex bound is found with every core (scipy's threads).
 THREADED_QUERY = 50_000
 
@@ -352,15 +412,20 @@ class SurfaceDistance:
             raise InputError("vertices contain NaN or infinity")
         used = np.flatnonzero(np.bincount(self.faces.ravel(), minlength=len(self.vertices)))  # = np.unique, O(n)
         self._used = used
-        e = self.vertices[self.faces]
-        edge = np.linalg.norm(e - np.roll(e, 1, axis=1), axis=2)
-        lo = self.vertices[used].min(axis=0) - 1e-6
-        span = self.vertices[used].max(axis=0) + 1e-6 - lo
-        rank = _tie_rank(self.vertices, self.faces, lo, *self._cells(span, 2.0 * float(np.median(edge))))
-        h, dims = self._cells(span, self.CELL * float(np.median(edge)))
+        edge, low, high = _edges_and_box(self.vertices, self.faces)
+        lo = low - 1e-6
+        span = high + 1e-6 - lo
+        median = float(np.median(edge))
+        rank = _tie_rank(self.vertices, self.faces, lo, *self._cells(span, 2.0 * median))
+        h, dims = self._cells(span, self.CELL * median)
         ptr, order, records, content, overhang = _grid_fill(self.vertices, self.faces, lo, h, dims, self.CAP * h)
-        rank = rank[order]
-        self._grid = (lo, h, dims, ptr, order, rank, records, content, overhang)
+        self._parts = (lo, h, dims, ptr, order, rank[order], records, content, overhang, len(self.faces))
+
+    @cached_property
+    def _grid(self) -> tuple:
+        """This surface's grid alone as a stack (:func:`_stack`), made on its first own query (a surface
+        queried only within a :class:`DistanceStack` needs none)."""
+        return _stack([self._parts])
 
     def _cells(self, span: np.ndarray, h: float) -> tuple[float, np.ndarray]:
         """``(h mm, dims (3,) int)``: a grid of cells of side ``h`` (grown to at most MAX_CELLS cells) over ``span``."""
@@ -419,11 +484,65 @@ class SurfaceDistance:
         return self._tree.query(pts, workers=-1 if len(pts) >= THREADED_QUERY else 1)[0]
 
     def _search(self, pts: np.ndarray, bound: np.ndarray):
-        return _closest_kernel(pts, bound, self._grid)
+        none = np.full(len(pts), -1, np.int64)
+        return _closest_kernel(pts, bound, none, np.zeros(len(pts), np.int64), self._grid)
 
     def distance(self, points, bound=None) -> np.ndarray:
         """``(k,) float`` mm: exact unsigned distance of each point to the surface (``bound``: :meth:`query`)."""
         return self.query(points, bound)[0]
+
+
+class DistanceStack:
+    """Exact distances from points to several triangle surfaces, every surface's points in one kernel call.
+
+    A fit measures a few thousand points against each of a 4-D CT's nine targets (and its model
+    surface at each target's volume) per evaluation: one parallel call over all of them, not one per
+    surface. The answers equal each surface's own :meth:`SurfaceDistance.query` (the same grids, the
+    same kernel, the same tie rule).
+
+    Parameters
+    ----------
+    surfaces : sequence of SurfaceDistance
+        The surfaces, each in its own frame (mm); their grids are copied once into the stack.
+    """
+
+    def __init__(self, surfaces):
+        self.surfaces = tuple(surfaces)
+        if not self.surfaces:
+            raise InputError("surfaces: a distance stack needs at least one surface")
+        self._grid = _stack([sd._parts for sd in self.surfaces])
+
+    def query(self, which, points, faces=None) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """``[(distance (k_j,) mm, closest (k_j, 3) mm, face (k_j,) int), …]``: for each ``j``, the points
+        ``points[j] : (k_j, 3)`` on surface ``which[j]`` (an index into :attr:`surfaces`), each search
+        bounded by the distance to its face ``faces[j][i]`` (``faces[j] : (k_j,) int`` or None, −1: no
+        bound; :meth:`SurfaceDistance.face_distance`); exact either way (:meth:`SurfaceDistance.query`)."""
+        which = [int(w) for w in which]
+        pts = [as_vertices(p, "points") for p in points]
+        if not pts and not which:
+            return []
+        hints = [None] * len(pts) if faces is None else list(faces)
+        if len(which) != len(pts) or len(hints) != len(pts) or any(w < 0 or w >= len(self.surfaces) for w in which):
+            raise InputError(f"which, points and faces must be one per query, which indexing the "
+                             f"{len(self.surfaces)} surfaces; got {len(which)}, {len(pts)}, {len(hints)}")
+        hint = [np.full(len(p), -1, np.int64) if f is None else np.asarray(f) for p, f in zip(pts, hints)]
+        for p, f, w in zip(pts, hint, which):
+            if f.shape != (len(p),) or not np.issubdtype(f.dtype, np.integer) or (
+                    len(f) and (f.min() < -1 or f.max() >= len(self.surfaces[w].faces))):
+                raise InputError(f"faces must be ({len(p)},) face indices of surface {w} (or -1), got shape "
+                                 f"{f.shape}, dtype {f.dtype}")
+        allp = np.concatenate(pts)
+        if not np.all(np.isfinite(allp)):
+            raise InputError("points contain NaN or infinity")
+        grid_of = np.repeat(np.asarray(which, np.int64), [len(p) for p in pts])
+        dist, closest, face = _closest_kernel(allp, np.full(len(allp), np.inf), np.concatenate(hint).astype(np.int64),
+                                              grid_of, self._grid)
+        for w in np.unique(grid_of[face < 0]):  # no face near and no bound: from the nearest vertex, as query does
+            miss = np.flatnonzero((face < 0) & (grid_of == w))
+            sd = self.surfaces[w]
+            dist[miss], closest[miss], face[miss] = sd._search(allp[miss], sd._vertex_bound(allp[miss]))
+        cut = np.cumsum([len(p) for p in pts])[:-1]
+        return list(zip(np.split(dist, cut), np.split(closest, cut), np.split(face, cut)))
 
 
 def barycentric(points, a, b, c) -> np.ndarray:
@@ -515,6 +634,25 @@ class SymmetricDistance:
     b_weights: np.ndarray
     a_index: np.ndarray
     b_index: np.ndarray
+
+    def restricted(self, keep_a=None, keep_b=None) -> SymmetricDistance:
+        """The same distances of the vertices kept here that ``keep_a : (na_all,) bool`` and ``keep_b :
+        (nb_all,) bool`` (one per vertex of A and of B; None: all) also keep: what
+        :func:`symmetric_distance` with those masks measures, without measuring again (each
+        distance is its own point's query)."""
+        ia, ib = self._kept(keep_a, self.a_index, "keep_a"), self._kept(keep_b, self.b_index, "keep_b")
+        return SymmetricDistance(self.a_to_b[ia], self.b_to_a[ib], self.a_weights[ia], self.b_weights[ib],
+                                 self.a_index[ia], self.b_index[ib])
+
+    @staticmethod
+    def _kept(keep, index: np.ndarray, name: str) -> np.ndarray:
+        """``(k,) bool``: which of the vertices ``index`` the mask ``keep`` keeps (all when None)."""
+        if keep is None:
+            return np.ones(len(index), bool)
+        k = np.asarray(keep, bool)
+        if k.ndim != 1 or (len(index) and len(k) <= index.max()):
+            raise InputError(f"{name} must be one boolean per vertex (at least {index.max() + 1}), got shape {k.shape}")
+        return k[index]
 
     @cached_property
     def stats(self) -> DistanceStats:
