@@ -239,3 +239,30 @@ def test_a_phase_exported_twice_is_refused_naming_both(tmp_path, rng):
             ds.save_as(f)
     with pytest.raises(ReadError, match=r"shared: phase 50% repeats phase 0%: .* are one SOP instance \(1\.2\.3\.9\.1\)"):
         read_phases(tmp_path / "shared")
+
+
+def test_each_header_is_read_once(tmp_path, rng, monkeypatch):
+    # why: the survey reads each file's header once (pydicom) and keeps the tags the phases are told
+    # apart and checked by; GDCM then reads the pixels of each phase (one series read), never a header
+    # on its own. Counted: pydicom reads per file, GDCM single-file readers made; the phases still the
+    # phantom's (one per series, in order, full volumes)
+    import lungdeform.io.dicom.folder as folder
+
+    write_4dct(tmp_path, rng, 3, "description")
+    reads: dict[str, int] = {}
+    real_read = folder.pydicom.dcmread
+
+    def counting(path, *args, **kwargs):
+        reads[str(path)] = reads.get(str(path), 0) + 1
+        return real_read(path, *args, **kwargs)
+
+    made = []
+    real_reader = sitk.ImageFileReader
+    monkeypatch.setattr(folder.pydicom, "dcmread", counting)
+    monkeypatch.setattr(sitk, "ImageFileReader", lambda: made.append(1) or real_reader())
+    phases = read_phases(tmp_path)
+    files = sorted(str(f) for f in tmp_path.rglob("*.dcm"))
+    assert sorted(reads) == files and set(reads.values()) == {1}
+    assert made == []
+    assert [p.label for p in phases] == ["0%", "10%", "20%"]
+    assert all(p.image.array.shape == SHAPE for p in phases)

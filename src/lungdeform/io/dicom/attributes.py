@@ -5,7 +5,7 @@ and that those holding UIDs are DICOM UIDs (:data:`UID`); a :class:`~lungdeform.
 names the file and the attributes. Every reader of this package calls it
 (:mod:`~lungdeform.io.dicom.rtstruct`, :mod:`~lungdeform.io.dicom.series`,
 :mod:`~lungdeform.io.dicom.registration`, and :mod:`~lungdeform.io.dicom.fourdct` on the
-attributes GDCM read of each file, :func:`as_dataset`).
+attributes the folder survey read of each file as text, :func:`as_dataset`).
 
 Writing: :func:`decimal` formats a number as a Decimal String of at most 16 bytes (PS3.5 6.2, DS;
 Eclipse refuses longer ones); :func:`fit_text` makes every text value lungdeform derives (a

@@ -38,6 +38,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pydicom
+from pydicom.datadict import dictionary_VR
+from pydicom.dataelem import RawDataElement
+from pydicom.multival import MultiValue
+from pydicom.tag import Tag
 from pydicom.uid import UID
 
 from lungdeform.errors import ReadError
@@ -57,6 +61,9 @@ _TAGS = ("SOPClassUID", "SOPInstanceUID", "Modality", "SeriesInstanceUID", "Seri
          "Rows", "NumberOfFrames")
 #: Ignored objects named in full in :func:`ignored_line`; beyond, a count
 _NAMED = 12
+#: Value representations held as binary numbers, and text ones (SpecificCharacterSet applies): both
+#: converted by pydicom for :func:`_text`; any other (DS, IS, TM, DA, UI, CS ...) is its own bytes
+_CONVERTED_VRS = frozenset(("US", "SS", "UL", "SL", "FL", "FD", "UV", "SV", "AT", "SH", "LO", "ST", "LT", "UT", "UC", "PN"))
 
 
 @dataclass(frozen=True)
@@ -84,7 +91,9 @@ class ImageSeries:
     """One image series of a folder: ``uid``, ``description`` (SeriesDescription, '' when none),
     ``modality``, ``files`` (its files, in name order), ``localizer`` (ImageType LOCALIZER),
     ``ct`` (Modality CT or a CT SOP class), ``folder`` the subfolder it lies in (relative) when a
-    parent folder's subfolders were looked into ('' otherwise)."""
+    parent folder's subfolders were looked into ('' otherwise), ``tags`` one dict per file (in the
+    order of ``files``) of the tags :func:`survey` was asked for (``"gggg|eeee"`` → text as
+    :func:`_text` gives it), read with the rest of the header; empty dicts when none were asked for."""
 
     uid: str
     description: str
@@ -93,6 +102,7 @@ class ImageSeries:
     localizer: bool
     ct: bool
     folder: str = ""
+    tags: tuple[dict[str, str], ...] = ()
 
     @property
     def label(self) -> str:
@@ -114,16 +124,19 @@ class FolderSurvey:
     dicomdir: str = ""
 
 
-def survey(path) -> FolderSurvey:
+def survey(path, tags=()) -> FolderSurvey:
     """The image series and the other objects of the DICOM folder ``path`` (module docstring).
+    ``tags`` (``"gggg|eeee"``): tags to keep of each image file (:attr:`ImageSeries.tags`), read in the
+    same pass over its header, so that a series reader need not read the headers again.
     :class:`ReadError` naming the file for a damaged DICOM file, the folder when it is none."""
     root = Path(path)
     if not root.is_dir():
         raise ReadError(f"{root}: not a folder")
     files, ignored, note, below = _files(root)
+    wanted = tuple((t, Tag(int(t[:4], 16), int(t[5:], 16))) for t in tags)
     found: dict[tuple[str, str], list] = {}
     for f in files:
-        kind = _object(f)
+        kind = _object(f, wanted)
         if isinstance(kind, str):
             ignored.append((_name(f, root), kind))
         else:  # below a parent folder: a series per subfolder (two copies of one series are two)
@@ -217,17 +230,20 @@ def _name(f, root: Path) -> str:
         return str(f)
 
 
-def _object(f: str):
-    """What the DICOM file ``f`` holds: ``(series UID, modality, description, image type, SOP class)``
-    for an image of a patient, or a word saying what it is (``RTSTRUCT``, ``RTDOSE grid`` …)."""
+def _object(f: str, wanted=()):
+    """What the DICOM file ``f`` holds: ``(series UID, modality, description, localizer, SOP class,
+    {tag: text} of ``wanted`` ((``"gggg|eeee"``, Tag) pairs, :func:`_text`))`` for an image of a
+    patient, or a word saying what it is (``RTSTRUCT``, ``RTDOSE grid`` …)."""
     check_dicom_file(f)
+    asked = list(_TAGS) + [tag for _, tag in wanted]
     try:
         with warnings.catch_warnings():  # values pydicom still reads (a VR mismatch): not the user's concern
             warnings.simplefilter("ignore")
             try:
-                ds = pydicom.dcmread(f, stop_before_pixels=True, specific_tags=list(_TAGS))
+                ds = pydicom.dcmread(f, stop_before_pixels=True, specific_tags=asked)
             except pydicom.errors.InvalidDicomError:  # no preamble (GDCM reads such files): its header checked above
-                ds = pydicom.dcmread(f, stop_before_pixels=True, specific_tags=list(_TAGS), force=True)
+                ds = pydicom.dcmread(f, stop_before_pixels=True, specific_tags=asked, force=True)
+            kept = {name: _text(ds, tag) for name, tag in wanted}  # before the lines below convert any value
             meta = getattr(ds, "file_meta", None)
             sop = str(ds.get("SOPClassUID", "") or (meta.get("MediaStorageSOPClassUID", "") if meta else "")).strip()
             modality = str(ds.get("Modality", "") or "").strip().upper()
@@ -243,7 +259,24 @@ def _object(f: str):
         return f"{modality} grid"
     if not image:
         return modality or _sop_name(sop)
-    return (uid, modality, description, "LOCALIZER" in types, sop)
+    return (uid, modality, description, "LOCALIZER" in types, sop, kept)
+
+
+def _text(ds, tag) -> str:
+    """The value of ``tag`` in ``ds`` as text, as GDCM gives it: what the file holds, stripped of
+    its padding (spaces, NUL), several values ``\\``-separated; binary numbers (US, UL ...) written out,
+    text (LO, PN ...) decoded with the file's SpecificCharacterSet; ``""`` when absent or empty.
+    Decimal strings, times and UIDs stay as written, so that a malformed one is refused by whoever
+    needs it (:mod:`~lungdeform.io.dicom.slices`), naming it, not here."""
+    elem = ds.get_item(tag)
+    if elem is None or elem.value is None:
+        return ""
+    vr = elem.VR if elem.VR not in (None, "UN") else dictionary_VR(tag)  # implicit VR: the dictionary's
+    if isinstance(elem, RawDataElement) and vr not in _CONVERTED_VRS:
+        return elem.value.decode("utf-8", "replace").strip(" \0\t\r\n")
+    value = ds[tag].value
+    values = value if isinstance(value, (list, tuple, MultiValue)) else [value]
+    return "\\".join("" if v is None else str(v) for v in values).strip(" \0\t\r\n")
 
 
 def _values(value) -> list:
@@ -263,8 +296,10 @@ def _series(uid: str, members: list, folder: str = "") -> ImageSeries:
     first = members[0][1]
     modalities = {m[1] for _, m in members}
     ct = any(m[1] == "CT" or m[4] in CT_SOP_CLASSES for _, m in members)
+    members = sorted(members, key=lambda m: m[0])
     return ImageSeries(uid, first[2], "CT" if ct else "/".join(sorted(modalities - {""})) or "",
-                       tuple(sorted(f for f, _ in members)), all(m[3] for _, m in members), ct, folder)
+                       tuple(f for f, _ in members), all(m[3] for _, m in members), ct, folder,
+                       tuple(m[5] for _, m in members))
 
 
 def candidates(found: FolderSurvey) -> list[ImageSeries]:
