@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pydicom
@@ -172,6 +173,13 @@ def test_the_tags_the_survey_keeps_are_what_gdcm_reads(export, tmp_path, rng):
                 assert kept == _gdcm_tags(f, tags), f
                 compared += 1
     assert compared > 24 + 12  # every slice of both CTs (and the localizer) compared
+    # a file without the 128-byte preamble and "DICM" (GDCM and pydicom read such files) is read by
+    # pydicom's whole-file reader instead: the same tags as its twin with the preamble
+    twin = survey(flat, tags).series[0]
+    (tmp_path / "bare").mkdir()
+    (tmp_path / "bare" / "x.dcm").write_bytes(Path(twin.files[0]).read_bytes()[132:])
+    bare = survey(tmp_path / "bare", tags).series[0]
+    assert bare.tags[0] == twin.tags[0] == _gdcm_tags(bare.files[0], tags)
     gdcm = survey(tmp_path / "gdcm", tags).series[0].tags[0]
     assert (gdcm["0020|9128"], gdcm["0018|1060"], gdcm["0008|0032"]) == ("7", "350.5", "101502.25")
     # text is decoded with the file's SpecificCharacterSet (GDCM gives its bytes undecoded): a

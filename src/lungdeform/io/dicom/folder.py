@@ -38,11 +38,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pydicom
-from pydicom.datadict import dictionary_VR
-from pydicom.dataelem import RawDataElement
+from pydicom.charset import convert_encodings, default_encoding
+from pydicom.datadict import dictionary_VR, tag_for_keyword
+from pydicom.dataelem import RawDataElement, convert_raw_data_element
+from pydicom.filereader import data_element_generator
 from pydicom.multival import MultiValue
 from pydicom.tag import Tag
-from pydicom.uid import UID
+from pydicom.uid import UID, DeflatedExplicitVRLittleEndian, ExplicitVRBigEndian, ImplicitVRLittleEndian
 
 from lungdeform.errors import ReadError
 
@@ -56,9 +58,14 @@ MAX_FOLDERS = 2000
 CT_SOP_CLASSES = ("1.2.840.10008.5.1.4.1.1.2", "1.2.840.10008.5.1.4.1.1.2.1", "1.2.840.10008.5.1.4.1.1.2.2")
 #: Image objects that are no patient image a reader may take: RT Dose and RT Image grids
 GRID_MODALITIES = ("RTDOSE", "RTIMAGE")
-#: The header attributes :func:`survey` reads of each file
-_TAGS = ("SOPClassUID", "SOPInstanceUID", "Modality", "SeriesInstanceUID", "SeriesDescription", "ImageType",
-         "Rows", "NumberOfFrames")
+#: The header attributes :func:`survey` reads of each file (SpecificCharacterSet: how its text is encoded)
+_KEY = {k: Tag(tag_for_keyword(k)) for k in ("SpecificCharacterSet", "SOPClassUID", "SOPInstanceUID", "Modality",
+                                             "SeriesInstanceUID", "SeriesDescription", "ImageType", "Rows",
+                                             "NumberOfFrames")}
+_TAGS = tuple(_KEY.values())
+_CHARSET, _MEDIA_SOP_CLASS, _TRANSFER_SYNTAX = _KEY["SpecificCharacterSet"], Tag(0x0002, 0x0002), Tag(0x0002, 0x0010)
+#: Transfer syntaxes whose data set :func:`_header` leaves to pydicom's ``dcmread`` (not little endian, or deflated)
+_READ_BY_DCMREAD = (ExplicitVRBigEndian, DeflatedExplicitVRLittleEndian)
 #: Ignored objects named in full in :func:`ignored_line`; beyond, a count
 _NAMED = 12
 #: Value representations held as binary numbers, and text ones (SpecificCharacterSet applies): both
@@ -235,22 +242,19 @@ def _object(f: str, wanted=()):
     {tag: text} of ``wanted`` ((``"gggg|eeee"``, Tag) pairs, :func:`_text`))`` for an image of a
     patient, or a word saying what it is (``RTSTRUCT``, ``RTDOSE grid`` …)."""
     check_dicom_file(f)
-    asked = list(_TAGS) + [tag for _, tag in wanted]
+    asked = frozenset(_TAGS + tuple(tag for _, tag in wanted))
     try:
         with warnings.catch_warnings():  # values pydicom still reads (a VR mismatch): not the user's concern
             warnings.simplefilter("ignore")
-            try:
-                ds = pydicom.dcmread(f, stop_before_pixels=True, specific_tags=asked)
-            except pydicom.errors.InvalidDicomError:  # no preamble (GDCM reads such files): its header checked above
-                ds = pydicom.dcmread(f, stop_before_pixels=True, specific_tags=asked, force=True)
-            kept = {name: _text(ds, tag) for name, tag in wanted}  # before the lines below convert any value
-            meta = getattr(ds, "file_meta", None)
-            sop = str(ds.get("SOPClassUID", "") or (meta.get("MediaStorageSOPClassUID", "") if meta else "")).strip()
-            modality = str(ds.get("Modality", "") or "").strip().upper()
-            image = ds.get("Rows") is not None
-            uid = str(ds.get("SeriesInstanceUID", "") or "").strip()
-            description = str(ds.get("SeriesDescription", "") or "").strip()
-            types = [str(t).strip().upper() for t in _values(ds.get("ImageType"))]
+            meta, data = _header(f, asked)
+            encoding = convert_encodings(_value(data, _CHARSET, default_encoding) or default_encoding)
+            kept = {name: _text(data, tag, encoding) for name, tag in wanted}
+            sop = _text(data, _KEY["SOPClassUID"], encoding) or _text(meta, _MEDIA_SOP_CLASS, encoding)
+            modality = _text(data, _KEY["Modality"], encoding).upper()
+            image = _value(data, _KEY["Rows"], encoding) is not None
+            uid = _text(data, _KEY["SeriesInstanceUID"], encoding)
+            description = _text(data, _KEY["SeriesDescription"], encoding)
+            types = [t.strip().upper() for t in _text(data, _KEY["ImageType"], encoding).split("\\")]
     except Exception as exc:  # any parse failure becomes one clear line
         raise ReadError(f"{f}: not a readable DICOM file ({type(exc).__name__}: {str(exc).strip()[:160]})") from exc
     if sop == "1.2.840.10008.1.3.10":
@@ -262,27 +266,60 @@ def _object(f: str, wanted=()):
     return (uid, modality, description, "LOCALIZER" in types, sop, kept)
 
 
-def _text(ds, tag) -> str:
-    """The value of ``tag`` in ``ds`` as text, as GDCM gives it: what the file holds, stripped of
-    its padding (spaces, NUL), several values ``\\``-separated; binary numbers (US, UL ...) written out,
-    text (LO, PN ...) decoded with the file's SpecificCharacterSet; ``""`` when absent or empty.
-    Decimal strings, times and UIDs stay as written, so that a malformed one is refused by whoever
-    needs it (:mod:`~lungdeform.io.dicom.slices`), naming it, not here."""
-    elem = ds.get_item(tag)
+def _header(f: str, tags: frozenset) -> tuple[dict, dict]:
+    """``(file meta, data set)`` of the DICOM file ``f``: ``{tag: element}`` of its file meta
+    information and of the data set elements ``tags`` (Tag), values unconverted
+    (:class:`~pydicom.dataelem.RawDataElement`) where pydicom leaves them so. The common file (the
+    ``DICM`` preamble, little endian, not deflated) is read by pydicom's element reader up to the
+    last of ``tags`` (what follows, the pixels included, is not read); any other by ``dcmread``."""
+    last = max(tags)
+    with open(f, "rb") as fh:
+        if fh.read(132)[128:132] == b"DICM":
+            meta = {e.tag: e for e in data_element_generator(fh, False, True, stop_when=_after_meta)}
+            syntax = _text(meta, _TRANSFER_SYNTAX, default_encoding)
+            if syntax and syntax not in _READ_BY_DCMREAD:
+                data = data_element_generator(fh, syntax == ImplicitVRLittleEndian, True, specific_tags=tags,
+                                              stop_when=lambda tag, _vr, _length: tag > last)
+                return meta, {e.tag: e for e in data}
+    try:
+        ds = pydicom.dcmread(f, stop_before_pixels=True, specific_tags=list(tags))
+    except pydicom.errors.InvalidDicomError:  # no preamble (GDCM reads such files): its header checked above
+        ds = pydicom.dcmread(f, stop_before_pixels=True, specific_tags=list(tags), force=True)
+    meta = getattr(ds, "file_meta", None)
+    return ({} if meta is None else {e.tag: e for e in meta}), {tag: ds.get_item(tag) for tag in tags if tag in ds}
+
+
+def _after_meta(tag, _vr, _length) -> bool:
+    """Whether ``tag`` is past the file meta information (group 0002)."""
+    return tag.group != 2
+
+
+def _value(elements: dict, tag, encoding):
+    """The value of ``tag`` in ``elements`` (:func:`_header`) as pydicom converts it (text decoded with
+    ``encoding``, the data set's character set), None when absent or empty."""
+    elem = elements.get(tag)
+    if elem is None:
+        return None
+    if isinstance(elem, RawDataElement):
+        elem = convert_raw_data_element(elem, encoding=encoding)
+    return elem.value if elem.value not in ("", b"") else None
+
+
+def _text(elements: dict, tag, encoding) -> str:
+    """The value of ``tag`` in ``elements`` (:func:`_header`) as text, as GDCM gives it: what the file
+    holds, stripped of its padding (spaces, NUL), several values ``\\``-separated; binary numbers (US,
+    UL ...) written out, text (LO, PN ...) decoded with ``encoding`` (the data set's character set);
+    ``""`` when absent or empty. Decimal strings, times and UIDs stay as written, so that a malformed
+    one is refused by whoever needs it (:mod:`~lungdeform.io.dicom.slices`), naming it, not here."""
+    elem = elements.get(tag)
     if elem is None or elem.value is None:
         return ""
     vr = elem.VR if elem.VR not in (None, "UN") else dictionary_VR(tag)  # implicit VR: the dictionary's
     if isinstance(elem, RawDataElement) and vr not in _CONVERTED_VRS:
         return elem.value.decode("utf-8", "replace").strip(" \0\t\r\n")
-    value = ds[tag].value
+    value = _value(elements, tag, encoding)
     values = value if isinstance(value, (list, tuple, MultiValue)) else [value]
     return "\\".join("" if v is None else str(v) for v in values).strip(" \0\t\r\n")
-
-
-def _values(value) -> list:
-    if value is None:
-        return []
-    return list(value) if isinstance(value, (list, tuple, pydicom.multival.MultiValue)) else [value]
 
 
 def _sop_name(sop: str) -> str:

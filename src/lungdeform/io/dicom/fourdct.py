@@ -42,7 +42,7 @@ import SimpleITK as sitk
 from lungdeform.errors import ReadError
 from lungdeform.io.grid import Image, check_grid, quiet_itk
 
-from .attributes import as_dataset, require
+from .attributes import require
 from .folder import candidates, ignored_line, survey
 from .slices import GEOMETRY_TAGS, SliceGeometry, check_orientations, check_slices, check_spacing
 
@@ -271,7 +271,7 @@ def read_phases(folder, *, max_voxels=None, ignored: list | None = None) -> list
     lines: list[str] = []
     infos = _slice_tags(folder, lines)  # every header read once, by the survey; GDCM reads the pixels only
     for f, info in infos:
-        require(as_dataset({name: info[tag] for tag, name in UID_TAGS}), ("SeriesInstanceUID",), f,
+        require({name: info[tag] for tag, name in UID_TAGS}, ("SeriesInstanceUID",), f,
                 "which tells the phases of a 4-D CT apart", optional=("StudyInstanceUID", "FrameOfReferenceUID"))
     if not infos:
         raise ReadError(f"{folder}: no DICOM CT images in this folder or its subfolders"
