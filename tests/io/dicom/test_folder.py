@@ -161,8 +161,8 @@ def test_the_tags_the_survey_keeps_are_what_gdcm_reads(export, tmp_path, rng):
     # GDCM-written slices carrying TemporalPositionIndex and TriggerTime
     tags = ("0020|000e", "0008|0018", "0020|0032", "0020|0037", "0018|1120", "0028|0030", "0028|0010", "0028|0011",
             "0028|0008", "0020|9128", "0020|0100", "0018|1060", "0008|0032", "0020|000d", "0020|0052")
-    write_slices(tmp_path / "gdcm", phase_ct(1.0, rng), {"0020|9128": "7", "0018|1060": "350.5 ", "0008|0032": "101502.25"},
-                 "1.2.826.0.1.3680043.2.1125.7.41")
+    write_slices(tmp_path / "gdcm", phase_ct(1.0, rng),
+                 {"0020|9128": "7", "0018|1060": "350.5 ", "0008|0032": "101502.25"}, "1.2.826.0.1.3680043.2.1125.7.41")
     flat = tmp_path / "flat"
     shutil.copytree(export["flat"], flat)  # the module's export is left as it is
     compared = 0

@@ -44,7 +44,7 @@ from pydicom.dataelem import RawDataElement, convert_raw_data_element
 from pydicom.filereader import data_element_generator
 from pydicom.multival import MultiValue
 from pydicom.tag import Tag
-from pydicom.uid import UID, DeflatedExplicitVRLittleEndian, ExplicitVRBigEndian, ImplicitVRLittleEndian
+from pydicom.uid import UID
 
 from lungdeform.errors import ReadError
 
@@ -64,13 +64,12 @@ _KEY = {k: Tag(tag_for_keyword(k)) for k in ("SpecificCharacterSet", "SOPClassUI
                                              "NumberOfFrames")}
 _TAGS = tuple(_KEY.values())
 _CHARSET, _MEDIA_SOP_CLASS, _TRANSFER_SYNTAX = _KEY["SpecificCharacterSet"], Tag(0x0002, 0x0002), Tag(0x0002, 0x0010)
-#: Transfer syntaxes whose data set :func:`_header` leaves to pydicom's ``dcmread`` (not little endian, or deflated)
-_READ_BY_DCMREAD = (ExplicitVRBigEndian, DeflatedExplicitVRLittleEndian)
 #: Ignored objects named in full in :func:`ignored_line`; beyond, a count
 _NAMED = 12
 #: Value representations held as binary numbers, and text ones (SpecificCharacterSet applies): both
 #: converted by pydicom for :func:`_text`; any other (DS, IS, TM, DA, UI, CS ...) is its own bytes
-_CONVERTED_VRS = frozenset(("US", "SS", "UL", "SL", "FL", "FD", "UV", "SV", "AT", "SH", "LO", "ST", "LT", "UT", "UC", "PN"))
+_CONVERTED_VRS = frozenset(("US", "SS", "UL", "SL", "FL", "FD", "UV", "SV", "AT",
+                            "SH", "LO", "ST", "LT", "UT", "UC", "PN"))
 
 
 @dataclass(frozen=True)
@@ -270,15 +269,16 @@ def _header(f: str, tags: frozenset) -> tuple[dict, dict]:
     """``(file meta, data set)`` of the DICOM file ``f``: ``{tag: element}`` of its file meta
     information and of the data set elements ``tags`` (Tag), values unconverted
     (:class:`~pydicom.dataelem.RawDataElement`) where pydicom leaves them so. The common file (the
-    ``DICM`` preamble, little endian, not deflated) is read by pydicom's element reader up to the
-    last of ``tags`` (what follows, the pixels included, is not read); any other by ``dcmread``."""
+    ``DICM`` preamble, a standard transfer syntax, little endian, not deflated) is read by pydicom's
+    element reader up to the last of ``tags`` (what follows, the pixels included, is not read); any
+    other by ``dcmread``."""
     last = max(tags)
     with open(f, "rb") as fh:
         if fh.read(132)[128:132] == b"DICM":
             meta = {e.tag: e for e in data_element_generator(fh, False, True, stop_when=_after_meta)}
-            syntax = _text(meta, _TRANSFER_SYNTAX, default_encoding)
-            if syntax and syntax not in _READ_BY_DCMREAD:
-                data = data_element_generator(fh, syntax == ImplicitVRLittleEndian, True, specific_tags=tags,
+            syntax = UID(_text(meta, _TRANSFER_SYNTAX, default_encoding))
+            if syntax.is_transfer_syntax and syntax.is_little_endian and not syntax.is_deflated:
+                data = data_element_generator(fh, syntax.is_implicit_VR, True, specific_tags=tags,
                                               stop_when=lambda tag, _vr, _length: tag > last)
                 return meta, {e.tag: e for e in data}
     try:

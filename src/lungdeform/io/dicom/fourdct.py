@@ -101,8 +101,9 @@ def _slice_tags(folder: Path, ignored: list | None) -> list[tuple[str, dict[str,
                 size = [int(tags[t] or default) for t, default in (("0028|0011", ""), ("0028|0010", ""),
                                                                    ("0028|0008", "1"))]
             except ValueError:
-                raise ReadError(f"{folder}: {f} is not a readable DICOM image (Rows {tags['0028|0010']!r}, Columns "
-                                f"{tags['0028|0011']!r}, NumberOfFrames {tags['0028|0008']!r}: not whole numbers)") from None
+                raise ReadError(f"{folder}: {f} is not a readable DICOM image (Rows {tags['0028|0010']!r}, "
+                                f"Columns {tags['0028|0011']!r}, NumberOfFrames {tags['0028|0008']!r}: "
+                                "not whole numbers)") from None
             infos.append((f, {**tags, "size": " ".join(str(n) for n in size)}))
     return infos
 
