@@ -3,9 +3,11 @@
 A CT exported from a planning system or a PACS holds more than its slices: an RTSTRUCT, an RTPLAN,
 an RTDOSE, a REG, key objects (KO), structured reports (SR), presentation states (PR), a DICOMDIR,
 a localizer (scout), other reconstructions, and files that are no DICOM at all (a README,
-``Thumbs.db``, ``.DS_Store``). :func:`survey` reads the header of every DICOM file (pydicom, no
-pixels; each file through :func:`~lungdeform.io.dicom.guard.check_dicom_file` first, so a damaged
-file is refused, never skipped) and sorts what it finds:
+``Thumbs.db``, ``.DS_Store``). :func:`survey` reads the header of every DICOM file (pydicom, up to
+the last attribute it needs, no pixels; each file through
+:func:`~lungdeform.io.dicom.guard.check_dicom_file` first, so a damaged file is refused, never
+skipped), keeps of each image file the attributes a series reader asks for (:attr:`ImageSeries.tags`:
+the 4-D CT reader's need no second reading) and sorts what it finds:
 
 - **image series**, grouped by SeriesInstanceUID: every object with an image (Rows) that is no RT
   Dose or RT Image grid;
@@ -33,6 +35,7 @@ Library code: nothing is printed; the CLI says :func:`ignored_line`.
 from __future__ import annotations
 
 import os
+import struct
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -66,10 +69,12 @@ _TAGS = tuple(_KEY.values())
 _CHARSET, _MEDIA_SOP_CLASS, _TRANSFER_SYNTAX = _KEY["SpecificCharacterSet"], Tag(0x0002, 0x0002), Tag(0x0002, 0x0010)
 #: Ignored objects named in full in :func:`ignored_line`; beyond, a count
 _NAMED = 12
-#: Value representations held as binary numbers, and text ones (SpecificCharacterSet applies): both
-#: converted by pydicom for :func:`_text`; any other (DS, IS, TM, DA, UI, CS ...) is its own bytes
-_CONVERTED_VRS = frozenset(("US", "SS", "UL", "SL", "FL", "FD", "UV", "SV", "AT",
-                            "SH", "LO", "ST", "LT", "UT", "UC", "PN"))
+#: Value representations :func:`_text` takes as written (ASCII by the standard), text ones (ASCII when
+#: it holds no escape: the same in every character set; else decoded by pydicom) and binary numbers
+#: it unpacks itself (struct formats, as pydicom does); any other is left to pydicom
+_AS_WRITTEN = frozenset(("AE", "AS", "CS", "DA", "DS", "DT", "IS", "TM", "UI", "UR"))
+_TEXT_VRS = frozenset(("SH", "LO", "ST", "LT", "UT", "UC", "PN"))
+_NUMBERS = {"US": "H", "SS": "h", "UL": "I", "SL": "i", "FL": "f", "FD": "d"}
 
 
 @dataclass(frozen=True)
@@ -250,7 +255,7 @@ def _object(f: str, wanted=()):
             kept = {name: _text(data, tag, encoding) for name, tag in wanted}
             sop = _text(data, _KEY["SOPClassUID"], encoding) or _text(meta, _MEDIA_SOP_CLASS, encoding)
             modality = _text(data, _KEY["Modality"], encoding).upper()
-            image = _value(data, _KEY["Rows"], encoding) is not None
+            image = _text(data, _KEY["Rows"], encoding) != ""
             uid = _text(data, _KEY["SeriesInstanceUID"], encoding)
             description = _text(data, _KEY["SeriesDescription"], encoding)
             types = [t.strip().upper() for t in _text(data, _KEY["ImageType"], encoding).split("\\")]
@@ -314,9 +319,15 @@ def _text(elements: dict, tag, encoding) -> str:
     elem = elements.get(tag)
     if elem is None or elem.value is None:
         return ""
-    vr = elem.VR if elem.VR not in (None, "UN") else dictionary_VR(tag)  # implicit VR: the dictionary's
-    if isinstance(elem, RawDataElement) and vr not in _CONVERTED_VRS:
-        return elem.value.decode("utf-8", "replace").strip(" \0\t\r\n")
+    if isinstance(elem, RawDataElement):
+        vr = elem.VR if elem.VR not in (None, "UN") else dictionary_VR(tag)  # implicit VR: the dictionary's
+        raw = elem.value
+        size = struct.calcsize(_NUMBERS.get(vr, "x"))
+        if vr in _NUMBERS and len(raw) % size == 0:  # what pydicom would unpack
+            form = ("<" if elem.is_little_endian else ">") + _NUMBERS[vr] * (len(raw) // size)
+            return "\\".join(str(v) for v in struct.unpack(form, raw))
+        if vr in _AS_WRITTEN or (vr in _TEXT_VRS and raw.isascii() and b"\x1b" not in raw):
+            return raw.decode("utf-8", "replace").strip(" \0\t\r\n")
     value = _value(elements, tag, encoding)
     values = value if isinstance(value, (list, tuple, MultiValue)) else [value]
     return "\\".join("" if v is None else str(v) for v in values).strip(" \0\t\r\n")
