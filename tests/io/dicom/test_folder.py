@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pydicom
@@ -139,3 +140,54 @@ def test_pick_refuses_a_folder_without_images(tmp_path):
     with pytest.raises(ReadError, match=r"no DICOM image series \(found: README.txt \(no DICOM\)\)"):
         pick(survey(tmp_path))
     assert ignored_line(survey(tmp_path)) == f"{tmp_path}: ignored 1 object(s) that are not the images read: README.txt (no DICOM)"
+
+
+def _gdcm_tags(path: str, tags) -> dict[str, str]:
+    """``tags`` of one file as GDCM reads them (SimpleITK, header only, stripped), and ``""`` when absent."""
+    import SimpleITK as sitk
+
+    reader = sitk.ImageFileReader()
+    reader.SetFileName(path)
+    reader.SetImageIO("GDCMImageIO")
+    reader.ReadImageInformation()
+    return {t: reader.GetMetaData(t).strip().strip("\0") if reader.HasMetaDataKey(t) else "" for t in tags}
+
+
+def test_the_tags_the_survey_keeps_are_what_gdcm_reads(export, tmp_path, rng):
+    # truth: an independent reader, GDCM (what the 4-D CT reader asked for each file before the survey
+    # kept these tags in its own pass): decimal strings, times and UIDs as written (padding stripped),
+    # binary numbers (Rows US, TemporalPositionIndex UL) written out, a tag absent from the file "";
+    # on the vendor export (every third slice implicit VR, a private block, ISO_IR 100) and on
+    # GDCM-written slices carrying TemporalPositionIndex and TriggerTime
+    tags = ("0020|000e", "0008|0018", "0020|0032", "0020|0037", "0018|1120", "0028|0030", "0028|0010", "0028|0011",
+            "0028|0008", "0020|9128", "0020|0100", "0018|1060", "0008|0032", "0020|000d", "0020|0052")
+    write_slices(tmp_path / "gdcm", phase_ct(1.0, rng),
+                 {"0020|9128": "7", "0018|1060": "350.5 ", "0008|0032": "101502.25"}, "1.2.826.0.1.3680043.2.1125.7.41")
+    flat = tmp_path / "flat"
+    shutil.copytree(export["flat"], flat)  # the module's export is left as it is
+    compared = 0
+    for folder in (flat, tmp_path / "gdcm"):
+        for series in survey(folder, tags).series:
+            assert len(series.tags) == len(series.files)
+            for f, kept in zip(series.files, series.tags):
+                assert kept == _gdcm_tags(f, tags), f
+                compared += 1
+    assert compared > 24 + 12  # every slice of both CTs (and the localizer) compared
+    # a file without the 128-byte preamble and "DICM" (GDCM and pydicom read such files) is read by
+    # pydicom's whole-file reader instead: the same tags as its twin with the preamble
+    twin = survey(flat, tags).series[0]
+    (tmp_path / "bare").mkdir()
+    (tmp_path / "bare" / "x.dcm").write_bytes(Path(twin.files[0]).read_bytes()[132:])
+    bare = survey(tmp_path / "bare", tags).series[0]
+    assert bare.tags[0] == twin.tags[0] == _gdcm_tags(bare.files[0], tags)
+    gdcm = survey(tmp_path / "gdcm", tags).series[0].tags[0]
+    assert (gdcm["0020|9128"], gdcm["0018|1060"], gdcm["0008|0032"]) == ("7", "350.5", "101502.25")
+    # text is decoded with the file's SpecificCharacterSet (GDCM gives its bytes undecoded): a
+    # Latin-1 description reads as written
+    f = survey(flat).series[0].files[0]
+    ds = pydicom.dcmread(f)
+    ds.SeriesDescription = "Thorax Übersicht 30%"
+    ds.save_as(f)
+    kept = {s.uid: s for s in survey(flat, ("0008|103e",)).series}[ds.SeriesInstanceUID]
+    assert kept.tags[list(kept.files).index(f)]["0008|103e"] == "Thorax Übersicht 30%"
+    assert all(t == {} for t in survey(flat).series[0].tags)  # none asked for, none kept

@@ -239,3 +239,33 @@ def test_a_phase_exported_twice_is_refused_naming_both(tmp_path, rng):
             ds.save_as(f)
     with pytest.raises(ReadError, match=r"shared: phase 50% repeats phase 0%: .* are one SOP instance \(1\.2\.3\.9\.1\)"):
         read_phases(tmp_path / "shared")
+
+
+def test_each_header_is_read_once(tmp_path, rng, monkeypatch):
+    # why: the survey parses each file's header once (pydicom's element reader, up to the last tag it
+    # needs) and keeps the tags the phases are told apart and checked by; GDCM then reads the pixels of
+    # each phase (one series read), never a header on its own. Counted: the files the survey opens,
+    # pydicom's whole-file reader (left to files that are not the common case: none here) and GDCM
+    # single-file readers; the phases still the phantom's (one per series, in order, full volumes)
+    import builtins
+
+    import lungdeform.io.dicom.folder as folder
+
+    write_4dct(tmp_path, rng, 3, "description")
+    opened: dict[str, int] = {}
+
+    def counting_open(path, *args, **kwargs):
+        opened[str(path)] = opened.get(str(path), 0) + 1
+        return builtins.open(path, *args, **kwargs)
+
+    made, whole = [], []
+    real_reader, real_read = sitk.ImageFileReader, folder.pydicom.dcmread
+    monkeypatch.setattr(folder, "open", counting_open, raising=False)
+    monkeypatch.setattr(folder.pydicom, "dcmread", lambda *a, **k: whole.append(a[0]) or real_read(*a, **k))
+    monkeypatch.setattr(sitk, "ImageFileReader", lambda: made.append(1) or real_reader())
+    phases = read_phases(tmp_path)
+    files = sorted(str(f) for f in tmp_path.rglob("*.dcm"))
+    assert sorted(opened) == files and set(opened.values()) == {1}
+    assert made == [] and whole == []
+    assert [p.label for p in phases] == ["0%", "10%", "20%"]
+    assert all(p.image.array.shape == SHAPE for p in phases)

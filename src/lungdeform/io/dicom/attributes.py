@@ -5,7 +5,7 @@ and that those holding UIDs are DICOM UIDs (:data:`UID`); a :class:`~lungdeform.
 names the file and the attributes. Every reader of this package calls it
 (:mod:`~lungdeform.io.dicom.rtstruct`, :mod:`~lungdeform.io.dicom.series`,
 :mod:`~lungdeform.io.dicom.registration`, and :mod:`~lungdeform.io.dicom.fourdct` on the
-attributes GDCM read of each file, :func:`as_dataset`).
+attributes the folder survey read of each file, as text).
 
 Writing: :func:`decimal` formats a number as a Decimal String of at most 16 bytes (PS3.5 6.2, DS;
 Eclipse refuses longer ones); :func:`fit_text` makes every text value lungdeform derives (a
@@ -23,6 +23,7 @@ import math
 import re
 import unicodedata
 import warnings
+from collections.abc import Mapping
 
 from pydicom.dataset import Dataset
 from pydicom.multival import MultiValue
@@ -44,9 +45,10 @@ def _first_line(exc: BaseException) -> str:
     return text.splitlines()[0][:200] if text else "no detail"
 
 
-def require(ds: Dataset, keys, where, purpose: str, optional=()) -> None:
-    """:class:`ReadError` naming ``where`` (the file) when ``ds`` lacks any of ``keys`` (absent or
-    empty), when one of ``keys`` or ``optional`` cannot be read (pydicom converts on first access),
+def require(ds: Dataset | Mapping[str, str], keys, where, purpose: str, optional=()) -> None:
+    """:class:`ReadError` naming ``where`` (the file) when ``ds`` (a dataset, or ``{keyword: text}``
+    another reader gave) lacks any of ``keys`` (absent or empty), when one of ``keys`` or
+    ``optional`` cannot be read (pydicom converts on first access),
     or when one of the UID attributes among them (:data:`_UID_KEYS`) is not a DICOM UID (an
     ``optional`` one only when present); ``purpose`` ends the message ("which an RTSTRUCT needs")."""
     try:  # a value pydicom cannot convert raises on first access
@@ -62,18 +64,6 @@ def require(ds: Dataset, keys, where, purpose: str, optional=()) -> None:
     for key, uid in uids.items():
         if not UID.fullmatch(uid):
             raise ReadError(f"{where}: {key} {uid[:70]!r} is not a DICOM UID (digits and dots, at most 64 characters)")
-
-
-def as_dataset(values: dict[str, str]) -> Dataset:
-    """A dataset of ``{keyword: text}`` (attributes another reader gave as strings, e.g. GDCM's),
-    the empty ones left out, so that :func:`require` checks them as it checks a pydicom dataset."""
-    ds = Dataset()
-    with warnings.catch_warnings():  # a malformed value is require()'s to refuse, not pydicom's to warn of
-        warnings.simplefilter("ignore")
-        for key, text in values.items():
-            if text:
-                setattr(ds, key, text)
-    return ds
 
 
 def decimal(value: float, digits: int = 12, places: int | None = None) -> str:

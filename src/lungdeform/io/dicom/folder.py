@@ -3,9 +3,11 @@
 A CT exported from a planning system or a PACS holds more than its slices: an RTSTRUCT, an RTPLAN,
 an RTDOSE, a REG, key objects (KO), structured reports (SR), presentation states (PR), a DICOMDIR,
 a localizer (scout), other reconstructions, and files that are no DICOM at all (a README,
-``Thumbs.db``, ``.DS_Store``). :func:`survey` reads the header of every DICOM file (pydicom, no
-pixels; each file through :func:`~lungdeform.io.dicom.guard.check_dicom_file` first, so a damaged
-file is refused, never skipped) and sorts what it finds:
+``Thumbs.db``, ``.DS_Store``). :func:`survey` reads the header of every DICOM file (pydicom, up to
+the last attribute it needs, no pixels; each file through
+:func:`~lungdeform.io.dicom.guard.check_dicom_file` first, so a damaged file is refused, never
+skipped), keeps of each image file the attributes a series reader asks for (:attr:`ImageSeries.tags`:
+the 4-D CT reader's need no second reading) and sorts what it finds:
 
 - **image series**, grouped by SeriesInstanceUID: every object with an image (Rows) that is no RT
   Dose or RT Image grid;
@@ -33,11 +35,18 @@ Library code: nothing is printed; the CLI says :func:`ignored_line`.
 from __future__ import annotations
 
 import os
+import struct
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import pydicom
+from pydicom.charset import convert_encodings, default_encoding
+from pydicom.datadict import dictionary_VR, tag_for_keyword
+from pydicom.dataelem import RawDataElement, convert_raw_data_element
+from pydicom.filereader import data_element_generator
+from pydicom.multival import MultiValue
+from pydicom.tag import Tag
 from pydicom.uid import UID
 
 from lungdeform.errors import ReadError
@@ -52,11 +61,20 @@ MAX_FOLDERS = 2000
 CT_SOP_CLASSES = ("1.2.840.10008.5.1.4.1.1.2", "1.2.840.10008.5.1.4.1.1.2.1", "1.2.840.10008.5.1.4.1.1.2.2")
 #: Image objects that are no patient image a reader may take: RT Dose and RT Image grids
 GRID_MODALITIES = ("RTDOSE", "RTIMAGE")
-#: The header attributes :func:`survey` reads of each file
-_TAGS = ("SOPClassUID", "SOPInstanceUID", "Modality", "SeriesInstanceUID", "SeriesDescription", "ImageType",
-         "Rows", "NumberOfFrames")
+#: The header attributes :func:`survey` reads of each file (SpecificCharacterSet: how its text is encoded)
+_KEY = {k: Tag(tag_for_keyword(k)) for k in ("SpecificCharacterSet", "SOPClassUID", "SOPInstanceUID", "Modality",
+                                             "SeriesInstanceUID", "SeriesDescription", "ImageType", "Rows",
+                                             "NumberOfFrames")}
+_TAGS = tuple(_KEY.values())
+_CHARSET, _MEDIA_SOP_CLASS, _TRANSFER_SYNTAX = _KEY["SpecificCharacterSet"], Tag(0x0002, 0x0002), Tag(0x0002, 0x0010)
 #: Ignored objects named in full in :func:`ignored_line`; beyond, a count
 _NAMED = 12
+#: Value representations :func:`_text` takes as written (ASCII by the standard), text ones (ASCII when
+#: it holds no escape: the same in every character set; else decoded by pydicom) and binary numbers
+#: it unpacks itself (struct formats, as pydicom does); any other is left to pydicom
+_AS_WRITTEN = frozenset(("AE", "AS", "CS", "DA", "DS", "DT", "IS", "TM", "UI", "UR"))
+_TEXT_VRS = frozenset(("SH", "LO", "ST", "LT", "UT", "UC", "PN"))
+_NUMBERS = {"US": "H", "SS": "h", "UL": "I", "SL": "i", "FL": "f", "FD": "d"}
 
 
 @dataclass(frozen=True)
@@ -84,7 +102,9 @@ class ImageSeries:
     """One image series of a folder: ``uid``, ``description`` (SeriesDescription, '' when none),
     ``modality``, ``files`` (its files, in name order), ``localizer`` (ImageType LOCALIZER),
     ``ct`` (Modality CT or a CT SOP class), ``folder`` the subfolder it lies in (relative) when a
-    parent folder's subfolders were looked into ('' otherwise)."""
+    parent folder's subfolders were looked into ('' otherwise), ``tags`` one dict per file (in the
+    order of ``files``) of the tags :func:`survey` was asked for (``"gggg|eeee"`` → text as
+    :func:`_text` gives it), read with the rest of the header; empty dicts when none were asked for."""
 
     uid: str
     description: str
@@ -93,6 +113,7 @@ class ImageSeries:
     localizer: bool
     ct: bool
     folder: str = ""
+    tags: tuple[dict[str, str], ...] = ()
 
     @property
     def label(self) -> str:
@@ -114,16 +135,19 @@ class FolderSurvey:
     dicomdir: str = ""
 
 
-def survey(path) -> FolderSurvey:
+def survey(path, tags=()) -> FolderSurvey:
     """The image series and the other objects of the DICOM folder ``path`` (module docstring).
+    ``tags`` (``"gggg|eeee"``): tags to keep of each image file (:attr:`ImageSeries.tags`), read in the
+    same pass over its header, so that a series reader need not read the headers again.
     :class:`ReadError` naming the file for a damaged DICOM file, the folder when it is none."""
     root = Path(path)
     if not root.is_dir():
         raise ReadError(f"{root}: not a folder")
     files, ignored, note, below = _files(root)
+    wanted = tuple((t, Tag(int(t[:4], 16), int(t[5:], 16))) for t in tags)
     found: dict[tuple[str, str], list] = {}
     for f in files:
-        kind = _object(f)
+        kind = _object(f, wanted)
         if isinstance(kind, str):
             ignored.append((_name(f, root), kind))
         else:  # below a parent folder: a series per subfolder (two copies of one series are two)
@@ -217,24 +241,24 @@ def _name(f, root: Path) -> str:
         return str(f)
 
 
-def _object(f: str):
-    """What the DICOM file ``f`` holds: ``(series UID, modality, description, image type, SOP class)``
-    for an image of a patient, or a word saying what it is (``RTSTRUCT``, ``RTDOSE grid`` …)."""
+def _object(f: str, wanted=()):
+    """What the DICOM file ``f`` holds: ``(series UID, modality, description, localizer, SOP class,
+    {tag: text} of ``wanted`` ((``"gggg|eeee"``, Tag) pairs, :func:`_text`))`` for an image of a
+    patient, or a word saying what it is (``RTSTRUCT``, ``RTDOSE grid`` …)."""
     check_dicom_file(f)
+    asked = frozenset(_TAGS + tuple(tag for _, tag in wanted))
     try:
         with warnings.catch_warnings():  # values pydicom still reads (a VR mismatch): not the user's concern
             warnings.simplefilter("ignore")
-            try:
-                ds = pydicom.dcmread(f, stop_before_pixels=True, specific_tags=list(_TAGS))
-            except pydicom.errors.InvalidDicomError:  # no preamble (GDCM reads such files): its header checked above
-                ds = pydicom.dcmread(f, stop_before_pixels=True, specific_tags=list(_TAGS), force=True)
-            meta = getattr(ds, "file_meta", None)
-            sop = str(ds.get("SOPClassUID", "") or (meta.get("MediaStorageSOPClassUID", "") if meta else "")).strip()
-            modality = str(ds.get("Modality", "") or "").strip().upper()
-            image = ds.get("Rows") is not None
-            uid = str(ds.get("SeriesInstanceUID", "") or "").strip()
-            description = str(ds.get("SeriesDescription", "") or "").strip()
-            types = [str(t).strip().upper() for t in _values(ds.get("ImageType"))]
+            meta, data = _header(f, asked)
+            encoding = convert_encodings(_value(data, _CHARSET, default_encoding) or default_encoding)
+            kept = {name: _text(data, tag, encoding) for name, tag in wanted}
+            sop = _text(data, _KEY["SOPClassUID"], encoding) or _text(meta, _MEDIA_SOP_CLASS, encoding)
+            modality = _text(data, _KEY["Modality"], encoding).upper()
+            image = _text(data, _KEY["Rows"], encoding) != ""
+            uid = _text(data, _KEY["SeriesInstanceUID"], encoding)
+            description = _text(data, _KEY["SeriesDescription"], encoding)
+            types = [t.strip().upper() for t in _text(data, _KEY["ImageType"], encoding).split("\\")]
     except Exception as exc:  # any parse failure becomes one clear line
         raise ReadError(f"{f}: not a readable DICOM file ({type(exc).__name__}: {str(exc).strip()[:160]})") from exc
     if sop == "1.2.840.10008.1.3.10":
@@ -243,13 +267,70 @@ def _object(f: str):
         return f"{modality} grid"
     if not image:
         return modality or _sop_name(sop)
-    return (uid, modality, description, "LOCALIZER" in types, sop)
+    return (uid, modality, description, "LOCALIZER" in types, sop, kept)
 
 
-def _values(value) -> list:
-    if value is None:
-        return []
-    return list(value) if isinstance(value, (list, tuple, pydicom.multival.MultiValue)) else [value]
+def _header(f: str, tags: frozenset) -> tuple[dict, dict]:
+    """``(file meta, data set)`` of the DICOM file ``f``: ``{tag: element}`` of its file meta
+    information and of the data set elements ``tags`` (Tag), values unconverted
+    (:class:`~pydicom.dataelem.RawDataElement`) where pydicom leaves them so. The common file (the
+    ``DICM`` preamble, a standard transfer syntax, little endian, not deflated) is read by pydicom's
+    element reader up to the last of ``tags`` (what follows, the pixels included, is not read); any
+    other by ``dcmread``."""
+    last = max(tags)
+    with open(f, "rb") as fh:
+        if fh.read(132)[128:132] == b"DICM":
+            meta = {e.tag: e for e in data_element_generator(fh, False, True, stop_when=_after_meta)}
+            syntax = UID(_text(meta, _TRANSFER_SYNTAX, default_encoding))
+            if syntax.is_transfer_syntax and syntax.is_little_endian and not syntax.is_deflated:
+                data = data_element_generator(fh, syntax.is_implicit_VR, True, specific_tags=tags,
+                                              stop_when=lambda tag, _vr, _length: tag > last)
+                return meta, {e.tag: e for e in data}
+    try:
+        ds = pydicom.dcmread(f, stop_before_pixels=True, specific_tags=list(tags))
+    except pydicom.errors.InvalidDicomError:  # no preamble (GDCM reads such files): its header checked above
+        ds = pydicom.dcmread(f, stop_before_pixels=True, specific_tags=list(tags), force=True)
+    meta = getattr(ds, "file_meta", None)
+    return ({} if meta is None else {e.tag: e for e in meta}), {tag: ds.get_item(tag) for tag in tags if tag in ds}
+
+
+def _after_meta(tag, _vr, _length) -> bool:
+    """Whether ``tag`` is past the file meta information (group 0002)."""
+    return tag.group != 2
+
+
+def _value(elements: dict, tag, encoding):
+    """The value of ``tag`` in ``elements`` (:func:`_header`) as pydicom converts it (text decoded with
+    ``encoding``, the data set's character set), None when absent or empty."""
+    elem = elements.get(tag)
+    if elem is None:
+        return None
+    if isinstance(elem, RawDataElement):
+        elem = convert_raw_data_element(elem, encoding=encoding)
+    return elem.value if elem.value not in ("", b"") else None
+
+
+def _text(elements: dict, tag, encoding) -> str:
+    """The value of ``tag`` in ``elements`` (:func:`_header`) as text, as GDCM gives it: what the file
+    holds, stripped of its padding (spaces, NUL), several values ``\\``-separated; binary numbers (US,
+    UL ...) written out, text (LO, PN ...) decoded with ``encoding`` (the data set's character set);
+    ``""`` when absent or empty. Decimal strings, times and UIDs stay as written, so that a malformed
+    one is refused by whoever needs it (:mod:`~lungdeform.io.dicom.slices`), naming it, not here."""
+    elem = elements.get(tag)
+    if elem is None or elem.value is None:
+        return ""
+    if isinstance(elem, RawDataElement):
+        vr = elem.VR if elem.VR not in (None, "UN") else dictionary_VR(tag)  # implicit VR: the dictionary's
+        raw = elem.value
+        size = struct.calcsize(_NUMBERS.get(vr, "x"))
+        if vr in _NUMBERS and len(raw) % size == 0:  # what pydicom would unpack
+            form = ("<" if elem.is_little_endian else ">") + _NUMBERS[vr] * (len(raw) // size)
+            return "\\".join(str(v) for v in struct.unpack(form, raw))
+        if vr in _AS_WRITTEN or (vr in _TEXT_VRS and raw.isascii() and b"\x1b" not in raw):
+            return raw.decode("utf-8", "replace").strip(" \0\t\r\n")
+    value = _value(elements, tag, encoding)
+    values = value if isinstance(value, (list, tuple, MultiValue)) else [value]
+    return "\\".join("" if v is None else str(v) for v in values).strip(" \0\t\r\n")
 
 
 def _sop_name(sop: str) -> str:
@@ -263,8 +344,10 @@ def _series(uid: str, members: list, folder: str = "") -> ImageSeries:
     first = members[0][1]
     modalities = {m[1] for _, m in members}
     ct = any(m[1] == "CT" or m[4] in CT_SOP_CLASSES for _, m in members)
+    members = sorted(members, key=lambda m: m[0])
     return ImageSeries(uid, first[2], "CT" if ct else "/".join(sorted(modalities - {""})) or "",
-                       tuple(sorted(f for f, _ in members)), all(m[3] for _, m in members), ct, folder)
+                       tuple(f for f, _ in members), all(m[3] for _, m in members), ct, folder,
+                       tuple(m[5] for _, m in members))
 
 
 def candidates(found: FolderSurvey) -> list[ImageSeries]:

@@ -42,7 +42,7 @@ import SimpleITK as sitk
 from lungdeform.errors import ReadError
 from lungdeform.io.grid import Image, check_grid, quiet_itk
 
-from .attributes import as_dataset, require
+from .attributes import require
 from .folder import candidates, ignored_line, survey
 from .slices import GEOMETRY_TAGS, SliceGeometry, check_orientations, check_slices, check_spacing
 
@@ -54,7 +54,7 @@ SAME_TAGS = (("0010|0020", "PatientID"), ("0020|000d", "StudyInstanceUID"), ("00
 #: The UIDs every slice's header is checked for (:func:`~lungdeform.io.dicom.attributes.require`): the
 #: series that groups slices into phases required, the study and frame of reference valid when given.
 UID_TAGS = (("0020|000e", "SeriesInstanceUID"), ("0020|000d", "StudyInstanceUID"), ("0020|0052", "FrameOfReferenceUID"))
-_READ_TAGS = (("0020|000e", "0008|103e", "0008|0018") + GEOMETRY_TAGS + tuple(t for t, _ in PHASE_TAGS)
+_READ_TAGS = (("0020|000e", "0008|103e", "0008|0018", "0028|0008") + GEOMETRY_TAGS + tuple(t for t, _ in PHASE_TAGS)
               + tuple(t for t, _ in SAME_TAGS))
 _PERCENT = re.compile(r"(\d+(?:\.\d+)?)\s*%|\bphase[\s_:=-]*(\d+(?:\.\d+)?)", re.I)
 
@@ -81,33 +81,31 @@ class Phase:
     image: Image
 
 
-def _slice_tags(path: str) -> dict[str, str] | None:
-    """The tags of :data:`_READ_TAGS` of one DICOM file already checked
-    (:func:`~lungdeform.io.dicom.guard.check_dicom_file`; GDCM reads its header only, stripped strings),
-    or None if it is not a DICOM image."""
-    reader = sitk.ImageFileReader()
-    reader.SetFileName(path)
-    reader.SetImageIO("GDCMImageIO")
-    try:
-        with quiet_itk():
-            reader.ReadImageInformation()
-    except RuntimeError:
-        return None
-    info = {t: reader.GetMetaData(t).strip() if reader.HasMetaDataKey(t) else "" for t in _READ_TAGS}
-    info["size"] = " ".join(str(int(n)) for n in reader.GetSize())  # x y (frames): for the grid cap
-    return info
-
-
-def _image_files(folder: Path, ignored: list | None) -> list[str]:
-    """The files of the CT image series in ``folder`` (:func:`~lungdeform.io.dicom.folder.candidates`:
-    its RTSTRUCT, RTPLAN, RTDOSE, DICOMDIR, localizers and non-DICOM files left out, a line naming
-    them added to ``ignored``)."""
-    found = survey(folder)
+def _slice_tags(folder: Path, ignored: list | None) -> list[tuple[str, dict[str, str]]]:
+    """``[(file, tags)]`` of the CT image series in ``folder``: each file's tags of :data:`_READ_TAGS`
+    (stripped text, ``""`` when absent) and ``"size"`` (x y frames: for the grid cap), read by the survey
+    in its one pass over each header (:func:`~lungdeform.io.dicom.folder.survey`; every file's
+    element headers checked first, :func:`~lungdeform.io.dicom.guard.check_dicom_file`). The folder's
+    RTSTRUCT, RTPLAN, RTDOSE, DICOMDIR, localizers and non-DICOM files are left out
+    (:func:`~lungdeform.io.dicom.folder.candidates`), a line naming them added to ``ignored``.
+    :class:`ReadError` naming the file when its Rows, Columns or NumberOfFrames are no whole numbers."""
+    found = survey(folder, _READ_TAGS)
     pool = candidates(found)
     line = ignored_line(found, pool)
     if ignored is not None and line:
         ignored.append(line)
-    return [f for series in pool for f in series.files]
+    infos = []
+    for series in pool:
+        for f, tags in zip(series.files, series.tags):
+            try:
+                size = [int(tags[t] or default) for t, default in (("0028|0011", ""), ("0028|0010", ""),
+                                                                   ("0028|0008", "1"))]
+            except ValueError:
+                raise ReadError(f"{folder}: {f} is not a readable DICOM image (Rows {tags['0028|0010']!r}, "
+                                f"Columns {tags['0028|0011']!r}, NumberOfFrames {tags['0028|0008']!r}: "
+                                "not whole numbers)") from None
+            infos.append((f, {**tags, "size": " ".join(str(n) for n in size)}))
+    return infos
 
 
 def _number(tag: str, value: str) -> float | None:
@@ -272,15 +270,10 @@ def read_phases(folder, *, max_voxels=None, ignored: list | None = None) -> list
     if not folder.is_dir():
         raise ReadError(f"{folder}: not a folder (a 4-D CT is one DICOM folder holding all phases)")
     lines: list[str] = []
-    files = _image_files(folder, lines)  # every file's element headers checked there (cheap) before GDCM reads any
-    infos = []
-    for f in files:
-        info = _slice_tags(f)
-        if info is None:
-            raise ReadError(f"{folder}: {f} is not a readable DICOM image")
-        require(as_dataset({name: info[tag] for tag, name in UID_TAGS}), ("SeriesInstanceUID",), f,
+    infos = _slice_tags(folder, lines)  # every header read once, by the survey; GDCM reads the pixels only
+    for f, info in infos:
+        require({name: info[tag] for tag, name in UID_TAGS}, ("SeriesInstanceUID",), f,
                 "which tells the phases of a 4-D CT apart", optional=("StudyInstanceUID", "FrameOfReferenceUID"))
-        infos.append((f, info))
     if not infos:
         raise ReadError(f"{folder}: no DICOM CT images in this folder or its subfolders"
                         + (f" ({lines[0].split(': ', 1)[-1]})" if lines else ""))
@@ -340,10 +333,10 @@ def is_fourdct(path) -> bool:
     p = Path(path)
     if not p.is_dir():
         return False
-    pool = candidates(survey(p))
+    pool = candidates(survey(p, ("0020|0032", "0020|0037")))
     if len(pool) >= 2:
         return True
-    positions = [_position(info) for f in (pool[0].files if pool else ()) if (info := _slice_tags(f)) is not None]
+    positions = [_position(info) for info in (pool[0].tags if pool else ())]
     return len(set(positions)) < len(positions)
 
 
