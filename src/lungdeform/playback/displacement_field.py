@@ -195,8 +195,9 @@ def state_scales(model, delta_ml: float) -> dict[str, float]:
 
 
 def surface_peak(model, scales: dict) -> float:
-    """The largest interior-field displacement (mm) on any lung's end-exhale surface at ``scales``."""
-    return max(float(np.linalg.norm(scales[n] * lung.interior.displacement(lung.surface.vertices), axis=1).max())
+    """The largest interior-field displacement (mm) on any lung's end-exhale surface at ``scales``
+    (:attr:`~lungdeform.model.lung.LungModel.surface_interior`, computed once a lung)."""
+    return max(float(np.linalg.norm(scales[n] * lung.surface_interior, axis=1).max())
                for n, lung in model.lungs.items())
 
 
