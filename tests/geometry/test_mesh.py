@@ -243,6 +243,27 @@ def test_inside_by_parity_is_the_winding_number_test_and_the_sphere():
     assert np.array_equal(inside[clear], r[clear] < 20.0) and 0 < inside.sum() < len(q)
 
 
+def test_binned_parity_counts_every_triangle_whose_box_holds_the_point():
+    # reference: the same kernel with every triangle in one cell (the unbinned loop over all
+    # triangles); binned in its (y, z) cell, a point must get the same answer, also on vertices and
+    # on cell borders (the bins' own coordinates), and beyond the surface's (y, z) extent
+    from lungdeform.geometry.mesh import _parity_kernel, _yz_bins, icosphere, inside_by_parity
+    rng = np.random.default_rng(12)
+    s = icosphere(3, 15.0, center=(1.0, 2.0, -3.0))
+    q = rng.uniform(-25.0, 25.0, size=(4000, 3))
+    q[:40] = s.vertices[:40]
+    tri = np.ascontiguousarray(s.vertices[s.faces])
+    boxes = np.ascontiguousarray(np.stack([tri[:, :, 1].min(axis=1), tri[:, :, 1].max(axis=1),
+                                           tri[:, :, 2].min(axis=1), tri[:, :, 2].max(axis=1)], axis=1))
+    ptr, members, grid = _yz_bins(boxes, 18)
+    q[40:80, 1] = grid[0] + grid[2] * rng.integers(0, 19, 40)  # on the cells' borders in y
+    q[80:120, 2] = grid[1] + grid[3] * rng.integers(0, 19, 40)
+    ref = _parity_kernel(q, tri, boxes, _yz_bins(boxes, 1))
+    assert np.array_equal(_parity_kernel(q, tri, boxes, (ptr, members, grid)), ref)
+    assert np.array_equal(inside_by_parity(q, s.vertices, s.faces), ref) and 0 < ref.sum() < len(q)
+    assert len(members) > len(s.faces)  # boxes across cell borders are binned in every cell they meet
+
+
 def test_inside_nodes_is_the_parity_test_on_a_grid():
     # why: the row-parity voxelisation (one pass over the triangles) must answer exactly as the
     # per-point parity test at every node of a grid, here an oblique sphere in node units

@@ -169,3 +169,15 @@ def test_a_lone_lung_is_calibrated_at_its_share_two_lungs_at_all(left_lung, righ
     for side, s in (("left", left_lung), ("right", right_lung)):
         assert two.lungs[side].calibration_ml == pytest.approx(500.0 * s.volume_ml / total, rel=1e-12)
     assert sum(l.calibration_ml for l in two.lungs.values()) == pytest.approx(500.0, rel=1e-12)
+
+
+def test_surface_interior_is_the_interior_field_on_the_surface_once(model):
+    # the cached per-unit displacement at the lung's own vertices must be the interior field there
+    # (what surface_peak measured on every call), computed once a lung, and moved by a re-oriented
+    # lung's own field (a new object, a new cache)
+    v = model.interior.displacement(model.surface.vertices)
+    assert np.array_equal(model.surface_interior, v) and np.abs(v).max() > 0
+    assert model.surface_interior is model.surface_interior
+    turned = model.oriented("prone")
+    assert np.array_equal(turned.surface_interior, turned.interior.displacement(turned.surface.vertices))
+    assert not np.array_equal(turned.surface_interior, v)

@@ -302,3 +302,55 @@ def test_spans_the_fill_records_give_the_jacobian_of_the_field(rng):
     assert recorded == D.jacobian_range(field, grid, lat.box)
     assert recorded[:2] == pytest.approx((sub.min(), sub.max()), abs=1e-5) and recorded[2] == int((sub <= 0).sum())
     assert recorded[0] < 0 < recorded[2] and recorded[1] > 2.0  # set by the voxels changed after the fill
+
+
+def test_aligned_jacobian_rows_are_the_general_rows_to_the_bit(rng):
+    # reference: the general per-voxel row (_det_row, which also serves oblique grids) on an
+    # axis-aligned grid; the vectorised row (columns, then determinants) must give the same float64
+    # determinants bit for bit, inner voxels and the one-sided ends, at the array's edges (k, j = 0 and
+    # the last) and inside, for rows that start and end anywhere (one voxel, two, the whole row)
+    f = rng.normal(scale=0.7, size=(4, 5, 9, 3)).astype(np.float32)
+    f[1, 2, 3:5] = 0.0  # exact zeros and a negative zero in the differences
+    f[2, 2, 4, 1] = -0.0
+    inv = np.diag([1 / 0.8, 1 / 1.3, 1 / 2.5])
+    g = f.reshape(4, 5, 27)
+    identity = np.zeros((3, 27))
+    for c in range(3):
+        identity[c, c::3] = 1.0
+    work = (np.empty((3, 27)), identity)
+    checked = 0
+    for k in range(4):
+        for j in range(5):
+            for a, b in ((0, 9), (0, 1), (8, 9), (3, 4), (2, 7), (0, 2), (7, 9)):
+                ref = V._det_row(f, k, j, (a, b), inv, np.empty(b - a), True)
+                got = V._det_row_aligned(g, k, j, (a, b), inv, np.empty(b - a), work)
+                assert np.array_equal(got.view(np.uint64), ref.view(np.uint64)), (k, j, a, b)
+                checked += b - a
+    assert checked == 20 * 21 and not np.all(ref == 1.0)
+
+
+def test_a_fresh_fill_writes_the_bits_of_adding_to_zero(rng):
+    # reference: the fill adding into a zero field (as add_affine adds into any field); written
+    # into a fresh field (``fresh``: x + 0, no read of the untouched page) the output must be the same
+    # bits, with and without an affine part, and the same spans. Negative zeros: a node of −0 beside
+    # a negative one interpolates to −0 at its voxel (−0·1 + (−1)·0), which 0 + x makes +0
+    grid = D.Grid((9, 12, 14), np.array([0.9, 1.1, 2.5]), np.zeros(3), np.eye(3))
+    lat = D.lattice(grid, np.array([2.0, 2.0, 4.0]), np.array([11.0, 12.0, 20.0]), 3.0)
+    shape = tuple(lat.dims[::-1]) + (3,)
+    signed = np.full(shape, -0.0, np.float32)
+    signed[1, 1, 1] = -1.0
+    axes = tuple(V.axis_weights(grid.shape[2 - a], int(lat.lo[a]), int(lat.stride[a]), int(lat.dims[a]),
+                                lat.box[0][a], lat.box[1][a]) for a in (2, 1, 0))
+    (i0, j0, k0), (i1, j1, k1) = lat.box
+    ranges = np.array([k0, k1, j0, j1, i0, i1], np.int64)
+    for vals in (rng.normal(scale=0.4, size=shape).astype(np.float32), signed):
+        for affine in ((np.zeros(3), np.zeros((3, 3))), (np.array([0.0, -0.0, 0.5]), np.eye(3) * -1e-3)):
+            s_add, s_fresh = V.no_spans(grid.shape), V.no_spans(grid.shape)
+            added = V.fill_field(np.zeros(grid.shape + (3,), np.float32), vals, axes, affine, ranges, s_add, False)
+            fresh = V.fill_field(V.zeroed(grid.shape + (3,)), vals, axes, affine, ranges, s_fresh, True)
+            assert np.array_equal(fresh.view(np.uint32), added.view(np.uint32))
+            assert all(np.array_equal(a, b) for a, b in zip(s_add, s_fresh))
+            assert (added < 0).any() and not np.signbit(added[added == 0]).any()
+    row = np.zeros((shape[2], 3), np.float32)
+    V._row(signed, 1, np.float32(0.0), 1, np.float32(0.0), row)
+    assert np.signbit(row[0, 0]) and row[1, 0] == -1.0  # the −0 this test is about reaches the lerp

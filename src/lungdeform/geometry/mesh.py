@@ -242,15 +242,53 @@ def winding_numbers(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray)
     return _winding_kernel(q, np.ascontiguousarray(vertices, dtype=float), np.ascontiguousarray(faces, dtype=np.int64))
 
 
+@numba.njit(cache=True)
+def _yz_bins(boxes, cells):
+    """Bin triangles by their ``boxes : (m, 4)`` (y min, y max, z min, z max) in a ``cells × cells`` grid
+    over the boxes' (y, z) extent, each in every cell its box meets: ``(ptr (cells² + 1,), members
+    (slots,) triangle per slot, cell by cell, grid (4,) = (y0, z0, hy, hz))``. A point's cell (the
+    same monotone rounding, :func:`_yz_cell`) holds every triangle whose box holds the point."""
+    y0, z0 = boxes[:, 0].min(), boxes[:, 2].min()
+    hy = max((boxes[:, 1].max() - y0) / cells, 1e-12)
+    hz = max((boxes[:, 3].max() - z0) / cells, 1e-12)
+    grid = np.array([y0, z0, hy, hz])
+    counts = np.zeros(cells * cells + 1, np.int64)
+    for f in range(boxes.shape[0]):
+        for a in range(_yz_cell(boxes[f, 0], y0, hy, cells), _yz_cell(boxes[f, 1], y0, hy, cells) + 1):
+            for b in range(_yz_cell(boxes[f, 2], z0, hz, cells), _yz_cell(boxes[f, 3], z0, hz, cells) + 1):
+                counts[a * cells + b + 1] += 1
+    ptr = np.cumsum(counts)
+    fill = ptr[:-1].copy()
+    members = np.empty(ptr[-1], np.int64)
+    for f in range(boxes.shape[0]):
+        for a in range(_yz_cell(boxes[f, 0], y0, hy, cells), _yz_cell(boxes[f, 1], y0, hy, cells) + 1):
+            for b in range(_yz_cell(boxes[f, 2], z0, hz, cells), _yz_cell(boxes[f, 3], z0, hz, cells) + 1):
+                members[fill[a * cells + b]] = f
+                fill[a * cells + b] += 1
+    return ptr, members, grid
+
+
+@numba.njit(cache=True, inline="always")
+def _yz_cell(x, lo, h, cells):
+    """The cell (``0 .. cells − 1``, clipped) of one axis of :func:`_yz_bins`' grid that holds ``x``."""
+    return min(max(int(np.floor((x - lo) / h)), 0), cells - 1)
+
+
 @numba.njit(cache=True, parallel=True)
-def _parity_kernel(points, tri, boxes):
+def _parity_kernel(points, tri, boxes, bins):
     """Per point: whether a ray along +x crosses the triangles ``tri : (m, 3 corners, 3)`` an odd number
-    of times; ``boxes : (m, 4)`` each triangle's (y min, y max, z min, z max), checked first."""
+    of times; ``boxes : (m, 4)`` each triangle's (y min, y max, z min, z max), checked first, for the
+    triangles binned in the point's (y, z) cell (``bins``, :func:`_yz_bins`; every triangle whose box
+    holds the point is there, so the count is the count over all triangles)."""
+    ptr, members, grid = bins
+    cells = int(np.sqrt(ptr.shape[0] - 1) + 0.5)
     out = np.zeros(points.shape[0], np.bool_)
     for p in numba.prange(points.shape[0]):
         x, y, z = points[p, 0], points[p, 1], points[p, 2]
+        cell = _yz_cell(y, grid[0], grid[2], cells) * cells + _yz_cell(z, grid[1], grid[3], cells)
         crossings = 0
-        for f in range(tri.shape[0]):
+        for slot in range(ptr[cell], ptr[cell + 1]):
+            f = members[slot]
             if y < boxes[f, 0] or y > boxes[f, 1] or z < boxes[f, 2] or z > boxes[f, 3]:
                 continue
             ay, az, by, bz, cy, cz = tri[f, 0, 1], tri[f, 0, 2], tri[f, 1, 1], tri[f, 1, 2], tri[f, 2, 1], tri[f, 2, 2]
@@ -270,13 +308,17 @@ def _parity_kernel(points, tri, boxes):
 def inside_by_parity(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """``(q,) bool``: ``points : (q, 3)`` mm inside a closed surface, by the parity of a ray along +x
     (as :func:`winding_numbers` ``> 0.5`` for a closed surface and points off it, at a fraction of its
-    cost: most triangles are passed over by their (y, z) box). A ray exactly through an edge or a
-    vertex (measure zero for points not on a lattice of the mesh) may count a crossing twice."""
+    cost: a point tests only the triangles binned in its (y, z) cell, and of those the ones whose (y, z)
+    box holds it). A ray exactly through an edge or a vertex (measure zero for points not on a lattice
+    of the mesh) may count a crossing twice."""
     q = np.ascontiguousarray(np.asarray(points, float).reshape(-1, 3))
     tri = np.ascontiguousarray(np.asarray(vertices, float)[np.asarray(faces, np.int64)])
+    if len(tri) == 0:
+        return np.zeros(len(q), bool)
     boxes = np.ascontiguousarray(np.stack([tri[:, :, 1].min(axis=1), tri[:, :, 1].max(axis=1),
                                            tri[:, :, 2].min(axis=1), tri[:, :, 2].max(axis=1)], axis=1))
-    return _parity_kernel(q, tri, boxes)
+    # about one triangle's box per cell: sqrt(m) cells a side over the surface's (y, z) extent
+    return _parity_kernel(q, tri, boxes, _yz_bins(boxes, max(int(np.sqrt(len(tri))), 1)))
 
 
 def inside_nodes(coords, faces, dims) -> np.ndarray:

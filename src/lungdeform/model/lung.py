@@ -191,6 +191,13 @@ class LungModel:
                               normals=self.surface.vertex_normals[on], kind=self.interior_kind,
                               correspondence=self.interior_map)
 
+    @cached_property
+    def surface_interior(self) -> np.ndarray:
+        """``(n, 3) float`` mm per unit: :attr:`interior`'s displacement at this lung's own surface vertices,
+        computed once (every displacement field of the lung starts from its largest,
+        :func:`lungdeform.playback.displacement_field.surface_peak`: 8 ms CPU a lung each time)."""
+        return self.interior.displacement(self.surface.vertices)
+
     def points_at(self, points, volume_ml: float | None = None, *, scale: float | None = None,
                   exact: bool = False) -> np.ndarray:
         """Interior ``points : (q, 3)`` mm LPS (end-exhale) moved to an absolute volume (mL) or to

@@ -195,8 +195,9 @@ def state_scales(model, delta_ml: float) -> dict[str, float]:
 
 
 def surface_peak(model, scales: dict) -> float:
-    """The largest interior-field displacement (mm) on any lung's end-exhale surface at ``scales``."""
-    return max(float(np.linalg.norm(scales[n] * lung.interior.displacement(lung.surface.vertices), axis=1).max())
+    """The largest interior-field displacement (mm) on any lung's end-exhale surface at ``scales``
+    (:attr:`~lungdeform.model.lung.LungModel.surface_interior`, computed once a lung)."""
+    return max(float(np.linalg.norm(scales[n] * lung.surface_interior, axis=1).max())
                for n, lung in model.lungs.items())
 
 
@@ -279,7 +280,7 @@ def upsample(lat: Lattice, values: np.ndarray, grid: Grid, matrix=None, spans=No
     nz, ny, nx = grid.shape
     ranges = np.array([k0, k1, j0, j1, i0, i1] if matrix is None else [0, nz, 0, ny, 0, nx], np.int64)
     return V.fill_field(out, c, (axes[0], axes[1], axes[2]), (const, steps), ranges,
-                        V.no_spans(grid.shape) if spans is None else spans)
+                        V.no_spans(grid.shape) if spans is None else spans, True)
 
 
 def sample(lat: Lattice, values: np.ndarray, grid: Grid, points) -> np.ndarray:

@@ -24,15 +24,21 @@ import numpy as np
 
 
 def zeroed(shape) -> np.ndarray:
-    """``numpy.zeros(shape, float32)`` in its own anonymous memory map, which the kernel zero-fills a
-    4 KiB page at a time as it is first written. ``numpy.zeros`` asks for transparent huge pages for
-    a large array, and where memory is fragmented the kernel compacts memory at each first write:
-    the same fill and Jacobian pass of the bench field took 0.38–0.90 s of system time that way,
-    0.21–0.25 s this way (2 shared cores, load 14; docs/RADIOTHERAPY.md)."""
+    """``numpy.zeros(shape, float32)`` in its own private anonymous memory map, which the kernel
+    zero-fills a 4 KiB page at a time as it is first written. ``numpy.zeros`` asks for transparent
+    huge pages for a large array, and where memory is fragmented the kernel compacted memory at each
+    first write (the bench field's fill and Jacobian pass: 0.38–0.90 s of system time that way,
+    0.21–0.25 s with 4 KiB pages; 2 shared cores, load 14; docs/RADIOTHERAPY.md). Private, not shared:
+    a shared anonymous map is shared memory (shmem), whose faults cost more, and whose pages a read
+    allocates; here a page only read maps the kernel's one zero page. A page read before it is written
+    faults twice (the zero page, then its copy), so a fresh output is written, not added to
+    (:func:`fill_field`'s ``fresh``): 46 000 pages of the bench field 0.09–0.11 CPU-s so, against
+    0.14–0.19 shared and added to."""
     size = int(np.prod(shape, dtype=np.int64)) * 4
     if size == 0:
         return np.zeros(shape, np.float32)
-    return np.frombuffer(mmap.mmap(-1, size), np.float32).reshape(shape)
+    buf = mmap.mmap(-1, size, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS)
+    return np.frombuffer(buf, np.float32).reshape(shape)
 
 
 def axis_weights(n_out: int, lo: int, stride: int, nodes: int, box_lo: int, box_hi: int):
@@ -61,12 +67,13 @@ def _row(values, k0, fz, j0, fy, buf):
 
 
 @numba.njit(cache=True)
-def _lerp_row(out, k, j, row, still, axis_i, box_i):
+def _lerp_row(out, k, j, row, still, axis_i, box_i, fresh):
     """Add into ``out[k, j, i]`` for i in ``box_i`` (i0, i1) the lattice ``row : (nx, 3) float32``
     (:func:`_row`) interpolated linearly (``axis_i`` = ``(nodes, frac)`` of axis i, :func:`axis_weights`:
     node ``nodes[i]`` ≥ 0, fraction ``frac[i]``), skipping the voxels
     between two ``still`` nodes (they would get exactly 0); the arithmetic of :func:`fill_field`'s
-    general loop without its affine part. Returns the first and last voxel touched (first > last: none)."""
+    general loop without its affine part (``fresh``: as there). Returns the first and last voxel
+    touched (first > last: none)."""
     nodes_i, frac_i = axis_i
     i0, i1 = box_i
     last = row.shape[0] - 1
@@ -81,12 +88,16 @@ def _lerp_row(out, k, j, row, still, axis_i, box_i):
         lo, hi = min(lo, i), i
         f = frac_i[i]
         for c in range(3):
-            out[k, j, i, c] += row[n0, c] * (1 - f) + row[n1, c] * f
+            x = row[n0, c] * (1 - f) + row[n1, c] * f
+            if fresh:
+                out[k, j, i, c] = x + 0.0
+            else:
+                out[k, j, i, c] += x
     return lo, hi
 
 
 @numba.njit(cache=True, parallel=True)
-def fill_field(out, values, axes, affine_part, ranges, spans):
+def fill_field(out, values, axes, affine_part, ranges, spans, fresh=False):
     """Add into ``out : (z, y, x, 3) float32`` at voxels ``ranges`` (k0, k1, j0, j1, i0, i1): the
     lattice ``values : (nz, ny, nx, 3) float32`` interpolated trilinearly where all three axes' nodes
     are ≥ 0 (else 0), plus ``const + steps @ (i, j, k)``. ``axes`` = the ``(nodes, frac)`` pairs
@@ -96,7 +107,10 @@ def fill_field(out, values, axes, affine_part, ranges, spans):
     exactly 0 (outside the lattice, or between two row nodes that do not move, and no affine part)
     is not touched: a fresh ``numpy.zeros`` output is written, and paged in, only where the field moves.
     ``spans`` = ``(first, last)``, ``(z, y) int64`` each: per voxel row the first and last voxel this
-    pass touched, widened in place (rows it leaves alone keep theirs; see :func:`no_spans`)."""
+    pass touched, widened in place (rows it leaves alone keep theirs; see :func:`no_spans`). ``fresh``:
+    ``out`` is all zeros (:func:`zeroed`), so each touched voxel is written ``x + 0`` (the same bits
+    as ``0 + x``) without reading it first (:func:`zeroed`: a read then a write faults a page twice).
+    Returns ``out``."""
     (nodes_k, frac_k), (nodes_j, frac_j), (nodes_i, frac_i) = axes
     const, steps = affine_part
     first, final = spans
@@ -114,7 +128,8 @@ def fill_field(out, values, axes, affine_part, ranges, spans):
                     still[n] = row[n, 0] == 0 and row[n, 1] == 0 and row[n, 2] == 0
             if not affine:
                 if lattice:
-                    touched_lo, touched_hi = _lerp_row(out, k, j, row, still, (nodes_i, frac_i), (ranges[4], ranges[5]))
+                    touched_lo, touched_hi = _lerp_row(out, k, j, row, still, (nodes_i, frac_i), (ranges[4], ranges[5]),
+                                                       fresh)
                 if touched_lo <= touched_hi:
                     first[k, j], final[k, j] = min(first[k, j], touched_lo), max(final[k, j], touched_hi)
                 continue
@@ -129,7 +144,10 @@ def fill_field(out, values, axes, affine_part, ranges, spans):
                     if inside:
                         x = row[n0, c] * (1 - f) + row[n1, c] * f
                     x += const[c] + steps[c, 0] * i + steps[c, 1] * j + steps[c, 2] * k
-                    out[k, j, i, c] += x
+                    if fresh:
+                        out[k, j, i, c] = x + 0.0
+                    else:
+                        out[k, j, i, c] += x
             if touched_lo <= touched_hi:
                 first[k, j], final[k, j] = min(first[k, j], touched_lo), max(final[k, j], touched_hi)
     return out
@@ -234,6 +252,57 @@ def _det_row(f, k, j, box_i, inv, dets, diagonal):
     return dets
 
 
+@numba.njit(cache=True)
+def _column(ahead, behind, step, inv, identity, out):
+    """Write into ``out : (3·m,) float`` column a of ``I + ∇u`` at m voxels of a row, interleaved
+    (``out[3·i + c] = (u_c(ahead) − u_c(behind))·step·inv + δ_ac``): ``ahead``, ``behind`` the field's
+    ``(3·m,) float32`` components at the neighbours along index axis a, ``step`` 1/2 or 1 (index steps
+    between them), ``inv`` = ``∂index_a/∂x_a`` (an axis-aligned grid), ``identity[3·i + c] = δ_ac``. :func:`_grad_row`'s arithmetic, in its order, on an axis-aligned grid; unsigned
+    indices, so that numba adds no negative-index wraparound and the loop is vectorised."""
+    for q in range(np.uint64(out.shape[0])):
+        out[q] = (np.float64(ahead[q]) - np.float64(behind[q])) * step * inv + identity[q]
+    return out
+
+
+@numba.njit(cache=True)
+def _det_columns(c1, c2, c3, dets):
+    """``dets[i] = det[c1 | c2 | c3]`` at each voxel i, the columns interleaved as :func:`_column`
+    writes them (:func:`_det_near`'s cofactor expansion, in its order); vectorised (unsigned indices)."""
+    for i in range(np.uint64(dets.shape[0])):
+        q = i * np.uint64(3)
+        a11, a21, a31 = c1[q], c1[q + np.uint64(1)], c1[q + np.uint64(2)]
+        a12, a22, a32 = c2[q], c2[q + np.uint64(1)], c2[q + np.uint64(2)]
+        a13, a23, a33 = c3[q], c3[q + np.uint64(1)], c3[q + np.uint64(2)]
+        dets[i] = a11 * (a22 * a33 - a23 * a32) - a12 * (a21 * a33 - a23 * a31) + a13 * (a21 * a32 - a22 * a31)
+    return dets
+
+
+@numba.njit(cache=True)
+def _det_row_aligned(g, k, j, box_i, inv, dets, work):
+    """:func:`_det_row` on an axis-aligned grid (``inv`` diagonal) for ``g = f.reshape(z, y, 3·x)``: the
+    row's inner voxels column by column (:func:`_column`; ``work = (columns (3, 3·x) float, identity
+    (3, 3·x) float)``, ``identity[a, 3·i + c] = δ_ac``), then their determinants (:func:`_det_columns`);
+    the same numbers as :func:`_det_row`, vectorised."""
+    nz, ny, nx = g.shape[0], g.shape[1], g.shape[2] // 3
+    kl, kh, jl, jh = max(k - 1, 0), min(k + 1, nz - 1), max(j - 1, 0), min(j + 1, ny - 1)
+    rk, rj = 0.5 if kh - kl == 2 else 1.0, 0.5 if jh - jl == 2 else 1.0
+    i0, i1 = box_i
+    lo, hi = max(i0, 1), min(i1, nx - 1)
+    if lo < hi:
+        a, b, m = 3 * lo, 3 * hi, 3 * (hi - lo)
+        cols, identity = work
+        c1 = _column(g[k, j, a + 3:b + 3], g[k, j, a - 3:b - 3], 0.5, inv[0, 0], identity[0, :m], cols[0, :m])
+        c2 = _column(g[k, jh, a:b], g[k, jl, a:b], rj, inv[1, 1], identity[1, :m], cols[1, :m])
+        c3 = _column(g[kh, j, a:b], g[kl, j, a:b], rk, inv[2, 2], identity[2, :m], cols[2, :m])
+        _det_columns(c1, c2, c3, dets[lo - i0:hi - i0])
+    f = g.reshape((nz, ny, nx, 3))
+    for i in range(i0, min(lo, i1)):  # the voxels outside [lo, hi): at most one at each end of a row
+        dets[i - i0] = _det_edge(f, k, j, i, (kl, kh, jl, jh, rk, rj), inv, True)
+    for i in range(max(hi, i0), i1):
+        dets[i - i0] = _det_edge(f, k, j, i, (kl, kh, jl, jh, rk, rj), inv, True)
+    return dets
+
+
 @numba.njit(cache=True, parallel=True)
 def row_spans(f, ranges):
     """Per voxel row (k, j) of ``f : (z, y, x, 3)`` within one voxel of the box ``ranges`` (k0, k1, j0,
@@ -273,9 +342,14 @@ def jacobian_pass(f, inv, ranges, out, spans):
     first, last = spans
     diagonal = (inv[0, 1] == 0 and inv[0, 2] == 0 and inv[1, 0] == 0 and inv[1, 2] == 0
                 and inv[2, 0] == 0 and inv[2, 1] == 0)
+    g = f.reshape((nz, ny, 3 * f.shape[2]))
+    identity = np.zeros((3, g.shape[2]))
+    for c in range(3):
+        identity[c, c::3] = 1.0
     for s in numba.prange(nk):
         k = ranges[0] + s
         dets = np.empty(max(i1 - i0, 0))
+        work = (np.empty((3, g.shape[2])), identity)
         lo, hi, folded = np.inf, -np.inf, 0
         for j in range(ranges[2], ranges[3]):
             kl, kh, jl, jh = max(k - 1, 0), min(k + 1, nz - 1), max(j - 1, 0), min(j + 1, ny - 1)
@@ -285,7 +359,10 @@ def jacobian_pass(f, inv, ranges, out, spans):
             if a > i0 or b < i1:
                 lo, hi = min(lo, 1.0), max(hi, 1.0)
             if a < b:
-                _det_row(f, k, j, (a, b), inv, dets, diagonal)
+                if diagonal:  # the same numbers as _det_row's, vectorised
+                    _det_row_aligned(g, k, j, (a, b), inv, dets, work)
+                else:
+                    _det_row(f, k, j, (a, b), inv, dets, diagonal)
                 for m in range(b - a):
                     d = dets[m]
                     lo, hi = min(lo, d), max(hi, d)
