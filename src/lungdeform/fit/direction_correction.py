@@ -86,7 +86,7 @@ def _correspondence(fitter: LungFitter, u, shifts):
     keep = np.flatnonzero(fitter.keep)
     for i in fitter.fit_on:
         pt = fitter.prepared[i]
-        s = (pt.target.volume_ml - fitter.v_ee) / fitter.delta_ml
+        s = fitter.scale_at(i)
         t = np.zeros(3) if shifts is None else np.asarray(shifts[i], float)
         xi = fitter.p + s * u
         _, closest, _ = fitter.target_query(i, xi[keep] - t)  # what the objective at u just found

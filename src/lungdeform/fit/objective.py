@@ -321,8 +321,7 @@ class LungFitter:
 
     def landmark_positions(self, u: np.ndarray, target: int) -> np.ndarray:
         """``(m, 3)`` mm: the landmarks moved by the sliding interpolation of ``s·u`` at ``target``."""
-        s = (self.targets[target].volume_ml - self.v_ee) / self.delta_ml
-        return self.lm_rest + s * (self.lm_matrix @ u[self.keep])
+        return self.lm_rest + self.scale_at(target) * (self.lm_matrix @ u[self.keep])
 
     # ----------------------------------------------------------------- stiffness-dependent part
     def set_stiffness(self, stiffness: np.ndarray) -> None:
@@ -412,7 +411,7 @@ class LungFitter:
         fa, du_kept = self.root_areas / norm, du[keep]
         for i, (dist, closest, _), on_model in zip(self.fit_on, *self._two_sided(u, sh)):
             pt = self.prepared[i]
-            s = self._scale(i)
+            s = self.scale_at(i)
             x = self.p + s * u
             # model vertices → target surface
             g = _unit(x[keep] - sh[i] - closest, dist)
@@ -433,8 +432,7 @@ class LungFitter:
             m = len(self.lm_rest)
             moved = np.stack([self.lm_matrix @ du_kept[..., k] for k in range(du.shape[2])], axis=2)  # (m, 3, p)
             for i in self.lm_targets:
-                s = (self.targets[i].volume_ml - self.v_ee) / self.delta_ml
-                rows_p.append(scale * s * moved.reshape(3 * m, -1))
+                rows_p.append(scale * self.scale_at(i) * moved.reshape(3 * m, -1))
                 rows_t.append(-scale * np.tile(np.eye(3), (m, 1)))
                 lm_cols.append(col[i])
         return np.concatenate(rows_p), (self._shift_block(rows_t, cols + lm_cols) if translations else None)
@@ -504,7 +502,7 @@ class LungFitter:
                     residuals=ev.residuals, constants=np.concatenate([np.asarray(c_dir, float)[:6], c_force / scale]),
                     surface_rms=float(np.sqrt(ev.surface_ms)), landmark_rms=float(np.sqrt(ev.landmark_ms)))
 
-    def _scale(self, target: int) -> float:
+    def scale_at(self, target: int) -> float:
         """The model's scale ``s`` (units of ``delta_ml``) at target ``target``'s volume."""
         return (self.targets[target].volume_ml - self.v_ee) / self.delta_ml
 
@@ -512,7 +510,7 @@ class LungFitter:
         """For the displacement ``u : (n, 3)`` mm per unit, per target in ``fit_on`` (moved by ``shifts :
         (k, 3)`` mm): ``(model vertices → target, target samples → model)``, each a list of
         ``(distance, closest, face)`` (:meth:`_queries`: every target's in one search)."""
-        x = [self.p + self._scale(i) * u for i in self.fit_on]
+        x = [self.p + self.scale_at(i) * u for i in self.fit_on]
         to_target = self._queries([(i, xi[self.keep] - shifts[i], None) for i, xi in zip(self.fit_on, x)])
         to_model = self._queries([(i, self.prepared[i].samples + shifts[i], xi) for i, xi in zip(self.fit_on, x)])
         return to_target, to_model
