@@ -29,7 +29,7 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from lungdeform.errors import InputError
-from lungdeform.geometry.distance import SurfaceDistance
+from lungdeform.geometry.distance import DistanceStack, SurfaceDistance
 
 #: Gaussian widths (mm) of the coarse-to-fine rounds; those below ``finest_mm`` are skipped.
 WIDTHS_MM = (20.0, 14.0, 10.0, 7.0, 5.0)
@@ -70,24 +70,6 @@ def gaussian_smoother(points, width_mm: float) -> sp.csr_matrix:
     return sp.csr_matrix((np.concatenate([w, w, np.ones(n)]), (rows, cols)), shape=(n, n))
 
 
-class _ClosestPoints:
-    """Closest points on each of a few fixed surfaces (:class:`SurfaceDistance` ``queries``), each query
-    started from the closest faces of the last query on the same surface (the refinement moves the
-    vertices little between rounds, so their last faces bound the search tightly; the closest points are
-    exact either way, :meth:`lungdeform.geometry.distance.SurfaceDistance.query`)."""
-
-    def __init__(self, queries: list[SurfaceDistance]):
-        self.queries = queries
-        self.faces: list[np.ndarray | None] = [None] * len(queries)
-
-    def __call__(self, target: int, points: np.ndarray) -> np.ndarray:
-        """``(k, 3)`` mm: the closest point of each of ``points : (k, 3)`` mm on surface ``target``."""
-        query, last = self.queries[target], self.faces[target]
-        bound = None if last is None else query.face_distance(points, last)
-        _, closest, self.faces[target] = query.query(points, bound)
-        return closest
-
-
 def refine_displacement(rest_vertices, displacement, targets, scales, keep=None, *,
                         finest_mm: float = FINEST_MM, iterations: int = ITERATIONS) -> Refinement:
     """Refine ``displacement : (n, 3)`` mm per unit of a model whose end-exhale vertices are
@@ -108,7 +90,10 @@ def refine_displacement(rest_vertices, displacement, targets, scales, keep=None,
     kept = np.ones(len(p), bool) if keep is None else np.asarray(keep, bool)
     if kept.shape != (len(p),):
         raise InputError(f"keep must be one bool per vertex ({len(p)}), got shape {kept.shape}")
-    closest = _ClosestPoints([SurfaceDistance(t.vertices, t.faces) for t in targets])
+    # every target's closest points in one search, each started from its last faces (the vertices move
+    # little between rounds, so those bound the search tightly; exact either way)
+    stack = DistanceStack([SurfaceDistance(t.vertices, t.faces) for t in targets])
+    faces = None
     widths = tuple(w for w in WIDTHS_MM if w >= finest_mm - 1e-9) or (float(finest_mm),)
     u = u0.copy()
     for width in widths:
@@ -116,7 +101,9 @@ def refine_displacement(rest_vertices, displacement, targets, scales, keep=None,
         weight = smoother @ kept.astype(float)
         for _ in range(int(iterations)):
             x = [p + st * u for st in s]
-            r = np.hstack([np.where(kept[:, None], closest(t, xt) - xt, 0.0) for t, xt in enumerate(x)])
+            found = stack.query(range(len(x)), x, faces)
+            faces = [face for _, _, face in found]
+            r = np.hstack([np.where(kept[:, None], c - xt, 0.0) for (_, c, _), xt in zip(found, x)])
             smoothed = smoother @ r  # (n, 3 × targets): every target's residual in one pass over the kernel
             step = np.zeros_like(u)
             for t, st in enumerate(s):
