@@ -444,12 +444,18 @@ class SurfaceDistance:
         surface: a ``bound`` for :meth:`query`, e.g. from each point's closest face in an earlier query
         on a surface of the same faces whose vertices moved a little."""
         pts = as_vertices(points, "points")
-        f = np.asarray(faces)
-        if f.shape != (len(pts),) or not np.issubdtype(f.dtype, np.integer) or (
-                len(f) and (f.min() < -1 or f.max() >= len(self.faces))):
-            raise InputError(f"faces must be ({len(pts)},) face indices of this surface (or -1), got shape "
-                             f"{f.shape}, dtype {f.dtype}")
+        f = self._checked_faces(faces, len(pts), "this surface")
         return _face_bound(pts, self.vertices, self.faces, np.ascontiguousarray(f, np.int64))
+
+    def _checked_faces(self, faces, n: int, name: str) -> np.ndarray:
+        """``faces`` as an array, refused unless ``(n,)`` integer indices of this surface's faces (or −1),
+        the message naming the surface as ``name``."""
+        f = np.asarray(faces)
+        if f.shape != (n,) or not np.issubdtype(f.dtype, np.integer) or (
+                len(f) and (f.min() < -1 or f.max() >= len(self.faces))):
+            raise InputError(f"faces must be ({n},) face indices of {name} (or -1), got shape {f.shape}, "
+                             f"dtype {f.dtype}")
+        return f
 
     def query(self, points, bound=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(distance (k,) mm, closest (k, 3) mm, face (k,) int)`` for ``points : (k, 3)``.
@@ -471,11 +477,17 @@ class SurfaceDistance:
             if len(b) != len(pts):
                 raise InputError(f"bound: need one upper bound (mm) per point ({len(pts)}), got {len(b)}")
             b = np.where(np.isfinite(b) & (b >= 0.0), b, np.inf)
-        dist, closest, face = self._search(pts, b)
-        miss = np.flatnonzero(face < 0)
+        found = self._search(pts, b)
+        self._fill_misses(pts, np.flatnonzero(found[2] < 0), found)
+        return found
+
+    def _fill_misses(self, pts: np.ndarray, miss: np.ndarray, found: tuple) -> None:
+        """Search the points ``pts[miss]`` (``miss : (k,) int``, those the grid's search left without a
+        face: no bound and no face near) again from their nearest vertex, into ``found = (distance,
+        closest, face)`` (:meth:`query`'s arrays) in place."""
         if len(miss):
+            dist, closest, face = found
             dist[miss], closest[miss], face[miss] = self._search(pts[miss], self._vertex_bound(pts[miss]))
-        return dist, closest, face
 
     def _vertex_bound(self, pts: np.ndarray) -> np.ndarray:
         """``(k,) float`` mm: each point's distance to the nearest vertex (an upper bound on its distance)."""
@@ -525,22 +537,17 @@ class DistanceStack:
         if len(which) != len(pts) or len(hints) != len(pts) or any(w < 0 or w >= len(self.surfaces) for w in which):
             raise InputError(f"which, points and faces must be one per query, which indexing the "
                              f"{len(self.surfaces)} surfaces; got {len(which)}, {len(pts)}, {len(hints)}")
-        hint = [np.full(len(p), -1, np.int64) if f is None else np.asarray(f) for p, f in zip(pts, hints)]
-        for p, f, w in zip(pts, hint, which):
-            if f.shape != (len(p),) or not np.issubdtype(f.dtype, np.integer) or (
-                    len(f) and (f.min() < -1 or f.max() >= len(self.surfaces[w].faces))):
-                raise InputError(f"faces must be ({len(p)},) face indices of surface {w} (or -1), got shape "
-                                 f"{f.shape}, dtype {f.dtype}")
+        hint = [np.full(len(p), -1, np.int64) if f is None
+                else self.surfaces[w]._checked_faces(f, len(p), f"surface {w}") for p, f, w in zip(pts, hints, which)]
         allp = np.concatenate(pts)
         if not np.all(np.isfinite(allp)):
             raise InputError("points contain NaN or infinity")
         grid_of = np.repeat(np.asarray(which, np.int64), [len(p) for p in pts])
-        dist, closest, face = _closest_kernel(allp, np.full(len(allp), np.inf), np.concatenate(hint).astype(np.int64),
-                                              grid_of, self._grid)
+        found = _closest_kernel(allp, np.full(len(allp), np.inf), np.concatenate(hint).astype(np.int64),
+                                grid_of, self._grid)
+        dist, closest, face = found
         for w in np.unique(grid_of[face < 0]):  # no face near and no bound: from the nearest vertex, as query does
-            miss = np.flatnonzero((face < 0) & (grid_of == w))
-            sd = self.surfaces[w]
-            dist[miss], closest[miss], face[miss] = sd._search(allp[miss], sd._vertex_bound(allp[miss]))
+            self.surfaces[w]._fill_misses(allp, np.flatnonzero((face < 0) & (grid_of == w)), found)
         cut = np.cumsum([len(p) for p in pts])[:-1]
         return list(zip(np.split(dist, cut), np.split(closest, cut), np.split(face, cut)))
 
