@@ -92,6 +92,13 @@ def _half_size(extents) -> np.ndarray:
     return np.max([0.5 * (np.asarray(hi) - np.asarray(lo)) for lo, hi in extents], axis=0) * 1.06
 
 
+def _panel_title(r: int, c: int, view: str, row_titles: Sequence[str | None] | None) -> str:
+    """The title of the panel in row ``r``, column ``c`` (showing ``view``): the row's title on the
+    left column, the view on the top row ("row: view" where both), else ''."""
+    name = [row_titles[r]] if row_titles is not None and c == 0 and row_titles[r] else []
+    return ": ".join(name + ([view] if r == 0 else []))
+
+
 def _frame_views(axes: np.ndarray, mids: np.ndarray, half: np.ndarray, views: Sequence[str],
                  row_titles: Sequence[str | None] | None = None) -> None:
     """Every panel of ``axes : (rows, len(views))`` shows ``mids : (rows · len(views), 2) float`` mm
@@ -108,8 +115,7 @@ def _frame_views(axes: np.ndarray, mids: np.ndarray, half: np.ndarray, views: Se
         ax.set_ylim(mid[1] - half[1], mid[1] + half[1])
         ax.set_aspect("equal")
         across, upward = VIEW_DIRECTIONS[view]
-        name = [row_titles[r]] if row_titles is not None and c == 0 and row_titles[r] else []
-        ax.set_title(": ".join(name + ([view] if r == 0 else [])), fontsize=9 if rows > 1 else None)
+        ax.set_title(_panel_title(r, c, view, row_titles), fontsize=9 if rows > 1 else None)
         if r == rows - 1:
             ax.set_xlabel(f"mm, toward {across} →", fontsize=8)
         if c == 0:
@@ -273,8 +279,7 @@ def _mosaic_labels(fig: Figure, pixels, top: np.ndarray, left: np.ndarray, shape
     pad = 6.0 / 72.0 * fig.dpi  # matplotlib's title and label padding, 6 points
     for r in range(top.shape[0]):
         for c, view in enumerate(views):
-            name = [row_titles[r]] if row_titles is not None and c == 0 and row_titles[r] else []
-            title = ": ".join(name + ([view] if r == 0 else []))
+            title = _panel_title(r, c, view, row_titles)
             if title:
                 fig.text(left[r, c] + 0.5 * w, top[r, c] - pad, title, fontsize=9, ha="center", va="bottom",
                          transform=pixels)
@@ -308,8 +313,8 @@ def error_maps(rows: Sequence[tuple[np.ndarray, np.ndarray]], faces: np.ndarray,
     (default: the 98th percentile of every row's errors) and one colour bar, the same mm per pixel in
     every panel (:func:`paint_panels`: each panel an image, painted here, not one matplotlib path per
     face). Laid out in inches (:func:`lungdeform.plot.figure.grid_boxes`); one or two rows: an Axes per
-    panel with mm ticks; from three rows on, smaller panels, all in one image on one Axes (no ticks:
-    the panels' common size is said in the title), so the figure costs about the same whatever the
+    panel with mm ticks; from three rows on, smaller panels, all in one image drawn on the figure
+    itself (:func:`_mosaic`: no Axes, no ticks; the panels' common size is said in the title), so the figure costs about the same whatever the
     number of rows."""
     errors = [np.asarray(e, float) for _, e in rows]
     finite = np.concatenate([e[np.isfinite(e)] for e in errors] + [np.zeros(0)])
