@@ -254,18 +254,28 @@ def _yz_bins(boxes, cells):
     grid = np.array([y0, z0, hy, hz])
     counts = np.zeros(cells * cells + 1, np.int64)
     for f in range(boxes.shape[0]):
-        for a in range(_yz_cell(boxes[f, 0], y0, hy, cells), _yz_cell(boxes[f, 1], y0, hy, cells) + 1):
-            for b in range(_yz_cell(boxes[f, 2], z0, hz, cells), _yz_cell(boxes[f, 3], z0, hz, cells) + 1):
+        a0, a1, b0, b1 = _yz_span(boxes[f], grid, cells)
+        for a in range(a0, a1 + 1):
+            for b in range(b0, b1 + 1):
                 counts[a * cells + b + 1] += 1
     ptr = np.cumsum(counts)
     fill = ptr[:-1].copy()
     members = np.empty(ptr[-1], np.int64)
     for f in range(boxes.shape[0]):
-        for a in range(_yz_cell(boxes[f, 0], y0, hy, cells), _yz_cell(boxes[f, 1], y0, hy, cells) + 1):
-            for b in range(_yz_cell(boxes[f, 2], z0, hz, cells), _yz_cell(boxes[f, 3], z0, hz, cells) + 1):
+        a0, a1, b0, b1 = _yz_span(boxes[f], grid, cells)
+        for a in range(a0, a1 + 1):
+            for b in range(b0, b1 + 1):
                 members[fill[a * cells + b]] = f
                 fill[a * cells + b] += 1
     return ptr, members, grid
+
+
+@numba.njit(cache=True, inline="always")
+def _yz_span(box, grid, cells):
+    """``(a0, a1, b0, b1)``: the cells (inclusive ranges along y, z) of :func:`_yz_bins`' grid ``grid =
+    (y0, z0, hy, hz)`` that a triangle's ``box (4,)`` (y min, y max, z min, z max) meets."""
+    return (_yz_cell(box[0], grid[0], grid[2], cells), _yz_cell(box[1], grid[0], grid[2], cells),
+            _yz_cell(box[2], grid[1], grid[3], cells), _yz_cell(box[3], grid[1], grid[3], cells))
 
 
 @numba.njit(cache=True, inline="always")
